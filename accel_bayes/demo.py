@@ -1,0 +1,145 @@
+"""The end-to-end demo: simulate → MAP → posterior → diagnostics → (mismatch check).
+
+``accel-bayes demo --out DIR`` runs it on an embedded default (the 8-IMU MIMU4444 corner board,
+smooth hand-like motion, accelerometer triads displaced from the design by ~0.3 mm) in a few
+minutes on a 2-core machine, and writes a Markdown report with the figures.  Each stage that the
+package does not provide yet is reported as such, never faked.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["run_demo", "DEFAULTS"]
+
+DEFAULTS = dict(
+    preset="mimu8",
+    motion="smooth",
+    T=1000,
+    rate=100.0,
+    seed=1,
+    position_error=3e-4,
+    chains=2,
+    draws=1000,
+    warmup=1000,
+)
+
+
+def _say(msg: str, log: list) -> None:
+    print(msg, flush=True)
+    log.append(msg)
+
+
+def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress: bool = True, **overrides) -> Path:
+    """Run the whole pipeline as far as it exists; returns the path of ``report.md``.
+
+    ``quick`` shrinks the run (fewer samples and draws) for smoke tests.  Keyword overrides
+    replace entries of :data:`DEFAULTS`.
+    """
+    from . import arrays
+    from .io import write_recording, write_truth
+    from .simulate import simulate
+
+    cfg = dict(DEFAULTS)
+    if quick:
+        cfg.update(T=300, draws=200, warmup=200)
+    unknown = set(overrides) - set(cfg)
+    if unknown:
+        raise TypeError(f"run_demo: unknown settings {sorted(unknown)}")
+    cfg.update(overrides)
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    log: list[str] = []
+    report = ["# accel_bayes demo report", "", f"Settings: `{json.dumps(cfg)}`", ""]
+    t0 = time.perf_counter()
+
+    # 1. simulate --------------------------------------------------------------------------
+    array = arrays.preset(cfg["preset"])
+    sim = simulate(array, cfg["motion"], T=cfg["T"], rate=cfg["rate"], seed=cfg["seed"],
+                   position_error_std=cfg["position_error"])
+    rec, truth = sim.recording, sim.truth
+    rec_path = out / "recording.nc"
+    write_recording(rec, rec_path, overwrite=True)
+    write_truth(rec_path, truth)
+    true_pos = np.asarray(truth["positions"])
+    true_rel = true_pos - true_pos[rec.reference_imu]
+    _say(f"[1/5] simulated {cfg['preset']} ({rec.K} IMUs), {rec.T} samples of {cfg['motion']} motion "
+         f"at {cfg['rate']:g} Hz → {rec_path}", log)
+    report += ["## 1. Simulation", f"- recording: `{rec_path.name}` (ground truth in the sidecar "
+               f"`{rec_path.with_suffix('.truth.json').name}`)", ""]
+
+    # 2. MAP ---------------------------------------------------------------------------------
+    map_rel = None
+    try:
+        from .inference.map import fit_map_recording
+    except ImportError:
+        _say("[2/5] MAP: not available in this version", log)
+        report += ["## 2. MAP", "Not available in this version.", ""]
+    else:
+        tm = time.perf_counter()
+        mres = fit_map_recording(rec)
+        map_pos = mres.positions.detach().cpu().numpy()
+        map_rel = map_pos - map_pos[rec.reference_imu]
+        err = np.linalg.norm(map_rel - true_rel, axis=1)
+        _say(f"[2/5] MAP by Levenberg-Marquardt in {time.perf_counter() - tm:.1f} s: "
+             f"position error median {np.median(err[1:]) * 1e6:.0f} µm, max {err.max() * 1e6:.0f} µm", log)
+        report += ["## 2. MAP (Levenberg-Marquardt)",
+                   f"- position error vs truth: median {np.median(err[1:]) * 1e6:.1f} µm, max {err.max() * 1e6:.1f} µm",
+                   ""]
+
+    # 3–4. posterior + diagnostics ------------------------------------------------------------
+    try:
+        from .calibrate import calibrate, write_outputs
+    except ImportError:
+        _say("[3/5] posterior: not available in this version", log)
+        report += ["## 3. Posterior", "Not available in this version.", ""]
+    else:
+        tp = time.perf_counter()
+        res = calibrate(rec, chains=cfg["chains"], draws=cfg["draws"], warmup=cfg["warmup"],
+                        seed=cfg["seed"], progress=progress)
+        post_dir = out / "posterior"
+        files = write_outputs(res, post_dir)
+        pos = res.positions
+        means = np.array([i["mean"] for i in pos["imus"]])
+        stds = np.array([i["std"] for i in pos["imus"]])
+        free = [i for i in range(rec.K) if i != rec.reference_imu]
+        z = (means[free] - true_rel[free]) / stds[free]
+        diag = pos["diagnostics"]
+        _say(f"[3/5] posterior by PmMH in {time.perf_counter() - tp:.1f} s "
+             f"({cfg['chains']} chains × {cfg['draws']} draws)", log)
+        _say(f"[4/5] diagnostics: R̂ max {diag['rhat_max']:.3f}, bulk ESS min {diag['ess_bulk_min']:.0f}; "
+             f"|posterior mean − truth| / posterior std: median {np.median(np.abs(z)):.2f}, max {np.abs(z).max():.2f}", log)
+        report += ["## 3. Posterior (PmMH)",
+                   f"- {cfg['chains']} chains × {cfg['draws']} draws after {cfg['warmup']} warm-up",
+                   f"- R̂ max {diag['rhat_max']:.4f}, bulk ESS min {diag['ess_bulk_min']:.0f}",
+                   f"- standardized errors (mean − truth)/std: median |z| {np.median(np.abs(z)):.2f}, "
+                   f"max |z| {np.abs(z).max():.2f} (about 68 % should be < 1)", "",
+                   "| IMU | mean x, y, z (mm) | std x, y, z (µm) | truth x, y, z (mm) |", "|---|---|---|---|"]
+        for k in range(rec.K):
+            report.append(f"| {k} | {', '.join(f'{v * 1e3:.3f}' for v in means[k])} | "
+                          f"{', '.join(f'{v * 1e6:.0f}' for v in stds[k])} | "
+                          f"{', '.join(f'{v * 1e3:.3f}' for v in true_rel[k])} |")
+        report += ["", "## 4. Diagnostics", ""]
+        for f in files:
+            f = Path(f)
+            rel = f.relative_to(out)
+            report.append(f"![{f.stem}]({rel.as_posix()})" if f.suffix == ".png" else f"- `{rel.as_posix()}`")
+        report.append("")
+
+    # 5. mismatch check ------------------------------------------------------------------------
+    try:
+        from .mismatch import detect  # noqa: F401
+    except ImportError:
+        _say("[5/5] mismatch check: not available in this version (model-mismatch discovery is open work)", log)
+        report += ["## 5. Mismatch check", "Not available in this version.", ""]
+
+    report += [f"Total time: {time.perf_counter() - t0:.1f} s", ""]
+    rpath = out / "report.md"
+    rpath.write_text("\n".join(report), encoding="utf-8")
+    print(f"\nReport: {rpath.resolve()}\nPlots and files: {out.resolve()}", flush=True)
+    return rpath
