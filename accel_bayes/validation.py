@@ -1,0 +1,653 @@
+"""Validation of recordings against format v1 (DESIGN §7.1), with errors that name the problem.
+
+Two levels:
+
+* :func:`validate_dataset` checks an :class:`xarray.Dataset` as read from a file *before* a
+  :class:`~accel_bayes.recording.Recording` is built from it: variable and coordinate names
+  (with a suggestion when a near name is present), dimension names and order, axis and
+  quaternion labels, declared units, dtypes of the masks and labels, global attributes.
+* :func:`validate_recording` checks an in-memory :class:`Recording` (what :func:`read_recording`
+  returns, and what the simulator and importers build): shapes, finite samples, strictly
+  increasing time, positive noise levels, observable accelerometer geometry, reference IMU,
+  segment labels, and whether the gyroscope values plausibly are in rad/s (see
+  :func:`gyro_unit_diagnostics` for the rule).
+
+Every failure raises :class:`~accel_bayes.errors.RecordingError` with a one-line message that
+names the field, what was expected and what was found.  Nothing is altered or guessed: a
+recording either passes as it is or is refused.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import re
+
+import numpy as np
+import torch
+
+from .arrays import check_triad_geometry
+from .errors import RecordingError
+from .geometry import quat_to_matrix
+
+__all__ = [
+    "FORMAT",
+    "SEGMENT_LABELS",
+    "validate_dataset",
+    "validate_recording",
+    "gyro_unit_diagnostics",
+    "gyro_declared_units",
+    "units_kind",
+    "DEFAULT_GYRO_BOUND",
+]
+
+FORMAT = "accel_bayes.recording/1"
+SEGMENT_LABELS = ("static", "dynamic")
+RAD_PER_DEG = math.pi / 180.0
+DEG_PER_RAD = 180.0 / math.pi
+
+# Without a stated gyro_range, |ω| above this is not a plausible rad/s reading: 150 rad/s ≈ 8600 °/s,
+# over twice the full scale of the fastest common MEMS gyroscopes (±4000 °/s ≈ 70 rad/s), and well
+# above the ω ~ N(0, 1000 °/s) motion of the [C21] §IV-A simulations (99.9th percentile ≈ 57 rad/s).
+DEFAULT_GYRO_BOUND = 150.0
+# Static-noise rule: σ_static / σ_stated within a factor 3 of 180/π (i.e. 19×–172×) flags deg/s.
+STATIC_RATIO_BAND = 3.0
+# Accelerometer-array rule: decisions need the estimate 5 standard errors clear of the midpoint.
+Z_DECISIVE = 5.0
+
+# ---------------------------------------------------------------- contract tables
+
+# name → (dims, required, what it is)
+VARIABLES = {
+    "acc": (("time", "imu", "axis"), True, "accelerometer triad output, m s-2, sensor frame"),
+    "gyro": (("time", "imu", "axis"), False, "gyroscope triad output, rad s-1, sensor frame"),
+    "nominal_position": (("imu", "axis"), True, "design positions, m, array frame"),
+    "nominal_orientation": (("imu", "quat"), False, "array → sensor quaternions (w, x, y, z)"),
+    "acc_clipped": (("time", "imu"), False, "bool mask of accelerometer samples at the range"),
+    "gyro_clipped": (("time", "imu"), False, "bool mask of gyroscope samples at the range"),
+    "segment": (("time",), False, '"static"/"dynamic" labels'),
+    "acc_noise_std": (("imu",), False, "per-IMU accelerometer noise std, m s-2"),
+    "gyro_noise_std": (("imu",), False, "per-IMU gyroscope noise std, rad s-1"),
+}
+COORDS = {
+    "time": "sample times, s, strictly increasing",
+    "imu": "integer IMU labels 0..K-1",
+    "axis": 'labels "x", "y", "z"',
+    "quat": 'labels "w", "x", "y", "z"',
+}
+AXIS_LABELS = ("x", "y", "z")
+QUAT_LABELS = ("w", "x", "y", "z")
+
+# Names other tools use for the contract's fields (compared after lower-casing and dropping
+# everything but letters and digits).
+_SYNONYMS = {
+    "acc": ["accel", "accels", "accelerometer", "accelerometers", "acceleration", "accelerations",
+            "accdata", "a", "f", "specificforce", "accs", "acce"],
+    "gyro": ["gyr", "gyros", "gyroscope", "gyroscopes", "omega", "angularvelocity", "angularrate",
+             "gyrodata"],
+    "nominal_position": ["position", "positions", "nominalpositions", "pos", "r", "imuposition",
+                         "imupositions", "triadpositions", "triadposition", "designposition"],
+    "nominal_orientation": ["orientation", "orientations", "nominalorientations", "quaternion",
+                            "quaternions", "q", "imuorientation", "imuorientations"],
+    "acc_clipped": ["accclip", "accsaturated", "accsaturation", "accelclipped", "accclipping"],
+    "gyro_clipped": ["gyroclip", "gyrosaturated", "gyrosaturation", "gyroclipping"],
+    "segment": ["segments", "label", "labels", "segmentlabel", "segmentlabels"],
+    "time": ["t", "times", "timestamp", "timestamps", "sampletime", "sampletimes", "sec"],
+    "imu": ["imus", "sensor", "sensors", "imulabel", "triad", "triads", "k", "board_imu"],
+    "axis": ["axes", "component", "components", "xyz"],
+    "quat": ["quaternioncomponent", "wxyz", "q4"],
+    "acc_noise_std": ["accnoise", "accstd", "accnoisestd", "sigmaa", "accsigma"],
+    "gyro_noise_std": ["gyronoise", "gyrostd", "gyronoisestd", "sigmag", "gyrosigma"],
+}
+
+_UNITS = {
+    "s": {"s", "sec", "second", "seconds"},
+    "m s-2": {"m s-2", "m/s^2", "m/s2", "m s^-2", "m.s-2", "m s**-2", "m/s/s", "m/s²", "m s⁻²",
+              "meter second-2", "metre second-2", "meters/second^2", "ms-2", "m*s-2"},
+    "rad s-1": {"rad s-1", "rad/s", "rad s^-1", "rad.s-1", "rad s**-1", "radian s-1", "radians s-1",
+                "radian/s", "radians/s", "rad*s-1", "rads-1"},
+    "deg s-1": {"deg s-1", "deg/s", "deg s^-1", "deg.s-1", "deg s**-1", "degree s-1", "degrees s-1",
+                "degree/s", "degrees/s", "°/s", "° s-1", "dps", "deg*s-1"},
+    "m": {"m", "meter", "meters", "metre", "metres"},
+}
+
+
+def _norm_unit(u) -> str:
+    return re.sub(r"\s+", " ", str(u).strip().lower())
+
+
+def units_kind(units) -> str | None:
+    """The canonical unit ("s", "m s-2", "rad s-1", "deg s-1", "m") a ``units`` string names, or
+    None if it names none of them.  ``"seconds since …"`` counts as seconds."""
+    u = _norm_unit(units)
+    for kind, names in _UNITS.items():
+        if u in names:
+            return kind
+    if re.match(r"^(s|sec|second|seconds) since ", u):
+        return "s"
+    return None
+
+
+def _key(name) -> str:
+    return re.sub(r"[^a-z0-9]", "", str(name).lower())
+
+
+def _suggest(expected: str, candidates) -> str | None:
+    """A name among ``candidates`` that probably means ``expected``: same letters, a known
+    synonym, or a close spelling."""
+    cands = [c for c in candidates if isinstance(c, str)]
+    key = _key(expected)
+    syn = set(_SYNONYMS.get(expected, []))
+    for c in cands:
+        if _key(c) == key or _key(c) in syn:
+            return c
+    close = difflib.get_close_matches(expected.lower(), [c.lower() for c in cands], n=1, cutoff=0.8)
+    if close:
+        return next(c for c in cands if c.lower() == close[0])
+    return None
+
+
+def _py(x):
+    """Plain Python value for messages (numpy 2 reprs read ``np.float64(0.5)``)."""
+    if isinstance(x, np.ndarray):
+        return x.item() if x.ndim == 0 else x.tolist()
+    return x.item() if isinstance(x, np.generic) else x
+
+
+def _fmt_list(xs, n=8) -> str:
+    xs = list(xs)
+    s = ", ".join(str(x) for x in xs[:n])
+    return f"[{s}{', …' if len(xs) > n else ''}]"
+
+
+# ---------------------------------------------------------------- dataset level
+
+def gyro_declared_units(ds) -> str:
+    """The unit the file declares for ``gyro``: ``"rad s-1"`` (also when the ``units`` attribute is
+    absent: that is the format's unit) or ``"deg s-1"`` (an explicit declaration; the reader
+    converts).  Raises :class:`RecordingError` for any other declaration."""
+    if "gyro" not in ds.variables:
+        return "rad s-1"
+    units = ds["gyro"].attrs.get("units")
+    if units is None:
+        return "rad s-1"
+    kind = units_kind(units)
+    if kind not in ("rad s-1", "deg s-1"):
+        raise RecordingError(f'gyro: units attribute is {units!r}; expected "rad s-1" (format v1) '
+                             'or an explicit "deg s-1"')
+    return kind
+
+
+def _check_units(ds, name, expected: str, also: tuple = ()):
+    if name not in ds.variables:
+        return
+    units = ds[name].attrs.get("units")
+    if units is None:  # the format fixes the unit; an absent attribute means the format's unit
+        return
+    kind = units_kind(units)
+    if kind != expected and kind not in also:
+        raise RecordingError(f"{name}: units attribute is {units!r}; expected {expected!r}"
+                             + (" (format v1 stores SI units; convert the values)" if not also else ""))
+
+
+def _check_bool_like(ds, name):
+    if name not in ds.variables:
+        return
+    v = np.asarray(ds[name].values)
+    if v.dtype == bool:
+        return
+    if v.dtype.kind in "iuf":
+        bad = ~np.isin(v, (0, 1))
+        if not bad.any():
+            return
+        i = np.argwhere(bad)[0]
+        raise RecordingError(f"{name}: expected a bool mask (0/1), found value {_py(v[tuple(i)])!r} at index {tuple(int(x) for x in i)}")
+    raise RecordingError(f"{name}: expected a bool mask, got dtype {v.dtype}")
+
+
+def _scalar_attr(ds, name, *, positive=True, integer=False):
+    if name not in ds.attrs:
+        return None
+    v = np.asarray(ds.attrs[name])
+    if v.size != 1 or v.dtype.kind not in "iuf":
+        raise RecordingError(f"{name}: global attribute must be one number, got {_py(ds.attrs[name])!r}")
+    x = float(v.reshape(()))
+    if integer:
+        if not math.isfinite(x) or x != round(x):
+            raise RecordingError(f"{name}: global attribute must be an integer IMU label, got {_py(ds.attrs[name])!r}")
+        return int(round(x))
+    if positive and not (math.isfinite(x) and x > 0):
+        raise RecordingError(f"{name}: global attribute must be a finite number > 0, got {x!r}")
+    return x
+
+
+def validate_dataset(ds) -> None:
+    """Check the structure of a format-v1 dataset (DESIGN §7.1) before a Recording is built.
+
+    Checks, in order: the ``format`` attribute (if present); required variables ``acc`` and
+    ``nominal_position`` (a missing one is reported with any near name the file has, e.g.
+    ``accel``); optional variables under a non-contract name (``gyroscope`` for ``gyro``);
+    dimensions and their order of every contract variable; the ``time``, ``imu``, ``axis`` (and
+    ``quat``) coordinates and their labels; declared units; mask and label dtypes; the global
+    attributes ``acc_noise_std``, ``gyro_noise_std``, ``reference_imu``, ``acc_range``,
+    ``gyro_range``.  Raises :class:`RecordingError` on the first problem.
+    """
+    fmt = ds.attrs.get("format")
+    if isinstance(fmt, str) and fmt.startswith("accel_bayes.recording/") and fmt != FORMAT:
+        raise RecordingError(f"format: this reader understands {FORMAT!r}, the file says {fmt!r}")
+
+    names = set(ds.variables) | set(ds.dims)
+    present = [n for n in list(ds.variables) + list(ds.dims) if n not in VARIABLES and n not in COORDS]
+
+    # Required variables, then optional ones stored under another name.
+    for name, (dims, required, what) in VARIABLES.items():
+        if name in names:
+            continue
+        near = _suggest(name, present)
+        if required:
+            hint = (f'; the file has "{near}" — rename it to "{name}"' if near
+                    else f"; the file has {_fmt_list(sorted(map(str, ds.data_vars)))}")
+            raise RecordingError(f'variable "{name}" is missing: expected {what} with dimensions '
+                                 f"({', '.join(dims)}){hint}")
+        if (near is not None and near in ds.data_vars and set(ds[near].dims) == set(dims)
+                and name not in ("acc_noise_std", "gyro_noise_std")):
+            raise RecordingError(f'variable "{near}" is not part of format v1 but looks like "{name}" '
+                                 f"({what}); rename it to \"{name}\" (or drop it)")
+
+    # Dimensions and their order.
+    for name, (dims, _, what) in VARIABLES.items():
+        if name not in ds.variables:
+            continue
+        got = tuple(ds[name].dims)
+        if got == dims:
+            continue
+        exp = "(" + ", ".join(dims) + ")"
+        gots = "(" + ", ".join(map(str, got)) + ")"
+        if sorted(map(str, got)) == sorted(dims):
+            raise RecordingError(f"{name}: expected dimensions {exp}, got {gots} (axis order differs; "
+                                 f"transpose to {exp})")
+        extra = [d for d in got if d not in dims]
+        missing = [d for d in dims if d not in got]
+        hint = ""
+        if len(extra) == 1 and len(missing) == 1:
+            hint = f'; rename dimension "{extra[0]}" to "{missing[0]}"'
+        raise RecordingError(f"{name}: expected dimensions {exp}, got {gots}{hint}")
+
+    # Coordinates.
+    needed = ["time", "imu", "axis"] + (["quat"] if "nominal_orientation" in ds.variables else [])
+    for c in needed:
+        if c not in ds.variables:
+            near = _suggest(c, [n for n in ds.variables if n not in VARIABLES and n not in COORDS])
+            hint = f'; the file has "{near}" — make it the "{c}" coordinate' if near else ""
+            raise RecordingError(f'coordinate "{c}" is missing: expected {COORDS[c]} along dimension "{c}"{hint}')
+        if tuple(ds[c].dims) != (c,):
+            raise RecordingError(f'coordinate "{c}": expected dimension ("{c}",), got {tuple(ds[c].dims)}')
+
+    t = np.asarray(ds["time"].values)
+    if t.dtype.kind not in "iuf":
+        raise RecordingError(f"time: expected numbers of seconds (float64), got dtype {t.dtype}; "
+                             "store seconds, e.g. seconds from the start")
+    imu = np.asarray(ds["imu"].values)
+    K = imu.shape[0]
+    if imu.dtype.kind not in "iu" and not (imu.dtype.kind == "f" and np.all(imu == np.round(imu))):
+        raise RecordingError(f"imu: expected integer labels 0..{K - 1}, got {_fmt_list(imu.tolist())}")
+    if not np.array_equal(imu.astype(np.int64), np.arange(K)):
+        raise RecordingError(f"imu: expected labels 0..{K - 1} in file order, got {_fmt_list(imu.tolist())}")
+    for c, exp in (("axis", AXIS_LABELS), ("quat", QUAT_LABELS)):
+        if c not in ds.variables:
+            continue
+        lab = tuple(str(x.decode() if isinstance(x, bytes) else x) for x in np.asarray(ds[c].values).tolist())
+        if lab != exp:
+            hint = ""
+            if c == "quat" and lab == ("x", "y", "z", "w"):
+                hint = " (scalar-last order; format v1 stores the scalar w first)"
+            elif sorted(lab) == sorted(exp):
+                hint = " (same labels, different order; reorder the data, do not just relabel)"
+            raise RecordingError(f"{c}: expected labels {exp} in that order, got {lab}{hint}")
+
+    # Units.
+    _check_units(ds, "time", "s")
+    _check_units(ds, "acc", "m s-2")
+    gyro_declared_units(ds)
+    _check_units(ds, "nominal_position", "m")
+    _check_units(ds, "acc_noise_std", "m s-2")
+    _check_units(ds, "gyro_noise_std", "rad s-1", also=("deg s-1",))
+
+    # Dtypes.
+    for name in ("acc", "gyro", "nominal_position", "nominal_orientation", "acc_noise_std", "gyro_noise_std"):
+        if name in ds.variables and np.asarray(ds[name].values).dtype.kind not in "iuf":
+            raise RecordingError(f"{name}: expected numbers, got dtype {ds[name].dtype}")
+    _check_bool_like(ds, "acc_clipped")
+    _check_bool_like(ds, "gyro_clipped")
+    if "segment" in ds.variables and np.asarray(ds["segment"].values).dtype.kind not in "USO":
+        raise RecordingError(f'segment: expected string labels "static"/"dynamic", got dtype {ds["segment"].dtype}')
+
+    # Global attributes.
+    for name in ("acc_noise_std", "gyro_noise_std"):
+        if name in ds.attrs and name not in ds.variables:
+            _scalar_attr(ds, name)
+    if "acc_noise_std" not in ds.attrs and "acc_noise_std" not in ds.variables:
+        raise RecordingError("acc_noise_std is missing: expected a global attribute acc_noise_std (m s-2) "
+                             "or a per-IMU variable acc_noise_std(imu)")
+    if "gyro" in ds.variables and "gyro_noise_std" not in ds.attrs and "gyro_noise_std" not in ds.variables:
+        raise RecordingError("gyro_noise_std is missing (the file has gyro): expected a global attribute "
+                             "gyro_noise_std (rad s-1) or a per-IMU variable gyro_noise_std(imu)")
+    _scalar_attr(ds, "reference_imu", integer=True)
+    _scalar_attr(ds, "acc_range")
+    _scalar_attr(ds, "gyro_range")
+    for name in ("description", "source"):
+        if name in ds.attrs and not isinstance(ds.attrs[name], str):
+            raise RecordingError(f"{name}: global attribute must be a string, got {_py(ds.attrs[name])!r}")
+
+
+# ---------------------------------------------------------------- recording level
+
+def _shape_check(name, x, shape):
+    if x is None:
+        return
+    got = np.shape(x)
+    if tuple(got) != tuple(shape):
+        raise RecordingError(f"{name}: expected shape {tuple(shape)}, got {tuple(got)}")
+
+
+def _first_bad(x: np.ndarray, ok: np.ndarray, time: np.ndarray, name: str, labels, what: str):
+    """Report the first (time index, IMU) where ``ok`` fails, with the count."""
+    bad = ~ok
+    n = int(bad.sum())
+    t_idx, k_idx = np.argwhere(bad)[0][:2]
+    kind = "NaN" if np.isnan(x[t_idx, k_idx]).any() else "inf"
+    raise RecordingError(
+        f"{name}: {n} non-finite value(s) for IMUs {what}; first {kind} at time index {int(t_idx)} "
+        f"(t = {float(time[t_idx]):.6g} s), IMU {int(labels[k_idx])}; expected finite samples "
+        "(mark missing IMUs with NaN in every sample, not a few)")
+
+
+def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | None = None,
+                       gyro_units: str = "rad s-1", check_gyro_units: bool = True) -> None:
+    """Check an in-memory :class:`Recording` against format v1 (DESIGN §7.1).
+
+    Raises :class:`RecordingError` naming the field and what was expected when:
+
+    * a shape disagrees: time (T,), acc (T, K, 3), gyro (T, K, 3), nominal_position (K, 3),
+      nominal_orientation (K, 4) unit quaternions, acc/gyro_noise_std (K,), acc/gyro_clipped
+      (T, K) bool, segment (T,) with labels "static"/"dynamic";
+    * time is not finite or not strictly increasing (the first failing index is named);
+    * acc of an IMU that has an accelerometer (not all NaN), or gyro of an IMU that has a
+      gyroscope, holds NaN/inf (first time index, time value, IMU label and count are named);
+    * a noise std is ≤ 0 or not finite for an IMU with that sensor (the IMU is named);
+    * fewer than 3 accelerometer triads, or collinear ones (rotation about their line is
+      unobservable) — :func:`accel_bayes.arrays.check_triad_geometry`;
+    * the reference IMU (``reference_imu`` if given, else ``rec.reference_imu``) is not a label
+      0..K−1 of an IMU with an accelerometer;
+    * acc_range / gyro_range are given but not finite positive numbers;
+    * ``require_gyro`` and the recording has no gyroscope data;
+    * ``check_gyro_units`` and the gyro values do not look like rad/s (:func:`gyro_unit_diagnostics`).
+
+    ``gyro_units`` is the unit the values were *declared* in before they were converted to rad/s
+    ("rad s-1" for in-memory recordings; :func:`read_recording` passes "deg s-1" for a file that
+    declared degrees).  It only selects which unit mistake to look for and how to word it.
+    """
+    time = np.asarray(rec.time)
+    acc = np.asarray(rec.acc)
+    if time.ndim != 1:
+        raise RecordingError(f"time: expected a 1-D array (T,), got shape {time.shape}")
+    T = time.shape[0]
+    if T < 1:
+        raise RecordingError("time: the recording has no samples (T = 0)")
+    if acc.ndim != 3 or acc.shape[0] != T or acc.shape[2] != 3:
+        raise RecordingError(f"acc: expected shape (T, K, 3) = ({T}, K, 3) (time, imu, axis), got {acc.shape}")
+    K = acc.shape[1]
+    if K < 1:
+        raise RecordingError("acc: the recording has no IMUs (K = 0)")
+    _shape_check("gyro", rec.gyro, (T, K, 3))
+    _shape_check("nominal_position", rec.nominal_position, (K, 3))
+    _shape_check("nominal_orientation", rec.nominal_orientation, (K, 4))
+    _shape_check("acc_noise_std", rec.acc_noise_std, (K,))
+    _shape_check("gyro_noise_std", rec.gyro_noise_std, (K,))
+    _shape_check("acc_clipped", rec.acc_clipped, (T, K))
+    _shape_check("gyro_clipped", rec.gyro_clipped, (T, K))
+    _shape_check("segment", rec.segment, (T,))
+    for name in ("time", "acc", "gyro", "nominal_position", "nominal_orientation", "acc_noise_std", "gyro_noise_std"):
+        x = getattr(rec, name)
+        if x is not None and np.asarray(x).dtype.kind not in "iuf":
+            raise RecordingError(f"{name}: expected a float array, got dtype {np.asarray(x).dtype}")
+    for name in ("acc_clipped", "gyro_clipped"):
+        x = getattr(rec, name)
+        if x is not None and np.asarray(x).dtype != bool:
+            raise RecordingError(f"{name}: expected a bool array, got dtype {np.asarray(x).dtype}")
+    if rec.gyro is None and rec.gyro_clipped is not None:
+        raise RecordingError("gyro_clipped: given but the recording has no gyro")
+
+    # Time.
+    if not np.all(np.isfinite(time)):
+        i = int(np.flatnonzero(~np.isfinite(time))[0])
+        raise RecordingError(f"time: expected finite sample times, got {time[i]} at index {i}")
+    if T > 1:
+        dt = np.diff(time)
+        if not np.all(dt > 0):
+            i = int(np.flatnonzero(~(dt > 0))[0]) + 1
+            raise RecordingError(f"time: expected strictly increasing sample times; time[{i}] = {time[i]:.9g} s "
+                                 f"is not after time[{i - 1}] = {time[i - 1]:.9g} s")
+
+    labels = np.arange(K)
+    has_acc = ~np.all(np.isnan(acc), axis=(0, 2))
+    if not has_acc.any():
+        raise RecordingError("acc: every IMU is all-NaN; expected accelerometer data for at least 3 IMUs")
+    fin = np.isfinite(acc[:, has_acc, :]).all(-1)
+    if not fin.all():
+        _first_bad(acc[:, has_acc, :], fin, time, "acc", labels[has_acc], "with an accelerometer")
+    gyro = None if rec.gyro is None else np.asarray(rec.gyro)
+    has_gyro = np.zeros(K, bool) if gyro is None else ~np.all(np.isnan(gyro), axis=(0, 2))
+    if gyro is not None and has_gyro.any():
+        fin = np.isfinite(gyro[:, has_gyro, :]).all(-1)
+        if not fin.all():
+            _first_bad(gyro[:, has_gyro, :], fin, time, "gyro", labels[has_gyro], "with a gyroscope")
+    if require_gyro and not has_gyro.any():
+        raise RecordingError("gyro: this analysis needs gyroscope data (variable gyro, rad s-1), the recording has none")
+
+    # Noise levels.
+    for name, has, unit in (("acc_noise_std", has_acc, "m s-2"), ("gyro_noise_std", has_gyro, "rad s-1")):
+        s = np.asarray(getattr(rec, name), dtype=float)
+        bad = has & ~(np.isfinite(s) & (s > 0))
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise RecordingError(f"{name}: IMU {k} has {float(s[k])!r}; expected a finite value > 0 {unit} for every "
+                                 f"IMU with {'an accelerometer' if name.startswith('acc') else 'a gyroscope'}"
+                                 + (f" ({int(bad.sum())} IMUs affected)" if bad.sum() > 1 else ""))
+
+    # Geometry.
+    pos = np.asarray(rec.nominal_position, dtype=float)
+    if not np.isfinite(pos).all():
+        k = int(np.flatnonzero(~np.isfinite(pos).all(-1))[0])
+        raise RecordingError(f"nominal_position: IMU {k} has {pos[k].tolist()}; expected finite positions in m")
+    q = np.asarray(rec.nominal_orientation, dtype=float)
+    qn = np.linalg.norm(q, axis=-1)
+    bad = ~np.isfinite(qn) | (np.abs(qn - 1.0) > 1e-6)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise RecordingError(f"nominal_orientation: IMU {k} has {q[k].tolist()} (norm {qn[k]:.6g}); expected a "
+                             "unit quaternion (w, x, y, z)")
+    try:
+        check_triad_geometry(torch.as_tensor(pos[has_acc]), labels=labels[has_acc].tolist())
+    except ValueError as exc:
+        raise RecordingError(f"nominal_position: {exc}") from None
+
+    ref = rec.reference_imu if reference_imu is None else reference_imu
+    if isinstance(ref, (bool, np.bool_)) or not isinstance(ref, (int, np.integer)):
+        raise RecordingError(f"reference_imu: expected an integer IMU label in 0..{K - 1}, got {_py(ref)!r}")
+    if not 0 <= int(ref) < K:
+        raise RecordingError(f"reference_imu: expected an IMU label in 0..{K - 1}, got {int(ref)}")
+    if not has_acc[int(ref)]:
+        raise RecordingError(f"reference_imu: IMU {int(ref)} has no accelerometer data; choose one of "
+                             f"{labels[has_acc].tolist()}")
+    for name in ("acc_range", "gyro_range"):
+        v = getattr(rec, name)
+        if v is not None and not (math.isfinite(float(v)) and float(v) > 0):
+            raise RecordingError(f"{name}: expected a finite full scale > 0 (or None), got {_py(v)!r}")
+
+    if rec.segment is not None:
+        seg = np.asarray(rec.segment)
+        ok = np.isin(seg.astype(str), SEGMENT_LABELS)
+        if not ok.all():
+            i = int(np.flatnonzero(~ok)[0])
+            raise RecordingError(f'segment: expected labels "static" or "dynamic", got {str(seg[i])!r} at time index {i} '
+                                 f"({int((~ok).sum())} such samples)")
+
+    if check_gyro_units and has_gyro.any():
+        _raise_on_gyro_units(rec, gyro_units)
+
+
+# ---------------------------------------------------------------- gyro unit plausibility
+
+def _declared_kind(gyro_units: str) -> str:
+    kind = units_kind(gyro_units)
+    if kind not in ("rad s-1", "deg s-1"):
+        raise ValueError(f'gyro_units: expected "rad s-1" or "deg s-1", got {gyro_units!r}')
+    return kind
+
+
+def gyro_unit_diagnostics(rec, gyro_units: str = "rad s-1", max_samples: int = 20000) -> dict:
+    """Evidence on whether ``rec.gyro`` (rad/s after any declared conversion) really is rad/s.
+
+    Let the true rate be ω = c·gyro.  If the values are what they were declared to be, c = 1.
+    The mistake looked for is the other unit: declared rad/s but written in °/s (c = π/180), or
+    declared °/s but written in rad/s (c = 180/π).  Three tests:
+
+    **C — accelerometer-array consistency (decides when it can).**  On a rigid body the triads
+    read f_k = W p_k + s with W = Ω(ω)² + Ω(ω̇) ([C21] eq. 4a).  Per sample, W is fitted by least
+    squares from the nominal positions (array frame), restricted by the projector P to the
+    directions the centred positions span (spreads under 20 % of the widest count as flat, so a
+    two-sided PCB is treated as planar).  Ω(ω̇) is skew, so
+    τ = −tr(P W P) = rank(P)·|ω|² − |Pω|² depends on the rotation rate only, not on ω̇, s, or (for
+    3-D arrays) the gyro's orientation.  Regressing τ_acc = α + β·τ_gyro over samples (α takes up
+    accelerometer biases; clipped samples are left out) estimates β = c².  With standard error
+    se(β): β + 5·se < c_alt (i.e. below the geometric midpoint 1/57.3 between 1 and (π/180)²)
+    means "the values are in the other unit"; 1/57.3 < β − 5·se and β + 5·se < 57.3 means
+    "consistent with the declared unit" and the other tests are skipped; otherwise there is too
+    little rotation to tell, and A and B decide.
+
+    **A — range (declared rad/s only).**  The 99.9th percentile of |gyro| over all axes, samples
+    and gyro IMUs must not exceed 1.5 × gyro_range if given (a sensor cannot read beyond its
+    range), else :data:`DEFAULT_GYRO_BOUND` = 150 rad/s.
+
+    **B — static noise (needs ``segment`` labels with ≥ 20 static samples).**  The gyro std about
+    the mean of each static run (median over gyro IMUs) divided by the stated gyro_noise_std is
+    ≈ 1 for the right unit and ≈ 57.3 (or 1/57.3) for the wrong one; a ratio within a factor 3
+    of 57.3 (declared rad/s) or of 1/57.3 (declared °/s) flags the unit.
+
+    Returns a dict with the quantities and verdicts (``"declared"``, ``"other"``,
+    ``"inconclusive"`` for C; bools ``range_flag`` and ``static_flag``) and ``flag`` (the
+    message to raise, or None).
+    """
+    kind = _declared_kind(gyro_units)
+    other = "deg s-1" if kind == "rad s-1" else "rad s-1"
+    c_alt = RAD_PER_DEG if kind == "rad s-1" else DEG_PER_RAD
+    out = {"declared": kind, "c_alt": c_alt, "flag": None}
+    gyro = np.asarray(rec.gyro, dtype=float)
+    has_g = ~np.all(np.isnan(gyro), axis=(0, 2))
+    g_idx = np.flatnonzero(has_g)
+    acc = np.asarray(rec.acc, dtype=float)
+    has_a = ~np.all(np.isnan(acc), axis=(0, 2))
+    a_idx = np.flatnonzero(has_a)
+    T = acc.shape[0]
+
+    # --- C: accelerometer-array consistency
+    use = np.ones(T, bool)
+    if rec.acc_clipped is not None:
+        use &= ~np.asarray(rec.acc_clipped)[:, a_idx].any(1)
+    if rec.gyro_clipped is not None:
+        use &= ~np.asarray(rec.gyro_clipped)[:, g_idx].any(1)
+    idx = np.flatnonzero(use)
+    if idx.size > max_samples:
+        idx = idx[:: int(math.ceil(idx.size / max_samples))]
+    beta = se = float("nan")
+    verdict = "inconclusive"
+    if idx.size >= 10 and a_idx.size >= 3:
+        R = quat_to_matrix(torch.as_tensor(np.asarray(rec.nominal_orientation, dtype=float))).numpy()
+        y = np.einsum("kji,tkj->tki", R[a_idx], acc[idx][:, a_idx])  # array frame: R(q)ᵀ f
+        w = np.einsum("kji,tkj->tki", R[g_idx], gyro[idx][:, g_idx]).mean(1)
+        p = np.asarray(rec.nominal_position, dtype=float)[a_idx]
+        D = p - p.mean(0)
+        U, sv, Vt = np.linalg.svd(D, full_matrices=False)
+        # Directions along which the triads spread less than 20 % of the widest one (a two-sided
+        # PCB is ~2 mm thick, ~20 mm wide) are treated as flat: their column of W is poorly
+        # determined and would only add noise.
+        rank = int((sv > 0.2 * sv[0]).sum())
+        V = Vt[:rank].T
+        P = V @ V.T
+        Dp = V @ np.diag(1.0 / sv[:rank]) @ U[:, :rank].T  # truncated D⁺ (3, A): Wᵀ = D⁺ (y − ȳ)
+        yc = y - y.mean(1, keepdims=True)
+        tau_acc = -np.einsum("ia,tai->t", Dp, yc)
+        tau_gyr = rank * (w * w).sum(-1) - ((w @ P) ** 2).sum(-1)
+        xm = tau_gyr - tau_gyr.mean()
+        sxx = float((xm * xm).sum())
+        if sxx > 0 and np.isfinite(sxx):
+            beta = float((xm * (tau_acc - tau_acc.mean())).sum() / sxx)
+            res = tau_acc - tau_acc.mean() - beta * xm
+            se = float(math.sqrt(max((res * res).sum() / max(idx.size - 2, 1), 0.0) / sxx))
+            mid = c_alt  # geometric midpoint between β = 1 and β = c_alt²
+            lo, hi = beta - Z_DECISIVE * se, beta + Z_DECISIVE * se
+            if (kind == "rad s-1" and hi < mid) or (kind == "deg s-1" and lo > mid):
+                verdict = "other"
+            elif 1.0 / 57.29577951308232 < lo and hi < 57.29577951308232:
+                verdict = "declared"
+    out.update(beta=beta, beta_se=se, array_verdict=verdict, n_used=int(idx.size))
+    word = "deg/s" if other == "deg s-1" else "rad/s"
+    fix = ('convert gyro to rad/s (× π/180) or declare its units attribute "deg s-1"' if kind == "rad s-1"
+           else 'set the gyro units attribute to "rad s-1"')
+    head = (f"gyro: values look like {word}, not the declared {kind}"
+            + (" (converted to rad s-1 on read)" if kind == "deg s-1" else "") + ": ")
+    if verdict == "other":
+        out["flag"] = (head + f"the centripetal acceleration seen across the accelerometer triads fits "
+                       f"(c·gyro)² with c² = {beta:.3g} ± {se:.2g}, i.e. c ≈ {math.sqrt(max(beta, 0)):.3g} "
+                       f"(rule: flagged when c² {'+' if kind == 'rad s-1' else '−'} 5 s.e. "
+                       f"{'<' if kind == 'rad s-1' else '>'} {c_alt:.4g}, the geometric midpoint between c² = 1 and "
+                       f"{c_alt:.4g}²); {fix}")
+        return out
+
+    # --- A: range
+    absg = np.abs(gyro[:, g_idx, :])
+    p999 = float(np.quantile(absg[np.isfinite(absg)], 0.999)) if absg.size else 0.0
+    if rec.gyro_range is not None:
+        bound, bound_txt = 1.5 * float(rec.gyro_range), f"1.5 × gyro_range = {1.5 * float(rec.gyro_range):.4g} rad/s"
+    else:
+        bound, bound_txt = DEFAULT_GYRO_BOUND, f"{DEFAULT_GYRO_BOUND:g} rad/s (no gyro_range given; ≈ 8600 °/s)"
+    out.update(p999=p999, bound=bound)
+    out["range_flag"] = kind == "rad s-1" and verdict != "declared" and p999 > bound
+
+    # --- B: static noise
+    ratio = float("nan")
+    if rec.segment is not None:
+        st = np.asarray(rec.segment).astype(str) == "static"
+        if rec.gyro_clipped is not None:
+            st &= ~np.asarray(rec.gyro_clipped)[:, g_idx].any(1)
+        if st.sum() >= 20:
+            run = np.cumsum(np.r_[True, st[1:] != st[:-1]])  # a new id wherever static/dynamic changes
+            g = gyro[st][:, g_idx, :]  # (n, G, 3)
+            r_id = np.unique(run[st], return_inverse=True)[1]
+            n_run = np.bincount(r_id)
+            flat = g.reshape(g.shape[0], -1)
+            means = np.stack([np.bincount(r_id, weights=flat[:, j]) / n_run for j in range(flat.shape[1])], 1)
+            dev = flat - means[r_id]
+            dof = max(g.shape[0] - n_run.size, 1)
+            var = (dev * dev).sum(0).reshape(len(g_idx), 3).mean(1) / dof  # per gyro IMU
+            sig = np.asarray(rec.gyro_noise_std, dtype=float)[g_idx]
+            ratio = float(np.median(np.sqrt(var) / sig))
+    out["static_ratio"] = ratio
+    target = 1.0 / c_alt  # values in the other unit: σ_static / σ_stated ≈ 1/c
+    out["static_flag"] = (verdict != "declared" and math.isfinite(ratio)
+                          and target / STATIC_RATIO_BAND <= ratio <= target * STATIC_RATIO_BAND)
+
+    if out["range_flag"]:
+        out["flag"] = (head + f"99.9th percentile |gyro| = {p999:.4g} rad/s exceeds {bound_txt}; {fix}"
+                       + (" (or correct gyro_range)" if rec.gyro_range is not None else ""))
+    elif out["static_flag"]:
+        out["flag"] = (head + f"in the static segments the gyro std is {ratio:.3g} × the stated gyro_noise_std "
+                       f"(rule: {target / STATIC_RATIO_BAND:.3g}–{target * STATIC_RATIO_BAND:.3g}× flags the unit); "
+                       f"{fix}, or, if the unit is right, correct gyro_noise_std (global attribute, rad s-1)")
+    return out
+
+
+def _raise_on_gyro_units(rec, gyro_units):
+    d = gyro_unit_diagnostics(rec, gyro_units)
+    if d["flag"]:
+        raise RecordingError(d["flag"])
