@@ -1,0 +1,640 @@
+"""Using a calibration: per-sample motion of a calibrated array (ω, ω̇, s) with uncertainty.
+
+Given a recording and a calibrated geometry (a DESIGN §7.3 ``positions.json``), every sample t
+has 9 unknowns x_t = [ω_t, ω̇_t, s_t] and the measurements of [C21] eq. 4:
+
+    accelerometer k:  R_k ᵀ y_k,t^a = f(r_k; ω_t, ω̇_t, s_t) + e      (models.specific_force)
+    gyroscope k:      R_k ᵀ y_k,t^g = ω_t + e
+
+R_k is the array → sensor rotation of IMU k (the calibration's ``orientation`` when given, else
+the recording's nominal one); r_k the calibrated position, relative to the calibration's
+reference IMU — so **s is the specific force at the reference IMU** (the origin of the
+calibrated coordinates, [C21] r₁ ≡ 0), in the array frame.  Noise is white with the recording's
+stated per-IMU std (or an override).
+
+Solver
+------
+Weighted non-linear least squares per sample, all samples at once (no loop over samples): ω
+starts at the weighted gyro mean, φ = [ω̇; s] at its linear least-squares value given ω ([C21]
+eq. 5: y = G(θ)u(ω) + H(θ)φ), then a Levenberg–Marquardt loop on the batched 9×9 normal
+equations (factored so that the batched work is matrix products, see :class:`Geometry`).
+Residuals are per sensor axis with weight 1/σ_k²; in a triad flagged as clipped, an axis within
+1 % of the sensor range gets weight 0 (the triad's other axes still count).  When the unclipped
+gyro axes do not determine ω, the missing components come from the accelerometers — possible
+because the centripetal term is quadratic in ω, which leaves the sign of ω undetermined: the
+clipped gyro readings (right sign, magnitude at the range) start the solve on the right branch.
+Such samples are flagged ``omega_needs_acc``; ``gyro_clipped`` flags any clipped gyro triad.
+
+Uncertainty
+-----------
+* Noise part: the Laplace covariance at the optimum, (JᵀWJ)⁻¹ (Gauss–Newton Hessian).
+* Geometry part: the calibration's position uncertainty N(mean_k, cov_k) (independent between
+  IMUs: positions.json carries per-IMU 3×3 blocks only), propagated either by drawing ``draws``
+  geometries (seeded) and re-solving every sample for each (``geometry="draws"``, default:
+  ``draw_steps`` Gauss–Newton steps from the point estimate, which converge quadratically for
+  perturbations this small; the sample covariance of the re-solved x over the draws), or by
+  first-order propagation (``geometry="linear"``):
+  dx/dr_k = −(JᵀWJ)⁻¹ Σ_{axes m of IMU k} w_m J_mᵀ ∂f_m/∂r_k with ∂f_k/∂r_k = R_k(Ω(ω)² + Ω(ω̇)),
+  Cov = Σ_k (dx/dr_k) cov_k (dx/dr_k)ᵀ.  The two agree within the Monte Carlo error of the
+  draws (tests/test_motion_estimation.py); "linear" costs one solve instead of ``draws``.
+* Total = noise part + geometry part (the two sources are independent).
+
+Output: :class:`xarray.Dataset` (see :func:`estimate_motion`); :func:`write_motion` stores it as
+NetCDF-4 (h5netcdf), atomically.
+
+Limits.  The reported covariances assume the stated white noise and the rigid-body model with
+calibrated triads; ``chi2``/``dof`` per sample says whether that holds.  On the real MIMU4444
+recordings it does at rest (χ²/dof ≈ 1.1) but not in motion (median χ²/dof ≈ 2.6·10³ over the
+dynamic samples of exp_2 with nominal positions): the gyros disagree with each other by ~1.4 %
+of |ω| (uncalibrated gyro scale/misalignment, [C21] §IV-B) and the accelerometer residuals are
+~1.5 m/s² RMS; pass larger ``acc_noise_std`` / ``gyro_noise_std`` there (as [C21] §IV-B does)
+or calibrate the gyros.  Arrays without gyros start at ω = 0, where the accelerometers carry no
+information on ω: such samples come out ``ill_posed``.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import UserError
+from .geometry import quat_to_matrix, skew
+from .models import specific_force
+from .recording import Recording
+
+__all__ = [
+    "MOTION_SCHEMA",
+    "POSITIONS_SCHEMA",
+    "PARAMS",
+    "Calibration",
+    "load_calibration",
+    "motion_jacobian",
+    "solve_motion",
+    "estimate_motion",
+    "write_motion",
+]
+
+MOTION_SCHEMA = "accel_bayes.motion/1"
+POSITIONS_SCHEMA = "accel_bayes.positions/1"
+PARAMS = ("omega_x", "omega_y", "omega_z", "omega_dot_x", "omega_dot_y", "omega_dot_z", "s_x", "s_y", "s_z")
+_CLIP_FRACTION = 0.99  # in a flagged triad, an axis within 1 % of the range counts as clipped (int16 codes
+# sit a little inside the nominal range: 32767/16.4 = 1997.99 °/s of 2000)
+
+
+# ------------------------------------------------------------------------------ calibration
+@dataclass
+class Calibration:
+    """A calibrated geometry: positions (K, 3) m relative to ``reference_imu`` (NaN rows: no
+    accelerometer triad), their covariances (K, 3, 3) m², optional orientations (K, 4) (NaN
+    rows: use the nominal one), the method and where it came from."""
+
+    positions: np.ndarray
+    cov: np.ndarray
+    orientations: np.ndarray | None
+    reference_imu: int
+    method: str = "unknown"
+    source: str = ""
+
+    @property
+    def K(self) -> int:
+        return int(self.positions.shape[0])
+
+
+def _numbers(v, shape, where, what):
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.shape != shape or not np.isfinite(a).all():
+        raise UserError(f"{where}: expected {what}")
+    return a
+
+
+def load_calibration(calibration, K: int | None = None) -> Calibration:
+    """Read a calibration: a positions.json path, its parsed dict (DESIGN §7.3, schema
+    ``accel_bayes.positions/1``), a (K, 3) positions array (no uncertainty), or a
+    :class:`Calibration`.  Raises :class:`UserError` naming the offending field."""
+    if isinstance(calibration, Calibration):
+        cal = calibration
+    elif isinstance(calibration, (str, Path)):
+        p = Path(calibration)
+        if not p.exists():
+            raise FileNotFoundError(f"{p}: no such calibration file")
+        if p.is_dir():
+            raise IsADirectoryError(f"{p}: is a directory; expected a positions.json file")
+        try:
+            d = json.loads(p.read_text(encoding="utf-8"))
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise UserError(f"{p}: not valid JSON ({exc})") from None
+        try:
+            cal = _from_dict(d)
+        except UserError as exc:
+            raise UserError(f"{p}: {exc}") from None
+        from .io import recording_sha256
+
+        cal.source = f"{p} (sha256 {recording_sha256(p)})"
+    elif isinstance(calibration, dict):
+        cal = _from_dict(calibration)
+    else:
+        try:
+            pos = np.asarray(calibration.detach().cpu() if torch.is_tensor(calibration) else calibration, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise UserError(f"calibration: expected a positions.json path or dict, or a (K, 3) array, got "
+                            f"{type(calibration).__name__}") from None
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise UserError(f"calibration: expected positions of shape (K, 3), got {pos.shape}")
+        cal = Calibration(positions=pos.copy(), cov=np.zeros((pos.shape[0], 3, 3)), orientations=None,
+                          reference_imu=0, method="given", source="positions array (no uncertainty)")
+    if K is not None and cal.K != K:
+        raise UserError(f"calibration.imus: lists {cal.K} IMUs, the recording has {K}")
+    return cal
+
+
+def _from_dict(d) -> Calibration:
+    if not isinstance(d, dict):
+        raise UserError(f"calibration: expected a JSON object, got {type(d).__name__}")
+    if d.get("schema") != POSITIONS_SCHEMA:
+        raise UserError(f"calibration.schema: expected {POSITIONS_SCHEMA!r}, got {d.get('schema')!r}")
+    imus = d.get("imus")
+    if not isinstance(imus, list) or not imus:
+        raise UserError("calibration.imus: expected a non-empty list of IMU entries")
+    K = len(imus)
+    ref = d.get("reference_imu", 0)
+    if isinstance(ref, bool) or not isinstance(ref, int) or not 0 <= ref < K:
+        raise UserError(f"calibration.reference_imu: expected an IMU label 0..{K - 1}, got {ref!r}")
+    pos = np.full((K, 3), np.nan)
+    cov = np.zeros((K, 3, 3))
+    ori = np.full((K, 4), np.nan)
+    for i, e in enumerate(imus):
+        w = f"calibration.imus[{i}]"
+        if not isinstance(e, dict):
+            raise UserError(f"{w}: expected an object with imu, mean, std/cov")
+        if e.get("imu") != i or isinstance(e.get("imu"), bool):
+            raise UserError(f"{w}.imu: expected {i} (every IMU listed once, sorted by label), got {e.get('imu')!r}")
+        if e.get("mean") is None:  # no accelerometer triad (DESIGN §7.3 writers put null moments)
+            continue
+        pos[i] = _numbers(e["mean"], (3,), f"{w}.mean", "3 finite numbers (m)")
+        if e.get("cov") is not None:
+            c = _numbers(e["cov"], (3, 3), f"{w}.cov", "a 3x3 matrix of finite numbers (m^2)")
+            scale = max(float(np.abs(c).max()), 1e-300)
+            if not np.allclose(c, c.T, rtol=1e-6, atol=1e-12 * scale) or np.linalg.eigvalsh(0.5 * (c + c.T)).min() < -1e-9 * scale:
+                raise UserError(f"{w}.cov: expected a symmetric positive semi-definite 3x3 matrix (m^2)")
+            cov[i] = 0.5 * (c + c.T)
+        elif e.get("std") is not None:
+            s = _numbers(e["std"], (3,), f"{w}.std", "3 finite standard deviations >= 0 (m)")
+            if (s < 0).any():
+                raise UserError(f"{w}.std: expected 3 finite standard deviations >= 0 (m)")
+            cov[i] = np.diag(s * s)
+        if e.get("orientation") is not None:
+            q = _numbers(e["orientation"], (4,), f"{w}.orientation", "a quaternion (w, x, y, z) of 4 finite numbers")
+            n = np.linalg.norm(q)
+            if not 0.5 < n < 2.0:
+                raise UserError(f"{w}.orientation: expected a unit quaternion (w, x, y, z), norm {n:.3g}")
+            ori[i] = q / n
+    has_ori = np.isfinite(ori).all(-1)
+    return Calibration(positions=pos, cov=cov, orientations=ori if has_ori.any() else None, reference_imu=ref,
+                       method=str(d.get("method", "unknown")), source="positions dict")
+
+
+# ------------------------------------------------------------------------------ kernel
+def motion_jacobian(r: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """∂f_k/∂x of the specific force f_k = ω×(ω×r_k) + ω̇×r_k + s w.r.t. x = [ω, ω̇, s].
+
+    r (..., K, 3), x (..., 9) → (..., K, 3, 9):  [ωr_kᵀ + (ω·r_k)I − 2r_kωᵀ,  −Ω(r_k),  I].
+    """
+    w = x[..., None, 0:3]  # (..., 1, 3)
+    w, r = torch.broadcast_tensors(w, r)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device)
+    Jw = w.unsqueeze(-1) * r.unsqueeze(-2) + (w * r).sum(-1)[..., None, None] * eye - 2 * r.unsqueeze(-1) * w.unsqueeze(-2)
+    return torch.cat((Jw, -skew(r), eye.expand(Jw.shape)), -1)
+
+
+class Geometry:
+    """What the solver needs of a geometry, per sensor axis m = (k, a) (M = 3K rows): the axis
+    direction R_a of IMU k in the array frame (``Rm`` (M, 3)), the position r_k (``rk``
+    (*G, M, 3)), p_m = R_a·r_k and the constant Jacobian rows of φ = [ω̇; s],
+    C_m = [r_k × R_a, R_a] (*G, M, 6).
+
+    With y_m the sensor output of axis m, [C21] eq. 4a (R_k f(r_k; ω, ω̇, s) of
+    :func:`accel_bayes.models.specific_force`) reads
+
+        f_m = α_m β_m − |ω|² p_m + C_m·φ,    α_m = R_a·ω,  β_m = r_k·ω,
+        ∂f_m/∂ω = α_m r_k + β_m R_a + γ_m ω,  γ_m = −2 p_m,
+
+    so every normal-equation block is a sum over m of products of per-sample scalars
+    (α, β, w …) with per-geometry outer products (r rᵀ, R Rᵀ, r Rᵀ, r Cᵀ, R Cᵀ, C Cᵀ),
+    precomputed here: the hot loop is a handful of (N, M) × (M, c) matrix products and
+    elementwise work on (N, M), with no per-sample small matmuls.
+    ``G`` is () for one geometry or (D,) for D geometry draws.
+    """
+
+    def __init__(self, R: torch.Tensor, r: torch.Tensor):
+        K = R.shape[0]
+        self.K = K
+        self.Rm = R.reshape(3 * K, 3)  # row a of R_k: sensor axis a in the array frame
+        self.r = r  # (*G, K, 3)
+        self.rk = r.repeat_interleave(3, dim=-2)  # (*G, M, 3)
+        self.rkT = self.rk.transpose(-1, -2)
+        self.p = (self.rk * self.Rm).sum(-1)  # (*G, M)
+        self.gamma = -2 * self.p
+        self.gamma2 = self.gamma * self.gamma
+        Rm = self.Rm.expand(self.rk.shape)
+        self.C = torch.cat((torch.linalg.cross(self.rk, Rm, dim=-1), Rm), -1)  # (*G, M, 6)
+        outer = lambda u, v: (u.unsqueeze(-1) * v.unsqueeze(-2)).flatten(-2)  # noqa: E731
+        self.rr = outer(self.rk, self.rk)  # (*G, M, 9)
+        self.RR = outer(self.Rm, self.Rm)  # (M, 9)
+        self.rR = outer(self.rk, Rm)  # (*G, M, 9)
+        self.rC = outer(self.rk, self.C)  # (*G, M, 18)
+        self.RC = outer(Rm, self.C)  # (*G, M, 18)
+        self.CC = outer(self.C, self.C)  # (*G, M, 36)
+
+
+class _Data:
+    """Per-sample measurements of one batch: sensor-frame acc y (N, M) with weights w (N, M)
+    (1/σ², 0 for unused axes) and the gyro terms, reduced to the array frame:
+    Γ = Σ_k R_kᵀ diag(w_g) R_k (N, 3, 3), ΓY = Σ_k R_kᵀ diag(w_g) y_g (N, 3), and the constant
+    Σ y_gᵀ diag(w_g) y_g (N,)."""
+
+    def __init__(self, y, w, Gam, GY, gconst):
+        self.y, self.w, self.Gam, self.GY, self.gconst = y, w, Gam, GY, gconst
+
+    def take(self, sl):
+        return _Data(self.y[sl], self.w[sl], self.Gam[sl], self.GY[sl], self.gconst[sl])
+
+
+def _model(x, geo: Geometry):
+    """f (…, N, M) and the ω-Jacobian rows a (…, N, M, 3) for x (…, N, 9) (one-time use; the
+    solver itself works with the factored form of :func:`_cost_grad_hess`)."""
+    w = x[..., 0:3]
+    al = w @ geo.Rm.T
+    be = w @ geo.rkT
+    f = al * be - (w * w).sum(-1, keepdim=True) * geo.p.unsqueeze(-2) + x[..., 3:9] @ geo.C.transpose(-1, -2)
+    a = al.unsqueeze(-1) * geo.rk.unsqueeze(-3) + be.unsqueeze(-1) * geo.Rm + geo.gamma.unsqueeze(-2).unsqueeze(-1) * w.unsqueeze(-2)
+    return f, a
+
+
+def _cost_grad_hess(x, geo: Geometry, d: _Data):
+    """cost (…, N), JᵀWe (…, N, 9), JᵀWJ (…, N, 9, 9) of the weighted least-squares objective
+    Σ_m w_m (y_m − f_m)² + Σ_k (ȳ_k − ω)ᵀ Γ_k (ȳ_k − ω)  (factored form, see :class:`Geometry`)."""
+    w = x[..., 0:3]
+    al = w @ geo.Rm.T  # (…, N, M)
+    be = w @ geo.rkT
+    w2 = (w * w).sum(-1, keepdim=True)
+    f = al * be - w2 * geo.p.unsqueeze(-2) + x[..., 3:9] @ geo.C.transpose(-1, -2)
+    e = d.y - f
+    we = d.w * e
+    wal = d.w * al
+    wbe = d.w * be
+    Gw = (d.Gam @ w.unsqueeze(-1)).squeeze(-1)
+    cost = (we * e).sum(-1) + d.gconst - 2 * (w * d.GY).sum(-1) + (w * Gw).sum(-1)
+    # ω block: Σ w a aᵀ with a = α r + β R + γ ω
+    X = (wal * be) @ geo.rR
+    Y = (wal * geo.gamma.unsqueeze(-2)) @ geo.rk + (wbe * geo.gamma.unsqueeze(-2)) @ geo.Rm
+    Haa = ((wal * al) @ geo.rr + (wbe * be) @ geo.RR).unflatten(-1, (3, 3))
+    X = X.unflatten(-1, (3, 3))
+    wy = w.unsqueeze(-1) * Y.unsqueeze(-2)
+    Haa = Haa + X + X.transpose(-1, -2) + wy + wy.transpose(-1, -2) \
+        + (d.w @ geo.gamma2.unsqueeze(-1)).unsqueeze(-1) * (w.unsqueeze(-1) * w.unsqueeze(-2)) + d.Gam
+    wg = d.w * geo.gamma.unsqueeze(-2)
+    Hab = (wal @ geo.rC + wbe @ geo.RC).unflatten(-1, (3, 6)) + w.unsqueeze(-1) * (wg @ geo.C).unsqueeze(-2)
+    Hbb = (d.w @ geo.CC).unflatten(-1, (6, 6))
+    H = torch.cat((torch.cat((Haa, Hab), -1), torch.cat((Hab.transpose(-1, -2), Hbb), -1)), -2)
+    ga = (we * al) @ geo.rk + (we * be) @ geo.Rm + w * (we @ geo.gamma.unsqueeze(-1)) + d.GY - Gw
+    gb = we @ geo.C
+    return cost, torch.cat((ga, gb), -1), H
+
+
+def _initial(geo: Geometry, d: _Data, gyro_fallback):
+    """ω from the (weighted) gyro mean, then φ = [ω̇; s] by linear least squares given ω."""
+    N = d.Gam.shape[0]
+    eye3 = torch.eye(3, dtype=d.Gam.dtype)
+    ev = torch.linalg.eigvalsh(d.Gam)
+    ok = ev[..., 0] > 1e-12 * ev[..., -1].clamp_min(1e-300)
+    w = torch.linalg.solve(torch.where(ok[:, None, None], d.Gam, eye3), torch.where(ok[:, None], d.GY, 0))
+    w = torch.where(ok[:, None], w, gyro_fallback)
+    x = torch.cat((w, torch.zeros(N, 6, dtype=w.dtype)), -1)
+    # f is linear in φ: the φ block of the normal equations at φ = 0 gives the exact LS solution.
+    _, g, H = _cost_grad_hess(x, geo, d)
+    Hp = H[:, 3:, 3:]
+    evp = torch.linalg.eigvalsh(Hp)
+    okp = evp[:, 0] > 1e-12 * evp[:, -1].clamp_min(1e-300)
+    phi = torch.linalg.solve(torch.where(okp[:, None, None], Hp, torch.eye(6, dtype=Hp.dtype)), g[:, 3:].unsqueeze(-1)).squeeze(-1)
+    x[:, 3:] = torch.where(okp[:, None], phi, 0)
+    return x, ~ok
+
+
+def solve_motion(geo: Geometry, d: _Data, x0, *, max_iter: int = 50, xtol: float = 1e-12):
+    """Batched Levenberg–Marquardt for x = [ω, ω̇, s] per sample (Marquardt-scaled damping per
+    sample; no loop over samples).  ``x0`` (*G, N, 9) with G the geometry's batch.
+    Returns (x, cost, H = JᵀWJ at x, converged (*G, N) bool)."""
+    x = x0.clone()
+    cost, g, H = _cost_grad_hess(x, geo, d)
+    lam = torch.full(cost.shape, 1e-8, dtype=x.dtype)
+    done = torch.zeros(cost.shape, dtype=torch.bool)
+    conv = done.clone()
+    eye = torch.eye(9, dtype=x.dtype)
+    for _ in range(max_iter):
+        D = torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(1e-30)
+        L, info = torch.linalg.cholesky_ex(H + lam[..., None, None] * torch.diag_embed(D))
+        bad = info != 0
+        L = torch.where(bad[..., None, None], eye, L)
+        step = torch.where(bad[..., None], 0, torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1))
+        x_new = x + step
+        cost_new, g_new, H_new = _cost_grad_hess(x_new, geo, d)
+        better = (cost_new <= cost) & torch.isfinite(cost_new) & ~done & ~bad
+        x = torch.where(better[..., None], x_new, x)
+        g = torch.where(better[..., None], g_new, g)
+        H = torch.where(better[..., None, None], H_new, H)
+        small = step.norm(dim=-1) <= xtol * (1 + x.norm(dim=-1))
+        flat = (cost - cost_new).abs() <= 1e-14 * cost.abs().clamp_min(1e-300)
+        cost = torch.where(better, cost_new, cost)
+        lam = torch.where(better, (lam / 5).clamp_min(1e-15), lam * 10)
+        # Converged: a negligible step, or no further decrease possible at round-off level.
+        conv = conv | small | (flat & ~bad)
+        done = conv | (lam > 1e10)
+        if bool(done.all()):
+            break
+    return x, cost, H, conv
+
+
+def gauss_newton_steps(geo: Geometry, d: _Data, x0, steps: int = 2):
+    """``steps`` undamped Gauss–Newton steps from ``x0`` (*G, N, 9) — for re-solving under a
+    slightly perturbed geometry, starting at the unperturbed optimum (quadratic convergence: a
+    relative perturbation ε leaves an error of order ε^(2^steps)).  Returns (x, the last step
+    (*G, N, 9))."""
+    x = x0.clone()
+    eye = torch.eye(9, dtype=x.dtype)
+    step = torch.zeros_like(x)
+    for _ in range(steps):
+        _, g, H = _cost_grad_hess(x, geo, d)
+        L, info = torch.linalg.cholesky_ex(H)
+        bad = info != 0
+        L = torch.where(bad[..., None, None], eye, L)
+        step = torch.where(bad[..., None], 0, torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1))
+        x = x + step
+    return x, step
+
+
+# ------------------------------------------------------------------------------ estimation
+def _weights(y, clipped, rng, sigma, present):
+    """Per-axis weights (T, K, 3) = 1/σ_k² on finite, unclipped axes; 0 elsewhere."""
+    T, K, _ = y.shape
+    finite = np.isfinite(y)
+    w = np.broadcast_to((1.0 / sigma**2)[None, :, None], y.shape).copy()
+    w[~finite] = 0
+    w[:, ~present] = 0
+    if clipped is not None:
+        c = np.asarray(clipped, dtype=bool)
+        if rng is not None and np.isfinite(rng):
+            at = np.abs(np.where(finite, y, 0)) >= _CLIP_FRACTION * rng
+            # A flagged triad loses the axes at the range; an unflagged one keeps everything.
+            w[c[..., None] & at] = 0
+            w[c & ~at.any(-1)] = 0  # flagged but no axis visibly at the range: drop the triad
+        else:
+            w[c] = 0
+    return w
+
+
+def _sigma(x, name, K):
+    s = np.asarray(x, dtype=np.float64).reshape(-1)
+    if s.size == 1:
+        s = np.full(K, float(s[0]))
+    if s.shape != (K,):
+        raise UserError(f"{name}: expected a scalar or {K} values, got {s.size}")
+    return s
+
+
+def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws: int = 200, seed: int = 0,
+                    geometry: str = "draws", include_cov: bool = False, acc_noise_std=None, gyro_noise_std=None,
+                    max_iter: int = 50, draw_steps: int = 2, chunk_systems: int = 100_000):
+    """Estimate ω, ω̇ and s at every sample of ``recording`` from a calibrated array.
+
+    Parameters
+    ----------
+    recording : :class:`Recording` (sensor-frame outputs).
+    calibration : positions.json path or dict (DESIGN §7.3), a (K, 3) array of positions relative
+        to the reference IMU (no uncertainty), or a :class:`Calibration`.
+    intrinsics : None, an :class:`accel_bayes.intrinsics.Intrinsics` or its JSON path/dict —
+        applied to the recording first.
+    draws : number of geometry draws for ``geometry="draws"`` (0 → no geometry part).
+    seed : seed of the geometry draws (same seed → same result).
+    geometry : "draws" (re-solve per draw; default) or "linear" (first-order propagation).
+    include_cov : also store the full 9×9 noise and geometry covariances per sample.
+    acc_noise_std, gyro_noise_std : override the recording's stated noise (scalar or (K,)).
+    max_iter : LM iterations of the point estimate.
+    draw_steps : Gauss–Newton steps per geometry draw, started at the point estimate (the
+        draws move positions by ~1 % of the baseline, so 2 steps converge to ~1e-8 relative;
+        the largest last step, in noise stds, is reported as ``draws_last_step_max_in_noise_std``).
+    chunk_systems : at most this many 9×9 systems per batch of the draws (memory bound).
+
+    Returns an :class:`xarray.Dataset` with coords ``time``, ``axis`` (and ``param``/``param2``
+    with ``include_cov``) and variables ``omega`` (rad s-1), ``omega_dot`` (rad s-2), ``s``
+    (m s-2) — (time, axis), array frame, s at the reference IMU — their total std
+    ``<name>_std`` and the parts ``<name>_std_noise``, ``<name>_std_geometry``; per-sample
+    ``chi2`` (weighted residual sum of squares), ``dof``, and flags ``converged``,
+    ``ill_posed`` (NaN estimates: the measurements left do not determine all 9 unknowns),
+    ``gyro_clipped``, ``acc_clipped``, ``omega_needs_acc``.  Attributes hold units and
+    provenance (schema ``accel_bayes.motion/1``).
+    """
+    import time as _time
+
+    import xarray as xr
+
+    t_start = _time.perf_counter()
+    if not isinstance(recording, Recording):
+        raise UserError(f"recording: expected a Recording, got {type(recording).__name__}")
+    if geometry not in ("draws", "linear"):
+        raise UserError(f"geometry: expected 'draws' or 'linear', got {geometry!r}")
+    if isinstance(draws, bool) or not isinstance(draws, (int, np.integer)) or draws < 0 or draws == 1:
+        raise UserError(f"draws: expected 0 or an integer >= 2, got {draws!r}")
+    K = recording.K
+    cal = load_calibration(calibration, K)
+    intr_note = "none"
+    if intrinsics is not None:
+        from .intrinsics import Intrinsics
+
+        intr = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_json(intrinsics)
+        recording = intr.apply(recording)
+        intr_note = intr.source or "given"
+    sa = _sigma(recording.acc_noise_std if acc_noise_std is None else acc_noise_std, "acc_noise_std", K)
+    sg = _sigma(recording.gyro_noise_std if gyro_noise_std is None else gyro_noise_std, "gyro_noise_std", K)
+
+    has_acc = recording.has_acc & np.isfinite(cal.positions).all(-1)
+    has_gyro = recording.has_gyro
+    for name, s, present in (("acc_noise_std", sa, has_acc), ("gyro_noise_std", sg, has_gyro)):
+        if present.any() and not (np.isfinite(s[present]).all() and (s[present] > 0).all()):
+            raise UserError(f"{name}: expected positive finite noise std for every IMU in use, got {s[present].tolist()}")
+    if not has_acc.any():
+        raise UserError("calibration.imus: no IMU has both accelerometer data and a calibrated position")
+
+    q = np.asarray(recording.nominal_orientation, dtype=np.float64).copy()
+    if cal.orientations is not None:
+        use_cal = np.isfinite(cal.orientations).all(-1)
+        q[use_cal] = cal.orientations[use_cal]
+    R = quat_to_matrix(torch.as_tensor(q))  # (K, 3, 3) array → sensor
+    pos = torch.as_tensor(np.where(has_acc[:, None], cal.positions, 0.0))
+
+    acc = np.asarray(recording.acc, dtype=np.float64)
+    wa = _weights(acc, recording.acc_clipped, recording.acc_range, np.where(has_acc, sa, 1.0), has_acc)
+    if recording.gyro is not None:
+        gyro = np.asarray(recording.gyro, dtype=np.float64)
+        wg = _weights(gyro, recording.gyro_clipped, recording.gyro_range, np.where(has_gyro, sg, 1.0), has_gyro)
+    else:
+        gyro = np.zeros_like(acc)
+        wg = np.zeros_like(acc)
+    M = 3 * K
+    ya = torch.as_tensor(np.where(wa > 0, acc, 0.0)).reshape(-1, M)
+    yg = torch.as_tensor(np.where(wg > 0, gyro, 0.0))
+    wg_t = torch.as_tensor(wg)
+    Lg = torch.einsum("kai,tka,kaj->tij", R, wg_t, R)  # Σ_k R_kᵀ diag(w_g) R_k
+    GY = torch.einsum("kai,tka->ti", R, wg_t * yg)
+    d = _Data(ya, torch.as_tensor(wa).reshape(-1, M), Lg, GY, (wg_t * yg * yg).sum((1, 2)))
+    geo = Geometry(R, pos)
+
+    # Fallback start for samples without a usable gyro axis: the clipped readings themselves
+    # (right sign; magnitude at the range), averaged in the array frame.
+    g_all = torch.as_tensor(np.where(np.isfinite(gyro), gyro, 0.0))
+    n_g = max(int(has_gyro.sum()), 1)
+    fallback = torch.einsum("kai,tka->tki", R, g_all)[:, has_gyro].sum(1) / n_g
+
+    x0, acc_only = _initial(geo, d, fallback)
+    x, _, H, conv = solve_motion(geo, d, x0, max_iter=max_iter)
+    # The reported misfit comes from the package's one signal model (models.specific_force),
+    # which the factored solver reproduces (tests pin the two together).
+    f_s = torch.einsum("kab,tkb->tka", R, specific_force(pos, x[:, 0:3], x[:, 3:6], x[:, 6:9])).reshape(-1, M)
+    g_s = torch.einsum("kab,tb->tka", R, x[:, 0:3])
+    cost = (d.w * (d.y - f_s) ** 2).sum(-1) + (wg_t * (yg - g_s) ** 2).sum((1, 2))
+    ev = torch.linalg.eigvalsh(H)
+    ill = ~(ev[:, 0] > 1e-10 * ev[:, -1].clamp_min(1e-300)) | ~torch.isfinite(x).all(-1)
+    Hs = torch.where(ill[:, None, None], torch.eye(9, dtype=H.dtype), H)
+    cov_noise = torch.linalg.inv(Hs)
+    cov_noise = 0.5 * (cov_noise + cov_noise.transpose(-1, -2))
+
+    # ---- geometry part
+    Tn = recording.T
+    cov_r = torch.as_tensor(np.where(has_acc[:, None, None], cal.cov, 0.0))
+    geo_used = bool((cov_r.abs().sum() > 0).item()) and (geometry == "linear" or draws >= 2)
+    method = geometry if geo_used else "none"
+    cov_geo = torch.zeros(Tn, 9, 9, dtype=torch.float64)
+    draw_info = {}
+    if geo_used and geometry == "linear":
+        w, wd = x[:, 0:3], x[:, 3:6]
+        Om = skew(w)
+        dfdr = Om @ Om + skew(wd)  # (T, 3, 3): ∂f_k/∂r_k, array frame, the same for every triad
+        _, a_w = _model(x, geo)
+        J = torch.cat((a_w, geo.C.expand(Tn, -1, -1)), -1)  # (T, M, 9)
+        Bm = geo.Rm @ dfdr  # (T, M, 3): ∂f_m/∂r_k(m)
+        # dx/dr_k = −(JᵀWJ)⁻¹ Σ_{m in k} w_m J_mᵀ ∂f_m/∂r_k  (sign irrelevant for the covariance)
+        P = (d.w[..., None, None] * J.unsqueeze(-1) * Bm.unsqueeze(-2)).unflatten(1, (K, 3)).sum(2)  # (T, K, 9, 3)
+        A = cov_noise.unsqueeze(1) @ P
+        cov_geo = (A @ cov_r @ A.transpose(-1, -2)).sum(1)
+    elif geo_used:
+        gen = torch.Generator().manual_seed(int(seed))
+        ev_r, V = torch.linalg.eigh(cov_r)
+        Lr = V * ev_r.clamp_min(0).sqrt().unsqueeze(-2)  # a square root of each PSD block
+        z = torch.randn(draws, K, 3, generator=gen, dtype=torch.float64)
+        r_d = pos + (Lr @ z.unsqueeze(-1)).squeeze(-1)  # (D, K, 3)
+        r_d = torch.where(torch.as_tensor(has_acc)[None, :, None], r_d, 0.0)
+        geo_d = Geometry(R, r_d)
+        sd_noise0 = torch.sqrt(torch.diagonal(cov_noise, dim1=-2, dim2=-1).clamp_min(1e-300))
+        chunk_t = max(1, int(chunk_systems) // draws)
+        s1 = torch.zeros(Tn, 9, dtype=torch.float64)
+        s2 = torch.zeros(Tn, 9, 9, dtype=torch.float64)
+        worst = 0.0
+        for a in range(0, Tn, chunk_t):  # chunks bound memory; each solves draws × chunk_t systems at once
+            b = min(Tn, a + chunk_t)
+            xd, last = gauss_newton_steps(geo_d, d.take(slice(a, b)), x[a:b].expand(draws, -1, -1), draw_steps)
+            ok = ~ill[a:b]
+            dev = torch.where(ok[:, None], xd - x[a:b], 0)  # about the point estimate; re-centred below
+            s1[a:b] = dev.sum(0)
+            s2[a:b] = torch.einsum("dti,dtj->tij", dev, dev)
+            if bool(ok.any()):
+                # Convergence of the draws, in units of the noise std of each unknown.
+                worst = max(worst, float((last[:, ok].abs() / sd_noise0[a:b][ok]).max()))
+        mean = s1 / draws
+        cov_geo = (s2 - draws * mean.unsqueeze(-1) * mean.unsqueeze(-2)) / (draws - 1)
+        draw_info = {"draws_last_step_max_in_noise_std": worst}
+    cov_geo = 0.5 * (cov_geo + cov_geo.transpose(-1, -2))
+    cov_tot = cov_noise + cov_geo
+
+    # ---- flags and output
+    nan = torch.tensor(float("nan"), dtype=torch.float64)
+    x = torch.where(ill[:, None], nan, x)
+    sd = lambda c: torch.sqrt(torch.diagonal(c, dim1=-2, dim2=-1).clamp_min(0))  # noqa: E731
+    sd_tot, sd_noise, sd_geo = (torch.where(ill[:, None], nan, sd(c)) for c in (cov_tot, cov_noise, cov_geo))
+    n_res = (wa > 0).sum((1, 2)) + (wg > 0).sum((1, 2))
+    gclip = np.zeros(Tn, bool) if recording.gyro_clipped is None else np.asarray(recording.gyro_clipped, bool)[:, has_gyro].any(1)
+    aclip = np.zeros(Tn, bool) if recording.acc_clipped is None else np.asarray(recording.acc_clipped, bool)[:, has_acc].any(1)
+    from . import __version__
+
+    axis = ["x", "y", "z"]
+    dv = {}
+    for i, (name, unit, long) in enumerate((("omega", "rad s-1", "angular velocity"),
+                                             ("omega_dot", "rad s-2", "angular acceleration"),
+                                             ("s", "m s-2", "specific force at the reference IMU"))):
+        sl = slice(3 * i, 3 * i + 3)
+        dv[name] = (("time", "axis"), x[:, sl].numpy(), {"units": unit, "long_name": f"{long}, array frame"})
+        dv[f"{name}_std"] = (("time", "axis"), sd_tot[:, sl].numpy(),
+                             {"units": unit, "long_name": f"{long}: total std (noise + geometry)"})
+        dv[f"{name}_std_noise"] = (("time", "axis"), sd_noise[:, sl].numpy(),
+                                   {"units": unit, "long_name": f"{long}: std from measurement noise (Laplace)"})
+        dv[f"{name}_std_geometry"] = (("time", "axis"), sd_geo[:, sl].numpy(),
+                                      {"units": unit, "long_name": f"{long}: std from the calibration's position uncertainty"})
+    dv["chi2"] = (("time",), torch.where(ill, nan, cost).numpy(),
+                  {"long_name": "weighted residual sum of squares at the estimate (stated noise)"})
+    dv["dof"] = (("time",), (n_res - 9).astype(np.int64), {"long_name": "residual degrees of freedom"})
+    dv["converged"] = (("time",), conv.numpy(), {"long_name": "LM converged"})
+    dv["ill_posed"] = (("time",), ill.numpy(), {"long_name": "unknowns not determined by the measurements left; NaN estimates"})
+    dv["gyro_clipped"] = (("time",), gclip, {"long_name": "some gyroscope triad at its range"})
+    dv["acc_clipped"] = (("time",), aclip, {"long_name": "some accelerometer triad at its range"})
+    dv["omega_needs_acc"] = (("time",), acc_only.numpy(),
+                             {"long_name": "the unclipped gyro axes do not determine omega: the missing components "
+                                           "come from the accelerometers (start: the clipped gyro readings)"})
+    coords = {"time": ("time", np.asarray(recording.time, dtype=np.float64), {"units": "s"}), "axis": axis}
+    if include_cov:
+        coords["param"] = list(PARAMS)
+        coords["param2"] = list(PARAMS)
+        dv["cov_noise"] = (("time", "param", "param2"), cov_noise.numpy(), {"long_name": "noise covariance of [omega, omega_dot, s]"})
+        dv["cov_geometry"] = (("time", "param", "param2"), cov_geo.numpy(), {"long_name": "geometry covariance of [omega, omega_dot, s]"})
+    attrs = {
+        "schema": MOTION_SCHEMA,
+        "frame": "array",
+        "origin": f"position of the calibration's reference IMU {cal.reference_imu} (positions relative to it)",
+        "reference_imu": int(cal.reference_imu),
+        "geometry_method": method,
+        "draws": int(draws) if method == "draws" else 0,
+        "seed": int(seed),
+        "calibration_method": cal.method,
+        "calibration": cal.source,
+        "orientations": "calibration" if cal.orientations is not None else "nominal (recording)",
+        "intrinsics": intr_note,
+        "acc_noise_std": json.dumps([float(v) for v in sa]),
+        "gyro_noise_std": json.dumps([float(v) for v in sg]),
+        "recording_source": recording.source,
+        "recording_description": recording.description,
+        "version": __version__,
+        "seconds": float(_time.perf_counter() - t_start),
+        "model": "R_k^T y_k^a = omega x (omega x r_k) + omega_dot x r_k + s + e; R_k^T y_k^g = omega + e ([C21] eq. 4)",
+    }
+    attrs.update({k: float(v) for k, v in draw_info.items()})
+    return xr.Dataset(dv, coords=coords, attrs=attrs)
+
+
+def write_motion(ds, path, *, overwrite: bool = False) -> Path:
+    """Write a motion dataset to NetCDF-4 (h5netcdf), atomically (temporary file + rename); an
+    existing file is only replaced with ``overwrite``."""
+    from .io import ENGINE, _atomic_target, _finish_atomic
+
+    path = Path(path)
+    tmp = _atomic_target(path, overwrite)
+    enc = {name: {"_FillValue": None} for name, v in ds.variables.items() if v.dtype.kind == "f"}
+    try:
+        ds.to_netcdf(tmp, engine=ENGINE, encoding=enc)
+        _finish_atomic(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
