@@ -125,7 +125,7 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
                           f"{', '.join(f'{v * 1e6:.0f}' for v in stds[k])} | "
                           f"{', '.join(f'{v * 1e3:.3f}' for v in true_rel[k])} |")
         report += ["", "## 4. Diagnostics", ""]
-        for f in files:
+        for f in files.values():
             f = Path(f)
             rel = f.relative_to(out)
             report.append(f"![{f.stem}]({rel.as_posix()})" if f.suffix == ".png" else f"- `{rel.as_posix()}`")
