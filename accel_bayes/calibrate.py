@@ -1,0 +1,453 @@
+"""Posterior calibration of the accelerometer-triad positions with PmMH ([C21]; DESIGN §2, §5, §7.3).
+
+:func:`calibrate` strings the stages together for one recording:
+
+1. the Rao-Blackwellized likelihood (:class:`~accel_bayes.likelihood.RaoBlackwellLikelihood`,
+   [C21] eq. 26 with the −½ power of DESIGN §4) with the chosen gyro posterior and sample
+   selection;
+2. the prior on θ (Gaussian, σ_r = 3 mm by default, [C21] §IV-A; or a box of the same std);
+3. optionally the MAP and its Laplace covariance (:mod:`accel_bayes.inference.map`): a central
+   θ for choosing N, over-dispersed chain starts, the random-walk shape and an independence
+   proposal;
+4. N, the number of Monte Carlo draws per likelihood estimate, chosen so that Var[log p̂] ≈ 1
+   at the central θ ([C21] §III-C, accepted range 0.1–3);
+5. C chains of :class:`~accel_bayes.inference.pmmh.PMMHKernel` (warm-up adaptation, then a
+   fixed exact kernel), crash-safe when a checkpoint file is given;
+6. ArviZ diagnostics and the DESIGN §7.3 ``positions.json``.
+
+:func:`write_outputs` writes ``posterior.nc``, ``summary.csv``, ``positions.json`` and the plots.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import __version__
+from . import diagnostics as dg
+from . import positions as _positions_mod
+from .errors import UserError
+from .inference.pmmh import PMMHKernel, PMMHRun, run_pmmh
+from .inference.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
+from .likelihood import RaoBlackwellLikelihood, choose_num_draws, positions_from_theta
+from .recording import Recording
+
+__all__ = ["calibrate", "CalibrationResult", "write_outputs", "positions_document", "DEFAULTS"]
+
+# Defaults, measured on the 2-core reference machine (see the module docstring of
+# tests/test_calibrate.py and the helper report): a 32-IMU, T = 3000 recording finishes well
+# inside 10 minutes with these.
+DEFAULTS = {
+    "chains": 4,
+    "draws": 1000,
+    "warmup": 1000,
+    "prior": "gaussian",
+    "prior_std": DEFAULT_PRIOR_STD,
+    "gyro_method": "sample_cov",
+    "target_accept_prob": 0.15,
+    "independence_prob": 0.8,
+    "start_overdispersion": 1.5,
+    "drop_clipped": True,
+}
+
+# Upper bound on N·T when N is chosen automatically: one estimate then costs at most ~0.1 s here.
+# Far from the posterior (e.g. at the prior mean of a long recording) Var[log p̂] can need a huge
+# N; the chains do not stay there, so the cap only costs some stickiness early in warm-up.
+NUM_DRAWS_BUDGET = 300_000
+
+_PRIORS = ("gaussian", "box")
+_GYRO_METHODS = ("sample_cov", "sample_cov_mean", "calibrated")
+_PROPOSALS = ("auto", "rw", "mixture")
+
+
+@dataclass
+class CalibrationResult:
+    """What :func:`calibrate` returns.
+
+    idata : ``az.InferenceData`` (posterior ``r`` (chain, draw, imu, axis), m, relative to the
+        reference triad; sample stats; log-likelihood estimates).
+    summary : pandas DataFrame from :func:`accel_bayes.diagnostics.summarize` (R̂, ESS, MCSE).
+    positions : the DESIGN §7.3 ``positions.json`` document (a dict).
+    settings : every setting used (including the N chosen and its variance table).
+    seconds : wall time of the whole calibration.
+    run : the :class:`~accel_bayes.inference.pmmh.PMMHRun` (draws and per-draw statistics).
+    map_result : the MAP result when one was used, else None.
+    array : the :class:`~accel_bayes.arrays.SensorArray` of the recording (for plots).
+    """
+
+    idata: object
+    summary: object
+    positions: dict
+    settings: dict
+    seconds: float
+    run: PMMHRun
+    map_result: object = None
+    array: object = None
+    input_sha256: str | None = None
+    extra: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------- validation
+
+def _int_option(name, v, lo):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or int(v) < lo:
+        raise UserError(f"{name}: expected an integer >= {lo}, got {v!r}")
+    return int(v)
+
+
+def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
+              checkpoint_every, resume, proposal, independence_prob, init):
+    out = {
+        "chains": _int_option("chains", chains, 1),
+        "draws": _int_option("draws", draws, 1),
+        "warmup": _int_option("warmup", warmup, 0),
+        "seed": _int_option("seed", seed, 0),
+        "checkpoint_every": _int_option("checkpoint_every", checkpoint_every, 0),
+    }
+    if num_draws is not None:
+        out["num_draws"] = _int_option("num_draws", num_draws, 1)
+    if prior not in _PRIORS:
+        raise UserError(f"prior: expected one of {_PRIORS}, got {prior!r}")
+    try:
+        ps = float(prior_std)
+    except (TypeError, ValueError):
+        raise UserError(f"prior_std: expected a positive number (metres), got {prior_std!r}") from None
+    if not (ps > 0 and math.isfinite(ps)):
+        raise UserError(f"prior_std: expected a positive number (metres), got {prior_std!r}")
+    if gyro_method not in _GYRO_METHODS:
+        raise UserError(f"gyro_method: expected one of {_GYRO_METHODS}, got {gyro_method!r}")
+    if proposal not in _PROPOSALS:
+        raise UserError(f"proposal: expected one of {_PROPOSALS}, got {proposal!r}")
+    if init not in ("auto", "map", "prior"):
+        raise UserError(f"init: expected 'auto', 'map' or 'prior', got {init!r}")
+    if independence_prob is not None and not 0.0 <= float(independence_prob) < 1.0:
+        raise UserError(f"independence_prob: expected a number in [0, 1), got {independence_prob!r}")
+    if (out["checkpoint_every"] or resume) and checkpoint is None:
+        raise UserError("checkpoint: --checkpoint-every/--resume need a checkpoint file")
+    return out
+
+
+def _load_recording(recording):
+    if isinstance(recording, Recording):
+        return recording, None, None
+    if isinstance(recording, (str, os.PathLike)):
+        from .io import read_recording, recording_sha256
+
+        rec = read_recording(recording, require_gyro=True)
+        return rec, recording_sha256(recording), str(recording)
+    raise UserError(f"recording: expected a Recording or a file path, got {type(recording).__name__}")
+
+
+def _data_fingerprint(lik) -> str:
+    h = hashlib.sha256()
+    for t in (lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std):
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def prop_planned(proposal: str, lap) -> str:
+    """The proposal "auto" resolves to: the mixture when a Laplace covariance exists, else rw."""
+    return ("mixture" if lap is not None else "rw") if proposal == "auto" else proposal
+
+
+# Per-θ work of one estimate that does not depend on N (projection, O(T·A)), in units of the
+# per-draw work (O(T)): measured ≈ 0.8·A on the 2-core machine (32 IMUs: ~24 draws' worth).
+OVERHEAD_PER_TRIAD = 0.8
+
+
+def cost_aware_num_draws(N0: int, var0: float, A: int, max_draws: int = 100_000) -> int:
+    """N for a sampler dominated by independence moves ([C21] §III-C range kept: Var 0.1–3).
+
+    With Var[log p̂] = v0·N0/N (the 1/N law [C21] Fig. 2), an independence move with a good
+    proposal is accepted with probability ≈ 2Φ(−σ/√2), σ² = Var[log p̂] (log-normal noise on
+    both sides).  Cost per move ∝ N + 0.8·A (the N-independent projection work).  Returns the N
+    minimising cost/acceptance over Var ∈ [0.1, 3] — deterministic (no timing), so the same seed
+    still gives the same run."""
+    from math import erf, sqrt
+
+    def accept(var):
+        return 1.0 + erf(-sqrt(var) / 2.0)  # 2Φ(−σ/√2) = 1 + erf(−σ/2)
+
+    k = var0 * N0
+    lo = max(1, int(math.ceil(k / 3.0)))
+    hi = max(lo, min(int(max_draws), int(math.ceil(k / 0.1))))
+    best, best_cost = N0, float("inf")
+    for N in range(lo, hi + 1):
+        c = (N + OVERHEAD_PER_TRIAD * A) / accept(k / N)
+        if c < best_cost - 1e-12:
+            best, best_cost = N, c
+    return best
+
+
+def _fit_map(lik, nominal_acc, prior_std, settings):
+    """MAP and Laplace covariance (:mod:`accel_bayes.inference.map`), or None (with the reason in
+    ``settings["map_failed"]``) when it is unavailable, diverged or has no usable covariance."""
+    try:
+        from .inference.map import fit_map
+    except ImportError as exc:  # pragma: no cover - depends on the installed package
+        warnings.warn(f"use_map: accel_bayes.inference.map unavailable ({exc}); chains start from the prior")
+        settings["map_failed"] = f"unavailable: {exc}"
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        res = fit_map(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, reference=lik.reference,
+                      prior_mean=nominal_acc, prior_std=prior_std, on_divergence="ignore")
+    cov = torch.as_tensor(res.laplace_cov, dtype=torch.float64)
+    ok = bool(torch.isfinite(cov).all()) and int(torch.linalg.cholesky_ex(0.5 * (cov + cov.T))[1]) == 0
+    if not ok or not bool(torch.isfinite(torch.as_tensor(res.theta)).all()):
+        msg = f"MAP not usable ({res.reason}); chains start from prior draws"
+        warnings.warn(msg, RuntimeWarning)
+        settings["map_failed"] = msg
+        return None
+    settings["map"] = {"converged": bool(res.converged), "reason": str(res.reason), "iterations": int(res.n_iter)}
+    return res
+
+
+# ---------------------------------------------------------------------------- main entry
+
+def calibrate(
+    recording,
+    *,
+    chains: int = DEFAULTS["chains"],
+    draws: int = DEFAULTS["draws"],
+    warmup: int = DEFAULTS["warmup"],
+    num_draws: int | None = None,
+    seed: int = 0,
+    prior: str = DEFAULTS["prior"],
+    prior_std: float = DEFAULTS["prior_std"],
+    use_map: bool = True,
+    init: str = "auto",
+    gyro_method: str = DEFAULTS["gyro_method"],
+    select=None,
+    drop_clipped: bool = DEFAULTS["drop_clipped"],
+    proposal: str = "auto",
+    independence_prob: float | None = None,
+    target_accept_prob: float = DEFAULTS["target_accept_prob"],
+    progress: bool = True,
+    checkpoint=None,
+    checkpoint_every: int = 0,
+    resume: bool = False,
+    callback=None,
+) -> CalibrationResult:
+    """Sample the posterior of the accelerometer-triad positions of one recording with PmMH.
+
+    recording : a :class:`~accel_bayes.recording.Recording` or a path to a format-v1 file.
+    chains, draws, warmup : C chains (run one after another), D kept draws and W warm-up
+        iterations each.
+    num_draws : N, Monte Carlo draws per likelihood estimate; None chooses it so that
+        Var[log p̂] ≈ 1 at the central θ (the MAP, or the prior mean) ([C21] §III-C).
+    seed : one seed for everything random (N choice, chain starts, chains); same seed → same
+        draws, bit for bit.
+    prior, prior_std : "gaussian" — N(design position, σ²) per coordinate ([C21] §IV-A, σ = 3 mm);
+        "box" — uniform with the same std (half-width √3·σ).  Metres.
+    use_map : fit the MAP first (if :mod:`accel_bayes.inference.map` is installed) and use it for
+        the central θ, the chain starts (Laplace draws over-dispersed ×1.5), the random-walk shape
+        and the independence proposal.  False: chains start from prior draws, the random walk is
+        shaped by the prior and re-shaped from warm-up draws.
+    init : chain starts — "map" (Laplace draws around the MAP, over-dispersed ×1.5), "prior"
+        (prior draws, e.g. to check convergence from far away while the proposals still use the
+        MAP), "auto" ("map" when a MAP is used, else "prior").
+    gyro_method : gyro posterior, see :func:`accel_bayes.likelihood.gyro_posterior` (default
+        [C21] eq. 30 as printed).
+    select : sample selection passed to ``RaoBlackwellLikelihood.from_recording`` (None: all
+        samples; "rotation": only samples with rotation; or a mask / indices).
+    drop_clipped : leave out samples where any used accelerometer or gyroscope is flagged as
+        clipped (at its range): the model cannot explain them, and a handful of them makes
+        Var[log p̂] explode.  Default True; the count is in ``settings["samples"]``.
+    proposal : "rw" (Gaussian random walk only, [C21] eq. 27 with a shaped covariance),
+        "mixture" (random walk mixed with independence moves from the Laplace approximation or
+        the warm-up moments), "auto" (mixture when a MAP is used, else rw).
+    independence_prob : probability of an independence move in "mixture" (default 0.5).
+    target_accept_prob : random-walk acceptance targeted in warm-up (default 0.15).
+    progress : tqdm bars (stderr) with the acceptance rate.
+    checkpoint, checkpoint_every, resume : see :func:`accel_bayes.inference.pmmh.run_pmmh`.
+    callback : ``callback(chain, iteration, kernel)`` after every iteration.
+
+    Returns a :class:`CalibrationResult`.
+    """
+    t0 = time.perf_counter()
+    opts = _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
+                     checkpoint_every, resume, proposal, independence_prob, init)
+    rec, sha, src = _load_recording(recording)
+    if rec.gyro is None or not rec.has_gyro.any():
+        raise UserError("recording: has no gyroscope data; the [C21] likelihood needs gyroscopes")
+    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gyro_method, select=select,
+                                                drop_clipped=bool(drop_clipped))
+    array = rec.sensor_array()
+    labels = list(lik.imu_labels)
+    ref_label = labels[lik.reference]
+    free_labels = [k for i, k in enumerate(labels) if i != lik.reference]
+    nominal_acc = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=torch.float64)
+    ps = float(prior_std)
+    if prior == "gaussian":
+        pri = GaussianPrior(nominal_acc, std=ps, reference=lik.reference)
+    else:
+        pri = BoxPrior.with_std(nominal_acc, std=ps, reference=lik.reference)
+
+    settings = {
+        "chains": opts["chains"], "draws": opts["draws"], "warmup": opts["warmup"], "seed": opts["seed"],
+        "prior": prior, "prior_std": ps, "gyro_method": gyro_method,
+        "select": select if (select is None or isinstance(select, str)) else "mask",
+        "drop_clipped": bool(drop_clipped),
+        "T": lik.T, "A": lik.A, "imu_labels": labels, "reference_imu": ref_label,
+        "samples": {"recording": int(rec.T), "used": int(lik.T)},
+        "target_accept_prob": float(target_accept_prob),
+    }
+    if src is not None:
+        settings["input"] = src
+
+    # ---- MAP (optional)
+    map_res = None
+    if use_map:
+        map_res = _fit_map(lik, nominal_acc, ps, settings)
+    settings["use_map"] = map_res is not None
+
+    # ---- central θ and N
+    if map_res is not None:
+        theta_c = torch.as_tensor(map_res.theta, dtype=torch.float64).reshape(lik.A - 1, 3)
+        lap = torch.as_tensor(map_res.laplace_cov, dtype=torch.float64)
+        lap = 0.5 * (lap + lap.T)
+    else:
+        theta_c = pri.mean.clone()
+        lap = None
+    if "num_draws" in opts:
+        N, table = opts["num_draws"], []
+    else:
+        N, table = choose_num_draws(lik, positions_from_theta(theta_c, lik.reference, lik.A), target=1.0,
+                                    seed=opts["seed"], max_draws=max(64, NUM_DRAWS_BUDGET // lik.T))
+        if table and not 0.1 <= table[-1]["var"] <= 3.0:
+            msg = (f"num_draws: Var[log p̂] = {table[-1]['var']:.3g} at N = {N} (wanted 0.1–3; "
+                   f"{'MAP' if map_res is not None else 'prior mean'} as central θ)")
+            warnings.warn(msg, RuntimeWarning)
+            settings["num_draws_warning"] = msg
+    if table and prop_planned(proposal, lap) == "mixture" and "num_draws" not in opts:
+        N2 = cost_aware_num_draws(int(table[-1]["num_draws"]), float(table[-1]["var"]), lik.A,
+                                  max_draws=max(64, NUM_DRAWS_BUDGET // lik.T))
+        if N2 != N:
+            settings["num_draws_rule"] = (f"Var[log p̂]·N ≈ {table[-1]['var'] * table[-1]['num_draws']:.3g}: "
+                                          f"N = {N2} (predicted Var {table[-1]['var'] * table[-1]['num_draws'] / N2:.2g}) "
+                                          "minimises cost/acceptance of independence moves")
+            N = N2
+    lik.num_draws = int(N)
+    settings["num_draws"] = int(N)
+    settings["num_draws_auto"] = "num_draws" not in opts
+    settings["var_log_phat"] = [{"num_draws": int(r["num_draws"]), "var": float(r["var"])} for r in table]
+
+    # ---- proposal and starts
+    prop = proposal
+    if prop == "auto":
+        prop = "mixture" if lap is not None else "rw"
+    p_ind = (DEFAULTS["independence_prob"] if independence_prob is None else float(independence_prob)) \
+        if prop == "mixture" else 0.0
+    settings["proposal"] = prop
+    settings["independence_prob"] = p_ind
+    g = torch.Generator().manual_seed(int(opts["seed"]) * 7919 + 17)
+    C = opts["chains"]
+    start = init if init != "auto" else ("map" if lap is not None else "prior")
+    settings["init"] = start
+    if start == "map" and lap is None:
+        raise UserError("init: 'map' needs the MAP (use_map=True and accel_bayes.inference.map available)")
+    if start == "map":
+        L = torch.linalg.cholesky(lap)
+        eps = torch.randn(C, lik.A - 1, 3, generator=g, dtype=torch.float64)
+        init_theta = theta_c + DEFAULTS["start_overdispersion"] * (eps.reshape(C, -1) @ L.T).reshape(C, lik.A - 1, 3)
+        # keep starts inside a box prior's support
+        lp = pri.log_prob(init_theta)
+        init_theta = torch.where(torch.isfinite(lp)[:, None, None], init_theta, theta_c.expand_as(init_theta))
+        settings["start"] = f"Laplace draws around the MAP, ×{DEFAULTS['start_overdispersion']}"
+    else:
+        init_theta = pri.sample((C,), generator=g)
+        settings["start"] = "prior draws"
+    if lap is not None:
+        kernel = PMMHKernel(lik, pri, seed=opts["seed"], proposal_cov=lap, target_accept_prob=float(target_accept_prob),
+                            independence_prob=p_ind,
+                            independence_mean=theta_c if p_ind > 0 else None,
+                            independence_cov=lap if p_ind > 0 else None)
+    else:
+        kernel = PMMHKernel(lik, pri, seed=opts["seed"], target_accept_prob=float(target_accept_prob),
+                            independence_prob=p_ind)
+
+    fingerprint = {k: v for k, v in settings.items() if k not in ("var_log_phat", "input")}
+    fingerprint["data_sha256"] = _data_fingerprint(lik)
+    fingerprint["version"] = __version__
+    fingerprint = json.loads(json.dumps(fingerprint))
+    run = run_pmmh(kernel, opts["draws"], opts["warmup"], C, init_theta, progress=progress, checkpoint=checkpoint,
+                   checkpoint_every=opts["checkpoint_every"], resume=resume, fingerprint=fingerprint,
+                   callback=callback)
+
+    idata = dg.to_inference_data(
+        run.theta, free_labels, run.log_phat, log_prior=run.log_prior, accepted=run.accepted,
+        accept_prob=run.accept_prob, step_size=run.step_size, reference_imu=ref_label,
+        attrs={"method": "pmmh", "num_draws": int(N), "seed": opts["seed"], "accel_bayes_version": __version__},
+    )
+    summary = dg.summarize(idata)
+    seconds = time.perf_counter() - t0
+    settings["acceptance_rate"] = [float(a) for a in run.acceptance_rate]
+    settings["step_size"] = [float(s) for s in run.step_size]
+    settings["divergences"] = int(sum(len(d.get("divergences", [])) for d in run.diagnostics))
+    positions = positions_document(idata, K=rec.K, reference_imu=ref_label, seconds=seconds, settings=settings,
+                                   input_sha256=sha, seed=opts["seed"])
+    return CalibrationResult(idata=idata, summary=summary, positions=positions, settings=settings, seconds=seconds,
+                             run=run, map_result=map_res, array=array, input_sha256=sha)
+
+
+def _json_float(x):
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def positions_document(idata, *, K: int, reference_imu: int, seconds: float, settings: dict,
+                       input_sha256: str | None, seed: int) -> dict:
+    """The DESIGN §7.3 document for a PmMH posterior (built by :mod:`accel_bayes.positions`, the
+    one writer of the format): every IMU sorted by label, posterior mean/std/cov of its triad
+    position relative to the reference IMU (array frame, m; zeros for the reference), R̂/ESS
+    diagnostics and provenance.  IMUs without an accelerometer triad get null moments."""
+    mom = dg.posterior_moments(idata)
+    means = np.zeros((int(K), 3))
+    covs = np.zeros((int(K), 3, 3))
+    estimated = set(mom["imu"]) | {int(reference_imu)}
+    for i, lab in enumerate(mom["imu"]):
+        means[lab] = mom["mean"][i]
+        covs[lab] = mom["cov"][i]
+    for k in range(int(K)):
+        if k not in estimated:  # no accelerometer triad: nothing to report (null in JSON)
+            means[k] = np.nan
+            covs[k] = np.nan
+    diagnostics = {
+        "rhat_max": _json_float(dg.rhat_max(idata)),
+        "ess_bulk_min": _json_float(dg.ess_bulk_min(idata)),
+        "seconds": float(seconds),
+        "acceptance_rate": settings.get("acceptance_rate"),
+        "num_draws": settings.get("num_draws"),
+    }
+    provenance = {"version": __version__, "input_sha256": input_sha256, "seed": int(seed),
+                  "settings": json.loads(json.dumps(settings, default=str))}
+    return _positions_mod.positions_document(method="pmmh", reference_imu=int(reference_imu), means=means,
+                                             covs=covs, diagnostics=diagnostics, provenance=provenance)
+
+
+def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True) -> dict:
+    """Write ``posterior.nc``, ``summary.csv``, ``positions.json`` and (``plots``) trace.png,
+    rank.png, autocorr.png, ellipses.png into ``out_dir``; returns {name: path}."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out: {out} exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    paths["posterior"] = dg.save(result.idata, out / "posterior.nc")
+    p = out / "summary.csv"
+    result.summary.to_csv(p)
+    paths["summary"] = p
+    paths["positions"] = _positions_mod.write_positions(result.positions, out / "positions.json")
+    if plots and result.array is not None:
+        for q in dg.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std")):
+            paths[q.stem] = q
+    return paths

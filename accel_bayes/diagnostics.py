@@ -1,0 +1,412 @@
+"""Posterior diagnostics with ArviZ: data, statistics and plots kept apart (as ArviZ does).
+
+Every ArviZ call of the package lives in this module, so a move to ArviZ 1.x is one change.
+
+* Data: :func:`to_inference_data` turns PmMH draws into an ``az.InferenceData`` (posterior
+  variable ``r`` with dims ("imu", "axis"), sample statistics, the log-likelihood estimates);
+  :func:`save` / :func:`load` write and read it as NetCDF (h5netcdf engine).
+* Statistics: :func:`summarize` (R̂, bulk/tail ESS, MCSE: ``az.summary``), :func:`rhat_max`,
+  :func:`ess_bulk_min`, :func:`posterior_moments`.
+* Plots (Agg backend, each returns a ``matplotlib.figure.Figure``): :func:`plot_trace`,
+  :func:`plot_rank`, :func:`plot_autocorr`, :func:`plot_ellipses` ([C21] Fig. 5) and
+  :func:`save_plots`.
+
+Units: positions in metres in the data; plots draw millimetres.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", FutureWarning)  # arviz 0.23 announces its 1.0 refactor
+    import arviz as az
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
+
+from .errors import UserError  # noqa: E402
+
+__all__ = [
+    "to_inference_data",
+    "summarize",
+    "rhat_max",
+    "ess_bulk_min",
+    "posterior_moments",
+    "save",
+    "load",
+    "plot_trace",
+    "plot_rank",
+    "plot_autocorr",
+    "plot_ellipses",
+    "save_plots",
+    "auto_exaggeration",
+    "AXES",
+]
+
+AXES = ("x", "y", "z")
+VAR = "r"
+
+
+def _np(x):
+    if x is None:
+        return None
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def to_inference_data(
+    draws,
+    imu_labels,
+    log_phat=None,
+    *,
+    log_prior=None,
+    accepted=None,
+    accept_prob=None,
+    step_size=None,
+    pointwise_log_lik=None,
+    reference_imu: int | None = None,
+    attrs: dict | None = None,
+) -> "az.InferenceData":
+    """PmMH draws → ``az.InferenceData``.
+
+    draws : (C, D, A−1, 3) m — θ, positions of the free triads relative to the reference triad,
+        array frame.  Posterior variable ``r`` with dims ("chain", "draw", "imu", "axis"),
+        coords imu = ``imu_labels`` (the A−1 free IMU labels), axis = x, y, z.
+    log_phat : (C, D) — the cached estimate log p̂(y | θ) of each draw (stored as sample stat
+        ``log_phat`` and as the log-likelihood group's ``y``, a whole-data-set estimate).
+    log_prior : (C, D) — log p(θ); with log_phat it gives sample stat ``lp`` = log p̂ + log p.
+    accepted : (C, D) bool — sample stat ``accept`` (the move into this draw was accepted).
+    accept_prob : (C, D) — min(1, α) of that move (sample stat ``acceptance_rate``, ArviZ's name).
+    step_size : (C,) — the frozen σ_q per chain (sample stat ``step_size``).
+    pointwise_log_lik : (C, D, T) optional per-sample contributions (log-likelihood ``y`` with a
+        "time" dim instead of the total).
+    reference_imu, attrs : stored as posterior attributes (plain values only).
+    """
+    x = _np(draws)
+    if x is None or x.ndim != 4 or x.shape[-1] != 3:
+        raise UserError(f"draws: expected shape (chains, draws, A-1, 3), got {None if x is None else x.shape}")
+    C, D, Af, _ = x.shape
+    labels = [int(k) for k in imu_labels]
+    if len(labels) != Af:
+        raise UserError(f"imu_labels: expected {Af} labels (one per free triad), got {len(labels)}")
+
+    def cd(name, v):
+        v = _np(v)
+        if v is None:
+            return None
+        if v.shape != (C, D):
+            raise UserError(f"{name}: expected shape ({C}, {D}), got {v.shape}")
+        return v
+
+    stats = {}
+    lphat = cd("log_phat", log_phat)
+    lprior = cd("log_prior", log_prior)
+    if lphat is not None:
+        stats["log_phat"] = lphat.astype(np.float64)
+        stats["lp"] = lphat + (lprior if lprior is not None else 0.0)
+    if lprior is not None:
+        stats["log_prior"] = lprior.astype(np.float64)
+    acc = cd("accepted", accepted)
+    if acc is not None:
+        stats["accept"] = acc.astype(bool)
+    ap = cd("accept_prob", accept_prob)
+    if ap is not None:
+        stats["acceptance_rate"] = ap.astype(np.float64)
+    if step_size is not None:
+        s = _np(step_size).reshape(C, 1)
+        stats["step_size"] = np.broadcast_to(s, (C, D)).astype(np.float64).copy()
+
+    loglik = None
+    dims = {VAR: ["imu", "axis"]}
+    coords = {"imu": labels, "axis": list(AXES)}
+    if pointwise_log_lik is not None:
+        pw = _np(pointwise_log_lik)
+        if pw.ndim != 3 or pw.shape[:2] != (C, D):
+            raise UserError(f"pointwise_log_lik: expected shape ({C}, {D}, T), got {pw.shape}")
+        loglik = {"y": pw}
+        dims["y"] = ["time"]
+        coords["time"] = np.arange(pw.shape[-1])
+    elif lphat is not None:
+        loglik = {"y": lphat.astype(np.float64)}
+    at = {"accel_bayes_variable": "r = triad position relative to the reference triad, array frame, m"}
+    if reference_imu is not None:
+        at["reference_imu"] = int(reference_imu)
+    for k, v in (attrs or {}).items():
+        if isinstance(v, (bool, np.bool_)):
+            at[k] = int(v)
+        elif isinstance(v, (int, float, str, np.integer, np.floating)):
+            at[k] = v
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        idata = az.from_dict(posterior={VAR: x}, sample_stats=stats or None, log_likelihood=loglik,
+                             dims=dims, coords=coords)
+    idata.posterior.attrs.update(at)
+    return idata
+
+
+# ---------------------------------------------------------------------------- statistics
+
+def summarize(idata, var_names=(VAR,), round_to=None):
+    """``az.summary`` of the posterior: mean, sd, HDI, MCSE of mean and sd, bulk/tail ESS, R̂ —
+    one row per coordinate ``r[imu, axis]`` (metres)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return az.summary(idata, var_names=list(var_names), kind="all",
+                          round_to="none" if round_to is None else round_to)
+
+
+def rhat_max(idata, var_name: str = VAR) -> float:
+    """Largest rank-normalised split R̂ over all coordinates (NaN with one chain too short)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        v = az.rhat(idata, var_names=[var_name])[var_name].values
+    return float(np.nanmax(v)) if np.isfinite(v).any() else float("nan")
+
+
+def ess_bulk_min(idata, var_name: str = VAR) -> float:
+    """Smallest bulk ESS over all coordinates."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        v = az.ess(idata, var_names=[var_name], method="bulk")[var_name].values
+    return float(np.nanmin(v)) if np.isfinite(v).any() else float("nan")
+
+
+def posterior_moments(idata, var_name: str = VAR) -> dict:
+    """Posterior mean (A−1, 3) and covariance (A−1, 3, 3) per IMU, pooled over chains and draws,
+    with the IMU labels: {"imu": [...], "mean": ndarray, "cov": ndarray}."""
+    da = idata.posterior[var_name]
+    x = np.asarray(da.values)  # (C, D, A-1, 3)
+    flat = x.reshape(-1, x.shape[-2], 3)
+    mean = flat.mean(0)
+    dev = flat - mean
+    n = max(1, flat.shape[0] - 1)
+    cov = np.einsum("nki,nkj->kij", dev, dev) / n
+    return {"imu": [int(k) for k in da.coords["imu"].values], "mean": mean, "cov": cov}
+
+
+# ---------------------------------------------------------------------------- storage
+
+def save(idata, path) -> Path:
+    """Write ``idata`` to NetCDF-4 (h5netcdf engine); returns the path."""
+    p = Path(path)
+    idata.to_netcdf(str(p), engine="h5netcdf")
+    return p
+
+
+def load(path):
+    """Read an InferenceData written by :func:`save`."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return az.from_netcdf(str(p), engine="h5netcdf")
+
+
+# ---------------------------------------------------------------------------- plots
+
+def _coords_subset(idata, max_imus):
+    labels = [int(k) for k in idata.posterior[VAR].coords["imu"].values]
+    if max_imus is None or len(labels) <= max_imus:
+        return None
+    return {"imu": labels[:max_imus]}
+
+
+def _mm(idata):
+    """A copy of the posterior with r in millimetres (plots read better)."""
+    post = idata.posterior[[VAR]] * 1e3
+    return az.InferenceData(posterior=post)
+
+
+def plot_trace(idata, max_imus: int | None = 2, **kwargs):
+    """Trace and marginal density per coordinate (``az.plot_trace``), mm; the first
+    ``max_imus`` free IMUs only (None: all)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        axes = az.plot_trace(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
+                             compact=False, show=False, **kwargs)
+    fig = np.ravel(axes)[0].figure
+    fig.suptitle("PmMH trace, r relative to the reference triad [mm]")
+    return fig
+
+
+def plot_rank(idata, max_imus: int | None = 2, **kwargs):
+    """Rank plots per coordinate (``az.plot_rank``): uniform bars when chains agree."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        axes = az.plot_rank(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
+                            show=False, **kwargs)
+    fig = np.ravel(axes)[0].figure
+    return fig
+
+
+def plot_autocorr(idata, max_imus: int | None = 2, **kwargs):
+    """Autocorrelation per coordinate, chains combined (``az.plot_autocorr``), [C21] Fig. 3b."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        axes = az.plot_autocorr(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
+                                combined=True, show=False, **kwargs)
+    fig = np.ravel(axes)[0].figure
+    return fig
+
+
+def _chi2_2_quantile(level: float) -> float:
+    """Quantile of χ²₂: the squared Mahalanobis radius of a 2-D Gaussian ellipse with
+    probability ``level``."""
+    return -2.0 * math.log(1.0 - level)
+
+
+def _ellipse(ax, mean2, cov2, level, **kw):
+    vals, vecs = np.linalg.eigh(cov2)
+    vals = np.clip(vals, 0.0, None)
+    k = math.sqrt(_chi2_2_quantile(level))
+    w, h = 2 * k * np.sqrt(vals[::-1])
+    ang = math.degrees(math.atan2(vecs[1, -1], vecs[0, -1]))
+    ax.add_patch(Ellipse(mean2, w, h, angle=ang, fill=False, **kw))
+
+
+def _moments(idata_or_moments):
+    if hasattr(idata_or_moments, "posterior"):
+        return posterior_moments(idata_or_moments)
+    if isinstance(idata_or_moments, dict):
+        m = idata_or_moments
+        return {"imu": [int(k) for k in m["imu"]], "mean": np.asarray(_np(m["mean"])),
+                "cov": np.asarray(_np(m["cov"]))}
+    raise UserError("idata_or_moments: expected an InferenceData or a dict with 'imu', 'mean' (A-1, 3), "
+                    "'cov' (A-1, 3, 3)")
+
+
+def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, label=None, color="C0",
+                  exaggerate: float = 1.0):
+    """[C21] Fig. 5: x–y confidence ellipses of each free triad's position over the board.
+
+    idata_or_moments : an InferenceData from :func:`to_inference_data`, or a dict
+        {"imu": labels, "mean": (A−1, 3) m, "cov": (A−1, 3, 3) m²} (e.g. a Laplace approximation),
+        positions relative to the reference triad.
+    array : :class:`~accel_bayes.arrays.SensorArray` (or a Recording: its ``sensor_array()``) —
+        nominal positions (the posterior is drawn at nominal_ref + r), package squares of side
+        ``package_size`` around them; IMUs with nominal z ≥ 0 are the top side, z < 0 the bottom
+        side, each in its own panel when both exist.
+    ax : one Axes (everything drawn in it) or None (new figure, one panel per board side).
+    level : probability of the ellipses, a float or a sequence (e.g. (0.5, 0.95)); Gaussian
+        ellipses from the posterior mean and covariance of (x, y).
+    prior_std : m — if given, the prior's ellipses (circles of radius √χ²₂(level)·σ) in cyan.
+    exaggerate : k ≥ 1 draws each posterior's offset from its nominal position and its ellipses
+        k times larger (packages stay at scale; the title says so) — posteriors of ~100 µm are
+        invisible on a 20 mm board otherwise.
+    Returns the Figure.
+    """
+    if hasattr(array, "sensor_array") and not hasattr(array, "package_size"):
+        array = array.sensor_array()
+    mom = _moments(idata_or_moments)
+    k_ex = float(exaggerate)
+    if not k_ex >= 1.0:
+        raise UserError(f"exaggerate: expected a factor >= 1, got {exaggerate}")
+    levels = [float(level)] if np.isscalar(level) else [float(v) for v in level]
+    for lv in levels:
+        if not 0.0 < lv < 1.0:
+            raise UserError(f"level: expected probabilities in (0, 1), got {lv}")
+    nominal = np.asarray(_np(array.positions), dtype=float) * 1e3  # mm
+    labels = list(getattr(array, "labels", range(len(nominal)))) or list(range(len(nominal)))
+    ref = int(array.reference_imu)
+    ref_pos = nominal[ref]
+    top = nominal[:, 2] >= 0
+    sides = [("top side", top), ("bottom side", ~top)]
+    sides = [(nm, m) for nm, m in sides if m.any()]
+    if ax is None:
+        fig, axes = plt.subplots(1, len(sides), figsize=(5.5 * len(sides), 5.5), squeeze=False)
+        axes = list(axes[0])
+    else:
+        fig = ax.figure
+        axes = [ax] * len(sides)
+    pkg = getattr(array, "package_size", None)
+    styles = ["-", "--", ":", "-."]
+    for (side_name, mask), a in zip(sides, axes):
+        for k in np.flatnonzero(mask):
+            x, y = nominal[k, :2]
+            if pkg:
+                s = pkg * 1e3
+                a.add_patch(Rectangle((x - s / 2, y - s / 2), s, s, fill=False, ls="--", lw=0.8, color="0.5"))
+                a.plot([x - s / 2, x + s / 2], [y, y], ls=":", lw=0.5, color="0.7")
+                a.plot([x, x], [y - s / 2, y + s / 2], ls=":", lw=0.5, color="0.7")
+            a.annotate(str(labels[k]), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7, color="0.3")
+            if k == ref:
+                a.plot([x], [y], marker="*", ms=10, color="k", ls="none")
+            if prior_std is not None and k != ref:
+                for lv, st in zip(levels, styles):
+                    rr = k_ex * float(prior_std) * 1e3 * math.sqrt(_chi2_2_quantile(lv))
+                    a.add_patch(Ellipse((x, y), 2 * rr, 2 * rr, fill=False, color="c", ls=st, lw=0.8))
+        for i, lab in enumerate(mom["imu"]):
+            if lab >= len(nominal) or not mask[lab]:
+                continue
+            m = nominal[lab, :2] + k_ex * (ref_pos[:2] + mom["mean"][i, :2] * 1e3 - nominal[lab, :2])
+            cv = mom["cov"][i, :2, :2] * 1e6 * k_ex**2
+            a.plot([m[0]], [m[1]], marker=".", color=color, ls="none")
+            for lv, st in zip(levels, styles):
+                _ellipse(a, m, cv, lv, color=color, ls=st, lw=1.0)
+        a.set_aspect("equal")
+        if pkg:  # the board, not the (much wider) prior, sets the view
+            sel = nominal[mask]
+            pad = 1.25 * pkg * 1e3
+            a.set_xlim(sel[:, 0].min() - pad, sel[:, 0].max() + pad)
+            a.set_ylim(sel[:, 1].min() - pad, sel[:, 1].max() + pad)
+        else:
+            a.autoscale_view()
+        a.set_xlabel("x [mm]")
+        a.set_ylabel("y [mm]")
+        a.set_title(f"{side_name}: " + ", ".join(f"{int(round(lv * 100))} %" for lv in levels)
+                    + " ellipses" + (f" ({label})" if label else "")
+                    + (f"\noffsets from nominal and ellipses ×{k_ex:g}" if k_ex != 1.0 else ""))
+        a.grid(True, lw=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def auto_exaggeration(idata_or_moments, array, fraction: float = 0.25) -> float:
+    """A round factor (1, 2, 5, 10, 20, …) that makes the typical 95 % ellipse about
+    ``fraction`` of a package side (1 when it already is, or the array has no package size)."""
+    if hasattr(array, "sensor_array") and not hasattr(array, "package_size"):
+        array = array.sensor_array()
+    pkg = getattr(array, "package_size", None)
+    mom = _moments(idata_or_moments)
+    if not pkg or len(mom["imu"]) == 0:
+        return 1.0
+    sd = np.sqrt(np.clip(np.linalg.eigvalsh(mom["cov"][:, :2, :2])[:, -1], 0, None))
+    semi = float(np.median(sd)) * math.sqrt(_chi2_2_quantile(0.95))
+    if semi <= 0:
+        return 1.0
+    want = fraction * pkg / semi
+    if want <= 1:
+        return 1.0
+    steps = [m * 10**e for e in range(0, 6) for m in (1, 2, 5)]
+    return float(max(s for s in steps if s <= want))
+
+
+def save_plots(idata, array, outdir, prior_std=None, max_imus: int | None = 2, dpi: int = 110) -> list[Path]:
+    """Write trace.png, rank.png, autocorr.png and ellipses.png (50 % and 95 %, offsets
+    exaggerated by :func:`auto_exaggeration`) to ``outdir``; returns their paths."""
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    k_ex = auto_exaggeration(idata, array)
+    for name, fn in (("trace", lambda: plot_trace(idata, max_imus=max_imus)),
+                     ("rank", lambda: plot_rank(idata, max_imus=max_imus)),
+                     ("autocorr", lambda: plot_autocorr(idata, max_imus=max_imus)),
+                     # the prior is drawn only at true scale: exaggerated, it would cover the board
+                     ("ellipses", lambda: plot_ellipses(idata, array, level=(0.5, 0.95),
+                                                        prior_std=prior_std if k_ex == 1.0 else None,
+                                                        exaggerate=k_ex))):
+        fig = fn()
+        p = out / f"{name}.png"
+        fig.savefig(p, dpi=dpi)
+        plt.close(fig)
+        paths.append(p)
+    return paths

@@ -1,0 +1,140 @@
+"""ArviZ conversion, statistics, NetCDF round trip and plots (accel_bayes.diagnostics)."""
+import math
+
+import matplotlib
+import numpy as np
+import pytest
+import scipy.stats
+
+from accel_bayes import diagnostics as dg
+from accel_bayes.arrays import mimu4444_8
+from accel_bayes.errors import UserError
+
+C, D, AF = 3, 400, 7  # chains, draws, free triads (8-IMU board)
+
+
+def _draws(shift_chain=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    arr = mimu4444_8()
+    pos = arr.positions.numpy()
+    theta = pos[1:] - pos[0]
+    x = theta + 1e-4 * rng.standard_normal((C, D, AF, 3))
+    x[0] += shift_chain
+    return x, rng
+
+
+def _idata(**kw):
+    x, rng = _draws(**kw)
+    return dg.to_inference_data(
+        x, list(range(1, 8)), rng.standard_normal((C, D)), log_prior=np.full((C, D), -3.0),
+        accepted=rng.random((C, D)) < 0.2, accept_prob=rng.random((C, D)), step_size=np.array([0.1, 0.2, 0.3]),
+        reference_imu=0, attrs={"seed": 5, "method": "pmmh"},
+    ), x
+
+
+def test_inference_data_dims_coords_groups():
+    idata, x = _idata()
+    r = idata.posterior["r"]
+    assert r.dims == ("chain", "draw", "imu", "axis")
+    assert list(r.coords["imu"].values) == list(range(1, 8))
+    assert list(r.coords["axis"].values) == ["x", "y", "z"]
+    np.testing.assert_array_equal(r.values, x)
+    ss = idata.sample_stats
+    for name in ("lp", "log_phat", "log_prior", "accept", "acceptance_rate", "step_size"):
+        assert name in ss, name
+    np.testing.assert_allclose(ss["lp"].values, ss["log_phat"].values - 3.0)
+    assert ss["accept"].dtype == bool
+    np.testing.assert_array_equal(ss["step_size"].values[:, 0], [0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(idata.log_likelihood["y"].values, ss["log_phat"].values)
+    assert idata.posterior.attrs["reference_imu"] == 0 and idata.posterior.attrs["seed"] == 5
+
+
+def test_pointwise_log_likelihood_and_shape_errors():
+    x, rng = _draws()
+    pw = rng.standard_normal((C, D, 11))
+    idata = dg.to_inference_data(x, range(1, 8), pw.sum(-1), pointwise_log_lik=pw)
+    assert idata.log_likelihood["y"].dims == ("chain", "draw", "time")
+    with pytest.raises(UserError, match="imu_labels"):
+        dg.to_inference_data(x, range(1, 7))
+    with pytest.raises(UserError, match="log_phat"):
+        dg.to_inference_data(x, range(1, 8), np.zeros((C, D + 1)))
+    with pytest.raises(UserError, match="draws"):
+        dg.to_inference_data(x[0], range(1, 8))
+
+
+def test_summary_statistics_and_rhat():
+    idata, x = _idata()
+    s = dg.summarize(idata)
+    assert len(s) == AF * 3
+    for col in ("mean", "sd", "mcse_mean", "mcse_sd", "ess_bulk", "ess_tail", "r_hat"):
+        assert col in s.columns, col
+    # unrounded values: the mean of r[3, y] is the plain average of its draws
+    assert s.loc["r[3, y]", "mean"] == pytest.approx(x[:, :, 2, 1].mean(), rel=1e-12)
+    # independent draws: R̂ ≈ 1 and ESS ≈ C·D; one chain shifted by 3 sd: R̂ clearly > 1.1
+    assert dg.rhat_max(idata) < 1.01
+    assert dg.ess_bulk_min(idata) > 0.7 * C * D
+    bad, _ = _idata(shift_chain=3e-4)
+    assert dg.rhat_max(bad) > 1.1
+
+
+def test_posterior_moments_match_numpy():
+    idata, x = _idata()
+    mom = dg.posterior_moments(idata)
+    flat = x.reshape(-1, AF, 3)
+    np.testing.assert_allclose(mom["mean"], flat.mean(0), rtol=1e-12)
+    for k in range(AF):
+        np.testing.assert_allclose(mom["cov"][k], np.cov(flat[:, k].T), rtol=1e-10)
+    assert mom["imu"] == list(range(1, 8))
+
+
+def test_netcdf_round_trip(tmp_path):
+    idata, x = _idata()
+    p = dg.save(idata, tmp_path / "post.nc")
+    back = dg.load(p)
+    np.testing.assert_array_equal(back.posterior["r"].values, x)
+    np.testing.assert_array_equal(back.sample_stats["accept"].values, idata.sample_stats["accept"].values)
+    assert list(back.posterior["r"].coords["axis"].values) == ["x", "y", "z"]
+    assert back.posterior.attrs["reference_imu"] == 0
+    with pytest.raises(FileNotFoundError):
+        dg.load(tmp_path / "missing.nc")
+
+
+def test_ellipse_geometry_matches_chi2():
+    # the 2-D Gaussian ellipse with probability p has squared Mahalanobis radius χ²₂(p)
+    for p in (0.5, 0.95):
+        assert dg._chi2_2_quantile(p) == pytest.approx(scipy.stats.chi2.ppf(p, 2), rel=1e-12)
+    arr = mimu4444_8()
+    mom = {"imu": [1], "mean": np.array([[0.0, 0.0, -2e-3]]),
+           "cov": np.array([[[4e-8, 0, 0], [0, 1e-8, 0], [0, 0, 1e-8]]])}
+    fig = dg.plot_ellipses(mom, arr, level=(0.5, 0.95))
+    assert matplotlib.get_backend().lower() == "agg"
+    ells = [p for ax in fig.axes for p in ax.patches if isinstance(p, matplotlib.patches.Ellipse)]
+    assert len(ells) == 2
+    widths = sorted(e.width for e in ells)
+    # semi-axis along x = √χ²₂(p)·σ_x, σ_x = 0.2 mm; drawn in mm
+    assert widths[0] == pytest.approx(2 * math.sqrt(scipy.stats.chi2.ppf(0.5, 2)) * 0.2, rel=1e-9)
+    assert widths[1] == pytest.approx(2 * math.sqrt(scipy.stats.chi2.ppf(0.95, 2)) * 0.2, rel=1e-9)
+    # IMU 1 is on the bottom side (z < 0): its ellipse goes in the second panel, at nominal x–y
+    assert len(fig.axes) == 2 and len(fig.axes[1].patches) > len(fig.axes[0].patches) - 8
+    assert ells[0].center == pytest.approx(tuple(arr.positions[1, :2].numpy() * 1e3))
+    with pytest.raises(UserError, match="level"):
+        dg.plot_ellipses(mom, arr, level=1.5)
+
+
+def test_plots_return_figures_and_files(tmp_path):
+    idata, _ = _idata()
+    arr = mimu4444_8()
+    for fn in (dg.plot_trace, dg.plot_rank, dg.plot_autocorr):
+        fig = fn(idata, max_imus=1)
+        assert isinstance(fig, matplotlib.figure.Figure)
+        matplotlib.pyplot.close(fig)
+    fig = dg.plot_ellipses(idata, arr, prior_std=3e-3, exaggerate=5)
+    assert "×5" in fig.axes[0].get_title()
+    matplotlib.pyplot.close(fig)
+    # 95 % semi-axis of a 0.1 mm posterior ≈ 0.245 mm; a quarter of a 4 mm package wants ×4.1 → 2
+    assert dg.auto_exaggeration(idata, arr) == 2.0
+    tiny = {"imu": [1], "mean": np.zeros((1, 3)), "cov": np.eye(3)[None] * 1e-10}  # 10 µm: ×40.8 → 20
+    assert dg.auto_exaggeration(tiny, arr) == 20.0
+    paths = dg.save_plots(idata, arr, tmp_path, max_imus=1)
+    assert [p.name for p in paths] == ["trace.png", "rank.png", "autocorr.png", "ellipses.png"]
+    assert all(p.stat().st_size > 1000 for p in paths)

@@ -1,0 +1,319 @@
+"""PmMH kernel ([C21] Alg. 1): exactness on a target with a known answer, adaptation, seeding,
+Pyro integration, checkpoint/resume; and the priors.
+
+The known-answer target: a fake likelihood whose estimate is
+    log p̂(θ) = ℓ(θ) + s(θ) ε − s(θ)²/2,   ε ~ N(0, 1),
+so p̂ is an unbiased estimator of exp ℓ(θ) (log-normal noise, mean-corrected), ℓ a Gaussian
+log-likelihood.  With the Gaussian prior the exact posterior is Gaussian in closed form.  A
+pseudo-marginal chain must reproduce it whatever the noise; a chain that re-estimates the current
+state every step (Monte Carlo within Metropolis) targets something else and is measurably too wide.
+"""
+import math
+
+import numpy as np
+import pytest
+import scipy.stats
+import torch
+
+from accel_bayes.errors import UserError
+from accel_bayes.inference.pmmh import PMMHKernel, regularized_cov, run_pmmh, warmup_windows
+from accel_bayes.inference.priors import BoxPrior, GaussianPrior
+
+D = 6  # 3(A − 1) with A = 3 triads
+SIG_PRIOR = 3e-3
+
+
+class FakeLikelihood:
+    """Unbiased noisy estimator of a Gaussian likelihood in θ (A = 3, reference 0)."""
+
+    A = 3
+    reference = 0
+
+    def __init__(self, mu, prec, noise=1.0, noise_slope=0.0):
+        self.mu, self.prec, self.noise, self.noise_slope = mu, prec, noise, noise_slope
+        self.calls = 0
+
+    def exact(self, theta):
+        x = (theta - self.mu).reshape(*theta.shape[:-2], -1)
+        return -0.5 * ((x @ self.prec) * x).sum(-1)
+
+    def log_phat(self, positions, generator=None):
+        self.calls += 1
+        th = positions[..., 1:, :] - positions[..., :1, :]
+        s = self.noise + self.noise_slope * torch.tanh(th[..., 0, 0] / 1e-3)
+        e = torch.randn(th.shape[:-2], generator=generator, dtype=th.dtype)
+        return self.exact(th) + s * e - 0.5 * s * s
+
+
+def _problem(noise=1.0, noise_slope=0.0, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    B = torch.randn(D, D, generator=g, dtype=torch.float64)
+    lik_cov = (B @ B.T / D + 0.5 * torch.eye(D, dtype=torch.float64)) * 1e-6  # ~1 mm scale
+    prec = torch.linalg.inv(lik_cov)
+    mu = torch.full((2, 3), 1e-3, dtype=torch.float64)
+    prior = GaussianPrior(torch.zeros(3, 3, dtype=torch.float64), std=SIG_PRIOR)
+    post_prec = prec + torch.eye(D, dtype=torch.float64) / SIG_PRIOR**2
+    post_cov = torch.linalg.inv(post_prec)
+    post_mean = post_cov @ (prec @ mu.reshape(-1))
+    return FakeLikelihood(mu, prec, noise, noise_slope), prior, post_mean, post_cov
+
+
+class ReestimatingKernel(PMMHKernel):
+    """The classic mistake: re-estimate the current state's likelihood at every step (MCWM)."""
+
+    def _current_log_phat(self):
+        return self._estimate(self._theta)
+
+
+def _moments(run):
+    x = run.theta.reshape(-1, D)
+    return x.mean(0), x.std(0)
+
+
+# ---------------------------------------------------------------------------- exactness
+
+def _ess(run):
+    import arviz as az
+
+    x = run.theta.reshape(run.num_chains, run.num_samples, D).numpy()
+    return torch.as_tensor(np.array([az.ess(x[..., j]) for j in range(D)]))
+
+
+def _check_exact(run, mean, cov, z_max=4.0, sd_tol=None):
+    """Posterior mean within z_max Monte Carlo standard errors (ESS-based) in every coordinate,
+    and the average sd ratio within 4 of its standard errors (≈ 1/√(2·ESS) each) of 1."""
+    sd = cov.diagonal().sqrt()
+    m, s = _moments(run)
+    ess = _ess(run)
+    z = (m - mean) / (sd / ess.sqrt())
+    assert bool((z.abs() < z_max).all()), (z, ess)
+    ratio = float((s / sd).mean())
+    tol = sd_tol if sd_tol is not None else 4.0 * float((1.0 / (2.0 * ess)).sqrt().mean()) / math.sqrt(D)
+    assert abs(ratio - 1.0) < tol, (ratio, tol, ess)
+    return ratio
+
+
+def test_pseudo_marginal_exact_and_reestimation_biased():
+    # θ-dependent estimator noise (Var[log p̂] from 0.5 to 1.7) makes exactness non-trivial.
+    lik, prior, mean, cov = _problem(noise=1.0, noise_slope=0.3)
+    run = run_pmmh(PMMHKernel(lik, prior, seed=11), num_samples=3000, warmup_steps=500, num_chains=3,
+                   progress=False)
+    ratio = _check_exact(run, mean, cov)
+    assert 0.9 < ratio < 1.1
+    # re-estimating the current state (MCWM) is not exact: visibly too wide (≈ 1.24 here)
+    wrong = run_pmmh(ReestimatingKernel(lik, prior, seed=11), num_samples=2500, warmup_steps=300, num_chains=1,
+                     progress=False)
+    _, s_w = _moments(wrong)
+    assert float((s_w / cov.diagonal().sqrt()).mean()) > 1.12
+
+
+def test_independence_mixture_exact_with_misspecified_proposal():
+    # the independence proposal is centred off the posterior and too narrow in some directions:
+    # the MH correction q(θ)/q(θ') must still give the exact posterior
+    lik, prior, mean, cov = _problem(noise=0.8)
+    sd = cov.diagonal().sqrt()
+    bad_mean = (mean + 0.5 * sd).reshape(2, 3)
+    bad_cov = torch.diag(cov.diagonal() * torch.tensor([0.7, 1.5, 1.0, 2.0, 0.8, 1.2], dtype=torch.float64))
+    k = PMMHKernel(lik, prior, seed=5, independence_prob=0.7, independence_mean=bad_mean, independence_cov=bad_cov,
+                   proposal_cov=cov)
+    run = run_pmmh(k, num_samples=2000, warmup_steps=300, num_chains=2, progress=False)
+    _check_exact(run, mean, cov)
+    d = run.diagnostics[0]
+    assert 0.0 < d["independence acceptance rate"] < 1.0
+    assert bool((run.move == 1).any()) and bool((run.move == 0).any())
+
+
+def test_cached_estimate_is_kept():
+    # exactly one likelihood estimate per proposal (plus one at the start of each chain):
+    # the accepted state's log p̂ is never re-estimated
+    lik, prior, _, _ = _problem()
+    k = PMMHKernel(lik, prior, seed=0)
+    run = run_pmmh(k, num_samples=50, warmup_steps=30, num_chains=2, progress=False)
+    assert lik.calls == 2 * (1 + 80)
+    # a rejected move repeats the state and its cached estimate bit for bit
+    same = ~run.accepted[:, 1:]
+    assert torch.equal(run.log_phat[:, 1:][same], run.log_phat[:, :-1][same])
+    assert torch.equal(run.theta[:, 1:][same], run.theta[:, :-1][same])
+
+
+# ---------------------------------------------------------------------------- adaptation
+
+@pytest.mark.parametrize("step0", [20.0, 1e-3])
+def test_step_size_adaptation_lands_in_paper_range(step0):
+    lik, prior, _, cov = _problem(noise=0.7)
+    k = PMMHKernel(lik, prior, seed=2, step_size=step0)  # far too large / far too small
+    run = run_pmmh(k, num_samples=1500, warmup_steps=1000, num_chains=2, progress=False)
+    acc = run.acceptance_rate
+    assert torch.all((acc > 0.07) & (acc < 0.23)), acc  # [C21] §III-C: 7–23 %
+    # adaptation is frozen after warm-up: one step size for all kept draws
+    assert k.step_size == pytest.approx(float(run.step_size[-1]))
+
+
+def test_warmup_windows_and_regularized_cov():
+    assert warmup_windows(100) == []
+    w = warmup_windows(1000)
+    assert w[0] == 150 + 25 and w[-1] == 800 and w == sorted(set(w))
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(500, 4, generator=g, dtype=torch.float64) @ torch.tensor(
+        [[1.0, 0.5, 0, 0], [0, 1.0, 0, 0], [0, 0, 2.0, 0], [0, 0, 0, 0.1]], dtype=torch.float64)
+    S = regularized_cov(500, x.sum(0), x.T @ x)
+    ref = np.cov(x.numpy().T)
+    lam = max(0.05, 4 / 500)
+    np.testing.assert_allclose(S.numpy(), (1 - lam) * ref + lam * np.diag(np.diag(ref)), rtol=1e-10, atol=1e-14)
+    one = x[:1].expand(10, 4)
+    assert regularized_cov(10, one.sum(0), one.T @ one) is None  # a stuck chain carries no scale
+
+
+# ---------------------------------------------------------------------------- seeding
+
+def test_same_seed_same_chain_other_seed_other_chain():
+    lik, prior, _, _ = _problem()
+    a = run_pmmh(PMMHKernel(lik, prior, seed=7), 100, 100, 2, progress=False)
+    b = run_pmmh(PMMHKernel(lik, prior, seed=7), 100, 100, 2, progress=False)
+    c = run_pmmh(PMMHKernel(lik, prior, seed=8), 100, 100, 2, progress=False)
+    assert torch.equal(a.theta, b.theta) and torch.equal(a.log_phat, b.log_phat)
+    assert not torch.equal(a.theta, c.theta)
+    assert not torch.equal(a.theta[0], a.theta[1])  # chains have their own streams
+
+
+def test_runs_under_pyro_mcmc_with_two_chains(capsys):
+    from pyro.infer import MCMC
+
+    lik, prior, _, _ = _problem()
+    init = prior.sample((2,), generator=torch.Generator().manual_seed(3))
+    kernel = PMMHKernel(lik, prior, seed=4)
+    with pytest.warns(UserWarning, match="sequentially"):  # 2 cores: Pyro runs the chains one after another
+        mcmc = MCMC(kernel, num_samples=60, warmup_steps=40, num_chains=2, initial_params={"r": init},
+                    disable_progbar=False)
+    if mcmc.sampler.__class__.__name__ != "_UnarySampler":  # pragma: no cover - only on > 2 cores
+        pytest.skip("Pyro chose its multiprocess sampler on this machine")
+    mcmc.run()
+    err = capsys.readouterr().err
+    assert "acc. rate" in err  # kernel.logging() feeds the progress bar
+    r = mcmc.get_samples(group_by_chain=True)["r"]
+    assert r.shape == (2, 60, 2, 3)
+    diag = mcmc.diagnostics()
+    assert "divergences" in diag and "acceptance rate" in diag
+    # the driver runs the very same transitions
+    ref = run_pmmh(PMMHKernel(lik, prior, seed=4), 60, 40, 2, init, progress=False)
+    assert torch.equal(r, ref.theta)
+
+
+def test_pyro_mcmc_from_prior_draws():
+    from pyro.infer import MCMC
+
+    lik, prior, _, _ = _problem()
+    mcmc = MCMC(PMMHKernel(lik, prior, seed=4), num_samples=20, warmup_steps=10, disable_progbar=True)
+    mcmc.run()
+    assert mcmc.get_samples()["r"].shape == (20, 2, 3)
+
+
+# ---------------------------------------------------------------------------- checkpoints
+
+class _Kill(Exception):
+    pass
+
+
+def test_checkpoint_resume_is_bit_exact(tmp_path):
+    lik, prior, _, _ = _problem()
+    mk = lambda: PMMHKernel(lik, prior, seed=21, independence_prob=0.3)  # noqa: E731
+    W, S, C = 300, 120, 2  # W ≥ 150: covariance windows and independence moments adapt in warm-up
+    full = run_pmmh(mk(), S, W, C, progress=False)
+    ck = tmp_path / "run.ckpt"
+    for stop in [(0, 187), (1, 377)]:  # inside chain 0's warm-up windows; inside chain 1's sampling
+
+        def cb(chain, i, kernel, stop=stop):
+            if (chain, i) == stop:
+                raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt):
+            run_pmmh(mk(), S, W, C, progress=False, checkpoint=ck, checkpoint_every=50, callback=cb,
+                     resume=True)
+        assert ck.exists()
+    resumed = run_pmmh(mk(), S, W, C, progress=False, checkpoint=ck, checkpoint_every=50, resume=True)
+    assert resumed.resumed
+    for name in ("theta", "log_phat", "log_prior", "accepted", "accept_prob", "move", "step_size", "proposal_cov",
+                 "initial"):
+        assert torch.equal(getattr(resumed, name), getattr(full, name)), name
+    assert resumed.diagnostics == full.diagnostics
+
+
+def test_resume_refuses_other_settings(tmp_path):
+    lik, prior, _, _ = _problem()
+    ck = tmp_path / "c.ckpt"
+    run_pmmh(PMMHKernel(lik, prior, seed=1), 20, 10, 1, progress=False, checkpoint=ck, checkpoint_every=5)
+    with pytest.raises(UserError, match="different settings.*num_samples"):
+        run_pmmh(PMMHKernel(lik, prior, seed=1), 30, 10, 1, progress=False, checkpoint=ck, resume=True)
+    with pytest.raises(UserError, match="checkpoint_every: needs"):
+        run_pmmh(PMMHKernel(lik, prior, seed=1), 30, 10, 1, progress=False, checkpoint_every=5)
+
+
+# ---------------------------------------------------------------------------- validation
+
+def test_kernel_refuses_bad_settings():
+    lik, prior, _, _ = _problem()
+    with pytest.raises(ValueError, match="target_accept_prob"):
+        PMMHKernel(lik, prior, target_accept_prob=1.5)
+    with pytest.raises(ValueError, match="step_size"):
+        PMMHKernel(lik, prior, step_size=-1.0)
+    with pytest.raises(ValueError, match="proposal_cov"):
+        PMMHKernel(lik, prior, proposal_cov=torch.eye(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="independence_prob"):
+        PMMHKernel(lik, prior, independence_prob=1.0)
+    with pytest.raises(ValueError, match="num_samples"):
+        run_pmmh(PMMHKernel(lik, prior), 0, 10, 1, progress=False)
+
+
+def test_nonfinite_estimate_is_rejected_and_reported():
+    lik, prior, _, _ = _problem()
+
+    class Flaky(FakeLikelihood):
+        def log_phat(self, positions, generator=None):
+            v = super().log_phat(positions, generator)
+            return v if self.calls % 5 else torch.tensor(float("nan"), dtype=torch.float64)
+
+    fl = Flaky(lik.mu, lik.prec)
+    run = run_pmmh(PMMHKernel(fl, prior, seed=0), 40, 0, 1, progress=False)
+    assert len(run.diagnostics[0]["divergences"]) == 8
+    assert bool(torch.isfinite(run.log_phat).all())
+
+
+# ---------------------------------------------------------------------------- priors
+
+def test_gaussian_prior_against_scipy():
+    pos = torch.tensor([[1e-3, 2e-3, 0.0], [5e-3, -1e-3, 1e-3], [0.0, 4e-3, -2e-3]], dtype=torch.float64)
+    pr = GaussianPrior(pos, std=2e-3, reference=1)
+    assert torch.allclose(pr.mean, torch.stack((pos[0] - pos[1], pos[2] - pos[1])))
+    th = torch.randn(5, 2, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 1e-3
+    ref = scipy.stats.norm(pr.mean.numpy(), 2e-3).logpdf(th.numpy()).sum((-1, -2))
+    np.testing.assert_allclose(pr.log_prob(th).numpy(), ref, rtol=1e-12)
+    x = pr.sample((20000,), generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(x.mean(0), pr.mean, atol=4 * 2e-3 / math.sqrt(20000))
+    assert torch.allclose(x.std(0), torch.full((2, 3), 2e-3, dtype=torch.float64), rtol=0.03)
+    with pytest.raises(ValueError, match="prior_std"):
+        GaussianPrior(pos, std=0.0)
+
+
+def test_box_prior():
+    pos = torch.zeros(3, 3, dtype=torch.float64)
+    pos[1, 0] = 0.01
+    pr = BoxPrior.with_std(pos, std=1e-3)
+    hw = math.sqrt(3) * 1e-3
+    inside = pr.mean.clone()
+    outside = pr.mean.clone()
+    outside[0, 1] += 1.01 * hw
+    lp = pr.log_prob(torch.stack((inside, outside)))
+    assert float(lp[0]) == pytest.approx(-6 * math.log(2 * hw), rel=1e-12)
+    assert float(lp[1]) == float("-inf")
+    x = pr.sample((20000,), generator=torch.Generator().manual_seed(2))
+    assert bool(torch.isfinite(pr.log_prob(x)).all())
+    assert torch.allclose(x.std(0), torch.full((2, 3), 1e-3, dtype=torch.float64), rtol=0.03)
+    with pytest.raises(ValueError, match="high > low"):
+        BoxPrior(torch.zeros(2, 3), torch.zeros(2, 3))
+
+
+def test_box_prior_chain_stays_inside():
+    lik, _, _, _ = _problem()
+    pr = BoxPrior.with_std(torch.zeros(3, 3, dtype=torch.float64), std=1e-3)
+    run = run_pmmh(PMMHKernel(lik, pr, seed=3), 300, 200, 1, progress=False)
+    assert bool(torch.isfinite(pr.log_prob(run.theta)).all())
