@@ -1,0 +1,834 @@
+"""[S16] self-calibration of accelerometer-only arrays: triad poses and motion, jointly.
+
+The factor graph of [S16] Fig. 2 / eq. 15:
+
+* one **triad residual** per sample i and triad j ([S16] eq. 13), whitened by the axis noise
+  ``acc_noise_std`` (σ² = 4·10⁻⁴ (m/s²)² in [S16] §IV-B):
+
+      e_ij = (z_ij − h(x_i, q_j, r_j)) / σ_j,   h = Sᵀ R(q)(a_lin + ω̇×r + ω×(ω×r)) + o
+
+  with h = :func:`accel_bayes.models.triad_output` (the one signal model) and known sensor
+  parameters S, o (identity / zero by default: "calibrated triads", [S16] §IV);
+* one **process residual** between consecutive states ([S16] eq. 14), whitened by the Cholesky
+  factor of the process covariance of eq. 8 (:func:`accel_bayes.models.process_covariance`):
+
+      e_i = L_i⁻¹ (x_{i+1} − f(x_i)),   f = :func:`accel_bayes.models.process_model`;
+
+* one triad's pose is fixed at its nominal value ([S16] eq. 16): it defines the array frame.
+
+Unknowns are the motion states x_i = [a_lin, ω, ω̇] (T, 9) — local blocks, one per sample,
+coupled in a chain by the process residuals — and the poses of the free triads (global blocks:
+a Euclidean position and a unit quaternion).  Quaternions are updated on their manifold with
+the exponential-map box-plus q ⊞ δ = q ∘ exp(δ) (:func:`accel_bayes.geometry.boxplus`; δ is a
+rotation vector, so Laplace covariances in δ are covariances of rotation angles).  [S16] eq. 18
+is the half-angle variant (δ = quaternion vector part); it has the same fixed points but its
+covariances would be in half-angles.
+
+The residuals and their analytic Jacobians below are written for batches of samples (no loops
+over time); :func:`self_calibrate` hands them to the structured Levenberg-Marquardt solver of
+:mod:`accel_bayes.inference.lm`.
+"""
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .. import models
+from ..geometry import boxplus, quat_normalize, quat_to_matrix, rotation_angle, skew
+
+__all__ = [
+    "triad_residuals",
+    "triad_jacobians",
+    "process_residuals",
+    "process_jacobians",
+    "process_sqrt_information",
+    "simulate_process_motion",
+    "SelfCalResult",
+    "SelfCalDiverged",
+    "check_divergence",
+    "self_calibrate",
+]
+
+
+# ---------------------------------------------------------------------------- residuals
+
+def _as_inv_std(acc_noise_std, A: int, dtype, device) -> torch.Tensor:
+    """(A, 3) inverse noise std from a scalar, (A,) or (A, 3) std."""
+    s = torch.as_tensor(acc_noise_std, dtype=dtype, device=device)
+    if s.dim() == 0:
+        s = s.expand(A, 3)
+    elif s.dim() == 1:
+        s = s.unsqueeze(-1).expand(A, 3)
+    if s.shape != (A, 3):
+        raise ValueError(f"acc_noise_std: expected a scalar, (A,) or (A, 3) with A={A}, got {tuple(s.shape)}")
+    if bool((s <= 0).any()) or not bool(torch.isfinite(s).all()):
+        raise ValueError("acc_noise_std: expected finite values > 0")
+    return 1.0 / s
+
+
+def triad_residuals(
+    states: torch.Tensor,
+    q: torch.Tensor,
+    r: torch.Tensor,
+    z: torch.Tensor,
+    inv_std: torch.Tensor,
+    S: torch.Tensor | None = None,
+    offset: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Whitened triad residuals e_ij = (z_ij − h(x_i, P_j, C_j)) / σ_j ([S16] eq. 13).
+
+    states (T, 9) = [a_lin, ω, ω̇] (m/s², rad/s, rad/s², array frame); q (A, 4), r (A, 3) m: triad
+    poses; z (T, A, 3) m/s² triad outputs (sensor frame); inv_std (A, 3) 1/(m/s²); S (A, 3, 3),
+    offset (A, 3): known sensor parameters (identity / zero if None).  Returns (T, A, 3),
+    dimensionless.
+    """
+    return (z - models.triad_output(states, q, r, S, offset)) * inv_std
+
+
+def _specific_force_and_partials(states: torch.Tensor, r: torch.Tensor):
+    """f = a + ω̇×r + ω×(ω×r) (T, A, 3) and its partials (array frame).
+
+    Returns f, df/dω (T, A, 3, 3), df/dr (T, A, 3, 3).  df/da = I and df/dω̇ = −Ω(r) are constant.
+    """
+    a, w, wd = states[:, 0:3], states[:, 3:6], states[:, 6:9]
+    f = models.specific_force(r, w, wd, a)  # (T, A, 3)
+    T, A = f.shape[0], r.shape[0]
+    eye = torch.eye(3, dtype=states.dtype, device=states.device)
+    # ω×(ω×r) = ω(ω·r) − r|ω|²  ⇒  ∂/∂ω = (ω·r) I + ω rᵀ − 2 r ωᵀ
+    wr = (w.unsqueeze(1) * r.unsqueeze(0)).sum(-1)  # (T, A)
+    dfdw = (wr[..., None, None] * eye
+            + w[:, None, :, None] * r[None, :, None, :]
+            - 2.0 * r[None, :, :, None] * w[:, None, None, :])
+    # ∂/∂r = Ω(ω̇) + Ω(ω)²
+    Ww = skew(w)
+    dfdr = (skew(wd) + Ww @ Ww).unsqueeze(1).expand(T, A, 3, 3)
+    return f, dfdw, dfdr
+
+
+def triad_jacobians(
+    states: torch.Tensor,
+    q: torch.Tensor,
+    r: torch.Tensor,
+    inv_std: torch.Tensor,
+    S: torch.Tensor | None = None,
+):
+    """Analytic Jacobians of :func:`triad_residuals` (whitened, so signs are those of −h).
+
+    Returns ``(J_state, J_pos, J_rot)``:
+
+    * J_state (T, A, 3, 9): ∂e_ij/∂x_i, columns [a_lin, ω, ω̇];
+    * J_pos (T, A, 3, 3): ∂e_ij/∂r_j;
+    * J_rot (T, A, 3, 3): ∂e_ij/∂δ_j for q_j ⊞ δ_j = q_j ∘ exp(δ_j) at δ = 0.  From
+      R(q ∘ exp δ) = R(q)(I + Ω(δ)) + O(δ²):  ∂h/∂δ = −M Ω(f) with M = Sᵀ R(q).
+    """
+    f, dfdw, dfdr = _specific_force_and_partials(states, r)
+    R = quat_to_matrix(q)  # (A, 3, 3)
+    M = R if S is None else S.transpose(-1, -2) @ R
+    Mw = -(inv_std.unsqueeze(-1) * M)  # (A, 3, 3): ∂e/∂f
+    T, A = f.shape[0], r.shape[0]
+    J_a = Mw.unsqueeze(0).expand(T, A, 3, 3)
+    J_w = Mw @ dfdw
+    J_wd = (Mw @ (-skew(r))).unsqueeze(0).expand(T, A, 3, 3)
+    J_state = torch.cat((J_a, J_w, J_wd), -1)
+    J_pos = Mw @ dfdr
+    J_rot = -(Mw @ skew(f))
+    return J_state, J_pos, J_rot
+
+
+def process_sqrt_information(dt: torch.Tensor, variances: dict | None = None) -> torch.Tensor:
+    """Diagonal of L⁻¹ for the eq. 8 covariance: 1 / (Δt_i σ), shape (T−1, 9)."""
+    cov = models.process_covariance(dt, variances, dtype=dt.dtype, device=dt.device)
+    d = torch.diagonal(cov, dim1=-2, dim2=-1)
+    if bool((d <= 0).any()):
+        raise ValueError("process variances and time steps must be > 0")
+    return d.rsqrt()
+
+
+def process_residuals(states: torch.Tensor, dt: torch.Tensor, sqrt_info: torch.Tensor) -> torch.Tensor:
+    """Whitened process residuals ([S16] eq. 14 with eq. 8): (x_{i+1} − f(x_i)) / (Δt_i σ).
+
+    states (T, 9); dt (T−1,) s; sqrt_info (T−1, 9) from :func:`process_sqrt_information`.
+    Returns (T−1, 9).
+    """
+    return (states[1:] - models.process_model(states[:-1], dt)) * sqrt_info
+
+
+def process_jacobians(dt: torch.Tensor, sqrt_info: torch.Tensor):
+    """Jacobians of :func:`process_residuals` (constant: the process model is linear).
+
+    Returns ``(J_prev, J_next)`` (T−1, 9, 9): ∂e_i/∂x_i = −W F_i and ∂e_i/∂x_{i+1} = W with
+    W = diag(sqrt_info_i) and F_i = [[I, 0, 0], [0, I, Δt_i I], [0, 0, I]].
+    """
+    n = dt.shape[0]
+    eye9 = torch.eye(9, dtype=dt.dtype, device=dt.device)
+    F = eye9.expand(n, 9, 9).clone()
+    idx = torch.arange(3, device=dt.device)
+    F[:, 3 + idx, 6 + idx] = dt.unsqueeze(-1)
+    W = torch.diag_embed(sqrt_info)
+    return -(W @ F), W
+
+
+# ---------------------------------------------------------------------------- test motion
+
+def simulate_process_motion(
+    T: int,
+    dt: float,
+    *,
+    segment_length: int = 25,
+    omega_dot_std: float = 8.0,
+    omega0_std: float = 1.0,
+    acc_std: float = 3.0,
+    acc_segment_length: int | None = None,
+    omega_max: float = 6.0,
+    gravity: float = 9.80665,
+    generator: torch.Generator | None = None,
+    seed: int | None = None,
+    dtype=torch.float64,
+    device=None,
+) -> torch.Tensor:
+    """Motion states drawn from the [S16] process model itself (eq. 7), integrated exactly.
+
+    ω̇ is piecewise constant (a new N(0, omega_dot_std²) value every ``segment_length`` samples,
+    rad/s²); ω_{i+1} = ω_i + ω̇_i Δt holds to machine precision, so the integration residual of
+    eq. 14 is zero at the truth; a_lin is piecewise constant (gravity-sized, new values every
+    ``acc_segment_length`` samples, default 4 × segment_length).  Where |ω| would exceed
+    ``omega_max`` rad/s, the next ω̇ segment is drawn to point back towards zero (keeps the
+    accelerations within a triad's range).  Returns states (T, 9).
+    """
+    g = generator
+    if g is None:
+        g = torch.Generator(device="cpu")
+        g.manual_seed(0 if seed is None else int(seed))
+    acc_seg = acc_segment_length or 4 * segment_length
+    n_seg = (T + segment_length - 1) // segment_length
+    n_aseg = (T + acc_seg - 1) // acc_seg
+    wd_draws = torch.randn(n_seg, 3, generator=g, dtype=torch.float64) * omega_dot_std
+    w = torch.randn(3, generator=g, dtype=torch.float64) * omega0_std
+    a_dir = torch.randn(n_aseg, 3, generator=g, dtype=torch.float64)
+    a = gravity * a_dir / a_dir.norm(dim=-1, keepdim=True) + acc_std * torch.randn(n_aseg, 3, generator=g, dtype=torch.float64)
+    # The piecewise structure is a short loop over segments (not samples); the sample loop is a
+    # cumulative sum, exact in the sense of eq. 7 up to float64 rounding.
+    wd = torch.empty(T, 3, dtype=torch.float64)
+    w_seg = w.clone()
+    for k in range(n_seg):
+        lo, hi = k * segment_length, min(T, (k + 1) * segment_length)
+        d = wd_draws[k]
+        end = w_seg + d * dt * (hi - lo)
+        if end.norm() > omega_max:  # steer back: point ω̇ against ω, same magnitude
+            d = -d.norm() * w_seg / w_seg.norm().clamp_min(1e-12)
+            end = w_seg + d * dt * (hi - lo)
+        wd[lo:hi] = d
+        w_seg = end
+    omega = torch.cat((w.unsqueeze(0), w + torch.cumsum(wd[:-1] * dt, 0)), 0)
+    a_lin = a.repeat_interleave(acc_seg, 0)[:T]
+    return torch.cat((a_lin, omega, wd), -1).to(dtype=dtype, device=device)
+
+
+# ---------------------------------------------------------------------------- divergence
+
+class SelfCalDiverged(RuntimeError):
+    """The self-calibration ended in a diverged minimum ([S16] Table III); no poses are given.
+
+    ``result`` holds the :class:`SelfCalResult` (status "diverged", the reason, cost log and the
+    raw estimate for inspection through ``result.raw_positions``).
+    """
+
+    def __init__(self, message: str, result: "SelfCalResult | None" = None):
+        super().__init__(message)
+        self.result = result
+
+
+def check_divergence(
+    positions: torch.Tensor,
+    states: torch.Tensor,
+    nominal_positions: torch.Tensor,
+    fixed: int,
+    cost: float | None = None,
+    *,
+    rms_residual: float | None = None,
+    position_ratio: tuple[float, float] = (0.25, 4.0),
+    omega_limits: tuple[float, float] = (1e-3, 100.0),
+    omega_dot_limits: tuple[float, float] = (1e-2, 1e4),
+    max_rms_residual: float = 30.0,
+) -> str | None:
+    """Detect the completely diverged minima of [S16] Table III; returns a reason or None.
+
+    * non-finite cost, positions or motion states;
+    * triad positions → 0 (types 1, 3): the largest distance of a free triad from the fixed one
+      is below ``position_ratio[0]`` × the largest nominal distance;
+    * triad positions → ∞ (type 2): it is above ``position_ratio[1]`` × that distance;
+    * angular motion → ∞ (type 3): RMS |ω| > ``omega_limits[1]`` rad/s or RMS |ω̇| >
+      ``omega_dot_limits[1]`` rad/s² (100 rad/s ≈ 5700 °/s: beyond any handheld or table motion);
+    * angular motion → 0 (types 1, 2): RMS |ω| < ``omega_limits[0]`` rad/s and RMS |ω̇| <
+      ``omega_dot_limits[0]`` rad/s² — with no rotation the positions cannot be calibrated
+      ([S16] §II), so such an estimate is not a calibration either.
+
+    * the estimate does not explain the data: the RMS whitened triad residual ``rms_residual``
+      (√(F_triad / 3TA), ≈ 1 for a fit at the stated noise) exceeds ``max_rms_residual`` — a
+      minimum that misses the measurements by tens of noise standard deviations is not a
+      calibration either (it is where the runs towards Table III minima stop when the iteration
+      budget ends first).
+
+    The bounds are deliberately wide: a diverged estimate runs off by orders of magnitude, while
+    a converged one (even in a partial minimum, [S16] §VI-A) stays near the nominal plan; the
+    default position bounds allow a nominal plan that is wrong by a factor of up to 4 in size.
+    """
+    if cost is not None and not math.isfinite(cost):
+        return "non-finite cost"
+    if not bool(torch.isfinite(positions).all()) or not bool(torch.isfinite(states).all()):
+        return "non-finite estimate"
+    free = [j for j in range(positions.shape[0]) if j != fixed]
+    if free:
+        d_est = (positions[free] - positions[fixed]).norm(dim=-1).max()
+        d_nom = (nominal_positions[free] - nominal_positions[fixed]).norm(dim=-1).max()
+        if float(d_nom) > 0:
+            ratio = float(d_est / d_nom)
+            if ratio < position_ratio[0]:
+                return (f"triad positions collapsed towards the fixed triad ([S16] Table III type 1/3): "
+                        f"largest distance {float(d_est) * 1e3:.3g} mm vs nominal {float(d_nom) * 1e3:.3g} mm")
+            if ratio > position_ratio[1]:
+                return (f"triad positions ran off to infinity ([S16] Table III type 2): "
+                        f"largest distance {float(d_est):.3g} m vs nominal {float(d_nom):.3g} m")
+    if rms_residual is not None and not math.isfinite(rms_residual):
+        return "non-finite residuals"
+    w_rms = float(states[:, 3:6].norm(dim=-1).pow(2).mean().sqrt())
+    wd_rms = float(states[:, 6:9].norm(dim=-1).pow(2).mean().sqrt())
+    if w_rms > omega_limits[1] or wd_rms > omega_dot_limits[1]:
+        return (f"angular motion ran off to infinity ([S16] Table III type 3): RMS |ω| = {w_rms:.3g} rad/s, "
+                f"RMS |ω̇| = {wd_rms:.3g} rad/s²")
+    if w_rms < omega_limits[0] and wd_rms < omega_dot_limits[0]:
+        return (f"angular motion collapsed to zero ([S16] Table III type 1/2): RMS |ω| = {w_rms:.3g} rad/s, "
+                f"RMS |ω̇| = {wd_rms:.3g} rad/s²")
+    if rms_residual is not None and rms_residual > max_rms_residual:
+        return (f"the estimate does not explain the data: RMS whitened triad residual {rms_residual:.3g} "
+                f"(> {max_rms_residual:g} noise standard deviations)")
+    return None
+
+
+# ---------------------------------------------------------------------------- result
+
+@dataclass
+class SelfCalResult:
+    """Outcome of :func:`self_calibrate`.
+
+    Poses are in the array frame defined by the fixed triad sitting at its nominal pose
+    ([S16] eq. 16): ``positions`` (A, 3) m — the fixed triad's row is its nominal position —
+    and ``orientations`` (A, 4) array → sensor quaternions (DESIGN §7.0).  Accessing either on a
+    diverged result raises :class:`SelfCalDiverged`: a diverged estimate is never a calibration.
+
+    Attributes
+    ----------
+    status : "ok" or "diverged"; reason : why it diverged ("" when ok).
+    fixed : index of the fixed triad.
+    states : (T, 9) estimated motion [a_lin (m/s²), ω (rad/s), ω̇ (rad/s²)], array frame.
+    cost : final F of [S16] eq. 15 (Σ eᵀΣ⁻¹e, i.e. twice the solver's ½-scaled cost).
+    cost_log : one dict per LM iteration of the returned run: iteration, F, F_triad, F_process
+        (paper scaling), F_per_constraint (F / number of constraints, [S16] Fig. 5), lambda,
+        accepted.
+    full_cost_log : the cost logs of all runs made, in order (entries carry "run" and "stage":
+        "motion" for the motion-only warm start, "joint" for the pose + motion LM).
+    n_constraints : {"triad": T·A, "process": T−1}.
+    position_cov : (A, 3, 3) m² Laplace covariance (zeros for the fixed triad).
+    rotation_cov : (A, 3, 3) rad² covariance of the rotation vector δ with q = q̂ ∘ exp(δ)
+        (full rotation angles, not the half-angles of [S16] eq. 18).
+    angle_std : (A,) rad — √trace(rotation_cov), the RMS rotation-angle error.
+    covariance : (6(A−1), 6(A−1)) joint Laplace covariance of the free coordinates, ordered
+        [positions of the free triads (x, y, z each), rotation vectors of the free triads].
+    runs : one dict per LM run made (first run, then the re-run from the estimate): label, F,
+        rms_residual, n_iter, lm_reason, converged, diverged (reason or None), kept (re-run),
+        and that run's raw estimate (positions, orientations, states) for diagnostics.
+    converged, lm_reason, n_iter : of the returned run; seconds : total wall time.
+    """
+
+    status: str
+    reason: str
+    fixed: int
+    raw_positions: torch.Tensor
+    raw_orientations: torch.Tensor
+    states: torch.Tensor
+    cost: float
+    cost_log: list
+    n_constraints: dict
+    position_cov: torch.Tensor | None = None
+    rotation_cov: torch.Tensor | None = None
+    covariance: torch.Tensor | None = None
+    runs: list = field(default_factory=list)
+    full_cost_log: list = field(default_factory=list)
+    converged: bool = False
+    lm_reason: str = ""
+    n_iter: int = 0
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def _require_ok(self):
+        if not self.ok:
+            raise SelfCalDiverged(f"self-calibration diverged: {self.reason}", self)
+
+    @property
+    def positions(self) -> torch.Tensor:
+        """(A, 3) m, array frame (raises :class:`SelfCalDiverged` if diverged)."""
+        self._require_ok()
+        return self.raw_positions
+
+    @property
+    def orientations(self) -> torch.Tensor:
+        """(A, 4) array → sensor quaternions (raises :class:`SelfCalDiverged` if diverged)."""
+        self._require_ok()
+        return self.raw_orientations
+
+    @property
+    def relative_positions(self) -> torch.Tensor:
+        """Positions relative to the fixed triad, (A, 3) m."""
+        p = self.positions
+        return p - p[self.fixed]
+
+    @property
+    def position_std(self) -> torch.Tensor | None:
+        """(A, 3) m — per-axis Laplace standard deviations."""
+        return None if self.position_cov is None else torch.diagonal(self.position_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+
+    @property
+    def angle_std(self) -> torch.Tensor | None:
+        """(A,) rad — √trace of the rotation-vector covariance (RMS rotation-angle error)."""
+        if self.rotation_cov is None:
+            return None
+        return torch.diagonal(self.rotation_cov, dim1=-2, dim2=-1).sum(-1).clamp_min(0).sqrt()
+
+
+# ---------------------------------------------------------------------------- banded solve
+
+def _banded_lower(V: torch.Tensor, V_off: torch.Tensor | None) -> np.ndarray:
+    """Lower band storage (LAPACK ``pbtrf`` layout, ab[k, i] = V[i + k, i]) of the symmetric
+    block-tridiagonal matrix with diagonal blocks V (T, d, d) and upper blocks V_off (T−1, d, d)."""
+    T, d, _ = V.shape
+    nb = 2 * d if V_off is not None else d
+    ab = np.zeros((nb, T * d))
+    Vn = V.detach().cpu().numpy()
+    i, j = np.tril_indices(d)
+    cols = (np.arange(T)[:, None] * d + j[None, :])
+    ab[(i - j)[None, :].repeat(T, 0), cols] = Vn[:, i, j]
+    if V_off is not None and T > 1:
+        # V_{t+1,t} = V_off_tᵀ: row (t+1)d + a, column t·d + b, entry V_off_t[b, a]; k = d + a − b ≥ 1.
+        En = V_off.detach().cpu().numpy()
+        a, b = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
+        a, b = a.ravel(), b.ravel()
+        cols = np.arange(T - 1)[:, None] * d + b[None, :]
+        ab[(d + a - b)[None, :].repeat(T - 1, 0), cols] = En[:, b, a]
+    return ab
+
+
+class BandedSchurSolver:
+    """Schur-complement solver whose local (motion) system is solved by LAPACK's banded Cholesky.
+
+    A drop-in ``linear_solver`` for :class:`accel_bayes.inference.lm.LevenbergMarquardt`: the
+    same arrow system as :class:`accel_bayes.inference.linear.SchurComplementSolver`, but the
+    block-tridiagonal V (T·d unknowns, bandwidth 2d − 1) goes to ``scipy.linalg.cholesky_banded``
+    / ``cho_solve_banded`` (``pbtrf``/``pbtrs``: O(T d³) flops, no Python loop over samples).
+    DESIGN §6 names a banded Cholesky as an accepted O(T) local solve; it is ~100× faster here
+    than a per-block Python recursion at the [S16] problem size.  No leading batch dimensions.
+    """
+
+    def __init__(self, structure: str = "auto"):
+        from .linear import SchurComplementSolver
+
+        self._fallback = SchurComplementSolver(structure)
+        self.structure = structure
+
+    def _factor(self, V, V_off):
+        import scipy.linalg as sl
+
+        from .linear import NotPositiveDefinite
+
+        ab = _banded_lower(V, V_off)
+        try:
+            cb = sl.cholesky_banded(ab, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            raise NotPositiveDefinite("local block-tridiagonal matrix is not positive definite") from None
+        if not np.isfinite(cb).all():
+            raise NotPositiveDefinite("local block-tridiagonal matrix is not positive definite")
+        T, d = V.shape[0], V.shape[1]
+
+        def solve(B: torch.Tensor) -> torch.Tensor:  # (T, d, k) → (T, d, k)
+            k = B.shape[-1]
+            X = sl.cho_solve_banded((cb, True), B.detach().cpu().numpy().reshape(T * d, k), check_finite=False)
+            return torch.as_tensor(X.reshape(T, d, k), dtype=B.dtype, device=B.device)
+
+        return solve
+
+    def reduce(self, U, W, V, V_off=None):
+        """S = U − W V⁻¹ Wᵀ."""
+        if W is None or V is None or V.shape[-3] == 0 or V.dim() != 3:
+            return self._fallback.reduce(U, W, V, V_off)
+        X = self._factor(V, V_off)(W.transpose(-1, -2))
+        return U - torch.einsum("tnd,tdm->nm", W, X)
+
+    def solve(self, U, W, V, b_g, b_x, V_off=None, return_reduced: bool = False):
+        """(δg, δx) [, S] of the arrow system (see :mod:`accel_bayes.inference.linear`)."""
+        from .linear import cholesky
+
+        if W is None or V is None or V.dim() != 3:
+            return self._fallback.solve(U, W, V, b_g, b_x, V_off, return_reduced)
+        n = U.shape[-1]
+        X = self._factor(V, V_off)(torch.cat((W.transpose(-1, -2), b_x.unsqueeze(-1)), -1))
+        Xw, xb = X[..., :n], X[..., n]
+        S = U - torch.einsum("tnd,tdm->nm", W, Xw)
+        if n:
+            r = b_g - torch.einsum("tnd,td->n", W, xb)
+            S = 0.5 * (S + S.T)
+            dg = torch.cholesky_solve(r.unsqueeze(-1), cholesky(S, "reduced (Schur) system")).squeeze(-1)
+            dx = xb - torch.einsum("tdn,n->td", Xw, dg)
+        else:
+            dg, dx = b_g, xb
+        return (dg, dx, S) if return_reduced else (dg, dx)
+
+
+# ---------------------------------------------------------------------------- the solver
+
+def _time_steps(time_or_dt, T: int, dtype, device) -> torch.Tensor:
+    t = torch.as_tensor(time_or_dt, dtype=dtype, device=device)
+    if t.dim() == 0:
+        dt = t.expand(T - 1).clone()
+    elif t.shape == (T,):
+        dt = torch.diff(t)
+    else:
+        raise ValueError(f"time_or_dt: expected a scalar step (s) or sample times of shape ({T},), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(dt).all()) or bool((dt <= 0).any()):
+        raise ValueError("time_or_dt: sample times must be finite and strictly increasing (steps > 0)")
+    return dt
+
+
+def _sensor_params(sensor_params, A: int, dtype, device):
+    if sensor_params is None:
+        return None, None
+    if isinstance(sensor_params, dict):
+        S = sensor_params.get("S", sensor_params.get("sensitivity"))
+        o = sensor_params.get("offset")
+    else:
+        S, o = sensor_params
+    if S is not None:
+        S = torch.as_tensor(S, dtype=dtype, device=device)
+        if S.shape == (A, 6):
+            S = models.sensitivity_matrix(S)
+        if S.shape != (A, 3, 3):
+            raise ValueError(f"sensor_params: S expected (A, 3, 3) or (A, 6) with A={A}, got {tuple(S.shape)}")
+    if o is not None:
+        o = torch.as_tensor(o, dtype=dtype, device=device)
+        if o.shape != (A, 3):
+            raise ValueError(f"sensor_params: offset expected ({A}, 3), got {tuple(o.shape)}")
+    return S, o
+
+
+def build_problem(
+    acc: torch.Tensor,
+    dt: torch.Tensor,
+    positions: torch.Tensor,
+    orientations: torch.Tensor,
+    states: torch.Tensor,
+    fixed: int,
+    inv_std: torch.Tensor,
+    sqrt_info: torch.Tensor,
+    S: torch.Tensor | None = None,
+    offset: torch.Tensor | None = None,
+    poses_fixed: bool = False,
+):
+    """The [S16] eq. 15 graph as an :class:`accel_bayes.inference.lm.Problem`.
+
+    Globals "position" (A, 3) and "rotation" (A, 4, quaternion manifold), the fixed triad's rows
+    held fixed (all rows with ``poses_fixed``: the motion-only problem); locals: the motion
+    states (T, 9); residual groups "triad" (per sample, analytic Jacobians of
+    :func:`triad_jacobians`) and "process" (chain, :func:`process_jacobians`).
+    """
+    from .lm import ChainResidual, Problem, SampleResidual, Variable
+
+    A = positions.shape[0]
+    T = acc.shape[0]
+    fixed_mask = torch.zeros(A, dtype=torch.bool, device=acc.device)
+    fixed_mask[fixed] = True
+    if poses_fixed:
+        fixed_mask[:] = True
+    eyeA = torch.eye(A, dtype=acc.dtype, device=acc.device)
+
+    def triad_fn(g, x, data):
+        return triad_residuals(x, g["rotation"], g["position"], acc, inv_std, S, offset).reshape(T, 3 * A)
+
+    def _blockdiag(J):  # (T, A, 3, 3) → (T, 3A, 3A), zero across triads
+        return (J.unsqueeze(3) * eyeA[None, :, None, :, None]).reshape(T, 3 * A, 3 * A)
+
+    def triad_jac(g, x, data):
+        Jx, Jp, Jr = triad_jacobians(x, g["rotation"], g["position"], inv_std, S)
+        return {"position": _blockdiag(Jp), "rotation": _blockdiag(Jr)}, Jx.reshape(T, 3 * A, 9)
+
+    J_prev, J_next = process_jacobians(dt, sqrt_info)
+
+    def proc_fn(g, xp, xn, data):
+        return (xn - models.process_model(xp, dt)) * sqrt_info
+
+    def proc_jac(g, xp, xn, data):
+        return {}, J_prev, J_next
+
+    return Problem(
+        {"position": Variable(positions, fixed=fixed_mask),
+         "rotation": Variable(orientations, manifold="quaternion", fixed=fixed_mask)},
+        states,
+        [SampleResidual(triad_fn, jac=triad_jac, name="triad"),
+         ChainResidual(proc_fn, jac=proc_jac, name="process")],
+        dtype=acc.dtype, device=acc.device,
+    )
+
+
+def _run_lm(problem, *, max_iter, ftol, xtol, gtol, progress, desc, damping=None):
+    from .damping import MarquardtDamping
+    from .lm import LevenbergMarquardt
+
+    log = []
+
+    def cb(it, values, x, entry):
+        if entry["accepted"] or not log:
+            terms = problem.cost_terms(values, x)
+            ft, fp = 2 * terms["triad"], 2 * terms["process"]
+        else:  # a rejected step leaves the point unchanged
+            ft, fp = log[-1]["F_triad"], log[-1]["F_process"]
+        log.append({"iteration": it, "F_triad": ft, "F_process": fp,
+                    "lambda": entry["lambda"], "accepted": bool(entry["accepted"])})
+
+    if damping is None:
+        # Marquardt's rule (λ ÷ 10 / × 10) from λ₀ = 10⁻⁶ with diag(H) scaling: on the [S16]
+        # problems it needs ~30 % fewer iterations than Nielsen's rule from 10⁻³ (which spends ~10
+        # iterations walking λ down after the first step) and reaches the same minima.
+        damping = MarquardtDamping(tau=1e-6, scaling="marquardt")
+    elif callable(damping) and not hasattr(damping, "update"):
+        damping = damping()
+    lm = LevenbergMarquardt(damping, BandedSchurSolver(), max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol, progress=progress,
+                            desc=desc, callback=cb)
+    terms0 = problem.cost_terms(problem.initial_values(), problem.x0)
+    log.append({"iteration": 0, "F_triad": 2 * terms0["triad"], "F_process": 2 * terms0["process"],
+                "lambda": float("nan"), "accepted": True})
+    res = lm.solve(problem)
+    return res, log
+
+
+def self_calibrate(
+    acc,
+    time_or_dt,
+    *,
+    nominal_positions,
+    nominal_orientations=None,
+    fixed: int = 0,
+    acc_noise_std=0.02,
+    process_variances: dict | None = None,
+    sensor_params=None,
+    init_motion=None,
+    max_iter: int = 200,
+    ftol: float = 1e-12,
+    xtol: float = 1e-12,
+    gtol: float = 1e-9,
+    progress: bool = False,
+    rerun_from_estimate: bool | str = True,
+    rerun_rms: float = 1.5,
+    covariance: bool = True,
+    raise_on_divergence: bool = False,
+    divergence_kwargs: dict | None = None,
+    warm_start_motion: bool = True,
+    damping=None,
+    dtype=torch.float64,
+    device=None,
+) -> SelfCalResult:
+    """[S16] self-calibration: triad poses and motion from accelerometer triad outputs alone.
+
+    Minimises F of [S16] eq. 15 — triad residuals (eq. 13) + process residuals (eq. 14, weights
+    from eq. 8) — over the motion states x_1:T and the poses of all triads but ``fixed``
+    (eq. 16), with the structured Levenberg–Marquardt of :mod:`accel_bayes.inference.lm`
+    (motion eliminated by a block-tridiagonal Schur complement; quaternions on the manifold via
+    q ⊞ δ = q ∘ exp(δ)).
+
+    Parameters
+    ----------
+    acc : (T, A, 3) m/s² triad outputs, each in its sensor frame.
+    time_or_dt : sample step Δt (s, scalar) or sample times (T,) s.
+    nominal_positions : (A, 3) m — starting positions (the construction plan); the fixed
+        triad's row defines the origin of the array frame.
+    nominal_orientations : (A, 4) array → sensor quaternions (identity if None); likewise.
+    fixed : index of the triad held at its nominal pose.
+    acc_noise_std : m/s², scalar, (A,) or (A, 3); default 0.02 ([S16] §IV-B: σ² = 4·10⁻⁴).
+    process_variances : dict acc / int / omega_dot of eq. 8 (default
+        :data:`accel_bayes.models.S16_PROCESS_VARIANCES`, the paper's 10³, 10⁻⁷, 10³).
+    sensor_params : known triad parameters ``(S, offset)`` or a dict with keys "S" and "offset";
+        S (A, 3, 3) upper-triangular (or its 6 parameters (A, 6), [S16] eq. 21), offset (A, 3).
+        Default: ideal triads (S = I, o = 0).
+    init_motion : (T, 9) initial states; default zeros ([S16] §VI-B: a non-zero start would
+        predetermine the sign of ω).
+    max_iter, ftol, xtol, gtol : LM stopping rules (:class:`~accel_bayes.inference.lm.StoppingRule`).
+    progress : tqdm bar per LM run.
+    rerun_from_estimate : after a run that did not diverge, run again from its poses with zero
+        motion and keep the run with the lower cost ([S16] §VI-A remedy for partial minima,
+        where ω took the wrong sign over part of the record).  ``"auto"``: re-run only when the
+        first run's RMS whitened triad residual exceeds ``rerun_rms`` (a partial minimum misfits
+        the data by many noise std; the global one fits to ≈ 1) — half the time on good data.
+    covariance : compute the Laplace covariance (Schur complement of the Gauss–Newton matrix at
+        the optimum, motion marginalised).
+    raise_on_divergence : raise :class:`SelfCalDiverged` instead of returning a result with
+        status "diverged" (whose poses cannot be read either way).
+    divergence_kwargs : bounds passed to :func:`check_divergence`.
+    warm_start_motion : first solve the motion alone with the poses held at their start values
+        (from ``init_motion``, zero by default), then run the joint LM from that motion.  [S16]
+        starts the joint LM from zero motion directly (``False``); the joint problem is then
+        easily pulled into the diverged minima of Table III, even from the true poses, because
+        the pose Jacobians vanish at zero motion and the first steps move poses and motion
+        against each other.  The warm start keeps the zero-motion principle of [S16] §VI-B (the
+        sign of ω is not predetermined: ω enters the motion-only stage through ω̇ and the
+        integration constraint) and converges in ~20 iterations.
+    damping : a zero-argument factory of LM damping strategies (each LM run needs a fresh one),
+        or None: Marquardt's rule, diag(H) scaling, λ₀ = 10⁻⁶ (see ``_run_lm``).  A strategy
+        instance is also accepted (it is then shared by the runs and re-initialised by each).
+
+    Returns
+    -------
+    :class:`SelfCalResult`.
+    """
+    t_start = _time.perf_counter()
+    acc = torch.as_tensor(acc, dtype=dtype, device=device)
+    if acc.dim() != 3 or acc.shape[-1] != 3:
+        raise ValueError(f"acc: expected shape (T, A, 3), got {tuple(acc.shape)}")
+    T, A = acc.shape[0], acc.shape[1]
+    if T < 3:
+        raise ValueError(f"acc: expected at least 3 samples, got {T}")
+    if not bool(torch.isfinite(acc).all()):
+        raise ValueError("acc: expected finite triad outputs (NaN/inf found); drop missing triads or samples first")
+    if not 0 <= int(fixed) < A:
+        raise ValueError(f"fixed: expected a triad index in 0..{A - 1}, got {fixed}")
+    fixed = int(fixed)
+    p0 = torch.as_tensor(nominal_positions, dtype=dtype, device=device)
+    if p0.shape != (A, 3):
+        raise ValueError(f"nominal_positions: expected shape ({A}, 3), got {tuple(p0.shape)}")
+    if nominal_orientations is None:
+        q0 = torch.zeros(A, 4, dtype=dtype, device=device)
+        q0[:, 0] = 1.0
+    else:
+        q0 = torch.as_tensor(nominal_orientations, dtype=dtype, device=device)
+        if q0.shape != (A, 4):
+            raise ValueError(f"nominal_orientations: expected shape ({A}, 4), got {tuple(q0.shape)}")
+        q0 = quat_normalize(q0)
+    from ..arrays import check_triad_geometry
+
+    check_triad_geometry(p0)
+    dt = _time_steps(time_or_dt, T, dtype, acc.device)
+    inv_std = _as_inv_std(acc_noise_std, A, dtype, acc.device)
+    sqrt_info = process_sqrt_information(dt, process_variances)
+    S, offset = _sensor_params(sensor_params, A, dtype, acc.device)
+    if init_motion is None:
+        x0 = torch.zeros(T, 9, dtype=dtype, device=acc.device)
+    else:
+        x0 = torch.as_tensor(init_motion, dtype=dtype, device=acc.device).clone()
+        if x0.shape != (T, 9):
+            raise ValueError(f"init_motion: expected shape ({T}, 9), got {tuple(x0.shape)}")
+    n_con = {"triad": T * A, "process": T - 1}
+    n_total = n_con["triad"] + n_con["process"]
+    dkw = divergence_kwargs or {}
+
+    def one_run(p_start, q_start, x_start, label):
+        log = []
+        x_start = x_start.clone()
+        if warm_start_motion:
+            # Motion-only stage at the start poses (a well-posed problem in the states alone);
+            # from zero motion it does not predetermine the sign of ω either ([S16] §VI-B).
+            prob0 = build_problem(acc, dt, p_start, q_start, x_start, fixed, inv_std, sqrt_info, S, offset,
+                                  poses_fixed=True)
+            res0, log0 = _run_lm(prob0, max_iter=max_iter, ftol=1e-10, xtol=xtol, gtol=gtol, progress=progress,
+                                 desc=f"selfcal {label} (motion)", damping=damping)
+            for e in log0:
+                e["stage"] = "motion"
+            log.extend(log0)
+            if bool(torch.isfinite(res0.locals).all()):
+                x_start = res0.locals
+        prob = build_problem(acc, dt, p_start, q_start, x_start, fixed, inv_std, sqrt_info, S, offset)
+        res, log1 = _run_lm(prob, max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol, progress=progress,
+                            desc=f"selfcal {label}", damping=damping)
+        offset_it = log[-1]["iteration"] if log else 0
+        for e in log1:
+            e["stage"] = "joint"
+            e["iteration"] += offset_it
+        log.extend(log1[1:] if log else log1)
+        for e in log:
+            e["F"] = e["F_triad"] + e["F_process"]
+            e["F_per_constraint"] = e["F"] / n_total
+            e["run"] = label
+        F = 2.0 * res.cost
+        p, q, x = res.values["position"], res.values["rotation"], res.locals
+        reason = res.reason
+        rms = math.sqrt(max(log[-1]["F_triad"], 0.0) / (3 * T * A))
+        why = check_divergence(p, x, p0, fixed, F, rms_residual=rms, **dkw)
+        if why is None and reason == "non_finite":
+            why = "the LM linearisation became non-finite"
+        summary = {"label": label, "F": F, "rms_residual": rms, "n_iter": res.n_iter,
+                   "iterations": len(log) - 1, "lm_reason": reason,
+                   "converged": bool(res.converged), "diverged": why,
+                   "positions": p.detach(), "orientations": q.detach(), "states": x.detach()}
+        return res, log, F, why, summary
+
+    runs = []
+    res, log, F, why, summ = one_run(p0, q0, x0, "first")
+    runs.append(summ)
+    full_log = list(log)
+    best = (res, log, F, why)
+    if rerun_from_estimate not in (True, False, "auto"):
+        raise ValueError(f"rerun_from_estimate: expected True, False or 'auto', got {rerun_from_estimate!r}")
+    do_rerun = bool(rerun_from_estimate) if rerun_from_estimate != "auto" else summ["rms_residual"] > rerun_rms
+    if why is None and do_rerun:
+        res2, log2, F2, why2, summ2 = one_run(res.values["position"], res.values["rotation"],
+                                              torch.zeros_like(x0), "rerun")
+        runs.append(summ2)
+        full_log.extend(log2)
+        # Keep the re-run unless it is worse: on the global optimum both runs agree, while a
+        # partial minimum of the first run has the higher cost.
+        if why2 is None and F2 <= F * (1 + 1e-9):
+            best = (res2, log2, F2, why2)
+        summ2["kept"] = best[0] is res2
+    res, log, F, why = best
+    status = "ok" if why is None else "diverged"
+    out = SelfCalResult(
+        status=status, reason=why or "", fixed=fixed,
+        raw_positions=res.values["position"].detach(), raw_orientations=res.values["rotation"].detach(),
+        states=res.locals.detach(), cost=F, cost_log=log, full_cost_log=full_log, n_constraints=n_con, runs=runs,
+        converged=bool(res.converged), lm_reason=res.reason, n_iter=res.n_iter,
+    )
+    if status == "ok" and covariance:
+        _attach_covariance(out, res, A, fixed)
+    out.seconds = _time.perf_counter() - t_start
+    if status != "ok" and raise_on_divergence:
+        raise SelfCalDiverged(f"self-calibration diverged: {why}", out)
+    return out
+
+
+def _attach_covariance(out: SelfCalResult, res, A: int, fixed: int) -> None:
+    """Laplace covariance of the free poses (Gauss–Newton information, motion marginalised).
+
+    The solver's cost is ½Σ‖e‖², so its Gauss–Newton matrix JᵀJ is the information matrix of the
+    whitened model; its Schur complement over the motion is the information of the poses.
+    """
+    from .linear import NotPositiveDefinite
+
+    try:
+        C = res.covariance()
+    except NotPositiveDefinite:
+        return
+    labels = res.free_labels()
+    free = [j for j in range(A) if j != fixed]
+    nf = len(free)
+    pos_cov = C.new_zeros(A, 3, 3)
+    rot_cov = C.new_zeros(A, 3, 3)
+    # free_labels order: "position" rows (free triads × xyz), then "rotation" rows.
+    assert len(labels) == 6 * nf and labels[0][0] == "position" and labels[3 * nf][0] == "rotation"
+    for k, j in enumerate(free):
+        pos_cov[j] = C[3 * k:3 * k + 3, 3 * k:3 * k + 3]
+        o = 3 * nf + 3 * k
+        rot_cov[j] = C[o:o + 3, o:o + 3]
+    out.position_cov = pos_cov
+    out.rotation_cov = rot_cov
+    out.covariance = C
