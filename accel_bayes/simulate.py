@@ -115,6 +115,7 @@ def simulate(
     time_offsets=None,
     description: str | None = None,
     validate: bool = True,
+    effects=None,
 ) -> SimResult:
     """Simulate a recording of ``array`` under a motion, with a perturbed true geometry.
 
@@ -136,6 +137,16 @@ def simulate(
     time_offsets : (K,) s or None — IMU k's sample stamped t is taken at t + δ_k (positive =
         sampled late, DESIGN §7.2 ``time_offset``); needs a continuous motion ("smooth",
         "table"), whose trajectory is re-evaluated at the shifted times.  Recorded in the truth.
+    effects : list of :class:`accel_bayes.mismatch.effects.Effect` instances (with their
+        parameter values) or dicts ``{"effect": name, "imu": k, "axis": a, "parameters": {...}}``
+        (DESIGN §7.2 names) — physics the nominal model leaves out, simulated with the *same*
+        definitions the mismatch detector fits (:func:`accel_bayes.mismatch.effects.apply_effects`):
+        mean effects are added to the noise-free outputs (computed from the true motion and
+        geometry; ``time_offset`` uses the trajectory's exact output rates, so it needs a
+        continuous motion), ``noise_level`` scales the true noise (the recording still states
+        the nominal noise), ``saturation`` clips after the noise (and is *not* flagged in
+        ``acc_clipped``/``gyro_clipped``: an unstated range).  Listed in ``truth["effects"]``;
+        ``acc_clean``/``gyro_clean`` then include the mean effects.
     validate : check the result with :func:`accel_bayes.validation.validate_recording` when
         that module is available.
 
@@ -205,8 +216,13 @@ def simulate(
             acc0[:, k], gyro0[:, k] = a_k[:, 0], g_k[:, 0]
     e_acc = torch.randn(Tn, K, 3, generator=g_noise, dtype=torch.float64)
     e_gyro = torch.randn(Tn, K, 3, generator=g_noise, dtype=torch.float64)
-    acc = acc0 + acc_std[:, None] * e_acc
-    gyro = gyro0 + gyro_std[:, None] * e_gyro
+    eff_list = _effects_list(effects)
+    if eff_list:
+        acc, gyro, acc0, gyro0 = _apply_effects(eff_list, tr, kind, time, omega, omega_dot, s, p_true, q_true,
+                                                acc0, gyro0, acc_std[:, None] * e_acc, gyro_std[:, None] * e_gyro)
+    else:
+        acc = acc0 + acc_std[:, None] * e_acc
+        gyro = gyro0 + gyro_std[:, None] * e_gyro
     has_acc, has_gyro = arr.has_acc, arr.has_gyro
     acc, acc_flags = _clip(acc, arr.acc_range, has_acc, clip)
     gyro, gyro_flags = _clip(gyro, arr.gyro_range, has_gyro, clip)
@@ -268,6 +284,9 @@ def simulate(
         "seed": seed_used,
         "settings": settings,
     }
+    if eff_list:
+        truth["effects"] = [{"effect": e.name, **e.location(), "parameters": _jsonable(e.report_parameters())}
+                            for e in eff_list]
     if validate:
         _validate(rec)
     return SimResult(recording=rec, truth=truth, motion=tr, true_positions=p_true, true_orientations=q_true,
@@ -280,3 +299,46 @@ def _validate(rec: Recording) -> None:
     except ImportError:  # the validation module is optional at this stage of the package
         return
     validate_recording(rec)
+
+
+def _effects_list(effects) -> list:
+    """Effects given to :func:`simulate` as instances or report-style dicts → instances."""
+    if effects is None:
+        return []
+    from .mismatch.effects import Effect, make_effect
+
+    out = []
+    for e in effects:
+        if isinstance(e, Effect):
+            out.append(e)
+        elif isinstance(e, dict):
+            d = dict(e)
+            name = d.pop("effect", None)
+            if name is None:
+                raise UserError(f"effects: each dict needs an 'effect' name, got {e!r}")
+            out.append(make_effect(name, **d))
+        else:
+            raise UserError(f"effects: expected Effect instances or dicts, got {type(e).__name__}")
+    return out
+
+
+def _apply_effects(eff_list, tr, kind, time, omega, omega_dot, s, p_true, q_true, acc0, gyro0, acc_noise, gyro_noise):
+    """Outputs with effects (see ``effects`` in :func:`simulate`); returns (acc, gyro, acc_clean, gyro_clean)."""
+    from .mismatch.effects import SignalContext, apply_effects, model_outputs
+
+    acc_rate = gyro_rate = None
+    if any(e.needs_rates for e in eff_list):
+        if tr.trajectory is None:
+            raise UserError(f"effects: time_offset needs a continuous motion ('smooth' or 'table'); {kind!r} has none")
+        h = 1e-5  # s; central difference of the analytic trajectory, error O(h²)
+        outs = []
+        for sign in (1.0, -1.0):
+            m = tr.trajectory.trace(time + sign * h)
+            c = lambda x: x.detach().to(dtype=torch.float64, device="cpu")  # noqa: E731
+            outs.append(imu_outputs(p_true, q_true, c(m.omega), c(m.omega_dot), c(m.s)))
+        acc_rate = (outs[0][0] - outs[1][0]) / (2 * h)
+        gyro_rate = (outs[0][1] - outs[1][1]) / (2 * h)
+    ctx = SignalContext(time, omega, omega_dot, s, p_true, q_true, acc0, gyro0, acc_rate, gyro_rate)
+    acc, gyro = apply_effects(eff_list, ctx, acc_noise, gyro_noise)
+    clean_acc, clean_gyro = model_outputs([e for e in eff_list if e.kind == "mean"], ctx)
+    return acc, gyro, clean_acc, clean_gyro

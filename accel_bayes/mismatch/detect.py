@@ -1,0 +1,583 @@
+"""Name a mismatch: which physical effect (and where) explains the excess of the residuals.
+
+:func:`detect` is the public entry point (DESIGN §2 "mismatch", §7.2 report v1)::
+
+    report = detect(recording)           # a Recording or a path to a format-v1 file
+    report.mismatch_detected, report.findings[0].effect.name, report.to_dict(), report.write("out")
+
+Procedure
+---------
+1. **Baseline**: the nominal model fitted jointly in geometry and motion
+   (:func:`accel_bayes.mismatch.refine.baseline_fit`, started from the package's MAP).
+2. **Locate** (:func:`accel_bayes.mismatch.locate.locate`): standardized residuals, excess per
+   IMU/axis/regime, posterior predictive check.
+3. **Candidates**: every location of every requested effect class
+   (:meth:`Effect.candidates`; the identifiability rules are in
+   :mod:`accel_bayes.mismatch.effects`).  m = their number.
+4. **Screen** (cheap, all candidates, at the current fit):
+
+   * mean effects — the score (Lagrange-multiplier) test: u = ∂logL/∂η at η = 0 and the
+     *efficient* information I_ηη·g = I_ηη − I_ηg S_g⁻¹ I_gη, where the per-sample motion states
+     are eliminated sample by sample and the geometry (and effects already in the model)
+     through the Schur-reduced information S_g; statistic uᵀ I_ηη·g⁻¹ u ~ χ²_df under the null,
+     the local approximation of the likelihood-ratio statistic.  Candidates whose efficient
+     information is singular (relative eigenvalue < 1e-8) are not identifiable in this
+     recording and are dropped;
+   * ``noise_level`` — the restricted (leverage-corrected) likelihood ratio for a variance
+     factor, n(m − 1 − log m), m the mean z² of the group (exact, no refit needed);
+   * ``saturation`` — the gain in Σr² from clamping the fitted outputs at a limit L, profiled
+     over L on a grid from the channel's largest |output| down to 80 % of it.
+5. **Refit** the best screened candidate of each effect class and the overall top three
+   (at most ``n_refit``, only those with a screen statistic ≥ ½ of the threshold): the
+   augmented model is re-optimised jointly with the geometry and the motion by the LM solver,
+   and the **evidence** is the likelihood ratio 2·(log L with − log L without) at the two optima
+   (for ``noise_level`` the restricted likelihood ratio of step 4 at the refitted model, because
+   the plain one is biased by the leverage of the per-sample motion states).
+6. **Accept** one candidate per round, repeat from step 4 with it in the model, at most
+   ``max_findings`` times:
+
+   * a mean (or clip) effect is acceptable when its *noise-robust* evidence — the evidence
+     divided by max(1, P), P the mean leverage-corrected z² left in its IMU/sensor group after
+     the refit — exceeds the threshold.  This F-test-like guard keeps noise larger than stated
+     (which inflates every mean candidate's likelihood ratio on that IMU by the same factor)
+     from being named as a bias or scale error; for a correctly named effect P ≈ 1;
+   * ``noise_level`` is considered only in a round where no mean/clip effect is acceptable:
+     any unmodelled mean structure also raises the residual power, so the variance explanation
+     comes last;
+   * among the acceptable ones the smallest p-value (χ²_df of the robust evidence) wins.
+
+   With several findings, each one's evidence is recomputed with all the others in the model
+   (drop-one refits).
+7. **Unexplained**: at the final model, the located-excess tests of
+   :func:`accel_bayes.mismatch.locate.excess_cells` (free mean and variance per regime bin, χ²_2B),
+   Bonferroni-corrected over the cells × schemes tested; a significant one that also exceeds the
+   threshold is reported as an ``unexplained`` finding with its location.
+
+Threshold rule (reported as ``threshold``): Bonferroni over the m candidates tried,
+
+    threshold = χ²_{d_max} quantile at 1 − α/m,
+
+with d_max the largest number of parameters of any candidate (3).  One number for every finding,
+conservative for candidates with fewer parameters.  Findings are ranked by the p-value of their
+evidence under χ²_df (most supported first; equal to ranking by evidence for equal df).
+
+Budget: one baseline fit, one screen per round (vectorised algebra, a few ms per candidate) and
+at most ``n_refit`` LM refits per round; a 32-IMU, T = 3000 recording stays within minutes on two
+cores.
+"""
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+from .effects import EFFECTS, Effect, Unexplained, get_effect
+from .locate import locate, regime_concentration, regimes, time_window
+from .refine import ModelFit, Prepared, _effect_std, baseline_fit, compare_fits, fit_model, prepare
+from .report import Finding, MismatchReport
+
+__all__ = ["Screen", "detect", "candidate_effects", "screen", "threshold_rule", "noise_evidence"]
+
+
+@dataclass
+class Screen:
+    """One screened candidate: effect (instance, params = screening estimate), statistic, df,
+    log10_p (of the statistic under χ²_df), identifiable."""
+
+    effect: Effect
+    statistic: float
+    df: int
+    log10_p: float
+    identifiable: bool = True
+    estimate: dict | None = None
+
+    def to_dict(self) -> dict:
+        return {"candidate": self.effect.label(), "statistic": self.statistic, "df": self.df,
+                "log10_p": self.log10_p, "identifiable": self.identifiable}
+
+
+def _log10_sf(stat: float, df: int) -> float:
+    """log10 P(χ²_df > stat), finite for any finite stat: SciPy's logsf underflows to −inf beyond
+    stat ≈ 1400, where the asymptotic series of the upper incomplete gamma function,
+    log Γ(s, z)/Γ(s) ≈ (s−1) log z − z − log Γ(s) + log(1 + (s−1)/z + (s−1)(s−2)/z²) with
+    s = df/2, z = stat/2, is accurate to better than 1e-6 relative."""
+    from scipy.stats import chi2
+
+    if not math.isfinite(stat):
+        return -math.inf if stat > 0 else 0.0
+    df = max(int(df), 1)
+    x = max(stat, 0.0)
+    v = float(chi2.logsf(x, df))
+    if not math.isfinite(v) or x > 500:
+        sh, z = 0.5 * df, 0.5 * x
+        v = (sh - 1) * math.log(z) - z - math.lgamma(sh) + math.log1p((sh - 1) / z + (sh - 1) * (sh - 2) / z ** 2)
+    return v / math.log(10)
+
+
+def threshold_rule(m: int, df_max: int, alpha: float) -> float:
+    """χ²_{df_max} quantile at 1 − α/m (Bonferroni over m candidates)."""
+    from scipy.stats import chi2
+
+    return float(chi2.isf(alpha / max(int(m), 1), max(int(df_max), 1)))
+
+
+def candidate_effects(prep: Prepared, effects=None) -> list[Effect]:
+    """Every candidate location of the requested effect classes (names; None = all)."""
+    names = list(EFFECTS) if effects is None else list(effects)
+    out = []
+    for nm in names:
+        cls = get_effect(nm)
+        out += cls.candidates(prep.layout)
+    return out
+
+
+# ------------------------------------------------------------------------------ screens
+
+def _rows(K: int, k: int) -> torch.Tensor:
+    return torch.tensor([3 * k, 3 * k + 1, 3 * k + 2, 3 * K + 3 * k, 3 * K + 3 * k + 1, 3 * K + 3 * k + 2])
+
+
+def _regressor(c: Effect, ctx, k: int) -> torch.Tensor:
+    """∂(outputs of IMU k)/∂η at η = 0 for a mean candidate, (T, 6, p) [acc xyz, gyro xyz].
+
+    Central differences with a step of 1e-3 × the parameter's prior scale: exact for the
+    effects linear in their parameters (all but triad_orientation) and accurate to ~1e-7
+    relative for the rotation — ample for a test statistic, and far cheaper than forward-mode
+    autodiff per candidate."""
+    null = c.null_params()
+    v0 = c.flatten(null)
+    scales = c.prior_scales()
+    cols = []
+    for j in range(c.df):
+        h = 1e-3 * (float(scales[j]) if math.isfinite(float(scales[j])) else 1.0)
+        outs = []
+        for sgn in (1.0, -1.0):
+            v = v0.clone()
+            v[j] += sgn * h
+            da, dg = c.perturbation(c.unflatten(v), ctx)
+            outs.append(torch.cat((da[:, k], dg[:, k]), -1))
+        cols.append((outs[0] - outs[1]) / (2 * h))
+    return torch.stack(cols, -1)
+
+
+def _score_tests(prep: Prepared, fit: ModelFit, cands) -> list[Screen]:
+    """Score tests of the mean candidates (module docstring, step 4), batched per IMU: the
+    regressors of every candidate on one IMU are stacked so the efficient information of all of
+    them is one (P × P) matrix whose diagonal blocks are the candidates'."""
+    lin = fit.linear()
+    ctx = fit.ctx
+    K = prep.K
+    wa = prep.m_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None]
+    wg = prep.m_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None]
+    SinvT = lin.Sinv
+    by_imu: dict[int, list] = {}
+    for c in cands:
+        by_imu.setdefault(int(c.imu), []).append(c)
+    results = {}
+    with torch.no_grad():
+        for k, group in by_imu.items():
+            Ds = [_regressor(c, ctx, k) for c in group]
+            D = torch.cat(Ds, -1)  # (T, 6, P)
+            w = torch.cat((wa[:, k], wg[:, k]), -1)
+            Dr = -D * w.unsqueeze(-1)
+            rows = _rows(K, k)
+            Jx, Jg, rk = lin.Jx[:, rows], lin.jg_rows(k), lin.r[:, rows]
+            a = Jx.transpose(-1, -2) @ Dr  # (T, 9, P)
+            Va = lin.Vinv @ a
+            T_, _, P = Dr.shape
+            DtD = Dr.reshape(-1, P).T @ Dr.reshape(-1, P)
+            I_ee = DtD - a.reshape(-1, P).T @ Va.reshape(-1, P)
+            n = Jg.shape[-1]
+            I_eg = Dr.reshape(-1, P).T @ Jg.reshape(-1, n) - a.reshape(-1, P).T @ lin.Z.reshape(-1, n)
+            eff_all = I_ee - I_eg @ SinvT @ I_eg.T
+            u_all = -(Dr.reshape(-1, P).T @ rk.reshape(-1))
+            i = 0
+            for c, Dc in zip(group, Ds):
+                p = c.df
+                sl = slice(i, i + p)
+                i += p
+                scale = torch.diagonal(DtD)[sl]
+                if not bool((scale > 0).all()):
+                    results[id(c)] = Screen(c, 0.0, p, 0.0, identifiable=False)
+                    continue
+                eff = eff_all[sl, sl]
+                eff = 0.5 * (eff + eff.T)
+                dn = torch.sqrt(scale)
+                ev = torch.linalg.eigvalsh(eff / (dn[:, None] * dn[None, :]))
+                if float(ev.min()) < 1e-8:
+                    results[id(c)] = Screen(c, 0.0, p, 0.0, identifiable=False)
+                    continue
+                u = u_all[sl]
+                est = torch.linalg.solve(eff, u)
+                stat = float(u @ est)
+                c.set_params(c.unflatten(est))
+                results[id(c)] = Screen(c, stat, p, _log10_sf(stat, p), True, c.unflatten(est))
+    return [results[id(c)] for c in cands]
+
+
+def noise_evidence(prep: Prepared, fit: ModelFit, effect) -> tuple[float, float, int]:
+    """Restricted likelihood ratio of a noise_level effect at a fit: (n(m − 1 − log m), factor √m, n),
+    m the mean leverage-corrected z² of the effect's group in the fit's noise units with the
+    effect's own factor (if it is in the fit) taken out — i.e. relative to every *other* noise
+    factor of the model (module docstring, step 4)."""
+    lin = fit.linear()
+    T, K = prep.T, prep.K
+    z2 = (lin.r ** 2 / (1 - lin.h).clamp_min(1e-3)).reshape(T, 2, K, 3)
+    z2 = z2[:, 0] if effect.which == "acc" else z2[:, 1]
+    mask = prep.m_acc if effect.which == "acc" else prep.m_gyro
+    own = any(e is effect or (e.label() == effect.label() and e.kind == "noise") for e in fit.effects)
+    if own:
+        z2 = z2 * float(effect.params["factor"]) ** 2
+    if effect.imu is not None:
+        z2, mask = z2[:, effect.imu], mask[:, effect.imu]
+    n = float(mask.sum())
+    if n == 0:
+        return 0.0, 1.0, 0
+    m = float((z2 * mask).sum() / n)
+    return n * (m - 1 - math.log(m)), math.sqrt(m), int(n)
+
+
+def _noise_screen(prep, fit, cands) -> list[Screen]:
+    out = []
+    for c in cands:
+        stat, fac, n = noise_evidence(prep, fit, c)
+        if n == 0:
+            out.append(Screen(c, 0.0, 1, 0.0, identifiable=False))
+            continue
+        c.set_params({"factor": fac})
+        out.append(Screen(c, stat, 1, _log10_sf(stat, 1), True, {"factor": torch.tensor(fac)}))
+    return out
+
+
+def _saturation_screen(prep, fit, cands, n_grid: int = 41, lowest: float = 0.8) -> list[Screen]:
+    out = []
+    frac = torch.linspace(1.0, lowest, n_grid, dtype=torch.float64)
+    cache = {}
+    for sensor in ("acc", "gyro"):
+        y = prep.y_acc if sensor == "acc" else prep.y_gyro
+        pred = fit.pred_acc if sensor == "acc" else fit.pred_gyro
+        mask = prep.m_acc if sensor == "acc" else prep.m_gyro
+        sig = (prep.sigma_acc * fit.acc_factor if sensor == "acc" else prep.sigma_gyro * fit.gyro_factor)[None, :, None]
+        cache[sensor] = (y, pred, mask, sig)
+    for c in cands:
+        y, pred, mask, sig = cache[c.which]
+        if c.imu is not None:
+            sl = (slice(None), slice(c.imu, c.imu + 1), slice(c.axis_index, c.axis_index + 1))
+            y_, p_, m_, s_ = y[sl], pred[sl], mask[sl], sig[:, c.imu:c.imu + 1]
+        else:
+            y_, p_, m_, s_ = y, pred, mask, sig
+        if float(m_.sum()) == 0:
+            out.append(Screen(c, 0.0, 1, 0.0, identifiable=False))
+            continue
+        M = float((y_.abs() * m_).max())
+        L = (M * frac)[:, None, None, None]
+        r0 = ((y_ - p_) / s_ * m_) ** 2
+        r1 = ((y_ - torch.minimum(torch.maximum(p_, -L), L)) / s_ * m_) ** 2
+        gain = (r0 - r1).sum((1, 2, 3))
+        j = int(torch.argmax(gain))
+        stat = float(gain[j])
+        if stat <= 0:
+            out.append(Screen(c, 0.0, 1, 0.0))
+            continue
+        lim = float(M * frac[j])
+        c.set_params({"limit": lim})
+        out.append(Screen(c, stat, 1, _log10_sf(stat, 1), True, {"limit": torch.tensor(lim)}))
+    return out
+
+
+def screen(prep: Prepared, fit: ModelFit, candidates) -> list[Screen]:
+    """Screen candidates at a fit (module docstring, step 4); each candidate's params are set to
+    its screening estimate.  Returns the screens sorted by log10 p (most significant first)."""
+    mean = [c for c in candidates if c.kind == "mean"]
+    clip = [c for c in candidates if c.kind == "clip"]
+    noise = [c for c in candidates if c.kind == "noise"]
+    out = _score_tests(prep, fit, mean) + _saturation_screen(prep, fit, clip) + _noise_screen(prep, fit, noise)
+    out.sort(key=lambda s: s.log10_p)
+    return out
+
+
+def _choose(screens: list[Screen], threshold: float, n_refit: int) -> list[Screen]:
+    ok = [s for s in screens if s.identifiable and s.statistic >= 0.5 * threshold]
+    chosen, seen = [], set()
+    for s in ok:
+        if s.effect.name not in seen:
+            chosen.append(s)
+            seen.add(s.effect.name)
+    chosen = chosen[:n_refit]
+    for s in ok[:3]:
+        if all(s is not c for c in chosen):
+            chosen.append(s)
+    return chosen
+
+
+def _evidence(prep, with_fit: ModelFit, without_fit: ModelFit, effect) -> float:
+    if effect.kind == "noise":
+        return noise_evidence(prep, with_fit, effect)[0]
+    return 2.0 * (with_fit.loglik - without_fit.loglik)
+
+
+def _group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> float:
+    """Mean leverage-corrected z² (model noise units) of the IMU/sensor group(s) an effect acts
+    on, at a fit; ``h`` (T, m) the leverage of the per-sample motion states (from the fit the
+    candidate extends: the leverage hardly moves when one effect is added)."""
+    T, K = prep.T, prep.K
+    which = getattr(effect, "which", None) or effect.sensor
+    groups = ("acc", "gyro") if which == "both" else (which,)
+    za = (fit.res_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None]) ** 2
+    zg = (fit.res_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None]) ** 2
+    hh = h.reshape(T, 2, K, 3)
+    num = den = 0.0
+    for gname in groups:
+        z2 = (za if gname == "acc" else zg) / (1 - hh[:, 0 if gname == "acc" else 1]).clamp_min(1e-3)
+        m = prep.m_acc if gname == "acc" else prep.m_gyro
+        if effect.imu is not None:
+            z2, m = z2[:, effect.imu], m[:, effect.imu]
+        num += float((z2 * m).sum())
+        den += float(m.sum())
+    return num / den if den > 0 else 1.0
+
+
+# ------------------------------------------------------------------------------ detect
+
+def _load(recording):
+    from ..recording import Recording
+
+    if isinstance(recording, Recording):
+        return recording, None
+    if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
+        from ..io import read_recording
+
+        return read_recording(recording, require_gyro=True), str(recording)
+    raise UserError(f"recording: expected a Recording or a file path, got {type(recording).__name__}")
+
+
+def _check_options(effects, alpha, max_findings, seed):
+    try:
+        a = float(alpha)
+    except (TypeError, ValueError):
+        raise UserError(f"alpha: expected a number in (0, 1), got {alpha!r}") from None
+    if not 0 < a < 1:
+        raise UserError(f"alpha: expected a number in (0, 1), got {alpha!r}")
+    if isinstance(max_findings, bool) or not isinstance(max_findings, (int, np.integer)) or max_findings < 0:
+        raise UserError(f"max_findings: expected an integer >= 0, got {max_findings!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise UserError(f"seed: expected a non-negative integer, got {seed!r}")
+    names = None
+    if effects is not None:
+        if isinstance(effects, str):
+            effects = [e for e in effects.split(",") if e.strip()]
+        names = []
+        for e in effects:
+            nm = e.strip() if isinstance(e, str) else getattr(e, "name", e)
+            get_effect(nm)  # raises UserError for unknown names
+            if nm != "unexplained" and nm not in names:
+                names.append(nm)
+        if not names and "unexplained" not in [str(e).strip() for e in effects]:
+            raise UserError("effects: expected at least one effect name")
+    return a, names
+
+
+def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 3, refine: bool = True,
+           posterior: bool = False, seed: int = 0, progress: bool = False, n_twins: int = 100,
+           n_refit: int = 6, use_map: bool = True, loo_draws: int = 200) -> MismatchReport:
+    """Find, name and fix model mismatch in one recording (module docstring).
+
+    Parameters
+    ----------
+    recording : :class:`~accel_bayes.recording.Recording` or path to a format-v1 file (needs
+        gyroscope data).
+    effects : effect names to try (list or comma-separated string; default all of vocabulary v1);
+        ``unexplained`` is always considered.
+    alpha : family-wise error rate of the Bonferroni threshold (default 0.01).
+    max_findings : most effects added to the model (default 3).
+    refine : fill ``report.refined`` (the model with the findings, χ²/dof, log-likelihood, ELPD
+        by PSIS-LOO, geometry before/after); False leaves it null.
+    posterior : also run the PmMH calibration (:func:`accel_bayes.calibrate.calibrate`, short
+        chains) before and after correcting the recording for the findings (slow).
+    seed : seeds the PPC twins, the Laplace draws and the posterior runs.
+    progress : print stage messages (and LM progress bars).
+    n_twins : PPC twins; n_refit : LM refits per round; use_map : start the baseline from the
+        package's MAP; loo_draws : Laplace draws for PSIS-LOO.
+
+    Returns a :class:`~accel_bayes.mismatch.report.MismatchReport`.
+    """
+    t_start = _time.perf_counter()
+    alpha, names = _check_options(effects, alpha, max_findings, seed)
+    rec, source = _load(recording)
+    say = (lambda msg: print(f"[mismatch {(_time.perf_counter() - t_start):6.1f} s] {msg}", flush=True)) if progress \
+        else (lambda msg: None)
+    timings = {}
+    prep = prepare(rec)
+    t0 = _time.perf_counter()
+    base, base_info = baseline_fit(prep, use_map=use_map, progress=False)
+    timings["baseline_fit_s"] = _time.perf_counter() - t0
+    say(f"baseline fit: χ²/dof = {base.chi2_per_dof:.4g} ({base_info['start']} start)")
+    t0 = _time.perf_counter()
+    loc0 = locate(prep, base, n_twins=n_twins, seed=seed)
+    timings["locate_s"] = _time.perf_counter() - t0
+    say(f"locate: {loc0.summary}")
+
+    cands_all = candidate_effects(prep, names)
+    m = len(cands_all)
+    df_max = max([c.df for c in cands_all] + [1])
+    threshold = threshold_rule(m, df_max, alpha)
+    say(f"{m} candidates, threshold {threshold:.4g} (χ²_{df_max}, 1 − {alpha}/{m})")
+
+    current = base
+    accepted: list[dict] = []
+    rounds = []
+    t0 = _time.perf_counter()
+    last_screens: list[Screen] = []
+    for rnd in range(int(max_findings)):
+        in_model = {e.label() for e in current.effects}
+        pool = [c.copy() for c in cands_all if c.label() not in in_model]
+        ts = _time.perf_counter()
+        screens = screen(prep, current, pool)
+        last_screens = screens
+        chosen = _choose(screens, threshold, n_refit)
+        info = {"round": rnd + 1, "screen_s": _time.perf_counter() - ts,
+                "screen_top": [s.to_dict() for s in screens[:10]], "refits": []}
+        say(f"round {rnd + 1}: screened {len(screens)}; refitting {[s.effect.label() for s in chosen]}")
+        h_cur = current.linear().h
+        results = []
+        for sc in chosen:
+            cand = sc.effect
+            try:
+                model_eff = [e.copy() for e in current.effects] + [cand]
+                f = fit_model(prep, model_eff, init=current, laplace=False)
+            except Exception as exc:  # a candidate that cannot be fitted is reported, not fatal
+                info["refits"].append({"candidate": cand.label(), "error": f"{type(exc).__name__}: {exc}"})
+                continue
+            ev = _evidence(prep, f, current, cand)
+            # noise-robust evidence of mean effects: the LR over the residual power left in the
+            # effect's IMU/sensor group (an F-test-like guard: noise larger than stated inflates
+            # every mean candidate's LR by the same factor)
+            power = 1.0 if cand.kind == "noise" else _group_power(prep, f, cand, h_cur)
+            ev_r = ev / max(power, 1.0)
+            lp = _log10_sf(ev_r, cand.df)
+            info["refits"].append({"candidate": cand.label(), "evidence": ev, "evidence_robust": ev_r,
+                                   "group_power_after": power, "df": cand.df, "log10_p": lp,
+                                   "screen_statistic": sc.statistic, "seconds": f.seconds})
+            f.drop_linear()
+            results.append({"effect": f.effects[-1], "fit": f, "evidence": ev, "evidence_robust": ev_r,
+                            "log10_p": lp, "screen": sc, "without": current})
+        rounds.append(info)
+        # mean (and clip) effects first; noise_level only when no structured effect passes,
+        # because any unmodelled mean structure also raises the residual power
+        ok = [r for r in results if r["effect"].kind != "noise" and r["evidence_robust"] > threshold]
+        if not ok:
+            ok = [r for r in results if r["effect"].kind == "noise" and r["evidence"] > threshold]
+        best = min(ok, key=lambda r: r["log10_p"]) if ok else None
+        if best is None:
+            say("no further candidate above the threshold")
+            break
+        say(f"accepted {best['effect'].label()} (evidence {best['evidence']:.4g})")
+        accepted.append(best)
+        current = best["fit"]
+    timings["detection_s"] = _time.perf_counter() - t0
+
+    # ---- evidence with all other findings in the model (drop-one); a finding whose evidence falls
+    # to the threshold or below once the others are in the model is withdrawn and the model refitted
+    t0 = _time.perf_counter()
+    withdrawn = []
+    while True:
+        drops = []
+        for i, acc_ in enumerate(accepted):
+            eff = current.effects[i]
+            if len(accepted) > 1:
+                others = [e.copy() for j, e in enumerate(current.effects) if j != i]
+                without = fit_model(prep, others, init=current, laplace=False)
+                ev = _evidence(prep, current, without, eff)
+            else:
+                without, ev = acc_["without"], acc_["evidence"]
+            drops.append((ev, without))
+        weakest = min(range(len(drops)), key=lambda i: drops[i][0]) if drops else None
+        if weakest is None or drops[weakest][0] > threshold:
+            break
+        withdrawn.append({"effect": current.effects[weakest].label(), "evidence": drops[weakest][0]})
+        say(f"withdrew {current.effects[weakest].label()} (evidence {drops[weakest][0]:.4g} with the others in the model)")
+        current = drops[weakest][1]
+        accepted.pop(weakest)
+    if accepted:
+        _effect_std(current, [e for e in current.effects if e.kind in ("mean", "clip")])
+    reg = regimes(prep, current)
+    findings: list[Finding] = []
+    for i, acc_ in enumerate(accepted):
+        eff = current.effects[i]
+        ev, without = drops[i]
+        gain = (current.loglik_t - without.loglik_t).numpy()
+        if eff.kind == "noise":
+            where = {"regime": "all regimes", "time_s": None}
+        else:
+            where = regime_concentration(prep, reg, gain)
+        findings.append(Finding(effect=eff, evidence=float(ev), df=eff.df, log10_p=_log10_sf(ev, eff.df),
+                                where=where, explanation=eff.explain(), screen_statistic=acc_["screen"].statistic,
+                                orientations=prep.q,
+                                extra={"evidence_when_added": acc_["evidence"],
+                                       "evidence_noise_robust": acc_["evidence_robust"]}))
+    timings["evidence_s"] = _time.perf_counter() - t0
+
+    # ---- unexplained located excess at the final model
+    t0 = _time.perf_counter()
+    loc_final = loc0 if current is base else locate(prep, current, n_twins=n_twins, seed=seed + 1)
+    tests = loc_final.excess_tests
+    unexplained = None
+    if tests:
+        from scipy.stats import chi2
+
+        m_u = len(tests)
+        top = tests[0]
+        thr_u = float(chi2.isf(alpha / m_u, top["df"]))
+        if top["statistic"] > thr_u and top["statistic"] > threshold:
+            # the same cell's strongest regime bin and time window, where each is significant
+            same = [t for t in tests if (t["imu"], t["sensor"], t["axis"]) == (top["imu"], top["sensor"], top["axis"])]
+            sig = [t for t in same if t["statistic"] > float(chi2.isf(alpha / m_u, t["df"]))]
+            reg_t = next((t for t in sig if t["scheme"] != "time"), None)
+            time_t = next((t for t in sig if t["scheme"] == "time"), None)
+            tw = time_window(prep, loc_final.reg, time_t["contributions"]) if time_t is not None else None
+            where = {"regime": reg_t["bin"] if reg_t is not None else None, "time_s": tw,
+                     "scheme": top["scheme"], "bin": top["bin"]}
+            u = Unexplained(imu=top["imu"], axis=top["axis"], sensor=top["sensor"], where=where,
+                            excess={"chi2_ratio": top["chi2_ratio"], "mean_z": top["mean_z"],
+                                    "scheme": top["scheme"], "bin": top["bin"], "df": top["df"],
+                                    "threshold": thr_u})
+            unexplained = Finding(effect=u, evidence=float(top["statistic"]), df=int(top["df"]),
+                                  log10_p=float(top["log10_p"]), where=dict(u.where), explanation=u.explain(),
+                                  screen_statistic=None)
+            findings.append(unexplained)
+    timings["unexplained_s"] = _time.perf_counter() - t0
+    findings.sort(key=lambda f: f.log10_p)
+
+    # ---- refined model and comparison
+    refined = None
+    comparison = None
+    post = None
+    t0 = _time.perf_counter()
+    if refine and accepted:
+        refined = current
+        comparison = compare_fits(base, refined, draws=loo_draws, seed=seed)
+        say(f"refined: χ²/dof {base.chi2_per_dof:.4g} → {refined.chi2_per_dof:.4g}")
+        if posterior:
+            from .refine import posterior_comparison
+
+            post = posterior_comparison(rec, refined, seed=seed, progress=progress)
+    timings["refine_s"] = _time.perf_counter() - t0
+    timings["total_s"] = _time.perf_counter() - t_start
+    settings = {"effects": names if names is not None else list(EFFECTS), "alpha": alpha,
+                "max_findings": int(max_findings), "refine": bool(refine), "posterior": bool(posterior),
+                "seed": int(seed), "n_twins": int(n_twins), "n_refit": int(n_refit), "use_map": bool(use_map),
+                "loo_draws": int(loo_draws)}
+    return MismatchReport(
+        findings=findings, baseline_fit=base, refined_fit=refined, threshold=threshold, alpha=alpha, n_candidates=m,
+        df_max=df_max, location=loc0, location_after=None if current is base else loc_final,
+        comparison=comparison, posterior=post, settings=settings, timings=timings, rounds=rounds,
+        withdrawn=withdrawn,
+        screens=[s.to_dict() for s in last_screens[:20]], baseline_info=base_info, source=source,
+        recording_info={"T": prep.T, "K": prep.K, "reference_imu": prep.ref, "description": rec.description,
+                        "sample_rate_hz": rec.sample_rate},
+        prep=prep,
+    )

@@ -1,0 +1,448 @@
+"""The mismatch report: DESIGN §7.2 format v1 (``report.json``) and a human report with figures.
+
+:class:`MismatchReport` is what :func:`accel_bayes.mismatch.detect` returns.  The contract keys
+of §7.2 are exactly those of :meth:`MismatchReport.to_dict`'s top level (``schema``,
+``mismatch_detected``, ``threshold``, ``baseline``, ``findings``, ``refined``); everything else
+(located-excess tables, per-regime statistics, PPC, screening and refit logs, geometry before
+and after, ELPD, timings) lives under the added key ``details`` or as added keys inside the
+contract blocks, which §7.2 allows.  :func:`validate_report` checks a dict against the contract.
+
+Attribute access mirrors the JSON: ``report.baseline`` and ``report.refined`` are the contract
+blocks (dicts; ``refined`` is None on clean data or with ``refine=False``), ``report.findings``
+the ranked :class:`Finding` list (``finding.effect`` the name, ``finding.model`` the fitted
+:class:`~accel_bayes.mismatch.effects.Effect`; ``finding["evidence"]`` works too), and
+``report.baseline_fit`` / ``report.refined_fit`` the :class:`~accel_bayes.mismatch.refine.ModelFit`
+objects behind them.
+"""
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+
+__all__ = ["SCHEMA", "Finding", "MismatchReport", "validate_report"]
+
+SCHEMA = "accel_bayes.mismatch/1"
+
+
+def _arviz():
+    """ArviZ, imported with its 1.0 announcement silenced."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        import arviz as az
+    return az
+
+
+def _clean(x):
+    """JSON-safe copy: tensors/arrays → lists, non-finite floats → None."""
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if torch.is_tensor(x):
+        return _clean(x.detach().cpu().tolist())
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.bool_,)):
+        return bool(x)
+    return x
+
+
+# ------------------------------------------------------------------------------ finding
+
+@dataclass
+class Finding:
+    """One reported finding (§7.2 ``findings`` entry).
+
+    model : the fitted :class:`~accel_bayes.mismatch.effects.Effect` (or ``Unexplained``).
+    evidence : 2·(log L with − log L without) at the fitted optima (restricted likelihood ratio
+        for ``noise_level``; the located-excess statistic for ``unexplained``).
+    df : its degrees of freedom; log10_p : log10 of its χ²_df tail probability.
+    where : {"regime": …, "time_s": [t0, t1] or None, …}.
+    """
+
+    effect: object
+    evidence: float
+    df: int
+    log10_p: float
+    where: dict
+    explanation: str
+    screen_statistic: float | None = None
+    orientations: object = field(default=None, repr=False)
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.model = self.effect
+        self.effect = self.model.name
+
+    @property
+    def imu(self):
+        return self.model.imu
+
+    @property
+    def axis(self):
+        return self.model.axis
+
+    @property
+    def parameters(self) -> dict:
+        m = self.model
+        if m.name == "triad_orientation":
+            return m.report_parameters(orientations=self.orientations)
+        return m.report_parameters()
+
+    def to_dict(self) -> dict:
+        d = {"effect": self.effect, "imu": self.imu, "axis": self.axis, "evidence": float(self.evidence),
+             "parameters": self.parameters,
+             "where": {"regime": self.where.get("regime"), "time_s": self.where.get("time_s"),
+                       **{k: v for k, v in self.where.items() if k not in ("regime", "time_s")}},
+             "explanation": self.explanation, "df": int(self.df), "log10_p": float(self.log10_p)}
+        sensor = getattr(self.model, "which", None)
+        if sensor is not None:
+            d["sensor"] = sensor
+        if self.model.std:
+            d["std"] = {k: (float(v) if v.dim() == 0 else [float(x) for x in v]) for k, v in self.model.std.items()}
+        if self.screen_statistic is not None:
+            d["screen_statistic"] = float(self.screen_statistic)
+        d.update({k: v for k, v in self.extra.items() if k not in d})
+        return _clean(d)
+
+    def __getitem__(self, key):
+        return self.to_dict()[key]
+
+
+# ------------------------------------------------------------------------------ report
+
+@dataclass
+class MismatchReport:
+    """Result of :func:`accel_bayes.mismatch.detect` (module docstring)."""
+
+    findings: list
+    baseline_fit: object
+    refined_fit: object
+    threshold: float
+    alpha: float
+    n_candidates: int
+    df_max: int
+    location: object
+    location_after: object = None
+    comparison: dict | None = None
+    posterior: dict | None = None
+    settings: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    rounds: list = field(default_factory=list)
+    withdrawn: list = field(default_factory=list)
+    screens: list = field(default_factory=list)
+    baseline_info: dict = field(default_factory=dict)
+    source: str | None = None
+    recording_info: dict = field(default_factory=dict)
+    prep: object = field(default=None, repr=False)
+
+    # ---------------------------------------------------------------- contract blocks
+    @property
+    def mismatch_detected(self) -> bool:
+        return len(self.findings) > 0
+
+    @property
+    def baseline(self) -> dict:
+        b = self.baseline_fit
+        return {"loglik": float(b.loglik), "chi2_per_dof": float(b.chi2_per_dof), "dof": int(b.dof),
+                "n_obs": int(b.n_obs), "chi2_noise": "stated"}
+
+    @property
+    def refined(self) -> dict | None:
+        if not self.findings or self.refined_fit is None:
+            return None
+        r = self.refined_fit
+        noise = r.has_noise_effect
+        d = {"effects": [e.name for e in r.effects], "loglik": float(r.loglik),
+             "chi2_per_dof": float(r.chi2_per_dof_model if noise else r.chi2_per_dof),
+             "chi2_noise": "refined (noise_level in the model)" if noise else "stated",
+             "chi2_per_dof_stated_noise": float(r.chi2_per_dof), "dof": int(r.dof),
+             "labels": [e.label() for e in r.effects]}
+        if self.comparison and "elpd_loo" in self.comparison and "difference" in self.comparison["elpd_loo"]:
+            e = self.comparison["elpd_loo"]
+            d["elpd_loo"] = e["after"]["elpd_loo"]
+            d["elpd_loo_baseline"] = e["before"]["elpd_loo"]
+            d["elpd_loo_difference"] = e["difference"]
+        return d
+
+    def to_dict(self) -> dict:
+        """The §7.2 document (plus ``details``)."""
+        doc = {
+            "schema": SCHEMA,
+            "mismatch_detected": self.mismatch_detected,
+            "threshold": float(self.threshold),
+            "baseline": self.baseline,
+            "findings": [f.to_dict() for f in self.findings],
+            "refined": self.refined,
+            "details": self.details(),
+        }
+        return _clean(doc)
+
+    def details(self) -> dict:
+        d = {
+            "threshold_rule": (f"Bonferroni over the m = {self.n_candidates} candidates tried: chi2_{self.df_max} "
+                               f"quantile at 1 - alpha/m, alpha = {self.alpha}"),
+            "alpha": self.alpha, "n_candidates": self.n_candidates, "df_max": self.df_max,
+            "recording": {**self.recording_info, "source": self.source},
+            "baseline_start": self.baseline_info,
+            "located_excess": self.location.to_dict() if self.location is not None else None,
+            "located_excess_after": self.location_after.to_dict() if self.location_after is not None else None,
+            "positions_baseline": self.baseline_fit.positions.tolist(),
+            "positions_refined": None if self.refined_fit is None or not self.findings else self.refined_fit.positions.tolist(),
+            "comparison": self.comparison,
+            "posterior": self.posterior,
+            "rounds": self.rounds,
+            "withdrawn": self.withdrawn,
+            "screen_top_last_round": self.screens,
+            "settings": self.settings,
+            "timings_s": self.timings,
+        }
+        return d
+
+    # ---------------------------------------------------------------- output
+    def to_json(self, indent: int = 1) -> str:
+        return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+
+    def write(self, out_dir, *, figures: bool = True) -> dict:
+        """Write ``report.json`` (v1 contract), ``report.md`` and the figures into ``out_dir``.
+        Returns {name: path}."""
+        out = Path(out_dir)
+        if out.exists() and not out.is_dir():
+            raise UserError(f"--out: {out} exists and is not a directory")
+        out.mkdir(parents=True, exist_ok=True)
+        paths = {}
+        p = out / "report.json"
+        p.write_text(self.to_json() + "\n", encoding="utf-8")
+        paths["json"] = p
+        figs = {}
+        if figures:
+            try:
+                figs = self.save_figures(out)
+            except Exception as exc:  # a plotting failure must not lose the report
+                warnings.warn(f"figures not written: {exc}", RuntimeWarning, stacklevel=2)
+        paths.update(figs)
+        p = out / "report.md"
+        p.write_text(self.markdown({k: v.name for k, v in figs.items()}), encoding="utf-8")
+        paths["markdown"] = p
+        return paths
+
+    def save_figures(self, out: Path) -> dict:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from .locate import CHANNELS
+
+        paths = {}
+        K = self.recording_info.get("K", self.location.heat.shape[0])
+        # heat map IMU × channel, before (and after)
+        panels = [("baseline", self.location)]
+        if self.location_after is not None:
+            panels.append(("refined", self.location_after))
+        fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels) + 1, 0.35 * K + 2), squeeze=False)
+        vmax = max(3.0, float(np.nanmax(np.abs(self.location.heat))))
+        for ax, (title, loc) in zip(axes[0], panels):
+            im = ax.imshow(loc.heat, cmap="RdBu_r", vmin=-vmax, vmax=vmax, aspect="auto")
+            ax.set_xticks(range(6), CHANNELS, rotation=45, ha="right")
+            ax.set_yticks(range(K), [str(k) for k in range(K)])
+            ax.set_ylabel("IMU")
+            ax.set_title(f"{title}: residual excess z")
+        fig.colorbar(im, ax=axes[0].tolist(), label="(χ² − n)/√(2n)")
+        p = out / "residual_heatmap.png"
+        fig.savefig(p, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        paths["heatmap"] = p
+        # residual excess vs regime
+        schemes = [s for s in self.location.regimes if s != "time"] + ["time"]
+        fig, axes = plt.subplots(1, len(schemes), figsize=(3.3 * len(schemes), 3.4), squeeze=False)
+        for ax, sch in zip(axes[0], schemes):
+            for i, (title, loc) in enumerate(panels):
+                rows = loc.regimes.get(sch, [])
+                x = np.arange(len(rows))
+                ax.bar(x + 0.4 * i - 0.2 * (len(panels) - 1), [r["chi2_ratio"] for r in rows], width=0.4,
+                       label=title)
+                ax.set_xticks(x, [r["bin"].replace(sch, "").strip() or r["bin"] for r in rows], rotation=60,
+                              ha="right", fontsize=7)
+            ax.axhline(1.0, color="k", lw=0.8)
+            ax.set_title(sch, fontsize=9)
+        axes[0][0].set_ylabel("χ²/n (all IMUs)")
+        axes[0][-1].legend(fontsize=7)
+        fig.tight_layout()
+        p = out / "residual_regimes.png"
+        fig.savefig(p, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        paths["regimes"] = p
+        # before / after per IMU and geometry change
+        if self.location_after is not None and self.refined_fit is not None:
+            fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6))
+            for i, (title, loc) in enumerate(panels):
+                rows = [r for r in loc.imus]
+                lab = [f"{r['imu']}{r['sensor'][0]}" for r in rows]
+                a1.bar(np.arange(len(rows)) + 0.4 * i - 0.2, [r["chi2_ratio"] for r in rows], width=0.4, label=title)
+            a1.set_xticks(range(len(lab)), lab, rotation=90, fontsize=7)
+            a1.axhline(1.0, color="k", lw=0.8)
+            a1.set_ylabel("χ²/n per IMU (a = acc, g = gyro)")
+            a1.legend(fontsize=8)
+            d = (self.refined_fit.positions - self.baseline_fit.positions).numpy() * 1e6
+            a2.bar(np.arange(K) - 0.25, d[:, 0], width=0.25, label="x")
+            a2.bar(np.arange(K), d[:, 1], width=0.25, label="y")
+            a2.bar(np.arange(K) + 0.25, d[:, 2], width=0.25, label="z")
+            a2.set_xlabel("IMU")
+            a2.set_ylabel("position change refined − baseline (µm)")
+            a2.legend(fontsize=8)
+            fig.tight_layout()
+            p = out / "before_after.png"
+            fig.savefig(p, dpi=110, bbox_inches="tight")
+            plt.close(fig)
+            paths["before_after"] = p
+        return paths
+
+    def markdown(self, figures: dict | None = None) -> str:
+        """The human report (Markdown)."""
+        figures = figures or {}
+        d = self.to_dict()
+        L = ["# Model-mismatch report", ""]
+        ri = self.recording_info
+        L.append(f"Recording: {self.source or ri.get('description') or '(in memory)'} — T = {ri.get('T')} samples, "
+                 f"K = {ri.get('K')} IMUs, reference IMU {ri.get('reference_imu')}.")
+        L.append("")
+        verdict = "**Mismatch detected.**" if d["mismatch_detected"] else "**No mismatch detected**: the nominal model explains the recording within its stated noise."
+        L += [verdict, "",
+              f"Threshold on the evidence 2·Δlog L: **{self.threshold:.4g}** ({d['details']['threshold_rule']}).", ""]
+        b = d["baseline"]
+        L += ["## Baseline (nominal model)", "",
+              f"log L = {b['loglik']:.6g}, χ²/dof = {b['chi2_per_dof']:.4g} (stated noise, dof = {b['dof']}).", "",
+              self.location.summary, ""]
+        if d["findings"]:
+            L += ["## Findings (most supported first)", "",
+                  "| # | effect | IMU | axis | evidence | df | parameters | where |", "|---|---|---|---|---|---|---|---|"]
+            for i, f in enumerate(d["findings"], 1):
+                par = ", ".join(f"{k}={_short(v)}" for k, v in f["parameters"].items())
+                wh = f["where"].get("regime") or ""
+                if f["where"].get("time_s"):
+                    wh += f" t∈[{f['where']['time_s'][0]:.3g}, {f['where']['time_s'][1]:.3g}] s"
+                L.append(f"| {i} | {f['effect']} | {_na(f['imu'])} | {_na(f['axis'])} | {f['evidence']:.4g} | {f['df']} "
+                         f"| {_cell(par)} | {_cell(wh)} |")
+            L.append("")
+            for i, f in enumerate(d["findings"], 1):
+                L.append(f"{i}. {f['explanation']}")
+            L.append("")
+        r = d["refined"]
+        if r:
+            L += ["## Refined model", "",
+                  f"Effects added: {', '.join(r['labels'])}.", "",
+                  "| | baseline | refined |", "|---|---|---|",
+                  f"| log L | {b['loglik']:.6g} | {r['loglik']:.6g} |",
+                  f"| χ²/dof | {b['chi2_per_dof']:.4g} | {r['chi2_per_dof']:.4g} ({r['chi2_noise']} noise) |"]
+            if "elpd_loo" in r:
+                L.append(f"| ELPD (PSIS-LOO over time samples) | {r['elpd_loo_baseline']:.6g} | {r['elpd_loo']:.6g} |")
+            L.append("")
+            if self.location_after is not None:
+                L += [self.location_after.summary, ""]
+            L += ["Positions relative to the reference IMU (mm, array frame):", "",
+                  "| IMU | baseline | refined | change (µm) |", "|---|---|---|---|"]
+            pb = self.baseline_fit.positions.numpy()
+            pr = self.refined_fit.positions.numpy()
+            for k in range(len(pb)):
+                L.append(f"| {k} | {_vec(pb[k] * 1e3)} | {_vec(pr[k] * 1e3)} | {_vec((pr[k] - pb[k]) * 1e6, 1)} |")
+            L.append("")
+        if self.posterior:
+            L += ["## Posterior (PmMH) before/after correction", "", "```", json.dumps(_clean(self.posterior), indent=1)[:4000],
+                  "```", ""]
+        pp = self.location.ppc
+        L += ["## Posterior predictive check (baseline)", "",
+              f"{pp['n_twins']} twin recordings from the fitted model at the stated noise, refitted.", "",
+              "| statistic | real | twins (mean) | twins (95 %) | p |", "|---|---|---|---|---|"]
+        for k, v in pp.items():
+            if isinstance(v, dict):
+                L.append(f"| {k} | {v['real']:.4g} | {v['twin_mean']:.4g} | {v['twin_q95']:.4g} | {v['p_value']:.3g} |")
+        L.append("")
+        L += ["## Located excess (baseline, worst cells)", "", "| IMU | sensor | axis | χ²/n | excess z | bias z | lag-1 z |",
+              "|---|---|---|---|---|---|---|"]
+        for c in sorted(self.location.cells, key=lambda c: -c["excess_z"])[:8]:
+            L.append(f"| {c['imu']} | {c['sensor']} | {c['axis']} | {c['chi2_ratio']:.4g} | {c['excess_z']:.3g} | "
+                     f"{c['bias_z']:.3g} | {c['lag1_z']:.3g} |")
+        L.append("")
+        for k, title in (("heatmap", "Residual excess per IMU and channel"), ("regimes", "Residual power per motion regime"),
+                         ("before_after", "Before / after")):
+            if k in figures:
+                L += [f"### {title}", "", f"![{title}]({figures[k]})", ""]
+        t = self.timings
+        L += ["## Run", "", f"Total {t.get('total_s', float('nan')):.1f} s; settings: `{json.dumps(_clean(self.settings))}`.", ""]
+        return "\n".join(L)
+
+
+def _cell(text: str) -> str:
+    """Text safe inside a Markdown table cell (regime names contain '|')."""
+    return str(text).replace("|", "\\|")
+
+
+def _na(x):
+    return "–" if x is None else str(x)
+
+
+def _short(v):
+    if isinstance(v, list):
+        return "[" + ", ".join(f"{x:.3g}" if isinstance(x, (int, float)) else str(x) for x in v) + "]"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def _vec(v, nd: int = 3):
+    return "(" + ", ".join(f"{x:.{nd}f}" for x in v) + ")"
+
+
+# ------------------------------------------------------------------------------ validation
+
+def validate_report(doc: dict) -> None:
+    """Raise :class:`~accel_bayes.errors.UserError` if ``doc`` breaks the DESIGN §7.2 contract."""
+    from .effects import EFFECTS
+
+    def need(cond, msg):
+        if not cond:
+            raise UserError(f"mismatch report: {msg}")
+
+    need(isinstance(doc, dict), "expected a JSON object")
+    for k in ("schema", "mismatch_detected", "threshold", "baseline", "findings", "refined"):
+        need(k in doc, f"missing key {k!r}")
+    need(doc["schema"] == SCHEMA, f"schema is {doc['schema']!r}, expected {SCHEMA!r}")
+    need(isinstance(doc["mismatch_detected"], bool), "mismatch_detected must be a bool")
+    need(isinstance(doc["threshold"], (int, float)) and doc["threshold"] > 0, "threshold must be a positive number")
+    b = doc["baseline"]
+    need(isinstance(b, dict) and all(k in b for k in ("loglik", "chi2_per_dof", "dof")), "baseline needs loglik, chi2_per_dof, dof")
+    need(isinstance(doc["findings"], list), "findings must be a list")
+    need(doc["mismatch_detected"] == (len(doc["findings"]) > 0), "mismatch_detected must equal (findings non-empty)")
+    for f in doc["findings"]:
+        for k in ("effect", "imu", "axis", "evidence", "parameters", "where", "explanation"):
+            need(k in f, f"finding missing key {k!r}")
+        need(f["effect"] in EFFECTS, f"unknown effect {f['effect']!r}")
+        need(f["imu"] is None or isinstance(f["imu"], int), "finding imu must be an int label or null")
+        need(f["axis"] in (None, "x", "y", "z"), "finding axis must be x, y, z or null")
+        need(isinstance(f["where"], dict) and "regime" in f["where"] and "time_s" in f["where"],
+             "finding where needs regime and time_s")
+        need(isinstance(f["explanation"], str) and f["explanation"], "finding explanation must be a sentence")
+        need(isinstance(f["parameters"], dict), "finding parameters must be an object")
+    ev = [f["evidence"] for f in doc["findings"]]
+    if doc["refined"] is None:
+        need(True, "")
+    else:
+        r = doc["refined"]
+        need(all(k in r for k in ("effects", "loglik", "chi2_per_dof")), "refined needs effects, loglik, chi2_per_dof")
+    if not doc["mismatch_detected"]:
+        need(doc["refined"] is None, "a clean report has refined = null")
+    _ = ev

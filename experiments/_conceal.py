@@ -1,0 +1,786 @@
+"""An independent forward model of an IMU array on a rigid board, for blind mismatch tests.
+
+Why a second simulator.  The mismatch detector (:mod:`accel_bayes.mismatch`) adds linearised
+effect terms to the package's signal model (:mod:`accel_bayes.models`).  Testing it only on data
+made by those same terms proves nothing: a shared mistake (a sign, a frame, a first-order
+approximation) would cancel.  This module therefore uses none of the package's numerical code
+(no ``models``, no ``motion``, no ``simulate``, no ``geometry``): it is numpy from first
+principles, and the effects are applied the physical way (a late IMU is *evaluated later on the
+continuous trajectory*, a displaced sensing axis *sits at another point of the rigid body*, a
+rotated triad *has another rotation matrix*), not as additive perturbation terms.  Only the board
+designs (:mod:`accel_bayes.arrays` presets), the :class:`~accel_bayes.recording.Recording` type
+and the file writers of :mod:`accel_bayes.io` come from the package.
+
+Physics
+-------
+World frame: z up, gravity g_w = (0, 0, −9.80665) m/s².  The board (array frame) has attitude
+R_wb(t) (array → world) and its origin sits at p₀(t) (world, m).  A board point x (array frame,
+m) is at p(t, x) = p₀(t) + R_wb(t) x, so its acceleration is p̈ = p̈₀ + R̈_wb x.  An
+accelerometer axis e_i of IMU k (rotation R_k, array → sensor, DESIGN §7.0) sensing at board
+point x reads the specific force
+
+    y_ki^a(t) = e_iᵀ R_k R_wb(t)ᵀ (p̈₀(t) + R̈_wb(t) x − g_w),
+
+and its gyroscope axis reads y_ki^g(t) = e_iᵀ R_k ω(t) with the body rate ω from
+Ω(ω) = R_wbᵀ Ṙ_wb.  Both Ṙ_wb and R̈_wb are differentiated *analytically* from the closed form
+of the attitude (below); no ω × (ω × r) formula is used anywhere.  :func:`check_point_acceleration`
+compares p̈ with an 8th-order central finite difference of the world position, with an error
+bound, and ``tests/test_conceal.py`` runs it.
+
+Trajectory (:class:`RotvecTrajectory`)
+--------------------------------------
+R_wb(t) = R₀ · Exp(v(t)) with a rotation vector v(t) = v₀ + w t + Σ_m A_m sin(2π f_m t + φ_m)
+per component (w = 0 for the random trajectories; a constant w gives rotation about a fixed axis) (a different construction from the package's product of three single-axis rotations,
+on purpose).  With V = Ω(v) and s = vᵀv, Rodrigues gives Exp(v) = I + a(s) V + b(s) V²,
+a = sin√s/√s, b = (1 − cos√s)/s.  Writing a, b as functions of s (smooth at s = 0, unlike θ = √s)
+the time derivatives follow by the product and chain rules:
+
+    Ṙ = ȧV + aV̇ + ḃV² + b(V̇V + VV̇)
+    R̈ = äV + 2ȧV̇ + aV̈ + b̈V² + 2ḃ(V̇V + VV̇) + b(V̈V + 2V̇V̇ + VV̈),
+    ȧ = a'ṡ,  ä = a''ṡ² + a's̈,  ṡ = 2vᵀv̇,  s̈ = 2(v̇ᵀv̇ + vᵀv̈),
+
+with a' = (cos√s − a)/(2s), a'' = −(a/4 + 3a'/2)/s, b' = (a/2 − b)/s, b'' = (a'/2 − 2b')/s
+(Taylor series below s = 1).  The origin moves along p₀(t) = Σ_m B_m sin(2π g_m t + ψ_m)
+per world axis.
+
+Concealed effects (:func:`make_case`)
+-------------------------------------
+One effect per case, on one random non-reference IMU (and one random axis where the effect has
+one), with the DESIGN §7.2 names and parameters:
+
+==================== ====================================================================
+``time_offset``      the IMU's whole output (acc and gyro) is evaluated at t + δ on the
+                     continuous trajectory; δ = ±(0.1–1) ms, positive = sampled late.
+``axis_displacement`` accelerometer axis i of the IMU senses at x_k + R_kᵀ d with d a
+                     random-direction sensor-frame 3-vector, |d| = 0.2–1 mm.
+``triad_orientation`` the IMU is mounted rotated: R_k,true = Exp(ρ) R_k,nominal with ρ a
+                     random-direction sensor-frame rotation vector, |ρ| = 0.05–0.5°.  Both
+                     triads of the IMU turn (DESIGN §7.0: they share the sensor frame).
+``acc_scale``        y_i ← (1 + s) y_i, |s| = 0.1–1 %.
+``acc_misalignment`` y_i ← y_i + c·f_j with j ≠ i random, |c| = 0.2–1 % (rad).
+``acc_bias``         y_i ← y_i + b, |b| = 0.02–0.2 m/s².
+``acc_nonlinearity`` y_i ← y_i + k₂ f_i², |k₂| = 2·10⁻⁵–10⁻⁴ (m/s²)⁻¹.
+``gyro_bias``        ω_i ← ω_i + b, |b| = 0.05–0.5 °/s.
+``gyro_scale``       ω_i ← (1 + s) ω_i, |s| = 0.05–0.5 %.
+``gyro_g_sensitivity`` ω_i ← ω_i + k f_i (f: the IMU's own specific force, sensor frame),
+                     |k| = 0.1–0.3 (°/s)/g.
+``noise_level``      the IMU's *accelerometer* noise is factor × the stated std,
+                     factor = 1.2–2 (gyro noise stays as stated; axis is None).
+``saturation``       the IMU's accelerometer triad clips at ±L on every axis, L = 0.90–0.97 ×
+                     its largest |output| in the recording; the recording's ``acc_clipped``
+                     flags are NOT set and ``acc_range`` keeps the design value (the sensor
+                     saturates below its stated range, unannounced: the detector must find
+                     it).  The truth's axis is the axis with the most clipped samples.
+==================== ====================================================================
+
+Signs are random.  Sensor errors act on the noise-free signal; white noise is added after them
+and clipping after the noise (an ADC clips what it sees).  Every case also moves every IMU's true
+position off the design by a random 0.1–0.3 mm, so the geometry has something to estimate.
+
+Randomness: a case is a pure function of ``(board, effect, seed, overrides)``.  The seed is
+split into independent streams (settings, trajectory, geometry, noise, effect), so the case with
+``effect="none"`` and the same seed is the *exact clean twin* of an effect case (same motion,
+same true geometry, same noise draws): the benchmark uses it to measure the clean-data position
+error of the very same data set.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "G0",
+    "DEG",
+    "G_WORLD",
+    "EFFECTS",
+    "BOARDS",
+    "EFFECT_RANGES",
+    "AXIS_EFFECTS",
+    "Board",
+    "board",
+    "irregular6",
+    "quat_to_rotmat",
+    "rotmat_to_quat",
+    "so3_exp",
+    "RotvecTrajectory",
+    "sensor_outputs",
+    "fd_second_derivative",
+    "check_point_acceleration",
+    "draw_settings",
+    "ConcealedCase",
+    "make_case",
+    "save_case",
+    "oracle_noncentrality",
+]
+
+G0 = 9.80665  # m/s², standard gravity (same constant as accel_bayes.arrays.G0)
+DEG = math.pi / 180.0
+G_WORLD = np.array([0.0, 0.0, -G0])
+AXES = ("x", "y", "z")
+
+EFFECTS = (
+    "acc_bias",
+    "acc_scale",
+    "acc_misalignment",
+    "acc_nonlinearity",
+    "axis_displacement",
+    "triad_orientation",
+    "gyro_bias",
+    "gyro_scale",
+    "gyro_g_sensitivity",
+    "time_offset",
+    "saturation",
+    "noise_level",
+)
+# Effects that live on one sensing axis (the truth names it); the others have axis None.
+AXIS_EFFECTS = ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
+                "gyro_bias", "gyro_scale", "gyro_g_sensitivity", "saturation")
+# |magnitude| ranges, SI units (the brief's ranges converted).
+EFFECT_RANGES = {
+    "time_offset": (1e-4, 1e-3),                    # s
+    "axis_displacement": (2e-4, 1e-3),              # m
+    "triad_orientation": (0.05 * DEG, 0.5 * DEG),   # rad
+    "acc_scale": (1e-3, 1e-2),                      # relative
+    "acc_misalignment": (2e-3, 1e-2),               # rad
+    "acc_bias": (0.02, 0.2),                        # m/s²
+    "acc_nonlinearity": (2e-5, 1e-4),               # (m/s²)⁻¹
+    "gyro_bias": (0.05 * DEG, 0.5 * DEG),           # rad/s
+    "gyro_scale": (5e-4, 5e-3),                     # relative
+    "gyro_g_sensitivity": (0.1 * DEG / G0, 0.3 * DEG / G0),  # rad/s per m/s²
+    "noise_level": (1.2, 2.0),                      # × stated std
+    "saturation": (0.90, 0.97),                     # limit / peak |output|
+}
+# Signed effects (the sign is drawn at random); the others are positive by nature.
+_SIGNED = ("time_offset", "acc_scale", "acc_misalignment", "acc_bias", "acc_nonlinearity", "gyro_bias",
+           "gyro_scale", "gyro_g_sensitivity")
+
+
+# ============================================================================ rotations (numpy)
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Ω(v): (..., 3) → (..., 3, 3) with Ω(v) x = v × x."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+
+
+def unskew(M: np.ndarray) -> np.ndarray:
+    """The vector of the antisymmetric part of (..., 3, 3) M."""
+    A = 0.5 * (M - np.swapaxes(M, -1, -2))
+    return np.stack([A[..., 2, 1], A[..., 0, 2], A[..., 1, 0]], -1)
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """R(q) of DESIGN §7.0 for unit quaternions (w, x, y, z): (..., 4) → (..., 3, 3)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = (q[..., i] for i in range(4))
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`quat_to_rotmat` for one 3×3 rotation (w ≥ 0), via the largest of the
+    four squared components (no cancellation for any rotation)."""
+    R = np.asarray(R, dtype=float)
+    tr = np.trace(R)
+    cand = np.array([1 + tr, 1 + 2 * R[0, 0] - tr, 1 + 2 * R[1, 1] - tr, 1 + 2 * R[2, 2] - tr])
+    i = int(np.argmax(cand))
+    r = math.sqrt(max(cand[i], 0.0))
+    if i == 0:
+        q = [r, (R[2, 1] - R[1, 2]) / r, (R[0, 2] - R[2, 0]) / r, (R[1, 0] - R[0, 1]) / r]
+    elif i == 1:
+        q = [(R[2, 1] - R[1, 2]) / r, r, (R[0, 1] + R[1, 0]) / r, (R[0, 2] + R[2, 0]) / r]
+    elif i == 2:
+        q = [(R[0, 2] - R[2, 0]) / r, (R[0, 1] + R[1, 0]) / r, r, (R[1, 2] + R[2, 1]) / r]
+    else:
+        q = [(R[1, 0] - R[0, 1]) / r, (R[0, 2] + R[2, 0]) / r, (R[1, 2] + R[2, 1]) / r, r]
+    q = np.array(q) * 0.5
+    q = q / np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+# a(s) = sin√s/√s and b(s) = (1 − cos√s)/s with their first two s-derivatives.  Taylor series
+# below s = 1 (|v| < 1 rad), where the closed forms of the derivatives lose digits to
+# cancellation (b'' by ~1e-8 relative at s = 1e-2); 14 terms leave a truncation error below
+# 1/28! ≈ 3e-30 there.
+_A_SER = [(-1) ** n / math.factorial(2 * n + 1) for n in range(14)]   # a = Σ c_n s^n
+_B_SER = [(-1) ** n / math.factorial(2 * n + 2) for n in range(14)]   # b = Σ c_n s^n
+_SERIES_BELOW = 1.0
+
+
+def _series(c, s, d):
+    out = np.zeros_like(s)
+    for n in range(len(c) - 1, d - 1, -1):
+        coef = c[n] * math.prod(range(n - d + 1, n + 1))
+        out = out * s + coef
+    return out
+
+
+def _rodrigues_coefficients(s: np.ndarray):
+    """a, a', a'', b, b', b'' at s = |v|² (derivatives with respect to s)."""
+    s = np.asarray(s, dtype=float)
+    small = s < _SERIES_BELOW
+    ss = np.where(small, 1.0, s)  # keeps the closed forms finite where the series is used
+    th = np.sqrt(ss)
+    a = np.sin(th) / th
+    b = (1 - np.cos(th)) / ss
+    a1 = (np.cos(th) - a) / (2 * ss)
+    a2 = -(a / 4 + 1.5 * a1) / ss
+    b1 = (a / 2 - b) / ss
+    b2 = (a1 / 2 - 2 * b1) / ss
+    out = []
+    for closed, ser, d in ((a, _A_SER, 0), (a1, _A_SER, 1), (a2, _A_SER, 2),
+                           (b, _B_SER, 0), (b1, _B_SER, 1), (b2, _B_SER, 2)):
+        out.append(np.where(small, _series(ser, s, d), closed))
+    return out
+
+
+def so3_exp(v: np.ndarray) -> np.ndarray:
+    """Exp(v) = I + a V + b V² (Rodrigues), rotation vector v (..., 3) in rad."""
+    v = np.asarray(v, dtype=float)
+    a, _, _, b, _, _ = _rodrigues_coefficients((v * v).sum(-1))
+    V = skew(v)
+    return np.eye(3) + a[..., None, None] * V + b[..., None, None] * (V @ V)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """Haar-random rotation matrix (normalised Gaussian quaternion)."""
+    q = rng.standard_normal(4)
+    return quat_to_rotmat(q / np.linalg.norm(q))
+
+
+def _random_unit(rng: np.random.Generator, n=None) -> np.ndarray:
+    shape = (3,) if n is None else (n, 3)
+    u = rng.standard_normal(shape)
+    return u / np.linalg.norm(u, axis=-1, keepdims=True)
+
+
+# ============================================================================ boards
+
+@dataclass(frozen=True)
+class Board:
+    """A board design (numpy): nominal positions (K, 3) m array frame, orientations (K, 4)
+    array → sensor quaternions (DESIGN §7.0), reference IMU, sensor ranges."""
+
+    name: str
+    positions: np.ndarray
+    orientations: np.ndarray
+    reference_imu: int = 0
+    acc_range: float | None = 16 * G0
+    gyro_range: float | None = 2000 * DEG
+
+    @property
+    def K(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def rotations(self) -> np.ndarray:
+        """(K, 3, 3) array → sensor rotation matrices R_k."""
+        return quat_to_rotmat(self.orientations)
+
+
+def irregular6() -> Board:
+    """A board no detector setting was tuned on: 6 IMUs spread irregularly in 3-D (up to ±23 mm,
+    z spread 25 mm) with fixed pseudo-random mounting orientations; IMU 0 is the reference."""
+    pos_mm = [(0.0, 0.0, 0.0), (23.0, 4.0, -3.0), (-7.0, 19.0, 6.0), (-15.0, -12.0, 2.0),
+              (9.0, -21.0, 11.0), (4.0, 7.0, -14.0)]
+    rng = np.random.default_rng(20240611)
+    quats = []
+    for _ in pos_mm:
+        q = rng.standard_normal(4)
+        q = q / np.linalg.norm(q)
+        quats.append(q if q[0] >= 0 else -q)
+    return Board("irregular6", np.asarray(pos_mm) * 1e-3, np.asarray(quats), 0, 16 * G0, 2000 * DEG)
+
+
+def board(name: str) -> Board:
+    """A board by name: ``mimu32``, ``mimu8`` (the package presets, converted to numpy) or
+    ``irregular6`` (:func:`irregular6`)."""
+    if name == "irregular6":
+        return irregular6()
+    if name in ("mimu32", "mimu8"):
+        from accel_bayes.arrays import preset
+
+        arr = preset(name)
+        return Board(name, arr.positions.numpy().astype(float).copy(), arr.orientations.numpy().astype(float).copy(),
+                     int(arr.reference_imu), arr.acc_range, arr.gyro_range)
+    raise ValueError(f"board: expected one of {BOARDS}, got {name!r}")
+
+
+BOARDS = ("mimu32", "mimu8", "irregular6")
+
+
+# ============================================================================ trajectory
+
+def _sines(t, amp, freq, phase):
+    """x, ẋ, ẍ of Σ_m amp_m sin(2π f_m t + φ_m) per row: amp etc. (3, M), t (T,) → 3 × (T, 3)."""
+    w = 2 * np.pi * np.asarray(freq, float)
+    arg = t[:, None, None] * w[None] + np.asarray(phase, float)[None]
+    A = np.asarray(amp, float)[None]
+    return ((A * np.sin(arg)).sum(-1), (A * w * np.cos(arg)).sum(-1), (-A * w * w * np.sin(arg)).sum(-1))
+
+
+@dataclass
+class RotvecTrajectory:
+    """Continuous rigid-body motion R_wb(t) = R₀ Exp(v(t)), p₀(t) (see the module docstring).
+
+    Parameters: R0 (3, 3); v0 (3,) rad; rot_amp, rot_freq, rot_phase (3, M) rad, Hz, rad (rotation
+    vector components); pos_amp, pos_freq, pos_phase (3, P) m, Hz, rad (world position of the
+    board origin); rot_rate (3,) rad/s, a linear term of v (default 0).  Everything is a closed
+    form of t: evaluate at any times.
+    """
+
+    R0: np.ndarray
+    v0: np.ndarray
+    rot_amp: np.ndarray
+    rot_freq: np.ndarray
+    rot_phase: np.ndarray
+    pos_amp: np.ndarray
+    pos_freq: np.ndarray
+    pos_phase: np.ndarray
+    rot_rate: np.ndarray | None = None
+
+    _FIELDS = ("R0", "v0", "rot_amp", "rot_freq", "rot_phase", "pos_amp", "pos_freq", "pos_phase", "rot_rate")
+
+    def __post_init__(self):
+        if self.rot_rate is None:
+            self.rot_rate = np.zeros(3)
+        for name in self._FIELDS:
+            setattr(self, name, np.array(getattr(self, name), dtype=float))
+
+    def _rotvec(self, t):
+        v, vd, vdd = _sines(t, self.rot_amp, self.rot_freq, self.rot_phase)
+        return v + self.v0 + t[:, None] * self.rot_rate, vd + self.rot_rate, vdd
+
+    # ------------------------------------------------------------------ kinematics
+    def kinematics(self, t) -> dict:
+        """R, Ṙ, R̈ (T, 3, 3) of R_wb and p, ṗ, p̈ (T, 3) of the origin, at times t (T,) s."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        v, vd, vdd = self._rotvec(t)
+        s = (v * v).sum(-1)
+        sd = 2 * (v * vd).sum(-1)
+        sdd = 2 * ((vd * vd).sum(-1) + (v * vdd).sum(-1))
+        a, a1, a2, b, b1, b2 = _rodrigues_coefficients(s)
+        ad, add = a1 * sd, a2 * sd * sd + a1 * sdd
+        bd, bdd = b1 * sd, b2 * sd * sd + b1 * sdd
+        V, Vd, Vdd = skew(v), skew(vd), skew(vdd)
+        c = lambda x: x[:, None, None]  # noqa: E731
+        VV = V @ V
+        VdV = Vd @ V + V @ Vd
+        E = np.eye(3) + c(a) * V + c(b) * VV
+        Ed = c(ad) * V + c(a) * Vd + c(bd) * VV + c(b) * VdV
+        Edd = (c(add) * V + 2 * c(ad) * Vd + c(a) * Vdd + c(bdd) * VV + 2 * c(bd) * VdV
+               + c(b) * (Vdd @ V + 2 * Vd @ Vd + V @ Vdd))
+        p, pd, pdd = _sines(t, self.pos_amp, self.pos_freq, self.pos_phase)
+        return {"R": self.R0 @ E, "Rd": self.R0 @ Ed, "Rdd": self.R0 @ Edd, "p": p, "pd": pd, "pdd": pdd}
+
+    def attitude(self, t) -> np.ndarray:
+        """R_wb(t), (T, 3, 3), array → world."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return self.R0 @ so3_exp(self._rotvec(t)[0])
+
+    def omega_body(self, t) -> np.ndarray:
+        """Body (array-frame) angular rate ω(t), rad/s (T, 3), from Ω(ω) = R_wbᵀ Ṙ_wb."""
+        k = self.kinematics(t)
+        return unskew(np.swapaxes(k["R"], -1, -2) @ k["Rd"])
+
+    def omega_dot_body(self, t) -> np.ndarray:
+        """Body angular acceleration ω̇(t), rad/s² (T, 3): d/dt(RᵀṘ) = ṘᵀṘ + RᵀR̈ and ṘᵀṘ is
+        symmetric, so Ω(ω̇) is the antisymmetric part of RᵀR̈.  (Used only to cross-check the
+        package's model in the tests; the generator itself never needs ω̇.)"""
+        k = self.kinematics(t)
+        return unskew(np.swapaxes(k["R"], -1, -2) @ k["Rdd"])
+
+    def point_position(self, t, x) -> np.ndarray:
+        """World position p₀ + R_wb x of board points x (..., 3) m: (T, ..., 3)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        x = np.asarray(x, dtype=float)
+        R = self.R0 @ so3_exp(self._rotvec(t)[0])
+        p = _sines(t, self.pos_amp, self.pos_freq, self.pos_phase)[0]
+        Rx = np.einsum("tij,...j->t...i", R, x)
+        return p.reshape((p.shape[0],) + (1,) * (x.ndim - 1) + (3,)) + Rx
+
+    def point_acceleration(self, t, x) -> np.ndarray:
+        """World acceleration p̈₀ + R̈_wb x of board points x (..., 3): (T, ..., 3) m/s²."""
+        k = self.kinematics(t)
+        x = np.asarray(x, dtype=float)
+        pdd = k["pdd"].reshape((k["pdd"].shape[0],) + (1,) * (x.ndim - 1) + (3,))
+        return pdd + np.einsum("tij,...j->t...i", k["Rdd"], x)
+
+    def specific_force(self, t, x) -> np.ndarray:
+        """Specific force at board points x, array frame: R_wbᵀ(p̈ − g_w), (T, ..., 3) m/s²."""
+        k = self.kinematics(t)
+        return _specific_force(k, np.asarray(x, dtype=float))
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def random(cls, rng: np.random.Generator, t: np.ndarray, *, omega_rms: float, acc_rms: float = 5.0,
+               freq_range=(0.2, 3.0), pos_freq_range=(0.5, 3.0), n_components: int = 4,
+               omega_peak_max: float | None = None) -> "RotvecTrajectory":
+        """A random smooth trajectory whose RMS |ω| over the sample times ``t`` is ``omega_rms``
+        (rad/s) and whose origin acceleration has RMS |p̈₀| ≈ ``acc_rms`` (m/s²).
+
+        Rotation-vector components: ``n_components`` sinusoids each, frequencies uniform in
+        ``freq_range`` (Hz), rate amplitudes equal in expectation across frequencies.  The
+        amplitudes are rescaled (a few fixed-point steps, since |ω| is not linear in them) to hit
+        ``omega_rms``; if ``omega_peak_max`` is given and the largest |ω| component would exceed
+        it, the scale is lowered to respect it (the RMS then comes out lower).
+        """
+        M = int(n_components)
+        t = np.asarray(t, dtype=float)
+        R0 = random_rotation(rng)
+        f = rng.uniform(*freq_range, size=(3, M))
+        phase = rng.uniform(0, 2 * np.pi, size=(3, M))
+        rate_amp = rng.standard_normal((3, M)) * math.sqrt(2.0 / M)
+        amp = rate_amp / (2 * np.pi * f)
+        v0 = rng.standard_normal(3) * 0.5
+        pf = rng.uniform(*pos_freq_range, size=(3, M))
+        pphase = rng.uniform(0, 2 * np.pi, size=(3, M))
+        pacc = rng.standard_normal((3, M)) * acc_rms * math.sqrt(2.0 / (3 * M))
+        pamp = pacc / (2 * np.pi * pf) ** 2
+        traj = cls(R0, v0, amp, f, phase, pamp, pf, pphase)
+        scale = 1.0
+        for _ in range(6):
+            traj.rot_amp = amp * scale
+            w = traj.omega_body(t)
+            rms = math.sqrt(float((w * w).sum(-1).mean()))
+            scale *= omega_rms / rms
+        traj.rot_amp = amp * scale
+        if omega_peak_max is not None:
+            for _ in range(6):
+                peak = float(np.abs(traj.omega_body(t)).max())
+                if peak <= omega_peak_max:
+                    break
+                scale *= 0.98 * omega_peak_max / peak
+                traj.rot_amp = amp * scale
+        return traj
+
+    def to_dict(self) -> dict:
+        return {"class": "RotvecTrajectory", **{k: np.asarray(getattr(self, k)).tolist() for k in self._FIELDS}}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RotvecTrajectory":
+        return cls(**{k: np.asarray(v, dtype=float) for k, v in d.items() if k != "class"})
+
+
+def _specific_force(k: dict, x: np.ndarray) -> np.ndarray:
+    T = k["pdd"].shape[0]
+    acc = k["pdd"].reshape((T,) + (1,) * (x.ndim - 1) + (3,)) + np.einsum("tij,...j->t...i", k["Rdd"], x)
+    return np.einsum("tji,t...j->t...i", k["R"], acc - G_WORLD)  # R_wbᵀ (p̈ − g)
+
+
+def sensor_outputs(traj: RotvecTrajectory, t, rotations: np.ndarray, points: np.ndarray,
+                   time_offset=None):
+    """Noise-free IMU outputs in each sensor frame.
+
+    Parameters
+    ----------
+    traj : the continuous board motion.
+    t : (T,) s — sample times.
+    rotations : (K, 3, 3) — true array → sensor rotation R_k of each IMU (both triads).
+    points : (K, 3, 3) — ``points[k, i]`` is the board point (array frame, m) where accelerometer
+        axis i of IMU k senses (all three equal for a collocated triad).
+    time_offset : (K,) s or None — IMU k is sampled at t + time_offset[k] (positive = late).
+
+    Returns
+    -------
+    acc : (T, K, 3) m/s², y_ki = e_iᵀ R_k R_wbᵀ (p̈(points[k, i]) − g_w).
+    gyro : (T, K, 3) rad/s, R_k ω.
+    """
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    R = np.asarray(rotations, dtype=float)
+    P = np.asarray(points, dtype=float)
+    K = R.shape[0]
+    dt = np.zeros(K) if time_offset is None else np.asarray(time_offset, dtype=float)
+    acc = np.empty((t.shape[0], K, 3))
+    gyro = np.empty((t.shape[0], K, 3))
+    for d in np.unique(dt):  # one kinematics evaluation per distinct sampling instant
+        ks = np.flatnonzero(dt == d)
+        kin = traj.kinematics(t + d)
+        f = _specific_force(kin, P[ks])  # (T, k', 3 axes, 3) array frame
+        # axis i of IMU k reads row i of R_k applied to the force at its own point
+        acc[:, ks, :] = np.einsum("kic,tkic->tki", R[ks], f)
+        w = unskew(np.swapaxes(kin["R"], -1, -2) @ kin["Rd"])
+        gyro[:, ks, :] = np.einsum("kij,tj->tki", R[ks], w)
+    return acc, gyro
+
+
+# ============================================================================ finite-difference check
+
+# Central difference for the second derivative, 8th order, stencil −4..4.
+_FD8 = np.array([-1 / 560, 8 / 315, -1 / 5, 8 / 5, -205 / 72, 8 / 5, -1 / 5, 8 / 315, -1 / 560])
+
+
+def fd_second_derivative(fun, t, h: float) -> np.ndarray:
+    """8th-order central finite difference of the second derivative of ``fun`` (t (T,) → (T, ...))
+    with step h (s): Σ_j c_j fun(t + j h) / h², j = −4..4; truncation error O(h⁸ f⁽¹⁰⁾)."""
+    t = np.asarray(t, dtype=float)
+    return sum(c * fun(t + j * h) for c, j in zip(_FD8, range(-4, 5))) / (h * h)
+
+
+def check_point_acceleration(traj: RotvecTrajectory, t, x, h: float = 2e-3) -> dict:
+    """Compare the analytic p̈ of board points x with the finite difference of their world
+    positions.
+
+    Returns ``max_error`` (max |analytic − FD(h)|, m/s²) and ``bound``: an upper estimate of the
+    FD error itself, |FD(h) − FD(2h)| (the truncation error of FD(2h) is 2⁸ times that of
+    FD(h), so this difference bounds FD(h)'s truncation error many times over) plus the rounding
+    error 8 ε max|p| Σ|c_j| / h².  An analytic p̈ that is right satisfies max_error ≤ bound.
+    """
+    t = np.asarray(t, dtype=float)
+    pos = lambda tt: traj.point_position(tt, x)  # noqa: E731
+    exact = traj.point_acceleration(t, x)
+    fd1 = fd_second_derivative(pos, t, h)
+    fd2 = fd_second_derivative(pos, t, 2 * h)
+    pmax = float(np.abs(pos(t)).max())
+    rounding = 8 * np.finfo(float).eps * pmax * float(np.abs(_FD8).sum()) / (h * h)
+    bound = float(np.abs(fd1 - fd2).max()) + rounding
+    return {"max_error": float(np.abs(exact - fd1).max()), "bound": bound, "rounding": rounding,
+            "truncation_estimate": float(np.abs(fd1 - fd2).max())}
+
+
+# ============================================================================ cases
+
+def draw_settings(rng: np.random.Generator, **overrides) -> dict:
+    """Recording settings of one case: T (samples), rate (Hz), sigma_a (m/s²), sigma_g (rad/s),
+    omega_rms (rad/s), acc_rms (m/s²).  Keyword overrides replace the random draws (None = draw)."""
+    s = {
+        "T": int(rng.integers(1500, 3001)),
+        "rate": float(rng.uniform(100.0, 250.0)),
+        "sigma_a": float(rng.uniform(0.01, 0.04)),
+        "sigma_g": float(rng.uniform(0.05, 0.15)) * DEG,
+        "omega_rms": float(rng.uniform(250.0, 600.0)) * DEG,
+        "acc_rms": float(rng.uniform(2.0, 8.0)),
+    }
+    for k, v in overrides.items():
+        if k not in s:
+            raise ValueError(f"settings: unknown key {k!r}; expected one of {sorted(s)}")
+        if v is not None:
+            s[k] = type(s[k])(v)
+    return s
+
+
+@dataclass
+class ConcealedCase:
+    """One blind test case: the recording the detector sees, and the truth it must not."""
+
+    recording: object  # accel_bayes.recording.Recording
+    truth: dict = field(default_factory=dict)
+    clean_acc: np.ndarray | None = None   # noise-free outputs with the effect (for tests)
+    clean_gyro: np.ndarray | None = None
+
+
+def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int = 0, *,
+              T: int | None = None, rate: float | None = None, sigma_a: float | None = None,
+              sigma_g: float | None = None, omega_rms: float | None = None, acc_rms: float | None = None,
+              imu: int | None = None, axis: int | None = None, magnitude: float | None = None,
+              noise: bool = True, position_error: tuple = (1e-4, 3e-4),
+              trajectory: RotvecTrajectory | None = None) -> ConcealedCase:
+    """Generate one recording hiding ``effect`` (one of :data:`EFFECTS`, or ``"none"``).
+
+    Settings not given are drawn from the seed (:func:`draw_settings`: T 1500–3000, rate
+    100–250 Hz, σ_a 0.01–0.04 m/s², σ_g 0.05–0.15 °/s, RMS |ω| 250–600 °/s).  ``imu``
+    (a non-reference label), ``axis`` (0, 1, 2) and ``magnitude`` (signed, SI units; for
+    ``axis_displacement``/``triad_orientation`` the length of the vector) override the random
+    effect draw.  ``noise=False`` gives noise-free outputs (noise_level then only changes the
+    truth).  ``trajectory`` replaces the random motion.  Every IMU's true position is its design
+    position plus a random direction × U(position_error) m.
+
+    Returns a :class:`ConcealedCase`: ``recording`` holds the design (nominal) poses, the stated
+    noise and the outputs, nothing of the truth; ``truth`` has ``effect``, ``imu``, ``axis``
+    ("x"/"y"/"z" or None), ``magnitude``, ``parameters`` (DESIGN §7.2 names), the true positions
+    (absolute and relative to the reference IMU) and orientations, the settings and the
+    trajectory.
+    """
+    from accel_bayes.recording import Recording
+
+    if effect != "none" and effect not in EFFECTS:
+        raise ValueError(f"effect: expected 'none' or one of {EFFECTS}, got {effect!r}")
+    b = board_name if isinstance(board_name, Board) else board(board_name)
+    K, ref = b.K, b.reference_imu
+    ss = np.random.SeedSequence(int(seed)).spawn(5)
+    rng_set, rng_traj, rng_geo, rng_noise, rng_eff = (np.random.default_rng(s) for s in ss)
+
+    st = draw_settings(rng_set, T=T, rate=rate, sigma_a=sigma_a, sigma_g=sigma_g, omega_rms=omega_rms,
+                       acc_rms=acc_rms)
+    t = np.arange(st["T"]) / st["rate"]
+    if trajectory is None:
+        peak = 0.6 * b.gyro_range if b.gyro_range else None
+        trajectory = RotvecTrajectory.random(rng_traj, t, omega_rms=st["omega_rms"], acc_rms=st["acc_rms"],
+                                             omega_peak_max=peak)
+
+    # True geometry: design + a random 0.1–0.3 mm offset per IMU (the reference too: only
+    # positions relative to it are identifiable, and the truth records both).
+    offs = _random_unit(rng_geo, K) * rng_geo.uniform(*position_error, size=(K, 1))
+    true_pos = b.positions + offs
+    true_R = b.rotations.copy()
+    points = np.repeat(true_pos[:, None, :], 3, axis=1)
+    time_offset = np.zeros(K)
+
+    # Base noise drawn before anything effect-specific, so that the effect="none" case with the
+    # same seed is the exact clean twin.
+    e_acc = rng_noise.standard_normal((st["T"], K, 3))
+    e_gyro = rng_noise.standard_normal((st["T"], K, 3))
+
+    # Effect draw: IMU, axis, sign, magnitude (always drawn in the same order, so overrides of
+    # one do not change the others).
+    k_draw = int(rng_eff.choice([j for j in range(K) if j != ref]))
+    i_draw = int(rng_eff.integers(0, 3))
+    sign = float(rng_eff.choice([-1.0, 1.0]))
+    u_mag = float(rng_eff.uniform())
+    direction = _random_unit(rng_eff)
+    j_other = int(rng_eff.choice([j for j in range(3) if j != (i_draw if axis is None else int(axis))]))
+    k = k_draw if imu is None else int(imu)
+    i = i_draw if axis is None else int(axis)
+    if effect != "none" and (k == ref or not 0 <= k < K):
+        raise ValueError(f"imu: expected a non-reference IMU label in 0..{K - 1} (reference {ref}), got {k}")
+    if not 0 <= i < 3:
+        raise ValueError(f"axis: expected 0, 1 or 2, got {i}")
+    mag = None
+    if effect != "none":
+        lo, hi = EFFECT_RANGES[effect]
+        mag = lo + (hi - lo) * u_mag
+        if effect in _SIGNED:
+            mag *= sign
+        if magnitude is not None:
+            mag = float(magnitude)
+
+    params: dict = {}
+    truth_axis = AXES[i] if effect in AXIS_EFFECTS else None
+    truth_imu = k if effect != "none" else None
+
+    # --- effects on the kinematics: where/when/how the sensor looks at the rigid body
+    if effect == "time_offset":
+        time_offset[k] = mag
+        params = {"offset": mag}
+    elif effect == "axis_displacement":
+        d = direction * mag  # sensor frame
+        points[k, i] = true_pos[k] + true_R[k].T @ d
+        params = {"displacement": d}
+    elif effect == "triad_orientation":
+        rho = direction * mag  # sensor frame
+        true_R[k] = so3_exp(rho) @ true_R[k]
+        params = {"rotation_vector": rho}
+
+    acc, gyro = sensor_outputs(trajectory, t, true_R, points, time_offset)
+    f_true = acc.copy()  # the specific force each accelerometer axis sees (before sensor errors)
+
+    # --- sensor errors on the noise-free signal
+    if effect == "acc_bias":
+        acc[:, k, i] += mag
+        params = {"bias": _vec(i, mag)}
+    elif effect == "acc_scale":
+        acc[:, k, i] *= 1.0 + mag
+        params = {"scale": _vec(i, mag)}
+    elif effect == "acc_misalignment":
+        acc[:, k, i] += mag * f_true[:, k, j_other]
+        params = {"coupling": mag, "from_axis": AXES[j_other]}
+    elif effect == "acc_nonlinearity":
+        acc[:, k, i] += mag * f_true[:, k, i] ** 2
+        params = {"k2": _vec(i, mag)}
+    elif effect == "gyro_bias":
+        gyro[:, k, i] += mag
+        params = {"bias": _vec(i, mag)}
+    elif effect == "gyro_scale":
+        gyro[:, k, i] *= 1.0 + mag
+        params = {"scale": _vec(i, mag)}
+    elif effect == "gyro_g_sensitivity":
+        gyro[:, k, i] += mag * f_true[:, k, i]
+        params = {"sensitivity": _vec(i, mag)}
+    clean_acc, clean_gyro = acc.copy(), gyro.copy()
+
+    # --- noise, then clipping
+    acc_factor = np.ones(K)
+    if effect == "noise_level":
+        acc_factor[k] = mag
+        params = {"factor": mag}
+    if noise:
+        acc = acc + e_acc * (st["sigma_a"] * acc_factor)[None, :, None]
+        gyro = gyro + e_gyro * st["sigma_g"]
+    if effect == "saturation":
+        limit = mag * float(np.abs(acc[:, k, :]).max())
+        clipped = np.abs(acc[:, k, :]) >= limit
+        acc[:, k, :] = np.clip(acc[:, k, :], -limit, limit)
+        i = int(np.argmax(clipped.sum(0)))
+        truth_axis = AXES[i]
+        params = {"limit": limit, "limit_fraction_of_peak": mag, "clipped_fraction": float(clipped.any(-1).mean()),
+                  "clipped_fraction_per_axis": clipped.mean(0)}
+
+    rec = Recording(
+        time=t,
+        acc=acc,
+        gyro=gyro,
+        nominal_position=b.positions.copy(),
+        nominal_orientation=b.orientations.copy(),
+        acc_noise_std=np.full(K, st["sigma_a"]),
+        gyro_noise_std=np.full(K, st["sigma_g"]),
+        reference_imu=ref,
+        acc_range=b.acc_range,
+        gyro_range=b.gyro_range,
+        description=f"blind mismatch test recording ({b.name} board)",
+        source="experiments/_conceal.py: independent first-principles simulator; ground truth in the sidecar",
+    )
+    true_q = np.stack([rotmat_to_quat(Rk) for Rk in true_R])
+    w = trajectory.omega_body(t)
+    truth = {
+        "generator": "experiments/_conceal.py",
+        "board": b.name,
+        "seed": int(seed),
+        "effect": effect,
+        "imu": truth_imu,
+        "axis": truth_axis,
+        "magnitude": mag,
+        "parameters": params,
+        "true_position": true_pos,
+        "true_relative_position": true_pos - true_pos[ref],
+        "true_orientation": true_q,
+        "nominal_position": b.positions,
+        "settings": {**st, "omega_rms_achieved": float(np.sqrt((w * w).sum(-1).mean())),
+                     "omega_peak_component": float(np.abs(w).max()), "noise": bool(noise)},
+        "trajectory": trajectory.to_dict(),
+    }
+    return ConcealedCase(rec, truth, clean_acc, clean_gyro)
+
+
+def _vec(i: int, value: float) -> list:
+    v = [0.0, 0.0, 0.0]
+    v[i] = float(value)
+    return v
+
+
+def save_case(case: ConcealedCase, path, overwrite: bool = False) -> Path:
+    """Write the recording (format v1) and its ground-truth sidecar ``<stem>.truth.json``."""
+    from accel_bayes.io import write_recording, write_truth
+
+    path = write_recording(case.recording, path, overwrite=overwrite)
+    write_truth(path, case.truth, overwrite=True)
+    return path
+
+
+def oracle_noncentrality(case: ConcealedCase, twin: ConcealedCase) -> float:
+    """How visible the concealed effect is at all: λ = Σ (Δy/σ)² over every output, Δy = case −
+    clean twin (same seed, effect "none"; the noise draws cancel exactly), σ the stated std.
+
+    It is the non-centrality of the likelihood-ratio statistic of a detector that knew the
+    effect's exact shape and had nothing else to fit; a real detector also fits the geometry and
+    motion, which can absorb part of Δy, so its statistic is at most about λ + (number of effect
+    parameters).  An effect with λ below the detector's threshold cannot be found reliably by any
+    method.  For ``noise_level`` (no mean change) λ is the expected variance-ratio statistic
+    n (r² − 1 − 2 ln r) over the n = 3T accelerometer samples of the IMU, r = factor.
+    """
+    tr = case.truth
+    rec, rec0 = case.recording, twin.recording
+    if tr["effect"] == "noise_level":
+        r = float(tr["magnitude"])
+        return float(3 * rec.T * (r * r - 1 - 2 * math.log(r)))
+    sa = np.asarray(rec.acc_noise_std)[None, :, None]
+    sg = np.asarray(rec.gyro_noise_std)[None, :, None]
+    return float((((rec.acc - rec0.acc) / sa) ** 2).sum() + (((rec.gyro - rec0.gyro) / sg) ** 2).sum())

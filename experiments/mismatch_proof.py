@@ -1,0 +1,580 @@
+#!/usr/bin/env python3
+"""Blind proof of the mismatch detector on data from an independent simulator.
+
+Each data set comes from ``experiments/_conceal.py`` — a first-principles numpy forward model of
+an IMU array on a rigid board in continuous motion, written without the package's signal model
+— and hides at most one effect of the DESIGN §7.2 vocabulary on one random non-reference IMU
+(and axis).  :func:`accel_bayes.mismatch.detect` sees only the :class:`Recording` (nominal
+poses, stated noise); the truth stays with this script.  Printed:
+
+* the confusion matrix, true effect × top-ranked finding ("none" = no finding reported);
+* localisation: right IMU, and right IMU and axis where the effect has an axis;
+* the false-alarm rate: ``mismatch_detected`` on clean data sets;
+* fit figures: χ²/dof of the baseline and of the refined model, and the position error
+  (RMS over the non-reference IMUs of |r̂_k − r_k|, positions relative to the reference IMU,
+  µm) of the baseline fit and of the refined fit, relative to the clean-data error.  The
+  clean-data error of a case is measured on its exact *clean twin*: the same seed with the
+  effect switched off (same motion, true geometry and noise draws), fitted the same way.
+
+MUST-SHOW targets, each printed with PASS/FAIL:
+
+1. right effect ranked first in ≥ 90 % of the effect cases;
+2. right IMU (and axis, where the effect has one) in ≥ 90 % of the effect cases;
+3. ``mismatch_detected`` false on ≥ 95 % of the clean recordings (the dedicated clean sets and
+   the clean twins together);
+4. after refinement χ²/dof within 10 % of 1 in ≥ 90 % of the effect cases;
+5. after refinement the position error within 1.5 × the clean-data error in ≥ 90 % of the
+   effect cases.
+
+Scoring rules.  The top finding is ``findings[0]`` (none if the list is empty).  IMU: the
+finding's ``imu`` must equal the truth's.  Axis: scored for the effects applied to one sensing
+axis (acc bias/scale/misalignment — the receiving axis —/nonlinearity, axis displacement, gyro
+bias/scale/g-sensitivity); not for ``saturation`` (a whole triad has one range; the truth still
+records the axis that clipped most), ``triad_orientation``, ``time_offset``, ``noise_level``.
+A finding with ``axis`` null but a 3-vector parameter (the §7.2 g-sensitivity, displacement,
+bias… vectors) points at the axis of its largest component.
+
+Run::
+
+    python experiments/mismatch_proof.py --quick             # mimu8, 2/effect, 4 clean, T=1500, no twins
+    python experiments/mismatch_proof.py                     # 10/effect, 30 clean, three boards
+    python experiments/mismatch_proof.py --per-effect 20 --clean 60 --out experiments/out/mismatch_proof
+    python experiments/mismatch_proof.py --generate-only --save-cases /tmp/cases   # data only, no detector
+
+Cases run as dask.distributed tasks (``_dask.py``: a LocalCluster of ``--workers`` single-thread
+processes, or ``--scheduler ADDRESS``; ``--workers 0`` runs them here).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from _conceal import AXIS_EFFECTS, BOARDS, DEG, EFFECTS, make_case, oracle_noncentrality, save_case  # noqa: E402
+from _dask import add_dask_arguments, dask_client, map_tasks  # noqa: E402
+
+AXIS_SCORED = tuple(e for e in AXIS_EFFECTS if e != "saturation")
+TARGETS = {"effect": 0.90, "localisation": 0.90, "clean_quiet": 0.95, "chi2_after": 0.90, "position_after": 0.90}
+CHI2_TOL = 0.10
+POS_FACTOR = 1.5
+# A case is "above the detection limit" when its oracle non-centrality λ (see
+# _conceal.oracle_noncentrality) is at least this many times the report's threshold: a detector
+# that knew the effect's shape would then pass the threshold with probability ≳ 95 %.
+DETECTABLE_FACTOR = 2.0
+
+
+# ---------------------------------------------------------------------------- detector access
+
+def _detector():
+    """The detector function, or a clear SystemExit when it is not there yet."""
+    try:
+        from accel_bayes.mismatch import detect
+    except ImportError as exc:
+        raise SystemExit(
+            "mismatch_proof: accel_bayes.mismatch.detect is not available "
+            f"({exc}); the blind proof needs the detector. Data generation alone works: "
+            "--generate-only [--save-cases DIR]") from None
+    return detect
+
+
+def _as_dict(report) -> dict:
+    return report.to_dict() if hasattr(report, "to_dict") else dict(report)
+
+
+_POS_KEYS_BEFORE = (("details", "positions_baseline"), ("positions", "before"), ("fitted_positions", "before"), ("positions_before",),
+                    ("baseline", "positions"), ("baseline", "position"))
+_POS_KEYS_AFTER = (("details", "positions_refined"), ("positions", "after"), ("fitted_positions", "after"), ("positions_after",),
+                   ("refined", "positions"), ("refined", "position"))
+
+
+def _lookup(d: dict, path):
+    cur = d
+    for k in path:
+        if not isinstance(cur, dict) or k not in cur or cur[k] is None:
+            return None
+        cur = cur[k]
+    return cur
+
+
+def _positions(rep: dict, which: str, K: int, ref: int):
+    """(K, 3) fitted positions relative to the reference IMU from the report, or None."""
+    for path in (_POS_KEYS_BEFORE if which == "before" else _POS_KEYS_AFTER):
+        v = _lookup(rep, path)
+        if v is None:
+            continue
+        if isinstance(v, dict):  # e.g. {"imus": [{"imu": k, "mean": [...]}, ...]} (§7.3 style)
+            rows = v.get("imus")
+            if rows is None:
+                continue
+            arr = np.full((K, 3), np.nan)
+            for r in rows:
+                arr[int(r["imu"])] = r.get("mean", r.get("position"))
+            v = arr
+        arr = np.asarray(v, dtype=float)
+        if arr.shape == (K, 3):
+            return arr - arr[ref]
+    return None
+
+
+def _finding_axis(finding: dict):
+    """The axis a finding points at: its ``axis``, or — for an effect reported per IMU with a
+    3-vector parameter (e.g. a g-sensitivity vector) — the axis of the vector's largest
+    component.  None if neither exists."""
+    if finding.get("axis") is not None:
+        return finding["axis"]
+    for v in (finding.get("parameters") or {}).values():
+        if isinstance(v, (list, tuple)) and len(v) == 3 and all(isinstance(x, (int, float)) for x in v):
+            return "xyz"[int(np.argmax(np.abs(np.asarray(v, dtype=float))))]
+    return None
+
+
+_PARAM_KEY = {"acc_bias": "bias", "acc_scale": "scale", "acc_misalignment": "coupling", "acc_nonlinearity": "k2",
+              "gyro_bias": "bias", "gyro_scale": "scale", "gyro_g_sensitivity": "sensitivity",
+              "time_offset": "offset", "noise_level": "factor", "saturation": "limit",
+              "axis_displacement": "displacement", "triad_orientation": "rotation_vector"}
+
+
+def _param_ratio(finding: dict, truth: dict):
+    """Fitted / true size of the concealed effect when the top finding names it: the component
+    on the true axis for per-axis parameters, the projection on the true vector for the
+    displacement and rotation vectors.  A ratio near −1 means a sign-convention disagreement."""
+    e = truth["effect"]
+    if finding.get("effect") != e or e not in _PARAM_KEY:
+        return None
+    est = (finding.get("parameters") or {}).get(_PARAM_KEY[e])
+    tru = (truth.get("parameters") or {}).get(_PARAM_KEY[e])
+    if est is None or tru is None:
+        return None
+    try:
+        est, tru = np.asarray(est, dtype=float), np.asarray(tru, dtype=float)
+        if e in ("axis_displacement", "triad_orientation"):
+            return float(np.dot(est, tru) / np.dot(tru, tru)) if est.shape == (3,) else None
+        if est.shape == (3,):
+            est = est["xyz".index(truth["axis"])]
+        if tru.shape == (3,):
+            tru = tru["xyz".index(truth["axis"])]
+        return float(est) / float(tru) if float(tru) != 0 else None
+    except (TypeError, ValueError):
+        return None
+
+
+def _pos_error_um(est, true_rel, ref) -> float:
+    if est is None:
+        return float("nan")
+    d = np.delete(est - true_rel, ref, axis=0)
+    return float(np.sqrt((d * d).sum(-1).mean()) * 1e6)
+
+
+# ---------------------------------------------------------------------------- one case (worker)
+
+def run_case(case_id: str, board: str, effect: str, seed: int, settings: dict, twin: bool,
+             detect_kwargs: dict, save_dir: str | None = None, generate_only: bool = False) -> dict:
+    """Generate one blind case, run the detector on the recording alone, score it."""
+    row = {"case": case_id, "board": board, "effect_true": effect, "seed": seed}
+    try:
+        case = make_case(board, effect, seed, **settings)
+        tr, rec = case.truth, case.recording
+        st = tr["settings"]
+        row.update(imu_true=tr["imu"], axis_true=tr["axis"], magnitude=tr["magnitude"], T=st["T"],
+                   rate=round(st["rate"], 3), sigma_a=st["sigma_a"], sigma_g_dps=st["sigma_g"] / DEG,
+                   omega_rms_dps=st["omega_rms_achieved"] / DEG, K=rec.K)
+        clean = make_case(board, "none", seed, **settings) if effect != "none" else case
+        row["lambda_oracle"] = oracle_noncentrality(case, clean) if effect != "none" else 0.0
+        if save_dir:
+            save_case(case, Path(save_dir) / f"{case_id}.nc", overwrite=True)
+        if generate_only:
+            return row
+        detect = _detector()
+        t0 = time.perf_counter()
+        rep = _as_dict(detect(rec, **detect_kwargs))
+        row["seconds"] = time.perf_counter() - t0
+        ref = int(rec.reference_imu)
+        true_rel = np.asarray(tr["true_relative_position"])
+        f = rep.get("findings") or []
+        top = f[0] if f else {}
+        row.update(
+            mismatch_detected=bool(rep.get("mismatch_detected")),
+            top_effect=top.get("effect", "none") if f else "none",
+            top_imu=top.get("imu"), top_axis=top.get("axis"), top_evidence=top.get("evidence"),
+            top_axis_scored=_finding_axis(top) if f else None,
+            top_parameters=json.dumps(top.get("parameters")) if f else None,
+            param_ratio=_param_ratio(top, tr) if f else None,
+            second_effect=f[1].get("effect") if len(f) > 1 else None,
+            n_findings=len(f), threshold=rep.get("threshold"),
+            chi2_before=_lookup(rep, ("baseline", "chi2_per_dof")),
+            chi2_after=_lookup(rep, ("refined", "chi2_per_dof")),
+            findings=json.dumps([{k: x.get(k) for k in ("effect", "imu", "axis", "evidence")} for x in f]),
+        )
+        if row["chi2_after"] is None:  # nothing refined: the final model is the baseline
+            row["chi2_after"] = row["chi2_before"]
+        pb = _positions(rep, "before", rec.K, ref)
+        pa = _positions(rep, "after", rec.K, ref)
+        if pa is None and rep.get("refined") is None:
+            pa = pb
+        row["pos_err_before_um"] = _pos_error_um(pb, true_rel, ref)
+        row["pos_err_after_um"] = _pos_error_um(pa, true_rel, ref)
+        if twin and effect != "none":
+            t1 = time.perf_counter()
+            rep0 = _as_dict(detect(clean.recording, **detect_kwargs))
+            row["seconds_twin"] = time.perf_counter() - t1
+            row["twin_mismatch_detected"] = bool(rep0.get("mismatch_detected"))
+            # The clean-data error is the error of the fit the detector ends with on clean data
+            # (the baseline unless it — wrongly — refined something).
+            p0 = _positions(rep0, "after", rec.K, ref)
+            if p0 is None:
+                p0 = _positions(rep0, "before", rec.K, ref)
+            row["pos_err_clean_um"] = _pos_error_um(p0, true_rel, ref)
+        elif effect == "none":
+            row["pos_err_clean_um"] = row["pos_err_after_um"]
+    except SystemExit:
+        raise
+    except Exception as exc:  # a crash is a failed case, not a crashed benchmark
+        row["error"] = f"{type(exc).__name__}: {exc}"
+        row["traceback"] = traceback.format_exc(limit=6)
+    return row
+
+
+# ---------------------------------------------------------------------------- scoring
+
+def _frac(xs):
+    xs = [bool(x) for x in xs]
+    return (sum(xs) / len(xs)) if xs else float("nan"), sum(xs), len(xs)
+
+
+def _fmt_frac(f):
+    v, k, n = f
+    return f"{k}/{n} = {100 * v:.1f} %" if n else "n/a"
+
+
+def _verdict(value, target):
+    if value != value:  # nan
+        return "n/a"
+    return "PASS" if value >= target else "FAIL"
+
+
+def score(rows: list[dict]) -> dict:
+    eff_all = [r for r in rows if r["effect_true"] != "none"]
+    clean_rows = [r for r in rows if r["effect_true"] == "none"]
+    ok = lambda r: "error" not in r  # noqa: E731
+
+    def detectable(r):
+        thr = r.get("threshold")
+        thr = 20.0 if thr is None or not math.isfinite(float(thr)) else float(thr)
+        return float(r.get("lambda_oracle", math.inf)) >= DETECTABLE_FACTOR * thr
+
+    for r in eff_all:
+        r["above_detection_limit"] = detectable(r)
+    sub = {"all": eff_all, "detectable": [r for r in eff_all if r["above_detection_limit"]]}
+    res = {}
+    for name, eff_rows in sub.items():
+        res[name] = _score_effect_rows(eff_rows, ok)
+    # Clean recordings: the dedicated clean sets and the clean twins of the effect cases (each an
+    # independent clean recording of its own seed).
+    quiet_dedicated = [ok(r) and not r.get("mismatch_detected") for r in clean_rows]
+    quiet_twins = [ok(r) and not r["twin_mismatch_detected"] for r in eff_all if "twin_mismatch_detected" in r]
+    quiet = quiet_dedicated + quiet_twins
+
+    # Confusion matrix.
+    truths = [e for e in EFFECTS if any(r["effect_true"] == e for r in rows)] + (["none"] if clean_rows else [])
+    pred_of = lambda r: r.get("top_effect") if ok(r) else "error"  # noqa: E731
+    preds = [p for p in list(EFFECTS) + ["none"] + sorted({pred_of(r) for r in rows} - set(EFFECTS) - {"none"})
+             if any(pred_of(r) == p for r in rows)]
+    conf = {t: {p: 0 for p in preds} for t in truths}
+    for r in rows:
+        conf[r["effect_true"]][pred_of(r)] += 1
+
+    per_effect = {}
+    for e in truths:
+        rs = [r for r in rows if r["effect_true"] == e]
+        fin = lambda k: [float(r[k]) for r in rs if ok(r) and r.get(k) is not None and math.isfinite(float(r[k]))]  # noqa: E731,E501
+        med = lambda k: float(np.median(fin(k))) if fin(k) else None  # noqa: E731
+        per_effect[e] = {
+            "n": len(rs),
+            "below_detection_limit": sum(not r.get("above_detection_limit", True) for r in rs) if e != "none" else 0,
+            "lambda_oracle_median": med("lambda_oracle") if e != "none" else None,
+            "right_effect": _frac([ok(r) and r.get("top_effect") == e for r in rs])[0] if e != "none" else None,
+            "localised": _frac([_right_loc(r, ok) for r in rs])[0] if e != "none" else None,
+            "detected": _frac([ok(r) and r.get("mismatch_detected") for r in rs])[0],
+            "chi2_before_median": med("chi2_before"),
+            "chi2_after_median": med("chi2_after"),
+            "pos_err_before_um_median": med("pos_err_before_um"),
+            "pos_err_after_um_median": med("pos_err_after_um"),
+            "pos_err_clean_um_median": med("pos_err_clean_um"),
+            "param_ratio_median": med("param_ratio") if e != "none" else None,
+            "errors": sum(not ok(r) for r in rs),
+        }
+    return {
+        "n_effect_cases": len(eff_all), "n_clean_cases": len(clean_rows),
+        **res["all"], "detectable": res["detectable"],
+        "clean_quiet": _frac(quiet), "clean_quiet_dedicated": _frac(quiet_dedicated),
+        "clean_quiet_twins": _frac(quiet_twins),
+        "false_alarm_rate": 1 - _frac(quiet)[0] if quiet else float("nan"),
+        "confusion": conf, "per_effect": per_effect,
+        "errors": sum(not ok(r) for r in rows),
+    }
+
+
+def _finite(x) -> bool:
+    try:
+        return x is not None and math.isfinite(float(x))
+    except (TypeError, ValueError):
+        return False
+
+
+def _right_loc(r, ok):
+    if r["effect_true"] == "none":
+        return False
+    if not ok(r) or r.get("top_imu") is None or int(r["top_imu"]) != int(r["imu_true"]):
+        return False
+    if r["effect_true"] in AXIS_SCORED:
+        return r.get("top_axis_scored") == r["axis_true"]
+    return True
+
+
+def _score_effect_rows(eff_rows, ok) -> dict:
+    right_effect = [ok(r) and r.get("top_effect") == r["effect_true"] for r in eff_rows]
+    right_imu = [ok(r) and r.get("top_imu") is not None and int(r["top_imu"]) == int(r["imu_true"]) for r in eff_rows]
+    loc = [_right_loc(r, ok) for r in eff_rows]
+    right_axis = [_right_loc(r, ok) for r in eff_rows if r["effect_true"] in AXIS_SCORED]
+    chi2_ok = [ok(r) and r.get("chi2_after") is not None and abs(float(r["chi2_after"]) - 1) <= CHI2_TOL
+               for r in eff_rows]
+
+    def pos_ok(r):
+        if not ok(r):
+            return False
+        a, c = r.get("pos_err_after_um"), r.get("pos_err_clean_um")
+        if c is None or a is None or not (math.isfinite(a) and math.isfinite(c)):
+            return False
+        return a <= POS_FACTOR * c
+
+    # Position: scored where a clean-data reference exists (twin or clean sets); a crashed
+    # case counts as a failure.
+    pos = [pos_ok(r) for r in eff_rows if not ok(r) or _finite(r.get("pos_err_clean_um"))]
+
+    return {"n": len(eff_rows), "right_effect": _frac(right_effect), "right_imu": _frac(right_imu),
+            "localised": _frac(loc), "right_axis_where_scored": _frac(right_axis),
+            "chi2_after_ok": _frac(chi2_ok), "position_after_ok": _frac(pos)}
+
+
+def print_report(sc: dict, out=sys.stdout) -> dict:
+    p = lambda *a: print(*a, file=out)  # noqa: E731
+    conf = sc["confusion"]
+    if conf:
+        preds = list(next(iter(conf.values())).keys())
+        short = {c: c.replace("acc_", "a.").replace("gyro_", "g.").replace("_", "")[:9] for c in preds}
+        p("\nConfusion matrix (rows: concealed effect; columns: top-ranked finding, 'none' = no finding)")
+        p(f"{'':>20}" + "".join(f"{short[c]:>10}" for c in preds))
+        for t, row in conf.items():
+            p(f"{t:>20}" + "".join(f"{row[c] or '.':>10}" for c in preds))
+    p("\nPer effect: n (below detection limit), median oracle λ, detected, right effect, localised, "
+      "median χ²/dof before → after, median position error µm before → after (clean reference), "
+      "median fitted/true effect size")
+    f = lambda x, fmt: ("–" if x is None else format(x, fmt))  # noqa: E731
+    for e, d in sc["per_effect"].items():
+        p(f"  {e:>18} {d['n']:>3} ({d['below_detection_limit']}) λ {f(d['lambda_oracle_median'], '.0f'):>7}  "
+          f"det {f(d['detected'], '.0%'):>4}  eff {f(d['right_effect'], '.0%'):>4}  loc {f(d['localised'], '.0%'):>4}  "
+          f"χ² {f(d['chi2_before_median'], '.3f')} → {f(d['chi2_after_median'], '.3f')}  "
+          f"pos {f(d['pos_err_before_um_median'], '.1f')} → {f(d['pos_err_after_um_median'], '.1f')} "
+          f"({f(d['pos_err_clean_um_median'], '.1f')})  fit/true {f(d['param_ratio_median'], '.2f')}"
+          + (f"  ERRORS {d['errors']}" if d["errors"] else ""))
+    dsc = sc["detectable"]
+    p(f"\nLocalisation detail: right IMU {_fmt_frac(sc['right_imu'])}; right IMU and axis (axis effects only) "
+      f"{_fmt_frac(sc['right_axis_where_scored'])}")
+    if sc["clean_quiet"][2]:
+        p(f"False-alarm rate on clean recordings: {sc['false_alarm_rate']:.1%} (mismatch_detected on dedicated clean "
+          f"sets: {sc['clean_quiet_dedicated'][2] - sc['clean_quiet_dedicated'][1]}/{sc['clean_quiet_dedicated'][2]}, "
+          f"on clean twins: {sc['clean_quiet_twins'][2] - sc['clean_quiet_twins'][1]}/{sc['clean_quiet_twins'][2]})")
+    else:
+        p("No clean recordings run.")
+    verdicts = {
+        "right effect ranked first": ("right_effect", TARGETS["effect"]),
+        "right IMU (and axis where it has one)": ("localised", TARGETS["localisation"]),
+        "clean sets: mismatch_detected false": ("clean_quiet", TARGETS["clean_quiet"]),
+        f"after refit |χ²/dof − 1| ≤ {CHI2_TOL:.0%}": ("chi2_after_ok", TARGETS["chi2_after"]),
+        f"after refit position error ≤ {POS_FACTOR}× clean": ("position_after_ok", TARGETS["position_after"]),
+    }
+    p(f"\nMUST-SHOW (all cases; in brackets: the {dsc['n']} effect cases above the detection limit, "
+      f"oracle λ ≥ {DETECTABLE_FACTOR:g} × threshold)")
+    out_v = {}
+    for name, (key, target) in verdicts.items():
+        fr = sc[key]
+        v = _verdict(fr[0], target)
+        out_v[name] = v
+        extra = "" if key == "clean_quiet" else f"   [{_fmt_frac(dsc[key])}: {_verdict(dsc[key][0], target)}]"
+        p(f"  [{v}] {name}: {_fmt_frac(fr)} (target ≥ {target:.0%}){extra}")
+    if sc["errors"]:
+        p(f"\n{sc['errors']} case(s) raised an error (counted as failures; see the CSV).")
+    return out_v
+
+
+# ---------------------------------------------------------------------------- main
+
+def build_cases(args) -> list[dict]:
+    effects = args.effects or list(EFFECTS)
+    bad = [e for e in effects if e not in EFFECTS]
+    if bad:
+        raise SystemExit(f"--effects: unknown {bad}; expected some of {list(EFFECTS)}")
+    boards = args.boards
+    bad = [b for b in boards if b not in BOARDS]
+    if bad:
+        raise SystemExit(f"--boards: unknown {bad}; expected some of {list(BOARDS)}")
+    settings = {k: v for k, v in (("T", args.T), ("rate", args.rate)) if v is not None}
+    # A case's seed depends only on (base seed, effect, index), so a subset of effects or a
+    # smaller count reproduces the same data sets.
+    seed_of = lambda e, j: args.seed * 1_000_003 + (EFFECTS.index(e) + 1 if e != "none" else 99) * 10_000 + j  # noqa: E731
+    cases = []
+    for e in list(effects) + ["none"]:
+        for j in range(args.per_effect if e != "none" else args.clean):
+            cases.append(dict(case_id=f"{e}-{j:03d}", board=boards[j % len(boards)], effect=e,
+                              seed=seed_of(e, j), settings=settings))
+    return cases
+
+
+def read_rows(path) -> list[dict]:
+    """Rows of a cases.csv written by this script, with the types :func:`score` needs."""
+    def conv(k, v):
+        if v in ("", "None"):
+            return None
+        if k in ("mismatch_detected", "twin_mismatch_detected"):
+            return v == "True"
+        if k in ("imu_true", "top_imu", "n_findings", "seed", "T", "K"):
+            return int(float(v))
+        try:
+            return float(v)
+        except ValueError:
+            return v
+    with open(path, newline="") as f:
+        rows = [{k: conv(k, v) for k, v in r.items()} for r in csv.DictReader(f)]
+    for r in rows:
+        if r.get("error") is None:
+            r.pop("error", None)
+        for k in ("effect_true", "axis_true", "top_axis", "top_axis_scored", "top_effect"):
+            if k in r and r[k] is not None:
+                r[k] = str(r[k])
+        if r.get("top_axis_scored") is None and r.get("top_effect") not in (None, "none"):
+            top = {"axis": r.get("top_axis"),
+                   "parameters": json.loads(r["top_parameters"]) if r.get("top_parameters") else None}
+            r["top_axis_scored"] = _finding_axis(top)
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--per-effect", type=int, default=10, help="data sets per concealed effect (default 10)")
+    ap.add_argument("--clean", type=int, default=30, help="clean data sets (default 30)")
+    ap.add_argument("--effects", nargs="+", default=None, help=f"effects to conceal (default all: {' '.join(EFFECTS)})")
+    ap.add_argument("--boards", nargs="+", default=list(BOARDS), help="boards, used in turn (default all three)")
+    ap.add_argument("--T", type=int, default=None, help="samples per recording (default random 1500–3000)")
+    ap.add_argument("--rate", type=float, default=None, help="sample rate Hz (default random 100–250)")
+    ap.add_argument("--seed", type=int, default=1, help="base seed (default 1)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a few minutes: mimu8, 2 per effect, 4 clean, T=1500 (explicit options still win)")
+    tw = ap.add_mutually_exclusive_group()
+    tw.add_argument("--twin", dest="twin", action="store_true", default=None,
+                    help="fit each effect case's clean twin too (default, except with --quick)")
+    tw.add_argument("--no-twin", dest="twin", action="store_false",
+                    help="skip the clean twins (~40 %% cheaper; the clean-data position error is then the "
+                         "median over the clean sets of the same board)")
+    ap.add_argument("--alpha", type=float, default=0.01, help="detect(alpha=...) (default 0.01)")
+    ap.add_argument("--max-findings", type=int, default=3)
+    ap.add_argument("--no-refine", action="store_true", help="detect(refine=False)")
+    ap.add_argument("--detect-opt", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra keyword for detect(), value parsed as JSON if it can be (repeatable), "
+                         "e.g. --detect-opt n_twins=20")
+    ap.add_argument("--out", default=None, help="directory for cases.csv and summary.json")
+    ap.add_argument("--save-cases", default=None, metavar="DIR", help="also write every recording + truth sidecar")
+    ap.add_argument("--generate-only", action="store_true", help="generate (and save) the data, run no detector")
+    ap.add_argument("--rescore", default=None, metavar="CSV", help="only score and print a cases.csv of an earlier run")
+    add_dask_arguments(ap)
+    args = ap.parse_args(argv)
+    if args.rescore:
+        sc = score(read_rows(args.rescore))
+        verdicts = print_report(sc)
+        return 1 if any(v == "FAIL" for v in verdicts.values()) else 0
+    if args.quick:
+        given = set(a.split("=")[0] for a in (argv if argv is not None else sys.argv[1:]))
+        if "--per-effect" not in given:
+            args.per_effect = 2
+        if "--clean" not in given:
+            args.clean = 4
+        if "--boards" not in given:
+            args.boards = ["mimu8"]
+        if "--T" not in given:
+            args.T = 1500
+    if args.twin is None:
+        args.twin = not args.quick
+    if not args.generate_only:
+        _detector()  # fail now, clearly, not inside a worker
+    if args.save_cases:
+        Path(args.save_cases).mkdir(parents=True, exist_ok=True)
+    cases = build_cases(args)
+    detect_kwargs = dict(alpha=args.alpha, max_findings=args.max_findings, refine=not args.no_refine, seed=0)
+    for kv in args.detect_opt:
+        if "=" not in kv:
+            raise SystemExit(f"--detect-opt: expected KEY=VALUE, got {kv!r}")
+        k, v = kv.split("=", 1)
+        try:
+            detect_kwargs[k] = json.loads(v)
+        except ValueError:
+            detect_kwargs[k] = v
+    params = [dict(**c, twin=args.twin, detect_kwargs=detect_kwargs, save_dir=args.save_cases,
+                   generate_only=args.generate_only) for c in cases]
+    print(f"mismatch_proof: {sum(c['effect'] != 'none' for c in cases)} effect cases "
+          f"({args.per_effect} × {len(set(c['effect'] for c in cases if c['effect'] != 'none'))} effects), "
+          f"{args.clean} clean, boards {args.boards}, twins {'on' if args.twin else 'off'}", flush=True)
+    t0 = time.perf_counter()
+    with dask_client(args) as client:
+        rows = map_tasks(client, run_case, params, desc="blind cases")
+    wall = time.perf_counter() - t0
+
+    if not args.twin and not args.generate_only:  # clean reference: median clean error per board
+        for b in set(r["board"] for r in rows):
+            ce = [r.get("pos_err_after_um") for r in rows if r["board"] == b and r["effect_true"] == "none"
+                  and r.get("pos_err_after_um") is not None and math.isfinite(r["pos_err_after_um"])]
+            for r in rows:
+                if r["board"] == b and r["effect_true"] != "none":
+                    r["pos_err_clean_um"] = float(np.median(ce)) if ce else float("nan")
+
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        keys = list(dict.fromkeys(k for r in rows for k in r if k != "traceback"))
+        with open(out / "cases.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=keys)
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: r.get(k) for k in keys})
+    errs = [r for r in rows if "error" in r]
+    for r in errs[:3]:
+        print(f"\ncase {r['case']} failed: {r['error']}\n{r.get('traceback', '')}", file=sys.stderr)
+    if args.generate_only:
+        print(f"generated {len(rows)} data sets in {wall:.1f} s ({len(errs)} errors)"
+              + (f"; saved to {args.save_cases}" if args.save_cases else ""))
+        return 1 if errs else 0
+
+    sc = score(rows)
+    verdicts = print_report(sc)
+    secs = [r["seconds"] for r in rows if "seconds" in r]
+    if secs:
+        print(f"\ndetect(): median {np.median(secs):.1f} s per recording, max {max(secs):.1f} s; wall {wall:.0f} s")
+    if args.out:
+        summary = {"settings": {k: v for k, v in vars(args).items()}, "wall_seconds": wall,
+                   "verdicts": verdicts, **{k: v for k, v in sc.items()}}
+        with open(Path(args.out) / "summary.json", "w") as f:
+            json.dump(summary, f, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+        print(f"wrote {Path(args.out) / 'cases.csv'} and summary.json")
+    return 1 if any(v == "FAIL" for v in verdicts.values()) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,197 @@
+"""Model-mismatch discovery end to end (accel_bayes.mismatch): clean recordings stay clean, a
+recording with one effect of clear magnitude gets that effect ranked first at the right IMU/axis,
+the report keeps the DESIGN §7.2 contract, the CLI's exit codes; plus independent checks of the
+machinery (score statistic vs refitted likelihood ratio, linearised PPC twins vs an actual refit,
+the noise-level evidence)."""
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from accel_bayes.arrays import mimu4444_8
+from accel_bayes.cli import main
+from accel_bayes.io import write_recording
+from accel_bayes.mismatch import SCHEMA, detect, make_effect, validate_report
+from accel_bayes.mismatch.detect import candidate_effects, noise_evidence, screen
+from accel_bayes.mismatch.refine import Prepared, baseline_fit, fit_model, prepare
+from accel_bayes.simulate import simulate
+
+DEG = math.pi / 180
+KW = dict(T=400, rate=200.0, acc_noise_std=0.02, gyro_noise_std=0.1 * DEG)
+FAST = dict(n_twins=20, loo_draws=40, n_refit=3)
+
+
+def _sim(seed, effects=()):
+    return simulate(mimu4444_8(), "smooth", seed=seed, effects=list(effects), **KW)
+
+
+@pytest.fixture(scope="module")
+def clean_rec():
+    return _sim(21).recording
+
+
+@pytest.fixture(scope="module")
+def clean_report(clean_rec):
+    return detect(clean_rec, seed=0, **FAST)
+
+
+DISP = [0.0, 2e-4, 8e-4]  # m, sensor frame of IMU 6, axis z
+
+
+@pytest.fixture(scope="module")
+def disp_report():
+    eff = make_effect("axis_displacement", imu=6, axis="z", parameters={"displacement": DISP})
+    return detect(_sim(22, [eff]).recording, seed=0, **FAST)
+
+
+def test_clean_recording_has_no_mismatch(clean_report):
+    d = clean_report.to_dict()
+    assert d["mismatch_detected"] is False
+    assert d["findings"] == [] and d["refined"] is None
+    assert clean_report.refined is None and not clean_report.mismatch_detected
+    assert 0.95 < d["baseline"]["chi2_per_dof"] < 1.05
+    # the threshold is the documented Bonferroni rule
+    from scipy.stats import chi2
+
+    m = d["details"]["n_candidates"]
+    assert d["threshold"] == pytest.approx(chi2.isf(0.01 / m, 3), rel=1e-9)
+    assert clean_report.location.ppc["chi2"]["p_value"] > 0.01
+
+
+def test_one_effect_is_ranked_first_at_its_imu_and_axis(disp_report):
+    d = disp_report.to_dict()
+    assert d["mismatch_detected"]
+    top = d["findings"][0]
+    assert (top["effect"], top["imu"], top["axis"]) == ("axis_displacement", 6, "z")
+    assert top["evidence"] > d["threshold"]
+    est = np.array(top["parameters"]["displacement"])
+    std = np.array(top["std"]["displacement"])
+    assert np.all(np.abs(est - np.array(DISP)) < 5 * std + 1e-5)
+    r = d["refined"]
+    assert r["effects"][0] == "axis_displacement"
+    assert r["loglik"] > d["baseline"]["loglik"] + top["evidence"] / 2 - 1e-6
+    assert abs(r["chi2_per_dof"] - 1) < 0.05 < d["baseline"]["chi2_per_dof"] - 1 + 0.05
+    assert r["elpd_loo"] > r["elpd_loo_baseline"]
+    # the located excess sat at IMU 6's accelerometer z axis
+    worst = max(disp_report.location.cells, key=lambda c: c["excess_z"])
+    assert (worst["imu"], worst["sensor"], worst["axis"]) == (6, "acc", "z")
+
+
+def test_report_contract_and_files(clean_report, disp_report, tmp_path):
+    for rep, name in ((clean_report, "clean"), (disp_report, "disp")):
+        paths = rep.write(tmp_path / name, figures=name == "disp")
+        doc = json.loads((tmp_path / name / "report.json").read_text())
+        validate_report(doc)
+        assert doc["schema"] == SCHEMA
+        assert set(doc) >= {"schema", "mismatch_detected", "threshold", "baseline", "findings", "refined"}
+        assert set(doc["baseline"]) >= {"loglik", "chi2_per_dof", "dof"}
+        for f in doc["findings"]:
+            assert set(f) >= {"effect", "imu", "axis", "evidence", "parameters", "where", "explanation"}
+            assert set(f["where"]) >= {"regime", "time_s"}
+        evid = [f["evidence"] for f in doc["findings"] if f["effect"] != "unexplained"]
+        assert evid == sorted(evid, reverse=True)
+        assert (tmp_path / name / "report.md").read_text().startswith("# Model-mismatch report")
+    assert paths["heatmap"].exists() and paths["regimes"].exists() and paths["before_after"].exists()
+    assert "![" in (tmp_path / "disp" / "report.md").read_text()
+    bad = dict(json.loads((tmp_path / "clean" / "report.json").read_text()), mismatch_detected=True)
+    with pytest.raises(ValueError):
+        validate_report(bad)
+
+
+@pytest.fixture(scope="module")
+def gyro_case():
+    eff = make_effect("gyro_bias", imu=4, axis="x", parameters={"bias": 0.2 * DEG})
+    prep = prepare(_sim(23, [eff]).recording)
+    base, _ = baseline_fit(prep)
+    return prep, base
+
+
+def test_score_statistic_matches_refitted_likelihood_ratio(gyro_case):
+    """The screening statistic (efficient score test at the baseline) against the independent
+    likelihood ratio of two LM optima: equal to first order."""
+    prep, base = gyro_case
+    cands = [c for c in candidate_effects(prep, ["gyro_bias"])]
+    sc = screen(prep, base, cands)
+    top = sc[0]
+    assert (top.effect.imu, top.effect.axis) == (4, "x")
+    fit = fit_model(prep, [make_effect("gyro_bias", imu=4, axis="x")], init=base)
+    lr = 2 * (fit.loglik - base.loglik)
+    assert lr > 50
+    assert top.statistic == pytest.approx(lr, rel=0.02)
+    assert fit.effects[0].params["bias"].item() == pytest.approx(0.2 * DEG, abs=4 * fit.effects[0].std["bias"].item())
+
+
+def test_linearised_twins_match_an_actual_refit(gyro_case):
+    """PPC twins are residuals after a one-step linear refit; compare with refitting a twin
+    recording by the full LM."""
+    prep, base = gyro_case
+    lin = base.linear()
+    T, K = prep.T, prep.K
+    g = torch.Generator().manual_seed(7)
+    e = torch.randn(T, 6 * K, generator=g, dtype=torch.float64)
+    ea = e[:, :3 * K].reshape(T, K, 3) * prep.sigma_acc[None, :, None]
+    eg = e[:, 3 * K:].reshape(T, K, 3) * prep.sigma_gyro[None, :, None]
+    twin = Prepared(**{**prep.__dict__, "y_acc": base.pred_acc + ea, "y_gyro": base.pred_gyro + eg})
+    refit = fit_model(twin, (), init=base)
+    r_full = torch.cat(((refit.res_acc / prep.sigma_acc[None, :, None]).reshape(T, -1),
+                        (refit.res_gyro / prep.sigma_gyro[None, :, None]).reshape(T, -1)), -1)
+    r_lin = lin.project(e.unsqueeze(0))[0]
+    assert float((r_full - r_lin).norm() / r_full.norm()) < 0.02
+    assert float(((r_full - e).norm() / e.norm())) > 0.1  # the refit really absorbs part of the noise
+
+
+def test_noise_level_evidence(clean_rec):
+    eff = make_effect("noise_level", imu=4, sensor="acc", parameters={"factor": 1.5})
+    prep = prepare(_sim(24, [eff]).recording)
+    base, _ = baseline_fit(prep)
+    ev, fac, n = noise_evidence(prep, base, make_effect("noise_level", imu=4, sensor="acc"))
+    assert n == 3 * KW["T"] and ev > 100 and fac > 1.25  # the screen: a one-step, downward-biased estimate
+    ev_other, fac_other, _ = noise_evidence(prep, base, make_effect("noise_level", imu=2, sensor="acc"))
+    assert ev_other < 15 and fac_other == pytest.approx(1.0, abs=0.08)
+    # the refit re-weights IMU 4 and re-estimates the factor until it is consistent
+    e = make_effect("noise_level", imu=4, sensor="acc")
+    fit = fit_model(prep, [e], init=base)
+    sd = 1.5 / math.sqrt(2 * n)
+    assert float(e.params["factor"]) == pytest.approx(1.5, abs=4 * sd)
+    assert float(fit.acc_factor[4]) == float(e.params["factor"]) and float(fit.acc_factor[3]) == 1.0
+    assert noise_evidence(prep, fit, e)[0] > 100
+    assert fit.chi2_per_dof_model < fit.chi2_per_dof
+
+
+def test_unexplained_mismatch_is_located(clean_rec):
+    """A disturbance outside the vocabulary (a 25 Hz vibration burst on IMU 2's accelerometer x
+    between 1.0 s and 1.5 s) with only acc_bias as candidate: reported as unexplained, there."""
+    rec = clean_rec.copy()
+    t = rec.time
+    burst = (t >= 1.0) & (t < 1.5)
+    rec.acc[:, 2, 0] += 0.15 * np.sin(2 * np.pi * 25 * t) * burst
+    rep = detect(rec, effects=["acc_bias"], seed=0, refine=False, **FAST)
+    d = rep.to_dict()
+    assert d["mismatch_detected"] and d["refined"] is None
+    u = [f for f in d["findings"] if f["effect"] == "unexplained"]
+    assert u, d["findings"]
+    f = u[0]
+    assert (f["imu"], f["axis"], f["sensor"]) == (2, "x", "acc")
+    ts = f["where"]["time_s"]
+    assert ts is not None and ts[0] < 1.5 and ts[1] > 1.0
+
+
+def test_cli_exit_codes(clean_rec, tmp_path, capsys):
+    path = tmp_path / "rec.nc"
+    write_recording(clean_rec, path)
+    assert main(["mismatch", str(tmp_path / "missing.nc"), "--out", str(tmp_path / "o0")]) == 2
+    assert main(["mismatch", str(path), "--out", str(tmp_path / "o1"), "--effects", "acc_wobble"]) == 2
+    assert main(["mismatch", str(path), "--out", str(tmp_path / "o2"), "--alpha", "1.5"]) == 2
+    (tmp_path / "afile").write_text("x")
+    assert main(["mismatch", str(path), "--out", str(tmp_path / "afile")]) == 2
+    err = capsys.readouterr().err
+    assert "acc_wobble" in err and "alpha" in err
+    rc = main(["mismatch", str(path), "--out", str(tmp_path / "ok"), "--effects", "acc_bias,gyro_bias",
+               "--twins", "10", "--no-figures", "--seed", "3"])
+    assert rc == 0
+    doc = json.loads((tmp_path / "ok" / "report.json").read_text())
+    validate_report(doc)
+    assert doc["mismatch_detected"] is False
+    assert "no mismatch detected" in capsys.readouterr().out
