@@ -353,9 +353,10 @@ def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, l
             for lv, st in zip(levels, styles):
                 _ellipse(a, m, cv, lv, color=color, ls=st, lw=1.0)
         a.set_aspect("equal")
-        if pkg:  # the board, not the (much wider) prior, sets the view
+        scale = _board_scale(array)
+        if scale:  # the board, not the (much wider) prior, sets the view
             sel = nominal[mask]
-            pad = 1.25 * pkg * 1e3
+            pad = 1.25 * scale * 1e3
             a.set_xlim(sel[:, 0].min() - pad, sel[:, 0].max() + pad)
             a.set_ylim(sel[:, 1].min() - pad, sel[:, 1].max() + pad)
         else:
@@ -370,23 +371,49 @@ def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, l
     return fig
 
 
+def _board_scale(array) -> float | None:
+    """Length (m) that sets the picture's scale: the package side, or — for arrays without one,
+    e.g. built from a recording — half the smallest x–y spacing of distinct nominal positions."""
+    pkg = getattr(array, "package_size", None)
+    if pkg:
+        return float(pkg)
+    xy = np.unique(np.round(np.asarray(_np(array.positions), dtype=float)[:, :2], 9), axis=0)
+    if len(xy) < 2:
+        return None
+    d = np.sqrt(((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1))
+    d = d[d > 0]
+    return float(d.min()) / 2 if d.size else None
+
+
 def auto_exaggeration(idata_or_moments, array, fraction: float = 0.25) -> float:
     """A round factor (1, 2, 5, 10, 20, …) that makes the typical 95 % ellipse about
-    ``fraction`` of a package side (1 when it already is, or the array has no package size)."""
+    ``fraction`` of a package side (or of half the IMU spacing when the package size is unknown),
+    limited so that no exaggerated offset from a nominal position exceeds 0.45 of that length;
+    1 when no magnification is needed or possible."""
     if hasattr(array, "sensor_array") and not hasattr(array, "package_size"):
         array = array.sensor_array()
-    pkg = getattr(array, "package_size", None)
+    scale = _board_scale(array)
     mom = _moments(idata_or_moments)
-    if not pkg or len(mom["imu"]) == 0:
+    if not scale or len(mom["imu"]) == 0:
         return 1.0
     sd = np.sqrt(np.clip(np.linalg.eigvalsh(mom["cov"][:, :2, :2])[:, -1], 0, None))
     semi = float(np.median(sd)) * math.sqrt(_chi2_2_quantile(0.95))
     if semi <= 0:
         return 1.0
-    want = fraction * pkg / semi
+    want = fraction * scale / semi
+    # ...but never push an estimate out of its own patch of the board: offsets from the nominal
+    # positions (relative to the reference) times k stay under 0.45 of the scale length
+    nominal = np.asarray(_np(array.positions), dtype=float)
+    ref = int(array.reference_imu)
+    idx = [lab for lab in mom["imu"] if lab < len(nominal)]
+    if idx:
+        rel_nom = nominal[idx, :2] - nominal[ref, :2]
+        off = float(np.abs(mom["mean"][: len(idx), :2] - rel_nom).max())
+        if off > 0:
+            want = min(want, 0.45 * scale / off)
     if want <= 1:
         return 1.0
-    steps = [m * 10**e for e in range(0, 6) for m in (1, 2, 5)]
+    steps = [m * 10**e for e in range(0, 7) for m in (1, 2, 5)]
     return float(max(s for s in steps if s <= want))
 
 

@@ -94,8 +94,9 @@ def log_posterior(theta: torch.Tensor, acc: torch.Tensor, omega: torch.Tensor, a
 @dataclass
 class LaplaceResult:
     """mode (A−1, 3) m; cov (d, d) m², d = 3(A−1), row-major vec θ; std (A−1, 3) m;
-    std_mean_um: std averaged over the d coordinates, µm; newton_steps; grad_norm at the mode
-    (relative to the prior scale)."""
+    std_mean_um: std averaged over the d coordinates, µm (NaN when ``diverged``); newton_steps;
+    grad_norm at the mode (relative to the prior scale); diverged: None, or why no local mode
+    near the start was found (see :func:`laplace`)."""
 
     mode: torch.Tensor
     cov: torch.Tensor
@@ -103,15 +104,28 @@ class LaplaceResult:
     std_mean_um: float
     newton_steps: int
     grad_norm: float
+    diverged: str | None = None
 
 
 def laplace(acc, omega, acc_std, prior_mean, prior_std, reference: int = 0, start=None,
-            max_steps: int = 30, tol: float = 1e-12) -> LaplaceResult:
-    """Laplace approximation N(mode, (−∇²log p)⁻¹) of :func:`log_posterior`.
+            max_steps: int = 30, tol: float = 1e-12, max_step: float = 5e-4) -> LaplaceResult:
+    """Laplace approximation N(mode, (−∇²log p)⁻¹) of :func:`log_posterior` at the local mode
+    nearest the start.
 
     Damped Newton from ``start`` (default: the prior mean): step δ = (−∇²)⁻¹∇ (Levenberg-damped
-    when −∇² is not positive definite), halved until the log posterior does not decrease; stops
-    when the Newton decrement ∇ᵀ(−∇²)⁻¹∇ < ``tol``.
+    when −∇² is not positive definite), shortened so that no coordinate moves more than
+    ``max_step`` m, then halved until the log posterior does not decrease; stops when the Newton
+    decrement ∇ᵀ(−∇²)⁻¹∇ < ``tol``.
+
+    Why the cap: with the flat prior on φ the target is not a proper density everywhere.  When
+    all triads draw together (r → s·r, s → 0) the ω̇ block of M = HᵀΛH vanishes like s², so
+    −(T/2) log|M| grows like −3T log s while the data misfit stays bounded: for T > A − 1 the
+    posterior has a non-integrable spike at the collapsed geometry (ω̇ becomes unidentifiable
+    and its flat prior has infinite mass).  Real data keep the local mode near the design behind
+    a barrier of thousands of nats, but with weak motion and large T an uncapped Newton step can
+    jump the barrier.  A result whose geometry has shrunk (span < ½ of the start's), moved more
+    than 10 prior std from the prior mean, or whose −∇² is not positive definite is returned
+    with ``diverged`` set and NaN std.
     """
     acc = torch.as_tensor(acc, dtype=torch.float64)
     omega = torch.as_tensor(omega, dtype=torch.float64)
@@ -143,7 +157,8 @@ def laplace(acc, omega, acc_std, prior_mean, prior_std, reference: int = 0, star
         dec = float(g @ delta)
         if dec < tol:
             break
-        t = 1.0
+        big = float(delta.abs().max())
+        t = min(1.0, max_step / big) if big > 0 else 1.0
         while t > 1e-6:
             xn = x + t * delta
             vn = f(xn).detach()
@@ -152,10 +167,31 @@ def laplace(acc, omega, acc_std, prior_mean, prior_std, reference: int = 0, star
             t *= 0.5
         x = xn
         val, g, Hs = grad_hess(x)
+    why = None
+    theta = x.reshape(shape)
+
+    def span(th):
+        r = torch.cat((th, torch.zeros(1, 3, dtype=th.dtype)), 0)
+        return float((r - r.mean(0)).norm(dim=-1).max())
+
+    start_theta = (m if start is None else torch.as_tensor(start, dtype=torch.float64)).reshape(shape)
+    if not bool(torch.isfinite(theta).all()):
+        why = "non-finite positions"
+    elif span(theta) < 0.5 * span(start_theta):
+        why = f"geometry collapsed (span {span(theta) * 1e3:.3g} mm from {span(start_theta) * 1e3:.3g} mm)"
+    elif float(((theta - m).abs() / prior_std).max()) > 10:
+        why = "moved more than 10 prior std from the prior mean"
+    elif int(torch.linalg.cholesky_ex(-Hs)[1]) != 0:
+        why = "−Hessian not positive definite at the end point"
+    if why is not None:
+        nan = torch.full_like(Hs, float("nan"))
+        return LaplaceResult(mode=theta, cov=nan, std=torch.full(shape, float("nan"), dtype=torch.float64),
+                             std_mean_um=float("nan"), newton_steps=steps, grad_norm=float(g.norm()) * prior_std,
+                             diverged=why)
     cov = torch.linalg.inv(-Hs)
     cov = 0.5 * (cov + cov.T)
     std = torch.diagonal(cov).clamp_min(0).sqrt()
-    return LaplaceResult(mode=x.reshape(shape), cov=cov, std=std.reshape(shape),
+    return LaplaceResult(mode=theta, cov=cov, std=std.reshape(shape),
                          std_mean_um=float(std.mean()) * 1e6, newton_steps=steps,
                          grad_norm=float(g.norm()) * prior_std)
 

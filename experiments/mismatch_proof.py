@@ -36,7 +36,7 @@ bias… vectors) points at the axis of its largest component.
 
 Run::
 
-    python experiments/mismatch_proof.py --quick             # mimu8, 2/effect, 4 clean, T=1500, no twins
+    python experiments/mismatch_proof.py --quick             # mimu8, 2/effect, 4 clean, T=1500, no twins (~30 min)
     python experiments/mismatch_proof.py                     # 10/effect, 30 clean, three boards
     python experiments/mismatch_proof.py --per-effect 20 --clean 60 --out experiments/out/mismatch_proof
     python experiments/mismatch_proof.py --generate-only --save-cases /tmp/cases   # data only, no detector
@@ -478,7 +478,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=None, help="sample rate Hz (default random 100–250)")
     ap.add_argument("--seed", type=int, default=1, help="base seed (default 1)")
     ap.add_argument("--quick", action="store_true",
-                    help="a few minutes: mimu8, 2 per effect, 4 clean, T=1500 (explicit options still win)")
+                    help="mimu8, 2 per effect, 4 clean, T=1500, no twins (explicit options still win); 28 "
+                         "detect() calls, ~30 min on 2 busy cores at ~2–3 min per call")
     tw = ap.add_mutually_exclusive_group()
     tw.add_argument("--twin", dest="twin", action="store_true", default=None,
                     help="fit each effect case's clean twin too (default, except with --quick)")

@@ -116,5 +116,40 @@ def make_client(scheduler: str | None = None, workers: int | None = None):
     return Client(cluster)
 
 
+def run_tasks(fn, tasks, *, scheduler=None, workers=None, desc="tasks", **kw):
+    """fn(task, **kw) for every task, on dask (or serially with workers == 0); results in task
+    order; a progress line on stderr every ~10 %."""
+    import sys
+    import time
+
+    n = len(tasks)
+    step = max(1, n // 10)
+    t0 = time.perf_counter()
+
+    def report(done):
+        if done % step == 0 or done == n:
+            print(f"  {desc}: {done}/{n} done, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+
+    if workers == 0 and not scheduler:
+        out = []
+        for i, t in enumerate(tasks):
+            out.append(fn(t, **kw))
+            report(i + 1)
+        return out
+    from dask.distributed import as_completed
+
+    client = make_client(scheduler, workers)
+    try:
+        futs = client.map(fn, tasks, pure=False, **kw)
+        index = {f.key: i for i, f in enumerate(futs)}
+        out = [None] * n
+        for done, f in enumerate(as_completed(futs), 1):
+            out[index[f.key]] = f.result()
+            report(done)
+        return out
+    finally:
+        client.close()
+
+
 def one_thread():
     torch.set_num_threads(1)

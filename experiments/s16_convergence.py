@@ -144,14 +144,7 @@ def main(argv=None) -> int:
     # longest first (the 20 s motion), so the pool does not idle at the end
     tasks.sort(key=lambda t: -C.MOTIONS[t[0]]["T"])
     t0 = time.perf_counter()
-    if args.workers == 0 and not args.scheduler:
-        rows = [run_one(t) for t in tasks]
-    else:
-        client = C.make_client(args.scheduler, args.workers)
-        try:
-            rows = client.gather(client.map(run_one, tasks, pure=False))
-        finally:
-            client.close()
+    rows = C.run_tasks(run_one, tasks, scheduler=args.scheduler, workers=args.workers, desc="self-calibrations")
     wall = time.perf_counter() - t0
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

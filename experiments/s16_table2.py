@@ -178,16 +178,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     n = args.trials if args.trials is not None else (20 if args.quick else 100)
     t0 = time.perf_counter()
-    if args.workers == 0 and not args.scheduler:
-        results = [run_trial(k, args.seed, C.T_S16, not args.no_physical) for k in range(n)]
-    else:
-        client = C.make_client(args.scheduler, args.workers)
-        try:
-            futs = client.map(run_trial, range(n), seed=args.seed, T=C.T_S16, physical_row=not args.no_physical,
-                              pure=False)
-            results = client.gather(futs)
-        finally:
-            client.close()
+    results = C.run_tasks(run_trial, list(range(n)), scheduler=args.scheduler, workers=args.workers, desc="trials",
+                          seed=args.seed, T=C.T_S16, physical_row=not args.no_physical)
     wall = time.perf_counter() - t0
     results.sort(key=lambda r: r["trial"])
     out = Path(args.out)

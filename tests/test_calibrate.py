@@ -186,7 +186,7 @@ def _square_array(acc_std=0.3):
 STUDY_COORD = (1, "x")  # pre-chosen coordinate: x of IMU 1 relative to IMU 0
 
 
-def coverage_replicate(i: int, T: int = 30, prior_std: float = 3e-3, chains: int = 4, draws: int = 400,
+def coverage_replicate(i: int, T: int = 30, prior_std: float = 3e-3, chains: int = 4, draws: int = 1000,
                        warmup: int = 400) -> dict:
     """One data set of the coverage study.
 
@@ -231,7 +231,7 @@ def coverage_verdict(reps: list[dict]) -> dict:
 
 @pytest.mark.slow
 def test_coverage_study():
-    """MUST-SHOW study (≈ 1 min per data set here): 100 data sets, θ_true from the prior, chains
+    """MUST-SHOW study (≈ 1–3 min per data set on the shared 2-core machine): 100 data sets, θ_true from the prior, chains
     from prior draws; R̂ < 1.01 everywhere, 90 % coverage of r[1, x] inside the binomial 99 %
     band, ranks uniform (χ², p > 0.01)."""
     reps = [coverage_replicate(i) for i in range(100)]

@@ -269,3 +269,30 @@ def test_apply_effects_clips_after_noise(setup):
     assert bool(clipped.any())
     assert torch.all(acc[clipped, 0, 2].abs() == 9.0)
     assert torch.allclose(acc[~clipped, 0, 2], ctx.acc[~clipped, 0, 2] + noise[~clipped, 0, 2])
+
+
+def test_report_parameters_round_trip(setup):
+    """A finding's (effect, imu, axis, parameters) rebuilds the same effect (make_effect)."""
+    arr, tr, pos, q, ctx = setup
+    layout = CandidateLayout(8, np.ones(8, bool), np.ones(8, bool), 0)
+    g = torch.Generator().manual_seed(9)
+    for name in VOCABULARY:
+        cls = EFFECTS[name]
+        if cls.kind == "finding":
+            continue
+        e = cls.candidates(layout)[5]
+        vals = {p.name: (1e-3 * torch.randn(p.shape, generator=g, dtype=torch.float64) if p.null == 0 else
+                         torch.tensor(1.3 if name == "noise_level" else 4.0, dtype=torch.float64))
+                for p in cls.parameters}
+        e.set_params(vals)
+        rp = e.report_parameters()
+        json_rp = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in rp.items()}
+        e2 = make_effect(name, imu=e.imu, axis=e.axis, parameters=json_rp)
+        assert e2.label() == e.label()
+        for k in vals:
+            assert torch.allclose(e2.params[k], e.params[k])
+        if cls.kind == "mean":
+            c = SignalContext(ctx.time, ctx.omega, ctx.omega_dot, ctx.s, pos, q, ctx.acc, ctx.gyro,
+                              ctx.acc, ctx.gyro)  # any rates will do for the comparison
+            for a, b in zip(e.perturbation(None, c), e2.perturbation(None, c)):
+                assert torch.equal(a, b)

@@ -195,3 +195,18 @@ def test_cli_exit_codes(clean_rec, tmp_path, capsys):
     validate_report(doc)
     assert doc["mismatch_detected"] is False
     assert "no mismatch detected" in capsys.readouterr().out
+
+
+def test_log_tail_probability_is_finite_and_accurate():
+    """Ranking uses log10 P(χ²_df > x); SciPy's logsf underflows past x ≈ 1400 (all huge
+    evidences would tie).  The asymptotic branch must agree with SciPy where both work."""
+    from scipy.stats import chi2
+
+    from accel_bayes.mismatch.detect import _log10_sf
+
+    for df in (1, 3, 20):
+        for x in (600.0, 900.0, 1200.0):
+            assert _log10_sf(x, df) == pytest.approx(chi2.logsf(x, df) / math.log(10), rel=1e-6)
+        vals = [_log10_sf(x, df) for x in (2e3, 2e4, 2e5)]
+        assert all(math.isfinite(v) for v in vals) and vals[0] > vals[1] > vals[2]
+    assert _log10_sf(5e4, 1) < _log10_sf(5e4, 3)  # more parameters, less support for the same evidence
