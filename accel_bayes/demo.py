@@ -19,13 +19,13 @@ __all__ = ["run_demo", "DEFAULTS"]
 DEFAULTS = dict(
     preset="mimu8",
     motion="smooth",
-    T=800,
+    T=600,
     rate=100.0,
     seed=1,
     position_error=3e-4,
     chains=2,
-    draws=800,
-    warmup=800,
+    draws=500,
+    warmup=500,
 )
 
 
