@@ -142,6 +142,10 @@ def ppc(prep: Prepared, fit: ModelFit, *, n_twins: int = 100, seed: int = 0, reg
     reg_labels = [(lab, len(names)) for lab, names in reg.values()]
     z, mask = standardized(prep, fit)
     real = _batch_stats(z, mask, reg_labels)
+    if int(n_twins) <= 0:  # no PPC requested: the real statistics only
+        out = {k: {"real": float(v), "twin_mean": None, "twin_q95": None, "p_value": None} for k, v in real.items()}
+        out["n_twins"] = 0
+        return out
     g = torch.Generator().manual_seed(int(seed))
     m_rows = torch.cat((prep.m_acc.reshape(T, -1), prep.m_gyro.reshape(T, -1)), -1)
     scale = torch.sqrt((1 - lin.h).clamp_min(1e-3))
@@ -332,15 +336,20 @@ def locate(prep: Prepared, fit: ModelFit, *, n_twins: int = 100, seed: int = 0) 
     tests = excess_cells(prep, fit, reg, z, mask)
     heat = excess.numpy()
     worst = sorted(cells, key=lambda d: -d["excess_z"])[:3]
-    if pp["chi2"]["p_value"] < 0.01 or pp["max_cell_excess"]["p_value"] < 0.01:
+    p_chi2, p_cell = pp["chi2"]["p_value"], pp["max_cell_excess"]["p_value"]
+    sig_test = bool(tests) and tests[0]["log10_p"] < math.log10(0.01 / len(tests))
+    if (p_chi2 is not None and (p_chi2 < 0.01 or p_cell < 0.01)) or sig_test:
         parts = [f"IMU {d['imu']} {d['sensor']} {d['axis']} (χ²/n = {d['chi2_ratio']:.3g})" for d in worst
                  if d["excess_z"] > 3]
         top = tests[0] if tests else None
         reg_txt = f"; most concentrated in '{top['bin']}'" if top else ""
+        ptxt = f" (PPC p = {p_chi2:.3g} for the total χ²)" if p_chi2 is not None else ""
         summary = ("Residual excess beyond the stated noise at " + (", ".join(parts) if parts else "no single cell")
-                   + reg_txt + f" (PPC p = {pp['chi2']['p_value']:.3g} for the total χ²).")
+                   + reg_txt + ptxt + ".")
+    elif p_chi2 is not None:
+        summary = (f"Residuals are consistent with the stated noise (PPC p = {p_chi2:.3g} for the "
+                   f"total χ², {p_cell:.3g} for the worst cell).")
     else:
-        summary = (f"Residuals are consistent with the stated noise (PPC p = {pp['chi2']['p_value']:.3g} for the "
-                   f"total χ², {pp['max_cell_excess']['p_value']:.3g} for the worst cell).")
+        summary = "Residuals are consistent with the stated noise (no located excess is significant; no PPC twins)."
     return Location(cells=cells, imus=imus, regimes=regs, ppc=pp, excess_tests=tests, heat=heat, summary=summary,
                     z=z, reg=reg)

@@ -369,7 +369,9 @@ class MismatchReport:
               "| statistic | real | twins (mean) | twins (95 %) | p |", "|---|---|---|---|---|"]
         for k, v in pp.items():
             if isinstance(v, dict):
-                L.append(f"| {k} | {v['real']:.4g} | {v['twin_mean']:.4g} | {v['twin_q95']:.4g} | {v['p_value']:.3g} |")
+                f4 = lambda x, fmt=".4g": "–" if x is None else format(x, fmt)  # noqa: E731
+                L.append(f"| {k} | {f4(v['real'])} | {f4(v['twin_mean'])} | {f4(v['twin_q95'])} | "
+                         f"{f4(v['p_value'], '.3g')} |")
         L.append("")
         L += ["## Located excess (baseline, worst cells)", "", "| IMU | sensor | axis | χ²/n | excess z | bias z | lag-1 z |",
               "|---|---|---|---|---|---|---|"]
