@@ -23,7 +23,6 @@ The mode is found by damped Newton steps (exact Hessian by
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -142,6 +141,12 @@ def laplace(acc, omega, acc_std, prior_mean, prior_std, reference: int = 0, star
         Hs = torch.autograd.functional.hessian(f, x, vectorize=True)
         return val.detach(), g.detach(), 0.5 * (Hs + Hs.T)
 
+    def span(th):
+        r = torch.cat((th, torch.zeros(1, 3, dtype=th.dtype)), 0)
+        return float((r - r.mean(0)).norm(dim=-1).max())
+
+    start_theta = x.reshape(shape).clone()
+    span0 = span(start_theta)
     val, g, Hs = grad_hess(x)
     steps = 0
     for steps in range(1, max_steps + 1):
@@ -166,19 +171,15 @@ def laplace(acc, omega, acc_std, prior_mean, prior_std, reference: int = 0, star
                 break
             t *= 0.5
         x = xn
+        if span(x.reshape(shape)) < 0.5 * span0:  # running into the collapse spike: stop early
+            break
         val, g, Hs = grad_hess(x)
     why = None
     theta = x.reshape(shape)
-
-    def span(th):
-        r = torch.cat((th, torch.zeros(1, 3, dtype=th.dtype)), 0)
-        return float((r - r.mean(0)).norm(dim=-1).max())
-
-    start_theta = (m if start is None else torch.as_tensor(start, dtype=torch.float64)).reshape(shape)
     if not bool(torch.isfinite(theta).all()):
         why = "non-finite positions"
-    elif span(theta) < 0.5 * span(start_theta):
-        why = f"geometry collapsed (span {span(theta) * 1e3:.3g} mm from {span(start_theta) * 1e3:.3g} mm)"
+    elif span(theta) < 0.5 * span0:
+        why = f"geometry collapsed (span {span(theta) * 1e3:.3g} mm from {span0 * 1e3:.3g} mm)"
     elif float(((theta - m).abs() / prior_std).max()) > 10:
         why = "moved more than 10 prior std from the prior mean"
     elif int(torch.linalg.cholesky_ex(-Hs)[1]) != 0:

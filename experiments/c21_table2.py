@@ -19,21 +19,36 @@ What it computes, each beside the paper's numbers:
   Laplace approximation (``experiments/_laplace.py``: dense S, autograd Hessian, ω fixed at the
   gyro average; also at the true ω), ratio per T; pass = within 15 %.
 * MUST-SHOW (b) — the paper's simulated Table II row used motion "similar to the experiments" of
-  unstated amplitude: scan the per-axis ω std (ω̇ and s kept at §IV-A's values) with the Laplace
-  approximation, find per T the ω at which the std matches 1430.7 / 403.0 / 145.5 µm, say whether
-  one ω fits all three, and confirm with PmMH at the chosen ω (``scan_omega.png``).
+  unstated amplitude: scan the motion amplitude with the Laplace approximation, two ways —
+  the per-axis ω std alone (ω̇ kept at 35000 °/s²), and ω and ω̇ scaled together (ω̇/ω = 35 s⁻¹,
+  a weaker hand twist of the same character; s never matters, S(θ) annihilates it) — find per
+  T the amplitude at which the std matches 1430.7 / 403.0 / 145.5 µm, say whether one fits all
+  three, and confirm with PmMH at the matched amplitude (``scan_omega.png``).  Points where the
+  posterior has no local mode near the design (weak rotation, large T: see ``_laplace.py``) are
+  reported as such.  The scan also evaluates ω std = 1000/√3 °/s per axis (an RMS |ω| of
+  1000 °/s), the reading of "ω ~ N(0, 1000 °/s)" under which the issue's independent check
+  (≈ 810, 180, 57 µm) was apparently made.
 
 Every sweep runs as dask.distributed tasks (``_dask.py``: LocalCluster with ``--workers``
 processes × 1 thread, or ``--scheduler ADDRESS``).
 
 Run::
 
-    python experiments/c21_table2.py --quick            # T ∈ {5, 50}, short chains: a few minutes
-    python experiments/c21_table2.py                    # full: T ∈ {5, 50, 500}, 3 repetitions
+    python experiments/c21_table2.py --quick            # T ∈ {5, 50}, 1 data set, short chains
+    python experiments/c21_table2.py                    # full: T ∈ {5, 50, 500}, 3 data sets each
+    python experiments/c21_table2.py --T 500 --parts scan --scan-reps 1   # one piece at a time
     python experiments/c21_table2.py --workers 0        # no dask, tasks in this process
+    python experiments/c21_table2.py --scheduler tcp://HOST:8786         # an existing dask cluster
+
+Run times (2 dask workers): ``--quick`` ≈ 3 min on two quiet cores (6 min measured on the shared,
+heavily loaded machine); ``--T 500 --reps 1 --scan-reps 1`` took 48 min there (≈ 13 CPU-min per
+worker); the full default is ≈ 2 CPU-hours, i.e. about 1 h on two quiet cores.  The cost is the
+T = 500 work: PmMH 4 × 3000 iterations per data set, one dense-S Laplace (≈ 30 s) per scan point,
+longer where the Newton iteration runs into the collapse described in ``_laplace.py``.
 
 Outputs in ``--out`` (default experiments/out/c21_table2): ``posterior_runs.csv``,
-``fig2_var.csv``, ``omega_scan.csv``, ``omega_confirm.csv``, ``summary.txt`` and the PNGs.
+``fig2_var.csv``, ``omega_scan.csv``, ``omega_confirm.csv``, ``summary.txt`` and the PNGs
+``fig2_var_logphat.png``, ``fig4_imu2_posterior.png``, ``scan_omega.png``.
 """
 from __future__ import annotations
 
@@ -206,7 +221,8 @@ def scan_task(T, omega_std_dps, rep, seed, acc_std, mode="omega"):
     om = sim.motion.omega.numpy()
     return {"mode": mode, "T": T, "omega_std_dps": omega_std_dps, "omega_dot_std_dps2": wd, "omega_rms_norm_dps": float(np.sqrt((om ** 2).sum(-1).mean())) / DEG,
             "rep": rep, "seed": seed, "acc_std": acc_std, "laplace_std_um": lap.std_mean_um,
-            "newton_steps": lap.newton_steps, "seconds": time.perf_counter() - t0}
+            "newton_steps": lap.newton_steps, "no_local_mode": lap.diverged or "",
+            "seconds": time.perf_counter() - t0}
 
 
 # ---------------------------------------------------------------------------- analysis
@@ -227,7 +243,7 @@ def match_omega(scan_df, targets):
     interpolation); NaN when the target lies outside the scanned range."""
     out = {}
     for T, g in scan_df.groupby("T"):
-        m = g.groupby("omega_std_dps")["laplace_std_um"].mean().sort_index()
+        m = g.groupby("omega_std_dps")["laplace_std_um"].mean().dropna().sort_index()
         x, y = np.log(m.index.values.astype(float)), np.log(m.values)
         tgt = math.log(targets[T])
         w = float("nan")
@@ -244,8 +260,12 @@ def best_common_omega(scan_df, targets):
     with the resulting std per T."""
     curves = {}
     for T, g in scan_df.groupby("T"):
-        m = g.groupby("omega_std_dps")["laplace_std_um"].mean().sort_index()
+        m = g.groupby("omega_std_dps")["laplace_std_um"].mean().dropna().sort_index()
+        if len(m) < 2:
+            continue
         curves[int(T)] = (np.log(m.index.values.astype(float)), np.log(m.values))
+    if not curves:
+        return float("nan"), {}
     lo = max(c[0][0] for c in curves.values())
     hi = min(c[0][-1] for c in curves.values())
     grid = np.linspace(lo, hi, 400)
@@ -340,7 +360,7 @@ def plot_scan(scan_df, matches, commons, confirm_df, path):
         sdf = scan_df[scan_df["mode"] == mode]
         for T, g in sdf.groupby("T"):
             i = Ts.index(T)
-            m = g.groupby("omega_std_dps")["laplace_std_um"].agg(["mean", "min", "max"])
+            m = g.groupby("omega_std_dps")["laplace_std_um"].agg(["mean", "min", "max"]).dropna()
             ax.loglog(m.index, m["mean"], "o-", color=f"C{i}", label=f"T={T} Laplace")
             ax.fill_between(m.index, m["min"], m["max"], color=f"C{i}", alpha=0.15)
             ax.axhline(PAPER_TABLE2_SIM[T], color=f"C{i}", ls=":", lw=1)
@@ -399,6 +419,9 @@ def build_parser():
     p.add_argument("--proposal", default="auto", choices=("auto", "rw", "mixture"), help="calibrate(proposal=...)")
     p.add_argument("--no-map", action="store_true", help="calibrate(use_map=False): prior-draw starts, random walk")
     p.add_argument("--seed", type=int, default=20210, help="base seed")
+    p.add_argument("--parts", nargs="+", default=["posterior", "fig2", "scan"], choices=("posterior", "fig2", "scan"),
+                   help="what to run (default all): posterior = Table I/II, Fig. 4, MUST-SHOW (a); fig2 = "
+                        "Var[log p̂] vs N; scan = MUST-SHOW (b) with its PmMH confirmation")
     add_dask_arguments(p)
     return p
 
@@ -433,14 +456,14 @@ def main(argv=None):
                         chains=chains, draws=draws, warmup=warmup, gyro_method=args.gyro_method,
                         var_repeats=200, proposal=args.proposal, use_map=use_map,
                         keep_draws=(r == 0 and sa == 0.04))
-                   for T in Ts for sa in (0.79, 0.04) for r in range(reps)]
+                   for T in Ts for sa in (0.79, 0.04) for r in range(reps)] if "posterior" in args.parts else []
     post_params.sort(key=lambda p: -p["T"])  # longest first: better packing on the workers
     var_params = [dict(T=T, acc_std=sa, seed=_seed(args.seed, T, 0), N_list=var_N, realisations=realisations,
-                       gyro_method=args.gyro_method) for T in Ts for sa in (0.04, 0.79)]
+                       gyro_method=args.gyro_method) for T in Ts for sa in (0.04, 0.79)] if "fig2" in args.parts else []
     scan_params = [dict(T=T, omega_std_dps=float(w), rep=r, seed=_seed(args.seed + 500, T, r), acc_std=0.79,
                         mode=mode)
                    for mode, grid in (("omega", scan), ("omega+omega_dot", scan_joint))
-                   for T in Ts for w in grid for r in range(scan_reps)]
+                   for T in Ts for w in grid for r in range(scan_reps)] if "scan" in args.parts else []
     scan_params.sort(key=lambda p: -p["T"])
 
     with dask_client(args, upload=("_laplace.py",)) as client:
@@ -454,14 +477,14 @@ def main(argv=None):
         var_rows = [r for rows in var_nested for r in rows]
         scan_df = pd.DataFrame(scan_rows)
         matches, commons = {}, {}
-        for mode in SCAN_MODES:
+        for mode in SCAN_MODES if len(scan_df) else ():
             sdf = scan_df[scan_df["mode"] == mode]
             matches[mode] = match_omega(sdf, PAPER_TABLE2_SIM)
             commons[mode] = best_common_omega(sdf, PAPER_TABLE2_SIM)
         # PmMH check at the matched amplitude: the ω-only match where there is one, else the
         # joint (ω, ω̇) one.
         conf_params = []
-        for T in confirm_T:
+        for T in confirm_T if len(scan_df) else ():
             for mode in SCAN_MODES:
                 w = matches[mode].get(int(T), float("nan"))
                 if math.isfinite(w):
@@ -477,107 +500,121 @@ def main(argv=None):
                     break
         conf = map_tasks(client, posterior_task, conf_params, desc="PmMH at matched ω") if conf_params else []
 
-    post_df = pd.DataFrame([p["row"] for p in post]).sort_values(["acc_std", "T", "rep"], ascending=[False, True, True])
+    post_df = pd.DataFrame([p["row"] for p in post])
     var_df = pd.DataFrame(var_rows)
     conf_df = pd.DataFrame([p["row"] for p in conf]) if conf else pd.DataFrame()
-    post_df.to_csv(out / "posterior_runs.csv", index=False)
-    var_df.to_csv(out / "fig2_var.csv", index=False)
-    scan_df.to_csv(out / "omega_scan.csv", index=False)
-    conf_df.to_csv(out / "omega_confirm.csv", index=False)
-    plot_fig2(var_df, out / "fig2_var_logphat.png")
-    fig4 = {p["row"]["T"]: p for p in post if "imu_draws" in p}
-    plot_fig4(fig4, out / "fig4_imu2_posterior.png", 0.04)
-    plot_scan(scan_df, matches, commons, conf_df, out / "scan_omega.png")
+    if len(post_df):
+        post_df = post_df.sort_values(["acc_std", "T", "rep"], ascending=[False, True, True])
+        post_df.to_csv(out / "posterior_runs.csv", index=False)
+        fig4 = {p["row"]["T"]: p for p in post if "imu_draws" in p}
+        plot_fig4(fig4, out / "fig4_imu2_posterior.png", 0.04)
+    if len(var_df):
+        var_df.to_csv(out / "fig2_var.csv", index=False)
+        plot_fig2(var_df, out / "fig2_var_logphat.png")
+    if len(scan_df):
+        scan_df.to_csv(out / "omega_scan.csv", index=False)
+        conf_df.to_csv(out / "omega_confirm.csv", index=False)
+        plot_scan(scan_df, matches, commons, conf_df, out / "scan_omega.png")
 
     lines = []
     P = lines.append
     P(f"[C21] §IV-A in simulation — 32-IMU MIMU4444, σ_g = 0.06 °/s, i.i.d. motion (ω 1000 °/s, ω̇ 35000 °/s², "
       f"s 20 m/s² per axis), prior N(design, 3 mm), truth = design + N(0, 0.1 mm), gyro posterior "
       f"'{args.gyro_method}', no clipping")
-    P(f"PmMH: accel_bayes.calibrate (proposal={post_df['proposal'].iloc[0]}, use_map={use_map}), {chains} chains × "
-      f"({warmup} warm-up + {draws} draws); {reps} data set(s) per (T, σ_a); mean over data sets shown")
-    P("")
-    P("Table I (σ_a = 0.04 m/s²) — ours | paper")
-    P(f"{'T':>5} {'N':>5} {'Var[log p̂]':>11} {'step µm':>8} {'acc':>6} {'rw acc':>7} {'ind acc':>7} |"
-      f" {'N':>5} {'Var':>5} {'step µm':>8} {'acc':>5}")
-    g04 = post_df[post_df["acc_std"] == 0.04].groupby("T")
-    for T, g in g04:
-        pp = PAPER_TABLE1[T]
-        P(f"{T:>5} {int(g['N'].median()):>5} {g['var_logphat'].mean():>11.3g} {g['step_um'].mean():>8.3g} "
-          f"{g['acceptance'].mean():>6.1%} {g['rw_acceptance'].mean():>7.1%} {g['ind_acceptance'].mean():>7.1%} |"
-          f" {pp['N']:>5} {pp['var']:>5.2f} {pp['step_um']:>8.2f} {pp['acc']:>5.0%}")
-    P("  (step µm = σ_q·√(mean diag Σ) of our shaped random walk, comparable with the paper's isotropic σ_q;"
-      " N from Var[log p̂] at the prior mean with the package target ≈ 1)")
-    P("")
-    P("Table II / MUST-SHOW (a) (σ_a = 0.79 m/s², ω 1000 °/s) — posterior std averaged over the 93 coordinates, µm")
-    P(f"{'T':>5} {'PmMH':>8} {'Laplace':>8} {'Lap(ω true)':>11} {'MAP-Lap':>8} {'PmMH/Lap':>9} {'pass':>5} |"
-      f" {'issue':>6} {'paper sim':>9} {'paper exp':>9} {'R̂max':>6} {'ESSmin':>7}")
-    verdict_a = True
-    g79 = post_df[post_df["acc_std"] == 0.79].groupby("T")
-    for T, g in g79:
-        r = g["pmmh_std_um"].mean() / g["laplace_std_um"].mean()
-        ok = abs(r - 1) <= 0.15 and not _convergence_flag(g["rhat_max"].max(), g["ess_bulk_min"].min())
-        verdict_a &= ok
-        P(f"{T:>5} {g['pmmh_std_um'].mean():>8.1f} {g['laplace_std_um'].mean():>8.1f} "
-          f"{g['laplace_true_omega_std_um'].mean():>11.1f} {g['map_laplace_std_um'].mean():>8.1f} {r:>9.3f} "
-          f"{'yes' if ok else 'NO':>5} | {ISSUE_LAPLACE[T]:>6.0f} {PAPER_TABLE2_SIM[T]:>9.1f} "
-          f"{PAPER_TABLE2_EXP[T]:>9.1f} {g['rhat_max'].max():>6.3f} {g['ess_bulk_min'].min():>7.0f}"
-          f"{_convergence_flag(g['rhat_max'].max(), g['ess_bulk_min'].min())}")
-    P(f"  MUST-SHOW (a): PmMH (converged: R̂ ≤ 1.05, ESS ≥ 100) within 15 % of the independent Laplace for every "
-      f"T: {'YES' if verdict_a else 'NO'}")
-    P("  per data set PmMH/Laplace: " + ", ".join(f"T={r.T} rep{r.rep}: {r.ratio_pmmh_laplace:.3f}"
-                                                   for r in post_df[post_df['acc_std'] == 0.79].itertuples()))
-    P("")
-    P("σ_a = 0.04 m/s² (Fig. 4 setting) — posterior std averaged over coordinates, µm")
-    for T, g in g04:
-        P(f"{T:>5} PmMH {g['pmmh_std_um'].mean():8.2f}  Laplace {g['laplace_std_um'].mean():8.2f}  "
-          f"ratio {g['pmmh_std_um'].mean() / g['laplace_std_um'].mean():.3f}  |mean − truth| "
-          f"{g['pmmh_mean_err_um'].mean():.2f} µm  R̂max {g['rhat_max'].max():.3f}")
-    P("")
-    P(f"MUST-SHOW (b): motion-amplitude scan (independent Laplace, σ_a = 0.79, {scan_reps} data set(s) per point); "
-      "ω std per axis in °/s (RMS |ω| = √3 ×)")
-    for mode in SCAN_MODES:
-        what = "ω std varied, ω̇ std fixed at 35000 °/s²" if mode == "omega" else \
-            "ω and ω̇ scaled together (ω̇ std = 35 s⁻¹ × ω std)"
-        P(f"  scan '{mode}' ({what}):")
-        sdf = scan_df[scan_df["mode"] == mode]
-        for T in Ts:
-            g = sdf[sdf["T"] == T].groupby("omega_std_dps")["laplace_std_um"].mean()
-            w = matches[mode].get(int(T), float("nan"))
-            txt = f"at ω std {w:.0f} °/s (RMS |ω| ≈ {w * math.sqrt(3):.0f} °/s)" if math.isfinite(w) else \
-                f"NOT reached in the scanned range (std {g.min():.0f}–{g.max():.0f} µm for ω {g.index.min():.0f}–" \
-                f"{g.index.max():.0f} °/s)"
-            P(f"    T={T:>4}: Laplace std = paper's {PAPER_TABLE2_SIM[T]:.1f} µm {txt}")
-        fin = [w for w in matches[mode].values() if math.isfinite(w)]
-        if len(fin) == len(Ts) and len(fin) >= 2:
-            spread = max(fin) / min(fin)
-            P(f"    matching ω across T: max/min = {spread:.2f} → "
-              f"{'one ω fits all T (within 10 %)' if spread < 1.10 else 'no single ω fits all T'}")
-        elif len(Ts) >= 2:
-            P(f"    no single ω fits all T: {len(Ts) - len(fin)} of {len(Ts)} T cannot be matched at all")
-        w, pred = commons[mode]
-        P(f"    best single ω (least squares in log std): {w:.0f} °/s (RMS |ω| ≈ {w * math.sqrt(3):.0f} °/s) → "
-          + ", ".join(f"T={T}: {pred[T]:.0f} µm (paper {PAPER_TABLE2_SIM[T]:.0f}, "
-                      f"{pred[T] / PAPER_TABLE2_SIM[T] - 1:+.0%})" for T in sorted(pred)))
-    iss = scan_df[(scan_df["mode"] == "omega") & np.isclose(scan_df["omega_std_dps"], ISSUE_OMEGA)]
-    if len(iss):
-        P(f"  The issue's independent check (≈ 810, 180, 57 µm) vs our Laplace at ω std {ISSUE_OMEGA:.0f} °/s per axis "
-          "(RMS |ω| = 1000 °/s, the other reading of 'ω ~ N(0, 1000 °/s)'): "
-          + ", ".join(f"T={T}: {g['laplace_std_um'].mean():.0f} µm (issue {ISSUE_LAPLACE[T]:.0f})"
-                      for T, g in iss.groupby("T")))
-    if len(conf_df):
-        P("  PmMH at the matched amplitude (on the scan's first data set, 'rep 0'):")
-        for r in conf_df.itertuples():
-            P(f"    T={r.T:>4} scan '{r.scan_mode}' ω={r.omega_std_dps:.0f} °/s, ω̇={r.omega_dot_std_dps2:.0f} °/s²: "
-              f"PmMH {r.pmmh_std_um:.1f} µm, Laplace {r.laplace_std_um:.1f} µm, paper {PAPER_TABLE2_SIM[r.T]:.1f} µm "
-              f"(PmMH/paper {r.pmmh_std_um / PAPER_TABLE2_SIM[r.T]:.2f}, PmMH/Laplace {r.ratio_pmmh_laplace:.3f}; "
-              f"R̂max {r.rhat_max:.3f}, min bulk ESS {r.ess_bulk_min:.0f}, acceptance {r.acceptance:.1%}"
-              f"{_convergence_flag(r.rhat_max, r.ess_bulk_min)})")
-    P("")
-    P(f"Fig. 2: Var[log p̂] vs N at the prior mean, {realisations} realisations per point (paper: 1000)")
-    for (T, sa), g in var_df.groupby(["T", "acc_std"]):
-        P(f"  T={T:>4} σ_a={sa:<5g} " + "  ".join(f"N={int(r.N)}: {r.var_logphat:.3g}" for r in g.itertuples()))
-    P("")
+    if len(post_df):
+        P(f"PmMH: accel_bayes.calibrate (proposal={post_df['proposal'].iloc[0]}, use_map={use_map}), {chains} chains × "
+          f"({warmup} warm-up + {draws} draws); {reps} data set(s) per (T, σ_a); mean over data sets shown")
+        P("")
+        P("Table I (σ_a = 0.04 m/s²) — ours | paper")
+        P(f"{'T':>5} {'N':>5} {'Var[log p̂]':>11} {'step µm':>8} {'acc':>6} {'rw acc':>7} {'ind acc':>7} |"
+          f" {'N':>5} {'Var':>5} {'step µm':>8} {'acc':>5}")
+        g04 = post_df[post_df["acc_std"] == 0.04].groupby("T")
+        for T, g in g04:
+            pp = PAPER_TABLE1[T]
+            P(f"{T:>5} {int(g['N'].median()):>5} {g['var_logphat'].mean():>11.3g} {g['step_um'].mean():>8.3g} "
+              f"{g['acceptance'].mean():>6.1%} {g['rw_acceptance'].mean():>7.1%} {g['ind_acceptance'].mean():>7.1%} |"
+              f" {pp['N']:>5} {pp['var']:>5.2f} {pp['step_um']:>8.2f} {pp['acc']:>5.0%}")
+        P("  (step µm = σ_q·√(mean diag Σ) of our shaped random walk, comparable with the paper's isotropic σ_q;"
+          " N from Var[log p̂] at the prior mean with the package target ≈ 1)")
+        P("")
+        P("Table II / MUST-SHOW (a) (σ_a = 0.79 m/s², ω 1000 °/s) — posterior std averaged over the 93 coordinates, µm")
+        P(f"{'T':>5} {'PmMH':>8} {'Laplace':>8} {'Lap(ω true)':>11} {'MAP-Lap':>8} {'PmMH/Lap':>9} {'pass':>5} |"
+          f" {'issue':>6} {'paper sim':>9} {'paper exp':>9} {'R̂max':>6} {'ESSmin':>7}")
+        verdict_a = True
+        g79 = post_df[post_df["acc_std"] == 0.79].groupby("T")
+        for T, g in g79:
+            r = g["pmmh_std_um"].mean() / g["laplace_std_um"].mean()
+            ok = abs(r - 1) <= 0.15 and not _convergence_flag(g["rhat_max"].max(), g["ess_bulk_min"].min())
+            verdict_a &= ok
+            P(f"{T:>5} {g['pmmh_std_um'].mean():>8.1f} {g['laplace_std_um'].mean():>8.1f} "
+              f"{g['laplace_true_omega_std_um'].mean():>11.1f} {g['map_laplace_std_um'].mean():>8.1f} {r:>9.3f} "
+              f"{'yes' if ok else 'NO':>5} | {ISSUE_LAPLACE[T]:>6.0f} {PAPER_TABLE2_SIM[T]:>9.1f} "
+              f"{PAPER_TABLE2_EXP[T]:>9.1f} {g['rhat_max'].max():>6.3f} {g['ess_bulk_min'].min():>7.0f}"
+              f"{_convergence_flag(g['rhat_max'].max(), g['ess_bulk_min'].min())}")
+        P(f"  MUST-SHOW (a): PmMH (converged: R̂ ≤ 1.05, ESS ≥ 100) within 15 % of the independent Laplace for every "
+          f"T: {'YES' if verdict_a else 'NO'}")
+        P("  per data set PmMH/Laplace: " + ", ".join(f"T={r.T} rep{r.rep}: {r.ratio_pmmh_laplace:.3f}"
+                                                       for r in post_df[post_df['acc_std'] == 0.79].itertuples()))
+        P("")
+        P("σ_a = 0.04 m/s² (Fig. 4 setting) — posterior std averaged over coordinates, µm")
+        for T, g in g04:
+            P(f"{T:>5} PmMH {g['pmmh_std_um'].mean():8.2f}  Laplace {g['laplace_std_um'].mean():8.2f}  "
+              f"ratio {g['pmmh_std_um'].mean() / g['laplace_std_um'].mean():.3f}  |mean − truth| "
+              f"{g['pmmh_mean_err_um'].mean():.2f} µm  R̂max {g['rhat_max'].max():.3f}")
+        P("")
+    if len(scan_df):
+        P(f"MUST-SHOW (b): motion-amplitude scan (independent Laplace, σ_a = 0.79, {scan_reps} data set(s) per point); "
+          "ω std per axis in °/s (RMS |ω| = √3 ×)")
+        for mode in SCAN_MODES:
+            what = "ω std varied, ω̇ std fixed at 35000 °/s²" if mode == "omega" else \
+                "ω and ω̇ scaled together (ω̇ std = 35 s⁻¹ × ω std)"
+            P(f"  scan '{mode}' ({what}):")
+            sdf = scan_df[scan_df["mode"] == mode]
+            for T in Ts:
+                bad = sdf[(sdf["T"] == T) & sdf["laplace_std_um"].isna()]
+                if len(bad):
+                    P(f"    T={T:>4}: NO local posterior mode near the design at ω ≤ {bad['omega_std_dps'].max():.0f} °/s "
+                      f"({len(bad)} scan point(s)): the flat-φ marginal's −(T/2)·log|M(θ)| pulls the geometry to collapse "
+                      "when rotation is weak (experiments/_laplace.py docstring)")
+                g = sdf[sdf["T"] == T].groupby("omega_std_dps")["laplace_std_um"].mean().dropna()
+                w = matches[mode].get(int(T), float("nan"))
+                txt = f"at ω std {w:.0f} °/s (RMS |ω| ≈ {w * math.sqrt(3):.0f} °/s)" if math.isfinite(w) else \
+                    f"NOT reached in the scanned range (std {g.min():.0f}–{g.max():.0f} µm for ω {g.index.min():.0f}–" \
+                    f"{g.index.max():.0f} °/s)"
+                P(f"    T={T:>4}: Laplace std = paper's {PAPER_TABLE2_SIM[T]:.1f} µm {txt}")
+            fin = [w for w in matches[mode].values() if math.isfinite(w)]
+            if len(fin) == len(Ts) and len(fin) >= 2:
+                spread = max(fin) / min(fin)
+                P(f"    matching ω across T: max/min = {spread:.2f} → "
+                  f"{'one ω fits all T (within 10 %)' if spread < 1.10 else 'no single ω fits all T'}")
+            elif len(Ts) >= 2:
+                P(f"    no single ω fits all T: {len(Ts) - len(fin)} of {len(Ts)} T cannot be matched at all")
+            w, pred = commons[mode]
+            if not pred:
+                continue
+            P(f"    best single ω (least squares in log std): {w:.0f} °/s (RMS |ω| ≈ {w * math.sqrt(3):.0f} °/s) → "
+              + ", ".join(f"T={T}: {pred[T]:.0f} µm (paper {PAPER_TABLE2_SIM[T]:.0f}, "
+                          f"{pred[T] / PAPER_TABLE2_SIM[T] - 1:+.0%})" for T in sorted(pred)))
+        iss = scan_df[(scan_df["mode"] == "omega") & np.isclose(scan_df["omega_std_dps"], ISSUE_OMEGA)]
+        if len(iss):
+            P(f"  The issue's independent check (≈ 810, 180, 57 µm) vs our Laplace at ω std {ISSUE_OMEGA:.0f} °/s per axis "
+              "(RMS |ω| = 1000 °/s, the other reading of 'ω ~ N(0, 1000 °/s)'): "
+              + ", ".join(f"T={T}: {g['laplace_std_um'].mean():.0f} µm (issue {ISSUE_LAPLACE[T]:.0f})"
+                          for T, g in iss.groupby("T")))
+        if len(conf_df):
+            P("  PmMH at the matched amplitude (on the scan's first data set, 'rep 0'):")
+            for r in conf_df.itertuples():
+                P(f"    T={r.T:>4} scan '{r.scan_mode}' ω={r.omega_std_dps:.0f} °/s, ω̇={r.omega_dot_std_dps2:.0f} °/s²: "
+                  f"PmMH {r.pmmh_std_um:.1f} µm, Laplace {r.laplace_std_um:.1f} µm, paper {PAPER_TABLE2_SIM[r.T]:.1f} µm "
+                  f"(PmMH/paper {r.pmmh_std_um / PAPER_TABLE2_SIM[r.T]:.2f}, PmMH/Laplace {r.ratio_pmmh_laplace:.3f}; "
+                  f"R̂max {r.rhat_max:.3f}, min bulk ESS {r.ess_bulk_min:.0f}, acceptance {r.acceptance:.1%}"
+                  f"{_convergence_flag(r.rhat_max, r.ess_bulk_min)})")
+        P("")
+    if len(var_df):
+        P(f"Fig. 2: Var[log p̂] vs N at the prior mean, {realisations} realisations per point (paper: 1000)")
+        for (T, sa), g in var_df.groupby(["T", "acc_std"]):
+            P(f"  T={T:>4} σ_a={sa:<5g} " + "  ".join(f"N={int(r.N)}: {r.var_logphat:.3g}" for r in g.itertuples()))
+        P("")
     P(f"wall time {time.perf_counter() - t_start:.0f} s; outputs in {out}")
     text = "\n".join(lines)
     print(text)

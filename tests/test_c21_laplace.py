@@ -17,7 +17,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "experiments"))
 
-from _laplace import laplace, laplace_from_recording, log_posterior  # noqa: E402
+from _laplace import laplace_from_recording, log_posterior  # noqa: E402
 
 from accel_bayes.arrays import mimu4444_8  # noqa: E402
 from accel_bayes.likelihood import RaoBlackwellLikelihood  # noqa: E402

@@ -194,7 +194,12 @@ def coverage_replicate(i: int, T: int = 30, prior_std: float = 3e-3, chains: int
     (500 °/s, 5000 °/s², 20 m/s²), σ_a = 0.3 m/s² (posterior sd ≈ 0.2–0.7 mm: informative but not
     degenerate), then the default calibration (MAP → N, mixture proposal) **with chains started
     from prior draws**, not the MAP.  Returns R̂, whether the central 90 % interval of
-    ``STUDY_COORD`` covers the truth, and the truth's rank among 99 thinned pooled draws."""
+    ``STUDY_COORD`` covers the truth, and the truth's rank among 99 thinned pooled draws.
+
+    Exactness caveat: [C21] integrates φ = [ω̇; s] out under a flat (improper) prior, which no
+    simulation can draw from; the simulated φ ~ N(0, F) carries extra information on the array
+    scale of precision ≈ 3T/|r|² (|r| = 20 mm: sd ≈ 2 mm at T = 30), ~2 % of the data's own
+    (posterior sd ≈ 0.3 mm) — far below what 100 data sets resolve."""
     arr = _square_array()
     g = torch.Generator().manual_seed(10_000 + i)
     true = arr.positions.clone()

@@ -121,4 +121,8 @@ def format_table(res) -> str:
     d = doc["diagnostics"]
     lines.append(f"max R-hat {d['rhat_max']:.3f}, min bulk ESS {d['ess_bulk_min']:.0f}, "
                  f"acceptance {', '.join(f'{a:.2f}' for a in d['acceptance_rate'])}")
+    rh = d["rhat_max"]
+    if rh is None or rh >= 1.01 or (d["ess_bulk_min"] or 0) < 100 * res.settings["chains"]:
+        lines.append("warning: R-hat >= 1.01 or ESS < 100 per chain: the chains have not mixed well enough "
+                     "for reliable moments; run longer (--draws/--warmup) and check trace.png/rank.png")
     return "\n".join(lines)
