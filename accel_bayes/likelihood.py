@@ -62,7 +62,7 @@ import numpy as np
 import torch
 
 from .errors import UserError
-from .models import G_matrix, H_matrix, u_of_omega
+from .models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
 
 __all__ = [
     "positions_from_theta",
@@ -235,15 +235,7 @@ class RaoBlackwellLikelihood:
         if omega.mean.shape != (T, 3) or omega.cov.shape != (T, 3, 3):
             raise UserError(f"omega: expected a GyroPosterior with mean (T, 3) and cov (T, 3, 3) for T={T}, "
                             f"got {tuple(omega.mean.shape)} and {tuple(omega.cov.shape)}")
-        std = torch.as_tensor(acc_noise_std, dtype=dtype, device=device)
-        if std.dim() == 0:
-            std = std.expand(A, 3)
-        elif std.shape == (A,):
-            std = std.unsqueeze(-1).expand(A, 3)
-        elif std.shape != (A, 3):
-            raise UserError(f"acc_noise_std: expected shape ({A},) or ({A}, 3), got {tuple(std.shape)}")
-        if bool((std <= 0).any()):
-            raise UserError("acc_noise_std: expected > 0 for every triad")
+        std = acc_noise_std_per_axis(acc_noise_std, A, dtype=dtype, device=device)
         num_draws = int(num_draws)
         if num_draws < 1:
             raise UserError(f"num_draws: expected an integer >= 1, got {num_draws}")

@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import torch
 
+from .errors import UserError
 from .geometry import quat_to_matrix, skew
 
 __all__ = [
+    "acc_noise_std_per_axis",
     "specific_force",
     "imu_outputs",
     "to_array_frame",
@@ -201,3 +203,23 @@ def process_covariance(dt: torch.Tensor | float, variances: dict | None = None, 
     dt = torch.as_tensor(dt, dtype=dtype, device=device)
     diag = torch.tensor([v["acc"]] * 3 + [v["int"]] * 3 + [v["omega_dot"]] * 3, dtype=dtype, device=device)
     return torch.diag_embed(dt.unsqueeze(-1) ** 2 * diag)
+
+
+def acc_noise_std_per_axis(acc_noise_std, A: int, *, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Accelerometer white-noise standard deviations broadcast to (A, 3), m/s².
+
+    The one place that interprets a user's noise level for the array model (DESIGN §3.1: e ~ N(0,
+    diag σ²)): a scalar (all triads and axes), an (A,) per-triad value or an (A, 3) per-axis value.
+    Raises :class:`UserError` naming ``acc_noise_std`` for any other shape, or for values that are
+    not finite and > 0.
+    """
+    std = torch.as_tensor(acc_noise_std, dtype=dtype, device=device)
+    if std.dim() == 0:
+        std = std.expand(A, 3)
+    elif std.shape == (A,):
+        std = std.unsqueeze(-1).expand(A, 3)
+    elif std.shape != (A, 3):
+        raise UserError(f"acc_noise_std: expected a scalar, ({A},) or ({A}, 3), got {tuple(std.shape)}")
+    if bool((std <= 0).any()) or not bool(torch.isfinite(std).all()):
+        raise UserError("acc_noise_std: expected finite values > 0 for every triad")
+    return std

@@ -83,12 +83,14 @@ def _ess_min(draws):
 
 # ---------------------------------------------------------------------------- ours
 
-def run_ours(rec, chains=4, draws=1000, warmup=1000, seed=0):
+def run_ours(rec, chains=4, draws=1000, warmup=1000, seed=0, **options):
+    """calibrate() with its defaults (``options`` override them: the MAP ablation passes
+    ``use_map=False, proposal="rw", init="prior"``)."""
     from accel_bayes.calibrate import calibrate
 
     t0 = time.perf_counter()
     res = calibrate(rec, chains=chains, draws=draws, warmup=warmup, seed=seed, gyro_method="calibrated",
-                    progress=False)
+                    progress=False, **options)
     sec = time.perf_counter() - t0
     th = res.run.theta.numpy()
     C, D = th.shape[:2]
@@ -242,6 +244,9 @@ def main(argv=None):
     p.add_argument("--skip-ess400", action="store_true", help="skip the A = 32, T = 500 time-to-ESS-400 run")
     p.add_argument("--ess400-draws", type=int, default=2000,
                    help="kept draws per chain of the A = 32, T = 500 run (default 2000)")
+    p.add_argument("--no-map-ablation", dest="map_ablation", action="store_false",
+                   help="skip the run without the MAP (prior-drawn starts, random walk with a warm-up-adapted "
+                        "covariance) that measures what the MAP start and Laplace-shaped proposal buy")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -272,7 +277,13 @@ def main(argv=None):
         print(f"INFO reference {name}: independent Laplace std {lap:.2f} µm → ours/Laplace "
               f"{ours['std_um'] / lap:.3f}, pyro_nuts/Laplace {nuts['std_um'] / lap:.3f} (a chain far from 1 has not "
               "explored the posterior, and its ESS overstates it)", flush=True)
-        results.append((name, ours, nuts))
+        nomap = None
+        if args.map_ablation:
+            nomap = run_ours(rec, seed=args.seed, use_map=False, proposal="rw", init="prior")
+            print(f"INFO ours_no_map {name}: {nomap['seconds']:.1f} s, min bulk ESS {nomap['ess_min']:.0f}, R̂max "
+                  f"{nomap['rhat']:.3f}, N = {nomap['N']}, acceptance {nomap['acceptance']:.2f}, mean posterior std "
+                  f"{nomap['std_um']:.2f} µm", flush=True)
+        results.append((name, ours, nuts, nomap))
 
     if not args.skip_ess400:
         rec = _simulate("mimu32", 500, args.acc_std, args.seed).recording
@@ -282,11 +293,16 @@ def main(argv=None):
               f"setup (MAP, N) {r['setup_seconds']:.1f} s", flush=True)
 
     print(f"[bench_posterior] total {time.perf_counter() - t_all:.0f} s")
-    for name, ours, nuts in results:
+    for name, ours, nuts, nomap in results:
         xo = ours["ess_min"] / ours["seconds"]
         xn = nuts["ess_min"] / nuts["seconds"]
         print(f"RESULT posterior_ess_per_s_{name}: ours {_fmt(xo)} ESS/s, pyro_nuts {_fmt(xn)} ESS/s, "
               f"speedup {xo / xn:.1f}x")
+        if nomap is not None:
+            xm = nomap["ess_min"] / nomap["seconds"]
+            print(f"RESULT posterior_map_effect_{name}: ours (MAP start + Laplace-shaped mixture) {_fmt(xo)} ESS/s, "
+                  f"no_map (prior starts, adapted random walk) {_fmt(xm)} ESS/s, speedup {xo / xm:.1f}x "
+                  f"(R̂max {ours['rhat']:.3f} vs {nomap['rhat']:.3f})")
     if not args.skip_ess400:
         if r["draws_needed"] is not None:
             print(f"INFO posterior_time_to_ess400_A32_T500: ours {r['seconds_to_target']:.1f} s (4 chains × (1000 + "

@@ -117,3 +117,20 @@ def test_presets_and_geometry_checks():
         a8.with_(reference_imu=8)
     with pytest.raises(ValueError, match="preset"):
         arrays.preset("nope")
+
+
+def test_acc_noise_std_per_axis_broadcasts_and_names_bad_input():
+    from accel_bayes.errors import UserError
+    from accel_bayes.models import acc_noise_std_per_axis
+
+    A = 4
+    assert torch.equal(acc_noise_std_per_axis(0.1, A), torch.full((A, 3), 0.1, dtype=torch.float64))
+    per = torch.arange(1, A + 1, dtype=torch.float64)
+    assert torch.equal(acc_noise_std_per_axis(per, A)[:, 2], per)
+    full = torch.rand(A, 3, dtype=torch.float64) + 0.1
+    assert torch.equal(acc_noise_std_per_axis(full, A), full)
+    for bad, why in ((torch.ones(A + 1), "expected a scalar"), (torch.ones(3, A), "expected a scalar"),
+                     (0.0, "> 0"), (float("nan"), "finite"), (-1.0, "> 0")):
+        with pytest.raises(UserError, match="acc_noise_std") as e:
+            acc_noise_std_per_axis(bad, A)
+        assert why.split()[-1] in str(e.value)

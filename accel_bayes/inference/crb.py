@@ -32,7 +32,7 @@ import torch
 
 from ..errors import UserError
 from ..geometry import skew
-from ..models import G_matrix, H_matrix
+from ..models import G_matrix, H_matrix, acc_noise_std_per_axis
 from .linear import SchurComplementSolver, cholesky
 
 __all__ = ["du_domega", "fisher_blocks", "fisher_information_theta", "crb_theta"]
@@ -53,19 +53,6 @@ def du_domega(omega: torch.Tensor) -> torch.Tensor:
         ),
         -2,
     )
-
-
-def _acc_std(acc_noise_std, A, dtype, device):
-    std = torch.as_tensor(acc_noise_std, dtype=dtype, device=device)
-    if std.dim() == 0:
-        std = std.expand(A, 3)
-    elif std.shape == (A,):
-        std = std.unsqueeze(-1).expand(A, 3)
-    elif std.shape != (A, 3):
-        raise UserError(f"acc_noise_std: expected a scalar, ({A},) or ({A}, 3), got {tuple(std.shape)}")
-    if bool((std <= 0).any()):
-        raise UserError("acc_noise_std: expected > 0")
-    return std
 
 
 def _gyro_information(T, gyro_noise_std, gyro_cov, dtype, device):
@@ -110,7 +97,7 @@ def fisher_blocks(positions, omega, omega_dot, s, acc_noise_std, gyro_noise_std=
         if v.shape != (T, 3):
             raise UserError(f"{nm}: expected shape ({T}, 3), got {tuple(v.shape)}")
     r = r - r[reference]
-    sl = _acc_std(acc_noise_std, A, dtype, r.device).reshape(3 * A).reciprocal()  # Λ^{1/2}
+    sl = acc_noise_std_per_axis(acc_noise_std, A, dtype=dtype, device=r.device).reshape(3 * A).reciprocal()  # Λ^{1/2}
     # ∂f_k/∂r_k = Ω(ω)² + Ω(ω̇), the same 3×3 for every triad (T, 3, 3)
     Sw = skew(w)
     Jr = Sw @ Sw + skew(wd)

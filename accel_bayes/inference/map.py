@@ -39,7 +39,7 @@ import torch
 
 from ..errors import UserError
 from ..geometry import skew
-from ..models import G_matrix, H_matrix, u_of_omega
+from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
 from .crb import du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
 from .linear import NotPositiveDefinite, SchurComplementSolver, cholesky
@@ -103,19 +103,6 @@ class MAPResult:
         return torch.sqrt(torch.diagonal(self.position_cov(), dim1=-2, dim2=-1).clamp_min(0))
 
 
-def _noise_sqrt_info(acc_noise_std, A, dtype, device) -> torch.Tensor:
-    std = torch.as_tensor(acc_noise_std, dtype=dtype, device=device)
-    if std.dim() == 0:
-        std = std.expand(A, 3)
-    elif std.shape == (A,):
-        std = std.unsqueeze(-1).expand(A, 3)
-    elif std.shape != (A, 3):
-        raise UserError(f"acc_noise_std: expected a scalar, ({A},) or ({A}, 3), got {tuple(std.shape)}")
-    if bool((std <= 0).any()) or not bool(torch.isfinite(std).all()):
-        raise UserError("acc_noise_std: expected finite values > 0")
-    return std.reshape(3 * A).reciprocal()
-
-
 def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0, prior_mean=None, prior_std=3e-3,
                       init_positions=None, init_omega=None, analytic: bool = True, local_newton: bool = True,
                       dtype=torch.float64, device=None) -> Problem:
@@ -164,7 +151,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     if bool((info != 0).any()):
         raise UserError("omega_cov: expected symmetric positive-definite 3×3 covariances")
     Linv = torch.linalg.solve_triangular(LP, torch.eye(3, dtype=dtype, device=acc.device).expand(T, 3, 3), upper=False)
-    sqrt_lam = _noise_sqrt_info(acc_noise_std, A, dtype, acc.device)
+    sqrt_lam = acc_noise_std_per_axis(acc_noise_std, A, dtype=dtype, device=acc.device).reshape(3 * A).reciprocal()
 
     if prior_mean is not None:
         prior_mean = torch.as_tensor(prior_mean, dtype=dtype, device=acc.device)

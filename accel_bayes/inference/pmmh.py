@@ -454,11 +454,17 @@ class PMMHKernel(MCMCKernel):
         """Pyro never calls it; warm-up ends after ``warmup_steps`` sample() calls."""
 
     def logging(self):
-        return OrderedDict([
-            ("acc. rate", "{:.3f}".format(self._n_accept["warmup" if self.warming_up else "sample"][0]
-                                           / max(1, self._n_accept["warmup" if self.warming_up else "sample"][1]))),
+        phase = "warmup" if self.warming_up else "sample"
+        out = OrderedDict([
+            ("acc. rate", "{:.3f}".format(self._n_accept[phase][0] / max(1, self._n_accept[phase][1]))),
             ("step", "{:.2e}".format(math.exp(self._log_step))),
         ])
+        if self.independence_prob > 0 and not self.warming_up:
+            # The 7–23 % target of the step adaptation concerns the random-walk moves; the overall
+            # rate above also counts the (mostly accepted) independence moves.
+            a, m = self._n_move[MOVE_RW]
+            out["rw acc."] = "{:.3f}".format(a / m if m else float("nan"))
+        return out
 
     def diagnostics(self):
         acc, n = self._n_accept["sample"]
