@@ -63,6 +63,7 @@ import torch
 from .errors import UserError
 from .geometry import quat_to_matrix, skew
 from .models import specific_force
+from .positions import POSITIONS_SCHEMA, read_positions
 from .recording import Recording
 
 __all__ = [
@@ -78,7 +79,6 @@ __all__ = [
 ]
 
 MOTION_SCHEMA = "accel_bayes.motion/1"
-POSITIONS_SCHEMA = "accel_bayes.positions/1"
 PARAMS = ("omega_x", "omega_y", "omega_z", "omega_dot_x", "omega_dot_y", "omega_dot_z", "s_x", "s_y", "s_z")
 _CLIP_FRACTION = 0.99  # in a flagged triad, an axis within 1 % of the range counts as clipped (int16 codes
 # sit a little inside the nominal range: 32767/16.4 = 1997.99 °/s of 2000)
@@ -103,41 +103,23 @@ class Calibration:
         return int(self.positions.shape[0])
 
 
-def _numbers(v, shape, where, what):
-    try:
-        a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        a = None
-    if a is None or a.shape != shape or not np.isfinite(a).all():
-        raise UserError(f"{where}: expected {what}")
-    return a
-
-
 def load_calibration(calibration, K: int | None = None) -> Calibration:
     """Read a calibration: a positions.json path, its parsed dict (DESIGN §7.3, schema
     ``accel_bayes.positions/1``), a (K, 3) positions array (no uncertainty), or a
     :class:`Calibration`.  Raises :class:`UserError` naming the offending field."""
     if isinstance(calibration, Calibration):
         cal = calibration
-    elif isinstance(calibration, (str, Path)):
-        p = Path(calibration)
-        if not p.exists():
-            raise FileNotFoundError(f"{p}: no such calibration file")
-        if p.is_dir():
-            raise IsADirectoryError(f"{p}: is a directory; expected a positions.json file")
-        try:
-            d = json.loads(p.read_text(encoding="utf-8"))
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise UserError(f"{p}: not valid JSON ({exc})") from None
-        try:
-            cal = _from_dict(d)
-        except UserError as exc:
-            raise UserError(f"{p}: {exc}") from None
-        from .io import recording_sha256
+    elif isinstance(calibration, (str, Path, dict)):
+        doc = read_positions(calibration)  # the one reader of the positions.json contract
+        ori = doc["orientations"]
+        cal = Calibration(positions=doc["means"], cov=doc["covs"],
+                          orientations=ori if np.isfinite(ori).all(-1).any() else None,
+                          reference_imu=doc.get("reference_imu", 0), method=str(doc.get("method", "unknown")),
+                          source="positions dict")
+        if not isinstance(calibration, dict):
+            from .io import recording_sha256
 
-        cal.source = f"{p} (sha256 {recording_sha256(p)})"
-    elif isinstance(calibration, dict):
-        cal = _from_dict(calibration)
+            cal.source = f"{calibration} (sha256 {recording_sha256(calibration)})"
     else:
         try:
             pos = np.asarray(calibration.detach().cpu() if torch.is_tensor(calibration) else calibration, dtype=np.float64)
@@ -151,52 +133,6 @@ def load_calibration(calibration, K: int | None = None) -> Calibration:
     if K is not None and cal.K != K:
         raise UserError(f"calibration.imus: lists {cal.K} IMUs, the recording has {K}")
     return cal
-
-
-def _from_dict(d) -> Calibration:
-    if not isinstance(d, dict):
-        raise UserError(f"calibration: expected a JSON object, got {type(d).__name__}")
-    if d.get("schema") != POSITIONS_SCHEMA:
-        raise UserError(f"calibration.schema: expected {POSITIONS_SCHEMA!r}, got {d.get('schema')!r}")
-    imus = d.get("imus")
-    if not isinstance(imus, list) or not imus:
-        raise UserError("calibration.imus: expected a non-empty list of IMU entries")
-    K = len(imus)
-    ref = d.get("reference_imu", 0)
-    if isinstance(ref, bool) or not isinstance(ref, int) or not 0 <= ref < K:
-        raise UserError(f"calibration.reference_imu: expected an IMU label 0..{K - 1}, got {ref!r}")
-    pos = np.full((K, 3), np.nan)
-    cov = np.zeros((K, 3, 3))
-    ori = np.full((K, 4), np.nan)
-    for i, e in enumerate(imus):
-        w = f"calibration.imus[{i}]"
-        if not isinstance(e, dict):
-            raise UserError(f"{w}: expected an object with imu, mean, std/cov")
-        if e.get("imu") != i or isinstance(e.get("imu"), bool):
-            raise UserError(f"{w}.imu: expected {i} (every IMU listed once, sorted by label), got {e.get('imu')!r}")
-        if e.get("mean") is None:  # no accelerometer triad (DESIGN §7.3 writers put null moments)
-            continue
-        pos[i] = _numbers(e["mean"], (3,), f"{w}.mean", "3 finite numbers (m)")
-        if e.get("cov") is not None:
-            c = _numbers(e["cov"], (3, 3), f"{w}.cov", "a 3x3 matrix of finite numbers (m^2)")
-            scale = max(float(np.abs(c).max()), 1e-300)
-            if not np.allclose(c, c.T, rtol=1e-6, atol=1e-12 * scale) or np.linalg.eigvalsh(0.5 * (c + c.T)).min() < -1e-9 * scale:
-                raise UserError(f"{w}.cov: expected a symmetric positive semi-definite 3x3 matrix (m^2)")
-            cov[i] = 0.5 * (c + c.T)
-        elif e.get("std") is not None:
-            s = _numbers(e["std"], (3,), f"{w}.std", "3 finite standard deviations >= 0 (m)")
-            if (s < 0).any():
-                raise UserError(f"{w}.std: expected 3 finite standard deviations >= 0 (m)")
-            cov[i] = np.diag(s * s)
-        if e.get("orientation") is not None:
-            q = _numbers(e["orientation"], (4,), f"{w}.orientation", "a quaternion (w, x, y, z) of 4 finite numbers")
-            n = np.linalg.norm(q)
-            if not 0.5 < n < 2.0:
-                raise UserError(f"{w}.orientation: expected a unit quaternion (w, x, y, z), norm {n:.3g}")
-            ori[i] = q / n
-    has_ori = np.isfinite(ori).all(-1)
-    return Calibration(positions=pos, cov=cov, orientations=ori if has_ori.any() else None, reference_imu=ref,
-                       method=str(d.get("method", "unknown")), source="positions dict")
 
 
 # ------------------------------------------------------------------------------ kernel

@@ -94,41 +94,85 @@ def write_positions(doc: dict, path) -> Path:
     return path
 
 
-def read_positions(source) -> dict:
-    """Read and check a positions document from a path or a dict.
+def _numbers(v, shape, where, what):
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.shape != shape or not np.isfinite(a).all():
+        raise UserError(f"{where}: expected {what}")
+    return a
 
-    Returns the dict with two extra numpy entries: ``means`` (K, 3) and ``covs`` (K, 3, 3).
-    """
-    if isinstance(source, dict):
-        doc = dict(source)
-        where = "calibration"
-    else:
-        p = Path(source)
-        if not p.is_file():
-            raise FileNotFoundError(f"calibration file not found: {p}")
-        try:
-            doc = json.loads(p.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise UserError(f"{p}: not a JSON document ({exc.msg} at line {exc.lineno})") from None
-        where = str(p)
+
+def _parse(doc) -> dict:
+    """Check a positions document and add numpy ``means``, ``covs``, ``orientations``."""
+    if not isinstance(doc, dict):
+        raise UserError(f"calibration: expected a JSON object, got {type(doc).__name__}")
+    doc = dict(doc)
     if doc.get("schema") != POSITIONS_SCHEMA:
-        raise UserError(f"{where}: schema: expected {POSITIONS_SCHEMA!r}, got {doc.get('schema')!r}")
+        raise UserError(f"calibration.schema: expected {POSITIONS_SCHEMA!r}, got {doc.get('schema')!r}")
     imus = doc.get("imus")
     if not isinstance(imus, list) or not imus:
-        raise UserError(f"{where}: imus: expected a non-empty list of IMU entries")
+        raise UserError("calibration.imus: expected a non-empty list of IMU entries")
     K = len(imus)
-    means = np.zeros((K, 3))
+    ref = doc.get("reference_imu", 0)
+    if isinstance(ref, bool) or not isinstance(ref, int) or not 0 <= ref < K:
+        raise UserError(f"calibration.reference_imu: expected an IMU label 0..{K - 1}, got {ref!r}")
+    means = np.full((K, 3), np.nan)
     covs = np.zeros((K, 3, 3))
-    for i, e in enumerate(sorted(imus, key=lambda e: e.get("imu", -1))):
-        if e.get("imu") != i:
-            raise UserError(f"{where}: imus: expected labels 0..{K - 1} each once, got {[e.get('imu') for e in imus]}")
-        try:
-            means[i] = np.asarray(e["mean"], dtype=float).reshape(3)
-            if "cov" in e:
-                covs[i] = np.asarray(e["cov"], dtype=float).reshape(3, 3)
-            else:
-                covs[i] = np.diag(np.asarray(e.get("std", [0, 0, 0]), dtype=float).reshape(3) ** 2)
-        except (KeyError, ValueError, TypeError) as exc:
-            raise UserError(f"{where}: imus[{i}]: expected 'mean' (3 numbers) and 'cov' (3×3) or 'std' ({exc})") from None
-    doc["means"], doc["covs"] = means, covs
+    ori = np.full((K, 4), np.nan)
+    for i, e in enumerate(imus):
+        w = f"calibration.imus[{i}]"
+        if not isinstance(e, dict):
+            raise UserError(f"{w}: expected an object with imu, mean, std/cov")
+        if e.get("imu") != i or isinstance(e.get("imu"), bool):
+            raise UserError(f"{w}.imu: expected {i} (every IMU listed once, sorted by label), got {e.get('imu')!r}")
+        if e.get("mean") is None:  # no accelerometer triad: writers put null moments
+            continue
+        means[i] = _numbers(e["mean"], (3,), f"{w}.mean", "3 finite numbers (m)")
+        if e.get("cov") is not None:
+            c = _numbers(e["cov"], (3, 3), f"{w}.cov", "a 3x3 matrix of finite numbers (m^2)")
+            scale = max(float(np.abs(c).max()), 1e-300)
+            if not np.allclose(c, c.T, rtol=1e-6, atol=1e-12 * scale) \
+                    or np.linalg.eigvalsh(0.5 * (c + c.T)).min() < -1e-9 * scale:
+                raise UserError(f"{w}.cov: expected a symmetric positive semi-definite 3x3 matrix (m^2)")
+            covs[i] = 0.5 * (c + c.T)
+        elif e.get("std") is not None:
+            sd = _numbers(e["std"], (3,), f"{w}.std", "3 finite standard deviations >= 0 (m)")
+            if (sd < 0).any():
+                raise UserError(f"{w}.std: expected 3 finite standard deviations >= 0 (m)")
+            covs[i] = np.diag(sd * sd)
+        if e.get("orientation") is not None:
+            q = _numbers(e["orientation"], (4,), f"{w}.orientation", "a quaternion (w, x, y, z) of 4 finite numbers")
+            n = np.linalg.norm(q)
+            if not 0.5 < n < 2.0:
+                raise UserError(f"{w}.orientation: expected a unit quaternion (w, x, y, z), norm {n:.3g}")
+            ori[i] = q / n
+    doc["means"], doc["covs"], doc["orientations"] = means, covs, ori
     return doc
+
+
+def read_positions(source) -> dict:
+    """Read and check a positions document (DESIGN §7.3) from a path or a parsed dict.
+
+    Returns the document with three extra numpy entries: ``means`` (K, 3) m (NaN rows for IMUs
+    without an accelerometer), ``covs`` (K, 3, 3) m² (from ``cov``, else ``diag(std²)``, else 0) and
+    ``orientations`` (K, 4) unit quaternions (NaN rows where none is given).  Raises
+    :class:`UserError` naming the offending field (``calibration.imus[3].mean`` …), prefixed with the
+    file name when read from a file; FileNotFoundError / IsADirectoryError for a bad path.
+    """
+    if isinstance(source, dict):
+        return _parse(source)
+    p = Path(source)
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such calibration file")
+    if p.is_dir():
+        raise IsADirectoryError(f"{p}: is a directory; expected a positions.json file")
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise UserError(f"{p}: not valid JSON ({exc})") from None
+    try:
+        return _parse(doc)
+    except UserError as exc:
+        raise UserError(f"{p}: {exc}") from None
