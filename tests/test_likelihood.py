@@ -475,3 +475,61 @@ def test_user_gyro_posterior_correlated_cov_and_validation(small):
     line[:, 0] = torch.arange(5, dtype=DT) * 0.01
     with pytest.raises(UserError):
         lk.log_phat(line, z=z)
+
+
+# ---------------------------------------------------------------- 5. proper Gaussian prior on φ
+
+def test_phi_prior_matches_dense_gaussian_marginal():
+    """With φ_t ~ N(0, F), log p(y_t | ω_t, θ) = log N(y_t; G u(ω_t), Q + H F Hᵀ) exactly
+    (dense covariance, torch.distributions, built from models.H_matrix only): differences
+    between two θ agree with ours to round-off; the flat default differs from it."""
+    T, sigma = 4, 0.1
+    acc, gyro, w = _simulate(POS4, T, sigma, 0.01, 2, seed=31)
+    om = gyro_posterior(gyro, torch.full((2,), 0.01, dtype=DT), "calibrated")
+    sd = (3.0, 2.0)  # σ_ω̇ rad/s², σ_s m/s²
+    lik = RaoBlackwellLikelihood(acc, om, torch.full((4,), sigma, dtype=DT), num_draws=1, phi_prior_std=sd)
+    flat = RaoBlackwellLikelihood(acc, om, torch.full((4,), sigma, dtype=DT), num_draws=1)
+    F = torch.diag(torch.tensor([sd[0]] * 3 + [sd[1]] * 3, dtype=DT) ** 2)
+    th = [POS4, POS4 * 1.3 + 0.005 * torch.randn(4, 3, generator=_gen(32), dtype=DT)]
+
+    def dense(pos):
+        r = pos - pos[0]
+        H, G = H_matrix(r), G_matrix(r)
+        cov = sigma**2 * torch.eye(12, dtype=DT) + H @ F @ H.T
+        mean = u_of_omega(w) @ G.T
+        return float(torch.distributions.MultivariateNormal(mean, cov).log_prob(acc.reshape(T, 12)).sum())
+
+    d_exact = dense(th[0]) - dense(th[1])
+    d_ours = float(lik.log_lik_given_omega(th[0], w) - lik.log_lik_given_omega(th[1], w))
+    d_flat = float(flat.log_lik_given_omega(th[0], w) - flat.log_lik_given_omega(th[1], w))
+    assert abs(d_ours - d_exact) < 1e-8 * max(1.0, abs(d_exact)), (d_ours, d_exact)
+    assert abs(d_flat - d_exact) > 0.1  # the prior on φ matters at this scale
+
+    # The O(1)-per-draw path (projection → c, b, C) gives the same quadratic form under the prior.
+    pr = lik.projection(th[1])
+    u = u_of_omega(w)
+    q = pr["c"] - 2 * (pr["b"] * u).sum(-1) + torch.einsum("ti,ij,tj->t", u, pr["C"], u)
+    quad, logdet = lik._quad_given_omega(th[1], w)
+    assert abs(float(q.sum() - quad)) < 1e-7 * float(quad)
+    assert abs(float(pr["logdetM"] - logdet)) < 1e-10
+
+
+def test_phi_prior_log_phat_equals_dense_form():
+    """log p̂ under the prior equals eq. 26 done densely with S_F = Λ − ΛH(M + F⁻¹)⁻¹HᵀΛ."""
+    acc, gyro, w = _simulate(POS4, 6, 0.05, 0.05, 3, seed=33)
+    om = gyro_posterior(gyro, torch.full((3,), 0.05, dtype=DT), "calibrated")
+    sd = torch.tensor([2.0, 3.0, 4.0, 1.0, 2.0, 5.0], dtype=DT)
+    lik = RaoBlackwellLikelihood(acc, om, torch.full((4,), 0.05, dtype=DT), num_draws=40, phi_prior_std=sd)
+    z = lik.sample_z(generator=_gen(34))
+    r = POS4 - POS4[0]
+    H, G = H_matrix(r), G_matrix(r)
+    Lam = torch.diag(lik.lam)
+    MF = H.T @ Lam @ H + torch.diag(sd ** -2)
+    S = Lam - Lam @ H @ torch.linalg.inv(MF) @ H.T @ Lam
+    omg = lik.omega.mean[:, None, :] + (lik.omega_chol[:, None] @ z.unsqueeze(-1)).squeeze(-1)
+    res = lik.y[:, None, :] - u_of_omega(omg) @ G.T
+    q = torch.einsum("tni,ij,tnj->tn", res, S, res)
+    dense = (torch.logsumexp(-0.5 * q, -1) - math.log(40)).sum() - 0.5 * lik.T * torch.linalg.slogdet(MF)[1]
+    assert abs(float(lik.log_phat(POS4, z=z)) - float(dense)) < 1e-9
+    with pytest.raises(UserError, match="phi_prior_std"):
+        RaoBlackwellLikelihood(acc, om, 0.05, num_draws=4, phi_prior_std=(1.0, 0.0))
