@@ -36,13 +36,28 @@ bias… vectors) points at the axis of its largest component.
 
 Run::
 
-    python experiments/mismatch_proof.py --quick             # mimu8, 2/effect, 4 clean, T=1500, no twins (~30 min)
+    python experiments/mismatch_proof.py --quick             # mimu8, 2/effect, 4 clean, T=1500, no twins (~10–15 min)
     python experiments/mismatch_proof.py                     # 10/effect, 30 clean, three boards
     python experiments/mismatch_proof.py --per-effect 20 --clean 60 --out experiments/out/mismatch_proof
     python experiments/mismatch_proof.py --generate-only --save-cases /tmp/cases   # data only, no detector
 
 Cases run as dask.distributed tasks (``_dask.py``: a LocalCluster of ``--workers`` single-thread
-processes, or ``--scheduler ADDRESS``; ``--workers 0`` runs them here).
+processes, default 1, or ``--scheduler ADDRESS``; ``--workers 0`` runs them in this process).
+
+Resuming.  With ``--out DIR`` every finished case is appended at once as one row of
+``DIR/cases.csv`` (fixed columns :data:`COLUMNS`), and the options that define the benchmark are
+kept in ``DIR/options.json``.  Rerunning with the same options skips the cases already in the CSV
+(a crashed case counts as done — and as a failure — unless ``--retry-errors``), so the full
+benchmark accumulates over several runs or sessions; ``--max-cases N`` and ``--time-budget S``
+bound one run.  Different options with the same ``DIR`` are refused (use another directory).
+Cases are run interleaved (first case of every effect, then the second, …) so a partial run
+covers every effect.  The summary — confusion matrix, localisation, false alarms, fits before
+and after — is computed from all rows present and says how many of the cases the issue requires
+(≥ 10 per effect, ≥ 30 clean) are done::
+
+    nohup env OMP_NUM_THREADS=1 python3 experiments/mismatch_proof.py --no-twin \
+        --out experiments/out/mismatch_proof_full > /tmp/mp_full.log 2>&1 &   # rerun = resume
+    python experiments/mismatch_proof.py --rescore experiments/out/mismatch_proof_full/cases.csv
 """
 from __future__ import annotations
 
@@ -50,6 +65,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import sys
 import time
 import traceback
@@ -61,7 +77,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _conceal import AXIS_EFFECTS, BOARDS, DEG, EFFECTS, make_case, oracle_noncentrality, save_case  # noqa: E402
-from _dask import add_dask_arguments, dask_client, map_tasks  # noqa: E402
+from _dask import add_dask_arguments, dask_client  # noqa: E402
 
 AXIS_SCORED = tuple(e for e in AXIS_EFFECTS if e != "saturation")
 TARGETS = {"effect": 0.90, "localisation": 0.90, "clean_quiet": 0.95, "chi2_after": 0.90, "position_after": 0.90}
@@ -71,6 +87,18 @@ POS_FACTOR = 1.5
 # _conceal.oracle_noncentrality) is at least this many times the report's threshold: a detector
 # that knew the effect's shape would then pass the threshold with probability ≳ 95 %.
 DETECTABLE_FACTOR = 2.0
+# What the issue requires of the concealed benchmark.
+REQUIRED_PER_EFFECT = 10
+REQUIRED_CLEAN = 30
+# The columns of cases.csv, in order (a fixed header, so rows can be appended run after run).
+COLUMNS = ("case", "board", "effect_true", "seed", "imu_true", "axis_true", "magnitude", "T", "rate", "sigma_a",
+           "sigma_g_dps", "omega_rms_dps", "K", "lambda_oracle", "seconds", "mismatch_detected", "top_effect",
+           "top_imu", "top_axis", "top_evidence", "top_axis_scored", "top_parameters", "param_ratio",
+           "second_effect", "n_findings", "threshold", "chi2_before", "chi2_after", "findings",
+           "pos_err_before_um", "pos_err_after_um", "seconds_twin", "twin_mismatch_detected", "pos_err_clean_um",
+           "error")
+# Options that define the cases and how they are scored: a rerun must match them to resume.
+OPTION_KEYS = ("seed", "T", "rate", "boards", "twin", "detect_kwargs")
 
 
 # ---------------------------------------------------------------------------- detector access
@@ -270,7 +298,8 @@ def score(rows: list[dict]) -> dict:
     def detectable(r):
         thr = r.get("threshold")
         thr = 20.0 if thr is None or not math.isfinite(float(thr)) else float(thr)
-        return float(r.get("lambda_oracle", math.inf)) >= DETECTABLE_FACTOR * thr
+        lam = r.get("lambda_oracle")
+        return (math.inf if lam is None else float(lam)) >= DETECTABLE_FACTOR * thr
 
     for r in eff_all:
         r["above_detection_limit"] = detectable(r)
@@ -281,7 +310,9 @@ def score(rows: list[dict]) -> dict:
     # Clean recordings: the dedicated clean sets and the clean twins of the effect cases (each an
     # independent clean recording of its own seed).
     quiet_dedicated = [ok(r) and not r.get("mismatch_detected") for r in clean_rows]
-    quiet_twins = [ok(r) and not r["twin_mismatch_detected"] for r in eff_all if "twin_mismatch_detected" in r]
+    # (rows read back from a CSV carry every column, None where a case has no twin)
+    quiet_twins = [ok(r) and not r["twin_mismatch_detected"] for r in eff_all
+                   if r.get("twin_mismatch_detected") is not None]
     quiet = quiet_dedicated + quiet_twins
 
     # Confusion matrix.
@@ -366,7 +397,8 @@ def _score_effect_rows(eff_rows, ok) -> dict:
             "chi2_after_ok": _frac(chi2_ok), "position_after_ok": _frac(pos)}
 
 
-def print_report(sc: dict, out=sys.stdout) -> dict:
+def print_report(sc: dict, out=None) -> dict:
+    out = sys.stdout if out is None else out  # looked up at call time (captured/redirected stdout)
     p = lambda *a: print(*a, file=out)  # noqa: E731
     conf = sc["confusion"]
     if conf:
@@ -420,6 +452,8 @@ def print_report(sc: dict, out=sys.stdout) -> dict:
 # ---------------------------------------------------------------------------- main
 
 def build_cases(args) -> list[dict]:
+    """The cases of a benchmark, interleaved: case 0 of every effect (and clean), then case 1, …
+    (clean sets spread evenly among them), so a partial run covers every effect."""
     effects = args.effects or list(EFFECTS)
     bad = [e for e in effects if e not in EFFECTS]
     if bad:
@@ -434,10 +468,44 @@ def build_cases(args) -> list[dict]:
     seed_of = lambda e, j: args.seed * 1_000_003 + (EFFECTS.index(e) + 1 if e != "none" else 99) * 10_000 + j  # noqa: E731
     cases = []
     for e in list(effects) + ["none"]:
-        for j in range(args.per_effect if e != "none" else args.clean):
+        n = args.per_effect if e != "none" else args.clean
+        for j in range(n):
             cases.append(dict(case_id=f"{e}-{j:03d}", board=boards[j % len(boards)], effect=e,
-                              seed=seed_of(e, j), settings=settings))
+                              seed=seed_of(e, j), settings=settings, _order=((j + 0.5) / n, len(cases))))
+    cases.sort(key=lambda c: c.pop("_order"))
     return cases
+
+
+def fill_clean_reference(rows: list[dict]) -> None:
+    """Without twins, an effect case's clean-data position error is the median error of the clean
+    sets of the same board (computed from every clean row present, so it is refreshed as clean
+    cases accumulate); rows that already carry a twin's error keep it."""
+    for b in set(r["board"] for r in rows):
+        ce = [r.get("pos_err_after_um") for r in rows if r["board"] == b and r["effect_true"] == "none"
+              and "error" not in r and _finite(r.get("pos_err_after_um"))]
+        for r in rows:
+            if r["board"] == b and r["effect_true"] != "none" and not _finite(r.get("pos_err_clean_um")):
+                r["pos_err_clean_um"] = float(np.median(ce)) if ce else float("nan")
+
+
+def progress(rows: list[dict], effects=None) -> dict:
+    """How many of the cases the issue requires are done: per effect (≥ REQUIRED_PER_EFFECT each)
+    and clean (≥ REQUIRED_CLEAN)."""
+    effects = list(effects or EFFECTS)
+    per = {e: sum(r["effect_true"] == e for r in rows) for e in effects}
+    clean = sum(r["effect_true"] == "none" for r in rows)
+    req = {e: min(n, REQUIRED_PER_EFFECT) for e, n in per.items()}
+    done = sum(req.values()) + min(clean, REQUIRED_CLEAN)
+    total = REQUIRED_PER_EFFECT * len(effects) + REQUIRED_CLEAN
+    return {"per_effect": per, "clean": clean, "required_done": done, "required_total": total,
+            "complete": done >= total}
+
+
+def _progress_line(pg: dict) -> str:
+    short = ", ".join(f"{e} {n}" for e, n in pg["per_effect"].items())
+    return (f"required cases done: {pg['required_done']}/{pg['required_total']} "
+            f"(≥ {REQUIRED_PER_EFFECT} per effect, ≥ {REQUIRED_CLEAN} clean; have: {short}, clean {pg['clean']})"
+            + ("" if pg["complete"] else " — INCOMPLETE: the verdicts below cover the cases done so far"))
 
 
 def read_rows(path) -> list[dict]:
@@ -468,6 +536,120 @@ def read_rows(path) -> list[dict]:
     return rows
 
 
+def _options(args, detect_kwargs) -> dict:
+    return {"seed": args.seed, "T": args.T, "rate": args.rate, "boards": list(args.boards), "twin": bool(args.twin),
+            "detect_kwargs": detect_kwargs}
+
+
+def _open_store(out: Path, options: dict, retry_errors: bool) -> list[dict]:
+    """Rows already in ``out/cases.csv`` (checked against ``out/options.json``); creates both
+    files for a new benchmark.  With ``retry_errors`` the crashed rows are dropped (rewritten
+    without them) so they run again."""
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path, opt_path = out / "cases.csv", out / "options.json"
+    if csv_path.exists():
+        if not opt_path.exists():
+            raise SystemExit(f"--out: {csv_path} exists without options.json (an older run); use another --out, "
+                             f"or --rescore {csv_path}")
+        old = json.loads(opt_path.read_text())
+        if old != json.loads(json.dumps(options)):
+            diff = {k: (old.get(k), options.get(k)) for k in OPTION_KEYS if old.get(k) != json.loads(json.dumps(options)).get(k)}
+            raise SystemExit(f"--out: {out} holds a benchmark run with other options {diff} (stored, given); "
+                             "rerun with the same options to resume, or use another --out")
+        with open(csv_path, newline="") as f:
+            header = next(csv.reader(f), None)
+        if header != list(COLUMNS):
+            raise SystemExit(f"--out: {csv_path} has other columns than this script writes; use another --out")
+        rows = read_rows(csv_path)
+        if retry_errors and any("error" in r for r in rows):
+            rows = [r for r in rows if "error" not in r]
+            _write_rows(csv_path, rows)
+        return rows
+    opt_path.write_text(json.dumps(options, indent=1))
+    _write_rows(csv_path, [])
+    return []
+
+
+def _write_rows(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(COLUMNS), extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({c: r.get(c) for c in COLUMNS})
+
+
+def _append_row(path: Path, row: dict) -> None:
+    """One finished case → one line, flushed at once (a killed run loses only unfinished cases)."""
+    with open(path, "a", newline="") as f:
+        csv.DictWriter(f, fieldnames=list(COLUMNS), extrasaction="ignore").writerow({c: row.get(c) for c in COLUMNS})
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def run_cases(args, params: list[dict], on_row, budget_s: float | None = None) -> int:
+    """Run ``run_case(**p)`` for every p, calling ``on_row(row)`` as each finishes (in this process
+    with ``--workers 0``, else on dask workers, at most one task per worker in flight so that a
+    time budget stops cleanly).  New cases are started only while ``budget_s`` (s) lasts.
+    Returns the number of cases run."""
+    t0 = time.perf_counter()
+    within = lambda: budget_s is None or time.perf_counter() - t0 < budget_s  # noqa: E731
+    fn = run_case
+    done = 0
+    with dask_client(args) as client:
+        if client is None:
+            from _dask import run_single_threaded
+
+            for p in params:
+                if not within():
+                    break
+                on_row(run_single_threaded(globals()["run_case"], p))
+                done += 1
+            return done
+        from distributed import as_completed
+
+        from _dask import run_single_threaded
+
+        slots = max(1, len(client.nthreads()) if getattr(args, "scheduler", None) else int(args.workers))
+        queue = list(params)
+        ac = as_completed()
+        for _ in range(min(slots, len(queue))):
+            ac.add(client.submit(run_single_threaded, fn, queue.pop(0), pure=False))
+        for fut in ac:
+            on_row(fut.result())
+            done += 1
+            if queue and within():
+                ac.add(client.submit(run_single_threaded, fn, queue.pop(0), pure=False))
+    return done
+
+
+def summarize(rows: list[dict], args, out: Path | None, extra: dict | None = None) -> int:
+    """Score every row present, print the report and (with ``out``) write summary.json.
+    Returns the exit code (1 if a verdict fails)."""
+    if not rows:
+        print("no finished cases yet")
+        return 0
+    if not args.twin:
+        fill_clean_reference(rows)
+    pg = progress(rows, args.effects)
+    print("\n" + _progress_line(pg))
+    sc = score(rows)
+    verdicts = print_report(sc)
+    secs = [r["seconds"] for r in rows if _finite(r.get("seconds"))]
+    if secs:
+        print(f"\ndetect(): median {np.median(secs):.1f} s per recording, max {max(secs):.1f} s "
+              f"(over the {len(secs)} rows present)")
+    errs = [r for r in rows if "error" in r]
+    for r in errs[:3]:
+        print(f"case {r['case']} failed: {r['error']}", file=sys.stderr)
+    if out is not None:
+        summary = {"settings": {k: v for k, v in vars(args).items() if k != "func"}, "progress": pg,
+                   "verdicts": verdicts, **(extra or {}), **{k: v for k, v in sc.items()}}
+        with open(out / "summary.json", "w") as f:
+            json.dump(summary, f, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+        print(f"rows in {out / 'cases.csv'}; summary in {out / 'summary.json'}")
+    return 1 if any(v == "FAIL" for v in verdicts.values()) else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--per-effect", type=int, default=10, help="data sets per concealed effect (default 10)")
@@ -479,7 +661,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1, help="base seed (default 1)")
     ap.add_argument("--quick", action="store_true",
                     help="mimu8, 2 per effect, 4 clean, T=1500, no twins (explicit options still win); 28 "
-                         "detect() calls, ~30 min on 2 busy cores at ~2–3 min per call")
+                         "detect() calls, ~10 min on one quiet core at ~20 s per call")
     tw = ap.add_mutually_exclusive_group()
     tw.add_argument("--twin", dest="twin", action="store_true", default=None,
                     help="fit each effect case's clean twin too (default, except with --quick)")
@@ -492,16 +674,23 @@ def main(argv=None) -> int:
     ap.add_argument("--detect-opt", action="append", default=[], metavar="KEY=VALUE",
                     help="extra keyword for detect(), value parsed as JSON if it can be (repeatable), "
                          "e.g. --detect-opt n_twins=20")
-    ap.add_argument("--out", default=None, help="directory for cases.csv and summary.json")
+    ap.add_argument("--out", default=None, help="directory for cases.csv (appended, resumable), options.json and "
+                                                "summary.json")
+    ap.add_argument("--max-cases", type=int, default=None, help="run at most N new cases this time")
+    ap.add_argument("--time-budget", type=float, default=None, metavar="S",
+                    help="start no new case after S seconds (running ones finish)")
+    ap.add_argument("--retry-errors", action="store_true", help="rerun the cases that crashed in an earlier run")
     ap.add_argument("--save-cases", default=None, metavar="DIR", help="also write every recording + truth sidecar")
     ap.add_argument("--generate-only", action="store_true", help="generate (and save) the data, run no detector")
     ap.add_argument("--rescore", default=None, metavar="CSV", help="only score and print a cases.csv of an earlier run")
-    add_dask_arguments(ap)
+    add_dask_arguments(ap, default_workers=1)
     args = ap.parse_args(argv)
     if args.rescore:
-        sc = score(read_rows(args.rescore))
-        verdicts = print_report(sc)
-        return 1 if any(v == "FAIL" for v in verdicts.values()) else 0
+        rows = read_rows(args.rescore)
+        opt = Path(args.rescore).with_name("options.json")
+        args.twin = json.loads(opt.read_text()).get("twin", True) if opt.exists() else \
+            any(r.get("twin_mismatch_detected") is not None for r in rows)
+        return summarize(rows, args, None)
     if args.quick:
         given = set(a.split("=")[0] for a in (argv if argv is not None else sys.argv[1:]))
         if "--per-effect" not in given:
@@ -523,58 +712,54 @@ def main(argv=None) -> int:
     for kv in args.detect_opt:
         if "=" not in kv:
             raise SystemExit(f"--detect-opt: expected KEY=VALUE, got {kv!r}")
-        k, v = kv.split("=", 1)
+        key, v = kv.split("=", 1)
         try:
-            detect_kwargs[k] = json.loads(v)
+            detect_kwargs[key] = json.loads(v)
         except ValueError:
-            detect_kwargs[k] = v
+            detect_kwargs[key] = v
     params = [dict(**c, twin=args.twin, detect_kwargs=detect_kwargs, save_dir=args.save_cases,
                    generate_only=args.generate_only) for c in cases]
-    print(f"mismatch_proof: {sum(c['effect'] != 'none' for c in cases)} effect cases "
-          f"({args.per_effect} × {len(set(c['effect'] for c in cases if c['effect'] != 'none'))} effects), "
-          f"{args.clean} clean, boards {args.boards}, twins {'on' if args.twin else 'off'}", flush=True)
-    t0 = time.perf_counter()
-    with dask_client(args) as client:
-        rows = map_tasks(client, run_case, params, desc="blind cases")
-    wall = time.perf_counter() - t0
 
-    if not args.twin and not args.generate_only:  # clean reference: median clean error per board
-        for b in set(r["board"] for r in rows):
-            ce = [r.get("pos_err_after_um") for r in rows if r["board"] == b and r["effect_true"] == "none"
-                  and r.get("pos_err_after_um") is not None and math.isfinite(r["pos_err_after_um"])]
-            for r in rows:
-                if r["board"] == b and r["effect_true"] != "none":
-                    r["pos_err_clean_um"] = float(np.median(ce)) if ce else float("nan")
-
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        keys = list(dict.fromkeys(k for r in rows for k in r if k != "traceback"))
-        with open(out / "cases.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=keys)
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: r.get(k) for k in keys})
-    errs = [r for r in rows if "error" in r]
-    for r in errs[:3]:
-        print(f"\ncase {r['case']} failed: {r['error']}\n{r.get('traceback', '')}", file=sys.stderr)
     if args.generate_only:
-        print(f"generated {len(rows)} data sets in {wall:.1f} s ({len(errs)} errors)"
+        t0 = time.perf_counter()
+        rows = []
+        run_cases(args, params, rows.append)
+        errs = [r for r in rows if "error" in r]
+        if args.out:
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+            _write_rows(Path(args.out) / "generated.csv", rows)
+        print(f"generated {len(rows)} data sets in {time.perf_counter() - t0:.1f} s ({len(errs)} errors)"
               + (f"; saved to {args.save_cases}" if args.save_cases else ""))
         return 1 if errs else 0
 
-    sc = score(rows)
-    verdicts = print_report(sc)
-    secs = [r["seconds"] for r in rows if "seconds" in r]
-    if secs:
-        print(f"\ndetect(): median {np.median(secs):.1f} s per recording, max {max(secs):.1f} s; wall {wall:.0f} s")
-    if args.out:
-        summary = {"settings": {k: v for k, v in vars(args).items()}, "wall_seconds": wall,
-                   "verdicts": verdicts, **{k: v for k, v in sc.items()}}
-        with open(Path(args.out) / "summary.json", "w") as f:
-            json.dump(summary, f, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
-        print(f"wrote {Path(args.out) / 'cases.csv'} and summary.json")
-    return 1 if any(v == "FAIL" for v in verdicts.values()) else 0
+    out = Path(args.out) if args.out else None
+    rows = _open_store(out, _options(args, detect_kwargs), args.retry_errors) if out else []
+    done_ids = {r["case"] for r in rows}
+    wanted = {c["case_id"] for c in cases}
+    pending = [p for p in params if p["case_id"] not in done_ids]
+    if args.max_cases is not None:
+        pending = pending[:max(0, int(args.max_cases))]
+    print(f"mismatch_proof: {sum(c['effect'] != 'none' for c in cases)} effect cases "
+          f"({args.per_effect} × {len(set(c['effect'] for c in cases if c['effect'] != 'none'))} effects), "
+          f"{args.clean} clean, boards {args.boards}, twins {'on' if args.twin else 'off'}; "
+          f"{len(wanted & done_ids)} already done, running {len(pending)} now", flush=True)
+
+    def on_row(row):
+        rows.append(row)
+        if out:
+            _append_row(out / "cases.csv", row)
+        extra = f" ({row['error']})" if "error" in row else \
+            f" → {row.get('top_effect')} [{row.get('top_imu')}, {row.get('top_axis')}] {row.get('seconds', 0):.0f} s"
+        print(f"  {row['case']} ({row['board']}, T={row.get('T')}){extra}", flush=True)
+
+    t0 = time.perf_counter()
+    n_run = run_cases(args, pending, on_row, budget_s=args.time_budget)
+    wall = time.perf_counter() - t0
+    print(f"ran {n_run} case(s) in {wall:.0f} s", flush=True)
+    # score the cases of this benchmark definition (rows of other ids, e.g. a larger earlier
+    # --per-effect, are kept in the CSV but not scored here)
+    mine = [r for r in rows if r["case"] in wanted]
+    return summarize(mine, args, out, {"wall_seconds_this_run": wall, "cases_run_this_run": n_run})
 
 
 if __name__ == "__main__":

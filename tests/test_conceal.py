@@ -256,3 +256,85 @@ def test_agrees_with_package_model_conventions():
     a_pkg, g_pkg = imu_outputs(T(b.positions), T(b.orientations), T(tr.omega_body(t)), T(tr.omega_dot_body(t)), T(s))
     np.testing.assert_allclose(a_pkg.numpy(), acc, atol=1e-9)
     np.testing.assert_allclose(g_pkg.numpy(), gyro, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- resumable benchmark
+
+def _fake_runner(calls):
+    """A stand-in for mismatch_proof.run_case: a deterministic, scored-looking row per case and a
+    record of which cases were run (no data generated, no detector)."""
+    def run_case(case_id, board, effect, seed, settings, twin, detect_kwargs, save_dir=None, generate_only=False):
+        calls.append(case_id)
+        clean = effect == "none"
+        imu = 1 + seed % 3
+        return {"case": case_id, "board": board, "effect_true": effect, "seed": seed, "imu_true": imu,
+                "axis_true": None if clean or effect not in C.AXIS_EFFECTS else "x", "T": 100, "K": 8,
+                "lambda_oracle": 0.0 if clean else 1e4, "seconds": 1.0, "mismatch_detected": not clean,
+                "top_effect": "none" if clean else effect, "top_imu": None if clean else imu,
+                "top_axis": None if clean else "x", "top_axis_scored": None if clean else "x",
+                "threshold": 20.0, "chi2_before": 1.2, "chi2_after": 1.01,
+                "pos_err_before_um": 30.0, "pos_err_after_um": 10.0 if clean else 12.0}
+    return run_case
+
+
+def test_proof_resumes_from_its_csv(tmp_path, monkeypatch, capsys):
+    import mismatch_proof as mp
+
+    calls = []
+    monkeypatch.setattr(mp, "run_case", _fake_runner(calls))
+    out = tmp_path / "bench"
+    base = ["--workers", "0", "--no-twin", "--boards", "mimu8", "--effects", "acc_bias", "gyro_bias",
+            "--clean", "2", "--out", str(out)]
+    # a bounded first run: 3 of the 6 cases, interleaved across effects and clean sets
+    mp.main(base + ["--per-effect", "2", "--max-cases", "3"])
+    assert len(calls) == 3 and len({c.split("-")[0] for c in calls}) == 3
+    rows = mp.read_rows(out / "cases.csv")
+    assert [r["case"] for r in rows] == calls
+    # rerun with the same options: only the missing cases run
+    calls.clear()
+    mp.main(base + ["--per-effect", "2"])
+    assert sorted(calls) == sorted({"acc_bias-000", "acc_bias-001", "gyro_bias-000", "gyro_bias-001",
+                                    "none-000", "none-001"} - set(r["case"] for r in rows))
+    assert len(mp.read_rows(out / "cases.csv")) == 6
+    # nothing left: a third run runs nothing and still summarises every row
+    calls.clear()
+    rc = mp.main(base + ["--per-effect", "2"])
+    assert calls == [] and rc == 0
+    text = capsys.readouterr().out
+    assert "required cases done: 6/50" in text and "INCOMPLETE" in text
+    summ = __import__("json").loads((out / "summary.json").read_text())
+    assert summ["progress"]["per_effect"] == {"acc_bias": 2, "gyro_bias": 2} and summ["progress"]["clean"] == 2
+    assert summ["right_effect"][1:] == [4, 4] and summ["clean_quiet"][1:] == [2, 2]
+    # more cases per effect extend the same benchmark
+    mp.main(base + ["--per-effect", "3"])
+    assert sorted(calls) == ["acc_bias-002", "gyro_bias-002"]
+    # other options with the same directory are refused
+    with pytest.raises(SystemExit, match="other options"):
+        mp.main(base + ["--per-effect", "2", "--seed", "7"])
+
+
+def test_proof_retries_crashed_cases_only_when_asked(tmp_path, monkeypatch):
+    import mismatch_proof as mp
+
+    calls, every = [], []
+    good = _fake_runner(calls)
+
+    def flaky(case_id, **kw):
+        row = good(case_id, **kw)
+        every.append(case_id)
+        if case_id == "acc_bias-000" and every.count(case_id) == 1:  # crashes the first time only
+            return {k: row[k] for k in ("case", "board", "effect_true", "seed", "imu_true", "axis_true")} | \
+                {"error": "RuntimeError: boom"}
+        return row
+
+    monkeypatch.setattr(mp, "run_case", flaky)
+    args = ["--workers", "0", "--no-twin", "--boards", "mimu8", "--effects", "acc_bias", "--per-effect", "1",
+            "--clean", "1", "--out", str(tmp_path)]
+    assert mp.main(args) == 1  # the crash counts as a failed case
+    calls.clear()
+    mp.main(args)
+    assert calls == []
+    mp.main(args + ["--retry-errors"])
+    assert calls == ["acc_bias-000"]
+    rows = mp.read_rows(tmp_path / "cases.csv")
+    assert len(rows) == 2 and not any("error" in r for r in rows)

@@ -46,6 +46,11 @@ sample's motion state re-profiled through the local linearisation; ArviZ ``az.lo
 ``az.compare``) and the geometry before/after.  ``posterior=True`` additionally runs
 :func:`accel_bayes.calibrate.calibrate` on the recording before and after correction
 (:func:`corrected_recording`).
+
+Held-out transfer (:func:`heldout_fit`): effects estimated on one recording, their parameters
+held fixed, added to the nominal model of another recording; both models re-fit the positions
+and the motion, so their log-likelihoods compare directly (the real-data check of
+``experiments/mimu_mismatch.py``).
 """
 from __future__ import annotations
 
@@ -73,6 +78,7 @@ __all__ = [
     "compare_fits",
     "elpd_loo",
     "corrected_recording",
+    "heldout_fit",
     "DEFAULT_PRIOR_STD",
 ]
 
@@ -882,6 +888,13 @@ def elpd_loo(fit: ModelFit, *, draws: int = 200, seed: int = 0):
     the motion-state Jacobian.  Returns (elpd dict, idata); the dict holds elpd_loo, se, p_loo
     and the count of Pareto k > 0.7.
     """
+    elpd, idata, _ = _elpd_loo(fit, draws=draws, seed=seed)
+    return elpd, idata
+
+
+def _elpd_loo(fit: ModelFit, *, draws: int = 200, seed: int = 0):
+    """:func:`elpd_loo` plus ArviZ's ``ELPDData`` (pointwise), which :func:`compare_fits` hands
+    to ``az.compare`` so that PSIS-LOO is not recomputed there."""
     from .report import _arviz
 
     az = _arviz()
@@ -912,7 +925,7 @@ def elpd_loo(fit: ModelFit, *, draws: int = 200, seed: int = 0):
         loo = az.loo(idata, pointwise=True)
     k = np.asarray(loo.pareto_k)
     return {"elpd_loo": float(loo.elpd_loo), "se": float(loo.se), "p_loo": float(loo.p_loo),
-            "pareto_k_over_0.7": int((k > 0.7).sum()), "draws": int(draws)}, idata
+            "pareto_k_over_0.7": int((k > 0.7).sum()), "draws": int(draws)}, idata, loo
 
 
 def compare_fits(before: ModelFit, after: ModelFit, *, draws: int = 200, seed: int = 0, loo: bool = True) -> dict:
@@ -934,11 +947,12 @@ def compare_fits(before: ModelFit, after: ModelFit, *, draws: int = 200, seed: i
             from .report import _arviz
 
             az = _arviz()
-            e0, id0 = elpd_loo(before, draws=draws, seed=seed)
-            e1, id1 = elpd_loo(after, draws=draws, seed=seed + 1)
+            e0, _, loo0 = _elpd_loo(before, draws=draws, seed=seed)
+            e1, _, loo1 = _elpd_loo(after, draws=draws, seed=seed + 1)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                cmp = az.compare({"baseline": id0, "refined": id1}, ic="loo")
+                # the pointwise ELPDData, not the InferenceData: az.compare would redo PSIS-LOO
+                cmp = az.compare({"baseline": loo0, "refined": loo1}, ic="loo")
             out["elpd_loo"] = {"before": e0, "after": e1, "difference": e1["elpd_loo"] - e0["elpd_loo"],
                                "compare": {str(ix): {"rank": int(row["rank"]), "elpd_diff": float(row["elpd_diff"]),
                                                      "dse": float(row["dse"]), "weight": float(row["weight"])}
@@ -1003,3 +1017,100 @@ def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, 
         except Exception as exc:  # report, do not fail the mismatch analysis
             out[tag] = {"error": f"{type(exc).__name__}: {exc}"}
     return out
+
+
+# ============================================================================ held-out transfer
+
+class _Fixed:
+    """An effect whose parameters are held at given values (no free parameters, df = 0): it
+    perturbs (``mean``) or clips (``clip``) the outputs exactly as the wrapped effect does, but
+    the fit never moves it.  Used by :func:`heldout_fit`."""
+
+    parameters = ()
+    needs_rates = False
+
+    def __init__(self, effect):
+        if effect.kind not in ("mean", "clip"):
+            raise UserError(f"{effect.label()}: only mean and clip effects can be held fixed in a fit")
+        self.inner = effect.copy()
+        self.name = effect.name
+        self.kind = effect.kind
+        self.imu = effect.imu
+        self.needs_rates = effect.needs_rates
+        self.params, self.std, self.stats = {}, {}, {}
+
+    df = 0
+
+    def flatten(self, params=None):
+        return torch.zeros(0, dtype=torch.float64)
+
+    def unflatten(self, vec):
+        return {}
+
+    def prior_scales(self):
+        return torch.zeros(0, dtype=torch.float64)
+
+    def _at(self):
+        e = _copy.copy(self.inner)
+        e.imu = self.imu  # the fit may re-index IMUs into a sub-context
+        return e
+
+    def perturbation(self, params, ctx):
+        return self._at().perturbation(None, ctx)
+
+    def transform(self, params, acc, gyro, ctx):
+        return self._at().transform(None, acc, gyro, ctx)
+
+    def update_stats(self, acc, gyro) -> None:
+        pass
+
+    def label(self) -> str:
+        return "fixed:" + self.inner.label()
+
+
+def heldout_fit(prep: Prepared, effects, *, base: "ModelFit | None" = None, prior_std: float = DEFAULT_PRIOR_STD) -> dict:
+    """Log-likelihood of a recording under the nominal model and under the nominal model plus
+    ``effects`` **held at their given parameter values** (e.g. estimated on another recording).
+
+    Both models re-fit the same nuisance parameters on this recording — positions and the
+    per-sample motion — so they have the same number of free parameters and their
+    log-likelihoods compare directly (a held-out check: no parameter of the effects is fitted
+    here).  ``mean``/``clip`` effects enter the signal model unchanged (:class:`_Fixed`);
+    ``noise_level`` effects fix the noise factors (stated std × factor); ``unexplained``
+    findings carry no model and are skipped.  ``time_offset`` uses this recording's output
+    rates (from ``base``).
+
+    base : the nominal fit of ``prep`` (:func:`baseline_fit`), computed if None.
+    Returns {"loglik_nominal", "loglik_fixed", "difference" (fixed − nominal), "per_sample"
+    (difference / T), "chi2_per_dof_nominal", "chi2_per_dof_fixed" (stated noise),
+    "effects" (labels used), "skipped", "converged", "seconds"}.
+    """
+    t0 = _time.perf_counter()
+    if base is None:
+        base, _ = baseline_fit(prep, prior_std=prior_std)
+    used, skipped, fixed, noise = [], [], [], []
+    for e in effects:
+        if e.kind in ("mean", "clip"):
+            fixed.append(_Fixed(e))
+            used.append(e.label())
+        elif e.kind == "noise":
+            noise.append(e)
+            used.append(e.label())
+        else:
+            skipped.append(e.label())
+    p2 = prep
+    if noise:
+        fa, fg = noise_factors(noise, prep.K)
+        p2 = _copy.copy(prep)
+        p2.sigma_acc = prep.sigma_acc * fa
+        p2.sigma_gyro = prep.sigma_gyro * fg
+    f = fit_model(p2, fixed, init=base, prior_std=prior_std, laplace=False)
+    # χ² with the stated noise for both models
+    _, quad_stated = _loglik_terms(prep, f.res_acc, f.res_gyro, torch.ones(prep.K, dtype=torch.float64),
+                                   torch.ones(prep.K, dtype=torch.float64))
+    return {"loglik_nominal": base.loglik, "loglik_fixed": f.loglik, "difference": f.loglik - base.loglik,
+            "per_sample": (f.loglik - base.loglik) / prep.T,
+            "chi2_per_dof_nominal": base.chi2_per_dof, "chi2_per_dof_fixed": quad_stated / max(base.dof, 1),
+            "positions_nominal": base.positions.tolist(), "positions_fixed": f.positions.tolist(),
+            "effects": used, "skipped": skipped, "converged": bool(f.converged) and bool(base.converged),
+            "seconds": _time.perf_counter() - t0}
