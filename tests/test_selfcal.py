@@ -1,6 +1,6 @@
 """[S16] self-calibration: analytic Jacobians, exact recovery, divergence detection, re-run remedy.
 
-Independent checks: central finite differences for every Jacobian; a dense solve for the banded
+Independent checks: central finite differences for every Jacobian; a dense solve for the tridiagonal
 Schur solver; noise-free data drawn from the [S16] process model itself for recovery.
 """
 import math
@@ -10,9 +10,8 @@ import torch
 
 from accel_bayes import models, s16_plate
 from accel_bayes.geometry import boxplus, quat_to_matrix, random_quaternion, rotation_angle
-from accel_bayes.inference.linear import dense_from_blocks
+from accel_bayes.inference.linear import SchurComplementSolver, dense_from_blocks
 from accel_bayes.inference.selfcal import (
-    BandedSchurSolver,
     SelfCalDiverged,
     check_divergence,
     process_jacobians,
@@ -105,7 +104,7 @@ def test_process_residuals_whitening_and_jacobians():
         assert torch.allclose(fd, Jn[..., k], rtol=1e-6, atol=1e-6 * Jn.abs().max())
 
 
-def test_banded_schur_solver_matches_dense_solve():
+def test_tridiagonal_schur_solver_matches_dense_solve():
     gen = torch.Generator().manual_seed(13)
     n, T, d = 5, 9, 4
     J = _rand(gen, 3 * (n + T * d), n + T * d)
@@ -122,10 +121,10 @@ def test_banded_schur_solver_matches_dense_solve():
     E = torch.stack([H[n + t * d:n + (t + 1) * d, n + (t + 1) * d:n + (t + 2) * d] for t in range(T - 1)])
     assert torch.allclose(dense_from_blocks(U, W, V, E), H)
     b = _rand(gen, n + T * d)
-    dg, dx = BandedSchurSolver().solve(U, W, V, b[:n], b[n:].reshape(T, d), E)
+    dg, dx = SchurComplementSolver("tridiagonal").solve(U, W, V, b[:n], b[n:].reshape(T, d), E)
     ref = torch.linalg.solve(H, b)
     assert torch.allclose(torch.cat((dg, dx.reshape(-1))), ref, rtol=1e-10, atol=1e-12)
-    S = BandedSchurSolver().reduce(U, W, V, E)
+    S = SchurComplementSolver("tridiagonal").reduce(U, W, V, E)
     Hi = torch.linalg.inv(H)
     assert torch.allclose(torch.linalg.inv(S), Hi[:n, :n], rtol=1e-9, atol=1e-12)
 
@@ -259,7 +258,13 @@ def test_diverged_calibration_is_reported_not_returned():
                          rerun_from_estimate=True, max_iter=40)
     # the run ends in (or on its way to) a Table III minimum: positions → ∞ with motion → 0
     assert res.status == "diverged" and ("Table III" in res.reason or "does not explain" in res.reason)
-    assert len(res.runs) == 1  # no re-run from a diverged estimate
+    # one restart from the diverged orientations (restart_on_divergence), which diverges too (the
+    # data cannot fix positions); no re-run from a diverged estimate
+    assert [u["label"] for u in res.runs] == ["first", "restart"]
+    assert all(u["diverged"] for u in res.runs)
+    res1 = self_calibrate(z, 1 / RATE, nominal_positions=arr.positions, nominal_orientations=arr.orientations,
+                          rerun_from_estimate=True, restart_on_divergence=False, max_iter=40)
+    assert res1.status == "diverged" and len(res1.runs) == 1
     with pytest.raises(SelfCalDiverged, match="diverged"):
         res.positions
     with pytest.raises(SelfCalDiverged):

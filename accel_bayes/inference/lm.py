@@ -420,14 +420,35 @@ class Problem:
         for name in jd:
             if name not in self.offsets:
                 raise ValueError(f"analytic Jacobian: unknown global block {name!r}")
-        if self.n_free == self.n_tangent and len(jd) == len(self.variables):
-            # everything free and given: concatenate in layout order, no scatter
-            return torch.cat([jd[name].reshape(*lead, self.sizes[name]) for name in self.variables], -1)
-        full = ref.new_zeros(*lead, self.n_tangent)
-        for name, J in jd.items():
-            o, s = self.offsets[name], self.sizes[name]
-            full[..., o:o + s] = J.reshape(*lead, s)
-        return full[..., self.free_idx]
+        # Free columns of each block, taken block by block (a slice where they are contiguous,
+        # e.g. all rows but the fixed triad's) and concatenated in layout order: one copy of the
+        # free part, no scatter into the full tangent layout and gather back.
+        parts = []
+        for name, (sel, nf) in self._block_free_cols().items():
+            if nf == 0:
+                continue
+            if name in jd:
+                parts.append(jd[name].reshape(*lead, self.sizes[name])[..., sel])
+            else:
+                parts.append(ref.new_zeros(*lead, nf))
+        if not parts:  # every global fixed
+            return ref.new_zeros(*lead, 0)
+        return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
+
+    def _block_free_cols(self) -> dict:
+        """name → (selector of the block's free tangent columns (slice or index tensor), count)."""
+        if getattr(self, "_free_cols_cache", None) is None:
+            out = {}
+            for name, v in self.variables.items():
+                idx = torch.nonzero(v.free_mask().reshape(-1)).flatten()
+                nf = int(idx.numel())
+                if nf and int(idx[-1] - idx[0]) + 1 == nf:
+                    sel = slice(int(idx[0]), int(idx[-1]) + 1)
+                else:
+                    sel = idx
+                out[name] = (sel, nf)
+            self._free_cols_cache = out
+        return self._free_cols_cache
 
     def _vmap(self, f):
         return vmap(f, chunk_size=self.jac_chunk) if self.jac_chunk else vmap(f)

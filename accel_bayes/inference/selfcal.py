@@ -34,7 +34,6 @@ import math
 import time as _time
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
 from .. import models
@@ -402,93 +401,6 @@ class SelfCalResult:
         return torch.diagonal(self.rotation_cov, dim1=-2, dim2=-1).sum(-1).clamp_min(0).sqrt()
 
 
-# ---------------------------------------------------------------------------- banded solve
-
-def _banded_lower(V: torch.Tensor, V_off: torch.Tensor | None) -> np.ndarray:
-    """Lower band storage (LAPACK ``pbtrf`` layout, ab[k, i] = V[i + k, i]) of the symmetric
-    block-tridiagonal matrix with diagonal blocks V (T, d, d) and upper blocks V_off (T−1, d, d)."""
-    T, d, _ = V.shape
-    nb = 2 * d if V_off is not None else d
-    ab = np.zeros((nb, T * d))
-    Vn = V.detach().cpu().numpy()
-    i, j = np.tril_indices(d)
-    cols = (np.arange(T)[:, None] * d + j[None, :])
-    ab[(i - j)[None, :].repeat(T, 0), cols] = Vn[:, i, j]
-    if V_off is not None and T > 1:
-        # V_{t+1,t} = V_off_tᵀ: row (t+1)d + a, column t·d + b, entry V_off_t[b, a]; k = d + a − b ≥ 1.
-        En = V_off.detach().cpu().numpy()
-        a, b = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
-        a, b = a.ravel(), b.ravel()
-        cols = np.arange(T - 1)[:, None] * d + b[None, :]
-        ab[(d + a - b)[None, :].repeat(T - 1, 0), cols] = En[:, b, a]
-    return ab
-
-
-class BandedSchurSolver:
-    """Schur-complement solver whose local (motion) system is solved by LAPACK's banded Cholesky.
-
-    A drop-in ``linear_solver`` for :class:`accel_bayes.inference.lm.LevenbergMarquardt`: the
-    same arrow system as :class:`accel_bayes.inference.linear.SchurComplementSolver`, but the
-    block-tridiagonal V (T·d unknowns, bandwidth 2d − 1) goes to ``scipy.linalg.cholesky_banded``
-    / ``cho_solve_banded`` (``pbtrf``/``pbtrs``: O(T d³) flops, no Python loop over samples).
-    DESIGN §6 names a banded Cholesky as an accepted O(T) local solve; it is ~100× faster here
-    than a per-block Python recursion at the [S16] problem size.  No leading batch dimensions.
-    """
-
-    def __init__(self, structure: str = "auto"):
-        from .linear import SchurComplementSolver
-
-        self._fallback = SchurComplementSolver(structure)
-        self.structure = structure
-
-    def _factor(self, V, V_off):
-        import scipy.linalg as sl
-
-        from .linear import NotPositiveDefinite
-
-        ab = _banded_lower(V, V_off)
-        try:
-            cb = sl.cholesky_banded(ab, lower=True, check_finite=False)
-        except np.linalg.LinAlgError:
-            raise NotPositiveDefinite("local block-tridiagonal matrix is not positive definite") from None
-        if not np.isfinite(cb).all():
-            raise NotPositiveDefinite("local block-tridiagonal matrix is not positive definite")
-        T, d = V.shape[0], V.shape[1]
-
-        def solve(B: torch.Tensor) -> torch.Tensor:  # (T, d, k) → (T, d, k)
-            k = B.shape[-1]
-            X = sl.cho_solve_banded((cb, True), B.detach().cpu().numpy().reshape(T * d, k), check_finite=False)
-            return torch.as_tensor(X.reshape(T, d, k), dtype=B.dtype, device=B.device)
-
-        return solve
-
-    def reduce(self, U, W, V, V_off=None):
-        """S = U − W V⁻¹ Wᵀ."""
-        if W is None or V is None or V.shape[-3] == 0 or V.dim() != 3:
-            return self._fallback.reduce(U, W, V, V_off)
-        X = self._factor(V, V_off)(W.transpose(-1, -2))
-        return U - torch.einsum("tnd,tdm->nm", W, X)
-
-    def solve(self, U, W, V, b_g, b_x, V_off=None, return_reduced: bool = False):
-        """(δg, δx) [, S] of the arrow system (see :mod:`accel_bayes.inference.linear`)."""
-        from .linear import cholesky
-
-        if W is None or V is None or V.dim() != 3:
-            return self._fallback.solve(U, W, V, b_g, b_x, V_off, return_reduced)
-        n = U.shape[-1]
-        X = self._factor(V, V_off)(torch.cat((W.transpose(-1, -2), b_x.unsqueeze(-1)), -1))
-        Xw, xb = X[..., :n], X[..., n]
-        S = U - torch.einsum("tnd,tdm->nm", W, Xw)
-        if n:
-            r = b_g - torch.einsum("tnd,td->n", W, xb)
-            S = 0.5 * (S + S.T)
-            dg = torch.cholesky_solve(r.unsqueeze(-1), cholesky(S, "reduced (Schur) system")).squeeze(-1)
-            dx = xb - torch.einsum("tdn,n->td", Xw, dg)
-        else:
-            dg, dx = b_g, xb
-        return (dg, dx, S) if return_reduced else (dg, dx)
-
-
 # ---------------------------------------------------------------------------- the solver
 
 def _time_steps(time_or_dt, T: int, dtype, device) -> torch.Tensor:
@@ -586,6 +498,7 @@ def build_problem(
 def _run_lm(problem, *, max_iter, ftol, xtol, gtol, progress, desc, damping=None):
     from .damping import MarquardtDamping
     from .lm import LevenbergMarquardt
+    from .linear import SchurComplementSolver
 
     log = []
 
@@ -605,8 +518,8 @@ def _run_lm(problem, *, max_iter, ftol, xtol, gtol, progress, desc, damping=None
         damping = MarquardtDamping(tau=1e-6, scaling="marquardt")
     elif callable(damping) and not hasattr(damping, "update"):
         damping = damping()
-    lm = LevenbergMarquardt(damping, BandedSchurSolver(), max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol, progress=progress,
-                            desc=desc, callback=cb)
+    lm = LevenbergMarquardt(damping, SchurComplementSolver("tridiagonal"), max_iter=max_iter, ftol=ftol, xtol=xtol,
+                            gtol=gtol, progress=progress, desc=desc, callback=cb)
     terms0 = problem.cost_terms(problem.initial_values(), problem.x0)
     log.append({"iteration": 0, "F_triad": 2 * terms0["triad"], "F_process": 2 * terms0["process"],
                 "lambda": float("nan"), "accepted": True})
@@ -636,6 +549,7 @@ def self_calibrate(
     raise_on_divergence: bool = False,
     divergence_kwargs: dict | None = None,
     warm_start_motion: bool = True,
+    restart_on_divergence: bool = True,
     damping=None,
     dtype=torch.float64,
     device=None,
@@ -684,6 +598,15 @@ def self_calibrate(
         against each other.  The warm start keeps the zero-motion principle of [S16] §VI-B (the
         sign of ω is not predetermined: ω enters the motion-only stage through ω̇ and the
         integration constraint) and converges in ~20 iterations.
+    restart_on_divergence : when the first run ends in a diverged minimum ([S16] Table III), run
+        once more from the start positions with the diverged run's *orientations* and zero motion
+        (label "restart"), and continue from that run if it does not diverge.  Orientations are
+        fixed by the common (gravity-dominated) specific force that all triads see, so they
+        converge even in the runs whose positions collapse or run off: with 20° initial
+        orientation errors on the [S16] table motion, a run whose positions collapsed towards
+        the fixed triad had brought the orientations to within 2–5°, and the restart from there
+        converged to the global minimum.  The restart uses no information beyond the data and
+        the start poses.
     damping : a zero-argument factory of LM damping strategies (each LM run needs a fresh one),
         or None: Marquardt's rule, diag(H) scaling, λ₀ = 10⁻⁶ (see ``_run_lm``).  A strategy
         instance is also accepted (it is then shared by the runs and re-initialised by each).
@@ -776,6 +699,14 @@ def self_calibrate(
     res, log, F, why, summ = one_run(p0, q0, x0, "first")
     runs.append(summ)
     full_log = list(log)
+    q_div = res.values["rotation"]
+    if why is not None and restart_on_divergence and bool(torch.isfinite(q_div).all()):
+        res_r, log_r, F_r, why_r, summ_r = one_run(p0, quat_normalize(q_div), torch.zeros_like(x0), "restart")
+        runs.append(summ_r)
+        full_log.extend(log_r)
+        summ_r["kept"] = why_r is None
+        if why_r is None:
+            res, log, F, why, summ = res_r, log_r, F_r, why_r, summ_r
     best = (res, log, F, why)
     if rerun_from_estimate not in (True, False, "auto"):
         raise ValueError(f"rerun_from_estimate: expected True, False or 'auto', got {rerun_from_estimate!r}")
