@@ -273,3 +273,71 @@ def test_regressor_on_one_imu_context_equals_full_context(gyro_case):
             ref = torch.cat(((ap - am)[:, 5], (gp - gm)[:, 5]), -1) / (2 * h)
             assert torch.allclose(D[..., j], ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()) + 1e-300)
     assert len(seen) >= 9
+
+
+# ------------------------------------------------------------------ reference IMU, clipping, ranking
+
+def test_gyro_misalignment_at_the_reference_imu_is_named_first():
+    """IMU 0 is the reference (origin, position fixed).  A 0.5 % cross-axis coupling of its gyro z
+    axis to the x-axis rate is found and ranked first *as* gyro_misalignment at IMU 0, z ← x (reported
+    under the DESIGN §7.2 name gyro_scale, the scale/misalignment error, with from_axis), with
+    its coupling recovered — not as a mounting rotation of IMU 0, the nearest effect without it
+    (a rotation would also turn gyro x and the accelerometer, which the data contradict)."""
+    eff = make_effect("gyro_misalignment", imu=0, axis="z", from_axis="x", parameters={"coupling": 0.005})
+    rec = _sim(25, [eff]).recording
+    assert rec.reference_imu == 0
+    d = detect(rec, seed=0, max_findings=1, **FAST).to_dict()
+    top = d["findings"][0]
+    assert (top["effect"], top["imu"], top["axis"], top["parameters"]["from_axis"]) == ("gyro_scale", 0, "z", "x")
+    assert top["evidence"] > d["threshold"]
+    assert abs(top["parameters"]["scale"] - 0.005) < 5 * top["std"]["coupling"] + 1e-5
+
+
+def test_axis_displacement_at_the_reference_imu_is_identifiable():
+    """A displaced x sensing element of the reference IMU (1.5 mm along x) reads ω×(ω×d) + ω̇×d on
+    its x axis only.  Shifting the whole reference triad is a shift of the origin (absorbed by
+    the other IMUs' free positions), but one axis' displacement is not: the score test keeps the
+    candidate (non-singular efficient information) and ranks it first among all mean candidates."""
+    eff = make_effect("axis_displacement", imu=0, axis="x", parameters={"displacement": [1.5e-3, 0.0, 0.0]})
+    prep = prepare(_sim(26, [eff]).recording)
+    base, _ = baseline_fit(prep)
+    sc = [s for s in screen(prep, base, candidate_effects(prep)) if s.effect.kind == "mean"]
+    ref = [s for s in sc if s.effect.imu == 0 and s.effect.name == "axis_displacement"]
+    assert len(ref) == 3 and all(s.identifiable for s in ref)
+    top = max(sc, key=lambda s: s.statistic)
+    assert top.effect.label() == "axis_displacement[imu=0,axis=x]"
+    assert top.estimate["displacement"][0].item() == pytest.approx(1.5e-3, rel=0.3)
+
+
+def test_prepare_drops_flagged_clipped_samples(clean_rec):
+    """Samples the recording flags as clipped are censored, not measurements: prepare() drops them
+    (as the calibration's preprocess does) unless asked not to."""
+    rec = clean_rec.copy()
+    flags = np.zeros((len(rec.time), rec.K), dtype=bool)
+    flags[10:30, 3] = True
+    flags[50, 6] = True
+    rec.gyro_clipped = flags
+    p = prepare(rec)
+    assert p.T == len(rec.time) - 21 and p.n_dropped_clipped == 21
+    np.testing.assert_array_equal(p.time.numpy(), rec.time[~flags.any(1)])
+    assert prepare(rec, drop_clipped=False).T == len(rec.time)
+
+
+def test_excess_cells_rank_by_evidence_when_p_values_underflow(clean_rec):
+    """Two located excesses far beyond SciPy's logsf range (statistics ≫ 1400): the larger one
+    (IMU 5 gyro z) must rank first even though IMU 0's acc x comes first in enumeration order —
+    with p-values underflowing to −inf a stable sort would report IMU 0 acc x whatever the data."""
+    from accel_bayes.mismatch.locate import excess_cells
+
+    rec = clean_rec.copy()
+    t = rec.time
+    rec.acc[:, 0, 0] += 0.2 * np.sin(2 * np.pi * 3 * t)
+    rec.gyro[:, 5, 2] += 0.05 * np.sin(2 * np.pi * 2 * t)
+    prep = prepare(rec)
+    base, _ = baseline_fit(prep)
+    tests = excess_cells(prep, base)
+    assert all(math.isfinite(d["log10_p"]) for d in tests)
+    assert [d["log10_p"] for d in tests] == sorted(d["log10_p"] for d in tests)
+    by_cell = {(d["imu"], d["sensor"], d["axis"]): d["statistic"] for d in tests if d["scheme"] == "|omega|"}
+    assert by_cell[(0, "acc", "x")] > 1e4 and by_cell[(5, "gyro", "z")] > by_cell[(0, "acc", "x")]
+    assert (tests[0]["imu"], tests[0]["sensor"], tests[0]["axis"]) == (5, "gyro", "z")

@@ -1,5 +1,12 @@
 """``accel-bayes calibrate REC --out DIR``: posterior of the triad positions with PmMH ([C21]).
 
+On an imported MIMU recording (``accel-bayes import-mimu``) the defaults run the whole real-data
+pipeline: intrinsic calibration from the recording's rests, static / clipped / non-rotating
+samples dropped, accelerometer noise estimated from the data (tempered by the sandwich factor),
+MAP, PmMH.  Each step has a switch (``--intrinsics none``, ``--keep-static``, ``--keep-clipped``,
+``--min-rotation 0``, ``--noise stated``, ``--no-noise-inflation``); what ran is printed and
+recorded in ``positions.json`` (``provenance.settings.preprocess`` / ``noise_model``).
+
 Writes DIR/posterior.nc (ArviZ InferenceData), DIR/summary.csv (R̂, ESS, MCSE per coordinate),
 DIR/positions.json (DESIGN §7.3) and trace/rank/autocorr/ellipses plots; prints a short table.
 """
@@ -49,10 +56,35 @@ def register(sub) -> None:
                    help="prior standard deviation in metres (default %(default)s, [C21] §IV-A)")
     p.add_argument("--no-map", action="store_true",
                    help="do not fit the MAP first; chains start from prior draws")
-    p.add_argument("--select", choices=("rotation",), default=None,
-                   help="use only samples with rotation ([C21] §IV-C)")
-    p.add_argument("--gyro-method", choices=("sample_cov", "sample_cov_mean", "calibrated"),
-                   default=DEFAULTS["gyro_method"], help="gyroscope posterior (default %(default)s: [C21] eq. 30)")
+    g = p.add_argument_group(
+        "real-data preprocessing and noise",
+        "Intrinsic calibration from the recording's rests, then dropping static, clipped and non-rotating samples; "
+        "the accelerometer noise estimated from the data. 'auto' does this for a recording with rests (the real-data "
+        "protocol) and skips it, with a note, for one without (e.g. simulated twisting).")
+    g.add_argument("--intrinsics", default=DEFAULTS["intrinsics"], metavar="{auto,estimate,none,FILE.json}",
+                   help="accelerometer bias/scale/misalignment and gyro bias: 'auto' (default) estimates them from the "
+                        "recording's rests when it has any, 'estimate' insists, 'none' skips, or an intrinsics JSON "
+                        "(accel-bayes intrinsics) to apply")
+    g.add_argument("--keep-static", action="store_true", help="keep the samples of the rests (dropped by default)")
+    g.add_argument("--keep-clipped", action="store_true",
+                   help="keep samples where an accelerometer or gyroscope is at its range (dropped by default)")
+    g.add_argument("--min-rotation", type=str, default=str(DEFAULTS["min_rotation"]), metavar="RAD_S",
+                   help="drop samples whose mean gyro rate |w| is below this, rad/s (default %(default)s = 29 deg/s; "
+                        "0 keeps all)")
+    g.add_argument("--select", choices=("rotation",), default=None,
+                   help="(compatibility) drop samples without rotation even with --min-rotation 0")
+    g.add_argument("--noise", choices=("auto", "stated", "estimate"), default=DEFAULTS["noise"],
+                   help="accelerometer noise: the recording's stated std, or estimated from the data (a level per "
+                        "IMU x a factor per gyro-rate bin, type-II ML at the MAP, inflated by the sandwich factor); "
+                        "'auto' (default): estimate for recordings with rests, stated otherwise")
+    g.add_argument("--noise-bins", type=int, default=DEFAULTS["noise_bins"], metavar="B",
+                   help="gyro-rate bins of the estimated noise model (default %(default)s; 1 = one level per IMU)")
+    g.add_argument("--no-noise-inflation", action="store_true",
+                   help="with estimated noise: do not apply the sandwich (misspecification) factor")
+    p.add_argument("--gyro-method", choices=("auto", "sample_cov", "sample_cov_mean", "calibrated"),
+                   default=DEFAULTS["gyro_method"],
+                   help="gyroscope posterior (default %(default)s: 'calibrated' with estimated noise, else "
+                        "'sample_cov' = [C21] eq. 30)")
     p.add_argument("--proposal", choices=("auto", "rw", "mixture"), default="auto",
                    help="proposal: random walk, or random walk mixed with independence moves (default %(default)s)")
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
@@ -74,6 +106,14 @@ def _run(args) -> int:
                         ("--seed", args.seed, 0), ("--checkpoint-every", args.checkpoint_every, 0)):
         if v < lo:
             raise UserError(f"{name}: expected an integer >= {lo}, got {v}")
+    if args.noise_bins < 1:
+        raise UserError(f"--noise-bins: expected an integer >= 1, got {args.noise_bins}")
+    try:
+        min_rot = float(args.min_rotation)
+    except ValueError:
+        raise UserError(f"--min-rotation: expected a number of rad/s >= 0, got {args.min_rotation!r}") from None
+    if not (min_rot >= 0 and math.isfinite(min_rot)):
+        raise UserError(f"--min-rotation: expected a number of rad/s >= 0, got {args.min_rotation!r}")
     if args.num_draws is not None and args.num_draws < 1:
         raise UserError(f"--num-draws: expected an integer >= 1, got {args.num_draws}")
     ckpt = None
@@ -87,6 +127,9 @@ def _run(args) -> int:
         seed=args.seed, prior=args.prior, prior_std=prior_std, use_map=not args.no_map,
         gyro_method=args.gyro_method, select=args.select, proposal=args.proposal, progress=not args.quiet,
         checkpoint=ckpt, checkpoint_every=args.checkpoint_every, resume=args.resume,
+        intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
+        min_rotation=min_rot, noise=args.noise, noise_bins=args.noise_bins,
+        noise_inflation=not args.no_noise_inflation,
     )
     paths = write_outputs(res, out, plots=not args.no_plots)
     print(format_table(res))
@@ -98,11 +141,27 @@ def format_table(res) -> str:
     """IMU, posterior mean (mm), std (µm), worst R̂ and smallest bulk ESS over its 3 coordinates."""
     summ = res.summary
     doc = res.positions
-    lines = [f"PmMH: {res.settings['chains']} chains × {res.settings['draws']} draws "
-             f"(+{res.settings['warmup']} warm-up), N = {res.settings['num_draws']}, "
-             f"T = {res.settings['T']}, {res.seconds:.1f} s; positions relative to IMU {doc['reference_imu']}",
-             f"{'IMU':>4} {'x mm':>9} {'y mm':>9} {'z mm':>9} {'sx µm':>8} {'sy µm':>8} {'sz µm':>8} "
-             f"{'R-hat':>6} {'ESS':>7}"]
+    lines = []
+    pre = (res.extra or {}).get("preprocess")
+    if pre is not None:
+        lines.extend(pre.lines())
+    nm = res.settings.get("noise_model")
+    if res.settings.get("noise") == "estimate" and nm:
+        sw = nm.get("sandwich") or {}
+        lines.append("noise: estimated (type-II ML at the MAP): level per IMU "
+                     + ", ".join(f"{v:.3g}" for v in nm["std"]) + " m/s2 (stated "
+                     + ", ".join(f"{v:.3g}" for v in nm["stated"]) + f"); rate factor over {len(nm['bin_scale'])} "
+                     f"|w| bins {min(nm['bin_scale']):.2f}-{max(nm['bin_scale']):.2f}"
+                     + (f"; sandwich inflation kappa {sw['applied']:.2f} (std x{sw['applied'] ** 0.5:.2f})"
+                        if sw.get("applied") else ""))
+    elif res.settings.get("noise"):
+        lines.append(f"noise: {res.settings['noise']} (the recording's acc_noise_std); gyro posterior "
+                     f"{res.settings['gyro_method']}")
+    lines += [f"PmMH: {res.settings['chains']} chains × {res.settings['draws']} draws "
+              f"(+{res.settings['warmup']} warm-up), N = {res.settings['num_draws']}, "
+              f"T = {res.settings['T']}, {res.seconds:.1f} s; positions relative to IMU {doc['reference_imu']}",
+              f"{'IMU':>4} {'x mm':>9} {'y mm':>9} {'z mm':>9} {'sx µm':>8} {'sy µm':>8} {'sz µm':>8} "
+              f"{'R-hat':>6} {'ESS':>7}"]
     for e in doc["imus"]:
         if e["mean"] is None:
             lines.append(f"{e['imu']:>4}  (no accelerometer)")

@@ -8,7 +8,10 @@
 Procedure
 ---------
 1. **Baseline**: the nominal model fitted jointly in geometry and motion
-   (:func:`accel_bayes.mismatch.refine.baseline_fit`, started from the package's MAP).
+   (:func:`accel_bayes.mismatch.refine.baseline_fit`, started from the package's MAP), on the
+   samples the recording does not flag as clipped (:func:`accel_bayes.mismatch.refine.prepare`
+   drops flagged samples: a reading at the range is censored, not a measurement; unflagged
+   clipping stays in and is the ``saturation`` effect's business).
 2. **Locate** (:func:`accel_bayes.mismatch.locate.locate`): standardized residuals, excess per
    IMU/axis/regime, posterior predictive check.
 3. **Candidates**: every location of every requested effect class
@@ -51,7 +54,10 @@ Procedure
 7. **Unexplained**: at the final model, the located-excess tests of
    :func:`accel_bayes.mismatch.locate.excess_cells` (free mean and variance per regime bin, χ²_2B),
    Bonferroni-corrected over the cells × schemes tested; a significant one that also exceeds the
-   threshold is reported as an ``unexplained`` finding with its location.
+   threshold is reported as an ``unexplained`` finding with its location.  The cells are ranked
+   by a p-value that stays finite for any statistic (:func:`accel_bayes.mismatch.locate.log10_chi2_sf`;
+   with SciPy's underflowing ``logsf`` every cell beyond χ² ≈ 1400 tied at −inf and the first
+   cell enumerated — IMU 0, accelerometer x — was reported whatever the data).
 
 Threshold rule (reported as ``threshold``): Bonferroni over the m candidates tried,
 
@@ -77,7 +83,7 @@ import torch
 
 from ..errors import UserError
 from .effects import EFFECTS, Effect, Unexplained, get_effect
-from .locate import locate, regime_concentration, regimes, time_window
+from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
 from .refine import ModelFit, Prepared, _effect_std, baseline_fit, compare_fits, fit_model, prepare
 from .report import Finding, MismatchReport
 
@@ -102,21 +108,8 @@ class Screen:
 
 
 def _log10_sf(stat: float, df: int) -> float:
-    """log10 P(χ²_df > stat), finite for any finite stat: SciPy's logsf underflows to −inf beyond
-    stat ≈ 1400, where the asymptotic series of the upper incomplete gamma function,
-    log Γ(s, z)/Γ(s) ≈ (s−1) log z − z − log Γ(s) + log(1 + (s−1)/z + (s−1)(s−2)/z²) with
-    s = df/2, z = stat/2, is accurate to better than 1e-6 relative."""
-    from scipy.stats import chi2
-
-    if not math.isfinite(stat):
-        return -math.inf if stat > 0 else 0.0
-    df = max(int(df), 1)
-    x = max(stat, 0.0)
-    v = float(chi2.logsf(x, df))
-    if not math.isfinite(v) or x > 500:
-        sh, z = 0.5 * df, 0.5 * x
-        v = (sh - 1) * math.log(z) - z - math.lgamma(sh) + math.log1p((sh - 1) / z + (sh - 1) * (sh - 2) / z ** 2)
-    return v / math.log(10)
+    """log10 P(χ²_df > stat), finite for any finite stat (:func:`~accel_bayes.mismatch.locate.log10_chi2_sf`)."""
+    return log10_chi2_sf(stat, df)
 
 
 def threshold_rule(m: int, df_max: int, alpha: float) -> float:
@@ -581,7 +574,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         if posterior:
             from .refine import posterior_comparison
 
-            post = posterior_comparison(rec, refined, seed=seed, progress=progress)
+            post = posterior_comparison(prep.rec, refined, seed=seed, progress=progress)
     timings["refine_s"] = _time.perf_counter() - t0
     timings["total_s"] = _time.perf_counter() - t_start
     settings = {"effects": names if names is not None else list(EFFECTS), "alpha": alpha,
@@ -595,6 +588,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         withdrawn=withdrawn,
         screens=[s.to_dict() for s in last_screens[:20]], baseline_info=base_info, source=source,
         recording_info={"T": prep.T, "K": prep.K, "reference_imu": prep.ref, "description": rec.description,
+                        "T_given": int(len(rec.time)), "dropped_clipped": int(prep.n_dropped_clipped),
                         "sample_rate_hz": rec.sample_rate},
         prep=prep,
     )

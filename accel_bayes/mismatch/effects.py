@@ -14,6 +14,7 @@ axis_displacement      sensing axes not collocated in the package            yes
 triad_orientation      IMU mounted rotated from its nominal orientation      yes         no
 gyro_bias              gyroscope offset                                      yes         yes
 gyro_scale             gyroscope scale-factor error                          yes         yes
+  (gyro_misalignment)  the off-diagonal part of gyro_scale, see below        yes         yes
 gyro_g_sensitivity     gyro output that depends on specific force            yes         no
 time_offset            one IMU sampled late relative to the others           yes         no
 saturation             samples clipped at (an unstated) sensor range         optional    optional
@@ -59,7 +60,12 @@ Identifiability (what the candidate lists below include, see :meth:`Effect.candi
 effect local to one IMU is identifiable from a rotating recording with ≥ 3 non-collinear
 accelerometer triads, the reference IMU included — a single IMU's bias, scale, rotation or
 displaced axis cannot be absorbed by the per-sample specific force s (common to all IMUs) nor
-by that IMU's position (which moves all three of its axes together).  What is *not*
+by that IMU's position (which moves all three of its axes together).  At the reference IMU
+(position fixed at the origin) a shift of its whole triad is a shift of the origin, absorbed by
+the other IMUs' free positions, so no such effect exists; one axis' ``axis_displacement`` is the
+difference of that axis from its triad and stays identifiable; a ``triad_orientation`` of the
+reference is its rotation relative to the other IMUs (equivalently, all the others rotated the
+opposite way together with the array frame) and is identifiable too.  What is *not*
 identifiable, and therefore never a candidate: the same array-frame accelerometer bias on every
 IMU (absorbed by s), the same time offset on every IMU (a shift of the time axis), the same
 rotation of every IMU (a rotation of the array frame), and gyro effects with a single gyroscope
@@ -92,6 +98,7 @@ __all__ = [
     "TriadOrientation",
     "GyroBias",
     "GyroScale",
+    "GyroMisalignment",
     "GyroGSensitivity",
     "TimeOffset",
     "Saturation",
@@ -263,6 +270,7 @@ class Effect:
     """
 
     name: ClassVar[str] = ""
+    vocabulary_name: ClassVar[str | None] = None  # name in reports if not ``name`` (DESIGN §7.2)
     description: ClassVar[str] = ""
     kind: ClassVar[str] = "mean"  # "mean" | "clip" | "noise" | "finding"
     local_imu: ClassVar[bool] = True
@@ -449,8 +457,16 @@ def make_effect(name: str, imu=None, axis=None, parameters: dict | None = None, 
     """Instantiate an effect by name: ``make_effect("acc_bias", imu=3, axis="y", parameters={"bias": 0.1})``.
     Options such as ``from_axis`` (acc_misalignment) or ``sensor`` (saturation, noise_level)
     go as keywords; ``parameters`` may also carry them (as a report's parameters do)."""
-    cls = get_effect(name)
     parameters = dict(parameters or {})
+    frm = options.get("from_axis", parameters.get("from_axis"))
+    if name == "gyro_scale" and frm is not None and frm != axis:
+        name = "gyro_misalignment"  # a report's cross-axis gyro_scale finding (DESIGN §7.2 name)
+        if "scale" in parameters:
+            parameters["coupling"] = parameters.pop("scale")
+    cls = get_effect(name)
+    if name == "gyro_scale":
+        parameters.pop("from_axis", None)
+        options.pop("from_axis", None)
     for opt in getattr(cls, "options", ()):
         if opt in parameters:
             options.setdefault(opt, parameters.pop(opt))
@@ -696,6 +712,72 @@ class GyroScale(Effect):
         s = float(self._p(params)["scale"])
         return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope reads {abs(100 * s):.3g} % "
                 f"{'more' if s > 0 else 'less'} than the true rotation rate (a gyro scale-factor error).")
+
+
+@register_effect
+class GyroMisalignment(Effect):
+    """Cross-axis coupling of one gyroscope axis: gyro axis ``axis`` also senses ``coupling`` ×
+    the ``from_axis`` component of the rotation rate (rad; a gyro sensing axis tilted towards
+    another one, to first order), output_a += coupling · ω_b, sensor frame.
+
+    Together with ``gyro_scale`` (the diagonal) this spans the gyroscope's full 3 × 3 linear
+    error of [S16]-style intrinsic models.  Unlike ``triad_orientation`` it moves the gyro
+    triad only, and a single coupling need not come with its antisymmetric partner: a
+    non-orthogonal gyro triad is *not* a rotation, and fitting a mounting rotation to it gives a
+    rotation vector that depends on the distribution of ω in the recording (the projection of
+    a symmetric error onto rotations), which does not carry over to other recordings."""
+
+    name = "gyro_misalignment"
+    # Reports use the DESIGN §7.2 vocabulary (a fixed contract), where ``gyro_scale`` is the
+    # "gyroscope scale-factor / misalignment error": this term is reported as a gyro_scale
+    # finding with {"scale": coupling, "from_axis": b} — the (axis, from_axis) element of the
+    # gyro's relative scale/misalignment matrix, whose diagonal is GyroScale.
+    vocabulary_name = "gyro_scale"
+    description = "cross-axis coupling / non-orthogonal gyroscope axes"
+    local_axis = True
+    sensor = "gyro"
+    options = ("from_axis",)
+    parameters = (Param("coupling", (), "rad", 0.05, "fraction of the from_axis rotation rate added"),)
+
+    def __init__(self, imu=None, axis=None, params=None, from_axis=None):
+        super().__init__(imu, axis, params)
+        if from_axis is None:
+            raise UserError("gyro_misalignment: from_axis: expected 'x', 'y' or 'z' (different from axis)")
+        self.from_index = _axis_index(from_axis)
+        if self.from_index == self.axis_index:
+            raise UserError(f"gyro_misalignment: from_axis must differ from axis ({self.axis!r}); "
+                            "the same-axis term is gyro_scale")
+        self.from_axis = AXES[self.from_index]
+
+    def location(self):
+        return {"imu": self.imu, "axis": self.axis, "from_axis": self.from_axis}
+
+    @classmethod
+    def candidates(cls, layout):
+        return [cls(imu=k, axis=a, from_axis=b) for k in cls._imus(layout) for a in AXES for b in AXES if b != a]
+
+    def perturbation(self, params, ctx):
+        p = self._p(params)
+        k = self._imu_checked(ctx)
+        src = ctx.gyro[..., self.from_index:self.from_index + 1]  # (T, K, 1)
+        m = _onehot(ctx.K, k, self.axis_index, ctx.gyro)
+        return torch.zeros_like(ctx.acc), p["coupling"] * m * src
+
+    def report_parameters(self, params=None):
+        out = super().report_parameters(params)
+        out["from_axis"] = self.from_axis
+        return out
+
+    def vocabulary_parameters(self, params=None):
+        """The report's parameters under the vocabulary name gyro_scale."""
+        out = self.report_parameters(params)
+        return {"scale": out.pop("coupling"), "from_axis": out.pop("from_axis"), **out}
+
+    def explain(self, params=None):
+        c = float(self._p(params)["coupling"])
+        return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope also picks up {_fmt(100 * c)} % of the "
+                f"{self.from_axis}-axis rotation rate (cross-axis coupling, a gyro sensing axis not orthogonal to "
+                f"the others).")
 
 
 @register_effect
@@ -953,7 +1035,7 @@ class Unexplained(Effect):
                 f"explains them.")
 
 
-VOCABULARY = tuple(EFFECTS)  # registration order = DESIGN §7.2 table order
+VOCABULARY = tuple(n for n, c in EFFECTS.items() if c.vocabulary_name is None)  # DESIGN §7.2 table order
 
 
 # ------------------------------------------------------------------------------------ composition

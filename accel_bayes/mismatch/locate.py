@@ -37,9 +37,30 @@ from .effects import AXES
 from .refine import ModelFit, Prepared
 
 __all__ = ["CHANNELS", "Location", "standardized", "regimes", "locate", "ppc", "excess_cells", "regime_concentration",
-           "time_window"]
+           "time_window", "log10_chi2_sf"]
 
 CHANNELS = tuple(f"{s}_{a}" for s in ("acc", "gyro") for a in AXES)  # the 6 channels of an IMU
+
+
+def log10_chi2_sf(stat: float, df: int) -> float:
+    """log10 P(χ²_df > stat), finite for every finite stat.
+
+    SciPy's ``chi2.logsf`` underflows to −inf beyond stat ≈ 1400 (df ≤ 20); there the asymptotic
+    series of the upper incomplete gamma function, log Γ(s, z)/Γ(s) ≈ (s−1) log z − z − log Γ(s)
+    + log(1 + (s−1)/z + (s−1)(s−2)/z²), s = df/2, z = stat/2, is accurate to better than 1e-6
+    relative.  Finite values matter: tests are *ranked* by this number, and a tie at −inf
+    would rank them by enumeration order instead of by their evidence."""
+    from scipy.stats import chi2
+
+    if not math.isfinite(stat):
+        return -math.inf if stat > 0 else 0.0
+    df = max(int(df), 1)
+    x = max(float(stat), 0.0)
+    v = float(chi2.logsf(x, df))
+    if not math.isfinite(v) or x > 500:
+        sh, zh = 0.5 * df, 0.5 * x
+        v = (sh - 1) * math.log(zh) - zh - math.lgamma(sh) + math.log1p((sh - 1) / zh + (sh - 1) * (sh - 2) / zh ** 2)
+    return v / math.log(10)
 
 
 def standardized(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
@@ -176,8 +197,6 @@ def excess_cells(prep: Prepared, fit: ModelFit, reg: dict | None = None, z=None,
     """Located-excess tests (module docstring, item 5): one dict per (IMU, sensor, axis, scheme)
     with the statistic, df = 2B, the bin carrying most of it and the cell's χ² ratio; sorted by
     decreasing significance (log10 p)."""
-    from scipy.stats import chi2 as chi2_dist
-
     reg = regimes(prep, fit) if reg is None else reg
     if z is None:
         z, mask = standardized(prep, fit)
@@ -203,7 +222,7 @@ def excess_cells(prep: Prepared, fit: ModelFit, reg: dict | None = None, z=None,
                 if df[k, c] == 0 or mk[:, k, c].sum() == 0:
                     continue
                 st = float(stat[k, c])
-                lp = float(chi2_dist.logsf(st, int(df[k, c])) / math.log(10))
+                lp = log10_chi2_sf(st, int(df[k, c]))
                 b = int(np.argmax(contrib[:, k, c]))
                 ntot = float(n_b[:, k, c].sum())
                 out.append({"imu": k, "sensor": CHANNELS[c].split("_")[0], "axis": AXES[c % 3], "scheme": scheme,
@@ -212,7 +231,7 @@ def excess_cells(prep: Prepared, fit: ModelFit, reg: dict | None = None, z=None,
                             "chi2_ratio": float(s2[:, k, c].sum() / max(ntot, 1)),
                             "mean_z": float(s1[:, k, c].sum() / max(ntot, 1)),
                             "contributions": [float(v) for v in contrib[:, k, c]]})
-    out.sort(key=lambda d: d["log10_p"])
+    out.sort(key=lambda d: (d["log10_p"], -d["statistic"]))
     return out
 
 

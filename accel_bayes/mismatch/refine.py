@@ -79,6 +79,7 @@ __all__ = [
     "elpd_loo",
     "corrected_recording",
     "heldout_fit",
+    "flagged_clipped",
     "DEFAULT_PRIOR_STD",
 ]
 
@@ -114,6 +115,7 @@ class Prepared:
     has_gyro: np.ndarray
     acc_rate: torch.Tensor | None = None
     gyro_rate: torch.Tensor | None = None
+    n_dropped_clipped: int = 0
 
     @property
     def T(self) -> int:
@@ -137,10 +139,41 @@ class Prepared:
         return int(self.m_acc.sum() + self.m_gyro.sum())
 
 
-def prepare(rec) -> Prepared:
-    """Check a :class:`~accel_bayes.recording.Recording` for mismatch analysis and convert it."""
+def flagged_clipped(rec) -> np.ndarray:
+    """(T,) bool: samples where the recording flags some accelerometer or gyroscope triad (of an
+    IMU that has that sensor) at its range (``acc_clipped``/``gyro_clipped``)."""
+    out = np.zeros(len(rec.time), dtype=bool)
+    for nm, present in (("acc_clipped", rec.has_acc), ("gyro_clipped", rec.has_gyro)):
+        flags = getattr(rec, nm)
+        if flags is not None:
+            out |= np.asarray(flags, dtype=bool)[:, np.asarray(present, dtype=bool)].any(-1)
+    return out
+
+
+def prepare(rec, *, drop_clipped: bool = True) -> Prepared:
+    """Check a :class:`~accel_bayes.recording.Recording` for mismatch analysis and convert it.
+
+    drop_clipped : drop the samples the recording flags as clipped (:func:`flagged_clipped`), as
+        :func:`accel_bayes.preprocess.preprocess` does for the calibration.  A flagged output sits
+        at the range while the true one is beyond it: its Gaussian residual would be a censored
+        quantity treated as a measurement, the per-sample motion fitted to it is biased (every
+        IMU sees the same ω, so all gyros clip together and ω is pulled to the range), and the
+        resulting structured residuals get absorbed by whichever candidate effect fits them
+        best.  Clipping the recording does *not* flag (an unstated range) stays in and is what
+        the ``saturation`` effect explains.  The kept recording is ``Prepared.rec``; the number
+        dropped is ``Prepared.n_dropped_clipped``.
+    """
     if rec.gyro is None or not np.asarray(rec.has_gyro).any():
         raise UserError("gyro: mismatch detection needs gyroscope data (the motion is estimated from the gyros)")
+    n_drop = 0
+    if drop_clipped:
+        clip = flagged_clipped(rec)
+        n_drop = int(clip.sum())
+        if n_drop:
+            if n_drop > len(clip) - 10:
+                raise UserError(f"acc_clipped/gyro_clipped: {n_drop} of {len(clip)} samples are flagged as clipped; "
+                                "too few unclipped samples remain for mismatch detection")
+            rec = rec.select(~clip)
     has_acc = np.asarray(rec.has_acc, bool)
     has_gyro = np.asarray(rec.has_gyro, bool)
     if has_acc.sum() < 3:
@@ -167,7 +200,7 @@ def prepare(rec) -> Prepared:
     sg = torch.where(sg > 0, sg, torch.ones_like(sg))
     return Prepared(rec=rec, time=f(rec.time), y_acc=torch.nan_to_num(acc), y_gyro=torch.nan_to_num(gyro),
                     m_acc=m_acc, m_gyro=m_gyro, sigma_acc=sa, sigma_gyro=sg, q=f(rec.nominal_orientation),
-                    nominal=nominal, ref=ref, has_acc=has_acc, has_gyro=has_gyro)
+                    nominal=nominal, ref=ref, has_acc=has_acc, has_gyro=has_gyro, n_dropped_clipped=n_drop)
 
 
 # ============================================================================ results

@@ -85,7 +85,7 @@ class Finding:
 
     def __post_init__(self):
         self.model = self.effect
-        self.effect = self.model.name
+        self.effect = self.model.vocabulary_name or self.model.name  # DESIGN §7.2 vocabulary
 
     @property
     def imu(self):
@@ -100,6 +100,8 @@ class Finding:
         m = self.model
         if m.name == "triad_orientation":
             return m.report_parameters(orientations=self.orientations)
+        if hasattr(m, "vocabulary_parameters"):
+            return m.vocabulary_parameters()
         return m.report_parameters()
 
     def to_dict(self) -> dict:
@@ -166,7 +168,7 @@ class MismatchReport:
             return None
         r = self.refined_fit
         noise = r.has_noise_effect
-        d = {"effects": [e.name for e in r.effects], "loglik": float(r.loglik),
+        d = {"effects": [e.vocabulary_name or e.name for e in r.effects], "loglik": float(r.loglik),
              "chi2_per_dof": float(r.chi2_per_dof_model if noise else r.chi2_per_dof),
              "chi2_noise": "refined (noise_level in the model)" if noise else "stated",
              "chi2_per_dof_stated_noise": float(r.chi2_per_dof), "dof": int(r.dof),
@@ -413,7 +415,7 @@ def _vec(v, nd: int = 3):
 
 def validate_report(doc: dict) -> None:
     """Raise :class:`~accel_bayes.errors.UserError` if ``doc`` breaks the DESIGN §7.2 contract."""
-    from .effects import EFFECTS
+    from .effects import VOCABULARY
 
     def need(cond, msg):
         if not cond:
@@ -432,7 +434,7 @@ def validate_report(doc: dict) -> None:
     for f in doc["findings"]:
         for k in ("effect", "imu", "axis", "evidence", "parameters", "where", "explanation"):
             need(k in f, f"finding missing key {k!r}")
-        need(f["effect"] in EFFECTS, f"unknown effect {f['effect']!r}")
+        need(f["effect"] in VOCABULARY, f"unknown effect {f['effect']!r}; expected one of {VOCABULARY}")
         need(f["imu"] is None or isinstance(f["imu"], int), "finding imu must be an int label or null")
         need(f["axis"] in (None, "x", "y", "z"), "finding axis must be x, y, z or null")
         need(isinstance(f["where"], dict) and "regime" in f["where"] and "time_s" in f["where"],
