@@ -23,8 +23,8 @@ DEFAULTS = dict(
     rate=100.0,
     seed=1,
     position_error=3e-4,
-    chains=2,
-    draws=500,
+    chains=4,
+    draws=1000,
     warmup=500,
 )
 
