@@ -219,6 +219,12 @@ def _fit_map(lik, nominal_acc, prior_std, settings):
         warnings.simplefilter("ignore", RuntimeWarning)
         res = fit_map(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, reference=lik.reference,
                       prior_mean=nominal_acc, prior_std=prior_std, on_divergence="ignore")
+    return _usable_map(res, settings)
+
+
+def _usable_map(res, settings):
+    """``res`` if its θ is finite and its Laplace covariance positive definite, else None (with a
+    warning and the reason in ``settings["map_failed"]``; chains then start from prior draws)."""
     cov = torch.as_tensor(res.laplace_cov, dtype=torch.float64)
     ok = bool(torch.isfinite(cov).all()) and int(torch.linalg.cholesky_ex(0.5 * (cov + cov.T))[1]) == 0
     if not ok or not bool(torch.isfinite(torch.as_tensor(res.theta)).all()):
@@ -276,16 +282,7 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings):
                              reference=lik.reference, dtype=lik.dtype, device=lik.device)
     new.imu_labels, new.gyro_labels = lik.imu_labels, lik.gyro_labels
     new.sample_index, new.nominal_positions = lik.sample_index, lik.nominal_positions
-    cov = torch.as_tensor(res.laplace_cov, dtype=torch.float64)
-    ok = bool(torch.isfinite(cov).all()) and int(torch.linalg.cholesky_ex(0.5 * (cov + cov.T))[1]) == 0
-    if not ok or not bool(torch.isfinite(torch.as_tensor(res.theta)).all()):
-        msg = f"MAP not usable ({res.reason}); chains start from prior draws"
-        warnings.warn(msg, RuntimeWarning)
-        settings["map_failed"] = msg
-        res = None
-    else:
-        settings["map"] = {"converged": bool(res.converged), "reason": str(res.reason), "iterations": int(res.n_iter)}
-    return new, res, nm
+    return new, _usable_map(res, settings), nm
 
 
 # ---------------------------------------------------------------------------- main entry
