@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from accel_bayes import diagnostics as dg
-from accel_bayes.arrays import SensorArray, preset
+from accel_bayes.arrays import preset
 from accel_bayes.calibrate import calibrate, write_outputs
 from accel_bayes.cli import main
 from accel_bayes.errors import UserError
