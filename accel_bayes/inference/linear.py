@@ -154,14 +154,15 @@ def _coupling(c: np.ndarray, a: int, kd: int) -> np.ndarray:
     return C
 
 
-def _band_triangular_solve(tbtrs, c: np.ndarray, B: np.ndarray, trans: str) -> np.ndarray:
+def _band_triangular_solve(tbtrs, c: np.ndarray, B: np.ndarray, trans: str, X: np.ndarray | None = None) -> np.ndarray:
     """L⁻¹ B (trans "N") or L⁻ᵀ B (trans "T") for the lower band factor c (kd + 1, N); B (N, k).
 
     ``tbtrs`` applies one right-hand side after the other, streaming the whole band each time;
     for long records that is memory-bound.  So rows are taken in chunks of ``_CHUNK_ROWS``: each
     chunk is a banded triangular solve of its own after subtracting the coupling to the kd rows
     already solved (the previous chunk going forward, the next one going backward) — the same
-    arithmetic, with the chunk's band and right-hand sides in cache.
+    arithmetic, with the chunk's band and right-hand sides in cache.  The result goes to ``X``
+    (new if None; ``X`` may be ``B`` itself: each chunk reads its rows of B before writing them).
     """
     kd = c.shape[0] - 1
     N = c.shape[1]
@@ -170,8 +171,12 @@ def _band_triangular_solve(tbtrs, c: np.ndarray, B: np.ndarray, trans: str) -> n
         x, info = tbtrs(c, B, uplo="L", trans=trans)
         if info != 0:
             raise NotPositiveDefinite("singular block-tridiagonal Cholesky factor")
-        return x
-    X = np.empty_like(B)
+        if X is None:
+            return x
+        X[...] = x
+        return X
+    if X is None:
+        X = np.empty_like(B)
     starts = list(range(0, N, chunk))
     for a in (starts if trans == "N" else reversed(starts)):
         b = min(a + chunk, N)
@@ -228,7 +233,8 @@ class BlockTridiagonalCholesky:
                                           + (f" (leading minor {info})" if info > 0 else ""))
             self._bands.append(c)
 
-    def _apply(self, B: torch.Tensor, trans: str) -> torch.Tensor:
+    def _apply(self, B: torch.Tensor, trans: str, overwrite: bool = False) -> torch.Tensor:
+        # overwrite=True: B is the caller's scratch, solved in place (one long temporary fewer)
         T, d = self.T, self.d
         vec = tuple(B.shape) == (*self.batch, T, d)
         if not vec and tuple(B.shape[:-1]) != (*self.batch, T, d):
@@ -238,9 +244,9 @@ class BlockTridiagonalCholesky:
         k = Bk.shape[-1]
         tbtrs = _lapack("tbtrs", self.dtype)
         Bn = Bk.detach().reshape(-1, T * d, k).cpu().numpy()
-        out = np.empty_like(Bn)
+        out = Bn if overwrite else np.empty_like(Bn)  # Bn is B's memory or a copy: scratch either way
         for i, c in enumerate(self._bands):
-            out[i] = _band_triangular_solve(tbtrs, c, Bn[i], trans)
+            _band_triangular_solve(tbtrs, c, Bn[i], trans, X=out[i])
         X = torch.from_numpy(out).reshape(Bk.shape).to(device=B.device)
         return X.squeeze(-1) if vec else X
 
@@ -315,7 +321,8 @@ class SchurComplementSolver:
             dg = torch.cholesky_solve(b_g.unsqueeze(-1), cholesky(S, "reduced system")).squeeze(-1) if n else b_g
             return (dg, None, S) if return_reduced else (dg, None)
         F = self.factor(V, V_off)
-        Y = F.solve_lower(torch.cat((W.transpose(-1, -2), b_x.unsqueeze(-1)), -1))  # (..., T, d, n+1)
+        rhs = torch.cat((W.transpose(-1, -2), b_x.unsqueeze(-1)), -1)  # (..., T, d, n+1), our scratch
+        Y = F._apply(rhs, "N", overwrite=True) if isinstance(F, BlockTridiagonalCholesky) else F.solve_lower(rhs)
         Yf = Y.reshape(*Y.shape[:-3], -1, n + 1)  # (..., T·d, n+1) view
         Yw, yb = Yf[..., :n], Yf[..., n:]
         if n:

@@ -78,7 +78,7 @@ Example
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import torch
@@ -102,6 +102,8 @@ __all__ = [
     "LMResult",
     "solve",
 ]
+
+_CHAIN_CHUNK = 2048  # pairs per chunk when accumulating chain-residual blocks (cache-sized temporaries)
 
 EUCLIDEAN = "euclidean"
 QUATERNION = "quaternion"
@@ -166,6 +168,10 @@ class SampleResidual:
     group_size: int | None = None
     name: str = "sample"
     local_hessian: Callable | None = None
+    chunk: int | None = None
+    """Linearise in chunks of this many samples (None: all at once).  Requires ``data`` to be None,
+    a tensor or a tuple of tensors with leading dim T (sliced along with x); the blocks of long
+    records are then built with cache-sized intermediates (per-iteration time linear in T)."""
 
 
 @dataclass
@@ -528,37 +534,58 @@ class Problem:
         ref = self.P
         U = ref.new_zeros(n, n)
         b_g = ref.new_zeros(n)
-        W = ref.new_zeros(T, n, d) if x is not None else None
-        V = ref.new_zeros(T, d, d) if x is not None else None
+        # W and V are left unwritten until the first per-sample group that reaches them stores its
+        # products there (no zeroing pass over the long blocks; zeroed below if no group does)
+        W = ref.new_empty(T, n, d) if x is not None else None
+        V = ref.new_empty(T, d, d) if x is not None else None
+        fresh = [W is not None, V is not None]
         b_x = ref.new_zeros(T, d) if x is not None else None
         V_off = ref.new_zeros(max(T - 1, 0), d, d) if (x is not None and self.local_structure == "tridiagonal") else None
         cost = ref.new_zeros(())
         Vc = None
         for res in self.sample_residuals:
-            r, Jg, Jx = self.sample_jacobians(res, values, x)
-            if step and res.local_hessian is not None and x is not None:
-                w = robust_weights(r, res.loss, res.group_size)
-                C = res.local_hessian(values, x, res.data, r if w is None else r * w)
-                Vc = C if Vc is None else Vc + C
-            c, r, (Jg, Jx) = apply_robust(r, [Jg, Jx], res.loss, res.group_size)
-            cost = cost + c
-            self._accumulate(U, b_g, W, V, b_x, r, Jg, Jx)
+            for a, b, rc in self._sample_chunks(res, x):
+                xs = None if x is None else x[a:b]
+                r, Jg, Jx = self.sample_jacobians(rc, values, xs)
+                if step and res.local_hessian is not None and x is not None:
+                    w = robust_weights(r, res.loss, res.group_size)
+                    C = res.local_hessian(values, xs, rc.data, r if w is None else r * w)
+                    if Vc is None:
+                        Vc = C.new_zeros(T, d, d)
+                    Vc[a:b] += C
+                c, r, (Jg, Jx) = apply_robust(r, [Jg, Jx], res.loss, res.group_size)
+                cost = cost + c
+                sl = slice(a, b)
+                wrote = self._accumulate(U, b_g, None if W is None else W[sl], None if V is None else V[sl],
+                                         None if b_x is None else b_x[sl], r, Jg, Jx, fresh)
+            fresh = [f and not w for f, w in zip(fresh, wrote)]
+        if fresh[0]:
+            W.zero_()
+        if fresh[1]:
+            V.zero_()
         for res in self.chain_residuals:
             r, Jg, A, B = self.chain_jacobians(res, values, x)
             c, r, (Jg, A, B) = apply_robust(r, [Jg, A, B], res.loss, res.group_size)
             cost = cost + c
-            if Jg is not None and n:
-                Jf = Jg.reshape(-1, n)
-                U += Jf.T @ Jf
-                b_g -= Jf.T @ r.reshape(-1)
-                W[:-1] += Jg.transpose(-1, -2) @ A
-                W[1:] += Jg.transpose(-1, -2) @ B
-            At, Bt = A.transpose(-1, -2), B.transpose(-1, -2)
-            V[:-1] += At @ A
-            V[1:] += Bt @ B
-            V_off += At @ B
-            b_x[:-1] -= (At @ r.unsqueeze(-1)).squeeze(-1)
-            b_x[1:] -= (Bt @ r.unsqueeze(-1)).squeeze(-1)
+            # pairs in chunks: the (chunk, d, d) products stay in cache on long records
+            Tm = r.shape[0]
+            cs = max(1, min(Tm, _CHAIN_CHUNK))
+            for a in range(0, Tm, cs):
+                b = min(a + cs, Tm)
+                ra, Aa, Ba = r[a:b], A[a:b], B[a:b]
+                if Jg is not None and n:
+                    Jga = Jg[a:b]
+                    Jf = Jga.reshape(-1, n)
+                    U += Jf.T @ Jf
+                    b_g -= Jf.T @ ra.reshape(-1)
+                    W[a:b] += Jga.transpose(-1, -2) @ Aa
+                    W[a + 1:b + 1] += Jga.transpose(-1, -2) @ Ba
+                At, Bt = Aa.transpose(-1, -2), Ba.transpose(-1, -2)
+                V[a:b] += At @ Aa
+                V[a + 1:b + 1] += Bt @ Ba
+                V_off[a:b] += At @ Ba
+                b_x[a:b] -= (At @ ra.unsqueeze(-1)).squeeze(-1)
+                b_x[a + 1:b + 1] -= (Bt @ ra.unsqueeze(-1)).squeeze(-1)
         for res in self.global_residuals:
             r, J = self.global_jacobian(res, values)
             if J is None:
@@ -582,19 +609,55 @@ class Problem:
             V = (Q * lam.unsqueeze(-2)) @ Q.transpose(-1, -2)
         return Linearization(float(cost.detach()), 0.5 * (U + U.T), W, V, V_off, b_g, b_x)
 
-    def _accumulate(self, U, b_g, W, V, b_x, r, Jg, Jx):
-        """Add one per-sample group's JᵀJ and −Jᵀr to the blocks (matmuls, no einsum paths)."""
+    def _sample_chunks(self, res: SampleResidual, x):
+        """(start, stop, group) per chunk of samples: the group itself over all samples unless it
+        asks for ``chunk`` and has locals, else a copy with ``data`` sliced to the chunk."""
+        T = 0 if x is None else x.shape[0]
+        cs = res.chunk
+        if x is None or not cs or T <= cs:
+            yield 0, T, res
+            return
+
+        def cut(dd, a, b):
+            if dd is None:
+                return None
+            if isinstance(dd, torch.Tensor):
+                return dd[a:b]
+            if isinstance(dd, tuple):
+                return tuple(cut(e, a, b) for e in dd)
+            raise TypeError(f"SampleResidual {res.name!r}: chunk needs data None, a tensor or a tuple "
+                            f"of tensors, got {type(dd).__name__}")
+
+        for a in range(0, T, cs):
+            b = min(a + cs, T)
+            yield a, b, replace(res, data=cut(res.data, a, b))
+
+    def _accumulate(self, U, b_g, W, V, b_x, r, Jg, Jx, fresh=(False, False)):
+        """Add one per-sample group's JᵀJ and −Jᵀr to the blocks (matmuls, no einsum paths).
+
+        fresh = (W unwritten, V unwritten): store the products there instead of adding them.
+        Returns (wrote W, wrote V)."""
         n = U.shape[-1]
+        wrote = [False, False]
         if Jg is not None and n:
             Jf = Jg.reshape(-1, n)
             U += Jf.T @ Jf
             b_g -= Jf.T @ r.reshape(-1)
             if Jx is not None:
-                W += Jg.transpose(-1, -2) @ Jx
+                if fresh[0]:
+                    torch.matmul(Jg.transpose(-1, -2), Jx, out=W)
+                else:
+                    W += Jg.transpose(-1, -2) @ Jx
+                wrote[0] = True
         if Jx is not None:
             Jxt = Jx.transpose(-1, -2)
-            V += Jxt @ Jx
+            if fresh[1]:
+                torch.matmul(Jxt, Jx, out=V)
+            else:
+                V += Jxt @ Jx
+            wrote[1] = True
             b_x -= (Jxt @ r.unsqueeze(-1)).squeeze(-1)
+        return wrote
 
     def exact_hessian(self, values: dict, x) -> Linearization:
         """Exact second derivatives of F in the same block layout (forward-over-reverse autodiff).

@@ -437,6 +437,9 @@ def _sensor_params(sensor_params, A: int, dtype, device):
     return S, o
 
 
+_LINEARIZE_CHUNK = 2048  # samples per chunk of the triad linearisation (intermediates stay in cache)
+
+
 def build_problem(
     acc: torch.Tensor,
     dt: torch.Tensor,
@@ -460,22 +463,22 @@ def build_problem(
     from .lm import ChainResidual, Problem, SampleResidual, Variable
 
     A = positions.shape[0]
-    T = acc.shape[0]
     fixed_mask = torch.zeros(A, dtype=torch.bool, device=acc.device)
     fixed_mask[fixed] = True
     if poses_fixed:
         fixed_mask[:] = True
     eyeA = torch.eye(A, dtype=acc.dtype, device=acc.device)
 
+    # data = the measurements, so that LM can linearise in chunks of samples (SampleResidual.chunk)
     def triad_fn(g, x, data):
-        return triad_residuals(x, g["rotation"], g["position"], acc, inv_std, S, offset).reshape(T, 3 * A)
+        return triad_residuals(x, g["rotation"], g["position"], data, inv_std, S, offset).reshape(-1, 3 * A)
 
-    def _blockdiag(J):  # (T, A, 3, 3) → (T, 3A, 3A), zero across triads
-        return (J.unsqueeze(3) * eyeA[None, :, None, :, None]).reshape(T, 3 * A, 3 * A)
+    def _blockdiag(J):  # (t, A, 3, 3) → (t, 3A, 3A), zero across triads
+        return (J.unsqueeze(3) * eyeA[None, :, None, :, None]).reshape(J.shape[0], 3 * A, 3 * A)
 
     def triad_jac(g, x, data):
         Jx, Jp, Jr = triad_jacobians(x, g["rotation"], g["position"], inv_std, S)
-        return {"position": _blockdiag(Jp), "rotation": _blockdiag(Jr)}, Jx.reshape(T, 3 * A, 9)
+        return {"position": _blockdiag(Jp), "rotation": _blockdiag(Jr)}, Jx.reshape(-1, 3 * A, 9)
 
     J_prev, J_next = process_jacobians(dt, sqrt_info)
 
@@ -489,7 +492,7 @@ def build_problem(
         {"position": Variable(positions, fixed=fixed_mask),
          "rotation": Variable(orientations, manifold="quaternion", fixed=fixed_mask)},
         states,
-        [SampleResidual(triad_fn, jac=triad_jac, name="triad"),
+        [SampleResidual(triad_fn, data=acc, jac=triad_jac, name="triad", chunk=_LINEARIZE_CHUNK),
          ChainResidual(proc_fn, jac=proc_jac, name="process")],
         dtype=acc.dtype, device=acc.device,
     )
