@@ -521,25 +521,22 @@ class AccScale(Effect):
                 f"{'more' if s > 0 else 'less'} than the specific force it feels (a scale-factor error).")
 
 
-@register_effect
-class AccMisalignment(Effect):
-    """Cross-axis coupling: axis ``axis`` also senses ``coupling`` × the ``from_axis`` component
-    of the specific force (rad; a non-orthogonal or tilted sensing axis, to first order)."""
+class _CrossAxisCoupling(Effect):
+    """Shared mechanics of the cross-axis couplings (``acc_misalignment``, ``gyro_misalignment``):
+    axis ``axis`` of the sensor ``sensor`` also reads ``coupling`` × its ``from_axis`` component
+    (sensor frame).  Sub-classes give name, description, parameters and the sentence."""
 
-    name = "acc_misalignment"
-    description = "cross-axis coupling / non-orthogonal accelerometer axes"
     local_axis = True
-    sensor = "acc"
     options = ("from_axis",)
-    parameters = (Param("coupling", (), "rad", 0.05, "fraction of the from_axis component added"),)
+    same_axis_hint = ""  # appended to the error when from_axis == axis
 
     def __init__(self, imu=None, axis=None, params=None, from_axis=None):
         super().__init__(imu, axis, params)
         if from_axis is None:
-            raise UserError("acc_misalignment: from_axis: expected 'x', 'y' or 'z' (different from axis)")
+            raise UserError(f"{self.name}: from_axis: expected 'x', 'y' or 'z' (different from axis)")
         self.from_index = _axis_index(from_axis)
         if self.from_index == self.axis_index:
-            raise UserError(f"acc_misalignment: from_axis must differ from axis ({self.axis!r})")
+            raise UserError(f"{self.name}: from_axis must differ from axis ({self.axis!r}){self.same_axis_hint}")
         self.from_axis = AXES[self.from_index]
 
     def location(self):
@@ -552,14 +549,26 @@ class AccMisalignment(Effect):
     def perturbation(self, params, ctx):
         p = self._p(params)
         k = self._imu_checked(ctx)
-        src = ctx.acc[..., self.from_index:self.from_index + 1]  # (T, K, 1)
-        m = _onehot(ctx.K, k, self.axis_index, ctx.acc)
-        return p["coupling"] * m * src, torch.zeros_like(ctx.gyro)
+        out = ctx.acc if self.sensor == "acc" else ctx.gyro
+        src = out[..., self.from_index:self.from_index + 1]  # (T, K, 1)
+        d = p["coupling"] * _onehot(ctx.K, k, self.axis_index, out) * src
+        return (d, torch.zeros_like(ctx.gyro)) if self.sensor == "acc" else (torch.zeros_like(ctx.acc), d)
 
     def report_parameters(self, params=None):
         out = super().report_parameters(params)
         out["from_axis"] = self.from_axis
         return out
+
+
+@register_effect
+class AccMisalignment(_CrossAxisCoupling):
+    """Cross-axis coupling: axis ``axis`` also senses ``coupling`` × the ``from_axis`` component
+    of the specific force (rad; a non-orthogonal or tilted sensing axis, to first order)."""
+
+    name = "acc_misalignment"
+    description = "cross-axis coupling / non-orthogonal accelerometer axes"
+    sensor = "acc"
+    parameters = (Param("coupling", (), "rad", 0.05, "fraction of the from_axis component added"),)
 
     def explain(self, params=None):
         c = float(self._p(params)["coupling"])
@@ -715,7 +724,7 @@ class GyroScale(Effect):
 
 
 @register_effect
-class GyroMisalignment(Effect):
+class GyroMisalignment(_CrossAxisCoupling):
     """Cross-axis coupling of one gyroscope axis: gyro axis ``axis`` also senses ``coupling`` ×
     the ``from_axis`` component of the rotation rate (rad; a gyro sensing axis tilted towards
     another one, to first order), output_a += coupling · ω_b, sensor frame.
@@ -734,39 +743,9 @@ class GyroMisalignment(Effect):
     # gyro's relative scale/misalignment matrix, whose diagonal is GyroScale.
     vocabulary_name = "gyro_scale"
     description = "cross-axis coupling / non-orthogonal gyroscope axes"
-    local_axis = True
     sensor = "gyro"
-    options = ("from_axis",)
+    same_axis_hint = "; the same-axis term is gyro_scale"
     parameters = (Param("coupling", (), "rad", 0.05, "fraction of the from_axis rotation rate added"),)
-
-    def __init__(self, imu=None, axis=None, params=None, from_axis=None):
-        super().__init__(imu, axis, params)
-        if from_axis is None:
-            raise UserError("gyro_misalignment: from_axis: expected 'x', 'y' or 'z' (different from axis)")
-        self.from_index = _axis_index(from_axis)
-        if self.from_index == self.axis_index:
-            raise UserError(f"gyro_misalignment: from_axis must differ from axis ({self.axis!r}); "
-                            "the same-axis term is gyro_scale")
-        self.from_axis = AXES[self.from_index]
-
-    def location(self):
-        return {"imu": self.imu, "axis": self.axis, "from_axis": self.from_axis}
-
-    @classmethod
-    def candidates(cls, layout):
-        return [cls(imu=k, axis=a, from_axis=b) for k in cls._imus(layout) for a in AXES for b in AXES if b != a]
-
-    def perturbation(self, params, ctx):
-        p = self._p(params)
-        k = self._imu_checked(ctx)
-        src = ctx.gyro[..., self.from_index:self.from_index + 1]  # (T, K, 1)
-        m = _onehot(ctx.K, k, self.axis_index, ctx.gyro)
-        return torch.zeros_like(ctx.acc), p["coupling"] * m * src
-
-    def report_parameters(self, params=None):
-        out = super().report_parameters(params)
-        out["from_axis"] = self.from_axis
-        return out
 
     def vocabulary_parameters(self, params=None):
         """The report's parameters under the vocabulary name gyro_scale."""
