@@ -14,7 +14,15 @@ poses, stated noise); the truth stays with this script.  Printed:
   (RMS over the non-reference IMUs of |r̂_k − r_k|, positions relative to the reference IMU,
   µm) of the baseline fit and of the refined fit, relative to the clean-data error.  The
   clean-data error of a case is measured on its exact *clean twin*: the same seed with the
-  effect switched off (same motion, true geometry and noise draws), fitted the same way.
+  effect switched off (same motion, true geometry and noise draws), fitted the same way
+  (``--twin``: a full detect of the twin, whose false alarms also count; ``--twin-baseline``:
+  only the detector's baseline fit of the twin — the fit it ends with on clean data unless it
+  raises a false alarm — at ~5 % of the cost; ``--no-twin``: the median error of the board's
+  clean sets, a much cruder reference because the error varies with T, noise and motion).
+
+With ``--out DIR`` (or ``--fig PNG``) the same is drawn in ``DIR/summary.png``: the confusion
+matrix, χ²/dof before → after refinement, and the position error before → after relative to
+the clean-data error, one point per case.
 
 MUST-SHOW targets, each printed with PASS/FAIL:
 
@@ -49,13 +57,14 @@ Resuming.  With ``--out DIR`` every finished case is appended at once as one row
 kept in ``DIR/options.json``.  Rerunning with the same options skips the cases already in the CSV
 (a crashed case counts as done — and as a failure — unless ``--retry-errors``), so the full
 benchmark accumulates over several runs or sessions; ``--max-cases N`` and ``--time-budget S``
-bound one run.  Different options with the same ``DIR`` are refused (use another directory).
+bound one run.  One change of options is allowed on resume: a ``--no-twin`` store may continue
+with ``--twin-baseline``; the stored rows then get their clean-twin reference computed first.  Different options with the same ``DIR`` are refused (use another directory).
 Cases are run interleaved (first case of every effect, then the second, …) so a partial run
 covers every effect.  The summary — confusion matrix, localisation, false alarms, fits before
 and after — is computed from all rows present and says how many of the cases the issue requires
 (≥ 10 per effect, ≥ 30 clean) are done::
 
-    nohup env OMP_NUM_THREADS=1 python3 experiments/mismatch_proof.py --no-twin \
+    nohup env OMP_NUM_THREADS=1 python3 experiments/mismatch_proof.py --twin-baseline --workers 2 \
         --out experiments/out/mismatch_proof_full > /tmp/mp_full.log 2>&1 &   # rerun = resume
     python experiments/mismatch_proof.py --rescore experiments/out/mismatch_proof_full/cases.csv
 """
@@ -205,6 +214,17 @@ def _pos_error_um(est, true_rel, ref) -> float:
 
 # ---------------------------------------------------------------------------- one case (worker)
 
+def twin_baseline_error(clean, ref: int, true_rel) -> float:
+    """Position error (µm) of the detector's own baseline fit (its first stage:
+    ``prepare`` + ``baseline_fit``, the nominal model's MAP) on a case's clean twin — the
+    clean-data reference of ``--twin-baseline``, a fraction of the cost of a full detect."""
+    from accel_bayes.mismatch.refine import baseline_fit, prepare
+
+    base, _ = baseline_fit(prepare(clean.recording), use_map=True, progress=False)
+    pos = np.asarray(base.positions, dtype=float)
+    return _pos_error_um(pos - pos[ref], true_rel, ref)
+
+
 def run_case(case_id: str, board: str, effect: str, seed: int, settings: dict, twin: bool,
              detect_kwargs: dict, save_dir: str | None = None, generate_only: bool = False) -> dict:
     """Generate one blind case, run the detector on the recording alone, score it."""
@@ -251,7 +271,11 @@ def run_case(case_id: str, board: str, effect: str, seed: int, settings: dict, t
             pa = pb
         row["pos_err_before_um"] = _pos_error_um(pb, true_rel, ref)
         row["pos_err_after_um"] = _pos_error_um(pa, true_rel, ref)
-        if twin and effect != "none":
+        if twin == "baseline" and effect != "none":
+            t1 = time.perf_counter()
+            row["pos_err_clean_um"] = twin_baseline_error(clean, ref, true_rel)
+            row["seconds_twin"] = time.perf_counter() - t1
+        elif twin and effect != "none":
             t1 = time.perf_counter()
             rep0 = _as_dict(detect(clean.recording, **detect_kwargs))
             row["seconds_twin"] = time.perf_counter() - t1
@@ -449,6 +473,89 @@ def print_report(sc: dict, out=None) -> dict:
     return out_v
 
 
+# ---------------------------------------------------------------------------- figure
+
+_SHORT = {"acc_bias": "a.bias", "acc_scale": "a.scale", "acc_misalignment": "a.misal", "acc_nonlinearity": "a.nonlin",
+          "axis_displacement": "displ", "triad_orientation": "orient", "gyro_bias": "g.bias", "gyro_scale": "g.scale",
+          "gyro_g_sensitivity": "g.gsens", "time_offset": "t.offset", "saturation": "satur", "noise_level": "noise",
+          "none": "none", "unexplained": "unexpl", "error": "error"}
+
+
+def plot_summary(rows: list[dict], sc: dict, path: Path) -> None:
+    """Three panels: the confusion matrix (counts); χ²/dof before vs after refinement per case;
+    position error before and after refinement relative to the clean-data error per case.
+    Cases below the detection limit (oracle λ < 2 × threshold) are drawn hollow."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    conf = sc["confusion"]
+    truths = list(conf)
+    preds = list(next(iter(conf.values()))) if conf else []
+    mat = np.array([[conf[t][p] for p in preds] for t in truths], dtype=float)
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5.5), gridspec_kw={"width_ratios": [1.25, 1, 1]})
+    ax = axes[0]
+    frac = mat / np.maximum(mat.sum(1, keepdims=True), 1)
+    ax.imshow(frac, cmap="Blues", vmin=0, vmax=1)
+    for i in range(len(truths)):
+        for j in range(len(preds)):
+            if mat[i, j]:
+                ax.text(j, i, f"{int(mat[i, j])}", ha="center", va="center", fontsize=8,
+                        color="white" if frac[i, j] > 0.6 else "black")
+    ax.set_xticks(range(len(preds)), [_SHORT.get(p, p) for p in preds], rotation=60, fontsize=8)
+    ax.set_yticks(range(len(truths)), [_SHORT.get(t, t) for t in truths], fontsize=8)
+    ax.set_xlabel("top-ranked finding")
+    ax.set_ylabel("concealed effect")
+    ax.set_title("(a) confusion matrix (counts)")
+
+    eff = [r for r in rows if r["effect_true"] != "none" and "error" not in r]
+    det = [bool(r.get("above_detection_limit", True)) for r in eff]
+    ax = axes[1]
+    cb = np.array([float(r["chi2_before"]) if _finite(r.get("chi2_before")) else np.nan for r in eff])
+    ca = np.array([float(r["chi2_after"]) if _finite(r.get("chi2_after")) else np.nan for r in eff])
+    for d, mk in ((True, "o"), (False, "o")):
+        sel = np.array(det) == d
+        ax.scatter(cb[sel], ca[sel], s=18, marker=mk, facecolors="C0" if d else "none", edgecolors="C0",
+                   label="above detection limit" if d else "below detection limit")
+    lo, hi = 0.8, max(2.0, float(np.nanmax(cb)) * 1.2) if len(cb) and np.isfinite(cb).any() else 2.0
+    ax.plot([lo, hi], [lo, hi], "k:", lw=0.8, label="no change")
+    ax.axhspan(1 - CHI2_TOL, 1 + CHI2_TOL, color="C2", alpha=0.15, label=f"target |χ²/dof − 1| ≤ {CHI2_TOL:.0%}")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("χ²/dof, nominal model")
+    ax.set_ylabel("χ²/dof, refined model")
+    ax.set_title("(b) fit before → after refinement")
+    ax.legend(fontsize=7)
+
+    ax = axes[2]
+    rel = [(float(r["pos_err_before_um"]) / float(r["pos_err_clean_um"]),
+            float(r["pos_err_after_um"]) / float(r["pos_err_clean_um"]), d)
+           for r, d in zip(eff, det) if all(_finite(r.get(k)) for k in ("pos_err_before_um", "pos_err_after_um",
+                                                                          "pos_err_clean_um"))]
+    if rel:
+        b_, a_, d_ = map(np.array, zip(*rel))
+        for d in (True, False):
+            sel = d_ == d
+            ax.scatter(b_[sel], a_[sel], s=18, facecolors="C1" if d else "none", edgecolors="C1",
+                       label="above detection limit" if d else "below detection limit")
+        hi = max(2.0, float(b_.max()) * 1.2)
+        ax.plot([0.5, hi], [0.5, hi], "k:", lw=0.8, label="no change")
+        ax.axhline(POS_FACTOR, color="C3", lw=1, label=f"target: ≤ {POS_FACTOR}× clean")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+    ax.set_xlabel("position error / clean-data error, nominal model")
+    ax.set_ylabel("position error / clean-data error, refined model")
+    ax.set_title("(c) geometry before → after refinement")
+    ax.legend(fontsize=7)
+    fig.suptitle(f"Concealed-effect benchmark: {len(eff)} effect cases, "
+                 f"{sum(r['effect_true'] == 'none' for r in rows)} clean")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 # ---------------------------------------------------------------------------- main
 
 def build_cases(args) -> list[dict]:
@@ -537,7 +644,7 @@ def read_rows(path) -> list[dict]:
 
 
 def _options(args, detect_kwargs) -> dict:
-    return {"seed": args.seed, "T": args.T, "rate": args.rate, "boards": list(args.boards), "twin": bool(args.twin),
+    return {"seed": args.seed, "T": args.T, "rate": args.rate, "boards": list(args.boards), "twin": args.twin if args.twin == "baseline" else bool(args.twin),
             "detect_kwargs": detect_kwargs}
 
 
@@ -552,6 +659,13 @@ def _open_store(out: Path, options: dict, retry_errors: bool) -> list[dict]:
             raise SystemExit(f"--out: {csv_path} exists without options.json (an older run); use another --out, "
                              f"or --rescore {csv_path}")
         old = json.loads(opt_path.read_text())
+        upgrade = old.get("twin") is False and options.get("twin") == "baseline" and \
+            {k: v for k, v in old.items() if k != "twin"} == {k: v for k, v in json.loads(json.dumps(options)).items() if k != "twin"}
+        if upgrade:
+            # adding baseline twins changes no detector result: the stored rows stay valid and
+            # get their clean-data reference filled in by backfill_twin_baselines
+            opt_path.write_text(json.dumps(options, indent=1))
+            old = options
         if old != json.loads(json.dumps(options)):
             diff = {k: (old.get(k), options.get(k)) for k in OPTION_KEYS if old.get(k) != json.loads(json.dumps(options)).get(k)}
             raise SystemExit(f"--out: {out} holds a benchmark run with other options {diff} (stored, given); "
@@ -568,6 +682,27 @@ def _open_store(out: Path, options: dict, retry_errors: bool) -> list[dict]:
     opt_path.write_text(json.dumps(options, indent=1))
     _write_rows(csv_path, [])
     return []
+
+
+def backfill_twin_baselines(rows: list[dict], csv_path: Path, settings: dict) -> int:
+    """Fill ``pos_err_clean_um`` (baseline fit of the clean twin) into the effect rows of a store
+    that was run without twins; rewrites the CSV once per filled row (a kill loses nothing).
+    Returns the number of rows filled."""
+    n = 0
+    for r in rows:
+        if r["effect_true"] == "none" or "error" in r or _finite(r.get("pos_err_clean_um")):
+            continue
+        t1 = time.perf_counter()
+        clean = make_case(r["board"], "none", int(r["seed"]), **settings)
+        tr = clean.truth
+        ref = int(clean.recording.reference_imu)
+        r["pos_err_clean_um"] = twin_baseline_error(clean, ref, np.asarray(tr["true_relative_position"]))
+        r["seconds_twin"] = time.perf_counter() - t1
+        _write_rows(csv_path, rows)
+        n += 1
+        print(f"  {r['case']}: clean twin baseline error {r['pos_err_clean_um']:.2f} µm "
+              f"({r['seconds_twin']:.0f} s)", flush=True)
+    return n
 
 
 def _write_rows(path: Path, rows: list[dict]) -> None:
@@ -634,6 +769,10 @@ def summarize(rows: list[dict], args, out: Path | None, extra: dict | None = Non
     print("\n" + _progress_line(pg))
     sc = score(rows)
     verdicts = print_report(sc)
+    fig = getattr(args, "fig", None) or (out / "summary.png" if out is not None else None)
+    if fig is not None:
+        plot_summary(rows, sc, Path(fig))
+        print(f"figure: {fig}")
     secs = [r["seconds"] for r in rows if _finite(r.get("seconds"))]
     if secs:
         print(f"\ndetect(): median {np.median(secs):.1f} s per recording, max {max(secs):.1f} s "
@@ -665,6 +804,10 @@ def main(argv=None) -> int:
     tw = ap.add_mutually_exclusive_group()
     tw.add_argument("--twin", dest="twin", action="store_true", default=None,
                     help="fit each effect case's clean twin too (default, except with --quick)")
+    tw.add_argument("--twin-baseline", dest="twin", action="store_const", const="baseline",
+                    help="for each effect case fit only the detector's baseline (nominal MAP) on its clean "
+                         "twin: the clean-data position error without a second full detect (false alarms "
+                         "then come from the dedicated clean sets alone)")
     tw.add_argument("--no-twin", dest="twin", action="store_false",
                     help="skip the clean twins (~40 %% cheaper; the clean-data position error is then the "
                          "median over the clean sets of the same board)")
@@ -683,6 +826,9 @@ def main(argv=None) -> int:
     ap.add_argument("--save-cases", default=None, metavar="DIR", help="also write every recording + truth sidecar")
     ap.add_argument("--generate-only", action="store_true", help="generate (and save) the data, run no detector")
     ap.add_argument("--rescore", default=None, metavar="CSV", help="only score and print a cases.csv of an earlier run")
+    ap.add_argument("--fig", default=None, metavar="PNG",
+                    help="summary figure (confusion matrix, χ²/dof and position error before/after); default "
+                         "OUT/summary.png with --out, none otherwise")
     add_dask_arguments(ap, default_workers=1)
     args = ap.parse_args(argv)
     if args.rescore:
@@ -734,6 +880,8 @@ def main(argv=None) -> int:
 
     out = Path(args.out) if args.out else None
     rows = _open_store(out, _options(args, detect_kwargs), args.retry_errors) if out else []
+    if out and args.twin == "baseline":
+        backfill_twin_baselines(rows, out / "cases.csv", cases[0]["settings"] if cases else {})
     done_ids = {r["case"] for r in rows}
     wanted = {c["case_id"] for c in cases}
     pending = [p for p in params if p["case_id"] not in done_ids]
@@ -741,7 +889,7 @@ def main(argv=None) -> int:
         pending = pending[:max(0, int(args.max_cases))]
     print(f"mismatch_proof: {sum(c['effect'] != 'none' for c in cases)} effect cases "
           f"({args.per_effect} × {len(set(c['effect'] for c in cases if c['effect'] != 'none'))} effects), "
-          f"{args.clean} clean, boards {args.boards}, twins {'on' if args.twin else 'off'}; "
+          f"{args.clean} clean, boards {args.boards}, twins {'baseline fit' if args.twin == 'baseline' else 'on' if args.twin else 'off'}; "
           f"{len(wanted & done_ids)} already done, running {len(pending)} now", flush=True)
 
     def on_row(row):

@@ -32,6 +32,11 @@ motions)::
     python experiments/s16_convergence.py --motions table1,table2 --levels-pos 0.5,1,2 --levels-rot 5,10,20
 
 The SUMMARY line states exactly which table-like levels and how many trials it covers.
+``--first-trial N`` starts the trial numbering at N, so a later run adds new trials to the same
+levels (each trial's start is seeded by motion, kind, level and trial number); the CSVs of
+separate runs are merged by ``--replot a.csv,b.csv,...``.  The committed figure
+(``experiments/out/s16_convergence.png``, numbers in ``experiments/s16_results.md``) merges the
+runs listed there.
 """
 from __future__ import annotations
 
@@ -57,6 +62,14 @@ QUICK_ROT_DEG = [20, 180]
 QUICK_TRIALS = 2
 SUCCESS_POS, SUCCESS_ROT_DEG = 1e-3, 0.5
 
+# What each --variant changes in self_calibrate: the package default, the default without the two
+# divergence remedies, and the [S16] procedure (joint LM from zero motion, no remedies).
+VARIANTS = {
+    "default": {},
+    "no-remedies": {"rerun_from_estimate": False, "restart_on_divergence": False},
+    "s16": {"rerun_from_estimate": False, "restart_on_divergence": False, "warm_start_motion": False},
+}
+
 _CACHE: dict = {}
 
 
@@ -72,12 +85,14 @@ def _recording(motion: str, seed: int):
 
 
 def run_one(task: tuple) -> dict:
-    """task = (motion, kind "position"/"orientation", level, trial, seed)."""
+    """task = (motion, kind "position"/"orientation", level, trial, seed[, variant])."""
     C.one_thread()
     from accel_bayes.geometry import boxplus, rotation_angle
     from accel_bayes.inference.selfcal import self_calibrate
 
-    motion, kind, level, trial, seed = task
+    motion, kind, level, trial, seed = task[:5]
+    variant = task[5] if len(task) > 5 else "default"
+    opts = {"rerun_from_estimate": "auto", **VARIANTS[variant]}
     z, proto = _recording(motion, seed)
     # a deterministic seed per task (Python's str hash is salted per process)
     g = torch.Generator().manual_seed(zlib.crc32(f"{motion}|{kind}|{float(level)}|{trial}|{seed}".encode()))
@@ -92,14 +107,16 @@ def run_one(task: tuple) -> dict:
         q0 = boxplus(q0, level * C.DEG * v)
     t0 = time.perf_counter()
     r = self_calibrate(z, 1 / C.RATE, nominal_positions=p0, nominal_orientations=q0, fixed=0, acc_noise_std=0.02,
-                       sensor_params=(proto["sens"], proto["offset"]), rerun_from_estimate="auto", covariance=False,
-                       max_iter=100)
+                       sensor_params=(proto["sens"], proto["offset"]), covariance=False, max_iter=100,
+                       **opts)
     pe = ae = math.nan
     if r.ok:
         pe = float((r.positions[1:] - proto["positions"][1:]).norm(dim=-1).max())
         ae = float(rotation_angle(r.orientations[1:], proto["orientations"][1:]).max() / C.DEG)
     success = bool(r.ok and pe < SUCCESS_POS and ae < SUCCESS_ROT_DEG)
-    return {"motion": motion, "kind": kind, "level": level, "trial": trial, "success": success, "status": r.status,
+    # a variant's rows carry it in the motion label, so plots and tables show it as its own line
+    label = motion if variant == "default" else f"{motion} [{variant}]"
+    return {"motion": label, "kind": kind, "level": level, "trial": trial, "success": success, "status": r.status,
             "reason": r.reason[:80], "max_pos_err_mm": pe * 1e3, "max_ang_err_deg": ae,
             "runs": len(r.runs), "iterations": sum(u["iterations"] for u in r.runs),
             "seconds": time.perf_counter() - t0}
@@ -118,13 +135,17 @@ def plot(rows: list[dict], path: Path, motions: list[str], pos_levels, rot_level
             ax.set_title(f"({kind}: not run)")
             continue
         for i, m in enumerate(motions):
-            rate = []
+            # only the levels run for this motion, so a line is not broken by levels it skipped
+            lv_m, rate, counts = [], [], set()
             for lv in levels:
                 s = [r["success"] for r in rows if r["motion"] == m and r["kind"] == kind and r["level"] == lv]
-                rate.append(100.0 * np.mean(s) if s else np.nan)
-            counts = {sum(1 for r in rows if r["motion"] == m and r["kind"] == kind and r["level"] == lv) for lv in levels}
-            ax.plot(levels, rate, marker="os^D"[i % 4],
-                    label=f"{m} ({'/'.join(str(c) for c in sorted(counts))} trials / level)")
+                if s:
+                    lv_m.append(lv)
+                    rate.append(100.0 * np.mean(s))
+                    counts.add(len(s))
+            if lv_m:
+                ax.plot(lv_m, rate, marker="os^Dv<>p"[i % 8], ls="--" if " [" in m else "-",
+                        label=f"{m} ({'/'.join(str(c) for c in sorted(counts))} trials / level)")
         ax.set_xlabel(unit)
         ax.grid(True, alpha=0.3)
         ax.set_ylim(-3, 103)
@@ -157,6 +178,8 @@ def replot(paths, fig: Path) -> int:
     """Merge per-run CSVs, print the tables and the SUMMARY line, write the figure."""
     rows = _read_rows(paths)
     motions = list(dict.fromkeys(r["motion"] for r in rows))
+    order = {m: i for i, m in enumerate(C.MOTIONS)}
+    motions.sort(key=lambda m: (" [" in m, order.get(m.split(" [")[0], 99), m))
     pos_levels = sorted({r["level"] for r in rows if r["kind"] == "position"})
     rot_levels = sorted({r["level"] for r in rows if r["kind"] == "orientation"})
     plot(rows, fig, motions, pos_levels, rot_levels)
@@ -217,6 +240,13 @@ def main(argv=None) -> int:
     ap.add_argument("--levels-rot", default=None,
                     help="initial orientation errors, degrees, comma separated ('' = none; default "
                          + ",".join(f"{v:g}" for v in ROT_LEVELS_DEG) + ")")
+    ap.add_argument("--first-trial", type=int, default=0,
+                    help="index of the first trial (default 0): a later run with --first-trial N adds new trials "
+                         "to the same levels instead of repeating trials 0..N-1 (merge with --replot)")
+    ap.add_argument("--variant", default="default", choices=sorted(VARIANTS),
+                    help="default: the package's self_calibrate (warm start, re-run and restart remedies); "
+                         "no-remedies: without the re-run and restart; s16: also without the motion-only warm "
+                         "start (the paper's procedure). Non-default rows are labelled 'MOTION [VARIANT]'")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--scheduler", default=None, help="dask scheduler address (default: a LocalCluster)")
     ap.add_argument("--workers", type=int, default=None, help="LocalCluster workers (default: cores, max 2); 0 = serial")
@@ -249,8 +279,11 @@ def main(argv=None) -> int:
     rot_levels = levels(args.levels_rot, QUICK_ROT_DEG if args.quick else ROT_LEVELS_DEG, "--levels-rot")
     if not pos_levels and not rot_levels:
         ap.error("no levels to run (--levels-pos and --levels-rot both empty)")
-    tasks = [(m, "position", lv, k, args.seed) for m in motions for lv in pos_levels for k in range(n)]
-    tasks += [(m, "orientation", lv, k, args.seed) for m in motions for lv in rot_levels for k in range(n)]
+    if args.first_trial < 0:
+        ap.error("--first-trial: expected an integer >= 0")
+    trials = range(args.first_trial, args.first_trial + n)
+    tasks = [(m, "position", lv, k, args.seed, args.variant) for m in motions for lv in pos_levels for k in trials]
+    tasks += [(m, "orientation", lv, k, args.seed, args.variant) for m in motions for lv in rot_levels for k in trials]
     # longest first (the 20 s motion), so the pool does not idle at the end
     tasks.sort(key=lambda t: -C.MOTIONS[t[0]]["T"])
     t0 = time.perf_counter()
@@ -262,9 +295,10 @@ def main(argv=None) -> int:
         w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
         w.writeheader()
         w.writerows(rows)
-    plot(rows, Path(args.fig), motions, pos_levels, rot_levels)
+    labels = list(dict.fromkeys(r["motion"] for r in rows))  # motion names, tagged with a non-default variant
+    plot(rows, Path(args.fig), labels, pos_levels, rot_levels)
     print(f"{len(rows)} self-calibrations in {wall:.0f} s wall; CSV {out}, figure {args.fig}")
-    report(rows, motions, pos_levels, rot_levels)
+    report(rows, labels, pos_levels, rot_levels)
     return 0
 
 

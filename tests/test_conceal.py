@@ -338,3 +338,32 @@ def test_proof_retries_crashed_cases_only_when_asked(tmp_path, monkeypatch):
     assert calls == ["acc_bias-000"]
     rows = mp.read_rows(tmp_path / "cases.csv")
     assert len(rows) == 2 and not any("error" in r for r in rows)
+
+
+def test_proof_store_gains_baseline_twins_and_a_figure(tmp_path, monkeypatch):
+    """A store run without twins may be resumed with --twin-baseline: the stored effect rows get
+    their clean-twin reference filled in (no detector result changes), options.json records the
+    new mode, and the summary figure is written."""
+    import types
+
+    import mismatch_proof as mp
+
+    calls = []
+    monkeypatch.setattr(mp, "run_case", _fake_runner(calls))
+    twins = []
+    monkeypatch.setattr(mp, "make_case", lambda board, effect, seed, **kw: types.SimpleNamespace(
+        truth={"true_relative_position": np.zeros((8, 3))}, recording=types.SimpleNamespace(reference_imu=0)))
+    monkeypatch.setattr(mp, "twin_baseline_error", lambda clean, ref, true_rel: twins.append(ref) or 11.0)
+    out = tmp_path / "bench"
+    base = ["--workers", "0", "--boards", "mimu8", "--effects", "acc_bias", "--per-effect", "2", "--clean", "1",
+            "--out", str(out)]
+    mp.main(base + ["--no-twin"])
+    assert len(calls) == 3 and twins == []
+    with pytest.raises(SystemExit, match="other options"):  # a full-detect twin would change the benchmark
+        mp.main(base + ["--twin"])
+    mp.main(base + ["--twin-baseline"])
+    rows = mp.read_rows(out / "cases.csv")
+    assert len(twins) == 2 and len(calls) == 3  # both effect rows filled, no case rerun
+    assert [r["pos_err_clean_um"] for r in rows if r["effect_true"] != "none"] == [11.0, 11.0]
+    assert __import__("json").loads((out / "options.json").read_text())["twin"] == "baseline"
+    assert (out / "summary.png").stat().st_size > 10_000
