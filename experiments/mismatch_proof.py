@@ -261,7 +261,7 @@ def run_case(case_id: str, board: str, effect: str, seed: int, settings: dict, t
             n_findings=len(f), threshold=rep.get("threshold"),
             chi2_before=_lookup(rep, ("baseline", "chi2_per_dof")),
             chi2_after=_lookup(rep, ("refined", "chi2_per_dof")),
-            findings=json.dumps([{k: x.get(k) for k in ("effect", "imu", "axis", "evidence")} for x in f]),
+            findings=json.dumps([{k: x.get(k) for k in ("effect", "imu", "axis", "evidence", "alternatives")} for x in f]),
         )
         if row["chi2_after"] is None:  # nothing refined: the final model is the baseline
             row["chi2_after"] = row["chi2_before"]
@@ -374,9 +374,31 @@ def score(rows: list[dict]) -> dict:
         "clean_quiet": _frac(quiet), "clean_quiet_dedicated": _frac(quiet_dedicated),
         "clean_quiet_twins": _frac(quiet_twins),
         "false_alarm_rate": 1 - _frac(quiet)[0] if quiet else float("nan"),
-        "confusion": conf, "per_effect": per_effect,
+        "confusion": conf, "per_effect": per_effect, "misnamed_with_alternative": _misnamed_alternatives(eff_all, ok),
         "errors": sum(not ok(r) for r in rows),
     }
+
+
+def _misnamed_alternatives(eff_rows: list[dict], ok) -> dict:
+    """Of the effect cases whose top finding names another effect, how many list the true effect
+    (at the true IMU) among that finding's ``alternatives`` — i.e. the report said the recording
+    could not tell the two apart.  Rows written before findings carried alternatives are left
+    out (``n_without_record``)."""
+    hit = n = missing = 0
+    for r in eff_rows:
+        if not ok(r) or r.get("top_effect") in (None, "none", r["effect_true"]):
+            continue
+        try:
+            top = (json.loads(r.get("findings") or "[]") or [{}])[0]
+        except (TypeError, ValueError):
+            top = {}
+        if "alternatives" not in top:
+            missing += 1
+            continue
+        n += 1
+        hit += any(a.get("effect") == r["effect_true"] and a.get("imu") == r.get("imu_true")
+                   for a in top.get("alternatives") or [])
+    return {"listed": hit, "n": n, "n_without_record": missing}
 
 
 def _finite(x) -> bool:
@@ -446,6 +468,11 @@ def print_report(sc: dict, out=None) -> dict:
     dsc = sc["detectable"]
     p(f"\nLocalisation detail: right IMU {_fmt_frac(sc['right_imu'])}; right IMU and axis (axis effects only) "
       f"{_fmt_frac(sc['right_axis_where_scored'])}")
+    mn = sc.get("misnamed_with_alternative")
+    if mn and (mn["n"] or mn["n_without_record"]):
+        p(f"Misnamed effect cases whose report lists the true effect as a not-ruled-out alternative: "
+          f"{mn['listed']}/{mn['n']}" + (f" ({mn['n_without_record']} more from runs before alternatives were recorded)"
+                                          if mn["n_without_record"] else ""))
     if sc["clean_quiet"][2]:
         p(f"False-alarm rate on clean recordings: {sc['false_alarm_rate']:.1%} (mismatch_detected on dedicated clean "
           f"sets: {sc['clean_quiet_dedicated'][2] - sc['clean_quiet_dedicated'][1]}/{sc['clean_quiet_dedicated'][2]}, "

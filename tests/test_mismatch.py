@@ -341,3 +341,23 @@ def test_excess_cells_rank_by_evidence_when_p_values_underflow(clean_rec):
     by_cell = {(d["imu"], d["sensor"], d["axis"]): d["statistic"] for d in tests if d["scheme"] == "|omega|"}
     assert by_cell[(0, "acc", "x")] > 1e4 and by_cell[(5, "gyro", "z")] > by_cell[(0, "acc", "x")]
     assert (tests[0]["imu"], tests[0]["sensor"], tests[0]["axis"]) == (5, "gyro", "z")
+
+
+def test_alternatives_are_the_candidates_with_akaike_weight_above_five_percent():
+    """alternatives(): relative likelihood exp(((e_alt − 2 df_alt) − (e_best − 2 df_best)) / 2)
+    computed by hand for three rivals of a 1-df finding with robust evidence 100."""
+    from accel_bayes.mismatch.detect import ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD, alternatives
+
+    def res(name, axis, ev, **kw):
+        return {"effect": make_effect(name, imu=2, axis=axis, **kw), "evidence": ev + 1.0, "evidence_robust": ev}
+
+    best = res("acc_scale", "x", 100.0)
+    close = res("acc_nonlinearity", "x", 98.0)          # Δ = 2 → exp(−1) = 0.368
+    far = res("acc_bias", "x", 93.0)                    # Δ = 7 → exp(−3.5) = 0.030 < 0.05
+    wide = res("triad_orientation", None, 103.5)        # 3 df: Δ = −3.5 + 4 = 0.5 → exp(−0.25)
+    out = alternatives(best, [best, close, far, wide])
+    assert ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD == 0.05
+    assert [a["effect"] for a in out] == ["triad_orientation", "acc_nonlinearity"]
+    assert out[0]["relative_likelihood"] == pytest.approx(math.exp(-0.25))
+    assert out[1]["relative_likelihood"] == pytest.approx(math.exp(-1.0))
+    assert out[1]["evidence"] == 99.0 and out[1]["imu"] == 2 and out[1]["axis"] == "x"

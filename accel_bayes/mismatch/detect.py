@@ -50,7 +50,10 @@ Procedure
    * among the acceptable ones the smallest p-value (χ²_df of the robust evidence) wins.
 
    With several findings, each one's evidence is recomputed with all the others in the model
-   (drop-one refits).
+   (drop-one refits).  Each finding lists as ``alternatives`` the other candidates refitted in
+   its round whose Akaike relative likelihood against it, exp(−ΔAIC/2), is ≥ 5 %: effects this
+   recording cannot tell apart from the named one (e.g. a quadratic response and a scale error
+   on an axis whose specific force never changes sign).
 7. **Unexplained**: at the final model, the located-excess tests of
    :func:`accel_bayes.mismatch.locate.excess_cells` (free mean and variance per regime bin, χ²_2B),
    Bonferroni-corrected over the cells × schemes tested; a significant one that also exceeds the
@@ -324,6 +327,31 @@ def _choose(screens: list[Screen], threshold: float, n_refit: int) -> list[Scree
     return chosen
 
 
+# An alternative explanation is reported beside a finding when its Akaike relative likelihood
+# exp(−ΔAIC/2) against the finding is at least this: the recording cannot rule it out.
+ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD = 0.05
+
+
+def alternatives(best: dict, results: list[dict]) -> list[dict]:
+    """The other candidates refitted in the round that accepted ``best`` whose fit is nearly as
+    good: relative likelihood exp(((e_alt − 2 df_alt) − (e_best − 2 df_best)) / 2) ≥
+    :data:`ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD` (e = noise-robust evidence, both against the same
+    model without them; AIC's penalty of 2 per parameter).  Example: on an axis whose specific
+    force stays on one side of zero, a² is nearly a linear function of a, and a quadratic
+    response is hard to tell from a scale error plus a bias."""
+    e_b = best["evidence_robust"] - 2 * best["effect"].df
+    out = []
+    for r in results:
+        if r is best or r["effect"].kind == "noise":
+            continue
+        rel = math.exp(min(0.0, (r["evidence_robust"] - 2 * r["effect"].df - e_b) / 2))
+        if rel >= ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD:
+            eff = r["effect"]
+            out.append({"effect": eff.vocabulary_name or eff.name, "imu": eff.imu, "axis": eff.axis,
+                        "evidence": float(r["evidence"]), "df": int(eff.df), "relative_likelihood": rel})
+    return sorted(out, key=lambda a: -a["relative_likelihood"])
+
+
 def _evidence(prep, with_fit: ModelFit, without_fit: ModelFit, effect) -> float:
     if effect.kind == "noise":
         return noise_evidence(prep, with_fit, effect)[0]
@@ -486,6 +514,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             say("no further candidate above the threshold")
             break
         say(f"accepted {best['effect'].label()} (evidence {best['evidence']:.4g})")
+        best["alternatives"] = alternatives(best, results)
         accepted.append(best)
         current = best["fit"]
     timings["detection_s"] = _time.perf_counter() - t0
@@ -528,7 +557,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
                                 where=where, explanation=eff.explain(), screen_statistic=acc_["screen"].statistic,
                                 orientations=prep.q,
                                 extra={"evidence_when_added": acc_["evidence"],
-                                       "evidence_noise_robust": acc_["evidence_robust"]}))
+                                       "evidence_noise_robust": acc_["evidence_robust"],
+                                       "alternatives": acc_.get("alternatives", [])}))
     timings["evidence_s"] = _time.perf_counter() - t0
 
     # ---- unexplained located excess at the final model

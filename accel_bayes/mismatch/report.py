@@ -342,6 +342,11 @@ class MismatchReport:
             L.append("")
             for i, f in enumerate(d["findings"], 1):
                 L.append(f"{i}. {f['explanation']}")
+                alts = f.get("alternatives") or []
+                if alts:
+                    L.append("   Not ruled out by this recording (Akaike relative likelihood ≥ 5 %): " + "; ".join(
+                        f"{a['effect']} (IMU {_na(a['imu'])}, axis {_na(a['axis'])}, evidence {a['evidence']:.4g}, "
+                        f"relative likelihood {a['relative_likelihood']:.2f})" for a in alts) + ".")
             L.append("")
         r = d["refined"]
         if r:
