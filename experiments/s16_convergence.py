@@ -128,7 +128,7 @@ def plot(rows: list[dict], path: Path, motions: list[str], pos_levels, rot_level
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.6), sharey=True)
     for ax, kind, levels, unit in ((axes[0], "position", pos_levels, "initial position error (cm)"),
                                    (axes[1], "orientation", rot_levels, "initial orientation error (°)")):
         if not levels:
@@ -146,13 +146,17 @@ def plot(rows: list[dict], path: Path, motions: list[str], pos_levels, rot_level
             if lv_m:
                 ax.plot(lv_m, rate, marker="os^Dv<>p"[i % 8], ls="--" if " [" in m else "-",
                         label=f"{m} ({'/'.join(str(c) for c in sorted(counts))} trials / level)")
+        if kind == "position":
+            # [S16] §VI-B: beyond half the spacing of neighbouring triads (16.91 cm) a triad may
+            # start nearer another triad's true position than its own
+            ax.axvline(8.45, color="0.5", lw=0.8, ls=":", label="half the triad spacing (8.45 cm)")
         ax.set_xlabel(unit)
         ax.grid(True, alpha=0.3)
         ax.set_ylim(-3, 103)
     axes[0].set_ylabel("success rate (%)")
     for ax in axes:
         if ax.lines:
-            ax.legend()
+            ax.legend(fontsize=7.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     fig.suptitle("[S16] Fig. 7 (simulation): self-calibration success vs initial pose error")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
