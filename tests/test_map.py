@@ -228,7 +228,6 @@ def test_bad_input_is_refused():
         fit_map(d["acc"], d["wbar"], d["P"], torch.ones(5), prior_mean=d["arr"].positions)
 
 
-@pytest.mark.slow
 def test_map_errors_attain_the_crb():
     """MUST-SHOW: 50 simulated sets of one configuration — mimu8, T = 200, σ_a = 0.04 m/s²,
     σ_g = 0.06 °/s (8 calibrated gyros), [C21] i.i.d. motion, prior N(nominal, (3 mm)²), truth =
