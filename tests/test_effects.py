@@ -55,6 +55,9 @@ def test_vocabulary_and_parameters():
     e = make_effect("gyro_scale", imu=2, axis="z", parameters={"scale": 0.01, "from_axis": "x"})
     assert e.name == "gyro_misalignment" and e.vocabulary_parameters() == {"scale": 0.01, "from_axis": "x"}
     assert make_effect("gyro_scale", imu=2, axis="z", parameters={"scale": 0.01}).name == "gyro_scale"
+    diag = make_effect("gyro_scale", imu=2, axis="z", parameters={"scale": 0.01, "from_axis": "z"})
+    assert diag.name == "gyro_scale" and diag.report_parameters() == {"scale": 0.01}
+    assert make_effect("gyro_scale", imu=2, axis="z", from_axis="y").name == "gyro_misalignment"
     layout = CandidateLayout(8, np.ones(8, bool), np.ones(8, bool), 0)
     for name, keys in DESIGN_PARAMS.items():
         cls = EFFECTS[name]

@@ -279,6 +279,19 @@ class Effect:
     parameters: ClassVar[tuple] = ()
     needs_rates: ClassVar[bool] = False
 
+    @classmethod
+    def reads_report(cls, axis, parameters: dict, options: dict) -> bool:
+        """Whether a report finding named ``cls.vocabulary_name`` with these parameters and
+        options is this class (for a class reported under a vocabulary name other than its own;
+        see :func:`make_effect`)."""
+        return False
+
+    @classmethod
+    def from_report(cls, parameters: dict, options: dict) -> tuple[dict, dict]:
+        """(parameters, options) of a report finding, renamed to this class's own keys (the
+        inverse of :meth:`vocabulary_parameters` where a class has one)."""
+        return parameters, options
+
     def __init__(self, imu: int | None = None, axis=None, params: dict | None = None):
         if self.local_imu:
             if imu is None or isinstance(imu, bool) or not isinstance(imu, (int, np.integer)) or int(imu) < 0:
@@ -458,15 +471,12 @@ def make_effect(name: str, imu=None, axis=None, parameters: dict | None = None, 
     Options such as ``from_axis`` (acc_misalignment) or ``sensor`` (saturation, noise_level)
     go as keywords; ``parameters`` may also carry them (as a report's parameters do)."""
     parameters = dict(parameters or {})
-    frm = options.get("from_axis", parameters.get("from_axis"))
-    if name == "gyro_scale" and frm is not None and frm != axis:
-        name = "gyro_misalignment"  # a report's cross-axis gyro_scale finding (DESIGN §7.2 name)
-        if "scale" in parameters:
-            parameters["coupling"] = parameters.pop("scale")
-    cls = get_effect(name)
-    if name == "gyro_scale":
-        parameters.pop("from_axis", None)
-        options.pop("from_axis", None)
+    # A report names effects in the DESIGN §7.2 vocabulary; a class reported under another
+    # class's name (e.g. gyro_misalignment as an off-diagonal gyro_scale) claims the findings it
+    # recognises, and every class renames the report's keys to its own.
+    cls = next((c for c in EFFECTS.values() if c.vocabulary_name == name and c.reads_report(axis, parameters, options)),
+               None) or get_effect(name)
+    parameters, options = cls.from_report(parameters, dict(options))
     for opt in getattr(cls, "options", ()):
         if opt in parameters:
             options.setdefault(opt, parameters.pop(opt))
@@ -711,6 +721,14 @@ class GyroScale(Effect):
     sensor = "gyro"
     parameters = (Param("scale", (), "1", 0.05, "relative scale error (0.01 = 1 %)"),)
 
+    @classmethod
+    def from_report(cls, parameters, options):
+        # a report's gyro_scale may carry from_axis; equal to the own axis, it is the diagonal
+        # (an off-diagonal one is claimed by GyroMisalignment.reads_report)
+        parameters.pop("from_axis", None)
+        options.pop("from_axis", None)
+        return parameters, options
+
     def perturbation(self, params, ctx):
         p = self._p(params)
         k = self._imu_checked(ctx)
@@ -746,6 +764,17 @@ class GyroMisalignment(_CrossAxisCoupling):
     sensor = "gyro"
     same_axis_hint = "; the same-axis term is gyro_scale"
     parameters = (Param("coupling", (), "rad", 0.05, "fraction of the from_axis rotation rate added"),)
+
+    @classmethod
+    def reads_report(cls, axis, parameters, options):
+        frm = options.get("from_axis", parameters.get("from_axis"))
+        return frm is not None and frm != axis
+
+    @classmethod
+    def from_report(cls, parameters, options):
+        if "scale" in parameters:
+            parameters["coupling"] = parameters.pop("scale")
+        return parameters, options
 
     def vocabulary_parameters(self, params=None):
         """The report's parameters under the vocabulary name gyro_scale."""
