@@ -205,6 +205,20 @@ def process_covariance(dt: torch.Tensor | float, variances: dict | None = None, 
     return torch.diag_embed(dt.unsqueeze(-1) ** 2 * diag)
 
 
+def per_axis(value, A: int, name: str, *, dtype=torch.float64, device=None) -> torch.Tensor:
+    """A per-triad-axis quantity broadcast to (A, 3): a scalar (all triads and axes), an (A,)
+    per-triad value or an (A, 3) per-axis value.  Raises :class:`UserError` naming ``name`` for
+    any other shape; the values themselves are the caller's to check."""
+    v = torch.as_tensor(value, dtype=dtype, device=device)
+    if v.dim() == 0:
+        return v.expand(A, 3)
+    if v.shape == (A,):
+        return v.unsqueeze(-1).expand(A, 3)
+    if v.shape != (A, 3):
+        raise UserError(f"{name}: expected a scalar, ({A},) or ({A}, 3), got {tuple(v.shape)}")
+    return v
+
+
 def acc_noise_std_per_axis(acc_noise_std, A: int, *, dtype=torch.float64, device=None) -> torch.Tensor:
     """Accelerometer white-noise standard deviations broadcast to (A, 3), m/s².
 
@@ -213,13 +227,7 @@ def acc_noise_std_per_axis(acc_noise_std, A: int, *, dtype=torch.float64, device
     Raises :class:`UserError` naming ``acc_noise_std`` for any other shape, or for values that are
     not finite and > 0.
     """
-    std = torch.as_tensor(acc_noise_std, dtype=dtype, device=device)
-    if std.dim() == 0:
-        std = std.expand(A, 3)
-    elif std.shape == (A,):
-        std = std.unsqueeze(-1).expand(A, 3)
-    elif std.shape != (A, 3):
-        raise UserError(f"acc_noise_std: expected a scalar, ({A},) or ({A}, 3), got {tuple(std.shape)}")
+    std = per_axis(acc_noise_std, A, "acc_noise_std", dtype=dtype, device=device)
     if bool((std <= 0).any()) or not bool(torch.isfinite(std).all()):
         raise UserError("acc_noise_std: expected finite values > 0 for every triad")
     return std

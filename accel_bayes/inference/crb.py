@@ -32,7 +32,7 @@ import torch
 
 from ..errors import UserError
 from ..geometry import skew
-from ..models import G_matrix, H_matrix, acc_noise_std_per_axis
+from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis
 from .linear import SchurComplementSolver, cholesky
 
 __all__ = ["du_domega", "fisher_blocks", "fisher_information_theta", "crb_theta"]
@@ -128,13 +128,9 @@ def fisher_information_theta(positions, omega, omega_dot, s, acc_noise_std, gyro
     S = 0.5 * (S + S.T)
     if prior_std is not None:
         A = U.shape[0] // 3 + 1
-        ps = torch.as_tensor(prior_std, dtype=dtype, device=S.device)
-        if ps.dim() == 0:
-            ps = ps.expand(A, 3)
-        elif ps.shape == (A,):
-            ps = ps.unsqueeze(-1).expand(A, 3)
-        if ps.shape != (A, 3) or bool((ps <= 0).any()):
-            raise UserError(f"prior_std: expected > 0, scalar, ({A},) or ({A}, 3), got shape {tuple(ps.shape)}")
+        ps = per_axis(prior_std, A, "prior_std", dtype=dtype, device=S.device)
+        if bool((ps <= 0).any()):
+            raise UserError("prior_std: expected values > 0")
         ps = torch.cat((ps[:reference], ps[reference + 1:]), 0).reshape(-1)
         S = S + torch.diag(ps.pow(-2))
     return S

@@ -39,7 +39,7 @@ import torch
 
 from ..errors import UserError
 from ..geometry import skew
-from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
+from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
 from .crb import du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
 from .linear import NotPositiveDefinite, SchurComplementSolver, cholesky
@@ -257,13 +257,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     if prior_std is not None:
         if prior_mean is None:
             raise UserError("prior_std given without prior_mean")
-        ps = torch.as_tensor(prior_std, dtype=dtype, device=acc.device)
-        if ps.dim() == 0:
-            ps = ps.expand(A, 3)
-        elif ps.shape == (A,):
-            ps = ps.unsqueeze(-1).expand(A, 3)
-        if ps.shape != (A, 3):
-            raise UserError(f"prior_std: expected a scalar, ({A},) or ({A}, 3), got {tuple(ps.shape)}")
+        ps = per_axis(prior_std, A, "prior_std", dtype=dtype, device=acc.device)
         ps_t = torch.cat((ps[:reference], ps[reference + 1:]), 0)
         if bool((ps_t <= 0).any()):
             raise UserError("prior_std: expected > 0")

@@ -56,17 +56,9 @@ __all__ = [
 # ---------------------------------------------------------------------------- residuals
 
 def _as_inv_std(acc_noise_std, A: int, dtype, device) -> torch.Tensor:
-    """(A, 3) inverse noise std from a scalar, (A,) or (A, 3) std."""
-    s = torch.as_tensor(acc_noise_std, dtype=dtype, device=device)
-    if s.dim() == 0:
-        s = s.expand(A, 3)
-    elif s.dim() == 1:
-        s = s.unsqueeze(-1).expand(A, 3)
-    if s.shape != (A, 3):
-        raise ValueError(f"acc_noise_std: expected a scalar, (A,) or (A, 3) with A={A}, got {tuple(s.shape)}")
-    if bool((s <= 0).any()) or not bool(torch.isfinite(s).all()):
-        raise ValueError("acc_noise_std: expected finite values > 0")
-    return 1.0 / s
+    """(A, 3) inverse noise std from a scalar, (A,) or (A, 3) std (checked by
+    :func:`accel_bayes.models.acc_noise_std_per_axis`)."""
+    return 1.0 / models.acc_noise_std_per_axis(acc_noise_std, A, dtype=dtype, device=device)
 
 
 def triad_residuals(
