@@ -58,7 +58,8 @@ kept in ``DIR/options.json``.  Rerunning with the same options skips the cases a
 (a crashed case counts as done — and as a failure — unless ``--retry-errors``), so the full
 benchmark accumulates over several runs or sessions; ``--max-cases N`` and ``--time-budget S``
 bound one run.  One change of options is allowed on resume: a ``--no-twin`` store may continue
-with ``--twin-baseline``; the stored rows then get their clean-twin reference computed first.  Different options with the same ``DIR`` are refused (use another directory).
+with ``--twin-baseline``; the stored rows then get their clean-twin reference computed first.
+Other changes of options with the same ``DIR`` are refused (use another directory).
 Cases are run interleaved (first case of every effect, then the second, …) so a partial run
 covers every effect.  The summary — confusion matrix, localisation, false alarms, fits before
 and after — is computed from all rows present and says how many of the cases the issue requires
@@ -508,6 +509,14 @@ _SHORT = {"acc_bias": "a.bias", "acc_scale": "a.scale", "acc_misalignment": "a.m
           "none": "none", "unexplained": "unexpl", "error": "error"}
 
 
+def _scatter_by_limit(ax, x, y, above, color) -> None:
+    """One point per case, filled above the detection limit and hollow below it."""
+    for d in (True, False):
+        sel = above == d
+        ax.scatter(x[sel], y[sel], s=18, facecolors=color if d else "none", edgecolors=color,
+                   label="above detection limit" if d else "below detection limit")
+
+
 def plot_summary(rows: list[dict], sc: dict, path: Path) -> None:
     """Three panels: the confusion matrix (counts); χ²/dof before vs after refinement per case;
     position error before and after refinement relative to the clean-data error per case.
@@ -537,14 +546,11 @@ def plot_summary(rows: list[dict], sc: dict, path: Path) -> None:
     ax.set_title("(a) confusion matrix (counts)")
 
     eff = [r for r in rows if r["effect_true"] != "none" and "error" not in r]
-    det = [bool(r.get("above_detection_limit", True)) for r in eff]
+    det = np.array([bool(r.get("above_detection_limit", True)) for r in eff])
     ax = axes[1]
     cb = np.array([float(r["chi2_before"]) if _finite(r.get("chi2_before")) else np.nan for r in eff])
     ca = np.array([float(r["chi2_after"]) if _finite(r.get("chi2_after")) else np.nan for r in eff])
-    for d, mk in ((True, "o"), (False, "o")):
-        sel = np.array(det) == d
-        ax.scatter(cb[sel], ca[sel], s=18, marker=mk, facecolors="C0" if d else "none", edgecolors="C0",
-                   label="above detection limit" if d else "below detection limit")
+    _scatter_by_limit(ax, cb, ca, det, "C0")
     lo, hi = 0.8, max(2.0, float(np.nanmax(cb)) * 1.2) if len(cb) and np.isfinite(cb).any() else 2.0
     ax.plot([lo, hi], [lo, hi], "k:", lw=0.8, label="no change")
     ax.axhspan(1 - CHI2_TOL, 1 + CHI2_TOL, color="C2", alpha=0.15, label=f"target |χ²/dof − 1| ≤ {CHI2_TOL:.0%}")
@@ -562,10 +568,7 @@ def plot_summary(rows: list[dict], sc: dict, path: Path) -> None:
                                                                           "pos_err_clean_um"))]
     if rel:
         b_, a_, d_ = map(np.array, zip(*rel))
-        for d in (True, False):
-            sel = d_ == d
-            ax.scatter(b_[sel], a_[sel], s=18, facecolors="C1" if d else "none", edgecolors="C1",
-                       label="above detection limit" if d else "below detection limit")
+        _scatter_by_limit(ax, b_, a_, d_, "C1")
         hi = max(2.0, float(b_.max()) * 1.2)
         ax.plot([0.5, hi], [0.5, hi], "k:", lw=0.8, label="no change")
         ax.axhline(POS_FACTOR, color="C3", lw=1, label=f"target: ≤ {POS_FACTOR}× clean")
@@ -671,7 +674,8 @@ def read_rows(path) -> list[dict]:
 
 
 def _options(args, detect_kwargs) -> dict:
-    return {"seed": args.seed, "T": args.T, "rate": args.rate, "boards": list(args.boards), "twin": args.twin if args.twin == "baseline" else bool(args.twin),
+    twin = args.twin if args.twin == "baseline" else bool(args.twin)
+    return {"seed": args.seed, "T": args.T, "rate": args.rate, "boards": list(args.boards), "twin": twin,
             "detect_kwargs": detect_kwargs}
 
 
@@ -686,15 +690,14 @@ def _open_store(out: Path, options: dict, retry_errors: bool) -> list[dict]:
             raise SystemExit(f"--out: {csv_path} exists without options.json (an older run); use another --out, "
                              f"or --rescore {csv_path}")
         old = json.loads(opt_path.read_text())
-        upgrade = old.get("twin") is False and options.get("twin") == "baseline" and \
-            {k: v for k, v in old.items() if k != "twin"} == {k: v for k, v in json.loads(json.dumps(options)).items() if k != "twin"}
-        if upgrade:
+        new = json.loads(json.dumps(options))  # as stored (tuples → lists)
+        if old.get("twin") is False and new["twin"] == "baseline" and {**old, "twin": "baseline"} == new:
             # adding baseline twins changes no detector result: the stored rows stay valid and
             # get their clean-data reference filled in by backfill_twin_baselines
             opt_path.write_text(json.dumps(options, indent=1))
-            old = options
-        if old != json.loads(json.dumps(options)):
-            diff = {k: (old.get(k), options.get(k)) for k in OPTION_KEYS if old.get(k) != json.loads(json.dumps(options)).get(k)}
+            old = new
+        if old != new:
+            diff = {k: (old.get(k), new.get(k)) for k in OPTION_KEYS if old.get(k) != new.get(k)}
             raise SystemExit(f"--out: {out} holds a benchmark run with other options {diff} (stored, given); "
                              "rerun with the same options to resume, or use another --out")
         with open(csv_path, newline="") as f:
@@ -916,7 +919,8 @@ def main(argv=None) -> int:
         pending = pending[:max(0, int(args.max_cases))]
     print(f"mismatch_proof: {sum(c['effect'] != 'none' for c in cases)} effect cases "
           f"({args.per_effect} × {len(set(c['effect'] for c in cases if c['effect'] != 'none'))} effects), "
-          f"{args.clean} clean, boards {args.boards}, twins {'baseline fit' if args.twin == 'baseline' else 'on' if args.twin else 'off'}; "
+          f"{args.clean} clean, boards {args.boards}, "
+          f"twins {'baseline fit' if args.twin == 'baseline' else 'on' if args.twin else 'off'}; "
           f"{len(wanted & done_ids)} already done, running {len(pending)} now", flush=True)
 
     def on_row(row):

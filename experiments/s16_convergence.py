@@ -35,8 +35,8 @@ The SUMMARY line states exactly which table-like levels and how many trials it c
 ``--first-trial N`` starts the trial numbering at N, so a later run adds new trials to the same
 levels (each trial's start is seeded by motion, kind, level and trial number); the CSVs of
 separate runs are merged by ``--replot a.csv,b.csv,...``.  The committed figure
-(``experiments/out/s16_convergence.png``, numbers in ``experiments/s16_results.md``) merges the
-runs listed there.
+(``experiments/figures/s16_convergence.png``, numbers in ``experiments/s16_results.md``) merges
+the runs kept in ``experiments/results/s16_convergence/``.
 """
 from __future__ import annotations
 
