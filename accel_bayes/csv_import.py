@@ -463,7 +463,13 @@ def read_sensor_yaml(path) -> dict:
     for key in ("rate_hz", "accelerometer_noise_density", "gyroscope_noise_density",
                 "accelerometer_random_walk", "gyroscope_random_walk"):
         if key in doc:
-            out[key] = _num(doc[key], f"{path}: {key}", "a positive number", positive=True)
+            v = doc[key]
+            if isinstance(v, str):  # YAML 1.1 reads "2e-3" (no point in the mantissa) as a string
+                try:
+                    v = float(v)
+                except ValueError:
+                    pass
+            out[key] = _num(v, f"{path}: {key}", "a positive number", positive=True)
     return out
 
 
