@@ -366,3 +366,19 @@ def test_description_refusals(tmp_path):
     good.write_text(TOML2 + "orientation_matrix = [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]\n")
     q = read_array_description(good).imus[2].orientation
     np.testing.assert_allclose(q, [math.sqrt(0.5), 0, 0, -math.sqrt(0.5)], atol=1e-15)
+
+
+def test_wide_csv_per_imu_time_columns(tmp_path):
+    # Three IMUs in one file: a and b share a stamp column, c has its own (µs), 0.2 ms late.
+    toml = tmp_path / "array.toml"
+    toml.write_text(TOML2.replace('label = "c"', 'label = "c"\ncolumns = {time = "t_c"}')
+                    + '[csv]\ntime = "t_ab"\nunits = {time = "us"}\n')
+    head = ["t_ab", "t_c"] + [f"{lab}_{s}_{a} [{u}]" for lab in "abc" for s, u in (("acc", "m s^-2"), ("gyro", "rad s^-1"))
+                              for a in "xyz"]
+    rows = [",".join([str(1000 * i), str(1000 * i + 200)] + [str(0.1 * i + j) for j in range(18)]) for i in range(1, 6)]
+    f = tmp_path / "wide.csv"
+    f.write_text(",".join(head) + "\n" + "\n".join(rows) + "\n")
+    res = import_csv(f, toml, noise="stated")
+    np.testing.assert_array_equal(res.recording.time, [0.0, 0.001, 0.002, 0.003, 0.004])
+    np.testing.assert_array_equal(res.imu_time_offset, np.tile([0.0, 0.0, 0.0002], (5, 1)))
+    np.testing.assert_array_equal(res.recording.acc[:, 2, 0], [0.1 * i + 12 for i in range(1, 6)])
