@@ -67,6 +67,7 @@ from .errors import UserError
 from .geometry import matrix_to_quat
 from .recording import Recording
 from .segments import analyse_static, segment_labels
+from .validation import units_kind
 
 __all__ = [
     "ASL_COLUMNS",
@@ -90,26 +91,19 @@ ASL_TIME = "timestamp"
 AXES = ("x", "y", "z")
 SENSORS = ("acc", "gyro")
 
-# Unit spellings → (kind, factor to SI).  Time factors are integers: nanoseconds per unit.
-_UNITS = {
-    "acc": {"m s-2": 1.0, "m s^-2": 1.0, "m/s^2": 1.0, "m/s2": 1.0, "m s**-2": 1.0, "m/s/s": 1.0,
-            "m/s²": 1.0, "g": G0},
-    "gyro": {"rad s-1": 1.0, "rad s^-1": 1.0, "rad/s": 1.0, "rad s**-1": 1.0,
-             "deg s-1": math.pi / 180.0, "deg s^-1": math.pi / 180.0, "deg/s": math.pi / 180.0,
-             "°/s": math.pi / 180.0, "dps": math.pi / 180.0},
-    "time": {"ns": 1, "us": 1_000, "µs": 1_000, "ms": 1_000_000, "s": 1_000_000_000},
-}
-# The canonical name of each unit, for messages and the "one unit per triad" rule.
-_CANON = {"m s-2": "m s-2", "m s^-2": "m s-2", "m/s^2": "m s-2", "m/s2": "m s-2", "m s**-2": "m s-2",
-          "m/s/s": "m s-2", "m/s²": "m s-2", "g": "g",
-          "rad s-1": "rad s-1", "rad s^-1": "rad s-1", "rad/s": "rad s-1", "rad s**-1": "rad s-1",
-          "deg s-1": "deg s-1", "deg s^-1": "deg s-1", "deg/s": "deg s-1", "°/s": "deg s-1", "dps": "deg s-1",
-          "ns": "ns", "us": "us", "µs": "us", "ms": "ms", "s": "s"}
+# Factors to SI of the units each kind of column accepts, by canonical name.  The SI and degree
+# spellings are those :func:`accel_bayes.validation.units_kind` knows; g and the sub-second time
+# units are added here.  Time factors are integers: nanoseconds per unit.
+_FACTORS = {"acc": {"m s-2": 1.0, "g": G0}, "gyro": {"rad s-1": 1.0, "deg s-1": math.pi / 180.0},
+            "time": {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000}}
+_MORE_UNITS = {"g": "g", "ns": "ns", "us": "us", "µs": "us", "ms": "ms"}
 _HEADER_RE = re.compile(r"^(.*?)\s*\[([^\]]*)\]\s*$")
 
 
-def _norm_unit(u: str) -> str:
-    return re.sub(r"\s+", " ", str(u).strip().lower()).replace("·", " ")
+def _unit(text, kind: str) -> str | None:
+    """The canonical name of unit ``text`` if it is a unit of ``kind`` ("acc", "gyro", "time")."""
+    c = _MORE_UNITS.get(str(text).strip().lower()) or units_kind(text)
+    return c if c in _FACTORS[kind] else None
 
 
 # ------------------------------------------------------------------------------ description
@@ -300,9 +294,10 @@ def _parse_description(doc: dict, path: Path) -> ArraySpec:
     if not isinstance(units, dict) or set(units) - {"time", "acc", "gyro"}:
         raise UserError("csv.units: expected a table with keys time, acc, gyro")
     for kind, u in units.items():
-        if not isinstance(u, str) or _norm_unit(u) not in _UNITS[kind]:
-            raise UserError(f"csv.units.{kind}: expected one of {sorted(set(_CANON[k] for k in _UNITS[kind]))}, got {u!r}")
-        out.units[kind] = _norm_unit(u)
+        cu = _unit(u, kind) if isinstance(u, str) else None
+        if cu is None:
+            raise UserError(f"csv.units.{kind}: expected one of {sorted(_FACTORS[kind])}, got {u!r}")
+        out.units[kind] = cu
     ign = c.get("ignore", [])
     if not isinstance(ign, list) or not all(isinstance(x, str) for x in ign):
         raise UserError("csv.ignore: expected a list of column names")
@@ -331,7 +326,7 @@ class _Table:
             for h in self.raw:
                 m = _HEADER_RE.match(h)
                 self.names.append(m.group(1).strip() if m else h)
-                self.units.append(_norm_unit(m.group(2)) if m else None)
+                self.units.append(m.group(2).strip() if m else None)
             dup = [n for n in set(self.names) if self.names.count(n) > 1]
             if dup:
                 raise UserError(f"{path}:1: column {dup[0]!r} appears {self.names.count(dup[0])} times; expected once")
@@ -358,20 +353,22 @@ class _Table:
         return self.names.index(name)
 
     def unit(self, col: int, kind: str, declared: str | None) -> str:
-        """The unit of a column: the header's ``[unit]``, else the declared one; refused if neither,
-        of the wrong kind, or if both are given and disagree."""
+        """The canonical unit of a column: the header's ``[unit]``, else the declared one (already
+        canonical); refused if neither, of the wrong kind, or if both are given and disagree."""
         got = self.units[col]
-        if got is None and declared is None:
-            raise UserError(f"{self.path}:1: column {self.raw[col]!r}: no unit; expected '{self.names[col]} [unit]' "
-                            f"in the header or csv.units.{kind} in the array description")
-        u = got if got is not None else declared
-        if u not in _UNITS[kind]:
-            raise UserError(f"{self.path}:1: column {self.raw[col]!r}: unit {u!r} is not a {kind} unit; expected one of "
-                            f"{sorted(set(_CANON[k] for k in _UNITS[kind]))}")
-        if got is not None and declared is not None and _CANON[got] != _CANON[declared]:
+        if got is None:
+            if declared is None:
+                raise UserError(f"{self.path}:1: column {self.raw[col]!r}: no unit; expected '{self.names[col]} [unit]' "
+                                f"in the header or csv.units.{kind} in the array description")
+            return declared
+        c = _unit(got, kind)
+        if c is None:
+            raise UserError(f"{self.path}:1: column {self.raw[col]!r}: unit {got!r} is not a {kind} unit; expected one of "
+                            f"{sorted(_FACTORS[kind])}")
+        if declared is not None and c != declared:
             raise UserError(f"{self.path}:1: column {self.raw[col]!r}: the header says {got!r}, csv.units.{kind} says "
                             f"{declared!r}; expected them to agree")
-        return u
+        return c
 
     def floats(self, col: int) -> np.ndarray:
         x = self.cells[:, col]
@@ -392,7 +389,7 @@ class _Table:
     def stamps_ns(self, col: int, unit: str) -> np.ndarray:
         """Integer nanoseconds, exactly: no float ever holds a stamp."""
         x = self.cells[:, col]
-        factor = _UNITS["time"][unit]
+        factor = _FACTORS["time"][unit]
         if factor == 1:
             try:
                 return x.astype(np.int64)
@@ -436,11 +433,11 @@ class ImuStream:
 def _triad(table: _Table, names, kind: str, declared: str | None) -> np.ndarray:
     cols = [table.index(n, f"{kind} {a} axis") for n, a in zip(names, AXES)]
     units = [table.unit(c, kind, declared) for c in cols]
-    if len({_CANON[u] for u in units}) > 1:
-        j = next(j for j in range(3) if _CANON[units[j]] != _CANON[units[0]])
+    if len(set(units)) > 1:
+        j = next(j for j in range(3) if units[j] != units[0])
         raise UserError(f"{table.path}:1: column {table.raw[cols[j]]!r}: unit {units[j]!r} differs from {units[0]!r} of "
                         f"{table.raw[cols[0]]!r}; expected one unit per triad (mixed units)")
-    return np.stack([table.floats(c) for c in cols], -1) * _UNITS[kind][units[0]]
+    return np.stack([table.floats(c) for c in cols], -1) * _FACTORS[kind][units[0]]
 
 
 def read_sensor_yaml(path) -> dict:
@@ -691,7 +688,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
             if miss.size:
                 lab = spec.imus[int(miss[0])].label
                 raise UserError(f"{spec.path}: imu[{int(miss[0])}].{kind}_noise_std: IMU {lab!r} has no stated noise "
-                                f"({'no rests found' if noise == 'rests' else 'noise stated'}); expected {kind}_noise_std "
+                                f"({'no rests found' if noise == 'rests' else '--noise stated'}); expected {kind}_noise_std "
                                 "in the description or a noise density in its sensor.yaml")
         final[kind] = np.asarray(v, dtype=np.float64)  # a stated value of an absent triad is kept as stated
     if not noise_est:

@@ -316,7 +316,7 @@ def test_good_small_asl_imports(tmp_path, capsys):
     ("duplicated stamps", [GOOD_ROWS[0], GOOD_ROWS[1], GOOD_ROWS[1], GOOD_ROWS[3]], ASL_HEADER,
      r"b/data.csv:4: column 'timestamp \[ns\]': time stamp 2000000 is duplicated"),
     ("mixed units", GOOD_ROWS, ASL_HEADER.replace("a_RS_S_y [m s^-2]", "a_RS_S_y [g]"),
-     r"b/data.csv:1: column 'a_RS_S_y \[g\]': unit 'g' differs from 'm s\^-2' .*mixed units"),
+     r"b/data.csv:1: column 'a_RS_S_y \[g\]': unit 'g' differs from 'm s-2' .*mixed units"),
     ("wrong kind of unit", GOOD_ROWS, ASL_HEADER.replace("w_RS_S_x [rad s^-1]", "w_RS_S_x [m s^-2]"),
      r"b/data.csv:1: column 'w_RS_S_x \[m s\^-2\]': unit 'm s\^-2' is not a gyro unit"),
     ("no unit", GOOD_ROWS, ASL_HEADER.replace("a_RS_S_x [m s^-2]", "a_RS_S_x"),
@@ -382,3 +382,23 @@ def test_wide_csv_per_imu_time_columns(tmp_path):
     np.testing.assert_array_equal(res.recording.time, [0.0, 0.001, 0.002, 0.003, 0.004])
     np.testing.assert_array_equal(res.imu_time_offset, np.tile([0.0, 0.0, 0.0002], (5, 1)))
     np.testing.assert_array_equal(res.recording.acc[:, 2, 0], [0.1 * i + 12 for i in range(1, 6)])
+
+
+def test_header_and_description_units_must_agree(tmp_path, capsys):
+    toml = tmp_path / "array.toml"
+    toml.write_text(TOML2 + '[csv]\nunits = {acc = "m s^-2", time = "ns"}\n')
+    head = ["time"] + [f"{lab}_{s}_{a}" + (" [g]" if (lab, s, a) == ("b", "acc", "x") else "")
+                       for lab in "abc" for s in ("acc", "gyro") for a in "xyz"]
+    f = tmp_path / "wide.csv"
+    f.write_text(",".join(head) + "\n" + "\n".join(f"{i * 1000},{','.join(['0.5'] * 18)}" for i in range(1, 4)) + "\n")
+    err = _refused(capsys, tmp_path, f, toml)
+    # The gyro columns have no unit anywhere (IMU a's are read before b's acc).
+    assert "wide.csv:1: column 'a_gyro_x': no unit; expected 'a_gyro_x [unit]' in the header or csv.units.gyro" in err
+    toml.write_text(TOML2 + '[csv]\nunits = {acc = "m s^-2", gyro = "rad/s", time = "ns"}\n')
+    err = _refused(capsys, tmp_path, f, toml)
+    assert "wide.csv:1: column 'b_acc_x [g]': the header says 'g', csv.units.acc says 'm s-2'; expected them to agree" in err
+    toml.write_text(TOML2 + '[csv]\nunits = {acc = "furlong"}\n')
+    err = _refused(capsys, tmp_path, f, toml)
+    assert "array.toml: csv.units.acc: expected one of ['g', 'm s-2'], got 'furlong'" in err
+    assert main(["import-csv", str(f), "--array", str(tmp_path / "nope.toml"), "-o", str(tmp_path / "o.nc")]) == 2
+    assert "--array" in capsys.readouterr().err
