@@ -383,7 +383,8 @@ class _Table:
                 except ValueError:
                     ok = False
                 if not ok:
-                    raise UserError(f"{self.path}:{self.lines[i]}: column {self.raw[col]!r}: expected a finite number, got {s!r}")
+                    raise UserError(f"{self.path}:{self.lines[i]}: column {self.raw[col]!r}: expected a finite number, "
+                                    f"got {s!r}")
         return v
 
     def stamps_ns(self, col: int, unit: str) -> np.ndarray:
@@ -415,7 +416,8 @@ class _Table:
             i = int(bad[0]) + 1
             what = "duplicated" if d[i - 1] == 0 else "earlier than the one before"
             raise UserError(f"{self.path}:{self.lines[i]}: column {self.raw[col]!r}: time stamp {self.cells[i, col]} is "
-                            f"{what} (line {self.lines[i - 1]}: {self.cells[i - 1, col]}); expected strictly increasing stamps")
+                            f"{what} (line {self.lines[i - 1]}: {self.cells[i - 1, col]}); "
+                            "expected strictly increasing stamps")
 
 
 @dataclass
@@ -725,7 +727,8 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         head.append(f"IMU {r['label']}: {r['samples']} samples read, {r['used']} used, worst stamp mismatch "
                     f"{r['worst_ns'] / 1e6:.6g} ms, median offset {r['median_ns'] / 1e6:.6g} ms")
     lines = head + lines
-    lines.append(f"noise std: acc {_fmt(final['acc'])} m/s², gyro {_fmt(final['gyro'] * 180 / math.pi)} °/s ({noise_phrase})")
+    lines.append(f"noise std: acc {_fmt(final['acc'])} m/s², gyro {_fmt(final['gyro'] * 180 / math.pi)} °/s "
+                 f"({noise_phrase})")
     for kind, m in (("acc", acc_clipped), ("gyro", gyro_clipped)):
         lines.append(f"{kind} clipped: {100 * float(m.mean()):.3g} % of samples" if m is not None
                      else f"{kind} clipped: no range stated, not flagged")
@@ -755,7 +758,8 @@ def write_imported(result: CsvImport, path, overwrite: bool = False) -> Path:
             v = f.create_variable("imu_time_offset", ("time", "imu"), data=np.asarray(result.imu_time_offset, np.float64),
                                   compression="gzip", compression_opts=4)
             v.attrs["units"] = "s"
-            v.attrs["long_name"] = "IMU's own time stamp minus time (stamped separately, put on one time base by the importer)"
+            v.attrs["long_name"] = ("IMU's own time stamp minus time (stamped separately, put on one time base "
+                                    "by the importer)")
         _finish_atomic(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

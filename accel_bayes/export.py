@@ -149,7 +149,8 @@ def gyro_intrinsics_from_report(report: dict, K: int):
                 dt[k] = float(p["offset"])
                 notes[k].append("time_offset")
         except (KeyError, TypeError, ValueError):
-            raise UserError(f"mismatch report: finding {name!r} of IMU {k}: parameters {p!r} do not match DESIGN §7.2") from None
+            raise UserError(f"mismatch report: finding {name!r} of IMU {k}: parameters {p!r} do not match "
+                            "DESIGN §7.2") from None
     out = []
     for k in range(K):
         Tw, Rg = _lower_times_rotation(np.eye(3) + M[k])
@@ -196,7 +197,8 @@ def imu_chain(recording: Recording, positions: dict, intrinsics=None, report: di
         positions = read_positions(positions)
     means, covs, ori = positions["means"], positions["covs"], positions["orientations"]
     if means.shape[0] != K:
-        raise UserError(f"positions: {means.shape[0]} IMUs, the recording has {K}; expected the calibration of this recording")
+        raise UserError(f"positions: {means.shape[0]} IMUs, the recording has {K}; expected the calibration of "
+                        "this recording")
     ref = int(positions["reference_imu"])
     if ref != int(recording.reference_imu):
         raise UserError(f"positions.reference_imu: {ref}, the recording's is {recording.reference_imu}; expected the same")
@@ -262,7 +264,8 @@ def imu_chain(recording: Recording, positions: dict, intrinsics=None, report: di
         out += _matrix("T_i_b_translation_cov", Ri @ covs[k] @ Ri.T, comment=f"m^2, IMU {k}'s frame")
         sa = float(recording.acc_noise_std[k])
         if recording.has_acc[k] and math.isfinite(sa):
-            out.append(f"  accelerometer_noise_density: {_num(sa / math.sqrt(rate))}  # m/s^2/sqrt(Hz), sigma {sa:.6g} m/s^2")
+            out.append(f"  accelerometer_noise_density: {_num(sa / math.sqrt(rate))}  "
+                       f"# m/s^2/sqrt(Hz), sigma {sa:.6g} m/s^2")
         r_a = (rw["acc"] or [None] * K)[k]
         out.append(f"  accelerometer_random_walk: {_num(r_a)}  # m/s^3/sqrt(Hz)" if r_a is not None
                    else "  # accelerometer_random_walk: not known (not in the recording)")
