@@ -6,7 +6,13 @@ from accel_bayes.cli import main
 
 def test_demo_quick_runs_all_stages(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--quick", "--out", str(out), "--no-progress"]) == 0
+    out.mkdir()
+    (out / "report.md").write_text("an earlier run's report")
+    assert main(["demo", "--quick", "--out", str(out), "--no-progress"]) == 2  # non-empty: refused
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["demo", "--quick", "--out", str(out), "--no-progress", "--overwrite"]) == 0
+    assert "earlier" not in (out / "report.md").read_text()
+    assert not [p for p in tmp_path.iterdir() if p.name != "demo"]  # no staging, old set or lock left
     text = capsys.readouterr().out
     for stage in ("[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"):
         assert stage in text, text
