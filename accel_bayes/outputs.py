@@ -16,10 +16,13 @@ Files
 
 ``--out DIR`` targets (:class:`OutputDir`): one consistent set
     Checked before any computation (not a file, no file on the way, writable parent; a non-empty
-    DIR is refused without ``--overwrite``, except ``--resume`` of the run in it).  The results
-    are written into a staging directory beside DIR (``.DIR.partial-<pid>-<hex>``) and moved into
-    place only when complete: DIR (if any) is renamed aside, the staging directory renamed to DIR,
-    the old set deleted.  A run killed at any moment therefore leaves either the previous set,
+    DIR is refused without ``--overwrite``, except ``--resume`` of the run in it).  ``--overwrite``
+    replaces only an earlier output set (a DIR holding the marker :data:`SET_MARKER`, or only the
+    files named in ``keep``), never a directory of other files, nor one that holds an input of
+    the run.  The results are written into a staging directory beside DIR
+    (``.DIR.partial-<pid>-<hex>``), the marker is added last, and the set is moved into place only
+    when complete: DIR (if any) is renamed aside, the staging directory renamed to DIR, the old
+    set deleted (SIGINT/SIGTERM are held back during the renames).  A run killed at any moment therefore leaves either the previous set,
     or no DIR at all, plus possibly a hidden ``.DIR.partial-*`` / ``.DIR.old-*`` sibling, which
     the next run into DIR removes once its process is gone.  Files that must survive a killed
     run (calibrate's ``checkpoint.pt``) live in DIR itself and are carried into the new set.
@@ -40,6 +43,7 @@ import os
 import re
 import secrets
 import shutil
+import signal
 import socket
 import time
 from contextlib import contextmanager
@@ -62,7 +66,18 @@ __all__ = [
     "lock_path",
     "hold_lock",
     "STALE_UNREADABLE_S",
+    "SET_MARKER",
+    "SET_SCHEMA",
+    "is_output_set",
 ]
+
+# Written last into every committed --out DIR: what --overwrite is allowed to replace.
+SET_MARKER = ".accel-bayes-set.json"
+SET_SCHEMA = "accel_bayes.output_set/1"
+
+# The --overwrite help of every --out DIR command (one wording everywhere).
+OVERWRITE_DIR_HELP = ("replace the earlier results in a non-empty --out DIR (only a set written by accel-bayes; "
+                      "refused otherwise)")
 
 # A lock file is written in one small write right after its O_EXCL creation; one that still
 # cannot be parsed after this long belongs to a process that died in between.
@@ -340,6 +355,30 @@ class OutputFile(_Target):
         self._release()
 
 
+def is_output_set(d) -> bool:
+    """Whether directory ``d`` holds an output set committed by :class:`OutputDir` (its marker)."""
+    try:
+        return json.loads((Path(d) / SET_MARKER).read_text(encoding="utf-8")).get("schema") == SET_SCHEMA
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+@contextmanager
+def _signals_held():
+    # The two renames of a commit are not interrupted half-way; a Ctrl-C or SIGTERM arriving
+    # meanwhile is delivered right after.
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    try:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 def _nearest_existing(p: Path) -> Path:
     for a in (p, *p.parents):
         if a.exists():
@@ -358,14 +397,17 @@ class OutputDir(_Target):
 
     ``keep`` names files that live in DIR itself during the run (``checkpoint.pt``) and are
     carried into the committed set; ``resume`` allows a non-empty DIR that holds one of them.
+    ``inputs`` are the run's input files: a DIR that contains one is never replaced.
     After :meth:`open`, write into :attr:`staging` (or ``self / "name"``); :meth:`commit` moves
     the set into place; :meth:`final` maps a staged path to its place in DIR."""
 
-    def __init__(self, path, *, overwrite: bool = False, resume: bool = False, keep=(), flag: str = "--out"):
+    def __init__(self, path, *, overwrite: bool = False, resume: bool = False, keep=(), inputs=(),
+                 flag: str = "--out"):
         self.target = Path(path)
         self.overwrite = bool(overwrite)
         self.resume = bool(resume)
         self.keep = tuple(keep)
+        self.inputs = [Path(p) for p in inputs if p is not None]
         self.flag = flag
         self.staging: Path | None = None
         self._staged = False  # the staging directory exists and holds this run's files
@@ -393,11 +435,21 @@ class OutputDir(_Target):
             a = _nearest_existing(t.parent)
             if not a.is_dir():
                 raise UserError(f"{f}: {t}: {a} is a file, not a directory")
-        elif not self.overwrite:
+        else:
             names = {e.name for e in t.iterdir()}
-            if names and not (self.resume and names & set(self.keep)):
+            if not names:
+                return
+            resuming = self.resume and names & set(self.keep)
+            if not self.overwrite and not resuming:
                 raise UserError(f"{f}: {t} is not empty; pass --overwrite to replace its contents "
                                 "(or choose another directory)")
+            inside = [p for p in self.inputs if p.exists() and t.resolve() in p.resolve().parents]
+            if inside:
+                raise UserError(f"{f}: {t} contains the input {inside[0]}, which replacing the results would "
+                                "delete; choose another directory")
+            if not (resuming or is_output_set(t) or names <= set(self.keep)):
+                raise UserError(f"{f}: {t} holds files that accel-bayes did not write (no {SET_MARKER}); "
+                                "--overwrite replaces only an earlier output set: choose another directory")
 
     def open(self) -> "OutputDir":
         """Check the target, lock it and create the staging directory, before any computation."""
@@ -445,18 +497,24 @@ class OutputDir(_Target):
                     os.link(src, dst)
                 except OSError:
                     shutil.copy2(src, dst)
+        from . import __version__
+
+        files = sorted(str(p.relative_to(s)) for p in s.rglob("*") if p.is_file())
+        write_json(s / SET_MARKER, {"schema": SET_SCHEMA, "written_by": f"accel-bayes {__version__}",
+                                    "pid": os.getpid(), "time": time.time(), "files": files})
         _fsync_dir(s)
         old = None
-        if t.exists():
-            old = t.parent / f".{t.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
-            os.rename(t, old)
-        try:
-            os.rename(s, t)
-        except BaseException:
-            if old is not None:
-                os.rename(old, t)  # put the previous set back
-            raise
-        self._staged = False
+        with _signals_held():
+            if t.exists():
+                old = t.parent / f".{t.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
+                os.rename(t, old)
+            try:
+                os.rename(s, t)
+            except BaseException:
+                if old is not None:
+                    os.rename(old, t)  # put the previous set back
+                raise
+            self._staged = False
         _fsync_dir(t.parent)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)

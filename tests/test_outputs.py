@@ -95,6 +95,14 @@ def snapshot(d: Path) -> dict:
             for p in sorted(d.rglob("*"))}
 
 
+def earlier_set(target: Path) -> None:
+    """A stand-in for an earlier run's --out DIR (marked as an accel-bayes set, as commit marks it)."""
+    target.mkdir()
+    (target / "stale_from_an_earlier_run.txt").write_text("old")
+    (target / "positions.json").write_text('{"old": true}')
+    (target / outputs.SET_MARKER).write_text(json.dumps({"schema": outputs.SET_SCHEMA}))
+
+
 def one_line(err: str) -> str:
     lines = err.strip().splitlines()
     assert len(lines) == 1, err
@@ -192,14 +200,35 @@ def test_read_only_parent_refused_before_computing(cmd, inputs, tmp_path, capsys
 
 # ----------------------------------------------------------------------------- --overwrite, in-process
 
+@pytest.mark.parametrize("case", ["foreign_files", "holds_the_input"])
+@pytest.mark.parametrize("cmd", [c for c in COMMANDS if COMMANDS[c][0] == "dir"])
+def test_overwrite_never_replaces_other_files_or_the_input(cmd, case, inputs, tmp_path, capsys, trap):
+    target = tmp_path / "out"
+    if case == "foreign_files":  # e.g. --out . or --out ~/results by mistake
+        target.mkdir()
+        (target / "thesis.tex").write_text("precious")
+        needle = "did not write"
+    else:
+        if cmd == "demo":
+            pytest.skip("demo reads no input")
+        earlier_set(target)
+        shutil.copy(inputs["rec"], target / "rec.nc")
+        inputs = dict(inputs, rec=target / "rec.nc")
+        needle = "contains the input"
+    before = snapshot(tmp_path)
+    trap(cmd)
+    rc = main(argv(cmd, inputs, target, "--overwrite"))
+    line = one_line(capsys.readouterr().err)
+    assert rc == 2 and needle in line and "--out" in line, line
+    assert snapshot(tmp_path) == before
+
+
 @pytest.mark.parametrize("cmd", [c for c in COMMANDS if c != "demo"])  # demo: tests/test_demo.py
 def test_overwrite_replaces_the_whole_set(cmd, inputs, tmp_path, capsys):
     kind, *_, rc_ok, files = COMMANDS[cmd]
     target = tmp_path / target_name(cmd)
     if kind == "dir":
-        target.mkdir()
-        (target / "stale_from_an_earlier_run.txt").write_text("old")
-        (target / "positions.json").write_text('{"old": true}')
+        earlier_set(target)
     else:
         target.write_text("old")
     rc = main(argv(cmd, inputs, target, "--overwrite"))
@@ -207,7 +236,8 @@ def test_overwrite_replaces_the_whole_set(cmd, inputs, tmp_path, capsys):
     assert rc == rc_ok
     check_valid(cmd, target)
     if kind == "dir":
-        assert {p.name for p in target.iterdir()} == files  # nothing of the earlier set is left
+        assert {p.name for p in target.iterdir()} == files | {outputs.SET_MARKER}  # nothing of the earlier set
+        assert set(json.loads((target / outputs.SET_MARKER).read_text())["files"]) == files
     # no staging directory, old set, temporary file or lock left beside the target
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         [target.name] + ([target.with_suffix(".truth.json").name] if cmd == "simulate" else []))
@@ -219,7 +249,8 @@ def test_resume_needs_no_overwrite_and_keeps_the_checkpoint(inputs, tmp_path, ca
             "--no-map", "--quiet", "--no-plots", "--checkpoint-every", "5"]
     assert main(base) == 0
     first = json.loads((out / "positions.json").read_text())
-    assert {p.name for p in out.iterdir()} == {"posterior.nc", "summary.csv", "positions.json", "checkpoint.pt"}
+    assert {p.name for p in out.iterdir()} == {"posterior.nc", "summary.csv", "positions.json", "checkpoint.pt",
+                                               outputs.SET_MARKER}
     capsys.readouterr()
     assert main(base) == 2 and "--overwrite" in one_line(capsys.readouterr().err)
     assert main(base + ["--resume"]) == 0  # the run in DIR, continued (here: already complete)
@@ -307,8 +338,7 @@ def forked(inputs, tmp_path_factory):
         d.mkdir()
         target = d / target_name(cmd)
         if COMMANDS[cmd][0] == "dir":
-            target.mkdir()
-            (target / "positions.json").write_text('{"old": true}')
+            earlier_set(target)
         else:
             target.write_text("old")
         jobs[f"full_{cmd}"] = dict(argv=argv(cmd, inputs, target, "--overwrite"), fsize=1000)

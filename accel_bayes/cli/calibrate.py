@@ -32,6 +32,7 @@ def _positive_float(name):
 
 def register(sub) -> None:
     from ..calibrate import DEFAULTS
+    from ..outputs import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "calibrate",
@@ -43,8 +44,7 @@ def register(sub) -> None:
     p.add_argument("recording", metavar="REC", help="recording file (.nc, format v1) with gyroscope data")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output directory (created if missing; written as one set, see the README)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace the results in a non-empty --out (refused otherwise, except with --resume)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--chains", type=int, default=DEFAULTS["chains"], help="number of chains (default %(default)s)")
     p.add_argument("--draws", type=int, default=DEFAULTS["draws"], help="kept draws per chain (default %(default)s)")
     p.add_argument("--warmup", type=int, default=DEFAULTS["warmup"],
@@ -119,7 +119,8 @@ def _run(args) -> int:
     if args.num_draws is not None and args.num_draws < 1:
         raise UserError(f"--num-draws: expected an integer >= 1, got {args.num_draws}")
     # the checkpoint lives in DIR itself (a killed run keeps it) and joins the committed set
-    out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",)).open()
+    out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",),
+                    inputs=(args.recording, args.intrinsics)).open()
     ckpt = None
     if args.checkpoint_every or args.resume:
         ckpt = out.ensure_target() / "checkpoint.pt"

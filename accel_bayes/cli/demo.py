@@ -3,6 +3,8 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
+    from ..outputs import OVERWRITE_DIR_HELP
+
     p = sub.add_parser(
         "demo",
         help="run simulate → MAP → posterior → diagnostics on a built-in example",
@@ -11,7 +13,7 @@ def register(sub) -> None:
     )
     p.add_argument("--out", default="demo_out", metavar="DIR",
                    help="output directory (default: demo_out; written as one set, see the README)")
-    p.add_argument("--overwrite", action="store_true", help="replace the results in a non-empty --out")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--quick", action="store_true", help="a smaller, faster run (smoke test)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default: 1)")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
+    from ..outputs import OVERWRITE_DIR_HELP
+
     p = sub.add_parser(
         "map",
         help="MAP positions of the accelerometer triads ([C21] model, LM solver)",
@@ -13,7 +15,7 @@ def register(sub) -> None:
     p.add_argument("recording", metavar="REC", help="recording file (format v1)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output directory (created if missing; written as one set, see the README)")
-    p.add_argument("--overwrite", action="store_true", help="replace the results in a non-empty --out")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--prior-std", type=float, default=3e-3, help="std of the Gaussian prior around the nominal positions, m (default 3e-3)")
     p.add_argument("--gyro-method", choices=["sample_cov", "sample_cov_mean", "calibrated"], default="sample_cov",
                    help="gyroscope posterior: [C21] eq. 30 as printed (default), its /G variant, or the calibrated-noise form")
@@ -41,7 +43,7 @@ def _run(args) -> int:
     if args.max_iter < 1:
         raise UserError(f"--max-iter: expected an integer >= 1, got {args.max_iter}")
     rec = read_recording(args.recording)
-    out = OutputDir(args.out, overwrite=args.overwrite).open()
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     t0 = time.perf_counter()
     res = fit_map_recording(rec, gyro_method=args.gyro_method, prior_std=args.prior_std,
                             select=None if args.select == "all" else "rotation",

@@ -16,6 +16,7 @@ from ..errors import UserError
 
 def register(subparsers) -> None:
     from ..mismatch.effects import VOCABULARY
+    from ..outputs import OVERWRITE_DIR_HELP
 
     p = subparsers.add_parser(
         "mismatch",
@@ -28,7 +29,7 @@ def register(subparsers) -> None:
     p.add_argument("recording", metavar="REC", help="recording file (NetCDF format v1, with gyroscope data)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output directory (created if missing; written as one set, see the README)")
-    p.add_argument("--overwrite", action="store_true", help="replace the results in a non-empty --out")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--alpha", type=float, default=0.01,
                    help="family-wise error rate of the Bonferroni-corrected threshold (default 0.01)")
     p.add_argument("--effects", default=None, metavar="A,B,...",
@@ -61,7 +62,7 @@ def run(args) -> int:
     from ..mismatch import detect
     from ..outputs import OutputDir
 
-    out = OutputDir(args.out, overwrite=args.overwrite).open()
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     report = detect(args.recording, effects=effects, alpha=args.alpha, max_findings=args.max_findings,
                     refine=not args.no_refine, posterior=args.posterior, seed=args.seed, progress=args.progress,
                     n_twins=args.twins)

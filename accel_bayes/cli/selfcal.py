@@ -27,6 +27,8 @@ EXIT_DIVERGED = 3
 
 
 def register(sub) -> None:
+    from ..outputs import OVERWRITE_DIR_HELP
+
     p = sub.add_parser(
         "selfcal",
         help="[S16] self-calibration of accelerometer triads (poses + motion, no gyroscope)",
@@ -38,7 +40,7 @@ def register(sub) -> None:
     p.add_argument("recording", metavar="REC", help="recording file (format v1)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output directory (created if missing; written as one set, see the README)")
-    p.add_argument("--overwrite", action="store_true", help="replace the results in a non-empty --out")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--fixed", type=int, default=None,
                    help="label of the IMU whose triad is held at its nominal pose (default: the recording's reference IMU)")
     p.add_argument("--max-iter", type=int, default=200, help="LM iteration limit per stage (default 200)")
@@ -142,7 +144,7 @@ def _run(args) -> int:
     except ValueError as exc:
         raise UserError(f"nominal_position: {exc}") from None
 
-    out = OutputDir(args.out, overwrite=args.overwrite).open()
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     t0 = time.perf_counter()
     res = self_calibrate(acc, np.asarray(rec.time, dtype=float), nominal_positions=p_nom[labels],
                          nominal_orientations=q_nom[labels], fixed=fixed, acc_noise_std=noise,
