@@ -22,9 +22,10 @@ Files
     the run.  The results are written into a staging directory beside DIR
     (``.DIR.partial-<pid>-<hex>``), the marker is added last, and the set is moved into place only
     when complete: DIR (if any) is renamed aside, the staging directory renamed to DIR, the old
-    set deleted (SIGINT/SIGTERM are held back during the renames).  A run killed at any moment therefore leaves either the previous set,
-    or no DIR at all, plus possibly a hidden ``.DIR.partial-*`` / ``.DIR.old-*`` sibling, which
-    the next run into DIR removes once its process is gone.  Files that must survive a killed
+    set deleted (SIGINT/SIGTERM are held back during the renames).  A run killed at any moment
+    therefore leaves either the previous set, or no DIR at all, plus possibly a hidden
+    ``.DIR.partial-*`` / ``.DIR.old-*`` sibling, which the next run into DIR removes once its
+    process is gone.  Files that must survive a killed
     run (calibrate's ``checkpoint.pt``) live in DIR itself and are carried into the new set.
 
 Locks
@@ -341,6 +342,12 @@ class OutputFile(_Target):
             check_file_target(p, overwrite=self.overwrite, flag=self.flag)
         self._lock = _acquire(self.path, self.flag)
         _OPEN.append(self)
+        try:
+            for p in (self.path, *self.also):  # again, under the lock: another run may have written it
+                check_file_target(p, overwrite=self.overwrite, flag=self.flag)
+        except BaseException:
+            self.abort()
+            raise
         for p in (self.path, *self.also):  # temporary files of killed writers of these targets
             for tmp in p.parent.glob(f".{p.name}.*-*.tmp"):
                 pid = _pid_of(tmp.name[: -len(".tmp")])
@@ -462,6 +469,7 @@ class OutputDir(_Target):
         self._lock = _acquire(t, self.flag)
         _OPEN.append(self)
         try:
+            self.check()  # again, under the lock: a run that finished meanwhile may have filled DIR
             self._remove_leftovers()
             self.staging = t.parent / f".{t.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
             self.staging.mkdir()
@@ -469,6 +477,9 @@ class OutputDir(_Target):
         except OSError as exc:
             self.abort()
             raise UserError(f"{self.flag}: cannot write in {t.parent} ({exc.strerror or exc})") from None
+        except BaseException:
+            self.abort()
+            raise
         return self
 
     def ensure_target(self) -> Path:
