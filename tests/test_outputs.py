@@ -181,21 +181,36 @@ def test_bad_target_refused_before_computing(cmd, case, inputs, tmp_path, capsys
         assert snapshot(tmp_path) == before  # nothing written, nothing left behind
 
 
-@pytest.mark.parametrize("cmd", list(COMMANDS))
-def test_read_only_parent_refused_before_computing(cmd, inputs, tmp_path, capsys, trap):
+def _unwritable_dir(tmp_path) -> Path:
+    """A directory this process cannot create files in: a chmod 555 one, or (as root, whom chmod
+    does not stop) sysfs, where even root cannot create files."""
     ro = tmp_path / "ro"
     ro.mkdir()
     ro.chmod(0o555)
+    if not os.access(ro, os.W_OK):
+        return ro
+    ro.chmod(0o755)
+    probe = Path("/sys") / f".accel-bayes-probe-{os.getpid()}"
     try:
-        if os.access(ro, os.W_OK):
-            pytest.skip("running as root: chmod does not stop writes (the FSIZE test covers write errors)")
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except OSError:
+        return Path("/sys")
+    probe.unlink()
+    pytest.skip("no unwritable directory available (root, and /sys is writable)")
+
+
+@pytest.mark.parametrize("cmd", list(COMMANDS))
+def test_unwritable_parent_refused_before_computing(cmd, inputs, tmp_path, capsys, trap):
+    ro = _unwritable_dir(tmp_path)
+    try:
         trap(cmd)
         rc = main(argv(cmd, inputs, ro / target_name(cmd)))
         line = one_line(capsys.readouterr().err)
-        assert rc == 2 and "cannot write in" in line and str(ro) in line
-        assert list(ro.iterdir()) == []
+        assert rc == 2 and "cannot write in" in line and str(ro) in line, line
+        assert not (ro / target_name(cmd)).exists() and not outputs.lock_path(ro / target_name(cmd)).exists()
     finally:
-        ro.chmod(0o755)
+        if ro != Path("/sys"):
+            ro.chmod(0o755)
 
 
 # ----------------------------------------------------------------------------- --overwrite, in-process
