@@ -53,6 +53,7 @@ from pathlib import Path
 from .errors import UserError
 
 __all__ = [
+    "check_file_target",
     "atomic_path",
     "write_bytes",
     "write_text",
@@ -70,6 +71,7 @@ __all__ = [
     "SET_MARKER",
     "SET_SCHEMA",
     "is_output_set",
+    "OVERWRITE_DIR_HELP",
 ]
 
 # Written last into every committed --out DIR: what --overwrite is allowed to replace.
@@ -115,7 +117,8 @@ def check_file_target(path, *, overwrite: bool, flag: str | None = None) -> Path
             raise UserError(f"{pre}{path}: {bad} is a file, not a directory")
         raise UserError(f"{pre}{path}: directory {parent} does not exist")
     if path.exists() and not overwrite:
-        raise UserError(f"{pre}{path} exists; pass --overwrite to replace it")
+        how = "--overwrite" if flag else "overwrite=True (--overwrite on the command line)"
+        raise UserError(f"{pre}{path} exists; pass {how} to replace it")
     return path
 
 
