@@ -389,6 +389,14 @@ def _signals_held():
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+def _remove(p: Path) -> None:
+    # A DIR given as a symlink is moved aside as the link itself: remove the link, not its target.
+    if p.is_symlink() or p.is_file():
+        p.unlink(missing_ok=True)
+    else:
+        shutil.rmtree(p, ignore_errors=True)
+
+
 def _nearest_existing(p: Path) -> Path:
     for a in (p, *p.parents):
         if a.exists():
@@ -497,7 +505,7 @@ class OutputDir(_Target):
             for p in self.target.parent.glob(f".{self.target.name}.{kind}-*"):
                 pid = _pid_of(p.name)
                 if pid is None or pid == os.getpid() or not _pid_alive(pid):
-                    shutil.rmtree(p, ignore_errors=True)
+                    _remove(p)
 
     def commit(self) -> None:
         """Move the staged set into place (old set or nothing at every instant) and unlock."""
@@ -531,7 +539,7 @@ class OutputDir(_Target):
             self._staged = False
         _fsync_dir(t.parent)
         if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+            _remove(old)
         self._release()
 
     def abort(self) -> None:
