@@ -46,6 +46,7 @@ from .inference.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
 from .likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
     positions_from_theta
 from .noise import DEFAULT_RATE_BINS, NOISE_MODES
+from .outputs import write_text
 from .preprocess import preprocess
 from .recording import Recording
 
@@ -578,16 +579,16 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
 
 def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True) -> dict:
     """Write ``posterior.nc``, ``summary.csv``, ``positions.json`` and (``plots``) trace.png,
-    rank.png, autocorr.png, ellipses.png into ``out_dir``; returns {name: path}."""
+    rank.png, autocorr.png, ellipses.png into ``out_dir``, each file atomically; returns
+    {name: path}.  The CLI passes the staging directory of an
+    :class:`accel_bayes.outputs.OutputDir`, so that the files appear in ``--out`` as one set."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: {out} exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
     paths["posterior"] = dg.save(result.idata, out / "posterior.nc")
-    p = out / "summary.csv"
-    result.summary.to_csv(p)
-    paths["summary"] = p
+    paths["summary"] = write_text(out / "summary.csv", result.summary.to_csv())
     paths["positions"] = _positions_mod.write_positions(result.positions, out / "positions.json")
     if plots and result.array is not None:
         for q in dg.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std")):

@@ -34,15 +34,16 @@ def _say(msg: str, log: list) -> None:
     log.append(msg)
 
 
-def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress: bool = True, **overrides) -> Path:
+def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress: bool = True,
+             overwrite: bool = False, **overrides) -> Path:
     """Run the whole pipeline as far as it exists; returns the path of ``report.md``.
 
     ``quick`` shrinks the run (fewer samples and draws) for smoke tests.  Keyword overrides
-    replace entries of :data:`DEFAULTS`.
+    replace entries of :data:`DEFAULTS`.  ``out_dir`` is one output set
+    (:class:`accel_bayes.outputs.OutputDir`): checked before anything runs, refused when
+    non-empty unless ``overwrite``, and filled only when every stage has finished.
     """
-    from . import arrays
-    from .io import write_recording, write_truth
-    from .simulate import simulate
+    from .outputs import OutputDir
 
     cfg = dict(DEFAULTS)
     if quick:
@@ -52,8 +53,19 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
         raise TypeError(f"run_demo: unknown settings {sorted(unknown)}")
     cfg.update(overrides)
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    with OutputDir(out_dir, overwrite=overwrite) as od:
+        _run_stages(od, cfg, progress)
+    return od.target / "report.md"
+
+
+def _run_stages(od, cfg: dict, progress: bool) -> None:
+    from . import arrays
+    from .io import write_recording, write_truth
+    from .outputs import write_text
+    from .simulate import simulate
+
+    # Files go to the staging directory ``out``; messages name their final place in ``shown``.
+    out, shown = od.staging, od.target
     log: list[str] = []
     report = ["# accel_bayes demo report", "", f"Settings: `{json.dumps(cfg)}`", ""]
     t0 = time.perf_counter()
@@ -68,7 +80,7 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
     write_truth(rec_path, truth)
     true_rel = np.asarray(truth["true_position_relative"])
     _say(f"[1/5] simulated {cfg['preset']} ({rec.K} IMUs), {rec.T} samples of {cfg['motion']} motion "
-         f"at {cfg['rate']:g} Hz → {rec_path}", log)
+         f"at {cfg['rate']:g} Hz → {shown / rec_path.name}", log)
     report += ["## 1. Simulation", f"- recording: `{rec_path.name}` (ground truth in the sidecar "
                f"`{rec_path.with_suffix('.truth.json').name}`)", ""]
 
@@ -151,7 +163,5 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
                    f"- full report: `mismatch/report.md`, `mismatch/report.json`", ""]
 
     report += [f"Total time: {time.perf_counter() - t0:.1f} s", ""]
-    rpath = out / "report.md"
-    rpath.write_text("\n".join(report), encoding="utf-8")
-    print(f"\nReport: {rpath.resolve()}\nPlots and files: {out.resolve()}", flush=True)
-    return rpath
+    write_text(out / "report.md", "\n".join(report))
+    print(f"\nReport: {(shown / 'report.md').resolve()}\nPlots and files: {shown.resolve()}", flush=True)

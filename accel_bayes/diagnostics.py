@@ -32,6 +32,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
 
 from .errors import UserError  # noqa: E402
+from .outputs import save_figure  # noqa: E402
 
 __all__ = [
     "to_inference_data",
@@ -195,10 +196,16 @@ def posterior_moments(idata, var_name: str = VAR) -> dict:
 # ---------------------------------------------------------------------------- storage
 
 def save(idata, path) -> Path:
-    """Write ``idata`` to NetCDF-4 (h5netcdf engine); returns the path."""
-    p = Path(path)
-    idata.to_netcdf(str(p), engine="h5netcdf")
-    return p
+    """Write ``idata`` to NetCDF-4 (h5netcdf engine, one group per InferenceData group, float
+    variables zlib-compressed as ArviZ does), atomically (:func:`accel_bayes.outputs.write_netcdf`);
+    returns the path.  :func:`load` (``arviz.from_netcdf``) reads it back."""
+    from .outputs import write_netcdf
+
+    tree = idata.to_datatree()
+    enc = {node.path: {name: {"zlib": True} for name, v in node.dataset.variables.items()
+                       if v.dtype.kind in "fiub" and v.ndim > 0}
+           for node in tree.subtree if node.has_data}
+    return write_netcdf(Path(path), tree, engine="h5netcdf", encoding={k: v for k, v in enc.items() if v})
 
 
 def load(path):
@@ -432,8 +439,8 @@ def save_plots(idata, array, outdir, prior_std=None, max_imus: int | None = 2, d
                                                         prior_std=prior_std if k_ex == 1.0 else None,
                                                         exaggerate=k_ex))):
         fig = fn()
-        p = out / f"{name}.png"
-        fig.savefig(p, dpi=dpi)
-        plt.close(fig)
-        paths.append(p)
+        try:
+            paths.append(save_figure(fig, out / f"{name}.png", dpi=dpi))
+        finally:
+            plt.close(fig)
     return paths

@@ -309,16 +309,9 @@ class Intrinsics:
         """The JSON text; with ``path`` also written there atomically."""
         text = json.dumps(self.to_dict(), indent=1) + "\n"
         if path is not None:
-            from .io import _atomic_target, _finish_atomic
+            from .outputs import write_text
 
-            path = Path(path)
-            tmp = _atomic_target(path, overwrite)
-            try:
-                tmp.write_text(text, encoding="utf-8")
-                _finish_atomic(tmp, path)
-            except BaseException:
-                tmp.unlink(missing_ok=True)
-                raise
+            write_text(path, text, overwrite=overwrite)
         return text
 
     @classmethod

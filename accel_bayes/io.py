@@ -2,9 +2,10 @@
 
 * :func:`write_recording` / :func:`read_recording`: NetCDF-4/HDF5 through xarray + h5netcdf.
   A write → read round trip returns an identical :class:`Recording` (bit-exact arrays, same
-  attributes).  Writing is atomic (temporary file in the target directory, then
-  :func:`os.replace`), so a failed write never leaves a half-written or corrupted file, and an
-  existing file is only replaced with ``overwrite=True``.  Reading never modifies the file and
+  attributes).  Writing is atomic (:mod:`accel_bayes.outputs`: built in memory, written to a
+  temporary file in the target directory, fsynced, then :func:`os.replace`), so a failed write
+  never leaves a half-written or corrupted file, and an existing file is only replaced with
+  ``overwrite=True``.  Reading never modifies the file and
   validates it (:mod:`accel_bayes.validation`); files from other tools that follow the contract
   are accepted (no ``format`` attribute, bool masks stored as integers, float32 data, an
   explicit ``units = "deg s-1"`` on ``gyro``, which is converted).
@@ -19,13 +20,12 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
-import secrets
 import warnings
 from pathlib import Path
 
 import numpy as np
 
+from . import outputs
 from .errors import RecordingError, UserError
 from .recording import Recording
 from .validation import (
@@ -96,21 +96,16 @@ def to_jsonable(obj, _where: str = "truth"):
 
 
 def _atomic_target(path: Path, overwrite: bool) -> Path:
-    path = Path(path)
-    if path.is_dir():
-        raise UserError(f"{path}: is a directory; expected a file name")
-    if path.exists() and not overwrite:
-        raise UserError(f"{path}: file exists; refusing to overwrite it (pass overwrite=True, or --overwrite)")
-    parent = path.parent
-    if not parent.is_dir():
-        raise UserError(f"{path}: directory {parent} does not exist")
-    return parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+    """Kept for callers of the former private writer: checks ``path`` and returns a temporary
+    sibling to write; finish with :func:`_finish_atomic`.  New code uses
+    :func:`accel_bayes.outputs.atomic_path` (the one atomic writer)."""
+    path = outputs.check_file_target(path, overwrite=overwrite)
+    return outputs._temp_sibling(path)
 
 
 def _finish_atomic(tmp: Path, path: Path) -> None:
-    with open(tmp, "rb+") as f:  # data on disk before the rename makes it visible
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    """fsync ``tmp`` and rename it over ``path`` (see :func:`_atomic_target`)."""
+    outputs._commit_file(Path(tmp), Path(path))
 
 
 def recording_sha256(path) -> str:
@@ -324,7 +319,7 @@ def write_recording(rec: Recording, path, overwrite: bool = False, *, validate: 
     if validate:
         validate_recording(rec)
     ds = recording_to_dataset(rec)
-    tmp = _atomic_target(path, overwrite)
+    outputs.check_file_target(path, overwrite=overwrite)
     enc = {}
     for name, var in ds.variables.items():
         e = {}
@@ -334,13 +329,7 @@ def write_recording(rec: Recording, path, overwrite: bool = False, *, validate: 
             e.update(zlib=True, complevel=4, shuffle=True)
         if e:
             enc[name] = e
-    try:
-        ds.to_netcdf(tmp, engine=ENGINE, encoding=enc)
-        _finish_atomic(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return outputs.write_netcdf(path, ds, engine=ENGINE, encoding=enc, overwrite=overwrite)
 
 
 def read_recording(path, *, require_gyro: bool = False, check_gyro_units: bool = True) -> Recording:
@@ -401,17 +390,7 @@ def write_truth(rec_path, truth: dict, *, overwrite: bool = True) -> Path:
         raise UserError(f"truth: schema is {schema!r}; expected {TRUTH_SCHEMA!r}")
     if "recording_sha256" not in out and Path(rec_path).is_file():
         out["recording_sha256"] = recording_sha256(rec_path)
-    path = truth_path(rec_path)
-    tmp = _atomic_target(path, overwrite)
-    try:
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(out, f, indent=1)
-            f.write("\n")
-        _finish_atomic(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return outputs.write_json(truth_path(rec_path), out, indent=1, overwrite=overwrite)
 
 
 def read_truth(rec_path, *, verify: bool = True) -> dict:

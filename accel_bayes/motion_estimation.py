@@ -560,17 +560,10 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
 
 
 def write_motion(ds, path, *, overwrite: bool = False) -> Path:
-    """Write a motion dataset to NetCDF-4 (h5netcdf), atomically (temporary file + rename); an
-    existing file is only replaced with ``overwrite``."""
-    from .io import ENGINE, _atomic_target, _finish_atomic
+    """Write a motion dataset to NetCDF-4 (h5netcdf), atomically
+    (:func:`accel_bayes.outputs.write_netcdf`); an existing file is only replaced with ``overwrite``."""
+    from .io import ENGINE
+    from .outputs import write_netcdf
 
-    path = Path(path)
-    tmp = _atomic_target(path, overwrite)
     enc = {name: {"_FillValue": None} for name, v in ds.variables.items() if v.dtype.kind == "f"}
-    try:
-        ds.to_netcdf(tmp, engine=ENGINE, encoding=enc)
-        _finish_atomic(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return write_netcdf(Path(path), ds, engine=ENGINE, encoding=enc, overwrite=overwrite)

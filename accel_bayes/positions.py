@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from . import outputs
 from .errors import UserError
 
 __all__ = ["POSITIONS_SCHEMA", "METHODS", "positions_document", "write_positions", "read_positions"]
@@ -79,19 +78,11 @@ def positions_document(
 
 
 def write_positions(doc: dict, path) -> Path:
-    """Write the document atomically (temp file + rename), so a crash never leaves half a file."""
+    """Write the document atomically (:func:`accel_bayes.outputs.write_json`), so a crash never
+    leaves half a file; a missing parent directory is created."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(doc, fh, indent=2)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return outputs.write_json(path, doc, indent=2)
 
 
 def _numbers(v, shape, where, what):

@@ -1,12 +1,20 @@
 """The README's main job: ``accel-bayes demo`` runs every stage and says where its report is."""
 import json
 
+from accel_bayes import outputs
 from accel_bayes.cli import main
 
 
 def test_demo_quick_runs_all_stages(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--quick", "--out", str(out), "--no-progress"]) == 0
+    out.mkdir()
+    (out / "report.md").write_text("an earlier run's report")
+    (out / outputs.SET_MARKER).write_text(json.dumps({"schema": outputs.SET_SCHEMA}))  # marked as a demo's set
+    assert main(["demo", "--quick", "--out", str(out), "--no-progress"]) == 2  # non-empty: refused
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["demo", "--quick", "--out", str(out), "--no-progress", "--overwrite"]) == 0
+    assert "earlier" not in (out / "report.md").read_text()
+    assert not [p for p in tmp_path.iterdir() if p.name != "demo"]  # no staging, old set or lock left
     text = capsys.readouterr().out
     for stage in ("[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"):
         assert stage in text, text

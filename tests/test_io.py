@@ -154,14 +154,31 @@ def test_failed_write_never_corrupts_existing_file(tmp_path, monkeypatch):
     write_recording(make_recording(seed=1), p)
     before = recording_sha256(p)
 
-    def broken(self, path, *a, **k):  # writes half a file, then fails (disk full, kill, …)
-        with open(path, "wb") as f:
-            f.write(b"\x89HDF partial")
+    def broken(self, path=None, *a, **k):  # writes half a file (if given one), then fails
+        if path is not None:
+            with open(path, "wb") as f:
+                f.write(b"\x89HDF partial")
         raise OSError("disk full")
 
-    monkeypatch.setattr(xr.Dataset, "to_netcdf", broken)
-    with pytest.raises(OSError, match="disk full"):
+    with monkeypatch.context() as m:
+        m.setattr(xr.Dataset, "to_netcdf", broken)
+        with pytest.raises(OSError, match="disk full"):
+            write_recording(make_recording(seed=2), p, overwrite=True)
+    assert recording_sha256(p) == before
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["r.nc"]
+
+    # the disk fills once the bytes are in the temporary file (caught at fsync, before the rename)
+    import errno
+
+    from accel_bayes import outputs
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(outputs.os, "fsync", full)
+    with pytest.raises(OSError, match="No space left") as info:
         write_recording(make_recording(seed=2), p, overwrite=True)
+    assert info.value.filename == str(p)  # the error names the target, not the temporary file
     assert recording_sha256(p) == before
     assert sorted(x.name for x in tmp_path.iterdir()) == ["r.nc"]
 

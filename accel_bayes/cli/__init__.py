@@ -2,16 +2,22 @@
 
 Each sub-command lives in its own module of this package and exposes ``register(subparsers)``,
 which adds its parser and sets ``func`` (called with the parsed namespace, returns an exit code).
-User errors (:class:`accel_bayes.errors.UserError`, missing files) exit with status 2 and one
-line on stderr, never a traceback.
+User errors (:class:`accel_bayes.errors.UserError`, missing files) and I/O errors (an
+``OSError`` from a read or write: a full disk, a read-only or vanished directory) exit with
+status 2 and one line on stderr naming the path, never a traceback.  SIGINT and SIGTERM exit
+with status 130 (a checkpoint already written stays usable for ``--resume``).  Whatever way a
+command ends short of success, the output targets it opened (:mod:`accel_bayes.outputs`) are
+aborted: staged files deleted, locks released, earlier results left as they were.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
 from ..errors import UserError
+from ..outputs import abort_open, display_path
 
 # Sub-command modules listed first, in this order, by `accel-bayes --help`; any other module of
 # this package that defines ``register`` is added after them (so a new command is one new file).
@@ -42,18 +48,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.filename is not None and not isinstance(exc, (FileNotFoundError,
+                                                                                       IsADirectoryError)):
+        # "[Errno 27] File too large: '/x/.posterior.nc.123-ab.tmp.nc'" → the path and the reason
+        return f"{display_path(exc.filename)}: {exc.strerror or type(exc).__name__}"
+    msg = str(exc).splitlines()[0].strip() if str(exc).strip() else ""
+    return msg or type(exc).__name__
+
+
+def _sigterm(signum, frame):
+    raise KeyboardInterrupt  # handled like Ctrl-C: exit 130, outputs aborted, checkpoint kept
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        previous = signal.signal(signal.SIGTERM, _sigterm)
+    except ValueError:  # not the main thread: leave signals alone
+        previous = None
+    try:
         return int(args.func(args) or 0)
-    except (UserError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        print(f"accel-bayes {args.command}: error: {msg}", file=sys.stderr)
+    except (UserError, OSError) as exc:
+        print(f"accel-bayes {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"accel-bayes {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        abort_open()  # anything not committed by the command: staged files removed, locks released
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

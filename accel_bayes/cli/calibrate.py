@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import sys
-from pathlib import Path
 
 from ..errors import UserError
 
@@ -33,6 +32,7 @@ def _positive_float(name):
 
 def register(sub) -> None:
     from ..calibrate import DEFAULTS
+    from ..outputs import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "calibrate",
@@ -42,7 +42,9 @@ def register(sub) -> None:
         "Writes posterior.nc, summary.csv, positions.json and plots to --out.",
     )
     p.add_argument("recording", metavar="REC", help="recording file (.nc, format v1) with gyroscope data")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output directory (created if missing; written as one set, see the README)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--chains", type=int, default=DEFAULTS["chains"], help="number of chains (default %(default)s)")
     p.add_argument("--draws", type=int, default=DEFAULTS["draws"], help="kept draws per chain (default %(default)s)")
     p.add_argument("--warmup", type=int, default=DEFAULTS["warmup"],
@@ -88,8 +90,10 @@ def register(sub) -> None:
     p.add_argument("--proposal", choices=("auto", "rw", "mixture"), default="auto",
                    help="proposal: random walk, or random walk mixed with independence moves (default %(default)s)")
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
-                   help="save the sampler state to DIR/checkpoint.pt every K iterations")
-    p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
+                   help="save the sampler state to DIR/checkpoint.pt every K iterations (kept if the run is "
+                        "killed or interrupted)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from DIR/checkpoint.pt (a DIR holding it needs no --overwrite)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
@@ -97,11 +101,9 @@ def register(sub) -> None:
 
 def _run(args) -> int:
     from ..calibrate import calibrate, write_outputs
+    from ..outputs import OutputDir
 
     prior_std = _positive_float("--prior-std")(args.prior_std)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: {out} exists and is not a directory")
     for name, v, lo in (("--chains", args.chains, 1), ("--draws", args.draws, 1), ("--warmup", args.warmup, 0),
                         ("--seed", args.seed, 0), ("--checkpoint-every", args.checkpoint_every, 0)):
         if v < lo:
@@ -116,10 +118,12 @@ def _run(args) -> int:
         raise UserError(f"--min-rotation: expected a number of rad/s >= 0, got {args.min_rotation!r}")
     if args.num_draws is not None and args.num_draws < 1:
         raise UserError(f"--num-draws: expected an integer >= 1, got {args.num_draws}")
+    # the checkpoint lives in DIR itself (a killed run keeps it) and joins the committed set
+    out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",),
+                    inputs=(args.recording, args.intrinsics)).open()
     ckpt = None
     if args.checkpoint_every or args.resume:
-        out.mkdir(parents=True, exist_ok=True)
-        ckpt = out / "checkpoint.pt"
+        ckpt = out.ensure_target() / "checkpoint.pt"
         if args.resume and not ckpt.exists():
             print(f"accel-bayes calibrate: no checkpoint at {ckpt}; starting afresh", file=sys.stderr)
     res = calibrate(
@@ -131,9 +135,10 @@ def _run(args) -> int:
         min_rotation=min_rot, noise=args.noise, noise_bins=args.noise_bins,
         noise_inflation=not args.no_noise_inflation,
     )
-    paths = write_outputs(res, out, plots=not args.no_plots)
+    paths = write_outputs(res, out.staging, plots=not args.no_plots)
+    out.commit()
     print(format_table(res))
-    print(f"files: {', '.join(str(p) for p in paths.values())}")
+    print(f"files: {', '.join(str(out.final(p)) for p in paths.values())}")
     return 0
 
 

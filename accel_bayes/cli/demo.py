@@ -3,13 +3,17 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
+    from ..outputs import OVERWRITE_DIR_HELP
+
     p = sub.add_parser(
         "demo",
         help="run simulate → MAP → posterior → diagnostics on a built-in example",
         description="Simulate the 8-IMU MIMU4444 corner board under smooth hand-like motion, "
         "calibrate it (MAP, then the PmMH posterior), run the diagnostics and write a report.",
     )
-    p.add_argument("--out", default="demo_out", help="output directory (default: demo_out)")
+    p.add_argument("--out", default="demo_out", metavar="DIR",
+                   help="output directory (default: demo_out; written as one set, see the README)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--quick", action="store_true", help="a smaller, faster run (smoke test)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default: 1)")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
@@ -19,5 +23,5 @@ def register(sub) -> None:
 def _run(args) -> int:
     from ..demo import run_demo
 
-    run_demo(args.out, quick=args.quick, progress=not args.no_progress, seed=args.seed)
+    run_demo(args.out, quick=args.quick, progress=not args.no_progress, seed=args.seed, overwrite=args.overwrite)
     return 0

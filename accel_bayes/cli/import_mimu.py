@@ -34,6 +34,7 @@ def run(args) -> int:
     from ..errors import UserError
     from ..io import write_recording
     from ..mimu import import_mimu
+    from ..outputs import OutputFile
 
     src, out = Path(args.data), Path(args.output)
     # The input first: a wrong input path is the likelier mistake than an existing output.
@@ -41,17 +42,17 @@ def run(args) -> int:
         raise IsADirectoryError(f"{src}: is a directory; expected a MIMU stream file (.bin or .bin.gz)")
     if not src.exists():
         raise FileNotFoundError(f"{src}: no such MIMU stream file")
-    if out.exists() and not args.overwrite:
-        raise UserError(f"output: {out} exists; pass --overwrite to replace it")
     if not 0 <= args.max_fail_fraction < 1:
         raise UserError(f"--max-fail-fraction: expected a value in [0, 1), got {args.max_fail_fraction}")
     if args.tol_deg <= 0 or args.min_static_s <= 0:
         raise UserError("--tol-deg and --min-static-s: expected positive values")
+    target = OutputFile(out, overwrite=args.overwrite).open()
     rec, report, _ = import_mimu(
         src, max_fail_fraction=args.max_fail_fraction, tol_deg=args.tol_deg,
         min_duration_s=args.min_static_s, return_report=True,
     )
     write_recording(rec, out, overwrite=args.overwrite)  # validates (DESIGN §7.1) before writing
+    target.commit()
     for line in report.lines():
         print(line)
     print(f"noise std (pooled over static segments): acc {_fmt(rec.acc_noise_std)} m/s², "

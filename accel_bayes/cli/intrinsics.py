@@ -51,13 +51,13 @@ def load_any(path: Path):
 
 
 def run(args) -> int:
-    from ..errors import UserError
     from ..intrinsics import estimate_intrinsics, static_acc_errors
+    from ..outputs import OutputFile
 
     src, out = Path(args.recording), Path(args.output)
-    for o in (out, Path(args.apply_to) if args.apply_to else None):
-        if o is not None and o.exists() and not args.overwrite:
-            raise UserError(f"output: {o} exists; pass --overwrite to replace it")
+    targets = [OutputFile(out, overwrite=args.overwrite).open()]
+    if args.apply_to:
+        targets.append(OutputFile(args.apply_to, overwrite=args.overwrite, flag="--apply-to").open())
     rec = load_any(src)
     intr = estimate_intrinsics(rec, g=args.g)
     cal = intr.apply(rec)
@@ -87,4 +87,6 @@ def run(args) -> int:
 
         write_recording(cal, args.apply_to, overwrite=args.overwrite)
         print(f"wrote {args.apply_to} (corrected recording)")
+    for t in targets:
+        t.commit()
     return 0

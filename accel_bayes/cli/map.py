@@ -1,10 +1,10 @@
 """``accel-bayes map REC --out DIR``: MAP of the [C21] model by Levenberg–Marquardt."""
 from __future__ import annotations
 
-from pathlib import Path
-
 
 def register(sub) -> None:
+    from ..outputs import OVERWRITE_DIR_HELP
+
     p = sub.add_parser(
         "map",
         help="MAP positions of the accelerometer triads ([C21] model, LM solver)",
@@ -13,7 +13,9 @@ def register(sub) -> None:
         "(method 'map') and omega.csv (the angular velocity at the mode).",
     )
     p.add_argument("recording", metavar="REC", help="recording file (format v1)")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output directory (created if missing; written as one set, see the README)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--prior-std", type=float, default=3e-3, help="std of the Gaussian prior around the nominal positions, m (default 3e-3)")
     p.add_argument("--gyro-method", choices=["sample_cov", "sample_cov_mean", "calibrated"], default="sample_cov",
                    help="gyroscope posterior: [C21] eq. 30 as printed (default), its /G variant, or the calibrated-noise form")
@@ -33,6 +35,7 @@ def _run(args) -> int:
     from ..errors import UserError
     from ..inference.map import fit_map_recording
     from ..io import read_recording, recording_sha256
+    from ..outputs import OutputDir, write_csv
     from ..positions import positions_document, write_positions
 
     if args.prior_std <= 0:
@@ -40,6 +43,7 @@ def _run(args) -> int:
     if args.max_iter < 1:
         raise UserError(f"--max-iter: expected an integer >= 1, got {args.max_iter}")
     rec = read_recording(args.recording)
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     t0 = time.perf_counter()
     res = fit_map_recording(rec, gyro_method=args.gyro_method, prior_std=args.prior_std,
                             select=None if args.select == "all" else "rotation",
@@ -58,21 +62,20 @@ def _run(args) -> int:
                              diagnostics={"seconds": seconds, "log_posterior": float(res.log_posterior)},
                              provenance={"version": __version__, "input_sha256": recording_sha256(args.recording),
                                          "seed": None, "settings": settings})
-    out = Path(args.out)
     write_positions(doc, out / "positions.json")
     omega = res.omega.detach().cpu().numpy()
     lik_index = getattr(res, "sample_index", None)
     t = rec.time if lik_index is None else rec.time[lik_index]
     if len(t) != len(omega):
         t = np.arange(len(omega), dtype=float)
-    np.savetxt(out / "omega.csv", np.column_stack([t, omega]), delimiter=",",
-               header="time_s,omega_x_rad_s,omega_y_rad_s,omega_z_rad_s", comments="")
+    write_csv(out / "omega.csv", np.column_stack([t, omega]), "time_s,omega_x_rad_s,omega_y_rad_s,omega_z_rad_s")
+    out.commit()
     std = np.sqrt(np.clip(np.diagonal(covs, axis1=1, axis2=2), 0, None))
     print(f"MAP in {seconds:.1f} s, {res.n_iter} LM iterations ({res.reason}); positions relative to IMU {rec.reference_imu}:")
     print(f"{'IMU':>4} {'x mm':>9} {'y mm':>9} {'z mm':>9} {'std x µm':>9} {'std y µm':>9} {'std z µm':>9}")
     for k in labels:
         print(f"{k:>4} " + " ".join(f"{v * 1e3:9.3f}" for v in means[k]) + " " + " ".join(f"{v * 1e6:9.1f}" for v in std[k]))
-    print(f"Wrote {out / 'positions.json'} and {out / 'omega.csv'}")
+    print(f"Wrote {out.target / 'positions.json'} and {out.target / 'omega.csv'}")
     if not res.converged:
         print(f"warning: LM stopped without converging ({res.reason}); the estimate may be poor")
     return 0

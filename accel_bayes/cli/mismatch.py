@@ -16,6 +16,7 @@ from ..errors import UserError
 
 def register(subparsers) -> None:
     from ..mismatch.effects import VOCABULARY
+    from ..outputs import OVERWRITE_DIR_HELP
 
     p = subparsers.add_parser(
         "mismatch",
@@ -26,7 +27,9 @@ def register(subparsers) -> None:
         "compare. Writes DIR/report.json (accel_bayes.mismatch/1) and DIR/report.md with figures.",
     )
     p.add_argument("recording", metavar="REC", help="recording file (NetCDF format v1, with gyroscope data)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output directory (created if missing; written as one set, see the README)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--alpha", type=float, default=0.01,
                    help="family-wise error rate of the Bonferroni-corrected threshold (default 0.01)")
     p.add_argument("--effects", default=None, metavar="A,B,...",
@@ -56,17 +59,15 @@ def run(args) -> int:
         effects = [e.strip() for e in args.effects.split(",") if e.strip()]
         if not effects:
             raise UserError("--effects: expected a comma-separated list of effect names")
-    from pathlib import Path
-
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: {out} exists and is not a directory")
     from ..mismatch import detect
+    from ..outputs import OutputDir
 
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     report = detect(args.recording, effects=effects, alpha=args.alpha, max_findings=args.max_findings,
                     refine=not args.no_refine, posterior=args.posterior, seed=args.seed, progress=args.progress,
                     n_twins=args.twins)
-    paths = report.write(out, figures=not args.no_figures)
+    paths = report.write(out.staging, figures=not args.no_figures)
+    out.commit()
     d = report.to_dict()
     if d["mismatch_detected"]:
         print(f"mismatch detected (threshold {d['threshold']:.4g}):")
@@ -78,5 +79,5 @@ def run(args) -> int:
             print(f"  chi2/dof {d['baseline']['chi2_per_dof']:.4g} -> {d['refined']['chi2_per_dof']:.4g}")
     else:
         print(f"no mismatch detected (chi2/dof {d['baseline']['chi2_per_dof']:.4g}, threshold {d['threshold']:.4g})")
-    print(f"wrote {paths['json']} and {paths['markdown']}")
+    print(f"wrote {out.final(paths['json'])} and {out.final(paths['markdown'])}")
     return 0

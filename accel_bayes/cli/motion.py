@@ -44,11 +44,11 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from ..errors import UserError
     from ..motion_estimation import estimate_motion, write_motion
+    from ..outputs import OutputFile
     from .intrinsics import load_any
 
     out = Path(args.output)
-    if out.exists() and not args.overwrite:
-        raise UserError(f"output: {out} exists; pass --overwrite to replace it")
+    target = OutputFile(out, overwrite=args.overwrite).open()
     if args.draws < 0 or args.draws == 1:
         raise UserError(f"--draws: expected 0 or an integer >= 2, got {args.draws}")
     cal = Path(args.calibration)
@@ -59,6 +59,7 @@ def run(args) -> int:
                          geometry=args.geometry, acc_noise_std=args.acc_noise_std,
                          gyro_noise_std=args.gyro_noise_std)
     write_motion(ds, out, overwrite=args.overwrite)
+    target.commit()
 
     ok = ~ds["ill_posed"].values
     T = ds.sizes["time"]

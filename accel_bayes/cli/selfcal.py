@@ -27,6 +27,8 @@ EXIT_DIVERGED = 3
 
 
 def register(sub) -> None:
+    from ..outputs import OVERWRITE_DIR_HELP
+
     p = sub.add_parser(
         "selfcal",
         help="[S16] self-calibration of accelerometer triads (poses + motion, no gyroscope)",
@@ -36,7 +38,9 @@ def register(sub) -> None:
         "motion.csv and convergence.png. Exit status 3 when the optimisation diverged ([S16] Table III).",
     )
     p.add_argument("recording", metavar="REC", help="recording file (format v1)")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output directory (created if missing; written as one set, see the README)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--fixed", type=int, default=None,
                    help="label of the IMU whose triad is held at its nominal pose (default: the recording's reference IMU)")
     p.add_argument("--max-iter", type=int, default=200, help="LM iteration limit per stage (default 200)")
@@ -60,6 +64,8 @@ def plot_convergence(cost_log: list, n_constraints: dict, path, title: str = "")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
+
+    from ..outputs import save_figure
 
     x = np.arange(len(cost_log), dtype=float)  # attempts laid end to end over stages and runs
     run = [e.get("run", "first") for e in cost_log]
@@ -86,8 +92,10 @@ def plot_convergence(cost_log: list, n_constraints: dict, path, title: str = "")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=120)
+    finally:
+        plt.close(fig)
 
 
 def _run(args) -> int:
@@ -101,6 +109,7 @@ def _run(args) -> int:
     from ..geometry import boxminus
     from ..inference.selfcal import self_calibrate
     from ..io import read_recording, recording_sha256
+    from ..outputs import OutputDir, write_csv, write_text
     from ..positions import positions_document, write_positions
 
     if args.max_iter < 1:
@@ -135,18 +144,18 @@ def _run(args) -> int:
     except ValueError as exc:
         raise UserError(f"nominal_position: {exc}") from None
 
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     t0 = time.perf_counter()
     res = self_calibrate(acc, np.asarray(rec.time, dtype=float), nominal_positions=p_nom[labels],
                          nominal_orientations=q_nom[labels], fixed=fixed, acc_noise_std=noise,
                          max_iter=args.max_iter, progress=not args.no_progress,
                          rerun_from_estimate=not args.no_rerun)
     seconds = time.perf_counter() - t0
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     plot_convergence(res.full_cost_log, res.n_constraints, out / "convergence.png",
                      title=f"selfcal {Path(args.recording).name}: {res.status}")
     if not res.ok:
-        return _fail(f"{res.reason}; no positions reported (see {out / 'convergence.png'})")
+        out.commit()  # the diagnostics alone are this run's set
+        return _fail(f"{res.reason}; no positions reported (see {out.target / 'convergence.png'})")
 
     # ---- positions.json: relative to the fixed IMU, array frame
     P = res.positions.detach().cpu().numpy()
@@ -189,17 +198,16 @@ def _run(args) -> int:
     for k in range(K):
         rows.append([k, *(means[k] * 1e3), *(pstd[k] * 1e6), *np.degrees(dq[k]), ang[k], astd[k],
                      int(k == fixed_label), int(has_acc[k])])
-    with open(out / "poses.csv", "w", encoding="utf-8") as fh:
-        fh.write(header + "\n")
-        for r in rows:
-            fh.write(",".join(str(int(v)) if i in (0, 12, 13) else ("nan" if not np.isfinite(v) else f"{v:.9g}")
-                              for i, v in enumerate(r)) + "\n")
+    write_text(out / "poses.csv", "".join(
+        [header + "\n"] + [",".join(str(int(v)) if i in (0, 12, 13) else ("nan" if not np.isfinite(v) else f"{v:.9g}")
+                                    for i, v in enumerate(r)) + "\n" for r in rows]))
 
     # ---- motion.csv
     X = res.states.detach().cpu().numpy()
-    np.savetxt(out / "motion.csv", np.column_stack([np.asarray(rec.time, dtype=float), X]), delimiter=",",
-               header="time_s,a_lin_x_m_s2,a_lin_y_m_s2,a_lin_z_m_s2,omega_x_rad_s,omega_y_rad_s,omega_z_rad_s,"
-                      "omega_dot_x_rad_s2,omega_dot_y_rad_s2,omega_dot_z_rad_s2", comments="")
+    write_csv(out / "motion.csv", np.column_stack([np.asarray(rec.time, dtype=float), X]),
+              "time_s,a_lin_x_m_s2,a_lin_y_m_s2,a_lin_z_m_s2,omega_x_rad_s,omega_y_rad_s,omega_z_rad_s,"
+              "omega_dot_x_rad_s2,omega_dot_y_rad_s2,omega_dot_z_rad_s2")
+    out.commit()
 
     print(f"self-calibration in {seconds:.1f} s, LM iterations "
           f"{' + '.join(str(r['label']) + ' ' + str(r['iterations']) for r in res.runs)} ({res.lm_reason}); F/constraint "
@@ -214,5 +222,6 @@ def _run(args) -> int:
         print(f"warning: {clipped:.2%} of the accelerometer samples are flagged clipped; they are used as they are")
     if not res.converged:
         print(f"warning: LM stopped without converging ({res.lm_reason}); the estimate may be poor")
-    print(f"Wrote {out / 'positions.json'}, {out / 'poses.csv'}, {out / 'motion.csv'} and {out / 'convergence.png'}")
+    d = out.target
+    print(f"Wrote {d / 'positions.json'}, {d / 'poses.csv'}, {d / 'motion.csv'} and {d / 'convergence.png'}")
     return 0

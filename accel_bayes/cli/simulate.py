@@ -42,7 +42,7 @@ def register(subparsers) -> None:
                    help="smooth motion only: RMS of |ω|, rad/s (default 400 °/s = 6.98 rad/s)")
     p.add_argument("--no-clip", action="store_true", help="do not clip outputs at the sensor ranges")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="recording to write (.nc)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.add_argument("--overwrite", action="store_true", help="replace FILE and its sidecar if they exist")
     p.set_defaults(func=run)
 
 
@@ -67,15 +67,10 @@ def _check(args) -> None:
 def run(args) -> int:
     _check(args)
     from .. import io
+    from ..outputs import OutputFile
 
     out = Path(args.output)
-    side = io.truth_path(out)
-    if not args.overwrite:
-        for f in (out, side):
-            if f.exists():
-                raise UserError(f"-o: {f} exists; pass --overwrite to replace it")
-    if out.parent and not out.parent.exists():
-        raise UserError(f"-o: directory {out.parent} does not exist")
+    target = OutputFile(out, overwrite=args.overwrite, also=(io.truth_path(out),)).open()
 
     from ..arrays import preset
     from ..simulate import simulate
@@ -87,7 +82,8 @@ def run(args) -> int:
                    acc_noise_std=args.acc_noise, gyro_noise_std=args.gyro_noise, clip=not args.no_clip,
                    motion_kwargs=mkw)
     io.write_recording(res.recording, out, overwrite=args.overwrite)
-    side = io.write_truth(out, res.truth)
+    side = io.write_truth(out, res.truth)  # after the recording: it records the recording's SHA-256
+    target.commit()
 
     rec, tr = res.recording, res.motion
     import torch

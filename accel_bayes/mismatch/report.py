@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ..outputs import write_text
 
 __all__ = ["SCHEMA", "Finding", "MismatchReport", "validate_report"]
 
@@ -226,19 +227,17 @@ class MismatchReport:
             raise UserError(f"--out: {out} exists and is not a directory")
         out.mkdir(parents=True, exist_ok=True)
         paths = {}
-        p = out / "report.json"
-        p.write_text(self.to_json() + "\n", encoding="utf-8")
-        paths["json"] = p
+        paths["json"] = write_text(out / "report.json", self.to_json() + "\n")
         figs = {}
         if figures:
             try:
                 figs = self.save_figures(out)
+            except OSError:  # a full disk or an unwritable directory is the run's failure
+                raise
             except Exception as exc:  # a plotting failure must not lose the report
                 warnings.warn(f"figures not written: {exc}", RuntimeWarning, stacklevel=2)
         paths.update(figs)
-        p = out / "report.md"
-        p.write_text(self.markdown({k: v.name for k, v in figs.items()}), encoding="utf-8")
-        paths["markdown"] = p
+        paths["markdown"] = write_text(out / "report.md", self.markdown({k: v.name for k, v in figs.items()}))
         return paths
 
     def save_figures(self, out: Path) -> dict:
@@ -247,6 +246,7 @@ class MismatchReport:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
+        from ..outputs import save_figure
         from .locate import CHANNELS
 
         paths = {}
@@ -265,8 +265,10 @@ class MismatchReport:
             ax.set_title(f"{title}: residual excess z")
         fig.colorbar(im, ax=axes[0].tolist(), label="(χ² − n)/√(2n)")
         p = out / "residual_heatmap.png"
-        fig.savefig(p, dpi=110, bbox_inches="tight")
-        plt.close(fig)
+        try:
+            save_figure(fig, p, dpi=110, bbox_inches="tight")
+        finally:
+            plt.close(fig)
         paths["heatmap"] = p
         # residual excess vs regime
         schemes = [s for s in self.location.regimes if s != "time"] + ["time"]
@@ -285,8 +287,10 @@ class MismatchReport:
         axes[0][-1].legend(fontsize=7)
         fig.tight_layout()
         p = out / "residual_regimes.png"
-        fig.savefig(p, dpi=110, bbox_inches="tight")
-        plt.close(fig)
+        try:
+            save_figure(fig, p, dpi=110, bbox_inches="tight")
+        finally:
+            plt.close(fig)
         paths["regimes"] = p
         # before / after per IMU and geometry change
         if self.location_after is not None and self.refined_fit is not None:
@@ -308,8 +312,10 @@ class MismatchReport:
             a2.legend(fontsize=8)
             fig.tight_layout()
             p = out / "before_after.png"
-            fig.savefig(p, dpi=110, bbox_inches="tight")
-            plt.close(fig)
+            try:
+                save_figure(fig, p, dpi=110, bbox_inches="tight")
+            finally:
+                plt.close(fig)
             paths["before_after"] = p
         return paths
 
