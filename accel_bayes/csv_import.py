@@ -572,15 +572,19 @@ def align_streams(streams: list[ImuStream], reference: int, tolerance_ns: int):
 class CsvImport:
     """What :func:`import_csv` returns.
 
-    recording : the format-v1 :class:`Recording`.
-    imu_time_offset : (T, K) s — each IMU's own stamp minus ``time`` (§7.1), or None when all
-        are zero (every IMU stamped at the reference's instants).
+    recording : the format-v1 :class:`Recording`; its ``imu_time_offset`` (T, K) s holds each
+        IMU's own stamp minus ``time`` (§7.1), or None when all are zero (every IMU stamped at the
+        reference's instants).
     lines : the import report, one line per fact.
     """
 
     recording: Recording
-    imu_time_offset: np.ndarray | None
     lines: list
+
+    @property
+    def imu_time_offset(self) -> np.ndarray | None:
+        """(T, K) s, the recording's ``imu_time_offset``."""
+        return self.recording.imu_time_offset
 
 
 def import_csv(source, array, *, time_tolerance: float | None = None, noise: str = "rests",
@@ -715,7 +719,8 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         time=time, acc=acc, gyro=gyro,
         nominal_position=np.stack([s.position for s in spec.imus]), nominal_orientation=quat,
         acc_noise_std=final["acc"], gyro_noise_std=final["gyro"],
-        acc_clipped=acc_clipped, gyro_clipped=gyro_clipped, segment=segment, reference_imu=ref,
+        acc_clipped=acc_clipped, gyro_clipped=gyro_clipped, segment=segment, imu_time_offset=offsets,
+        reference_imu=ref,
         acc_range=common(acc_r, has_acc), gyro_range=common(gyro_r, has_gyro) if any_gyro else None,
         description=spec.description or f"CSV import of {source.name}", source=source_text, attrs=attrs,
     )
@@ -732,7 +737,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     for kind, m in (("acc", acc_clipped), ("gyro", gyro_clipped)):
         lines.append(f"{kind} clipped: {100 * float(m.mean()):.3g} % of samples" if m is not None
                      else f"{kind} clipped: no range stated, not flagged")
-    return CsvImport(rec, offsets, lines)
+    return CsvImport(rec, lines)
 
 
 def _fmt(x) -> str:
@@ -740,28 +745,9 @@ def _fmt(x) -> str:
 
 
 def write_imported(result: CsvImport, path, overwrite: bool = False) -> Path:
-    """Write an import atomically: the recording through :func:`accel_bayes.io.write_recording`
-    (validation, format v1) to a temporary file beside ``path``, the ``imu_time_offset`` variable
-    (s, dims (time, imu), DESIGN §7.1) added to it, then one rename onto ``path``.  An existing
-    ``path`` is refused unless ``overwrite``."""
-    from .io import _atomic_target, _finish_atomic, write_recording
+    """Write an import atomically through :func:`accel_bayes.io.write_recording` (validation,
+    format v1; the recording carries ``imu_time_offset``, DESIGN §7.1).  An existing ``path`` is
+    refused unless ``overwrite``."""
+    from .io import write_recording
 
-    path = Path(path)
-    if result.imu_time_offset is None:
-        return write_recording(result.recording, path, overwrite=overwrite)
-    tmp = _atomic_target(path, overwrite)
-    try:
-        write_recording(result.recording, tmp)
-        import h5netcdf
-
-        with h5netcdf.File(tmp, "a") as f:
-            v = f.create_variable("imu_time_offset", ("time", "imu"), data=np.asarray(result.imu_time_offset, np.float64),
-                                  compression="gzip", compression_opts=4)
-            v.attrs["units"] = "s"
-            v.attrs["long_name"] = ("IMU's own time stamp minus time (stamped separately, put on one time base "
-                                    "by the importer)")
-        _finish_atomic(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return write_recording(result.recording, path, overwrite=overwrite)

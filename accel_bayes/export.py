@@ -66,7 +66,7 @@ from .geometry import quat_to_matrix
 from .recording import Recording
 
 __all__ = ["FORMATS", "imu_chain", "t_i_b", "openvins_acc_intrinsics", "gyro_intrinsics_from_report",
-           "export_imu_chain", "write_text_atomic"]
+           "export_imu_chain"]
 
 FORMATS = ("kalibr", "openvins")
 AXES = ("x", "y", "z")
@@ -321,22 +321,6 @@ def imu_chain(recording: Recording, positions: dict, intrinsics=None, report: di
     return "\n".join(out)
 
 
-def write_text_atomic(text: str, path, overwrite: bool = False) -> Path:
-    """Write ``text`` to ``path`` atomically (:mod:`accel_bayes.io`'s temporary file + rename); an
-    existing file is refused unless ``overwrite``."""
-    from .io import _atomic_target, _finish_atomic
-
-    path = Path(path)
-    tmp = _atomic_target(path, overwrite)
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        _finish_atomic(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
 def export_imu_chain(recording, positions, output, *, intrinsics=None, report=None, fmt: str = "kalibr",
                      overwrite: bool = False) -> Path:
     """Read the inputs (paths or objects), build :func:`imu_chain` and write it to ``output``
@@ -367,4 +351,6 @@ def export_imu_chain(recording, positions, output, *, intrinsics=None, report=No
         except ValueError as exc:
             raise UserError(f"{p}: not valid JSON ({exc})") from None
     text = imu_chain(recording, positions, intrinsics, report, fmt=fmt, input_names=names)
-    return write_text_atomic(text, output, overwrite=overwrite)
+    from .outputs import write_text
+
+    return write_text(output, text, overwrite=overwrite)

@@ -95,19 +95,6 @@ def to_jsonable(obj, _where: str = "truth"):
     raise UserError(f"{_where}: cannot store a {type(obj).__name__} as JSON; convert it to numbers, strings or arrays")
 
 
-def _atomic_target(path: Path, overwrite: bool) -> Path:
-    """Kept for callers of the former private writer: checks ``path`` and returns a temporary
-    sibling to write; finish with :func:`_finish_atomic`.  New code uses
-    :func:`accel_bayes.outputs.atomic_path` (the one atomic writer)."""
-    path = outputs.check_file_target(path, overwrite=overwrite)
-    return outputs._temp_sibling(path)
-
-
-def _finish_atomic(tmp: Path, path: Path) -> None:
-    """fsync ``tmp`` and rename it over ``path`` (see :func:`_atomic_target`)."""
-    outputs._commit_file(Path(tmp), Path(path))
-
-
 def recording_sha256(path) -> str:
     """SHA-256 (hex) of a file's bytes, for provenance records (DESIGN §7.3 ``input_sha256``)."""
     h = hashlib.sha256()
@@ -173,6 +160,10 @@ def recording_to_dataset(rec: Recording):
                         {"long_name": "sample known to be at the sensor range"})
     if rec.segment is not None:
         dv["segment"] = (("time",), np.asarray(rec.segment).astype(str), {"long_name": "static / dynamic label"})
+    if rec.imu_time_offset is not None:
+        dv["imu_time_offset"] = (("time", "imu"), np.asarray(rec.imu_time_offset, dtype=np.float64),
+                                 {"units": "s", "long_name": "IMU's own time stamp minus time (stamped separately, "
+                                                             "put on one time base by an importer)"})
 
     attrs = {"format": FORMAT}
     for name, unit in (("acc_noise_std", "m s-2"), ("gyro_noise_std", "rad s-1")):
@@ -290,6 +281,7 @@ def recording_from_dataset(ds, *, require_gyro: bool = False, check_gyro_units: 
         acc_clipped=masks["acc_clipped"],
         gyro_clipped=masks["gyro_clipped"],
         segment=segment,
+        imu_time_offset=arr("imu_time_offset"),
         reference_imu=int(round(float(np.asarray(a.get("reference_imu", 0)).reshape(())))),
         acc_range=scalar("acc_range"),
         gyro_range=scalar("gyro_range"),

@@ -31,6 +31,8 @@ class Recording:
     acc_noise_std : (K,) float64, m/s²;  gyro_noise_std : (K,) float64, rad/s.
     acc_clipped, gyro_clipped : (T, K) bool or None — samples known to be at the sensor range.
     segment : (T,) str array ("static"/"dynamic") or None.
+    imu_time_offset : (T, K) float64 or None, s — an IMU's own time stamp minus ``time``, where
+        the IMUs were stamped separately and an importer put them on one time base.
     reference_imu : int — origin of the geometry (default 0).
     acc_range, gyro_range : float or None — full scale, m/s² and rad/s.
     description, source : str — free text; ``source`` records provenance.
@@ -47,6 +49,7 @@ class Recording:
     acc_clipped: np.ndarray | None = None
     gyro_clipped: np.ndarray | None = None
     segment: np.ndarray | None = None
+    imu_time_offset: np.ndarray | None = None
     reference_imu: int = 0
     acc_range: float | None = None
     gyro_range: float | None = None
@@ -134,7 +137,8 @@ class Recording:
         take = lambda x: None if x is None else np.asarray(x)[idx]  # noqa: E731
         return replace(self, time=take(self.time), acc=take(self.acc), gyro=take(self.gyro),
                        acc_clipped=take(self.acc_clipped), gyro_clipped=take(self.gyro_clipped),
-                       segment=take(self.segment), attrs=dict(self.attrs))
+                       segment=take(self.segment), imu_time_offset=take(self.imu_time_offset),
+                       attrs=dict(self.attrs))
 
     def copy(self) -> "Recording":
         """Deep copy."""
@@ -143,4 +147,5 @@ class Recording:
                        nominal_position=c(self.nominal_position), nominal_orientation=c(self.nominal_orientation),
                        acc_noise_std=c(self.acc_noise_std), gyro_noise_std=c(self.gyro_noise_std),
                        acc_clipped=c(self.acc_clipped), gyro_clipped=c(self.gyro_clipped),
-                       segment=c(self.segment), attrs=dict(self.attrs))
+                       segment=c(self.segment), imu_time_offset=c(self.imu_time_offset),
+                       attrs=dict(self.attrs))

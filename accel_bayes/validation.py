@@ -65,6 +65,7 @@ VARIABLES = {
     "acc_clipped": (("time", "imu"), False, "bool mask of accelerometer samples at the range"),
     "gyro_clipped": (("time", "imu"), False, "bool mask of gyroscope samples at the range"),
     "segment": (("time",), False, '"static"/"dynamic" labels'),
+    "imu_time_offset": (("time", "imu"), False, "an IMU's own time stamp minus time, s"),
     "acc_noise_std": (("imu",), False, "per-IMU accelerometer noise std, m s-2"),
     "gyro_noise_std": (("imu",), False, "per-IMU gyroscope noise std, rad s-1"),
 }
@@ -406,7 +407,9 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     _shape_check("acc_clipped", rec.acc_clipped, (T, K))
     _shape_check("gyro_clipped", rec.gyro_clipped, (T, K))
     _shape_check("segment", rec.segment, (T,))
-    for name in ("time", "acc", "gyro", "nominal_position", "nominal_orientation", "acc_noise_std", "gyro_noise_std"):
+    _shape_check("imu_time_offset", rec.imu_time_offset, (T, K))
+    for name in ("time", "acc", "gyro", "nominal_position", "nominal_orientation", "acc_noise_std", "gyro_noise_std",
+                 "imu_time_offset"):
         x = getattr(rec, name)
         if x is not None and np.asarray(x).dtype.kind not in "iuf":
             raise RecordingError(f"{name}: expected a float array, got dtype {np.asarray(x).dtype}")
@@ -453,6 +456,11 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
             raise RecordingError(f"{name}: IMU {k} has {float(s[k])!r}; expected a finite value > 0 {unit} for every "
                                  f"IMU with {'an accelerometer' if name.startswith('acc') else 'a gyroscope'}"
                                  + (f" ({int(bad.sum())} IMUs affected)" if bad.sum() > 1 else ""))
+
+    if rec.imu_time_offset is not None and np.isinf(np.asarray(rec.imu_time_offset, dtype=float)).any():
+        t_idx, k = np.argwhere(np.isinf(np.asarray(rec.imu_time_offset, dtype=float)))[0]
+        raise RecordingError(f"imu_time_offset: infinite value at time index {int(t_idx)}, IMU {int(k)}; expected "
+                             "finite offsets in s (NaN where unknown)")
 
     # Geometry.
     pos = np.asarray(rec.nominal_position, dtype=float)

@@ -182,9 +182,10 @@ def test_separate_stamps_time_base_and_offsets(sim, tmp_path):
     with xr.open_dataset(out, engine="h5netcdf") as ds:
         assert ds["imu_time_offset"].dims == ("time", "imu") and ds["imu_time_offset"].attrs["units"] == "s"
         np.testing.assert_array_equal(ds["imu_time_offset"].values, exp_off)
-    with pytest.warns(UserWarning):  # the reader does not load imu_time_offset yet (it says so)
-        back = read_recording(out)
+    back = read_recording(out)  # the reader loads it back (format v1 optional variable)
     np.testing.assert_array_equal(back.acc, rec.acc)
+    np.testing.assert_array_equal(back.imu_time_offset, exp_off)
+    np.testing.assert_array_equal(back.select(np.arange(5, 9)).imu_time_offset, exp_off[5:9])
 
 
 def test_stamps_beyond_tolerance_refused_with_numbers(sim, tmp_path):

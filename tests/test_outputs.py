@@ -45,6 +45,8 @@ COMMANDS = {
     "mismatch": ("dir", ["mismatch", "{rec}"], "--out", ["--effects", "acc_bias", "--twins", "5", "--no-figures"],
                  0, {"report.json", "report.md"}),
     "demo": ("dir", ["demo", "--quick", "--no-progress"], "--out", [], 0, None),
+    "import-csv": ("file", ["import-csv", "{asl}", "--array", "{toml}"], "-o", [], 0, None),
+    "export": ("file", ["export", "{rec}", "--positions", "{cal}"], "-o", [], 0, None),
 }
 # The computation each command starts with: replaced by a trap to show that no target error is
 # found only after computing.
@@ -58,13 +60,16 @@ COMPUTE = {
     "selfcal": ("accel_bayes.inference.selfcal", "self_calibrate"),
     "mismatch": ("accel_bayes.mismatch", "detect"),
     "demo": ("accel_bayes.simulate", "simulate"),
+    "import-csv": ("accel_bayes.csv_import", "import_csv"),
+    "export": ("accel_bayes.export", "export_imu_chain"),
 }
-FILE_SUFFIX = {"intrinsics": ".json"}
+FILE_SUFFIX = {"intrinsics": ".json", "export": ".yaml"}
 
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     sys.path.insert(0, str(Path(__file__).parent))
+    from test_csv_import import write_asl, write_toml
     from test_intrinsics import _static_recording
     from test_mimu import _stream
     from test_motion_estimation import _positions_doc
@@ -77,7 +82,10 @@ def inputs(tmp_path_factory):
     (d / "stream.bin").write_bytes(_stream(n=40)[0])
     static, _ = _static_recording(K=3, n_orient=12, n=30, dyn=10)
     write_recording(static, d / "static.nc")
-    return {"rec": d / "rec.nc", "cal": d / "cal.json", "stream": d / "stream.bin", "static": d / "static.nc"}
+    write_asl(sim.recording, d / "asl")
+    write_toml(sim.recording, d / "array.toml")
+    return {"rec": d / "rec.nc", "cal": d / "cal.json", "stream": d / "stream.bin", "static": d / "static.nc",
+            "asl": d / "asl", "toml": d / "array.toml"}
 
 
 def argv(cmd, inputs, target, *extra):
@@ -119,6 +127,10 @@ def check_valid(cmd, target: Path):
             json.loads((target / f).read_text())
     elif target.suffix == ".json":
         json.loads(target.read_text())
+    elif target.suffix == ".yaml":
+        import yaml
+
+        assert "T_i_b" in yaml.safe_load(target.read_text())["imu0"]
     elif cmd == "motion":
         import xarray as xr
 

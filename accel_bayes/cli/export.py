@@ -38,21 +38,17 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..errors import UserError
     from ..export import export_imu_chain
+    from ..outputs import OutputFile
 
     out = Path(args.output)
     for flag, path in (("REC", args.recording), ("--positions", args.positions), ("--intrinsics", args.intrinsics),
                        ("--mismatch", args.mismatch)):
         if path is not None and not Path(path).is_file():
             raise FileNotFoundError(f"{flag}: {path}: no such file")
-    if out.is_dir():
-        raise UserError(f"output: {out} is a directory; expected a file name (.yaml)")
-    if out.exists() and not args.overwrite:
-        raise UserError(f"output: {out} exists; pass --overwrite to replace it")
-    if not out.parent.is_dir():
-        raise UserError(f"output: directory {out.parent} does not exist")
+    target = OutputFile(out, overwrite=args.overwrite).open()
     export_imu_chain(args.recording, args.positions, out, intrinsics=args.intrinsics, report=args.mismatch,
                      fmt=args.format, overwrite=args.overwrite)
+    target.commit()
     print(f"wrote {out} ({args.format} IMU chain)")
     return 0

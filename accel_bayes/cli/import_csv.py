@@ -46,6 +46,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from ..csv_import import import_csv, write_imported
     from ..errors import UserError
+    from ..outputs import OutputFile
 
     src, arr, out = Path(args.source), Path(args.array), Path(args.output)
     # The inputs first: a wrong input path is the likelier mistake than an existing output.
@@ -53,19 +54,15 @@ def run(args) -> int:
         raise FileNotFoundError(f"{src}: no such CSV file or ASL folder")
     if not arr.is_file():
         raise FileNotFoundError(f"--array: {arr}: no such array description file (TOML)")
-    if out.is_dir():
-        raise UserError(f"output: {out} is a directory; expected a file name (.nc)")
-    if out.exists() and not args.overwrite:
-        raise UserError(f"output: {out} exists; pass --overwrite to replace it")
-    if not out.parent.is_dir():
-        raise UserError(f"output: directory {out.parent} does not exist")
     if args.time_tolerance is not None and not args.time_tolerance >= 0:
         raise UserError(f"--time-tolerance: expected a non-negative number of seconds, got {args.time_tolerance}")
     if not (args.tol_deg > 0 and args.min_static_s > 0):
         raise UserError("--tol-deg and --min-static-s: expected positive values")
+    target = OutputFile(out, overwrite=args.overwrite).open()
     result = import_csv(src, arr, time_tolerance=args.time_tolerance, noise=args.noise, tol_deg=args.tol_deg,
                         min_duration_s=args.min_static_s)
     write_imported(result, out, overwrite=args.overwrite)  # validates (DESIGN §7.1) before writing
+    target.commit()
     for line in result.lines:
         print(line)
     print(f"wrote {out}")
