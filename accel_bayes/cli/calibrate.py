@@ -12,23 +12,11 @@ DIR/positions.json (DESIGN §7.3) and trace/rank/autocorr/ellipses plots; prints
 """
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
 from ..errors import UserError
-
-
-def _positive_float(name):
-    def conv(s):
-        try:
-            v = float(s)
-        except ValueError:
-            raise UserError(f"{name}: expected a positive number, got {s!r}") from None
-        if not (v > 0 and math.isfinite(v)):
-            raise UserError(f"{name}: expected a positive number, got {s!r}")
-        return v
-    return conv
+from . import _options as opt
 
 
 def register(sub) -> None:
@@ -43,16 +31,16 @@ def register(sub) -> None:
     )
     p.add_argument("recording", metavar="REC", help="recording file (.nc, format v1) with gyroscope data")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
-    p.add_argument("--chains", type=int, default=DEFAULTS["chains"], help="number of chains (default %(default)s)")
-    p.add_argument("--draws", type=int, default=DEFAULTS["draws"], help="kept draws per chain (default %(default)s)")
-    p.add_argument("--warmup", type=int, default=DEFAULTS["warmup"],
+    p.add_argument("--chains", type=opt.count(1), default=DEFAULTS["chains"], help="number of chains (default %(default)s)")
+    p.add_argument("--draws", type=opt.count(1), default=DEFAULTS["draws"], help="kept draws per chain (default %(default)s)")
+    p.add_argument("--warmup", type=opt.count(0), default=DEFAULTS["warmup"],
                    help="warm-up (adaptation) iterations per chain (default %(default)s)")
-    p.add_argument("--num-draws", type=int, default=None, metavar="N",
+    p.add_argument("--num-draws", type=opt.count(1), default=None, metavar="N",
                    help="Monte Carlo draws per likelihood estimate (default: chosen so Var[log p̂] ≈ 1)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--seed", type=opt.seed, default=0, help="random seed (default %(default)s)")
     p.add_argument("--prior", choices=("gaussian", "box"), default=DEFAULTS["prior"],
                    help="prior on the positions (default %(default)s)")
-    p.add_argument("--prior-std", type=str, default=str(DEFAULTS["prior_std"]), metavar="M",
+    p.add_argument("--prior-std", type=opt.positive("m"), default=DEFAULTS["prior_std"], metavar="M",
                    help="prior standard deviation in metres (default %(default)s, [C21] §IV-A)")
     p.add_argument("--no-map", action="store_true",
                    help="do not fit the MAP first; chains start from prior draws")
@@ -68,7 +56,7 @@ def register(sub) -> None:
     g.add_argument("--keep-static", action="store_true", help="keep the samples of the rests (dropped by default)")
     g.add_argument("--keep-clipped", action="store_true",
                    help="keep samples where an accelerometer or gyroscope is at its range (dropped by default)")
-    g.add_argument("--min-rotation", type=str, default=str(DEFAULTS["min_rotation"]), metavar="RAD_S",
+    g.add_argument("--min-rotation", type=opt.nonnegative("rad/s"), default=DEFAULTS["min_rotation"], metavar="RAD_S",
                    help="drop samples whose mean gyro rate |w| is below this, rad/s (default %(default)s = 29 deg/s; "
                         "0 keeps all)")
     g.add_argument("--select", choices=("rotation",), default=None,
@@ -77,7 +65,7 @@ def register(sub) -> None:
                    help="accelerometer noise: the recording's stated std, or estimated from the data (a level per "
                         "IMU x a factor per gyro-rate bin, type-II ML at the MAP, inflated by the sandwich factor); "
                         "'auto' (default): estimate for recordings with rests, stated otherwise")
-    g.add_argument("--noise-bins", type=int, default=DEFAULTS["noise_bins"], metavar="B",
+    g.add_argument("--noise-bins", type=opt.count(1), default=DEFAULTS["noise_bins"], metavar="B",
                    help="gyro-rate bins of the estimated noise model (default %(default)s; 1 = one level per IMU)")
     g.add_argument("--no-noise-inflation", action="store_true",
                    help="with estimated noise: do not apply the sandwich (misspecification) factor")
@@ -87,7 +75,7 @@ def register(sub) -> None:
                         "'sample_cov' = [C21] eq. 30)")
     p.add_argument("--proposal", choices=("auto", "rw", "mixture"), default="auto",
                    help="proposal: random walk, or random walk mixed with independence moves (default %(default)s)")
-    p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
+    p.add_argument("--checkpoint-every", type=opt.count(0), default=0, metavar="K",
                    help="save the sampler state to DIR/checkpoint.pt every K iterations")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -98,24 +86,9 @@ def register(sub) -> None:
 def _run(args) -> int:
     from ..calibrate import calibrate, write_outputs
 
-    prior_std = _positive_float("--prior-std")(args.prior_std)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: {out} exists and is not a directory")
-    for name, v, lo in (("--chains", args.chains, 1), ("--draws", args.draws, 1), ("--warmup", args.warmup, 0),
-                        ("--seed", args.seed, 0), ("--checkpoint-every", args.checkpoint_every, 0)):
-        if v < lo:
-            raise UserError(f"{name}: expected an integer >= {lo}, got {v}")
-    if args.noise_bins < 1:
-        raise UserError(f"--noise-bins: expected an integer >= 1, got {args.noise_bins}")
-    try:
-        min_rot = float(args.min_rotation)
-    except ValueError:
-        raise UserError(f"--min-rotation: expected a number of rad/s >= 0, got {args.min_rotation!r}") from None
-    if not (min_rot >= 0 and math.isfinite(min_rot)):
-        raise UserError(f"--min-rotation: expected a number of rad/s >= 0, got {args.min_rotation!r}")
-    if args.num_draws is not None and args.num_draws < 1:
-        raise UserError(f"--num-draws: expected an integer >= 1, got {args.num_draws}")
     ckpt = None
     if args.checkpoint_every or args.resume:
         out.mkdir(parents=True, exist_ok=True)
@@ -124,11 +97,11 @@ def _run(args) -> int:
             print(f"accel-bayes calibrate: no checkpoint at {ckpt}; starting afresh", file=sys.stderr)
     res = calibrate(
         args.recording, chains=args.chains, draws=args.draws, warmup=args.warmup, num_draws=args.num_draws,
-        seed=args.seed, prior=args.prior, prior_std=prior_std, use_map=not args.no_map,
+        seed=args.seed, prior=args.prior, prior_std=args.prior_std, use_map=not args.no_map,
         gyro_method=args.gyro_method, select=args.select, proposal=args.proposal, progress=not args.quiet,
         checkpoint=ckpt, checkpoint_every=args.checkpoint_every, resume=args.resume,
         intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
-        min_rotation=min_rot, noise=args.noise, noise_bins=args.noise_bins,
+        min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
         noise_inflation=not args.no_noise_inflation,
     )
     paths = write_outputs(res, out, plots=not args.no_plots)

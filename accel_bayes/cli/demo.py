@@ -1,6 +1,8 @@
 """``accel-bayes demo``: the whole pipeline on an embedded simulated default."""
 from __future__ import annotations
 
+from . import _options as opt
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -11,7 +13,7 @@ def register(sub) -> None:
     )
     p.add_argument("--out", default="demo_out", help="output directory (default: demo_out)")
     p.add_argument("--quick", action="store_true", help="a smaller, faster run (smoke test)")
-    p.add_argument("--seed", type=int, default=1, help="random seed (default: 1)")
+    p.add_argument("--seed", type=opt.seed, default=1, help="random seed (default: 1)")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.set_defaults(func=_run)
 

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from . import _options as opt
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -14,12 +16,12 @@ def register(sub) -> None:
     )
     p.add_argument("recording", metavar="REC", help="recording file (format v1)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--prior-std", type=float, default=3e-3, help="std of the Gaussian prior around the nominal positions, m (default 3e-3)")
+    p.add_argument("--prior-std", type=opt.positive("m"), default=3e-3, help="std of the Gaussian prior around the nominal positions, m (default 3e-3)")
     p.add_argument("--gyro-method", choices=["sample_cov", "sample_cov_mean", "calibrated"], default="sample_cov",
                    help="gyroscope posterior: [C21] eq. 30 as printed (default), its /G variant, or the calibrated-noise form")
     p.add_argument("--select", choices=["all", "rotation"], default="all",
                    help="'rotation' drops samples whose mean gyro rate is below 0.5 rad/s (they carry no information)")
-    p.add_argument("--max-iter", type=int, default=100, help="LM iteration limit (default 100)")
+    p.add_argument("--max-iter", type=opt.count(1), default=100, help="LM iteration limit (default 100)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_run)
 
@@ -30,15 +32,10 @@ def _run(args) -> int:
     import numpy as np
 
     from .. import __version__
-    from ..errors import UserError
     from ..inference.map import fit_map_recording
     from ..io import read_recording, recording_sha256
     from ..positions import positions_document, write_positions
 
-    if args.prior_std <= 0:
-        raise UserError(f"--prior-std: expected a positive length in metres, got {args.prior_std}")
-    if args.max_iter < 1:
-        raise UserError(f"--max-iter: expected an integer >= 1, got {args.max_iter}")
     rec = read_recording(args.recording)
     t0 = time.perf_counter()
     res = fit_map_recording(rec, gyro_method=args.gyro_method, prior_std=args.prior_std,

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _options as opt
+
 DEG = 180.0 / np.pi
 
 
@@ -29,13 +31,13 @@ def register(subparsers) -> None:
     p.add_argument("--calibration", required=True, metavar="positions.json", help="calibrated positions (DESIGN 7.3)")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="motion NetCDF file to write")
     p.add_argument("--intrinsics", metavar="FILE", default=None, help="intrinsics JSON to apply first")
-    p.add_argument("--draws", type=int, default=200, help="geometry draws (default 200; 0: noise part only)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the geometry draws (default 0)")
+    p.add_argument("--draws", type=opt.integer(2, also=(0,)), default=200, help="geometry draws (default 200; 0: noise part only)")
+    p.add_argument("--seed", type=opt.seed, default=0, help="seed of the geometry draws (default 0)")
     p.add_argument("--geometry", choices=("draws", "linear"), default="draws",
                    help="geometry uncertainty by re-solving per draw (default) or first-order propagation")
-    p.add_argument("--acc-noise-std", type=float, default=None, metavar="M_S2",
+    p.add_argument("--acc-noise-std", type=opt.positive("m/s^2"), default=None, metavar="M_S2",
                    help="accelerometer noise std to assume, m/s^2 (default: the recording's stated values)")
-    p.add_argument("--gyro-noise-std", type=float, default=None, metavar="RAD_S",
+    p.add_argument("--gyro-noise-std", type=opt.positive("rad/s"), default=None, metavar="RAD_S",
                    help="gyroscope noise std to assume, rad/s (default: the recording's stated values)")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     p.set_defaults(func=run)
@@ -49,8 +51,6 @@ def run(args) -> int:
     out = Path(args.output)
     if out.exists() and not args.overwrite:
         raise UserError(f"output: {out} exists; pass --overwrite to replace it")
-    if args.draws < 0 or args.draws == 1:
-        raise UserError(f"--draws: expected 0 or an integer >= 2, got {args.draws}")
     cal = Path(args.calibration)
     if not cal.exists():
         raise FileNotFoundError(f"{cal}: no such calibration file")

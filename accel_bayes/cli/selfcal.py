@@ -23,6 +23,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from . import _options as opt
+
 EXIT_DIVERGED = 3
 
 
@@ -37,10 +39,10 @@ def register(sub) -> None:
     )
     p.add_argument("recording", metavar="REC", help="recording file (format v1)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--fixed", type=int, default=None,
+    p.add_argument("--fixed", type=opt.count(0), default=None,
                    help="label of the IMU whose triad is held at its nominal pose (default: the recording's reference IMU)")
-    p.add_argument("--max-iter", type=int, default=200, help="LM iteration limit per stage (default 200)")
-    p.add_argument("--seed", type=int, default=None,
+    p.add_argument("--max-iter", type=opt.count(1), default=200, help="LM iteration limit per stage (default 200)")
+    p.add_argument("--seed", type=opt.seed, default=None,
                    help="recorded in the provenance only: the self-calibration draws no random numbers")
     p.add_argument("--no-rerun", action="store_true",
                    help="skip the [S16] §VI-A re-run from the estimated poses")
@@ -103,8 +105,6 @@ def _run(args) -> int:
     from ..io import read_recording, recording_sha256
     from ..positions import positions_document, write_positions
 
-    if args.max_iter < 1:
-        raise UserError(f"--max-iter: expected an integer >= 1, got {args.max_iter}")
     rec = read_recording(args.recording)
     K = rec.K
     fixed_label = int(rec.reference_imu if args.fixed is None else args.fixed)
