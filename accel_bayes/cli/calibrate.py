@@ -9,6 +9,11 @@ recorded in ``positions.json`` (``provenance.settings.preprocess`` / ``noise_mod
 
 Writes DIR/posterior.nc (ArviZ InferenceData), DIR/summary.csv (R̂, ESS, MCSE per coordinate),
 DIR/positions.json (DESIGN §7.3) and trace/rank/autocorr/ellipses plots; prints a short table.
+
+Exit status (DESIGN §7.5): 0 converged; 2 refused (bad option, recording or checkpoint — checked
+before any computation); 4 finished but the chains have not converged (R̂ ≥ 1.01, bulk ESS < 100
+per chain, or either not computable): the outputs are written, ``positions.json`` has
+``diagnostics.converged: false`` and ``diagnostics.warnings``, and one line on stderr says why.
 """
 from __future__ import annotations
 
@@ -17,6 +22,7 @@ from pathlib import Path
 
 from ..errors import UserError
 from . import _options as opt
+from ._status import EXIT_OK, untrusted
 
 
 def register(sub) -> None:
@@ -55,7 +61,8 @@ def register(sub) -> None:
                         "(accel-bayes intrinsics) to apply")
     g.add_argument("--keep-static", action="store_true", help="keep the samples of the rests (dropped by default)")
     g.add_argument("--keep-clipped", action="store_true",
-                   help="keep samples where an accelerometer or gyroscope is at its range (dropped by default)")
+                   help="keep samples where an accelerometer or gyroscope is at its range (dropped by default; a warning on "
+                        "stderr counts the ones fitted)")
     g.add_argument("--min-rotation", type=opt.nonnegative("rad/s"), default=DEFAULTS["min_rotation"], metavar="RAD_S",
                    help="drop samples whose mean gyro rate |w| is below this, rad/s (default %(default)s = 29 deg/s; "
                         "0 keeps all)")
@@ -104,14 +111,24 @@ def _run(args) -> int:
         min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
         noise_inflation=not args.no_noise_inflation,
     )
+    n_kept = res.settings["preprocess"]["samples"].get("clipped_kept", 0)
+    if n_kept:  # stderr: the table below goes to stdout, which is often redirected
+        print(f"accel-bayes calibrate: warning: --keep-clipped: {n_kept} samples with an accelerometer or gyroscope at "
+              "its range are fitted; the model cannot explain them and the posterior may be biased", file=sys.stderr)
     paths = write_outputs(res, out, plots=not args.no_plots)
     print(format_table(res))
     print(f"files: {', '.join(str(p) for p in paths.values())}")
-    return 0
+    d = res.positions["diagnostics"]
+    if not d["converged"]:
+        return untrusted("calibrate", d["warnings"] + ["run longer (--draws/--warmup)"], str(paths["positions"]))
+    return EXIT_OK
 
 
 def format_table(res) -> str:
-    """IMU, posterior mean (mm), std (µm), worst R̂ and smallest bulk ESS over its 3 coordinates."""
+    """IMU, posterior mean (mm), std (µm), worst R̂ and smallest bulk ESS over its 3 coordinates
+    ("n/a" where they cannot be computed: one chain, a few draws)."""
+    from ..diagnostics import format_stat
+
     summ = res.summary
     doc = res.positions
     lines = []
@@ -146,15 +163,14 @@ def format_table(res) -> str:
         else:
             rows = [f"r[{e['imu']}, {a}]" for a in "xyz"]
             rows = [r for r in rows if r in summ.index]
-            rh = f"{summ.loc[rows, 'r_hat'].max():.3f}" if rows else ""
-            ess = f"{summ.loc[rows, 'ess_bulk'].min():.0f}" if rows else ""
+            rh = format_stat(summ.loc[rows, "r_hat"].max(), ".3f") if rows else ""
+            ess = format_stat(summ.loc[rows, "ess_bulk"].min(), ".0f") if rows else ""
         lines.append(f"{e['imu']:>4} {m[0]:9.3f} {m[1]:9.3f} {m[2]:9.3f} {s[0]:8.1f} {s[1]:8.1f} {s[2]:8.1f} "
                      f"{rh:>6} {ess:>7}")
     d = doc["diagnostics"]
-    lines.append(f"max R-hat {d['rhat_max']:.3f}, min bulk ESS {d['ess_bulk_min']:.0f}, "
+    lines.append(f"max R-hat {format_stat(d['rhat_max'], '.3f')}, min bulk ESS {format_stat(d['ess_bulk_min'], '.0f')}, "
                  f"acceptance {', '.join(f'{a:.2f}' for a in d['acceptance_rate'])}")
-    rh = d["rhat_max"]
-    if rh is None or rh >= 1.01 or (d["ess_bulk_min"] or 0) < 100 * res.settings["chains"]:
-        lines.append("warning: R-hat >= 1.01 or ESS < 100 per chain: the chains have not mixed well enough "
+    if not d["converged"]:
+        lines.append(f"warning: {'; '.join(d['warnings'])}: the chains have not mixed well enough "
                      "for reliable moments; run longer (--draws/--warmup) and check trace.png/rank.png")
     return "\n".join(lines)

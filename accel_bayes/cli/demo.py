@@ -9,7 +9,8 @@ def register(sub) -> None:
         "demo",
         help="run simulate → MAP → posterior → diagnostics on a built-in example",
         description="Simulate the 8-IMU MIMU4444 corner board under smooth hand-like motion, "
-        "calibrate it (MAP, then the PmMH posterior), run the diagnostics and write a report.",
+        "calibrate it (MAP, then the PmMH posterior), run the diagnostics and write a report. "
+        "Exit status 4 (results written, marked in the report) when the posterior's chains have not converged.",
     )
     p.add_argument("--out", default="demo_out", help="output directory (default: demo_out)")
     p.add_argument("--quick", action="store_true", help="a smaller, faster run (smoke test)")
@@ -19,7 +20,17 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
+    import json
+    from pathlib import Path
+
     from ..demo import run_demo
+    from ._status import EXIT_OK, untrusted
 
     run_demo(args.out, quick=args.quick, progress=not args.no_progress, seed=args.seed)
-    return 0
+    # the posterior's positions.json (DESIGN §7.3) says whether its chains converged
+    pos = Path(args.out) / "posterior" / "positions.json"
+    if pos.is_file():
+        d = json.loads(pos.read_text(encoding="utf-8"))["diagnostics"]
+        if d.get("converged") is False:
+            return untrusted("demo", d.get("warnings", []), str(pos))
+    return EXIT_OK
