@@ -36,7 +36,7 @@ def made(tmp_path_factory):
     write_recording(simulate(preset("mimu8"), "iid", 60, seed=3, clip=False).recording, rec)
     other = d / "other.nc"
     write_recording(simulate(preset("mimu8"), "iid", 60, seed=4, clip=False).recording, other)
-    rc = main(["calibrate", str(rec), "--out", str(d / "run"), *RUN, "--checkpoint-every", "10"])
+    rc = main(["calibrate", str(rec), "--out", str(d / "run"), *RUN, "--checkpoint-every", "20"])
     assert rc in (0, 4)
     return {"rec": rec, "other": other, "ckpt": d / "run" / "checkpoint.pt"}
 
