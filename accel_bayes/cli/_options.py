@@ -21,11 +21,14 @@ __all__ = ["real", "integer", "positive", "nonnegative", "fraction", "count", "s
 
 
 def _range_text(lo, hi, lo_open, hi_open) -> str:
+    def num(v):  # integers in full (a seed bound), floats short
+        return str(v) if isinstance(v, int) else f"{v:g}"
+
     parts = []
     if lo is not None:
-        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+        parts.append(f"{'>' if lo_open else '>='} {num(lo)}")
     if hi is not None:
-        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+        parts.append(f"{'<' if hi_open else '<='} {num(hi)}")
     return " and ".join(parts)
 
 
