@@ -5,7 +5,9 @@
 
 writes ``DIR/report.json`` (format ``accel_bayes.mismatch/1``), ``DIR/report.md`` and its
 figures, and prints one line per finding.  Exit status 0 whether or not a mismatch is found;
-2 for bad input (unreadable recording, unknown effect name, bad option).
+2 for bad input (unreadable recording, unknown effect name, bad option, fewer than 3 samples, or
+a recording that does not rotate: the rotation-dependent effects could not be tested, so a
+clean report would be unfounded).
 """
 from __future__ import annotations
 

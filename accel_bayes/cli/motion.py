@@ -24,7 +24,8 @@ def register(subparsers) -> None:
         description=(
             "Per-sample weighted least squares for omega, omega_dot and s ([C21] eq. 4) with the geometry of "
             "a positions.json (DESIGN 7.3); uncertainty = noise (Laplace) + geometry (draws or linear). "
-            "REC is a format-v1 recording (.nc) or a MIMU4444 stream (.bin, .bin.gz)."
+            "REC is a format-v1 recording (.nc) or a MIMU4444 stream (.bin, .bin.gz). A calibration whose "
+            "accelerometer triads coincide or lie on one line is refused (exit 2): it cannot determine omega_dot."
         ),
     )
     p.add_argument("recording", metavar="REC", help="recording (.nc) or MIMU4444 stream")
