@@ -413,17 +413,17 @@ def calibrate(
         raise UserError("recording: has no gyroscope data; the [C21] likelihood needs gyroscopes")
     # what the run depends on, known before any computation: a resumed checkpoint is checked
     # against it here, not after minutes of preprocessing and MAP
-    request = json.loads(json.dumps({
-        "version": __version__, "recording": sha or _recording_hash(raw),
-        "options": dict({k: v for k, v in opts.items() if k != "checkpoint_every"}, prior=prior, prior_std=float(prior_std), use_map=bool(use_map), init=init,
-                        gyro_method=gyro_method, select=_select_key(select), drop_clipped=bool(drop_clipped),
-                        proposal=proposal, independence_prob=independence_prob,
-                        target_accept_prob=float(target_accept_prob),
-                        intrinsics=intrinsics if isinstance(intrinsics, (str, bool)) or intrinsics is None
-                        else _intrinsics_key(intrinsics),
-                        drop_static=bool(drop_static), min_rotation=min_rotation, noise=noise, noise_bins=noise_bins,
-                        noise_inflation=bool(noise_inflation)),
-    }, default=str))
+    options = {k: v for k, v in opts.items() if k != "checkpoint_every"}
+    options.update(
+        prior=prior, prior_std=float(prior_std), use_map=bool(use_map), init=init, gyro_method=gyro_method,
+        select=_select_key(select), drop_clipped=bool(drop_clipped), proposal=proposal,
+        independence_prob=independence_prob, target_accept_prob=float(target_accept_prob),
+        intrinsics=intrinsics if isinstance(intrinsics, (str, bool, os.PathLike)) or intrinsics is None
+        else _intrinsics_key(intrinsics),
+        drop_static=bool(drop_static), min_rotation=min_rotation, noise=noise, noise_bins=noise_bins,
+        noise_inflation=bool(noise_inflation))
+    request = json.loads(json.dumps({"version": __version__, "recording": sha or _recording_hash(raw),
+                                     "options": options}, default=str))
     if resume and checkpoint is not None and Path(checkpoint).exists():
         check_checkpoint_request(read_checkpoint(checkpoint), request, checkpoint)
     pre = preprocess(raw, intrinsics=intrinsics, drop_static=bool(drop_static), drop_clipped=bool(drop_clipped),
@@ -594,7 +594,8 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
     one writer of the format): every IMU sorted by label, posterior mean/std/cov of its triad
     position relative to the reference IMU (array frame, m; zeros for the reference), R̂/ESS
     diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.convergence_warnings`;
-    R̂/ESS are null where they cannot be computed) and provenance.  IMUs without an accelerometer triad get null moments."""
+    R̂/ESS are null where they cannot be computed) and provenance.  IMUs without an accelerometer
+    triad get null moments."""
     mom = dg.posterior_moments(idata)
     means = np.zeros((int(K), 3))
     covs = np.zeros((int(K), 3, 3))

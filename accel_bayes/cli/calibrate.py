@@ -37,8 +37,10 @@ def register(sub) -> None:
     )
     p.add_argument("recording", metavar="REC", help="recording file (.nc, format v1) with gyroscope data")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
-    p.add_argument("--chains", type=opt.count(1), default=DEFAULTS["chains"], help="number of chains (default %(default)s)")
-    p.add_argument("--draws", type=opt.count(1), default=DEFAULTS["draws"], help="kept draws per chain (default %(default)s)")
+    p.add_argument("--chains", type=opt.count(1), default=DEFAULTS["chains"],
+                   help="number of chains (default %(default)s)")
+    p.add_argument("--draws", type=opt.count(1), default=DEFAULTS["draws"],
+                   help="kept draws per chain (default %(default)s)")
     p.add_argument("--warmup", type=opt.count(0), default=DEFAULTS["warmup"],
                    help="warm-up (adaptation) iterations per chain (default %(default)s)")
     p.add_argument("--num-draws", type=opt.count(1), default=None, metavar="N",
@@ -61,8 +63,8 @@ def register(sub) -> None:
                         "(accel-bayes intrinsics) to apply")
     g.add_argument("--keep-static", action="store_true", help="keep the samples of the rests (dropped by default)")
     g.add_argument("--keep-clipped", action="store_true",
-                   help="keep samples where an accelerometer or gyroscope is at its range (dropped by default; a warning on "
-                        "stderr counts the ones fitted)")
+                   help="keep samples where an accelerometer or gyroscope is at its range (dropped by default; a "
+                        "warning on stderr counts the ones fitted)")
     g.add_argument("--min-rotation", type=opt.nonnegative("rad/s"), default=DEFAULTS["min_rotation"], metavar="RAD_S",
                    help="drop samples whose mean gyro rate |w| is below this, rad/s (default %(default)s = 29 deg/s; "
                         "0 keeps all)")
@@ -168,7 +170,8 @@ def format_table(res) -> str:
         lines.append(f"{e['imu']:>4} {m[0]:9.3f} {m[1]:9.3f} {m[2]:9.3f} {s[0]:8.1f} {s[1]:8.1f} {s[2]:8.1f} "
                      f"{rh:>6} {ess:>7}")
     d = doc["diagnostics"]
-    lines.append(f"max R-hat {format_stat(d['rhat_max'], '.3f')}, min bulk ESS {format_stat(d['ess_bulk_min'], '.0f')}, "
+    lines.append(f"max R-hat {format_stat(d['rhat_max'], '.3f')}, "
+                 f"min bulk ESS {format_stat(d['ess_bulk_min'], '.0f')}, "
                  f"acceptance {', '.join(f'{a:.2f}' for a in d['acceptance_rate'])}")
     if not d["converged"]:
         lines.append(f"warning: {'; '.join(d['warnings'])}: the chains have not mixed well enough "

@@ -23,7 +23,8 @@ def register(sub) -> None:
     )
     p.add_argument("recording", metavar="REC", help="recording file (format v1)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--prior-std", type=opt.positive("m"), default=3e-3, help="std of the Gaussian prior around the nominal positions, m (default 3e-3)")
+    p.add_argument("--prior-std", type=opt.positive("m"), default=3e-3,
+                   help="std of the Gaussian prior around the nominal positions, m (default 3e-3)")
     p.add_argument("--gyro-method", choices=["sample_cov", "sample_cov_mean", "calibrated"], default="sample_cov",
                    help="gyroscope posterior: [C21] eq. 30 as printed (default), its /G variant, or the calibrated-noise form")
     p.add_argument("--select", choices=["all", "rotation"], default="all",

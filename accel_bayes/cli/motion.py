@@ -32,7 +32,8 @@ def register(subparsers) -> None:
     p.add_argument("--calibration", required=True, metavar="positions.json", help="calibrated positions (DESIGN 7.3)")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="motion NetCDF file to write")
     p.add_argument("--intrinsics", metavar="FILE", default=None, help="intrinsics JSON to apply first")
-    p.add_argument("--draws", type=opt.integer(2, also=(0,)), default=200, help="geometry draws (default 200; 0: noise part only)")
+    p.add_argument("--draws", type=opt.integer(2, also=(0,)), default=200,
+                   help="geometry draws (default 200; 0: noise part only)")
     p.add_argument("--seed", type=opt.seed, default=0, help="seed of the geometry draws (default 0)")
     p.add_argument("--geometry", choices=("draws", "linear"), default="draws",
                    help="geometry uncertainty by re-solving per draw (default) or first-order propagation")

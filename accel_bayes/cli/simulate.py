@@ -70,8 +70,8 @@ def _check(args) -> None:
     if have is not None and need > have // 2:
         t_max = have // 2 // (K * BYTES_PER_IMU_SAMPLE)
         raise UserError(f"-T: {args.T} samples of the {args.preset} array ({K} IMUs) would need about "
-                        f"{need / 2 ** 30:.3g} GiB of memory ({K * BYTES_PER_IMU_SAMPLE} B per sample); expected at most "
-                        f"{t_max} samples on this machine ({have / 2 ** 30:.3g} GiB of RAM)")
+                        f"{need / 2 ** 30:.3g} GiB of memory ({K * BYTES_PER_IMU_SAMPLE} B per sample); "
+                        f"expected at most {t_max} samples on this machine ({have / 2 ** 30:.3g} GiB of RAM)")
 
 
 def run(args) -> int:
