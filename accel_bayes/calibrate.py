@@ -41,7 +41,7 @@ from . import __version__
 from . import diagnostics as dg
 from . import positions as _positions_mod
 from .errors import UserError
-from .inference.pmmh import PMMHKernel, PMMHRun, run_pmmh
+from .inference.pmmh import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
 from .inference.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
 from .likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
     positions_from_theta
@@ -170,6 +170,32 @@ def _data_fingerprint(lik) -> str:
     h = hashlib.sha256()
     for t in (lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std):
         h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def _recording_hash(rec) -> str:
+    """SHA-256 of an in-memory recording's data (a file's is :func:`accel_bayes.io.recording_sha256`)."""
+    h = hashlib.sha256()
+    for x in (rec.time, rec.acc, rec.gyro, rec.nominal_position, rec.nominal_orientation, rec.acc_noise_std,
+              rec.gyro_noise_std, rec.acc_clipped, rec.gyro_clipped):
+        if x is not None:
+            h.update(np.ascontiguousarray(np.asarray(x)).tobytes())
+    return h.hexdigest()
+
+
+def _select_key(select):
+    """``select`` as a plain value for the checkpoint fingerprint (a mask or indices by their hash)."""
+    if select is None or isinstance(select, str):
+        return select
+    return hashlib.sha256(np.ascontiguousarray(np.asarray(select)).tobytes()).hexdigest()
+
+
+def _intrinsics_key(intrinsics) -> str:
+    """A given :class:`~accel_bayes.intrinsics.Intrinsics` object by the hash of its arrays."""
+    h = hashlib.sha256()
+    for v in vars(intrinsics).values():
+        if isinstance(v, np.ndarray):
+            h.update(np.ascontiguousarray(v).tobytes())
     return h.hexdigest()
 
 
@@ -386,6 +412,21 @@ def calibrate(
     raw, sha, src = _load_recording(recording)
     if raw.gyro is None or not raw.has_gyro.any():
         raise UserError("recording: has no gyroscope data; the [C21] likelihood needs gyroscopes")
+    # what the run depends on, known before any computation: a resumed checkpoint is checked
+    # against it here, not after minutes of preprocessing and MAP
+    options = {k: v for k, v in opts.items() if k != "checkpoint_every"}
+    options.update(
+        prior=prior, prior_std=float(prior_std), use_map=bool(use_map), init=init, gyro_method=gyro_method,
+        select=_select_key(select), drop_clipped=bool(drop_clipped), proposal=proposal,
+        independence_prob=independence_prob, target_accept_prob=float(target_accept_prob),
+        intrinsics=intrinsics if isinstance(intrinsics, (str, bool, os.PathLike)) or intrinsics is None
+        else _intrinsics_key(intrinsics),
+        drop_static=bool(drop_static), min_rotation=min_rotation, noise=noise, noise_bins=noise_bins,
+        noise_inflation=bool(noise_inflation))
+    request = json.loads(json.dumps({"version": __version__, "recording": sha or _recording_hash(raw),
+                                     "options": options}, default=str))
+    if resume and checkpoint is not None and Path(checkpoint).exists():
+        check_checkpoint_request(read_checkpoint(checkpoint), request, checkpoint)
     pre = preprocess(raw, intrinsics=intrinsics, drop_static=bool(drop_static), drop_clipped=bool(drop_clipped),
                      min_rotation=min_rotation)
     rec = pre.recording
@@ -521,6 +562,7 @@ def calibrate(
     fingerprint = {k: v for k, v in settings.items() if k not in ("var_log_phat", "input")}
     fingerprint["data_sha256"] = _data_fingerprint(lik)
     fingerprint["version"] = __version__
+    fingerprint["request"] = request
     fingerprint = json.loads(json.dumps(fingerprint))
     run = run_pmmh(kernel, opts["draws"], opts["warmup"], C, init_theta, progress=progress, checkpoint=checkpoint,
                    checkpoint_every=opts["checkpoint_every"], resume=resume, fingerprint=fingerprint,
@@ -552,7 +594,9 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
     """The DESIGN §7.3 document for a PmMH posterior (built by :mod:`accel_bayes.positions`, the
     one writer of the format): every IMU sorted by label, posterior mean/std/cov of its triad
     position relative to the reference IMU (array frame, m; zeros for the reference), R̂/ESS
-    diagnostics and provenance.  IMUs without an accelerometer triad get null moments."""
+    diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.convergence_warnings`;
+    R̂/ESS are null where they cannot be computed) and provenance.  IMUs without an accelerometer
+    triad get null moments."""
     mom = dg.posterior_moments(idata)
     means = np.zeros((int(K), 3))
     covs = np.zeros((int(K), 3, 3))
@@ -564,9 +608,14 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
         if k not in estimated:  # no accelerometer triad: nothing to report (null in JSON)
             means[k] = np.nan
             covs[k] = np.nan
+    rhat, ess = _json_float(dg.rhat_max(idata)), _json_float(dg.ess_bulk_min(idata))
+    reasons = dg.convergence_warnings(rhat, ess, settings.get("chains", idata.posterior.sizes["chain"]))
     diagnostics = {
-        "rhat_max": _json_float(dg.rhat_max(idata)),
-        "ess_bulk_min": _json_float(dg.ess_bulk_min(idata)),
+        "rhat_max": rhat,
+        "ess_bulk_min": ess,
+        # added keys (§7.3 allows them): False with the reasons when R̂/ESS fail the rule, DESIGN §7.5 status 4
+        "converged": not reasons,
+        "warnings": reasons,
         "seconds": float(seconds),
         "acceptance_rate": settings.get("acceptance_rate"),
         "num_draws": settings.get("num_draws"),

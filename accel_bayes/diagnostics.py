@@ -6,7 +6,8 @@ Every ArviZ call of the package lives in this module, so a move to ArviZ 1.x is 
   variable ``r`` with dims ("imu", "axis"), sample statistics, the log-likelihood estimates);
   :func:`save` / :func:`load` write and read it as NetCDF (h5netcdf engine).
 * Statistics: :func:`summarize` (R̂, bulk/tail ESS, MCSE: ``az.summary``), :func:`rhat_max`,
-  :func:`ess_bulk_min`, :func:`posterior_moments`.
+  :func:`ess_bulk_min`, :func:`posterior_moments`; :func:`convergence_warnings` (the one rule
+  for "converged": R̂ < 1.01 and bulk ESS ≥ 100 per chain), :func:`format_stat`.
 * Plots (Agg backend, each returns a ``matplotlib.figure.Figure``): :func:`plot_trace`,
   :func:`plot_rank`, :func:`plot_autocorr`, :func:`plot_ellipses` ([C21] Fig. 5) and
   :func:`save_plots`.
@@ -15,6 +16,8 @@ Units: positions in metres in the data; plots draw millimetres.
 """
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import warnings
 from pathlib import Path
@@ -39,6 +42,8 @@ __all__ = [
     "summarize",
     "rhat_max",
     "ess_bulk_min",
+    "convergence_warnings",
+    "format_stat",
     "posterior_moments",
     "save",
     "load",
@@ -155,10 +160,24 @@ def to_inference_data(
 
 # ---------------------------------------------------------------------------- statistics
 
+@contextlib.contextmanager
+def _arviz_quiet():
+    """Silence ArviZ's logger ("Shape validation failed" for one chain): the NaN it returns is
+    reported by :func:`convergence_warnings`, and the command line keeps stderr to one line."""
+    # ArviZ 0.x logs through its own Logger instance, not one registered with logging.getLogger
+    log = getattr(az, "_log", None) or logging.getLogger("arviz")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
 def summarize(idata, var_names=(VAR,), round_to=None):
     """``az.summary`` of the posterior: mean, sd, HDI, MCSE of mean and sd, bulk/tail ESS, R̂ —
     one row per coordinate ``r[imu, axis]`` (metres)."""
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _arviz_quiet():
         warnings.simplefilter("ignore")
         return az.summary(idata, var_names=list(var_names), kind="all",
                           round_to="none" if round_to is None else round_to)
@@ -166,7 +185,7 @@ def summarize(idata, var_names=(VAR,), round_to=None):
 
 def rhat_max(idata, var_name: str = VAR) -> float:
     """Largest rank-normalised split R̂ over all coordinates (NaN with one chain too short)."""
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _arviz_quiet():
         warnings.simplefilter("ignore")
         v = az.rhat(idata, var_names=[var_name])[var_name].values
     return float(np.nanmax(v)) if np.isfinite(v).any() else float("nan")
@@ -174,10 +193,41 @@ def rhat_max(idata, var_name: str = VAR) -> float:
 
 def ess_bulk_min(idata, var_name: str = VAR) -> float:
     """Smallest bulk ESS over all coordinates."""
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _arviz_quiet():
         warnings.simplefilter("ignore")
         v = az.ess(idata, var_names=[var_name], method="bulk")[var_name].values
     return float(np.nanmin(v)) if np.isfinite(v).any() else float("nan")
+
+
+# Vehtari, Gelman, Simpson, Carpenter & Bürkner (2021), "Rank-normalization, folding, and
+# localization: an improved R̂", §4: R̂ < 1.01 and bulk ESS > 100 per chain before trusting moments.
+RHAT_LIMIT = 1.01
+ESS_PER_CHAIN = 100
+
+
+def convergence_warnings(rhat: float | None, ess_bulk: float | None, chains: int) -> list[str]:
+    """Why PmMH chains cannot be trusted yet, one sentence each; ``[]`` when they can.
+
+    rhat : largest split R̂ (:func:`rhat_max`); ess_bulk : smallest bulk ESS (:func:`ess_bulk_min`),
+    draws; chains : number of chains.  None or NaN (too few draws to compute the statistic) counts
+    as not converged: convergence that cannot be checked is not established.
+    """
+    out = []
+    need = ESS_PER_CHAIN * int(chains)
+    if rhat is None or not math.isfinite(rhat):
+        out.append("R-hat could not be computed (too few draws per chain)")
+    elif rhat >= RHAT_LIMIT:
+        out.append(f"max R-hat {rhat:.3f} >= {RHAT_LIMIT}")
+    if ess_bulk is None or not math.isfinite(ess_bulk):
+        out.append("bulk ESS could not be computed (too few draws per chain)")
+    elif ess_bulk < need:
+        out.append(f"min bulk ESS {ess_bulk:.0f} < {ESS_PER_CHAIN} per chain ({need} for {int(chains)})")
+    return out
+
+
+def format_stat(v, spec: str) -> str:
+    """R̂ or ESS formatted with ``spec``, or "n/a" where it could not be computed (None/NaN)."""
+    return "n/a" if v is None or not math.isfinite(v) else format(v, spec)
 
 
 def posterior_moments(idata, var_name: str = VAR) -> dict:

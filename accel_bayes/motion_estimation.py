@@ -103,6 +103,22 @@ class Calibration:
         return int(self.positions.shape[0])
 
 
+def _check_lever_arms(positions: np.ndarray, labels: list, rel_tol: float = 1e-6) -> None:
+    """Refuse triad positions that cannot determine ω̇: it reaches the accelerometers only through
+    the lever arms (f_k = (Ω(ω)² + Ω(ω̇)) p_k + s, [C21] eq. 4a), so triads at one point leave all
+    of ω̇ undetermined and triads on one line leave its component along the line undetermined —
+    every sample would come out ill-posed (NaN).  Positions in m."""
+    d = positions - positions.mean(0)
+    sv = np.linalg.svd(d, compute_uv=False) if len(positions) > 1 else np.zeros(1)
+    if sv[0] <= 1e-9:  # 1 nm: coincident for any board
+        raise UserError(f"calibration.imus: the calibrated accelerometer triads {labels} coincide (all at one "
+                        "point): the geometry cannot determine the angular acceleration; expected distinct positions")
+    if len(sv) < 2 or sv[1] <= rel_tol * sv[0]:
+        raise UserError(f"calibration.imus: the calibrated accelerometer triads {labels} lie on one line: the "
+                        "geometry cannot determine the angular acceleration about it; expected at least 3 triads "
+                        "off one line")
+
+
 def load_calibration(calibration, K: int | None = None) -> Calibration:
     """Read a calibration: a positions.json path, its parsed dict (DESIGN §7.3, schema
     ``accel_bayes.positions/1``), a (K, 3) positions array (no uncertainty), or a
@@ -405,6 +421,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
             raise UserError(f"{name}: expected positive finite noise std for every IMU in use, got {s[present].tolist()}")
     if not has_acc.any():
         raise UserError("calibration.imus: no IMU has both accelerometer data and a calibrated position")
+    _check_lever_arms(cal.positions[has_acc], np.flatnonzero(has_acc).tolist())
 
     q = np.asarray(recording.nominal_orientation, dtype=np.float64).copy()
     if cal.orientations is not None:

@@ -71,8 +71,8 @@ def positions_document(
         "method": method,
         "reference_imu": int(reference_imu),
         "imus": imus,
-        "diagnostics": {k: (_f(v) if isinstance(v, (int, float, np.floating, np.integer)) else v)
-                        for k, v in diagnostics.items()},
+        "diagnostics": {k: (_f(v) if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
+                            else v) for k, v in diagnostics.items()},  # flags such as ``converged`` stay bools
         "provenance": provenance or {},
     }
 

@@ -48,7 +48,7 @@ from .intrinsics import ACC_PARAMS, Intrinsics, estimate_intrinsics, rest_segmen
 from .likelihood import DEFAULT_MIN_ROTATION
 from .recording import Recording
 
-__all__ = ["Preprocessed", "preprocess", "draw_intrinsics", "rotation_rate", "INTRINSICS_MODES",
+__all__ = ["Preprocessed", "preprocess", "clipped_samples", "draw_intrinsics", "rotation_rate", "INTRINSICS_MODES",
            "MIN_REST_ORIENTATIONS"]
 
 INTRINSICS_MODES = ("auto", "estimate", "none")
@@ -65,7 +65,8 @@ class Preprocessed:
     intrinsics : the :class:`~accel_bayes.intrinsics.Intrinsics` applied, or None.
     has_rests : whether the recording has rests (static segments) at all.
     summary : JSON-ready dict: ``intrinsics`` (what was estimated/applied, or why not) and
-        ``samples`` (counts: recording, static, clipped, slow, kept; the thresholds used).
+        ``samples`` (counts: recording, static, clipped (dropped), slow, kept, clipped_kept (clipped
+        samples among the kept ones, > 0 only with ``drop_clipped=False``); the thresholds used).
     notes : human-readable lines (also in ``summary["notes"]``).
     """
 
@@ -232,12 +233,8 @@ def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_s
     if drop_static and has_rests:
         n_static = int((keep & static).sum())
         keep &= ~static
+    clip = clipped_samples(rec)
     if drop_clipped:
-        clip = np.zeros(T, dtype=bool)
-        for nm, present in (("acc_clipped", rec.has_acc), ("gyro_clipped", rec.has_gyro)):
-            flags = getattr(rec, nm)
-            if flags is not None:
-                clip |= np.asarray(flags, dtype=bool)[:, np.asarray(present, dtype=bool)].any(-1)
         n_clip = int((keep & clip).sum())
         keep &= ~clip
     w = rotation_rate(rec) if rec.gyro is not None else np.full(T, np.inf)
@@ -249,10 +246,22 @@ def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_s
         raise UserError("preprocess: no samples left after dropping static, clipped and slow samples "
                         f"(min_rotation = {min_rotation:g} rad/s); relax the selection")
     samples = {"recording": int(T), "static": n_static, "clipped": n_clip, "slow": n_slow, "kept": int(keep.sum()),
+               "clipped_kept": int((keep & clip).sum()),
                "drop_static": bool(drop_static), "drop_clipped": bool(drop_clipped), "min_rotation": min_rotation,
                "rests": len(segs), "rotation_rate_kept_median": float(np.median(w[keep])) if np.isfinite(w).all() else None}
     summary = {"intrinsics": it_summary, "samples": samples, "notes": list(notes)}
     return Preprocessed(recording=rec, keep=keep, intrinsics=intr, has_rests=has_rests, summary=summary, notes=notes)
+
+
+def clipped_samples(rec) -> np.ndarray:
+    """(T,) bool: samples where any accelerometer or gyroscope of an IMU that has one is flagged as
+    at its range (``acc_clipped``/``gyro_clipped``, DESIGN §7.1); all False without flags."""
+    clip = np.zeros(rec.T, dtype=bool)
+    for nm, present in (("acc_clipped", rec.has_acc), ("gyro_clipped", rec.has_gyro)):
+        flags = getattr(rec, nm)
+        if flags is not None:
+            clip |= np.asarray(flags, dtype=bool)[:, np.asarray(present, dtype=bool)].any(-1)
+    return clip
 
 
 def draw_intrinsics(intr: Intrinsics, generator: torch.Generator | int = 0) -> Intrinsics:

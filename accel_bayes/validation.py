@@ -49,6 +49,13 @@ DEG_PER_RAD = 180.0 / math.pi
 # over twice the full scale of the fastest common MEMS gyroscopes (±4000 °/s ≈ 70 rad/s), and well
 # above the ω ~ N(0, 1000 °/s) motion of the [C21] §IV-A simulations (99.9th percentile ≈ 57 rad/s).
 DEFAULT_GYRO_BOUND = 150.0
+# A sensor cannot read beyond its full scale: |acc| above this × acc_range is not a reading (units
+# or corrupt data), not a clipped sample (DESIGN §7.1: acc_clipped marks samples *at* the range).
+# The margin leaves room for intrinsics applied to clipped samples (scale and bias of a few %).
+ACC_RANGE_FACTOR = 1.5
+# Without acc_range: 10⁵ m/s² ≈ 10 000 g, beyond any inertial-array accelerometer; values far
+# beyond it also overflow the squared residuals of the fits ("cost is not finite").
+DEFAULT_ACC_BOUND = 1e5
 # Static-noise rule: σ_static / σ_stated within a factor 3 of 180/π (i.e. 19×–172×) flags deg/s.
 STATIC_RATIO_BAND = 3.0
 # Accelerometer-array rule: decisions need the estimate 5 standard errors clear of the midpoint.
@@ -362,6 +369,23 @@ def _first_bad(x: np.ndarray, ok: np.ndarray, time: np.ndarray, name: str, label
         "(mark missing IMUs with NaN in every sample, not a few)")
 
 
+def _check_acc_bound(rec, time) -> None:
+    """Refuse accelerometer values beyond what the sensor can read (:data:`ACC_RANGE_FACTOR`)."""
+    if rec.acc_range is not None:
+        bound = ACC_RANGE_FACTOR * float(rec.acc_range)
+        what = f"|acc| <= {ACC_RANGE_FACTOR:g} × acc_range = {bound:.4g} m s-2 (a sensor cannot read beyond its range)"
+    else:
+        bound = DEFAULT_ACC_BOUND
+        what = f"|acc| <= {bound:g} m s-2 (no acc_range given; ≈ 10 000 g)"
+    a = np.abs(np.asarray(rec.acc, dtype=float))
+    over = np.nan_to_num(a, nan=0.0).max(axis=2) > bound  # (T, K)
+    if over.any():
+        t_idx, k_idx = np.argwhere(over)[0]
+        raise RecordingError(f"acc: {float(np.nanmax(a[t_idx, k_idx])):.4g} m s-2 at time index {int(t_idx)} "
+                             f"(t = {float(time[t_idx]):.6g} s), IMU {int(k_idx)} ({int(over.sum())} such samples); "
+                             f"expected {what}; check the units or the acc_range attribute")
+
+
 def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | None = None,
                        gyro_units: str = "rad s-1", check_gyro_units: bool = True) -> None:
     """Check an in-memory :class:`Recording` against format v1 (DESIGN §7.1).
@@ -380,6 +404,8 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     * the reference IMU (``reference_imu`` if given, else ``rec.reference_imu``) is not a label
       0..K−1 of an IMU with an accelerometer;
     * acc_range / gyro_range are given but not finite positive numbers;
+    * an accelerometer value exceeds :data:`ACC_RANGE_FACTOR` × acc_range (or
+      :data:`DEFAULT_ACC_BOUND` without acc_range): not a reading, so not flagged as clipped either;
     * ``require_gyro`` and the recording has no gyroscope data;
     * ``check_gyro_units`` and the gyro values do not look like rad/s (:func:`gyro_unit_diagnostics`).
 
@@ -491,6 +517,7 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
         v = getattr(rec, name)
         if v is not None and not (math.isfinite(float(v)) and float(v) > 0):
             raise RecordingError(f"{name}: expected a finite full scale > 0 (or None), got {_py(v)!r}")
+    _check_acc_bound(rec, time)
 
     if rec.segment is not None:
         seg = np.asarray(rec.segment)

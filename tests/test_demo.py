@@ -22,6 +22,9 @@ def test_demo_quick_runs_all_stages(tmp_path, capsys):
     assert (out / "recording.nc").is_file() and (out / "recording.truth.json").is_file()
     doc = json.loads((out / "posterior" / "positions.json").read_text())
     assert doc["schema"] == "accel_bayes.positions/1" and len(doc["imus"]) == 8
+    # exit 0 means the chains converged (else DESIGN §7.5 status 4): check it from the numbers
+    d = doc["diagnostics"]
+    assert d["rhat_max"] < 1.01 and d["ess_bulk_min"] >= 100 * 4 and d["converged"] is True
     rep = json.loads((out / "mismatch" / "report.json").read_text())
     assert rep["schema"] == "accel_bayes.mismatch/1"
     assert rep["mismatch_detected"] is False  # the demo data follow the model

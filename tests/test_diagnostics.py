@@ -138,3 +138,13 @@ def test_plots_return_figures_and_files(tmp_path):
     paths = dg.save_plots(idata, arr, tmp_path, max_imus=1)
     assert [p.name for p in paths] == ["trace.png", "rank.png", "autocorr.png", "ellipses.png"]
     assert all(p.stat().st_size > 1000 for p in paths)
+
+
+def test_convergence_rule_R_hat_below_1_01_and_100_ESS_per_chain():
+    from accel_bayes.diagnostics import convergence_warnings
+
+    assert convergence_warnings(1.009, 400.0, 4) == []
+    assert [w.split()[0] for w in convergence_warnings(1.01, 400.0, 4)] == ["max"]  # R̂ = 1.01 is not < 1.01
+    (w,) = convergence_warnings(1.0, 399.0, 4)
+    assert "399 < 100 per chain (400 for 4)" in w
+    assert len(convergence_warnings(None, float("nan"), 1)) == 2  # not computable: not established

@@ -183,7 +183,9 @@ def test_cli_exit_codes(clean_rec, tmp_path, capsys):
     write_recording(clean_rec, path)
     assert main(["mismatch", str(tmp_path / "missing.nc"), "--out", str(tmp_path / "o0")]) == 2
     assert main(["mismatch", str(path), "--out", str(tmp_path / "o1"), "--effects", "acc_wobble"]) == 2
-    assert main(["mismatch", str(path), "--out", str(tmp_path / "o2"), "--alpha", "1.5"]) == 2
+    with pytest.raises(SystemExit) as exc:  # refused by the option's type, at parse time
+        main(["mismatch", str(path), "--out", str(tmp_path / "o2"), "--alpha", "1.5"])
+    assert exc.value.code == 2
     (tmp_path / "afile").write_text("x")
     assert main(["mismatch", str(path), "--out", str(tmp_path / "afile")]) == 2
     err = capsys.readouterr().err

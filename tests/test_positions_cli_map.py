@@ -59,5 +59,7 @@ def test_map_cli_user_errors(tmp_path, capsys):
     assert len(err) == 1 and "missing.nc" in err[0]
     sim = simulate(arrays.mimu4444_8(), "smooth", T=50, rate=100.0, seed=1)
     write_recording(sim.recording, tmp_path / "r.nc")
-    assert main(["map", str(tmp_path / "r.nc"), "--out", str(tmp_path), "--prior-std", "-1"]) == 2
+    with pytest.raises(SystemExit) as exc:  # refused by the option's type, at parse time
+        main(["map", str(tmp_path / "r.nc"), "--out", str(tmp_path), "--prior-std", "-1"])
+    assert exc.value.code == 2
     assert "--prior-std" in capsys.readouterr().err

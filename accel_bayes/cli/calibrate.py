@@ -9,25 +9,18 @@ recorded in ``positions.json`` (``provenance.settings.preprocess`` / ``noise_mod
 
 Writes DIR/posterior.nc (ArviZ InferenceData), DIR/summary.csv (R̂, ESS, MCSE per coordinate),
 DIR/positions.json (DESIGN §7.3) and trace/rank/autocorr/ellipses plots; prints a short table.
+
+Exit status (DESIGN §7.5): 0 converged; 2 refused (bad option, recording or checkpoint — checked
+before any computation); 4 finished but the chains have not converged (R̂ ≥ 1.01, bulk ESS < 100
+per chain, or either not computable): the outputs are written, ``positions.json`` has
+``diagnostics.converged: false`` and ``diagnostics.warnings``, and one line on stderr says why.
 """
 from __future__ import annotations
 
-import math
 import sys
 
-from ..errors import UserError
-
-
-def _positive_float(name):
-    def conv(s):
-        try:
-            v = float(s)
-        except ValueError:
-            raise UserError(f"{name}: expected a positive number, got {s!r}") from None
-        if not (v > 0 and math.isfinite(v)):
-            raise UserError(f"{name}: expected a positive number, got {s!r}")
-        return v
-    return conv
+from . import _options as opt
+from ._status import EXIT_OK, untrusted
 
 
 def register(sub) -> None:
@@ -45,16 +38,18 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output directory (created if missing; written as one set, see the README)")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
-    p.add_argument("--chains", type=int, default=DEFAULTS["chains"], help="number of chains (default %(default)s)")
-    p.add_argument("--draws", type=int, default=DEFAULTS["draws"], help="kept draws per chain (default %(default)s)")
-    p.add_argument("--warmup", type=int, default=DEFAULTS["warmup"],
+    p.add_argument("--chains", type=opt.count(1), default=DEFAULTS["chains"],
+                   help="number of chains (default %(default)s)")
+    p.add_argument("--draws", type=opt.count(1), default=DEFAULTS["draws"],
+                   help="kept draws per chain (default %(default)s)")
+    p.add_argument("--warmup", type=opt.count(0), default=DEFAULTS["warmup"],
                    help="warm-up (adaptation) iterations per chain (default %(default)s)")
-    p.add_argument("--num-draws", type=int, default=None, metavar="N",
+    p.add_argument("--num-draws", type=opt.count(1), default=None, metavar="N",
                    help="Monte Carlo draws per likelihood estimate (default: chosen so Var[log p̂] ≈ 1)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--seed", type=opt.seed, default=0, help="random seed (default %(default)s)")
     p.add_argument("--prior", choices=("gaussian", "box"), default=DEFAULTS["prior"],
                    help="prior on the positions (default %(default)s)")
-    p.add_argument("--prior-std", type=str, default=str(DEFAULTS["prior_std"]), metavar="M",
+    p.add_argument("--prior-std", type=opt.positive("m"), default=DEFAULTS["prior_std"], metavar="M",
                    help="prior standard deviation in metres (default %(default)s, [C21] §IV-A)")
     p.add_argument("--no-map", action="store_true",
                    help="do not fit the MAP first; chains start from prior draws")
@@ -69,8 +64,9 @@ def register(sub) -> None:
                         "(accel-bayes intrinsics) to apply")
     g.add_argument("--keep-static", action="store_true", help="keep the samples of the rests (dropped by default)")
     g.add_argument("--keep-clipped", action="store_true",
-                   help="keep samples where an accelerometer or gyroscope is at its range (dropped by default)")
-    g.add_argument("--min-rotation", type=str, default=str(DEFAULTS["min_rotation"]), metavar="RAD_S",
+                   help="keep samples where an accelerometer or gyroscope is at its range (dropped by default; a "
+                        "warning on stderr counts the ones fitted)")
+    g.add_argument("--min-rotation", type=opt.nonnegative("rad/s"), default=DEFAULTS["min_rotation"], metavar="RAD_S",
                    help="drop samples whose mean gyro rate |w| is below this, rad/s (default %(default)s = 29 deg/s; "
                         "0 keeps all)")
     g.add_argument("--select", choices=("rotation",), default=None,
@@ -79,7 +75,7 @@ def register(sub) -> None:
                    help="accelerometer noise: the recording's stated std, or estimated from the data (a level per "
                         "IMU x a factor per gyro-rate bin, type-II ML at the MAP, inflated by the sandwich factor); "
                         "'auto' (default): estimate for recordings with rests, stated otherwise")
-    g.add_argument("--noise-bins", type=int, default=DEFAULTS["noise_bins"], metavar="B",
+    g.add_argument("--noise-bins", type=opt.count(1), default=DEFAULTS["noise_bins"], metavar="B",
                    help="gyro-rate bins of the estimated noise model (default %(default)s; 1 = one level per IMU)")
     g.add_argument("--no-noise-inflation", action="store_true",
                    help="with estimated noise: do not apply the sandwich (misspecification) factor")
@@ -89,7 +85,7 @@ def register(sub) -> None:
                         "'sample_cov' = [C21] eq. 30)")
     p.add_argument("--proposal", choices=("auto", "rw", "mixture"), default="auto",
                    help="proposal: random walk, or random walk mixed with independence moves (default %(default)s)")
-    p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
+    p.add_argument("--checkpoint-every", type=opt.count(0), default=0, metavar="K",
                    help="save the sampler state to DIR/checkpoint.pt every K iterations (kept if the run is "
                         "killed or interrupted)")
     p.add_argument("--resume", action="store_true",
@@ -103,21 +99,6 @@ def _run(args) -> int:
     from ..calibrate import calibrate, write_outputs
     from ..outputs import OutputDir
 
-    prior_std = _positive_float("--prior-std")(args.prior_std)
-    for name, v, lo in (("--chains", args.chains, 1), ("--draws", args.draws, 1), ("--warmup", args.warmup, 0),
-                        ("--seed", args.seed, 0), ("--checkpoint-every", args.checkpoint_every, 0)):
-        if v < lo:
-            raise UserError(f"{name}: expected an integer >= {lo}, got {v}")
-    if args.noise_bins < 1:
-        raise UserError(f"--noise-bins: expected an integer >= 1, got {args.noise_bins}")
-    try:
-        min_rot = float(args.min_rotation)
-    except ValueError:
-        raise UserError(f"--min-rotation: expected a number of rad/s >= 0, got {args.min_rotation!r}") from None
-    if not (min_rot >= 0 and math.isfinite(min_rot)):
-        raise UserError(f"--min-rotation: expected a number of rad/s >= 0, got {args.min_rotation!r}")
-    if args.num_draws is not None and args.num_draws < 1:
-        raise UserError(f"--num-draws: expected an integer >= 1, got {args.num_draws}")
     # the checkpoint lives in DIR itself (a killed run keeps it) and joins the committed set
     out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",),
                     inputs=(args.recording, args.intrinsics)).open()
@@ -128,22 +109,33 @@ def _run(args) -> int:
             print(f"accel-bayes calibrate: no checkpoint at {ckpt}; starting afresh", file=sys.stderr)
     res = calibrate(
         args.recording, chains=args.chains, draws=args.draws, warmup=args.warmup, num_draws=args.num_draws,
-        seed=args.seed, prior=args.prior, prior_std=prior_std, use_map=not args.no_map,
+        seed=args.seed, prior=args.prior, prior_std=args.prior_std, use_map=not args.no_map,
         gyro_method=args.gyro_method, select=args.select, proposal=args.proposal, progress=not args.quiet,
         checkpoint=ckpt, checkpoint_every=args.checkpoint_every, resume=args.resume,
         intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
-        min_rotation=min_rot, noise=args.noise, noise_bins=args.noise_bins,
+        min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
         noise_inflation=not args.no_noise_inflation,
     )
+    n_kept = res.settings["preprocess"]["samples"].get("clipped_kept", 0)
+    if n_kept:  # stderr: the table below goes to stdout, which is often redirected
+        print(f"accel-bayes calibrate: warning: --keep-clipped: {n_kept} samples with an accelerometer or gyroscope at "
+              "its range are fitted; the model cannot explain them and the posterior may be biased", file=sys.stderr)
     paths = write_outputs(res, out.staging, plots=not args.no_plots)
     out.commit()
     print(format_table(res))
     print(f"files: {', '.join(str(out.final(p)) for p in paths.values())}")
-    return 0
+    d = res.positions["diagnostics"]
+    if not d["converged"]:
+        return untrusted("calibrate", d["warnings"] + ["run longer (--draws/--warmup)"],
+                         str(out.final(paths["positions"])))
+    return EXIT_OK
 
 
 def format_table(res) -> str:
-    """IMU, posterior mean (mm), std (µm), worst R̂ and smallest bulk ESS over its 3 coordinates."""
+    """IMU, posterior mean (mm), std (µm), worst R̂ and smallest bulk ESS over its 3 coordinates
+    ("n/a" where they cannot be computed: one chain, a few draws)."""
+    from ..diagnostics import format_stat
+
     summ = res.summary
     doc = res.positions
     lines = []
@@ -178,15 +170,15 @@ def format_table(res) -> str:
         else:
             rows = [f"r[{e['imu']}, {a}]" for a in "xyz"]
             rows = [r for r in rows if r in summ.index]
-            rh = f"{summ.loc[rows, 'r_hat'].max():.3f}" if rows else ""
-            ess = f"{summ.loc[rows, 'ess_bulk'].min():.0f}" if rows else ""
+            rh = format_stat(summ.loc[rows, "r_hat"].max(), ".3f") if rows else ""
+            ess = format_stat(summ.loc[rows, "ess_bulk"].min(), ".0f") if rows else ""
         lines.append(f"{e['imu']:>4} {m[0]:9.3f} {m[1]:9.3f} {m[2]:9.3f} {s[0]:8.1f} {s[1]:8.1f} {s[2]:8.1f} "
                      f"{rh:>6} {ess:>7}")
     d = doc["diagnostics"]
-    lines.append(f"max R-hat {d['rhat_max']:.3f}, min bulk ESS {d['ess_bulk_min']:.0f}, "
+    lines.append(f"max R-hat {format_stat(d['rhat_max'], '.3f')}, "
+                 f"min bulk ESS {format_stat(d['ess_bulk_min'], '.0f')}, "
                  f"acceptance {', '.join(f'{a:.2f}' for a in d['acceptance_rate'])}")
-    rh = d["rhat_max"]
-    if rh is None or rh >= 1.01 or (d["ess_bulk_min"] or 0) < 100 * res.settings["chains"]:
-        lines.append("warning: R-hat >= 1.01 or ESS < 100 per chain: the chains have not mixed well enough "
+    if not d["converged"]:
+        lines.append(f"warning: {'; '.join(d['warnings'])}: the chains have not mixed well enough "
                      "for reliable moments; run longer (--draws/--warmup) and check trace.png/rank.png")
     return "\n".join(lines)

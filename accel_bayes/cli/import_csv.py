@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from . import _options as opt
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -29,23 +31,22 @@ def register(subparsers) -> None:
                    help="array description: IMU labels, positions (m), orientations, sensors, noise, ranges")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="recording file to write (.nc)")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
-    p.add_argument("--time-tolerance", type=float, default=None, metavar="SECONDS",
+    p.add_argument("--time-tolerance", type=opt.nonnegative("s"), default=None, metavar="SECONDS",
                    help="largest |IMU stamp - reference stamp| accepted when matching samples, s "
                         "(default a quarter of the reference IMU's median sample period)")
     p.add_argument("--noise", choices=("rests", "stated"), default="rests",
                    help="'rests': noise std estimated from the static segments where found, stated otherwise "
                         "(default); 'stated': the description's std (or sensor.yaml density x sqrt(rate)), "
                         "no rest detection")
-    p.add_argument("--tol-deg", type=float, default=2.0,
+    p.add_argument("--tol-deg", type=opt.real(0.0, 180.0, lo_open=True, unit="degrees"), default=2.0,
                    help="rests whose gravity directions agree within this angle are one orientation (default 2)")
-    p.add_argument("--min-static-s", type=float, default=3.0,
+    p.add_argument("--min-static-s", type=opt.positive("s"), default=3.0,
                    help="shortest static segment kept, seconds (default 3)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from ..csv_import import import_csv, write_imported
-    from ..errors import UserError
     from ..outputs import OutputFile
 
     src, arr, out = Path(args.source), Path(args.array), Path(args.output)
@@ -54,10 +55,6 @@ def run(args) -> int:
         raise FileNotFoundError(f"{src}: no such CSV file or ASL folder")
     if not arr.is_file():
         raise FileNotFoundError(f"--array: {arr}: no such array description file (TOML)")
-    if args.time_tolerance is not None and not args.time_tolerance >= 0:
-        raise UserError(f"--time-tolerance: expected a non-negative number of seconds, got {args.time_tolerance}")
-    if not (args.tol_deg > 0 and args.min_static_s > 0):
-        raise UserError("--tol-deg and --min-static-s: expected positive values")
     target = OutputFile(out, overwrite=args.overwrite).open()
     result = import_csv(src, arr, time_tolerance=args.time_tolerance, noise=args.noise, tol_deg=args.tol_deg,
                         min_duration_s=args.min_static_s)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from . import _options as opt
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -21,17 +23,16 @@ def register(subparsers) -> None:
     p.add_argument("data", metavar="DATA.bin[.gz]", help="the raw stream (gzip recognised by its magic bytes)")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="recording file to write (.nc)")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
-    p.add_argument("--tol-deg", type=float, default=2.0,
+    p.add_argument("--tol-deg", type=opt.real(0.0, 180.0, lo_open=True, unit="degrees"), default=2.0,
                    help="rests whose gravity directions agree within this angle are one orientation (default 2)")
-    p.add_argument("--min-static-s", type=float, default=3.0,
+    p.add_argument("--min-static-s", type=opt.positive("s"), default=3.0,
                    help="shortest static segment kept, seconds (default 3)")
-    p.add_argument("--max-fail-fraction", type=float, default=0.01,
+    p.add_argument("--max-fail-fraction", type=opt.fraction(), default=0.01,
                    help="refuse the file if more packets than this fail their checksum (default 0.01)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from ..errors import UserError
     from ..io import write_recording
     from ..mimu import import_mimu
     from ..outputs import OutputFile
@@ -42,10 +43,6 @@ def run(args) -> int:
         raise IsADirectoryError(f"{src}: is a directory; expected a MIMU stream file (.bin or .bin.gz)")
     if not src.exists():
         raise FileNotFoundError(f"{src}: no such MIMU stream file")
-    if not 0 <= args.max_fail_fraction < 1:
-        raise UserError(f"--max-fail-fraction: expected a value in [0, 1), got {args.max_fail_fraction}")
-    if args.tol_deg <= 0 or args.min_static_s <= 0:
-        raise UserError("--tol-deg and --min-static-s: expected positive values")
     target = OutputFile(out, overwrite=args.overwrite).open()
     rec, report, _ = import_mimu(
         src, max_fail_fraction=args.max_fail_fraction, tol_deg=args.tol_deg,

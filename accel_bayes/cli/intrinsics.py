@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _options as opt
+
 DEG = 180.0 / np.pi
 
 
@@ -28,7 +30,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="intrinsics JSON to write")
     p.add_argument("--apply-to", metavar="OUT.nc", default=None,
                    help="also write REC with the intrinsics applied to this recording file")
-    p.add_argument("--g", type=float, default=9.80665, help="gravity magnitude, m/s^2 (default 9.80665)")
+    p.add_argument("--g", type=opt.positive("m/s^2"), default=9.80665,
+                   help="gravity magnitude, m/s^2 (default 9.80665)")
     p.add_argument("--overwrite", action="store_true", help="replace output files that exist")
     p.set_defaults(func=run)
 

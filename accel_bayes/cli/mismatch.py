@@ -5,13 +5,14 @@
 
 writes ``DIR/report.json`` (format ``accel_bayes.mismatch/1``), ``DIR/report.md`` and its
 figures, and prints one line per finding.  Exit status 0 whether or not a mismatch is found;
-2 for bad input (unreadable recording, unknown effect name, bad option).
+2 for bad input (unreadable recording, unknown effect name, bad option, fewer than 3 samples, or
+a recording that does not rotate: the rotation-dependent effects could not be tested, so a
+clean report would be unfounded).
 """
 from __future__ import annotations
 
-import math
-
 from ..errors import UserError
+from . import _options as opt
 
 
 def register(subparsers) -> None:
@@ -30,30 +31,22 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output directory (created if missing; written as one set, see the README)")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
-    p.add_argument("--alpha", type=float, default=0.01,
+    p.add_argument("--alpha", type=opt.fraction(lo_open=True), default=0.01,
                    help="family-wise error rate of the Bonferroni-corrected threshold (default 0.01)")
     p.add_argument("--effects", default=None, metavar="A,B,...",
                    help="comma-separated effect names to try (default: all of vocabulary v1)")
-    p.add_argument("--max-findings", type=int, default=3, help="most effects added to the model (default 3)")
+    p.add_argument("--max-findings", type=opt.count(0), default=3, help="most effects added to the model (default 3)")
     p.add_argument("--no-refine", action="store_true", help="skip the refined-model comparison (refined = null)")
     p.add_argument("--posterior", action="store_true",
                    help="also run short PmMH calibrations before/after correcting for the findings (slow)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (PPC twins, Laplace draws; default 0)")
-    p.add_argument("--twins", type=int, default=100, help="posterior predictive twins (default 100)")
+    p.add_argument("--seed", type=opt.seed, default=0, help="random seed (PPC twins, Laplace draws; default 0)")
+    p.add_argument("--twins", type=opt.count(1), default=100, help="posterior predictive twins (default 100)")
     p.add_argument("--no-figures", action="store_true", help="write report.json and report.md without figures")
     p.add_argument("--progress", action="store_true", help="print stage messages")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    if not (0 < args.alpha < 1) or not math.isfinite(args.alpha):
-        raise UserError(f"--alpha: expected a number in (0, 1), got {args.alpha}")
-    if args.seed < 0:
-        raise UserError(f"--seed: expected a non-negative integer, got {args.seed}")
-    if args.max_findings < 0:
-        raise UserError(f"--max-findings: expected an integer >= 0, got {args.max_findings}")
-    if args.twins < 1:
-        raise UserError(f"--twins: expected an integer >= 1, got {args.twins}")
     effects = None
     if args.effects is not None:
         effects = [e.strip() for e in args.effects.split(",") if e.strip()]

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _options as opt
+
 DEG = 180.0 / np.pi
 
 
@@ -22,35 +24,34 @@ def register(subparsers) -> None:
         description=(
             "Per-sample weighted least squares for omega, omega_dot and s ([C21] eq. 4) with the geometry of "
             "a positions.json (DESIGN 7.3); uncertainty = noise (Laplace) + geometry (draws or linear). "
-            "REC is a format-v1 recording (.nc) or a MIMU4444 stream (.bin, .bin.gz)."
+            "REC is a format-v1 recording (.nc) or a MIMU4444 stream (.bin, .bin.gz). A calibration whose "
+            "accelerometer triads coincide or lie on one line is refused (exit 2): it cannot determine omega_dot."
         ),
     )
     p.add_argument("recording", metavar="REC", help="recording (.nc) or MIMU4444 stream")
     p.add_argument("--calibration", required=True, metavar="positions.json", help="calibrated positions (DESIGN 7.3)")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="motion NetCDF file to write")
     p.add_argument("--intrinsics", metavar="FILE", default=None, help="intrinsics JSON to apply first")
-    p.add_argument("--draws", type=int, default=200, help="geometry draws (default 200; 0: noise part only)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the geometry draws (default 0)")
+    p.add_argument("--draws", type=opt.integer(2, also=(0,)), default=200,
+                   help="geometry draws (default 200; 0: noise part only)")
+    p.add_argument("--seed", type=opt.seed, default=0, help="seed of the geometry draws (default 0)")
     p.add_argument("--geometry", choices=("draws", "linear"), default="draws",
                    help="geometry uncertainty by re-solving per draw (default) or first-order propagation")
-    p.add_argument("--acc-noise-std", type=float, default=None, metavar="M_S2",
+    p.add_argument("--acc-noise-std", type=opt.positive("m/s^2"), default=None, metavar="M_S2",
                    help="accelerometer noise std to assume, m/s^2 (default: the recording's stated values)")
-    p.add_argument("--gyro-noise-std", type=float, default=None, metavar="RAD_S",
+    p.add_argument("--gyro-noise-std", type=opt.positive("rad/s"), default=None, metavar="RAD_S",
                    help="gyroscope noise std to assume, rad/s (default: the recording's stated values)")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from ..errors import UserError
     from ..motion_estimation import estimate_motion, write_motion
     from ..outputs import OutputFile
     from .intrinsics import load_any
 
     out = Path(args.output)
     target = OutputFile(out, overwrite=args.overwrite).open()
-    if args.draws < 0 or args.draws == 1:
-        raise UserError(f"--draws: expected 0 or an integer >= 2, got {args.draws}")
     cal = Path(args.calibration)
     if not cal.exists():
         raise FileNotFoundError(f"{cal}: no such calibration file")

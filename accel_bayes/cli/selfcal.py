@@ -16,14 +16,17 @@ Gyroscopes are ignored.  IMUs without an accelerometer keep their nominal pose w
 std.  Exit status: 0 on success; 2 on bad input (one line); 3 when the optimisation diverged
 ([S16] Table III: positions → 0 or ∞, angular motion → 0 or ∞, non-finite or non-fitting
 estimate) — then one line on stderr says why, only ``convergence.png`` is written and no
-positions are reported.
+positions are reported; 4 when LM stopped at its iteration limit without converging — every
+file is written, ``positions.json`` has ``diagnostics.converged: false`` and ``warnings``, and
+one line on stderr says so (DESIGN §7.5).
 """
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
-EXIT_DIVERGED = 3
+from . import _options as opt
+from ._status import EXIT_DIVERGED, EXIT_OK, untrusted
 
 
 def register(sub) -> None:
@@ -41,10 +44,10 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output directory (created if missing; written as one set, see the README)")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
-    p.add_argument("--fixed", type=int, default=None,
+    p.add_argument("--fixed", type=opt.count(0), default=None,
                    help="label of the IMU whose triad is held at its nominal pose (default: the recording's reference IMU)")
-    p.add_argument("--max-iter", type=int, default=200, help="LM iteration limit per stage (default 200)")
-    p.add_argument("--seed", type=int, default=None,
+    p.add_argument("--max-iter", type=opt.count(1), default=200, help="LM iteration limit per stage (default 200)")
+    p.add_argument("--seed", type=opt.seed, default=None,
                    help="recorded in the provenance only: the self-calibration draws no random numbers")
     p.add_argument("--no-rerun", action="store_true",
                    help="skip the [S16] §VI-A re-run from the estimated poses")
@@ -112,8 +115,6 @@ def _run(args) -> int:
     from ..outputs import OutputDir, write_csv, write_text
     from ..positions import positions_document, write_positions
 
-    if args.max_iter < 1:
-        raise UserError(f"--max-iter: expected an integer >= 1, got {args.max_iter}")
     rec = read_recording(args.recording)
     K = rec.K
     fixed_label = int(rec.reference_imu if args.fixed is None else args.fixed)
@@ -175,8 +176,10 @@ def _run(args) -> int:
     settings = {"fixed": fixed_label, "max_iter": args.max_iter, "rerun_from_estimate": not args.no_rerun,
                 "process_variances": "S16 (acc 1e3, int 1e-7, omega_dot 1e3)", "imus_used": labels,
                 "acc_noise_std": noise.tolist(), "warm_start_motion": True}
+    reasons = [] if res.converged else [f"LM stopped without converging ({res.lm_reason}); the estimate may be poor"]
     diagnostics = {"seconds": seconds, "F": res.cost, "F_per_constraint": res.cost / sum(res.n_constraints.values()),
                    "n_iter": int(sum(r["iterations"] for r in res.runs)), "converged": bool(res.converged),
+                   "warnings": reasons,
                    "lm_reason": res.lm_reason, "runs": runs, "acc_clipped_fraction": clipped}
     doc = positions_document(method="selfcal", reference_imu=fixed_label, means=means, covs=covs, orientations=oris,
                              diagnostics=diagnostics,
@@ -219,9 +222,12 @@ def _run(args) -> int:
         sd = np.linalg.norm(pstd[k]) * 1e6 if np.isfinite(pstd[k]).all() else float("nan")
         print(f"{k:>4} " + " ".join(f"{v * 1e3:9.3f}" for v in means[k]) + f" {sd:8.1f} {ang[k]:8.3f} {astd[k]:7.3f}{mark}")
     if clipped > 0:
-        print(f"warning: {clipped:.2%} of the accelerometer samples are flagged clipped; they are used as they are")
+        print(f"accel-bayes selfcal: warning: {clipped:.2%} of the accelerometer samples are flagged clipped; they are "
+              "fitted as they are (the model cannot explain them)", file=sys.stderr)
     if not res.converged:
         print(f"warning: LM stopped without converging ({res.lm_reason}); the estimate may be poor")
     d = out.target
     print(f"Wrote {d / 'positions.json'}, {d / 'poses.csv'}, {d / 'motion.csv'} and {d / 'convergence.png'}")
-    return 0
+    if reasons:
+        return untrusted("selfcal", reasons, str(d / "positions.json"))
+    return EXIT_OK

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 
 from ..errors import UserError
+from . import _options as opt
 
 PRESET_NAMES = ("mimu32", "mimu8", "s16plate")
 MOTION_NAMES = ("iid", "smooth", "table")
@@ -27,18 +28,18 @@ def register(subparsers) -> None:
     p.add_argument("--preset", choices=PRESET_NAMES, default="mimu32", help="array design (default mimu32)")
     p.add_argument("--motion", choices=MOTION_NAMES, default="smooth",
                    help="iid: [C21] i.i.d. hand twist; smooth: continuous motion with gravity; table: [S16]-like rotation table (default smooth)")
-    p.add_argument("-T", dest="T", type=int, default=500, help="number of samples (default 500)")
-    p.add_argument("--rate", type=float, default=100.0, help="sample rate, Hz (default 100)")
-    p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same files (default 0)")
-    p.add_argument("--position-error", type=float, default=1e-4, metavar="M",
+    p.add_argument("-T", dest="T", type=opt.count(1), default=500, help="number of samples (default 500)")
+    p.add_argument("--rate", type=opt.positive("Hz"), default=100.0, help="sample rate, Hz (default 100)")
+    p.add_argument("--seed", type=opt.seed, default=0, help="random seed; same seed, same files (default 0)")
+    p.add_argument("--position-error", type=opt.nonnegative("m"), default=1e-4, metavar="M",
                    help="std of the true positions around the nominal ones, m per axis; the reference IMU stays exact (default 1e-4)")
-    p.add_argument("--orientation-error", type=float, default=0.0, metavar="RAD",
+    p.add_argument("--orientation-error", type=opt.nonnegative("rad"), default=0.0, metavar="RAD",
                    help="std of the true orientation error, rad per axis, as a rotation vector (default 0)")
-    p.add_argument("--acc-noise", type=float, default=None, metavar="X",
+    p.add_argument("--acc-noise", type=opt.positive("m/s^2"), default=None, metavar="X",
                    help="accelerometer noise std, m/s² (default: the preset's)")
-    p.add_argument("--gyro-noise", type=float, default=None, metavar="X",
+    p.add_argument("--gyro-noise", type=opt.positive("rad/s"), default=None, metavar="X",
                    help="gyroscope noise std, rad/s (default: the preset's)")
-    p.add_argument("--omega-rms", type=float, default=None, metavar="RAD_S",
+    p.add_argument("--omega-rms", type=opt.nonnegative("rad/s"), default=None, metavar="RAD_S",
                    help="smooth motion only: RMS of |ω|, rad/s (default 400 °/s = 6.98 rad/s)")
     p.add_argument("--no-clip", action="store_true", help="do not clip outputs at the sensor ranges")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="recording to write (.nc)")
@@ -46,22 +47,31 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _physical_memory() -> int | None:
+    """Bytes of RAM of this machine, or None where the OS does not say."""
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
 def _check(args) -> None:
-    if args.T < 1:
-        raise UserError(f"-T: expected a positive number of samples, got {args.T}")
-    if not (args.rate > 0 and math.isfinite(args.rate)):
-        raise UserError(f"--rate: expected a positive sample rate in Hz, got {args.rate}")
-    if args.seed < 0:
-        raise UserError(f"--seed: expected a non-negative integer, got {args.seed}")
-    for flag, v in (("--position-error", args.position_error), ("--orientation-error", args.orientation_error),
-                    ("--acc-noise", args.acc_noise), ("--gyro-noise", args.gyro_noise), ("--omega-rms", args.omega_rms)):
-        if v is not None and not (v >= 0 and math.isfinite(v)):
-            raise UserError(f"{flag}: expected a finite value >= 0, got {v}")
-    for flag, v in (("--acc-noise", args.acc_noise), ("--gyro-noise", args.gyro_noise)):
-        if v is not None and v == 0:
-            raise UserError(f"{flag}: expected a noise std > 0 (a recording states its noise level), got 0")
+    """Checks that involve more than one option (single values are checked by their type=)."""
     if args.omega_rms is not None and args.motion != "smooth":
         raise UserError(f"--omega-rms: applies to --motion smooth only, got --motion {args.motion}")
+    from ..arrays import preset
+    from ..simulate import BYTES_PER_IMU_SAMPLE, memory_estimate
+
+    K = preset(args.preset).K
+    need, have = memory_estimate(args.T, K), _physical_memory()
+    # half the RAM: the recording is also held by xarray/netCDF while it is written
+    if have is not None and need > have // 2:
+        t_max = have // 2 // (K * BYTES_PER_IMU_SAMPLE)
+        raise UserError(f"-T: {args.T} samples of the {args.preset} array ({K} IMUs) would need about "
+                        f"{need / 2 ** 30:.3g} GiB of memory ({K * BYTES_PER_IMU_SAMPLE} B per sample); "
+                        f"expected at most {t_max} samples on this machine ({have / 2 ** 30:.3g} GiB of RAM)")
 
 
 def run(args) -> int:

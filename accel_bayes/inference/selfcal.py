@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .. import models
+from ..errors import UserError
 from ..geometry import boxplus, quat_normalize, quat_to_matrix, rotation_angle, skew
 
 __all__ = [
@@ -616,7 +617,8 @@ def self_calibrate(
         raise ValueError(f"acc: expected shape (T, A, 3), got {tuple(acc.shape)}")
     T, A = acc.shape[0], acc.shape[1]
     if T < 3:
-        raise ValueError(f"acc: expected at least 3 samples, got {T}")
+        # the process model ([S16] eq. 7–8) links consecutive samples: fewer than 3 leave it nothing to constrain
+        raise UserError(f"acc: self-calibration needs at least 3 samples (time), the recording has {T}")
     if not bool(torch.isfinite(acc).all()):
         raise ValueError("acc: expected finite triad outputs (NaN/inf found); drop missing triads or samples first")
     if not 0 <= int(fixed) < A:

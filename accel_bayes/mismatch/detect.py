@@ -393,6 +393,23 @@ def _load(recording):
     raise UserError(f"recording: expected a Recording or a file path, got {type(recording).__name__}")
 
 
+def _check_recording(rec) -> None:
+    """Refuse (one line) a recording the detector cannot judge, before any fit."""
+    from ..likelihood import DEFAULT_MIN_ROTATION
+    from ..preprocess import rotation_rate
+
+    if rec.T < 3:
+        raise UserError(f"time: mismatch detection needs at least 3 samples, the recording has {rec.T}")
+    w = rotation_rate(rec)
+    # Without rotation ω = ω̇ = 0 and every effect that acts through the rotation (axis_displacement,
+    # the lever arms, time_offset, gyro_scale, gyro_nonlinearity, sampling_jitter) leaves no trace:
+    # "no mismatch detected" would be a verdict on effects that were never testable.
+    if not np.nanmax(w) >= DEFAULT_MIN_ROTATION:
+        raise UserError(f"gyro: the recording does not rotate (largest mean gyro rate |w| {np.nanmax(w):.3g} rad/s < "
+                        f"{DEFAULT_MIN_ROTATION} rad/s); the rotation-dependent effects cannot be tested; "
+                        "record the array in motion")
+
+
 def _check_options(effects, alpha, max_findings, seed):
     try:
         a = float(alpha)
@@ -446,6 +463,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     t_start = _time.perf_counter()
     alpha, names = _check_options(effects, alpha, max_findings, seed)
     rec, source = _load(recording)
+    _check_recording(rec)
     say = (lambda msg: print(f"[mismatch {(_time.perf_counter() - t_start):6.1f} s] {msg}", flush=True)) if progress \
         else (lambda msg: None)
     timings = {}
