@@ -69,9 +69,9 @@ import numpy as np
 import torch
 
 from .errors import UserError
-from .inference.crb import du_domega
 from .likelihood import RaoBlackwellLikelihood
 from .models import G_matrix, H_matrix, u_of_omega
+from .physics.jacobians import du_domega
 
 __all__ = ["NoiseModel", "residual_statistics", "update_noise", "scale_samples", "fit_map_with_noise",
            "sandwich_inflation", "rate_bins", "TemperedLikelihood", "fit_map_tempered", "NOISE_MODES",

@@ -40,7 +40,7 @@ import torch
 from ..errors import UserError
 from ..geometry import skew
 from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
-from .crb import du_domega
+from ..physics.jacobians import d2u_domega2, df_dr, du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
 from .linear import NotPositiveDefinite, SchurComplementSolver, cholesky
 
@@ -211,8 +211,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
         res = z - phi @ Hw.T
         K = Gw @ du_domega(x)  # (T, 3A, 3)
         Jw = Hw @ torch.cholesky_solve(Hw.T @ K, Lb) - K
-        Sw = skew(x)
-        Jr = Sw @ Sw + skew(phi[:, :3])  # ∂f_k/∂r_k at φ̂, (T, 3, 3)
+        Jr = df_dr(x, phi[:, :3])  # ∂f_k/∂r_k at φ̂, (T, 3, 3)
         Qk = slA[None, :, :, None] * Jr[:, None]  # (T, A, 3, 3): rows of triad k, column axis a
         HtQ = torch.einsum("kif,tkia->tfka", Hw.reshape(A, 3, 6), Qk)[:, :, keep]  # (T, 6, A−1, 3)
         rho = (res.reshape(Tn, A, 3) * slA)[:, keep]  # Λ_k^{1/2} r_t,k
@@ -224,10 +223,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
             Jth[:, k, :, j, :] -= Qk[:, k]
         return {"theta": Jth.reshape(Tn, 3 * A, n)}, Jw
 
-    # ∂²u/∂ω_i∂ω_j (constant: u is quadratic), (6, 3, 3)
-    D2u = torch.zeros(6, 3, 3, dtype=dtype, device=acc.device)
-    D2u[0, 0, 0] = D2u[1, 1, 1] = D2u[2, 2, 2] = 2.0
-    D2u[3, 0, 1] = D2u[3, 1, 0] = D2u[4, 0, 2] = D2u[4, 2, 0] = D2u[5, 1, 2] = D2u[5, 2, 1] = 1.0
+    D2u = d2u_domega2(dtype, acc.device)  # ∂²u/∂ω_i∂ω_j (constant: u is quadratic), (6, 3, 3)
 
     def acc_local_hessian(g, x, data, res):
         # Σ_m r_m ∂²r_m/∂ω² with r = P⊥ z, ∂²r/∂ω² = −P⊥ Gw ∂²u and P⊥ r = r: −(rᵀGw) ∂²u

@@ -83,7 +83,7 @@ import torch
 
 from ..errors import UserError
 from ..geometry import quat_exp, quat_to_matrix
-from ..models import specific_force, to_array_frame
+from ..models import imu_outputs, specific_force, to_array_frame
 
 __all__ = [
     "AXES",
@@ -161,12 +161,7 @@ class SignalContext:
                     gyro_rate=None) -> "SignalContext":
         """Build the context with the nominal outputs of :func:`accel_bayes.models.imu_outputs`
         (differentiable in every argument)."""
-        # models.imu_outputs, with the rotation done elementwise (a broadcast matmul of T·K
-        # 3×3 matrices is an order of magnitude slower); tests pin the two together
-        f = specific_force(positions, omega, omega_dot, s)
-        R = quat_to_matrix(orientations)
-        acc = (R * f.unsqueeze(-2)).sum(-1)
-        gyro = (R * omega.unsqueeze(-2).unsqueeze(-2)).sum(-1)
+        acc, gyro = imu_outputs(positions, orientations, omega, omega_dot, s)
         if time is None:
             time = torch.arange(omega.shape[0], dtype=omega.dtype, device=omega.device)
         return cls(time, omega, omega_dot, s, positions, orientations, acc, gyro, acc_rate, gyro_rate)

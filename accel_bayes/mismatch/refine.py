@@ -64,8 +64,9 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ..geometry import quat_to_matrix, skew
+from ..geometry import quat_to_matrix
 from ..models import G_matrix, H_matrix, to_array_frame, u_of_omega
+from ..physics import jacobians as jac
 from .effects import CandidateLayout, SignalContext, model_outputs, noise_factors, output_rates
 
 __all__ = [
@@ -487,14 +488,8 @@ class _Model:
         R = self.R
         eye = torch.eye(3, dtype=x.dtype)
         # nominal kinematics, array frame: f = Ω(ω)²r + Ω(ω̇)r + s ([C21] eq. 4a)
-        wr = pos @ w.T  # (K, T) ωᵀr
-        A_w = (wr.T[:, :, None, None] * eye + w[:, None, :, None] * pos[None, :, None, :]
-               - 2 * pos[None, :, :, None] * w[:, None, None, :])  # (T, K, 3, 3) ∂f/∂ω
-        A_wd = (-skew(pos)).expand(T, K, 3, 3)
-        A_s = eye.expand(T, K, 3, 3)
-        JxA = _rot(R, torch.cat((A_w, A_wd, A_s), -1))  # (T, K, 3, 9), sensor frame
-        Sw = skew(w)
-        JrA = _rot(R, (Sw @ Sw + skew(wd))[:, None].expand(T, K, 3, 3))  # (T, K, 3, 3)
+        JxA = _rot(R, jac.df_dmotion(pos, w))  # (T, K, 3, 9) ∂f/∂[ω, ω̇, s], sensor frame
+        JrA = _rot(R, jac.df_dr(w, wd)[:, None].expand(T, K, 3, 3))  # (T, K, 3, 3)
         JxG = torch.cat((R.expand(T, K, 3, 3), torch.zeros(T, K, 3, 6, dtype=x.dtype)), -1)
         JrG = torch.zeros(T, K, 3, 3, dtype=x.dtype)
         Je = torch.zeros(T, 2, K, 3, self.p, dtype=x.dtype)
