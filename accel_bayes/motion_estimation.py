@@ -63,6 +63,9 @@ import torch
 
 from .errors import UserError
 from .geometry import quat_to_matrix
+from .inference.damping import NielsenDamping
+from .inference.linear import damped_step
+from .inference.lm import BatchedLevenbergMarquardt, StoppingRule
 from .models import specific_force
 from .physics.jacobians import AxisProjection, axis_force, axis_force_jacobian, df_dr
 from .positions import POSITIONS_SCHEMA, read_positions
@@ -198,53 +201,39 @@ def _initial(geo: AxisProjection, d: _Data, gyro_fallback):
 
 
 def solve_motion(geo: AxisProjection, d: _Data, x0, *, max_iter: int = 50, xtol: float = 1e-12):
-    """Batched Levenberg–Marquardt for x = [ω, ω̇, s] per sample (Marquardt-scaled damping per
-    sample; no loop over samples).  ``x0`` (*G, N, 9) with G the geometry's batch.
+    """x = [ω, ω̇, s] per sample by the package's batched Levenberg–Marquardt
+    (:class:`~accel_bayes.inference.lm.BatchedLevenbergMarquardt`: Nielsen damping with Marquardt
+    scaling, one λ and one stopping reason per sample; no loop over samples).  ``x0`` (*G, N, 9)
+    with G the geometry's batch.  λ₀ = 10⁻⁸ (relative to diag H): the start (gyro mean, φ by
+    linear least squares) is already close.  Converged: a step ≤ ``xtol``·‖x‖, or a relative
+    cost change ≤ 10⁻¹⁴ (round-off level), accepted or not.
     Returns (x, cost, H = JᵀWJ at x, converged (*G, N) bool)."""
-    x = x0.clone()
-    cost, g, H = _cost_grad_hess(x, geo, d)
-    lam = torch.full(cost.shape, 1e-8, dtype=x.dtype)
-    done = torch.zeros(cost.shape, dtype=torch.bool)
-    conv = done.clone()
-    eye = torch.eye(9, dtype=x.dtype)
-    for _ in range(max_iter):
-        D = torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(1e-30)
-        L, info = torch.linalg.cholesky_ex(H + lam[..., None, None] * torch.diag_embed(D))
-        bad = info != 0
-        L = torch.where(bad[..., None, None], eye, L)
-        step = torch.where(bad[..., None], 0, torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1))
-        x_new = x + step
-        cost_new, g_new, H_new = _cost_grad_hess(x_new, geo, d)
-        better = (cost_new <= cost) & torch.isfinite(cost_new) & ~done & ~bad
-        x = torch.where(better[..., None], x_new, x)
-        g = torch.where(better[..., None], g_new, g)
-        H = torch.where(better[..., None, None], H_new, H)
-        small = step.norm(dim=-1) <= xtol * (1 + x.norm(dim=-1))
-        flat = (cost - cost_new).abs() <= 1e-14 * cost.abs().clamp_min(1e-300)
-        cost = torch.where(better, cost_new, cost)
-        lam = torch.where(better, (lam / 5).clamp_min(1e-15), lam * 10)
-        # Converged: a negligible step, or no further decrease possible at round-off level.
-        conv = conv | small | (flat & ~bad)
-        done = conv | (lam > 1e10)
-        if bool(done.all()):
-            break
-    return x, cost, H, conv
+    if geo.rk.dim() == 2:  # one geometry: the solver evaluates only the samples still running
+        def linearize(x, idx):
+            cost, g, H = _cost_grad_hess(x, geo, d.take(idx))
+            return 0.5 * cost, g, H  # the solver's ½‖r‖² convention; g = JᵀWe = −∇(cost/2)
+    else:
+        def linearize(x):
+            cost, g, H = _cost_grad_hess(x, geo, d)
+            return 0.5 * cost, g, H
+
+    stop = StoppingRule(max_iter, ftol=1e-14, xtol=xtol, gtol=0.0, flat_rejected=True)
+    lm = BatchedLevenbergMarquardt(NielsenDamping(tau=1e-8), stop)
+    res = lm.solve(linearize, x0, subset=geo.rk.dim() == 2)
+    return res.x, 2.0 * res.cost, res.H, res.converged
 
 
 def gauss_newton_steps(geo: AxisProjection, d: _Data, x0, steps: int = 2):
     """``steps`` undamped Gauss–Newton steps from ``x0`` (*G, N, 9) — for re-solving under a
     slightly perturbed geometry, starting at the unperturbed optimum (quadratic convergence: a
-    relative perturbation ε leaves an error of order ε^(2^steps)).  Returns (x, the last step
-    (*G, N, 9))."""
+    relative perturbation ε leaves an error of order ε^(2^steps)).  The linear solve is the
+    batched LM's (:func:`~accel_bayes.inference.linear.damped_step`, no damping).  Returns (x,
+    the last step (*G, N, 9))."""
     x = x0.clone()
-    eye = torch.eye(9, dtype=x.dtype)
     step = torch.zeros_like(x)
     for _ in range(steps):
         _, g, H = _cost_grad_hess(x, geo, d)
-        L, info = torch.linalg.cholesky_ex(H)
-        bad = info != 0
-        L = torch.where(bad[..., None, None], eye, L)
-        step = torch.where(bad[..., None], 0, torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1))
+        step, _ = damped_step(H, g)
         x = x + step
     return x, step
 
