@@ -17,6 +17,10 @@ Accelerometer model (per IMU k, sensor frame)
   and so is its inverse) and the usual convention of multi-position calibration.  How the
   corrected frame sits on the board (the triad's orientation) is a separate question — answered
   by the array-level calibration, not here.  Positive diagonal entries fix the sign.
+  In the terms of the effects library (one definition per sensor error): the raw output is
+  a_raw = T⁻¹ a_true + b, a general gain and bias (``acc_scale``, ``acc_misalignment``,
+  ``acc_bias``; :meth:`Intrinsics.acc_effects`) restricted to the triangular gauge gain = L·Q
+  with Q = I (:func:`accel_bayes.physics.effects.triangular_gauge`).
 * The 9 parameters per IMU, in this order (``ACC_PARAMS``):
   ``[b_x, b_y, b_z, t_xx, t_yy, t_zz, t_yx, t_zx, t_zy]``.
 
@@ -233,6 +237,21 @@ class Intrinsics:
         """T_k (a_raw − b_k) for (..., K, 3) raw outputs (sensor frame), m/s²."""
         a = np.asarray(acc, dtype=np.float64) - self.acc_bias
         return np.einsum("kij,...kj->...ki", np.asarray(self.acc_matrix), a)
+
+    def acc_effects(self) -> list:
+        """The accelerometer errors as effects of the physics library (``acc_scale``,
+        ``acc_misalignment``, ``acc_bias`` per IMU; :func:`accel_bayes.physics.effects.
+        acc_gain_effects`): raw outputs a_raw = T⁻¹ a_true + b, i.e. gain T⁻¹ and bias b, sensor
+        frame.  T⁻¹ is lower-triangular, so this is the triangular gauge (module docstring):
+        :func:`~accel_bayes.physics.effects.gain_to_intrinsics` recovers (T, b) from the effects
+        with an identity rotation.  IMUs without an estimate (NaN) get none."""
+        from .physics.effects import acc_gain_effects, intrinsics_gain
+
+        out = []
+        for k in range(self.K):
+            if np.isfinite(self.acc_bias[k]).all() and np.isfinite(self.acc_matrix[k]).all():
+                out += acc_gain_effects(*intrinsics_gain(self.acc_matrix[k], self.acc_bias[k]), imu=k)
+        return out
 
     def correct_gyro(self, gyro: np.ndarray) -> np.ndarray:
         """gyro − b_g for (..., K, 3), rad/s."""

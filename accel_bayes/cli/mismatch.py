@@ -15,7 +15,7 @@ from ..errors import UserError
 
 
 def register(subparsers) -> None:
-    from ..mismatch.effects import VOCABULARY
+    from ..physics.effects import VOCABULARY
 
     p = subparsers.add_parser(
         "mismatch",

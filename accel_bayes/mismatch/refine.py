@@ -68,7 +68,7 @@ from ..geometry import quat_to_matrix
 from ..inference.lm import LevenbergMarquardt, Linearization, StoppingRule
 from ..models import G_matrix, H_matrix, to_array_frame, u_of_omega
 from ..physics import jacobians as jac
-from .effects import CandidateLayout, SignalContext, model_outputs, noise_factors, output_rates
+from ..physics.effects import CandidateLayout, SignalContext, model_outputs, noise_factors, output_rates
 
 __all__ = [
     "Prepared",
@@ -834,7 +834,7 @@ def baseline_fit(prep: Prepared, *, use_map: bool = True, prior_std: float = DEF
     calibrated gyro posterior, Gauss–Newton Laplace) when ``use_map``; falls back to the design
     and the gyro mean if the MAP is unavailable or diverges (recorded in the returned info).
     Sets ``prep.acc_rate``/``prep.gyro_rate`` from the fitted nominal outputs
-    (:func:`accel_bayes.mismatch.effects.output_rates`).  Returns (fit, info).
+    (:func:`accel_bayes.physics.effects.output_rates`).  Returns (fit, info).
     """
     info = {"start": "design"}
     init_pos = init_x = None
