@@ -66,7 +66,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .arrays import G0
+from .constants import G0
 from .errors import UserError
 from .inference.damping import NielsenDamping
 from .inference.lm import BatchedLevenbergMarquardt, StoppingRule

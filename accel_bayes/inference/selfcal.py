@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .. import models
+from ..constants import G0
 from ..geometry import boxplus, quat_normalize, quat_to_matrix, rotation_angle, skew
 from ..physics import jacobians as jac
 
@@ -157,7 +158,7 @@ def simulate_process_motion(
     acc_std: float = 3.0,
     acc_segment_length: int | None = None,
     omega_max: float = 6.0,
-    gravity: float = 9.80665,
+    gravity: float = G0,
     generator: torch.Generator | None = None,
     seed: int | None = None,
     dtype=torch.float64,

@@ -63,6 +63,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..constants import DEFAULT_PRIOR_STD
 from ..errors import UserError
 from ..geometry import quat_to_matrix
 from ..inference.lm import LevenbergMarquardt, Linearization, StoppingRule
@@ -85,7 +86,6 @@ __all__ = [
     "DEFAULT_PRIOR_STD",
 ]
 
-DEFAULT_PRIOR_STD = 3e-3  # m, the [C21] §IV-A prior on the positions (as fit_map)
 LOG2PI = math.log(2 * math.pi)
 
 

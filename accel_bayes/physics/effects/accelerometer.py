@@ -7,7 +7,8 @@ import torch
 
 from ...geometry import quat_to_matrix
 from ...models import specific_force, to_array_frame
-from .base import AXES, G0, Effect, Param, register_effect, _fmt, _onehot, _CrossAxisCoupling
+from ...constants import G0
+from .base import AXES, Effect, Param, register_effect, _fmt, _onehot, _CrossAxisCoupling
 
 
 @register_effect

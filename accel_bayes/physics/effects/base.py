@@ -17,8 +17,6 @@ from ...geometry import quat_to_matrix
 from ...models import imu_outputs
 
 AXES = ("x", "y", "z")
-DEG = math.pi / 180.0
-G0 = 9.80665
 
 
 def _axis_index(axis) -> int:

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from .base import DEG, G0, Effect, Param, register_effect, _fmt, _onehot, _CrossAxisCoupling
+from ...constants import DEG_TO_RAD, G0
+from .base import Effect, Param, register_effect, _fmt, _onehot, _CrossAxisCoupling
 
 
 @register_effect
@@ -26,7 +27,7 @@ class GyroBias(Effect):
 
     def explain(self, params=None):
         b = float(self._p(params)["bias"])
-        return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope reads {abs(b) / DEG:.3g} °/s "
+        return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope reads {abs(b) / DEG_TO_RAD:.3g} °/s "
                 f"{'too high' if b > 0 else 'too low'} at all times (a gyro offset).")
 
 
@@ -126,6 +127,6 @@ class GyroGSensitivity(Effect):
 
     def explain(self, params=None):
         s = self._p(params)["sensitivity"].detach().cpu().double()
-        per_g = [float(v) * G0 / DEG for v in s]
+        per_g = [float(v) * G0 / DEG_TO_RAD for v in s]
         return (f"IMU {self.imu}'s gyroscope reading shifts with the specific force it feels "
                 f"([{', '.join(f'{v:.3g}' for v in per_g)}] (°/s)/g on x, y, z): a g-sensitive gyro.")

@@ -7,7 +7,8 @@ import torch
 
 from ...geometry import quat_exp, quat_to_matrix
 from ...models import to_array_frame
-from .base import DEG, Effect, Param, register_effect, _onehot
+from ...constants import DEG_TO_RAD
+from .base import Effect, Param, register_effect, _onehot
 
 
 @register_effect
@@ -40,7 +41,7 @@ class TriadOrientation(Effect):
     def report_parameters(self, params=None, orientations=None):
         out = super().report_parameters(params)
         rho = self._p(params)["rotation_vector"].detach().cpu().double()
-        out["angle_deg"] = float(rho.norm()) / DEG
+        out["angle_deg"] = float(rho.norm()) / DEG_TO_RAD
         if orientations is not None:
             q = torch.as_tensor(orientations, dtype=torch.float64)[self.imu]
             out["rotation_vector_array"] = [float(v) for v in to_array_frame(rho.reshape(1, 3), q.reshape(1, 4))[0]]
@@ -48,7 +49,7 @@ class TriadOrientation(Effect):
 
     def explain(self, params=None):
         rho = self._p(params)["rotation_vector"].detach().cpu().double()
-        ang = float(rho.norm()) / DEG
+        ang = float(rho.norm()) / DEG_TO_RAD
         ax = (rho / rho.norm()).tolist() if ang > 0 else [0.0, 0.0, 1.0]
         return (f"IMU {self.imu} is mounted rotated by {ang:.3g}° from its nominal orientation (about the sensor-frame "
                 f"direction [{', '.join(f'{v:.2f}' for v in ax)}]), so both its accelerometer and gyroscope see the "
