@@ -17,10 +17,9 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
-__all__ = ["SensorArray", "mimu4444_32", "mimu4444_8", "s16_plate", "PRESETS", "preset", "check_triad_geometry"]
+from .constants import DEG_TO_RAD, G0
 
-G0 = 9.80665  # standard gravity, m/s²
-DEG = math.pi / 180.0
+__all__ = ["SensorArray", "mimu4444_32", "mimu4444_8", "s16_plate", "PRESETS", "preset", "check_triad_geometry"]
 
 # MIMU bottom-side mounting (data README): C maps sensor → array, C = Cᵀ, so the array → sensor
 # rotation of DESIGN §7.0 is C itself, quaternion (0, 1/√2, −1/√2, 0).
@@ -180,9 +179,9 @@ def _mimu(xy, dtype, device, name):
         has_gyro=torch.ones(K, dtype=torch.bool, device=device),
         # [C21] §IV-A: σ_a = 0.04 m/s², σ_g = 0.06 °/s; MPU-9150 at ±16 g and ±2000 °/s.
         acc_noise_std=torch.full((K,), 0.04, dtype=dtype, device=device),
-        gyro_noise_std=torch.full((K,), 0.06 * DEG, dtype=dtype, device=device),
+        gyro_noise_std=torch.full((K,), 0.06 * DEG_TO_RAD, dtype=dtype, device=device),
         acc_range=16 * G0,
-        gyro_range=2000 * DEG,
+        gyro_range=2000 * DEG_TO_RAD,
         reference_imu=0,
         name=name,
         package_size=4e-3,
@@ -224,9 +223,9 @@ def s16_plate(dtype=torch.float64, device=None) -> SensorArray:
         has_acc=torch.ones(K, dtype=torch.bool, device=device),
         has_gyro=has_gyro,
         acc_noise_std=torch.full((K,), 0.02, dtype=dtype, device=device),
-        gyro_noise_std=torch.full((K,), 0.38 * DEG, dtype=dtype, device=device),
+        gyro_noise_std=torch.full((K,), 0.38 * DEG_TO_RAD, dtype=dtype, device=device),
         acc_range=16 * G0,
-        gyro_range=2000 * DEG,
+        gyro_range=2000 * DEG_TO_RAD,
         reference_imu=0,
         name="s16plate",
         package_size=None,

@@ -14,7 +14,6 @@ inputs.
 """
 from __future__ import annotations
 
-import math
 
 import torch
 
@@ -203,8 +202,3 @@ def rotation_angle(q1: torch.Tensor, q0: torch.Tensor | None = None) -> torch.Te
         q1 = quat_mul(quat_conj(q0), q1)
     q1 = quat_normalize(q1)
     return 2.0 * torch.atan2(q1[..., 1:].norm(dim=-1), q1[..., 0].abs())
-
-
-def deg(x: float) -> float:
-    """Degrees → radians (helper for readable presets)."""
-    return x * math.pi / 180.0

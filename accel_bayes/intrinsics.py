@@ -17,13 +17,18 @@ Accelerometer model (per IMU k, sensor frame)
   and so is its inverse) and the usual convention of multi-position calibration.  How the
   corrected frame sits on the board (the triad's orientation) is a separate question — answered
   by the array-level calibration, not here.  Positive diagonal entries fix the sign.
+  In the terms of the effects library (one definition per sensor error): the raw output is
+  a_raw = T⁻¹ a_true + b, a general gain and bias (``acc_scale``, ``acc_misalignment``,
+  ``acc_bias``; :meth:`Intrinsics.acc_effects`) restricted to the triangular gauge gain = L·Q
+  with Q = I (:func:`accel_bayes.physics.effects.triangular_gauge`).
 * The 9 parameters per IMU, in this order (``ACC_PARAMS``):
   ``[b_x, b_y, b_z, t_xx, t_yy, t_zz, t_yx, t_zx, t_zy]``.
 
 Estimation: for each rest s the mean raw output m_ks (unclipped samples only) gives one residual
 r_ks = |T_k (m_ks − b_k)| − g with weight n_ks / σ_k² (n_ks samples, σ_k the pooled within-rest
-std of that IMU: the white-noise variance of the rest mean).  A Levenberg–Marquardt loop in
-torch, batched over IMUs, minimises Σ_s w r² (9 unknowns per IMU).  Needs at least 9 rests in
+std of that IMU: the white-noise variance of the rest mean).  The package's batched
+Levenberg–Marquardt (:class:`accel_bayes.inference.lm.BatchedLevenbergMarquardt`, all IMUs at
+once) minimises Σ_s w r² (9 unknowns per IMU).  Needs at least 9 rests in
 9 distinct orientations (more for an uncertainty).
 
 Uncertainty: the Laplace (Gauss–Newton) covariance (JᵀWJ)⁻¹, multiplied by the reduced χ²
@@ -61,8 +66,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .arrays import G0
+from .constants import G0
 from .errors import UserError
+from .inference.damping import NielsenDamping
+from .inference.lm import BatchedLevenbergMarquardt, StoppingRule
 from .recording import Recording
 from .segments import cluster_orientations, detect_static, mask_from_labels, static_segments
 
@@ -230,6 +237,21 @@ class Intrinsics:
         """T_k (a_raw − b_k) for (..., K, 3) raw outputs (sensor frame), m/s²."""
         a = np.asarray(acc, dtype=np.float64) - self.acc_bias
         return np.einsum("kij,...kj->...ki", np.asarray(self.acc_matrix), a)
+
+    def acc_effects(self) -> list:
+        """The accelerometer errors as effects of the physics library (``acc_scale``,
+        ``acc_misalignment``, ``acc_bias`` per IMU; :func:`accel_bayes.physics.effects.
+        acc_gain_effects`): raw outputs a_raw = T⁻¹ a_true + b, i.e. gain T⁻¹ and bias b, sensor
+        frame.  T⁻¹ is lower-triangular, so this is the triangular gauge (module docstring):
+        :func:`~accel_bayes.physics.effects.gain_to_intrinsics` recovers (T, b) from the effects
+        with an identity rotation.  IMUs without an estimate (NaN) get none."""
+        from .physics.effects import acc_gain_effects, intrinsics_gain
+
+        out = []
+        for k in range(self.K):
+            if np.isfinite(self.acc_bias[k]).all() and np.isfinite(self.acc_matrix[k]).all():
+                out += acc_gain_effects(*intrinsics_gain(self.acc_matrix[k], self.acc_bias[k]), imu=k)
+        return out
 
     def correct_gyro(self, gyro: np.ndarray) -> np.ndarray:
         """gyro − b_g for (..., K, 3), rad/s."""
@@ -401,32 +423,21 @@ def _residuals(p, m, g):
 
 
 def _lm(p, m, w, g, max_iter=200, tol=1e-13):
-    """Batched Levenberg–Marquardt (Marquardt scaling, per-IMU damping) for the rest model."""
-    K = p.shape[0]
-    lam = torch.full((K,), 1e-3, dtype=p.dtype)
-    r, J = _residuals(p, m, g)
-    cost = (w * r * r).sum(-1)
-    done = torch.zeros(K, dtype=torch.bool)
-    for _ in range(max_iter):
-        A = torch.einsum("ksi,ks,ksj->kij", J, w, J)
-        grad = torch.einsum("ksi,ks,ks->ki", J, w, r)
-        D = torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1).clamp_min(1e-300))
-        step = -torch.linalg.solve(A + lam[:, None, None] * D, grad.unsqueeze(-1)).squeeze(-1)
-        p_new = p + step
-        r_new, J_new = _residuals(p_new, m, g)
-        cost_new = (w * r_new * r_new).sum(-1)
-        better = (cost_new <= cost) & torch.isfinite(cost_new) & ~done
-        p = torch.where(better[:, None], p_new, p)
-        r = torch.where(better[:, None], r_new, r)
-        J = torch.where(better[:, None, None], J_new, J)
-        small = step.norm(dim=-1) <= tol * (1.0 + p.norm(dim=-1))
-        rel = (cost - cost_new).abs() <= 1e-15 * cost.clamp_min(1e-300)
-        cost = torch.where(better, cost_new, cost)
-        lam = torch.where(better, (lam / 3).clamp_min(1e-12), lam * 4)
-        done |= (better & (small | rel)) | (lam > 1e12)
-        if bool(done.all()):
-            break
-    return p, r, J, bool(done.all())
+    """Fit the rest model of every IMU at once with the package's batched Levenberg–Marquardt
+    (:class:`~accel_bayes.inference.lm.BatchedLevenbergMarquardt`: Nielsen damping with Marquardt
+    scaling, one λ and one stopping reason per IMU).  p (K, 9) start, m (K, S, 3) rest means,
+    w (K, S) weights.  Returns (p, r, J at p, all converged)."""
+    def linearize(p_, idx):
+        r, J = _residuals(p_, m[idx], g)
+        wi = w[idx]
+        b = -torch.einsum("ksi,ks,ks->ki", J, wi, r)
+        H = torch.einsum("ksi,ks,ksj->kij", J, wi, J)
+        return 0.5 * (wi * r * r).sum(-1), b, H
+
+    stop = StoppingRule(max_iter, ftol=1e-15, xtol=tol, gtol=0.0)
+    res = BatchedLevenbergMarquardt(NielsenDamping(tau=1e-3), stop).solve(linearize, p, subset=True)
+    r, J = _residuals(res.x, m, g)
+    return res.x, r, J, bool(res.converged.all())
 
 
 def estimate_intrinsics(recording: Recording, segments=None, g: float = G0, *,

@@ -54,7 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .arrays import G0, SensorArray, mimu4444_8
+from .arrays import SensorArray, mimu4444_8
+from .constants import G0
 from .errors import RecordingError
 from .recording import Recording
 from .segments import StaticAnalysis, analyse_static, difference_noise_std, segment_labels

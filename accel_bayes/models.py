@@ -166,6 +166,8 @@ def triad_output(
     state (..., 9) = [a_lin, ω, ω̇] ([S16] eq. 3, array frame; a_lin is the specific force of the
     origin); q (A, 4) body → sensor quaternions; r (A, 3) m; S (A, 3, 3) upper-triangular
     sensitivities (identity if None); offset (A, 3) m/s² (zero if None).  Returns (..., A, 3).
+    S and o are the triangular gauge of the accelerometer effects' general gain + bias
+    (:func:`accel_bayes.physics.effects.s16_gain` / :func:`~accel_bayes.physics.effects.gain_to_s16`).
     """
     a_lin, omega, omega_dot = state[..., 0:3], state[..., 3:6], state[..., 6:9]
     z = to_sensor_frame(specific_force(r, omega, omega_dot, a_lin), q)

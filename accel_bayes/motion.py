@@ -39,14 +39,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .arrays import G0
+from .constants import DEG_TO_RAD, G0
 from .errors import UserError
 from .geometry import quat_conj, quat_exp, quat_mul, quat_rotate, quat_to_matrix, random_quaternion
 from .models import specific_force
 
 __all__ = [
     "G_WORLD",
-    "DEG",
+    "DEG_TO_RAD",
     "MotionTrace",
     "ContinuousMotion",
     "SmoothTrajectory",
@@ -61,7 +61,6 @@ __all__ = [
     "MOTIONS",
 ]
 
-DEG = math.pi / 180.0
 G_WORLD = (0.0, 0.0, -G0)  # world-frame gravity, m/s² (z up)
 
 
@@ -516,8 +515,8 @@ def trajectory_from_dict(d: dict) -> ContinuousMotion:
 def iid_motion(
     T: int,
     *,
-    omega_std: float = 1000 * DEG,
-    omega_dot_std: float = 35000 * DEG,
+    omega_std: float = 1000 * DEG_TO_RAD,
+    omega_dot_std: float = 35000 * DEG_TO_RAD,
     s_std: float = 20.0,
     rate: float = 100.0,
     t0: float = 0.0,
@@ -549,7 +548,7 @@ def smooth_motion(
     T: int,
     rate: float = 100.0,
     *,
-    omega_rms: float = 400 * DEG,
+    omega_rms: float = 400 * DEG_TO_RAD,
     accel_rms: float = 5.0,
     freq_range: tuple[float, float] = (0.2, 3.0),
     n_components: int = 4,
@@ -606,7 +605,7 @@ def table_motion(
     rate: float = 125.0,
     *,
     axes="xyz",
-    omega_amplitude: float = 200 * DEG,
+    omega_amplitude: float = 200 * DEG_TO_RAD,
     frequency: float = 1.0,
     rest_duration: float = 0.0,
     center=(0.0, 0.0, 0.0),

@@ -17,7 +17,8 @@ Solver
 Weighted non-linear least squares per sample, all samples at once (no loop over samples): ω
 starts at the weighted gyro mean, φ = [ω̇; s] at its linear least-squares value given ω ([C21]
 eq. 5: y = G(θ)u(ω) + H(θ)φ), then a Levenberg–Marquardt loop on the batched 9×9 normal
-equations (factored so that the batched work is matrix products, see :class:`Geometry`).
+equations (factored so that the batched work is matrix products, see
+:class:`accel_bayes.physics.jacobians.AxisProjection`).
 Residuals are per sensor axis with weight 1/σ_k²; in a triad flagged as clipped, an axis within
 1 % of the sensor range gets weight 0 (the triad's other axes still count).  When the unclipped
 gyro axes do not determine ω, the missing components come from the accelerometers — possible
@@ -61,8 +62,12 @@ import numpy as np
 import torch
 
 from .errors import UserError
-from .geometry import quat_to_matrix, skew
+from .geometry import quat_to_matrix
+from .inference.damping import NielsenDamping
+from .inference.linear import damped_step
+from .inference.lm import BatchedLevenbergMarquardt, StoppingRule
 from .models import specific_force
+from .physics.jacobians import AxisProjection, axis_force, axis_force_jacobian, df_dr
 from .positions import POSITIONS_SCHEMA, read_positions
 from .recording import Recording
 
@@ -72,7 +77,6 @@ __all__ = [
     "PARAMS",
     "Calibration",
     "load_calibration",
-    "motion_jacobian",
     "solve_motion",
     "estimate_motion",
     "write_motion",
@@ -152,58 +156,6 @@ def load_calibration(calibration, K: int | None = None) -> Calibration:
 
 
 # ------------------------------------------------------------------------------ kernel
-def motion_jacobian(r: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """∂f_k/∂x of the specific force f_k = ω×(ω×r_k) + ω̇×r_k + s w.r.t. x = [ω, ω̇, s].
-
-    r (..., K, 3), x (..., 9) → (..., K, 3, 9):  [ωr_kᵀ + (ω·r_k)I − 2r_kωᵀ,  −Ω(r_k),  I].
-    """
-    w = x[..., None, 0:3]  # (..., 1, 3)
-    w, r = torch.broadcast_tensors(w, r)
-    eye = torch.eye(3, dtype=r.dtype, device=r.device)
-    Jw = w.unsqueeze(-1) * r.unsqueeze(-2) + (w * r).sum(-1)[..., None, None] * eye - 2 * r.unsqueeze(-1) * w.unsqueeze(-2)
-    return torch.cat((Jw, -skew(r), eye.expand(Jw.shape)), -1)
-
-
-class Geometry:
-    """What the solver needs of a geometry, per sensor axis m = (k, a) (M = 3K rows): the axis
-    direction R_a of IMU k in the array frame (``Rm`` (M, 3)), the position r_k (``rk``
-    (*G, M, 3)), p_m = R_a·r_k and the constant Jacobian rows of φ = [ω̇; s],
-    C_m = [r_k × R_a, R_a] (*G, M, 6).
-
-    With y_m the sensor output of axis m, [C21] eq. 4a (R_k f(r_k; ω, ω̇, s) of
-    :func:`accel_bayes.models.specific_force`) reads
-
-        f_m = α_m β_m − |ω|² p_m + C_m·φ,    α_m = R_a·ω,  β_m = r_k·ω,
-        ∂f_m/∂ω = α_m r_k + β_m R_a + γ_m ω,  γ_m = −2 p_m,
-
-    so every normal-equation block is a sum over m of products of per-sample scalars
-    (α, β, w …) with per-geometry outer products (r rᵀ, R Rᵀ, r Rᵀ, r Cᵀ, R Cᵀ, C Cᵀ),
-    precomputed here: the hot loop is a handful of (N, M) × (M, c) matrix products and
-    elementwise work on (N, M), with no per-sample small matmuls.
-    ``G`` is () for one geometry or (D,) for D geometry draws.
-    """
-
-    def __init__(self, R: torch.Tensor, r: torch.Tensor):
-        K = R.shape[0]
-        self.K = K
-        self.Rm = R.reshape(3 * K, 3)  # row a of R_k: sensor axis a in the array frame
-        self.r = r  # (*G, K, 3)
-        self.rk = r.repeat_interleave(3, dim=-2)  # (*G, M, 3)
-        self.rkT = self.rk.transpose(-1, -2)
-        self.p = (self.rk * self.Rm).sum(-1)  # (*G, M)
-        self.gamma = -2 * self.p
-        self.gamma2 = self.gamma * self.gamma
-        Rm = self.Rm.expand(self.rk.shape)
-        self.C = torch.cat((torch.linalg.cross(self.rk, Rm, dim=-1), Rm), -1)  # (*G, M, 6)
-        outer = lambda u, v: (u.unsqueeze(-1) * v.unsqueeze(-2)).flatten(-2)  # noqa: E731
-        self.rr = outer(self.rk, self.rk)  # (*G, M, 9)
-        self.RR = outer(self.Rm, self.Rm)  # (M, 9)
-        self.rR = outer(self.rk, Rm)  # (*G, M, 9)
-        self.rC = outer(self.rk, self.C)  # (*G, M, 18)
-        self.RC = outer(Rm, self.C)  # (*G, M, 18)
-        self.CC = outer(self.C, self.C)  # (*G, M, 36)
-
-
 class _Data:
     """Per-sample measurements of one batch: sensor-frame acc y (N, M) with weights w (N, M)
     (1/σ², 0 for unused axes) and the gyro terms, reduced to the array frame:
@@ -217,25 +169,11 @@ class _Data:
         return _Data(self.y[sl], self.w[sl], self.Gam[sl], self.GY[sl], self.gconst[sl])
 
 
-def _model(x, geo: Geometry):
-    """f (…, N, M) and the ω-Jacobian rows a (…, N, M, 3) for x (…, N, 9) (one-time use; the
-    solver itself works with the factored form of :func:`_cost_grad_hess`)."""
-    w = x[..., 0:3]
-    al = w @ geo.Rm.T
-    be = w @ geo.rkT
-    f = al * be - (w * w).sum(-1, keepdim=True) * geo.p.unsqueeze(-2) + x[..., 3:9] @ geo.C.transpose(-1, -2)
-    a = al.unsqueeze(-1) * geo.rk.unsqueeze(-3) + be.unsqueeze(-1) * geo.Rm + geo.gamma.unsqueeze(-2).unsqueeze(-1) * w.unsqueeze(-2)
-    return f, a
-
-
-def _cost_grad_hess(x, geo: Geometry, d: _Data):
+def _cost_grad_hess(x, geo: AxisProjection, d: _Data):
     """cost (…, N), JᵀWe (…, N, 9), JᵀWJ (…, N, 9, 9) of the weighted least-squares objective
-    Σ_m w_m (y_m − f_m)² + Σ_k (ȳ_k − ω)ᵀ Γ_k (ȳ_k − ω)  (factored form, see :class:`Geometry`)."""
+    Σ_m w_m (y_m − f_m)² + Σ_k (ȳ_k − ω)ᵀ Γ_k (ȳ_k − ω)  (factored form, see :class:`AxisProjection`)."""
     w = x[..., 0:3]
-    al = w @ geo.Rm.T  # (…, N, M)
-    be = w @ geo.rkT
-    w2 = (w * w).sum(-1, keepdim=True)
-    f = al * be - w2 * geo.p.unsqueeze(-2) + x[..., 3:9] @ geo.C.transpose(-1, -2)
+    f, al, be = axis_force(x, geo)  # (…, N, M) each
     e = d.y - f
     we = d.w * e
     wal = d.w * al
@@ -259,7 +197,7 @@ def _cost_grad_hess(x, geo: Geometry, d: _Data):
     return cost, torch.cat((ga, gb), -1), H
 
 
-def _initial(geo: Geometry, d: _Data, gyro_fallback):
+def _initial(geo: AxisProjection, d: _Data, gyro_fallback):
     """ω from the (weighted) gyro mean, then φ = [ω̇; s] by linear least squares given ω."""
     N = d.Gam.shape[0]
     eye3 = torch.eye(3, dtype=d.Gam.dtype)
@@ -278,54 +216,40 @@ def _initial(geo: Geometry, d: _Data, gyro_fallback):
     return x, ~ok
 
 
-def solve_motion(geo: Geometry, d: _Data, x0, *, max_iter: int = 50, xtol: float = 1e-12):
-    """Batched Levenberg–Marquardt for x = [ω, ω̇, s] per sample (Marquardt-scaled damping per
-    sample; no loop over samples).  ``x0`` (*G, N, 9) with G the geometry's batch.
+def solve_motion(geo: AxisProjection, d: _Data, x0, *, max_iter: int = 50, xtol: float = 1e-12):
+    """x = [ω, ω̇, s] per sample by the package's batched Levenberg–Marquardt
+    (:class:`~accel_bayes.inference.lm.BatchedLevenbergMarquardt`: Nielsen damping with Marquardt
+    scaling, one λ and one stopping reason per sample; no loop over samples).  ``x0`` (*G, N, 9)
+    with G the geometry's batch.  λ₀ = 10⁻⁸ (relative to diag H): the start (gyro mean, φ by
+    linear least squares) is already close.  Converged: a step ≤ ``xtol``·‖x‖, or a relative
+    cost change ≤ 10⁻¹⁴ (round-off level), accepted or not.
     Returns (x, cost, H = JᵀWJ at x, converged (*G, N) bool)."""
-    x = x0.clone()
-    cost, g, H = _cost_grad_hess(x, geo, d)
-    lam = torch.full(cost.shape, 1e-8, dtype=x.dtype)
-    done = torch.zeros(cost.shape, dtype=torch.bool)
-    conv = done.clone()
-    eye = torch.eye(9, dtype=x.dtype)
-    for _ in range(max_iter):
-        D = torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(1e-30)
-        L, info = torch.linalg.cholesky_ex(H + lam[..., None, None] * torch.diag_embed(D))
-        bad = info != 0
-        L = torch.where(bad[..., None, None], eye, L)
-        step = torch.where(bad[..., None], 0, torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1))
-        x_new = x + step
-        cost_new, g_new, H_new = _cost_grad_hess(x_new, geo, d)
-        better = (cost_new <= cost) & torch.isfinite(cost_new) & ~done & ~bad
-        x = torch.where(better[..., None], x_new, x)
-        g = torch.where(better[..., None], g_new, g)
-        H = torch.where(better[..., None, None], H_new, H)
-        small = step.norm(dim=-1) <= xtol * (1 + x.norm(dim=-1))
-        flat = (cost - cost_new).abs() <= 1e-14 * cost.abs().clamp_min(1e-300)
-        cost = torch.where(better, cost_new, cost)
-        lam = torch.where(better, (lam / 5).clamp_min(1e-15), lam * 10)
-        # Converged: a negligible step, or no further decrease possible at round-off level.
-        conv = conv | small | (flat & ~bad)
-        done = conv | (lam > 1e10)
-        if bool(done.all()):
-            break
-    return x, cost, H, conv
+    if geo.rk.dim() == 2:  # one geometry: the solver evaluates only the samples still running
+        def linearize(x, idx):
+            cost, g, H = _cost_grad_hess(x, geo, d.take(idx))
+            return 0.5 * cost, g, H  # the solver's ½‖r‖² convention; g = JᵀWe = −∇(cost/2)
+    else:
+        def linearize(x):
+            cost, g, H = _cost_grad_hess(x, geo, d)
+            return 0.5 * cost, g, H
+
+    stop = StoppingRule(max_iter, ftol=1e-14, xtol=xtol, gtol=0.0, flat_rejected=True)
+    lm = BatchedLevenbergMarquardt(NielsenDamping(tau=1e-8), stop)
+    res = lm.solve(linearize, x0, subset=geo.rk.dim() == 2)
+    return res.x, 2.0 * res.cost, res.H, res.converged
 
 
-def gauss_newton_steps(geo: Geometry, d: _Data, x0, steps: int = 2):
+def gauss_newton_steps(geo: AxisProjection, d: _Data, x0, steps: int = 2):
     """``steps`` undamped Gauss–Newton steps from ``x0`` (*G, N, 9) — for re-solving under a
     slightly perturbed geometry, starting at the unperturbed optimum (quadratic convergence: a
-    relative perturbation ε leaves an error of order ε^(2^steps)).  Returns (x, the last step
-    (*G, N, 9))."""
+    relative perturbation ε leaves an error of order ε^(2^steps)).  The linear solve is the
+    batched LM's (:func:`~accel_bayes.inference.linear.damped_step`, no damping).  Returns (x,
+    the last step (*G, N, 9))."""
     x = x0.clone()
-    eye = torch.eye(9, dtype=x.dtype)
     step = torch.zeros_like(x)
     for _ in range(steps):
         _, g, H = _cost_grad_hess(x, geo, d)
-        L, info = torch.linalg.cholesky_ex(H)
-        bad = info != 0
-        L = torch.where(bad[..., None, None], eye, L)
-        step = torch.where(bad[..., None], 0, torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1))
+        step, _ = damped_step(H, g)
         x = x + step
     return x, step
 
@@ -445,7 +369,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     Lg = torch.einsum("kai,tka,kaj->tij", R, wg_t, R)  # Σ_k R_kᵀ diag(w_g) R_k
     GY = torch.einsum("kai,tka->ti", R, wg_t * yg)
     d = _Data(ya, torch.as_tensor(wa).reshape(-1, M), Lg, GY, (wg_t * yg * yg).sum((1, 2)))
-    geo = Geometry(R, pos)
+    geo = AxisProjection(R, pos)
 
     # Fallback start for samples without a usable gyro axis: the clipped readings themselves
     # (right sign; magnitude at the range), averaged in the array frame.
@@ -474,11 +398,8 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     cov_geo = torch.zeros(Tn, 9, 9, dtype=torch.float64)
     draw_info = {}
     if geo_used and geometry == "linear":
-        w, wd = x[:, 0:3], x[:, 3:6]
-        Om = skew(w)
-        dfdr = Om @ Om + skew(wd)  # (T, 3, 3): ∂f_k/∂r_k, array frame, the same for every triad
-        _, a_w = _model(x, geo)
-        J = torch.cat((a_w, geo.C.expand(Tn, -1, -1)), -1)  # (T, M, 9)
+        dfdr = df_dr(x[:, 0:3], x[:, 3:6])  # (T, 3, 3): ∂f_k/∂r_k, array frame, the same for every triad
+        J = axis_force_jacobian(x, geo)  # (T, M, 9)
         Bm = geo.Rm @ dfdr  # (T, M, 3): ∂f_m/∂r_k(m)
         # dx/dr_k = −(JᵀWJ)⁻¹ Σ_{m in k} w_m J_mᵀ ∂f_m/∂r_k  (sign irrelevant for the covariance)
         P = (d.w[..., None, None] * J.unsqueeze(-1) * Bm.unsqueeze(-2)).unflatten(1, (K, 3)).sum(2)  # (T, K, 9, 3)
@@ -491,7 +412,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
         z = torch.randn(draws, K, 3, generator=gen, dtype=torch.float64)
         r_d = pos + (Lr @ z.unsqueeze(-1)).squeeze(-1)  # (D, K, 3)
         r_d = torch.where(torch.as_tensor(has_acc)[None, :, None], r_d, 0.0)
-        geo_d = Geometry(R, r_d)
+        geo_d = AxisProjection(R, r_d)
         sd_noise0 = torch.sqrt(torch.diagonal(cov_noise, dim1=-2, dim2=-1).clamp_min(1e-300))
         chunk_t = max(1, int(chunk_systems) // draws)
         s1 = torch.zeros(Tn, 9, dtype=torch.float64)

@@ -68,10 +68,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .constants import DEFAULT_PRIOR_STD
 from .errors import UserError
-from .inference.crb import du_domega
 from .likelihood import RaoBlackwellLikelihood
 from .models import G_matrix, H_matrix, u_of_omega
+from .physics.jacobians import du_domega
 
 __all__ = ["NoiseModel", "residual_statistics", "update_noise", "scale_samples", "fit_map_with_noise",
            "sandwich_inflation", "rate_bins", "TemperedLikelihood", "fit_map_tempered", "NOISE_MODES",
@@ -239,7 +240,7 @@ def rate_bins(omega_norm, n_bins: int) -> np.ndarray:
 
 
 def fit_map_with_noise(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, prior_mean=None,
-                       prior_std=3e-3, bins: int = DEFAULT_RATE_BINS, max_rounds: int = 8, rtol: float = 0.01,
+                       prior_std=DEFAULT_PRIOR_STD, bins: int = DEFAULT_RATE_BINS, max_rounds: int = 8, rtol: float = 0.01,
                        fit_kwargs: dict | None = None):
     """Alternate the MAP and the type-II ML noise update until σ and s move by < ``rtol``.
 
@@ -304,7 +305,7 @@ def newey_west_lags(T: int) -> int:
 
 
 def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *, reference: int = 0,
-                       prior_mean=None, prior_std=3e-3, lags: int | None = None) -> dict:
+                       prior_mean=None, prior_std=DEFAULT_PRIOR_STD, lags: int | None = None) -> dict:
     """How much wider the misspecification-robust (sandwich) covariance of θ is than the Laplace one.
 
     At the MAP of the (scaled) problem, with per-sample scores g_t = J̃_tᵀ r_t (r_t the whitened,
@@ -384,7 +385,7 @@ class TemperedLikelihood(RaoBlackwellLikelihood):
 
 
 def fit_map_tempered(acc, omega_mean, omega_cov, acc_noise_std, kappa: float, *, reference: int = 0,
-                     prior_mean=None, prior_std=3e-3, init_positions=None, init_omega=None, max_iter: int = 100):
+                     prior_mean=None, prior_std=DEFAULT_PRIOR_STD, init_positions=None, init_omega=None, max_iter: int = 100):
     """MAP and Laplace covariance of the tempered posterior (:class:`TemperedLikelihood`):
     :func:`accel_bayes.inference.map.build_map_problem` with ``acc_noise_std`` (already × √κ)
     and its log|M| term weighted by 1/κ; solved by the same Levenberg–Marquardt.  Returns a

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .arrays import G0
+from .constants import G0, RAD_TO_DEG
 from .errors import UserError
 from .intrinsics import ACC_PARAMS, Intrinsics, estimate_intrinsics, rest_segments, static_acc_errors, \
     triangular_matrix
@@ -53,7 +53,6 @@ __all__ = ["Preprocessed", "preprocess", "clipped_samples", "draw_intrinsics", "
 
 INTRINSICS_MODES = ("auto", "estimate", "none")
 MIN_REST_ORIENTATIONS = 9  # the accelerometer model has 9 unknowns per IMU
-DEG = 180.0 / math.pi
 
 
 @dataclass
@@ -122,7 +121,7 @@ def _load_intrinsics(spec):
 
 def _intrinsics_summary(intr: Intrinsics, before: np.ndarray, after: np.ndarray, how: str) -> dict:
     ok = np.isfinite(intr.acc_bias).all(-1)
-    gb = np.abs(intr.gyro_bias) * DEG
+    gb = np.abs(intr.gyro_bias) * RAD_TO_DEG
     return {
         "applied": True,
         "how": how,
@@ -139,7 +138,7 @@ def _intrinsics_summary(intr: Intrinsics, before: np.ndarray, after: np.ndarray,
         "residual_rms": [None if not np.isfinite(v) else float(v) for v in intr.residual_rms],
         "acc_bias": [[float(x) for x in row] for row in np.asarray(intr.acc_bias)],
         "acc_scale": [[float(x) for x in row] for row in intr.acc_scale],
-        "gyro_bias_dps": [[float(x) for x in row] for row in np.asarray(intr.gyro_bias) * DEG],
+        "gyro_bias_dps": [[float(x) for x in row] for row in np.asarray(intr.gyro_bias) * RAD_TO_DEG],
         "source": intr.source,
     }
 

@@ -24,6 +24,7 @@ from .errors import UserError
 from .geometry import boxminus, boxplus
 from .models import imu_outputs
 from .motion import MotionTrace, as_generator, make_motion
+from .physics.effects.timing import sample_times
 from .recording import Recording
 
 __all__ = ["SimResult", "simulate", "TRUTH_SCHEMA", "memory_estimate"]
@@ -146,10 +147,10 @@ def simulate(
     time_offsets : (K,) s or None — IMU k's sample stamped t is taken at t + δ_k (positive =
         sampled late, DESIGN §7.2 ``time_offset``); needs a continuous motion ("smooth",
         "table"), whose trajectory is re-evaluated at the shifted times.  Recorded in the truth.
-    effects : list of :class:`accel_bayes.mismatch.effects.Effect` instances (with their
+    effects : list of :class:`accel_bayes.physics.effects.Effect` instances (with their
         parameter values) or dicts ``{"effect": name, "imu": k, "axis": a, "parameters": {...}}``
         (DESIGN §7.2 names) — physics the nominal model leaves out, simulated with the *same*
-        definitions the mismatch detector fits (:func:`accel_bayes.mismatch.effects.apply_effects`):
+        definitions the mismatch detector fits (:func:`accel_bayes.physics.effects.apply_effects`):
         mean effects are added to the noise-free outputs (computed from the true motion and
         geometry; ``time_offset`` uses the trajectory's exact output rates, so it needs a
         continuous motion), ``noise_level`` scales the true noise (the recording still states
@@ -220,7 +221,7 @@ def simulate(
         if bool((offsets != 0).any()) and tr.trajectory is None:
             raise UserError(f"time_offsets: need a continuous motion ('smooth' or 'table'); {kind!r} has no trajectory")
         for k in torch.nonzero(offsets).flatten().tolist():
-            late = tr.trajectory.trace(time + offsets[k])
+            late = tr.trajectory.trace(sample_times(time, offsets[k]))  # exact: the trajectory at t + δ_k
             a_k, g_k = imu_outputs(p_true[k : k + 1], q_true[k : k + 1], cast(late.omega), cast(late.omega_dot), cast(late.s))
             acc0[:, k], gyro0[:, k] = a_k[:, 0], g_k[:, 0]
     e_acc = torch.randn(Tn, K, 3, generator=g_noise, dtype=torch.float64)
@@ -314,7 +315,7 @@ def _effects_list(effects) -> list:
     """Effects given to :func:`simulate` as instances or report-style dicts → instances."""
     if effects is None:
         return []
-    from .mismatch.effects import Effect, make_effect
+    from .physics.effects import Effect, make_effect
 
     out = []
     for e in effects:
@@ -333,7 +334,7 @@ def _effects_list(effects) -> list:
 
 def _apply_effects(eff_list, tr, kind, time, omega, omega_dot, s, p_true, q_true, acc0, gyro0, acc_noise, gyro_noise):
     """Outputs with effects (see ``effects`` in :func:`simulate`); returns (acc, gyro, acc_clean, gyro_clean)."""
-    from .mismatch.effects import SignalContext, apply_effects, model_outputs
+    from .physics.effects import SignalContext, apply_effects, model_outputs
 
     acc_rate = gyro_rate = None
     if any(e.needs_rates for e in eff_list):

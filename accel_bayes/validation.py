@@ -28,6 +28,7 @@ import torch
 from .arrays import check_triad_geometry
 from .errors import RecordingError
 from .geometry import quat_to_matrix
+from .constants import DEG_TO_RAD, RAD_TO_DEG
 
 __all__ = [
     "FORMAT",
@@ -42,8 +43,6 @@ __all__ = [
 
 FORMAT = "accel_bayes.recording/1"
 SEGMENT_LABELS = ("static", "dynamic")
-RAD_PER_DEG = math.pi / 180.0
-DEG_PER_RAD = 180.0 / math.pi
 
 # Without a stated gyro_range, |ω| above this is not a plausible rad/s reading: 150 rad/s ≈ 8600 °/s,
 # over twice the full scale of the fastest common MEMS gyroscopes (±4000 °/s ≈ 70 rad/s), and well
@@ -575,7 +574,7 @@ def gyro_unit_diagnostics(rec, gyro_units: str = "rad s-1", max_samples: int = 2
     """
     kind = _declared_kind(gyro_units)
     other = "deg s-1" if kind == "rad s-1" else "rad s-1"
-    c_alt = RAD_PER_DEG if kind == "rad s-1" else DEG_PER_RAD
+    c_alt = DEG_TO_RAD if kind == "rad s-1" else RAD_TO_DEG
     out = {"declared": kind, "c_alt": c_alt, "flag": None}
     gyro = np.asarray(rec.gyro, dtype=float)
     has_g = ~np.all(np.isnan(gyro), axis=(0, 2))

@@ -11,8 +11,8 @@ import torch
 
 from accel_bayes.arrays import mimu4444_8
 from accel_bayes.errors import UserError
-from accel_bayes.inference.crb import crb_theta, du_domega, fisher_information_theta
-from accel_bayes.models import specific_force, u_of_omega
+from accel_bayes.inference.crb import crb_theta, fisher_information_theta
+from accel_bayes.models import specific_force
 from accel_bayes.motion import iid_motion
 
 DT = torch.float64
@@ -77,12 +77,6 @@ def test_crb_without_gyros_and_with_gyro_cov():
     assert bool((C_g.diagonal() <= C_none.diagonal() * (1 + 1e-12)).all())
     with pytest.raises(UserError):
         crb_theta(pos, w, wd, s, sa, sg, gyro_cov=torch.eye(3, dtype=DT))
-
-
-def test_du_domega_matches_autograd():
-    w = torch.tensor([[0.3, -1.2, 2.0], [1.0, 0.5, -0.7]], dtype=DT)
-    J = torch.stack([torch.autograd.functional.jacobian(u_of_omega, wi) for wi in w])
-    assert torch.allclose(du_domega(w), J)
 
 
 def test_crb_shrinks_like_one_over_T():

@@ -1,4 +1,4 @@
-"""The effects library (accel_bayes.mismatch.effects): every perturbation against an independent
+"""The effects library (accel_bayes.physics.effects): every perturbation against an independent
 computation — the signal model evaluated at the perturbed geometry/time/orientation, closed
 forms, finite differences — and the simulator's ``effects=`` path."""
 import math
@@ -12,7 +12,7 @@ from accel_bayes.errors import UserError
 from accel_bayes.geometry import boxplus, quat_exp, quat_mul, quat_to_matrix
 from accel_bayes.models import imu_outputs, to_array_frame
 from accel_bayes.motion import smooth_motion
-from accel_bayes.mismatch.effects import (
+from accel_bayes.physics.effects import (
     AXES, EFFECTS, VOCABULARY, CandidateLayout, SignalContext, apply_effects, get_effect, make_effect,
     model_outputs, noise_factors, output_rates,
 )
@@ -282,6 +282,36 @@ def test_simulate_with_effects_uses_the_same_definitions():
         simulate(arr, "smooth", T=50, effects=["acc_bias"])
 
 
+def test_time_offset_exact_and_linearised_forms_agree_to_second_order():
+    """The one time-offset parameter (DESIGN §7.2: positive = sampled late) evaluated both ways
+    by the simulator: exactly (``time_offsets=``: the trajectory at t + δ) and linearised
+    (``effects=[time_offset]``: δ·ẏ).  Noise-free, for late and early offsets: the difference is
+    the Taylor remainder, ≤ ½δ²·max|ÿ| (ÿ by central differences of the exact outputs), and halving
+    δ quarters it; a sign mismatch would instead leave an error of twice the effect."""
+    arr = mimu4444_8()
+    kw = dict(T=300, rate=200.0, seed=5, acc_noise_std=0.0, gyro_noise_std=0.0, validate=False, clip=False)
+    k = 3
+    base = simulate(arr, "smooth", **kw).recording
+    h = 2e-3
+    outs = [simulate(arr, "smooth", time_offsets=[h * sg if i == k else 0.0 for i in range(arr.K)], **kw).recording
+            for sg in (1.0, -1.0)]
+    curv = {n: np.abs(getattr(outs[0], n)[:, k] - 2 * getattr(base, n)[:, k] + getattr(outs[1], n)[:, k]).max() / h**2
+            for n in ("acc", "gyro")}
+    for sign in (1.0, -1.0):
+        errs = []
+        for delta in (1e-3, 5e-4):
+            d = sign * delta
+            exact = simulate(arr, "smooth", time_offsets=[d if i == k else 0.0 for i in range(arr.K)], **kw).recording
+            lin = simulate(arr, "smooth", effects=[_one("time_offset", imu=k, parameters={"offset": d})], **kw).recording
+            for n in ("acc", "gyro"):
+                err = np.abs(getattr(lin, n) - getattr(exact, n)).max()
+                effect = np.abs(getattr(exact, n) - getattr(base, n)).max()
+                assert err <= 0.5 * d**2 * curv[n] * 1.1 + 1e-9, (n, d, err, curv[n])
+                assert err < 0.05 * effect
+            errs.append(np.abs(lin.acc - exact.acc).max())
+        assert 3.0 < errs[0] / errs[1] < 5.0, errs  # O(δ²)
+
+
 def test_apply_effects_clips_after_noise(setup):
     arr, tr, pos, q, ctx = setup
     e = _one("saturation", imu=0, axis="z", sensor="acc", parameters={"limit": 9.0})
@@ -318,3 +348,64 @@ def test_report_parameters_round_trip(setup):
                               ctx.acc, ctx.gyro)  # any rates will do for the comparison
             for a, b in zip(e.perturbation(None, c), e2.perturbation(None, c)):
                 assert torch.equal(a, b)
+
+
+def test_intrinsics_and_s16_sensor_parameters_are_conversions_of_the_effects():
+    """The lower-triangular intrinsic model a_true = T(a_raw − b) and the [S16] model
+    z = Sᵀ R(q) f + o (S upper-triangular) are the effects' general gain + bias in the triangular
+    gauge: convert → apply the effects → compare with the old formulas on random inputs, and
+    convert back.  A general gain factors as L·Q; the rotation Q goes into the orientation."""
+    from accel_bayes import models
+    from accel_bayes.geometry import matrix_to_quat
+    from accel_bayes.physics.effects import (acc_gain_effects, acc_gain_of_effects, gain_to_intrinsics, gain_to_s16,
+                                             intrinsics_gain, s16_gain, triangular_gauge)
+
+    gen = torch.Generator().manual_seed(8)
+    T_, K = 50, 3
+    rnd = lambda *s, sc=1.0: sc * torch.randn(*s, generator=gen, dtype=torch.float64)  # noqa: E731
+    f = rnd(T_, K, 3, sc=10.0)  # true sensor-frame specific force
+    zero = torch.zeros(T_, 3, dtype=torch.float64)
+    ctx = SignalContext(torch.arange(T_, dtype=torch.float64), zero, zero, zero, torch.zeros(K, 3, dtype=torch.float64),
+                        torch.tensor([[1.0, 0, 0, 0]] * K, dtype=torch.float64), f, torch.zeros_like(f))
+    k = 1
+    # intrinsics: T lower-triangular with positive diagonal
+    Tm = torch.tril(rnd(3, 3, sc=0.01)) + torch.eye(3, dtype=torch.float64)
+    b = rnd(3, sc=0.3)
+    eff = acc_gain_effects(*intrinsics_gain(Tm, b), imu=k)
+    y, _ = model_outputs(eff, ctx)
+    raw = (torch.linalg.inv(Tm) @ f[:, k].unsqueeze(-1)).squeeze(-1) + b  # old formula, inverted
+    torch.testing.assert_close(y[:, k], raw, rtol=1e-13, atol=1e-12)
+    torch.testing.assert_close((Tm @ (y[:, k] - b).unsqueeze(-1)).squeeze(-1), f[:, k], rtol=1e-13, atol=1e-12)
+    assert torch.equal(y[:, [0, 2]], f[:, [0, 2]])  # other IMUs untouched
+    T2, b2, Q = gain_to_intrinsics(*acc_gain_of_effects(eff, k))
+    torch.testing.assert_close(T2, Tm, rtol=0, atol=1e-13)
+    torch.testing.assert_close(b2, b, rtol=0, atol=0)
+    torch.testing.assert_close(Q, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-13)
+    # [S16]: S upper-triangular (eq. 21 parameters), offset o; the old formula is models.triad_output
+    sp = torch.tensor([1.0, 0.0, 1.0, 0.0, 0.0, 1.0], dtype=torch.float64) + rnd(6, sc=0.02)
+    S = models.sensitivity_matrix(sp)
+    o = rnd(3, sc=0.1)
+    eff = acc_gain_effects(*s16_gain(S, o), imu=k)
+    y, _ = model_outputs(eff, ctx)
+    state = torch.cat((rnd(T_, 3, sc=5.0), rnd(T_, 3, sc=2.0), rnd(T_, 3, sc=10.0)), -1)
+    q = quat_exp(rnd(1, 3, sc=0.5))
+    r = rnd(1, 3, sc=0.05)
+    fs = models.triad_output(state, q, r)  # sensor-frame specific force of that triad (T, 1, 3)
+    ctx_s = SignalContext(ctx.time, zero, zero, zero, r, q, fs, torch.zeros_like(fs))
+    y, _ = model_outputs(acc_gain_effects(*s16_gain(S, o), imu=0), ctx_s)
+    torch.testing.assert_close(y, models.triad_output(state, q, r, S.unsqueeze(0), o.unsqueeze(0)), rtol=1e-13, atol=1e-12)
+    S2, o2, Q = gain_to_s16(*acc_gain_of_effects(eff, k))
+    torch.testing.assert_close(S2, S, rtol=0, atol=1e-13)
+    torch.testing.assert_close(o2, o, rtol=0, atol=0)
+    # the gauge: a general gain = L·Q; the [S16] triad with S = Lᵀ and orientation Q·R(q) gives
+    # the same outputs as the general gain on orientation q
+    G = torch.eye(3, dtype=torch.float64) + rnd(3, 3, sc=0.05)
+    L, Q = triangular_gauge(G)
+    assert torch.equal(L, torch.tril(L)) and bool((torch.diagonal(L) > 0).all())
+    torch.testing.assert_close(Q @ Q.T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-14)
+    assert abs(float(torch.linalg.det(Q)) - 1.0) < 1e-14
+    torch.testing.assert_close(L @ Q, G, rtol=0, atol=1e-14)
+    y, _ = model_outputs(acc_gain_effects(G, o, imu=0), ctx_s)
+    S3, o3, Q3 = gain_to_s16(G, o)
+    q3 = matrix_to_quat(Q3 @ quat_to_matrix(q))
+    torch.testing.assert_close(y, models.triad_output(state, q3, r, S3.unsqueeze(0), o3.unsqueeze(0)), rtol=1e-12, atol=1e-11)

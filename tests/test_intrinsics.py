@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 from scipy import stats
+import torch
 
 from accel_bayes.errors import UserError
 from accel_bayes.intrinsics import (
@@ -258,3 +259,20 @@ def test_mimu_gyro_bias_removed(mimu_recordings):
     raw_mean = np.abs(rec.gyro[st].mean(0)).max()
     cal_mean = np.abs(cal.gyro[st].mean(0)).max()
     assert raw_mean > 0.02 and cal_mean < 1e-3  # rad/s: raw offsets ~1–2 °/s
+
+
+def test_acc_effects_are_the_inverse_of_the_correction():
+    """Intrinsics.acc_effects (the errors as effects of the physics library) applied to the
+    corrected outputs give back the raw outputs: one definition of the accelerometer errors."""
+    from accel_bayes.physics.effects import SignalContext, model_outputs
+
+    rec, _ = _static_recording(n_orient=12, n=100)
+    est = estimate_intrinsics(rec)
+    raw = torch.as_tensor(rec.acc[:200])
+    f = torch.as_tensor(est.correct_acc(rec.acc[:200]))
+    K = rec.K
+    z = torch.zeros(200, 3, dtype=torch.float64)
+    ctx = SignalContext(torch.arange(200, dtype=torch.float64), z, z, z, torch.zeros(K, 3, dtype=torch.float64),
+                        torch.tensor([[1.0, 0, 0, 0]] * K, dtype=torch.float64), f, torch.zeros_like(f))
+    y, _ = model_outputs(est.acc_effects(), ctx)
+    torch.testing.assert_close(y, raw, rtol=1e-12, atol=1e-10)

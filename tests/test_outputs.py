@@ -38,7 +38,7 @@ COMMANDS = {
     "motion": ("file", ["motion", "{rec}", "--calibration", "{cal}"], "-o", ["--draws", "0"], 0, None),
     "map": ("dir", ["map", "{rec}"], "--out", ["--no-progress"], 0, {"positions.json", "omega.csv"}),
     "calibrate": ("dir", ["calibrate", "{rec}"], "--out",
-                  ["--chains", "2", "--draws", "10", "--warmup", "10", "--no-map", "--quiet"], 0,
+                  ["--chains", "2", "--draws", "10", "--warmup", "10", "--no-map", "--quiet"], 4,  # 10 draws: unconverged
                   {"posterior.nc", "summary.csv", "positions.json", "trace.png", "rank.png", "autocorr.png",
                    "ellipses.png"}),
     "selfcal": ("dir", ["selfcal", "{rec}"], "--out", ["--no-progress", "--max-iter", "5"], 3, {"convergence.png"}),

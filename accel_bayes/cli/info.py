@@ -5,6 +5,8 @@ import json
 
 import numpy as np
 
+from ..constants import G0
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -103,7 +105,7 @@ def _run(args) -> int:
     if has_g.any():
         lines.append(f"gyro noise std:  {_std_text(np.asarray(rec.gyro_noise_std, float), has_g, 'rad/s')}")
     lines.append(f"acc range:       {_fmt(rec.acc_range, 'm/s²')}"
-                 + (f" ({rec.acc_range / 9.80665:.3g} g)" if rec.acc_range else ""))
+                 + (f" ({rec.acc_range / G0:.3g} g)" if rec.acc_range else ""))
     if has_g.any():
         lines.append(f"gyro range:      {_fmt(rec.gyro_range, 'rad/s')}"
                      + (f" ({np.degrees(rec.gyro_range):.4g} °/s)" if rec.gyro_range else ""))

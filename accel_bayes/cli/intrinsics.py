@@ -11,9 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..constants import RAD_TO_DEG
 from . import _options as opt
-
-DEG = 180.0 / np.pi
 
 
 def register(subparsers) -> None:
@@ -79,11 +78,11 @@ def run(args) -> int:
         b = " ".join(f"{v:+.3f}" for v in intr.acc_bias[k])
         sc = " ".join(f"{1e3 * (v - 1):+6.2f}" for v in intr.acc_scale[k])
         mi = " ".join(f"{1e3 * v:+6.2f}" for v in intr.acc_misalignment[k])
-        gb = " ".join(f"{DEG * v:+.3f}" for v in intr.gyro_bias[k]) if np.isfinite(intr.gyro_bias[k]).all() else "-"
+        gb = " ".join(f"{RAD_TO_DEG * v:+.3f}" for v in intr.gyro_bias[k]) if np.isfinite(intr.gyro_bias[k]).all() else "-"
         print(f"{k:>3} {int(intr.n_rests[k]):>5} {b:>26} {sc:>22} {mi:>22} {intr.residual_rms[k]:7.4f} "
               f"{np.nanmax(raw_err[:, k]):8.4f} → {np.nanmax(cal_err[:, k]):.4f} {gb:>24}")
     print(f"acc bias std (median over IMUs/axes): {np.nanmedian(intr.acc_bias_std):.2g} m/s²; "
-          f"gyro bias std: {np.nanmedian(intr.gyro_bias_std) * DEG:.2g} °/s")
+          f"gyro bias std: {np.nanmedian(intr.gyro_bias_std) * RAD_TO_DEG:.2g} °/s")
     print(f"wrote {out}")
     if args.apply_to:
         from ..io import write_recording

@@ -16,8 +16,8 @@ from . import _options as opt
 
 
 def register(subparsers) -> None:
-    from ..mismatch.effects import VOCABULARY
     from ..outputs import OVERWRITE_DIR_HELP
+    from ..physics.effects import VOCABULARY
 
     p = subparsers.add_parser(
         "mismatch",

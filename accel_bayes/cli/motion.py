@@ -12,9 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..constants import RAD_TO_DEG
 from . import _options as opt
-
-DEG = 180.0 / np.pi
 
 
 def register(subparsers) -> None:
@@ -67,7 +66,7 @@ def run(args) -> int:
     print(f"motion of {args.recording}: {T} samples, origin = reference IMU {ds.attrs['reference_imu']}, "
           f"geometry uncertainty: {ds.attrs['geometry_method']}"
           + (f" ({ds.attrs['draws']} draws, seed {args.seed})" if ds.attrs["geometry_method"] == "draws" else ""))
-    rows = (("omega", DEG, "°/s"), ("omega_dot", DEG, "°/s²"), ("s", 1.0, "m/s²"))
+    rows = (("omega", RAD_TO_DEG, "°/s"), ("omega_dot", RAD_TO_DEG, "°/s²"), ("s", 1.0, "m/s²"))
     print(f"{'':>10} {'max |x|':>12} {'median std':>12} {'  noise':>10} {'geometry':>10}  unit  (medians over all samples)")
     for name, f, unit in rows:
         x = ds[name].values[ok]

@@ -26,7 +26,8 @@ import torch
 
 from .. import models
 from ..geometry import quat_normalize, quat_to_matrix, skew
-from .selfcal import _as_inv_std, _specific_force_and_partials
+from ..physics.jacobians import df_dr
+from .selfcal import _as_inv_std
 
 __all__ = ["ConventionalResult", "conventional_residuals", "conventional_jacobians", "conventional_calibrate",
            "IDENTITY_SENSITIVITY"]
@@ -54,7 +55,8 @@ def conventional_jacobians(states, q, r, sens, inv_std):
     (q ⊞ δ = q ∘ exp δ), ∂h/∂o = I and ∂h_k/∂S = the rows of v that column k of S multiplies:
     h₁ = s1x v_x;  h₂ = s2x v_x + s2y v_y;  h₃ = s3x v_x + s3y v_y + s3z v_z.
     """
-    f, _, dfdr = _specific_force_and_partials(states, r)  # (T, A, 3), (T, A, 3, 3)
+    f = models.specific_force(r, states[:, 3:6], states[:, 6:9], states[:, 0:3])  # (T, A, 3)
+    dfdr = df_dr(states[:, 3:6], states[:, 6:9]).unsqueeze(1)  # (T, 1, 3, 3), the same for every triad
     R = quat_to_matrix(q)
     S = models.sensitivity_matrix(sens)
     M = S.transpose(-1, -2) @ R  # (A, 3, 3)

@@ -15,7 +15,8 @@ the same arrow as the LM normal equations:
     V_t = [J_ω,t  H]ᵀ Λ [J_ω,t  H] + diag(I_g, 0)  (9 × 9),  I_g = Σ_k Q_g,k⁻¹ (gyro information on ω)
 
 with, from the one signal model (:mod:`accel_bayes.models`): J_θ for triad k = ∂f_k/∂r_k =
-Ω(ω)² + Ω(ω̇) (f = :func:`~accel_bayes.models.specific_force`), J_ω = G(θ) ∂u/∂ω
+Ω(ω)² + Ω(ω̇) (f = :func:`~accel_bayes.models.specific_force`; derivatives from
+:mod:`accel_bayes.physics.jacobians`), J_ω = G(θ) ∂u/∂ω
 (:func:`~accel_bayes.models.G_matrix`, :func:`~accel_bayes.models.u_of_omega`), J_φ =
 :func:`~accel_bayes.models.H_matrix`.  The nuisance parameters are eliminated by the Schur
 complement (the information of θ with η unknown), S = U − Σ_t W_t V_t⁻¹ W_tᵀ, and
@@ -31,28 +32,11 @@ from __future__ import annotations
 import torch
 
 from ..errors import UserError
-from ..geometry import skew
 from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis
+from ..physics.jacobians import df_dr, du_domega
 from .linear import SchurComplementSolver, cholesky
 
-__all__ = ["du_domega", "fisher_blocks", "fisher_information_theta", "crb_theta"]
-
-
-def du_domega(omega: torch.Tensor) -> torch.Tensor:
-    """∂u/∂ω (..., 6, 3) for u(ω) = [ωx², ωy², ωz², ωxωy, ωxωz, ωyωz] (:func:`models.u_of_omega`)."""
-    x, y, z = omega.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack(
-        (
-            torch.stack((2 * x, o, o), -1),
-            torch.stack((o, 2 * y, o), -1),
-            torch.stack((o, o, 2 * z), -1),
-            torch.stack((y, x, o), -1),
-            torch.stack((z, o, x), -1),
-            torch.stack((o, z, y), -1),
-        ),
-        -2,
-    )
+__all__ = ["fisher_blocks", "fisher_information_theta", "crb_theta"]
 
 
 def _gyro_information(T, gyro_noise_std, gyro_cov, dtype, device):
@@ -99,8 +83,7 @@ def fisher_blocks(positions, omega, omega_dot, s, acc_noise_std, gyro_noise_std=
     r = r - r[reference]
     sl = acc_noise_std_per_axis(acc_noise_std, A, dtype=dtype, device=r.device).reshape(3 * A).reciprocal()  # Λ^{1/2}
     # ∂f_k/∂r_k = Ω(ω)² + Ω(ω̇), the same 3×3 for every triad (T, 3, 3)
-    Sw = skew(w)
-    Jr = Sw @ Sw + skew(wd)
+    Jr = df_dr(w, wd)
     keep = [k for k in range(A) if k != reference]
     n = 3 * (A - 1)
     Jth = r.new_zeros(T, 3 * A, n)

@@ -19,6 +19,13 @@ the actual over the predicted cost decrease.  Two rules are offered:
 Both start from λ₀ = τ·max(diag H·/D) — i.e. τ·max diag(H) with Levenberg scaling and τ with
 Marquardt scaling — and refuse λ beyond ``lambda_max`` (the solver then stops, reason
 "damping_limit").
+
+Batched mode (many small independent problems solved together, :class:`~accel_bayes.inference.lm.
+BatchedLevenbergMarquardt`): :meth:`DampingStrategy.init` with ``batched=True`` takes diag H of
+shape (B, n) and keeps one λ per problem, a (B,) tensor; :meth:`~DampingStrategy.update` then takes
+ρ and ``accepted`` as (B,) tensors and applies the same rule to each problem elementwise, and
+:attr:`~DampingStrategy.exhausted` is a (B,) mask.  Each rule is stated once per class, its scalar
+and elementwise forms side by side (``tests/test_lm.py`` checks that they agree).
 """
 from __future__ import annotations
 
@@ -56,30 +63,45 @@ class DampingStrategy:
 
     # ------------------------------------------------------------------ scaling
     def scale(self, diag_h: torch.Tensor) -> torch.Tensor:
-        """The diagonal D (same shape as diag_h) for the current linearisation."""
+        """The diagonal D (same shape as diag_h) for the current linearisation; in batched mode
+        diag_h is (B, n) and the floor is relative to each problem's own largest entry."""
         if self.scaling == "levenberg":
             return torch.ones_like(diag_h)
-        top = diag_h.abs().max() if diag_h.numel() else torch.ones((), dtype=diag_h.dtype)
+        if self.batched:
+            top = diag_h.abs().amax(-1, keepdim=True) if diag_h.shape[-1] else torch.ones_like(diag_h[..., :1])
+        else:
+            top = diag_h.abs().max() if diag_h.numel() else torch.ones((), dtype=diag_h.dtype)
         floor = torch.clamp(top * self.min_diagonal, min=torch.finfo(diag_h.dtype).tiny)
         return torch.maximum(diag_h, floor)
 
-    def init(self, diag_h: torch.Tensor, D: torch.Tensor) -> float:
-        """Set and return λ₀ from the first linearisation."""
-        ratio = (diag_h / D).max() if diag_h.numel() else torch.ones(())
-        self.lam = min(max(self.tau * float(ratio), self.lambda_min), self.lambda_max)
+    def init(self, diag_h: torch.Tensor, D: torch.Tensor, *, batched: bool = False):
+        """Set and return λ₀ from the first linearisation: a float, or with ``batched`` a (B,)
+        tensor for diag_h (B, n) (one λ per problem)."""
+        self.batched = bool(batched)
+        if self.batched:
+            ratio = (diag_h / D).amax(-1) if diag_h.shape[-1] else torch.ones_like(diag_h[..., 0])
+            self.lam = (self.tau * ratio).clamp(self.lambda_min, self.lambda_max)
+        else:
+            ratio = (diag_h / D).max() if diag_h.numel() else torch.ones(())
+            self.lam = min(max(self.tau * float(ratio), self.lambda_min), self.lambda_max)
         self._reset_state()
         return self.lam
+
+    batched = False
 
     def _reset_state(self):
         pass
 
-    def update(self, rho: float, accepted: bool) -> float:  # pragma: no cover - abstract
-        """New λ after a step with gain ratio ρ (accepted or not)."""
+    def update(self, rho, accepted, active=None):  # pragma: no cover - abstract
+        """New λ after a step with gain ratio ρ (accepted or not).  Batched mode: ρ, accepted
+        and ``active`` are (B,) tensors; only the problems where ``active`` is True change."""
         raise NotImplementedError
 
     @property
-    def exhausted(self) -> bool:
-        """True once λ exceeds lambda_max (no step can make progress)."""
+    def exhausted(self):
+        """True once λ exceeds lambda_max (no step can make progress); a (B,) mask in batched mode."""
+        if self.batched:
+            return self.lam > self.lambda_max
         return self.lam is not None and self.lam > self.lambda_max
 
     def __repr__(self):
@@ -90,10 +112,18 @@ class NielsenDamping(DampingStrategy):
     """Nielsen's rule (see module docstring)."""
 
     def _reset_state(self):
-        self.nu = 2.0
+        self.nu = torch.full_like(self.lam, 2.0) if self.batched else 2.0
 
-    def update(self, rho, accepted):
-        if accepted:
+    def update(self, rho, accepted, active=None):
+        if self.batched:
+            # ρ = −inf on rejected steps gives inf here; torch.where discards it
+            shrink = (1.0 - (2.0 * rho - 1.0) ** 3).clamp_min(1.0 / 3.0)
+            lam = torch.where(accepted, (self.lam * shrink).clamp_min(self.lambda_min), self.lam * self.nu)
+            nu = torch.where(accepted, torch.full_like(self.nu, 2.0), 2.0 * self.nu)
+            if active is not None:
+                lam, nu = torch.where(active, lam, self.lam), torch.where(active, nu, self.nu)
+            self.lam, self.nu = lam, nu
+        elif accepted:
             self.lam = max(self.lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), self.lambda_min)
             self.nu = 2.0
         else:
@@ -111,8 +141,15 @@ class MarquardtDamping(DampingStrategy):
             raise ValueError("MarquardtDamping: up and down must be > 1")
         self.up, self.down = float(up), float(down)
 
-    def update(self, rho, accepted):
-        if accepted and rho > 0.75:
+    def update(self, rho, accepted, active=None):
+        if self.batched:
+            down = accepted & (rho > 0.75)
+            up = ~accepted | (rho < 0.25)
+            if active is not None:
+                down, up = down & active, up & active
+            self.lam = torch.where(down, (self.lam / self.down).clamp_min(self.lambda_min),
+                                   torch.where(up, self.lam * self.up, self.lam))
+        elif accepted and rho > 0.75:
             self.lam = max(self.lam / self.down, self.lambda_min)
         elif not accepted or rho < 0.25:
             self.lam = self.lam * self.up

@@ -47,6 +47,7 @@ __all__ = [
     "block_tridiagonal_factor",
     "block_tridiagonal_solve",
     "SchurComplementSolver",
+    "damped_step",
     "dense_from_blocks",
 ]
 
@@ -276,6 +277,21 @@ def block_tridiagonal_solve(D: torch.Tensor, E: torch.Tensor | None, B: torch.Te
 
 
 # ---------------------------------------------------------------- Schur complement
+
+def damped_step(H: torch.Tensor, b: torch.Tensor, damping: torch.Tensor | None = None):
+    """Solve (H + diag(damping)) δ = b for many small dense systems at once — the linear solve of
+    the batched LM (:class:`~accel_bayes.inference.lm.BatchedLevenbergMarquardt`) and of plain
+    Gauss–Newton steps (damping None).  H (..., n, n) symmetric, b (..., n), damping (..., n) or
+    None.  One batched Cholesky; where the (damped) matrix is not positive definite the step is
+    0 and ``ok`` False (the caller raises λ there).  Returns (δ (..., n), ok (...) bool)."""
+    A = H if damping is None else H + torch.diag_embed(damping)
+    L, info = torch.linalg.cholesky_ex(A)
+    ok = info == 0
+    L = torch.where(ok[..., None, None], L, torch.eye(H.shape[-1], dtype=H.dtype, device=H.device))
+    step = torch.cholesky_solve(b.unsqueeze(-1), L).squeeze(-1)
+    ok = ok & torch.isfinite(step).all(-1)
+    return torch.where(ok[..., None], step, 0.0), ok
+
 
 class SchurComplementSolver:
     """Solve the arrow system of the module docstring by eliminating the local blocks.

@@ -37,10 +37,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..constants import DEFAULT_PRIOR_STD
 from ..errors import UserError
 from ..geometry import skew
+from ..likelihood import positions_from_theta, theta_from_positions
 from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
-from .crb import du_domega
+from ..physics.jacobians import d2u_domega2, df_dr, du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
 from .linear import NotPositiveDefinite, SchurComplementSolver, cholesky
 
@@ -50,16 +52,6 @@ __all__ = ["MAPResult", "MAPDivergence", "fit_map", "fit_map_recording", "build_
 class MAPDivergence(RuntimeError):
     """The MAP left the region where the model makes sense (DESIGN §6, [S16] §VI): positions far
     outside the prior, collapsed/degenerate geometry or non-finite values."""
-
-
-def _positions_from_theta(theta: torch.Tensor, reference: int) -> torch.Tensor:
-    zero = theta.new_zeros(*theta.shape[:-2], 1, 3)
-    return torch.cat((theta[..., :reference, :], zero, theta[..., reference:, :]), -2)
-
-
-def _theta_from_positions(p: torch.Tensor, reference: int) -> torch.Tensor:
-    rel = p - p[..., reference:reference + 1, :]
-    return torch.cat((rel[..., :reference, :], rel[..., reference + 1:, :]), -2)
 
 
 @dataclass
@@ -103,7 +95,7 @@ class MAPResult:
         return torch.sqrt(torch.diagonal(self.position_cov(), dim1=-2, dim2=-1).clamp_min(0))
 
 
-def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0, prior_mean=None, prior_std=3e-3,
+def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0, prior_mean=None, prior_std=DEFAULT_PRIOR_STD,
                       init_positions=None, init_omega=None, analytic: bool = True, local_newton: bool = True,
                       dtype=torch.float64, device=None) -> Problem:
     """The [C21] MAP as an LM :class:`~accel_bayes.inference.lm.Problem` (see :func:`fit_map`).
@@ -164,13 +156,13 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     init_positions = torch.as_tensor(init_positions, dtype=dtype, device=acc.device)
     if init_positions.shape != (A, 3):
         raise UserError(f"init_positions: expected shape ({A}, 3), got {tuple(init_positions.shape)}")
-    theta0 = _theta_from_positions(init_positions, reference)
+    theta0 = theta_from_positions(init_positions, reference)
     omega0 = wbar.clone() if init_omega is None else torch.as_tensor(init_omega, dtype=dtype, device=acc.device)
 
     y = acc.reshape(T, 3 * A)
 
     def acc_residual(g, x, data):
-        r = _positions_from_theta(g["theta"], reference)
+        r = positions_from_theta(g["theta"], reference, A)
         Hw = sqrt_lam.unsqueeze(-1) * H_matrix(r)  # Λ^{1/2} H
         Gw = sqrt_lam.unsqueeze(-1) * G_matrix(r)
         L = torch.linalg.cholesky(Hw.transpose(-1, -2) @ Hw)
@@ -186,7 +178,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
         return {}, data[1]
 
     def logdet(g):
-        r = _positions_from_theta(g["theta"], reference)
+        r = positions_from_theta(g["theta"], reference, A)
         Hw = sqrt_lam.unsqueeze(-1) * H_matrix(r)
         L = torch.linalg.cholesky(Hw.transpose(-1, -2) @ Hw)
         return T * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
@@ -200,7 +192,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     Ea = torch.cat((-Om, torch.zeros_like(Om)), -1)  # ∂H_k/∂r_k,a = [−Ω(e_a) 0], (3, 3, 6)
 
     def acc_jac(g, x, data):
-        r = _positions_from_theta(g["theta"], reference)
+        r = positions_from_theta(g["theta"], reference, A)
         Hw = sqrt_lam.unsqueeze(-1) * H_matrix(r)
         Gw = sqrt_lam.unsqueeze(-1) * G_matrix(r)
         L = torch.linalg.cholesky(Hw.T @ Hw)
@@ -211,8 +203,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
         res = z - phi @ Hw.T
         K = Gw @ du_domega(x)  # (T, 3A, 3)
         Jw = Hw @ torch.cholesky_solve(Hw.T @ K, Lb) - K
-        Sw = skew(x)
-        Jr = Sw @ Sw + skew(phi[:, :3])  # ∂f_k/∂r_k at φ̂, (T, 3, 3)
+        Jr = df_dr(x, phi[:, :3])  # ∂f_k/∂r_k at φ̂, (T, 3, 3)
         Qk = slA[None, :, :, None] * Jr[:, None]  # (T, A, 3, 3): rows of triad k, column axis a
         HtQ = torch.einsum("kif,tkia->tfka", Hw.reshape(A, 3, 6), Qk)[:, :, keep]  # (T, 6, A−1, 3)
         rho = (res.reshape(Tn, A, 3) * slA)[:, keep]  # Λ_k^{1/2} r_t,k
@@ -224,18 +215,15 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
             Jth[:, k, :, j, :] -= Qk[:, k]
         return {"theta": Jth.reshape(Tn, 3 * A, n)}, Jw
 
-    # ∂²u/∂ω_i∂ω_j (constant: u is quadratic), (6, 3, 3)
-    D2u = torch.zeros(6, 3, 3, dtype=dtype, device=acc.device)
-    D2u[0, 0, 0] = D2u[1, 1, 1] = D2u[2, 2, 2] = 2.0
-    D2u[3, 0, 1] = D2u[3, 1, 0] = D2u[4, 0, 2] = D2u[4, 2, 0] = D2u[5, 1, 2] = D2u[5, 2, 1] = 1.0
+    D2u = d2u_domega2(dtype, acc.device)  # ∂²u/∂ω_i∂ω_j (constant: u is quadratic), (6, 3, 3)
 
     def acc_local_hessian(g, x, data, res):
         # Σ_m r_m ∂²r_m/∂ω² with r = P⊥ z, ∂²r/∂ω² = −P⊥ Gw ∂²u and P⊥ r = r: −(rᵀGw) ∂²u
-        Gw = sqrt_lam.unsqueeze(-1) * G_matrix(_positions_from_theta(g["theta"], reference))
+        Gw = sqrt_lam.unsqueeze(-1) * G_matrix(positions_from_theta(g["theta"], reference, A))
         return -torch.einsum("tf,fij->tij", res @ Gw, D2u)
 
     def logdet_grad_hess(g):
-        r = _positions_from_theta(g["theta"], reference)
+        r = positions_from_theta(g["theta"], reference, A)
         Hk = H_matrix(r).reshape(A, 3, 6)
         M = torch.einsum("kif,ki,kig->fg", Hk, lamA, Hk)
         L = torch.linalg.cholesky(M)
@@ -261,7 +249,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
         ps_t = torch.cat((ps[:reference], ps[reference + 1:]), 0)
         if bool((ps_t <= 0).any()):
             raise UserError("prior_std: expected > 0")
-        mu = _theta_from_positions(prior_mean, reference)
+        mu = theta_from_positions(prior_mean, reference)
         prior_jac = torch.diag(ps_t.reshape(-1).reciprocal())
         residuals.append(GlobalResidual(lambda g: ((g["theta"] - mu) / ps_t).reshape(-1),
                                         jac=(lambda g: {"theta": prior_jac}) if analytic else None, name="prior"))
@@ -277,12 +265,12 @@ def _check_divergence(res: LMResult, prob: Problem, prior_mean, prior_std, refer
     theta = res.values["theta"]
     if not (bool(torch.isfinite(theta).all()) and bool(torch.isfinite(res.locals).all()) and math.isfinite(res.cost)):
         return "non-finite positions or angular rates"
-    pos = _positions_from_theta(theta, reference)
+    pos = positions_from_theta(theta, reference, theta.shape[-2] + 1)
     span = float((pos - pos.mean(0)).norm(dim=-1).max())
     if span < 1e-6:
         return f"the triads collapsed to one point (span {span:.2e} m)"
     if prior_mean is not None and prior_std is not None:
-        mu = _theta_from_positions(torch.as_tensor(prior_mean, dtype=theta.dtype, device=theta.device), reference)
+        mu = theta_from_positions(torch.as_tensor(prior_mean, dtype=theta.dtype, device=theta.device), reference)
         z = float(((theta - mu).abs() / float(torch.as_tensor(prior_std).max())).max())
         if z > max_sigma:
             return f"positions moved {z:.0f} prior standard deviations from the prior mean"
@@ -296,7 +284,7 @@ def _check_divergence(res: LMResult, prob: Problem, prior_mean, prior_std, refer
 
 
 def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, prior_mean=None,
-            prior_std=3e-3, init_positions=None, init_omega=None, max_iter: int = 100, progress: bool = False,
+            prior_std=DEFAULT_PRIOR_STD, init_positions=None, init_omega=None, max_iter: int = 100, progress: bool = False,
             hessian: str = "exact", on_divergence: str = "raise", ftol: float = 1e-12, xtol: float = 1e-10,
             gtol: float = 1e-9, damping=None, analytic: bool = True, local_newton: bool = True,
             dtype=torch.float64, device=None) -> MAPResult:
@@ -351,13 +339,13 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
             converged, reason = False, f"{reason}; Hessian not positive definite at the end point (not a minimum)"
     theta = lm.values["theta"]
     terms = prob.cost_terms(lm.values, lm.locals)
-    return MAPResult(positions=_positions_from_theta(theta, reference), theta=theta, omega=lm.locals,
+    return MAPResult(positions=positions_from_theta(theta, reference, theta.shape[-2] + 1), theta=theta, omega=lm.locals,
                      laplace_cov=cov, log_posterior=-lm.cost, cost_terms=terms, log=lm.log, converged=converged,
                      reason=reason, n_iter=lm.n_iter, reference=reference, lm=lm)
 
 
 def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_rotation=None,
-                      drop_clipped: bool = False, acc_imus=None, gyro_imus=None, prior_std=3e-3,
+                      drop_clipped: bool = False, acc_imus=None, gyro_imus=None, prior_std=DEFAULT_PRIOR_STD,
                       prior_mean=None, dtype=torch.float64, device=None, **kw) -> MAPResult:
     """:func:`fit_map` on a :class:`~accel_bayes.recording.Recording`.
 

@@ -15,12 +15,11 @@ import math
 import torch
 
 from ..errors import UserError
+from ..constants import DEFAULT_PRIOR_STD
 from ..likelihood import theta_from_positions
 
 __all__ = ["GaussianPrior", "BoxPrior", "DEFAULT_PRIOR_STD"]
 
-# [C21] §IV-A: σ_r = 3 mm, deliberately wider than the 4 mm × 4 mm × 1 mm package.
-DEFAULT_PRIOR_STD = 3e-3
 
 _LOG_2PI = math.log(2.0 * math.pi)
 

@@ -37,8 +37,10 @@ from dataclasses import dataclass, field
 import torch
 
 from .. import models
+from ..constants import G0
 from ..errors import UserError
-from ..geometry import boxplus, quat_normalize, quat_to_matrix, rotation_angle, skew
+from ..geometry import quat_normalize, quat_to_matrix, skew
+from ..physics import jacobians as jac
 
 __all__ = [
     "triad_residuals",
@@ -81,26 +83,6 @@ def triad_residuals(
     return (z - models.triad_output(states, q, r, S, offset)) * inv_std
 
 
-def _specific_force_and_partials(states: torch.Tensor, r: torch.Tensor):
-    """f = a + ω̇×r + ω×(ω×r) (T, A, 3) and its partials (array frame).
-
-    Returns f, df/dω (T, A, 3, 3), df/dr (T, A, 3, 3).  df/da = I and df/dω̇ = −Ω(r) are constant.
-    """
-    a, w, wd = states[:, 0:3], states[:, 3:6], states[:, 6:9]
-    f = models.specific_force(r, w, wd, a)  # (T, A, 3)
-    T, A = f.shape[0], r.shape[0]
-    eye = torch.eye(3, dtype=states.dtype, device=states.device)
-    # ω×(ω×r) = ω(ω·r) − r|ω|²  ⇒  ∂/∂ω = (ω·r) I + ω rᵀ − 2 r ωᵀ
-    wr = (w.unsqueeze(1) * r.unsqueeze(0)).sum(-1)  # (T, A)
-    dfdw = (wr[..., None, None] * eye
-            + w[:, None, :, None] * r[None, :, None, :]
-            - 2.0 * r[None, :, :, None] * w[:, None, None, :])
-    # ∂/∂r = Ω(ω̇) + Ω(ω)²
-    Ww = skew(w)
-    dfdr = (skew(wd) + Ww @ Ww).unsqueeze(1).expand(T, A, 3, 3)
-    return f, dfdw, dfdr
-
-
 def triad_jacobians(
     states: torch.Tensor,
     q: torch.Tensor,
@@ -117,16 +99,17 @@ def triad_jacobians(
     * J_rot (T, A, 3, 3): ∂e_ij/∂δ_j for q_j ⊞ δ_j = q_j ∘ exp(δ_j) at δ = 0.  From
       R(q ∘ exp δ) = R(q)(I + Ω(δ)) + O(δ²):  ∂h/∂δ = −M Ω(f) with M = Sᵀ R(q).
     """
-    f, dfdw, dfdr = _specific_force_and_partials(states, r)
+    a, w, wd = states[:, 0:3], states[:, 3:6], states[:, 6:9]
+    f = models.specific_force(r, w, wd, a)  # (T, A, 3), array frame
     R = quat_to_matrix(q)  # (A, 3, 3)
     M = R if S is None else S.transpose(-1, -2) @ R
     Mw = -(inv_std.unsqueeze(-1) * M)  # (A, 3, 3): ∂e/∂f
     T, A = f.shape[0], r.shape[0]
     J_a = Mw.unsqueeze(0).expand(T, A, 3, 3)
-    J_w = Mw @ dfdw
-    J_wd = (Mw @ (-skew(r))).unsqueeze(0).expand(T, A, 3, 3)
+    J_w = Mw @ jac.df_domega(r, w)
+    J_wd = (Mw @ jac.df_domega_dot(r)).unsqueeze(0).expand(T, A, 3, 3)
     J_state = torch.cat((J_a, J_w, J_wd), -1)
-    J_pos = Mw @ dfdr
+    J_pos = Mw @ jac.df_dr(w, wd).unsqueeze(1)
     J_rot = -(Mw @ skew(f))
     return J_state, J_pos, J_rot
 
@@ -176,7 +159,7 @@ def simulate_process_motion(
     acc_std: float = 3.0,
     acc_segment_length: int | None = None,
     omega_max: float = 6.0,
-    gravity: float = 9.80665,
+    gravity: float = G0,
     generator: torch.Generator | None = None,
     seed: int | None = None,
     dtype=torch.float64,

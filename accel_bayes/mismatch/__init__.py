@@ -11,7 +11,7 @@ with the nominal array model, name the physics the model left out, add it, refit
 >>> from accel_bayes.mismatch import detect          # doctest: +SKIP
 >>> report = detect("rec.nc"); report.write("out")   # doctest: +SKIP
 """
-from .effects import EFFECTS, VOCABULARY, Effect, SignalContext, get_effect, make_effect, register_effect
+from ..physics.effects import EFFECTS, VOCABULARY, Effect, SignalContext, get_effect, make_effect, register_effect
 from .detect import candidate_effects, detect, screen, threshold_rule
 from .locate import Location, locate
 from .refine import ModelFit, baseline_fit, compare_fits, fit_model, prepare

@@ -16,7 +16,7 @@ Procedure
    IMU/axis/regime, posterior predictive check.
 3. **Candidates**: every location of every requested effect class
    (:meth:`Effect.candidates`; the identifiability rules are in
-   :mod:`accel_bayes.mismatch.effects`).  m = their number.
+   :mod:`accel_bayes.physics.effects`).  m = their number.
 4. **Screen** (cheap, all candidates, at the current fit):
 
    * mean effects — the score (Lagrange-multiplier) test: u = ∂logL/∂η at η = 0 and the
@@ -85,7 +85,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from .effects import EFFECTS, Effect, Unexplained, get_effect
+from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
 from .refine import ModelFit, Prepared, _effect_std, baseline_fit, compare_fits, fit_model, prepare
 from .report import Finding, MismatchReport
@@ -169,7 +169,7 @@ def _regressor(c: Effect, ctx, k: int) -> torch.Tensor:
 
 def _imu_context(ctx, k: int):
     """The signal context of IMU k alone (one-IMU slices of every per-IMU field)."""
-    from .effects import SignalContext
+    from ..physics.effects import SignalContext
 
     sl = slice(k, k + 1)
     pick = lambda v: None if v is None else v[:, sl]  # noqa: E731

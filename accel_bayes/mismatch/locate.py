@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .effects import AXES
+from ..physics.effects import AXES
 from .refine import ModelFit, Prepared
 
 __all__ = ["CHANNELS", "Location", "standardized", "regimes", "locate", "ppc", "excess_cells", "regime_concentration",

@@ -63,10 +63,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..constants import DEFAULT_PRIOR_STD
 from ..errors import UserError
-from ..geometry import quat_to_matrix, skew
+from ..geometry import quat_to_matrix
+from ..inference.lm import LevenbergMarquardt, Linearization, StoppingRule
 from ..models import G_matrix, H_matrix, to_array_frame, u_of_omega
-from .effects import CandidateLayout, SignalContext, model_outputs, noise_factors, output_rates
+from ..physics import jacobians as jac
+from ..physics.effects import CandidateLayout, SignalContext, model_outputs, noise_factors, output_rates
 
 __all__ = [
     "Prepared",
@@ -83,7 +86,6 @@ __all__ = [
     "DEFAULT_PRIOR_STD",
 ]
 
-DEFAULT_PRIOR_STD = 3e-3  # m, the [C21] §IV-A prior on the positions (as fit_map)
 LOG2PI = math.log(2 * math.pi)
 
 
@@ -487,14 +489,8 @@ class _Model:
         R = self.R
         eye = torch.eye(3, dtype=x.dtype)
         # nominal kinematics, array frame: f = Ω(ω)²r + Ω(ω̇)r + s ([C21] eq. 4a)
-        wr = pos @ w.T  # (K, T) ωᵀr
-        A_w = (wr.T[:, :, None, None] * eye + w[:, None, :, None] * pos[None, :, None, :]
-               - 2 * pos[None, :, :, None] * w[:, None, None, :])  # (T, K, 3, 3) ∂f/∂ω
-        A_wd = (-skew(pos)).expand(T, K, 3, 3)
-        A_s = eye.expand(T, K, 3, 3)
-        JxA = _rot(R, torch.cat((A_w, A_wd, A_s), -1))  # (T, K, 3, 9), sensor frame
-        Sw = skew(w)
-        JrA = _rot(R, (Sw @ Sw + skew(wd))[:, None].expand(T, K, 3, 3))  # (T, K, 3, 3)
+        JxA = _rot(R, jac.df_dmotion(pos, w))  # (T, K, 3, 9) ∂f/∂[ω, ω̇, s], sensor frame
+        JrA = _rot(R, jac.df_dr(w, wd)[:, None].expand(T, K, 3, 3))  # (T, K, 3, 3)
         JxG = torch.cat((R.expand(T, K, 3, 3), torch.zeros(T, K, 3, 6, dtype=x.dtype)), -1)
         JrG = torch.zeros(T, K, 3, 3, dtype=x.dtype)
         Je = torch.zeros(T, 2, K, 3, self.p, dtype=x.dtype)
@@ -600,78 +596,40 @@ class _LMOut:
     model: _Model = field(repr=False)
 
 
+class _ModelProblem:
+    """:class:`_Model` through the problem protocol of the package's structured LM
+    (:class:`~accel_bayes.inference.lm.LevenbergMarquardt`): globals {"theta" (F, 3), "eta"
+    (p,)}, both Euclidean; locals x (T, 9), block-diagonal."""
+
+    local_structure = "diagonal"
+    x0 = None
+
+    def __init__(self, model: _Model):
+        self.model = model
+        self.n_free = model.n
+
+    def linearize(self, values, x, *, step: bool = True) -> Linearization:
+        lin = self.model.linearize(values["theta"], values["eta"], x)
+        return Linearization(lin["cost"], lin["U"], lin["W"], lin["V"], None, lin["b_g"], lin["b_x"])
+
+    def cost(self, values, x) -> float:
+        return self.model.cost(values["theta"], values["eta"], x)
+
+    def retract(self, values, delta):
+        F, th, eta = self.model.F, values["theta"], values["eta"]
+        return {"theta": th + delta[:3 * F].reshape(F, 3) if F else th,
+                "eta": eta + delta[3 * F:] if self.model.p else eta}
+
+
 def _lm_solve(model: _Model, theta, eta, x, *, max_iter: int = 60, ftol: float = 1e-11, xtol: float = 1e-12,
               gtol: float = 1e-12) -> _LMOut:
-    """Levenberg–Marquardt with the package's damping (Nielsen, Marquardt scaling), Schur solver
-    and stopping rules (:mod:`accel_bayes.inference.damping`, :mod:`.linear`, :mod:`.lm`), on the
-    structured linearisation of :class:`_Model` (one iteration is O(T·K), no dense position
-    Jacobian)."""
-    from ..inference.damping import get_damping
-    from ..inference.linear import NotPositiveDefinite, SchurComplementSolver
-    from ..inference.lm import StoppingRule
-
-    damping = get_damping(None)
-    solver = SchurComplementSolver("diagonal")
-    stop = StoppingRule(max_iter, ftol, xtol, gtol)
-    n = model.n
-    lin = model.linearize(theta, eta, x)
-    cost = lin["cost"]
-
-    def diag_of(lin):
-        return torch.cat((torch.diagonal(lin["U"]), torch.diagonal(lin["V"], dim1=-2, dim2=-1).reshape(-1)))
-
-    def grad_inf(lin):
-        g = lin["b_g"].abs().max() if n else lin["b_x"].new_zeros(())
-        return float(torch.maximum(g, lin["b_x"].abs().max()))
-
-    dh = diag_of(lin)
-    D = damping.scale(dh)
-    damping.init(dh, D)
-    log, n_iter, reason = [], 0, None
-    while True:
-        reason = stop.at_linearization(grad_inf(lin), n_iter)
-        if reason is not None:
-            break
-        n_iter += 1
-        lam = damping.lam
-        Dg, Dx = D[:n], D[n:].reshape(lin["V"].shape[:-1])
-        Ud = lin["U"] + torch.diag(lam * Dg)
-        Vd = lin["V"] + torch.diag_embed(lam * Dx)
-        try:
-            dg, dx = solver.solve(Ud, lin["W"], Vd, lin["b_g"], lin["b_x"])
-        except NotPositiveDefinite:
-            damping.update(-math.inf, False)
-            log.append({"iteration": n_iter, "lambda": lam, "accepted": False, "cost": cost})
-            if damping.exhausted:
-                reason = "damping_limit"
-                break
-            continue
-        pred = 0.5 * (float(dg @ (lin["b_g"] + lam * Dg * dg)) + float((dx * (lin["b_x"] + lam * Dx * dx)).sum()))
-        F = model.F
-        th_new = theta + dg[:3 * F].reshape(F, 3) if F else theta
-        eta_new = eta + dg[3 * F:] if model.p else eta
-        x_new = x + dx
-        new_cost = model.cost(th_new, eta_new, x_new)
-        rho = (cost - new_cost) / pred if (pred > 0 and math.isfinite(new_cost)) else -math.inf
-        accepted = rho > 0
-        step_norm = math.sqrt(float((dg * dg).sum()) + float((dx * dx).sum()))
-        x_norm = math.sqrt(float((theta * theta).sum()) + float((eta * eta).sum()) + float((x * x).sum()))
-        log.append({"iteration": n_iter, "lambda": lam, "rho": rho, "accepted": accepted,
-                    "cost": new_cost if accepted else cost, "step_norm": step_norm})
-        damping.update(rho, accepted)
-        old = cost
-        if accepted:
-            theta, eta, x, cost = th_new, eta_new, x_new, new_cost
-        reason = stop.after_step(accepted, old, new_cost, step_norm, x_norm)
-        if reason is not None:
-            break
-        if accepted:
-            lin = model.linearize(theta, eta, x)
-            D = damping.scale(diag_of(lin))
-        elif damping.exhausted:
-            reason = "damping_limit"
-            break
-    return _LMOut(theta, eta, x, cost, reason in StoppingRule.CONVERGED, str(reason), n_iter, log, model)
+    """The package's structured Levenberg–Marquardt (Nielsen damping, Marquardt scaling, Schur
+    solver, stopping rules: :class:`~accel_bayes.inference.lm.LevenbergMarquardt`) on the
+    linearisation of :class:`_Model` (one iteration is O(T·K), no dense position Jacobian)."""
+    lm = LevenbergMarquardt(stopping=StoppingRule(max_iter, ftol, xtol, gtol))
+    res = lm.solve(_ModelProblem(model), {"theta": theta, "eta": eta}, x)
+    return _LMOut(res.values["theta"], res.values["eta"], res.locals, res.cost, res.converged, str(res.reason),
+                  res.n_iter, res.log, model)
 
 
 def _init_locals(prep: Prepared, positions: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
@@ -876,7 +834,7 @@ def baseline_fit(prep: Prepared, *, use_map: bool = True, prior_std: float = DEF
     calibrated gyro posterior, Gauss–Newton Laplace) when ``use_map``; falls back to the design
     and the gyro mean if the MAP is unavailable or diverges (recorded in the returned info).
     Sets ``prep.acc_rate``/``prep.gyro_rate`` from the fitted nominal outputs
-    (:func:`accel_bayes.mismatch.effects.output_rates`).  Returns (fit, info).
+    (:func:`accel_bayes.physics.effects.output_rates`).  Returns (fit, info).
     """
     info = {"start": "design"}
     init_pos = init_x = None

@@ -10,7 +10,7 @@ contract blocks, which §7.2 allows.  :func:`validate_report` checks a dict agai
 Attribute access mirrors the JSON: ``report.baseline`` and ``report.refined`` are the contract
 blocks (dicts; ``refined`` is None on clean data or with ``refine=False``), ``report.findings``
 the ranked :class:`Finding` list (``finding.effect`` the name, ``finding.model`` the fitted
-:class:`~accel_bayes.mismatch.effects.Effect`; ``finding["evidence"]`` works too), and
+:class:`~accel_bayes.physics.effects.Effect`; ``finding["evidence"]`` works too), and
 ``report.baseline_fit`` / ``report.refined_fit`` the :class:`~accel_bayes.mismatch.refine.ModelFit`
 objects behind them.
 """
@@ -67,7 +67,7 @@ def _clean(x):
 class Finding:
     """One reported finding (§7.2 ``findings`` entry).
 
-    model : the fitted :class:`~accel_bayes.mismatch.effects.Effect` (or ``Unexplained``).
+    model : the fitted :class:`~accel_bayes.physics.effects.Effect` (or ``Unexplained``).
     evidence : 2·(log L with − log L without) at the fitted optima (restricted likelihood ratio
         for ``noise_level``; the located-excess statistic for ``unexplained``).
     df : its degrees of freedom; log10_p : log10 of its χ²_df tail probability.
@@ -426,7 +426,7 @@ def _vec(v, nd: int = 3):
 
 def validate_report(doc: dict) -> None:
     """Raise :class:`~accel_bayes.errors.UserError` if ``doc`` breaks the DESIGN §7.2 contract."""
-    from .effects import VOCABULARY
+    from ..physics.effects import VOCABULARY
 
     def need(cond, msg):
         if not cond:

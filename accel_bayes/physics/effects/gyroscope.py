@@ -1,0 +1,132 @@
+"""Gyroscope effects: bias, scale factor, misalignment (off-diagonal scale), g-sensitivity.
+Sensor frame of the IMU, SI units (DESIGN §7.2).
+"""
+from __future__ import annotations
+
+import torch
+
+from ...constants import DEG_TO_RAD, G0
+from .base import Effect, Param, register_effect, _fmt, _onehot, _CrossAxisCoupling
+
+
+@register_effect
+class GyroBias(Effect):
+    """Constant gyroscope offset on one axis: output_a += bias (rad/s)."""
+
+    name = "gyro_bias"
+    description = "gyroscope offset"
+    local_axis = True
+    sensor = "gyro"
+    parameters = (Param("bias", (), "rad s-1", 0.1, "offset added to the gyro axis output"),)
+
+    def perturbation(self, params, ctx):
+        p = self._p(params)
+        k = self._imu_checked(ctx)
+        m = _onehot(ctx.K, k, self.axis_index, ctx.gyro)
+        return torch.zeros_like(ctx.acc), p["bias"] * m.expand_as(ctx.gyro)
+
+    def explain(self, params=None):
+        b = float(self._p(params)["bias"])
+        return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope reads {abs(b) / DEG_TO_RAD:.3g} °/s "
+                f"{'too high' if b > 0 else 'too low'} at all times (a gyro offset).")
+
+
+@register_effect
+class GyroScale(Effect):
+    """Scale-factor error of one gyroscope axis: output_a += scale · ω_a (relative)."""
+
+    name = "gyro_scale"
+    description = "gyroscope scale-factor error"
+    local_axis = True
+    sensor = "gyro"
+    parameters = (Param("scale", (), "1", 0.05, "relative scale error (0.01 = 1 %)"),)
+
+    @classmethod
+    def from_report(cls, parameters, options):
+        # a report's gyro_scale may carry from_axis; equal to the own axis, it is the diagonal
+        # (an off-diagonal one is claimed by GyroMisalignment.reads_report)
+        parameters.pop("from_axis", None)
+        options.pop("from_axis", None)
+        return parameters, options
+
+    def perturbation(self, params, ctx):
+        p = self._p(params)
+        k = self._imu_checked(ctx)
+        m = _onehot(ctx.K, k, self.axis_index, ctx.gyro)
+        return torch.zeros_like(ctx.acc), p["scale"] * m * ctx.gyro
+
+    def explain(self, params=None):
+        s = float(self._p(params)["scale"])
+        return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope reads {abs(100 * s):.3g} % "
+                f"{'more' if s > 0 else 'less'} than the true rotation rate (a gyro scale-factor error).")
+
+
+@register_effect
+class GyroMisalignment(_CrossAxisCoupling):
+    """Cross-axis coupling of one gyroscope axis: gyro axis ``axis`` also senses ``coupling`` ×
+    the ``from_axis`` component of the rotation rate (rad; a gyro sensing axis tilted towards
+    another one, to first order), output_a += coupling · ω_b, sensor frame.
+
+    Together with ``gyro_scale`` (the diagonal) this spans the gyroscope's full 3 × 3 linear
+    error of [S16]-style intrinsic models.  Unlike ``triad_orientation`` it moves the gyro
+    triad only, and a single coupling need not come with its antisymmetric partner: a
+    non-orthogonal gyro triad is *not* a rotation, and fitting a mounting rotation to it gives a
+    rotation vector that depends on the distribution of ω in the recording (the projection of
+    a symmetric error onto rotations), which does not carry over to other recordings."""
+
+    name = "gyro_misalignment"
+    # Reports use the DESIGN §7.2 vocabulary (a fixed contract), where ``gyro_scale`` is the
+    # "gyroscope scale-factor / misalignment error": this term is reported as a gyro_scale
+    # finding with {"scale": coupling, "from_axis": b} — the (axis, from_axis) element of the
+    # gyro's relative scale/misalignment matrix, whose diagonal is GyroScale.
+    vocabulary_name = "gyro_scale"
+    description = "cross-axis coupling / non-orthogonal gyroscope axes"
+    sensor = "gyro"
+    same_axis_hint = "; the same-axis term is gyro_scale"
+    parameters = (Param("coupling", (), "rad", 0.05, "fraction of the from_axis rotation rate added"),)
+
+    @classmethod
+    def reads_report(cls, axis, parameters, options):
+        frm = options.get("from_axis", parameters.get("from_axis"))
+        return frm is not None and frm != axis
+
+    @classmethod
+    def from_report(cls, parameters, options):
+        if "scale" in parameters:
+            parameters["coupling"] = parameters.pop("scale")
+        return parameters, options
+
+    def vocabulary_parameters(self, params=None):
+        """The report's parameters under the vocabulary name gyro_scale."""
+        out = self.report_parameters(params)
+        return {"scale": out.pop("coupling"), "from_axis": out.pop("from_axis"), **out}
+
+    def explain(self, params=None):
+        c = float(self._p(params)["coupling"])
+        return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope also picks up {_fmt(100 * c)} % of the "
+                f"{self.from_axis}-axis rotation rate (cross-axis coupling, a gyro sensing axis not orthogonal to "
+                f"the others).")
+
+
+@register_effect
+class GyroGSensitivity(Effect):
+    """Gyroscope output that depends on specific force: gyro axis i += sensitivity_i · f_i
+    (rad/s per m/s², f the sensor-frame specific force at the IMU)."""
+
+    name = "gyro_g_sensitivity"
+    description = "gyroscope output that depends on specific force"
+    local_axis = False
+    sensor = "gyro"
+    parameters = (Param("sensitivity", (3,), "rad s-1 per m s-2", 1e-3, "gyro axis i sees force axis i"),)
+
+    def perturbation(self, params, ctx):
+        p = self._p(params)
+        k = self._imu_checked(ctx)
+        m = _onehot(ctx.K, k, None, ctx.gyro)
+        return torch.zeros_like(ctx.acc), m * p["sensitivity"] * ctx.acc
+
+    def explain(self, params=None):
+        s = self._p(params)["sensitivity"].detach().cpu().double()
+        per_g = [float(v) * G0 / DEG_TO_RAD for v in s]
+        return (f"IMU {self.imu}'s gyroscope reading shifts with the specific force it feels "
+                f"([{', '.join(f'{v:.3g}' for v in per_g)}] (°/s)/g on x, y, z): a g-sensitive gyro.")

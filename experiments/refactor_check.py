@@ -1,0 +1,282 @@
+"""Regression harness for the numerical core (issue #10): the deterministic outputs of every
+solver, with fixed seeds, saved to an .npz so that two commits can be compared.
+
+    python experiments/refactor_check.py --out after.npz
+    cd /tmp && PYTHONPATH=/work/base7adf python3 /path/to/experiments/refactor_check.py --out base.npz
+    python experiments/refactor_check.py --compare base.npz after.npz
+
+Outputs (each a small problem, seconds each):
+
+* ``map.*`` — [C21] MAP on a simulated mimu8 data set: positions and Laplace covariance;
+* ``selfcal.*`` — [S16] self-calibration (process-model motion, noisy plate): poses, states,
+  Laplace covariance;
+* ``conventional.*`` — [S16] eq. 19 conventional calibration: poses, sensor parameters, covariance;
+* ``intrinsics.*`` — intrinsics from a simulated recording with 24 rests;
+* ``crb`` — the Cramér–Rao bound of θ for the MAP data set;
+* ``motion.*`` — motion estimation (ω, ω̇, s, their std; draws and linear geometry);
+* ``mismatch.*`` — ``mismatch.detect`` on a simulated mimu8 case with one
+  ``axis_displacement`` (the package's simulator): evidence and parameters of the findings,
+  refined log-likelihood;
+* ``conceal.*`` — the same on a recording of the independent generator
+  (``experiments/_conceal.py``) hiding one ``time_offset``.
+
+Only public names that exist at 7adf109 and later are imported, so the same file runs against
+both.  ``--compare`` prints max |a − b| and max |a − b| / max |a| per output and flags every output
+whose relative difference exceeds ``--tol`` (default 1e-6: the LM solvers stop at relative cost
+changes of 1e-10–1e-12, i.e. parameter changes of ~1e-6–1e-5 relative in the worst-conditioned
+directions; the mismatch statistics are differences of log-likelihoods and get the same bound
+relative to their scale).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+
+import numpy as np
+import torch
+
+DEG = math.pi / 180
+
+
+def _np(x):
+    if torch.is_tensor(x):
+        return x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def run_map(out: dict):
+    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.inference.crb import crb_theta
+    from accel_bayes.inference.map import fit_map
+    from accel_bayes.models import imu_outputs, to_array_frame
+    from accel_bayes.motion import iid_motion
+
+    dt = torch.float64
+    sa, sg = 0.04, 0.06 * DEG
+    arr = mimu4444_8()
+    g = torch.Generator().manual_seed(7)
+    m = iid_motion(300, generator=g)
+    K = arr.K
+    true = arr.positions + 1e-4 * torch.randn(K, 3, generator=g, dtype=dt)
+    true[0] = arr.positions[0]
+    acc, gyro = imu_outputs(true, arr.orientations, m.omega, m.omega_dot, m.s)
+    acc = acc + sa * torch.randn(acc.shape, generator=g, dtype=dt)
+    gyro = gyro + sg * torch.randn(gyro.shape, generator=g, dtype=dt)
+    acc_a = to_array_frame(acc, arr.orientations)
+    wbar = to_array_frame(gyro, arr.orientations).mean(1)
+    P = torch.eye(3, dtype=dt) * sg**2 / K
+    res = fit_map(acc_a, wbar, P, sa, prior_mean=arr.positions, prior_std=3e-3)
+    out["map.positions"] = _np(res.positions)
+    out["map.laplace_cov"] = _np(res.laplace_cov)
+    out["map.omega"] = _np(res.omega)
+    out["crb"] = _np(crb_theta(true, m.omega, m.omega_dot, m.s, sa, torch.full((K,), sg), prior_std=3e-3))
+
+
+def run_selfcal(out: dict):
+    from accel_bayes import models
+    from accel_bayes.arrays import s16_plate
+    from accel_bayes.geometry import boxplus
+    from accel_bayes.inference.selfcal import self_calibrate, simulate_process_motion
+
+    f64 = torch.float64
+    gen = torch.Generator().manual_seed(22)
+    T, A = 200, 5
+    x = simulate_process_motion(T, 1 / 125.0, seed=6, segment_length=20, omega_dot_std=8.0, omega0_std=3.0)
+    arr = s16_plate()
+    q_true = boxplus(arr.orientations, 0.05 * torch.randn(A, 3, generator=gen, dtype=f64))
+    p_true = arr.positions + 2e-3 * torch.randn(A, 3, generator=gen, dtype=f64)
+    z = models.triad_output(x, q_true, p_true) + 0.01 * torch.randn(T, A, 3, generator=gen, dtype=f64)
+    res = self_calibrate(z, 1 / 125.0, nominal_positions=arr.positions, nominal_orientations=arr.orientations,
+                         acc_noise_std=0.01)
+    out["selfcal.positions"] = _np(res.positions)
+    out["selfcal.orientations"] = _np(res.orientations)
+    out["selfcal.states"] = _np(res.states)
+    out["selfcal.covariance"] = _np(res.covariance)
+
+
+def run_conventional(out: dict):
+    from accel_bayes import models
+    from accel_bayes.arrays import s16_plate
+    from accel_bayes.geometry import boxplus
+    from accel_bayes.inference.conventional import IDENTITY_SENSITIVITY, conventional_calibrate
+    from accel_bayes.motion import smooth_motion
+
+    f64 = torch.float64
+    gen = torch.Generator().manual_seed(32)
+    m = smooth_motion(400, 125.0, seed=1, omega_rms=3.0, freq_range=(0.1, 0.5), accel_rms=2.0)
+    x = torch.cat((m.s, m.omega, m.omega_dot), -1)
+    arr = s16_plate()
+    A = arr.K
+    p = arr.positions + 3e-3 * torch.randn(A, 3, generator=gen, dtype=f64)
+    q = boxplus(arr.orientations, 0.05 * torch.randn(A, 3, generator=gen, dtype=f64))
+    sp = torch.tensor(IDENTITY_SENSITIVITY, dtype=f64) + 0.02 * torch.randn(A, 6, generator=gen, dtype=f64)
+    o = 0.1 * torch.randn(A, 3, generator=gen, dtype=f64)
+    z = models.triad_output(x, q, p, models.sensitivity_matrix(sp), o)
+    z = z + 0.02 * torch.randn(z.shape, generator=gen, dtype=f64)
+    res = conventional_calibrate(z, x, nominal_positions=arr.positions, nominal_orientations=arr.orientations,
+                                 acc_noise_std=0.02)
+    out["conventional.positions"] = _np(res.positions)
+    out["conventional.orientations"] = _np(res.orientations)
+    out["conventional.sensitivity"] = _np(res.sensitivity)
+    out["conventional.offset"] = _np(res.offset)
+    out["conventional.covariance"] = _np(res.covariance)
+
+
+def _rest_recording(K=4, n_orient=24, n=300, sigma=0.04, sigma_g=0.003, dyn=40):
+    """Rests in random orientations (raw a = T⁻¹ g u + b + noise) between dynamic stretches."""
+    from accel_bayes.recording import Recording
+
+    g0 = 9.80665
+    rng = np.random.default_rng(11)
+    b = rng.normal(0, 0.3, (K, 3))
+    Tm = np.zeros((K, 3, 3))
+    for k in range(K):
+        Tm[k] = np.diag(1 + rng.normal(0, 0.01, 3))
+        Tm[k][np.tril_indices(3, -1)] = rng.normal(0, 0.005, 3)
+    bg = rng.normal(0, 0.02, (K, 3))
+    dirs = rng.normal(size=(n_orient, K, 3))
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    Tinv = np.linalg.inv(Tm)
+    acc, gyro, seg = [], [], []
+    for s in range(n_orient):
+        raw = np.einsum("kij,kj->ki", Tinv, g0 * dirs[s]) + b
+        acc += [rng.normal(0, 20, (dyn, K, 3)), raw + sigma * rng.normal(size=(n, K, 3))]
+        gyro += [rng.normal(0, 3, (dyn, K, 3)), bg + sigma_g * rng.normal(size=(n, K, 3))]
+        seg += ["dynamic"] * dyn + ["static"] * n
+    acc = np.concatenate(acc)
+    return Recording(time=np.arange(acc.shape[0]) / 100.0, acc=acc, gyro=np.concatenate(gyro),
+                     nominal_position=rng.normal(0, 0.01, (K, 3)), acc_noise_std=np.full(K, sigma),
+                     gyro_noise_std=np.full(K, sigma_g), segment=np.array(seg), description="rests",
+                     source="refactor_check")
+
+
+def run_intrinsics(out: dict):
+    from accel_bayes.intrinsics import estimate_intrinsics
+
+    est = estimate_intrinsics(_rest_recording())
+    out["intrinsics.acc_bias"] = _np(est.acc_bias)
+    out["intrinsics.acc_matrix"] = _np(est.acc_matrix)
+    out["intrinsics.acc_cov"] = _np(est.acc_cov)
+    out["intrinsics.gyro_bias"] = _np(est.gyro_bias)
+
+
+def run_motion(out: dict):
+    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.motion_estimation import estimate_motion
+    from accel_bayes.simulate import simulate
+
+    res = simulate(mimu4444_8(), "iid", T=300, rate=100, seed=3, position_error_std=1e-4)
+    rel = (res.true_positions - res.true_positions[0]).numpy()
+    imus = [{"imu": k, "mean": p.tolist(), "std": [0.0 if k == 0 else 1e-4] * 3,
+             "cov": (np.zeros((3, 3)) if k == 0 else 1e-8 * np.eye(3)).tolist()} for k, p in enumerate(rel)]
+    doc = {"schema": "accel_bayes.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
+           "diagnostics": {"seconds": 0.0}}
+    for mode, kw in (("draws", dict(geometry="draws", draws=20, seed=1)), ("linear", dict(geometry="linear"))):
+        ds = estimate_motion(res.recording, doc, **kw)
+        for v in ("omega", "omega_dot", "s", "omega_std", "omega_dot_std", "s_std", "chi2"):
+            if v in ds:
+                out[f"motion.{mode}.{v}"] = np.asarray(ds[v].values, dtype=np.float64)
+
+
+def run_mismatch(out: dict):
+    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.mismatch import detect, make_effect
+    from accel_bayes.simulate import simulate
+
+    eff = make_effect("axis_displacement", imu=6, axis="z", parameters={"displacement": [0.0, 2e-4, 8e-4]})
+    rec = simulate(mimu4444_8(), "smooth", seed=22, effects=[eff], T=400, rate=200.0, acc_noise_std=0.02,
+                   gyro_noise_std=0.1 * DEG).recording
+    rep = detect(rec, seed=0, n_twins=20, loo_draws=40, n_refit=3).to_dict()
+    out["mismatch.baseline"] = np.array([rep["baseline"]["loglik"], rep["baseline"]["chi2_per_dof"]])
+    out["mismatch.threshold"] = np.array([rep["threshold"]])
+    out["mismatch.evidence"] = np.array([f["evidence"] for f in rep["findings"]])
+    params = [np.ravel(np.asarray(v, dtype=np.float64)) for f in rep["findings"]
+              for v in f["parameters"].values() if isinstance(v, (list, float, int))]
+    out["mismatch.parameters"] = np.concatenate(params) if params else np.zeros(0)
+    ref = rep.get("refined") or {}
+    out["mismatch.refined"] = np.array([ref.get("loglik", np.nan), ref.get("chi2_per_dof", np.nan)])
+    out["mismatch.names"] = np.array([f"{f['effect']}:{f['imu']}:{f['axis']}" for f in rep["findings"]])
+
+
+def run_conceal(out: dict):
+    """mismatch.detect on a recording from the independent generator (experiments/_conceal.py,
+    numpy from first principles) hiding one ``time_offset`` (the effect whose exact and
+    linearised forms differ)."""
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _conceal import make_case
+
+    from accel_bayes.mismatch import detect
+
+    case = make_case("mimu8", "time_offset", seed=3, T=600, rate=200.0, imu=5, magnitude=5e-4)
+    rep = detect(case.recording, seed=0, n_twins=20, loo_draws=40, n_refit=3).to_dict()
+    out["conceal.baseline"] = np.array([rep["baseline"]["loglik"], rep["baseline"]["chi2_per_dof"]])
+    out["conceal.evidence"] = np.array([f["evidence"] for f in rep["findings"]])
+    params = [np.ravel(np.asarray(v, dtype=np.float64)) for f in rep["findings"]
+              for v in f["parameters"].values() if isinstance(v, (list, float, int))]
+    out["conceal.parameters"] = np.concatenate(params) if params else np.zeros(0)
+    ref = rep.get("refined") or {}
+    out["conceal.refined"] = np.array([ref.get("loglik", np.nan), ref.get("chi2_per_dof", np.nan)])
+    out["conceal.names"] = np.array([f"{f['effect']}:{f['imu']}:{f['axis']}" for f in rep["findings"]])
+
+
+STAGES = {"map": run_map, "selfcal": run_selfcal, "conventional": run_conventional, "intrinsics": run_intrinsics,
+          "motion": run_motion, "mismatch": run_mismatch, "conceal": run_conceal}
+
+
+def compare(a_path: str, b_path: str, tol: float) -> int:
+    a, b = np.load(a_path), np.load(b_path)
+    bad = 0
+    print(f"{'output':34s} {'max|a-b|':>11s} {'max|a|':>11s} {'rel':>10s}")
+    for k in sorted(set(a.files) | set(b.files)):
+        if k not in a.files or k not in b.files:
+            print(f"{k:34s} missing in {'A' if k not in a.files else 'B'}")
+            bad += 1
+            continue
+        x, y = a[k], b[k]
+        if x.dtype.kind in "US":
+            same = x.shape == y.shape and bool((x == y).all())
+            print(f"{k:34s} {'equal' if same else 'DIFFERENT: ' + str(x) + ' vs ' + str(y)}")
+            bad += not same
+            continue
+        if x.shape != y.shape:
+            print(f"{k:34s} shape {x.shape} vs {y.shape}")
+            bad += 1
+            continue
+        d = float(np.nanmax(np.abs(x - y))) if x.size else 0.0
+        s = float(np.nanmax(np.abs(x))) if x.size else 0.0
+        rel = d / s if s > 0 else d
+        flag = "" if rel <= tol else "  <-- exceeds tol"
+        bad += rel > tol
+        print(f"{k:34s} {d:11.3e} {s:11.3e} {rel:10.2e}{flag}")
+    print(f"{bad} output(s) beyond the tolerance {tol:g}" if bad else f"all outputs within the tolerance {tol:g}")
+    return 1 if bad else 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", help="write the outputs to this .npz")
+    ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two .npz files")
+    ap.add_argument("--tol", type=float, default=1e-6, help="max relative difference per output (default 1e-6)")
+    ap.add_argument("--only", default=",".join(STAGES), help="comma-separated stages to run")
+    args = ap.parse_args(argv)
+    if args.compare:
+        return compare(*args.compare, args.tol)
+    if not args.out:
+        ap.error("give --out or --compare")
+    torch.set_num_threads(1)
+    out: dict = {}
+    for name in args.only.split(","):
+        t0 = time.perf_counter()
+        STAGES[name](out)
+        print(f"{name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    np.savez(args.out, **out)
+    print(f"wrote {len(out)} outputs to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
