@@ -2,9 +2,9 @@
 
 :func:`calibrate` strings the stages together for one recording:
 
-0. real-data preprocessing (:mod:`accel_bayes.preprocess`): intrinsic calibration from the
+0. real-data preprocessing (:mod:`accel_bayes.prep.preprocess`): intrinsic calibration from the
    recording's own rests, then dropping static, clipped and non-rotating samples; and, for such
-   recordings, the accelerometer noise model estimated from the data (:mod:`accel_bayes.noise`:
+   recordings, the accelerometer noise model estimated from the data (:mod:`accel_bayes.prep.noise`:
    a level per triad × a factor per gyro-rate bin, type-II ML at the MAP, and the sandwich
    inflation for what the model still misses).  On a recording without rests (e.g. simulated
    twisting) the intrinsics are skipped with a note and the stated noise is used;
@@ -39,16 +39,16 @@ import torch
 
 from . import __version__
 from . import diagnostics as dg
-from . import positions as _positions_mod
+from .data import positions as _positions_mod
 from .errors import UserError
 from .inference.pmmh import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
 from .inference.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
 from .likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
     positions_from_theta
-from .noise import DEFAULT_RATE_BINS, NOISE_MODES
-from .outputs import write_text
-from .preprocess import preprocess
-from .recording import Recording
+from .prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
+from .data.outputs import write_text
+from .prep.preprocess import preprocess
+from .data.recording import Recording
 
 __all__ = ["calibrate", "CalibrationResult", "write_outputs", "positions_document", "DEFAULTS"]
 
@@ -100,7 +100,7 @@ class CalibrationResult:
     seconds : wall time of the whole calibration.
     run : the :class:`~accel_bayes.inference.pmmh.PMMHRun` (draws and per-draw statistics).
     map_result : the MAP result when one was used, else None.
-    array : the :class:`~accel_bayes.arrays.SensorArray` of the recording (for plots).
+    array : the :class:`~accel_bayes.physics.arrays.SensorArray` of the recording (for plots).
     """
 
     idata: object
@@ -159,7 +159,7 @@ def _load_recording(recording):
     if isinstance(recording, Recording):
         return recording, None, None
     if isinstance(recording, (str, os.PathLike)):
-        from .io import read_recording, recording_sha256
+        from .data.io import read_recording, recording_sha256
 
         rec = read_recording(recording, require_gyro=True)
         return rec, recording_sha256(recording), str(recording)
@@ -174,7 +174,7 @@ def _data_fingerprint(lik) -> str:
 
 
 def _recording_hash(rec) -> str:
-    """SHA-256 of an in-memory recording's data (a file's is :func:`accel_bayes.io.recording_sha256`)."""
+    """SHA-256 of an in-memory recording's data (a file's is :func:`accel_bayes.data.io.recording_sha256`)."""
     h = hashlib.sha256()
     for x in (rec.time, rec.acc, rec.gyro, rec.nominal_position, rec.nominal_orientation, rec.acc_noise_std,
               rec.gyro_noise_std, rec.acc_clipped, rec.gyro_clipped):
@@ -191,7 +191,7 @@ def _select_key(select):
 
 
 def _intrinsics_key(intrinsics) -> str:
-    """A given :class:`~accel_bayes.intrinsics.Intrinsics` object by the hash of its arrays."""
+    """A given :class:`~accel_bayes.prep.intrinsics.Intrinsics` object by the hash of its arrays."""
     h = hashlib.sha256()
     for v in vars(intrinsics).values():
         if isinstance(v, np.ndarray):
@@ -264,17 +264,17 @@ def _usable_map(res, settings):
 
 
 def _rotation_rate(rec):
-    from .preprocess import rotation_rate
+    from .prep.preprocess import rotation_rate
 
     return rotation_rate(rec)
 
 
 def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings):
-    """Fit the MAP with the data-estimated noise model (:mod:`accel_bayes.noise`); with
+    """Fit the MAP with the data-estimated noise model (:mod:`accel_bayes.prep.noise`); with
     ``inflate`` temper the likelihood by the sandwich factor κ.  Returns the likelihood the
-    chains use (:class:`~accel_bayes.noise.TemperedLikelihood` of the scaled samples), the MAP
-    of exactly that target (or None if unusable) and the :class:`~accel_bayes.noise.NoiseModel`."""
-    from .noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
+    chains use (:class:`~accel_bayes.prep.noise.TemperedLikelihood` of the scaled samples), the MAP
+    of exactly that target (or None if unusable) and the :class:`~accel_bayes.prep.noise.NoiseModel`."""
+    from .prep.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -346,7 +346,7 @@ def calibrate(
 ) -> CalibrationResult:
     """Sample the posterior of the accelerometer-triad positions of one recording with PmMH.
 
-    recording : a :class:`~accel_bayes.recording.Recording` or a path to a format-v1 file.
+    recording : a :class:`~accel_bayes.data.recording.Recording` or a path to a format-v1 file.
     chains, draws, warmup : C chains (run one after another), D kept draws and W warm-up
         iterations each.
     num_draws : N, Monte Carlo draws per likelihood estimate; None chooses it so that
@@ -369,8 +369,8 @@ def calibrate(
         Var[log p̂] ≈ 300 at N = 64 on ~6000 samples, out of reach), else "sample_cov" ([C21]
         eq. 30 as printed).
     intrinsics : "auto" (default), "estimate", "none", an
-        :class:`~accel_bayes.intrinsics.Intrinsics` or an intrinsics JSON path — the intrinsic
-        calibration step of :func:`accel_bayes.preprocess.preprocess` ("auto": from the
+        :class:`~accel_bayes.prep.intrinsics.Intrinsics` or an intrinsics JSON path — the intrinsic
+        calibration step of :func:`accel_bayes.prep.preprocess.preprocess` ("auto": from the
         recording's own rests, skipped with a note when it has none).
     drop_static : drop the samples of the rests (default True).
     drop_clipped : drop samples where any accelerometer or gyroscope is flagged as clipped (at
@@ -381,7 +381,7 @@ def calibrate(
         ("rotation" is accepted for compatibility: the ``min_rotation`` threshold, default 0.5
         rad/s even if ``min_rotation`` is 0).  Every count is in ``settings["preprocess"]``.
     noise : "stated" — the recording's ``acc_noise_std``; "estimate" — a level per triad fitted
-        with the MAP (type-II ML, :mod:`accel_bayes.noise`), then, with ``noise_inflation``,
+        with the MAP (type-II ML, :mod:`accel_bayes.prep.noise`), then, with ``noise_inflation``,
         the likelihood tempered by κ, the average variance inflation of the sandwich covariance
         at the MAP (what the fitted white-noise model still misses: heteroscedasticity, errors
         shared by the triads of a sample); "auto" (default) — "estimate" for a recording with
@@ -389,7 +389,7 @@ def calibrate(
         model error during motion), "stated" otherwise (simulations whose stated σ is the
         truth).  What was estimated is in ``settings["noise_model"]``.
     noise_bins : quantile bins of |ω̄| for a rate-dependent noise factor (default 1 = one level
-        per triad; see :mod:`accel_bayes.noise` for why more bins are not the default).
+        per triad; see :mod:`accel_bayes.prep.noise` for why more bins are not the default).
     noise_inflation : temper by the sandwich factor κ ≥ 1 (default True; estimated noise only).
     proposal : "rw" (Gaussian random walk only, [C21] eq. 27 with a shaped covariance),
         "mixture" (random walk mixed with independence moves from the Laplace approximation or
@@ -591,7 +591,7 @@ def _json_float(x):
 
 def positions_document(idata, *, K: int, reference_imu: int, seconds: float, settings: dict,
                        input_sha256: str | None, seed: int) -> dict:
-    """The DESIGN §7.3 document for a PmMH posterior (built by :mod:`accel_bayes.positions`, the
+    """The DESIGN §7.3 document for a PmMH posterior (built by :mod:`accel_bayes.data.positions`, the
     one writer of the format): every IMU sorted by label, posterior mean/std/cov of its triad
     position relative to the reference IMU (array frame, m; zeros for the reference), R̂/ESS
     diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.convergence_warnings`;
@@ -630,7 +630,7 @@ def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True) -> 
     """Write ``posterior.nc``, ``summary.csv``, ``positions.json`` and (``plots``) trace.png,
     rank.png, autocorr.png, ellipses.png into ``out_dir``, each file atomically; returns
     {name: path}.  The CLI passes the staging directory of an
-    :class:`accel_bayes.outputs.OutputDir`, so that the files appear in ``--out`` as one set."""
+    :class:`accel_bayes.data.outputs.OutputDir`, so that the files appear in ``--out`` as one set."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: {out} exists and is not a directory")

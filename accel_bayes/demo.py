@@ -40,10 +40,10 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
 
     ``quick`` shrinks the run (fewer samples and draws) for smoke tests.  Keyword overrides
     replace entries of :data:`DEFAULTS`.  ``out_dir`` is one output set
-    (:class:`accel_bayes.outputs.OutputDir`): checked before anything runs, refused when
+    (:class:`accel_bayes.data.outputs.OutputDir`): checked before anything runs, refused when
     non-empty unless ``overwrite``, and filled only when every stage has finished.
     """
-    from .outputs import OutputDir
+    from .data.outputs import OutputDir
 
     cfg = dict(DEFAULTS)
     if quick:
@@ -61,9 +61,9 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
 
 
 def _run_stages(od, cfg: dict, progress: bool) -> None:
-    from . import arrays
-    from .io import write_recording, write_truth
-    from .outputs import write_text
+    from .physics import arrays
+    from .data.io import write_recording, write_truth
+    from .data.outputs import write_text
     from .simulate import simulate
 
     # Files go to the staging directory ``out``; messages name their final place in ``shown``.

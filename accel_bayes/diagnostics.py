@@ -35,7 +35,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
 
 from .errors import UserError  # noqa: E402
-from .outputs import save_figure  # noqa: E402
+from .data.outputs import save_figure  # noqa: E402
 
 __all__ = [
     "to_inference_data",
@@ -247,9 +247,9 @@ def posterior_moments(idata, var_name: str = VAR) -> dict:
 
 def save(idata, path) -> Path:
     """Write ``idata`` to NetCDF-4 (h5netcdf engine, one group per InferenceData group, float
-    variables zlib-compressed as ArviZ does), atomically (:func:`accel_bayes.outputs.write_netcdf`);
+    variables zlib-compressed as ArviZ does), atomically (:func:`accel_bayes.data.outputs.write_netcdf`);
     returns the path.  :func:`load` (``arviz.from_netcdf``) reads it back."""
-    from .outputs import write_netcdf
+    from .data.outputs import write_netcdf
 
     tree = idata.to_datatree()
     enc = {node.path: {name: {"zlib": True} for name, v in node.dataset.variables.items()
@@ -348,7 +348,7 @@ def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, l
     idata_or_moments : an InferenceData from :func:`to_inference_data`, or a dict
         {"imu": labels, "mean": (A−1, 3) m, "cov": (A−1, 3, 3) m²} (e.g. a Laplace approximation),
         positions relative to the reference triad.
-    array : :class:`~accel_bayes.arrays.SensorArray` (or a Recording: its ``sensor_array()``) —
+    array : :class:`~accel_bayes.physics.arrays.SensorArray` (or a Recording: its ``sensor_array()``) —
         nominal positions (the posterior is drawn at nominal_ref + r), package squares of side
         ``package_size`` around them; IMUs with nominal z ≥ 0 are the top side, z < 0 the bottom
         side, each in its own panel when both exist.

@@ -62,7 +62,7 @@ import numpy as np
 import torch
 
 from .errors import UserError
-from .models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
+from .physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
 
 __all__ = [
     "positions_from_theta",
@@ -303,7 +303,7 @@ class RaoBlackwellLikelihood:
         device=None,
         phi_prior_std=None,
     ) -> "RaoBlackwellLikelihood":
-        """Build the likelihood from a :class:`~accel_bayes.recording.Recording`.
+        """Build the likelihood from a :class:`~accel_bayes.data.recording.Recording`.
 
         Accelerometer and gyroscope outputs are rotated into the array frame with the nominal
         orientations (R(q)ᵀ, DESIGN §7.0).  The A triads are the IMUs with accelerometer data

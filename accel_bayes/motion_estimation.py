@@ -62,14 +62,14 @@ import numpy as np
 import torch
 
 from .errors import UserError
-from .geometry import quat_to_matrix
+from .physics.geometry import quat_to_matrix
 from .inference.damping import NielsenDamping
 from .inference.linear import damped_step
 from .inference.lm import BatchedLevenbergMarquardt, StoppingRule
-from .models import specific_force
+from .physics.models import specific_force
 from .physics.jacobians import AxisProjection, axis_force, axis_force_jacobian, df_dr
-from .positions import POSITIONS_SCHEMA, read_positions
-from .recording import Recording
+from .data.positions import POSITIONS_SCHEMA, read_positions
+from .data.recording import Recording
 
 __all__ = [
     "MOTION_SCHEMA",
@@ -82,7 +82,7 @@ __all__ = [
     "write_motion",
 ]
 
-MOTION_SCHEMA = "accel_bayes.motion/1"
+MOTION_SCHEMA = "accel_bayes.physics.motion/1"
 PARAMS = ("omega_x", "omega_y", "omega_z", "omega_dot_x", "omega_dot_y", "omega_dot_z", "s_x", "s_y", "s_z")
 _CLIP_FRACTION = 0.99  # in a flagged triad, an axis within 1 % of the range counts as clipped (int16 codes
 # sit a little inside the nominal range: 32767/16.4 = 1997.99 °/s of 2000)
@@ -125,7 +125,7 @@ def _check_lever_arms(positions: np.ndarray, labels: list, rel_tol: float = 1e-6
 
 def load_calibration(calibration, K: int | None = None) -> Calibration:
     """Read a calibration: a positions.json path, its parsed dict (DESIGN §7.3, schema
-    ``accel_bayes.positions/1``), a (K, 3) positions array (no uncertainty), or a
+    ``accel_bayes.data.positions/1``), a (K, 3) positions array (no uncertainty), or a
     :class:`Calibration`.  Raises :class:`UserError` naming the offending field."""
     if isinstance(calibration, Calibration):
         cal = calibration
@@ -137,7 +137,7 @@ def load_calibration(calibration, K: int | None = None) -> Calibration:
                           reference_imu=doc.get("reference_imu", 0), method=str(doc.get("method", "unknown")),
                           source="positions dict")
         if not isinstance(calibration, dict):
-            from .io import recording_sha256
+            from .data.io import recording_sha256
 
             cal.source = f"{calibration} (sha256 {recording_sha256(calibration)})"
     else:
@@ -293,7 +293,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     recording : :class:`Recording` (sensor-frame outputs).
     calibration : positions.json path or dict (DESIGN §7.3), a (K, 3) array of positions relative
         to the reference IMU (no uncertainty), or a :class:`Calibration`.
-    intrinsics : None, an :class:`accel_bayes.intrinsics.Intrinsics` or its JSON path/dict —
+    intrinsics : None, an :class:`accel_bayes.prep.intrinsics.Intrinsics` or its JSON path/dict —
         applied to the recording first.
     draws : number of geometry draws for ``geometry="draws"`` (0 → no geometry part).
     seed : seed of the geometry draws (same seed → same result).
@@ -313,7 +313,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     ``chi2`` (weighted residual sum of squares), ``dof``, and flags ``converged``,
     ``ill_posed`` (NaN estimates: the measurements left do not determine all 9 unknowns),
     ``gyro_clipped``, ``acc_clipped``, ``omega_needs_acc``.  Attributes hold units and
-    provenance (schema ``accel_bayes.motion/1``).
+    provenance (schema ``accel_bayes.physics.motion/1``).
     """
     import time as _time
 
@@ -330,7 +330,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     cal = load_calibration(calibration, K)
     intr_note = "none"
     if intrinsics is not None:
-        from .intrinsics import Intrinsics
+        from .prep.intrinsics import Intrinsics
 
         intr = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_json(intrinsics)
         recording = intr.apply(recording)
@@ -499,9 +499,9 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
 
 def write_motion(ds, path, *, overwrite: bool = False) -> Path:
     """Write a motion dataset to NetCDF-4 (h5netcdf), atomically
-    (:func:`accel_bayes.outputs.write_netcdf`); an existing file is only replaced with ``overwrite``."""
-    from .io import ENGINE
-    from .outputs import write_netcdf
+    (:func:`accel_bayes.data.outputs.write_netcdf`); an existing file is only replaced with ``overwrite``."""
+    from .data.io import ENGINE
+    from .data.outputs import write_netcdf
 
     enc = {name: {"_FillValue": None} for name, v in ds.variables.items() if v.dtype.kind == "f"}
     return write_netcdf(Path(path), ds, engine=ENGINE, encoding=enc, overwrite=overwrite)

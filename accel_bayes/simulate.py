@@ -1,10 +1,10 @@
 """Simulated inertial sensor array recordings with known ground truth.
 
-:func:`simulate` draws a true geometry around a :class:`~accel_bayes.arrays.SensorArray`
-design, moves the board with a motion from :mod:`accel_bayes.motion`, computes each IMU's
-sensor-frame outputs with :func:`accel_bayes.models.imu_outputs` (the package's one signal
+:func:`simulate` draws a true geometry around a :class:`~accel_bayes.physics.arrays.SensorArray`
+design, moves the board with a motion from :mod:`accel_bayes.physics.motion`, computes each IMU's
+sensor-frame outputs with :func:`accel_bayes.physics.models.imu_outputs` (the package's one signal
 model, [C21] eq. 4), adds white Gaussian noise and clips at the sensor ranges.  It returns a
-:class:`~accel_bayes.recording.Recording` that holds only what a real file would (nominal design,
+:class:`~accel_bayes.data.recording.Recording` that holds only what a real file would (nominal design,
 stated noise, outputs) and, separately, the ``truth`` dict that a simulator writes to the
 sidecar ``REC.truth.json`` (DESIGN §7.1: ground truth never goes in a recording file).
 
@@ -19,13 +19,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .arrays import SensorArray
+from .physics.arrays import SensorArray
 from .errors import UserError
-from .geometry import boxminus, boxplus
-from .models import imu_outputs
-from .motion import MotionTrace, as_generator, make_motion
+from .physics.geometry import boxminus, boxplus
+from .physics.models import imu_outputs
+from .physics.motion import MotionTrace, as_generator, make_motion
 from .physics.effects.timing import sample_times
-from .recording import Recording
+from .data.recording import Recording
 
 __all__ = ["SimResult", "simulate", "TRUTH_SCHEMA", "memory_estimate"]
 
@@ -139,7 +139,7 @@ def simulate(
     position_error_std : m — true positions = nominal + N(0, σ²) per axis; the reference IMU
         stays exactly at its nominal position (it defines the origin, [C21] r₁ ≡ 0).
     orientation_error_std : rad — true orientation = nominal ⊞ δ, δ ~ N(0, σ² I₃) (rotation
-        vector, :func:`~accel_bayes.geometry.boxplus`); the reference IMU keeps its nominal.
+        vector, :func:`~accel_bayes.physics.geometry.boxplus`); the reference IMU keeps its nominal.
     true_positions (K, 3) / true_orientations (K, 4) : explicit truth, overriding the above.
     acc_noise_std (m/s²) / gyro_noise_std (rad/s) : scalar or (K,); default the array's.  The
         same values are the recording's stated noise.
@@ -157,7 +157,7 @@ def simulate(
         the nominal noise), ``saturation`` clips after the noise (and is *not* flagged in
         ``acc_clipped``/``gyro_clipped``: an unstated range).  Listed in ``truth["effects"]``;
         ``acc_clean``/``gyro_clean`` then include the mean effects.
-    validate : check the result with :func:`accel_bayes.validation.validate_recording` when
+    validate : check the result with :func:`accel_bayes.data.validation.validate_recording` when
         that module is available.
 
     Returns a :class:`SimResult` (recording, truth sidecar dict, motion, truth tensors,
@@ -305,7 +305,7 @@ def simulate(
 
 def _validate(rec: Recording) -> None:
     try:
-        from .validation import validate_recording
+        from .data.validation import validate_recording
     except ImportError:  # the validation module is optional at this stage of the package
         return
     validate_recording(rec)

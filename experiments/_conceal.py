@@ -1,15 +1,15 @@
 """An independent forward model of an IMU array on a rigid board, for blind mismatch tests.
 
 Why a second simulator.  The mismatch detector (:mod:`accel_bayes.mismatch`) adds linearised
-effect terms to the package's signal model (:mod:`accel_bayes.models`).  Testing it only on data
+effect terms to the package's signal model (:mod:`accel_bayes.physics.models`).  Testing it only on data
 made by those same terms proves nothing: a shared mistake (a sign, a frame, a first-order
 approximation) would cancel.  This module therefore uses none of the package's numerical code
 (no ``models``, no ``motion``, no ``simulate``, no ``geometry``): it is numpy from first
 principles, and the effects are applied the physical way (a late IMU is *evaluated later on the
 continuous trajectory*, a displaced sensing axis *sits at another point of the rigid body*, a
 rotated triad *has another rotation matrix*), not as additive perturbation terms.  Only the board
-designs (:mod:`accel_bayes.arrays` presets), the :class:`~accel_bayes.recording.Recording` type
-and the file writers of :mod:`accel_bayes.io` come from the package.
+designs (:mod:`accel_bayes.physics.arrays` presets), the :class:`~accel_bayes.data.recording.Recording` type
+and the file writers of :mod:`accel_bayes.data.io` come from the package.
 
 Physics
 -------
@@ -116,7 +116,7 @@ __all__ = [
     "oracle_noncentrality",
 ]
 
-G0 = 9.80665  # m/s², standard gravity (same constant as accel_bayes.arrays.G0)
+G0 = 9.80665  # m/s², standard gravity (same constant as accel_bayes.physics.arrays.G0)
 DEG = math.pi / 180.0
 G_WORLD = np.array([0.0, 0.0, -G0])
 AXES = ("x", "y", "z")
@@ -307,7 +307,7 @@ def board(name: str) -> Board:
     if name == "irregular6":
         return irregular6()
     if name in ("mimu32", "mimu8"):
-        from accel_bayes.arrays import preset
+        from accel_bayes.physics.arrays import preset
 
         arr = preset(name)
         return Board(name, arr.positions.numpy().astype(float).copy(), arr.orientations.numpy().astype(float).copy(),
@@ -572,7 +572,7 @@ def draw_settings(rng: np.random.Generator, **overrides) -> dict:
 class ConcealedCase:
     """One blind test case: the recording the detector sees, and the truth it must not."""
 
-    recording: object  # accel_bayes.recording.Recording
+    recording: object  # accel_bayes.data.recording.Recording
     truth: dict = field(default_factory=dict)
     clean_acc: np.ndarray | None = None   # noise-free outputs with the effect (for tests)
     clean_gyro: np.ndarray | None = None
@@ -600,7 +600,7 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
     (absolute and relative to the reference IMU) and orientations, the settings and the
     trajectory.
     """
-    from accel_bayes.recording import Recording
+    from accel_bayes.data.recording import Recording
 
     if effect != "none" and effect not in EFFECTS:
         raise ValueError(f"effect: expected 'none' or one of {EFFECTS}, got {effect!r}")
@@ -758,7 +758,7 @@ def _vec(i: int, value: float) -> list:
 
 def save_case(case: ConcealedCase, path, overwrite: bool = False) -> Path:
     """Write the recording (format v1) and its ground-truth sidecar ``<stem>.truth.json``."""
-    from accel_bayes.io import write_recording, write_truth
+    from accel_bayes.data.io import write_recording, write_truth
 
     path = write_recording(case.recording, path, overwrite=overwrite)
     write_truth(path, case.truth, overwrite=True)

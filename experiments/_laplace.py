@@ -198,7 +198,7 @@ def laplace(acc, omega, acc_std, prior_mean, prior_std, reference: int = 0, star
 
 
 def laplace_from_recording(rec, prior_mean_positions, prior_std: float, omega=None, **kw) -> LaplaceResult:
-    """:func:`laplace` for a :class:`~accel_bayes.recording.Recording` (all IMUs with an
+    """:func:`laplace` for a :class:`~accel_bayes.data.recording.Recording` (all IMUs with an
     accelerometer; the recording's reference IMU is the origin).
 
     prior_mean_positions (K, 3) m: absolute positions whose offsets from the reference row are the

@@ -24,9 +24,9 @@ import time
 
 import torch
 
-from accel_bayes.arrays import mimu4444_32
+from accel_bayes.physics.arrays import mimu4444_32
 from accel_bayes.likelihood import RaoBlackwellLikelihood
-from accel_bayes.models import G_matrix, H_matrix, u_of_omega
+from accel_bayes.physics.models import G_matrix, H_matrix, u_of_omega
 from accel_bayes.simulate import simulate
 
 

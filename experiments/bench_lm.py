@@ -104,7 +104,7 @@ def scipy_problem(z, dt, proto, x0, inv, W, S):
     import scipy.sparse as sp
 
     from accel_bayes import models
-    from accel_bayes.geometry import quat_exp, quat_mul
+    from accel_bayes.physics.geometry import quat_exp, quat_mul
 
     T, A = z.shape[0], z.shape[1]
     nf = A - 1

@@ -60,7 +60,7 @@ DEG = math.pi / 180.0
 
 
 def _simulate(array_name, T, acc_std, seed):
-    from accel_bayes.arrays import preset
+    from accel_bayes.physics.arrays import preset
     from accel_bayes.simulate import simulate
 
     # [C21] §IV-A: sensors without range limits, i.i.d. hand-twist motion.
@@ -110,7 +110,7 @@ def make_joint_model(acc, gyro, acc_std, gyro_std, prior_mean_theta, prior_std, 
     """
     import pyro
     import pyro.distributions as dist
-    from accel_bayes.models import specific_force
+    from accel_bayes.physics.models import specific_force
 
     T, A, _ = acc.shape
     sa = acc_std[:, None].expand(A, 3)
@@ -140,7 +140,7 @@ def _data(rec):
 
 def _init_values(rec, acc, gyro, prior_mean_theta):
     """θ = prior mean, ω = gyro average, [ω̇; s] = least squares given them."""
-    from accel_bayes.models import G_matrix, H_matrix, u_of_omega
+    from accel_bayes.physics.models import G_matrix, H_matrix, u_of_omega
 
     T, A, _ = acc.shape
     omega = gyro.mean(1)

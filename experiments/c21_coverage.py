@@ -70,7 +70,7 @@ def square_board(acc_std: float = 0.3):
     """4 IMUs at the corners of a 20 mm square, all with accelerometers and gyroscopes."""
     import torch
 
-    from accel_bayes.arrays import SensorArray
+    from accel_bayes.physics.arrays import SensorArray
 
     K = 4
     pos = torch.tensor([[0, 0, 0], [0.02, 0, 0], [0, 0.02, 0], [0.02, 0.02, 0.0]], dtype=torch.float64)

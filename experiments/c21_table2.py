@@ -93,7 +93,7 @@ LABEL = 1  # "IMU 2" of [C21] Fig. 4
 # ---------------------------------------------------------------------------- tasks (run on workers)
 
 def _simulate(T, acc_std, seed, omega_std_dps=OMEGA_STD_DPS, omega_dot_std_dps2=OMEGA_DOT_STD_DPS2):
-    from accel_bayes.arrays import mimu4444_32
+    from accel_bayes.physics.arrays import mimu4444_32
     from accel_bayes.simulate import simulate
 
     # [C21] §IV-A: "the sensors have an infinite dynamic range": no ranges at all (with the

@@ -1,7 +1,7 @@
 """Intrinsic calibration of the six MIMU4444 recordings: self and transfer errors.
 
 For every pair (i, j): intrinsics estimated on the rests of experiment i
-(:func:`accel_bayes.intrinsics.estimate_intrinsics`) are applied to experiment j, and the
+(:func:`accel_bayes.prep.intrinsics.estimate_intrinsics`) are applied to experiment j, and the
 error | |mean acc| − target | is taken over every static segment and IMU of j.  Printed: raw
 figures, the 6×6 transfer matrices (median and max), the repeatability of the intrinsics across
 experiments against their reported std, and the g check.
@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from accel_bayes.intrinsics import estimate_intrinsics, static_acc_errors
-from accel_bayes.mimu import import_mimu
+from accel_bayes.prep.intrinsics import estimate_intrinsics, static_acc_errors
+from accel_bayes.data.mimu import import_mimu
 
 DEG = 180 / np.pi
 

@@ -3,9 +3,9 @@
 
 For each experiment ``exp_i`` (``../shared/data/mimu4444-bcd``):
 
-1. import the raw stream (:func:`accel_bayes.mimu.import_mimu`: checksums, rests, noise from the
+1. import the raw stream (:func:`accel_bayes.data.mimu.import_mimu`: checksums, rests, noise from the
    rests), estimate the accelerometer intrinsics and gyro biases from the rests
-   (:func:`accel_bayes.intrinsics.estimate_intrinsics`) and apply them
+   (:func:`accel_bayes.prep.intrinsics.estimate_intrinsics`) and apply them
    (:meth:`Intrinsics.apply`), keep the samples labelled ``dynamic`` by the importer;
 2. run the detector **unchanged** (:func:`accel_bayes.mismatch.detect`, default options) and
    write its report (``OUT/exp_i/report.json`` + ``report.md``);
@@ -54,8 +54,8 @@ def data_dir() -> Path:
 
 def load_dynamic(i: int, data: Path, max_samples: int | None = None):
     """Experiment i: imported, intrinsics applied, dynamic samples only.  Returns (rec, info)."""
-    from accel_bayes.intrinsics import estimate_intrinsics
-    from accel_bayes.mimu import import_mimu
+    from accel_bayes.prep.intrinsics import estimate_intrinsics
+    from accel_bayes.data.mimu import import_mimu
 
     raw = import_mimu(data / f"exp_{i}" / "data.bin.gz")
     intr = estimate_intrinsics(raw)

@@ -15,7 +15,7 @@ Then, per IMU and coordinate:
 
 Optionally (``--intrinsics-draws K``) the uncertainty of the intrinsic calibration is propagated
 for one experiment: K intrinsics drawn from their reported covariance
-(:func:`accel_bayes.preprocess.draw_intrinsics`), each applied to the raw data and the tempered
+(:func:`accel_bayes.prep.preprocess.draw_intrinsics`), each applied to the raw data and the tempered
 MAP refitted with the same noise model; the spread of those MAPs is compared with the posterior
 std.
 
@@ -60,7 +60,7 @@ def data_dir() -> Path:
 def run_experiment(exp: int, data: str, out: str, chains: int, draws: int, warmup: int, seed: int) -> dict:
     """Import experiment ``exp`` and calibrate it with the pipeline defaults; write its outputs."""
     from accel_bayes.calibrate import calibrate, write_outputs
-    from accel_bayes.mimu import import_mimu
+    from accel_bayes.data.mimu import import_mimu
 
     t0 = time.perf_counter()
     rec = import_mimu(Path(data) / f"exp_{exp}" / "data.bin.gz")
@@ -104,9 +104,9 @@ def intrinsics_sensitivity(exp: int, data: str, n_draws: int, seed: int) -> dict
 
     from accel_bayes.calibrate import calibrate
     from accel_bayes.likelihood import RaoBlackwellLikelihood
-    from accel_bayes.mimu import import_mimu
-    from accel_bayes.noise import fit_map_tempered
-    from accel_bayes.preprocess import draw_intrinsics, preprocess
+    from accel_bayes.data.mimu import import_mimu
+    from accel_bayes.prep.noise import fit_map_tempered
+    from accel_bayes.prep.preprocess import draw_intrinsics, preprocess
 
     raw = import_mimu(Path(data) / f"exp_{exp}" / "data.bin.gz")
     # the noise model and κ of the default pipeline (one draw: only the MAP stage is needed)
@@ -361,7 +361,7 @@ def main(argv=None):
         intr = got[1][0] if len(got) > 1 else None
     an = analyse(results)
     (out / "results.json").write_text(json.dumps({"results": results, "intrinsics": intr, "analysis": an}, indent=1))
-    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.physics.arrays import mimu4444_8
 
     fig = ellipse_plot(results, out / "ellipses.png", mimu4444_8())
     fig_zoom = ellipse_zoom_plot(results, out / "ellipses_zoom.png")

@@ -47,11 +47,11 @@ def _np(x):
 
 
 def run_map(out: dict):
-    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.physics.arrays import mimu4444_8
     from accel_bayes.inference.crb import crb_theta
     from accel_bayes.inference.map import fit_map
-    from accel_bayes.models import imu_outputs, to_array_frame
-    from accel_bayes.motion import iid_motion
+    from accel_bayes.physics.models import imu_outputs, to_array_frame
+    from accel_bayes.physics.motion import iid_motion
 
     dt = torch.float64
     sa, sg = 0.04, 0.06 * DEG
@@ -76,8 +76,8 @@ def run_map(out: dict):
 
 def run_selfcal(out: dict):
     from accel_bayes import models
-    from accel_bayes.arrays import s16_plate
-    from accel_bayes.geometry import boxplus
+    from accel_bayes.physics.arrays import s16_plate
+    from accel_bayes.physics.geometry import boxplus
     from accel_bayes.inference.selfcal import self_calibrate, simulate_process_motion
 
     f64 = torch.float64
@@ -98,10 +98,10 @@ def run_selfcal(out: dict):
 
 def run_conventional(out: dict):
     from accel_bayes import models
-    from accel_bayes.arrays import s16_plate
-    from accel_bayes.geometry import boxplus
+    from accel_bayes.physics.arrays import s16_plate
+    from accel_bayes.physics.geometry import boxplus
     from accel_bayes.inference.conventional import IDENTITY_SENSITIVITY, conventional_calibrate
-    from accel_bayes.motion import smooth_motion
+    from accel_bayes.physics.motion import smooth_motion
 
     f64 = torch.float64
     gen = torch.Generator().manual_seed(32)
@@ -126,7 +126,7 @@ def run_conventional(out: dict):
 
 def _rest_recording(K=4, n_orient=24, n=300, sigma=0.04, sigma_g=0.003, dyn=40):
     """Rests in random orientations (raw a = T⁻¹ g u + b + noise) between dynamic stretches."""
-    from accel_bayes.recording import Recording
+    from accel_bayes.data.recording import Recording
 
     g0 = 9.80665
     rng = np.random.default_rng(11)
@@ -153,7 +153,7 @@ def _rest_recording(K=4, n_orient=24, n=300, sigma=0.04, sigma_g=0.003, dyn=40):
 
 
 def run_intrinsics(out: dict):
-    from accel_bayes.intrinsics import estimate_intrinsics
+    from accel_bayes.prep.intrinsics import estimate_intrinsics
 
     est = estimate_intrinsics(_rest_recording())
     out["intrinsics.acc_bias"] = _np(est.acc_bias)
@@ -163,7 +163,7 @@ def run_intrinsics(out: dict):
 
 
 def run_motion(out: dict):
-    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.physics.arrays import mimu4444_8
     from accel_bayes.motion_estimation import estimate_motion
     from accel_bayes.simulate import simulate
 
@@ -171,7 +171,7 @@ def run_motion(out: dict):
     rel = (res.true_positions - res.true_positions[0]).numpy()
     imus = [{"imu": k, "mean": p.tolist(), "std": [0.0 if k == 0 else 1e-4] * 3,
              "cov": (np.zeros((3, 3)) if k == 0 else 1e-8 * np.eye(3)).tolist()} for k, p in enumerate(rel)]
-    doc = {"schema": "accel_bayes.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
+    doc = {"schema": "accel_bayes.data.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
            "diagnostics": {"seconds": 0.0}}
     for mode, kw in (("draws", dict(geometry="draws", draws=20, seed=1)), ("linear", dict(geometry="linear"))):
         ds = estimate_motion(res.recording, doc, **kw)
@@ -181,7 +181,7 @@ def run_motion(out: dict):
 
 
 def run_mismatch(out: dict):
-    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.physics.arrays import mimu4444_8
     from accel_bayes.mismatch import detect, make_effect
     from accel_bayes.simulate import simulate
 

@@ -19,8 +19,8 @@ import os
 import torch
 
 from accel_bayes import models, s16_plate
-from accel_bayes.geometry import boxplus
-from accel_bayes.motion import smooth_motion, table_motion
+from accel_bayes.physics.geometry import boxplus
+from accel_bayes.physics.motion import smooth_motion, table_motion
 
 RATE = 125.0
 T_S16 = 675  # 5.4 s at 125 Hz ([S16] §V)

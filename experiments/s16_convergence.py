@@ -87,7 +87,7 @@ def _recording(motion: str, seed: int):
 def run_one(task: tuple) -> dict:
     """task = (motion, kind "position"/"orientation", level, trial, seed[, variant])."""
     C.one_thread()
-    from accel_bayes.geometry import boxplus, rotation_angle
+    from accel_bayes.physics.geometry import boxplus, rotation_angle
     from accel_bayes.inference.selfcal import self_calibrate
 
     motion, kind, level, trial, seed = task[:5]

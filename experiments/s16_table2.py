@@ -59,7 +59,7 @@ def gyro_reference(omega_true, z_centre, proto, dt, generator, calibrated: bool)
     from scipy.signal import savgol_filter
 
     from accel_bayes import models
-    from accel_bayes.geometry import quat_exp, quat_to_matrix
+    from accel_bayes.physics.geometry import quat_exp, quat_to_matrix
 
     T = omega_true.shape[0]
     g = generator
@@ -86,7 +86,7 @@ def gyro_reference(omega_true, z_centre, proto, dt, generator, calibrated: bool)
 
 
 def _errors(p_est, q_est, proto, idx):
-    from accel_bayes.geometry import rotation_angle
+    from accel_bayes.physics.geometry import rotation_angle
 
     pe = (p_est - proto["positions"][idx]).norm(dim=-1).mean().item() * 1e6
     ae = (rotation_angle(q_est, proto["orientations"][idx]) / C.DEG).mean().item() * 1e3

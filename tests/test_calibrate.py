@@ -12,12 +12,12 @@ import pytest
 import torch
 
 from accel_bayes import diagnostics as dg
-from accel_bayes.arrays import preset
+from accel_bayes.physics.arrays import preset
 from accel_bayes.calibrate import calibrate, write_outputs
 from accel_bayes.cli import main
 from accel_bayes.errors import UserError
-from accel_bayes.io import recording_sha256, write_recording
-from accel_bayes.positions import read_positions
+from accel_bayes.data.io import recording_sha256, write_recording
+from accel_bayes.data.positions import read_positions
 from accel_bayes.simulate import simulate
 
 SMALL = dict(chains=2, draws=150, warmup=150, progress=False)
@@ -36,7 +36,7 @@ def result(sim):
 
 def test_positions_document_schema(result, sim):
     doc = result.positions
-    assert doc["schema"] == "accel_bayes.positions/1" and doc["method"] == "pmmh"
+    assert doc["schema"] == "accel_bayes.data.positions/1" and doc["method"] == "pmmh"
     assert doc["reference_imu"] == 0
     assert [e["imu"] for e in doc["imus"]] == list(range(8))
     assert doc["imus"][0]["mean"] == [0.0, 0.0, 0.0] and doc["imus"][0]["std"] == [0.0, 0.0, 0.0]
@@ -250,7 +250,7 @@ def test_cli_missing_file_exit_2(tmp_path, capsys):
 def test_real_mimu_calibration(mimu_dir):
     """MUST-SHOW on one real experiment (≈ 4 min): the default pipeline calibrates exp_1 with
     R̂ < 1.01, bulk ESS ≥ 400 per coordinate and means within ±2 mm (x, y) of the design."""
-    from accel_bayes.mimu import import_mimu
+    from accel_bayes.data.mimu import import_mimu
 
     rec = import_mimu(mimu_dir / "exp_1" / "data.bin.gz")
     res = calibrate(rec, seed=0, progress=False)

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 import accel_bayes.calibrate as cal_mod
-from accel_bayes.arrays import preset
+from accel_bayes.physics.arrays import preset
 from accel_bayes.cli import main
 from accel_bayes.inference.pmmh import CHECKPOINT_FORMAT
-from accel_bayes.io import write_recording
+from accel_bayes.data.io import write_recording
 from accel_bayes.simulate import simulate
 
 RUN = ["--chains", "2", "--draws", "20", "--warmup", "20", "--num-draws", "2", "--no-map", "--seed", "4",

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from accel_bayes.arrays import preset
+from accel_bayes.physics.arrays import preset
 from accel_bayes.cli import main
-from accel_bayes.io import write_recording
+from accel_bayes.data.io import write_recording
 from accel_bayes.simulate import simulate
 
 FAST = ["--num-draws", "2", "--no-map", "--quiet", "--no-plots", "--seed", "1"]
@@ -114,7 +114,7 @@ def test_simulate_T_beyond_memory_refused(tmp_path, capsys):
 
 @pytest.mark.parametrize("layout, needle", [("coincident", "coincide"), ("collinear", "lie on one line")])
 def test_motion_refuses_a_geometry_that_cannot_give_angular_acceleration(layout, needle, rec8, tmp_path, capsys):
-    from accel_bayes.positions import positions_document, write_positions
+    from accel_bayes.data.positions import positions_document, write_positions
 
     means = np.zeros((8, 3))
     if layout == "collinear":

@@ -204,8 +204,8 @@ def test_effects_act_where_the_truth_says():
 
 
 def test_noise_levels_and_recording_contract(tmp_path):
-    from accel_bayes.io import read_recording, read_truth
-    from accel_bayes.validation import validate_recording
+    from accel_bayes.data.io import read_recording, read_truth
+    from accel_bayes.data.validation import validate_recording
 
     case = C.make_case("mimu8", "noise_level", seed=3, T=2000)
     twin = C.make_case("mimu8", "none", seed=3, T=2000)
@@ -243,7 +243,7 @@ def test_agrees_with_package_model_conventions():
     ω, ω̇ and s of this trajectory, must give the same noise-free outputs.  A failure here means
     the two disagree on a frame convention, which would make the benchmark unfair either way."""
     torch = pytest.importorskip("torch")
-    from accel_bayes.models import imu_outputs
+    from accel_bayes.physics.models import imu_outputs
 
     rng = np.random.default_rng(9)
     t = np.arange(300) / 200.0

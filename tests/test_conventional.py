@@ -5,14 +5,14 @@ import pytest
 import torch
 
 from accel_bayes import models, s16_plate
-from accel_bayes.geometry import boxplus, random_quaternion, rotation_angle
+from accel_bayes.physics.geometry import boxplus, random_quaternion, rotation_angle
 from accel_bayes.inference.conventional import (
     IDENTITY_SENSITIVITY,
     conventional_calibrate,
     conventional_jacobians,
     conventional_residuals,
 )
-from accel_bayes.motion import smooth_motion
+from accel_bayes.physics.motion import smooth_motion
 
 F64 = torch.float64
 RATE = 125.0

@@ -1,4 +1,4 @@
-"""CSV importer (accel_bayes.csv_import) and ``accel-bayes import-csv``.
+"""CSV importer (accel_bayes.data.csv_import) and ``accel-bayes import-csv``.
 
 * Round trips: a simulated recording written as ASL folders / one wide CSV by the helpers here
   (plain text formatting, independent of the importer) and imported again is the same recording.
@@ -16,12 +16,12 @@ import pytest
 import torch
 import xarray as xr
 
-from accel_bayes.arrays import G0, mimu4444_8, s16_plate
+from accel_bayes.physics.arrays import G0, mimu4444_8, s16_plate
 from accel_bayes.cli import main
-from accel_bayes.csv_import import import_csv, read_array_description, write_imported
+from accel_bayes.data.csv_import import import_csv, read_array_description, write_imported
 from accel_bayes.errors import UserError
-from accel_bayes.geometry import quat_to_matrix
-from accel_bayes.io import read_recording
+from accel_bayes.physics.geometry import quat_to_matrix
+from accel_bayes.data.io import read_recording
 from accel_bayes.simulate import simulate
 
 ASL_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
@@ -228,7 +228,7 @@ def _static_board(sigma=0.01, rate=100.0, seed=0):
     T = acc.shape[0]
     acc = np.repeat(acc[:, None], K, 1) + sigma * rng.standard_normal((T, K, 3))
     gyro = np.repeat(gyro[:, None], K, 1) + 1e-3 * rng.standard_normal((T, K, 3))
-    from accel_bayes.recording import Recording
+    from accel_bayes.data.recording import Recording
 
     pos = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0], [0, 0, 0.01]], dtype=float)
     return Recording(time=np.arange(T) / rate, acc=acc, gyro=gyro, nominal_position=pos,

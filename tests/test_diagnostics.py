@@ -7,7 +7,7 @@ import pytest
 import scipy.stats
 
 from accel_bayes import diagnostics as dg
-from accel_bayes.arrays import mimu4444_8
+from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.errors import UserError
 
 C, D, AF = 3, 400, 7  # chains, draws, free triads (8-IMU board)

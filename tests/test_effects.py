@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes.arrays import mimu4444_8
+from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.errors import UserError
-from accel_bayes.geometry import boxplus, quat_exp, quat_mul, quat_to_matrix
-from accel_bayes.models import imu_outputs, to_array_frame
-from accel_bayes.motion import smooth_motion
+from accel_bayes.physics.geometry import boxplus, quat_exp, quat_mul, quat_to_matrix
+from accel_bayes.physics.models import imu_outputs, to_array_frame
+from accel_bayes.physics.motion import smooth_motion
 from accel_bayes.physics.effects import (
     AXES, EFFECTS, VOCABULARY, CandidateLayout, SignalContext, apply_effects, get_effect, make_effect,
     model_outputs, noise_factors, output_rates,
@@ -171,7 +171,7 @@ def test_triad_orientation_matches_rotated_imu_and_simulator_convention(setup):
 
 
 def test_time_offset_linear_term_against_shifted_trajectory():
-    """Independent check: the continuous trajectory evaluated at t + δ (accel_bayes.motion);
+    """Independent check: the continuous trajectory evaluated at t + δ (accel_bayes.physics.motion);
     the linearisation error must shrink as δ² (halving δ quarters it)."""
     arr = mimu4444_8()
     tr = smooth_motion(300, 200.0, seed=11)
@@ -356,7 +356,7 @@ def test_intrinsics_and_s16_sensor_parameters_are_conversions_of_the_effects():
     gauge: convert → apply the effects → compare with the old formulas on random inputs, and
     convert back.  A general gain factors as L·Q; the rotation Q goes into the orientation."""
     from accel_bayes import models
-    from accel_bayes.geometry import matrix_to_quat
+    from accel_bayes.physics.geometry import matrix_to_quat
     from accel_bayes.physics.effects import (acc_gain_effects, acc_gain_of_effects, gain_to_intrinsics, gain_to_s16,
                                              intrinsics_gain, s16_gain, triangular_gauge)
 

@@ -1,4 +1,4 @@
-"""``accel-bayes export``: Kalibr IMU chain / OpenVINS kalibr_imu_chain.yaml (accel_bayes.export).
+"""``accel-bayes export``: Kalibr IMU chain / OpenVINS kalibr_imu_chain.yaml (accel_bayes.data.export).
 
 Checked against what the exporter did not write: hand-written T_i_b of a board whose reference
 IMU is yawed 90°; SciPy's rotations for estimated orientations; the files read back by the
@@ -16,10 +16,10 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from accel_bayes.cli import main
-from accel_bayes.intrinsics import Intrinsics
-from accel_bayes.io import write_recording
-from accel_bayes.positions import positions_document, write_positions
-from accel_bayes.recording import Recording
+from accel_bayes.prep.intrinsics import Intrinsics
+from accel_bayes.data.io import write_recording
+from accel_bayes.data.positions import positions_document, write_positions
+from accel_bayes.data.recording import Recording
 
 cv2 = pytest.importorskip("cv2")
 
@@ -168,7 +168,7 @@ def test_openvins_file_read_by_opencv_reproduces_package_correction(tmp_path):
 
 
 def test_ta_cov_matches_finite_differences(tmp_path):
-    from accel_bayes.export import openvins_acc_intrinsics
+    from accel_bayes.data.export import openvins_acc_intrinsics
 
     intr = _intrinsics()
     T, cov = intr.acc_matrix[1], intr.acc_cov[1]

@@ -1,4 +1,4 @@
-"""Intrinsic calibration from rests (accel_bayes.intrinsics).
+"""Intrinsic calibration from rests (accel_bayes.prep.intrinsics).
 
 Independent checks: simulated rests made from known bias/scale/non-orthogonality (recovered
 within the reported uncertainty; the uncertainty itself checked by Monte Carlo over replicates),
@@ -13,14 +13,14 @@ from scipy import stats
 import torch
 
 from accel_bayes.errors import UserError
-from accel_bayes.intrinsics import (
+from accel_bayes.prep.intrinsics import (
     ACC_PARAMS,
     SCHEMA,
     Intrinsics,
     estimate_intrinsics,
     static_acc_errors,
 )
-from accel_bayes.recording import Recording
+from accel_bayes.data.recording import Recording
 
 G = 9.80665
 
@@ -206,7 +206,7 @@ def test_refuses_too_few_orientations():
 
 def test_cli(tmp_path, capsys):
     from accel_bayes.cli import main
-    from accel_bayes.io import read_recording, write_recording
+    from accel_bayes.data.io import read_recording, write_recording
 
     rec, _ = _static_recording(seed=12, n=200)
     src = tmp_path / "rec.nc"
@@ -231,7 +231,7 @@ def mimu_recordings():
     d = mimu_data_dir()
     if not d.is_dir():
         pytest.skip(f"shared MIMU data not found at {d}")
-    from accel_bayes.mimu import import_mimu
+    from accel_bayes.data.mimu import import_mimu
 
     recs = [import_mimu(d / f"exp_{i}" / "data.bin.gz") for i in range(1, 7)]
     return recs, [estimate_intrinsics(r) for r in recs]

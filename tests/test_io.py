@@ -11,7 +11,7 @@ import xarray as xr
 
 from accel_bayes import arrays, models
 from accel_bayes.errors import RecordingError, UserError
-from accel_bayes.io import (
+from accel_bayes.data.io import (
     FORMAT,
     TRUTH_SCHEMA,
     read_recording,
@@ -22,7 +22,7 @@ from accel_bayes.io import (
     write_recording,
     write_truth,
 )
-from accel_bayes.recording import Recording
+from accel_bayes.data.recording import Recording
 
 
 def make_recording(T=400, fs=100.0, preset="mimu8", seed=0, amp=3.0, static_frac=0.5, gyro=True,
@@ -118,7 +118,7 @@ def test_file_layout_follows_design_7_1(tmp_path):
     rec.gyro_noise_std[2] = 2e-3
     p = write_recording(rec, tmp_path / "r.nc")
     with xr.open_dataset(p, engine="h5netcdf") as ds:
-        assert ds.attrs["format"] == FORMAT == "accel_bayes.recording/1"
+        assert ds.attrs["format"] == FORMAT == "accel_bayes.data.recording/1"
         assert ds["acc"].dims == ("time", "imu", "axis") and ds["acc"].attrs["units"] == "m s-2"
         assert ds["gyro"].dims == ("time", "imu", "axis") and ds["gyro"].attrs["units"] == "rad s-1"
         assert ds["nominal_position"].dims == ("imu", "axis") and ds["nominal_position"].attrs["units"] == "m"

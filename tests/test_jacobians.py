@@ -6,8 +6,8 @@ against the plain form rotated into the sensor frames.
 """
 import torch
 
-from accel_bayes.geometry import quat_to_matrix, random_quaternion
-from accel_bayes.models import specific_force, u_of_omega
+from accel_bayes.physics.geometry import quat_to_matrix, random_quaternion
+from accel_bayes.physics.models import specific_force, u_of_omega
 from accel_bayes.physics import jacobians as jac
 
 DT = torch.float64

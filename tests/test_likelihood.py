@@ -19,8 +19,8 @@ from accel_bayes.likelihood import (
     positions_from_theta,
     theta_from_positions,
 )
-from accel_bayes.models import G_matrix, H_matrix, imu_outputs, specific_force, u_of_omega
-from accel_bayes.recording import Recording
+from accel_bayes.physics.models import G_matrix, H_matrix, imu_outputs, specific_force, u_of_omega
+from accel_bayes.data.recording import Recording
 
 DT = torch.float64
 DEG = math.pi / 180
@@ -379,7 +379,7 @@ def test_gyro_posterior_methods():
 
 def test_from_recording_rotates_selects_and_labels():
     """Rotated IMUs (MIMU bottom side), one IMU without gyro, one without accelerometer."""
-    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.physics.arrays import mimu4444_8
 
     arr = mimu4444_8()
     K, T = arr.K, 40

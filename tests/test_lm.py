@@ -10,7 +10,7 @@ import pytest
 import scipy.optimize
 import torch
 
-from accel_bayes.geometry import boxplus, quat_exp, quat_mul, quat_to_matrix, random_quaternion
+from accel_bayes.physics.geometry import boxplus, quat_exp, quat_mul, quat_to_matrix, random_quaternion
 from accel_bayes.inference.damping import MarquardtDamping, NielsenDamping
 from accel_bayes.inference.lm import (ChainResidual, ExtraCost, GlobalResidual, LevenbergMarquardt, Problem,
                                       SampleResidual, Variable, solve)
@@ -311,7 +311,7 @@ def test_boxplus_keeps_quaternions_unit_over_many_iterations():
                              callback=lambda i, v, x, e: norms.append(float(v["q"].norm()))).solve(prob)
     assert len(norms) >= 20
     assert max(abs(nq - 1) for nq in norms) < 1e-12
-    from accel_bayes.geometry import rotation_angle
+    from accel_bayes.physics.geometry import rotation_angle
     assert float(rotation_angle(res.values["q"], q_true)) < 1e-2  # noise-limited (σ_v = 0.01, T = 30)
 
 

@@ -1,4 +1,4 @@
-"""MIMU4444 stream importer (accel_bayes.mimu) and ``accel-bayes import-mimu``.
+"""MIMU4444 stream importer (accel_bayes.data.mimu) and ``accel-bayes import-mimu``.
 
 Two halves:
 
@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes.arrays import G0, MIMU_BOTTOM_QUAT, mimu4444_8
+from accel_bayes.physics.arrays import G0, MIMU_BOTTOM_QUAT, mimu4444_8
 from accel_bayes.errors import RecordingError
-from accel_bayes.geometry import quat_to_matrix
-from accel_bayes.mimu import (
+from accel_bayes.physics.geometry import quat_to_matrix
+from accel_bayes.data.mimu import (
     ACC_SCALE,
     GYRO_SCALE,
     MIMU_ACK,
@@ -31,7 +31,7 @@ from accel_bayes.mimu import (
     import_mimu,
     read_mimu_stream,
 )
-from accel_bayes.segments import angle_deg
+from accel_bayes.data.segments import angle_deg
 
 EXPERIMENTS = [f"exp_{i}" for i in range(1, 7)]
 PERIOD = 1_024_000  # ticks of 64 MHz per 16 ms
@@ -357,7 +357,7 @@ def test_real_segments_and_clipping(real):
 
 # ---------------------------------------------------------------------------------------- io and CLI
 def test_real_write_read_roundtrip(real, tmp_path):
-    io = pytest.importorskip("accel_bayes.io")
+    io = pytest.importorskip("accel_bayes.data.io")
     rec = real["exp_1"][0]
     path = tmp_path / "rec.nc"
     io.write_recording(rec, path)
@@ -384,7 +384,7 @@ def test_cli_errors_exit_2(tmp_path, capsys):
 
 
 def test_cli_imports_a_file(tmp_path, capsys, mimu_dir):
-    io = pytest.importorskip("accel_bayes.io")
+    io = pytest.importorskip("accel_bayes.data.io")
     from accel_bayes.cli import main
 
     out = tmp_path / "exp_3.nc"

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes.arrays import mimu4444_8
+from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.cli import main
-from accel_bayes.io import write_recording
+from accel_bayes.data.io import write_recording
 from accel_bayes.mismatch import SCHEMA, detect, make_effect, validate_report
 from accel_bayes.mismatch.detect import candidate_effects, noise_evidence, screen
 from accel_bayes.mismatch.refine import Prepared, baseline_fit, fit_model, prepare

@@ -121,7 +121,7 @@ def test_presets_and_geometry_checks():
 
 def test_acc_noise_std_per_axis_broadcasts_and_names_bad_input():
     from accel_bayes.errors import UserError
-    from accel_bayes.models import acc_noise_std_per_axis
+    from accel_bayes.physics.models import acc_noise_std_per_axis
 
     A = 4
     assert torch.equal(acc_noise_std_per_axis(0.1, A), torch.full((A, 3), 0.1, dtype=torch.float64))

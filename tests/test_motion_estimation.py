@@ -13,8 +13,8 @@ import torch
 
 from accel_bayes import mimu4444_8
 from accel_bayes.errors import UserError
-from accel_bayes.geometry import quat_to_matrix
-from accel_bayes.models import specific_force
+from accel_bayes.physics.geometry import quat_to_matrix
+from accel_bayes.physics.models import specific_force
 from accel_bayes.motion_estimation import (
     _cost_grad_hess,
     _Data,
@@ -47,7 +47,7 @@ def _positions_doc(rel, std=1e-4, orientation=None):
         if orientation is not None:
             e["orientation"] = orientation[k].tolist()
         imus.append(e)
-    return {"schema": "accel_bayes.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
+    return {"schema": "accel_bayes.data.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
             "diagnostics": {"seconds": 0.0}}
 
 
@@ -184,7 +184,7 @@ def test_calibration_orientation_is_used():
     """Outputs simulated with rotated IMUs: the nominal orientations misfit, the calibration's
     orientations fit exactly."""
     arr = mimu4444_8()
-    from accel_bayes.geometry import boxplus
+    from accel_bayes.physics.geometry import boxplus
 
     q_true = boxplus(arr.orientations, 0.05 * torch.randn(8, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64))
     res = simulate(arr, "iid", T=100, seed=2, clip=False, true_orientations=q_true, acc_noise_std=0.0,
@@ -199,7 +199,7 @@ def test_calibration_orientation_is_used():
 
 
 def test_intrinsics_are_applied():
-    from accel_bayes.intrinsics import Intrinsics
+    from accel_bayes.prep.intrinsics import Intrinsics
 
     rec, rel, truth = _sim(T=200, seed=8, noise=False)
     K = rec.K
@@ -234,7 +234,7 @@ def test_bad_calibration_names_the_field(tmp_path):
         with pytest.raises(UserError, match=match):
             load_calibration(d, K)
 
-    bad(lambda d: d.update(schema="accel_bayes.positions/0"), r"calibration\.schema")
+    bad(lambda d: d.update(schema="accel_bayes.data.positions/0"), r"calibration\.schema")
     bad(lambda d: d.update(imus=[]), r"calibration\.imus")
     bad(lambda d: d["imus"][3].update(mean=[0.0, 1.0]), r"calibration\.imus\[3\]\.mean")
     bad(lambda d: d["imus"][2].update(cov=[[1e-8, 0, 0], [0, -1e-8, 0], [0, 0, 1e-8]]), r"calibration\.imus\[2\]\.cov")
@@ -263,7 +263,7 @@ def test_cli_and_netcdf(tmp_path, capsys):
     import xarray as xr
 
     from accel_bayes.cli import main
-    from accel_bayes.io import write_recording
+    from accel_bayes.data.io import write_recording
 
     rec, rel, truth = _sim(T=150, seed=9)
     src = tmp_path / "rec.nc"
@@ -275,7 +275,7 @@ def test_cli_and_netcdf(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "omega_dot" in text and "wrote" in text
     with xr.open_dataset(out, engine="h5netcdf") as ds:
-        assert ds["omega"].attrs["units"] == "rad s-1" and ds.attrs["schema"] == "accel_bayes.motion/1"
+        assert ds["omega"].attrs["units"] == "rad s-1" and ds.attrs["schema"] == "accel_bayes.physics.motion/1"
         assert ds.attrs["draws"] == 20 and ds["s_std_geometry"].dims == ("time", "axis")
         np.testing.assert_allclose(ds["omega"].values, truth["omega"], atol=0.05)
     # refuses to overwrite; bad calibration → exit 2 with one line naming the field

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 from accel_bayes import outputs
-from accel_bayes.arrays import preset
+from accel_bayes.physics.arrays import preset
 from accel_bayes.cli import main
 from accel_bayes.errors import UserError
-from accel_bayes.io import read_recording, read_truth, write_recording
+from accel_bayes.data.io import read_recording, read_truth, write_recording
 from accel_bayes.simulate import simulate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -52,16 +52,16 @@ COMMANDS = {
 # found only after computing.
 COMPUTE = {
     "simulate": ("accel_bayes.simulate", "simulate"),
-    "import-mimu": ("accel_bayes.mimu", "import_mimu"),
-    "intrinsics": ("accel_bayes.intrinsics", "estimate_intrinsics"),
+    "import-mimu": ("accel_bayes.data.mimu", "import_mimu"),
+    "intrinsics": ("accel_bayes.prep.intrinsics", "estimate_intrinsics"),
     "motion": ("accel_bayes.motion_estimation", "estimate_motion"),
     "map": ("accel_bayes.inference.map", "fit_map_recording"),
     "calibrate": ("accel_bayes.calibrate", "calibrate"),
     "selfcal": ("accel_bayes.inference.selfcal", "self_calibrate"),
     "mismatch": ("accel_bayes.mismatch", "detect"),
     "demo": ("accel_bayes.simulate", "simulate"),
-    "import-csv": ("accel_bayes.csv_import", "import_csv"),
-    "export": ("accel_bayes.export", "export_imu_chain"),
+    "import-csv": ("accel_bayes.data.csv_import", "import_csv"),
+    "export": ("accel_bayes.data.export", "export_imu_chain"),
 }
 FILE_SUFFIX = {"intrinsics": ".json", "export": ".yaml"}
 
@@ -135,7 +135,7 @@ def check_valid(cmd, target: Path):
         import xarray as xr
 
         with xr.open_dataset(target, engine="h5netcdf") as ds:
-            assert ds.attrs["schema"] == "accel_bayes.motion/1"
+            assert ds.attrs["schema"] == "accel_bayes.physics.motion/1"
     else:
         read_recording(target)
     if cmd == "simulate":

@@ -7,8 +7,8 @@ import pytest
 from accel_bayes import arrays
 from accel_bayes.cli import main
 from accel_bayes.errors import UserError
-from accel_bayes.io import read_truth, write_recording
-from accel_bayes.positions import positions_document, read_positions, write_positions
+from accel_bayes.data.io import read_truth, write_recording
+from accel_bayes.data.positions import positions_document, read_positions, write_positions
 from accel_bayes.simulate import simulate
 
 
@@ -21,7 +21,7 @@ def test_document_roundtrip_and_checks(tmp_path):
     doc = positions_document(method="map", reference_imu=0, means=means, covs=covs, diagnostics={"seconds": 1.5})
     p = write_positions(doc, tmp_path / "positions.json")
     back = read_positions(p)
-    assert back["schema"] == "accel_bayes.positions/1" and back["method"] == "map"
+    assert back["schema"] == "accel_bayes.data.positions/1" and back["method"] == "map"
     np.testing.assert_allclose(back["means"], means)
     np.testing.assert_allclose(back["covs"], covs)
     assert [e["imu"] for e in back["imus"]] == [0, 1, 2, 3]

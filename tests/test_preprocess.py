@@ -1,5 +1,5 @@
-"""Real-data preprocessing (:mod:`accel_bayes.preprocess`) and the estimated noise model
-(:mod:`accel_bayes.noise`).
+"""Real-data preprocessing (:mod:`accel_bayes.prep.preprocess`) and the estimated noise model
+(:mod:`accel_bayes.prep.noise`).
 
 Fast tests on small simulated recordings (exact sample counts, noise recovery, exactness of the
 sample-scaling and tempering identities against the likelihood class), and one test on the real
@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes.arrays import preset
+from accel_bayes.physics.arrays import preset
 from accel_bayes.errors import UserError
-from accel_bayes.intrinsics import Intrinsics
+from accel_bayes.prep.intrinsics import Intrinsics
 from accel_bayes.likelihood import GyroPosterior, RaoBlackwellLikelihood
-from accel_bayes.noise import (TemperedLikelihood, fit_map_with_noise, residual_statistics, sandwich_inflation,
+from accel_bayes.prep.noise import (TemperedLikelihood, fit_map_with_noise, residual_statistics, sandwich_inflation,
                                scale_samples)
-from accel_bayes.preprocess import draw_intrinsics, preprocess, rotation_rate
+from accel_bayes.prep.preprocess import draw_intrinsics, preprocess, rotation_rate
 from accel_bayes.simulate import simulate
 
 
@@ -231,8 +231,8 @@ def test_sandwich_is_near_one_for_a_correct_model(sim):
 def test_real_mimu_preprocessing(mimu_dir):
     """exp_1: intrinsics from its 20 rests applied (every rest within 0.0134 m/s² of g after,
     > 0.5 before; gyro rest means ≈ 0), static / clipped / slow samples dropped and counted."""
-    from accel_bayes.mimu import import_mimu
-    from accel_bayes.segments import mask_from_labels
+    from accel_bayes.data.mimu import import_mimu
+    from accel_bayes.data.segments import mask_from_labels
 
     raw = import_mimu(mimu_dir / "exp_1" / "data.bin.gz")
     pre = preprocess(raw)

@@ -1,4 +1,4 @@
-"""Static/dynamic segmentation, orientation clustering and noise estimation (accel_bayes.segments).
+"""Static/dynamic segmentation, orientation clustering and noise estimation (accel_bayes.data.segments).
 
 Synthetic recordings with known rests, known gravity directions and known noise; checks against
 closed forms and brute-force loops.
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes.arrays import G0, MIMU_BOTTOM_QUAT
+from accel_bayes.physics.arrays import G0, MIMU_BOTTOM_QUAT
 from accel_bayes.errors import UserError
-from accel_bayes.models import to_sensor_frame
-from accel_bayes.segments import (
+from accel_bayes.physics.models import to_sensor_frame
+from accel_bayes.data.segments import (
     analyse_static,
     angle_deg,
     cluster_orientations,

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from accel_bayes import models, s16_plate
-from accel_bayes.geometry import boxplus, quat_to_matrix, random_quaternion, rotation_angle
+from accel_bayes.physics.geometry import boxplus, quat_to_matrix, random_quaternion, rotation_angle
 from accel_bayes.inference.linear import SchurComplementSolver, dense_from_blocks
 from accel_bayes.inference.selfcal import (
     SelfCalDiverged,
@@ -287,7 +287,7 @@ def test_rerun_from_estimate_fixes_partially_flipped_rotation_sign():
     """
     arr = s16_plate()
     T = 400
-    from accel_bayes.motion import smooth_motion
+    from accel_bayes.physics.motion import smooth_motion
 
     m = smooth_motion(T, RATE, seed=1, omega_rms=6.0, freq_range=(0.05, 0.2), accel_rms=0.0)
     wd = torch.diff(m.omega, dim=0) * RATE  # Euler-consistent ω̇ (eq. 7 exact)
@@ -368,7 +368,7 @@ def _cli(argv):
 
 
 def _write_sim(path, motion, seed=3, **kw):
-    from accel_bayes.io import write_recording
+    from accel_bayes.data.io import write_recording
     from accel_bayes.simulate import simulate
 
     sim = simulate(s16_plate(), motion, seed=seed, **kw)
@@ -380,8 +380,8 @@ def test_cli_selfcal_writes_outputs(tmp_path, capsys):
     import csv
     import json
 
-    from accel_bayes.motion import smooth_motion
-    from accel_bayes.positions import read_positions
+    from accel_bayes.physics.motion import smooth_motion
+    from accel_bayes.data.positions import read_positions
 
     m = smooth_motion(500, RATE, seed=1, omega_rms=6.0, freq_range=(0.05, 0.2), accel_rms=0.0)
     rec = tmp_path / "s16.nc"
@@ -414,7 +414,7 @@ def test_cli_selfcal_writes_outputs(tmp_path, capsys):
 
 def test_cli_selfcal_divergence_exits_3(tmp_path, capsys):
     from accel_bayes.errors import UserError
-    from accel_bayes.motion import MotionTrace
+    from accel_bayes.physics.motion import MotionTrace
 
     T = 200
     t = torch.arange(T, dtype=F64) / RATE

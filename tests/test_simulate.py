@@ -11,9 +11,9 @@ import torch
 
 from accel_bayes import geometry as g
 from accel_bayes import motion as M
-from accel_bayes.arrays import SensorArray, mimu4444_8, mimu4444_32, s16_plate
+from accel_bayes.physics.arrays import SensorArray, mimu4444_8, mimu4444_32, s16_plate
 from accel_bayes.errors import UserError
-from accel_bayes.models import specific_force, to_array_frame
+from accel_bayes.physics.models import specific_force, to_array_frame
 from accel_bayes.simulate import simulate
 
 F64 = torch.float64
@@ -179,7 +179,7 @@ def test_design_worked_example_yawed_imu():
     recording's array-frame view recovers the simulator's specific force plus rotated-back noise."""
     arr = _yawed_array()
     zero = torch.zeros(1, 3, dtype=F64)
-    from accel_bayes.models import imu_outputs
+    from accel_bayes.physics.models import imu_outputs
 
     acc, _ = imu_outputs(arr.positions, arr.orientations, zero, zero, torch.tensor([[0.0, 1.0, 0.0]], dtype=F64))
     assert torch.allclose(acc[0, 2], torch.tensor([1.0, 0.0, 0.0], dtype=F64), atol=1e-15)
@@ -197,7 +197,7 @@ def test_design_worked_example_yawed_imu():
 
 
 def test_worked_example_survives_a_file_round_trip(tmp_path):
-    io = pytest.importorskip("accel_bayes.io")
+    io = pytest.importorskip("accel_bayes.data.io")
     arr = _yawed_array()
     res = simulate(arr, "smooth", T=100, seed=2, position_error_std=2e-4, clip=False)
     path = tmp_path / "yaw.nc"
@@ -235,7 +235,7 @@ def _assert_same_recording(a, b):
     (mimu4444_8, "iid", None),
 ])
 def test_written_recording_reads_back_bit_exact(tmp_path, preset_fn, motion, kw):
-    io = pytest.importorskip("accel_bayes.io")
+    io = pytest.importorskip("accel_bayes.data.io")
     res = simulate(preset_fn(), motion, T=150, seed=9, motion_kwargs=kw)
     path = tmp_path / "sim.nc"
     io.write_recording(res.recording, path)
@@ -263,7 +263,7 @@ def _cli(capsys, *argv):
 
 
 def test_cli_simulate_writes_recording_and_sidecar(tmp_path, capsys):
-    io = pytest.importorskip("accel_bayes.io")
+    io = pytest.importorskip("accel_bayes.data.io")
     out = tmp_path / "rec.nc"
     rc, stdout, stderr = _cli(capsys, "simulate", "--preset", "mimu8", "--motion", "table", "-T", "200",
                               "--rate", "125", "--seed", "1", "--orientation-error", "0.01", "-o", str(out))

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from accel_bayes.errors import RecordingError
-from accel_bayes.io import read_recording, recording_from_dataset, recording_to_dataset, write_recording
-from accel_bayes.validation import DEFAULT_GYRO_BOUND, gyro_unit_diagnostics, validate_recording
+from accel_bayes.data.io import read_recording, recording_from_dataset, recording_to_dataset, write_recording
+from accel_bayes.data.validation import DEFAULT_GYRO_BOUND, gyro_unit_diagnostics, validate_recording
 
 try:
     from test_io import make_recording
@@ -99,7 +99,7 @@ def test_units_that_are_not_si(ds):
 
 
 def test_format_version(ds):
-    refused(ds.assign_attrs(format="accel_bayes.recording/2"), r"format: this reader understands 'accel_bayes.recording/1'")
+    refused(ds.assign_attrs(format="accel_bayes.data.recording/2"), r"format: this reader understands 'accel_bayes.data.recording/1'")
 
 
 def test_non_boolean_mask(ds):
@@ -274,8 +274,8 @@ def _mimu_exp1(mimu_dir):
     enough for this test; the importer is accel_bayes' own business, not this test's)."""
     import gzip
 
-    from accel_bayes.arrays import mimu4444_8
-    from accel_bayes.recording import Recording
+    from accel_bayes.physics.arrays import mimu4444_8
+    from accel_bayes.data.recording import Recording
 
     raw = gzip.open(mimu_dir / "exp_1" / "data.bin.gz").read()[4:]
     n = len(raw) // 106

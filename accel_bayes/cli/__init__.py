@@ -6,7 +6,7 @@ User errors (:class:`accel_bayes.errors.UserError`, missing files) and I/O error
 ``OSError`` from a read or write: a full disk, a read-only or vanished directory) exit with
 status 2 and one line on stderr naming the path, never a traceback.  SIGINT and SIGTERM exit
 with status 130 (a checkpoint already written stays usable for ``--resume``).  Whatever way a
-command ends short of success, the output targets it opened (:mod:`accel_bayes.outputs`) are
+command ends short of success, the output targets it opened (:mod:`accel_bayes.data.outputs`) are
 aborted: staged files deleted, locks released, earlier results left as they were.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ import signal
 import sys
 
 from ..errors import UserError
-from ..outputs import abort_open, display_path
+from ..data.outputs import abort_open, display_path
 
 # Sub-command modules listed first, in this order, by `accel-bayes --help`; any other module of
 # this package that defines ``register`` is added after them (so a new command is one new file).

@@ -25,7 +25,7 @@ from ._status import EXIT_OK, untrusted
 
 def register(sub) -> None:
     from ..calibrate import DEFAULTS
-    from ..outputs import OVERWRITE_DIR_HELP
+    from ..data.outputs import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "calibrate",
@@ -97,7 +97,7 @@ def register(sub) -> None:
 
 def _run(args) -> int:
     from ..calibrate import calibrate, write_outputs
-    from ..outputs import OutputDir
+    from ..data.outputs import OutputDir
 
     # the checkpoint lives in DIR itself (a killed run keeps it) and joins the committed set
     out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",),

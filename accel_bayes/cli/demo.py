@@ -5,7 +5,7 @@ from . import _options as opt
 
 
 def register(sub) -> None:
-    from ..outputs import OVERWRITE_DIR_HELP
+    from ..data.outputs import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "demo",

@@ -2,7 +2,7 @@
 [--mismatch report.json] [--format kalibr|openvins] -o FILE [--overwrite]``.
 
 Writes a calibration as a Kalibr-style IMU chain YAML, or as OpenVINS' ``kalibr_imu_chain.yaml``
-(``%YAML:1.0`` header, intrinsic fields); frames and conventions in :mod:`accel_bayes.export`.
+(``%YAML:1.0`` header, intrinsic fields); frames and conventions in :mod:`accel_bayes.data.export`.
 """
 from __future__ import annotations
 
@@ -38,8 +38,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..export import export_imu_chain
-    from ..outputs import OutputFile
+    from ..data.export import export_imu_chain
+    from ..data.outputs import OutputFile
 
     out = Path(args.output)
     for flag, path in (("REC", args.recording), ("--positions", args.positions), ("--intrinsics", args.intrinsics),

@@ -3,7 +3,7 @@
 Reads an IMU array's CSV recording — an ASL/EuRoC folder (``imu0/data.csv`` …) or one wide CSV —
 with its array description (TOML), puts the IMUs on one time base, finds the rests, estimates
 the noise from them and writes a format-v1 recording (DESIGN §7.1); see
-:mod:`accel_bayes.csv_import`.
+:mod:`accel_bayes.data.csv_import`.
 """
 from __future__ import annotations
 
@@ -46,8 +46,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..csv_import import import_csv, write_imported
-    from ..outputs import OutputFile
+    from ..data.csv_import import import_csv, write_imported
+    from ..data.outputs import OutputFile
 
     src, arr, out = Path(args.source), Path(args.array), Path(args.output)
     # The inputs first: a wrong input path is the likelier mistake than an existing output.

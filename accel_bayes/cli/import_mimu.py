@@ -1,6 +1,6 @@
 """``accel-bayes import-mimu DATA.bin[.gz] -o rec.nc [--overwrite]``.
 
-Reads a MIMU4444 binary stream (:mod:`accel_bayes.mimu`), verifies every packet, finds the rests,
+Reads a MIMU4444 binary stream (:mod:`accel_bayes.data.mimu`), verifies every packet, finds the rests,
 estimates the noise from them, writes a format-v1 recording (DESIGN §7.1) and prints a short
 import report.
 """
@@ -33,9 +33,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..io import write_recording
-    from ..mimu import import_mimu
-    from ..outputs import OutputFile
+    from ..data.io import write_recording
+    from ..data.mimu import import_mimu
+    from ..data.outputs import OutputFile
 
     src, out = Path(args.data), Path(args.output)
     # The input first: a wrong input path is the likelier mistake than an existing output.

@@ -85,7 +85,7 @@ def summarize(rec, path=None) -> dict:
 
 
 def _run(args) -> int:
-    from ..io import read_recording
+    from ..data.io import read_recording
 
     rec = read_recording(args.recording)
     s = summarize(rec, args.recording)

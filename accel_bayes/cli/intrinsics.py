@@ -1,8 +1,8 @@
 """``accel-bayes intrinsics REC -o intrinsics.json [--apply-to OUT.nc] [--g G]``.
 
 Estimates each IMU's accelerometer bias, scale and non-orthogonality and its gyro bias from the
-rests of a recording (:mod:`accel_bayes.intrinsics`), writes them as JSON (schema
-``accel_bayes.intrinsics/1``), prints a per-IMU table and, with ``--apply-to``, writes the
+rests of a recording (:mod:`accel_bayes.prep.intrinsics`), writes them as JSON (schema
+``accel_bayes.prep.intrinsics/1``), prints a per-IMU table and, with ``--apply-to``, writes the
 corrected recording.  REC is a format-v1 recording (.nc) or a MIMU4444 stream (.bin/.bin.gz).
 """
 from __future__ import annotations
@@ -44,17 +44,17 @@ def load_any(path: Path):
     with open(path, "rb") as f:
         head = f.read(8)
     if head.startswith(b"\x89HDF") or path.suffix == ".nc":
-        from ..io import read_recording
+        from ..data.io import read_recording
 
         return read_recording(path)
-    from ..mimu import import_mimu
+    from ..data.mimu import import_mimu
 
     return import_mimu(path)
 
 
 def run(args) -> int:
-    from ..intrinsics import estimate_intrinsics, static_acc_errors
-    from ..outputs import OutputFile
+    from ..prep.intrinsics import estimate_intrinsics, static_acc_errors
+    from ..data.outputs import OutputFile
 
     src, out = Path(args.recording), Path(args.output)
     targets = [OutputFile(out, overwrite=args.overwrite).open()]
@@ -85,7 +85,7 @@ def run(args) -> int:
           f"gyro bias std: {np.nanmedian(intr.gyro_bias_std) * RAD_TO_DEG:.2g} °/s")
     print(f"wrote {out}")
     if args.apply_to:
-        from ..io import write_recording
+        from ..data.io import write_recording
 
         write_recording(cal, args.apply_to, overwrite=args.overwrite)
         print(f"wrote {args.apply_to} (corrected recording)")

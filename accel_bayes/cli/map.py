@@ -13,7 +13,7 @@ from . import _options as opt
 
 
 def register(sub) -> None:
-    from ..outputs import OVERWRITE_DIR_HELP
+    from ..data.outputs import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "map",
@@ -47,10 +47,10 @@ def _run(args) -> int:
 
     from .. import __version__
     from ..inference.map import fit_map_recording
-    from ..io import read_recording, recording_sha256
-    from ..outputs import OutputDir, write_csv
-    from ..positions import positions_document, write_positions
-    from ..preprocess import clipped_samples
+    from ..data.io import read_recording, recording_sha256
+    from ..data.outputs import OutputDir, write_csv
+    from ..data.positions import positions_document, write_positions
+    from ..prep.preprocess import clipped_samples
     from ._status import EXIT_OK, untrusted
 
     rec = read_recording(args.recording)

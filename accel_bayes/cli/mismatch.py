@@ -16,7 +16,7 @@ from . import _options as opt
 
 
 def register(subparsers) -> None:
-    from ..outputs import OVERWRITE_DIR_HELP
+    from ..data.outputs import OVERWRITE_DIR_HELP
     from ..physics.effects import VOCABULARY
 
     p = subparsers.add_parser(
@@ -53,7 +53,7 @@ def run(args) -> int:
         if not effects:
             raise UserError("--effects: expected a comma-separated list of effect names")
     from ..mismatch import detect
-    from ..outputs import OutputDir
+    from ..data.outputs import OutputDir
 
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     report = detect(args.recording, effects=effects, alpha=args.alpha, max_findings=args.max_findings,

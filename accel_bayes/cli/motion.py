@@ -46,7 +46,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from ..motion_estimation import estimate_motion, write_motion
-    from ..outputs import OutputFile
+    from ..data.outputs import OutputFile
     from .intrinsics import load_any
 
     out = Path(args.output)

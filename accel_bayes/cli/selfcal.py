@@ -30,7 +30,7 @@ from ._status import EXIT_DIVERGED, EXIT_OK, untrusted
 
 
 def register(sub) -> None:
-    from ..outputs import OVERWRITE_DIR_HELP
+    from ..data.outputs import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "selfcal",
@@ -68,7 +68,7 @@ def plot_convergence(cost_log: list, n_constraints: dict, path, title: str = "")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from ..outputs import save_figure
+    from ..data.outputs import save_figure
 
     x = np.arange(len(cost_log), dtype=float)  # attempts laid end to end over stages and runs
     run = [e.get("run", "first") for e in cost_log]
@@ -109,11 +109,11 @@ def _run(args) -> int:
 
     from .. import __version__
     from ..errors import UserError
-    from ..geometry import boxminus
+    from ..physics.geometry import boxminus
     from ..inference.selfcal import self_calibrate
-    from ..io import read_recording, recording_sha256
-    from ..outputs import OutputDir, write_csv, write_text
-    from ..positions import positions_document, write_positions
+    from ..data.io import read_recording, recording_sha256
+    from ..data.outputs import OutputDir, write_csv, write_text
+    from ..data.positions import positions_document, write_positions
 
     rec = read_recording(args.recording)
     K = rec.K
@@ -139,7 +139,7 @@ def _run(args) -> int:
     fixed = labels.index(fixed_label)
     noise = np.asarray(rec.acc_noise_std, dtype=float)[labels]
     try:
-        from ..arrays import check_triad_geometry
+        from ..physics.arrays import check_triad_geometry
 
         check_triad_geometry(torch.as_tensor(p_nom[labels]), labels=labels)
     except ValueError as exc:

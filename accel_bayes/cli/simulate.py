@@ -61,7 +61,7 @@ def _check(args) -> None:
     """Checks that involve more than one option (single values are checked by their type=)."""
     if args.omega_rms is not None and args.motion != "smooth":
         raise UserError(f"--omega-rms: applies to --motion smooth only, got --motion {args.motion}")
-    from ..arrays import preset
+    from ..physics.arrays import preset
     from ..simulate import BYTES_PER_IMU_SAMPLE, memory_estimate
 
     K = preset(args.preset).K
@@ -76,13 +76,13 @@ def _check(args) -> None:
 
 def run(args) -> int:
     _check(args)
-    from .. import io
-    from ..outputs import OutputFile
+    from ..data import io
+    from ..data.outputs import OutputFile
 
     out = Path(args.output)
     target = OutputFile(out, overwrite=args.overwrite, also=(io.truth_path(out),)).open()
 
-    from ..arrays import preset
+    from ..physics.arrays import preset
     from ..simulate import simulate
 
     arr = preset(args.preset)

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .. import models
-from ..geometry import quat_normalize, quat_to_matrix, skew
+from ..physics import models
+from ..physics.geometry import quat_normalize, quat_to_matrix, skew
 from ..physics.jacobians import df_dr
 from .selfcal import _as_inv_std
 
@@ -40,7 +40,7 @@ def conventional_residuals(states, q, r, sens, offset, z, inv_std):
     """Whitened residuals of [S16] eq. 19 for one or more triads.
 
     states (T, 9) reference motion; q (A, 4); r (A, 3) m; sens (A, 6) parameters of S
-    (:func:`accel_bayes.models.sensitivity_matrix`); offset (A, 3) m/s²; z (T, A, 3) m/s²;
+    (:func:`accel_bayes.physics.models.sensitivity_matrix`); offset (A, 3) m/s²; z (T, A, 3) m/s²;
     inv_std (A, 3).  Returns (T, A, 3).
     """
     S = models.sensitivity_matrix(sens)

@@ -14,11 +14,11 @@ the same arrow as the LM normal equations:
     W_t = J_θ,tᵀ Λ [J_ω,t  H]                     (n × 9)
     V_t = [J_ω,t  H]ᵀ Λ [J_ω,t  H] + diag(I_g, 0)  (9 × 9),  I_g = Σ_k Q_g,k⁻¹ (gyro information on ω)
 
-with, from the one signal model (:mod:`accel_bayes.models`): J_θ for triad k = ∂f_k/∂r_k =
-Ω(ω)² + Ω(ω̇) (f = :func:`~accel_bayes.models.specific_force`; derivatives from
+with, from the one signal model (:mod:`accel_bayes.physics.models`): J_θ for triad k = ∂f_k/∂r_k =
+Ω(ω)² + Ω(ω̇) (f = :func:`~accel_bayes.physics.models.specific_force`; derivatives from
 :mod:`accel_bayes.physics.jacobians`), J_ω = G(θ) ∂u/∂ω
-(:func:`~accel_bayes.models.G_matrix`, :func:`~accel_bayes.models.u_of_omega`), J_φ =
-:func:`~accel_bayes.models.H_matrix`.  The nuisance parameters are eliminated by the Schur
+(:func:`~accel_bayes.physics.models.G_matrix`, :func:`~accel_bayes.physics.models.u_of_omega`), J_φ =
+:func:`~accel_bayes.physics.models.H_matrix`.  The nuisance parameters are eliminated by the Schur
 complement (the information of θ with η unknown), S = U − Σ_t W_t V_t⁻¹ W_tᵀ, and
 
     CRB(θ) = (S + I_prior)⁻¹,   I_prior = diag(σ_r⁻²) with a Gaussian prior (Bayesian / van Trees
@@ -32,7 +32,7 @@ from __future__ import annotations
 import torch
 
 from ..errors import UserError
-from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis
+from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis
 from ..physics.jacobians import df_dr, du_domega
 from .linear import SchurComplementSolver, cholesky
 

@@ -92,7 +92,7 @@ from typing import Any, Callable
 import torch
 from torch.func import jvp, vmap
 
-from ..geometry import boxplus, quat_mul
+from ..physics.geometry import boxplus, quat_mul
 from .damping import DampingStrategy, get_damping
 from .linear import NotPositiveDefinite, SchurComplementSolver, cholesky, damped_step
 from .robust import RobustLoss, apply_robust, get_loss, robust_weights
@@ -1006,7 +1006,7 @@ class BatchedLevenbergMarquardt:
     The problems share one size n and one ``linearize`` that evaluates all of them together —
     e.g. the 9 motion unknowns of every sample (:mod:`accel_bayes.motion_estimation`, batched over
     samples and geometry draws) or the 9 rest-model parameters of every IMU
-    (:mod:`accel_bayes.intrinsics`).  The pieces are those of :class:`LevenbergMarquardt`: the
+    (:mod:`accel_bayes.prep.intrinsics`).  The pieces are those of :class:`LevenbergMarquardt`: the
     damping strategy (:mod:`~accel_bayes.inference.damping`, one λ per problem), the stopping
     rule (:class:`StoppingRule`, one reason per problem) and a batched Cholesky solve of the
     damped n×n systems; a problem whose damped matrix is not positive definite has its step

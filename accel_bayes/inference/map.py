@@ -39,9 +39,9 @@ import torch
 
 from ..constants import DEFAULT_PRIOR_STD
 from ..errors import UserError
-from ..geometry import skew
+from ..physics.geometry import skew
 from ..likelihood import positions_from_theta, theta_from_positions
-from ..models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
+from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
 from ..physics.jacobians import d2u_domega2, df_dr, du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
 from .linear import NotPositiveDefinite, SchurComplementSolver, cholesky
@@ -347,7 +347,7 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
 def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_rotation=None,
                       drop_clipped: bool = False, acc_imus=None, gyro_imus=None, prior_std=DEFAULT_PRIOR_STD,
                       prior_mean=None, dtype=torch.float64, device=None, **kw) -> MAPResult:
-    """:func:`fit_map` on a :class:`~accel_bayes.recording.Recording`.
+    """:func:`fit_map` on a :class:`~accel_bayes.data.recording.Recording`.
 
     Data preparation is the likelihood's (:meth:`accel_bayes.likelihood.RaoBlackwellLikelihood.from_recording`):
     outputs rotated into the array frame with the nominal orientations, the gyroscope posterior

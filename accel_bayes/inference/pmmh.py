@@ -593,7 +593,7 @@ class PMMHRun:
 
 
 def _atomic_save(obj, path: Path) -> None:
-    from ..outputs import atomic_path
+    from ..data.outputs import atomic_path
 
     with atomic_path(path) as tmp:
         torch.save(obj, tmp)

@@ -7,19 +7,19 @@ The factor graph of [S16] Fig. 2 / eq. 15:
 
       e_ij = (z_ij − h(x_i, q_j, r_j)) / σ_j,   h = Sᵀ R(q)(a_lin + ω̇×r + ω×(ω×r)) + o
 
-  with h = :func:`accel_bayes.models.triad_output` (the one signal model) and known sensor
+  with h = :func:`accel_bayes.physics.models.triad_output` (the one signal model) and known sensor
   parameters S, o (identity / zero by default: "calibrated triads", [S16] §IV);
 * one **process residual** between consecutive states ([S16] eq. 14), whitened by the Cholesky
-  factor of the process covariance of eq. 8 (:func:`accel_bayes.models.process_covariance`):
+  factor of the process covariance of eq. 8 (:func:`accel_bayes.physics.models.process_covariance`):
 
-      e_i = L_i⁻¹ (x_{i+1} − f(x_i)),   f = :func:`accel_bayes.models.process_model`;
+      e_i = L_i⁻¹ (x_{i+1} − f(x_i)),   f = :func:`accel_bayes.physics.models.process_model`;
 
 * one triad's pose is fixed at its nominal value ([S16] eq. 16): it defines the array frame.
 
 Unknowns are the motion states x_i = [a_lin, ω, ω̇] (T, 9) — local blocks, one per sample,
 coupled in a chain by the process residuals — and the poses of the free triads (global blocks:
 a Euclidean position and a unit quaternion).  Quaternions are updated on their manifold with
-the exponential-map box-plus q ⊞ δ = q ∘ exp(δ) (:func:`accel_bayes.geometry.boxplus`; δ is a
+the exponential-map box-plus q ⊞ δ = q ∘ exp(δ) (:func:`accel_bayes.physics.geometry.boxplus`; δ is a
 rotation vector, so Laplace covariances in δ are covariances of rotation angles).  [S16] eq. 18
 is the half-angle variant (δ = quaternion vector part); it has the same fixed points but its
 covariances would be in half-angles.
@@ -36,10 +36,10 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .. import models
+from ..physics import models
 from ..constants import G0
 from ..errors import UserError
-from ..geometry import quat_normalize, quat_to_matrix, skew
+from ..physics.geometry import quat_normalize, quat_to_matrix, skew
 from ..physics import jacobians as jac
 
 __all__ = [
@@ -60,7 +60,7 @@ __all__ = [
 
 def _as_inv_std(acc_noise_std, A: int, dtype, device) -> torch.Tensor:
     """(A, 3) inverse noise std from a scalar, (A,) or (A, 3) std (checked by
-    :func:`accel_bayes.models.acc_noise_std_per_axis`)."""
+    :func:`accel_bayes.physics.models.acc_noise_std_per_axis`)."""
     return 1.0 / models.acc_noise_std_per_axis(acc_noise_std, A, dtype=dtype, device=device)
 
 
@@ -551,7 +551,7 @@ def self_calibrate(
     fixed : index of the triad held at its nominal pose.
     acc_noise_std : m/s², scalar, (A,) or (A, 3); default 0.02 ([S16] §IV-B: σ² = 4·10⁻⁴).
     process_variances : dict acc / int / omega_dot of eq. 8 (default
-        :data:`accel_bayes.models.S16_PROCESS_VARIANCES`, the paper's 10³, 10⁻⁷, 10³).
+        :data:`accel_bayes.physics.models.S16_PROCESS_VARIANCES`, the paper's 10³, 10⁻⁷, 10³).
     sensor_params : known triad parameters ``(S, offset)`` or a dict with keys "S" and "offset";
         S (A, 3, 3) upper-triangular (or its 6 parameters (A, 6), [S16] eq. 21), offset (A, 3).
         Default: ideal triads (S = I, o = 0).
@@ -618,7 +618,7 @@ def self_calibrate(
         if q0.shape != (A, 4):
             raise ValueError(f"nominal_orientations: expected shape ({A}, 4), got {tuple(q0.shape)}")
         q0 = quat_normalize(q0)
-    from ..arrays import check_triad_geometry
+    from ..physics.arrays import check_triad_geometry
 
     check_triad_geometry(p0)
     dt = _time_steps(time_or_dt, T, dtype, acc.device)

@@ -382,12 +382,12 @@ def _group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> floa
 # ------------------------------------------------------------------------------ detect
 
 def _load(recording):
-    from ..recording import Recording
+    from ..data.recording import Recording
 
     if isinstance(recording, Recording):
         return recording, None
     if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
-        from ..io import read_recording
+        from ..data.io import read_recording
 
         return read_recording(recording, require_gyro=True), str(recording)
     raise UserError(f"recording: expected a Recording or a file path, got {type(recording).__name__}")
@@ -396,7 +396,7 @@ def _load(recording):
 def _check_recording(rec) -> None:
     """Refuse (one line) a recording the detector cannot judge, before any fit."""
     from ..likelihood import DEFAULT_MIN_ROTATION
-    from ..preprocess import rotation_rate
+    from ..prep.preprocess import rotation_rate
 
     if rec.T < 3:
         raise UserError(f"time: mismatch detection needs at least 3 samples, the recording has {rec.T}")
@@ -443,7 +443,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
 
     Parameters
     ----------
-    recording : :class:`~accel_bayes.recording.Recording` or path to a format-v1 file (needs
+    recording : :class:`~accel_bayes.data.recording.Recording` or path to a format-v1 file (needs
         gyroscope data).
     effects : effect names to try (list or comma-separated string; default all of vocabulary v1);
         ``unexplained`` is always considered.

@@ -1,7 +1,7 @@
 """The augmented array model: nominal [C21] kinematics + effects, fitted jointly with the
 geometry and the motion (DESIGN §2 "extend model → refit → compare").
 
-Model (per sample t, IMU k, sensor frame; the one signal model of :mod:`accel_bayes.models`)::
+Model (per sample t, IMU k, sensor frame; the one signal model of :mod:`accel_bayes.physics.models`)::
 
     y^a_tk = [outputs of effects ∘ R_k f(r_k; ω_t, ω̇_t, s_t)]_acc  + e^a,  e^a ~ N(0, (c^a_k σ^a_k)² I₃)
     y^g_tk = [outputs of effects ∘ R_k ω_t]_gyro                   + e^g,  e^g ~ N(0, (c^g_k σ^g_k)² I₃)
@@ -65,9 +65,9 @@ import torch
 
 from ..constants import DEFAULT_PRIOR_STD
 from ..errors import UserError
-from ..geometry import quat_to_matrix
+from ..physics.geometry import quat_to_matrix
 from ..inference.lm import LevenbergMarquardt, Linearization, StoppingRule
-from ..models import G_matrix, H_matrix, to_array_frame, u_of_omega
+from ..physics.models import G_matrix, H_matrix, to_array_frame, u_of_omega
 from ..physics import jacobians as jac
 from ..physics.effects import CandidateLayout, SignalContext, model_outputs, noise_factors, output_rates
 
@@ -153,10 +153,10 @@ def flagged_clipped(rec) -> np.ndarray:
 
 
 def prepare(rec, *, drop_clipped: bool = True) -> Prepared:
-    """Check a :class:`~accel_bayes.recording.Recording` for mismatch analysis and convert it.
+    """Check a :class:`~accel_bayes.data.recording.Recording` for mismatch analysis and convert it.
 
     drop_clipped : drop the samples the recording flags as clipped (:func:`flagged_clipped`), as
-        :func:`accel_bayes.preprocess.preprocess` does for the calibration.  A flagged output sits
+        :func:`accel_bayes.prep.preprocess.preprocess` does for the calibration.  A flagged output sits
         at the range while the true one is beyond it: its Gaussian residual would be a censored
         quantity treated as a measurement, the per-sample motion fitted to it is biased (every
         IMU sees the same ω, so all gyros clip together and ω is pulled to the range), and the
@@ -189,7 +189,7 @@ def prepare(rec, *, drop_clipped: bool = True) -> Prepared:
     m_gyro = torch.isfinite(gyro).double() * f(has_gyro)[None, :, None]
     nominal = f(rec.nominal_position)
     nominal = nominal - nominal[ref]
-    from ..arrays import check_triad_geometry
+    from ..physics.arrays import check_triad_geometry
 
     try:
         check_triad_geometry(nominal[torch.as_tensor(has_acc)], labels=np.flatnonzero(has_acc).tolist())

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ..outputs import write_text
+from ..data.outputs import write_text
 
 __all__ = ["SCHEMA", "Finding", "MismatchReport", "validate_report"]
 
@@ -246,7 +246,7 @@ class MismatchReport:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from ..outputs import save_figure
+        from ..data.outputs import save_figure
         from .locate import CHANNELS
 
         paths = {}

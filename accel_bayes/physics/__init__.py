@@ -7,6 +7,6 @@ sensor errors, one definition each.
   (used by the simulator and by the mismatch detector); the intrinsic calibration and the [S16]
   sensor parameters are conversions of its accelerometer gain + bias.
 
-The signal model itself is still :mod:`accel_bayes.models` (its move here is the next step of
+The signal model itself is still :mod:`accel_bayes.physics.models` (its move here is the next step of
 issue #10).
 """

@@ -1,6 +1,6 @@
 """Derivatives of the rigid-body kinematics, the one home of every Jacobian of the signal model.
 
-The model ([C21] eq. 4a, [S16] eq. 2; :func:`accel_bayes.models.specific_force`): the specific
+The model ([C21] eq. 4a, [S16] eq. 2; :func:`accel_bayes.physics.models.specific_force`): the specific
 force at a point r of the board, array frame,
 
     f(r; ω, ω̇, s) = ω × (ω × r) + ω̇ × r + s = Ω(ω)² r + Ω(ω̇) r + s,
@@ -23,17 +23,17 @@ sensor axis m = (k, a) in the array frame,
     ∂f_m/∂ω = α_m r_k + β_m R_a + γ_m ω,  γ_m = −2 p_m,   ∂f_m/∂φ = C_m = [r_k × R_a, R_a],
 
 φ = [ω̇; s].  ``tests/test_jacobians.py`` pins every function here against finite differences,
-against autograd of :func:`~accel_bayes.models.specific_force`, and the factored form against
+against autograd of :func:`~accel_bayes.physics.models.specific_force`, and the factored form against
 the plain one.
 
-Shapes follow :func:`~accel_bayes.models.specific_force`: ω, ω̇ (..., 3) (batch first); points
+Shapes follow :func:`~accel_bayes.physics.models.specific_force`: ω, ω̇ (..., 3) (batch first); points
 r (..., A, 3); the batch dimensions broadcast.  Units: r in m, ω in rad/s, ω̇ in rad/s².
 """
 from __future__ import annotations
 
 import torch
 
-from ..geometry import skew
+from .geometry import skew
 
 __all__ = [
     "df_domega",
@@ -87,7 +87,7 @@ def df_dmotion(r: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
 
 def du_domega(omega: torch.Tensor) -> torch.Tensor:
     """∂u/∂ω (..., 6, 3) for u(ω) = [ωx², ωy², ωz², ωxωy, ωxωz, ωyωz] (DESIGN §3.1,
-    :func:`accel_bayes.models.u_of_omega`); ω (..., 3) rad/s, entries in rad/s."""
+    :func:`accel_bayes.physics.models.u_of_omega`); ω (..., 3) rad/s, entries in rad/s."""
     x, y, z = omega.unbind(-1)
     o = torch.zeros_like(x)
     return torch.stack(

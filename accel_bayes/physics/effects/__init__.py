@@ -30,7 +30,7 @@ Every effect class holds
   exactly the DESIGN §7.2 report parameters, sensor frame of the IMU, SI units;
 * the perturbation it adds to the signal model, a differentiable torch function of its
   parameters given a :class:`SignalContext` (motion, geometry and the nominal sensor-frame
-  outputs of :func:`accel_bayes.models.imu_outputs`, the package's one signal model);
+  outputs of :func:`accel_bayes.physics.models.imu_outputs`, the package's one signal model);
 * :meth:`Effect.report_parameters` (JSON) and :meth:`Effect.explain` (one sentence).
 
 Three kinds of effect (``Effect.kind``):

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from ...geometry import quat_to_matrix
-from ...models import specific_force, to_array_frame
+from ..geometry import quat_to_matrix
+from ..models import specific_force, to_array_frame
 from ...constants import G0
 from .base import AXES, Effect, Param, register_effect, _fmt, _onehot, _CrossAxisCoupling
 
@@ -130,7 +130,7 @@ class AxisDisplacement(Effect):
 # ------------------------------------------------------------------------------------ gain form
 # The linear accelerometer effects of one IMU add up to a general 3×3 gain and a bias, sensor
 # frame:  y = (I + M) f + b,  M_aa = acc_scale(a), M_ab = acc_misalignment(a from b),
-# b_a = acc_bias(a).  The intrinsic calibration (lower-triangular T, :mod:`accel_bayes.intrinsics`)
+# b_a = acc_bias(a).  The intrinsic calibration (lower-triangular T, :mod:`accel_bayes.prep.intrinsics`)
 # and the [S16] sensor parameters (upper-triangular S plus offset o, eq. 21–22) are two
 # triangular parametrisations of the same gain; the functions below convert between them.
 #
@@ -186,7 +186,7 @@ def triangular_gauge(gain: torch.Tensor):
 
 
 def intrinsics_gain(T: torch.Tensor, b: torch.Tensor):
-    """The gain form of the intrinsic model a_true = T (a_raw − b) (:class:`accel_bayes.intrinsics.
+    """The gain form of the intrinsic model a_true = T (a_raw − b) (:class:`accel_bayes.prep.intrinsics.
     Intrinsics`, T lower-triangular): a_raw = T⁻¹ a_true + b.  Returns (gain = T⁻¹, bias = b)."""
     T = torch.as_tensor(T, dtype=torch.float64)
     return torch.linalg.inv(T), torch.as_tensor(b, dtype=torch.float64)
@@ -201,7 +201,7 @@ def gain_to_intrinsics(gain: torch.Tensor, bias: torch.Tensor):
 
 def s16_gain(S: torch.Tensor, offset: torch.Tensor):
     """The gain form of the [S16] sensor model z = Sᵀ R(q) f + o (eq. 4, 21–22; S upper-triangular,
-    :func:`accel_bayes.models.triad_output`): gain = Sᵀ on the sensor-frame specific force R(q) f,
+    :func:`accel_bayes.physics.models.triad_output`): gain = Sᵀ on the sensor-frame specific force R(q) f,
     bias = o.  Returns (gain, bias)."""
     return torch.as_tensor(S, dtype=torch.float64).transpose(-1, -2), torch.as_tensor(offset, dtype=torch.float64)
 

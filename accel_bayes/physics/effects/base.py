@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from ...errors import UserError
-from ...geometry import quat_to_matrix
-from ...models import imu_outputs
+from ..geometry import quat_to_matrix
+from ..models import imu_outputs
 
 AXES = ("x", "y", "z")
 
@@ -36,7 +36,7 @@ class SignalContext:
     time : (T,) s.  omega (T, 3) rad/s, omega_dot (T, 3) rad/s², s (T, 3) m/s²: the motion,
     array frame ([C21] eq. 4; true motion when simulating, the fitted one when fitting).
     positions (K, 3) m, array frame; orientations (K, 4) array → sensor quaternions (§7.0).
-    acc, gyro : (T, K, 3) the nominal sensor-frame outputs :func:`accel_bayes.models.imu_outputs`
+    acc, gyro : (T, K, 3) the nominal sensor-frame outputs :func:`accel_bayes.physics.models.imu_outputs`
     gives for that motion and geometry (m/s², rad/s).
     acc_rate, gyro_rate : (T, K, 3) or None — d/dt of the nominal outputs (m/s³, rad/s²), needed
     by ``time_offset`` only (from the continuous trajectory when simulating, from the fitted
@@ -57,7 +57,7 @@ class SignalContext:
     @classmethod
     def from_motion(cls, positions, orientations, omega, omega_dot, s, time=None, acc_rate=None,
                     gyro_rate=None) -> "SignalContext":
-        """Build the context with the nominal outputs of :func:`accel_bayes.models.imu_outputs`
+        """Build the context with the nominal outputs of :func:`accel_bayes.physics.models.imu_outputs`
         (differentiable in every argument)."""
         acc, gyro = imu_outputs(positions, orientations, omega, omega_dot, s)
         if time is None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from ...geometry import quat_exp, quat_to_matrix
-from ...models import to_array_frame
+from ..geometry import quat_exp, quat_to_matrix
+from ..models import to_array_frame
 from ...constants import DEG_TO_RAD
 from .base import Effect, Param, register_effect, _onehot
 

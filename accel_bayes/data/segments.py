@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from scipy.ndimage import uniform_filter1d
 
-from .errors import UserError
-from .models import to_array_frame
+from ..errors import UserError
+from ..physics.models import to_array_frame
 
 __all__ = [
     "detect_static",

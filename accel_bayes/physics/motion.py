@@ -1,6 +1,6 @@
 """Motion generators for simulated inertial sensor array recordings.
 
-A motion is what the signal model of :mod:`accel_bayes.models` needs per sample: the angular
+A motion is what the signal model of :mod:`accel_bayes.physics.models` needs per sample: the angular
 velocity ω, the angular acceleration ω̇ (both array frame, rad/s and rad/s²) and the specific
 force s of the array origin (array frame, m/s²).  :class:`MotionTrace` holds them for a grid of
 sample times.  Three generators:
@@ -17,7 +17,7 @@ sample times.  Three generators:
   rotating about a fixed centre, gravity consistent with the attitude.
 
 Frames and conventions.  The attitude quaternion ``q_wb`` maps array → world,
-``v_world = R(q_wb) v_array`` (``R`` is :func:`accel_bayes.geometry.quat_to_matrix`; note that a
+``v_world = R(q_wb) v_array`` (``R`` is :func:`accel_bayes.physics.geometry.quat_to_matrix`; note that a
 *sensor* orientation maps the other way, array → sensor, DESIGN §7.0).  ω and ω̇ are body
 (array-frame) quantities, Ṙ = R Ω(ω).  World gravity is g = (0, 0, −9.80665) m/s², so a board at
 rest, level, reads s = (0, 0, +9.80665).  The specific force of the origin is
@@ -39,8 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .constants import DEG_TO_RAD, G0
-from .errors import UserError
+from ..constants import DEG_TO_RAD, G0
+from ..errors import UserError
 from .geometry import quat_conj, quat_exp, quat_mul, quat_rotate, quat_to_matrix, random_quaternion
 from .models import specific_force
 

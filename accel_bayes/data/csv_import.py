@@ -12,7 +12,7 @@ Two layouts, one array description:
   (EuRoC's, with or without its ``%YAML:1.0`` line) is read where present: ``rate_hz``,
   ``accelerometer_noise_density`` / ``gyroscope_noise_density`` (σ = density·√rate, used where
   the noise is stated rather than estimated) and the two ``*_random_walk`` values (kept in the
-  recording's attributes for :mod:`accel_bayes.export`).
+  recording's attributes for :mod:`accel_bayes.data.export`).
 * **Wide CSV**: one file, a time column and three columns per IMU and sensor.  Columns are named
   by the description's column map, by default ``<label>_acc_x`` … ``<label>_gyro_z`` and
   ``time``.
@@ -41,7 +41,7 @@ What the importer does, and why:
   IMU's own stamp minus ``time`` is kept in ``imu_time_offset`` (§7.1), so that the timing stays
   visible to the mismatch detector; the variable is written only when some offset is non-zero.
 * **Noise**: with ``noise="rests"`` (default) the rests are found and the noise std estimated
-  from them exactly as :mod:`accel_bayes.mimu` does (:func:`accel_bayes.segments.analyse_static`);
+  from them exactly as :mod:`accel_bayes.data.mimu` does (:func:`accel_bayes.data.segments.analyse_static`);
   without rests, and with ``noise="stated"``, the description's std, else the ``sensor.yaml``
   density·√rate, is used, and a missing one is refused.  ``source`` says which.
 * **Clipping**: a sample is flagged where any axis has |value| ≥ the stated range (per IMU, else
@@ -62,9 +62,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .arrays import G0
-from .errors import UserError
-from .geometry import matrix_to_quat
+from ..physics.arrays import G0
+from ..errors import UserError
+from ..physics.geometry import matrix_to_quat
 from .recording import Recording
 from .segments import analyse_static, segment_labels
 from .validation import units_kind
@@ -92,7 +92,7 @@ AXES = ("x", "y", "z")
 SENSORS = ("acc", "gyro")
 
 # Factors to SI of the units each kind of column accepts, by canonical name.  The SI and degree
-# spellings are those :func:`accel_bayes.validation.units_kind` knows; g and the sub-second time
+# spellings are those :func:`accel_bayes.data.validation.units_kind` knows; g and the sub-second time
 # units are added here.  Time factors are integers: nanoseconds per unit.
 _FACTORS = {"acc": {"m s-2": 1.0, "g": G0}, "gyro": {"rad s-1": 1.0, "deg s-1": math.pi / 180.0},
             "time": {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000}}
@@ -597,7 +597,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         time base; default a quarter of the reference IMU's median sample period.
     noise : "rests" (estimated from the rests where found, stated otherwise) or "stated" (no
         rest detection, the description's / sensor.yaml's noise).
-    tol_deg, static_kwargs : rest detection, as :func:`accel_bayes.mimu.import_mimu`.
+    tol_deg, static_kwargs : rest detection, as :func:`accel_bayes.data.mimu.import_mimu`.
     """
     if noise not in ("rests", "stated"):
         raise UserError(f"noise: expected 'rests' or 'stated', got {noise!r}")
@@ -701,7 +701,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         srcs = sorted({f for kind in ("acc", "gyro") for f in stated_from[kind] if f})
         noise_phrase += f", from {' and '.join(srcs)}" if srcs else ""
 
-    attrs = {"importer": "accel_bayes.csv_import", "imu_labels": spec.labels}
+    attrs = {"importer": "accel_bayes.data.csv_import", "imu_labels": spec.labels}
     for kind, yk in (("acc", "accelerometer_random_walk"), ("gyro", "gyroscope_random_walk")):
         rw = [getattr(s, f"{kind}_random_walk") if math.isfinite(getattr(s, f"{kind}_random_walk"))
               else st_.sensor_yaml.get(yk) for s, st_ in zip(spec.imus, streams)]
@@ -714,7 +714,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     files = ", ".join(str(s.file) for s in streams) if layout == "ASL" else str(source)
     source_text = (f"CSV import ({layout}) of {files}; array description {spec.path}; time base = stamps of the "
                    f"reference IMU {spec.labels[ref]!r} (integer ns), others matched to the nearest sample within "
-                   f"{tol_ns / 1e6:g} ms; {noise_phrase}; imported by accel_bayes.csv_import")
+                   f"{tol_ns / 1e6:g} ms; {noise_phrase}; imported by accel_bayes.data.csv_import")
     rec = Recording(
         time=time, acc=acc, gyro=gyro,
         nominal_position=np.stack([s.position for s in spec.imus]), nominal_orientation=quat,
@@ -745,7 +745,7 @@ def _fmt(x) -> str:
 
 
 def write_imported(result: CsvImport, path, overwrite: bool = False) -> Path:
-    """Write an import atomically through :func:`accel_bayes.io.write_recording` (validation,
+    """Write an import atomically through :func:`accel_bayes.data.io.write_recording` (validation,
     format v1; the recording carries ``imu_time_offset``, DESIGN §7.1).  An existing ``path`` is
     refused unless ``overwrite``."""
     from .io import write_recording

@@ -1,7 +1,7 @@
 """The :class:`Recording` type: one array recording in memory (format v1, DESIGN §7.1).
 
 Arrays are numpy (what the file holds); :meth:`Recording.acc_tensor` and friends give torch
-views for the numerical code.  Reading/writing and validation live in :mod:`accel_bayes.io`.
+views for the numerical code.  Reading/writing and validation live in :mod:`accel_bayes.data.io`.
 """
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from .arrays import SensorArray
-from .models import to_array_frame
+from ..physics.arrays import SensorArray
+from ..physics.models import to_array_frame
 
 __all__ = ["Recording"]
 

@@ -3,7 +3,7 @@
 Two levels:
 
 * :func:`validate_dataset` checks an :class:`xarray.Dataset` as read from a file *before* a
-  :class:`~accel_bayes.recording.Recording` is built from it: variable and coordinate names
+  :class:`~accel_bayes.data.recording.Recording` is built from it: variable and coordinate names
   (with a suggestion when a near name is present), dimension names and order, axis and
   quaternion labels, declared units, dtypes of the masks and labels, global attributes.
 * :func:`validate_recording` checks an in-memory :class:`Recording` (what :func:`read_recording`
@@ -25,10 +25,10 @@ import re
 import numpy as np
 import torch
 
-from .arrays import check_triad_geometry
-from .errors import RecordingError
-from .geometry import quat_to_matrix
-from .constants import DEG_TO_RAD, RAD_TO_DEG
+from ..physics.arrays import check_triad_geometry
+from ..errors import RecordingError
+from ..physics.geometry import quat_to_matrix
+from ..constants import DEG_TO_RAD, RAD_TO_DEG
 
 __all__ = [
     "FORMAT",
@@ -41,7 +41,7 @@ __all__ = [
     "DEFAULT_GYRO_BOUND",
 ]
 
-FORMAT = "accel_bayes.recording/1"
+FORMAT = "accel_bayes.data.recording/1"
 SEGMENT_LABELS = ("static", "dynamic")
 
 # Without a stated gyro_range, |ω| above this is not a plausible rad/s reading: 150 rad/s ≈ 8600 °/s,
@@ -239,7 +239,7 @@ def validate_dataset(ds) -> None:
     ``gyro_range``.  Raises :class:`RecordingError` on the first problem.
     """
     fmt = ds.attrs.get("format")
-    if isinstance(fmt, str) and fmt.startswith("accel_bayes.recording/") and fmt != FORMAT:
+    if isinstance(fmt, str) and fmt.startswith("accel_bayes.data.recording/") and fmt != FORMAT:
         raise RecordingError(f"format: this reader understands {FORMAT!r}, the file says {fmt!r}")
 
     names = set(ds.variables) | set(ds.dims)
@@ -399,7 +399,7 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
       gyroscope, holds NaN/inf (first time index, time value, IMU label and count are named);
     * a noise std is ≤ 0 or not finite for an IMU with that sensor (the IMU is named);
     * fewer than 3 accelerometer triads, or collinear ones (rotation about their line is
-      unobservable) — :func:`accel_bayes.arrays.check_triad_geometry`;
+      unobservable) — :func:`accel_bayes.physics.arrays.check_triad_geometry`;
     * the reference IMU (``reference_imu`` if given, else ``rec.reference_imu``) is not a label
       0..K−1 of an IMU with an accelerometer;
     * acc_range / gyro_range are given but not finite positive numbers;

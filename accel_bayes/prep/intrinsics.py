@@ -66,12 +66,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .constants import G0
-from .errors import UserError
-from .inference.damping import NielsenDamping
-from .inference.lm import BatchedLevenbergMarquardt, StoppingRule
-from .recording import Recording
-from .segments import cluster_orientations, detect_static, mask_from_labels, static_segments
+from ..constants import G0
+from ..errors import UserError
+from ..inference.damping import NielsenDamping
+from ..inference.lm import BatchedLevenbergMarquardt, StoppingRule
+from ..data.recording import Recording
+from ..data.segments import cluster_orientations, detect_static, mask_from_labels, static_segments
 
 __all__ = [
     "SCHEMA",
@@ -84,7 +84,7 @@ __all__ = [
     "triangular_matrix",
 ]
 
-SCHEMA = "accel_bayes.intrinsics/1"
+SCHEMA = "accel_bayes.prep.intrinsics/1"
 ACC_PARAMS = ("b_x", "b_y", "b_z", "t_xx", "t_yy", "t_zz", "t_yx", "t_zx", "t_zy")
 # Positions of the six T entries of ACC_PARAMS[3:] in the 3×3 matrix.
 _T_INDEX = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
@@ -105,7 +105,7 @@ def rest_segments(recording: Recording, segments=None) -> list[tuple[int, int]]:
     """The static ``(start, stop)`` index pairs to use.
 
     ``segments``: None (the recording's ``segment`` labels when present, else
-    :func:`accel_bayes.segments.detect_static`), a (T,) bool mask, or a list of pairs.
+    :func:`accel_bayes.data.segments.detect_static`), a (T,) bool mask, or a list of pairs.
     """
     T = recording.T
     if segments is None:
@@ -245,7 +245,7 @@ class Intrinsics:
         frame.  T⁻¹ is lower-triangular, so this is the triangular gauge (module docstring):
         :func:`~accel_bayes.physics.effects.gain_to_intrinsics` recovers (T, b) from the effects
         with an identity rotation.  IMUs without an estimate (NaN) get none."""
-        from .physics.effects import acc_gain_effects, intrinsics_gain
+        from ..physics.effects import acc_gain_effects, intrinsics_gain
 
         out = []
         for k in range(self.K):
@@ -280,7 +280,7 @@ class Intrinsics:
         gyro_ok = np.isfinite(self.gyro_bias).all(-1)
         if out.gyro is not None and gyro_ok.any():
             out.gyro = np.where(gyro_ok[None, :, None], self.correct_gyro(out.gyro), out.gyro)
-        note = (f"intrinsic calibration applied by accel_bayes.intrinsics ({SCHEMA}: acc a = T(a_raw - b), "
+        note = (f"intrinsic calibration applied by accel_bayes.prep.intrinsics ({SCHEMA}: acc a = T(a_raw - b), "
                 f"T lower-triangular, g = {self.g:.6g} m/s2, {int(np.max(self.n_rests, initial=0))} rests; "
                 f"gyro bias removed: {bool(gyro_ok.any() and out.gyro is not None)}; intrinsics from: "
                 f"{self.source or 'unknown'})")
@@ -291,8 +291,8 @@ class Intrinsics:
 
     # ------------------------------------------------------------ files
     def to_dict(self) -> dict:
-        """JSON-ready dict, schema ``accel_bayes.intrinsics/1`` (NaN → null)."""
-        from . import __version__
+        """JSON-ready dict, schema ``accel_bayes.prep.intrinsics/1`` (NaN → null)."""
+        from .. import __version__
 
         def L(x):
             a = np.asarray(x, dtype=np.float64)
@@ -331,7 +331,7 @@ class Intrinsics:
         """The JSON text; with ``path`` also written there atomically."""
         text = json.dumps(self.to_dict(), indent=1) + "\n"
         if path is not None:
-            from .outputs import write_text
+            from ..data.outputs import write_text
 
             write_text(path, text, overwrite=overwrite)
         return text
@@ -537,7 +537,7 @@ def estimate_intrinsics(recording: Recording, segments=None, g: float = G0, *,
 
     desc = recording.description or "recording"
     n_orient_all = int(n_orient[has].min()) if has.any() else 0
-    src = (f"estimated by accel_bayes.intrinsics from {len(segs)} static segments of '{desc}' "
+    src = (f"estimated by accel_bayes.prep.intrinsics from {len(segs)} static segments of '{desc}' "
            f"(g = {g:.6g} m/s2, rest means of unclipped samples, LM fit of |T(m - b)| = g"
            f"{'' if converged else ', LM NOT converged for every IMU'})")
     return Intrinsics(acc_bias=acc_bias, acc_matrix=acc_matrix, acc_cov=acc_cov, gyro_bias=gyro_bias,

@@ -3,9 +3,9 @@
 :func:`preprocess` turns an imported recording into what the [C21] likelihood should see:
 
 1. **Intrinsic calibration** from the recording's own rests
-   (:func:`accel_bayes.intrinsics.estimate_intrinsics`: accelerometer bias, scale factor and
+   (:func:`accel_bayes.prep.intrinsics.estimate_intrinsics`: accelerometer bias, scale factor and
    non-orthogonality per IMU, gyro bias), applied to every sample
-   (:meth:`~accel_bayes.intrinsics.Intrinsics.apply`).  [C21] §IV-B calibrates the triads at
+   (:meth:`~accel_bayes.prep.intrinsics.Intrinsics.apply`).  [C21] §IV-B calibrates the triads at
    rest before estimating the geometry, and the model ([C21] eq. 4) assumes calibrated sensors.
    The intrinsics of one power-up do not transfer to another (turn-on offsets differ by
    ~25× their std across the MIMU experiments, ``experiments/mimu_intrinsics.py``), so they
@@ -41,12 +41,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .constants import G0, RAD_TO_DEG
-from .errors import UserError
+from ..constants import G0, RAD_TO_DEG
+from ..errors import UserError
 from .intrinsics import ACC_PARAMS, Intrinsics, estimate_intrinsics, rest_segments, static_acc_errors, \
     triangular_matrix
-from .likelihood import DEFAULT_MIN_ROTATION
-from .recording import Recording
+from ..likelihood import DEFAULT_MIN_ROTATION
+from ..data.recording import Recording
 
 __all__ = ["Preprocessed", "preprocess", "clipped_samples", "draw_intrinsics", "rotation_rate", "INTRINSICS_MODES",
            "MIN_REST_ORIENTATIONS"]
@@ -61,7 +61,7 @@ class Preprocessed:
 
     recording : the recording to calibrate (intrinsics applied when they were), ALL samples.
     keep : (T,) bool — the samples to use.
-    intrinsics : the :class:`~accel_bayes.intrinsics.Intrinsics` applied, or None.
+    intrinsics : the :class:`~accel_bayes.prep.intrinsics.Intrinsics` applied, or None.
     has_rests : whether the recording has rests (static segments) at all.
     summary : JSON-ready dict: ``intrinsics`` (what was estimated/applied, or why not) and
         ``samples`` (counts: recording, static, clipped (dropped), slow, kept, clipped_kept (clipped
@@ -148,18 +148,18 @@ def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_s
                segments=None) -> Preprocessed:
     """Intrinsic calibration from the recording's rests, then selection of informative samples.
 
-    recording : a :class:`~accel_bayes.recording.Recording` (sensor frame, raw or calibrated).
+    recording : a :class:`~accel_bayes.data.recording.Recording` (sensor frame, raw or calibrated).
     intrinsics : "auto" (default) — estimate from the recording's rests and apply, or skip with a
         note when there are no rests in ≥ 9 distinct orientations or the recording says
         intrinsics were already applied; "estimate" — the same but an error instead of the
-        skip; "none" (or False) — skip; an :class:`~accel_bayes.intrinsics.Intrinsics` or the
+        skip; "none" (or False) — skip; an :class:`~accel_bayes.prep.intrinsics.Intrinsics` or the
         path of an intrinsics JSON (``accel-bayes intrinsics``) — apply those.
     g : gravity magnitude for the rest fit, m/s² (standard gravity by default).
     drop_static : drop the samples of the rests.
     drop_clipped : drop samples where any accelerometer or gyroscope is flagged as clipped.
     min_rotation : drop samples with |ω̄_t| below this, rad/s (None or 0: keep them).
     segments : the rests — None (the recording's ``segment`` labels, else
-        :func:`accel_bayes.segments.detect_static`), a (T,) bool mask or (start, stop) pairs.
+        :func:`accel_bayes.data.segments.detect_static`), a (T,) bool mask or (start, stop) pairs.
 
     Returns a :class:`Preprocessed`.  The input recording is not modified.
     """

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
-from .constants import DEG_TO_RAD, G0
+from ..constants import DEG_TO_RAD, G0
 
 __all__ = ["SensorArray", "mimu4444_32", "mimu4444_8", "s16_plate", "PRESETS", "preset", "check_triad_geometry"]
 

@@ -2,7 +2,7 @@
 same file with OpenVINS' ``kalibr_imu_chain.yaml`` intrinsic fields.
 
 Inputs: the recording (nominal orientations, stated noise, rate), its ``positions.json`` (DESIGN
-§7.3), optionally ``intrinsics.json`` (:mod:`accel_bayes.intrinsics`) and a mismatch report
+§7.3), optionally ``intrinsics.json`` (:mod:`accel_bayes.prep.intrinsics`) and a mismatch report
 (§7.2) for the gyro couplings and time offsets.  One entry ``imu<k>`` per IMU label k.
 
 Frames and conventions (also written into the file's comments)
@@ -26,7 +26,7 @@ Frames and conventions (also written into the file's comments)
   output at t + time_offset.
 * **Accelerometer intrinsics** (OpenVINS): OpenVINS reads a raw accelerometer sample as
   a_m = Ta · R_IMUtoACC · a_I + b_a + n and corrects it with
-  a_I = R_IMUtoACCᵀ · Ta⁻¹ · (a_m − b_a).  The package's model (:mod:`accel_bayes.intrinsics`) is
+  a_I = R_IMUtoACCᵀ · Ta⁻¹ · (a_m − b_a).  The package's model (:mod:`accel_bayes.prep.intrinsics`) is
   a_true = T (a_raw − b) with T lower-triangular in the sensor frame.  So the exported
   **Ta = T⁻¹** (lower-triangular too: the inverse of a lower-triangular matrix is), **R_IMUtoACC
   = I** (the corrected x axis is the sensor's x axis, the xy plane its xy plane: the gauge that
@@ -44,7 +44,7 @@ Frames and conventions (also written into the file's comments)
 * **Uncertainty** (extra keys, ignored by Kalibr and OpenVINS): ``T_i_b_translation_cov``
   (3×3, m², IMU i's frame: R_i Σ_i R_iᵀ of the positions.json covariance; orientation uncertainty
   not included), ``accelerometer_intrinsics_cov`` (9×9, the package's parameters in the order of
-  :data:`accel_bayes.intrinsics.ACC_PARAMS`), ``Ta_cov`` (6×6, Ta's lower-triangular entries
+  :data:`accel_bayes.prep.intrinsics.ACC_PARAMS`), ``Ta_cov`` (6×6, Ta's lower-triangular entries
   column by column — Ta00, Ta10, Ta20, Ta11, Ta21, Ta22 — linearised: dTa = −Ta dT Ta),
   ``gyroscope_bias`` / ``gyroscope_bias_cov``.
 
@@ -61,8 +61,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import UserError
-from .geometry import quat_to_matrix
+from ..errors import UserError
+from ..physics.geometry import quat_to_matrix
 from .recording import Recording
 
 __all__ = ["FORMATS", "imu_chain", "t_i_b", "openvins_acc_intrinsics", "gyro_intrinsics_from_report",
@@ -92,7 +92,7 @@ def openvins_acc_intrinsics(T: np.ndarray, acc_cov: np.ndarray | None = None):
 
     Ta = T⁻¹ (lower-triangular), R_IMUtoACC = I; Ta_cov (6×6) over Ta's lower-triangular entries
     column by column, from the 9×9 ``acc_cov`` of ``ACC_PARAMS`` (None if not given)."""
-    from .intrinsics import _T_INDEX
+    from ..prep.intrinsics import _T_INDEX
 
     T = np.asarray(T, dtype=np.float64)
     Ta = np.linalg.inv(T)
@@ -125,7 +125,7 @@ def gyro_intrinsics_from_report(report: dict, K: int):
     ``gyro_scale`` findings fill M (relative scale on the diagonal, ``from_axis`` couplings off
     it), ``gyro_g_sensitivity`` the diagonal of Tg (rad s-1 per m s-2), ``time_offset`` the
     offset (s, positive = late).  Tw · R_IMUtoGYRO = I + M, Tw lower-triangular."""
-    from .mismatch.report import validate_report
+    from ..mismatch.report import validate_report
 
     validate_report(report)
     M = np.zeros((K, 3, 3))
@@ -182,8 +182,8 @@ def imu_chain(recording: Recording, positions: dict, intrinsics=None, report: di
     """The IMU chain YAML text (module docstring).
 
     recording : the recording the calibration was made from (orientations, noise, rate).
-    positions : a positions document (:func:`accel_bayes.positions.read_positions` output).
-    intrinsics : an :class:`accel_bayes.intrinsics.Intrinsics` or None.
+    positions : a positions document (:func:`accel_bayes.data.positions.read_positions` output).
+    intrinsics : an :class:`accel_bayes.prep.intrinsics.Intrinsics` or None.
     report : a mismatch report dict (§7.2) or None.
     fmt : "kalibr" (plain YAML) or "openvins" (``%YAML:1.0`` header, intrinsic fields always).
     input_names : {"recording": …, "positions": …, …} file names for the provenance comment.
@@ -324,10 +324,10 @@ def imu_chain(recording: Recording, positions: dict, intrinsics=None, report: di
 def export_imu_chain(recording, positions, output, *, intrinsics=None, report=None, fmt: str = "kalibr",
                      overwrite: bool = False) -> Path:
     """Read the inputs (paths or objects), build :func:`imu_chain` and write it to ``output``
-    atomically.  ``recording``: a path (read with :func:`accel_bayes.io.read_recording`) or a
+    atomically.  ``recording``: a path (read with :func:`accel_bayes.data.io.read_recording`) or a
     :class:`Recording`; ``positions``: path or document; ``intrinsics``: path,
-    :class:`~accel_bayes.intrinsics.Intrinsics` or None; ``report``: path, dict or None."""
-    from .intrinsics import Intrinsics
+    :class:`~accel_bayes.prep.intrinsics.Intrinsics` or None; ``report``: path, dict or None."""
+    from ..prep.intrinsics import Intrinsics
     from .io import read_recording
     from .positions import read_positions
 

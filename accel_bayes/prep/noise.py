@@ -68,11 +68,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .constants import DEFAULT_PRIOR_STD
-from .errors import UserError
-from .likelihood import RaoBlackwellLikelihood
-from .models import G_matrix, H_matrix, u_of_omega
-from .physics.jacobians import du_domega
+from ..constants import DEFAULT_PRIOR_STD
+from ..errors import UserError
+from ..likelihood import RaoBlackwellLikelihood
+from ..physics.models import G_matrix, H_matrix, u_of_omega
+from ..physics.jacobians import du_domega
 
 __all__ = ["NoiseModel", "residual_statistics", "update_noise", "scale_samples", "fit_map_with_noise",
            "sandwich_inflation", "rate_bins", "TemperedLikelihood", "fit_map_tempered", "NOISE_MODES",
@@ -251,7 +251,7 @@ def fit_map_with_noise(acc, omega_mean, omega_cov, acc_noise_std, *, reference: 
     positions are those of the original problem, its ω is scaled by 1/√s_t) and the
     :class:`NoiseModel`.  A MAP that diverges is returned as it is (check ``converged``).
     """
-    from .inference.map import fit_map
+    from ..inference.map import fit_map
 
     kw = dict(on_divergence="ignore")
     kw.update(fit_kwargs or {})
@@ -317,7 +317,7 @@ def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *,
     coordinates of diag(C)/diag(A⁻¹) (average variance inflation), "std_ratio": (n,)
     sqrt of the per-coordinate ratios, "lags": L}.
     """
-    from .inference.map import build_map_problem
+    from ..inference.map import build_map_problem
 
     prob = build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, reference=reference, prior_mean=prior_mean,
                              prior_std=prior_std, init_positions=map_result.positions, init_omega=map_result.omega)
@@ -391,9 +391,9 @@ def fit_map_tempered(acc, omega_mean, omega_cov, acc_noise_std, kappa: float, *,
     and its log|M| term weighted by 1/κ; solved by the same Levenberg–Marquardt.  Returns a
     :class:`~accel_bayes.inference.map.MAPResult` (``converged`` False and a NaN covariance when
     the Hessian is not positive definite)."""
-    from .inference.linear import NotPositiveDefinite
-    from .inference.lm import ExtraCost, LevenbergMarquardt
-    from .inference.map import MAPResult, build_map_problem
+    from ..inference.linear import NotPositiveDefinite
+    from ..inference.lm import ExtraCost, LevenbergMarquardt
+    from ..inference.map import MAPResult, build_map_problem
 
     prob = build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, reference=reference, prior_mean=prior_mean,
                              prior_std=prior_std, init_positions=init_positions, init_omega=init_omega)

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 
 from . import outputs
-from .errors import UserError
+from ..errors import UserError
 
 __all__ = ["POSITIONS_SCHEMA", "METHODS", "positions_document", "write_positions", "read_positions"]
 
-POSITIONS_SCHEMA = "accel_bayes.positions/1"
+POSITIONS_SCHEMA = "accel_bayes.data.positions/1"
 METHODS = ("pmmh", "map", "selfcal", "conventional")
 
 
@@ -78,7 +78,7 @@ def positions_document(
 
 
 def write_positions(doc: dict, path) -> Path:
-    """Write the document atomically (:func:`accel_bayes.outputs.write_json`), so a crash never
+    """Write the document atomically (:func:`accel_bayes.data.outputs.write_json`), so a crash never
     leaves half a file; a missing parent directory is created."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

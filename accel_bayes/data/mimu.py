@@ -35,10 +35,10 @@ What the importer does, and why:
 * **Scaling** (MPU-9150 at ±16 g, ±2000 °/s): acc = raw · 9.80665/2048 m/s²,
   gyro = raw/16.4 °/s converted to rad/s.  Outputs stay in each IMU's SENSOR frame (DESIGN §7.1);
   the nominal orientations (top IMUs identity, bottom IMUs ``MIMU_BOTTOM_QUAT``) and positions
-  come from :func:`accel_bayes.arrays.mimu4444_8`.
+  come from :func:`accel_bayes.physics.arrays.mimu4444_8`.
 * **Clipping**: a sample is clipped where any axis reads −32768 or 32767 (the recordings show
   thousands of gyro samples exactly at those codes and almost none one code inside them).
-* **Rests and noise**: :func:`accel_bayes.segments.analyse_static` labels samples
+* **Rests and noise**: :func:`accel_bayes.data.segments.analyse_static` labels samples
   ``"static"``/``"dynamic"`` and the per-IMU noise std is the pooled within-rest std (each rest's
   mean removed, RMS over axes).  ``source`` says so, with the number of rests used.
 """
@@ -54,9 +54,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .arrays import SensorArray, mimu4444_8
-from .constants import G0
-from .errors import RecordingError
+from ..physics.arrays import SensorArray, mimu4444_8
+from ..constants import G0
+from ..errors import RecordingError
 from .recording import Recording
 from .segments import StaticAnalysis, analyse_static, difference_noise_std, segment_labels
 
@@ -419,7 +419,7 @@ def recording_from_stream(stream: MimuStream, report: ImportReport, *, nominal: 
         f"{report.packets_read} packets read, {report.packets_kept} kept, "
         f"{report.checksum_failures} checksum failures, {report.header_failures} header failures, "
         f"{report.partial_bytes} trailing partial bytes ignored, {report.missing_packets} missing packet numbers; "
-        f"time = measured timestamps (64 MHz, unwrapped); {noise_phrase}; imported by accel_bayes.mimu"
+        f"time = measured timestamps (64 MHz, unwrapped); {noise_phrase}; imported by accel_bayes.data.mimu"
     )
     summary = report.to_dict()
     rec = Recording(
@@ -438,7 +438,7 @@ def recording_from_stream(stream: MimuStream, report: ImportReport, *, nominal: 
         gyro_range=GYRO_RANGE,
         description=f"MIMU4444, 8 corner IMUs (packet order), {report.file}",
         source=source,
-        attrs={"importer": "accel_bayes.mimu", "import_report": json.dumps(summary)},
+        attrs={"importer": "accel_bayes.data.mimu", "import_report": json.dumps(summary)},
     )
     return rec, st
 
@@ -455,8 +455,8 @@ def import_mimu(path, *, nominal: SensorArray | None = None, max_fail_fraction: 
     max_fail_fraction : refuse the file when more packets than this fail verification.
     tol_deg : rests whose gravity directions agree within this angle are one orientation.
     return_report : also return the :class:`ImportReport` and the
-        :class:`~accel_bayes.segments.StaticAnalysis`.
-    static_kwargs : passed to :func:`accel_bayes.segments.detect_static` (``window_s``,
+        :class:`~accel_bayes.data.segments.StaticAnalysis`.
+    static_kwargs : passed to :func:`accel_bayes.data.segments.detect_static` (``window_s``,
         ``factor``, ``min_duration_s`` …).
 
     Returns the recording, or ``(recording, report, static_analysis)`` with ``return_report``.

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from .errors import UserError
+from ..errors import UserError
 from .geometry import quat_to_matrix, skew
 
 __all__ = [

@@ -2,11 +2,11 @@
 
 * :func:`write_recording` / :func:`read_recording`: NetCDF-4/HDF5 through xarray + h5netcdf.
   A write → read round trip returns an identical :class:`Recording` (bit-exact arrays, same
-  attributes).  Writing is atomic (:mod:`accel_bayes.outputs`: built in memory, written to a
+  attributes).  Writing is atomic (:mod:`accel_bayes.data.outputs`: built in memory, written to a
   temporary file in the target directory, fsynced, then :func:`os.replace`), so a failed write
   never leaves a half-written or corrupted file, and an existing file is only replaced with
   ``overwrite=True``.  Reading never modifies the file and
-  validates it (:mod:`accel_bayes.validation`); files from other tools that follow the contract
+  validates it (:mod:`accel_bayes.data.validation`); files from other tools that follow the contract
   are accepted (no ``format`` attribute, bool masks stored as integers, float32 data, an
   explicit ``units = "deg s-1"`` on ``gyro``, which is converted).
 * :func:`write_truth` / :func:`read_truth`: simulator ground truth in a JSON sidecar
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from . import outputs
-from .errors import RecordingError, UserError
+from ..errors import RecordingError, UserError
 from .recording import Recording
 from .validation import (
     FORMAT,
@@ -207,8 +207,8 @@ def recording_to_dataset(rec: Recording):
 def recording_from_dataset(ds, *, require_gyro: bool = False, check_gyro_units: bool = True) -> Recording:
     """Build and validate a :class:`Recording` from a format-v1 dataset (fully loaded).
 
-    Structure is checked first (:func:`~accel_bayes.validation.validate_dataset`), then the
-    recording (:func:`~accel_bayes.validation.validate_recording`).  Conversions made here are
+    Structure is checked first (:func:`~accel_bayes.data.validation.validate_dataset`), then the
+    recording (:func:`~accel_bayes.data.validation.validate_recording`).  Conversions made here are
     only those the file declares or the contract implies: float32 → float64, 0/1 integer masks →
     bool, gyro declared ``"deg s-1"`` → rad/s, scalar noise attributes → per-IMU arrays.
     """
@@ -298,7 +298,7 @@ def recording_from_dataset(ds, *, require_gyro: bool = False, check_gyro_units: 
 def write_recording(rec: Recording, path, overwrite: bool = False, *, validate: bool = True) -> Path:
     """Write ``rec`` to ``path`` as a format-v1 NetCDF-4 file (DESIGN §7.1); returns the path.
 
-    The recording is validated first (:func:`~accel_bayes.validation.validate_recording`;
+    The recording is validated first (:func:`~accel_bayes.data.validation.validate_recording`;
     ``validate=False`` skips that, for tests of the reader).  The file is written to a temporary
     name in the same directory and renamed over ``path`` only when complete, so an existing
     file survives a failed write intact.  An existing ``path`` raises :class:`UserError` unless
@@ -329,7 +329,7 @@ def read_recording(path, *, require_gyro: bool = False, check_gyro_units: bool =
 
     The file is opened read-only with xarray (engine h5netcdf), loaded fully and closed before
     checking.  A file that breaks the contract raises :class:`RecordingError` whose message
-    starts with the path and names the field (see :mod:`accel_bayes.validation`); a missing
+    starts with the path and names the field (see :mod:`accel_bayes.data.validation`); a missing
     file raises :class:`FileNotFoundError`.  ``require_gyro`` refuses files without gyroscope
     data; ``check_gyro_units=False`` skips the rad/s plausibility test.
     """

@@ -50,7 +50,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from .errors import UserError
+from ..errors import UserError
 
 __all__ = [
     "check_file_target",
@@ -519,7 +519,7 @@ class OutputDir(_Target):
                     os.link(src, dst)
                 except OSError:
                     shutil.copy2(src, dst)
-        from . import __version__
+        from .. import __version__
 
         files = sorted(str(p.relative_to(s)) for p in s.rglob("*") if p.is_file())
         write_json(s / SET_MARKER, {"schema": SET_SCHEMA, "written_by": f"accel-bayes {__version__}",
