@@ -30,7 +30,9 @@ lists every packet each rule touched, by reason, packet number and byte offset):
 * **Order and duplicates by packet number.**  The uint16 numbers are unwrapped with serial-number
   arithmetic (each step taken in [−2^15, 2^15)): a packet that arrives late is put back in its
   place, and reported as *reordered* (kept).  Forward gaps of 2^15 packets or more (≥ 524 s with
-  no packet at all) cannot be told from reordering and are out of scope.  Copies of one number
+  no packet at all) cannot be told from reordering and are out of scope.  A single packet whose
+  number is more than 4096 away from both neighbours while they are within 4096 of each other
+  is stepped over when unwrapping, so one wrong number cannot move all later packets by 2^16.  Copies of one number
   whose 106 bytes are identical are one packet sent twice: the first is kept, the others are
   dropped as *duplicate*.  Copies that differ cannot both be right and the checksum cannot say
   which is: all copies are dropped as *conflict*.
@@ -43,29 +45,38 @@ lists every packet each rule touched, by reason, packet number and byte offset):
   neighbours (two each side, in number order) by more than ``TIME_TOL_TICKS`` = 16 ticks (8 per
   packet step: the README's ±8 ticks of jitter, whether the stamps jitter about a grid, as in the
   shared recordings, or the intervals do; widened in proportion across gaps) has a stamp or a
-  number that is wrong: dropped as *timestamp*.  A wrong number always shows: a number off by Δ moves the residual by
+  number that is wrong: dropped as *timestamp* (largest deviation in the shared recordings: 6.5
+  ticks).  A wrong number always shows: a number off by Δ moves the residual by
   1 024 000 · Δ mod 2^32, a non-zero multiple of 8192 ticks.  Exempt: the first packet of a
   stream is stamped up to ``FIRST_PACKET_LEAD_TICKS`` (0.5 ms) after the grid of the others
   (every shared recording: ~0.35 ms, the README's short first interval).
 * **Plausibility beyond the checksum.**  The byte sum misses byte swaps and compensating ± edits,
-  so the values of a checksum-valid packet are checked against the rigid board.
+  so the values of a checksum-valid packet are checked against the rigid board.  The eight IMUs
+  sit within 27 mm on one PCB and, rotated into the array frame (bottom IMUs by the README's C,
+  an exact signed permutation), read the same ω and nearly the same specific force.
   *Range*: at ±16 g and ±2000 °/s every int16 code is a possible output (the recordings use
-  both −32768 and 32767), so no code is out of range by itself; the range rule is the board's:
-  the eight IMUs sit within 27 mm on one rigid PCB and, rotated into the array frame (bottom IMUs
-  by the README's C), read the same ω and nearly the same specific force.  For each channel and
-  sample let D₁ ≥ D₂ be the two largest |IMU − median of the 8| (LSB): the IMU giving D₁ is out
-  of range when D₁ − 3·D₂ > ``RANGE_BOUND_LSB`` (acc 8192 LSB = 4 g, gyro 4096 LSB = 250 °/s).
-  Genuine differences (sensitivity ±3 %, cross-axis ±2 %, offsets, sampling skew, local
-  vibration) move several IMUs at once and so raise D₂ with D₁; one corrupted value moves one.
-  *Jump*: the same statistic on the second difference x[t] − (linear interpolation of its two
-  neighbours in packet number): one IMU's channel jumping in one sample while the seven others on
-  the same rigid board do not; bound ``JUMP_BOUND_LSB`` (acc 16384 LSB = 8 g, gyro 4096 LSB),
-  flagged only at the local maximum in time (so a spike does not also condemn its neighbours).
-  Across the six shared recordings the largest values are range acc 4084 / gyro 1253 and jump
-  acc 8738 / gyro 1248 LSB: margins 2.0 / 3.3 / 1.9 / 3.3 (``experiments/mimu_fuzz.md``).  A channel
-  is exempt at a sample where any IMU of it reads within 1/16 of full scale (|code| ≥ 30720): IMUs
-  saturate ±3 % apart (sensitivity tolerance), so near full scale they need not agree.  What these rules provably cannot see — changes below the bounds, and the same
-  channel corrupted in two IMUs of one packet — is measured per operator in the fuzz study.
+  both −32768 and 32767), so no code is out of range by itself; the range that applies is the
+  board's.  Per channel and sample let D₁ ≥ D₂ be the two largest |IMU − median of the 8| (LSB);
+  the IMU giving D₁ is out of range when D₁ − 3·D₂ exceeds the bound
+  B = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` · A, where A is the board's largest one-sample
+  change (median of the 8 IMUs, any axis of that sensor, either side of the sample).  The floor,
+  1024 LSB (0.5 g, 62 °/s), is twice what uncalibrated MPU-9150s may differ by at rest (zero-g
+  offset up to ±150 mg and 3 % sensitivity of 1 g; zero-rate offset ±20 °/s).  The A term is
+  sampling skew: each IMU samples on its own clock, so a reading may be up to one period older
+  than another's and differ from it by up to one sample's change of the motion (SKEW_FRACTION 1).
+  D₂ is subtracted because genuine differences (local vibration, near-saturation) move several
+  IMUs at once; one corrupted value moves one.
+  *Jump*: the same statistic and bound on the second difference x[t] − (linear interpolation of
+  its two neighbours in packet number): one IMU's channel jumping in one sample while the seven
+  others on the same rigid board do not.  Flagged only at the local maximum in time, so a spike
+  does not also condemn its neighbours.
+  Across the six shared recordings the largest (D₁ − 3·D₂)/B is range acc 0.49 / gyro 0.10 and
+  jump acc 0.47 / gyro 0.16: margins 2.0 / 9.8 / 2.1 / 6.1 (``experiments/mimu_fuzz.md``).  A
+  channel is exempt at a sample where any IMU of it reads within 1/16 of full scale
+  (|code| ≥ ``NEAR_LIMIT_LSB`` = 30720): IMUs saturate ±3 % apart (sensitivity tolerance), so near
+  full scale they need not agree.  What these rules provably cannot see — a change smaller than
+  B + 3·D₂, the same channel corrupted in two IMUs of one packet, values near full scale — is
+  measured per operator in the fuzz study.
 * **Drop, never flag-and-keep, for values.**  A packet failing any check above is dropped
   (one of ~37 000 costs nothing; a wrong value biases a calibration).  Reordered packets are
   kept and listed: their number and stamp agree, only their arrival was late.
@@ -110,8 +121,9 @@ __all__ = [
     "GYRO_SCALE",
     "TIME_TOL_TICKS",
     "FIRST_PACKET_LEAD_TICKS",
-    "RANGE_BOUND_LSB",
-    "JUMP_BOUND_LSB",
+    "PLAUSIBILITY_FLOOR_LSB",
+    "SKEW_FRACTION",
+    "NEAR_LIMIT_LSB",
     "DROP_REASONS",
     "MimuStream",
     "ImportReport",
@@ -141,8 +153,10 @@ GYRO_RANGE = math.radians(2000.0)
 TIME_TOL_TICKS = 16  # two stamps, each within ±8 ticks of the 16 ms grid
 FIRST_PACKET_LEAD_TICKS = 32_000  # 0.5 ms: how late the first packet of a stream may be stamped
 LONE_FACTOR = 3.0  # D₁ − LONE_FACTOR·D₂: one IMU alone off the board's consensus
-RANGE_BOUND_LSB = (8192.0, 4096.0)  # (acc, gyro): 4 g, 250 °/s
-JUMP_BOUND_LSB = (16384.0, 4096.0)  # (acc, gyro): 8 g, 250 °/s
+PLAUSIBILITY_FLOOR_LSB = 1024.0  # 0.5 g, 62 °/s: twice the datasheet offset + sensitivity spread
+SKEW_FRACTION = 1.0  # free-running IMU sample clocks: a reading up to one period older than another's
+
+_ISOLATED_STEP = 4096  # packets (65 s): a number step this large next to a normal one is an outlier
 
 DROP_REASONS = ("checksum", "header", "timestamp", "duplicate", "conflict", "range", "jump")
 
@@ -205,8 +219,8 @@ class ImportReport:
     duplicate_packets: int = 0
     timestamp_failures: int = 0  # stamp disagrees with the packet number's grid (> TIME_TOL_TICKS)
     conflicting_packets: int = 0  # copies of one packet number with different bytes (all dropped)
-    range_failures: int = 0  # one IMU alone off the board's consensus (RANGE_BOUND_LSB)
-    jump_failures: int = 0  # one IMU alone jumping in one sample (JUMP_BOUND_LSB)
+    range_failures: int = 0  # one IMU alone off the board's consensus
+    jump_failures: int = 0  # one IMU alone jumping in one sample
     reordered_packets: int = 0  # arrived after a higher packet number; put back in place and kept
     dropped: list = field(default_factory=list)  # [reason, packet number, byte offset] of every drop
     reordered: list = field(default_factory=list)  # [packet number, byte offset] of every reordered packet
@@ -394,6 +408,11 @@ def _frame(b: np.ndarray, start: int, ack: bool):
     return off, np.asarray(sorted(failed), dtype=np.int64), skipped, leading, partial
 
 
+def _serial(d: np.ndarray) -> np.ndarray:
+    """Packet-number differences taken in [−2^15, 2^15) (serial-number arithmetic)."""
+    return (d + (1 << 15)) % (1 << 16) - (1 << 15)
+
+
 def _stamp_deviation(res: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each packet's stamp residual minus the median of its two neighbours on either side (in
     number order), and the tolerance: ``TIME_TOL_TICKS`` per two packet steps to the farthest of
@@ -424,9 +443,10 @@ def _array_frame_index() -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate((axis, axis + 3), 1), np.concatenate((sign, sign), 1)
 
 
-def _lone(y: np.ndarray) -> np.ndarray:
-    """D₁ − LONE_FACTOR·D₂ over the last (IMU) axis of y, at the IMU giving D₁, −inf elsewhere."""
-    dev = np.abs(y - np.median(y, axis=-1, keepdims=True))
+def _lone(y: np.ndarray, med: np.ndarray | None = None) -> np.ndarray:
+    """D₁ − LONE_FACTOR·D₂ over the last (IMU) axis of y (median ``med`` if already known), at the
+    IMU giving D₁, −inf elsewhere."""
+    dev = np.abs(y - (np.median(y, axis=-1, keepdims=True) if med is None else med))
     top = np.sort(dev, axis=-1)
     out = np.full(y.shape, -np.inf)
     np.put_along_axis(out, dev.argmax(-1)[..., None], (top[..., -1] - LONE_FACTOR * top[..., -2])[..., None], axis=-1)
@@ -434,14 +454,16 @@ def _lone(y: np.ndarray) -> np.ndarray:
 
 
 def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
-    """The range and jump statistics of the module docstring, per packet, IMU and channel.
+    """The range and jump tests of the module docstring, as ratios to their bounds.
 
     raw : (N, 8, 6) int16 counts (packet IMU order, sensor frame); seq : (N,) increasing packet
     numbers (unwrapped; default 0..N−1) — the jump test interpolates neighbours by number.
-    Returns ``(range_stat, jump_stat)``, each (N, 8, 6) float64 in LSB: D₁ − 3·D₂ at the IMU
-    that gives D₁ and −inf elsewhere; −inf also where a channel is exempt (an IMU within 1/16 of
-    full scale, |code| ≥ ``NEAR_LIMIT_LSB``; the first and last packet for the jump).  Channels
-    are the array-frame x, y, z of acc, then of gyro.
+    Returns ``(range_ratio, jump_ratio)``, each (N, 8, 6) float64: (D₁ − 3·D₂) / bound at the IMU
+    that gives D₁ (a packet fails where a ratio exceeds 1), −inf at the other IMUs and where a
+    channel is exempt (an IMU within 1/16 of full scale, |code| ≥ ``NEAR_LIMIT_LSB``; the first
+    and last packet for the jump).  bound = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` × the
+    board's largest one-sample change (median of the 8 IMUs, any axis of that sensor, either
+    side of the sample), LSB.
     """
     n = raw.shape[0]
     seq = np.arange(n, dtype=np.int64) if seq is None else np.asarray(seq, dtype=np.int64)
@@ -450,13 +472,22 @@ def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
     # (N, 6, 8): the IMU axis last, so medians and sorts run over contiguous memory.
     x = np.ascontiguousarray((raw[:, imu, chan].astype(np.float64) * sign).transpose(0, 2, 1))
     near = (np.abs(raw.astype(np.int32)) >= NEAR_LIMIT_LSB)[:, imu, chan].any(1)  # (N, 6)
-    rng = _lone(x)
+    med = np.median(x, axis=-1, keepdims=True)
+    step = np.abs(np.diff(med[..., 0], axis=0))  # (N−1, 6) board change per sample
+    step = np.maximum(step[:, :3].max(1), 0), np.maximum(step[:, 3:].max(1), 0)
+    activity = np.zeros((n, 6))
+    for j, st in enumerate(step):
+        if n > 1:
+            act = np.maximum(np.concatenate(([0.0], st)), np.concatenate((st, [0.0])))
+            activity[:, 3 * j : 3 * j + 3] = act[:, None]
+    bound = (PLAUSIBILITY_FLOOR_LSB + SKEW_FRACTION * activity)[..., None]  # (N, 6, 1)
+    rng = _lone(x, med) / bound
     rng[near] = -np.inf
     jmp = np.full(x.shape, -np.inf)
     if n >= 3:
         s = seq.astype(np.float64)
         w = ((s[1:-1] - s[:-2]) / (s[2:] - s[:-2]))[:, None, None]
-        inner = _lone(x[1:-1] - ((1 - w) * x[:-2] + w * x[2:]))
+        inner = _lone(x[1:-1] - ((1 - w) * x[:-2] + w * x[2:])) / bound[1:-1]
         inner[near[:-2] | near[1:-1] | near[2:]] = -np.inf
         jmp[1:-1] = inner
     return rng.transpose(0, 2, 1), jmp.transpose(0, 2, 1)
@@ -465,14 +496,11 @@ def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
 def _implausible(raw: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N,) bool packets failing the range test, and those failing the jump test."""
     rng, jmp = plausibility_statistics(raw, seq)
-    bound_r = np.repeat(RANGE_BOUND_LSB, 3)
-    bound_j = np.repeat(JUMP_BOUND_LSB, 3)
-    bad_r = (rng > bound_r).any((1, 2))
-    over = jmp > bound_j
+    bad_r = (rng > 1).any((1, 2))
     # Only the local maximum in time: a spike's neighbours see half of it in their own differences.
     prev = np.concatenate((np.full((1,) + jmp.shape[1:], -np.inf), jmp[:-1]))
     nxt = np.concatenate((jmp[1:], np.full((1,) + jmp.shape[1:], -np.inf)))
-    bad_j = (over & (jmp >= prev) & (jmp >= nxt)).any((1, 2))
+    bad_j = ((jmp > 1) & (jmp >= prev) & (jmp >= nxt)).any((1, 2))
     return bad_r, bad_j
 
 
@@ -512,7 +540,16 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
     pk = b[off[:, None] + _ROW].view(PACKET_DTYPE)[:, 0]
     number = pk["number"].astype(np.int64)
     # Serial-number arithmetic: a late packet is a small step back, not a 2^16 gap.
-    step = (np.diff(number) + (1 << 15)) % (1 << 16) - (1 << 15)
+    step = _serial(np.diff(number))
+    if number.size >= 3:
+        # One wrong number (a checksum-blind edit) makes two large steps whose wrapped sum can be
+        # off by 2^16, which would move every later packet by 2^16 numbers: an isolated outlier —
+        # both steps beyond _ISOLATED_STEP while its neighbours are close to each other — is
+        # stepped over (the timestamp check then drops it).
+        a, after = step[:-1], step[1:]
+        direct = _serial(number[2:] - number[:-2])
+        iso = (np.abs(a) > _ISOLATED_STEP) & (np.abs(after) > _ISOLATED_STEP) & (np.abs(direct) <= _ISOLATED_STEP)
+        step[1:] = np.where(iso, direct - a, after)
     seq = number[0] + np.concatenate(([0], np.cumsum(step)))
     stamp = pk["timestamp"].astype(np.int64)
     M32 = 1 << 32

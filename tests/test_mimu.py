@@ -44,9 +44,12 @@ def _packet(number: int, stamp: int, raw48) -> bytes:
     return body + struct.pack(">H", sum(body) % 65536)
 
 
-def _stream(n=60, first_number=100, first_stamp=1_000_000, seed=0, ack=True, jitter=True, numbers=None, stamps=None):
+def _stream(n=60, first_number=100, first_stamp=1_000_000, seed=0, ack=True, jitter=True, numbers=None, stamps=None,
+            span=3000):
+    # span 3000: independent values per IMU, a board no rigid body makes (fine for short streams);
+    # a small span is a board at rest, which the plausibility checks never question.
     rng = np.random.default_rng(seed)
-    raw = rng.integers(-3000, 3000, size=(n, 48))
+    raw = rng.integers(-span, span, size=(n, 48))
     if numbers is None:
         numbers = first_number + np.arange(n)
     if stamps is None:
@@ -326,6 +329,21 @@ def test_stamp_or_number_off_the_grid_is_dropped():
     _assert_kept(s, numbers, stamps, raw, np.delete(np.arange(n), [77, 150]))
 
 
+def test_one_wrong_number_half_the_range_away_shifts_nothing():
+    # Found by the fuzz study: 37590 (0x92D6) read as 4822 (0x12D6) is −32768 + 0 and +32769
+    # from its neighbours; summing the two wrapped steps lands 2^16 short, which put every later
+    # packet 65 536 numbers early.
+    n = 300
+    numbers = 37499 + np.arange(n)
+    numbers[91] = 4822
+    stamps = 11 + (37499 + np.arange(n)) * PERIOD
+    data, _, _, raw = _stream(n=n, numbers=numbers, stamps=stamps, span=30)
+    s, rep = decode_mimu_bytes(data)
+    assert rep.dropped == [["timestamp", 4822, 4 + 91 * 106]] and rep.reordered == []
+    assert rep.packet_number_wraps == 0 and rep.missing_packets == 1
+    _assert_kept(s, numbers, stamps, raw, np.delete(np.arange(n), 91))
+
+
 def test_first_packet_stamped_late_is_kept():
     # The shared recordings' first packet sits ~0.35 ms after the grid of the others.
     numbers = np.arange(50)
@@ -342,7 +360,7 @@ def test_first_packet_stamped_late_is_kept():
 
 
 def test_report_lists_are_complete_and_printed_capped():
-    data, numbers, *_ = _stream(n=3000)
+    data, numbers, *_ = _stream(n=3000, span=30)
     b = bytearray(data)
     bad = list(range(100, 2900, 200))  # 14 checksum failures
     for i in bad:
