@@ -127,8 +127,11 @@ def test_moving_board_is_not_questioned():
     assert np.array_equal(s.raw, raw)
 
 
-def test_near_full_scale_is_exempt():
+def test_saturation_is_exempt_but_a_lone_near_full_scale_value_is_not():
     numbers, stamps, raw = _rest()
-    raw[60, 0, 3] = 31000  # one IMU near +2000 °/s alone: exempt (IMUs saturate ±3 % apart)
+    raw[60, 0, 3] = 32767  # one IMU saturated at +2000 °/s: exempt (IMUs saturate ±3 % apart)
+    raw[90, 2, 4] = raw[90, 4, 4] = 31000  # two IMUs near full scale on one channel: exempt
+    raw[120, 6, 5] = 31000  # one IMU alone near full scale, the board at rest: out of range
     s, rep = decode_mimu_bytes(MIMU_ACK + encode_mimu_packets(numbers, stamps, raw, ack=False))
-    assert rep.dropped == [] and s.raw[60, 0, 3] == 31000
+    assert rep.dropped == [["range", int(numbers[120]), 4 + 120 * 106]]
+    assert s.raw[60, 0, 3] == 32767 and s.raw[90, 2, 4] == 31000
