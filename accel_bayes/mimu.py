@@ -41,10 +41,11 @@ lists every packet each rule touched, by reason, packet number and byte offset):
   whole stream); the unwrapped tick is that grid value plus the packet's own residual (so the
   measured stamps are kept exactly: their ±8 ticks of jitter and the short first interval are
   real properties of the sample instants).  The 2^32 wraps thus follow from the packet number,
-  even across long gaps.  A packet whose residual differs from the median of its four nearest
-  neighbours (two each side, in number order) by more than ``TIME_TOL_TICKS`` = 16 ticks (8 per
-  packet step: the README's ±8 ticks of jitter, whether the stamps jitter about a grid, as in the
-  shared recordings, or the intervals do; widened in proportion across gaps) has a stamp or a
+  even across long gaps.  A packet whose residual differs from the median of its six nearest
+  neighbours (three each side, in number order; the first packet never serves as one) by more
+  than ``TIME_TOL_TICKS`` = 24 ticks (8 per packet step to the farthest: the README's ±8 ticks of
+  jitter, whether the stamps jitter about a grid, as in the shared recordings, or the intervals
+  do; widened in proportion across gaps) has a stamp or a
   number that is wrong: dropped as *timestamp* (largest deviation in the shared recordings: 6.5
   ticks).  A wrong number always shows: a number off by Δ moves the residual by
   1 024 000 · Δ mod 2^32, a non-zero multiple of 8192 ticks.  Exempt: the first packet of a
@@ -100,6 +101,7 @@ import gzip
 import hashlib
 import json
 import math
+import warnings
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -120,6 +122,7 @@ __all__ = [
     "NOMINAL_PERIOD_TICKS",
     "ACC_SCALE",
     "GYRO_SCALE",
+    "JITTER_TICKS",
     "TIME_TOL_TICKS",
     "FIRST_PACKET_LEAD_TICKS",
     "PLAUSIBILITY_FLOOR_LSB",
@@ -153,7 +156,9 @@ SATURATED_LSB = 32704  # the top 64 codes (0.2 % of full scale): this IMU is at 
 ACC_RANGE = 16 * G0
 GYRO_RANGE = math.radians(2000.0)
 
-TIME_TOL_TICKS = 16  # two stamps, each within ±8 ticks of the 16 ms grid
+JITTER_TICKS = 8  # README: ±8 ticks per 16 ms interval
+_TIME_NEIGHBOURS = 3  # packets each side whose median predicts a packet's stamp
+TIME_TOL_TICKS = JITTER_TICKS * _TIME_NEIGHBOURS  # 24 ticks, the tolerance where no packet is missing
 FIRST_PACKET_LEAD_TICKS = 32_000  # 0.5 ms: how late the first packet of a stream may be stamped
 LONE_FACTOR = 3.0  # D₁ − LONE_FACTOR·D₂: one IMU alone off the board's consensus
 PLAUSIBILITY_FLOOR_LSB = 1024.0  # 0.5 g, 62 °/s: twice the datasheet offset + sensitivity spread
@@ -220,7 +225,7 @@ class ImportReport:
     bytes_skipped: int = 0  # lost/inserted bytes passed over to resynchronise (not partial, not leading)
     skipped: list = field(default_factory=list)  # [byte offset, length] of every skipped run
     duplicate_packets: int = 0
-    timestamp_failures: int = 0  # stamp disagrees with the packet number's grid (> TIME_TOL_TICKS)
+    timestamp_failures: int = 0  # stamp disagrees with its neighbours' grid (> TIME_TOL_TICKS without gaps)
     conflicting_packets: int = 0  # copies of one packet number with different bytes (all dropped)
     range_failures: int = 0  # one IMU alone off the board's consensus
     jump_failures: int = 0  # one IMU alone jumping in one sample
@@ -416,23 +421,30 @@ def _serial(d: np.ndarray) -> np.ndarray:
     return (d + (1 << 15)) % (1 << 16) - (1 << 15)
 
 
-def _stamp_deviation(res: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each packet's stamp residual minus the median of its two neighbours on either side (in
-    number order), and the tolerance: ``TIME_TOL_TICKS`` per two packet steps to the farthest of
-    those neighbours.  ±8 ticks per step bounds both a stamp grid with jitter and a random walk
-    of intervals; with one neighbour wrong, the middle two of the four are still good ones."""
-    n = res.size
-    pad = np.full(n + 4, np.nan)
-    pad[2:-2] = res
-    spad = np.full(n + 4, np.nan)
-    spad[2:-2] = seq
-    shifts = (0, 1, 3, 4)
-    nb = np.stack([pad[k : k + n] for k in shifts], 1)
+def _stamp_deviation(res: np.ndarray, seq: np.ndarray, ref_ok: np.ndarray | None = None):
+    """Each packet's stamp residual minus the median of its ``_TIME_NEIGHBOURS`` nearest
+    neighbours on either side (in number order; only those with ``ref_ok`` serve as references),
+    and the tolerance: ``JITTER_TICKS`` per packet step to the farthest of them.  ±8 ticks per
+    step bounds both a stamp grid with jitter and a random walk of intervals; one wrong neighbour
+    cannot move the median of six (three at an end) out of the good ones' range."""
+    n, k = res.size, _TIME_NEIGHBOURS
     if n == 1:
         return np.zeros(1), np.full(1, float(TIME_TOL_TICKS))
-    ref = np.nanmedian(nb, axis=1)
-    dist = np.nanmax(np.abs(np.stack([spad[k : k + n] for k in shifts], 1) - seq[:, None]), axis=1)
-    return res - ref, TIME_TOL_TICKS * np.maximum(dist, 2) / 2
+    ref = res.astype(np.float64)
+    if ref_ok is not None:
+        ref = np.where(ref_ok, ref, np.nan)
+    pad = np.full(n + 2 * k, np.nan)
+    pad[k:-k] = ref
+    spad = np.full(n + 2 * k, np.nan)
+    spad[k:-k] = np.where(np.isnan(ref), np.nan, seq)
+    shifts = [j for j in range(2 * k + 1) if j != k]
+    nb = np.stack([pad[j : j + n] for j in shifts], 1)
+    dist = np.abs(np.stack([spad[j : j + n] for j in shifts], 1) - seq[:, None])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # no reference at all: NaN, never flagged
+        med = np.nanmedian(nb, axis=1)
+        far = np.nanmax(dist, axis=1)
+    return res - med, JITTER_TICKS * np.maximum(far, k)
 
 
 def _array_frame_index() -> tuple[np.ndarray, np.ndarray]:
@@ -564,9 +576,10 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
 
     order = np.argsort(seq, kind="stable")  # number order; copies stay in arrival order
     keep = np.ones(off.size, dtype=bool)
-    dev, tol = _stamp_deviation(res[order], seq[order])
-    bad_t = np.abs(dev) > tol
     first = seq[order] == seq[order][0]
+    # The first packet sits off the grid (its lead, below): it never serves as a reference.
+    dev, tol = _stamp_deviation(res[order], seq[order], ref_ok=~first)
+    bad_t = np.abs(dev) > tol
     lead = first & (dev > 0) & (dev <= FIRST_PACKET_LEAD_TICKS)
     bad_t &= ~lead
     if lead.any():

@@ -457,7 +457,8 @@ def real_margins(data_dir: Path) -> list[dict]:
         s, rep = decode_mimu_bytes(data)
         rng, jmp = plausibility_statistics(s.raw)  # no gaps in the shared recordings
         seq = np.arange(s.number.size)
-        dev, tol = _stamp_deviation((s.ticks - s.ticks[0] - NOMINAL_PERIOD_TICKS * seq).astype(np.float64), seq)
+        res = (s.ticks - s.ticks[0] - NOMINAL_PERIOD_TICKS * seq).astype(np.float64)
+        dev, tol = _stamp_deviation(res, seq, ref_ok=seq > 0)  # as the importer: the first is no reference
         rows.append({
             "experiment": exp.parent.name, "packets_kept": rep.packets_kept, "dropped": len(rep.dropped),
             "bytes_skipped": rep.bytes_skipped, "reordered": rep.reordered_packets, "partial_bytes": rep.partial_bytes,
