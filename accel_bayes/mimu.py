@@ -576,8 +576,12 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
 
     order = np.argsort(seq, kind="stable")  # number order; copies stay in arrival order
     keep = np.ones(off.size, dtype=bool)
-    first = seq[order] == seq[order][0]
-    # The first packet sits off the grid (its lead, below): it never serves as a reference.
+    # The first packet of the stream sits off the grid (its lead): it is the lowest number whose
+    # stamp is on the grid or at most the lead after it (a wrong number elsewhere that sorts
+    # earlier is neither), and it never serves as a reference for the others.
+    dev, tol = _stamp_deviation(res[order], seq[order])
+    like = (dev >= -tol) & (dev <= FIRST_PACKET_LEAD_TICKS)
+    first = seq[order] == (seq[order][like][0] if like.any() else seq[order][0])
     dev, tol = _stamp_deviation(res[order], seq[order], ref_ok=~first)
     bad_t = np.abs(dev) > tol
     lead = first & (dev > 0) & (dev <= FIRST_PACKET_LEAD_TICKS)

@@ -359,6 +359,22 @@ def test_first_packet_stamped_late_is_kept():
     assert rep.dropped == [["timestamp", 0, 4]]
 
 
+def test_first_packet_keeps_its_lead_when_a_wrong_number_sorts_before_it():
+    # Found by the fuzz study: a wrong number that sorts below the real first packet made that
+    # one lose its exemption.
+    n = 300
+    numbers = 29932 + np.arange(n)
+    stamps = 7 + numbers * PERIOD
+    stamps[0] += 22_190
+    numbers = numbers.copy()
+    numbers[280] = 65284  # 30 000 below 29 932 in serial arithmetic
+    data, _, _, raw = _stream(n=n, numbers=numbers, stamps=stamps, span=30)
+    s, rep = decode_mimu_bytes(data)
+    assert rep.dropped == [["timestamp", 65284, 4 + 280 * 106]]
+    assert rep.first_packet_lead_ticks == 22_190
+    _assert_kept(s, numbers, stamps, raw, np.delete(np.arange(n), 280))
+
+
 def test_report_lists_are_complete_and_printed_capped():
     data, numbers, *_ = _stream(n=3000, span=30)
     b = bytearray(data)
