@@ -32,10 +32,10 @@ lists every packet each rule touched, by reason, packet number and byte offset):
   place, and reported as *reordered* (kept).  Forward gaps of 2^15 packets or more (≥ 524 s with
   no packet at all) cannot be told from reordering and are out of scope.  A single packet whose
   number is more than 4096 away from both neighbours while they are within 4096 of each other
-  is stepped over when unwrapping, so one wrong number cannot move all later packets by 2^16.  Copies of one number
-  whose 106 bytes are identical are one packet sent twice: the first is kept, the others are
-  dropped as *duplicate*.  Copies that differ cannot both be right and the checksum cannot say
-  which is: all copies are dropped as *conflict*.
+  is stepped over when unwrapping, so one wrong number cannot move all later packets by 2^16.
+  Copies of one number whose 106 bytes are identical are one packet sent twice: the first is
+  kept, the others are dropped as *duplicate*.  Copies that differ cannot both be right and the
+  checksum cannot say which is: all copies are dropped as *conflict*.
 * **Time.**  The time axis never depends on arrival order.  Every packet's stamp is compared with
   the 16 ms grid its packet number predicts, ``c + 1 024 000 · number`` (c one robust offset of the
   whole stream); the unwrapped tick is that grid value plus the packet's own residual (so the
@@ -45,12 +45,13 @@ lists every packet each rule touched, by reason, packet number and byte offset):
   neighbours (three each side, in number order; the first packet never serves as one) by more
   than ``TIME_TOL_TICKS`` = 24 ticks (8 per packet step to the farthest: the README's ±8 ticks of
   jitter, whether the stamps jitter about a grid, as in the shared recordings, or the intervals
-  do; widened in proportion across gaps) has a stamp or a
-  number that is wrong: dropped as *timestamp* (largest deviation in the shared recordings: 6.5
-  ticks).  A wrong number always shows: a number off by Δ moves the residual by
-  1 024 000 · Δ mod 2^32, a non-zero multiple of 8192 ticks.  Exempt: the first packet of a
-  stream is stamped up to ``FIRST_PACKET_LEAD_TICKS`` (0.5 ms) after the grid of the others
-  (every shared recording: ~0.35 ms, the README's short first interval).
+  do; widened in proportion across gaps) has a stamp or a number that is wrong: dropped as
+  *timestamp* (largest deviation in the shared recordings: 6.5 ticks).  A wrong number always
+  shows: a number off by Δ moves the residual by 1 024 000 · Δ mod 2^32, a non-zero multiple of
+  8192 ticks.  Exempt: the first packet of a
+  stream — the lowest number whose stamp is on the grid or at most that lead after it — is
+  stamped up to ``FIRST_PACKET_LEAD_TICKS`` (0.5 ms) after the grid of the others (every shared
+  recording: ~0.35 ms, the README's short first interval); it never serves as a reference.
 * **Plausibility beyond the checksum.**  The byte sum misses byte swaps and compensating ± edits,
   so the values of a checksum-valid packet are checked against the rigid board.  The eight IMUs
   sit within 27 mm on one PCB and, rotated into the array frame (bottom IMUs by the README's C,
@@ -220,7 +221,7 @@ class ImportReport:
     checksum_failures: int = 0
     header_failures: int = 0  # wrong header byte or payload size (checksum may be fine)
     failed_packet_numbers: list = field(default_factory=list)  # as read from the failing packets
-    first_failure_offset: int | None = None  # byte offset of the first damaged packet or skipped byte
+    first_failure_offset: int | None = None  # byte offset of the first dropped (not duplicate) packet or skipped byte
     partial_bytes: int = 0
     bytes_skipped: int = 0  # lost/inserted bytes passed over to resynchronise (not partial, not leading)
     skipped: list = field(default_factory=list)  # [byte offset, length] of every skipped run
@@ -513,6 +514,10 @@ def _implausible(raw: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """(N,) bool packets failing the range test, and those failing the jump test."""
     rng, jmp = plausibility_statistics(raw, seq)
     bad_r = (rng > 1).any((1, 2))
+    if bad_r.any() and (~bad_r).sum() >= 3:
+        # A packet out of range must not serve as a neighbour in its neighbours' jump test.
+        jmp = np.full(jmp.shape, -np.inf)
+        jmp[~bad_r] = plausibility_statistics(raw[~bad_r], seq[~bad_r])[1]
     # Only the local maximum in time: a spike's neighbours see half of it in their own differences.
     prev = np.concatenate((np.full((1,) + jmp.shape[1:], -np.inf), jmp[:-1]))
     nxt = np.concatenate((jmp[1:], np.full((1,) + jmp.shape[1:], -np.inf)))
@@ -549,9 +554,6 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
         nums = ((rows[:, 1].astype(np.int64) << 8) | rows[:, 2]).tolist()
         rep.failed_packet_numbers = nums
         dropped += [("header" if not h else "checksum", k, o) for h, k, o in zip(head_ok, nums, failed.tolist())]
-    starts = [int(failed[0])] if failed.size else []
-    starts += [skipped[0][0]] if skipped else []
-    rep.first_failure_offset = min(starts) if starts else None
 
     pk = b[off[:, None] + _ROW].view(PACKET_DTYPE)[:, 0]
     number = pk["number"].astype(np.int64)
@@ -622,6 +624,8 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
         dropped += [(r, int(number[i]), int(off[i])) for i in idx]
     dropped.sort(key=lambda d: d[2])
     rep.dropped = [list(d) for d in dropped]
+    starts = [d[2] for d in dropped if d[0] != "duplicate"][:1] + [r[0] for r in skipped[:1]]
+    rep.first_failure_offset = min(starts) if starts else None
     counts = rep.drop_counts
     rep.duplicate_packets = counts["duplicate"]
     rep.timestamp_failures = counts["timestamp"]
@@ -688,9 +692,12 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
 def read_mimu_stream(path, *, max_fail_fraction: float = 0.01) -> tuple[MimuStream, ImportReport]:
     """Read and verify a MIMU4444 stream file (``.bin`` or gzip, told by its magic bytes).
 
-    Returns the valid packets (:class:`MimuStream`: packet numbers, unwrapped 64 MHz ticks,
-    int16 counts) and an :class:`ImportReport`.  Raises :class:`RecordingError` if the file is
-    not an MIMU stream or more than ``max_fail_fraction`` of its packets fail verification.
+    Returns the kept packets in packet-number order (:class:`MimuStream`: packet numbers,
+    unwrapped 64 MHz ticks, int16 counts, byte offsets) and an :class:`ImportReport` listing
+    every dropped, skipped and reordered packet (module docstring).  Raises
+    :class:`RecordingError` if the file is not an MIMU stream or more than
+    ``max_fail_fraction`` of it is damaged (dropped packets other than duplicates, plus skipped
+    bytes in 106-byte packets).
     """
     p = Path(path)
     data, gz = read_mimu_bytes(p)

@@ -119,6 +119,14 @@ def test_jump_without_range_is_dropped():
     assert rep.jump_failures == 1 and rep.range_failures == 0
 
 
+def test_out_of_range_packet_does_not_condemn_its_neighbour():
+    # Found by the fuzz study: the last packet out of range made the one before it "jump".
+    numbers, stamps, raw = _rest()
+    raw[-1, 3, 0] += 5000
+    s, rep = decode_mimu_bytes(encode_mimu_packets(numbers, stamps, raw))
+    assert rep.dropped == [["range", int(numbers[-1]), 4 + 299 * 106]]
+
+
 def test_moving_board_is_not_questioned():
     # 2000 packets of the fuzz study's smooth motion (up to ~700 °/s, ~3 g): nothing dropped.
     numbers, stamps, raw = mf.board_stream(2000, np.random.default_rng(11))
