@@ -18,7 +18,8 @@ variants) damaged by 1–3 operators drawn uniformly from :data:`OPERATORS`:
 ``truncated``      1–300 bytes cut off the end
 ``swap``           two adjacent packets exchanged
 ``repeat_near``    a packet sent again 1–5 packets later
-``repeat_far``     a packet sent again 100–300 packets later
+``repeat_far``     a packet sent again 100–300 packets later (a copy of a damaged packet carries
+                   its damage)
 ``dropped``        1–3 consecutive packets removed
 ``garbage``        1–500 random bytes inserted between two packets
 =================  ==============================================================================
@@ -200,7 +201,8 @@ def apply(d: Damaged, op: str, rng: np.random.Generator) -> None:
     elif op == "swap":
         pos = int(rng.integers(0, items.size - 1))
         a, b = _item_span(d, int(items[pos])), _item_span(d, int(items[pos + 1]))
-        if a.size and b.size and b[0] == a[-1] + 1:  # adjacent, contiguous
+        whole = a.size and b.size and a[-1] - a[0] + 1 == a.size and b[-1] - b[0] + 1 == b.size
+        if whole and b[0] == a[-1] + 1:  # adjacent, each in one piece
             lo, hi = a[0], b[-1] + 1
             d.data[lo:hi] = bytes(d.data[b[0] : b[-1] + 1]) + bytes(d.data[a[0] : a[-1] + 1])
             d.owner[lo:hi] = np.concatenate((d.owner[b], d.owner[a]))
@@ -213,7 +215,9 @@ def apply(d: Damaged, op: str, rng: np.random.Generator) -> None:
         new_item = len(d.item_packet)
         d.item_packet.append(d.item_packet[int(items[pos])])
         _splice(d, at, 0, bytes(d.data[src[0] : src[-1] + 1]), new_item)
-        if src.size != P:  # copied a damaged packet: the copy is damaged too
+        # A copy of a damaged packet carries the same damage.
+        d.touched[new_item] = set(d.touched.get(int(items[pos]), set()))
+        if src.size != P or src[-1] - src[0] + 1 != P:
             _touch(d, new_item, op)
     elif op == "dropped":
         pos = int(rng.integers(0, items.size))
