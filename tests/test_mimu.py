@@ -8,6 +8,10 @@ Two halves:
 * the six shared recordings (``../shared/data/mimu4444-bcd``; skipped only if absent): the
   issue's MUST-SHOW figures — no checksum failure, 20 distinct rest orientations, |acc| at rest
   within 0.15 m/s² of 9.81, top and bottom IMUs agreeing within 15° in every rest.
+
+Issue #13 (damaged streams): swapped, repeated and conflicting packets, lost and inserted bytes,
+both wraps under reordering, stamps and numbers off the grid, and the real recordings flagging
+nothing; the plausibility checks and the fuzz test are in ``test_mimu_fuzz.py``.
 """
 import gzip
 import hashlib
