@@ -459,10 +459,18 @@ def _array_frame_index() -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate((axis, axis + 3), 1), np.concatenate((sign, sign), 1)
 
 
+def _median_last(y: np.ndarray) -> np.ndarray:
+    """Median over the last axis of an even-length (IMU) axis, keepdims: sorting 8 values is
+    cheaper than numpy's partition-based median."""
+    ys = np.sort(y, axis=-1)
+    k = y.shape[-1] // 2
+    return 0.5 * (ys[..., k - 1 : k] + ys[..., k : k + 1])
+
+
 def _lone(y: np.ndarray, med: np.ndarray | None = None) -> np.ndarray:
     """D₁ − LONE_FACTOR·D₂ over the last (IMU) axis of y (median ``med`` if already known), at the
     IMU giving D₁, −inf elsewhere."""
-    dev = np.abs(y - (np.median(y, axis=-1, keepdims=True) if med is None else med))
+    dev = np.abs(y - (_median_last(y) if med is None else med))
     top = np.sort(dev, axis=-1)
     out = np.full(y.shape, -np.inf)
     np.put_along_axis(out, dev.argmax(-1)[..., None], (top[..., -1] - LONE_FACTOR * top[..., -2])[..., None], axis=-1)
@@ -477,9 +485,9 @@ def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
     Returns ``(range_ratio, jump_ratio)``, each (N, 8, 6) float64: (D₁ − 3·D₂) / bound at the IMU
     that gives D₁ (a packet fails where a ratio exceeds 1), −inf at the other IMUs and where a
     channel is exempt (an IMU saturated, |code| ≥ ``SATURATED_LSB``, or two within 1/16 of full
-    scale, |code| ≥ ``NEAR_LIMIT_LSB``; the first and last packet for the jump).  bound = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` × the
-    board's largest one-sample change (median of the 8 IMUs, any axis of that sensor, either
-    side of the sample), LSB.
+    scale, |code| ≥ ``NEAR_LIMIT_LSB``; the first and last packet for the jump).
+    bound = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` × the board's largest one-sample change
+    (median of the 8 IMUs, any axis of that sensor, either side of the sample), LSB.
     """
     n = raw.shape[0]
     seq = np.arange(n, dtype=np.int64) if seq is None else np.asarray(seq, dtype=np.int64)
@@ -489,14 +497,13 @@ def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
     x = np.ascontiguousarray((raw[:, imu, chan].astype(np.float64) * sign).transpose(0, 2, 1))
     mag = np.abs(raw.astype(np.int32))[:, imu, chan]  # (N, 8, 6)
     near = ((mag >= NEAR_LIMIT_LSB).sum(1) >= 2) | (mag >= SATURATED_LSB).any(1)  # (N, 6)
-    med = np.median(x, axis=-1, keepdims=True)
-    step = np.abs(np.diff(med[..., 0], axis=0))  # (N−1, 6) board change per sample
-    step = np.maximum(step[:, :3].max(1), 0), np.maximum(step[:, 3:].max(1), 0)
+    med = _median_last(x)
     activity = np.zeros((n, 6))
-    for j, st in enumerate(step):
-        if n > 1:
-            act = np.maximum(np.concatenate(([0.0], st)), np.concatenate((st, [0.0])))
-            activity[:, 3 * j : 3 * j + 3] = act[:, None]
+    if n > 1:
+        step = np.abs(np.diff(med[..., 0], axis=0))  # (N−1, 6) the board's change per sample
+        step = np.stack((step[:, :3].max(1), step[:, 3:].max(1)), 1)  # (N−1, 2): acc, gyro
+        pad = np.zeros((1, 2))
+        activity = np.repeat(np.maximum(np.concatenate((pad, step)), np.concatenate((step, pad))), 3, axis=1)
     bound = (PLAUSIBILITY_FLOOR_LSB + SKEW_FRACTION * activity)[..., None]  # (N, 6, 1)
     rng = _lone(x, med) / bound
     rng[near] = -np.inf
