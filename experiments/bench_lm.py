@@ -103,7 +103,7 @@ def scipy_problem(z, dt, proto, x0, inv, W, S):
     """Residual function, start vector and sparsity pattern for scipy (same residuals)."""
     import scipy.sparse as sp
 
-    from accel_bayes import models
+    from accel_bayes.physics import models
     from accel_bayes.physics.geometry import quat_exp, quat_mul
 
     T, A = z.shape[0], z.shape[1]

@@ -75,7 +75,7 @@ def run_map(out: dict):
 
 
 def run_selfcal(out: dict):
-    from accel_bayes import models
+    from accel_bayes.physics import models
     from accel_bayes.physics.arrays import s16_plate
     from accel_bayes.physics.geometry import boxplus
     from accel_bayes.inference.selfcal import self_calibrate, simulate_process_motion
@@ -97,7 +97,7 @@ def run_selfcal(out: dict):
 
 
 def run_conventional(out: dict):
-    from accel_bayes import models
+    from accel_bayes.physics import models
     from accel_bayes.physics.arrays import s16_plate
     from accel_bayes.physics.geometry import boxplus
     from accel_bayes.inference.conventional import IDENTITY_SENSITIVITY, conventional_calibrate

@@ -18,7 +18,8 @@ import os
 
 import torch
 
-from accel_bayes import models, s16_plate
+from accel_bayes import s16_plate
+from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus
 from accel_bayes.physics.motion import smooth_motion, table_motion
 

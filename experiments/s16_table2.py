@@ -58,7 +58,7 @@ def gyro_reference(omega_true, z_centre, proto, dt, generator, calibrated: bool)
     """Reference states (T, 9) from a gyroscope and the calibrated centre triad (index 0)."""
     from scipy.signal import savgol_filter
 
-    from accel_bayes import models
+    from accel_bayes.physics import models
     from accel_bayes.physics.geometry import quat_exp, quat_to_matrix
 
     T = omega_true.shape[0]

@@ -4,7 +4,8 @@ import math
 import pytest
 import torch
 
-from accel_bayes import models, s16_plate
+from accel_bayes import s16_plate
+from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus, random_quaternion, rotation_angle
 from accel_bayes.inference.conventional import (
     IDENTITY_SENSITIVITY,

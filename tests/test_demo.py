@@ -1,7 +1,7 @@
 """The README's main job: ``accel-bayes demo`` runs every stage and says where its report is."""
 import json
 
-from accel_bayes import outputs
+from accel_bayes.data import outputs
 from accel_bayes.cli import main
 
 

@@ -355,7 +355,7 @@ def test_intrinsics_and_s16_sensor_parameters_are_conversions_of_the_effects():
     z = Sᵀ R(q) f + o (S upper-triangular) are the effects' general gain + bias in the triangular
     gauge: convert → apply the effects → compare with the old formulas on random inputs, and
     convert back.  A general gain factors as L·Q; the rotation Q goes into the orientation."""
-    from accel_bayes import models
+    from accel_bayes.physics import models
     from accel_bayes.physics.geometry import matrix_to_quat
     from accel_bayes.physics.effects import (acc_gain_effects, acc_gain_of_effects, gain_to_intrinsics, gain_to_s16,
                                              intrinsics_gain, s16_gain, triangular_gauge)

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 from hypothesis import given, settings, strategies as st
 
-from accel_bayes import geometry as g
+from accel_bayes.physics import geometry as g
 
 F64 = torch.float64
 vec3 = st.tuples(*[st.floats(-3.0, 3.0, allow_nan=False)] * 3)

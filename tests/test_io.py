@@ -9,7 +9,7 @@ import pytest
 import torch
 import xarray as xr
 
-from accel_bayes import arrays, models
+from accel_bayes.physics import arrays, models
 from accel_bayes.errors import RecordingError, UserError
 from accel_bayes.data.io import (
     FORMAT,
@@ -170,7 +170,7 @@ def test_failed_write_never_corrupts_existing_file(tmp_path, monkeypatch):
     # the disk fills once the bytes are in the temporary file (caught at fsync, before the rename)
     import errno
 
-    from accel_bayes import outputs
+    from accel_bayes.data import outputs
 
     def full(fd):
         raise OSError(errno.ENOSPC, "No space left on device")

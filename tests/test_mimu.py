@@ -8,6 +8,10 @@ Two halves:
 * the six shared recordings (``../shared/data/mimu4444-bcd``; skipped only if absent): the
   issue's MUST-SHOW figures — no checksum failure, 20 distinct rest orientations, |acc| at rest
   within 0.15 m/s² of 9.81, top and bottom IMUs agreeing within 15° in every rest.
+
+Issue #13 (damaged streams): swapped, repeated and conflicting packets, lost and inserted bytes,
+both wraps under reordering, stamps and numbers off the grid, and the real recordings flagging
+nothing; the plausibility checks and the fuzz test are in ``test_mimu_fuzz.py``.
 """
 import gzip
 import hashlib
@@ -44,9 +48,12 @@ def _packet(number: int, stamp: int, raw48) -> bytes:
     return body + struct.pack(">H", sum(body) % 65536)
 
 
-def _stream(n=60, first_number=100, first_stamp=1_000_000, seed=0, ack=True, jitter=True, numbers=None, stamps=None):
+def _stream(n=60, first_number=100, first_stamp=1_000_000, seed=0, ack=True, jitter=True, numbers=None, stamps=None,
+            span=3000):
+    # span 3000: independent values per IMU, a board no rigid body makes (fine for short streams);
+    # a small span is a board at rest, which the plausibility checks never question.
     rng = np.random.default_rng(seed)
-    raw = rng.integers(-3000, 3000, size=(n, 48))
+    raw = rng.integers(-span, span, size=(n, 48))
     if numbers is None:
         numbers = first_number + np.arange(n)
     if stamps is None:
@@ -124,8 +131,14 @@ def test_too_many_failures_refuse_the_file():
 
 
 def test_misaligned_stream_is_refused():
+    # Issue #13 changed this contract: one lost byte no longer refuses the file (the importer
+    # resynchronises; test_lost_bytes_resynchronise), but a stream misaligned so often that more
+    # than 1 % of it is damaged still is.
     data, *_ = _stream(n=200)
-    broken = data[: 4 + 50 * 106 + 10] + data[4 + 50 * 106 + 11 :]  # one byte lost mid-stream
+    broken = data
+    for i in (150, 100, 50):  # one byte lost in each of three packets: 3 of 200 damaged
+        cut = 4 + i * 106 + 10
+        broken = broken[:cut] + broken[cut + 1 :]
     with pytest.raises(RecordingError, match="misaligned"):
         decode_mimu_bytes(broken)
 
@@ -214,6 +227,183 @@ def test_source_states_provenance(tmp_path):
         assert phrase in rec.source
 
 
+# ---------------------------------------------------------------------------------------- issue #13: damaged streams
+def _packets(data: bytes, ack: bool = True) -> list[bytes]:
+    """The 106-byte packets of a hand-made stream, to rearrange."""
+    body = data[4:] if ack else data
+    return [body[i : i + 106] for i in range(0, len(body), 106)]
+
+
+def _assert_kept(s, numbers, stamps, raw, keep):
+    """The stream holds exactly the packets ``keep`` (indices into the hand-made fields), in order,
+    with their values and their stamps' spacing."""
+    assert np.array_equal(s.number, np.asarray(numbers)[keep] % 65536)
+    assert np.array_equal(s.raw.reshape(len(keep), 48), raw[keep])
+    assert np.array_equal(s.ticks - s.ticks[0], stamps[keep] - stamps[keep][0])
+
+
+def test_swapped_adjacent_packets_are_put_back():
+    data, numbers, stamps, raw = _stream(n=120)
+    pk = _packets(data)
+    pk[40], pk[41] = pk[41], pk[40]
+    s, rep = decode_mimu_bytes(MIMU_ACK + b"".join(pk))
+    _assert_kept(s, numbers, stamps, raw, np.arange(120))  # order restored, no time shifted
+    assert rep.reordered == [[int(numbers[40]), 4 + 41 * 106]]  # the late one, where it arrived
+    assert rep.reordered_packets == 1 and rep.missing_packets == 0 and rep.dropped == []
+    assert "reordered packets put back by number (kept): 1" in str(rep)
+
+
+def test_repeated_packets_are_dropped_as_duplicates():
+    data, numbers, stamps, raw = _stream(n=700)
+    pk = _packets(data)
+    # packet 8 again two packets later, packet 50 again 550 packets later
+    stream = pk[:10] + [pk[8]] + pk[10:600] + [pk[50]] + pk[600:]
+    s, rep = decode_mimu_bytes(MIMU_ACK + b"".join(stream))
+    _assert_kept(s, numbers, stamps, raw, np.arange(700))
+    assert rep.dropped == [["duplicate", int(numbers[8]), 4 + 10 * 106], ["duplicate", int(numbers[50]), 4 + 601 * 106]]
+    assert rep.duplicate_packets == 2 and rep.packets_read == 702 and rep.packets_kept == 700
+    assert rep.missing_packets == 0 and rep.failed_packets == 0 and rep.reordered == []
+
+
+def test_copies_that_differ_are_both_dropped():
+    data, numbers, stamps, raw = _stream(n=300)
+    pk = _packets(data)
+    other = _packet(int(numbers[30]), int(stamps[30]), raw[30] + 1)  # same number and stamp, other values
+    s, rep = decode_mimu_bytes(MIMU_ACK + b"".join(pk[:200] + [other] + pk[200:]))
+    _assert_kept(s, numbers, stamps, raw, np.delete(np.arange(300), 30))
+    assert rep.dropped == [["conflict", int(numbers[30]), 4 + 30 * 106], ["conflict", int(numbers[30]), 4 + 200 * 106]]
+    assert rep.conflicting_packets == 2 and rep.missing_packets == 1
+
+
+@pytest.mark.parametrize("edit, skipped", [("lost", 103), ("inserted", 109), ("between", 5)])
+def test_lost_or_inserted_bytes_resynchronise(edit, skipped):
+    data, numbers, stamps, raw = _stream(n=300)
+    at = 4 + 120 * 106  # packet 120
+    if edit == "lost":  # three bytes of packet 120 lost
+        broken = data[: at + 37] + data[at + 40 :]
+    elif edit == "inserted":  # three bytes inserted inside packet 120
+        broken = data[: at + 37] + b"\x55\xaa\x64" + data[at + 37 :]
+    else:  # five bytes between packets 119 and 120: no packet is damaged
+        broken = data[:at] + b"\xaa\x00\x01\x64\x00" + data[at:]
+    s, rep = decode_mimu_bytes(broken)
+    assert rep.skipped == [[at, skipped]] and rep.bytes_skipped == skipped
+    assert rep.first_failure_offset == at
+    keep = np.arange(300) if edit == "between" else np.delete(np.arange(300), 120)
+    _assert_kept(s, numbers, stamps, raw, keep)  # every packet after the damage kept
+    assert rep.missing_packets == 300 - keep.size and rep.checksum_failures == 0
+    assert rep.n_bytes == 4 + 106 * rep.packets_read + rep.bytes_skipped + rep.partial_bytes
+    assert f"{skipped} bytes skipped in 1 run(s) [byte offset, length] [[{at}, {skipped}]]" in str(rep)
+
+
+def test_reordering_across_both_wraps():
+    # Numbers wrap 65535 → 0 between positions 4 and 5, stamps wrap 2^32 between 2 and 3; the
+    # packets on both sides of each wrap arrive swapped.
+    data, numbers, stamps, raw = _stream(n=40, first_number=65531, first_stamp=(1 << 32) - 3 * PERIOD - 17)
+    pk = _packets(data)
+    pk[2], pk[3] = pk[3], pk[2]
+    pk[4], pk[5] = pk[5], pk[4]
+    s, rep = decode_mimu_bytes(MIMU_ACK + b"".join(pk))
+    _assert_kept(s, numbers, stamps, raw, np.arange(40))
+    assert rep.timestamp_wraps == 1 and rep.packet_number_wraps == 1 and rep.missing_packets == 0
+    assert [r[0] for r in rep.reordered] == [int(numbers[2]), int(numbers[4]) % 65536]  # 65533, 65535
+    assert np.all(np.diff(s.ticks) > 0)
+
+
+def test_far_repeat_across_the_number_wrap():
+    # 70 packets from 65500: packet 65510 turns up again after the number wrapped (at 30).
+    data, numbers, stamps, raw = _stream(n=70, first_number=65500)
+    pk = _packets(data)
+    s, rep = decode_mimu_bytes(MIMU_ACK + b"".join(pk[:67] + [pk[10]] + pk[67:]))
+    _assert_kept(s, numbers, stamps, raw, np.arange(70))
+    assert rep.dropped == [["duplicate", 65510, 4 + 67 * 106]] and rep.missing_packets == 0
+
+
+def test_stamp_or_number_off_the_grid_is_dropped():
+    n = 300
+    numbers = np.arange(n)
+    stamps = 5 + numbers * PERIOD + np.random.default_rng(3).integers(-4, 5, n)  # grid ± 4 ticks
+    stamps[77] += 500  # 7.8 µs late: far beyond the ±8-tick jitter
+    stamps[200] += 8  # within the jitter: kept (and indistinguishable from it)
+    numbers = numbers.copy()
+    numbers[150] = 4000  # a wrong number on a right stamp
+    data, _, _, raw = _stream(n=n, numbers=numbers, stamps=stamps)
+    s, rep = decode_mimu_bytes(data)
+    assert rep.dropped == [["timestamp", 77, 4 + 77 * 106], ["timestamp", 4000, 4 + 150 * 106]]
+    assert rep.timestamp_failures == 2 and rep.missing_packets == 2
+    _assert_kept(s, numbers, stamps, raw, np.delete(np.arange(n), [77, 150]))
+
+
+def test_one_wrong_number_half_the_range_away_shifts_nothing():
+    # Found by the fuzz study: 37590 (0x92D6) read as 4822 (0x12D6) is −32768 + 0 and +32769
+    # from its neighbours; summing the two wrapped steps lands 2^16 short, which put every later
+    # packet 65 536 numbers early.
+    n = 300
+    numbers = 37499 + np.arange(n)
+    numbers[91] = 4822
+    stamps = 11 + (37499 + np.arange(n)) * PERIOD
+    data, _, _, raw = _stream(n=n, numbers=numbers, stamps=stamps, span=30)
+    s, rep = decode_mimu_bytes(data)
+    assert rep.dropped == [["timestamp", 4822, 4 + 91 * 106]] and rep.reordered == []
+    assert rep.packet_number_wraps == 0 and rep.missing_packets == 1
+    _assert_kept(s, numbers, stamps, raw, np.delete(np.arange(n), 91))
+
+
+def test_first_packet_stamped_late_is_kept():
+    # The shared recordings' first packet sits ~0.35 ms after the grid of the others.
+    numbers = np.arange(50)
+    stamps = 9 + numbers * PERIOD
+    stamps[0] += 22_190
+    data, _, _, raw = _stream(n=50, numbers=numbers, stamps=stamps)
+    s, rep = decode_mimu_bytes(data)
+    assert rep.packets_kept == 50 and rep.dropped == [] and rep.first_packet_lead_ticks == 22_190
+    assert rep.first_interval_ticks == PERIOD - 22_190
+    stamps[0] += 20_000  # 0.66 ms: beyond FIRST_PACKET_LEAD_TICKS, so the stamp is wrong
+    data, *_ = _stream(n=50, numbers=numbers, stamps=stamps)
+    s, rep = decode_mimu_bytes(data, max_fail_fraction=0.05)
+    assert rep.dropped == [["timestamp", 0, 4]]
+
+
+def test_first_packet_keeps_its_lead_when_a_wrong_number_sorts_before_it():
+    # Found by the fuzz study: a wrong number that sorts below the real first packet made that
+    # one lose its exemption.
+    n = 300
+    numbers = 29932 + np.arange(n)
+    stamps = 7 + numbers * PERIOD
+    stamps[0] += 22_190
+    numbers = numbers.copy()
+    numbers[280] = 65284  # 30 000 below 29 932 in serial arithmetic
+    data, _, _, raw = _stream(n=n, numbers=numbers, stamps=stamps, span=30)
+    s, rep = decode_mimu_bytes(data)
+    assert rep.dropped == [["timestamp", 65284, 4 + 280 * 106]]
+    assert rep.first_packet_lead_ticks == 22_190
+    _assert_kept(s, numbers, stamps, raw, np.delete(np.arange(n), 280))
+
+
+def test_report_lists_are_complete_and_printed_capped():
+    data, numbers, *_ = _stream(n=3000, span=30)
+    b = bytearray(data)
+    bad = list(range(100, 2900, 200))  # 14 checksum failures
+    for i in bad:
+        b[4 + i * 106 + 60] ^= 0x01
+    s, rep = decode_mimu_bytes(bytes(b))
+    assert rep.failed_packet_numbers == [int(numbers[i]) for i in bad]
+    assert rep.dropped == [["checksum", int(numbers[i]), 4 + i * 106] for i in bad]
+    assert rep.to_dict()["dropped"] == rep.dropped and rep.drop_counts["checksum"] == 14
+    text = str(rep)
+    assert "dropped packets by reason: checksum 14" in text and "… 4 more]" in text
+    assert f"['checksum', {int(numbers[bad[10]])}," not in text  # the 11th is only in to_dict
+
+
+def test_bad_checksum_in_the_last_slot_and_a_partial_tail():
+    data, numbers, stamps, raw = _stream(n=150)
+    b = bytearray(data + data[4 : 4 + 83])
+    b[4 + 149 * 106 + 9] ^= 0x80  # the last whole packet
+    s, rep = decode_mimu_bytes(bytes(b))
+    assert rep.dropped == [["checksum", int(numbers[149]), 4 + 149 * 106]]
+    assert rep.partial_bytes == 83 and rep.packets_read == 150 and rep.bytes_skipped == 0
+    _assert_kept(s, numbers, stamps, raw, np.arange(149))
+
+
 # ---------------------------------------------------------------------------------------- real data
 @pytest.fixture(scope="module")
 def real(mimu_dir):
@@ -239,6 +429,32 @@ def test_real_zero_checksum_failures(real):
         assert rep.checksum_failures == 0 and rep.header_failures == 0, e
         assert rep.packets_kept == rep.packets_read == rec.T, e
         assert rep.missing_packets == 0 and rep.ack_present, e
+
+
+def test_real_nothing_flagged_but_the_exp1_tail(real):
+    # Issue #13: the plausibility and stamp checks never fire on the six real recordings.
+    for e, (rec, rep, st, _) in real.items():
+        assert rep.dropped == [] and rep.skipped == [] and rep.reordered == [], e
+        assert rep.bytes_skipped == rep.range_failures == rep.jump_failures == rep.timestamp_failures == 0, e
+        assert rep.partial_bytes == (83 if e == "exp_1" else 0), e
+        # the short first interval is the first packet stamped ~0.35 ms late, and is exempt
+        assert 20_000 < rep.first_packet_lead_ticks < 23_000, e
+
+
+def test_real_reordered_and_repeated_packets_keep_the_time_axis(mimu_dir):
+    # The issue's reproduction: exp_1 with packets 1000/1001 swapped and packet 2000 sent again
+    # 500 packets later imported with every later time off by 1073.74 s.
+    data = gzip.open(mimu_dir / "exp_1" / "data.bin.gz").read()
+    clean, _ = decode_mimu_bytes(data)
+    pk = [data[4 + i * 106 : 4 + (i + 1) * 106] for i in range((len(data) - 4) // 106)]
+    pk[1000], pk[1001] = pk[1001], pk[1000]
+    pk.insert(2500, pk[2000])
+    s, rep = decode_mimu_bytes(MIMU_ACK + b"".join(pk) + data[-83:])
+    assert np.array_equal(s.time, clean.time) and np.array_equal(s.raw, clean.raw)
+    assert np.array_equal(s.number, clean.number)
+    assert rep.reordered == [[int(clean.number[1000]), 4 + 1001 * 106]]
+    assert rep.dropped == [["duplicate", int(clean.number[2000]), 4 + 2500 * 106]]
+    assert rep.missing_packets == 0 and rep.partial_bytes == 83
 
 
 def test_real_matches_published_checksums_and_sizes(real, mimu_dir):

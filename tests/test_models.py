@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes import arrays, geometry as g, models as m
+from accel_bayes.physics import arrays, geometry as g, models as m
 
 F64 = torch.float64
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes import geometry as g, models
-from accel_bayes import motion as M
+from accel_bayes.physics import geometry as g, models
+from accel_bayes.physics import motion as M
 from accel_bayes.errors import UserError
 
 F64 = torch.float64

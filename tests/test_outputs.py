@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from accel_bayes import outputs
+from accel_bayes.data import outputs
 from accel_bayes.physics.arrays import preset
 from accel_bayes.cli import main
 from accel_bayes.errors import UserError

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from accel_bayes import arrays
+from accel_bayes.physics import arrays
 from accel_bayes.cli import main
 from accel_bayes.errors import UserError
 from accel_bayes.data.io import read_truth, write_recording

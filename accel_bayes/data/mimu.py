@@ -14,24 +14,78 @@ bytes  meaning
 104–5  checksum, uint16 = (Σ bytes 0..103) mod 65536
 ====== ===============================================================
 
-What the importer does, and why:
+What the importer does, and why (every rule below is a judgement written down; the report
+lists every packet each rule touched, by reason, packet number and byte offset):
 
-* The whole stream is parsed at once with a structured big-endian numpy dtype (no per-packet
-  Python loop).  ``.gz`` is recognised by its magic bytes, not by the file name.
-* Every packet's checksum, header byte and payload size are verified.  Failing packets are
-  dropped and reported (count and the packet numbers they carry); more than
-  ``max_fail_fraction`` (1 %) failing, or no valid header anywhere, means the file is not a
-  (usable) MIMU stream and it is refused with :class:`RecordingError`.  A lost byte mid-stream
-  would misalign every later packet; the importer does not resynchronise (the error names the
-  byte offset of the first failing packet).
-* A trailing partial packet is ignored and its byte count reported.  Missing packet numbers
-  (gaps, counted modulo 2^16) are reported as dropped packets.
-* **Time.**  The measured timestamps are kept: each interval is unwrapped modulo 2^32 with the
-  packet-number step telling how many wraps a (possibly long) gap spans, and ``time`` is
-  (ticks − first tick) / 64 MHz.  The device stamps are ±8 ticks (±0.125 µs, 1e-5 of the 16 ms
-  period) of jitter and the first interval of a file is ~0.35 ms short; both are real properties
-  of the sample instants, so no regression onto the packet number is made.  The report carries
-  the jitter statistics.  Non-increasing stamps are refused.
+* **Framing and resynchronisation.**  Every byte offset where a header ``0xAA``, a payload size
+  100 and a matching checksum line up is a *valid packet start* (found vectorised, no per-packet
+  loop).  Chains of valid starts 106 bytes apart are the packets; where two chains overlap (a
+  packet-like pattern inside another packet) the earlier one wins, except that a lone packet
+  gives way to an overlapping chain of two or more.  The bytes between accepted packets are
+  classified: a gap that is a whole number of 106-byte slots between aligned packets is that many
+  packets damaged *in place* (counted as checksum or header/size failures, with the packet
+  numbers they carry); any other gap is bytes lost or inserted, reported as *skipped bytes*
+  (offset, length) and the stream resynchronises on the next valid packet.  The tail after the
+  last packet is whole damaged slots plus a trailing partial packet (ignored and reported).
+* **Order and duplicates by packet number.**  The uint16 numbers are unwrapped with serial-number
+  arithmetic (each step taken in [−2^15, 2^15)): a packet that arrives late is put back in its
+  place, and reported as *reordered* (kept).  Forward gaps of 2^15 packets or more (≥ 524 s with
+  no packet at all) cannot be told from reordering and are out of scope.  A single packet whose
+  number is more than 4096 away from both neighbours while they are within 4096 of each other
+  is stepped over when unwrapping, so one wrong number cannot move all later packets by 2^16.
+  Copies of one number whose 106 bytes are identical are one packet sent twice: the first is
+  kept, the others are dropped as *duplicate*.  Copies that differ cannot both be right and the
+  checksum cannot say which is: all copies are dropped as *conflict*.
+* **Time.**  The time axis never depends on arrival order.  Every packet's stamp is compared with
+  the 16 ms grid its packet number predicts, ``c + 1 024 000 · number`` (c one robust offset of the
+  whole stream); the unwrapped tick is that grid value plus the packet's own residual (so the
+  measured stamps are kept exactly: their ±8 ticks of jitter and the short first interval are
+  real properties of the sample instants).  The 2^32 wraps thus follow from the packet number,
+  even across long gaps.  A packet whose residual differs from the median of its six nearest
+  neighbours (three each side, in number order; the first packet never serves as one) by more
+  than ``TIME_TOL_TICKS`` = 24 ticks (8 per packet step to the farthest: the README's ±8 ticks of
+  jitter, whether the stamps jitter about a grid, as in the shared recordings, or the intervals
+  do; widened in proportion across gaps) has a stamp or a number that is wrong: dropped as
+  *timestamp* (largest deviation in the shared recordings: 6.5 ticks).  A wrong number always
+  shows: a number off by Δ moves the residual by 1 024 000 · Δ mod 2^32, a non-zero multiple of
+  8192 ticks.  Exempt: the first packet of a
+  stream — the lowest number whose stamp is on the grid or at most that lead after it — is
+  stamped up to ``FIRST_PACKET_LEAD_TICKS`` (0.5 ms) after the grid of the others (every shared
+  recording: ~0.35 ms, the README's short first interval); it never serves as a reference.
+* **Plausibility beyond the checksum.**  The byte sum misses byte swaps and compensating ± edits,
+  so the values of a checksum-valid packet are checked against the rigid board.  The eight IMUs
+  sit within 27 mm on one PCB and, rotated into the array frame (bottom IMUs by the README's C,
+  an exact signed permutation), read the same ω and nearly the same specific force.
+  *Range*: at ±16 g and ±2000 °/s every int16 code is a possible output (the recordings use
+  both −32768 and 32767), so no code is out of range by itself; the range that applies is the
+  board's.  Per channel and sample let D₁ ≥ D₂ be the two largest |IMU − median of the 8| (LSB);
+  the IMU giving D₁ is out of range when D₁ − 3·D₂ exceeds the bound
+  B = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` · A, where A is the board's largest one-sample
+  change (median of the 8 IMUs, any axis of that sensor, either side of the sample).  The floor,
+  1024 LSB (0.5 g, 62 °/s), is twice what uncalibrated MPU-9150s may differ by at rest (zero-g
+  offset up to ±150 mg and 3 % sensitivity of 1 g; zero-rate offset ±20 °/s).  The A term is
+  sampling skew: each IMU samples on its own clock, so a reading may be up to one period older
+  than another's and differ from it by up to one sample's change of the motion (SKEW_FRACTION 1).
+  D₂ is subtracted because genuine differences (local vibration, near-saturation) move several
+  IMUs at once; one corrupted value moves one.
+  *Jump*: the same statistic and bound on the second difference x[t] − (linear interpolation of
+  its two neighbours in packet number): one IMU's channel jumping in one sample while the seven
+  others on the same rigid board do not.  Flagged only at the local maximum in time, so a spike
+  does not also condemn its neighbours.
+  Across the six shared recordings the largest (D₁ − 3·D₂)/B is range acc 0.49 / gyro 0.25 and
+  jump acc 0.47 / gyro 0.16: margins 2.0 / 4.0 / 2.1 / 6.1 (``experiments/mimu_fuzz.md``).  A
+  channel is exempt at a sample where one IMU of it is saturated (|code| ≥ ``SATURATED_LSB`` =
+  32704, the top 0.2 % of the scale) or two read within 1/16 of full scale (|code| ≥
+  ``NEAR_LIMIT_LSB`` = 30720): IMUs saturate ±3 % apart (sensitivity tolerance), so near full
+  scale they need not agree.  What these rules provably cannot see — a change smaller than
+  B + 3·D₂, the same channel corrupted in two IMUs of one packet, values near full scale — is
+  measured per operator in the fuzz study.
+* **Drop, never flag-and-keep, for values.**  A packet failing any check above is dropped
+  (one of ~37 000 costs nothing; a wrong value biases a calibration).  Reordered packets are
+  kept and listed: their number and stamp agree, only their arrival was late.
+* **Refusal.**  More than ``max_fail_fraction`` (1 %) of the stream damaged — dropped packets
+  other than duplicates, plus skipped bytes counted in 106-byte packets — or no valid packet at
+  all means the file is not a (usable) MIMU stream: :class:`RecordingError`.
 * **Scaling** (MPU-9150 at ±16 g, ±2000 °/s): acc = raw · 9.80665/2048 m/s²,
   gyro = raw/16.4 °/s converted to rad/s.  Outputs stay in each IMU's SENSOR frame (DESIGN §7.1);
   the nominal orientations (top IMUs identity, bottom IMUs ``MIMU_BOTTOM_QUAT``) and positions
@@ -48,15 +102,17 @@ import gzip
 import hashlib
 import json
 import math
+import warnings
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..physics.arrays import SensorArray, mimu4444_8
 from ..constants import G0
 from ..errors import RecordingError
+from ..physics.arrays import SensorArray, mimu4444_8
+from ..physics.geometry import quat_to_matrix
 from .recording import Recording
 from .segments import StaticAnalysis, analyse_static, difference_noise_std, segment_labels
 
@@ -68,12 +124,21 @@ __all__ = [
     "NOMINAL_PERIOD_TICKS",
     "ACC_SCALE",
     "GYRO_SCALE",
+    "JITTER_TICKS",
+    "TIME_TOL_TICKS",
+    "FIRST_PACKET_LEAD_TICKS",
+    "PLAUSIBILITY_FLOOR_LSB",
+    "SKEW_FRACTION",
+    "NEAR_LIMIT_LSB",
+    "SATURATED_LSB",
+    "DROP_REASONS",
     "MimuStream",
     "ImportReport",
     "read_mimu_bytes",
     "read_mimu_stream",
     "decode_mimu_bytes",
     "encode_mimu_packets",
+    "plausibility_statistics",
     "import_mimu",
     "recording_from_stream",
 ]
@@ -88,8 +153,22 @@ NOMINAL_PERIOD_TICKS = 1_024_000  # 16 ms at 64 MHz
 ACC_SCALE = G0 / 2048.0  # m/s² per LSB at ±16 g
 GYRO_SCALE = math.radians(1.0 / 16.4)  # rad/s per LSB at ±2000 °/s
 INT16_LIMITS = (-32768, 32767)
+NEAR_LIMIT_LSB = 30720  # 15/16 of full scale: IMUs saturate ±3 % apart (sensitivity tolerance)
+SATURATED_LSB = 32704  # the top 64 codes (0.2 % of full scale): this IMU is at its limit
 ACC_RANGE = 16 * G0
 GYRO_RANGE = math.radians(2000.0)
+
+JITTER_TICKS = 8  # README: ±8 ticks per 16 ms interval
+_TIME_NEIGHBOURS = 3  # packets each side whose median predicts a packet's stamp
+TIME_TOL_TICKS = JITTER_TICKS * _TIME_NEIGHBOURS  # 24 ticks, the tolerance where no packet is missing
+FIRST_PACKET_LEAD_TICKS = 32_000  # 0.5 ms: how late the first packet of a stream may be stamped
+LONE_FACTOR = 3.0  # D₁ − LONE_FACTOR·D₂: one IMU alone off the board's consensus
+PLAUSIBILITY_FLOOR_LSB = 1024.0  # 0.5 g, 62 °/s: twice the datasheet offset + sensitivity spread
+SKEW_FRACTION = 1.0  # free-running IMU sample clocks: a reading up to one period older than another's
+
+_ISOLATED_STEP = 4096  # packets (65 s): a number step this large next to a normal one is an outlier
+
+DROP_REASONS = ("checksum", "header", "timestamp", "duplicate", "conflict", "range", "jump")
 
 PACKET_DTYPE = np.dtype(
     [
@@ -103,20 +182,23 @@ PACKET_DTYPE = np.dtype(
 )
 assert PACKET_DTYPE.itemsize == PACKET_SIZE
 
-_MAX_LISTED = 100  # packet numbers listed in a report (the count is always exact)
+_MAX_LISTED = 10  # entries of a list printed in the text report (to_dict holds them all)
+_ROW = np.arange(PACKET_SIZE)
 
 
 @dataclass
 class MimuStream:
-    """The valid packets of a stream, in stream order.
+    """The kept packets of a stream, in packet-number order.
 
     number : (N,) uint16 packet numbers as sent.  ticks : (N,) int64 unwrapped timestamps,
     64 MHz ticks.  raw : (N, 8, 6) int16 [ax, ay, az, gx, gy, gz] counts, packet IMU order.
+    offset : (N,) int64 byte offset of each packet in the decompressed stream.
     """
 
     number: np.ndarray
     ticks: np.ndarray
     raw: np.ndarray
+    offset: np.ndarray | None = None
 
     @property
     def time(self) -> np.ndarray:
@@ -126,7 +208,8 @@ class MimuStream:
 
 @dataclass
 class ImportReport:
-    """What reading a MIMU stream found (all counts exact; lists capped at 100 entries)."""
+    """What reading a MIMU stream found.  All counts are exact and every list is complete
+    (:meth:`lines` prints the first few entries of each)."""
 
     file: str = ""
     sha256: str = ""  # of the decompressed stream
@@ -134,18 +217,28 @@ class ImportReport:
     n_bytes: int = 0  # decompressed
     ack_present: bool = False
     leading_bytes: int = 0  # bytes before the first packet (4 when the ack is present)
-    packets_read: int = 0  # complete 106-byte packets
+    packets_read: int = 0  # complete 106-byte packets: the framed ones plus those damaged in place
     packets_kept: int = 0
     checksum_failures: int = 0
     header_failures: int = 0  # wrong header byte or payload size (checksum may be fine)
-    failed_packet_numbers: list = field(default_factory=list)
-    first_failure_offset: int | None = None
+    failed_packet_numbers: list = field(default_factory=list)  # as read from the failing packets
+    first_failure_offset: int | None = None  # byte offset of the first dropped (not duplicate) packet or skipped byte
     partial_bytes: int = 0
+    bytes_skipped: int = 0  # lost/inserted bytes passed over to resynchronise (not partial, not leading)
+    skipped: list = field(default_factory=list)  # [byte offset, length] of every skipped run
     duplicate_packets: int = 0
+    timestamp_failures: int = 0  # stamp disagrees with its neighbours' grid (> TIME_TOL_TICKS without gaps)
+    conflicting_packets: int = 0  # copies of one packet number with different bytes (all dropped)
+    range_failures: int = 0  # one IMU alone off the board's consensus
+    jump_failures: int = 0  # one IMU alone jumping in one sample
+    reordered_packets: int = 0  # arrived after a higher packet number; put back in place and kept
+    dropped: list = field(default_factory=list)  # [reason, packet number, byte offset] of every drop
+    reordered: list = field(default_factory=list)  # [packet number, byte offset] of every reordered packet
     missing_packets: int = 0  # gaps in the packet numbers of the kept packets
     gaps: list = field(default_factory=list)  # [after packet number, how many missing]
     packet_number_wraps: int = 0
     timestamp_wraps: int = 0
+    first_packet_lead_ticks: float = 0.0  # how late the first packet sits after the others' grid
     duration_s: float = 0.0
     sample_rate_hz: float = float("nan")
     period_median_ticks: float = float("nan")
@@ -164,8 +257,17 @@ class ImportReport:
 
     @property
     def failed_packets(self) -> int:
-        """Packets dropped for a bad checksum, header byte or payload size."""
+        """Packets dropped for any reason but duplication (checksum, header, timestamp,
+        conflict, range, jump)."""
         return self.packets_read - self.packets_kept - self.duplicate_packets
+
+    @property
+    def drop_counts(self) -> dict:
+        """{reason: packets dropped for it}, reasons as in :data:`DROP_REASONS`."""
+        out = dict.fromkeys(DROP_REASONS, 0)
+        for reason, *_ in self.dropped:
+            out[reason] += 1
+        return out
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -177,15 +279,27 @@ class ImportReport:
             f"command ack A0 28 00 C8: {'present' if self.ack_present else 'ABSENT'}"
             + (f" ({self.leading_bytes} leading bytes skipped)" if not self.ack_present and self.leading_bytes else ""),
             f"packets: {self.packets_read} read, {self.packets_kept} kept; checksum failures: {self.checksum_failures}"
-            + (f" (packet numbers {self.failed_packet_numbers[:10]}{' …' if len(self.failed_packet_numbers) > 10 else ''})" if self.checksum_failures else "")
+            + (f" (packet numbers {_capped(self.failed_packet_numbers)})" if self.checksum_failures else "")
             + (f"; header/size failures: {self.header_failures}" if self.header_failures else ""),
             f"trailing partial packet: {self.partial_bytes} bytes ignored",
             f"missing packet numbers: {self.missing_packets}" + (f" in {len(self.gaps)} gap(s)" if self.missing_packets else "")
             + (f"; duplicates dropped: {self.duplicate_packets}" if self.duplicate_packets else ""),
+        ]
+        if self.bytes_skipped:
+            out.append(f"resynchronised: {self.bytes_skipped} bytes skipped in {len(self.skipped)} run(s) "
+                       f"[byte offset, length] {_capped(self.skipped)}")
+        if self.reordered_packets:
+            out.append(f"reordered packets put back by number (kept): {self.reordered_packets} "
+                       f"[number, byte offset] {_capped(self.reordered)}")
+        counts = {k: v for k, v in self.drop_counts.items() if v}
+        if counts:
+            out.append("dropped packets by reason: " + ", ".join(f"{k} {v}" for k, v in counts.items())
+                       + f"; [reason, number, byte offset] {_capped(self.dropped)}")
+        out.append(
             f"duration: {self.duration_s:.2f} s at {self.sample_rate_hz:.3f} Hz "
             f"(period {self.period_median_ticks / TICK_HZ * 1e3:.4f} ms, jitter std {self.jitter_std_ticks:.2f} ticks, "
-            f"max {self.jitter_max_ticks:.0f} ticks; first interval {self.first_interval_ticks / TICK_HZ * 1e3:.3f} ms)",
-        ]
+            f"max {self.jitter_max_ticks:.0f} ticks; first interval {self.first_interval_ticks / TICK_HZ * 1e3:.3f} ms)"
+        )
         if self.static_segments is not None:
             out.append(
                 f"static segments: {self.static_segments} ({100 * self.static_fraction:.1f} % of samples), "
@@ -200,6 +314,12 @@ class ImportReport:
 
     def __str__(self) -> str:
         return "\n".join(self.lines())
+
+
+def _capped(items: list) -> str:
+    """The first few entries of a report list, and how many more the full report holds."""
+    head = ", ".join(str(x) for x in items[:_MAX_LISTED])
+    return f"[{head}{f', … {len(items) - _MAX_LISTED} more' if len(items) > _MAX_LISTED else ''}]"
 
 
 # ---------------------------------------------------------------------------------------- reading
@@ -220,98 +340,345 @@ def _checksums(buf: np.ndarray) -> np.ndarray:
     return (buf[:, :104].sum(1, dtype=np.uint32) & 0xFFFF).astype(np.uint16)
 
 
-def _first_packet_offset(data: bytes, search: int) -> int | None:
-    """Offset of the first position within ``search`` bytes where a whole valid packet starts."""
-    n = min(search, len(data) - PACKET_SIZE + 1)
-    if n <= 0:
-        return None
-    b = np.frombuffer(data, dtype=np.uint8)
-    cand = np.flatnonzero((b[:n] == HEADER) & (b[3 : n + 3] == PAYLOAD_SIZE))
-    for o in cand:  # a few candidates at most
-        pkt = b[o : o + PACKET_SIZE]
-        if int(pkt[:104].sum(dtype=np.uint32) & 0xFFFF) == (int(pkt[104]) << 8 | int(pkt[105])):
-            return int(o)
-    return None
+def _stored_checksums(buf: np.ndarray) -> np.ndarray:
+    return (buf[:, 104].astype(np.uint16) << 8) | buf[:, 105]
+
+
+def _valid_starts(b: np.ndarray) -> np.ndarray:
+    """Sorted byte offsets where a whole packet with header, size and checksum right starts."""
+    m = b.size - PACKET_SIZE + 1
+    if m <= 0:
+        return np.zeros(0, dtype=np.int64)
+    cand = np.flatnonzero((b[:m] == HEADER) & (b[3 : m + 3] == PAYLOAD_SIZE))
+    keep = []
+    for i in range(0, cand.size, 1 << 16):  # bounded memory on a stream made of header patterns
+        c = cand[i : i + (1 << 16)]
+        rows = b[c[:, None] + _ROW]
+        keep.append(c[_checksums(rows) == _stored_checksums(rows)])
+    return np.concatenate(keep).astype(np.int64) if keep else np.zeros(0, dtype=np.int64)
+
+
+def _chain(v: np.ndarray) -> np.ndarray:
+    """Accepted packet offsets from the sorted valid starts: runs 106 bytes apart, overlaps
+    resolved (earlier wins; a lone packet gives way to a longer overlapping run).  The loop is
+    over runs, i.e. over damage events, not over packets."""
+    if v.size == 0:
+        return v
+    brk = np.flatnonzero(np.diff(v) != PACKET_SIZE) + 1
+    runs: list[list[int]] = []  # [first offset, count]
+    end = -1
+    for i, j in zip(np.concatenate(([0], brk)), np.concatenate((brk, [v.size]))):
+        o, c = int(v[i]), int(j - i)
+        if o < end and c > 1 and runs and runs[-1][1] == 1:
+            runs.pop()  # the lone packet was the pattern inside the longer run's packet
+            end = runs[-1][0] + runs[-1][1] * PACKET_SIZE if runs else -1
+        if o < end:
+            k = -(-(end - o) // PACKET_SIZE)  # packets of this run overlapping accepted bytes
+            o, c = o + k * PACKET_SIZE, c - k
+            if c <= 0:
+                continue
+        runs.append([o, c])
+        end = o + c * PACKET_SIZE
+    return np.concatenate([o + PACKET_SIZE * np.arange(c, dtype=np.int64) for o, c in runs])
+
+
+def _frame(b: np.ndarray, start: int, ack: bool):
+    """Split the stream into accepted packet offsets, damaged-in-place slots, skipped runs,
+    leading junk and the trailing partial packet (see the module docstring)."""
+    off = _chain(_valid_starts(b))
+    off = off[off >= start]
+    n = b.size
+    failed: list[int] = []
+    skipped: list[list[int]] = []
+    leading = start
+    if off.size == 0:
+        return off, np.zeros(0, dtype=np.int64), skipped, leading, 0
+
+    def classify(a: int, length: int) -> None:
+        if length % PACKET_SIZE == 0:
+            failed.extend(range(a, a + length, PACKET_SIZE))
+        else:
+            skipped.append([a, length])
+
+    head = int(off[0]) - start
+    if head:
+        if ack:
+            classify(start, head)
+        elif head % PACKET_SIZE == 0 and np.all(b[start : int(off[0]) : PACKET_SIZE] == HEADER):
+            failed.extend(range(start, int(off[0]), PACKET_SIZE))
+        else:
+            leading = int(off[0])
+    ends = off[:-1] + PACKET_SIZE
+    for i in np.flatnonzero(off[1:] != ends):  # damage events only
+        classify(int(ends[i]), int(off[i + 1] - ends[i]))
+    tail_start = int(off[-1]) + PACKET_SIZE
+    whole = (n - tail_start) // PACKET_SIZE
+    failed.extend(range(tail_start, tail_start + whole * PACKET_SIZE, PACKET_SIZE))
+    partial = n - tail_start - whole * PACKET_SIZE
+    return off, np.asarray(sorted(failed), dtype=np.int64), skipped, leading, partial
+
+
+def _serial(d: np.ndarray) -> np.ndarray:
+    """Packet-number differences taken in [−2^15, 2^15) (serial-number arithmetic)."""
+    return (d + (1 << 15)) % (1 << 16) - (1 << 15)
+
+
+def _stamp_deviation(res: np.ndarray, seq: np.ndarray, ref_ok: np.ndarray | None = None):
+    """Each packet's stamp residual minus the median of its ``_TIME_NEIGHBOURS`` nearest
+    neighbours on either side (in number order; only those with ``ref_ok`` serve as references),
+    and the tolerance: ``JITTER_TICKS`` per packet step to the farthest of them.  ±8 ticks per
+    step bounds both a stamp grid with jitter and a random walk of intervals; one wrong neighbour
+    cannot move the median of six (three at an end) out of the good ones' range."""
+    n, k = res.size, _TIME_NEIGHBOURS
+    if n == 1:
+        return np.zeros(1), np.full(1, float(TIME_TOL_TICKS))
+    ref = res.astype(np.float64)
+    if ref_ok is not None:
+        ref = np.where(ref_ok, ref, np.nan)
+    pad = np.full(n + 2 * k, np.nan)
+    pad[k:-k] = ref
+    spad = np.full(n + 2 * k, np.nan)
+    spad[k:-k] = np.where(np.isnan(ref), np.nan, seq)
+    shifts = [j for j in range(2 * k + 1) if j != k]
+    nb = np.stack([pad[j : j + n] for j in shifts], 1)
+    dist = np.abs(np.stack([spad[j : j + n] for j in shifts], 1) - seq[:, None])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # no reference at all: NaN, never flagged
+        med = np.nanmedian(nb, axis=1)
+        far = np.nanmax(dist, axis=1)
+    return res - med, JITTER_TICKS * np.maximum(far, k)
+
+
+def _array_frame_index() -> tuple[np.ndarray, np.ndarray]:
+    """(8, 6) packet channel and sign giving each IMU's array-frame [fx, fy, fz, ωx, ωy, ωz]: the
+    MIMU4444 corner IMUs are rotated by signed axis permutations (top identity, bottom the README's
+    C), so the rotation is an exact integer gather."""
+    q = mimu4444_8().orientations.detach().double()
+    rot = np.rint(quat_to_matrix(q).transpose(-1, -2).numpy()).astype(np.int64)  # sensor → array
+    axis = np.abs(rot).argmax(-1)  # (8, 3): array axis i reads sensor axis axis[k, i]
+    sign = np.take_along_axis(rot, axis[..., None], -1)[..., 0]
+    return np.concatenate((axis, axis + 3), 1), np.concatenate((sign, sign), 1)
+
+
+def _median_last(y: np.ndarray) -> np.ndarray:
+    """Median over the last axis of an even-length (IMU) axis, keepdims: sorting 8 values is
+    cheaper than numpy's partition-based median."""
+    ys = np.sort(y, axis=-1)
+    k = y.shape[-1] // 2
+    return 0.5 * (ys[..., k - 1 : k] + ys[..., k : k + 1])
+
+
+def _lone(y: np.ndarray, med: np.ndarray | None = None) -> np.ndarray:
+    """D₁ − LONE_FACTOR·D₂ over the last (IMU) axis of y (median ``med`` if already known), at the
+    IMU giving D₁, −inf elsewhere."""
+    dev = np.abs(y - (_median_last(y) if med is None else med))
+    top = np.sort(dev, axis=-1)
+    out = np.full(y.shape, -np.inf)
+    np.put_along_axis(out, dev.argmax(-1)[..., None], (top[..., -1] - LONE_FACTOR * top[..., -2])[..., None], axis=-1)
+    return out
+
+
+def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
+    """The range and jump tests of the module docstring, as ratios to their bounds.
+
+    raw : (N, 8, 6) int16 counts (packet IMU order, sensor frame); seq : (N,) increasing packet
+    numbers (unwrapped; default 0..N−1) — the jump test interpolates neighbours by number.
+    Returns ``(range_ratio, jump_ratio)``, each (N, 8, 6) float64: (D₁ − 3·D₂) / bound at the IMU
+    that gives D₁ (a packet fails where a ratio exceeds 1), −inf at the other IMUs and where a
+    channel is exempt (an IMU saturated, |code| ≥ ``SATURATED_LSB``, or two within 1/16 of full
+    scale, |code| ≥ ``NEAR_LIMIT_LSB``; the first and last packet for the jump).
+    bound = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` × the board's largest one-sample change
+    (median of the 8 IMUs, any axis of that sensor, either side of the sample), LSB.
+    """
+    n = raw.shape[0]
+    seq = np.arange(n, dtype=np.int64) if seq is None else np.asarray(seq, dtype=np.int64)
+    chan, sign = _array_frame_index()
+    imu = np.arange(N_IMU)[:, None]
+    # (N, 6, 8): the IMU axis last, so medians and sorts run over contiguous memory.
+    x = np.ascontiguousarray((raw[:, imu, chan].astype(np.float64) * sign).transpose(0, 2, 1))
+    mag = np.abs(raw.astype(np.int32))[:, imu, chan]  # (N, 8, 6)
+    near = ((mag >= NEAR_LIMIT_LSB).sum(1) >= 2) | (mag >= SATURATED_LSB).any(1)  # (N, 6)
+    med = _median_last(x)
+    activity = np.zeros((n, 6))
+    if n > 1:
+        step = np.abs(np.diff(med[..., 0], axis=0))  # (N−1, 6) the board's change per sample
+        step = np.stack((step[:, :3].max(1), step[:, 3:].max(1)), 1)  # (N−1, 2): acc, gyro
+        pad = np.zeros((1, 2))
+        activity = np.repeat(np.maximum(np.concatenate((pad, step)), np.concatenate((step, pad))), 3, axis=1)
+    bound = (PLAUSIBILITY_FLOOR_LSB + SKEW_FRACTION * activity)[..., None]  # (N, 6, 1)
+    rng = _lone(x, med) / bound
+    rng[near] = -np.inf
+    jmp = np.full(x.shape, -np.inf)
+    if n >= 3:
+        s = seq.astype(np.float64)
+        w = ((s[1:-1] - s[:-2]) / (s[2:] - s[:-2]))[:, None, None]
+        inner = _lone(x[1:-1] - ((1 - w) * x[:-2] + w * x[2:])) / bound[1:-1]
+        inner[near[:-2] | near[1:-1] | near[2:]] = -np.inf
+        jmp[1:-1] = inner
+    return rng.transpose(0, 2, 1), jmp.transpose(0, 2, 1)
+
+
+def _implausible(raw: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) bool packets failing the range test, and those failing the jump test."""
+    rng, jmp = plausibility_statistics(raw, seq)
+    bad_r = (rng > 1).any((1, 2))
+    if bad_r.any() and (~bad_r).sum() >= 3:
+        # A packet out of range must not serve as a neighbour in its neighbours' jump test.
+        jmp = np.full(jmp.shape, -np.inf)
+        jmp[~bad_r] = plausibility_statistics(raw[~bad_r], seq[~bad_r])[1]
+    # Only the local maximum in time: a spike's neighbours see half of it in their own differences.
+    prev = np.concatenate((np.full((1,) + jmp.shape[1:], -np.inf), jmp[:-1]))
+    nxt = np.concatenate((jmp[1:], np.full((1,) + jmp.shape[1:], -np.inf)))
+    bad_j = ((jmp > 1) & (jmp >= prev) & (jmp >= nxt)).any((1, 2))
+    return bad_r, bad_j
 
 
 def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = False,
                       max_fail_fraction: float = 0.01) -> tuple[MimuStream, ImportReport]:
     """Parse a decompressed MIMU stream held in memory (see :func:`read_mimu_stream`)."""
     rep = ImportReport(file=name, gzipped=gzipped, n_bytes=len(data), sha256=hashlib.sha256(data).hexdigest())
-    if data[:4] == MIMU_ACK:
-        off = 4
-        rep.ack_present = True
-    else:
-        off = _first_packet_offset(data, 4 + PACKET_SIZE)
-        if off is None:
-            raise RecordingError(
-                f"{name}: not an MIMU stream: no command ack A0 28 00 C8 and no valid packet "
-                f"(header 0xAA, payload size 100, checksum) in the first {4 + PACKET_SIZE} bytes"
-            )
-        rep.notes.append(f"command ack A0 28 00 C8 absent; first packet at byte {off}")
-    rep.leading_bytes = off
-    N = (len(data) - off) // PACKET_SIZE
-    rep.partial_bytes = (len(data) - off) - N * PACKET_SIZE
-    rep.packets_read = N
-    if N == 0:
-        raise RecordingError(f"{name}: not an MIMU stream: fewer than {PACKET_SIZE} bytes after the command ack")
-
-    pk = np.frombuffer(data, dtype=PACKET_DTYPE, count=N, offset=off)
-    buf = np.frombuffer(data, dtype=np.uint8, count=N * PACKET_SIZE, offset=off).reshape(N, PACKET_SIZE)
-    head_ok = (pk["header"] == HEADER) & (pk["size"] == PAYLOAD_SIZE)
-    if not head_ok.any():
-        raise RecordingError(f"{name}: not an MIMU stream: no packet with header 0xAA and payload size 100")
-    cs_ok = _checksums(buf) == pk["checksum"]
-    good = head_ok & cs_ok
-    bad = ~good
-    rep.checksum_failures = int((~cs_ok).sum())
-    rep.header_failures = int((~head_ok).sum())
-    if bad.any():
-        first = int(np.flatnonzero(bad)[0])
-        rep.first_failure_offset = off + first * PACKET_SIZE
-        rep.failed_packet_numbers = pk["number"][bad][:_MAX_LISTED].astype(int).tolist()
-    frac = bad.mean()
-    if frac > max_fail_fraction:
+    b = np.frombuffer(data, dtype=np.uint8)
+    rep.ack_present = data[:4] == MIMU_ACK
+    start = 4 if rep.ack_present else 0
+    off, failed, skipped, leading, partial = _frame(b, start, rep.ack_present)
+    if off.size == 0:
         raise RecordingError(
-            f"{name}: {int(bad.sum())} of {N} packets fail their checksum/header check "
-            f"({100 * frac:.1f} % > {100 * max_fail_fraction:g} %; first at byte {rep.first_failure_offset}): "
+            f"{name}: not an MIMU stream: no packet with header 0xAA, payload size 100 and a matching checksum"
+            + (" after the command ack" if rep.ack_present else "")
+        )
+    rep.leading_bytes, rep.partial_bytes = leading, partial
+    rep.skipped, rep.bytes_skipped = skipped, int(sum(L for _, L in skipped))
+    if not rep.ack_present:
+        rep.notes.append(f"command ack A0 28 00 C8 absent; first packet at byte {int(off[0])}")
+    rep.packets_read = int(off.size + failed.size)
+
+    dropped: list[tuple[str, int, int]] = []
+    if failed.size:
+        rows = b[failed[:, None] + _ROW]
+        head_ok = (rows[:, 0] == HEADER) & (rows[:, 3] == PAYLOAD_SIZE)
+        cs_ok = _checksums(rows) == _stored_checksums(rows)
+        rep.checksum_failures = int((~cs_ok).sum())
+        rep.header_failures = int((~head_ok).sum())
+        nums = ((rows[:, 1].astype(np.int64) << 8) | rows[:, 2]).tolist()
+        rep.failed_packet_numbers = nums
+        dropped += [("header" if not h else "checksum", k, o) for h, k, o in zip(head_ok, nums, failed.tolist())]
+
+    pk = b[off[:, None] + _ROW].view(PACKET_DTYPE)[:, 0]
+    number = pk["number"].astype(np.int64)
+    # Serial-number arithmetic: a late packet is a small step back, not a 2^16 gap.
+    step = _serial(np.diff(number))
+    if number.size >= 3:
+        # One wrong number (a checksum-blind edit) makes two large steps whose wrapped sum can be
+        # off by 2^16, which would move every later packet by 2^16 numbers: an isolated outlier —
+        # both steps beyond _ISOLATED_STEP while its neighbours are close to each other — is
+        # stepped over (the timestamp check then drops it).
+        a, after = step[:-1], step[1:]
+        direct = _serial(number[2:] - number[:-2])
+        iso = (np.abs(a) > _ISOLATED_STEP) & (np.abs(after) > _ISOLATED_STEP) & (np.abs(direct) <= _ISOLATED_STEP)
+        step[1:] = np.where(iso, direct - a, after)
+    seq = number[0] + np.concatenate(([0], np.cumsum(step)))
+    stamp = pk["timestamp"].astype(np.int64)
+    M32 = 1 << 32
+    u = (stamp - NOMINAL_PERIOD_TICKS * seq) % M32  # the packet's offset from its number's grid
+    mid = u[u.size // 2]
+    c = mid + int(np.median((u - mid + (M32 >> 1)) % M32 - (M32 >> 1)))
+    res = (u - c + (M32 >> 1)) % M32 - (M32 >> 1)
+
+    order = np.argsort(seq, kind="stable")  # number order; copies stay in arrival order
+    keep = np.ones(off.size, dtype=bool)
+    # The first packet of the stream sits off the grid (its lead): it is the lowest number whose
+    # stamp is on the grid or at most the lead after it (a wrong number elsewhere that sorts
+    # earlier is neither), and it never serves as a reference for the others.
+    dev, tol = _stamp_deviation(res[order], seq[order])
+    like = (dev >= -tol) & (dev <= FIRST_PACKET_LEAD_TICKS)
+    first = seq[order] == (seq[order][like][0] if like.any() else seq[order][0])
+    dev, tol = _stamp_deviation(res[order], seq[order], ref_ok=~first)
+    bad_t = np.abs(dev) > tol
+    lead = first & (dev > 0) & (dev <= FIRST_PACKET_LEAD_TICKS)
+    bad_t &= ~lead
+    if lead.any():
+        rep.first_packet_lead_ticks = float(dev[lead][0])
+    keep[order[bad_t]] = False
+
+    # Copies of one number: identical bytes → one packet sent twice; different → a conflict.
+    o2 = order[keep[order]]
+    s2 = seq[o2]
+    same_num = s2[1:] == s2[:-1]
+    dup = np.zeros(o2.size, dtype=bool)
+    conflict = np.zeros(o2.size, dtype=bool)
+    if same_num.any():
+        raw_bytes = b[off[o2][:, None] + _ROW]
+        identical = same_num & (raw_bytes[1:] == raw_bytes[:-1]).all(1)
+        dup[1:] = identical
+        group = np.concatenate(([0], np.cumsum(~same_num)))
+        bad_groups = np.unique(group[1:][same_num & ~identical])
+        conflict = np.isin(group, bad_groups)
+        dup &= ~conflict
+    keep[o2[dup | conflict]] = False
+
+    o3 = order[keep[order]]
+    bad_r, bad_j = _implausible(pk["data"][o3].astype(np.int16), seq[o3])
+    bad_j &= ~bad_r
+    keep[o3[bad_r | bad_j]] = False
+
+    reason = np.full(off.size, "", dtype=object)
+    reason[order[bad_t]] = "timestamp"
+    reason[o2[dup]] = "duplicate"
+    reason[o2[conflict]] = "conflict"
+    reason[o3[bad_r]] = "range"
+    reason[o3[bad_j]] = "jump"
+    for r in DROP_REASONS[2:]:
+        idx = np.flatnonzero(reason == r)
+        dropped += [(r, int(number[i]), int(off[i])) for i in idx]
+    dropped.sort(key=lambda d: d[2])
+    rep.dropped = [list(d) for d in dropped]
+    starts = [d[2] for d in dropped if d[0] != "duplicate"][:1] + [r[0] for r in skipped[:1]]
+    rep.first_failure_offset = min(starts) if starts else None
+    counts = rep.drop_counts
+    rep.duplicate_packets = counts["duplicate"]
+    rep.timestamp_failures = counts["timestamp"]
+    rep.conflicting_packets = counts["conflict"]
+    rep.range_failures = counts["range"]
+    rep.jump_failures = counts["jump"]
+
+    kept_arrival = np.flatnonzero(keep)  # arrival order
+    late = np.zeros(kept_arrival.size, dtype=bool)
+    late[1:] = seq[kept_arrival][1:] < np.maximum.accumulate(seq[kept_arrival])[:-1]
+    rep.reordered = [[int(number[i]), int(off[i])] for i in kept_arrival[late]]
+    rep.reordered_packets = len(rep.reordered)
+
+    k = order[keep[order]]
+    rep.packets_kept = int(k.size)
+    damaged = rep.packets_read - rep.packets_kept - rep.duplicate_packets
+    junk = rep.bytes_skipped + (0 if rep.ack_present else rep.leading_bytes)
+    frac = (damaged + junk / PACKET_SIZE) / (rep.packets_read + junk / PACKET_SIZE)
+    if frac > max_fail_fraction or k.size == 0:
+        why = {**{r: v for r, v in counts.items() if v and r != "duplicate"}}
+        why_txt = ", ".join(f"{r} {v}" for r, v in why.items()) or "none"
+        raise RecordingError(
+            f"{name}: {damaged} of {rep.packets_read} packets fail verification ({why_txt})"
+            + (f" and {junk} bytes are skipped to resynchronise" if junk else "")
+            + f" ({100 * frac:.1f} % > {100 * max_fail_fraction:g} %; first at byte {rep.first_failure_offset}): "
             "not an MIMU stream, or corrupted/misaligned"
         )
 
-    number = pk["number"][good].astype(np.int64)
-    stamp = pk["timestamp"][good].astype(np.int64)
-    raw = pk["data"][good].astype(np.int16)
-    # Duplicates (same number and stamp as the previous packet) carry no new sample.
-    dup = np.concatenate(([False], (np.diff(number) == 0) & (np.diff(stamp) == 0)))
-    if dup.any():
-        rep.duplicate_packets = int(dup.sum())
-        number, stamp, raw = number[~dup], stamp[~dup], raw[~dup]
-    rep.packets_kept = int(number.size)
-
-    dn = np.diff(number) % 65536
-    rep.packet_number_wraps = int((np.diff(number) < 0).sum())
+    seq_k = seq[k]
+    ticks = stamp[k[0]] + NOMINAL_PERIOD_TICKS * (seq_k - seq_k[0]) + (res[k] - res[k[0]])
+    d = np.diff(ticks)
+    if (d <= 0).any():  # cannot happen after the checks above; refuse rather than write it
+        i = int(np.flatnonzero(d <= 0)[0])
+        raise RecordingError(
+            f"{name}: timestamp: expected strictly increasing stamps, packet {int(number[k[i + 1]])} "
+            f"is stamped no later than packet {int(number[k[i]])}"
+        )
+    dn = np.diff(seq_k)
     gap = dn != 1
     if gap.any():
         idx = np.flatnonzero(gap)
-        # dn == 0 with a different stamp: a repeated number, i.e. 65536 packets apart (or garbage).
-        miss = np.where(dn[idx] == 0, 65535, dn[idx] - 1)
-        rep.missing_packets = int(miss.sum())
-        rep.gaps = [[int(number[i]), int(m)] for i, m in zip(idx[:_MAX_LISTED], miss[:_MAX_LISTED])]
-        dn = np.where(dn == 0, 65536, dn)
-
-    # Unwrap the 32-bit stamps: the packet-number step predicts each interval, which fixes how
-    # many 2^32 wraps it spans even across a long gap.
-    d_mod = np.diff(stamp) % (1 << 32)
-    wraps = np.maximum(np.rint((dn * NOMINAL_PERIOD_TICKS - d_mod) / float(1 << 32)), 0).astype(np.int64)
-    d = d_mod + wraps * (1 << 32)
-    if (d <= 0).any():
-        i = int(np.flatnonzero(d <= 0)[0])
-        raise RecordingError(
-            f"{name}: timestamp: expected strictly increasing stamps, packet {int(number[i + 1])} "
-            f"repeats the stamp of packet {int(number[i])}"
-        )
-    ticks = stamp[0] + np.concatenate(([0], np.cumsum(d)))
-    rep.timestamp_wraps = int(ticks[-1] // (1 << 32) - ticks[0] // (1 << 32))
+        rep.missing_packets = int((dn[idx] - 1).sum())
+        rep.gaps = [[int(number[k[i]]), int(dn[i] - 1)] for i in idx]
+    rep.packet_number_wraps = int(seq_k[-1] // (1 << 16) - seq_k[0] // (1 << 16))
+    rep.timestamp_wraps = int(ticks[-1] // M32 - ticks[0] // M32)
 
     if ticks.size > 1:
         rep.duration_s = float((ticks[-1] - ticks[0]) / TICK_HZ)
@@ -319,20 +686,26 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
         rep.first_interval_ticks = float(d[0]) if dn[0] == 1 else float("nan")
         rest = d[1:][dn[1:] == 1] if d.size > 1 else single
         ref = rest if rest.size else single
-        rep.period_median_ticks = float(np.median(ref))
-        rep.sample_rate_hz = TICK_HZ / rep.period_median_ticks
+        if ref.size:
+            rep.period_median_ticks = float(np.median(ref))
+            rep.sample_rate_hz = TICK_HZ / rep.period_median_ticks
         if rest.size:
             rep.jitter_std_ticks = float(rest.std())
             rep.jitter_max_ticks = float(np.abs(rest - rep.period_median_ticks).max())
-    return MimuStream(number=number.astype(np.uint16), ticks=ticks, raw=raw), rep
+    stream = MimuStream(number=number[k].astype(np.uint16), ticks=ticks, raw=pk["data"][k].astype(np.int16),
+                        offset=off[k])
+    return stream, rep
 
 
 def read_mimu_stream(path, *, max_fail_fraction: float = 0.01) -> tuple[MimuStream, ImportReport]:
     """Read and verify a MIMU4444 stream file (``.bin`` or gzip, told by its magic bytes).
 
-    Returns the valid packets (:class:`MimuStream`: packet numbers, unwrapped 64 MHz ticks,
-    int16 counts) and an :class:`ImportReport`.  Raises :class:`RecordingError` if the file is
-    not an MIMU stream or more than ``max_fail_fraction`` of its packets fail verification.
+    Returns the kept packets in packet-number order (:class:`MimuStream`: packet numbers,
+    unwrapped 64 MHz ticks, int16 counts, byte offsets) and an :class:`ImportReport` listing
+    every dropped, skipped and reordered packet (module docstring).  Raises
+    :class:`RecordingError` if the file is not an MIMU stream or more than
+    ``max_fail_fraction`` of it is damaged (dropped packets other than duplicates, plus skipped
+    bytes in 106-byte packets).
     """
     p = Path(path)
     data, gz = read_mimu_bytes(p)
@@ -418,8 +791,11 @@ def recording_from_stream(stream: MimuStream, report: ImportReport, *, nominal: 
         f"command ack {'present' if report.ack_present else 'absent'}; "
         f"{report.packets_read} packets read, {report.packets_kept} kept, "
         f"{report.checksum_failures} checksum failures, {report.header_failures} header failures, "
-        f"{report.partial_bytes} trailing partial bytes ignored, {report.missing_packets} missing packet numbers; "
-        f"time = measured timestamps (64 MHz, unwrapped); {noise_phrase}; imported by accel_bayes.data.mimu"
+        f"{report.partial_bytes} trailing partial bytes ignored, {report.missing_packets} missing packet numbers, "
+        f"{report.bytes_skipped} bytes skipped to resynchronise, "
+        f"{report.reordered_packets} late packets put back in number order, dropped packets by reason "
+        + json.dumps({k: v for k, v in report.drop_counts.items() if v}) + "; "
+        f"time = measured timestamps (64 MHz, unwrapped by packet number); {noise_phrase}; imported by accel_bayes.data.mimu"
     )
     summary = report.to_dict()
     rec = Recording(

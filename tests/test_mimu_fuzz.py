@@ -1,0 +1,145 @@
+"""Fuzz test of the MIMU4444 importer (issue #13 part A) and its plausibility checks.
+
+The fuzzer and its oracle live in ``experiments/mimu_fuzz.py`` (the 10⁴-stream study); the oracle
+knows from construction which packets are intact and what every packet number's true values and
+stamp were, independently of the importer.  Default suite: 300 seeded variants of 250-packet
+streams (a few seconds); the 10⁴ of the study behind ``slow``.
+"""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+
+import mimu_fuzz as mf  # noqa: E402
+
+from accel_bayes.data.mimu import MIMU_ACK, NOMINAL_PERIOD_TICKS, decode_mimu_bytes, encode_mimu_packets  # noqa: E402
+
+
+def _check(verdicts, min_applied):
+    summ = mf.summarise(verdicts)
+    assert summ["crashes"] == 0, [v.crashed for v in verdicts if v.crashed]
+    assert summ["refused_any_threshold"] == 0  # something valid is always left to keep
+    assert summ["max_seconds"] < 1.0  # no hang (a 250–400-packet stream decodes in ~10 ms)
+    unexplained = [(v.events, w) for v in verdicts for w in v.wrong if w[1] is None]
+    assert unexplained == []
+    assert summ["intact_kept_fraction"] >= 0.999, summ["intact_kept_fraction"]
+    for op, c in summ["per_operator"].items():
+        if op in mf.OPERATORS:
+            assert c.get("applied", 0) >= min_applied, (op, c)  # the mix really covers every operator
+        # only checksum-blind edits can leave a wrong value; no structural operator may
+        if op not in ("bitflip2", "byteswap", "pm_edit"):
+            assert c.get("wrong_kept", 0) == 0, (op, c)
+    return summ
+
+
+def test_fuzz_few_hundred_variants():
+    verdicts = mf.run(300, 250, seed=2026, default_threshold=False)
+    summ = _check(verdicts, min_applied=15)
+    # The damage is real: packets were dropped, bytes skipped, packets put back in order.
+    assert sum(v.intact for v in verdicts) < 300 * 250
+    assert summ["wrong_kept"] < 0.01 * sum(v.kept for v in verdicts)
+
+
+def test_fuzz_is_reproducible():
+    a = mf.run(20, 250, seed=5, default_threshold=False)
+    b = mf.run(20, 250, seed=5, default_threshold=False)
+    assert [(v.events, v.kept, v.intact, v.wrong) for v in a] == [(v.events, v.kept, v.intact, v.wrong) for v in b]
+
+
+@pytest.mark.slow
+def test_fuzz_ten_thousand_variants():
+    summ = _check(mf.run(10_000, 400, seed=13), min_applied=1000)
+    assert summ["variants"] == 10_000
+
+
+# ---------------------------------------------------------------------------------------- oracle
+def test_oracle_sees_intact_and_damaged_packets():
+    rng = np.random.default_rng(0)
+    numbers, stamps, raw = mf.board_stream(50, rng)
+    original = encode_mimu_packets(numbers, stamps, raw)
+    d = mf.damage(numbers, stamps, raw, rng, n_ops=0)
+    assert mf.intact_items(d, original) == {k: k for k in range(50)}
+    d.data[4 + 10 * 106 + 30] ^= 4  # packet 10 damaged in place
+    d.data[4 + 20 * 106 : 4 + 20 * 106 + 3] = b""  # packet 20 loses 3 bytes
+    d.owner = np.delete(d.owner, np.arange(4 + 20 * 106, 4 + 20 * 106 + 3))
+    assert sorted(mf.intact_items(d, original).values()) == [k for k in range(50) if k not in (10, 20)]
+
+
+def test_oracle_explains_only_the_blind_spot():
+    rng = np.random.default_rng(1)
+    numbers, stamps, raw = mf.board_stream(50, rng)
+    env = mf.blind_envelope(raw)[25]
+    pkt = bytes(encode_mimu_packets(numbers[25:26], stamps[25:26], raw[25:26], ack=False))
+    wrong = raw[25].copy()
+    wrong[3, 1] += 1  # one LSB: far below any bound, checksum recomputed below
+    ok_pkt = encode_mimu_packets(numbers[25:26], stamps[25:26], wrong[None], ack=False)
+    assert mf.explain_residue(wrong, raw[25], 0, ok_pkt, env) == "below bound"
+    bad_sum = ok_pkt[:-1] + bytes([ok_pkt[-1] ^ 1])
+    assert mf.explain_residue(wrong, raw[25], 0, bad_sum, env) is None  # checksum would have failed
+    big = raw[25].copy()
+    big[3, 1] += 20000  # one IMU alone, far off: the range rule must have seen it
+    big_pkt = encode_mimu_packets(numbers[25:26], stamps[25:26], big[None], ack=False)
+    assert mf.explain_residue(big, raw[25], 0, big_pkt, env) is None
+    assert mf.explain_residue(raw[25], raw[25], 40, pkt, env) is None  # 40 ticks: beyond the jitter
+
+
+# ---------------------------------------------------------------------------------------- plausibility
+def _rest(n=300, seed=4):
+    """A board at rest (1 g along array z), written out by hand: the bottom IMUs (packet order
+    2, 4, 6, 8) read z negated; ±8 LSB of noise."""
+    rng = np.random.default_rng(seed)
+    raw = rng.integers(-8, 9, size=(n, 8, 6))
+    raw[:, 0::2, 2] += 2048
+    raw[:, 1::2, 2] -= 2048
+    numbers = 700 + np.arange(n)
+    stamps = 3 + numbers * NOMINAL_PERIOD_TICKS
+    return numbers, stamps, raw
+
+
+def test_range_violation_is_dropped():
+    numbers, stamps, raw = _rest()
+    raw[100, 5, 4] += 2000  # IMU 6's gyro y, one sample: 122 °/s on a board at rest
+    raw[150, 2, 0] += 500  # IMU 3's acc x by 0.24 g: inside the 0.5 g floor, kept (the blind spot)
+    s, rep = decode_mimu_bytes(encode_mimu_packets(numbers, stamps, raw))
+    assert rep.dropped == [["range", int(numbers[100]), 4 + 100 * 106]]
+    assert rep.range_failures == 1 and rep.jump_failures == 0
+    assert s.raw[149, 2, 0] == raw[150, 2, 0]  # index 149: packet 100 is gone
+
+
+def test_jump_without_range_is_dropped():
+    numbers, stamps, raw = _rest()
+    # IMU 3's acc x zig-zags −800, +800, −800 LSB: every level within the 1024-LSB floor, but a
+    # 1600-LSB one-sample jump of one IMU that the seven others do not make.
+    raw[199:202, 2, 0] += np.array([-800, 800, -800])
+    s, rep = decode_mimu_bytes(encode_mimu_packets(numbers, stamps, raw))
+    assert rep.dropped == [["jump", int(numbers[200]), 4 + 200 * 106]]
+    assert rep.jump_failures == 1 and rep.range_failures == 0
+
+
+def test_out_of_range_packet_does_not_condemn_its_neighbour():
+    # Found by the fuzz study: the last packet out of range made the one before it "jump".
+    numbers, stamps, raw = _rest()
+    raw[-1, 3, 0] += 5000
+    s, rep = decode_mimu_bytes(encode_mimu_packets(numbers, stamps, raw))
+    assert rep.dropped == [["range", int(numbers[-1]), 4 + 299 * 106]]
+
+
+def test_moving_board_is_not_questioned():
+    # 2000 packets of the fuzz study's smooth motion (up to ~700 °/s, ~3 g): nothing dropped.
+    numbers, stamps, raw = mf.board_stream(2000, np.random.default_rng(11))
+    s, rep = decode_mimu_bytes(encode_mimu_packets(numbers, stamps, raw))
+    assert rep.dropped == [] and rep.packets_kept == 2000
+    assert np.array_equal(s.raw, raw)
+
+
+def test_saturation_is_exempt_but_a_lone_near_full_scale_value_is_not():
+    numbers, stamps, raw = _rest()
+    raw[60, 0, 3] = 32767  # one IMU saturated at +2000 °/s: exempt (IMUs saturate ±3 % apart)
+    raw[90, 2, 4] = raw[90, 4, 4] = 31000  # two IMUs near full scale on one channel: exempt
+    raw[120, 6, 5] = 31000  # one IMU alone near full scale, the board at rest: out of range
+    s, rep = decode_mimu_bytes(MIMU_ACK + encode_mimu_packets(numbers, stamps, raw, ack=False))
+    assert rep.dropped == [["range", int(numbers[120]), 4 + 120 * 106]]
+    assert s.raw[60, 0, 3] == 32767 and s.raw[90, 2, 4] == 31000
