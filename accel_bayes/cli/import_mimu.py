@@ -28,7 +28,9 @@ def register(subparsers) -> None:
     p.add_argument("--min-static-s", type=opt.positive("s"), default=3.0,
                    help="shortest static segment kept, seconds (default 3)")
     p.add_argument("--max-fail-fraction", type=opt.fraction(), default=0.01,
-                   help="refuse the file if more packets than this fail their checksum (default 0.01)")
+                   help="refuse the file if more than this fraction of the stream is damaged: packets dropped for a "
+                        "checksum, header, stamp or plausibility failure (duplicates not counted) plus the bytes "
+                        "skipped to resynchronise, in packet units (default 0.01)")
     p.set_defaults(func=run)
 
 

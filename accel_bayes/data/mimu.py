@@ -828,7 +828,8 @@ def import_mimu(path, *, nominal: SensorArray | None = None, max_fail_fraction: 
     path : the stream file (gzip recognised by its magic bytes).
     nominal : the board design (default :func:`mimu4444_8`, packet order): nominal positions and
         orientations written to the recording.
-    max_fail_fraction : refuse the file when more packets than this fail verification.
+    max_fail_fraction : refuse the file when more than this fraction of the stream is damaged
+        (module docstring, "Refusal").
     tol_deg : rests whose gravity directions agree within this angle are one orientation.
     return_report : also return the :class:`ImportReport` and the
         :class:`~accel_bayes.data.segments.StaticAnalysis`.
