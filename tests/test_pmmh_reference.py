@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from accel_bayes.inference.pmmh import PMMHKernel, run_pmmh
-from accel_bayes.inference.priors import GaussianPrior
+from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh
+from accel_bayes.inference.mcmc.priors import GaussianPrior
 
 DATA = Path(__file__).parent / "data"
 REFERENCE = DATA / "pmmh_reference.npz"
