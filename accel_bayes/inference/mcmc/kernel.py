@@ -1,8 +1,8 @@
 """The PmMH kernel ([C21] Alg. 1, §III-C; DESIGN §5), a Pyro ``MCMCKernel``.
 
 The state machine is a handful of private attributes — the chain's generator, the current θ with
-its **cached** log p̂ and log prior, the iteration counter ``_t`` and the acceptance counters —
-plus the proposals (:mod:`.proposals`) and the warm-up adaptation (:mod:`.adaptation`) it owns.
+its **cached** log p̂ and log prior, the iteration counter ``_t`` and the acceptance counters
+(:class:`AcceptanceStats`, reporting only) — plus the proposals (:mod:`.proposals`) and the warm-up adaptation (:mod:`.adaptation`) it owns.
 :meth:`PMMHKernel.setup` re-initialises all of them for a chain, :meth:`PMMHKernel.sample` does
 exactly one transition, :meth:`PMMHKernel.logging` and :meth:`PMMHKernel.diagnostics` only
 report, and :meth:`PMMHKernel.state_dict` / :meth:`PMMHKernel.load_state_dict` save and restore
@@ -24,7 +24,7 @@ from .adaptation import CovarianceAdapter, StepSizeAdapter, WarmupAdaptation
 from .proposals import (MOVE_IND, MOVE_RW, IndependenceProposal, ProposalMixture, RandomWalkProposal,
                         cholesky_factor)
 
-__all__ = ["PMMHKernel", "Transition", "chain_seed"]
+__all__ = ["PMMHKernel", "Transition", "AcceptanceStats", "chain_seed"]
 
 
 def chain_seed(seed: int, chain: int, theta0: torch.Tensor | None) -> int:
@@ -35,6 +35,49 @@ def chain_seed(seed: int, chain: int, theta0: torch.Tensor | None) -> int:
     if theta0 is not None:
         h.update(theta0.detach().to(torch.float64).cpu().contiguous().numpy().tobytes())
     return int.from_bytes(h.digest()[:8], "little") & 0x7FFF_FFFF_FFFF_FFFF
+
+
+class AcceptanceStats:
+    """Counters of one chain, for reporting only (they never influence a transition): accepted and
+    proposed moves in warm-up and after it, post-warm-up counts by move type, the running mean of
+    the MH probability in the current phase, and the iterations whose proposal gave a non-finite
+    likelihood estimate ("divergences")."""
+
+    def __init__(self):
+        self.n_accept = {"warmup": [0, 0], "sample": [0, 0]}  # [accepted, proposed]
+        self.n_move = {MOVE_RW: [0, 0], MOVE_IND: [0, 0]}  # post-warm-up, by move type
+        self.mean_accept_prob = 0.0
+        self.divergences = []
+
+    def record(self, warm: bool, move: int, accepted: bool, alpha: float) -> None:
+        phase = "warmup" if warm else "sample"
+        self.n_accept[phase][0] += int(accepted)
+        self.n_accept[phase][1] += 1
+        if not warm:
+            self.n_move[move][0] += int(accepted)
+            self.n_move[move][1] += 1
+        n = self.n_accept[phase][1]
+        self.mean_accept_prob += (alpha - self.mean_accept_prob) / n
+
+    def rate(self, phase: str) -> float:
+        """Acceptance rate of ``phase`` ("warmup" or "sample"); 0 before any move."""
+        return self.n_accept[phase][0] / max(1, self.n_accept[phase][1])
+
+    def move_rate(self, move: int) -> float:
+        """Post-warm-up acceptance rate of one move type; NaN before any."""
+        a, m = self.n_move[move]
+        return a / m if m else float("nan")
+
+    def state_dict(self) -> dict:
+        return {"n_accept": {k: list(v) for k, v in self.n_accept.items()},
+                "n_move": {str(k): list(v) for k, v in self.n_move.items()},
+                "mean_accept_prob": self.mean_accept_prob, "divergences": list(self.divergences)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.n_accept = {k: list(v) for k, v in state["n_accept"].items()}
+        self.n_move = {int(k): list(v) for k, v in state["n_move"].items()}
+        self.mean_accept_prob = float(state["mean_accept_prob"])
+        self.divergences = list(state["divergences"])
 
 
 class Transition(NamedTuple):
@@ -233,10 +276,7 @@ class PMMHKernel(MCMCKernel):
         else:
             self._ind.set(None, None)
         self._adaptation.setup(self._warmup_steps)
-        self._n_accept = {"warmup": [0, 0], "sample": [0, 0]}  # [accepted, proposed]
-        self._n_move = {MOVE_RW: [0, 0], MOVE_IND: [0, 0]}  # post-warm-up, by move type
-        self._mean_accept_prob = 0.0
-        self._divergences = []
+        self._stats = AcceptanceStats()
         self._theta = theta0.clone()
         self._log_prior = self.prior.log_prob(self._theta)
         if not bool(torch.isfinite(self._log_prior)):
@@ -285,16 +325,9 @@ class PMMHKernel(MCMCKernel):
                     self._log_phat = lphat_p
                     self._log_prior = lprior_p
             else:
-                self._divergences.append(self._t)
+                self._stats.divergences.append(self._t)
         self._last = (accepted, alpha, move)
-        phase = "warmup" if warm else "sample"
-        self._n_accept[phase][0] += int(accepted)
-        self._n_accept[phase][1] += 1
-        if not warm:
-            self._n_move[move][0] += int(accepted)
-            self._n_move[move][1] += 1
-        n = self._n_accept[phase][1]
-        self._mean_accept_prob += (alpha - self._mean_accept_prob) / n
+        self._stats.record(warm, move, accepted, alpha)
         self._t += 1
         if warm:
             self._adaptation.step(self._t, alpha, move == MOVE_IND, self._theta, self._rw, self._ind)
@@ -307,28 +340,26 @@ class PMMHKernel(MCMCKernel):
     def logging(self):
         phase = "warmup" if self.warming_up else "sample"
         out = OrderedDict([
-            ("acc. rate", "{:.3f}".format(self._n_accept[phase][0] / max(1, self._n_accept[phase][1]))),
+            ("acc. rate", "{:.3f}".format(self._stats.rate(phase))),
             ("step", "{:.2e}".format(self.step_size)),
         ])
         if self.independence_prob > 0 and not self.warming_up:
             # The 7–23 % target of the step adaptation concerns the random-walk moves; the overall
             # rate above also counts the (mostly accepted) independence moves.
-            a, m = self._n_move[MOVE_RW]
-            out["rw acc."] = "{:.3f}".format(a / m if m else float("nan"))
+            out["rw acc."] = "{:.3f}".format(self._stats.move_rate(MOVE_RW))
         return out
 
     def diagnostics(self):
-        acc, n = self._n_accept["sample"]
-        out = {
-            "divergences": list(self._divergences),
+        st = self._stats
+        acc, n = st.n_accept["sample"]
+        return {
+            "divergences": list(st.divergences),
             "acceptance rate": acc / n if n else float("nan"),
             "step size": self.step_size,
-            "warmup acceptance rate": self._n_accept["warmup"][0] / max(1, self._n_accept["warmup"][1]),
+            "warmup acceptance rate": st.rate("warmup"),
+            "random-walk acceptance rate": st.move_rate(MOVE_RW),
+            "independence acceptance rate": st.move_rate(MOVE_IND),
         }
-        for mv, nm in ((MOVE_RW, "random-walk acceptance rate"), (MOVE_IND, "independence acceptance rate")):
-            a, m = self._n_move[mv]
-            out[nm] = a / m if m else float("nan")
-        return out
 
     @property
     def last(self) -> Transition:
@@ -383,9 +414,7 @@ class PMMHKernel(MCMCKernel):
             "prop_cov": self._rw.cov.clone(),
             "ind_mean": None if self._ind.mean is None else self._ind.mean.clone(),
             "ind_cov": None if self._ind.cov is None else self._ind.cov.clone(),
-            "n_accept": {k: list(v) for k, v in self._n_accept.items()},
-            "n_move": {str(k): list(v) for k, v in self._n_move.items()},
-            "mean_accept_prob": self._mean_accept_prob, "divergences": list(self._divergences),
+            **self._stats.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -405,9 +434,7 @@ class PMMHKernel(MCMCKernel):
                       None if state["ind_cov"] is None else state["ind_cov"].clone())
         self._adaptation.setup(self._warmup_steps)
         self._adaptation.load_state_dict(state)
-        self._n_accept = {k: list(v) for k, v in state["n_accept"].items()}
-        self._n_move = {int(k): list(v) for k, v in state["n_move"].items()}
-        self._mean_accept_prob = float(state["mean_accept_prob"])
-        self._divergences = list(state["divergences"])
+        self._stats = AcceptanceStats()
+        self._stats.load_state_dict(state)
         self._initial_params = {self.site: self._theta.clone()}
         self._last = (False, 0.0, MOVE_RW)
