@@ -25,6 +25,9 @@ MOVED_MODULES = {
     "segments": "data.segments", "positions": "data.positions", "csv_import": "data.csv_import",
     "export": "data.export", "outputs": "data.outputs",
     "intrinsics": "prep.intrinsics", "preprocess": "prep.preprocess", "noise": "prep.noise",
+    "inference.pmmh": "inference.mcmc", "inference.priors": "inference.mcmc.priors",
+    "inference.damping": "inference.lm.damping", "inference.linear": "inference.lm.linear",
+    "inference.robust": "inference.lm.robust",
 }
 
 

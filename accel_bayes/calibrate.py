@@ -17,7 +17,7 @@
    proposal;
 4. N, the number of Monte Carlo draws per likelihood estimate, chosen so that Var[log p̂] ≈ 1
    at the central θ ([C21] §III-C, accepted range 0.1–3);
-5. C chains of :class:`~accel_bayes.inference.pmmh.PMMHKernel` (warm-up adaptation, then a
+5. C chains of :class:`~accel_bayes.inference.mcmc.PMMHKernel` (warm-up adaptation, then a
    fixed exact kernel), crash-safe when a checkpoint file is given;
 6. ArviZ diagnostics and the DESIGN §7.3 ``positions.json``.
 
@@ -41,8 +41,8 @@ from . import __version__
 from . import diagnostics as dg
 from .data import positions as _positions_mod
 from .errors import UserError
-from .inference.pmmh import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
-from .inference.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
+from .inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
+from .inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
 from .likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
     positions_from_theta
 from .prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
@@ -98,7 +98,7 @@ class CalibrationResult:
     positions : the DESIGN §7.3 ``positions.json`` document (a dict).
     settings : every setting used (including the N chosen and its variance table).
     seconds : wall time of the whole calibration.
-    run : the :class:`~accel_bayes.inference.pmmh.PMMHRun` (draws and per-draw statistics).
+    run : the :class:`~accel_bayes.inference.mcmc.PMMHRun` (draws and per-draw statistics).
     map_result : the MAP result when one was used, else None.
     array : the :class:`~accel_bayes.physics.arrays.SensorArray` of the recording (for plots).
     """
@@ -398,7 +398,7 @@ def calibrate(
         uses at most 0.5 so the random walk's step size adapts).
     target_accept_prob : random-walk acceptance targeted in warm-up (default 0.15).
     progress : tqdm bars (stderr) with the acceptance rate.
-    checkpoint, checkpoint_every, resume : see :func:`accel_bayes.inference.pmmh.run_pmmh`.
+    checkpoint, checkpoint_every, resume : see :func:`accel_bayes.inference.mcmc.run_pmmh`.
     callback : ``callback(chain, iteration, kernel)`` after every iteration.
 
     Returns a :class:`CalibrationResult`.

@@ -63,8 +63,8 @@ import torch
 
 from .errors import UserError
 from .physics.geometry import quat_to_matrix
-from .inference.damping import NielsenDamping
-from .inference.linear import damped_step
+from .inference.lm.damping import NielsenDamping
+from .inference.lm.linear import damped_step
 from .inference.lm import BatchedLevenbergMarquardt, StoppingRule
 from .physics.models import specific_force
 from .physics.jacobians import AxisProjection, axis_force, axis_force_jacobian, df_dr
@@ -243,7 +243,7 @@ def gauss_newton_steps(geo: AxisProjection, d: _Data, x0, steps: int = 2):
     """``steps`` undamped Gauss–Newton steps from ``x0`` (*G, N, 9) — for re-solving under a
     slightly perturbed geometry, starting at the unperturbed optimum (quadratic convergence: a
     relative perturbation ε leaves an error of order ε^(2^steps)).  The linear solve is the
-    batched LM's (:func:`~accel_bayes.inference.linear.damped_step`, no damping).  Returns (x,
+    batched LM's (:func:`~accel_bayes.inference.lm.linear.damped_step`, no damping).  Returns (x,
     the last step (*G, N, 9))."""
     x = x0.clone()
     step = torch.zeros_like(x)

@@ -8,7 +8,7 @@ and the motion of the motion-only warm start (the joint stage of ``self_calibrat
 
 * ours: :class:`accel_bayes.inference.lm.LevenbergMarquardt` with analytic Jacobians and the
   Schur complement of the block-tridiagonal motion system (``SchurComplementSolver`` with the
-  banded-Cholesky factor of :mod:`accel_bayes.inference.linear`);
+  banded-Cholesky factor of :mod:`accel_bayes.inference.lm.linear`);
 * peer: ``scipy.optimize.least_squares(method="trf", jac_sparsity=...)`` — finite-difference
   Jacobian with column grouping from the sparsity pattern, LSMR trust-region solves with
   tolerances atol = btol = 1e-12 and ``x_scale="jac"``.  With SciPy's defaults (LSMR tolerance
@@ -66,8 +66,8 @@ def make_problem(T: int, seed: int = 1):
 
 def warm_start(z, dt, proto):
     """Motion-only LM at the plan poses (the first stage of self_calibrate)."""
-    from accel_bayes.inference.damping import NielsenDamping
-    from accel_bayes.inference.linear import SchurComplementSolver
+    from accel_bayes.inference.lm.damping import NielsenDamping
+    from accel_bayes.inference.lm.linear import SchurComplementSolver
     from accel_bayes.inference.lm import LevenbergMarquardt
     from accel_bayes.inference.selfcal import build_problem, process_sqrt_information
 
@@ -85,8 +85,8 @@ FTOL, XTOL, GTOL = 1e-12, 1e-12, 1e-10
 
 
 def run_ours(z, dt, proto, x0, inv, W, S, max_iter=300):
-    from accel_bayes.inference.damping import NielsenDamping
-    from accel_bayes.inference.linear import SchurComplementSolver
+    from accel_bayes.inference.lm.damping import NielsenDamping
+    from accel_bayes.inference.lm.linear import SchurComplementSolver
     from accel_bayes.inference.lm import LevenbergMarquardt
     from accel_bayes.inference.selfcal import build_problem
 
@@ -161,8 +161,8 @@ def run_scipy(fun, v0, pattern, max_nfev=None):
 def iteration_time(T: int, repeat: int) -> dict:
     """Wall time of one full, accepted LM iteration at T samples (best of ``repeat``), split into
     linearise / damped Schur solve / retraction + trial cost (s)."""
-    from accel_bayes.inference.damping import NielsenDamping
-    from accel_bayes.inference.linear import SchurComplementSolver
+    from accel_bayes.inference.lm.damping import NielsenDamping
+    from accel_bayes.inference.lm.linear import SchurComplementSolver
     from accel_bayes.inference.selfcal import build_problem, process_sqrt_information
 
     z, dt, proto, x = make_problem(T)

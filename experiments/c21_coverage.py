@@ -133,8 +133,8 @@ def replicate(i: int, T: int = 30, prior_std: float = 3e-3, chains: int = 4, dra
 
     from accel_bayes import diagnostics as dg
     from accel_bayes.inference.map import fit_map
-    from accel_bayes.inference.pmmh import PMMHKernel, run_pmmh
-    from accel_bayes.inference.priors import GaussianPrior
+    from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh
+    from accel_bayes.inference.mcmc.priors import GaussianPrior
     from accel_bayes.likelihood import RaoBlackwellLikelihood, choose_num_draws
     from accel_bayes.simulate import simulate
 

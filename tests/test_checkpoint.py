@@ -12,7 +12,7 @@ import torch
 import accel_bayes.calibrate as cal_mod
 from accel_bayes.physics.arrays import preset
 from accel_bayes.cli import main
-from accel_bayes.inference.pmmh import CHECKPOINT_FORMAT
+from accel_bayes.inference.mcmc import CHECKPOINT_FORMAT
 from accel_bayes.data.io import write_recording
 from accel_bayes.simulate import simulate
 

@@ -1,4 +1,4 @@
-"""The structured linear solvers of the LM graph solver (accel_bayes.inference.linear).
+"""The structured linear solvers of the LM graph solver (accel_bayes.inference.lm.linear).
 
 Independent reference: a dense ``torch.linalg.solve`` / ``torch.linalg.cholesky`` of the
 assembled matrix (small sizes only).  Tolerances: 1e-10 relative in float64 (the matrices are
@@ -7,7 +7,7 @@ well conditioned by construction), 1e-4 in float32.
 import pytest
 import torch
 
-from accel_bayes.inference.linear import (
+from accel_bayes.inference.lm.linear import (
     BlockDiagonalCholesky,
     BlockTridiagonalCholesky,
     NotPositiveDefinite,
@@ -119,7 +119,7 @@ def test_schur_forward_only_elimination_matches_dense(tri):
 def test_chunked_band_packing_and_triangular_solves_match_dense(monkeypatch):
     """The chunked paths (band packed in sample chunks, triangular solves in row chunks with the
     coupling to the neighbouring chunk subtracted) give the unchunked answer."""
-    import accel_bayes.inference.linear as lin
+    import accel_bayes.inference.lm.linear as lin
 
     T, d, k = 23, 3, 4
     D, E = _spd_block_tridiagonal(T, d, seed=21)

@@ -11,12 +11,12 @@ import scipy.optimize
 import torch
 
 from accel_bayes.physics.geometry import boxplus, quat_exp, quat_mul, quat_to_matrix, random_quaternion
-from accel_bayes.inference.damping import MarquardtDamping, NielsenDamping
+from accel_bayes.inference.lm.damping import MarquardtDamping, NielsenDamping
 from accel_bayes.inference.lm import (ChainResidual, ExtraCost, GlobalResidual, LevenbergMarquardt, Problem,
                                       SampleResidual, Variable, solve)
-from accel_bayes.inference.linear import (NotPositiveDefinite, SchurComplementSolver, block_tridiagonal_factor,
+from accel_bayes.inference.lm.linear import (NotPositiveDefinite, SchurComplementSolver, block_tridiagonal_factor,
                                           block_tridiagonal_solve, dense_from_blocks)
-from accel_bayes.inference.robust import CauchyLoss, HuberLoss
+from accel_bayes.inference.lm.robust import CauchyLoss, HuberLoss
 
 DT = torch.float64
 

@@ -16,8 +16,8 @@ import scipy.stats
 import torch
 
 from accel_bayes.errors import UserError
-from accel_bayes.inference.pmmh import PMMHKernel, regularized_cov, run_pmmh, warmup_windows
-from accel_bayes.inference.priors import BoxPrior, GaussianPrior
+from accel_bayes.inference.mcmc import PMMHKernel, regularized_cov, run_pmmh, warmup_windows
+from accel_bayes.inference.mcmc.priors import BoxPrior, GaussianPrior
 
 D = 6  # 3(A − 1) with A = 3 triads
 SIG_PRIOR = 3e-3

@@ -11,7 +11,7 @@ import torch
 from accel_bayes import s16_plate
 from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus, quat_to_matrix, random_quaternion, rotation_angle
-from accel_bayes.inference.linear import SchurComplementSolver, dense_from_blocks
+from accel_bayes.inference.lm.linear import SchurComplementSolver, dense_from_blocks
 from accel_bayes.inference.selfcal import (
     SelfCalDiverged,
     check_divergence,

@@ -160,7 +160,7 @@ def conventional_calibrate(
     Each triad is its own LM problem (the cost separates over triads, [S16] §III).
     """
     from .lm import LevenbergMarquardt, Problem, SampleResidual, Variable
-    from .linear import NotPositiveDefinite
+    from .lm.linear import NotPositiveDefinite
 
     t0 = _time.perf_counter()
     z = torch.as_tensor(acc, dtype=dtype, device=device)

@@ -34,7 +34,7 @@ import torch
 from ..errors import UserError
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis
 from ..physics.jacobians import df_dr, du_domega
-from .linear import SchurComplementSolver, cholesky
+from .lm.linear import SchurComplementSolver, cholesky
 
 __all__ = ["fisher_blocks", "fisher_information_theta", "crb_theta"]
 

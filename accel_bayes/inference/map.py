@@ -44,7 +44,7 @@ from ..likelihood import positions_from_theta, theta_from_positions
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
 from ..physics.jacobians import d2u_domega2, df_dr, du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
-from .linear import NotPositiveDefinite, SchurComplementSolver, cholesky
+from .lm.linear import NotPositiveDefinite, SchurComplementSolver, cholesky
 
 __all__ = ["MAPResult", "MAPDivergence", "fit_map", "fit_map_recording", "build_map_problem"]
 

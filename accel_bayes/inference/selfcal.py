@@ -475,9 +475,9 @@ def build_problem(
 
 
 def _run_lm(problem, *, max_iter, ftol, xtol, gtol, progress, desc, damping=None):
-    from .damping import MarquardtDamping
+    from .lm.damping import MarquardtDamping
     from .lm import LevenbergMarquardt
-    from .linear import SchurComplementSolver
+    from .lm.linear import SchurComplementSolver
 
     log = []
 
@@ -723,7 +723,7 @@ def _attach_covariance(out: SelfCalResult, res, A: int, fixed: int) -> None:
     The solver's cost is ½Σ‖e‖², so its Gauss–Newton matrix JᵀJ is the information matrix of the
     whitened model; its Schur complement over the motion is the information of the poses.
     """
-    from .linear import NotPositiveDefinite
+    from .lm.linear import NotPositiveDefinite
 
     try:
         C = res.covariance()

@@ -22,8 +22,8 @@ calibrated gyros) and is re-optimised under this objective, so "with" and "witho
 always two optima of the same function.
 
 Solver: Levenberg–Marquardt built from the package's LM pieces — Nielsen damping with Marquardt
-scaling (:mod:`accel_bayes.inference.damping`), the Schur-complement solver that eliminates the
-per-sample motion states (:class:`accel_bayes.inference.linear.SchurComplementSolver`, cost linear
+scaling (:mod:`accel_bayes.inference.lm.damping`), the Schur-complement solver that eliminates the
+per-sample motion states (:class:`accel_bayes.inference.lm.linear.SchurComplementSolver`, cost linear
 in T) and the stopping rules of :class:`accel_bayes.inference.lm.StoppingRule` — driven by a
 structure-aware linearisation: IMU k's rows depend on its own position only, so the normal
 equations are assembled from per-IMU 3×3 blocks and the dense (T·6K × 3K) position Jacobian that

@@ -68,7 +68,7 @@ import torch
 
 from ..constants import G0
 from ..errors import UserError
-from ..inference.damping import NielsenDamping
+from ..inference.lm.damping import NielsenDamping
 from ..inference.lm import BatchedLevenbergMarquardt, StoppingRule
 from ..data.recording import Recording
 from ..data.segments import cluster_orientations, detect_static, mask_from_labels, static_segments

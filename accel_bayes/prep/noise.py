@@ -391,7 +391,7 @@ def fit_map_tempered(acc, omega_mean, omega_cov, acc_noise_std, kappa: float, *,
     and its log|M| term weighted by 1/κ; solved by the same Levenberg–Marquardt.  Returns a
     :class:`~accel_bayes.inference.map.MAPResult` (``converged`` False and a NaN covariance when
     the Hessian is not positive definite)."""
-    from ..inference.linear import NotPositiveDefinite
+    from ..inference.lm.linear import NotPositiveDefinite
     from ..inference.lm import ExtraCost, LevenbergMarquardt
     from ..inference.map import MAPResult, build_map_problem
 

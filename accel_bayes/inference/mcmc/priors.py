@@ -14,9 +14,9 @@ import math
 
 import torch
 
-from ..errors import UserError
-from ..constants import DEFAULT_PRIOR_STD
-from ..likelihood import theta_from_positions
+from ...errors import UserError
+from ...constants import DEFAULT_PRIOR_STD
+from ...likelihood import theta_from_positions
 
 __all__ = ["GaussianPrior", "BoxPrior", "DEFAULT_PRIOR_STD"]
 
