@@ -201,6 +201,12 @@ class Effect:
             if axis is not None:
                 raise UserError(f"{self.name}: is not local to one axis; axis must be None, got {axis!r}")
             self.axis_index, self.axis = None, None
+        self._init_params(params)
+
+    def _init_params(self, params: dict | None) -> None:
+        """Null parameters, no std or statistics yet, then ``params`` where given.  Also the
+        whole initialisation of the effects whose every-channel variant has no location
+        (``imu``, ``axis`` and ``axis_index`` set to None before)."""
         self.params = self.null_params()
         self.std: dict = {}
         self.stats: dict = {}

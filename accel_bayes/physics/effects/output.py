@@ -39,10 +39,7 @@ class Saturation(Effect):
         if imu is None:
             # the all-channels variant: bypass the local checks of the base class
             self.imu, self.axis, self.axis_index = None, None, None
-            self.params = self.null_params()
-            self.std, self.stats = {}, {}
-            if params:
-                self.set_params(params)
+            self._init_params(params)
         else:
             super().__init__(imu, axis, params)
 
@@ -121,10 +118,7 @@ class NoiseLevel(Effect):
             if axis is not None:
                 raise UserError("noise_level: is not local to one axis; axis must be None")
             self.imu, self.axis, self.axis_index = None, None, None
-            self.params = self.null_params()
-            self.std, self.stats = {}, {}
-            if params:
-                self.set_params(params)
+            self._init_params(params)
         else:
             super().__init__(imu, axis, params)
 
