@@ -82,7 +82,7 @@ __all__ = [
     "write_motion",
 ]
 
-MOTION_SCHEMA = "accel_bayes.physics.motion/1"
+MOTION_SCHEMA = "accel_bayes.motion/1"
 PARAMS = ("omega_x", "omega_y", "omega_z", "omega_dot_x", "omega_dot_y", "omega_dot_z", "s_x", "s_y", "s_z")
 _CLIP_FRACTION = 0.99  # in a flagged triad, an axis within 1 % of the range counts as clipped (int16 codes
 # sit a little inside the nominal range: 32767/16.4 = 1997.99 °/s of 2000)
@@ -125,7 +125,7 @@ def _check_lever_arms(positions: np.ndarray, labels: list, rel_tol: float = 1e-6
 
 def load_calibration(calibration, K: int | None = None) -> Calibration:
     """Read a calibration: a positions.json path, its parsed dict (DESIGN §7.3, schema
-    ``accel_bayes.data.positions/1``), a (K, 3) positions array (no uncertainty), or a
+    ``accel_bayes.positions/1``), a (K, 3) positions array (no uncertainty), or a
     :class:`Calibration`.  Raises :class:`UserError` naming the offending field."""
     if isinstance(calibration, Calibration):
         cal = calibration
@@ -313,7 +313,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     ``chi2`` (weighted residual sum of squares), ``dof``, and flags ``converged``,
     ``ill_posed`` (NaN estimates: the measurements left do not determine all 9 unknowns),
     ``gyro_clipped``, ``acc_clipped``, ``omega_needs_acc``.  Attributes hold units and
-    provenance (schema ``accel_bayes.physics.motion/1``).
+    provenance (schema ``accel_bayes.motion/1``).
     """
     import time as _time
 

@@ -171,7 +171,7 @@ def run_motion(out: dict):
     rel = (res.true_positions - res.true_positions[0]).numpy()
     imus = [{"imu": k, "mean": p.tolist(), "std": [0.0 if k == 0 else 1e-4] * 3,
              "cov": (np.zeros((3, 3)) if k == 0 else 1e-8 * np.eye(3)).tolist()} for k, p in enumerate(rel)]
-    doc = {"schema": "accel_bayes.data.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
+    doc = {"schema": "accel_bayes.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
            "diagnostics": {"seconds": 0.0}}
     for mode, kw in (("draws", dict(geometry="draws", draws=20, seed=1)), ("linear", dict(geometry="linear"))):
         ds = estimate_motion(res.recording, doc, **kw)

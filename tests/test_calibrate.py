@@ -36,7 +36,7 @@ def result(sim):
 
 def test_positions_document_schema(result, sim):
     doc = result.positions
-    assert doc["schema"] == "accel_bayes.data.positions/1" and doc["method"] == "pmmh"
+    assert doc["schema"] == "accel_bayes.positions/1" and doc["method"] == "pmmh"
     assert doc["reference_imu"] == 0
     assert [e["imu"] for e in doc["imus"]] == list(range(8))
     assert doc["imus"][0]["mean"] == [0.0, 0.0, 0.0] and doc["imus"][0]["std"] == [0.0, 0.0, 0.0]

@@ -22,3 +22,42 @@ def test_no_module_defines_its_own_degree_constant_or_gravity():
     offenders = [str(p.relative_to(root)) for p in root.rglob("*.py")
                  if p.name != "constants.py" and pat.search(p.read_text(encoding="utf-8"))]
     assert offenders == []
+
+
+def test_file_format_strings_are_the_contracts_not_module_paths():
+    """The schema and format strings name file formats, not modules: moving a module (issue #10)
+    must not change them, or every file written before the move is refused.  Literal values
+    from DESIGN §7 and the files written by 7adf109."""
+    from accel_bayes.data.positions import POSITIONS_SCHEMA
+    from accel_bayes.data.validation import FORMAT
+    from accel_bayes.data.io import TRUTH_SCHEMA
+    from accel_bayes.mismatch.report import SCHEMA as MISMATCH_SCHEMA
+    from accel_bayes.prep.intrinsics import SCHEMA as INTRINSICS_SCHEMA
+    from accel_bayes.inference.mcmc.checkpoint import CHECKPOINT_FORMAT
+    import accel_bayes.motion_estimation as me
+
+    assert FORMAT == "accel_bayes.recording/1"
+    assert POSITIONS_SCHEMA == "accel_bayes.positions/1"
+    assert MISMATCH_SCHEMA == "accel_bayes.mismatch/1"
+    assert INTRINSICS_SCHEMA == "accel_bayes.intrinsics/1"
+    assert me.MOTION_SCHEMA == "accel_bayes.motion/1"
+    assert TRUTH_SCHEMA == "accel_bayes.truth/1"
+    assert CHECKPOINT_FORMAT == "accel_bayes.pmmh-checkpoint/1"
+
+
+def test_files_written_before_the_layout_move_still_load():
+    """A recording and a positions.json written by 7adf109 (``accel-bayes simulate --preset mimu8
+    -T 60 --seed 3`` and ``accel-bayes map`` on it) load with today's readers."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from accel_bayes.data.io import read_recording
+    from accel_bayes.data.positions import read_positions
+
+    data = Path(__file__).parent / "data"
+    rec = read_recording(data / "rec_7adf109.nc")
+    assert rec.acc.shape == (60, 8, 3) and np.isfinite(rec.acc).all()
+    doc = read_positions(data / "positions_7adf109.json")
+    assert doc["schema"] == "accel_bayes.positions/1" and len(doc["imus"]) == 8
+    assert doc["means"].shape == (8, 3) and np.isfinite(doc["means"]).all()

@@ -21,7 +21,7 @@ def test_demo_quick_runs_all_stages(tmp_path, capsys):
     assert "Report:" in text and (out / "report.md").is_file()
     assert (out / "recording.nc").is_file() and (out / "recording.truth.json").is_file()
     doc = json.loads((out / "posterior" / "positions.json").read_text())
-    assert doc["schema"] == "accel_bayes.data.positions/1" and len(doc["imus"]) == 8
+    assert doc["schema"] == "accel_bayes.positions/1" and len(doc["imus"]) == 8
     # exit 0 means the chains converged (else DESIGN §7.5 status 4): check it from the numbers
     d = doc["diagnostics"]
     assert d["rhat_max"] < 1.01 and d["ess_bulk_min"] >= 100 * 4 and d["converged"] is True

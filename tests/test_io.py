@@ -118,7 +118,7 @@ def test_file_layout_follows_design_7_1(tmp_path):
     rec.gyro_noise_std[2] = 2e-3
     p = write_recording(rec, tmp_path / "r.nc")
     with xr.open_dataset(p, engine="h5netcdf") as ds:
-        assert ds.attrs["format"] == FORMAT == "accel_bayes.data.recording/1"
+        assert ds.attrs["format"] == FORMAT == "accel_bayes.recording/1"
         assert ds["acc"].dims == ("time", "imu", "axis") and ds["acc"].attrs["units"] == "m s-2"
         assert ds["gyro"].dims == ("time", "imu", "axis") and ds["gyro"].attrs["units"] == "rad s-1"
         assert ds["nominal_position"].dims == ("imu", "axis") and ds["nominal_position"].attrs["units"] == "m"

@@ -47,7 +47,7 @@ def _positions_doc(rel, std=1e-4, orientation=None):
         if orientation is not None:
             e["orientation"] = orientation[k].tolist()
         imus.append(e)
-    return {"schema": "accel_bayes.data.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
+    return {"schema": "accel_bayes.positions/1", "method": "map", "reference_imu": 0, "imus": imus,
             "diagnostics": {"seconds": 0.0}}
 
 
@@ -234,7 +234,7 @@ def test_bad_calibration_names_the_field(tmp_path):
         with pytest.raises(UserError, match=match):
             load_calibration(d, K)
 
-    bad(lambda d: d.update(schema="accel_bayes.data.positions/0"), r"calibration\.schema")
+    bad(lambda d: d.update(schema="accel_bayes.positions/0"), r"calibration\.schema")
     bad(lambda d: d.update(imus=[]), r"calibration\.imus")
     bad(lambda d: d["imus"][3].update(mean=[0.0, 1.0]), r"calibration\.imus\[3\]\.mean")
     bad(lambda d: d["imus"][2].update(cov=[[1e-8, 0, 0], [0, -1e-8, 0], [0, 0, 1e-8]]), r"calibration\.imus\[2\]\.cov")
@@ -275,7 +275,7 @@ def test_cli_and_netcdf(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "omega_dot" in text and "wrote" in text
     with xr.open_dataset(out, engine="h5netcdf") as ds:
-        assert ds["omega"].attrs["units"] == "rad s-1" and ds.attrs["schema"] == "accel_bayes.physics.motion/1"
+        assert ds["omega"].attrs["units"] == "rad s-1" and ds.attrs["schema"] == "accel_bayes.motion/1"
         assert ds.attrs["draws"] == 20 and ds["s_std_geometry"].dims == ("time", "axis")
         np.testing.assert_allclose(ds["omega"].values, truth["omega"], atol=0.05)
     # refuses to overwrite; bad calibration → exit 2 with one line naming the field

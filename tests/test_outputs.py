@@ -135,7 +135,7 @@ def check_valid(cmd, target: Path):
         import xarray as xr
 
         with xr.open_dataset(target, engine="h5netcdf") as ds:
-            assert ds.attrs["schema"] == "accel_bayes.physics.motion/1"
+            assert ds.attrs["schema"] == "accel_bayes.motion/1"
     else:
         read_recording(target)
     if cmd == "simulate":

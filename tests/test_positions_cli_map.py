@@ -21,7 +21,7 @@ def test_document_roundtrip_and_checks(tmp_path):
     doc = positions_document(method="map", reference_imu=0, means=means, covs=covs, diagnostics={"seconds": 1.5})
     p = write_positions(doc, tmp_path / "positions.json")
     back = read_positions(p)
-    assert back["schema"] == "accel_bayes.data.positions/1" and back["method"] == "map"
+    assert back["schema"] == "accel_bayes.positions/1" and back["method"] == "map"
     np.testing.assert_allclose(back["means"], means)
     np.testing.assert_allclose(back["covs"], covs)
     assert [e["imu"] for e in back["imus"]] == [0, 1, 2, 3]

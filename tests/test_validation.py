@@ -99,7 +99,7 @@ def test_units_that_are_not_si(ds):
 
 
 def test_format_version(ds):
-    refused(ds.assign_attrs(format="accel_bayes.data.recording/2"), r"format: this reader understands 'accel_bayes.data.recording/1'")
+    refused(ds.assign_attrs(format="accel_bayes.recording/2"), r"format: this reader understands 'accel_bayes.recording/1'")
 
 
 def test_non_boolean_mask(ds):

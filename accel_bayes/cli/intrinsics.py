@@ -2,7 +2,7 @@
 
 Estimates each IMU's accelerometer bias, scale and non-orthogonality and its gyro bias from the
 rests of a recording (:mod:`accel_bayes.prep.intrinsics`), writes them as JSON (schema
-``accel_bayes.prep.intrinsics/1``), prints a per-IMU table and, with ``--apply-to``, writes the
+``accel_bayes.intrinsics/1``), prints a per-IMU table and, with ``--apply-to``, writes the
 corrected recording.  REC is a format-v1 recording (.nc) or a MIMU4444 stream (.bin/.bin.gz).
 """
 from __future__ import annotations

@@ -16,7 +16,7 @@ from ..errors import UserError
 
 __all__ = ["POSITIONS_SCHEMA", "METHODS", "positions_document", "write_positions", "read_positions"]
 
-POSITIONS_SCHEMA = "accel_bayes.data.positions/1"
+POSITIONS_SCHEMA = "accel_bayes.positions/1"
 METHODS = ("pmmh", "map", "selfcal", "conventional")
 
 

@@ -41,7 +41,7 @@ __all__ = [
     "DEFAULT_GYRO_BOUND",
 ]
 
-FORMAT = "accel_bayes.data.recording/1"
+FORMAT = "accel_bayes.recording/1"
 SEGMENT_LABELS = ("static", "dynamic")
 
 # Without a stated gyro_range, |ω| above this is not a plausible rad/s reading: 150 rad/s ≈ 8600 °/s,
@@ -239,7 +239,7 @@ def validate_dataset(ds) -> None:
     ``gyro_range``.  Raises :class:`RecordingError` on the first problem.
     """
     fmt = ds.attrs.get("format")
-    if isinstance(fmt, str) and fmt.startswith("accel_bayes.data.recording/") and fmt != FORMAT:
+    if isinstance(fmt, str) and fmt.startswith("accel_bayes.recording/") and fmt != FORMAT:
         raise RecordingError(f"format: this reader understands {FORMAT!r}, the file says {fmt!r}")
 
     names = set(ds.variables) | set(ds.dims)

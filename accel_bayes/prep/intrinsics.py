@@ -84,7 +84,7 @@ __all__ = [
     "triangular_matrix",
 ]
 
-SCHEMA = "accel_bayes.prep.intrinsics/1"
+SCHEMA = "accel_bayes.intrinsics/1"
 ACC_PARAMS = ("b_x", "b_y", "b_z", "t_xx", "t_yy", "t_zz", "t_yx", "t_zx", "t_zy")
 # Positions of the six T entries of ACC_PARAMS[3:] in the 3×3 matrix.
 _T_INDEX = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
@@ -291,7 +291,7 @@ class Intrinsics:
 
     # ------------------------------------------------------------ files
     def to_dict(self) -> dict:
-        """JSON-ready dict, schema ``accel_bayes.prep.intrinsics/1`` (NaN → null)."""
+        """JSON-ready dict, schema ``accel_bayes.intrinsics/1`` (NaN → null)."""
         from .. import __version__
 
         def L(x):
