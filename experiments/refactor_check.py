@@ -20,8 +20,16 @@ Outputs (each a small problem, seconds each):
 * ``conceal.*`` — the same on a recording of the independent generator
   (``experiments/_conceal.py``) hiding one ``time_offset``.
 
-Only public names that exist at 7adf109 and later are imported, so the same file runs against
-both.  ``--compare`` prints max |a − b| and max |a − b| / max |a| per output and flags every output
+Only public names that exist at 7adf109 and later are imported, by their 7adf109 paths (the
+later layout keeps them importable as aliases), so the same file runs against both.  Keep it so:
+a rewrite to the new paths would silently run today's modules in the baseline too.  For the
+baseline, hide an editable install of today's checkout, whose import finder would otherwise
+serve modules missing from the old tree::
+
+    mkdir -p /tmp/noeditable && printf 'import sys\nsys.meta_path[:] = [f for f in sys.meta_path if "Editable" not in type(f).__name__ and "Editable" not in getattr(f, "__name__", "")]\n' > /tmp/noeditable/sitecustomize.py
+    cd /tmp && PYTHONPATH=/work/base7adf:/tmp/noeditable python3 /path/to/experiments/refactor_check.py --out base.npz
+
+``--compare`` prints max |a − b| and max |a − b| / max |a| per output and flags every output
 whose relative difference exceeds ``--tol`` (default 1e-6: the LM solvers stop at relative cost
 changes of 1e-10–1e-12, i.e. parameter changes of ~1e-6–1e-5 relative in the worst-conditioned
 directions; the mismatch statistics are differences of log-likelihoods and get the same bound
@@ -47,11 +55,11 @@ def _np(x):
 
 
 def run_map(out: dict):
-    from accel_bayes.physics.arrays import mimu4444_8
+    from accel_bayes.arrays import mimu4444_8
     from accel_bayes.inference.crb import crb_theta
     from accel_bayes.inference.map import fit_map
-    from accel_bayes.physics.models import imu_outputs, to_array_frame
-    from accel_bayes.physics.motion import iid_motion
+    from accel_bayes.models import imu_outputs, to_array_frame
+    from accel_bayes.motion import iid_motion
 
     dt = torch.float64
     sa, sg = 0.04, 0.06 * DEG
@@ -75,9 +83,9 @@ def run_map(out: dict):
 
 
 def run_selfcal(out: dict):
-    from accel_bayes.physics import models
-    from accel_bayes.physics.arrays import s16_plate
-    from accel_bayes.physics.geometry import boxplus
+    from accel_bayes import models
+    from accel_bayes.arrays import s16_plate
+    from accel_bayes.geometry import boxplus
     from accel_bayes.inference.selfcal import self_calibrate, simulate_process_motion
 
     f64 = torch.float64
@@ -97,11 +105,11 @@ def run_selfcal(out: dict):
 
 
 def run_conventional(out: dict):
-    from accel_bayes.physics import models
-    from accel_bayes.physics.arrays import s16_plate
-    from accel_bayes.physics.geometry import boxplus
+    from accel_bayes import models
+    from accel_bayes.arrays import s16_plate
+    from accel_bayes.geometry import boxplus
     from accel_bayes.inference.conventional import IDENTITY_SENSITIVITY, conventional_calibrate
-    from accel_bayes.physics.motion import smooth_motion
+    from accel_bayes.motion import smooth_motion
 
     f64 = torch.float64
     gen = torch.Generator().manual_seed(32)
@@ -126,7 +134,7 @@ def run_conventional(out: dict):
 
 def _rest_recording(K=4, n_orient=24, n=300, sigma=0.04, sigma_g=0.003, dyn=40):
     """Rests in random orientations (raw a = T⁻¹ g u + b + noise) between dynamic stretches."""
-    from accel_bayes.data.recording import Recording
+    from accel_bayes.recording import Recording
 
     g0 = 9.80665
     rng = np.random.default_rng(11)
@@ -153,7 +161,7 @@ def _rest_recording(K=4, n_orient=24, n=300, sigma=0.04, sigma_g=0.003, dyn=40):
 
 
 def run_intrinsics(out: dict):
-    from accel_bayes.prep.intrinsics import estimate_intrinsics
+    from accel_bayes.intrinsics import estimate_intrinsics
 
     est = estimate_intrinsics(_rest_recording())
     out["intrinsics.acc_bias"] = _np(est.acc_bias)
@@ -163,7 +171,7 @@ def run_intrinsics(out: dict):
 
 
 def run_motion(out: dict):
-    from accel_bayes.physics.arrays import mimu4444_8
+    from accel_bayes.arrays import mimu4444_8
     from accel_bayes.motion_estimation import estimate_motion
     from accel_bayes.simulate import simulate
 
@@ -181,7 +189,7 @@ def run_motion(out: dict):
 
 
 def run_mismatch(out: dict):
-    from accel_bayes.physics.arrays import mimu4444_8
+    from accel_bayes.arrays import mimu4444_8
     from accel_bayes.mismatch import detect, make_effect
     from accel_bayes.simulate import simulate
 
