@@ -15,7 +15,7 @@ What it computes, each beside the paper's numbers:
 * Fig. 2 — Var[log p̂] against N for each T at the prior mean (``fig2_var_logphat.png``).
 * Fig. 4 — posterior of IMU 2 (label 1) x, y, z for each T (``fig4_imu2_posterior.png``).
 * Table II — posterior std averaged over the 93 coordinates for σ_a = 0.79 m/s².
-* MUST-SHOW (a) — the PmMH std (``accel_bayes.calibrate.calibrate``) against an independent
+* MUST-SHOW (a) — the PmMH std (``accel_bayes.pipelines.calibrate.calibrate``) against an independent
   Laplace approximation (``experiments/_laplace.py``: dense S, autograd Hessian, ω fixed at the
   gyro average; also at the true ω), ratio per T; pass = within 15 %.
 * MUST-SHOW (b) — the paper's simulated Table II row used motion "similar to the experiments" of
@@ -134,7 +134,7 @@ def posterior_task(T, acc_std, rep, seed, omega_std_dps, chains, draws, warmup, 
     """One simulated data set → N choice, PmMH (``calibrate``), two Laplace approximations."""
     import torch
     from accel_bayes import diagnostics as dg
-    from accel_bayes.calibrate import calibrate
+    from accel_bayes.pipelines.calibrate import calibrate
     from accel_bayes.likelihood import RaoBlackwellLikelihood, choose_num_draws
     from _laplace import laplace_from_recording
 

@@ -59,7 +59,7 @@ def data_dir() -> Path:
 
 def run_experiment(exp: int, data: str, out: str, chains: int, draws: int, warmup: int, seed: int) -> dict:
     """Import experiment ``exp`` and calibrate it with the pipeline defaults; write its outputs."""
-    from accel_bayes.calibrate import calibrate, write_outputs
+    from accel_bayes.pipelines.calibrate import calibrate, write_outputs
     from accel_bayes.data.mimu import import_mimu
 
     t0 = time.perf_counter()
@@ -102,7 +102,7 @@ def intrinsics_sensitivity(exp: int, data: str, n_draws: int, seed: int) -> dict
     """Propagate the intrinsics' reported uncertainty to the tempered MAP of experiment ``exp``."""
     import torch
 
-    from accel_bayes.calibrate import calibrate
+    from accel_bayes.pipelines.calibrate import calibrate
     from accel_bayes.likelihood import RaoBlackwellLikelihood
     from accel_bayes.data.mimu import import_mimu
     from accel_bayes.prep.noise import fit_map_tempered

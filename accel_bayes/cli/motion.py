@@ -2,7 +2,7 @@
 [--seed S] [--geometry draws|linear]``.
 
 Estimates ω, ω̇ and the specific force s (at the calibration's reference IMU) for every sample of
-REC from a calibrated array (:mod:`accel_bayes.motion_estimation`), with their uncertainty
+REC from a calibrated array (:mod:`accel_bayes.inference.motion`), with their uncertainty
 (measurement noise + the calibration's position uncertainty), writes them as NetCDF and prints
 a summary.
 """
@@ -45,7 +45,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..motion_estimation import estimate_motion, write_motion
+    from ..inference.motion import estimate_motion, write_motion
     from ..data.outputs import OutputFile
     from .intrinsics import load_any
 

@@ -8,7 +8,7 @@ gyro scale factors and misalignments (errors growing with |ω|), sensor non-line
 sample-time skew between IMUs.  With σ_rest the MAP residuals are ~25–35× the stated noise
 (χ²/dof ≈ 800–1400 on the six MIMU experiments) and the posterior is far too narrow.
 
-What is estimated (default of the real-data pipeline, :func:`accel_bayes.calibrate.calibrate`)
+What is estimated (default of the real-data pipeline, :func:`accel_bayes.pipelines.calibrate.calibrate`)
 ---------------------------------------------------------------------------------------------
 1. **A noise level per triad, σ_k, by type-II maximum likelihood at the MAP** (below).  On the
    MIMU data σ_k ≈ 1.3–2.0 m/s².

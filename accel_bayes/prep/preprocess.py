@@ -25,7 +25,7 @@
      ω̇×r term is integrated out with φ.  0 keeps every sample.
 
 Returns a :class:`Preprocessed` (corrected recording, the (T,) keep mask, the intrinsics and a
-JSON-ready ``summary``) that :func:`accel_bayes.calibrate.calibrate` records in the
+JSON-ready ``summary``) that :func:`accel_bayes.pipelines.calibrate.calibrate` records in the
 ``positions.json`` provenance and prints.
 
 :func:`draw_intrinsics` draws intrinsics from their reported uncertainty (Laplace covariance of

@@ -37,18 +37,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import __version__
-from . import diagnostics as dg
-from .data import positions as _positions_mod
-from .errors import UserError
-from .inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
-from .inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
-from .likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
+from .. import __version__
+from .. import diagnostics as dg
+from ..data import positions as _positions_mod
+from ..errors import UserError
+from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
+from ..inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
+from ..likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
     positions_from_theta
-from .prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
-from .data.outputs import write_text
-from .prep.preprocess import preprocess
-from .data.recording import Recording
+from ..prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
+from ..data.outputs import write_text
+from ..prep.preprocess import preprocess
+from ..data.recording import Recording
 
 __all__ = ["calibrate", "CalibrationResult", "write_outputs", "positions_document", "DEFAULTS"]
 
@@ -159,7 +159,7 @@ def _load_recording(recording):
     if isinstance(recording, Recording):
         return recording, None, None
     if isinstance(recording, (str, os.PathLike)):
-        from .data.io import read_recording, recording_sha256
+        from ..data.io import read_recording, recording_sha256
 
         rec = read_recording(recording, require_gyro=True)
         return rec, recording_sha256(recording), str(recording)
@@ -237,7 +237,7 @@ def _fit_map(lik, nominal_acc, prior_std, settings):
     """MAP and Laplace covariance (:mod:`accel_bayes.inference.map`), or None (with the reason in
     ``settings["map_failed"]``) when it is unavailable, diverged or has no usable covariance."""
     try:
-        from .inference.map import fit_map
+        from ..inference.map import fit_map
     except ImportError as exc:  # pragma: no cover - depends on the installed package
         warnings.warn(f"use_map: accel_bayes.inference.map unavailable ({exc}); chains start from the prior")
         settings["map_failed"] = f"unavailable: {exc}"
@@ -264,7 +264,7 @@ def _usable_map(res, settings):
 
 
 def _rotation_rate(rec):
-    from .prep.preprocess import rotation_rate
+    from ..prep.preprocess import rotation_rate
 
     return rotation_rate(rec)
 
@@ -274,7 +274,7 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings):
     ``inflate`` temper the likelihood by the sandwich factor κ.  Returns the likelihood the
     chains use (:class:`~accel_bayes.prep.noise.TemperedLikelihood` of the scaled samples), the MAP
     of exactly that target (or None if unusable) and the :class:`~accel_bayes.prep.noise.NoiseModel`."""
-    from .prep.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
+    from ..prep.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
