@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .physics.arrays import SensorArray
+from .data.outputs import to_jsonable
 from .errors import UserError
 from .physics.geometry import boxminus, boxplus
 from .physics.models import imu_outputs
@@ -82,20 +83,6 @@ def _nonneg(x: float, name: str) -> float:
     if not (v >= 0 and math.isfinite(v)):
         raise UserError(f"{name}: expected a finite value >= 0, got {x!r}")
     return v
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if torch.is_tensor(x) or isinstance(x, np.ndarray):
-        return np.asarray(x.detach().cpu() if torch.is_tensor(x) else x).tolist()
-    if isinstance(x, (np.generic,)):
-        return x.item()
-    if x is None or isinstance(x, (bool, int, float, str)):
-        return x
-    return repr(x)
 
 
 def _clip(y: torch.Tensor, limit: float | None, present: torch.Tensor, clip: bool):
@@ -245,7 +232,7 @@ def simulate(
         "position_error_std": pos_std, "orientation_error_std": ori_std,
         "true_positions_given": true_positions is not None,
         "true_orientations_given": true_orientations is not None,
-        "clip": bool(clip), "motion_kwargs": _jsonable(motion_kwargs or {}),
+        "clip": bool(clip), "motion_kwargs": to_jsonable(motion_kwargs or {}, unknown="repr"),
         "time_offsets": None if offsets is None else offsets.tolist(),
         "motion_given": isinstance(motion, MotionTrace),
     }
@@ -295,7 +282,7 @@ def simulate(
         "settings": settings,
     }
     if eff_list:
-        truth["effects"] = [{"effect": e.name, **e.location(), "parameters": _jsonable(e.report_parameters())}
+        truth["effects"] = [{"effect": e.name, **e.location(), "parameters": to_jsonable(e.report_parameters(), unknown="repr")}
                             for e in eff_list]
     if validate:
         _validate(rec)

@@ -69,6 +69,7 @@ import numpy as np
 import torch
 
 from ..constants import DEFAULT_PRIOR_STD
+from ..data.outputs import to_jsonable
 from ..errors import UserError
 from ..likelihood import RaoBlackwellLikelihood
 from ..physics.models import G_matrix, H_matrix, u_of_omega
@@ -121,8 +122,8 @@ class NoiseModel:
         return np.asarray(self.bin_scale)[b]
 
     def to_dict(self) -> dict:
-        def L(x):
-            return None if x is None else [float(v) if math.isfinite(float(v)) else None for v in np.asarray(x)]
+        def L(x):  # 1-D, as floats, null where not finite (strict JSON)
+            return None if x is None else to_jsonable(np.asarray(x, dtype=np.float64), nonfinite="null")
         return {
             "model": "e_tk ~ N(0, (std_k * s_t)^2 I3), s_t = bin_scale[bin of |mean gyro_t|]; type-II ML at the MAP",
             "std": L(self.std), "stated": L(self.stated), "factor": L(self.factor),
