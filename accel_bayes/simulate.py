@@ -28,7 +28,7 @@ from .physics.motion import MotionTrace, as_generator, make_motion
 from .physics.effects.timing import sample_times
 from .data.recording import Recording
 
-__all__ = ["SimResult", "simulate", "TRUTH_SCHEMA", "memory_estimate"]
+__all__ = ["SimResult", "simulate", "TRUTH_SCHEMA", "memory_estimate", "motion_rms"]
 
 TRUTH_SCHEMA = "accel_bayes.truth/1"
 
@@ -60,6 +60,13 @@ class SimResult:
     true_orientations: torch.Tensor
     acc_clean: torch.Tensor
     gyro_clean: torch.Tensor
+
+
+def motion_rms(trace: MotionTrace) -> tuple[float, float]:
+    """RMS over samples of |ω_t| (rad/s) and of |s_t| (m/s²) of a motion trace."""
+    w_rms = float(torch.sqrt((trace.omega ** 2).sum(-1).mean()))
+    s_rms = float(torch.sqrt((trace.s ** 2).sum(-1).mean()))
+    return w_rms, s_rms
 
 
 def _per_imu(x, K: int, name: str, default: torch.Tensor) -> torch.Tensor:
