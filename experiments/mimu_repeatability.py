@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -42,17 +41,12 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _dask import add_dask_arguments, dask_client, map_task_groups  # noqa: E402
+from _data import data_dir  # noqa: E402
 
 NOMINAL_XY_TOL_M = 2e-3
 PAIR_Z_MAX = 4.0
 RHAT_MAX = 1.01
 ESS_MIN = 400
-
-
-def data_dir() -> Path:
-    env = os.environ.get("ACCEL_BAYES_SHARED")
-    root = Path(env) if env else HERE.parents[1] / "shared"
-    return root / "data" / "mimu4444-bcd"
 
 
 # ---------------------------------------------------------------------------- tasks (run on workers)
