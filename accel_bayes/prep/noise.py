@@ -71,7 +71,7 @@ import torch
 from ..constants import DEFAULT_PRIOR_STD
 from ..data.outputs import to_jsonable
 from ..errors import UserError
-from ..likelihood import RaoBlackwellLikelihood
+from ..likelihood import RaoBlackwellLikelihood, positions_from_theta
 from ..physics.models import G_matrix, H_matrix, u_of_omega
 from ..physics.jacobians import du_domega
 
@@ -412,8 +412,7 @@ def fit_map_tempered(acc, omega_mean, omega_cov, acc_noise_std, kappa: float, *,
         cov = torch.full((prob.n_free, prob.n_free), float("nan"), dtype=torch.float64)
         converged, reason = False, f"{reason}; Hessian not positive definite at the end point"
     ref = prob.map_info["reference"]
-    zero = theta.new_zeros(1, 3)
-    pos = torch.cat((theta[:ref], zero, theta[ref:]), 0)
+    pos = positions_from_theta(theta, ref, theta.shape[0] + 1)
     return MAPResult(positions=pos, theta=theta, omega=lm.locals, laplace_cov=cov, log_posterior=-lm.cost,
                      cost_terms=prob.cost_terms(lm.values, lm.locals), log=lm.log, converged=converged,
                      reason=reason, n_iter=lm.n_iter, reference=ref, lm=lm)
