@@ -100,10 +100,10 @@ def to_jsonable(obj, *, nonfinite: str = "keep", unknown: str = "error", where: 
         raise ValueError(f"nonfinite: expected one of {_NONFINITE}, got {nonfinite!r}")
     if unknown not in _UNKNOWN:
         raise ValueError(f"unknown: expected one of {_UNKNOWN}, got {unknown!r}")
-    return _jsonable(obj, nonfinite == "null", unknown, where)
+    return _plain(obj, nonfinite == "null", unknown, where)
 
 
-def _jsonable(obj, null: bool, unknown: str, where: str):
+def _plain(obj, null: bool, unknown: str, where: str):
     import dataclasses
     import math
 
@@ -116,12 +116,12 @@ def _jsonable(obj, null: bool, unknown: str, where: str):
     if isinstance(obj, float):
         return None if null and not math.isfinite(obj) else float(obj)
     if isinstance(obj, np.generic):
-        return _jsonable(obj.item(), null, unknown, where)
+        return _plain(obj.item(), null, unknown, where)
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist(), null, unknown, where) if null else obj.tolist()
+        return _plain(obj.tolist(), null, unknown, where) if null else obj.tolist()
     # torch is imported only where it is already loaded: a tensor implies it is
     if type(obj).__module__.startswith("torch") and hasattr(obj, "detach"):
-        return _jsonable(obj.detach().cpu().numpy(), null, unknown, where)
+        return _plain(obj.detach().cpu().numpy(), null, unknown, where)
     if isinstance(obj, Path):
         return str(obj)
     if isinstance(obj, dict):
@@ -129,12 +129,12 @@ def _jsonable(obj, null: bool, unknown: str, where: str):
         for k, v in obj.items():
             if unknown == "error" and not isinstance(k, (str, int, np.integer)):
                 raise UserError(f"{where}: dictionary keys must be strings, got {k!r}")
-            out[str(k)] = _jsonable(v, null, unknown, f"{where}.{k}")
+            out[str(k)] = _plain(v, null, unknown, f"{where}.{k}")
         return out
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v, null, unknown, f"{where}[{i}]") for i, v in enumerate(obj)]
+        return [_plain(v, null, unknown, f"{where}[{i}]") for i, v in enumerate(obj)]
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _jsonable(getattr(obj, f.name), null, unknown, f"{where}.{f.name}")
+        return {f.name: _plain(getattr(obj, f.name), null, unknown, f"{where}.{f.name}")
                 for f in dataclasses.fields(obj)}
     if unknown == "repr":
         return repr(obj)
