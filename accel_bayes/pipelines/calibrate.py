@@ -400,7 +400,9 @@ def calibrate(
     Returns a :class:`CalibrationResult`.
     """
     t0 = time.perf_counter()
-    # every option is checked once, here, before the file is read (DESIGN §7.5: refuse early)
+    # Steps: options (checked once, here, before the file is read: DESIGN §7.5 refuses early),
+    # 1 load, 2 prepare, 3 noise, 4 MAP, 5 central θ and N, 6 posterior, 7 summary; writing the
+    # files is :func:`write_outputs`.
     opts = _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
                      checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select)
     noise_bins = opts["noise_bins"]
@@ -410,6 +412,7 @@ def calibrate(
                   proposal=proposal, independence_prob=independence_prob, target_accept_prob=target_accept_prob,
                   intrinsics=intrinsics, drop_static=drop_static, min_rotation=min_rotation, noise=noise,
                   noise_bins=noise_bins, noise_inflation=noise_inflation)
+    # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
     pre, rec, keep = _prepare_step(raw, intrinsics=intrinsics, drop_static=drop_static, drop_clipped=drop_clipped,
                                    min_rotation=min_rotation, select=select)
     noise_mode = ("estimate" if pre.has_rests else "stated") if noise == "auto" else noise
@@ -444,13 +447,14 @@ def calibrate(
         settings["input"] = src
     extra = {"preprocess": pre}
 
-    lik, map_res = _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, use_map, settings,
-                               extra)
+    lik, map_res = _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra)
+    map_res = _map_step(lik, nominal_acc, ps, noise_mode, use_map, map_res, settings)
     lik, theta_c, lap, N = _central_step(lik, pri, map_res, opts, proposal, settings)
     run = _posterior_step(lik, pri, theta_c, lap, opts, proposal=proposal, independence_prob=independence_prob,
                           init=init, target_accept_prob=target_accept_prob, settings=settings, request=opts["request"],
                           progress=progress, checkpoint=checkpoint, resume=resume, callback=callback)
 
+    # step 7, summary: ArviZ diagnostics and the positions document
     idata = dg.to_inference_data(
         run.theta, free_labels, run.log_phat, log_prior=run.log_prior, accepted=run.accepted,
         accept_prob=run.accept_prob, step_size=run.step_size, reference_imu=ref_label,
@@ -529,23 +533,30 @@ def _prepare_step(raw, *, intrinsics, drop_static, drop_clipped, min_rotation, s
     return pre, rec, keep
 
 
-def _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, use_map, settings, extra):
-    """Step 3, noise and MAP: the estimated noise model (and the MAP of that target), or the MAP
-    with the stated noise.  Returns (likelihood the chains use, MAP result or None)."""
-    map_res = None
-    if noise_mode == "estimate":
-        lik, map_res, nm = _estimate_noise(lik, nominal_acc, ps, noise_bins, bool(noise_inflation), settings)
-        extra["noise"] = nm
-        if not use_map:
-            map_res = None
-    elif use_map:
-        map_res = _fit_map(lik, nominal_acc, ps, settings)
-    settings["use_map"] = map_res is not None
+def _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra):
+    """Step 3, noise: with ``noise_mode`` "estimate" the noise model fitted with the MAP (and the
+    tempered likelihood of that target, :func:`_estimate_noise`); "stated" keeps the recording's.
+    Returns (likelihood the chains use, the MAP of the estimated-noise target or None)."""
+    if noise_mode != "estimate":
+        return lik, None
+    lik, map_res, nm = _estimate_noise(lik, nominal_acc, ps, noise_bins, bool(noise_inflation), settings)
+    extra["noise"] = nm
     return lik, map_res
 
 
+def _map_step(lik, nominal_acc, ps, noise_mode, use_map, noise_map, settings):
+    """Step 4, MAP: with estimated noise the noise step's MAP is already the MAP of the chains'
+    target (kept when ``use_map``); with the stated noise it is fitted here.  None: no MAP."""
+    if noise_mode == "estimate":
+        map_res = noise_map if use_map else None
+    else:
+        map_res = _fit_map(lik, nominal_acc, ps, settings) if use_map else None
+    settings["use_map"] = map_res is not None
+    return map_res
+
+
 def _central_step(lik, pri, map_res, opts, proposal, settings):
-    """Step 4, central θ and N: the MAP (or prior mean) and its Laplace covariance, and the
+    """Step 5, central θ and N: the MAP (or prior mean) and its Laplace covariance, and the
     number of draws per likelihood estimate ([C21] §III-C).  Sets ``lik.num_draws``."""
     if map_res is not None:
         theta_c = torch.as_tensor(map_res.theta, dtype=torch.float64).reshape(lik.A - 1, 3)
@@ -582,7 +593,7 @@ def _central_step(lik, pri, map_res, opts, proposal, settings):
 
 def _posterior_step(lik, pri, theta_c, lap, opts, *, proposal, independence_prob, init, target_accept_prob,
                     settings, request, progress, checkpoint, resume, callback):
-    """Step 5, posterior: the proposal, the chain starts, the PmMH kernel and its C chains
+    """Step 6, posterior: the proposal, the chain starts, the PmMH kernel and its C chains
     (:func:`accel_bayes.inference.mcmc.run_pmmh`, crash-safe with a checkpoint)."""
     prop = proposal
     if prop == "auto":
