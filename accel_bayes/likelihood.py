@@ -108,6 +108,20 @@ def theta_from_positions(positions: torch.Tensor, reference: int) -> torch.Tenso
 
 # ---------------------------------------------------------------------------- gyro posterior
 
+
+def as_acc_tensor(acc, *, dtype=torch.float64, device=None) -> torch.Tensor:
+    """The accelerometer outputs (T, A, 3) in m/s² as a checked tensor: the input checks shared by
+    the likelihood and the MAP (at least 3 triads, every value finite: samples or IMUs without
+    accelerometer data must be selected away before either is built)."""
+    acc = torch.as_tensor(acc, dtype=dtype, device=device)
+    if acc.dim() != 3 or acc.shape[-1] != 3:
+        raise UserError(f"acc: expected shape (T, A, 3), got {tuple(acc.shape)}")
+    if acc.shape[1] < 3:
+        raise UserError(f"acc: at least 3 accelerometer triads are needed, got A={acc.shape[1]}")
+    if not bool(torch.isfinite(acc).all()):
+        raise UserError("acc: contains NaN/inf; select samples and IMUs with accelerometer data first")
+    return acc
+
 @dataclass
 class GyroPosterior:
     """Gaussian p(ω_t | y_t^g) per sample ([C21] eq. 15, 26b, 30).
@@ -245,14 +259,8 @@ class RaoBlackwellLikelihood:
         device=None,
         phi_prior_std=None,
     ):
-        acc = torch.as_tensor(acc, dtype=dtype, device=device)
-        if acc.dim() != 3 or acc.shape[-1] != 3:
-            raise UserError(f"acc: expected shape (T, A, 3), got {tuple(acc.shape)}")
+        acc = as_acc_tensor(acc, dtype=dtype, device=device)
         T, A, _ = acc.shape
-        if A < 3:
-            raise UserError(f"acc: at least 3 accelerometer triads are needed, got A={A}")
-        if bool(torch.isnan(acc).any()):
-            raise UserError("acc: contains NaN; select samples/IMUs with accelerometer data first")
         if omega.mean.shape != (T, 3) or omega.cov.shape != (T, 3, 3):
             raise UserError(f"omega: expected a GyroPosterior with mean (T, 3) and cov (T, 3, 3) for T={T}, "
                             f"got {tuple(omega.mean.shape)} and {tuple(omega.cov.shape)}")

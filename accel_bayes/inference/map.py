@@ -40,7 +40,7 @@ import torch
 from ..constants import DEFAULT_PRIOR_STD
 from ..errors import UserError
 from ..physics.geometry import skew
-from ..likelihood import positions_from_theta, theta_from_positions
+from ..likelihood import as_acc_tensor, positions_from_theta, theta_from_positions
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
 from ..physics.jacobians import d2u_domega2, df_dr, du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
@@ -120,16 +120,10 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     * log|M|: ∂ = tr(M⁻¹ ∂M), ∂² = tr(M⁻¹ ∂²M) − tr(M⁻¹ ∂M M⁻¹ ∂M), with
       ∂M/∂r_k,a = E_aᵀΛ_kH_k + H_kᵀΛ_kE_a, E_a = [−Ω(e_a) 0], and ∂²M within one triad only.
     """
-    acc = torch.as_tensor(acc, dtype=dtype, device=device)
-    if acc.dim() != 3 or acc.shape[-1] != 3:
-        raise UserError(f"acc: expected shape (T, A, 3), got {tuple(acc.shape)}")
+    acc = as_acc_tensor(acc, dtype=dtype, device=device)
     T, A, _ = acc.shape
-    if A < 3:
-        raise UserError(f"acc: at least 3 accelerometer triads are needed, got A={A}")
     if not 0 <= int(reference) < A:
         raise UserError(f"reference: expected an index in 0..{A - 1}, got {reference}")
-    if not bool(torch.isfinite(acc).all()):
-        raise UserError("acc: contains NaN/inf; select samples and IMUs with data first")
     reference = int(reference)
     wbar = torch.as_tensor(omega_mean, dtype=dtype, device=acc.device)
     P = torch.as_tensor(omega_cov, dtype=dtype, device=acc.device)
