@@ -395,8 +395,7 @@ def _load(recording):
 
 def _check_recording(rec) -> None:
     """Refuse (one line) a recording the detector cannot judge, before any fit."""
-    from ..likelihood import DEFAULT_MIN_ROTATION
-    from ..prep.preprocess import rotation_rate
+    from ..prep.selection import DEFAULT_MIN_ROTATION, rotation_rate
 
     if rec.T < 3:
         raise UserError(f"time: mismatch detection needs at least 3 samples, the recording has {rec.T}")

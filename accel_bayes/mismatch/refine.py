@@ -82,7 +82,6 @@ __all__ = [
     "elpd_loo",
     "corrected_recording",
     "heldout_fit",
-    "flagged_clipped",
     "DEFAULT_PRIOR_STD",
 ]
 
@@ -141,21 +140,11 @@ class Prepared:
         return int(self.m_acc.sum() + self.m_gyro.sum())
 
 
-def flagged_clipped(rec) -> np.ndarray:
-    """(T,) bool: samples where the recording flags some accelerometer or gyroscope triad (of an
-    IMU that has that sensor) at its range (``acc_clipped``/``gyro_clipped``)."""
-    out = np.zeros(len(rec.time), dtype=bool)
-    for nm, present in (("acc_clipped", rec.has_acc), ("gyro_clipped", rec.has_gyro)):
-        flags = getattr(rec, nm)
-        if flags is not None:
-            out |= np.asarray(flags, dtype=bool)[:, np.asarray(present, dtype=bool)].any(-1)
-    return out
-
-
 def prepare(rec, *, drop_clipped: bool = True) -> Prepared:
     """Check a :class:`~accel_bayes.data.recording.Recording` for mismatch analysis and convert it.
 
-    drop_clipped : drop the samples the recording flags as clipped (:func:`flagged_clipped`), as
+    drop_clipped : drop the samples the recording flags as clipped
+        (:func:`accel_bayes.prep.selection.select_samples`, reason ``clipped``), as
         :func:`accel_bayes.prep.preprocess.preprocess` does for the calibration.  A flagged output sits
         at the range while the true one is beyond it: its Gaussian residual would be a censored
         quantity treated as a measurement, the per-sample motion fitted to it is biased (every
@@ -169,7 +158,9 @@ def prepare(rec, *, drop_clipped: bool = True) -> Prepared:
         raise UserError("gyro: mismatch detection needs gyroscope data (the motion is estimated from the gyros)")
     n_drop = 0
     if drop_clipped:
-        clip = flagged_clipped(rec)
+        from ..prep.selection import clipped_mask
+
+        clip = clipped_mask(rec)
         n_drop = int(clip.sum())
         if n_drop:
             if n_drop > len(clip) - 10:
