@@ -15,7 +15,7 @@ from accel_bayes.cli import main
 from accel_bayes.data.io import write_recording
 from accel_bayes.mismatch import SCHEMA, detect, make_effect, validate_report
 from accel_bayes.mismatch.detect import candidate_effects, noise_evidence, screen
-from accel_bayes.mismatch.refine import Prepared, baseline_fit, fit_model, prepare
+from accel_bayes.mismatch import Prepared, baseline_fit, fit_model, prepare
 from accel_bayes.simulate import simulate
 
 DEG = math.pi / 180
@@ -220,7 +220,7 @@ def test_heldout_fit_with_fixed_effects(gyro_case, clean_rec):
     an independent recording with the same effect, its negative lowers it; a fixed noise factor
     agrees with the closed form at the nominal optimum (a lower bound, the re-weighted fit can
     only gain a little)."""
-    from accel_bayes.mismatch.refine import heldout_fit
+    from accel_bayes.mismatch.transfer import heldout_fit
 
     prep, base = gyro_case
     fit = fit_model(prep, [make_effect("gyro_bias", imu=4, axis="x")], init=base)
@@ -319,10 +319,16 @@ def test_prepare_drops_flagged_clipped_samples(clean_rec):
     flags[10:30, 3] = True
     flags[50, 6] = True
     rec.gyro_clipped = flags
-    p = prepare(rec)
+    p = prepare(rec, min_rotation=0)  # the clip test alone (no rests in this simulation)
     assert p.T == len(rec.time) - 21 and p.n_dropped_clipped == 21
     np.testing.assert_array_equal(p.time.numpy(), rec.time[~flags.any(1)])
-    assert prepare(rec, drop_clipped=False).T == len(rec.time)
+    assert prepare(rec, drop_clipped=False, min_rotation=0).T == len(rec.time)
+    # by default the calibration's whole selection: the same samples as preprocess keeps
+    from accel_bayes.prep.preprocess import preprocess
+
+    p = prepare(rec)
+    np.testing.assert_array_equal(p.time.numpy(), rec.time[preprocess(rec).keep])
+    assert p.preparation["selection"]["dropped"]["clipped"] == 21 == p.n_dropped_clipped
 
 
 def test_excess_cells_rank_by_evidence_when_p_values_underflow(clean_rec):
