@@ -38,7 +38,6 @@ uncertainty moves the geometry (``experiments/mimu_repeatability.py``).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,7 +48,8 @@ from ..constants import G0, RAD_TO_DEG
 from ..errors import UserError
 from .intrinsics import ACC_PARAMS, Intrinsics, estimate_intrinsics, rest_segments, static_acc_errors, \
     triangular_matrix
-from .selection import DEFAULT_MIN_ROTATION, Selection, clipped_mask, rotation_rate, select_samples
+from .selection import DEFAULT_MIN_ROTATION, Selection, check_min_rotation, clipped_mask, rotation_rate, \
+    select_samples
 from ..data.recording import Recording
 
 __all__ = ["Preprocessed", "preprocess", "draw_intrinsics", "INTRINSICS_MODES", "MIN_REST_ORIENTATIONS"]
@@ -177,14 +177,7 @@ def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_s
     if given is None and intrinsics not in INTRINSICS_MODES:
         raise UserError(f"intrinsics: expected one of {INTRINSICS_MODES}, an Intrinsics or a JSON path, "
                         f"got {intrinsics!r}")
-    if min_rotation is None:
-        min_rotation = 0.0
-    try:
-        min_rotation = float(min_rotation)
-    except (TypeError, ValueError):
-        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}") from None
-    if not (min_rotation >= 0 and math.isfinite(min_rotation)):
-        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}")
+    min_rotation = check_min_rotation(min_rotation)  # before the intrinsics fit: fail fast
 
     T = recording.T
     segs = rest_segments(recording, segments)

@@ -28,7 +28,8 @@ import numpy as np
 
 from ..errors import UserError
 
-__all__ = ["Selection", "select_samples", "rotation_rate", "clipped_mask", "REASONS", "DEFAULT_MIN_ROTATION"]
+__all__ = ["Selection", "select_samples", "rotation_rate", "clipped_mask", "check_min_rotation", "REASONS",
+           "DEFAULT_MIN_ROTATION"]
 
 # |ω̄_t| below this (rad/s ≈ 29 °/s) marks a sample "without rotation": at 20 mm the centripetal
 # term ω×(ω×r) is then < 0.25 % of g ([C21] §IV-C).  The one default; likelihood re-exports it.
@@ -144,6 +145,20 @@ class Selection:
                 "kept_runs": self.kept_runs, "min_rotation": float(self.min_rotation), **self.settings}
 
 
+def check_min_rotation(min_rotation) -> float:
+    """``min_rotation`` as a float of rad/s ≥ 0 (None → 0, no rotation test); a UserError naming
+    the option otherwise.  Callers check it before any expensive step."""
+    if min_rotation is None:
+        return 0.0
+    try:
+        value = float(min_rotation)
+    except (TypeError, ValueError):
+        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}")
+    return value
+
+
 def _user_mask(user, T: int) -> np.ndarray:
     """(T,) bool from a bool mask or integer sample indices."""
     sel = np.asarray(user)
@@ -174,14 +189,7 @@ def select_samples(recording, *, static=None, drop_static: bool = True, drop_cli
     selection: the caller says which of its options to relax.
     """
     T = int(recording.T)
-    if min_rotation is None:
-        min_rotation = 0.0
-    try:
-        min_rotation = float(min_rotation)
-    except (TypeError, ValueError):
-        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}") from None
-    if not (min_rotation >= 0 and math.isfinite(min_rotation)):
-        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}")
+    min_rotation = check_min_rotation(min_rotation)
     has_gyro = recording.gyro is not None and np.asarray(recording.has_gyro).any()
     w = rotation_rate(recording, gyro_imus) if has_gyro else None
 
