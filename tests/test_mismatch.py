@@ -438,3 +438,21 @@ def test_refine_is_a_deprecated_reexport():
 
     assert old.prepare is mm.prepare and old.fit_model is mm.fit_model and old.ModelFit is mm.ModelFit
     assert old.heldout_fit is heldout_fit and old.elpd_loo is elpd_loo
+
+
+def test_corrected_recording_of_the_whole_prepared_recording(disp_report):
+    """posterior=True reruns calibrate on the whole prepared recording (rests included, so the
+    calibration keeps its protocol): only the fitted samples are corrected."""
+    from accel_bayes.mismatch.compare import corrected_recording
+
+    prep, fit = disp_report.prep, disp_report.refined_fit
+    assert fit is not None and any(e.kind == "mean" for e in fit.effects)
+    idx = prep.selection.index
+    a = corrected_recording(prep.rec, fit)
+    b = corrected_recording(prep.source, fit, index=idx)
+    assert b.T == prep.source.T and a.T == prep.T == len(idx)
+    np.testing.assert_allclose(b.acc[idx], a.acc, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.gyro[idx], a.gyro, rtol=0, atol=1e-12)
+    assert not np.array_equal(a.acc, prep.rec.acc)  # something was corrected
+    drop = ~prep.selection.keep
+    np.testing.assert_array_equal(b.acc[drop], prep.source.acc[drop])

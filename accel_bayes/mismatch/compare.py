@@ -93,20 +93,28 @@ def compare_fits(before: ModelFit, after: ModelFit, *, draws: int = 200, seed: i
     return out
 
 
-def corrected_recording(rec, fit: ModelFit):
+def corrected_recording(rec, fit: ModelFit, index=None):
     """A copy of ``rec`` with the fitted mean effects subtracted (outputs − (model with effects −
     nominal model)), samples the fitted saturation clips removed from the noise accounting by
     flagging them in ``acc_clipped``/``gyro_clipped``, and the stated noise multiplied by the
-    fitted noise factors.  What the posterior calibration is rerun on (``posterior=True``)."""
+    fitted noise factors.  What the posterior calibration is rerun on (``posterior=True``).
+
+    index : None — ``rec`` holds exactly the fitted samples (``Prepared.rec``); else the fitted
+        samples' indices into ``rec`` (``Prepared.selection.index``, ``rec`` = ``Prepared.source``):
+        only those samples are corrected (the others carry no fitted motion; the calibration's
+        selection drops them again)."""
     out = rec.copy()
     mean_eff = [e for e in fit.effects if e.kind == "mean"]
+    rows = slice(None) if index is None else np.asarray(index)
     if mean_eff:
         with torch.no_grad():
             ctx = fit.ctx
             acc, gyro = model_outputs(mean_eff, ctx)
-            out.acc = np.asarray(rec.acc) - (acc - ctx.acc).numpy()
+            out.acc = np.array(rec.acc, dtype=np.float64)
+            out.acc[rows] -= (acc - ctx.acc).numpy()
             if rec.gyro is not None:
-                out.gyro = np.asarray(rec.gyro) - (gyro - ctx.gyro).numpy()
+                out.gyro = np.array(rec.gyro, dtype=np.float64)
+                out.gyro[rows] -= (gyro - ctx.gyro).numpy()
     for e in fit.effects:
         if e.kind == "clip":
             L = float(e.params["limit"])
@@ -127,17 +135,20 @@ def corrected_recording(rec, fit: ModelFit):
 
 
 def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, draws: int = 400,
-                         warmup: int = 400, progress: bool = False) -> dict:
+                         warmup: int = 400, progress: bool = False, index=None) -> dict:
     """PmMH posterior of the positions (:func:`accel_bayes.calibrate.calibrate`, short chains)
-    on the recording as given and on :func:`corrected_recording` — an adapter over the
-    calibration pipeline, which itself knows no effects.  Returns both ``positions.json``-style
-    documents' per-IMU means/stds and their R̂/ESS diagnostics, or an error note."""
+    on the recording as given and on :func:`corrected_recording` (``index`` as there) — an
+    adapter over the calibration pipeline, which itself knows no effects.  Given the whole
+    prepared recording (``Prepared.source``, rests included) the calibration keeps its own
+    protocol: the same selection, noise estimated as for a recording with rests.  Returns both
+    ``positions.json``-style documents' per-IMU means/stds and their R̂/ESS diagnostics, or an
+    error note."""
     try:
         from ..calibrate import calibrate
     except ImportError as exc:  # pragma: no cover
         return {"error": f"accel_bayes.calibrate unavailable: {exc}"}
     out = {"settings": {"chains": chains, "draws": draws, "warmup": warmup, "seed": int(seed)}}
-    for tag, r in (("before", rec), ("after", corrected_recording(rec, fit))):
+    for tag, r in (("before", rec), ("after", corrected_recording(rec, fit, index=index))):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")

@@ -626,7 +626,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         if posterior:
             from .compare import posterior_comparison
 
-            post = posterior_comparison(prep.rec, refined, seed=seed, progress=progress)
+            post = posterior_comparison(prep.source, refined, seed=seed, progress=progress,
+                                        index=prep.selection.index)
     timings["refine_s"] = _time.perf_counter() - t0
     timings["total_s"] = _time.perf_counter() - t_start
     settings = {"effects": names if names is not None else list(EFFECTS), "alpha": alpha,

@@ -31,7 +31,8 @@ class Prepared:
     :class:`~accel_bayes.prep.selection.Selection` of ``rec``'s source recording that gave it
     (its ``runs``/``gaps`` say where the kept samples are not consecutive); preparation : the
     JSON-ready account of both steps (``report.json`` ``details.recording.preparation``).
-    n_dropped_clipped : samples dropped as clipped.
+    n_dropped_clipped : samples dropped as clipped.  source : the whole prepared recording
+    (every sample, intrinsics applied when they were), of which ``rec`` is the selection.
     """
 
     rec: object
@@ -51,6 +52,7 @@ class Prepared:
     gyro_rate: torch.Tensor | None = None
     n_dropped_clipped: int = 0
     selection: Selection | None = field(default=None, repr=False)
+    source: object = field(default=None, repr=False)
     preparation: dict = field(default_factory=dict)
 
     @property
@@ -145,4 +147,5 @@ def prepare(rec, *, intrinsics="auto", drop_static: bool = True, drop_clipped: b
     return Prepared(rec=rec, time=f(rec.time), y_acc=torch.nan_to_num(acc), y_gyro=torch.nan_to_num(gyro),
                     m_acc=m_acc, m_gyro=m_gyro, sigma_acc=sa, sigma_gyro=sg, q=f(rec.nominal_orientation),
                     nominal=nominal, ref=ref, has_acc=has_acc, has_gyro=has_gyro,
-                    n_dropped_clipped=int(sel.dropped["clipped"]), selection=sel, preparation=preparation)
+                    n_dropped_clipped=int(sel.dropped["clipped"]), selection=sel, preparation=preparation,
+                    source=pre.recording)
