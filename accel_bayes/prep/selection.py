@@ -96,7 +96,7 @@ def _runs(mask: np.ndarray) -> np.ndarray:
     return d.reshape(-1, 2).astype(np.int64)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # eq=False: arrays have no single truth value; identity is equality
 class Selection:
     """The samples a fit uses (:func:`select_samples`).
 
