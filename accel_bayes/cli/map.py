@@ -50,7 +50,8 @@ def _run(args) -> int:
     from ..data.io import read_recording, recording_sha256
     from ..data.outputs import OutputDir, write_csv
     from ..data.positions import positions_document, write_positions
-    from ..prep.preprocess import clipped_samples
+    # preprocess.clipped_samples moved to the one selection module (issue #10 item 3)
+    from ..prep.selection import clipped_mask as clipped_samples
     from ._status import EXIT_OK, untrusted
 
     rec = read_recording(args.recording)
