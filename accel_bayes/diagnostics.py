@@ -11,6 +11,8 @@ Every ArviZ call of the package lives in this module, so a move to ArviZ 1.x is 
 * Plots (Agg backend, each returns a ``matplotlib.figure.Figure``): :func:`plot_trace`,
   :func:`plot_rank`, :func:`plot_autocorr`, :func:`plot_ellipses` ([C21] Fig. 5) and
   :func:`save_plots`.
+* Model mismatch (last section): :func:`psis_loo`, :func:`compare_loo` and the mismatch
+  report's figures (:func:`save_mismatch_figures`).
 
 Units: positions in metres in the data; plots draw millimetres.
 """
@@ -54,6 +56,13 @@ __all__ = [
     "save_plots",
     "auto_exaggeration",
     "AXES",
+    # model mismatch (section at the end of the module)
+    "psis_loo",
+    "compare_loo",
+    "plot_residual_heatmap",
+    "plot_residual_regimes",
+    "plot_before_after",
+    "save_mismatch_figures",
 ]
 
 AXES = ("x", "y", "z")
@@ -493,6 +502,141 @@ def save_plots(idata, array, outdir, prior_std=None, max_imus: int | None = 2, d
             paths.append(save_figure(fig, out / f"{name}.png", dpi=dpi))
         finally:
             plt.close(fig)
+    return paths
+
+
+# =====================================================================================================
+# Model mismatch (accel_bayes.mismatch): PSIS-LOO, model comparison and the mismatch report's figures.
+# Moved here from mismatch/refine.py and mismatch/report.py (issue #10 item 5) so that every ArviZ
+# call and every plot of the package lives in this module.  The mismatch package imports these
+# lazily (inside functions): importing accel_bayes.mismatch does not load ArviZ or matplotlib.
+# =====================================================================================================
+
+def psis_loo(loglik, globals_draws=None):
+    """PSIS-LOO (``az.loo``) over the observations of pointwise log-likelihood draws.
+
+    loglik : (S, N) array — log p(y_n | draw s) for S posterior (or Laplace) draws and N
+        observations (for the mismatch fits: time samples).
+    globals_draws : (S, d) array of the draws themselves (stored as the posterior group; only
+        its shape matters to PSIS), or None.
+    Returns (dict with ``elpd_loo``, ``se``, ``p_loo`` and ``pareto_k_over_0.7`` (count of
+    observations with Pareto k > 0.7, where the estimate is unreliable), the ``InferenceData``,
+    ArviZ's pointwise ``ELPDData``).
+    """
+    ll = np.asarray(loglik, dtype=np.float64)
+    S = ll.shape[0]
+    post = np.zeros((S, 1)) if globals_draws is None else np.asarray(globals_draws, dtype=np.float64)
+    idata = az.from_dict(posterior={"globals": post[None]}, log_likelihood={"y": ll[None]}, dims={"y": ["time"]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Pareto-k warnings: counted and reported instead
+        loo = az.loo(idata, pointwise=True)
+    k = np.asarray(loo.pareto_k)
+    return {"elpd_loo": float(loo.elpd_loo), "se": float(loo.se), "p_loo": float(loo.p_loo),
+            "pareto_k_over_0.7": int((k > 0.7).sum())}, idata, loo
+
+
+def compare_loo(loos: dict) -> dict:
+    """``az.compare`` (ic="loo") of named pointwise ``ELPDData`` (from :func:`psis_loo`; passing
+    them rather than InferenceData keeps ArviZ from recomputing PSIS-LOO).  Returns
+    {name: {"rank", "elpd_diff", "dse", "weight"}}."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cmp = az.compare(dict(loos), ic="loo")
+    return {str(ix): {"rank": int(row["rank"]), "elpd_diff": float(row["elpd_diff"]), "dse": float(row["dse"]),
+                      "weight": float(row["weight"])} for ix, row in cmp.iterrows()}
+
+
+def _mismatch_panels(location, location_after):
+    panels = [("baseline", location)]
+    if location_after is not None:
+        panels.append(("refined", location_after))
+    return panels
+
+
+def plot_residual_heatmap(location, location_after=None, *, channels, K: int | None = None):
+    """Residual excess z = (χ² − n)/√(2n) per IMU (rows) and channel (columns), baseline and,
+    when given, refined.  ``location``: a :class:`accel_bayes.mismatch.locate.Location`."""
+    K = location.heat.shape[0] if K is None else int(K)
+    panels = _mismatch_panels(location, location_after)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels) + 1, 0.35 * K + 2), squeeze=False)
+    vmax = max(3.0, float(np.nanmax(np.abs(location.heat))))
+    for ax, (title, loc) in zip(axes[0], panels):
+        im = ax.imshow(loc.heat, cmap="RdBu_r", vmin=-vmax, vmax=vmax, aspect="auto")
+        ax.set_xticks(range(len(channels)), channels, rotation=45, ha="right")
+        ax.set_yticks(range(K), [str(k) for k in range(K)])
+        ax.set_ylabel("IMU")
+        ax.set_title(f"{title}: residual excess z")
+    fig.colorbar(im, ax=axes[0].tolist(), label="(χ² − n)/√(2n)")
+    return fig
+
+
+def plot_residual_regimes(location, location_after=None):
+    """χ²/n (all IMUs) per motion-regime bin, one panel per regime scheme (time last)."""
+    panels = _mismatch_panels(location, location_after)
+    schemes = [s for s in location.regimes if s != "time"] + ["time"]
+    fig, axes = plt.subplots(1, len(schemes), figsize=(3.3 * len(schemes), 3.4), squeeze=False)
+    for ax, sch in zip(axes[0], schemes):
+        for i, (title, loc) in enumerate(panels):
+            rows = loc.regimes.get(sch, [])
+            x = np.arange(len(rows))
+            ax.bar(x + 0.4 * i - 0.2 * (len(panels) - 1), [r["chi2_ratio"] for r in rows], width=0.4, label=title)
+            ax.set_xticks(x, [r["bin"].replace(sch, "").strip() or r["bin"] for r in rows], rotation=60,
+                          ha="right", fontsize=7)
+        ax.axhline(1.0, color="k", lw=0.8)
+        ax.set_title(sch, fontsize=9)
+    axes[0][0].set_ylabel("χ²/n (all IMUs)")
+    axes[0][-1].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def plot_before_after(location, location_after, positions_baseline, positions_refined):
+    """χ²/n per IMU and sensor before/after, and the position change refined − baseline (µm);
+    positions (K, 3) m."""
+    panels = _mismatch_panels(location, location_after)
+    pb = np.asarray(positions_baseline, dtype=np.float64)
+    K = pb.shape[0]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    for i, (title, loc) in enumerate(panels):
+        rows = [r for r in loc.imus]
+        lab = [f"{r['imu']}{r['sensor'][0]}" for r in rows]
+        a1.bar(np.arange(len(rows)) + 0.4 * i - 0.2, [r["chi2_ratio"] for r in rows], width=0.4, label=title)
+    a1.set_xticks(range(len(lab)), lab, rotation=90, fontsize=7)
+    a1.axhline(1.0, color="k", lw=0.8)
+    a1.set_ylabel("χ²/n per IMU (a = acc, g = gyro)")
+    a1.legend(fontsize=8)
+    d = (np.asarray(positions_refined, dtype=np.float64) - pb) * 1e6
+    a2.bar(np.arange(K) - 0.25, d[:, 0], width=0.25, label="x")
+    a2.bar(np.arange(K), d[:, 1], width=0.25, label="y")
+    a2.bar(np.arange(K) + 0.25, d[:, 2], width=0.25, label="z")
+    a2.set_xlabel("IMU")
+    a2.set_ylabel("position change refined − baseline (µm)")
+    a2.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def save_mismatch_figures(out, location, location_after=None, *, channels, K: int | None = None,
+                          positions_baseline=None, positions_refined=None, dpi: int = 110) -> dict:
+    """Write the mismatch report's figures into ``out``: residual_heatmap.png, residual_regimes.png
+    and, with a refined model (``location_after`` and both positions), before_after.png.
+    Returns {"heatmap", "regimes"[, "before_after"]: path}."""
+    out = Path(out)
+    jobs = [("heatmap", "residual_heatmap.png",
+             lambda: plot_residual_heatmap(location, location_after, channels=channels, K=K)),
+            ("regimes", "residual_regimes.png", lambda: plot_residual_regimes(location, location_after))]
+    if location_after is not None and positions_refined is not None:
+        jobs.append(("before_after", "before_after.png",
+                     lambda: plot_before_after(location, location_after, positions_baseline, positions_refined)))
+    paths = {}
+    for key, name, fn in jobs:
+        fig = fn()
+        p = out / name
+        try:
+            save_figure(fig, p, dpi=dpi, bbox_inches="tight")
+        finally:
+            plt.close(fig)
+        paths[key] = p
     return paths
 
 

@@ -63,6 +63,7 @@ import torch
 
 from .errors import UserError
 from .physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
+from .prep.selection import DEFAULT_MIN_ROTATION, Selection, select_samples
 
 __all__ = [
     "positions_from_theta",
@@ -74,8 +75,8 @@ __all__ = [
     "DEFAULT_MIN_ROTATION",
 ]
 
-# |ω̄_t| below this (rad/s) marks a sample "without rotation" for select="rotation" (≈ 29 °/s).
-DEFAULT_MIN_ROTATION = 0.5
+# DEFAULT_MIN_ROTATION (0.5 rad/s) lives with THE sample selection (accel_bayes.prep.selection) and
+# is re-exported here, where select="rotation" uses it.
 
 # Budget (number of float64 elements) of one chunk of per-draw temporaries: keeps memory at
 # ~tens of MB whatever T·N·batch is, without a Python loop per sample.
@@ -107,6 +108,20 @@ def theta_from_positions(positions: torch.Tensor, reference: int) -> torch.Tenso
 
 
 # ---------------------------------------------------------------------------- gyro posterior
+
+
+def as_acc_tensor(acc, *, dtype=torch.float64, device=None) -> torch.Tensor:
+    """The accelerometer outputs (T, A, 3) in m/s² as a checked tensor: the input checks shared by
+    the likelihood and the MAP (at least 3 triads, every value finite: samples or IMUs without
+    accelerometer data must be selected away before either is built)."""
+    acc = torch.as_tensor(acc, dtype=dtype, device=device)
+    if acc.dim() != 3 or acc.shape[-1] != 3:
+        raise UserError(f"acc: expected shape (T, A, 3), got {tuple(acc.shape)}")
+    if acc.shape[1] < 3:
+        raise UserError(f"acc: at least 3 accelerometer triads are needed, got A={acc.shape[1]}")
+    if not bool(torch.isfinite(acc).all()):
+        raise UserError("acc: contains NaN/inf; select samples and IMUs with accelerometer data first")
+    return acc
 
 @dataclass
 class GyroPosterior:
@@ -245,14 +260,8 @@ class RaoBlackwellLikelihood:
         device=None,
         phi_prior_std=None,
     ):
-        acc = torch.as_tensor(acc, dtype=dtype, device=device)
-        if acc.dim() != 3 or acc.shape[-1] != 3:
-            raise UserError(f"acc: expected shape (T, A, 3), got {tuple(acc.shape)}")
+        acc = as_acc_tensor(acc, dtype=dtype, device=device)
         T, A, _ = acc.shape
-        if A < 3:
-            raise UserError(f"acc: at least 3 accelerometer triads are needed, got A={A}")
-        if bool(torch.isnan(acc).any()):
-            raise UserError("acc: contains NaN; select samples/IMUs with accelerometer data first")
         if omega.mean.shape != (T, 3) or omega.cov.shape != (T, 3, 3):
             raise UserError(f"omega: expected a GyroPosterior with mean (T, 3) and cov (T, 3, 3) for T={T}, "
                             f"got {tuple(omega.mean.shape)} and {tuple(omega.cov.shape)}")
@@ -269,6 +278,7 @@ class RaoBlackwellLikelihood:
         self.reference = int(reference)
         self.imu_labels = tuple(range(A))
         self.sample_index = None  # indices into the source recording, set by from_recording
+        self.selection = None  # the Selection behind sample_index, set by from_recording
         self.gyro_labels = None  # set by from_recording
         self.nominal_positions = None  # (A, 3) design positions of the rows, set by from_recording
         self.acc = acc
@@ -302,6 +312,7 @@ class RaoBlackwellLikelihood:
         dtype=torch.float64,
         device=None,
         phi_prior_std=None,
+        selection: "Selection | None" = None,
     ) -> "RaoBlackwellLikelihood":
         """Build the likelihood from a :class:`~accel_bayes.data.recording.Recording`.
 
@@ -314,11 +325,17 @@ class RaoBlackwellLikelihood:
         row is the recording's ``reference_imu``.  ``self.nominal_positions`` (A, 3) holds the
         design positions of the rows (a natural central θ), ``self.gyro_labels`` the gyros used.
 
-        Sample selection (explicit, never hidden; ``self.sample_index`` records what was kept):
+        Sample selection (explicit, never hidden; ``self.sample_index`` records what was kept and
+        ``self.selection`` the :class:`~accel_bayes.prep.selection.Selection` it came from):
 
-        * ``select=None`` keeps every sample; a bool mask (T,) or integer indices keeps those.
-        * ``select="rotation"`` keeps samples with |ω̄_t| ≥ ``min_rotation`` rad/s (default
-          :data:`DEFAULT_MIN_ROTATION` = 0.5 rad/s).  Samples without rotation carry no
+        * ``selection`` — a :class:`~accel_bayes.prep.selection.Selection` (e.g. the one of
+          :func:`accel_bayes.prep.preprocess.preprocess`) is used as it is; ``select``,
+          ``min_rotation`` and ``drop_clipped`` must then be left at their defaults.
+        * otherwise :func:`~accel_bayes.prep.selection.select_samples` is called on the IMUs used
+          (no rests): ``select=None`` keeps every sample with a finite gyro reading; a bool mask
+          (T,) or integer indices keeps those; ``select="rotation"`` keeps samples with
+          |ω̄_t| ≥ ``min_rotation`` rad/s (default :data:`DEFAULT_MIN_ROTATION` = 0.5 rad/s;
+          ω̄_t the inverse-variance-weighted gyro mean).  Samples without rotation carry no
           information on θ ([C21] §IV-C: G u(ω) ≈ 0, and the rotational part of H carries only
           ω̇, which is integrated out) but still cost time.
         * ``drop_clipped=True`` further drops samples with ``acc_clipped``/``gyro_clipped`` set for
@@ -343,39 +360,27 @@ class RaoBlackwellLikelihood:
             raise UserError(f"gyro_imus: expected IMUs with gyroscope data, got {glabels.tolist()}")
 
         T = rec.T
-        keep = np.ones(T, dtype=bool)
-        if select is None:
-            pass
-        elif isinstance(select, str):
-            if select != "rotation":
-                raise UserError(f"select: expected None, a mask, indices or 'rotation', got {select!r}")
+        if selection is not None:
+            if not isinstance(selection, Selection) or selection.T != T:
+                raise UserError(f"selection: expected a Selection of the recording's {T} samples")
+            if select is not None or min_rotation is not None or drop_clipped:
+                raise UserError("selection: given together with select/min_rotation/drop_clipped; pass one or the other")
         else:
-            sel = np.asarray(select)
-            if sel.dtype == bool:
-                if sel.shape != (T,):
-                    raise UserError(f"select: a bool mask must have shape ({T},), got {sel.shape}")
-                keep = sel.copy()
-            else:
-                keep = np.zeros(T, dtype=bool)
-                keep[sel.astype(int)] = True
-        if drop_clipped:
-            for nm, lab in (("acc_clipped", labels), ("gyro_clipped", glabels)):
-                clip = getattr(rec, nm)
-                if clip is not None:
-                    keep &= ~np.asarray(clip)[:, lab].any(-1)
+            if isinstance(select, str) and select != "rotation":
+                raise UserError(f"select: expected None, a mask, indices or 'rotation', got {select!r}")
+            rot = isinstance(select, str)
+            thr = (DEFAULT_MIN_ROTATION if min_rotation is None else float(min_rotation)) if rot else 0.0
+            selection = select_samples(rec, drop_static=False, drop_clipped=bool(drop_clipped), min_rotation=thr,
+                                       user=None if (select is None or rot) else select, acc_imus=labels,
+                                       gyro_imus=glabels)
+        idx = np.array(selection.index)
+        if len(idx) == 0:
+            raise UserError("select: no samples left after selection")
 
         acc_all = rec.acc_tensor("array", dtype=dtype, device=device)
         gyro_all = rec.gyro_tensor("array", dtype=dtype, device=device)
         gstd = torch.as_tensor(np.asarray(rec.gyro_noise_std)[glabels], dtype=dtype, device=device)
-        idx = np.flatnonzero(keep)
         gyro = gyro_all[torch.as_tensor(idx, device=gyro_all.device)][:, torch.as_tensor(glabels)]
-        if isinstance(select, str):  # "rotation": decide on the gyro mean of the kept samples
-            thr = DEFAULT_MIN_ROTATION if min_rotation is None else float(min_rotation)
-            rot = gyro.mean(-2).norm(dim=-1) >= thr
-            idx = idx[rot.cpu().numpy()]
-            gyro = gyro[rot]
-        if len(idx) == 0:
-            raise UserError("select: no samples left after selection")
         acc = acc_all[torch.as_tensor(idx, device=acc_all.device)][:, torch.as_tensor(labels)]
         omega = gyro_posterior(gyro, gstd, gyro_method)
         astd = np.asarray(rec.acc_noise_std)[labels]
@@ -384,6 +389,7 @@ class RaoBlackwellLikelihood:
         lik.imu_labels = tuple(int(k) for k in labels)
         lik.gyro_labels = tuple(int(k) for k in glabels)
         lik.sample_index = idx
+        lik.selection = selection
         lik.nominal_positions = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=dtype,
                                                 device=lik.device)
         return lik

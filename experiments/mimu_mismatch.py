@@ -11,7 +11,7 @@ For each experiment ``exp_i`` (``../shared/data/mimu4444-bcd``):
    write its report (``OUT/exp_i/report.json`` + ``report.md``);
 3. held-out check: the effects found on experiment i — their fitted parameters held fixed —
    are added to the nominal model of experiment j's dynamic data; positions and motion are
-   re-fitted on j in both models (:func:`accel_bayes.mismatch.refine.heldout_fit`), and the
+   re-fitted on j in both models (:func:`accel_bayes.mismatch.transfer.heldout_fit`), and the
    log-likelihood difference (fixed effects − nominal) is reported for every ordered pair
    (the diagonal i = j is the in-sample value, for reference);
 4. repeatability: the spread of the six position estimates per IMU, from the nominal fit
@@ -117,7 +117,8 @@ def stage_detect(args, exps):
 
 
 def stage_heldout(args, exps):
-    from accel_bayes.mismatch.refine import baseline_fit, heldout_fit, prepare
+    from accel_bayes.mismatch import baseline_fit, prepare
+    from accel_bayes.mismatch.transfer import heldout_fit
 
     path = args.out / "heldout.json"
     res = json.loads(path.read_text()) if path.exists() and not args.redo else {}
@@ -156,7 +157,8 @@ def stage_heldout(args, exps):
 def stage_heldout_single(args, exps):
     """The held-out check per finding: each effect found on experiment i, alone and with its
     parameters fixed, on every experiment j (which findings carry over)."""
-    from accel_bayes.mismatch.refine import baseline_fit, heldout_fit, prepare
+    from accel_bayes.mismatch import baseline_fit, prepare
+    from accel_bayes.mismatch.transfer import heldout_fit
 
     path = args.out / "heldout_single.json"
     res = json.loads(path.read_text()) if path.exists() and not args.redo else {}

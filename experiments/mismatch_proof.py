@@ -219,7 +219,7 @@ def twin_baseline_error(clean, ref: int, true_rel) -> float:
     """Position error (µm) of the detector's own baseline fit (its first stage:
     ``prepare`` + ``baseline_fit``, the nominal model's MAP) on a case's clean twin — the
     clean-data reference of ``--twin-baseline``, a fraction of the cost of a full detect."""
-    from accel_bayes.mismatch.refine import baseline_fit, prepare
+    from accel_bayes.mismatch import baseline_fit, prepare
 
     base, _ = baseline_fit(prepare(clean.recording), use_map=True, progress=False)
     pos = np.asarray(base.positions, dtype=float)

@@ -15,7 +15,7 @@ from accel_bayes.cli import main
 from accel_bayes.data.io import write_recording
 from accel_bayes.mismatch import SCHEMA, detect, make_effect, validate_report
 from accel_bayes.mismatch.detect import candidate_effects, noise_evidence, screen
-from accel_bayes.mismatch.refine import Prepared, baseline_fit, fit_model, prepare
+from accel_bayes.mismatch import Prepared, baseline_fit, fit_model, prepare
 from accel_bayes.simulate import simulate
 
 DEG = math.pi / 180
@@ -93,6 +93,14 @@ def test_report_contract_and_files(clean_report, disp_report, tmp_path):
         evid = [f["evidence"] for f in doc["findings"] if f["effect"] != "unexplained"]
         assert evid == sorted(evid, reverse=True)
         assert (tmp_path / name / "report.md").read_text().startswith("# Model-mismatch report")
+        # the preparation is the calibration's, and the report says so (issue #10 items 3, 5)
+        prep = doc["details"]["recording"]["preparation"]
+        assert prep["intrinsics"]["applied"] is False and "no static segments" in prep["intrinsics"]["why"]
+        sel = prep["selection"]
+        assert sel["kept"] == doc["details"]["recording"]["T"] == sel["recording"] - sum(sel["dropped"].values())
+        assert sel["min_rotation"] == 0.5 and set(sel["dropped"]) == {"static", "clipped", "non_finite", "slow", "user"}
+        md = (tmp_path / name / "report.md").read_text().splitlines()
+        assert sum(line.startswith("Preparation (as `calibrate`): intrinsics not applied") for line in md) == 1
     assert paths["heatmap"].exists() and paths["regimes"].exists() and paths["before_after"].exists()
     assert "![" in (tmp_path / "disp" / "report.md").read_text()
     bad = dict(json.loads((tmp_path / "clean" / "report.json").read_text()), mismatch_detected=True)
@@ -220,7 +228,7 @@ def test_heldout_fit_with_fixed_effects(gyro_case, clean_rec):
     an independent recording with the same effect, its negative lowers it; a fixed noise factor
     agrees with the closed form at the nominal optimum (a lower bound, the re-weighted fit can
     only gain a little)."""
-    from accel_bayes.mismatch.refine import heldout_fit
+    from accel_bayes.mismatch.transfer import heldout_fit
 
     prep, base = gyro_case
     fit = fit_model(prep, [make_effect("gyro_bias", imu=4, axis="x")], init=base)
@@ -319,10 +327,16 @@ def test_prepare_drops_flagged_clipped_samples(clean_rec):
     flags[10:30, 3] = True
     flags[50, 6] = True
     rec.gyro_clipped = flags
-    p = prepare(rec)
+    p = prepare(rec, min_rotation=0)  # the clip test alone (no rests in this simulation)
     assert p.T == len(rec.time) - 21 and p.n_dropped_clipped == 21
     np.testing.assert_array_equal(p.time.numpy(), rec.time[~flags.any(1)])
-    assert prepare(rec, drop_clipped=False).T == len(rec.time)
+    assert prepare(rec, drop_clipped=False, min_rotation=0).T == len(rec.time)
+    # by default the calibration's whole selection: the same samples as preprocess keeps
+    from accel_bayes.prep.preprocess import preprocess
+
+    p = prepare(rec)
+    np.testing.assert_array_equal(p.time.numpy(), rec.time[preprocess(rec).keep])
+    assert p.preparation["selection"]["dropped"]["clipped"] == 21 == p.n_dropped_clipped
 
 
 def test_excess_cells_rank_by_evidence_when_p_values_underflow(clean_rec):
@@ -363,3 +377,82 @@ def test_alternatives_are_the_candidates_with_akaike_weight_above_five_percent()
     assert out[0]["relative_likelihood"] == pytest.approx(math.exp(-0.25))
     assert out[1]["relative_likelihood"] == pytest.approx(math.exp(-1.0))
     assert out[1]["evidence"] == 99.0 and out[1]["imu"] == 2 and out[1]["axis"] == "x"
+
+
+def _recording_with_rests(K=4, n_orient=12, n=60, dyn=40, sigma=0.04, sigma_g=0.003):
+    """Raw outputs a = T⁻¹ g u + b + noise in n_orient rests (labelled), between dynamic
+    stretches of random outputs (some slow, some clipped-free fast)."""
+    from accel_bayes.data.recording import Recording
+
+    g0 = 9.80665
+    rng = np.random.default_rng(11)
+    b = rng.normal(0, 0.3, (K, 3))
+    Tm = np.zeros((K, 3, 3))
+    for k in range(K):
+        Tm[k] = np.diag(1 + rng.normal(0, 0.01, 3))
+        Tm[k][np.tril_indices(3, -1)] = rng.normal(0, 0.005, 3)
+    dirs = rng.normal(size=(n_orient, K, 3))
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    Tinv = np.linalg.inv(Tm)
+    acc, gyro, seg = [], [], []
+    for s in range(n_orient):
+        raw = np.einsum("kij,kj->ki", Tinv, g0 * dirs[s]) + b
+        acc += [rng.normal(0, 20, (dyn, K, 3)), raw + sigma * rng.normal(size=(n, K, 3))]
+        w = rng.normal(0, 1, (dyn, 1, 3)) * rng.uniform(0, 3, (dyn, 1, 1))  # one ω for the rigid board
+        gyro += [w + sigma_g * rng.normal(size=(dyn, K, 3)), sigma_g * rng.normal(size=(n, K, 3))]
+        seg += ["dynamic"] * dyn + ["static"] * n
+    acc = np.concatenate(acc)
+    pos = np.array([[0, 0, 0], [0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.02]], dtype=float)[:K]
+    return Recording(time=np.arange(acc.shape[0]) / 100.0, acc=acc, gyro=np.concatenate(gyro),
+                     nominal_position=pos, acc_noise_std=np.full(K, sigma), gyro_noise_std=np.full(K, sigma_g),
+                     segment=np.array(seg), description="rests")
+
+
+def test_mismatch_prepares_a_recording_with_rests_as_calibrate_does():
+    """On a recording with rests, prepare() applies the intrinsics calibrate estimates and keeps
+    exactly calibrate's samples (issue #10: one prepared object)."""
+    from accel_bayes.calibrate import DEFAULTS
+    from accel_bayes.prep.preprocess import preprocess
+    rec = _recording_with_rests()
+    pre = preprocess(rec, intrinsics=DEFAULTS["intrinsics"], drop_static=DEFAULTS["drop_static"],
+                     drop_clipped=DEFAULTS["drop_clipped"], min_rotation=DEFAULTS["min_rotation"])
+    assert pre.intrinsics is not None and pre.selection.dropped["static"] > 0
+    p = prepare(rec)
+    assert p.preparation["intrinsics"]["applied"] is True
+    np.testing.assert_array_equal(p.selection.keep, pre.selection.keep)
+    np.testing.assert_array_equal(p.rec.acc, pre.recording.acc[pre.keep])  # corrected, selected
+    np.testing.assert_array_equal(p.time.numpy(), rec.time[pre.keep])
+
+
+def test_refine_is_a_deprecated_reexport():
+    import importlib
+    import sys
+
+    import accel_bayes.mismatch as mm
+
+    sys.modules.pop("accel_bayes.mismatch.refine", None)
+    with pytest.warns(DeprecationWarning, match="refine is deprecated"):
+        old = importlib.import_module("accel_bayes.mismatch.refine")
+    from accel_bayes.mismatch.compare import elpd_loo
+    from accel_bayes.mismatch.transfer import heldout_fit
+
+    assert old.prepare is mm.prepare and old.fit_model is mm.fit_model and old.ModelFit is mm.ModelFit
+    assert old.heldout_fit is heldout_fit and old.elpd_loo is elpd_loo
+
+
+def test_corrected_recording_of_the_whole_prepared_recording(disp_report):
+    """posterior=True reruns calibrate on the whole prepared recording (rests included, so the
+    calibration keeps its protocol): only the fitted samples are corrected."""
+    from accel_bayes.mismatch.compare import corrected_recording
+
+    prep, fit = disp_report.prep, disp_report.refined_fit
+    assert fit is not None and any(e.kind == "mean" for e in fit.effects)
+    idx = prep.selection.index
+    a = corrected_recording(prep.rec, fit)
+    b = corrected_recording(prep.source, fit, index=idx)
+    assert b.T == prep.source.T and a.T == prep.T == len(idx)
+    np.testing.assert_allclose(b.acc[idx], a.acc, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.gyro[idx], a.gyro, rtol=0, atol=1e-12)
+    assert not np.array_equal(a.acc, prep.rec.acc)  # something was corrected
+    drop = ~prep.selection.keep
+    np.testing.assert_array_equal(b.acc[drop], prep.source.acc[drop])

@@ -17,7 +17,8 @@ from accel_bayes.prep.intrinsics import Intrinsics
 from accel_bayes.likelihood import GyroPosterior, RaoBlackwellLikelihood
 from accel_bayes.prep.noise import (TemperedLikelihood, fit_map_with_noise, residual_statistics, sandwich_inflation,
                                scale_samples)
-from accel_bayes.prep.preprocess import draw_intrinsics, preprocess, rotation_rate
+from accel_bayes.prep.preprocess import draw_intrinsics, preprocess
+from accel_bayes.prep.selection import rotation_rate
 from accel_bayes.simulate import simulate
 
 

@@ -40,7 +40,7 @@ import torch
 from ..constants import DEFAULT_PRIOR_STD
 from ..errors import UserError
 from ..physics.geometry import skew
-from ..likelihood import positions_from_theta, theta_from_positions
+from ..likelihood import as_acc_tensor, positions_from_theta, theta_from_positions
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
 from ..physics.jacobians import d2u_domega2, df_dr, du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
@@ -67,6 +67,8 @@ class MAPResult:
     cost_terms : dict — the cost split: "acc" (½Σ‖·‖²_S), "logdetM" ((T/2) log|M|), "gyro", "prior".
     log : per-iteration LM log; converged, reason, n_iter : LM outcome.
     reference : int; imu_labels : tuple of the IMU labels of the rows (fit_map_recording) or None.
+    selection, sample_index : (fit_map_recording) the :class:`~accel_bayes.prep.selection.Selection`
+        of the samples fitted and its kept indices into the recording; None otherwise.
     lm : the :class:`~accel_bayes.inference.lm.LMResult` (problem included) for further use.
     """
 
@@ -83,6 +85,8 @@ class MAPResult:
     reference: int
     imu_labels: tuple | None = None
     lm: LMResult | None = field(default=None, repr=False)
+    selection: object = field(default=None, repr=False)
+    sample_index: object = field(default=None, repr=False)
 
     def position_cov(self) -> torch.Tensor:
         """(A, 3, 3) per-triad marginal covariance blocks (zeros for the reference)."""
@@ -120,16 +124,10 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     * log|M|: ∂ = tr(M⁻¹ ∂M), ∂² = tr(M⁻¹ ∂²M) − tr(M⁻¹ ∂M M⁻¹ ∂M), with
       ∂M/∂r_k,a = E_aᵀΛ_kH_k + H_kᵀΛ_kE_a, E_a = [−Ω(e_a) 0], and ∂²M within one triad only.
     """
-    acc = torch.as_tensor(acc, dtype=dtype, device=device)
-    if acc.dim() != 3 or acc.shape[-1] != 3:
-        raise UserError(f"acc: expected shape (T, A, 3), got {tuple(acc.shape)}")
+    acc = as_acc_tensor(acc, dtype=dtype, device=device)
     T, A, _ = acc.shape
-    if A < 3:
-        raise UserError(f"acc: at least 3 accelerometer triads are needed, got A={A}")
     if not 0 <= int(reference) < A:
         raise UserError(f"reference: expected an index in 0..{A - 1}, got {reference}")
-    if not bool(torch.isfinite(acc).all()):
-        raise UserError("acc: contains NaN/inf; select samples and IMUs with data first")
     reference = int(reference)
     wbar = torch.as_tensor(omega_mean, dtype=dtype, device=acc.device)
     P = torch.as_tensor(omega_cov, dtype=dtype, device=acc.device)
@@ -345,22 +343,26 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
 
 
 def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_rotation=None,
-                      drop_clipped: bool = False, acc_imus=None, gyro_imus=None, prior_std=DEFAULT_PRIOR_STD,
+                      drop_clipped: bool = False, selection=None, acc_imus=None, gyro_imus=None,
+                      prior_std=DEFAULT_PRIOR_STD,
                       prior_mean=None, dtype=torch.float64, device=None, **kw) -> MAPResult:
     """:func:`fit_map` on a :class:`~accel_bayes.data.recording.Recording`.
 
     Data preparation is the likelihood's (:meth:`accel_bayes.likelihood.RaoBlackwellLikelihood.from_recording`):
     outputs rotated into the array frame with the nominal orientations, the gyroscope posterior
     of ``gyro_method`` ("sample_cov" = [C21] eq. 30 as printed, "sample_cov_mean", "calibrated"),
-    explicit sample selection (``select``/``min_rotation``/``drop_clipped``).  The prior mean is
-    the nominal design of the used IMUs (relative to ``rec.reference_imu``) unless given.  Rows
-    of the result follow ``result.imu_labels``.  Other keywords go to :func:`fit_map`.
+    explicit sample selection (``select``/``min_rotation``/``drop_clipped``, or a ready
+    :class:`~accel_bayes.prep.selection.Selection` such as ``preprocess(rec).selection``).  The
+    prior mean is the nominal design of the used IMUs (relative to ``rec.reference_imu``) unless
+    given.  Rows of the result follow ``result.imu_labels``; ``result.selection`` is the Selection
+    used and ``result.sample_index`` its kept indices.  Other keywords go to :func:`fit_map`.
     """
     from ..likelihood import RaoBlackwellLikelihood
 
     lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gyro_method, select=select,
                                                 min_rotation=min_rotation, drop_clipped=drop_clipped,
-                                                acc_imus=acc_imus, gyro_imus=gyro_imus, dtype=dtype, device=device)
+                                                selection=selection, acc_imus=acc_imus, gyro_imus=gyro_imus,
+                                                dtype=dtype, device=device)
     labels = list(lik.imu_labels)
     if prior_mean is None:
         prior_mean = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=dtype, device=device)
@@ -368,4 +370,5 @@ def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_
                   prior_mean=prior_mean, prior_std=prior_std, dtype=dtype, device=device, **kw)
     res.imu_labels = tuple(labels)
     res.sample_index = lik.sample_index
+    res.selection = lik.selection
     return res

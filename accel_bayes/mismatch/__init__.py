@@ -4,8 +4,12 @@ with the nominal array model, name the physics the model left out, add it, refit
 * :mod:`.effects` — the effects library (one class per physical effect, vocabulary v1);
 * :mod:`.locate` — standardized residuals, excess per IMU/axis/regime, posterior predictive check;
 * :mod:`.detect` — :func:`detect`, the public entry point (screen → refit → rank → threshold);
-* :mod:`.refine` — the augmented model fitted jointly with geometry and motion, before/after
-  comparison (χ²/dof, log-likelihood, ELPD by PSIS-LOO);
+* :mod:`.prepared` — the recording prepared as the calibration prepares it (intrinsics, THE
+  sample selection), in the fits' form;
+* :mod:`.model` — the augmented model and its linear algebra; :mod:`.fit` — fitting it jointly
+  with geometry and motion; :mod:`.compare` — before/after comparison (χ²/dof, log-likelihood,
+  ELPD by PSIS-LOO); :mod:`.transfer` — held-out transfer of effects to another recording;
+  (:mod:`.refine` — deprecated re-export of those);
 * :mod:`.report` — :class:`MismatchReport`, the §7.2 ``report.json`` and the human report.
 
 >>> from accel_bayes.mismatch import detect          # doctest: +SKIP
@@ -14,12 +18,15 @@ with the nominal array model, name the physics the model left out, add it, refit
 from ..physics.effects import EFFECTS, VOCABULARY, Effect, SignalContext, get_effect, make_effect, register_effect
 from .detect import candidate_effects, detect, screen, threshold_rule
 from .locate import Location, locate
-from .refine import ModelFit, baseline_fit, compare_fits, fit_model, prepare
+from .compare import compare_fits
+from .fit import baseline_fit, fit_model
+from .model import ModelFit
+from .prepared import Prepared, prepare
 from .report import SCHEMA, Finding, MismatchReport, validate_report
 
 __all__ = [
     "detect", "MismatchReport", "Finding", "SCHEMA", "validate_report",
     "EFFECTS", "VOCABULARY", "Effect", "SignalContext", "get_effect", "make_effect", "register_effect",
     "candidate_effects", "screen", "threshold_rule", "locate", "Location",
-    "prepare", "baseline_fit", "fit_model", "compare_fits", "ModelFit",
+    "prepare", "Prepared", "baseline_fit", "fit_model", "compare_fits", "ModelFit",
 ]

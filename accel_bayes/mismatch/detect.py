@@ -8,10 +8,12 @@
 Procedure
 ---------
 1. **Baseline**: the nominal model fitted jointly in geometry and motion
-   (:func:`accel_bayes.mismatch.refine.baseline_fit`, started from the package's MAP), on the
-   samples the recording does not flag as clipped (:func:`accel_bayes.mismatch.refine.prepare`
-   drops flagged samples: a reading at the range is censored, not a measurement; unflagged
-   clipping stays in and is the ``saturation`` effect's business).
+   (:func:`accel_bayes.mismatch.fit.baseline_fit`, started from the package's MAP), on the
+   recording prepared as the calibration prepares it (:func:`accel_bayes.mismatch.prepared.prepare`
+   through :func:`accel_bayes.prep.preprocess.preprocess`: intrinsics from the rests when it has
+   them, rests, flagged-clipped and slowly rotating samples dropped by THE sample selection; a
+   reading at the range is censored, not a measurement; unflagged clipping stays in and is the
+   ``saturation`` effect's business).
 2. **Locate** (:func:`accel_bayes.mismatch.locate.locate`): standardized residuals, excess per
    IMU/axis/regime, posterior predictive check.
 3. **Candidates**: every location of every requested effect class
@@ -88,7 +90,10 @@ from ..data.io import load_recording
 from ..errors import UserError
 from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
-from .refine import ModelFit, Prepared, _effect_std, baseline_fit, compare_fits, fit_model, prepare
+from .compare import compare_fits
+from .fit import _effect_std, baseline_fit, fit_model
+from .model import ModelFit
+from .prepared import Prepared, prepare
 from .report import Finding, MismatchReport
 
 __all__ = ["Screen", "detect", "candidate_effects", "screen", "threshold_rule", "noise_evidence"]
@@ -384,8 +389,7 @@ def _group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> floa
 
 def _check_recording(rec) -> None:
     """Refuse (one line) a recording the detector cannot judge, before any fit."""
-    from ..likelihood import DEFAULT_MIN_ROTATION
-    from ..prep.preprocess import rotation_rate
+    from ..prep.selection import DEFAULT_MIN_ROTATION, rotation_rate
 
     if rec.T < 3:
         raise UserError(f"time: mismatch detection needs at least 3 samples, the recording has {rec.T}")
@@ -610,9 +614,10 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         comparison = compare_fits(base, refined, draws=loo_draws, seed=seed)
         say(f"refined: χ²/dof {base.chi2_per_dof:.4g} → {refined.chi2_per_dof:.4g}")
         if posterior:
-            from .refine import posterior_comparison
+            from .compare import posterior_comparison
 
-            post = posterior_comparison(prep.rec, refined, seed=seed, progress=progress)
+            post = posterior_comparison(prep.source, refined, seed=seed, progress=progress,
+                                        index=prep.selection.index)
     timings["refine_s"] = _time.perf_counter() - t0
     timings["total_s"] = _time.perf_counter() - t_start
     settings = {"effects": names if names is not None else list(EFFECTS), "alpha": alpha,
@@ -627,6 +632,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         screens=[s.to_dict() for s in last_screens[:20]], baseline_info=base_info, source=source,
         recording_info={"T": prep.T, "K": prep.K, "reference_imu": prep.ref, "description": rec.description,
                         "T_given": int(len(rec.time)), "dropped_clipped": int(prep.n_dropped_clipped),
+                        "preparation": prep.preparation,
                         "sample_rate_hz": rec.sample_rate},
         prep=prep,
     )

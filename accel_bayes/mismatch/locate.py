@@ -1,7 +1,7 @@
 """Locate a mismatch: where (IMU, sensor, axis, motion regime, time) the residuals of a fit
 exceed the noise the model states, and whether that excess is more than chance.
 
-Given a fit of the (nominal or augmented) model (:func:`accel_bayes.mismatch.refine.fit_model`):
+Given a fit of the (nominal or augmented) model (:func:`accel_bayes.mismatch.fit.fit_model`):
 
 1. **Standardized residuals** z = r / (σ c √(1 − h)) per sample, IMU, sensor (acc / gyro) and
    sensor-frame axis: r the raw residual, σ the stated noise, c the model's noise factor (1 for
@@ -34,7 +34,8 @@ import numpy as np
 import torch
 
 from ..physics.effects import AXES
-from .refine import ModelFit, Prepared
+from .model import ModelFit
+from .prepared import Prepared
 
 __all__ = ["CHANNELS", "Location", "standardized", "regimes", "locate", "ppc", "excess_cells", "regime_concentration",
            "time_window", "log10_chi2_sf"]

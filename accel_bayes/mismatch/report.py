@@ -11,7 +11,7 @@ Attribute access mirrors the JSON: ``report.baseline`` and ``report.refined`` ar
 blocks (dicts; ``refined`` is None on clean data or with ``refine=False``), ``report.findings``
 the ranked :class:`Finding` list (``finding.effect`` the name, ``finding.model`` the fitted
 :class:`~accel_bayes.physics.effects.Effect`; ``finding["evidence"]`` works too), and
-``report.baseline_fit`` / ``report.refined_fit`` the :class:`~accel_bayes.mismatch.refine.ModelFit`
+``report.baseline_fit`` / ``report.refined_fit`` the :class:`~accel_bayes.mismatch.model.ModelFit`
 objects behind them.
 """
 from __future__ import annotations
@@ -21,8 +21,6 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import UserError
 from ..data.outputs import to_jsonable, write_text
 
@@ -31,12 +29,6 @@ __all__ = ["SCHEMA", "Finding", "MismatchReport", "validate_report"]
 SCHEMA = "accel_bayes.mismatch/1"
 
 
-def _arviz():
-    """ArviZ, imported with its 1.0 announcement silenced."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)
-        import arviz as az
-    return az
 
 
 # ------------------------------------------------------------------------------ finding
@@ -219,83 +211,17 @@ class MismatchReport:
         return paths
 
     def save_figures(self, out: Path) -> dict:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        from ..data.outputs import save_figure
+        """The report's figures (drawn by :func:`accel_bayes.diagnostics.save_mismatch_figures`,
+        where every plot of the package lives); returns {name: path}."""
+        from ..diagnostics import save_mismatch_figures  # lazy: matplotlib only when writing figures
         from .locate import CHANNELS
 
-        paths = {}
-        K = self.recording_info.get("K", self.location.heat.shape[0])
-        # heat map IMU × channel, before (and after)
-        panels = [("baseline", self.location)]
-        if self.location_after is not None:
-            panels.append(("refined", self.location_after))
-        fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels) + 1, 0.35 * K + 2), squeeze=False)
-        vmax = max(3.0, float(np.nanmax(np.abs(self.location.heat))))
-        for ax, (title, loc) in zip(axes[0], panels):
-            im = ax.imshow(loc.heat, cmap="RdBu_r", vmin=-vmax, vmax=vmax, aspect="auto")
-            ax.set_xticks(range(6), CHANNELS, rotation=45, ha="right")
-            ax.set_yticks(range(K), [str(k) for k in range(K)])
-            ax.set_ylabel("IMU")
-            ax.set_title(f"{title}: residual excess z")
-        fig.colorbar(im, ax=axes[0].tolist(), label="(χ² − n)/√(2n)")
-        p = out / "residual_heatmap.png"
-        try:
-            save_figure(fig, p, dpi=110, bbox_inches="tight")
-        finally:
-            plt.close(fig)
-        paths["heatmap"] = p
-        # residual excess vs regime
-        schemes = [s for s in self.location.regimes if s != "time"] + ["time"]
-        fig, axes = plt.subplots(1, len(schemes), figsize=(3.3 * len(schemes), 3.4), squeeze=False)
-        for ax, sch in zip(axes[0], schemes):
-            for i, (title, loc) in enumerate(panels):
-                rows = loc.regimes.get(sch, [])
-                x = np.arange(len(rows))
-                ax.bar(x + 0.4 * i - 0.2 * (len(panels) - 1), [r["chi2_ratio"] for r in rows], width=0.4,
-                       label=title)
-                ax.set_xticks(x, [r["bin"].replace(sch, "").strip() or r["bin"] for r in rows], rotation=60,
-                              ha="right", fontsize=7)
-            ax.axhline(1.0, color="k", lw=0.8)
-            ax.set_title(sch, fontsize=9)
-        axes[0][0].set_ylabel("χ²/n (all IMUs)")
-        axes[0][-1].legend(fontsize=7)
-        fig.tight_layout()
-        p = out / "residual_regimes.png"
-        try:
-            save_figure(fig, p, dpi=110, bbox_inches="tight")
-        finally:
-            plt.close(fig)
-        paths["regimes"] = p
-        # before / after per IMU and geometry change
-        if self.location_after is not None and self.refined_fit is not None:
-            fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6))
-            for i, (title, loc) in enumerate(panels):
-                rows = [r for r in loc.imus]
-                lab = [f"{r['imu']}{r['sensor'][0]}" for r in rows]
-                a1.bar(np.arange(len(rows)) + 0.4 * i - 0.2, [r["chi2_ratio"] for r in rows], width=0.4, label=title)
-            a1.set_xticks(range(len(lab)), lab, rotation=90, fontsize=7)
-            a1.axhline(1.0, color="k", lw=0.8)
-            a1.set_ylabel("χ²/n per IMU (a = acc, g = gyro)")
-            a1.legend(fontsize=8)
-            d = (self.refined_fit.positions - self.baseline_fit.positions).numpy() * 1e6
-            a2.bar(np.arange(K) - 0.25, d[:, 0], width=0.25, label="x")
-            a2.bar(np.arange(K), d[:, 1], width=0.25, label="y")
-            a2.bar(np.arange(K) + 0.25, d[:, 2], width=0.25, label="z")
-            a2.set_xlabel("IMU")
-            a2.set_ylabel("position change refined − baseline (µm)")
-            a2.legend(fontsize=8)
-            fig.tight_layout()
-            p = out / "before_after.png"
-            try:
-                save_figure(fig, p, dpi=110, bbox_inches="tight")
-            finally:
-                plt.close(fig)
-            paths["before_after"] = p
-        return paths
+        refined = self.location_after is not None and self.refined_fit is not None
+        return save_mismatch_figures(
+            out, self.location, self.location_after, channels=CHANNELS,
+            K=self.recording_info.get("K", self.location.heat.shape[0]),
+            positions_baseline=self.baseline_fit.positions.numpy() if refined else None,
+            positions_refined=self.refined_fit.positions.numpy() if refined else None)
 
     def markdown(self, figures: dict | None = None) -> str:
         """The human report (Markdown)."""
@@ -305,6 +231,9 @@ class MismatchReport:
         ri = self.recording_info
         L.append(f"Recording: {self.source or ri.get('description') or '(in memory)'} — T = {ri.get('T')} samples, "
                  f"K = {ri.get('K')} IMUs, reference IMU {ri.get('reference_imu')}.")
+        prep_line = _preparation_line(ri.get("preparation"))
+        if prep_line:
+            L.append(prep_line)
         L.append("")
         verdict = "**Mismatch detected.**" if d["mismatch_detected"] else "**No mismatch detected**: the nominal model explains the recording within its stated noise."
         L += [verdict, "",
@@ -377,6 +306,18 @@ class MismatchReport:
         t = self.timings
         L += ["## Run", "", f"Total {t.get('total_s', float('nan')):.1f} s; settings: `{json.dumps(to_jsonable(self.settings, nonfinite='null', unknown='keep'))}`.", ""]
         return "\n".join(L)
+
+
+def _preparation_line(prep: dict | None) -> str:
+    """One line saying how the recording was prepared (intrinsics, selection), or "" if unknown."""
+    if not prep:
+        return ""
+    it = prep.get("intrinsics", {})
+    s = prep.get("selection", {})
+    intr = f"intrinsics applied ({it.get('how')})" if it.get("applied") else f"intrinsics not applied ({it.get('why')})"
+    dropped = ", ".join(f"{v} {k}" for k, v in (s.get("dropped") or {}).items() if v) or "none"
+    return (f"Preparation (as `calibrate`): {intr}; samples kept {s.get('kept')} of {s.get('recording')} in "
+            f"{s.get('kept_runs')} run(s), dropped {dropped} (min_rotation {s.get('min_rotation')} rad/s).")
 
 
 def _cell(text: str) -> str:

@@ -259,12 +259,6 @@ def _usable_map(res, settings):
     return res
 
 
-def _rotation_rate(rec):
-    from ..prep.preprocess import rotation_rate
-
-    return rotation_rate(rec)
-
-
 def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings):
     """Fit the MAP with the data-estimated noise model (:mod:`accel_bayes.prep.noise`); with
     ``inflate`` temper the likelihood by the sandwich factor κ.  Returns the likelihood the
@@ -413,11 +407,11 @@ def calibrate(
                   intrinsics=intrinsics, drop_static=drop_static, min_rotation=min_rotation, noise=noise,
                   noise_bins=noise_bins, noise_inflation=noise_inflation)
     # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
-    pre, rec, keep = _prepare_step(raw, intrinsics=intrinsics, drop_static=drop_static, drop_clipped=drop_clipped,
-                                   min_rotation=min_rotation, select=select)
+    pre, rec = _prepare_step(raw, intrinsics=intrinsics, drop_static=drop_static, drop_clipped=drop_clipped,
+                               min_rotation=min_rotation, select=select)
     noise_mode = ("estimate" if pre.has_rests else "stated") if noise == "auto" else noise
     gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if gyro_method == "auto" else gyro_method
-    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gm, select=keep, drop_clipped=False)
+    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gm, selection=pre.selection)
     array = raw.sensor_array()
     labels = list(lik.imu_labels)
     ref_label = labels[lik.reference]
@@ -505,32 +499,13 @@ def _check_resume(raw, sha, opts, *, checkpoint, resume, prior, prior_std, use_m
 
 
 def _prepare_step(raw, *, intrinsics, drop_static, drop_clipped, min_rotation, select):
-    """Step 2, prepare: intrinsics, sample selection (:func:`accel_bayes.prep.preprocess.preprocess`)
-    and the user's ``select`` ANDed with it.  Returns (Preprocessed, recording, keep mask)."""
+    """Step 2, prepare: intrinsics and THE sample selection (:func:`accel_bayes.prep.preprocess.preprocess`,
+    the user's ``select`` ANDed in).  Returns (Preprocessed, recording); ``pre.selection`` is what
+    the likelihood takes."""
     pre = preprocess(raw, intrinsics=intrinsics, drop_static=bool(drop_static), drop_clipped=bool(drop_clipped),
-                     min_rotation=min_rotation)
+                     min_rotation=min_rotation, select=select)
     rec = pre.recording
-    keep = pre.keep.copy()
-    if select is not None:
-        if isinstance(select, str):
-            if select != "rotation":
-                raise UserError(f"select: expected None, a mask, indices or 'rotation', got {select!r}")
-            keep &= _rotation_rate(rec) >= (pre.summary["samples"]["min_rotation"] or DEFAULT_MIN_ROTATION)
-        else:
-            sel = np.asarray(select)
-            if sel.dtype == bool:
-                if sel.shape != (rec.T,):
-                    raise UserError(f"select: a bool mask must have shape ({rec.T},), got {sel.shape}")
-                keep &= sel
-            else:
-                m = np.zeros(rec.T, dtype=bool)
-                m[sel.astype(int)] = True
-                keep &= m
-        pre.summary["samples"]["user_select_dropped"] = int(pre.keep.sum() - keep.sum())
-        pre.summary["samples"]["kept"] = int(keep.sum())
-        if not keep.any():
-            raise UserError("select: no samples left after selection")
-    return pre, rec, keep
+    return pre, rec
 
 
 def _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra):

@@ -68,13 +68,13 @@ def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_metho
     from .. import __version__
     from ..errors import UserError
     from ..inference.map import fit_map_recording
-    from ..prep.preprocess import clipped_samples
+    from ..prep.selection import clipped_mask
 
     if select not in SELECTS:
         raise UserError(f"select: expected one of {SELECTS}, got {select!r}")
     loaded = load_recording(recording)
     rec = loaded.recording
-    n_clip = int(clipped_samples(rec).sum())
+    n_clip = int(clipped_mask(rec).sum())
     t0 = time.perf_counter()
     res = fit_map_recording(rec, gyro_method=gyro_method, prior_std=prior_std,
                             select=None if select == "all" else "rotation", drop_clipped=drop_clipped,

@@ -18,13 +18,17 @@
      ω = 0 there, [C21] §IV-C; they were used for step 1);
    * ``drop_clipped`` — samples where any accelerometer or gyroscope axis sits at its range
      (``acc_clipped``/``gyro_clipped``): the model cannot explain them;
-   * ``min_rotation`` — samples with |ω̄_t| < ``min_rotation`` rad/s, ω̄_t the mean of the
-     (bias-corrected) gyros in the array frame (default 0.5 rad/s ≈ 29 °/s,
-     :data:`accel_bayes.likelihood.DEFAULT_MIN_ROTATION`): the centripetal term ω×(ω×r) that
+   * ``min_rotation`` — samples with |ω̄_t| < ``min_rotation`` rad/s, ω̄_t the inverse-variance-
+     weighted mean of the (bias-corrected) gyros in the array frame (default 0.5 rad/s ≈ 29 °/s,
+     :data:`accel_bayes.prep.selection.DEFAULT_MIN_ROTATION`): the centripetal term ω×(ω×r) that
      carries the positions is then < 0.25 % of g at 20 mm ([C21] §IV-C), and the rotational
      ω̇×r term is integrated out with φ.  0 keeps every sample.
 
-Returns a :class:`Preprocessed` (corrected recording, the (T,) keep mask, the intrinsics and a
+The selection is THE one of :func:`accel_bayes.prep.selection.select_samples` (samples with no
+finite gyro reading are dropped as ``non_finite``; a caller's own mask or indices, ``select``, is
+the ``user`` reason).
+
+Returns a :class:`Preprocessed` (corrected recording, the :class:`Selection`, the intrinsics and a
 JSON-ready ``summary``) that :func:`accel_bayes.pipelines.calibrate.calibrate` records in the
 ``positions.json`` provenance and prints.
 
@@ -34,7 +38,6 @@ uncertainty moves the geometry (``experiments/mimu_repeatability.py``).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,11 +48,11 @@ from ..constants import G0, RAD_TO_DEG
 from ..errors import UserError
 from .intrinsics import ACC_PARAMS, Intrinsics, estimate_intrinsics, rest_segments, static_acc_errors, \
     triangular_matrix
-from ..likelihood import DEFAULT_MIN_ROTATION
+from .selection import DEFAULT_MIN_ROTATION, Selection, check_min_rotation, clipped_mask, rotation_rate, \
+    select_samples
 from ..data.recording import Recording
 
-__all__ = ["Preprocessed", "preprocess", "clipped_samples", "draw_intrinsics", "rotation_rate", "INTRINSICS_MODES",
-           "MIN_REST_ORIENTATIONS"]
+__all__ = ["Preprocessed", "preprocess", "draw_intrinsics", "INTRINSICS_MODES", "MIN_REST_ORIENTATIONS"]
 
 INTRINSICS_MODES = ("auto", "estimate", "none")
 MIN_REST_ORIENTATIONS = 9  # the accelerometer model has 9 unknowns per IMU
@@ -60,25 +63,31 @@ class Preprocessed:
     """What :func:`preprocess` did.
 
     recording : the recording to calibrate (intrinsics applied when they were), ALL samples.
-    keep : (T,) bool — the samples to use.
+    selection : the :class:`~accel_bayes.prep.selection.Selection` of the samples to use
+        (``keep`` is its (T,) mask).
     intrinsics : the :class:`~accel_bayes.prep.intrinsics.Intrinsics` applied, or None.
     has_rests : whether the recording has rests (static segments) at all.
     summary : JSON-ready dict: ``intrinsics`` (what was estimated/applied, or why not) and
-        ``samples`` (counts: recording, static, clipped (dropped), slow, kept, clipped_kept (clipped
+        ``samples`` (counts: recording, static, clipped (dropped), non_finite, slow, kept, clipped_kept (clipped
         samples among the kept ones, > 0 only with ``drop_clipped=False``); the thresholds used).
     notes : human-readable lines (also in ``summary["notes"]``).
     """
 
     recording: Recording
-    keep: np.ndarray
+    selection: Selection
     intrinsics: Intrinsics | None
     has_rests: bool
     summary: dict
     notes: list = field(default_factory=list)
 
     @property
+    def keep(self) -> np.ndarray:
+        """(T,) bool: the samples to use (``selection.keep``)."""
+        return self.selection.keep
+
+    @property
     def n_kept(self) -> int:
-        return int(self.keep.sum())
+        return self.selection.n_kept
 
     def lines(self) -> list[str]:
         """Short human report (what ``accel-bayes calibrate`` prints before the table)."""
@@ -93,17 +102,9 @@ class Preprocessed:
         else:
             out.append(f"intrinsics: not applied ({it['why']})")
         out.append(f"samples: {s['recording']} in the recording; dropped {s['static']} static, {s['clipped']} clipped "
-                   f"(acc or gyro at range), {s['slow']} with |w| < {s['min_rotation']:g} rad/s; kept {s['kept']}")
+                   f"(acc or gyro at range), {s.get('non_finite', 0)} without a finite gyro, {s['slow']} with |w| < {s['min_rotation']:g} rad/s; kept {s['kept']}")
         out.extend(f"note: {n}" for n in self.notes)
         return out
-
-
-def rotation_rate(recording: Recording) -> np.ndarray:
-    """(T,) |ω̄_t| rad/s: norm of the plain mean of the gyros (array frame) of the IMUs with one."""
-    if recording.gyro is None or not np.asarray(recording.has_gyro).any():
-        raise UserError("recording: has no gyroscope data; the rotation rate cannot be computed")
-    g = recording.gyro_tensor("array").numpy()[:, np.asarray(recording.has_gyro)]
-    return np.linalg.norm(np.nanmean(g, axis=1), axis=-1)
 
 
 def _load_intrinsics(spec):
@@ -145,7 +146,7 @@ def _intrinsics_summary(intr: Intrinsics, before: np.ndarray, after: np.ndarray,
 
 def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_static: bool = True,
                drop_clipped: bool = True, min_rotation: float | None = DEFAULT_MIN_ROTATION,
-               segments=None) -> Preprocessed:
+               segments=None, select=None) -> Preprocessed:
     """Intrinsic calibration from the recording's rests, then selection of informative samples.
 
     recording : a :class:`~accel_bayes.data.recording.Recording` (sensor frame, raw or calibrated).
@@ -160,6 +161,9 @@ def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_s
     min_rotation : drop samples with |ω̄_t| below this, rad/s (None or 0: keep them).
     segments : the rests — None (the recording's ``segment`` labels, else
         :func:`accel_bayes.data.segments.detect_static`), a (T,) bool mask or (start, stop) pairs.
+    select : further selection ANDed with the above (the ``user`` reason): a (T,) bool mask or
+        sample indices; "rotation" (compatibility) raises the threshold to the default 0.5 rad/s
+        when ``min_rotation`` is 0, its drops then counted as ``user``.
 
     Returns a :class:`Preprocessed`.  The input recording is not modified.
     """
@@ -173,14 +177,7 @@ def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_s
     if given is None and intrinsics not in INTRINSICS_MODES:
         raise UserError(f"intrinsics: expected one of {INTRINSICS_MODES}, an Intrinsics or a JSON path, "
                         f"got {intrinsics!r}")
-    if min_rotation is None:
-        min_rotation = 0.0
-    try:
-        min_rotation = float(min_rotation)
-    except (TypeError, ValueError):
-        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}") from None
-    if not (min_rotation >= 0 and math.isfinite(min_rotation)):
-        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}")
+    min_rotation = check_min_rotation(min_rotation)  # before the intrinsics fit: fail fast
 
     T = recording.T
     segs = rest_segments(recording, segments)
@@ -226,41 +223,33 @@ def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_s
         it_summary = {"applied": False, "why": why}
         notes.append(f"intrinsic calibration skipped: {why}")
 
-    # ---- 2. selection (exclusive counts, in this order)
-    keep = np.ones(T, dtype=bool)
-    n_static = n_clip = n_slow = 0
-    if drop_static and has_rests:
-        n_static = int((keep & static).sum())
-        keep &= ~static
-    clip = clipped_samples(rec)
-    if drop_clipped:
-        n_clip = int((keep & clip).sum())
-        keep &= ~clip
-    w = rotation_rate(rec) if rec.gyro is not None else np.full(T, np.inf)
-    if min_rotation > 0:
-        slow = ~(w >= min_rotation)
-        n_slow = int((keep & slow).sum())
-        keep &= ~slow
+    # ---- 2. selection: THE one (accel_bayes.prep.selection), on the corrected gyros
+    user = select
+    if isinstance(select, str):
+        if select != "rotation":
+            raise UserError(f"select: expected None, a mask, indices or 'rotation', got {select!r}")
+        # compatibility: "rotation" means the rotation test even when min_rotation is 0
+        user = None if min_rotation > 0 else ~(rotation_rate(rec) < DEFAULT_MIN_ROTATION)
+    sel = select_samples(rec, static=static if has_rests else None, drop_static=drop_static,
+                         drop_clipped=drop_clipped, min_rotation=min_rotation, user=user)
+    keep = sel.keep
     if not keep.any():
+        if select is not None and sel.dropped["user"]:
+            raise UserError("select: no samples left after selection")
         raise UserError("preprocess: no samples left after dropping static, clipped and slow samples "
                         f"(min_rotation = {min_rotation:g} rad/s); relax the selection")
-    samples = {"recording": int(T), "static": n_static, "clipped": n_clip, "slow": n_slow, "kept": int(keep.sum()),
-               "clipped_kept": int((keep & clip).sum()),
+    clip = clipped_mask(rec)
+    w = sel.rotation_rate if sel.rotation_rate is not None else np.full(T, np.inf)
+    d = sel.dropped
+    samples = {"recording": int(T), "static": d["static"], "clipped": d["clipped"], "non_finite": d["non_finite"],
+               "slow": d["slow"], "kept": sel.n_kept, "clipped_kept": int((keep & clip).sum()),
                "drop_static": bool(drop_static), "drop_clipped": bool(drop_clipped), "min_rotation": min_rotation,
-               "rests": len(segs), "rotation_rate_kept_median": float(np.median(w[keep])) if np.isfinite(w).all() else None}
+               "rests": len(segs), "kept_runs": sel.kept_runs,
+               "rotation_rate_kept_median": float(np.median(w[keep])) if np.isfinite(w).all() else None}
+    if select is not None:
+        samples["user_select_dropped"] = d["user"]
     summary = {"intrinsics": it_summary, "samples": samples, "notes": list(notes)}
-    return Preprocessed(recording=rec, keep=keep, intrinsics=intr, has_rests=has_rests, summary=summary, notes=notes)
-
-
-def clipped_samples(rec) -> np.ndarray:
-    """(T,) bool: samples where any accelerometer or gyroscope of an IMU that has one is flagged as
-    at its range (``acc_clipped``/``gyro_clipped``, DESIGN §7.1); all False without flags."""
-    clip = np.zeros(rec.T, dtype=bool)
-    for nm, present in (("acc_clipped", rec.has_acc), ("gyro_clipped", rec.has_gyro)):
-        flags = getattr(rec, nm)
-        if flags is not None:
-            clip |= np.asarray(flags, dtype=bool)[:, np.asarray(present, dtype=bool)].any(-1)
-    return clip
+    return Preprocessed(recording=rec, selection=sel, intrinsics=intr, has_rests=has_rests, summary=summary, notes=notes)
 
 
 def draw_intrinsics(intr: Intrinsics, generator: torch.Generator | int = 0) -> Intrinsics:

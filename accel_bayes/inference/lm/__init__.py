@@ -30,7 +30,7 @@ problems solved together — one λ, one stopping reason and one convergence fla
 Python loop over problems; :mod:`.batched`; used by motion estimation and the intrinsics fit).  Both see a
 problem only through a small protocol: ``linearize`` (cost, gradient and Gauss–Newton blocks at a
 point), ``cost`` and ``retract`` (apply a tangent step) — :class:`Problem` is one implementation,
-``accel_bayes.mismatch.refine`` has another.  The concrete problems are built where their
+``accel_bayes.mismatch.fit`` has another.  The concrete problems are built where their
 models live: the [C21] MAP in :mod:`accel_bayes.inference.map`, the [S16] self-calibration in
 :mod:`accel_bayes.inference.selfcal`, the conventional calibration in
 :mod:`accel_bayes.inference.conventional`.

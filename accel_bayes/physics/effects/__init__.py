@@ -50,7 +50,7 @@ Three kinds of effect (``Effect.kind``):
     changes no mean; multiplies the stated noise standard deviation of its IMU(s)/sensor by
     ``factor``.  Its likelihood term is the Gaussian normaliser −n·log(factor) plus the
     rescaled quadratic form; the fitting code estimates it in closed form from
-    leverage-corrected residuals (see :mod:`accel_bayes.mismatch.refine`).
+    leverage-corrected residuals (see :mod:`accel_bayes.mismatch.fit`).
 
 Linearised terms (documented per class): ``time_offset`` uses δ·d/dt of the nominal output (the
 context supplies the rates); everything else is exact (``axis_displacement`` is exact because

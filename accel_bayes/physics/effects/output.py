@@ -12,6 +12,15 @@ from ...errors import UserError
 from .base import AXES, Effect, Param, register_effect, _axis_index, _fmt, _onehot
 
 
+def _imus_by_sensor(layout):
+    """(sensor, [IMU indices that carry it]) for "acc" then "gyro", sensors no IMU carries left out:
+    the candidate channels of the whole-output effects."""
+    for sensor, has in (("acc", layout.has_acc), ("gyro", layout.has_gyro)):
+        ks = [int(k) for k in np.flatnonzero(np.asarray(has, bool))]
+        if ks:
+            yield sensor, ks
+
+
 @register_effect
 class Saturation(Effect):
     """Outputs clipped at ±``limit`` (m/s² or rad/s) — a range smaller than stated, or unflagged
@@ -49,10 +58,7 @@ class Saturation(Effect):
     @classmethod
     def candidates(cls, layout):
         out = []
-        for sensor, has in (("acc", layout.has_acc), ("gyro", layout.has_gyro)):
-            ks = [int(k) for k in np.flatnonzero(np.asarray(has, bool))]
-            if not ks:
-                continue
+        for sensor, ks in _imus_by_sensor(layout):
             out += [cls(imu=k, axis=a, sensor=sensor) for k in ks for a in AXES]
             out.append(cls(sensor=sensor))
         return out
@@ -128,10 +134,7 @@ class NoiseLevel(Effect):
     @classmethod
     def candidates(cls, layout):
         out = []
-        for sensor, has in (("acc", layout.has_acc), ("gyro", layout.has_gyro)):
-            ks = [int(k) for k in np.flatnonzero(np.asarray(has, bool))]
-            if not ks:
-                continue
+        for sensor, ks in _imus_by_sensor(layout):
             out += [cls(imu=k, sensor=sensor) for k in ks]
             out.append(cls(sensor=sensor))
         return out
