@@ -4,7 +4,8 @@ The sub-packages follow the pipeline (README "Layout"): ``physics`` (geometry, a
 the signal model, its Jacobians, the effects library), ``data`` (recordings, format v1, importers,
 exporters, output files), ``prep`` (intrinsics, sample selection, noise), ``simulate``,
 ``likelihood``, ``inference`` (LM, MAP, CRB, self-calibration, PmMH), ``mismatch``,
-``diagnostics`` and ``cli``.  DESIGN notes live in ``../shared/DESIGN.md``.
+``diagnostics``, ``pipelines`` (calibrate, map, selfcal, motion,
+intrinsics, demo: library functions) and ``cli`` (parsing and printing only).  DESIGN notes live in ``../shared/DESIGN.md``.
 """
 __version__ = "0.1.0"
 
@@ -28,6 +29,7 @@ MOVED_MODULES = {
     "inference.pmmh": "inference.mcmc", "inference.priors": "inference.mcmc.priors",
     "inference.damping": "inference.lm.damping", "inference.linear": "inference.lm.linear",
     "inference.robust": "inference.lm.robust",
+    "calibrate": "pipelines.calibrate", "demo": "pipelines.demo", "motion_estimation": "inference.motion",
 }
 
 

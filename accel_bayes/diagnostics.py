@@ -638,3 +638,41 @@ def save_mismatch_figures(out, location, location_after=None, *, channels, K: in
             plt.close(fig)
         paths[key] = p
     return paths
+
+
+# ============================================================================ [S16] self-calibration
+# (issue #10 item 6: moved here from cli/selfcal.py, so that every plot lives in this module)
+
+def plot_convergence(cost_log: list, n_constraints: dict, path, title: str = "") -> Path:
+    """[S16] Fig. 5 style: F / number of constraints vs LM iteration (log scale), total and per
+    constraint type (triad, process), the stages and runs laid end to end and marked.  Writes
+    ``path`` atomically and returns it."""
+    x = np.arange(len(cost_log), dtype=float)  # attempts laid end to end over stages and runs
+    run = [e.get("run", "first") for e in cost_log]
+    n_all = n_constraints["triad"] + n_constraints["process"]
+    tot = np.array([e["F"] for e in cost_log]) / n_all
+    tri = np.array([e["F_triad"] for e in cost_log]) / n_constraints["triad"]
+    pro = np.array([e["F_process"] for e in cost_log]) / max(n_constraints["process"], 1)
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    pos = lambda v: np.where(v > 0, v, np.nan)  # noqa: E731  (zero process cost at a zero-motion start)
+    ax.semilogy(x, pos(tot), "k-", lw=2, label="F / all constraints")
+    ax.semilogy(x, pos(tri), "C0--", label="triad part / triad constraints")
+    ax.semilogy(x, pos(pro), "C1:", label="process part / process constraints")
+    stage = [e.get("stage", "joint") for e in cost_log]
+    for i in range(1, len(x)):
+        if stage[i] != stage[i - 1] or run[i] != run[i - 1]:
+            ax.axvline(x[i] - 0.5, color="0.7", lw=0.8)
+    for i in range(len(x)):
+        if i == 0 or stage[i] != stage[i - 1] or run[i] != run[i - 1]:
+            ax.annotate(f"{run[i]}: {stage[i]}", (x[i], 1.0), xycoords=("data", "axes fraction"), fontsize=7,
+                        va="top", ha="left", rotation=90, xytext=(2, -2), textcoords="offset points")
+    ax.set_xlabel("LM iteration (all stages and runs, end to end)")
+    ax.set_ylabel("F / number of constraints")
+    ax.set_title(title or "self-calibration convergence ([S16] Fig. 5)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    try:
+        return save_figure(fig, path, dpi=120)
+    finally:
+        plt.close(fig)

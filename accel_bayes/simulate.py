@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .physics.arrays import SensorArray
+from .data.outputs import to_jsonable
 from .errors import UserError
 from .physics.geometry import boxminus, boxplus
 from .physics.models import imu_outputs
@@ -27,7 +28,7 @@ from .physics.motion import MotionTrace, as_generator, make_motion
 from .physics.effects.timing import sample_times
 from .data.recording import Recording
 
-__all__ = ["SimResult", "simulate", "TRUTH_SCHEMA", "memory_estimate"]
+__all__ = ["SimResult", "simulate", "TRUTH_SCHEMA", "memory_estimate", "motion_rms"]
 
 TRUTH_SCHEMA = "accel_bayes.truth/1"
 
@@ -61,6 +62,13 @@ class SimResult:
     gyro_clean: torch.Tensor
 
 
+def motion_rms(trace: MotionTrace) -> tuple[float, float]:
+    """RMS over samples of |ω_t| (rad/s) and of |s_t| (m/s²) of a motion trace."""
+    w_rms = float(torch.sqrt((trace.omega ** 2).sum(-1).mean()))
+    s_rms = float(torch.sqrt((trace.s ** 2).sum(-1).mean()))
+    return w_rms, s_rms
+
+
 def _per_imu(x, K: int, name: str, default: torch.Tensor) -> torch.Tensor:
     if x is None:
         return default.clone()
@@ -82,20 +90,6 @@ def _nonneg(x: float, name: str) -> float:
     if not (v >= 0 and math.isfinite(v)):
         raise UserError(f"{name}: expected a finite value >= 0, got {x!r}")
     return v
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if torch.is_tensor(x) or isinstance(x, np.ndarray):
-        return np.asarray(x.detach().cpu() if torch.is_tensor(x) else x).tolist()
-    if isinstance(x, (np.generic,)):
-        return x.item()
-    if x is None or isinstance(x, (bool, int, float, str)):
-        return x
-    return repr(x)
 
 
 def _clip(y: torch.Tensor, limit: float | None, present: torch.Tensor, clip: bool):
@@ -245,7 +239,7 @@ def simulate(
         "position_error_std": pos_std, "orientation_error_std": ori_std,
         "true_positions_given": true_positions is not None,
         "true_orientations_given": true_orientations is not None,
-        "clip": bool(clip), "motion_kwargs": _jsonable(motion_kwargs or {}),
+        "clip": bool(clip), "motion_kwargs": to_jsonable(motion_kwargs or {}, unknown="repr"),
         "time_offsets": None if offsets is None else offsets.tolist(),
         "motion_given": isinstance(motion, MotionTrace),
     }
@@ -295,7 +289,7 @@ def simulate(
         "settings": settings,
     }
     if eff_list:
-        truth["effects"] = [{"effect": e.name, **e.location(), "parameters": _jsonable(e.report_parameters())}
+        truth["effects"] = [{"effect": e.name, **e.location(), "parameters": to_jsonable(e.report_parameters(), unknown="repr")}
                             for e in eff_list]
     if validate:
         _validate(rec)

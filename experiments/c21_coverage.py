@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 import warnings
@@ -60,6 +59,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _dask import add_dask_arguments, dask_client, map_tasks  # noqa: E402
+from accel_bayes.constants import DEFAULT_PRIOR_STD, DEG_TO_RAD  # noqa: E402
 
 COORDS = [(k, ax) for k in (1, 2, 3) for ax in "xyz"]
 STUDY_COORD = (1, "x")
@@ -77,12 +77,12 @@ def square_board(acc_std: float = 0.3):
     return SensorArray(positions=pos, orientations=torch.tensor([[1.0, 0, 0, 0]] * K, dtype=torch.float64),
                        has_acc=torch.ones(K, dtype=torch.bool), has_gyro=torch.ones(K, dtype=torch.bool),
                        acc_noise_std=torch.full((K,), acc_std, dtype=torch.float64),
-                       gyro_noise_std=torch.full((K,), 0.06 * math.pi / 180, dtype=torch.float64),
+                       gyro_noise_std=torch.full((K,), 0.06 * DEG_TO_RAD, dtype=torch.float64),
                        name="square4", package_size=4e-3)
 
 
-OMEGA_STD = 500 * math.pi / 180  # rad/s per axis
-OMEGA_DOT_STD = 5000 * math.pi / 180  # rad/s² per axis
+OMEGA_STD = 500 * DEG_TO_RAD  # rad/s per axis
+OMEGA_DOT_STD = 5000 * DEG_TO_RAD  # rad/s² per axis
 S_STD = 20.0  # m/s² per axis (motion.iid_motion default)
 
 
@@ -112,7 +112,7 @@ def newton_mode(lik, prior, theta0, steps: int = 30):
     return x.reshape(shape), torch.linalg.inv(-H)
 
 
-def replicate(i: int, T: int = 30, prior_std: float = 3e-3, chains: int = 4, draws: int = 1000,
+def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains: int = 4, draws: int = 1000,
               warmup: int = 400, phi_model: str = "matched") -> dict:
     """One data set: simulate from the prior, sample the posterior from prior draws, return
     ranks/coverage.  Seeds: θ_true from 10 000 + i, the recording from 20 000 + i, chains from i.

@@ -15,7 +15,7 @@ What it computes, each beside the paper's numbers:
 * Fig. 2 — Var[log p̂] against N for each T at the prior mean (``fig2_var_logphat.png``).
 * Fig. 4 — posterior of IMU 2 (label 1) x, y, z for each T (``fig4_imu2_posterior.png``).
 * Table II — posterior std averaged over the 93 coordinates for σ_a = 0.79 m/s².
-* MUST-SHOW (a) — the PmMH std (``accel_bayes.calibrate.calibrate``) against an independent
+* MUST-SHOW (a) — the PmMH std (``accel_bayes.pipelines.calibrate.calibrate``) against an independent
   Laplace approximation (``experiments/_laplace.py``: dense S, autograd Hessian, ω fixed at the
   gyro average; also at the true ω), ratio per T; pass = within 15 %.
 * MUST-SHOW (b) — the paper's simulated Table II row used motion "similar to the experiments" of
@@ -64,8 +64,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _dask import add_dask_arguments, dask_client, map_task_groups, map_tasks  # noqa: E402
+from accel_bayes.constants import DEFAULT_PRIOR_STD, DEG_TO_RAD, RAD_TO_DEG  # noqa: E402
 
-DEG = math.pi / 180.0
 
 # [C21] Table I (σ_a = 0.04 m/s²) and Table II (simulated row, σ_a = 0.79 m/s²).
 PAPER_TABLE1 = {5: dict(N=10, step_um=3.16, var=0.03, acc=0.23),
@@ -77,8 +77,8 @@ PAPER_TABLE2_EXP = {5: 1450.7, 50: 439.4, 500: 144.9}
 ISSUE_LAPLACE = {5: 810.0, 50: 180.0, 500: 57.0}
 ISSUE_OMEGA = 1000.0 / math.sqrt(3.0)  # per-axis std giving an RMS |ω| of 1000 °/s
 
-SIGMA_G = 0.06 * DEG
-PRIOR_STD = 3e-3
+SIGMA_G = 0.06 * DEG_TO_RAD
+PRIOR_STD = DEFAULT_PRIOR_STD
 POS_ERR = 1e-4
 OMEGA_STD_DPS = 1000.0
 OMEGA_DOT_STD_DPS2 = 35000.0
@@ -101,7 +101,7 @@ def _simulate(T, acc_std, seed, omega_std_dps=OMEGA_STD_DPS, omega_dot_std_dps2=
     arr = mimu4444_32().with_(acc_range=None, gyro_range=None)
     return simulate(arr, "iid", T=T, seed=seed, clip=False, acc_noise_std=acc_std,
                     gyro_noise_std=SIGMA_G, position_error_std=POS_ERR,
-                    motion_kwargs={"omega_std": omega_std_dps * DEG, "omega_dot_std": omega_dot_std_dps2 * DEG})
+                    motion_kwargs={"omega_std": omega_std_dps * DEG_TO_RAD, "omega_dot_std": omega_dot_std_dps2 * DEG_TO_RAD})
 
 
 def _prior_positions(lik, rec):
@@ -134,7 +134,7 @@ def posterior_task(T, acc_std, rep, seed, omega_std_dps, chains, draws, warmup, 
     """One simulated data set → N choice, PmMH (``calibrate``), two Laplace approximations."""
     import torch
     from accel_bayes import diagnostics as dg
-    from accel_bayes.calibrate import calibrate
+    from accel_bayes.pipelines.calibrate import calibrate
     from accel_bayes.likelihood import RaoBlackwellLikelihood, choose_num_draws
     from _laplace import laplace_from_recording
 
@@ -219,7 +219,7 @@ def scan_task(T, omega_std_dps, rep, seed, acc_std, mode="omega"):
     sim = _simulate(T, acc_std, seed, omega_std_dps, wd)
     lap = laplace_from_recording(sim.recording, sim.recording.nominal_position, PRIOR_STD)
     om = sim.motion.omega.numpy()
-    return {"mode": mode, "T": T, "omega_std_dps": omega_std_dps, "omega_dot_std_dps2": wd, "omega_rms_norm_dps": float(np.sqrt((om ** 2).sum(-1).mean())) / DEG,
+    return {"mode": mode, "T": T, "omega_std_dps": omega_std_dps, "omega_dot_std_dps2": wd, "omega_rms_norm_dps": float(np.sqrt((om ** 2).sum(-1).mean())) * RAD_TO_DEG,
             "rep": rep, "seed": seed, "acc_std": acc_std, "laplace_std_um": lap.std_mean_um,
             "newton_steps": lap.newton_steps, "no_local_mode": lap.diverged or "",
             "seconds": time.perf_counter() - t0}

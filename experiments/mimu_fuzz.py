@@ -57,6 +57,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _data import data_dir  # noqa: E402
 from accel_bayes.errors import RecordingError
 from accel_bayes.data.mimu import (  # noqa: I001 - _stamp_deviation: the importer's own rule, measured
     FIRST_PACKET_LEAD_TICKS,
@@ -487,7 +490,7 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", type=int, default=10_000, help="damaged streams (default 10000)")
     ap.add_argument("--packets", type=int, default=400, help="packets per synthetic stream (default 400)")
     ap.add_argument("--seed", type=int, default=13, help="root seed (default 13)")
-    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mimu4444-bcd",
+    ap.add_argument("--data", type=Path, default=data_dir(),
                     help="shared MIMU recordings for the real-data margins (skipped if absent)")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "mimu_fuzz",
                     help="folder for summary.json and per_operator.csv")

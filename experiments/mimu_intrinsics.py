@@ -13,22 +13,18 @@ Runs in ~15 s (import ~1 s per experiment).
 from __future__ import annotations
 
 import argparse
-import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from accel_bayes.prep.intrinsics import estimate_intrinsics, static_acc_errors
-from accel_bayes.data.mimu import import_mimu
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-DEG = 180 / np.pi
-
-
-def data_dir() -> Path:
-    env = os.environ.get("ACCEL_BAYES_SHARED")
-    root = Path(env) if env else Path(__file__).resolve().parents[2] / "shared"
-    return root / "data" / "mimu4444-bcd"
+from _data import data_dir  # noqa: E402
+from accel_bayes.constants import RAD_TO_DEG  # noqa: E402
+from accel_bayes.prep.intrinsics import estimate_intrinsics, static_acc_errors  # noqa: E402
+from accel_bayes.data.mimu import import_mimu  # noqa: E402
 
 
 def table(title, M, fmt="{:8.4f}"):
@@ -80,7 +76,7 @@ def main(argv=None):
     for i, e in enumerate(intr):
         print(f"  exp_{i + 1}: rms {np.array2string(e.residual_rms, precision=4)}; chi2/dof "
               f"{np.nanmin(e.chi2_per_dof):.1f}–{np.nanmax(e.chi2_per_dof):.1f}; bias std "
-              f"{np.median(e.acc_bias_std):.2g} m/s²; gyro bias std {np.median(e.gyro_bias_std) * DEG:.2g} °/s")
+              f"{np.median(e.acc_bias_std):.2g} m/s²; gyro bias std {np.median(e.gyro_bias_std) * RAD_TO_DEG:.2g} °/s")
 
     # Repeatability: differences between experiments against the reported std.
     P = np.stack([e.acc_params() for e in intr])  # (n, K, 9)
@@ -96,9 +92,9 @@ def main(argv=None):
         spread = P[:, :, sl].std(0, ddof=1)
         print(f"  {name:>12}: median |z| {np.median(z[..., sl]):6.1f}, max {z[..., sl].max():6.1f}; "
               f"spread over experiments (median) {np.median(spread):.2g}, reported std (median) {np.median(S[:, :, sl]):.2g}")
-    bg = np.stack([e.gyro_bias for e in intr]) * DEG
+    bg = np.stack([e.gyro_bias for e in intr]) * RAD_TO_DEG
     print(f"  gyro bias spread over experiments (median over IMUs/axes) {np.median(bg.std(0, ddof=1)):.3g} °/s; "
-          f"reported std {np.median(np.stack([e.gyro_bias_std for e in intr])) * DEG:.2g} °/s")
+          f"reported std {np.median(np.stack([e.gyro_bias_std for e in intr])) * RAD_TO_DEG:.2g} °/s")
 
     # g: the fit is invariant under (T, g) -> (cT, cg); show it on exp_1.
     a = estimate_intrinsics(recs[0], g=9.80665)

@@ -44,12 +44,9 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
 
-
-def data_dir() -> Path:
-    env = os.environ.get("ACCEL_BAYES_SHARED")
-    root = Path(env) if env else HERE.parents[1] / "shared"
-    return root / "data" / "mimu4444-bcd"
+from _data import data_dir  # noqa: E402
 
 
 def load_dynamic(i: int, data: Path, max_samples: int | None = None):

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -42,6 +41,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _dask import add_dask_arguments, dask_client, map_task_groups  # noqa: E402
+from _data import data_dir  # noqa: E402
 
 NOMINAL_XY_TOL_M = 2e-3
 PAIR_Z_MAX = 4.0
@@ -49,17 +49,11 @@ RHAT_MAX = 1.01
 ESS_MIN = 400
 
 
-def data_dir() -> Path:
-    env = os.environ.get("ACCEL_BAYES_SHARED")
-    root = Path(env) if env else HERE.parents[1] / "shared"
-    return root / "data" / "mimu4444-bcd"
-
-
 # ---------------------------------------------------------------------------- tasks (run on workers)
 
 def run_experiment(exp: int, data: str, out: str, chains: int, draws: int, warmup: int, seed: int) -> dict:
     """Import experiment ``exp`` and calibrate it with the pipeline defaults; write its outputs."""
-    from accel_bayes.calibrate import calibrate, write_outputs
+    from accel_bayes.pipelines.calibrate import calibrate, write_outputs
     from accel_bayes.data.mimu import import_mimu
 
     t0 = time.perf_counter()
@@ -102,7 +96,7 @@ def intrinsics_sensitivity(exp: int, data: str, n_draws: int, seed: int) -> dict
     """Propagate the intrinsics' reported uncertainty to the tempered MAP of experiment ``exp``."""
     import torch
 
-    from accel_bayes.calibrate import calibrate
+    from accel_bayes.pipelines.calibrate import calibrate
     from accel_bayes.likelihood import RaoBlackwellLikelihood
     from accel_bayes.data.mimu import import_mimu
     from accel_bayes.prep.noise import fit_map_tempered

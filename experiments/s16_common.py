@@ -9,23 +9,21 @@
   to these states, as [S16] §V does with the table's motion.  ``physical=True`` keeps the
   analytic ω̇(t_i) instead: then eq. 7 (Euler integration, σ_int² = 10⁻⁷) is violated by
   ≈ ½ ω̈ Δt², which biases the self-calibration (reported as a separate row of Table II).
-* A dask client: a LocalCluster whose workers run one torch thread each, or a given scheduler.
+* ``one_thread()``: what every task calls first (the dask runner is ``_dask.py``, shared by all experiments).
 """
 from __future__ import annotations
 
-import math
-import os
 
 import torch
 
 from accel_bayes import s16_plate
+from accel_bayes.constants import DEG_TO_RAD
 from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus
 from accel_bayes.physics.motion import smooth_motion, table_motion
 
 RATE = 125.0
 T_S16 = 675  # 5.4 s at 125 Hz ([S16] §V)
-DEG = math.pi / 180.0
 
 # [S16] Table II (simulation), mean (± std) over 100 trials: position 1e-6 m, orientation 1e-3 °.
 PAPER_TABLE2 = {
@@ -47,7 +45,7 @@ def prototype(seed: int = 2016):
     g = torch.Generator().manual_seed(seed)
     arr = s16_plate()
     n = lambda *s: torch.randn(*s, generator=g, dtype=torch.float64)  # noqa: E731
-    q = boxplus(arr.orientations, 2.0 * DEG * n(5, 3))
+    q = boxplus(arr.orientations, 2.0 * DEG_TO_RAD * n(5, 3))
     sens = torch.tensor([1.0, 0.0, 1.0, 0.0, 0.0, 1.0], dtype=torch.float64) + torch.stack(
         (0.01 * n(5), 0.005 * n(5), 0.01 * n(5), 0.005 * n(5), 0.005 * n(5), 0.01 * n(5)), -1)
     offset = 0.05 * n(5, 3)
@@ -96,60 +94,6 @@ def measurements(states, proto, noise_std: float, generator: torch.Generator | N
     if noise_std > 0:
         z = z + noise_std * torch.randn(z.shape, generator=generator, dtype=z.dtype)
     return z
-
-
-def make_client(scheduler: str | None = None, workers: int | None = None):
-    """A dask.distributed Client: the given scheduler address, or a LocalCluster of processes
-    with one thread each (torch in every task is limited to one thread too)."""
-    import logging
-
-    from dask.distributed import Client, LocalCluster
-
-    # the nanny warns when a busy worker takes > 4 s to exit at shutdown; not a problem here
-    logging.getLogger("distributed").setLevel(logging.ERROR)
-    if scheduler:
-        client = Client(scheduler)
-        client.upload_file(__file__)  # remote workers import this module in the tasks
-        return client
-    n = workers or max(1, min(os.cpu_count() or 1, 2))
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           env={"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"})
-    return Client(cluster)
-
-
-def run_tasks(fn, tasks, *, scheduler=None, workers=None, desc="tasks", **kw):
-    """fn(task, **kw) for every task, on dask (or serially with workers == 0); results in task
-    order; a progress line on stderr every ~10 %."""
-    import sys
-    import time
-
-    n = len(tasks)
-    step = max(1, n // 10)
-    t0 = time.perf_counter()
-
-    def report(done):
-        if done % step == 0 or done == n:
-            print(f"  {desc}: {done}/{n} done, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
-
-    if workers == 0 and not scheduler:
-        out = []
-        for i, t in enumerate(tasks):
-            out.append(fn(t, **kw))
-            report(i + 1)
-        return out
-    from dask.distributed import as_completed
-
-    client = make_client(scheduler, workers)
-    try:
-        futs = client.map(fn, tasks, pure=False, **kw)
-        index = {f.key: i for i, f in enumerate(futs)}
-        out = [None] * n
-        for done, f in enumerate(as_completed(futs), 1):
-            out[index[f.key]] = f.result()
-            report(done)
-        return out
-    finally:
-        client.close()
 
 
 def one_thread():

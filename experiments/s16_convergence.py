@@ -54,6 +54,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import s16_common as C  # noqa: E402
+from _dask import add_dask_arguments, dask_client, map_tasks  # noqa: E402
+from accel_bayes.constants import DEG_TO_RAD, RAD_TO_DEG  # noqa: E402
 
 POS_LEVELS_CM = [0.5, 1, 2, 4, 6, 8, 10, 12, 16]
 ROT_LEVELS_DEG = [5, 10, 20, 30, 45, 60, 90, 120, 180]
@@ -104,7 +106,7 @@ def run_one(task: tuple) -> dict:
     if kind == "position":
         p0 = p0 + level * 1e-2 * v
     else:
-        q0 = boxplus(q0, level * C.DEG * v)
+        q0 = boxplus(q0, level * DEG_TO_RAD * v)
     t0 = time.perf_counter()
     r = self_calibrate(z, 1 / C.RATE, nominal_positions=p0, nominal_orientations=q0, fixed=0, acc_noise_std=0.02,
                        sensor_params=(proto["sens"], proto["offset"]), covariance=False, max_iter=100,
@@ -112,7 +114,7 @@ def run_one(task: tuple) -> dict:
     pe = ae = math.nan
     if r.ok:
         pe = float((r.positions[1:] - proto["positions"][1:]).norm(dim=-1).max())
-        ae = float(rotation_angle(r.orientations[1:], proto["orientations"][1:]).max() / C.DEG)
+        ae = float(rotation_angle(r.orientations[1:], proto["orientations"][1:]).max() * RAD_TO_DEG)
     success = bool(r.ok and pe < SUCCESS_POS and ae < SUCCESS_ROT_DEG)
     # a variant's rows carry it in the motion label, so plots and tables show it as its own line
     label = motion if variant == "default" else f"{motion} [{variant}]"
@@ -252,8 +254,7 @@ def main(argv=None) -> int:
                          "no-remedies: without the re-run and restart; s16: also without the motion-only warm "
                          "start (the paper's procedure). Non-default rows are labelled 'MOTION [VARIANT]'")
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--scheduler", default=None, help="dask scheduler address (default: a LocalCluster)")
-    ap.add_argument("--workers", type=int, default=None, help="LocalCluster workers (default: cores, max 2); 0 = serial")
+    add_dask_arguments(ap)
     ap.add_argument("--out", default="out/s16_convergence.csv")
     ap.add_argument("--fig", default="out/s16_convergence.png")
     ap.add_argument("--replot", default=None, metavar="CSV[,CSV...]",
@@ -291,7 +292,8 @@ def main(argv=None) -> int:
     # longest first (the 20 s motion), so the pool does not idle at the end
     tasks.sort(key=lambda t: -C.MOTIONS[t[0]]["T"])
     t0 = time.perf_counter()
-    rows = C.run_tasks(run_one, tasks, scheduler=args.scheduler, workers=args.workers, desc="self-calibrations")
+    with dask_client(args, upload=("s16_common.py",)) as client:
+        rows = map_tasks(client, run_one, [dict(task=t) for t in tasks], desc="self-calibrations")
     wall = time.perf_counter() - t0
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -47,10 +47,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import s16_common as C  # noqa: E402
+from _dask import add_dask_arguments, dask_client, map_tasks  # noqa: E402
+from accel_bayes.constants import DEG_TO_RAD, RAD_TO_DEG  # noqa: E402
 
 METHODS = ["self-calibration", "conventional, table", "conventional, gyro calibrated",
            "conventional, gyro uncalibrated", "self-calibration, physical ω̇"]
-GYRO_NOISE = 0.38 * C.DEG  # rad/s
+GYRO_NOISE = 0.38 * DEG_TO_RAD  # rad/s
 SG_WINDOW, SG_ORDER = 21, 3
 
 
@@ -69,9 +71,9 @@ def gyro_reference(omega_true, z_centre, proto, dt, generator, calibrated: bool)
         sign = lambda n: torch.where(torch.rand(n, generator=g, dtype=torch.float64) < 0.5, -1.0, 1.0)  # noqa: E731
         scale = sign(3) * (0.01 + 0.02 * torch.rand(3, generator=g, dtype=torch.float64))
         axis = torch.randn(3, generator=g, dtype=torch.float64)
-        R_mis = quat_to_matrix(quat_exp(C.DEG * axis / axis.norm()))
+        R_mis = quat_to_matrix(quat_exp(DEG_TO_RAD * axis / axis.norm()))
         G = torch.diag(1.0 + scale) @ R_mis
-        bias = sign(3) * C.DEG
+        bias = sign(3) * DEG_TO_RAD
     w_meas = omega_true @ G.T + bias + GYRO_NOISE * torch.randn(T, 3, generator=g, dtype=torch.float64)
     w = torch.as_tensor(savgol_filter(w_meas.numpy(), SG_WINDOW, SG_ORDER, axis=0))
     wd = torch.diff(w, dim=0) / dt
@@ -89,7 +91,7 @@ def _errors(p_est, q_est, proto, idx):
     from accel_bayes.physics.geometry import rotation_angle
 
     pe = (p_est - proto["positions"][idx]).norm(dim=-1).mean().item() * 1e6
-    ae = (rotation_angle(q_est, proto["orientations"][idx]) / C.DEG).mean().item() * 1e3
+    ae = (rotation_angle(q_est, proto["orientations"][idx]) * RAD_TO_DEG).mean().item() * 1e3
     return pe, ae
 
 
@@ -171,15 +173,15 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="20 trials (a few minutes)")
     ap.add_argument("--trials", type=int, default=None, help="number of noise draws (default 100; 20 with --quick)")
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--scheduler", default=None, help="dask scheduler address (default: a LocalCluster)")
-    ap.add_argument("--workers", type=int, default=None, help="LocalCluster workers (default: cores, max 2); 0 = serial")
+    add_dask_arguments(ap)
     ap.add_argument("--no-physical", action="store_true", help="skip the 'physical ω̇' self-calibration row")
     ap.add_argument("--out", default="out/s16_table2.csv", help="per-trial CSV (default out/s16_table2.csv)")
     args = ap.parse_args(argv)
     n = args.trials if args.trials is not None else (20 if args.quick else 100)
     t0 = time.perf_counter()
-    results = C.run_tasks(run_trial, list(range(n)), scheduler=args.scheduler, workers=args.workers, desc="trials",
-                          seed=args.seed, T=C.T_S16, physical_row=not args.no_physical)
+    with dask_client(args, upload=("s16_common.py",)) as client:
+        results = map_tasks(client, run_trial, [dict(k=k, seed=args.seed, T=C.T_S16, physical_row=not args.no_physical)
+                                                for k in range(n)], desc="trials")
     wall = time.perf_counter() - t0
     results.sort(key=lambda r: r["trial"])
     out = Path(args.out)

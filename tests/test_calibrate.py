@@ -13,7 +13,7 @@ import torch
 
 from accel_bayes import diagnostics as dg
 from accel_bayes.physics.arrays import preset
-from accel_bayes.calibrate import calibrate, write_outputs
+from accel_bayes.pipelines.calibrate import calibrate, write_outputs
 from accel_bayes.cli import main
 from accel_bayes.errors import UserError
 from accel_bayes.data.io import recording_sha256, write_recording

@@ -9,7 +9,7 @@ import shutil
 import pytest
 import torch
 
-import accel_bayes.calibrate as cal_mod
+import accel_bayes.pipelines.calibrate as cal_mod
 from accel_bayes.physics.arrays import preset
 from accel_bayes.cli import main
 from accel_bayes.inference.mcmc import CHECKPOINT_FORMAT

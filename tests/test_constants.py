@@ -34,7 +34,7 @@ def test_file_format_strings_are_the_contracts_not_module_paths():
     from accel_bayes.mismatch.report import SCHEMA as MISMATCH_SCHEMA
     from accel_bayes.prep.intrinsics import SCHEMA as INTRINSICS_SCHEMA
     from accel_bayes.inference.mcmc.checkpoint import CHECKPOINT_FORMAT
-    import accel_bayes.motion_estimation as me
+    import accel_bayes.inference.motion as me
 
     assert FORMAT == "accel_bayes.recording/1"
     assert POSITIONS_SCHEMA == "accel_bayes.positions/1"

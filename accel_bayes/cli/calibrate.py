@@ -24,7 +24,7 @@ from ._status import EXIT_OK, untrusted
 
 
 def register(sub) -> None:
-    from ..calibrate import DEFAULTS
+    from ..pipelines.calibrate import DEFAULTS
     from ..data.outputs import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
@@ -96,7 +96,7 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from ..calibrate import calibrate, write_outputs
+    from ..pipelines.calibrate import calibrate, write_outputs
     from ..data.outputs import OutputDir
 
     # the checkpoint lives in DIR itself (a killed run keeps it) and joins the committed set

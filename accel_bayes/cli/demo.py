@@ -27,7 +27,7 @@ def _run(args) -> int:
     import json
     from pathlib import Path
 
-    from ..demo import run_demo
+    from ..pipelines.demo import run_demo
     from ._status import EXIT_OK, untrusted
 
     report = run_demo(args.out, quick=args.quick, progress=not args.no_progress, seed=args.seed,

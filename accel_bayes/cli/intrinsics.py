@@ -9,9 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
-from ..constants import RAD_TO_DEG
+from ..constants import G0
 from . import _options as opt
 
 
@@ -29,65 +27,42 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="intrinsics JSON to write")
     p.add_argument("--apply-to", metavar="OUT.nc", default=None,
                    help="also write REC with the intrinsics applied to this recording file")
-    p.add_argument("--g", type=opt.positive("m/s^2"), default=9.80665,
-                   help="gravity magnitude, m/s^2 (default 9.80665)")
+    p.add_argument("--g", type=opt.positive("m/s^2"), default=G0,
+                   help="gravity magnitude, m/s^2 (default %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace output files that exist")
     p.set_defaults(func=run)
 
 
-def load_any(path: Path):
-    """A format-v1 recording, or a MIMU4444 stream imported on the fly."""
-    if path.is_dir():
-        raise IsADirectoryError(f"{path}: is a directory; expected a recording file")
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such recording file")
-    with open(path, "rb") as f:
-        head = f.read(8)
-    if head.startswith(b"\x89HDF") or path.suffix == ".nc":
-        from ..data.io import read_recording
-
-        return read_recording(path)
-    from ..data.mimu import import_mimu
-
-    return import_mimu(path)
-
-
 def run(args) -> int:
-    from ..prep.intrinsics import estimate_intrinsics, static_acc_errors
     from ..data.outputs import OutputFile
+    from ..pipelines.intrinsics import intrinsics, write_outputs
 
     src, out = Path(args.recording), Path(args.output)
     targets = [OutputFile(out, overwrite=args.overwrite).open()]
     if args.apply_to:
         targets.append(OutputFile(args.apply_to, overwrite=args.overwrite, flag="--apply-to").open())
-    rec = load_any(src)
-    intr = estimate_intrinsics(rec, g=args.g)
-    cal = intr.apply(rec)
-    raw_err = np.abs(static_acc_errors(rec, intr.g))
-    cal_err = np.abs(static_acc_errors(cal, intr.g))
-    intr.to_json(out, overwrite=args.overwrite)
+    run = intrinsics(src, g=args.g)
+    write_outputs(run, out, apply_to=args.apply_to, overwrite=args.overwrite)
+    intr = run.intrinsics
 
     print(f"intrinsics of {src} (g = {intr.g:.6g} m/s², {intr.extra.get('segments')} static segments, "
           f"{intr.n_orientations} distinct orientations)")
     print(f"{'imu':>3} {'rests':>5} {'acc bias [m/s²]':>26} {'scale - 1 [1e-3]':>22} {'misalign [1e-3]':>22} "
           f"{'rms':>7} {'|acc|-g max raw→cal':>20} {'gyro bias [°/s]':>24}")
     for k in range(intr.K):
-        if not np.isfinite(intr.acc_bias[k]).all():
+        if not run.has_acc(k):
             print(f"{k:>3} {'-':>5}  (no accelerometer)")
             continue
         b = " ".join(f"{v:+.3f}" for v in intr.acc_bias[k])
         sc = " ".join(f"{1e3 * (v - 1):+6.2f}" for v in intr.acc_scale[k])
         mi = " ".join(f"{1e3 * v:+6.2f}" for v in intr.acc_misalignment[k])
-        gb = " ".join(f"{RAD_TO_DEG * v:+.3f}" for v in intr.gyro_bias[k]) if np.isfinite(intr.gyro_bias[k]).all() else "-"
+        gb = " ".join(f"{v:+.3f}" for v in run.gyro_bias_dps[k]) if run.has_gyro_bias(k) else "-"
         print(f"{k:>3} {int(intr.n_rests[k]):>5} {b:>26} {sc:>22} {mi:>22} {intr.residual_rms[k]:7.4f} "
-              f"{np.nanmax(raw_err[:, k]):8.4f} → {np.nanmax(cal_err[:, k]):.4f} {gb:>24}")
-    print(f"acc bias std (median over IMUs/axes): {np.nanmedian(intr.acc_bias_std):.2g} m/s²; "
-          f"gyro bias std: {np.nanmedian(intr.gyro_bias_std) * RAD_TO_DEG:.2g} °/s")
+              f"{run.raw_err_max[k]:8.4f} → {run.cal_err_max[k]:.4f} {gb:>24}")
+    print(f"acc bias std (median over IMUs/axes): {run.acc_bias_std_median:.2g} m/s²; "
+          f"gyro bias std: {run.gyro_bias_std_median_dps:.2g} °/s")
     print(f"wrote {out}")
     if args.apply_to:
-        from ..data.io import write_recording
-
-        write_recording(cal, args.apply_to, overwrite=args.overwrite)
         print(f"wrote {args.apply_to} (corrected recording)")
     for t in targets:
         t.commit()

@@ -2,7 +2,7 @@
 [--seed S] [--geometry draws|linear]``.
 
 Estimates ω, ω̇ and the specific force s (at the calibration's reference IMU) for every sample of
-REC from a calibrated array (:mod:`accel_bayes.motion_estimation`), with their uncertainty
+REC from a calibrated array (:mod:`accel_bayes.inference.motion`), with their uncertainty
 (measurement noise + the calibration's position uncertainty), writes them as NetCDF and prints
 a summary.
 """
@@ -10,9 +10,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
-from ..constants import RAD_TO_DEG
 from . import _options as opt
 
 
@@ -45,45 +42,35 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..motion_estimation import estimate_motion, write_motion
     from ..data.outputs import OutputFile
-    from .intrinsics import load_any
+    from ..pipelines.motion import motion, write_outputs
 
     out = Path(args.output)
     target = OutputFile(out, overwrite=args.overwrite).open()
     cal = Path(args.calibration)
     if not cal.exists():
         raise FileNotFoundError(f"{cal}: no such calibration file")
-    rec = load_any(Path(args.recording))
-    ds = estimate_motion(rec, cal, intrinsics=args.intrinsics, draws=args.draws, seed=args.seed,
-                         geometry=args.geometry, acc_noise_std=args.acc_noise_std,
-                         gyro_noise_std=args.gyro_noise_std)
-    write_motion(ds, out, overwrite=args.overwrite)
+    run = motion(Path(args.recording), cal, intrinsics=args.intrinsics, draws=args.draws, seed=args.seed,
+                 geometry=args.geometry, acc_noise_std=args.acc_noise_std, gyro_noise_std=args.gyro_noise_std)
+    write_outputs(run, out, overwrite=args.overwrite)
     target.commit()
 
-    ok = ~ds["ill_posed"].values
+    ds = run.dataset
     T = ds.sizes["time"]
     print(f"motion of {args.recording}: {T} samples, origin = reference IMU {ds.attrs['reference_imu']}, "
           f"geometry uncertainty: {ds.attrs['geometry_method']}"
           + (f" ({ds.attrs['draws']} draws, seed {args.seed})" if ds.attrs["geometry_method"] == "draws" else ""))
-    rows = (("omega", RAD_TO_DEG, "°/s"), ("omega_dot", RAD_TO_DEG, "°/s²"), ("s", 1.0, "m/s²"))
     print(f"{'':>10} {'max |x|':>12} {'median std':>12} {'  noise':>10} {'geometry':>10}  unit  (medians over all samples)")
-    for name, f, unit in rows:
-        x = ds[name].values[ok]
-        st = ds[f"{name}_std"].values[ok]
-        print(f"{name:>10} {f * np.abs(x).max(initial=0):12.4g} {f * np.median(st) if st.size else np.nan:12.3g} "
-              f"{f * np.median(ds[f'{name}_std_noise'].values[ok]) if st.size else np.nan:10.3g} "
-              f"{f * np.median(ds[f'{name}_std_geometry'].values[ok]) if st.size else np.nan:10.3g}  {unit}")
-    dof = ds["dof"].values
-    ratio = np.where(ok & (dof > 0), ds["chi2"].values / np.maximum(dof, 1), np.nan)
-    med = lambda m: float(np.nanmedian(ratio[m])) if np.isfinite(ratio[m]).any() else float("nan")  # noqa: E731
-    parts = f"chi2/dof (median over samples): {med(slice(None)):.3g}"
-    if rec.segment is not None:
-        st = np.asarray(rec.segment).astype(str) == "static"
-        parts += f" (static {med(st):.3g}, dynamic {med(~st):.3g}; >> 1: the stated noise does not explain the residuals)"
+    for name, xmax, std, noise, geom, unit in run.rows:
+        print(f"{name:>10} {xmax:12.4g} {std:12.3g} {noise:10.3g} {geom:10.3g}  {unit}")
+    c = run.chi2_per_dof
+    parts = f"chi2/dof (median over samples): {c['all']:.3g}"
+    if c["static"] is not None:
+        parts += (f" (static {c['static']:.3g}, dynamic {c['dynamic']:.3g}; >> 1: the stated noise does not explain "
+                  "the residuals)")
     print(parts)
-    print(f"gyro clipped: {int(ds['gyro_clipped'].values.sum())} samples, omega needing the accelerometers: "
-          f"{int(ds['omega_needs_acc'].values.sum())}, ill-posed: {int((~ok).sum())}, "
-          f"not converged: {int((~ds['converged'].values).sum())}")
+    n = run.counts
+    print(f"gyro clipped: {n['gyro_clipped']} samples, omega needing the accelerometers: "
+          f"{n['omega_needs_acc']}, ill-posed: {n['ill_posed']}, not converged: {n['not_converged']}")
     print(f"wrote {out} ({ds.attrs['seconds']:.1f} s)")
     return 0

@@ -7,9 +7,9 @@ seed and settings; ground truth never goes in the recording itself).
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
+from ..constants import RAD_TO_DEG
 from ..errors import UserError
 from . import _options as opt
 
@@ -83,7 +83,7 @@ def run(args) -> int:
     target = OutputFile(out, overwrite=args.overwrite, also=(io.truth_path(out),)).open()
 
     from ..physics.arrays import preset
-    from ..simulate import simulate
+    from ..simulate import motion_rms, simulate
 
     arr = preset(args.preset)
     mkw = {"omega_rms": args.omega_rms} if args.omega_rms is not None else None
@@ -95,11 +95,9 @@ def run(args) -> int:
     side = io.write_truth(out, res.truth)  # after the recording: it records the recording's SHA-256
     target.commit()
 
-    rec, tr = res.recording, res.motion
-    import torch
-
-    w_rms = float(torch.sqrt((tr.omega ** 2).sum(-1).mean())) * 180 / math.pi
-    s_rms = float(torch.sqrt((tr.s ** 2).sum(-1).mean()))
+    rec = res.recording
+    w_rms, s_rms = motion_rms(res.motion)
+    w_rms *= RAD_TO_DEG
     n_clip = 0 if rec.acc_clipped is None else int(rec.acc_clipped.sum())
     g_clip = 0 if rec.gyro_clipped is None else int(rec.gyro_clipped.sum())
     print(

@@ -62,9 +62,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..physics.arrays import G0
+from ..constants import DEG_TO_RAD, G0, RAD_TO_DEG
 from ..errors import UserError
 from ..physics.geometry import matrix_to_quat
+from .outputs import to_jsonable
 from .recording import Recording
 from .segments import analyse_static, segment_labels
 from .validation import units_kind
@@ -94,7 +95,7 @@ SENSORS = ("acc", "gyro")
 # Factors to SI of the units each kind of column accepts, by canonical name.  The SI and degree
 # spellings are those :func:`accel_bayes.data.validation.units_kind` knows; g and the sub-second time
 # units are added here.  Time factors are integers: nanoseconds per unit.
-_FACTORS = {"acc": {"m s-2": 1.0, "g": G0}, "gyro": {"rad s-1": 1.0, "deg s-1": math.pi / 180.0},
+_FACTORS = {"acc": {"m s-2": 1.0, "g": G0}, "gyro": {"rad s-1": 1.0, "deg s-1": DEG_TO_RAD},
             "time": {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000}}
 _MORE_UNITS = {"g": "g", "ns": "ns", "us": "us", "µs": "us", "ms": "ms"}
 _HEADER_RE = re.compile(r"^(.*?)\s*\[([^\]]*)\]\s*$")
@@ -706,10 +707,10 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         rw = [getattr(s, f"{kind}_random_walk") if math.isfinite(getattr(s, f"{kind}_random_walk"))
               else st_.sensor_yaml.get(yk) for s, st_ in zip(spec.imus, streams)]
         if any(r is not None and math.isfinite(r) for r in rw):
-            attrs[f"{kind}_random_walk"] = [r if r is not None and math.isfinite(r) else None for r in rw]
+            attrs[f"{kind}_random_walk"] = to_jsonable(rw, nonfinite="null")
     for kind, r in (("acc", acc_r), ("gyro", gyro_r)):
         if np.isfinite(r).any() and common(r, np.ones(K, bool)) is None:
-            attrs[f"{kind}_range_per_imu"] = [float(x) if math.isfinite(x) else None for x in r]
+            attrs[f"{kind}_range_per_imu"] = to_jsonable(np.asarray(r, dtype=np.float64), nonfinite="null")
 
     files = ", ".join(str(s.file) for s in streams) if layout == "ASL" else str(source)
     source_text = (f"CSV import ({layout}) of {files}; array description {spec.path}; time base = stamps of the "
@@ -732,7 +733,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         head.append(f"IMU {r['label']}: {r['samples']} samples read, {r['used']} used, worst stamp mismatch "
                     f"{r['worst_ns'] / 1e6:.6g} ms, median offset {r['median_ns'] / 1e6:.6g} ms")
     lines = head + lines
-    lines.append(f"noise std: acc {_fmt(final['acc'])} m/s², gyro {_fmt(final['gyro'] * 180 / math.pi)} °/s "
+    lines.append(f"noise std: acc {_fmt(final['acc'])} m/s², gyro {_fmt(final['gyro'] * RAD_TO_DEG)} °/s "
                  f"({noise_phrase})")
     for kind, m in (("acc", acc_clipped), ("gyro", gyro_clipped)):
         lines.append(f"{kind} clipped: {100 * float(m.mean()):.3g} % of samples" if m is not None

@@ -324,17 +324,18 @@ def imu_chain(recording: Recording, positions: dict, intrinsics=None, report: di
 def export_imu_chain(recording, positions, output, *, intrinsics=None, report=None, fmt: str = "kalibr",
                      overwrite: bool = False) -> Path:
     """Read the inputs (paths or objects), build :func:`imu_chain` and write it to ``output``
-    atomically.  ``recording``: a path (read with :func:`accel_bayes.data.io.read_recording`) or a
+    atomically.  ``recording``: a path (read with :func:`accel_bayes.data.io.load_recording`) or a
     :class:`Recording`; ``positions``: path or document; ``intrinsics``: path,
     :class:`~accel_bayes.prep.intrinsics.Intrinsics` or None; ``report``: path, dict or None."""
     from ..prep.intrinsics import Intrinsics
-    from .io import read_recording
+    from .io import load_recording
     from .positions import read_positions
 
     names = {}
-    if not isinstance(recording, Recording):
-        names["recording"] = Path(recording).name
-        recording = read_recording(recording)
+    loaded = load_recording(recording)
+    if loaded.path is not None:
+        names["recording"] = Path(loaded.path).name
+    recording = loaded.recording
     if not isinstance(positions, dict):
         names["positions"] = Path(positions).name
     positions = read_positions(positions)

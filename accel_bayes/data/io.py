@@ -19,13 +19,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from . import outputs
+from .outputs import to_jsonable
+from ..constants import DEG_TO_RAD
 from ..errors import RecordingError, UserError
 from .recording import Recording
 from .validation import (
@@ -50,6 +51,8 @@ __all__ = [
     "read_truth",
     "recording_sha256",
     "to_jsonable",
+    "load_recording",
+    "LoadedRecording",
 ]
 
 TRUTH_SCHEMA = "accel_bayes.truth/1"
@@ -64,37 +67,6 @@ JSON_ATTRS_KEY = "accel_bayes_json_attrs"
 
 # ---------------------------------------------------------------- helpers
 
-def to_jsonable(obj, _where: str = "truth"):
-    """Convert numpy/torch arrays and scalars, tuples, paths and dataclasses into plain JSON
-    types (nested lists, floats, ints, str, bool, None), recursively."""
-    if obj is None or isinstance(obj, (bool, str)):
-        return obj
-    if isinstance(obj, int):
-        return int(obj)
-    if isinstance(obj, float):
-        return float(obj)
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if type(obj).__module__.startswith("torch") and hasattr(obj, "detach"):
-        return obj.detach().cpu().numpy().tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, dict):
-        out = {}
-        for k, v in obj.items():
-            if not isinstance(k, (str, int, np.integer)):
-                raise UserError(f"{_where}: dictionary keys must be strings, got {k!r}")
-            out[str(k)] = to_jsonable(v, f"{_where}.{k}")
-        return out
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v, f"{_where}[{i}]") for i, v in enumerate(obj)]
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_jsonable(getattr(obj, f.name), f"{_where}.{f.name}") for f in dataclasses.fields(obj)}
-    raise UserError(f"{_where}: cannot store a {type(obj).__name__} as JSON; convert it to numbers, strings or arrays")
-
-
 def recording_sha256(path) -> str:
     """SHA-256 (hex) of a file's bytes, for provenance records (DESIGN §7.3 ``input_sha256``)."""
     h = hashlib.sha256()
@@ -107,14 +79,14 @@ def recording_sha256(path) -> str:
 def _encode_attr(key, value):
     """(stored value, is_json)."""
     if isinstance(value, (bool, np.bool_)) or value is None:
-        return json.dumps(to_jsonable(value, f"attrs[{key!r}]")), True
+        return json.dumps(to_jsonable(value, where=f"attrs[{key!r}]")), True
     if isinstance(value, str):
         return value, False
     if isinstance(value, (int, np.integer)) and -(2**63) <= int(value) < 2**63:
         return int(value), False
     if isinstance(value, (float, np.floating)):
         return float(value), False
-    return json.dumps(to_jsonable(value, f"attrs[{key!r}]")), True
+    return json.dumps(to_jsonable(value, where=f"attrs[{key!r}]")), True
 
 
 def _decode_attr(value):
@@ -223,7 +195,7 @@ def recording_from_dataset(ds, *, require_gyro: bool = False, check_gyro_units: 
     gyro_units = gyro_declared_units(ds)
     gyro = arr("gyro")
     if gyro is not None and gyro_units == "deg s-1":
-        gyro = gyro * (math.pi / 180.0)
+        gyro = gyro * DEG_TO_RAD
     masks = {}
     for name in ("acc_clipped", "gyro_clipped"):
         masks[name] = None if name not in ds.variables else np.asarray(ds[name].values).astype(bool)
@@ -237,7 +209,7 @@ def recording_from_dataset(ds, *, require_gyro: bool = False, check_gyro_units: 
         if name in ds.variables:
             x = arr(name)
             if name == "gyro_noise_std" and units_kind(ds[name].attrs.get("units", "rad s-1")) == "deg s-1":
-                x = x * (math.pi / 180.0)
+                x = x * DEG_TO_RAD
             noise[name] = x
         elif name in ds.attrs:
             noise[name] = np.full(K, float(np.asarray(ds.attrs[name]).reshape(())))
@@ -360,6 +332,56 @@ def read_recording(path, *, require_gyro: bool = False, check_gyro_units: bool =
 
 # ---------------------------------------------------------------- ground truth sidecar
 
+@dataclasses.dataclass
+class LoadedRecording:
+    """A recording and where it came from (:func:`load_recording`).
+
+    recording : the :class:`~accel_bayes.data.recording.Recording`.
+    path : the path it was read from, exactly as given (it is recorded in provenance as such),
+        or None for an in-memory recording.
+    """
+
+    recording: Recording
+    path: object = None
+    _sha256: str | None = dataclasses.field(default=None, repr=False)
+
+    def sha256(self) -> str | None:
+        """SHA-256 (hex) of the file's bytes (DESIGN §7.3 ``input_sha256``), computed once; None
+        for an in-memory recording."""
+        if self.path is None:
+            return None
+        if self._sha256 is None:
+            self._sha256 = recording_sha256(self.path)
+        return self._sha256
+
+
+def load_recording(source, *, require_gyro: bool = False, streams: bool = False) -> LoadedRecording:
+    """The one recording loader of the pipelines: a :class:`Recording` (used as it is), a
+    :class:`LoadedRecording` (returned unchanged), or a path to a format-v1 file
+    (:func:`read_recording`, which validates it; ``require_gyro`` refuses one without
+    gyroscopes).  ``streams=True`` also accepts a MIMU4444 stream (.bin/.bin.gz), imported on the
+    fly (:func:`accel_bayes.data.mimu.import_mimu`).  Anything else is refused with one line."""
+    if isinstance(source, LoadedRecording):
+        return source
+    if isinstance(source, Recording):
+        return LoadedRecording(source, None)
+    if not isinstance(source, (str, bytes)) and not hasattr(source, "__fspath__"):
+        raise UserError(f"recording: expected a Recording or a file path, got {type(source).__name__}")
+    if streams:
+        path = Path(source)
+        if path.is_dir():
+            raise IsADirectoryError(f"{path}: is a directory; expected a recording file")
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such recording file")
+        with open(path, "rb") as f:
+            head = f.read(8)
+        if not (head.startswith(b"\x89HDF") or path.suffix == ".nc"):
+            from .mimu import import_mimu
+
+            return LoadedRecording(import_mimu(path), source)
+    return LoadedRecording(read_recording(source, require_gyro=require_gyro), source)
+
+
 def truth_path(rec_path) -> Path:
     """The ground-truth sidecar of a recording: ``rec.nc`` → ``rec.truth.json``."""
     return Path(rec_path).with_suffix(".truth.json")
@@ -376,7 +398,7 @@ def write_truth(rec_path, truth: dict, *, overwrite: bool = True) -> Path:
     """
     if not isinstance(truth, dict):
         raise UserError(f"truth: expected a dict, got {type(truth).__name__}")
-    out = to_jsonable(dict(truth))
+    out = to_jsonable(dict(truth), where="truth")
     schema = out.setdefault("schema", TRUTH_SCHEMA)
     if schema != TRUTH_SCHEMA:
         raise UserError(f"truth: schema is {schema!r}; expected {TRUTH_SCHEMA!r}")

@@ -101,7 +101,6 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
-import math
 import warnings
 import zlib
 from dataclasses import asdict, dataclass, field
@@ -109,7 +108,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..constants import G0
+from ..constants import DEG_TO_RAD, G0
 from ..errors import RecordingError
 from ..physics.arrays import SensorArray, mimu4444_8
 from ..physics.geometry import quat_to_matrix
@@ -151,12 +150,12 @@ PACKET_SIZE = 106
 TICK_HZ = 64e6
 NOMINAL_PERIOD_TICKS = 1_024_000  # 16 ms at 64 MHz
 ACC_SCALE = G0 / 2048.0  # m/s² per LSB at ±16 g
-GYRO_SCALE = math.radians(1.0 / 16.4)  # rad/s per LSB at ±2000 °/s
+GYRO_SCALE = (1.0 / 16.4) * DEG_TO_RAD  # rad/s per LSB at ±2000 °/s
 INT16_LIMITS = (-32768, 32767)
 NEAR_LIMIT_LSB = 30720  # 15/16 of full scale: IMUs saturate ±3 % apart (sensitivity tolerance)
 SATURATED_LSB = 32704  # the top 64 codes (0.2 % of full scale): this IMU is at its limit
 ACC_RANGE = 16 * G0
-GYRO_RANGE = math.radians(2000.0)
+GYRO_RANGE = 2000.0 * DEG_TO_RAD
 
 JITTER_TICKS = 8  # README: ±8 ticks per 16 ms interval
 _TIME_NEIGHBOURS = 3  # packets each side whose median predicts a packet's stamp

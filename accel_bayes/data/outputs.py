@@ -53,6 +53,7 @@ from pathlib import Path
 from ..errors import UserError
 
 __all__ = [
+    "to_jsonable",
     "check_file_target",
     "atomic_path",
     "write_bytes",
@@ -73,6 +74,73 @@ __all__ = [
     "is_output_set",
     "OVERWRITE_DIR_HELP",
 ]
+
+
+# ---------------------------------------------------------------- JSON values
+
+_NONFINITE = ("keep", "null")
+_UNKNOWN = ("error", "repr", "keep")
+
+
+def to_jsonable(obj, *, nonfinite: str = "keep", unknown: str = "error", where: str = "value"):
+    """Plain-JSON copy of ``obj``: numpy/torch arrays and scalars, tuples, paths and dataclasses
+    become nested lists, floats, ints, str, bool and None, recursively (the one JSON cleaner of
+    the package: recording attributes, truth sidecars, positions.json, mismatch reports, noise
+    and import summaries).
+
+    nonfinite : "keep" — NaN/±inf floats stay (``json.dumps`` writes them as NaN/Infinity, which
+        the package's own readers accept); "null" — they become None (strict JSON, DESIGN §7.3).
+    unknown : what to do with any other object — "error" (a one-line :class:`UserError` naming
+        ``where``; dictionary keys must then be strings or integers), "repr" (its ``repr``),
+        "keep" (left as it is, for callers that serialise it themselves).
+    where : the name of ``obj`` in error messages (e.g. ``attrs['x']``); nested entries append
+        ``.key`` / ``[i]``.
+    """
+    if nonfinite not in _NONFINITE:
+        raise ValueError(f"nonfinite: expected one of {_NONFINITE}, got {nonfinite!r}")
+    if unknown not in _UNKNOWN:
+        raise ValueError(f"unknown: expected one of {_UNKNOWN}, got {unknown!r}")
+    return _plain(obj, nonfinite == "null", unknown, where)
+
+
+def _plain(obj, null: bool, unknown: str, where: str):
+    import dataclasses
+    import math
+
+    import numpy as np
+
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, int):
+        return int(obj)
+    if isinstance(obj, float):
+        return None if null and not math.isfinite(obj) else float(obj)
+    if isinstance(obj, np.generic):
+        return _plain(obj.item(), null, unknown, where)
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist(), null, unknown, where) if null else obj.tolist()
+    # torch is imported only where it is already loaded: a tensor implies it is
+    if type(obj).__module__.startswith("torch") and hasattr(obj, "detach"):
+        return _plain(obj.detach().cpu().numpy(), null, unknown, where)
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, dict):
+        out = {}
+        for k, v in obj.items():
+            if unknown == "error" and not isinstance(k, (str, int, np.integer)):
+                raise UserError(f"{where}: dictionary keys must be strings, got {k!r}")
+            out[str(k)] = _plain(v, null, unknown, f"{where}.{k}")
+        return out
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v, null, unknown, f"{where}[{i}]") for i, v in enumerate(obj)]
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _plain(getattr(obj, f.name), null, unknown, f"{where}.{f.name}")
+                for f in dataclasses.fields(obj)}
+    if unknown == "repr":
+        return repr(obj)
+    if unknown == "keep":
+        return obj
+    raise UserError(f"{where}: cannot store a {type(obj).__name__} as JSON; convert it to numbers, strings or arrays")
 
 # Written last into every committed --out DIR: what --overwrite is allowed to replace.
 SET_MARKER = ".accel-bayes-set.json"

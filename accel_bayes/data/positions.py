@@ -6,23 +6,18 @@ One writer and one reader for every method that estimates the geometry ("pmmh", 
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 
 from . import outputs
+from .outputs import to_jsonable
 from ..errors import UserError
 
 __all__ = ["POSITIONS_SCHEMA", "METHODS", "positions_document", "write_positions", "read_positions"]
 
 POSITIONS_SCHEMA = "accel_bayes.positions/1"
 METHODS = ("pmmh", "map", "selfcal", "conventional")
-
-
-def _f(x) -> float | None:
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 def positions_document(
@@ -59,19 +54,21 @@ def positions_document(
         raise UserError(f"diagnostics: method {method!r} needs {missing}")
     imus = []
     for k in range(K):
-        entry = {"imu": k, "mean": [_f(v) for v in means[k]],
-                 "std": [_f(v) for v in np.sqrt(np.clip(np.diag(covs[k]), 0, None))]}
+        # strict JSON (DESIGN §7.3): a number that is not finite (unknown) is written as null
+        entry = {"imu": k, "mean": to_jsonable(means[k], nonfinite="null"),
+                 "std": to_jsonable(np.sqrt(np.clip(np.diag(covs[k]), 0, None)), nonfinite="null")}
         if k != reference_imu:
-            entry["cov"] = [[_f(v) for v in row] for row in covs[k]]
+            entry["cov"] = to_jsonable(covs[k], nonfinite="null")
         if orientations is not None:
-            entry["orientation"] = [_f(v) for v in np.asarray(orientations, dtype=float)[k]]
+            entry["orientation"] = to_jsonable(np.asarray(orientations, dtype=float)[k], nonfinite="null")
         imus.append(entry)
     return {
         "schema": POSITIONS_SCHEMA,
         "method": method,
         "reference_imu": int(reference_imu),
         "imus": imus,
-        "diagnostics": {k: (_f(v) if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
+        "diagnostics": {k: (to_jsonable(float(v), nonfinite="null")
+                            if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
                             else v) for k, v in diagnostics.items()},  # flags such as ``converged`` stay bools
         "provenance": provenance or {},
     }

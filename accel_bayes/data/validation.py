@@ -622,7 +622,7 @@ def gyro_unit_diagnostics(rec, gyro_units: str = "rad s-1", max_samples: int = 2
             lo, hi = beta - Z_DECISIVE * se, beta + Z_DECISIVE * se
             if (kind == "rad s-1" and hi < mid) or (kind == "deg s-1" and lo > mid):
                 verdict = "other"
-            elif 1.0 / 57.29577951308232 < lo and hi < 57.29577951308232:
+            elif 1.0 / RAD_TO_DEG < lo and hi < RAD_TO_DEG:
                 verdict = "declared"
     out.update(beta=beta, beta_se=se, array_verdict=verdict, n_used=int(idx.size))
     word = "deg/s" if other == "deg s-1" else "rad/s"

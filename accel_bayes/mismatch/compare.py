@@ -144,7 +144,7 @@ def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, 
     ``positions.json``-style documents' per-IMU means/stds and their R̂/ESS diagnostics, or an
     error note."""
     try:
-        from ..calibrate import calibrate
+        from ..pipelines.calibrate import calibrate
     except ImportError as exc:  # pragma: no cover
         return {"error": f"accel_bayes.calibrate unavailable: {exc}"}
     out = {"settings": {"chains": chains, "draws": draws, "warmup": warmup, "seed": int(seed)}}

@@ -86,6 +86,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..data.io import load_recording
 from ..errors import UserError
 from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
@@ -386,18 +387,6 @@ def _group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> floa
 
 # ------------------------------------------------------------------------------ detect
 
-def _load(recording):
-    from ..data.recording import Recording
-
-    if isinstance(recording, Recording):
-        return recording, None
-    if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
-        from ..data.io import read_recording
-
-        return read_recording(recording, require_gyro=True), str(recording)
-    raise UserError(f"recording: expected a Recording or a file path, got {type(recording).__name__}")
-
-
 def _check_recording(rec) -> None:
     """Refuse (one line) a recording the detector cannot judge, before any fit."""
     from ..prep.selection import DEFAULT_MIN_ROTATION, rotation_rate
@@ -466,7 +455,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     """
     t_start = _time.perf_counter()
     alpha, names = _check_options(effects, alpha, max_findings, seed)
-    rec, source = _load(recording)
+    loaded = load_recording(recording, require_gyro=True)
+    rec, source = loaded.recording, None if loaded.path is None else str(loaded.path)
     _check_recording(rec)
     say = (lambda msg: print(f"[mismatch {(_time.perf_counter() - t_start):6.1f} s] {msg}", flush=True)) if progress \
         else (lambda msg: None)

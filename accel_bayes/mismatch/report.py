@@ -17,40 +17,18 @@ objects behind them.
 from __future__ import annotations
 
 import json
-import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-import torch
-
 from ..errors import UserError
-from ..data.outputs import write_text
+from ..data.outputs import to_jsonable, write_text
 
 __all__ = ["SCHEMA", "Finding", "MismatchReport", "validate_report"]
 
 SCHEMA = "accel_bayes.mismatch/1"
 
 
-def _clean(x):
-    """JSON-safe copy: tensors/arrays → lists, non-finite floats → None."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if torch.is_tensor(x):
-        return _clean(x.detach().cpu().tolist())
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (np.bool_,)):
-        return bool(x)
-    return x
 
 
 # ------------------------------------------------------------------------------ finding
@@ -111,7 +89,7 @@ class Finding:
         if self.screen_statistic is not None:
             d["screen_statistic"] = float(self.screen_statistic)
         d.update({k: v for k, v in self.extra.items() if k not in d})
-        return _clean(d)
+        return to_jsonable(d, nonfinite="null", unknown="keep")
 
     def __getitem__(self, key):
         return self.to_dict()[key]
@@ -184,7 +162,7 @@ class MismatchReport:
             "refined": self.refined,
             "details": self.details(),
         }
-        return _clean(doc)
+        return to_jsonable(doc, nonfinite="null", unknown="keep")
 
     def details(self) -> dict:
         d = {
@@ -303,7 +281,7 @@ class MismatchReport:
                 L.append(f"| {k} | {_vec(pb[k] * 1e3)} | {_vec(pr[k] * 1e3)} | {_vec((pr[k] - pb[k]) * 1e6, 1)} |")
             L.append("")
         if self.posterior:
-            L += ["## Posterior (PmMH) before/after correction", "", "```", json.dumps(_clean(self.posterior), indent=1)[:4000],
+            L += ["## Posterior (PmMH) before/after correction", "", "```", json.dumps(to_jsonable(self.posterior, nonfinite="null", unknown="keep"), indent=1)[:4000],
                   "```", ""]
         pp = self.location.ppc
         L += ["## Posterior predictive check (baseline)", "",
@@ -326,7 +304,7 @@ class MismatchReport:
             if k in figures:
                 L += [f"### {title}", "", f"![{title}]({figures[k]})", ""]
         t = self.timings
-        L += ["## Run", "", f"Total {t.get('total_s', float('nan')):.1f} s; settings: `{json.dumps(_clean(self.settings))}`.", ""]
+        L += ["## Run", "", f"Total {t.get('total_s', float('nan')):.1f} s; settings: `{json.dumps(to_jsonable(self.settings, nonfinite='null', unknown='keep'))}`.", ""]
         return "\n".join(L)
 
 

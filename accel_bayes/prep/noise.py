@@ -8,7 +8,7 @@ gyro scale factors and misalignments (errors growing with |ω|), sensor non-line
 sample-time skew between IMUs.  With σ_rest the MAP residuals are ~25–35× the stated noise
 (χ²/dof ≈ 800–1400 on the six MIMU experiments) and the posterior is far too narrow.
 
-What is estimated (default of the real-data pipeline, :func:`accel_bayes.calibrate.calibrate`)
+What is estimated (default of the real-data pipeline, :func:`accel_bayes.pipelines.calibrate.calibrate`)
 ---------------------------------------------------------------------------------------------
 1. **A noise level per triad, σ_k, by type-II maximum likelihood at the MAP** (below).  On the
    MIMU data σ_k ≈ 1.3–2.0 m/s².
@@ -69,8 +69,9 @@ import numpy as np
 import torch
 
 from ..constants import DEFAULT_PRIOR_STD
+from ..data.outputs import to_jsonable
 from ..errors import UserError
-from ..likelihood import RaoBlackwellLikelihood
+from ..likelihood import RaoBlackwellLikelihood, positions_from_theta
 from ..physics.models import G_matrix, H_matrix, u_of_omega
 from ..physics.jacobians import du_domega
 
@@ -121,8 +122,8 @@ class NoiseModel:
         return np.asarray(self.bin_scale)[b]
 
     def to_dict(self) -> dict:
-        def L(x):
-            return None if x is None else [float(v) if math.isfinite(float(v)) else None for v in np.asarray(x)]
+        def L(x):  # 1-D, as floats, null where not finite (strict JSON)
+            return None if x is None else to_jsonable(np.asarray(x, dtype=np.float64), nonfinite="null")
         return {
             "model": "e_tk ~ N(0, (std_k * s_t)^2 I3), s_t = bin_scale[bin of |mean gyro_t|]; type-II ML at the MAP",
             "std": L(self.std), "stated": L(self.stated), "factor": L(self.factor),
@@ -411,8 +412,7 @@ def fit_map_tempered(acc, omega_mean, omega_cov, acc_noise_std, kappa: float, *,
         cov = torch.full((prob.n_free, prob.n_free), float("nan"), dtype=torch.float64)
         converged, reason = False, f"{reason}; Hessian not positive definite at the end point"
     ref = prob.map_info["reference"]
-    zero = theta.new_zeros(1, 3)
-    pos = torch.cat((theta[:ref], zero, theta[ref:]), 0)
+    pos = positions_from_theta(theta, ref, theta.shape[0] + 1)
     return MAPResult(positions=pos, theta=theta, omega=lm.locals, laplace_cov=cov, log_posterior=-lm.cost,
                      cost_terms=prob.cost_terms(lm.values, lm.locals), log=lm.log, converged=converged,
                      reason=reason, n_iter=lm.n_iter, reference=ref, lm=lm)

@@ -29,7 +29,7 @@ finite gyro reading are dropped as ``non_finite``; a caller's own mask or indice
 the ``user`` reason).
 
 Returns a :class:`Preprocessed` (corrected recording, the :class:`Selection`, the intrinsics and a
-JSON-ready ``summary``) that :func:`accel_bayes.calibrate.calibrate` records in the
+JSON-ready ``summary``) that :func:`accel_bayes.pipelines.calibrate.calibrate` records in the
 ``positions.json`` provenance and prints.
 
 :func:`draw_intrinsics` draws intrinsics from their reported uncertainty (Laplace covariance of

@@ -86,7 +86,7 @@ def run_pmmh(
         uninterrupted one.  ``fingerprint`` (a dict of plain values: settings, data hash) is
         stored in the checkpoint and must match on resume.  The file is checked by
         :func:`read_checkpoint`; callers with expensive set-up check it (and
-        :func:`check_checkpoint_request`) before that set-up, as :func:`accel_bayes.calibrate.calibrate` does.
+        :func:`check_checkpoint_request`) before that set-up, as :func:`accel_bayes.pipelines.calibrate.calibrate` does.
     callback : called as ``callback(chain, iteration, kernel)`` after every iteration
         (iteration counts warm-up and sampling, from 0).
     """

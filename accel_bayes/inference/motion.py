@@ -61,15 +61,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import UserError
-from .physics.geometry import quat_to_matrix
-from .inference.lm.damping import NielsenDamping
-from .inference.lm.linear import damped_step
-from .inference.lm import BatchedLevenbergMarquardt, StoppingRule
-from .physics.models import specific_force
-from .physics.jacobians import AxisProjection, axis_force, axis_force_jacobian, df_dr
-from .data.positions import POSITIONS_SCHEMA, read_positions
-from .data.recording import Recording
+from ..errors import UserError
+from ..physics.geometry import quat_to_matrix
+from .lm.damping import NielsenDamping
+from .lm.linear import damped_step
+from .lm import BatchedLevenbergMarquardt, StoppingRule
+from ..physics.models import specific_force
+from ..physics.jacobians import AxisProjection, axis_force, axis_force_jacobian, df_dr
+from ..data.positions import POSITIONS_SCHEMA, read_positions
+from ..data.recording import Recording
 
 __all__ = [
     "MOTION_SCHEMA",
@@ -137,7 +137,7 @@ def load_calibration(calibration, K: int | None = None) -> Calibration:
                           reference_imu=doc.get("reference_imu", 0), method=str(doc.get("method", "unknown")),
                           source="positions dict")
         if not isinstance(calibration, dict):
-            from .data.io import recording_sha256
+            from ..data.io import recording_sha256
 
             cal.source = f"{calibration} (sha256 {recording_sha256(calibration)})"
     else:
@@ -330,7 +330,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     cal = load_calibration(calibration, K)
     intr_note = "none"
     if intrinsics is not None:
-        from .prep.intrinsics import Intrinsics
+        from ..prep.intrinsics import Intrinsics
 
         intr = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_json(intrinsics)
         recording = intr.apply(recording)
@@ -442,7 +442,7 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     n_res = (wa > 0).sum((1, 2)) + (wg > 0).sum((1, 2))
     gclip = np.zeros(Tn, bool) if recording.gyro_clipped is None else np.asarray(recording.gyro_clipped, bool)[:, has_gyro].any(1)
     aclip = np.zeros(Tn, bool) if recording.acc_clipped is None else np.asarray(recording.acc_clipped, bool)[:, has_acc].any(1)
-    from . import __version__
+    from .. import __version__
 
     axis = ["x", "y", "z"]
     dv = {}
@@ -500,8 +500,8 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
 def write_motion(ds, path, *, overwrite: bool = False) -> Path:
     """Write a motion dataset to NetCDF-4 (h5netcdf), atomically
     (:func:`accel_bayes.data.outputs.write_netcdf`); an existing file is only replaced with ``overwrite``."""
-    from .data.io import ENGINE
-    from .data.outputs import write_netcdf
+    from ..data.io import ENGINE
+    from ..data.outputs import write_netcdf
 
     enc = {name: {"_FillValue": None} for name, v in ds.variables.items() if v.dtype.kind == "f"}
     return write_netcdf(Path(path), ds, engine=ENGINE, encoding=enc, overwrite=overwrite)

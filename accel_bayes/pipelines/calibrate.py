@@ -37,18 +37,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import __version__
-from . import diagnostics as dg
-from .data import positions as _positions_mod
-from .errors import UserError
-from .inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
-from .inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
-from .likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
+from .. import __version__
+from .. import diagnostics as dg
+from ..data import positions as _positions_mod
+from ..errors import UserError
+from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
+from ..inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
+from ..likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
     positions_from_theta
-from .prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
-from .data.outputs import write_text
-from .prep.preprocess import preprocess
-from .data.recording import Recording
+from ..prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
+from ..data.outputs import to_jsonable, write_text
+from ..prep.preprocess import preprocess
+from ..data.io import load_recording
 
 __all__ = ["calibrate", "CalibrationResult", "write_outputs", "positions_document", "DEFAULTS"]
 
@@ -124,7 +124,9 @@ def _int_option(name, v, lo):
 
 
 def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
-              checkpoint_every, resume, proposal, independence_prob, init):
+              checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select):
+    """Every option of :func:`calibrate`, checked once before the recording is read; returns the
+    integer options as ints (``num_draws`` only when given)."""
     out = {
         "chains": _int_option("chains", chains, 1),
         "draws": _int_option("draws", draws, 1),
@@ -152,18 +154,12 @@ def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_met
         raise UserError(f"independence_prob: expected a number in [0, 1), got {independence_prob!r}")
     if (out["checkpoint_every"] or resume) and checkpoint is None:
         raise UserError("checkpoint: --checkpoint-every/--resume need a checkpoint file")
+    if noise not in NOISE_MODES:
+        raise UserError(f"noise: expected one of {NOISE_MODES}, got {noise!r}")
+    out["noise_bins"] = _int_option("noise_bins", noise_bins, 1)
+    if isinstance(select, str) and select != "rotation":
+        raise UserError(f"select: expected None, a mask, indices or 'rotation', got {select!r}")
     return out
-
-
-def _load_recording(recording):
-    if isinstance(recording, Recording):
-        return recording, None, None
-    if isinstance(recording, (str, os.PathLike)):
-        from .data.io import read_recording, recording_sha256
-
-        rec = read_recording(recording, require_gyro=True)
-        return rec, recording_sha256(recording), str(recording)
-    raise UserError(f"recording: expected a Recording or a file path, got {type(recording).__name__}")
 
 
 def _data_fingerprint(lik) -> str:
@@ -237,7 +233,7 @@ def _fit_map(lik, nominal_acc, prior_std, settings):
     """MAP and Laplace covariance (:mod:`accel_bayes.inference.map`), or None (with the reason in
     ``settings["map_failed"]``) when it is unavailable, diverged or has no usable covariance."""
     try:
-        from .inference.map import fit_map
+        from ..inference.map import fit_map
     except ImportError as exc:  # pragma: no cover - depends on the installed package
         warnings.warn(f"use_map: accel_bayes.inference.map unavailable ({exc}); chains start from the prior")
         settings["map_failed"] = f"unavailable: {exc}"
@@ -268,7 +264,7 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings):
     ``inflate`` temper the likelihood by the sandwich factor κ.  Returns the likelihood the
     chains use (:class:`~accel_bayes.prep.noise.TemperedLikelihood` of the scaled samples), the MAP
     of exactly that target (or None if unusable) and the :class:`~accel_bayes.prep.noise.NoiseModel`."""
-    from .prep.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
+    from ..prep.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -398,32 +394,21 @@ def calibrate(
     Returns a :class:`CalibrationResult`.
     """
     t0 = time.perf_counter()
+    # Steps: options (checked once, here, before the file is read: DESIGN §7.5 refuses early),
+    # 1 load, 2 prepare, 3 noise, 4 MAP, 5 central θ and N, 6 posterior, 7 summary; writing the
+    # files is :func:`write_outputs`.
     opts = _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
-                     checkpoint_every, resume, proposal, independence_prob, init)
-    if noise not in NOISE_MODES:
-        raise UserError(f"noise: expected one of {NOISE_MODES}, got {noise!r}")
-    noise_bins = _int_option("noise_bins", noise_bins, 1)
-    raw, sha, src = _load_recording(recording)
-    if raw.gyro is None or not raw.has_gyro.any():
-        raise UserError("recording: has no gyroscope data; the [C21] likelihood needs gyroscopes")
-    # what the run depends on, known before any computation: a resumed checkpoint is checked
-    # against it here, not after minutes of preprocessing and MAP
-    options = {k: v for k, v in opts.items() if k != "checkpoint_every"}
-    options.update(
-        prior=prior, prior_std=float(prior_std), use_map=bool(use_map), init=init, gyro_method=gyro_method,
-        select=_select_key(select), drop_clipped=bool(drop_clipped), proposal=proposal,
-        independence_prob=independence_prob, target_accept_prob=float(target_accept_prob),
-        intrinsics=intrinsics if isinstance(intrinsics, (str, bool, os.PathLike)) or intrinsics is None
-        else _intrinsics_key(intrinsics),
-        drop_static=bool(drop_static), min_rotation=min_rotation, noise=noise, noise_bins=noise_bins,
-        noise_inflation=bool(noise_inflation))
-    request = json.loads(json.dumps({"version": __version__, "recording": sha or _recording_hash(raw),
-                                     "options": options}, default=str))
-    if resume and checkpoint is not None and Path(checkpoint).exists():
-        check_checkpoint_request(read_checkpoint(checkpoint), request, checkpoint)
-    pre = preprocess(raw, intrinsics=intrinsics, drop_static=bool(drop_static), drop_clipped=bool(drop_clipped),
-                     min_rotation=min_rotation, select=select)
-    rec = pre.recording
+                     checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select)
+    noise_bins = opts["noise_bins"]
+    raw, sha, src = _load_step(recording)
+    _check_resume(raw, sha, opts, checkpoint=checkpoint, resume=resume, prior=prior, prior_std=prior_std,
+                  use_map=use_map, init=init, gyro_method=gyro_method, select=select, drop_clipped=drop_clipped,
+                  proposal=proposal, independence_prob=independence_prob, target_accept_prob=target_accept_prob,
+                  intrinsics=intrinsics, drop_static=drop_static, min_rotation=min_rotation, noise=noise,
+                  noise_bins=noise_bins, noise_inflation=noise_inflation)
+    # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
+    pre, rec = _prepare_step(raw, intrinsics=intrinsics, drop_static=drop_static, drop_clipped=drop_clipped,
+                               min_rotation=min_rotation, select=select)
     noise_mode = ("estimate" if pre.has_rests else "stated") if noise == "auto" else noise
     gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if gyro_method == "auto" else gyro_method
     lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gm, selection=pre.selection)
@@ -456,18 +441,98 @@ def calibrate(
         settings["input"] = src
     extra = {"preprocess": pre}
 
-    # ---- noise model (estimated from the data) and MAP
-    map_res = None
-    if noise_mode == "estimate":
-        lik, map_res, nm = _estimate_noise(lik, nominal_acc, ps, noise_bins, bool(noise_inflation), settings)
-        extra["noise"] = nm
-        if not use_map:
-            map_res = None
-    elif use_map:
-        map_res = _fit_map(lik, nominal_acc, ps, settings)
-    settings["use_map"] = map_res is not None
+    lik, map_res = _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra)
+    map_res = _map_step(lik, nominal_acc, ps, noise_mode, use_map, map_res, settings)
+    lik, theta_c, lap, N = _central_step(lik, pri, map_res, opts, proposal, settings)
+    run = _posterior_step(lik, pri, theta_c, lap, opts, proposal=proposal, independence_prob=independence_prob,
+                          init=init, target_accept_prob=target_accept_prob, settings=settings, request=opts["request"],
+                          progress=progress, checkpoint=checkpoint, resume=resume, callback=callback)
 
-    # ---- central θ and N
+    # step 7, summary: ArviZ diagnostics and the positions document
+    idata = dg.to_inference_data(
+        run.theta, free_labels, run.log_phat, log_prior=run.log_prior, accepted=run.accepted,
+        accept_prob=run.accept_prob, step_size=run.step_size, reference_imu=ref_label,
+        attrs={"method": "pmmh", "num_draws": int(N), "seed": opts["seed"], "accel_bayes_version": __version__},
+    )
+    summary = dg.summarize(idata)
+    seconds = time.perf_counter() - t0
+    settings["acceptance_rate"] = [float(a) for a in run.acceptance_rate]
+    settings["step_size"] = [float(s) for s in run.step_size]
+    settings["divergences"] = int(sum(len(d.get("divergences", [])) for d in run.diagnostics))
+    positions = positions_document(idata, K=rec.K, reference_imu=ref_label, seconds=seconds, settings=settings,
+                                   input_sha256=sha, seed=opts["seed"])
+    return CalibrationResult(idata=idata, summary=summary, positions=positions, settings=settings, seconds=seconds,
+                             run=run, map_result=map_res, array=array, input_sha256=sha, extra=extra)
+
+
+# ---------------------------------------------------------------------------- the steps of calibrate
+
+def _load_step(recording):
+    """Step 1, load: the recording (:func:`accel_bayes.data.io.load_recording`, gyroscopes
+    required), its file's SHA-256 (None in memory) and its path as given (None in memory)."""
+    loaded = load_recording(recording, require_gyro=True)
+    raw = loaded.recording
+    if raw.gyro is None or not raw.has_gyro.any():
+        raise UserError("recording: has no gyroscope data; the [C21] likelihood needs gyroscopes")
+    return raw, loaded.sha256(), None if loaded.path is None else str(loaded.path)
+
+
+def _check_resume(raw, sha, opts, *, checkpoint, resume, prior, prior_std, use_map, init, gyro_method, select,
+                  drop_clipped, proposal, independence_prob, target_accept_prob, intrinsics, drop_static,
+                  min_rotation, noise, noise_bins, noise_inflation):
+    """What the run depends on, known before any computation (stored in ``opts["request"]``): a
+    resumed checkpoint is checked against it here, not after minutes of preprocessing and MAP."""
+    options = {k: v for k, v in opts.items() if k not in ("checkpoint_every", "noise_bins", "request")}
+    options.update(
+        prior=prior, prior_std=float(prior_std), use_map=bool(use_map), init=init, gyro_method=gyro_method,
+        select=_select_key(select), drop_clipped=bool(drop_clipped), proposal=proposal,
+        independence_prob=independence_prob, target_accept_prob=float(target_accept_prob),
+        intrinsics=intrinsics if isinstance(intrinsics, (str, bool, os.PathLike)) or intrinsics is None
+        else _intrinsics_key(intrinsics),
+        drop_static=bool(drop_static), min_rotation=min_rotation, noise=noise, noise_bins=noise_bins,
+        noise_inflation=bool(noise_inflation))
+    request = json.loads(json.dumps({"version": __version__, "recording": sha or _recording_hash(raw),
+                                     "options": options}, default=str))
+    if resume and checkpoint is not None and Path(checkpoint).exists():
+        check_checkpoint_request(read_checkpoint(checkpoint), request, checkpoint)
+    opts["request"] = request
+
+
+def _prepare_step(raw, *, intrinsics, drop_static, drop_clipped, min_rotation, select):
+    """Step 2, prepare: intrinsics and THE sample selection (:func:`accel_bayes.prep.preprocess.preprocess`,
+    the user's ``select`` ANDed in).  Returns (Preprocessed, recording); ``pre.selection`` is what
+    the likelihood takes."""
+    pre = preprocess(raw, intrinsics=intrinsics, drop_static=bool(drop_static), drop_clipped=bool(drop_clipped),
+                     min_rotation=min_rotation, select=select)
+    rec = pre.recording
+    return pre, rec
+
+
+def _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra):
+    """Step 3, noise: with ``noise_mode`` "estimate" the noise model fitted with the MAP (and the
+    tempered likelihood of that target, :func:`_estimate_noise`); "stated" keeps the recording's.
+    Returns (likelihood the chains use, the MAP of the estimated-noise target or None)."""
+    if noise_mode != "estimate":
+        return lik, None
+    lik, map_res, nm = _estimate_noise(lik, nominal_acc, ps, noise_bins, bool(noise_inflation), settings)
+    extra["noise"] = nm
+    return lik, map_res
+
+
+def _map_step(lik, nominal_acc, ps, noise_mode, use_map, noise_map, settings):
+    """Step 4, MAP: with estimated noise the noise step's MAP is already the MAP of the chains'
+    target (kept when ``use_map``); with the stated noise it is fitted here.  None: no MAP."""
+    if noise_mode == "estimate":
+        map_res = noise_map if use_map else None
+    else:
+        map_res = _fit_map(lik, nominal_acc, ps, settings) if use_map else None
+    settings["use_map"] = map_res is not None
+    return map_res
+
+
+def _central_step(lik, pri, map_res, opts, proposal, settings):
+    """Step 5, central θ and N: the MAP (or prior mean) and its Laplace covariance, and the
+    number of draws per likelihood estimate ([C21] §III-C).  Sets ``lik.num_draws``."""
     if map_res is not None:
         theta_c = torch.as_tensor(map_res.theta, dtype=torch.float64).reshape(lik.A - 1, 3)
         lap = torch.as_tensor(map_res.laplace_cov, dtype=torch.float64)
@@ -498,8 +563,13 @@ def calibrate(
     settings["num_draws"] = int(N)
     settings["num_draws_auto"] = "num_draws" not in opts
     settings["var_log_phat"] = [{"num_draws": int(r["num_draws"]), "var": float(r["var"])} for r in table]
+    return lik, theta_c, lap, N
 
-    # ---- proposal and starts
+
+def _posterior_step(lik, pri, theta_c, lap, opts, *, proposal, independence_prob, init, target_accept_prob,
+                    settings, request, progress, checkpoint, resume, callback):
+    """Step 6, posterior: the proposal, the chain starts, the PmMH kernel and its C chains
+    (:func:`accel_bayes.inference.mcmc.run_pmmh`, crash-safe with a checkpoint)."""
     prop = proposal
     if prop == "auto":
         prop = "mixture" if lap is not None else "rw"
@@ -538,29 +608,9 @@ def calibrate(
     fingerprint["version"] = __version__
     fingerprint["request"] = request
     fingerprint = json.loads(json.dumps(fingerprint))
-    run = run_pmmh(kernel, opts["draws"], opts["warmup"], C, init_theta, progress=progress, checkpoint=checkpoint,
-                   checkpoint_every=opts["checkpoint_every"], resume=resume, fingerprint=fingerprint,
-                   callback=callback)
-
-    idata = dg.to_inference_data(
-        run.theta, free_labels, run.log_phat, log_prior=run.log_prior, accepted=run.accepted,
-        accept_prob=run.accept_prob, step_size=run.step_size, reference_imu=ref_label,
-        attrs={"method": "pmmh", "num_draws": int(N), "seed": opts["seed"], "accel_bayes_version": __version__},
-    )
-    summary = dg.summarize(idata)
-    seconds = time.perf_counter() - t0
-    settings["acceptance_rate"] = [float(a) for a in run.acceptance_rate]
-    settings["step_size"] = [float(s) for s in run.step_size]
-    settings["divergences"] = int(sum(len(d.get("divergences", [])) for d in run.diagnostics))
-    positions = positions_document(idata, K=rec.K, reference_imu=ref_label, seconds=seconds, settings=settings,
-                                   input_sha256=sha, seed=opts["seed"])
-    return CalibrationResult(idata=idata, summary=summary, positions=positions, settings=settings, seconds=seconds,
-                             run=run, map_result=map_res, array=array, input_sha256=sha, extra=extra)
-
-
-def _json_float(x):
-    x = float(x)
-    return x if math.isfinite(x) else None
+    return run_pmmh(kernel, opts["draws"], opts["warmup"], C, init_theta, progress=progress, checkpoint=checkpoint,
+                    checkpoint_every=opts["checkpoint_every"], resume=resume, fingerprint=fingerprint,
+                    callback=callback)
 
 
 def positions_document(idata, *, K: int, reference_imu: int, seconds: float, settings: dict,
@@ -582,7 +632,8 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
         if k not in estimated:  # no accelerometer triad: nothing to report (null in JSON)
             means[k] = np.nan
             covs[k] = np.nan
-    rhat, ess = _json_float(dg.rhat_max(idata)), _json_float(dg.ess_bulk_min(idata))
+    rhat = to_jsonable(float(dg.rhat_max(idata)), nonfinite="null")
+    ess = to_jsonable(float(dg.ess_bulk_min(idata)), nonfinite="null")
     reasons = dg.convergence_warnings(rhat, ess, settings.get("chains", idata.posterior.sizes["chain"]))
     diagnostics = {
         "rhat_max": rhat,

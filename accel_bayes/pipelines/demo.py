@@ -43,7 +43,7 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
     (:class:`accel_bayes.data.outputs.OutputDir`): checked before anything runs, refused when
     non-empty unless ``overwrite``, and filled only when every stage has finished.
     """
-    from .data.outputs import OutputDir
+    from ..data.outputs import OutputDir
 
     cfg = dict(DEFAULTS)
     if quick:
@@ -61,10 +61,10 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
 
 
 def _run_stages(od, cfg: dict, progress: bool) -> None:
-    from .physics import arrays
-    from .data.io import write_recording, write_truth
-    from .data.outputs import write_text
-    from .simulate import simulate
+    from ..physics import arrays
+    from ..data.io import write_recording, write_truth
+    from ..data.outputs import write_text
+    from ..simulate import simulate
 
     # Files go to the staging directory ``out``; messages name their final place in ``shown``.
     out, shown = od.staging, od.target
@@ -89,7 +89,7 @@ def _run_stages(od, cfg: dict, progress: bool) -> None:
     # 2. MAP ---------------------------------------------------------------------------------
     map_rel = None
     try:
-        from .inference.map import fit_map_recording
+        from ..inference.map import fit_map_recording
     except ImportError:
         _say("[2/5] MAP: not available in this version", log)
         report += ["## 2. MAP", "Not available in this version.", ""]
@@ -108,7 +108,7 @@ def _run_stages(od, cfg: dict, progress: bool) -> None:
     # 3–4. posterior + diagnostics ------------------------------------------------------------
     try:
         from .calibrate import calibrate, write_outputs
-        from .diagnostics import format_stat
+        from ..diagnostics import format_stat
     except ImportError:
         _say("[3/5] posterior: not available in this version", log)
         report += ["## 3. Posterior", "Not available in this version.", ""]
@@ -150,7 +150,7 @@ def _run_stages(od, cfg: dict, progress: bool) -> None:
 
     # 5. mismatch check ------------------------------------------------------------------------
     try:
-        from .mismatch import detect
+        from ..mismatch import detect
     except ImportError:
         _say("[5/5] mismatch check: not available in this version", log)
         report += ["## 5. Mismatch check", "Not available in this version.", ""]

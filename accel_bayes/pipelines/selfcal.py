@@ -1,0 +1,223 @@
+"""[S16] self-calibration of one recording, as a library function (``accel-bayes selfcal``).
+
+:func:`prepare` checks and extracts what the [S16] model needs (every sample of the IMUs with an
+accelerometer triad, the fixed triad, the nominal poses); :func:`selfcal` runs
+:func:`accel_bayes.inference.selfcal.self_calibrate` on it and, when it did not diverge, builds the
+DESIGN §7.3 positions document (method "selfcal", relative to the fixed IMU, Laplace std/cov with
+the motion marginalised, orientations), the ``poses.csv`` rows and the ``motion.csv`` table;
+:func:`write_outputs` writes them and ``convergence.png``
+(:func:`accel_bayes.diagnostics.plot_convergence`).  Gyroscopes are ignored.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..data.io import load_recording
+from ..errors import UserError
+
+__all__ = ["SelfcalInput", "SelfcalRun", "prepare", "selfcal", "write_outputs", "POSES_HEADER", "MOTION_HEADER"]
+
+POSES_HEADER = ("imu,x_mm,y_mm,z_mm,std_x_um,std_y_um,std_z_um,rotvec_x_deg,rotvec_y_deg,rotvec_z_deg,"
+                "angle_vs_nominal_deg,angle_std_deg,fixed,has_acc")
+MOTION_HEADER = ("time_s,a_lin_x_m_s2,a_lin_y_m_s2,a_lin_z_m_s2,omega_x_rad_s,omega_y_rad_s,omega_z_rad_s,"
+                 "omega_dot_x_rad_s2,omega_dot_y_rad_s2,omega_dot_z_rad_s2")
+
+
+@dataclass
+class SelfcalInput:
+    """What :func:`prepare` extracts from a recording for the [S16] model.
+
+    recording : the recording; source : its :class:`~accel_bayes.data.io.LoadedRecording`.
+    labels : IMU labels with an accelerometer triad (the triads fitted); fixed_label : the IMU
+        held at its nominal pose; fixed : its row in ``labels``.
+    acc : (T, A, 3) accelerometer outputs of those IMUs, m/s²; noise : (A,) their stated std, m/s².
+    p_nom, q_nom : (K, 3) nominal positions (m) and (K, 4) orientations of every IMU.
+    clipped : fraction of accelerometer samples flagged clipped (fitted as they are).
+    """
+
+    recording: object
+    source: object
+    labels: list
+    fixed_label: int
+    fixed: int
+    acc: np.ndarray
+    noise: np.ndarray
+    p_nom: np.ndarray
+    q_nom: np.ndarray
+    has_acc: np.ndarray
+    clipped: float
+
+
+@dataclass
+class SelfcalRun:
+    """What :func:`selfcal` returns.
+
+    result : the :class:`~accel_bayes.inference.selfcal.SelfCalResult` (``ok`` False: diverged,
+        then only ``result`` and the convergence log are meaningful).
+    document : DESIGN §7.3 positions document (None when diverged).
+    means : (K, 3) positions relative to the fixed IMU, m; pstd : (K, 3) their Laplace std, m.
+    angle, angle_std : (K,) rotation from the nominal orientation and its RMS std, degrees.
+    poses : rows of ``poses.csv``; motion : (T, 10) rows of ``motion.csv``.
+    seconds : wall time of the self-calibration, s; warnings : why not trustworthy (LM limit).
+    """
+
+    input: SelfcalInput
+    result: object
+    seconds: float
+    document: dict | None = None
+    means: np.ndarray | None = None
+    pstd: np.ndarray | None = None
+    angle: np.ndarray | None = None
+    angle_std: np.ndarray | None = None
+    poses: list = field(default_factory=list)
+    motion: np.ndarray | None = None
+    warnings: list = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.result.ok)
+
+    @property
+    def pstd_norm(self) -> np.ndarray:
+        """(K,) norm of each IMU's position std, m (NaN where unknown)."""
+        return np.array([np.linalg.norm(p) if np.isfinite(p).all() else np.nan for p in self.pstd])
+
+
+def prepare(recording, *, fixed: int | None = None) -> SelfcalInput:
+    """Check a recording for the [S16] model and extract its inputs (one-line :class:`UserError`
+    naming the field otherwise).  ``fixed``: label of the IMU held at its nominal pose (default the
+    recording's reference IMU)."""
+    loaded = load_recording(recording)
+    rec = loaded.recording
+    K = rec.K
+    fixed_label = int(rec.reference_imu if fixed is None else fixed)
+    if not 0 <= fixed_label < K:
+        raise UserError(f"--fixed: expected an IMU label in 0..{K - 1}, got {fixed_label}")
+    has_acc = np.asarray(rec.has_acc)
+    labels = [int(k) for k in np.nonzero(has_acc)[0]]
+    if fixed_label not in labels:
+        raise UserError(f"--fixed: IMU {fixed_label} has no accelerometer triad")
+    if len(labels) < 3:
+        raise UserError(f"acc: self-calibration needs at least 3 accelerometer triads, the recording has {len(labels)}")
+    acc = np.asarray(rec.acc, dtype=float)[:, labels]
+    if not np.isfinite(acc).all():
+        bad = sorted({labels[j] for j in np.nonzero(~np.isfinite(acc).all(axis=(0, 2)))[0]})
+        raise UserError(f"acc: missing (NaN) samples for IMU(s) {bad}; self-calibration needs every sample "
+                        "(the process model links consecutive samples)")
+    clipped = 0.0
+    if rec.acc_clipped is not None:
+        clipped = float(np.asarray(rec.acc_clipped)[:, labels].mean())
+    p_nom = np.asarray(rec.nominal_position, dtype=float)
+    q_nom = np.asarray(rec.nominal_orientation, dtype=float)
+    noise = np.asarray(rec.acc_noise_std, dtype=float)[labels]
+    try:
+        from ..physics.arrays import check_triad_geometry
+
+        check_triad_geometry(torch.as_tensor(p_nom[labels]), labels=labels)
+    except ValueError as exc:
+        raise UserError(f"nominal_position: {exc}") from None
+    return SelfcalInput(recording=rec, source=loaded, labels=labels, fixed_label=fixed_label,
+                        fixed=labels.index(fixed_label), acc=acc, noise=noise, p_nom=p_nom, q_nom=q_nom,
+                        has_acc=has_acc, clipped=clipped)
+
+
+def selfcal(recording, *, fixed: int | None = None, max_iter: int = 200, rerun: bool = True, seed=None,
+            progress: bool = False) -> SelfcalRun:
+    """[S16] self-calibration: poses of every accelerometer triad relative to the fixed one, jointly
+    with the motion, from the accelerometers alone.
+
+    recording : a path, a Recording, a LoadedRecording or the :class:`SelfcalInput` of :func:`prepare`.
+    max_iter : LM iteration limit per stage.  rerun : the [S16] §VI-A re-run from the estimate.
+    seed : recorded in the provenance only (the self-calibration draws no random numbers).
+    """
+    from .. import __version__
+    from ..data.positions import positions_document
+    from ..inference.selfcal import self_calibrate
+    from ..physics.geometry import boxminus
+
+    inp = recording if isinstance(recording, SelfcalInput) else prepare(recording, fixed=fixed)
+    rec, labels, fixed_label, fixed = inp.recording, inp.labels, inp.fixed_label, inp.fixed
+    K = rec.K
+    p_nom, q_nom, noise = inp.p_nom, inp.q_nom, inp.noise
+    t0 = time.perf_counter()
+    res = self_calibrate(inp.acc, np.asarray(rec.time, dtype=float), nominal_positions=p_nom[labels],
+                         nominal_orientations=q_nom[labels], fixed=fixed, acc_noise_std=noise,
+                         max_iter=max_iter, progress=progress, rerun_from_estimate=rerun)
+    run = SelfcalRun(input=inp, result=res, seconds=time.perf_counter() - t0)
+    if not res.ok:
+        return run
+
+    # ---- positions.json: relative to the fixed IMU, array frame
+    P = res.positions.detach().cpu().numpy()
+    Q = res.orientations.detach().cpu().numpy()
+    means = p_nom - p_nom[fixed_label]  # IMUs without accelerometer: nominal, unknown std
+    covs = np.full((K, 3, 3), np.nan)
+    oris = q_nom.copy()
+    rel = P - P[fixed]
+    pcov = res.position_cov.detach().cpu().numpy() if res.position_cov is not None else np.full((len(labels), 3, 3), np.nan)
+    rcov = res.rotation_cov.detach().cpu().numpy() if res.rotation_cov is not None else np.full((len(labels), 3, 3), np.nan)
+    for j, k in enumerate(labels):
+        means[k] = rel[j]
+        covs[k] = pcov[j]
+        oris[k] = Q[j]
+    covs[fixed_label] = 0.0
+    runs = [{k: v for k, v in r.items() if k not in ("positions", "orientations", "states")} for r in res.runs]
+    settings = {"fixed": fixed_label, "max_iter": max_iter, "rerun_from_estimate": rerun,
+                "process_variances": "S16 (acc 1e3, int 1e-7, omega_dot 1e3)", "imus_used": labels,
+                "acc_noise_std": noise.tolist(), "warm_start_motion": True}
+    reasons = [] if res.converged else [f"LM stopped without converging ({res.lm_reason}); the estimate may be poor"]
+    diagnostics = {"seconds": run.seconds, "F": res.cost, "F_per_constraint": res.cost / sum(res.n_constraints.values()),
+                   "n_iter": int(sum(r["iterations"] for r in res.runs)), "converged": bool(res.converged),
+                   "warnings": reasons,
+                   "lm_reason": res.lm_reason, "runs": runs, "acc_clipped_fraction": inp.clipped}
+    run.document = positions_document(method="selfcal", reference_imu=fixed_label, means=means, covs=covs,
+                                      orientations=oris, diagnostics=diagnostics,
+                                      provenance={"version": __version__, "input_sha256": inp.source.sha256(),
+                                                  "seed": seed, "settings": settings})
+
+    # ---- poses.csv
+    dq = boxminus(torch.as_tensor(oris), torch.as_tensor(q_nom)).numpy()  # q = q_nom ∘ exp(δ)
+    ang = np.degrees(np.linalg.norm(dq, axis=-1))
+    pstd = np.sqrt(np.clip(np.diagonal(covs, axis1=1, axis2=2), 0, None))
+    astd = np.full(K, np.nan)
+    for j, k in enumerate(labels):
+        astd[k] = np.degrees(np.sqrt(max(np.trace(rcov[j]), 0.0)))
+    astd[fixed_label] = 0.0
+    run.poses = [[k, *(means[k] * 1e3), *(pstd[k] * 1e6), *np.degrees(dq[k]), ang[k], astd[k],
+                  int(k == fixed_label), int(inp.has_acc[k])] for k in range(K)]
+    run.means, run.pstd, run.angle, run.angle_std = means, pstd, ang, astd
+    run.motion = np.column_stack([np.asarray(rec.time, dtype=float), res.states.detach().cpu().numpy()])
+    run.warnings = reasons
+    return run
+
+
+def write_convergence(run: SelfcalRun, out_dir, title: str = "") -> Path:
+    """``convergence.png`` ([S16] Fig. 5) of a run, diverged or not."""
+    from ..diagnostics import plot_convergence
+
+    path = Path(out_dir) / "convergence.png"
+    plot_convergence(run.result.full_cost_log, run.result.n_constraints, path, title=title)
+    return path
+
+
+def write_outputs(run: SelfcalRun, out_dir, *, title: str = "") -> dict:
+    """Write ``convergence.png`` and, unless the run diverged, ``positions.json``, ``poses.csv`` and
+    ``motion.csv`` into ``out_dir`` (each file atomically); returns {name: path}."""
+    from ..data.outputs import write_csv, write_text
+    from ..data.positions import write_positions
+
+    out = Path(out_dir)
+    paths = {"convergence": write_convergence(run, out, title=title)}
+    if not run.ok:
+        return paths
+    paths["positions"] = write_positions(run.document, out / "positions.json")
+    paths["poses"] = write_text(out / "poses.csv", "".join(
+        [POSES_HEADER + "\n"] + [",".join(str(int(v)) if i in (0, 12, 13) else ("nan" if not np.isfinite(v) else f"{v:.9g}")
+                                          for i, v in enumerate(r)) + "\n" for r in run.poses]))
+    paths["motion"] = write_csv(out / "motion.csv", run.motion, MOTION_HEADER)
+    return paths
