@@ -14,10 +14,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1] / "accel_bayes"
 
-# Modules still allowed to import arviz/matplotlib outside diagnostics.py, PENDING their move:
-# cli/selfcal.py draws convergence.png itself; the engineer moving the [S16] pipeline out of the
-# CLI (issue #10 items 6+7) moves that plot into diagnostics.py and empties this set.
-PENDING_PLOTTING = {"cli/selfcal.py"}
+# Modules still allowed to import arviz/matplotlib outside diagnostics.py: none since the [S16]
+# convergence plot moved from cli/selfcal.py to diagnostics.plot_convergence (issue #10 item 6).
+PENDING_PLOTTING: set = set()
 PLOTTING = ("arviz", "matplotlib")
 
 
