@@ -5,7 +5,9 @@ option out of range.  The CLI turns it into one line on stderr and exit status 2
 can catch it as ``ValueError``.
 """
 
-__all__ = ["UserError", "RecordingError"]
+import math
+
+__all__ = ["UserError", "RecordingError", "nonnegative"]
 
 
 class UserError(ValueError):
@@ -14,3 +16,17 @@ class UserError(ValueError):
 
 class RecordingError(UserError):
     """A recording (file or in-memory) that breaks format v1 (DESIGN §7.1)."""
+
+
+def nonnegative(value, name: str, unit: str = "") -> float:
+    """``value`` as a float, or a :class:`UserError` naming ``name`` unless it is a finite number
+    >= 0 (``unit`` is only for the message, e.g. "rad/s").  The one check of the library's
+    non-negative scalar options (the CLI checks its own with cli/_options before reading input)."""
+    what = f"a finite number of {unit} >= 0" if unit else "a finite number >= 0"
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise UserError(f"{name}: expected {what}, got {value!r}") from None
+    if not (v >= 0 and math.isfinite(v)):
+        raise UserError(f"{name}: expected {what}, got {value!r}")
+    return v

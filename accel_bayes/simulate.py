@@ -13,7 +13,6 @@ motion, the geometry errors and the sensor noise, in that order.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +20,7 @@ import torch
 
 from .physics.arrays import SensorArray
 from .data.outputs import to_jsonable
-from .errors import UserError
+from .errors import UserError, nonnegative
 from .physics.geometry import boxminus, boxplus
 from .physics.models import imu_outputs
 from .physics.motion import MotionTrace, as_generator, make_motion
@@ -80,16 +79,6 @@ def _per_imu(x, K: int, name: str, default: torch.Tensor) -> torch.Tensor:
     if bool((t < 0).any()) or not bool(torch.isfinite(t).all()):
         raise UserError(f"{name}: expected finite standard deviations >= 0, got {t.tolist()}")
     return t
-
-
-def _nonneg(x: float, name: str) -> float:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise UserError(f"{name}: expected a number, got {x!r}") from None
-    if not (v >= 0 and math.isfinite(v)):
-        raise UserError(f"{name}: expected a finite value >= 0, got {x!r}")
-    return v
 
 
 def _clip(y: torch.Tensor, limit: float | None, present: torch.Tensor, clip: bool):
@@ -161,8 +150,8 @@ def simulate(
         raise UserError(f"array: expected a SensorArray, got {type(array).__name__}")
     arr = array.to(dtype=torch.float64, device=torch.device("cpu"))
     K = arr.K
-    pos_std = _nonneg(position_error_std, "position_error_std")
-    ori_std = _nonneg(orientation_error_std, "orientation_error_std")
+    pos_std = nonnegative(position_error_std, "position_error_std", "m")
+    ori_std = nonnegative(orientation_error_std, "orientation_error_std", "rad")
     acc_std = _per_imu(acc_noise_std, K, "acc_noise_std", arr.acc_noise_std)
     gyro_std = _per_imu(gyro_noise_std, K, "gyro_noise_std", arr.gyro_noise_std)
 

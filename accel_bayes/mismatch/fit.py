@@ -28,7 +28,7 @@ import torch
 from ..constants import DEFAULT_PRIOR_STD
 from ..errors import UserError
 from ..inference.lm import LevenbergMarquardt, Linearization, StoppingRule
-from ..physics.effects import model_outputs, noise_factors, output_rates
+from ..physics.effects import check_effects, model_outputs, noise_factors, output_rates
 from .model import ModelFit, _detach_ctx, _gyro_mean, _init_locals, _local_leverage, _loglik_terms, _mean_effects, \
     _Model, _positions, _split_eta
 from .prepared import Prepared
@@ -99,12 +99,8 @@ def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, ini
         the package's fitters; the structured LM prints nothing.
     """
     t0 = _time.perf_counter()
-    effects = list(effects)
+    effects = check_effects(effects, prep.K, "model effect")
     for e in effects:
-        if e.kind == "finding":
-            raise UserError("unexplained: is a finding, not a model effect")
-        if e.imu is not None and not 0 <= e.imu < prep.K:
-            raise UserError(f"{e.label()}: imu out of range for K={prep.K}")
         if e.needs_rates and prep.acc_rate is None:
             raise UserError(f"{e.label()}: needs output rates; fit the baseline first (baseline_fit sets them)")
     K = prep.K

@@ -21,12 +21,11 @@ difference rate needs, since consecutive kept indices are not always consecutive
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import UserError
+from ..errors import UserError, nonnegative
 
 __all__ = ["Selection", "select_samples", "rotation_rate", "clipped_mask", "check_min_rotation", "REASONS",
            "DEFAULT_MIN_ROTATION"]
@@ -150,13 +149,7 @@ def check_min_rotation(min_rotation) -> float:
     the option otherwise.  Callers check it before any expensive step."""
     if min_rotation is None:
         return 0.0
-    try:
-        value = float(min_rotation)
-    except (TypeError, ValueError):
-        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}") from None
-    if not (value >= 0 and math.isfinite(value)):
-        raise UserError(f"min_rotation: expected a number of rad/s >= 0, got {min_rotation!r}")
-    return value
+    return nonnegative(min_rotation, "min_rotation", "rad/s")
 
 
 def _user_mask(user, T: int) -> np.ndarray:

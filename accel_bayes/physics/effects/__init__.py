@@ -79,8 +79,8 @@ DESIGN §7.2 table order of :data:`VOCABULARY`.
 """
 from __future__ import annotations
 
-from .base import (AXES, EFFECTS, CandidateLayout, Effect, Param, SignalContext, apply_effects, get_effect, make_effect,
-                   model_outputs, noise_factors, output_rates, register_effect)
+from .base import (AXES, EFFECTS, CandidateLayout, Effect, Param, SignalContext, apply_effects, check_effects,
+                   get_effect, make_effect, model_outputs, noise_factors, output_rates, register_effect)
 from .accelerometer import AccBias, AccScale, AccMisalignment, AccNonlinearity, AxisDisplacement
 from .accelerometer import (acc_gain_effects, acc_gain_of_effects, gain_to_intrinsics, gain_to_s16, intrinsics_gain,
                             s16_gain, triangular_gauge)
@@ -126,6 +126,7 @@ __all__ = [
     "model_outputs",
     "noise_factors",
     "apply_effects",
+    "check_effects",
     "output_rates",
     "CandidateLayout",
 ]

@@ -456,6 +456,19 @@ def noise_factors(effects, K: int, params_list=None):
     return fa, fg
 
 
+def check_effects(effects, K: int, what: str) -> list:
+    """The effects as a list, refused in one line if one is the finding ``unexplained`` (it has
+    no model) or sits on an IMU outside 0..K-1.  ``what`` names the use ("simulatable effect",
+    "model effect") in the message.  Shared by the simulator and the mismatch refits."""
+    effects = list(effects)
+    for e in effects:
+        if e.kind == "finding":
+            raise UserError(f"unexplained: is a finding, not a {what}")
+        if e.imu is not None and not 0 <= e.imu < K:
+            raise UserError(f"{e.label()}: imu out of range for K={K}")
+    return effects
+
+
 def apply_effects(effects, ctx: SignalContext, acc_noise: torch.Tensor, gyro_noise: torch.Tensor):
     """Simulated outputs with effects: nominal + mean effects, plus noise scaled by the noise
     effects, then clip effects (a real sensor clips after its noise).
@@ -463,12 +476,7 @@ def apply_effects(effects, ctx: SignalContext, acc_noise: torch.Tensor, gyro_noi
     acc_noise, gyro_noise : (T, K, 3) noise at the *stated* level (std × standard normal).
     Returns (acc, gyro) (T, K, 3).  Used by :func:`accel_bayes.simulate.simulate` (``effects=``).
     """
-    effects = list(effects)
-    for e in effects:
-        if e.kind == "finding":
-            raise UserError("unexplained: is a finding, not a simulatable effect")
-        if e.imu is not None and not 0 <= e.imu < ctx.K:
-            raise UserError(f"{e.label()}: imu out of range for K={ctx.K}")
+    effects = check_effects(effects, ctx.K, "simulatable effect")
     acc, gyro = ctx.acc, ctx.gyro
     for e in effects:
         if e.kind == "mean":
