@@ -123,7 +123,7 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
         on φ), whose −(T/2)·log|M(θ)| factor is not compensated by the simulated φ and shrinks
         the array (what this study measures for the default model).
 
-    The sampler is the package's PmMH kernel set up as :func:`accel_bayes.calibrate` sets it up:
+    The sampler is the package's PmMH kernel set up as :func:`accel_bayes.pipelines.calibrate.calibrate` sets it up:
     random walk shaped by the Laplace covariance at the mode, mixed 80 % with independence moves
     from that Laplace approximation; N chosen by :func:`accel_bayes.likelihood.choose_num_draws`.
     The mode is the package MAP for "flat"; for "matched" (a model fit_map does not implement) a

@@ -522,7 +522,7 @@ def main(argv=None):
       f"s 20 m/s² per axis), prior N(design, 3 mm), truth = design + N(0, 0.1 mm), gyro posterior "
       f"'{args.gyro_method}', no clipping")
     if len(post_df):
-        P(f"PmMH: accel_bayes.calibrate (proposal={post_df['proposal'].iloc[0]}, use_map={use_map}), {chains} chains × "
+        P(f"PmMH: accel_bayes.pipelines.calibrate (proposal={post_df['proposal'].iloc[0]}, use_map={use_map}), {chains} chains × "
           f"({warmup} warm-up + {draws} draws); {reps} data set(s) per (T, σ_a); mean over data sets shown")
         P("")
         P("Table I (σ_a = 0.04 m/s²) — ours | paper")

@@ -411,7 +411,7 @@ def _recording_with_rests(K=4, n_orient=12, n=60, dyn=40, sigma=0.04, sigma_g=0.
 def test_mismatch_prepares_a_recording_with_rests_as_calibrate_does():
     """On a recording with rests, prepare() applies the intrinsics calibrate estimates and keeps
     exactly calibrate's samples (issue #10: one prepared object)."""
-    from accel_bayes.calibrate import DEFAULTS
+    from accel_bayes.pipelines.calibrate import DEFAULTS
     from accel_bayes.prep.preprocess import preprocess
     rec = _recording_with_rests()
     pre = preprocess(rec, intrinsics=DEFAULTS["intrinsics"], drop_static=DEFAULTS["drop_static"],

@@ -6,7 +6,7 @@ effect is in the model, and it says so), log-likelihood, ELPD by PSIS-LOO over t
 motion state re-profiled through the local linearisation; the ArviZ calls, ``az.loo`` and
 ``az.compare``, are :func:`accel_bayes.diagnostics.psis_loo` / :func:`~accel_bayes.diagnostics.compare_loo`)
 and the geometry before/after.  :func:`posterior_comparison` additionally runs
-:func:`accel_bayes.calibrate.calibrate` (PmMH) on the recording before and after correction
+:func:`accel_bayes.pipelines.calibrate.calibrate` (PmMH) on the recording before and after correction
 (:func:`corrected_recording`).
 """
 from __future__ import annotations
@@ -136,7 +136,7 @@ def corrected_recording(rec, fit: ModelFit, index=None):
 
 def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, draws: int = 400,
                          warmup: int = 400, progress: bool = False, index=None) -> dict:
-    """PmMH posterior of the positions (:func:`accel_bayes.calibrate.calibrate`, short chains)
+    """PmMH posterior of the positions (:func:`accel_bayes.pipelines.calibrate.calibrate`, short chains)
     on the recording as given and on :func:`corrected_recording` (``index`` as there) — an
     adapter over the calibration pipeline, which itself knows no effects.  Given the whole
     prepared recording (``Prepared.source``, rests included) the calibration keeps its own
@@ -146,7 +146,7 @@ def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, 
     try:
         from ..pipelines.calibrate import calibrate
     except ImportError as exc:  # pragma: no cover
-        return {"error": f"accel_bayes.calibrate unavailable: {exc}"}
+        return {"error": f"accel_bayes.pipelines.calibrate unavailable: {exc}"}
     out = {"settings": {"chains": chains, "draws": draws, "warmup": warmup, "seed": int(seed)}}
     for tag, r in (("before", rec), ("after", corrected_recording(rec, fit, index=index))):
         try:

@@ -444,7 +444,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     max_findings : most effects added to the model (default 3).
     refine : fill ``report.refined`` (the model with the findings, χ²/dof, log-likelihood, ELPD
         by PSIS-LOO, geometry before/after); False leaves it null.
-    posterior : also run the PmMH calibration (:func:`accel_bayes.calibrate.calibrate`, short
+    posterior : also run the PmMH calibration (:func:`accel_bayes.pipelines.calibrate.calibrate`, short
         chains) before and after correcting the recording for the findings (slow).
     seed : seeds the PPC twins, the Laplace draws and the posterior runs.
     progress : print stage messages (and LM progress bars).

@@ -86,7 +86,7 @@ def prepare(rec, *, intrinsics="auto", drop_static: bool = True, drop_clipped: b
         :class:`~accel_bayes.prep.preprocess.Preprocessed` of one (used as it is).
     intrinsics, drop_static, drop_clipped, min_rotation, segments : passed to
         :func:`accel_bayes.prep.preprocess.preprocess`; the defaults are
-        :func:`accel_bayes.calibrate.calibrate`'s (intrinsics from the recording's own rests when
+        :func:`accel_bayes.pipelines.calibrate.calibrate`'s (intrinsics from the recording's own rests when
         it has them in ≥ 9 orientations; rests, clipped samples and samples rotating slower than
         0.5 rad/s dropped), so ``mismatch`` and ``calibrate`` fit the same corrected samples of a
         recording.  ``min_rotation=0`` and ``intrinsics="none"`` give the raw recording minus its
