@@ -97,6 +97,76 @@ def test_selfcal_pipeline(tmp_path):
         prepare(sim.recording, fixed=9)
 
 
+def test_selfcal_takes_the_one_selection():
+    """selfcal fits the samples of a prep.selection.Selection: keeping every sample is the same fit
+    as no selection (bit for bit); a selection with a 20-sample gap and two dropped single samples
+    fits only the kept times, records the selection and is no more certain than the whole record
+    (the accuracy over gaps is tested on process-model data in test_selfcal.py); a selection of
+    another recording, or one with under 3 samples, is refused in one line."""
+    from accel_bayes.pipelines.selfcal import prepare, selfcal
+    from accel_bayes.prep.selection import select_samples
+
+    sim = simulate(s16_plate(), "table", T=200, seed=4)
+    rec = sim.recording
+    full = selfcal(rec, max_iter=50)
+    everything = select_samples(rec, drop_clipped=False, min_rotation=None)
+    assert everything.n_kept == 200
+    same = selfcal(rec, selection=everything, max_iter=50)
+    assert np.array_equal(same.means, full.means) and np.array_equal(same.pstd, full.pstd)
+
+    keep = np.ones(200, bool)
+    keep[90:110] = False
+    keep[[30, 150]] = False
+    sel = select_samples(rec, drop_clipped=False, min_rotation=None, user=keep)
+    assert sel.kept_runs == 4 and sel.n_kept == 178
+    part = selfcal(rec, selection=sel, max_iter=50)
+    assert part.ok and part.motion.shape == (178, 10)
+    assert np.array_equal(part.motion[:, 0], np.asarray(rec.time, float)[keep])
+    settings = part.document["provenance"]["settings"]
+    assert settings["samples"] == 178 and "kept 178 of 200" in settings["selection"]
+    assert np.all(part.pstd[1:] >= full.pstd[1:] * 0.999)  # fewer samples: no more certain
+
+    other = select_samples(simulate(s16_plate(), "table", T=120, seed=5).recording, drop_clipped=False,
+                           min_rotation=None)
+    with pytest.raises(UserError, match="selection: expected a Selection of this recording's 200"):
+        prepare(rec, selection=other)
+    few = np.zeros(200, bool)
+    few[:2] = True
+    with pytest.raises(UserError, match="selection: keeps 2 samples"):
+        prepare(rec, selection=select_samples(rec, drop_clipped=False, min_rotation=None, user=few))
+
+
+def test_selfcal_drop_clipped_leaves_out_flagged_accelerometer_samples(tmp_path):
+    """drop_clipped (CLI --drop-clipped) fits only the samples without an accelerometer flag;
+    gyroscope flags and readings do not count ([S16] ignores the gyros); the default fits all."""
+    import dataclasses
+    import subprocess
+    import sys
+
+    from accel_bayes.pipelines.selfcal import prepare
+
+    rec = simulate(s16_plate(), "table", T=200, seed=4).recording
+    flags = np.zeros((200, rec.K), bool)  # per triad (DESIGN §7.1)
+    flags[50:60, 2] = True
+    gflags = np.zeros((200, rec.K), bool) if rec.gyro is not None else None
+    if gflags is not None:
+        gflags[100:110, 1] = True
+    rec = dataclasses.replace(rec, acc_clipped=flags, gyro_clipped=gflags)
+    assert prepare(rec).acc.shape[0] == 200
+    inp = prepare(rec, drop_clipped=True)
+    assert inp.acc.shape[0] == 190 and inp.selection.dropped["clipped"] == 10 and inp.selection.kept_runs == 2
+    assert inp.clipped == 0.0
+    with pytest.raises(UserError, match="drop_clipped"):
+        prepare(rec, drop_clipped=True, selection=inp.selection)
+    path = tmp_path / "clip.nc"
+    write_recording(rec, path)
+    out = subprocess.run([sys.executable, "-m", "accel_bayes", "selfcal", str(path), "--out", str(tmp_path / "o"),
+                          "--drop-clipped", "--no-progress", "--max-iter", "50"], capture_output=True, text=True)
+    assert out.returncode in (0, 4), out.stderr
+    doc = json.loads((tmp_path / "o" / "positions.json").read_text())
+    assert doc["provenance"]["settings"]["samples"] == 190
+
+
 def test_motion_pipeline(rec_file, tmp_path):
     import xarray as xr
 

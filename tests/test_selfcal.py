@@ -18,6 +18,7 @@ from accel_bayes.inference.selfcal import (
     process_jacobians,
     process_residuals,
     process_sqrt_information,
+    bridged_process_whitening,
     self_calibrate,
     simulate_process_motion,
     triad_jacobians,
@@ -454,3 +455,60 @@ def test_chunked_linearisation_gives_the_same_solution(monkeypatch):
     assert (a.positions - b.positions).abs().max() < 1e-12
     assert (a.states - b.states).abs().max() < 1e-9
     assert abs(a.cost - b.cost) <= 1e-10 * a.cost
+
+
+def test_bridged_process_whitening_integrates_the_left_out_states_exactly():
+    """The bridge over n grid steps against a brute-force composition of n single [S16] steps
+    (written here independently: x_n = F^n x_0 + Σ F^(n-1-k) w_k, so Cov = Σ_j F^j Q F^jᵀ): the
+    whitening W satisfies W Cov Wᵀ = I to 1e-9, and for n = 1 it is eq. 8's diagonal."""
+    from accel_bayes.physics.models import S16_PROCESS_VARIANCES as V
+
+    delta = 0.01
+    steps = torch.tensor([1.0, 2.0, 5.0, 17.0], dtype=torch.float64)
+    dt = steps * delta
+    var = {"acc": 2.0, "int": 3e-4, "omega_dot": 50.0}
+    W = bridged_process_whitening(dt, steps, var)
+    for i, n in enumerate(steps.int().tolist()):
+        F = torch.eye(9, dtype=torch.float64)
+        F[3:6, 6:9] = delta * torch.eye(3, dtype=torch.float64)
+        Q = torch.diag(torch.tensor([var["acc"]] * 3 + [var["int"]] * 3 + [var["omega_dot"]] * 3,
+                                    dtype=torch.float64)) * delta ** 2
+        cov, Fj = torch.zeros(9, 9, dtype=torch.float64), torch.eye(9, dtype=torch.float64)
+        for _ in range(n):
+            cov = cov + Fj @ Q @ Fj.T
+            Fj = F @ Fj
+        white = W[i] @ cov @ W[i].T
+        assert torch.allclose(white, torch.eye(9, dtype=torch.float64), atol=1e-9), (n, white)
+    diag = process_sqrt_information(dt[:1], var)
+    assert torch.allclose(W[0], torch.diag(diag[0]), rtol=1e-12)
+    assert set(V) == {"acc", "int", "omega_dot"}
+    with pytest.raises(ValueError, match="steps"):
+        bridged_process_whitening(dt, torch.tensor([1.0, 0.0, 2.0, 3.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="unknown keys"):
+        bridged_process_whitening(dt, steps, {"jerk": 1.0})
+
+
+def test_self_calibration_over_left_out_samples_recovers_the_poses():
+    """Noise-free process-model data (ω̇ jumps every 50 samples) with 39 samples left out — a
+    35-sample gap that holds an ω̇ jump, a 2-sample gap and two single samples: with the left-out
+    states integrated out (``steps=``) the poses come back to < 2 µm, as on the whole record
+    (test above); bridging each gap with one constant-ω̇ step instead (no ``steps``) cannot
+    follow the jump and the fit is refused (RMS triad residual > 30 σ) or wrong by > 100 µm."""
+    gen = torch.Generator().manual_seed(21)
+    x = simulate_process_motion(500, 1 / RATE, seed=5, segment_length=50, omega_dot_std=4.0,
+                                acc_segment_length=10**6)
+    arr, p_true, q_true, p_start, q_start = _plate_truth(gen, 5e-3, math.radians(3.0))
+    z = models.triad_output(x, q_true, p_true)
+    keep = torch.ones(500, dtype=torch.bool)
+    keep[140:175] = False
+    keep[300:302] = False
+    keep[[60, 420]] = False
+    idx = torch.nonzero(keep).squeeze(1)
+    t = idx.to(F64) / RATE
+    res = self_calibrate(z[idx], t, steps=torch.diff(idx).to(F64), nominal_positions=p_start,
+                         nominal_orientations=q_start, fixed=0, acc_noise_std=1e-4)
+    assert res.status == "ok" and res.converged
+    assert (res.positions - p_true).norm(dim=-1).max() < 2e-6
+    naive = self_calibrate(z[idx], t, nominal_positions=p_start, nominal_orientations=q_start, fixed=0,
+                           acc_noise_std=1e-4)
+    assert naive.status != "ok" or (naive.positions - p_true).norm(dim=-1).max() > 1e-4

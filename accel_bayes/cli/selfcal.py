@@ -49,6 +49,9 @@ def register(sub) -> None:
     p.add_argument("--max-iter", type=opt.count(1), default=200, help="LM iteration limit per stage (default 200)")
     p.add_argument("--seed", type=opt.seed, default=None,
                    help="recorded in the provenance only: the self-calibration draws no random numbers")
+    p.add_argument("--drop-clipped", action="store_true",
+                   help="leave out the samples where an accelerometer triad is flagged at its range (default: fit "
+                   "every sample as [S16] does); the process model bridges each gap exactly")
     p.add_argument("--no-rerun", action="store_true",
                    help="skip the [S16] §VI-A re-run from the estimated poses")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
@@ -66,7 +69,7 @@ def _run(args) -> int:
     from ..pipelines.selfcal import prepare, selfcal, write_outputs
 
     loaded = load_recording(args.recording)
-    inp = prepare(loaded, fixed=args.fixed)  # bad input is refused before the output is touched
+    inp = prepare(loaded, fixed=args.fixed, drop_clipped=args.drop_clipped)  # bad input is refused before the output is touched
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     run = selfcal(inp, max_iter=args.max_iter, rerun=not args.no_rerun, seed=args.seed, progress=not args.no_progress)
     res = run.result

@@ -48,6 +48,7 @@ __all__ = [
     "process_residuals",
     "process_jacobians",
     "process_sqrt_information",
+    "bridged_process_whitening",
     "simulate_process_motion",
     "SelfCalResult",
     "SelfCalDiverged",
@@ -123,27 +124,72 @@ def process_sqrt_information(dt: torch.Tensor, variances: dict | None = None) ->
     return d.rsqrt()
 
 
+def bridged_process_whitening(dt: torch.Tensor, steps, variances: dict | None = None) -> torch.Tensor:
+    """Whitening of the process factors when samples between two fitted ones were left out.
+
+    Between kept samples i and i+1 lie ``steps_i`` steps of the recording's grid, each of
+    δ = Δt_i / steps_i.  Leaving those samples' states in the graph without measurements and
+    integrating them out is exact for the linear [S16] process model: x_{i+1} = F(Δt_i) x_i + w
+    with Cov(w) = Σ_{j<n} F(jδ) Q(δ) F(jδ)ᵀ, n = steps_i, Q(δ) = δ² diag(σ_a², σ_int², σ_ω̇²)
+    (eq. 8).  Per axis this is
+
+        Var(a) = n δ² σ_a²,  Var(ω̇) = n δ² σ_ω̇²,
+        Var(ω) = n δ² σ_int² + δ⁴ σ_ω̇² Σj²,  Cov(ω, ω̇) = δ³ σ_ω̇² Σj   (j = 0 … n−1),
+
+    the ω–ω̇ coupling being what a single step of length Δt_i (a constant ω̇ across the gap)
+    would miss.  Returns W (T−1, 9, 9) with W Cov Wᵀ = I (the inverse Cholesky factor); for
+    ``steps_i = 1`` it is eq. 8's diagonal.
+    """
+    models.process_covariance(dt[:1], variances, dtype=dt.dtype, device=dt.device)  # refuses unknown keys
+    v = {**models.S16_PROCESS_VARIANCES, **(variances or {})}
+    n = torch.as_tensor(steps, dtype=dt.dtype, device=dt.device)
+    if n.shape != dt.shape or bool((n < 1).any()) or bool((n != torch.round(n)).any()):
+        raise ValueError(f"steps: expected whole numbers >= 1 of shape {tuple(dt.shape)}")
+    d = dt / n
+    s1 = n * (n - 1) / 2  # Σ j
+    s2 = (n - 1) * n * (2 * n - 1) / 6  # Σ j²
+    cov = torch.zeros(dt.shape + (9, 9), dtype=dt.dtype, device=dt.device)
+    idx = torch.arange(3, device=dt.device)
+    cov[:, idx, idx] = (n * d ** 2 * v["acc"]).unsqueeze(-1)
+    cov[:, 3 + idx, 3 + idx] = (n * d ** 2 * v["int"] + d ** 4 * v["omega_dot"] * s2).unsqueeze(-1)
+    cov[:, 6 + idx, 6 + idx] = (n * d ** 2 * v["omega_dot"]).unsqueeze(-1)
+    cov[:, 3 + idx, 6 + idx] = cov[:, 6 + idx, 3 + idx] = (d ** 3 * v["omega_dot"] * s1).unsqueeze(-1)
+    L, info = torch.linalg.cholesky_ex(cov)
+    if bool((info != 0).any()):
+        raise ValueError("process variances and time steps must be > 0")
+    eye = torch.eye(9, dtype=dt.dtype, device=dt.device).expand_as(cov)
+    return torch.linalg.solve_triangular(L, eye, upper=False)
+
+
+def _whiten(e: torch.Tensor, sqrt_info: torch.Tensor) -> torch.Tensor:
+    """W e for a diagonal W given as (…, 9) or a full one (…, 9, 9)."""
+    if sqrt_info.dim() == e.dim():
+        return e * sqrt_info
+    return (sqrt_info @ e.unsqueeze(-1)).squeeze(-1)
+
+
 def process_residuals(states: torch.Tensor, dt: torch.Tensor, sqrt_info: torch.Tensor) -> torch.Tensor:
     """Whitened process residuals ([S16] eq. 14 with eq. 8): (x_{i+1} − f(x_i)) / (Δt_i σ).
 
-    states (T, 9); dt (T−1,) s; sqrt_info (T−1, 9) from :func:`process_sqrt_information`.
-    Returns (T−1, 9).
+    states (T, 9); dt (T−1,) s; sqrt_info (T−1, 9) from :func:`process_sqrt_information`, or the
+    full (T−1, 9, 9) whitening of :func:`bridged_process_whitening`.  Returns (T−1, 9).
     """
-    return (states[1:] - models.process_model(states[:-1], dt)) * sqrt_info
+    return _whiten(states[1:] - models.process_model(states[:-1], dt), sqrt_info)
 
 
 def process_jacobians(dt: torch.Tensor, sqrt_info: torch.Tensor):
     """Jacobians of :func:`process_residuals` (constant: the process model is linear).
 
     Returns ``(J_prev, J_next)`` (T−1, 9, 9): ∂e_i/∂x_i = −W F_i and ∂e_i/∂x_{i+1} = W with
-    W = diag(sqrt_info_i) and F_i = [[I, 0, 0], [0, I, Δt_i I], [0, 0, I]].
+    W = diag(sqrt_info_i) (or sqrt_info_i itself when it is a full (9, 9) whitening) and
+    F_i = [[I, 0, 0], [0, I, Δt_i I], [0, 0, I]].
     """
     n = dt.shape[0]
     eye9 = torch.eye(9, dtype=dt.dtype, device=dt.device)
     F = eye9.expand(n, 9, 9).clone()
     idx = torch.arange(3, device=dt.device)
     F[:, 3 + idx, 6 + idx] = dt.unsqueeze(-1)
-    W = torch.diag_embed(sqrt_info)
+    W = torch.diag_embed(sqrt_info) if sqrt_info.dim() == 2 else sqrt_info
     return -(W @ F), W
 
 
@@ -459,7 +505,7 @@ def build_problem(
     J_prev, J_next = process_jacobians(dt, sqrt_info)
 
     def proc_fn(g, xp, xn, data):
-        return (xn - models.process_model(xp, dt)) * sqrt_info
+        return _whiten(xn - models.process_model(xp, dt), sqrt_info)
 
     def proc_jac(g, xp, xn, data):
         return {}, J_prev, J_next
@@ -510,6 +556,7 @@ def self_calibrate(
     acc,
     time_or_dt,
     *,
+    steps=None,
     nominal_positions,
     nominal_orientations=None,
     fixed: int = 0,
@@ -545,6 +592,10 @@ def self_calibrate(
     ----------
     acc : (T, A, 3) m/s² triad outputs, each in its sensor frame.
     time_or_dt : sample step Δt (s, scalar) or sample times (T,) s.
+    steps : None (consecutive samples of the recording) or (T−1,) whole numbers ≥ 1: how many
+        steps of the recording's sample grid lie between consecutive fitted samples, when some
+        were left out (a sample selection).  The left-out samples' states are integrated out
+        exactly (:func:`bridged_process_whitening`).
     nominal_positions : (A, 3) m — starting positions (the construction plan); the fixed
         triad's row defines the origin of the array frame.
     nominal_orientations : (A, 4) array → sensor quaternions (identity if None); likewise.
@@ -623,7 +674,10 @@ def self_calibrate(
     check_triad_geometry(p0)
     dt = _time_steps(time_or_dt, T, dtype, acc.device)
     inv_std = _as_inv_std(acc_noise_std, A, dtype, acc.device)
-    sqrt_info = process_sqrt_information(dt, process_variances)
+    if steps is None or bool((torch.as_tensor(steps) == 1).all()):
+        sqrt_info = process_sqrt_information(dt, process_variances)
+    else:
+        sqrt_info = bridged_process_whitening(dt, steps, process_variances)
     S, offset = _sensor_params(sensor_params, A, dtype, acc.device)
     if init_motion is None:
         x0 = torch.zeros(T, 9, dtype=dtype, device=acc.device)

@@ -1,7 +1,8 @@
 """[S16] self-calibration of one recording, as a library function (``accel-bayes selfcal``).
 
-:func:`prepare` checks and extracts what the [S16] model needs (every sample of the IMUs with an
-accelerometer triad, the fixed triad, the nominal poses); :func:`selfcal` runs
+:func:`prepare` checks and extracts what the [S16] model needs (the samples of the IMUs with an
+accelerometer triad — every sample, or those of a :class:`~accel_bayes.prep.selection.Selection` —
+the fixed triad, the nominal poses); :func:`selfcal` runs
 :func:`accel_bayes.inference.selfcal.self_calibrate` on it and, when it did not diverge, builds the
 DESIGN §7.3 positions document (method "selfcal", relative to the fixed IMU, Laplace std/cov with
 the motion marginalised, orientations), the ``poses.csv`` rows and the ``motion.csv`` table;
@@ -37,7 +38,9 @@ class SelfcalInput:
         held at its nominal pose; fixed : its row in ``labels``.
     acc : (T, A, 3) accelerometer outputs of those IMUs, m/s²; noise : (A,) their stated std, m/s².
     p_nom, q_nom : (K, 3) nominal positions (m) and (K, 4) orientations of every IMU.
-    clipped : fraction of accelerometer samples flagged clipped (fitted as they are).
+    clipped : fraction of the fitted accelerometer samples flagged clipped (fitted as they are).
+    selection : the :class:`~accel_bayes.prep.selection.Selection` the samples came from, or None
+        (every sample); time : (T,) their times, s.
     """
 
     recording: object
@@ -51,6 +54,8 @@ class SelfcalInput:
     q_nom: np.ndarray
     has_acc: np.ndarray
     clipped: float
+    time: np.ndarray | None = None
+    selection: object = None
 
 
 @dataclass
@@ -88,13 +93,26 @@ class SelfcalRun:
         return np.array([np.linalg.norm(p) if np.isfinite(p).all() else np.nan for p in self.pstd])
 
 
-def prepare(recording, *, fixed: int | None = None) -> SelfcalInput:
+def prepare(recording, *, fixed: int | None = None, selection=None, drop_clipped: bool = False) -> SelfcalInput:
     """Check a recording for the [S16] model and extract its inputs (one-line :class:`UserError`
     naming the field otherwise).  ``fixed``: label of the IMU held at its nominal pose (default the
-    recording's reference IMU)."""
+    recording's reference IMU).
+
+    selection : None (every sample, the [S16] setting) or a
+        :class:`~accel_bayes.prep.selection.Selection` of this recording (the package's one sample
+        selection, e.g. ``select_samples(rec, min_rotation=None)`` to leave out clipped samples).
+        The process model links consecutive *kept* samples across each gap with the left-out
+        samples' states integrated out exactly
+        (:func:`~accel_bayes.inference.selfcal.bridged_process_whitening`).
+    drop_clipped : without a ``selection``, leave out the samples where an accelerometer triad is
+        flagged at its range (``select_samples(rec, drop_clipped=True, …)``, no other reason);
+        default False: every sample, clipped ones fitted as they are ([S16]).
+    """
     loaded = load_recording(recording)
     rec = loaded.recording
     K = rec.K
+    if selection is not None and drop_clipped:
+        raise UserError("drop_clipped: give either a selection or drop_clipped, not both")
     fixed_label = int(rec.reference_imu if fixed is None else fixed)
     if not 0 <= fixed_label < K:
         raise UserError(f"--fixed: expected an IMU label in 0..{K - 1}, got {fixed_label}")
@@ -104,14 +122,30 @@ def prepare(recording, *, fixed: int | None = None) -> SelfcalInput:
         raise UserError(f"--fixed: IMU {fixed_label} has no accelerometer triad")
     if len(labels) < 3:
         raise UserError(f"acc: self-calibration needs at least 3 accelerometer triads, the recording has {len(labels)}")
+    if drop_clipped:
+        from ..prep.selection import select_samples
+
+        selection = select_samples(rec, drop_static=False, drop_clipped=True, min_rotation=None,
+                                   acc_imus=labels, use_gyro=False)
+    time_s = np.asarray(rec.time, dtype=float)
     acc = np.asarray(rec.acc, dtype=float)[:, labels]
+    index = slice(None)
+    if selection is not None:
+        keep = getattr(selection, "keep", None)
+        if keep is None or np.shape(keep) != (rec.T,):
+            raise UserError(f"selection: expected a Selection of this recording's {rec.T} samples "
+                            f"(accel_bayes.prep.selection.select_samples), got {type(selection).__name__}")
+        index = np.asarray(selection.index)
+        if index.size < 3:
+            raise UserError(f"selection: keeps {index.size} samples; self-calibration needs at least 3")
+        acc, time_s = acc[index], time_s[index]
     if not np.isfinite(acc).all():
         bad = sorted({labels[j] for j in np.nonzero(~np.isfinite(acc).all(axis=(0, 2)))[0]})
         raise UserError(f"acc: missing (NaN) samples for IMU(s) {bad}; self-calibration needs every sample "
-                        "(the process model links consecutive samples)")
+                        "(the process model links consecutive samples), or a selection without them")
     clipped = 0.0
     if rec.acc_clipped is not None:
-        clipped = float(np.asarray(rec.acc_clipped)[:, labels].mean())
+        clipped = float(np.asarray(rec.acc_clipped)[index][:, labels].mean())
     p_nom = np.asarray(rec.nominal_position, dtype=float)
     q_nom = np.asarray(rec.nominal_orientation, dtype=float)
     noise = np.asarray(rec.acc_noise_std, dtype=float)[labels]
@@ -123,15 +157,16 @@ def prepare(recording, *, fixed: int | None = None) -> SelfcalInput:
         raise UserError(f"nominal_position: {exc}") from None
     return SelfcalInput(recording=rec, source=loaded, labels=labels, fixed_label=fixed_label,
                         fixed=labels.index(fixed_label), acc=acc, noise=noise, p_nom=p_nom, q_nom=q_nom,
-                        has_acc=has_acc, clipped=clipped)
+                        has_acc=has_acc, clipped=clipped, time=time_s, selection=selection)
 
 
-def selfcal(recording, *, fixed: int | None = None, max_iter: int = 200, rerun: bool = True, seed=None,
-            progress: bool = False) -> SelfcalRun:
+def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: int = 200, rerun: bool = True,
+            seed=None, progress: bool = False) -> SelfcalRun:
     """[S16] self-calibration: poses of every accelerometer triad relative to the fixed one, jointly
     with the motion, from the accelerometers alone.
 
     recording : a path, a Recording, a LoadedRecording or the :class:`SelfcalInput` of :func:`prepare`.
+    selection : the samples to fit (:func:`prepare`; None: every sample).
     max_iter : LM iteration limit per stage.  rerun : the [S16] §VI-A re-run from the estimate.
     seed : recorded in the provenance only (the self-calibration draws no random numbers).
     """
@@ -140,12 +175,14 @@ def selfcal(recording, *, fixed: int | None = None, max_iter: int = 200, rerun: 
     from ..inference.selfcal import self_calibrate
     from ..physics.geometry import boxminus
 
-    inp = recording if isinstance(recording, SelfcalInput) else prepare(recording, fixed=fixed)
+    inp = recording if isinstance(recording, SelfcalInput) else prepare(recording, fixed=fixed, selection=selection)
     rec, labels, fixed_label, fixed = inp.recording, inp.labels, inp.fixed_label, inp.fixed
     K = rec.K
     p_nom, q_nom, noise = inp.p_nom, inp.q_nom, inp.noise
     t0 = time.perf_counter()
-    res = self_calibrate(inp.acc, np.asarray(rec.time, dtype=float), nominal_positions=p_nom[labels],
+    time_s = np.asarray(rec.time, dtype=float) if inp.time is None else inp.time
+    steps = None if inp.selection is None else np.diff(np.asarray(inp.selection.index))
+    res = self_calibrate(inp.acc, time_s, steps=steps, nominal_positions=p_nom[labels],
                          nominal_orientations=q_nom[labels], fixed=fixed, acc_noise_std=noise,
                          max_iter=max_iter, progress=progress, rerun_from_estimate=rerun)
     run = SelfcalRun(input=inp, result=res, seconds=time.perf_counter() - t0)
@@ -169,7 +206,8 @@ def selfcal(recording, *, fixed: int | None = None, max_iter: int = 200, rerun: 
     runs = [{k: v for k, v in r.items() if k not in ("positions", "orientations", "states")} for r in res.runs]
     settings = {"fixed": fixed_label, "max_iter": max_iter, "rerun_from_estimate": rerun,
                 "process_variances": "S16 (acc 1e3, int 1e-7, omega_dot 1e3)", "imus_used": labels,
-                "acc_noise_std": noise.tolist(), "warm_start_motion": True}
+                "acc_noise_std": noise.tolist(), "warm_start_motion": True,
+                "samples": int(len(time_s)), "selection": None if inp.selection is None else inp.selection.summary()}
     reasons = [] if res.converged else [f"LM stopped without converging ({res.lm_reason}); the estimate may be poor"]
     diagnostics = {"seconds": run.seconds, "F": res.cost, "F_per_constraint": res.cost / sum(res.n_constraints.values()),
                    "n_iter": int(sum(r["iterations"] for r in res.runs)), "converged": bool(res.converged),
@@ -191,7 +229,7 @@ def selfcal(recording, *, fixed: int | None = None, max_iter: int = 200, rerun: 
     run.poses = [[k, *(means[k] * 1e3), *(pstd[k] * 1e6), *np.degrees(dq[k]), ang[k], astd[k],
                   int(k == fixed_label), int(inp.has_acc[k])] for k in range(K)]
     run.means, run.pstd, run.angle, run.angle_std = means, pstd, ang, astd
-    run.motion = np.column_stack([np.asarray(rec.time, dtype=float), res.states.detach().cpu().numpy()])
+    run.motion = np.column_stack([time_s, res.states.detach().cpu().numpy()])
     run.warnings = reasons
     return run
 

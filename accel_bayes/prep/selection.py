@@ -166,7 +166,7 @@ def _user_mask(user, T: int) -> np.ndarray:
 
 def select_samples(recording, *, static=None, drop_static: bool = True, drop_clipped: bool = True,
                    min_rotation: float | None = DEFAULT_MIN_ROTATION, user=None, acc_imus=None,
-                   gyro_imus=None) -> Selection:
+                   gyro_imus=None, use_gyro: bool = True) -> Selection:
     """Select the samples of ``recording`` a fit uses (module docstring: reasons and order).
 
     recording : a :class:`~accel_bayes.data.recording.Recording` (the rotation test reads its
@@ -177,13 +177,17 @@ def select_samples(recording, *, static=None, drop_static: bool = True, drop_cli
     user : None, a (T,) bool mask or integer sample indices: further samples to keep (ANDed).
     acc_imus, gyro_imus : IMU labels whose flags (and, for gyros, readings) count; None = every
         IMU that has the sensor.
+    use_gyro : False for a fit that ignores the gyroscopes ([S16] self-calibration): their flags
+        and readings then count for nothing (no ``non_finite`` or ``slow`` test, acc flags only).
 
     Without gyroscope data there is no ``non_finite`` or ``slow`` test.  Never raises for an empty
     selection: the caller says which of its options to relax.
     """
     T = int(recording.T)
     min_rotation = check_min_rotation(min_rotation)
-    has_gyro = recording.gyro is not None and np.asarray(recording.has_gyro).any()
+    has_gyro = use_gyro and recording.gyro is not None and np.asarray(recording.has_gyro).any()
+    if not use_gyro:
+        gyro_imus = []
     w = rotation_rate(recording, gyro_imus) if has_gyro else None
 
     tests = []
@@ -215,6 +219,7 @@ def select_samples(recording, *, static=None, drop_static: bool = True, drop_cli
     index.setflags(write=False)
     if w is not None:
         w.setflags(write=False)
-    settings = {"drop_static": bool(drop_static), "drop_clipped": bool(drop_clipped), "user": user is not None}
+    settings = {"drop_static": bool(drop_static), "drop_clipped": bool(drop_clipped), "user": user is not None,
+                "use_gyro": bool(use_gyro)}
     return Selection(keep=keep, dropped=dropped, index=index, runs=runs, gaps=gaps, min_rotation=min_rotation,
                      settings=settings, rotation_rate=w)
