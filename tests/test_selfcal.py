@@ -5,6 +5,7 @@ Schur solver; noise-free data drawn from the [S16] process model itself for reco
 """
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -512,3 +513,68 @@ def test_self_calibration_over_left_out_samples_recovers_the_poses():
     naive = self_calibrate(z[idx], t, nominal_positions=p_start, nominal_orientations=q_start, fixed=0,
                            acc_noise_std=1e-4)
     assert naive.status != "ok" or (naive.positions - p_true).norm(dim=-1).max() > 1e-4
+
+
+def test_fit_check_flags_misfit_inflates_the_std_and_exits_4(tmp_path, capsys):
+    """Smooth hand-like motion (the simulator's "smooth", s16_plate, T = 1000): the constant-ω̇
+    process model misfits (RMS whitened residuals well above 1.5), so selfcal marks the result
+    (diagnostics.fit_check, warnings), reports the Laplace covariance times the inflation, and the
+    CLI exits 4 with one line naming the residuals instead of a silent 0.  On the simulator's
+    table motion (T = 2000) neither RMS reaches the limit and the CLI exits 0."""
+    import json
+
+    from accel_bayes.data.io import write_recording
+    from accel_bayes.pipelines.selfcal import selfcal
+    from accel_bayes.simulate import simulate
+
+    sim = simulate(s16_plate(), "smooth", T=1000, seed=2)
+    run = selfcal(sim.recording, max_iter=100)
+    chk = run.check
+    assert run.ok and chk.misfit and chk.rms_process > 1.5 and chk.inflation > 2.25
+    assert any("residuals contradict" in w for w in run.warnings)
+    fixed = run.input.fixed
+    laplace = run.result.position_cov[1].numpy()  # triad 1 of the fitted ones
+    k = run.input.labels[1]
+    doc_cov = np.asarray(run.document["imus"][k]["cov"])
+    assert np.allclose(doc_cov, laplace * chk.inflation, rtol=1e-12) and fixed == 0
+    assert run.document["diagnostics"]["fit_check"]["misfit"] is True
+    path = tmp_path / "smooth.nc"
+    write_recording(sim.recording, path)
+    capsys.readouterr()
+    rc = _cli(["selfcal", str(path), "--out", str(tmp_path / "o"), "--no-progress", "--max-iter", "100"])
+    err = capsys.readouterr().err
+    assert rc == 4 and "residuals contradict" in err and err.count("\n") == 1, err
+
+    table = simulate(s16_plate(), "table", T=2000, seed=1)
+    path = tmp_path / "table.nc"
+    write_recording(table.recording, path)
+    rc = _cli(["selfcal", str(path), "--out", str(tmp_path / "t"), "--no-progress"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "whitened residual RMS" in out, out
+    doc = json.loads((tmp_path / "t" / "positions.json").read_text())
+    assert doc["diagnostics"]["fit_check"]["misfit"] is False and doc["diagnostics"]["fit_check"]["covariance_inflation"] == 1.0
+
+
+def test_fit_check_scale_std_matches_draws_from_the_laplace_covariance():
+    """The scale mode's std (uᵀCu)^½ / uᵀu against the spread of the fitted scale over 20 000
+    draws from N(p̂, C) (C the joint Laplace covariance of the free positions): within 3 %
+    (the Monte Carlo std of a std from 20 000 draws is 0.5 %)."""
+    from accel_bayes.inference.selfcal import fit_check
+
+    gen = torch.Generator().manual_seed(21)
+    x = simulate_process_motion(300, 1 / RATE, seed=5, segment_length=50, omega_dot_std=4.0,
+                                acc_segment_length=10**6)
+    arr, p_true, q_true, p_start, q_start = _plate_truth(gen, 2e-3, math.radians(2.0))
+    z = models.triad_output(x, q_true, p_true) + 0.01 * _rand(gen, 300, 5, 3)
+    res = self_calibrate(z, 1 / RATE, nominal_positions=p_start, nominal_orientations=q_start, fixed=0,
+                         acc_noise_std=0.01)
+    chk = fit_check(res, p_start)
+    n = 3 * 4
+    C = res.covariance[:n, :n]
+    L = torch.linalg.cholesky(C)
+    draws = (res.raw_positions - res.raw_positions[0])[1:].reshape(-1) + \
+        (L @ torch.randn(n, 20000, generator=torch.Generator().manual_seed(1), dtype=F64)).T
+    u = (p_start - p_start[0])[1:].reshape(-1)
+    scales = draws @ u / (u @ u)
+    assert abs(float(scales.std()) / (chk.scale_std / math.sqrt(chk.inflation)) - 1) < 0.03
+    assert abs(float(scales.mean()) - chk.scale) < 5 * chk.scale_std

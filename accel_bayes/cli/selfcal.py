@@ -16,9 +16,13 @@ Gyroscopes are ignored.  IMUs without an accelerometer keep their nominal pose w
 std.  Exit status: 0 on success; 2 on bad input (one line); 3 when the optimisation diverged
 ([S16] Table III: positions → 0 or ∞, angular motion → 0 or ∞, non-finite or non-fitting
 estimate) — then one line on stderr says why, only ``convergence.png`` is written and no
-positions are reported; 4 when LM stopped at its iteration limit without converging — every
-file is written, ``positions.json`` has ``diagnostics.converged: false`` and ``warnings``, and
-one line on stderr says so (DESIGN §7.5).
+positions are reported; 4 when LM stopped at its iteration limit without converging, or when the
+fit check finds residuals that contradict the stated noise and the [S16] process variances (RMS
+of the whitened triad or process residuals > 1.5; the reported std are then inflated to match
+them) or a board scale the motion does not fix — every file is written, ``positions.json`` has
+``diagnostics.fit_check``, ``converged`` and ``warnings``, and one line on stderr says so
+(DESIGN §7.5).  A fit that passes the check can still be wrong in scale
+(``experiments/s16_fitcheck.md``).
 """
 from __future__ import annotations
 
@@ -83,6 +87,9 @@ def _run(args) -> int:
     print(f"self-calibration in {run.seconds:.1f} s, LM iterations "
           f"{' + '.join(str(r['label']) + ' ' + str(r['iterations']) for r in res.runs)} ({res.lm_reason}); F/constraint "
           f"{res.cost / sum(res.n_constraints.values()):.3g}")
+    chk = run.check
+    print(f"whitened residual RMS: triad {chk.rms_triad:.3g}, process {chk.rms_process:.3g} (> {chk.rms_limit:g} is a "
+          f"misfit); board scale {chk.scale:.5f} ± {chk.scale_std:.2g} relative to the start")
     print(f"poses relative to IMU {fixed_label} (fixed at its nominal pose); rotation = from the nominal orientation:")
     print(f"{'IMU':>4} {'x mm':>9} {'y mm':>9} {'z mm':>9} {'std µm':>8} {'rot °':>8} {'std °':>7}")
     for k in range(len(run.means)):

@@ -68,7 +68,10 @@ class SelfcalRun:
     means : (K, 3) positions relative to the fixed IMU, m; pstd : (K, 3) their Laplace std, m.
     angle, angle_std : (K,) rotation from the nominal orientation and its RMS std, degrees.
     poses : rows of ``poses.csv``; motion : (T, 10) rows of ``motion.csv``.
-    seconds : wall time of the self-calibration, s; warnings : why not trustworthy (LM limit).
+    seconds : wall time of the self-calibration, s; warnings : why not trustworthy (LM limit,
+        residuals that contradict the stated noise, scale not identified).
+    check : the :class:`~accel_bayes.inference.selfcal.FitCheck` (None when diverged); the
+        reported covariances are already multiplied by its ``inflation``.
     """
 
     input: SelfcalInput
@@ -82,6 +85,7 @@ class SelfcalRun:
     poses: list = field(default_factory=list)
     motion: np.ndarray | None = None
     warnings: list = field(default_factory=list)
+    check: object = None
 
     @property
     def ok(self) -> bool:
@@ -172,7 +176,7 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     """
     from .. import __version__
     from ..data.positions import positions_document
-    from ..inference.selfcal import self_calibrate
+    from ..inference.selfcal import fit_check, self_calibrate
     from ..physics.geometry import boxminus
 
     inp = recording if isinstance(recording, SelfcalInput) else prepare(recording, fixed=fixed, selection=selection)
@@ -203,16 +207,23 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
         covs[k] = pcov[j]
         oris[k] = Q[j]
     covs[fixed_label] = 0.0
+    # Residuals against the stated noise, scale identifiability (issue #12): a Laplace std that the
+    # residuals contradict is inflated to match them, and the run is marked not trustworthy.
+    check = fit_check(res, p_nom[labels])
+    covs = covs * check.inflation
+    rcov = rcov * check.inflation
     runs = [{k: v for k, v in r.items() if k not in ("positions", "orientations", "states")} for r in res.runs]
     settings = {"fixed": fixed_label, "max_iter": max_iter, "rerun_from_estimate": rerun,
                 "process_variances": "S16 (acc 1e3, int 1e-7, omega_dot 1e3)", "imus_used": labels,
                 "acc_noise_std": noise.tolist(), "warm_start_motion": True,
                 "samples": int(len(time_s)), "selection": None if inp.selection is None else inp.selection.summary()}
     reasons = [] if res.converged else [f"LM stopped without converging ({res.lm_reason}); the estimate may be poor"]
+    reasons += check.warnings()
     diagnostics = {"seconds": run.seconds, "F": res.cost, "F_per_constraint": res.cost / sum(res.n_constraints.values()),
                    "n_iter": int(sum(r["iterations"] for r in res.runs)), "converged": bool(res.converged),
                    "warnings": reasons,
-                   "lm_reason": res.lm_reason, "runs": runs, "acc_clipped_fraction": inp.clipped}
+                   "lm_reason": res.lm_reason, "runs": runs, "acc_clipped_fraction": inp.clipped,
+                   "fit_check": check.to_dict()}
     run.document = positions_document(method="selfcal", reference_imu=fixed_label, means=means, covs=covs,
                                       orientations=oris, diagnostics=diagnostics,
                                       provenance={"version": __version__, "input_sha256": inp.source.sha256(),
@@ -231,6 +242,7 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     run.means, run.pstd, run.angle, run.angle_std = means, pstd, ang, astd
     run.motion = np.column_stack([time_s, res.states.detach().cpu().numpy()])
     run.warnings = reasons
+    run.check = check
     return run
 
 
