@@ -40,6 +40,7 @@ from .errors import UserError  # noqa: E402
 from .data.outputs import save_figure  # noqa: E402
 
 __all__ = [
+    "truth_check",
     "to_inference_data",
     "summarize",
     "rhat_max",
@@ -253,6 +254,35 @@ def posterior_moments(idata, var_name: str = VAR) -> dict:
 
 
 # ---------------------------------------------------------------------------- storage
+
+def truth_check(idata, truth, var_name: str = VAR) -> dict:
+    """How far the posterior mean is from a known truth, in the posterior's own units.
+
+    truth : (K, 3) true positions relative to the reference triad, m, one row per IMU label.  With
+    m and C the mean and covariance of the draws of the free coordinates (the IMUs of the
+    posterior, every one but the reference; d = 3 × their number):
+
+    * ``chi2`` = eᵀC⁻¹e, e = m − truth: χ²_d distributed when the posterior is calibrated (the
+      error of the posterior mean ~ N(0, C)), reported with its 99 % band and upper-tail p;
+    * ``radial_z`` = uᵀe / (uᵀCu)^½ with u the true free positions: the error along the board's
+      scale mode in std (< 0: the fit is smaller than the truth; N(0, 1) when calibrated).  A median
+      |z| hides this mode, which all coordinates share.
+    """
+    from scipy import stats
+
+    da = idata.posterior[var_name]
+    labels = [int(k) for k in da.coords["imu"].values]
+    x = _np(da.values).reshape(-1, 3 * len(labels))  # (chain·draw, d)
+    u = np.asarray(truth, dtype=float)[labels].reshape(-1)
+    m, C = x.mean(0), np.cov(x, rowvar=False)
+    e = m - u
+    d = e.size
+    chi2 = float(e @ np.linalg.solve(C, e))
+    radial = float(u @ e / math.sqrt(u @ C @ u))
+    lo, hi = stats.chi2.ppf([0.005, 0.995], d)
+    return {"chi2": chi2, "dof": d, "band99": (float(lo), float(hi)), "p_upper": float(stats.chi2.sf(chi2, d)),
+            "inside99": bool(lo <= chi2 <= hi), "radial_z": radial}
+
 
 def save(idata, path) -> Path:
     """Write ``idata`` to NetCDF-4 (h5netcdf engine, one group per InferenceData group, float
