@@ -450,3 +450,24 @@ def test_sigterm_exits_130_and_keeps_the_checkpoint(forked, inputs, capsys):
     assert main(argv("calibrate", inputs, out, "--checkpoint-every", "5", "--no-plots", "--resume")) == COMMANDS["calibrate"][4]
     assert "posterior.nc" in {p.name for p in out.iterdir()}
     capsys.readouterr()
+
+
+def test_write_netcdf_inside_a_dask_distributed_worker(tmp_path):
+    """The experiments run calibrate in dask.distributed worker processes, where xarray guards a
+    NetCDF write with a cluster-wide lock named after the target; for the in-memory target of the
+    atomic writer that failed ("Semaphore or Lock <BytesIO …> not known", every task of
+    mimu_repeatability.py).  The write now takes a process-local lock and succeeds."""
+    distributed = pytest.importorskip("distributed")
+    import xarray as xr
+
+    def task(path):
+        from accel_bayes.data.outputs import write_netcdf
+
+        write_netcdf(path, xr.Dataset({"a": ("x", np.arange(3.0))}))
+        return path
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        out = client.submit(task, str(tmp_path / "t.nc")).result(timeout=120)
+    with xr.open_dataset(out, engine="h5netcdf") as ds:
+        assert ds["a"].values.tolist() == [0.0, 1.0, 2.0]

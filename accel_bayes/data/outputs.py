@@ -39,6 +39,8 @@ All refusals are :class:`~accel_bayes.errors.UserError` with one line naming the
 """
 from __future__ import annotations
 
+import contextlib
+
 import json
 import os
 import re
@@ -271,8 +273,21 @@ def write_netcdf(path, obj, *, engine: str = "h5netcdf", encoding: dict | None =
 
     The file is built in memory (HDF5 never holds a handle on the target file system, so a full
     disk cannot leave HDF5 unable to close it) and written with :func:`write_bytes`."""
-    data = obj.to_netcdf(None, engine=engine, encoding=encoding)
+    with _local_write_lock():
+        data = obj.to_netcdf(None, engine=engine, encoding=encoding)
     return write_bytes(path, data, overwrite=overwrite)
+
+
+def _local_write_lock():
+    """Inside a dask.distributed task xarray guards NetCDF writes with a cluster-wide lock named
+    after the target, which for an in-memory target is a BytesIO the scheduler cannot name
+    ("Semaphore or Lock … not known"); the synchronous scheduler gives it a process-local lock,
+    which is all an in-memory write needs."""
+    try:
+        import dask
+    except ImportError:
+        return contextlib.nullcontext()
+    return dask.config.set(scheduler="synchronous")
 
 
 # ---------------------------------------------------------------- locks
