@@ -40,7 +40,6 @@ All refusals are :class:`~accel_bayes.errors.UserError` with one line naming the
 from __future__ import annotations
 
 import contextlib
-
 import json
 import os
 import re

@@ -142,8 +142,7 @@ def bridged_process_whitening(dt: torch.Tensor, steps, variances: dict | None = 
     would miss.  Returns W (T−1, 9, 9) with W Cov Wᵀ = I (the inverse Cholesky factor); for
     ``steps_i = 1`` it is eq. 8's diagonal.
     """
-    models.process_covariance(dt[:1], variances, dtype=dt.dtype, device=dt.device)  # refuses unknown keys
-    v = {**models.S16_PROCESS_VARIANCES, **(variances or {})}
+    v = models.process_variances(variances)
     n = torch.as_tensor(steps, dtype=dt.dtype, device=dt.device)
     if n.shape != dt.shape or bool((n < 1).any()) or bool((n != torch.round(n)).any()):
         raise ValueError(f"steps: expected whole numbers >= 1 of shape {tuple(dt.shape)}")
@@ -721,7 +720,7 @@ def self_calibrate(
         F = 2.0 * res.cost
         p, q, x = res.values["position"], res.values["rotation"], res.locals
         reason = res.reason
-        rms = math.sqrt(max(log[-1]["F_triad"], 0.0) / (3 * T * A))
+        rms = _whitened_rms(log[-1]["F_triad"], 3 * T * A)
         why = check_divergence(p, x, p0, fixed, F, rms_residual=rms, **dkw)
         if why is None and reason == "non_finite":
             why = "the LM linearisation became non-finite"
@@ -841,8 +840,8 @@ def fit_check(result: SelfCalResult, nominal_positions, *, rms_limit: float = MI
     result._require_ok()
     last = result.cost_log[-1]
     T, A = result.states.shape[0], result.raw_positions.shape[0]
-    rms_t = math.sqrt(max(last["F_triad"], 0.0) / (3 * T * A))
-    rms_p = math.sqrt(max(last["F_process"], 0.0) / (9 * max(T - 1, 1)))
+    rms_t = _whitened_rms(last["F_triad"], 3 * T * A)  # the returned run's rms_residual
+    rms_p = _whitened_rms(last["F_process"], 9 * (T - 1))
     misfit = rms_t > rms_limit or rms_p > rms_limit
     inflation = max(rms_t, rms_p) ** 2 if misfit else 1.0
     fixed = result.fixed
@@ -861,6 +860,11 @@ def fit_check(result: SelfCalResult, nominal_positions, *, rms_limit: float = MI
     return FitCheck(rms_triad=rms_t, rms_process=rms_p, misfit=bool(misfit), inflation=float(inflation),
                     scale=scale, scale_std=scale_std, identified=identified, rms_limit=float(rms_limit),
                     scale_limit=float(scale_limit))
+
+
+def _whitened_rms(F: float, count: int) -> float:
+    """RMS of ``count`` whitened residuals whose sum of squares is ``F`` (≈ 1 at the stated noise)."""
+    return math.sqrt(max(F, 0.0) / max(count, 1))
 
 
 def _attach_covariance(out: SelfCalResult, res, A: int, fixed: int) -> None:

@@ -191,17 +191,24 @@ def process_model(state: torch.Tensor, dt: torch.Tensor | float) -> torch.Tensor
     return torch.cat((a, w + wd * dt, wd), -1)
 
 
-def process_covariance(dt: torch.Tensor | float, variances: dict | None = None, dtype=torch.float64, device=None) -> torch.Tensor:
-    """[S16] eq. 8: Cov(w_i) = Δt² diag(σ_a² I, σ_int² I, σ_ω̇² I), shape (..., 9, 9).
-
-    ``variances`` has keys ``acc``, ``int``, ``omega_dot`` (defaults: the paper's values).
-    """
+def process_variances(variances: dict | None = None) -> dict:
+    """The [S16] eq. 8 variances ``acc``, ``int``, ``omega_dot``: the paper's values
+    (:data:`S16_PROCESS_VARIANCES`) updated by ``variances``; unknown keys are refused."""
     v = dict(S16_PROCESS_VARIANCES)
     if variances:
         unknown = set(variances) - set(v)
         if unknown:
             raise ValueError(f"variances: unknown keys {sorted(unknown)}; expected acc, int, omega_dot")
         v.update(variances)
+    return v
+
+
+def process_covariance(dt: torch.Tensor | float, variances: dict | None = None, dtype=torch.float64, device=None) -> torch.Tensor:
+    """[S16] eq. 8: Cov(w_i) = Δt² diag(σ_a² I, σ_int² I, σ_ω̇² I), shape (..., 9, 9).
+
+    ``variances`` has keys ``acc``, ``int``, ``omega_dot`` (defaults: the paper's values).
+    """
+    v = process_variances(variances)
     dt = torch.as_tensor(dt, dtype=dtype, device=device)
     diag = torch.tensor([v["acc"]] * 3 + [v["int"]] * 3 + [v["omega_dot"]] * 3, dtype=dtype, device=device)
     return torch.diag_embed(dt.unsqueeze(-1) ** 2 * diag)

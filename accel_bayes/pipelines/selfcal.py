@@ -54,7 +54,7 @@ class SelfcalInput:
     q_nom: np.ndarray
     has_acc: np.ndarray
     clipped: float
-    time: np.ndarray | None = None
+    time: np.ndarray
     selection: object = None
 
 
@@ -184,7 +184,7 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     K = rec.K
     p_nom, q_nom, noise = inp.p_nom, inp.q_nom, inp.noise
     t0 = time.perf_counter()
-    time_s = np.asarray(rec.time, dtype=float) if inp.time is None else inp.time
+    time_s = inp.time
     steps = None if inp.selection is None else np.diff(np.asarray(inp.selection.index))
     res = self_calibrate(inp.acc, time_s, steps=steps, nominal_positions=p_nom[labels],
                          nominal_orientations=q_nom[labels], fixed=fixed, acc_noise_std=noise,
