@@ -63,6 +63,7 @@ import torch
 
 from .errors import UserError
 from .physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
+from .prep.phi_prior import PhiPrior
 from .prep.selection import DEFAULT_MIN_ROTATION, Selection, select_samples
 
 __all__ = [
@@ -211,17 +212,6 @@ def gyro_posterior(gyro_array: torch.Tensor, gyro_noise_std, method: str = "samp
 
 # ---------------------------------------------------------------------------- likelihood
 
-def _phi_prior_precision(phi_prior_std, dtype, device) -> torch.Tensor:
-    """(6,) diagonal of F⁻¹ from (σ_ω̇ rad/s², σ_s m/s²) or six standard deviations."""
-    std = torch.as_tensor(phi_prior_std, dtype=dtype, device=device).flatten()
-    if std.shape == (2,):
-        std = std.repeat_interleave(3)
-    if std.shape != (6,) or not bool(torch.isfinite(std).all()) or bool((std <= 0).any()):
-        raise UserError(f"phi_prior_std: expected (σ_ω̇ rad/s², σ_s m/s²) or 6 finite values > 0, "
-                        f"got {phi_prior_std!r}")
-    return std.pow(-2)
-
-
 class RaoBlackwellLikelihood:
     """Rao-Blackwellized Monte Carlo estimator of p(y^a | y^g, θ) ([C21] eq. 26, corrected; DESIGN §4).
 
@@ -233,15 +223,18 @@ class RaoBlackwellLikelihood:
     num_draws : int — N, Monte Carlo draws of ω per sample (choose it with :func:`choose_num_draws`).
     reference : int — row of the reference triad (origin, r_ref ≡ 0).
     dtype, device — float64 CPU by default.
-    phi_prior_std : None (default: the flat prior on φ_t = [ω̇_t; s_t] of [C21] and DESIGN §4) or
-        a proper zero-mean Gaussian prior N(0, F) on φ_t: a pair (σ_ω̇ rad/s², σ_s m/s²) or six
-        standard deviations.  Then M(θ) becomes M + F⁻¹ in S and in the determinant (Woodbury:
+    phi_prior : None (the flat prior on φ_t = [ω̇_t; s_t] of [C21] and DESIGN §4) or a proper
+        zero-mean Gaussian prior N(0, F) on φ_t: a :class:`~accel_bayes.prep.phi_prior.PhiPrior`
+        (e.g. :func:`~accel_bayes.prep.phi_prior.empirical_phi_prior`, what ``calibrate`` uses by
+        default), a pair (σ_ω̇ rad/s², σ_s m/s²), six standard deviations or a (6, 6) F.  Then M(θ) becomes M + F⁻¹ in S and in the determinant (Woodbury:
         (Σ + HFHᵀ)⁻¹ = Λ − ΛH(M + F⁻¹)⁻¹HᵀΛ and |Σ + HFHᵀ| = |Σ||F||M + F⁻¹|), which is [C21]
         eq. 19–21 at finite β with f = 0.  The flat prior is the β → ∞ limit.  A proper prior
         matters for the array scale: the flat prior's −(T/2)·log|M(θ)| alone favours smaller
         arrays (|M| grows like the squared size), while under a proper prior the φ̂ᵀF⁻¹φ̂ term
         (ω̇̂ grows as the array shrinks) pulls the other way; with weak rotation or noisy data
-        the flat-prior posterior is visibly shrunk (experiments/c21_coverage.py measures it).
+        the flat-prior posterior is visibly shrunk (experiments/c21_coverage.py and
+        experiments/phi_prior_probe.py measure it; :mod:`accel_bayes.prep.phi_prior` says why
+        F = E[φφᵀ] makes the estimate consistent).
 
     Positions passed to the methods are (..., A, 3) metres, array frame, any leading batch
     (chains × proposals …); they are taken relative to row ``reference`` (the likelihood is
@@ -258,7 +251,7 @@ class RaoBlackwellLikelihood:
         reference: int = 0,
         dtype=torch.float64,
         device=None,
-        phi_prior_std=None,
+        phi_prior=None,
     ):
         acc = as_acc_tensor(acc, dtype=dtype, device=device)
         T, A, _ = acc.shape
@@ -291,7 +284,8 @@ class RaoBlackwellLikelihood:
         if bool((info != 0).any()):
             raise UserError("omega.cov: expected symmetric positive-definite 3×3 covariances")
         self.omega_chol = chol
-        self.phi_prior_prec = None if phi_prior_std is None else _phi_prior_precision(phi_prior_std, dtype, self.device)
+        self.phi_prior = PhiPrior.coerce(phi_prior, dtype=dtype, device=self.device)
+        self.phi_prior_prec = None if self.phi_prior is None else self.phi_prior.precision  # F⁻¹ (6, 6)
         # θ-free constant omitted from every value (flat unit-density prior on φ), see module doc.
         self.log_constant = float(
             T * (-(3 * A - 6) / 2 * math.log(2 * math.pi) + self.lam.log().sum().item() / 2)
@@ -311,7 +305,7 @@ class RaoBlackwellLikelihood:
         gyro_imus=None,
         dtype=torch.float64,
         device=None,
-        phi_prior_std=None,
+        phi_prior=None,
         selection: "Selection | None" = None,
     ) -> "RaoBlackwellLikelihood":
         """Build the likelihood from a :class:`~accel_bayes.data.recording.Recording`.
@@ -385,7 +379,7 @@ class RaoBlackwellLikelihood:
         omega = gyro_posterior(gyro, gstd, gyro_method)
         astd = np.asarray(rec.acc_noise_std)[labels]
         lik = cls(acc, omega, astd, num_draws, reference=int(np.flatnonzero(labels == ref_label)[0]),
-                  dtype=dtype, device=device, phi_prior_std=phi_prior_std)
+                  dtype=dtype, device=device, phi_prior=phi_prior)
         lik.imu_labels = tuple(int(k) for k in labels)
         lik.gyro_labels = tuple(int(k) for k in glabels)
         lik.sample_index = idx
@@ -451,7 +445,7 @@ class RaoBlackwellLikelihood:
         Gt = G - H @ PG  # Ẽ = (I − HM⁻¹HᵀΛ)G
         C = Gt.transpose(-1, -2) @ (lam.unsqueeze(-1) * Gt)
         if self.phi_prior_prec is not None:  # GᵀS_F G = ẼᵀΛẼ + (M⁻¹HᵀΛG)ᵀF⁻¹(M⁻¹HᵀΛG)
-            C = C + PG.transpose(-1, -2) @ (self.phi_prior_prec.unsqueeze(-1) * PG)
+            C = C + PG.transpose(-1, -2) @ self.phi_prior_prec @ PG
         C = 0.5 * (C + C.transpose(-1, -2))
         if center is None:
             res = self.y  # (T, 3A)
@@ -464,7 +458,7 @@ class RaoBlackwellLikelihood:
         Le = e * lam
         c = (e * Le).sum(-1)
         if self.phi_prior_prec is not None:  # rᵀS_F r = eᵀΛe + φ̂ᵀF⁻¹φ̂ (GᵀS_F r = GᵀΛe still)
-            c = c + (phi * phi * self.phi_prior_prec).sum(-1)
+            c = c + ((phi @ self.phi_prior_prec) * phi).sum(-1)
         b = Le @ G
         return {"M": M, "L": L, "logdetM": logdetM, "C": C, "c": c, "b": b, "phi": phi}
 
@@ -506,14 +500,14 @@ class RaoBlackwellLikelihood:
         e = res - phi @ H.transpose(-1, -2)
         quad = (e * e * lam).sum((-1, -2))
         if self.phi_prior_prec is not None:
-            quad = quad + (phi * phi * self.phi_prior_prec).sum((-1, -2))
+            quad = quad + ((phi @ self.phi_prior_prec) * phi).sum((-1, -2))
         return quad, logdetM
 
     def _with_phi_prior(self, M: torch.Tensor) -> torch.Tensor:
-        """M + F⁻¹ under a proper prior on φ (``phi_prior_std``), else M."""
+        """M + F⁻¹ under a proper prior on φ (``phi_prior``), else M."""
         if self.phi_prior_prec is None:
             return M
-        return M + torch.diag_embed(self.phi_prior_prec).expand(M.shape)
+        return M + self.phi_prior_prec
 
     # ------------------------------------------------------------------ Monte Carlo estimator
     def log_phat(

@@ -16,7 +16,7 @@ Which posterior?  [C21] (and the package default) puts a flat prior on φ_t = [�
 simulation can draw φ from it, and the data-generating φ ~ N(0, F) is not harmless: under it the
 exact posterior has a φ̂ᵀF⁻¹φ̂ term (ω̇̂ grows as the array shrinks) that offsets the flat model's
 −(T/2)·log|M(θ)| (|M| grows like the squared array size).  ``--phi-model matched`` (default) gives
-the likelihood the simulation's Gaussian prior on φ (``RaoBlackwellLikelihood(phi_prior_std=…)``,
+the likelihood the simulation's Gaussian prior on φ (``RaoBlackwellLikelihood(phi_prior=…)``,
 M → M + F⁻¹, checked against a dense Gaussian in tests/test_likelihood.py), so the sampled
 posterior is exact for the generating process and the SBC checks below must pass: this validates
 the likelihood estimator, the pseudo-marginal kernel and its adaptation together.
@@ -118,7 +118,7 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
     ranks/coverage.  Seeds: θ_true from 10 000 + i, the recording from 20 000 + i, chains from i.
 
     phi_model : "matched" — the likelihood carries the Gaussian prior on φ_t = [ω̇_t; s_t] the
-        simulation draws from (``phi_prior_std``), so the sampled posterior is the exact one of
+        simulation draws from (``phi_prior``), so the sampled posterior is the exact one of
         the generating process and SBC must pass; "flat" — the package default ([C21] flat prior
         on φ), whose −(T/2)·log|M(θ)| factor is not compensated by the simulated φ and shrinks
         the array (what this study measures for the default model).
@@ -149,7 +149,7 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
     t0 = time.perf_counter()
     lik = RaoBlackwellLikelihood.from_recording(
         s.recording, num_draws=1, gyro_method="calibrated",
-        phi_prior_std=(OMEGA_DOT_STD, S_STD) if phi_model == "matched" else None)
+        phi_prior=(OMEGA_DOT_STD, S_STD) if phi_model == "matched" else None)
     prior = GaussianPrior(arr.positions, std=prior_std, reference=0)
     N, _ = choose_num_draws(lik, arr.positions, target=1.0)
     lik.num_draws = int(N)

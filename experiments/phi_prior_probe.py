@@ -6,7 +6,7 @@ gyroscopes' posterior mean (``RaoBlackwellLikelihood.log_lik_given_omega``, whic
 deterministic), with the same Gaussian position prior (3 mm) in all three:
 
 * **flat**: the package's default likelihood, flat φ ([C21], DESIGN §4);
-* **eb**: a proper N(0, diag(σ_ω̇², σ_s²)) prior on φ_t (``phi_prior_std``). Its scales come from
+* **eb**: a proper N(0, diag(σ_ω̇², σ_s²)) prior on φ_t (``phi_prior``). Its scales come from
   the recording itself: σ² = mean over samples and axes of φ̂², with φ̂_t the least-squares
   [ω̇; s] at the nominal positions;
 * **no log|M|**: the weighted residual alone, the issue's independent reference for "unbiased".
@@ -40,7 +40,7 @@ def scale_of_fit(rec, true_pos, phi_prior_std, drop_logdet: bool) -> tuple[float
     from accel_bayes.constants import DEFAULT_PRIOR_STD
     from accel_bayes.likelihood import RaoBlackwellLikelihood
 
-    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, phi_prior_std=phi_prior_std)
+    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, phi_prior=phi_prior_std)
     w = lik.omega.mean
     labels = list(lik.imu_labels)
     p0 = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=torch.float64)

@@ -487,7 +487,7 @@ def test_phi_prior_matches_dense_gaussian_marginal():
     acc, gyro, w = _simulate(POS4, T, sigma, 0.01, 2, seed=31)
     om = gyro_posterior(gyro, torch.full((2,), 0.01, dtype=DT), "calibrated")
     sd = (3.0, 2.0)  # σ_ω̇ rad/s², σ_s m/s²
-    lik = RaoBlackwellLikelihood(acc, om, torch.full((4,), sigma, dtype=DT), num_draws=1, phi_prior_std=sd)
+    lik = RaoBlackwellLikelihood(acc, om, torch.full((4,), sigma, dtype=DT), num_draws=1, phi_prior=sd)
     flat = RaoBlackwellLikelihood(acc, om, torch.full((4,), sigma, dtype=DT), num_draws=1)
     F = torch.diag(torch.tensor([sd[0]] * 3 + [sd[1]] * 3, dtype=DT) ** 2)
     th = [POS4, POS4 * 1.3 + 0.005 * torch.randn(4, 3, generator=_gen(32), dtype=DT)]
@@ -519,7 +519,7 @@ def test_phi_prior_log_phat_equals_dense_form():
     acc, gyro, w = _simulate(POS4, 6, 0.05, 0.05, 3, seed=33)
     om = gyro_posterior(gyro, torch.full((3,), 0.05, dtype=DT), "calibrated")
     sd = torch.tensor([2.0, 3.0, 4.0, 1.0, 2.0, 5.0], dtype=DT)
-    lik = RaoBlackwellLikelihood(acc, om, torch.full((4,), 0.05, dtype=DT), num_draws=40, phi_prior_std=sd)
+    lik = RaoBlackwellLikelihood(acc, om, torch.full((4,), 0.05, dtype=DT), num_draws=40, phi_prior=sd)
     z = lik.sample_z(generator=_gen(34))
     r = POS4 - POS4[0]
     H, G = H_matrix(r), G_matrix(r)
@@ -531,5 +531,5 @@ def test_phi_prior_log_phat_equals_dense_form():
     q = torch.einsum("tni,ij,tnj->tn", res, S, res)
     dense = (torch.logsumexp(-0.5 * q, -1) - math.log(40)).sum() - 0.5 * lik.T * torch.linalg.slogdet(MF)[1]
     assert abs(float(lik.log_phat(POS4, z=z)) - float(dense)) < 1e-9
-    with pytest.raises(UserError, match="phi_prior_std"):
-        RaoBlackwellLikelihood(acc, om, 0.05, num_draws=4, phi_prior_std=(1.0, 0.0))
+    with pytest.raises(UserError, match="phi_prior"):
+        RaoBlackwellLikelihood(acc, om, 0.05, num_draws=4, phi_prior=(1.0, 0.0))
