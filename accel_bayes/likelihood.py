@@ -388,6 +388,16 @@ class RaoBlackwellLikelihood:
                                                 device=lik.device)
         return lik
 
+    def with_phi_prior(self, phi_prior) -> "RaoBlackwellLikelihood":
+        """A shallow copy with another prior on φ (anything ``phi_prior`` of the constructor takes;
+        None: flat).  The data, the gyro posterior and its cached draw maps are shared."""
+        import copy
+
+        new = copy.copy(self)
+        new.phi_prior = PhiPrior.coerce(phi_prior, dtype=self.dtype, device=self.device)
+        new.phi_prior_prec = None if new.phi_prior is None else new.phi_prior.precision
+        return new
+
     # ------------------------------------------------------------------ helpers
     def _positions(self, positions: torch.Tensor) -> torch.Tensor:
         positions = torch.as_tensor(positions, dtype=self.dtype, device=self.device)

@@ -12,17 +12,21 @@ For each of ``--n`` data sets (default 100):
   (MAP-centred Laplace shape for the random walk and the independence moves, automatic N), with
   **chains started from prior draws**, never from the truth or the MAP.
 
-Which posterior?  [C21] (and the package default) puts a flat prior on φ_t = [ω̇_t; s_t]; no
-simulation can draw φ from it, and the data-generating φ ~ N(0, F) is not harmless: under it the
-exact posterior has a φ̂ᵀF⁻¹φ̂ term (ω̇̂ grows as the array shrinks) that offsets the flat model's
-−(T/2)·log|M(θ)| (|M| grows like the squared array size).  ``--phi-model matched`` (default) gives
-the likelihood the simulation's Gaussian prior on φ (``RaoBlackwellLikelihood(phi_prior=…)``,
-M → M + F⁻¹, checked against a dense Gaussian in tests/test_likelihood.py), so the sampled
-posterior is exact for the generating process and the SBC checks below must pass: this validates
-the likelihood estimator, the pseudo-marginal kernel and its adaptation together.
-``--phi-model flat`` runs the default model on the same data and measures how much the flat prior
-shrinks the array when rotation is weak relative to the noise (a property of the model, not of
-the sampler).
+Which posterior?  [C21] puts a flat prior on φ_t = [ω̇_t; s_t]; no simulation can draw φ from
+it, and the data-generating φ ~ N(0, F) is not harmless: under it the exact posterior has a
+φ̂ᵀF⁻¹φ̂ term (ω̇̂ grows as the array shrinks) that offsets the flat model's −(T/2)·log|M(θ)|
+(|M| grows like the squared array size).  ``--phi-model``:
+
+* ``empirical`` (default) — the package default: a Gaussian prior on φ whose 6×6 covariance is
+  estimated from each data set (:func:`accel_bayes.prep.phi_prior.empirical_phi_prior`, at the
+  design positions, as ``calibrate`` does).  Here the checks ask whether the default model is
+  calibrated, F̂ from only T = 30 samples included;
+* ``matched`` — the simulation's own Gaussian prior on φ (``RaoBlackwellLikelihood(phi_prior=…)``,
+  M → M + F⁻¹, checked against a dense Gaussian in tests/test_likelihood.py), so the sampled
+  posterior is exact for the generating process: this validates the likelihood estimator, the
+  pseudo-marginal kernel and its adaptation together;
+* ``flat`` — [C21] as published, on the same data: measures how much the flat prior shrinks the
+  array when rotation is weak relative to the noise (a property of the model, not the sampler).
 
 Checks (printed as a verdict, and asserted by ``tests/test_coverage.py -m slow``):
 
@@ -40,8 +44,9 @@ resumes where it stopped (same options → same data sets and seeds).  The rank 
 
 Usage::
 
-    python experiments/c21_coverage.py                    # 100 data sets, matched φ prior (≈ 20 s each)
-    python experiments/c21_coverage.py --phi-model flat   # the default model on the same data sets
+    python experiments/c21_coverage.py                       # 100 data sets, the default (empirical) φ prior
+    python experiments/c21_coverage.py --phi-model matched   # the simulation's own φ prior (exact posterior)
+    python experiments/c21_coverage.py --phi-model flat      # [C21]'s flat prior on the same data sets
     python experiments/c21_coverage.py --n 10 --workers 2
 """
 from __future__ import annotations
@@ -84,50 +89,24 @@ def square_board(acc_std: float = 0.3):
 OMEGA_STD = 500 * DEG_TO_RAD  # rad/s per axis
 OMEGA_DOT_STD = 5000 * DEG_TO_RAD  # rad/s² per axis
 S_STD = 20.0  # m/s² per axis (motion.iid_motion default)
-
-
-def newton_mode(lik, prior, theta0, steps: int = 30):
-    """Mode and inverse negative Hessian of log p(y | ω̄, θ) + log p(θ) (ω at the gyro mean, the
-    likelihood's own exact-given-ω form, autograd derivatives), by Newton steps from ``theta0``."""
-    import torch
-
-    from accel_bayes.likelihood import positions_from_theta
-
-    shape = theta0.shape
-
-    def f(x):
-        th = x.reshape(shape)
-        return lik.log_lik_given_omega(positions_from_theta(th, lik.reference, lik.A), lik.omega.mean) \
-            + prior.log_prob(th)
-
-    x = theta0.reshape(-1).clone()
-    for _ in range(steps):
-        g = torch.autograd.functional.jacobian(f, x)
-        H = torch.autograd.functional.hessian(f, x)
-        dx = torch.linalg.solve(-H, g)
-        x = x + dx
-        if float(dx.abs().max()) < 1e-12:
-            break
-    H = torch.autograd.functional.hessian(f, x)
-    return x.reshape(shape), torch.linalg.inv(-H)
+PHI_MODELS = ("empirical", "matched", "flat")
 
 
 def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains: int = 4, draws: int = 1000,
-              warmup: int = 400, phi_model: str = "matched") -> dict:
+              warmup: int = 400, phi_model: str = "empirical") -> dict:
     """One data set: simulate from the prior, sample the posterior from prior draws, return
     ranks/coverage.  Seeds: θ_true from 10 000 + i, the recording from 20 000 + i, chains from i.
 
-    phi_model : "matched" — the likelihood carries the Gaussian prior on φ_t = [ω̇_t; s_t] the
+    phi_model : "empirical" — the package default (module docstring);
+        "matched" — the likelihood carries the Gaussian prior on φ_t = [ω̇_t; s_t] the
         simulation draws from (``phi_prior``), so the sampled posterior is the exact one of
-        the generating process and SBC must pass; "flat" — the package default ([C21] flat prior
-        on φ), whose −(T/2)·log|M(θ)| factor is not compensated by the simulated φ and shrinks
-        the array (what this study measures for the default model).
+        the generating process and SBC must pass; "flat" — [C21]'s flat prior on φ, whose
+        −(T/2)·log|M(θ)| factor is not compensated by the simulated φ and shrinks the array.
 
     The sampler is the package's PmMH kernel set up as :func:`accel_bayes.pipelines.calibrate.calibrate` sets it up:
     random walk shaped by the Laplace covariance at the mode, mixed 80 % with independence moves
     from that Laplace approximation; N chosen by :func:`accel_bayes.likelihood.choose_num_draws`.
-    The mode is the package MAP for "flat"; for "matched" (a model fit_map does not implement) a
-    few Newton steps on the gyro-mean log-posterior move it there.
+    The mode is the package MAP of the same target (``fit_map(phi_prior=…)``).
     """
     import torch
 
@@ -136,10 +115,11 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
     from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh
     from accel_bayes.inference.mcmc.priors import GaussianPrior
     from accel_bayes.likelihood import RaoBlackwellLikelihood, choose_num_draws
+    from accel_bayes.prep.phi_prior import empirical_phi_prior
     from accel_bayes.simulate import simulate
 
-    if phi_model not in ("matched", "flat"):
-        raise ValueError(f"phi_model: expected 'matched' or 'flat', got {phi_model!r}")
+    if phi_model not in PHI_MODELS:
+        raise ValueError(f"phi_model: expected one of {PHI_MODELS}, got {phi_model!r}")
     arr = square_board()
     g = torch.Generator().manual_seed(10_000 + i)
     true = arr.positions.clone()
@@ -150,20 +130,19 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
     lik = RaoBlackwellLikelihood.from_recording(
         s.recording, num_draws=1, gyro_method="calibrated",
         phi_prior=(OMEGA_DOT_STD, S_STD) if phi_model == "matched" else None)
+    if phi_model == "empirical":
+        lik = lik.with_phi_prior(empirical_phi_prior(lik.acc, lik.omega.mean, lik.acc_noise_std, arr.positions))
     prior = GaussianPrior(arr.positions, std=prior_std, reference=0)
     N, _ = choose_num_draws(lik, arr.positions, target=1.0)
     lik.num_draws = int(N)
-    # The random walk's shape comes from the Laplace covariance at the (flat-φ) MAP, as in
-    # calibrate(); the independence moves use the warm-up moments of each chain, so nothing of
-    # the flat model's mode is imposed on the matched target.  Chains still start from the prior.
+    # The random walk's shape and the independence moves come from the Laplace covariance at the
+    # MAP of the same target (its φ prior included), as in calibrate().  Chains start from the prior.
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         fit = fit_map(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, reference=0,
-                      prior_mean=arr.positions, prior_std=prior_std, on_divergence="ignore")
+                      prior_mean=arr.positions, prior_std=prior_std, on_divergence="ignore", phi_prior=lik.phi_prior)
     centre = torch.as_tensor(fit.theta, dtype=torch.float64)
     lap = torch.as_tensor(fit.laplace_cov, dtype=torch.float64)
-    if phi_model == "matched":  # fit_map knows only the flat model: move to the matched mode
-        centre, lap = newton_mode(lik, prior, centre)
     lap = 0.5 * (lap + lap.T)
     kernel = PMMHKernel(lik, prior, seed=i, proposal_cov=lap, independence_prob=0.8,
                         independence_mean=centre, independence_cov=lap)
@@ -239,9 +218,10 @@ def main(argv=None) -> int:
     p.add_argument("--chains", type=int, default=4)
     p.add_argument("--draws", type=int, default=1000)
     p.add_argument("--warmup", type=int, default=400)
-    p.add_argument("--phi-model", choices=("matched", "flat"), default="matched",
-                   help="likelihood's prior on φ = [ω̇; s]: 'matched' (the simulation's Gaussian: exact SBC, "
-                        "default) or 'flat' (the package default, [C21]: measures its scale shrinkage)")
+    p.add_argument("--phi-model", choices=PHI_MODELS, default="empirical",
+                   help="likelihood's prior on φ = [ω̇; s]: 'empirical' (the package default, estimated from each "
+                        "data set), 'matched' (the simulation's Gaussian: exact SBC) or 'flat' ([C21]: measures its "
+                        "scale shrinkage)")
     p.add_argument("--out", type=Path, default=None, help="default experiments/out/c21_coverage_<phi-model>")
     add_dask_arguments(p, default_workers=1)
     args = p.parse_args(argv)

@@ -147,7 +147,7 @@ def posterior_task(T, acc_std, rep, seed, omega_std_dps, chains, draws, warmup, 
     var_N, _ = var_log_phat(lik, prior_pos, N, var_repeats, seed + 1)
     t1 = time.perf_counter()
     res = calibrate(rec, chains=chains, draws=draws, warmup=warmup, num_draws=N, seed=seed, gyro_method=gyro_method,
-                    proposal=proposal, use_map=use_map, progress=False)
+                    proposal=proposal, use_map=use_map, progress=False, phi_prior="flat")  # the paper's model
     t2 = time.perf_counter()
     th = res.run.theta.numpy()  # (C, D, A-1, 3), relative to IMU 0, m
     C, D = th.shape[:2]

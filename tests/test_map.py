@@ -41,6 +41,23 @@ def make_data(T=200, seed=0, noise=True, pos_err=1e-4, array=None):
     return dict(arr=arr, motion=m, true=true, acc=acc_a, wbar=wbar, P=P)
 
 
+def _full_phi_prior(seed=7):
+    """A proper prior on φ with a full (correlated) 6×6 covariance, ω̇ ~ 30 rad/s², s ~ 6 m/s²."""
+    g = torch.Generator().manual_seed(seed)
+    B = torch.randn(6, 6, generator=g, dtype=DT)
+    sd = torch.tensor([30.0, 30.0, 30.0, 6.0, 6.0, 6.0], dtype=DT)
+    C = B @ B.T + 6 * torch.eye(6, dtype=DT)
+    C = C / torch.outer(C.diagonal().sqrt(), C.diagonal().sqrt())
+    return sd[:, None] * C * sd[None, :]
+
+
+PHI_PRIORS = [None, "full"]
+
+
+def _phi(p):
+    return None if p is None else _full_phi_prior()
+
+
 def test_noise_free_map_recovers_true_positions():
     d = make_data(T=200, seed=1, noise=False)
     res = fit_map(d["acc"], d["wbar"], d["P"], SA, prior_mean=d["arr"].positions, prior_std=3e-3)
@@ -87,17 +104,18 @@ def _small_problem(seed=3, T=10):
     return d
 
 
-def test_laplace_covariance_matches_dense_autograd_hessian():
+@pytest.mark.parametrize("phi_prior", PHI_PRIORS)
+def test_laplace_covariance_matches_dense_autograd_hessian(phi_prior):
     likelihood = pytest.importorskip("accel_bayes.likelihood")
     d = _small_problem()
     A, T = 4, d["acc"].shape[0]
     sa = 0.34
     prior_std = 3e-3
     res = fit_map(d["acc"], d["wbar"], d["P"], sa, prior_mean=d["arr"].positions, prior_std=prior_std,
-                  max_iter=200)
+                  max_iter=200, phi_prior=_phi(phi_prior))
     assert res.converged, res.reason
     lik = likelihood.RaoBlackwellLikelihood(d["acc"], likelihood.GyroPosterior(d["wbar"], d["P"].expand(T, 3, 3), "given"),
-                                            torch.full((A,), sa, dtype=DT), num_draws=1)
+                                            torch.full((A,), sa, dtype=DT), num_draws=1, phi_prior=_phi(phi_prior))
     f = _dense_neg_log_post(d, lik, d["arr"].positions, prior_std)
     z = torch.cat((res.theta.reshape(-1), res.omega.reshape(-1)))
     # the mode is a stationary point of the independent objective
@@ -110,7 +128,8 @@ def test_laplace_covariance_matches_dense_autograd_hessian():
     rel = float(torch.linalg.norm(res.laplace_cov - cov_d) / torch.linalg.norm(cov_d))
     assert rel < 1e-6, rel
     # the MAP's log posterior is −f up to a constant: compare differences between two points
-    prob = build_map_problem(d["acc"], d["wbar"], d["P"], sa, prior_mean=d["arr"].positions, prior_std=prior_std)
+    prob = build_map_problem(d["acc"], d["wbar"], d["P"], sa, prior_mean=d["arr"].positions, prior_std=prior_std,
+                             phi_prior=_phi(phi_prior))
     z2 = z + 1e-4 * torch.randn(z.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
     c1 = prob.cost({"theta": z[:9].reshape(3, 3)}, z[9:].reshape(T, 3))
     c2 = prob.cost({"theta": z2[:9].reshape(3, 3)}, z2[9:].reshape(T, 3))
@@ -121,13 +140,14 @@ def test_laplace_covariance_matches_dense_autograd_hessian():
     assert rel_gn > 1e-4
 
 
-def test_map_objective_theta_part_is_the_likelihood_helper():
+@pytest.mark.parametrize("phi_prior", PHI_PRIORS)
+def test_map_objective_theta_part_is_the_likelihood_helper(phi_prior):
     likelihood = pytest.importorskip("accel_bayes.likelihood")
     d = make_data(T=50, seed=4)
     T = 50
-    prob = build_map_problem(d["acc"], d["wbar"], d["P"], SA, prior_mean=d["arr"].positions)
+    prob = build_map_problem(d["acc"], d["wbar"], d["P"], SA, prior_mean=d["arr"].positions, phi_prior=_phi(phi_prior))
     lik = likelihood.RaoBlackwellLikelihood(d["acc"], likelihood.GyroPosterior(d["wbar"], d["P"].expand(T, 3, 3), "given"),
-                                            SA, num_draws=1)
+                                            SA, num_draws=1, phi_prior=_phi(phi_prior))
     g = torch.Generator().manual_seed(1)
     for _ in range(3):
         pos = d["arr"].positions + 1e-3 * torch.randn(8, 3, generator=g, dtype=DT)
@@ -139,13 +159,17 @@ def test_map_objective_theta_part_is_the_likelihood_helper():
         # the log|M| term is the corrected (T/2)·log|M|, not the paper's T·log|M|
         paper = -float(lik.log_lik_paper_eq25(pos, w))
         assert abs(terms["acc"] + 2 * terms["logdetM"] - paper) < 1e-9 * abs(paper)
+        if phi_prior is not None:  # the prior matters: the flat objective differs
+            flat = build_map_problem(d["acc"], d["wbar"], d["P"], SA, prior_mean=d["arr"].positions)
+            ft = flat.cost_terms({"theta": pos[1:]}, w)
+            assert abs(ft["acc"] + ft["logdetM"] - ref) > 1.0
 
 
-@pytest.mark.parametrize("reference", [0, 3])
-def test_analytic_derivatives_match_autodiff_and_finite_differences(reference):
+@pytest.mark.parametrize("reference,phi_prior", [(0, None), (3, None), (3, "full")])
+def test_analytic_derivatives_match_autodiff_and_finite_differences(reference, phi_prior):
     d = make_data(T=25, seed=8)
     g = torch.Generator().manual_seed(2)
-    kw = dict(prior_mean=d["arr"].positions, reference=reference,
+    kw = dict(prior_mean=d["arr"].positions, reference=reference, phi_prior=_phi(phi_prior),
               init_positions=d["arr"].positions + 1e-3 * torch.randn(8, 3, generator=g, dtype=DT))
     pa = build_map_problem(d["acc"], d["wbar"], d["P"], SA, analytic=True, **kw)
     pb = build_map_problem(d["acc"], d["wbar"], d["P"], SA, analytic=False, **kw)
@@ -175,10 +199,11 @@ def test_analytic_derivatives_match_autodiff_and_finite_differences(reference):
         assert torch.allclose(Jg[..., j], fd, rtol=1e-5, atol=1e-5 * float(fd.abs().max()))
 
 
-def test_local_newton_blocks_are_the_exact_omega_hessian():
+@pytest.mark.parametrize("phi_prior", PHI_PRIORS)
+def test_local_newton_blocks_are_the_exact_omega_hessian(phi_prior):
     d = make_data(T=30, seed=9)
     g = torch.Generator().manual_seed(4)
-    prob = build_map_problem(d["acc"], d["wbar"], d["P"], SA, prior_mean=d["arr"].positions)
+    prob = build_map_problem(d["acc"], d["wbar"], d["P"], SA, prior_mean=d["arr"].positions, phi_prior=_phi(phi_prior))
     v = {"theta": prob.initial_values()["theta"] + 1e-3 * torch.randn(7, 3, generator=g, dtype=DT)}
     x = prob.x0 + 0.3 * torch.randn(30, 3, generator=g, dtype=DT)  # far from the mode: large residuals
     gn = prob.linearize(v, x, step=False).V

@@ -194,14 +194,19 @@ def test_scale_samples_is_the_heteroscedastic_likelihood(sim):
     assert abs(d_scaled - d_direct) < 1e-6 * max(1.0, abs(d_direct)), (d_scaled, d_direct)
 
 
-def test_tempered_likelihood_is_the_power_of_the_likelihood(sim):
-    """log p̂ of the tempered likelihood (σ·√κ, Occam term re-weighted) differs between two θ
+@pytest.mark.parametrize("phi_prior", [None, (40.0, 7.0)])
+def test_tempered_likelihood_is_the_power_of_the_likelihood(sim, phi_prior):
+    """log p̂ of the tempered likelihood (σ·√κ, F·κ, Occam term re-weighted) differs between two θ
     by exactly 1/κ × the difference of the untempered one (ω known: calibrated gyros, N draws
-    shared through the same generator seed)."""
+    shared through the same generator seed), with the flat and with a proper prior on φ."""
     rec = sim.recording
     lik = _lik(rec)
+    if phi_prior is not None:
+        lik = RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std, 1, reference=lik.reference,
+                                     phi_prior=phi_prior)
     kappa = 2.5
-    tmp = TemperedLikelihood(lik.acc, lik.omega, lik.acc_noise_std * math.sqrt(kappa), 1, kappa, reference=lik.reference)
+    tmp = TemperedLikelihood(lik.acc, lik.omega, lik.acc_noise_std * math.sqrt(kappa), 1, kappa, reference=lik.reference,
+                             phi_prior=phi_prior)
     p1 = torch.as_tensor(rec.nominal_position)
     p2 = p1 + 2e-4 * torch.randn(p1.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     w = lik.omega.mean

@@ -79,6 +79,10 @@ def register(sub) -> None:
                    help="gyro-rate bins of the estimated noise model (default %(default)s; 1 = one level per IMU)")
     g.add_argument("--no-noise-inflation", action="store_true",
                    help="with estimated noise: do not apply the sandwich (misspecification) factor")
+    p.add_argument("--phi-prior", choices=("empirical", "flat"), default=DEFAULTS["phi_prior"],
+                   help="prior on φ = [ω̇; s] that the likelihood integrates out: 'empirical' (default: a Gaussian "
+                        "whose covariance is estimated from the recording; removes the flat prior's inward pull on "
+                        "the array) or 'flat' ([C21] as published)")
     p.add_argument("--gyro-method", choices=("auto", "sample_cov", "sample_cov_mean", "calibrated"),
                    default=DEFAULTS["gyro_method"],
                    help="gyroscope posterior (default %(default)s: 'calibrated' with estimated noise, else "
@@ -114,7 +118,7 @@ def _run(args) -> int:
         checkpoint=ckpt, checkpoint_every=args.checkpoint_every, resume=args.resume,
         intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
         min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
-        noise_inflation=not args.no_noise_inflation,
+        noise_inflation=not args.no_noise_inflation, phi_prior=args.phi_prior,
     )
     n_kept = res.settings["preprocess"]["samples"].get("clipped_kept", 0)
     if n_kept:  # stderr: the table below goes to stdout, which is often redirected

@@ -37,6 +37,8 @@ def register(sub) -> None:
     p.add_argument("--keep-clipped", action="store_true",
                    help="fit samples where an accelerometer or gyroscope is at its range (dropped by default, as in "
                         "calibrate; a warning on stderr counts the ones fitted)")
+    p.add_argument("--phi-prior", choices=("empirical", "flat"), default="empirical",
+                   help="prior on φ = [ω̇; s]: 'empirical' (default, estimated from the recording) or 'flat' ([C21])")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_run)
 
@@ -50,7 +52,8 @@ def _run(args) -> int:
     rec = load_recording(args.recording)  # the input first: a wrong path is the likelier mistake
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     run = map_positions(rec, gyro_method=args.gyro_method, prior_std=args.prior_std, select=args.select,
-                        drop_clipped=not args.keep_clipped, max_iter=args.max_iter, progress=not args.no_progress)
+                        drop_clipped=not args.keep_clipped, max_iter=args.max_iter, progress=not args.no_progress,
+                        phi_prior=args.phi_prior)
     write_outputs(run, out.staging)
     out.commit()
     res, n_clip = run.result, run.n_clipped

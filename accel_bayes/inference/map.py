@@ -69,6 +69,7 @@ class MAPResult:
     reference : int; imu_labels : tuple of the IMU labels of the rows (fit_map_recording) or None.
     selection, sample_index : (fit_map_recording) the :class:`~accel_bayes.prep.selection.Selection`
         of the samples fitted and its kept indices into the recording; None otherwise.
+    phi_prior : the :class:`~accel_bayes.prep.phi_prior.PhiPrior` of the target, None for flat φ.
     lm : the :class:`~accel_bayes.inference.lm.LMResult` (problem included) for further use.
     """
 
@@ -87,6 +88,7 @@ class MAPResult:
     lm: LMResult | None = field(default=None, repr=False)
     selection: object = field(default=None, repr=False)
     sample_index: object = field(default=None, repr=False)
+    phi_prior: object = field(default=None, repr=False)
 
     def position_cov(self) -> torch.Tensor:
         """(A, 3, 3) per-triad marginal covariance blocks (zeros for the reference)."""
@@ -101,7 +103,7 @@ class MAPResult:
 
 def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0, prior_mean=None, prior_std=DEFAULT_PRIOR_STD,
                       init_positions=None, init_omega=None, analytic: bool = True, local_newton: bool = True,
-                      dtype=torch.float64, device=None) -> Problem:
+                      phi_prior=None, dtype=torch.float64, device=None) -> Problem:
     """The [C21] MAP as an LM :class:`~accel_bayes.inference.lm.Problem` (see :func:`fit_map`).
 
     Globals: "theta" (A−1, 3).  Locals: ω (T, 3).  Residual groups "acc" (T, 3A), "gyro" (T, 3),
@@ -123,6 +125,15 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
       ∂f_k/∂r_k at φ = φ̂_t) and C_t,k = [−Ω(Λ_k^{1/2} r_t,k); 0] (= ∂Hwᵀ/∂r_k applied to r_t).
     * log|M|: ∂ = tr(M⁻¹ ∂M), ∂² = tr(M⁻¹ ∂²M) − tr(M⁻¹ ∂M M⁻¹ ∂M), with
       ∂M/∂r_k,a = E_aᵀΛ_kH_k + H_kᵀΛ_kE_a, E_a = [−Ω(e_a) 0], and ∂²M within one triad only.
+
+    phi_prior : None (flat φ, [C21]) or a proper prior N(0, F) on φ_t (anything
+    :meth:`~accel_bayes.prep.phi_prior.PhiPrior.coerce` takes).  It enters as six pseudo-
+    observations 0 = W φ_t + v_t per sample (WᵀW = F⁻¹, v_t ~ N(0, I)): the stacked design
+    H' = [Hw; W] (θ-free extra rows), z' = [z; 0], G' = [Gw; 0], so M becomes M + F⁻¹ everywhere
+    and the "acc" residual gets 6 more columns, r' = [z − Hwφ̂; −Wφ̂] with ‖r'‖² = ‖y − Gu‖²_{S_F}
+    (:class:`~accel_bayes.likelihood.RaoBlackwellLikelihood` with ``phi_prior``).  The closed forms
+    above carry over with H' for H and zeros in the extra rows of Q and K: the extra rows have no
+    θ- or ω-dependence of their own.
     """
     acc = as_acc_tensor(acc, dtype=dtype, device=device)
     T, A, _ = acc.shape
@@ -158,15 +169,27 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     omega0 = wbar.clone() if init_omega is None else torch.as_tensor(init_omega, dtype=dtype, device=acc.device)
 
     y = acc.reshape(T, 3 * A)
+    from ..prep.phi_prior import PhiPrior
+
+    phi_prior = PhiPrior.coerce(phi_prior, dtype=dtype, device=acc.device)
+    # F⁻¹ (6, 6) and W with WᵀW = F⁻¹ (the pseudo-observation rows); zeros for the flat prior
+    Fi = torch.zeros(6, 6, dtype=dtype, device=acc.device) if phi_prior is None else phi_prior.precision
+    W = None if phi_prior is None else torch.linalg.cholesky(Fi).T
+
+    def normal_matrix(Hw):
+        return Hw.transpose(-1, -2) @ Hw + Fi  # M + F⁻¹ (M for the flat prior)
+
+    def with_prior_rows(res, phi):
+        return res if W is None else torch.cat((res, -(phi @ W.T)), -1)
 
     def acc_residual(g, x, data):
         r = positions_from_theta(g["theta"], reference, A)
         Hw = sqrt_lam.unsqueeze(-1) * H_matrix(r)  # Λ^{1/2} H
         Gw = sqrt_lam.unsqueeze(-1) * G_matrix(r)
-        L = torch.linalg.cholesky(Hw.transpose(-1, -2) @ Hw)
+        L = torch.linalg.cholesky(normal_matrix(Hw))
         z = sqrt_lam * data - u_of_omega(x) @ Gw.transpose(-1, -2)  # Λ^{1/2}(y − G u)
         phi = torch.cholesky_solve((z @ Hw).transpose(-1, -2), L).transpose(-1, -2)
-        return z - phi @ Hw.transpose(-1, -2)
+        return with_prior_rows(z - phi @ Hw.transpose(-1, -2), phi)
 
     def gyro_residual(g, x, data):
         wb, Li = data
@@ -178,7 +201,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     def logdet(g):
         r = positions_from_theta(g["theta"], reference, A)
         Hw = sqrt_lam.unsqueeze(-1) * H_matrix(r)
-        L = torch.linalg.cholesky(Hw.transpose(-1, -2) @ Hw)
+        L = torch.linalg.cholesky(normal_matrix(Hw))
         return T * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
 
     keep = [k for k in range(A) if k != reference]
@@ -193,37 +216,39 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
         r = positions_from_theta(g["theta"], reference, A)
         Hw = sqrt_lam.unsqueeze(-1) * H_matrix(r)
         Gw = sqrt_lam.unsqueeze(-1) * G_matrix(r)
-        L = torch.linalg.cholesky(Hw.T @ Hw)
+        L = torch.linalg.cholesky(normal_matrix(Hw))
         Tn = x.shape[0]
         Lb = L.expand(Tn, 6, 6)
         z = sqrt_lam * data - u_of_omega(x) @ Gw.T
         phi = torch.cholesky_solve((z @ Hw).T, L).T
         res = z - phi @ Hw.T
+        Hs = Hw if W is None else torch.cat((Hw, W), 0)  # H' = [Hw; W]
         K = Gw @ du_domega(x)  # (T, 3A, 3)
-        Jw = Hw @ torch.cholesky_solve(Hw.T @ K, Lb) - K
+        Jw = Hs @ torch.cholesky_solve(Hw.T @ K, Lb)
+        Jw[:, :3 * A] -= K
         Jr = df_dr(x, phi[:, :3])  # ∂f_k/∂r_k at φ̂, (T, 3, 3)
         Qk = slA[None, :, :, None] * Jr[:, None]  # (T, A, 3, 3): rows of triad k, column axis a
         HtQ = torch.einsum("kif,tkia->tfka", Hw.reshape(A, 3, 6), Qk)[:, :, keep]  # (T, 6, A−1, 3)
         rho = (res.reshape(Tn, A, 3) * slA)[:, keep]  # Λ_k^{1/2} r_t,k
         C = torch.zeros_like(HtQ)
         C[:, :3] = -skew(rho).permute(0, 2, 1, 3)
-        Jth = Hw @ torch.cholesky_solve((HtQ - C).reshape(Tn, 6, n), Lb)
-        Jth = Jth.reshape(Tn, A, 3, A - 1, 3)
+        Jth = Hs @ torch.cholesky_solve((HtQ - C).reshape(Tn, 6, n), Lb)
+        Jq = Jth[:, :3 * A].reshape(Tn, A, 3, A - 1, 3)  # a view: the −Q part goes into the data rows
         for j, k in enumerate(keep):  # A is small; the block-diagonal −Q part
-            Jth[:, k, :, j, :] -= Qk[:, k]
-        return {"theta": Jth.reshape(Tn, 3 * A, n)}, Jw
+            Jq[:, k, :, j, :] -= Qk[:, k]
+        return {"theta": Jth}, Jw
 
     D2u = d2u_domega2(dtype, acc.device)  # ∂²u/∂ω_i∂ω_j (constant: u is quadratic), (6, 3, 3)
 
     def acc_local_hessian(g, x, data, res):
         # Σ_m r_m ∂²r_m/∂ω² with r = P⊥ z, ∂²r/∂ω² = −P⊥ Gw ∂²u and P⊥ r = r: −(rᵀGw) ∂²u
         Gw = sqrt_lam.unsqueeze(-1) * G_matrix(positions_from_theta(g["theta"], reference, A))
-        return -torch.einsum("tf,fij->tij", res @ Gw, D2u)
+        return -torch.einsum("tf,fij->tij", res[..., :3 * A] @ Gw, D2u)  # G' is 0 in the prior rows
 
     def logdet_grad_hess(g):
         r = positions_from_theta(g["theta"], reference, A)
         Hk = H_matrix(r).reshape(A, 3, 6)
-        M = torch.einsum("kif,ki,kig->fg", Hk, lamA, Hk)
+        M = torch.einsum("kif,ki,kig->fg", Hk, lamA, Hk) + Fi
         L = torch.linalg.cholesky(M)
         Minv = torch.cholesky_inverse(L)
         dM = torch.einsum("aif,ki,kig->kafg", Ea, lamA, Hk)[keep].reshape(n, 6, 6)
@@ -255,7 +280,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
                    ExtraCost(logdet, grad_hess=logdet_grad_hess if analytic else None, name="logdetM"),
                    dtype=dtype, device=device)
     prob.map_info = {"A": A, "T": T, "reference": reference, "prior_mean": prior_mean, "prior_std": prior_std,
-                     "omega_mean": wbar, "omega_chol": LP}
+                     "omega_mean": wbar, "omega_chol": LP, "phi_prior": phi_prior}
     return prob
 
 
@@ -285,7 +310,7 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
             prior_std=DEFAULT_PRIOR_STD, init_positions=None, init_omega=None, max_iter: int = 100, progress: bool = False,
             hessian: str = "exact", on_divergence: str = "raise", ftol: float = 1e-12, xtol: float = 1e-10,
             gtol: float = 1e-9, damping=None, analytic: bool = True, local_newton: bool = True,
-            dtype=torch.float64, device=None) -> MAPResult:
+            phi_prior=None, dtype=torch.float64, device=None) -> MAPResult:
     """MAP of the accelerometer positions under the [C21] model with φ projected out (module docstring).
 
     Parameters
@@ -303,6 +328,9 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
     hessian : "exact" (default) or "gauss_newton" — which Hessian the Laplace covariance uses.
     analytic, local_newton : derivative options of :func:`build_map_problem` (defaults: closed
         forms, Newton model in the ω blocks).
+    phi_prior : None (flat φ, [C21]) or a proper prior N(0, F) on φ_t = [ω̇_t; s_t] (a
+        :class:`~accel_bayes.prep.phi_prior.PhiPrior` or what it coerces); the same target as
+        :class:`~accel_bayes.likelihood.RaoBlackwellLikelihood` with that ``phi_prior``.
     on_divergence : "raise" (default, :class:`MAPDivergence`), "warn" or "ignore" — what to do
         when the solution is detectably diverged (DESIGN §6); with "warn"/"ignore" the result has
         ``converged=False`` and ``reason`` starting with "diverged".
@@ -313,7 +341,8 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
         raise UserError(f"on_divergence: expected 'raise', 'warn' or 'ignore', got {on_divergence!r}")
     prob = build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, reference=reference, prior_mean=prior_mean,
                              prior_std=prior_std, init_positions=init_positions, init_omega=init_omega,
-                             analytic=analytic, local_newton=local_newton, dtype=dtype, device=device)
+                             analytic=analytic, local_newton=local_newton, phi_prior=phi_prior, dtype=dtype,
+                             device=device)
     reference = prob.map_info["reference"]
     lm = LevenbergMarquardt(damping, max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol, progress=progress,
                             desc="MAP").solve(prob)
@@ -339,13 +368,14 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
     terms = prob.cost_terms(lm.values, lm.locals)
     return MAPResult(positions=positions_from_theta(theta, reference, theta.shape[-2] + 1), theta=theta, omega=lm.locals,
                      laplace_cov=cov, log_posterior=-lm.cost, cost_terms=terms, log=lm.log, converged=converged,
-                     reason=reason, n_iter=lm.n_iter, reference=reference, lm=lm)
+                     reason=reason, n_iter=lm.n_iter, reference=reference, lm=lm,
+                     phi_prior=prob.map_info["phi_prior"])
 
 
 def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_rotation=None,
                       drop_clipped: bool = False, selection=None, acc_imus=None, gyro_imus=None,
                       prior_std=DEFAULT_PRIOR_STD,
-                      prior_mean=None, dtype=torch.float64, device=None, **kw) -> MAPResult:
+                      prior_mean=None, phi_prior=None, dtype=torch.float64, device=None, **kw) -> MAPResult:
     """:func:`fit_map` on a :class:`~accel_bayes.data.recording.Recording`.
 
     Data preparation is the likelihood's (:meth:`accel_bayes.likelihood.RaoBlackwellLikelihood.from_recording`):
@@ -355,7 +385,10 @@ def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_
     :class:`~accel_bayes.prep.selection.Selection` such as ``preprocess(rec).selection``).  The
     prior mean is the nominal design of the used IMUs (relative to ``rec.reference_imu``) unless
     given.  Rows of the result follow ``result.imu_labels``; ``result.selection`` is the Selection
-    used and ``result.sample_index`` its kept indices.  Other keywords go to :func:`fit_map`.
+    used and ``result.sample_index`` its kept indices.  ``phi_prior``: None or "flat" (flat φ,
+    [C21]), "empirical" (:func:`accel_bayes.prep.phi_prior.empirical_phi_prior` at the prior mean,
+    with the recording's stated noise; as ``calibrate`` does) or a given prior; the one used is
+    ``result.phi_prior``.  Other keywords go to :func:`fit_map`.
     """
     from ..likelihood import RaoBlackwellLikelihood
 
@@ -366,8 +399,15 @@ def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_
     labels = list(lik.imu_labels)
     if prior_mean is None:
         prior_mean = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=dtype, device=device)
+    if isinstance(phi_prior, str):
+        from ..prep.phi_prior import PHI_PRIOR_CHOICES, empirical_phi_prior
+
+        if phi_prior not in PHI_PRIOR_CHOICES:
+            raise UserError(f"phi_prior: expected one of {PHI_PRIOR_CHOICES} or a prior covariance, got {phi_prior!r}")
+        phi_prior = None if phi_prior == "flat" else empirical_phi_prior(lik.acc, lik.omega.mean, lik.acc_noise_std,
+                                                                           torch.as_tensor(prior_mean, dtype=dtype))
     res = fit_map(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, reference=lik.reference,
-                  prior_mean=prior_mean, prior_std=prior_std, dtype=dtype, device=device, **kw)
+                  prior_mean=prior_mean, prior_std=prior_std, phi_prior=phi_prior, dtype=dtype, device=device, **kw)
     res.imu_labels = tuple(labels)
     res.sample_index = lik.sample_index
     res.selection = lik.selection

@@ -46,6 +46,7 @@ from ..inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
 from ..likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
     positions_from_theta
 from ..prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
+from ..prep.phi_prior import PHI_PRIOR_CHOICES, PhiPrior, empirical_phi_prior
 from ..data.outputs import to_jsonable, write_text
 from ..prep.preprocess import preprocess
 from ..data.io import load_recording
@@ -76,6 +77,7 @@ DEFAULTS = {
     "noise": "auto",
     "noise_bins": DEFAULT_RATE_BINS,
     "noise_inflation": True,
+    "phi_prior": "empirical",
 }
 
 # Upper bound on N·T when N is chosen automatically: one estimate then costs at most ~0.1 s here.
@@ -124,7 +126,7 @@ def _int_option(name, v, lo):
 
 
 def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
-              checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select):
+              checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select, phi_prior):
     """Every option of :func:`calibrate`, checked once before the recording is read; returns the
     integer options as ints (``num_draws`` only when given)."""
     out = {
@@ -159,6 +161,14 @@ def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_met
     out["noise_bins"] = _int_option("noise_bins", noise_bins, 1)
     if isinstance(select, str) and select != "rotation":
         raise UserError(f"select: expected None, a mask, indices or 'rotation', got {select!r}")
+    if isinstance(phi_prior, str):
+        if phi_prior not in PHI_PRIOR_CHOICES:
+            raise UserError(f"phi_prior: expected one of {PHI_PRIOR_CHOICES} or a prior covariance, got {phi_prior!r}")
+    else:
+        PhiPrior.coerce(phi_prior)  # refuses a malformed prior here, before the recording is read
+    if not (isinstance(phi_prior, str) and phi_prior == "flat") and out["noise_bins"] > 1:
+        raise UserError("phi_prior: a proper prior on φ needs noise_bins=1 (the rate-bin rescaling of the samples "
+                        "assumes φ free); pass phi_prior='flat' (CLI --phi-prior flat) with --noise-bins > 1")
     return out
 
 
@@ -241,7 +251,7 @@ def _fit_map(lik, nominal_acc, prior_std, settings):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         res = fit_map(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, reference=lik.reference,
-                      prior_mean=nominal_acc, prior_std=prior_std, on_divergence="ignore")
+                      prior_mean=nominal_acc, prior_std=prior_std, on_divergence="ignore", phi_prior=lik.phi_prior)
     return _usable_map(res, settings)
 
 
@@ -259,11 +269,16 @@ def _usable_map(res, settings):
     return res
 
 
-def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings):
+def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings, phi_prior="flat"):
     """Fit the MAP with the data-estimated noise model (:mod:`accel_bayes.prep.noise`); with
     ``inflate`` temper the likelihood by the sandwich factor κ.  Returns the likelihood the
     chains use (:class:`~accel_bayes.prep.noise.TemperedLikelihood` of the scaled samples), the MAP
-    of exactly that target (or None if unusable) and the :class:`~accel_bayes.prep.noise.NoiseModel`."""
+    of exactly that target (or None if unusable) and the :class:`~accel_bayes.prep.noise.NoiseModel`.
+
+    ``phi_prior``: "flat", "empirical" or a given prior.  The noise levels are fitted with φ free
+    (the REML update of :mod:`accel_bayes.prep.noise`); an empirical prior is then estimated with
+    those levels (its M⁻¹ correction depends on them), the MAP refitted under it (warm start),
+    and the sandwich, the tempered MAP and the chains' likelihood all carry it."""
     from ..prep.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
 
     with warnings.catch_warnings():
@@ -274,11 +289,19 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings):
     acc_s, w_s, P_s = scale_samples(lik.acc, lik.omega.mean, lik.omega.cov, s_t)
     std = np.asarray(nm.std, dtype=np.float64)
     info = nm.to_dict()
+    prior = _phi_prior_step(acc_s, w_s, std, nominal_acc, phi_prior, settings)
+    if prior is not None and bool(torch.isfinite(torch.as_tensor(res.theta)).all()):
+        from ..inference.map import fit_map
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            res = fit_map(acc_s, w_s, P_s, std, reference=lik.reference, prior_mean=nominal_acc, prior_std=prior_std,
+                          init_positions=res.positions, init_omega=res.omega, on_divergence="ignore", phi_prior=prior)
     kappa = 1.0
     lap_ok = bool(torch.isfinite(torch.as_tensor(res.laplace_cov)).all())
     if inflate and lap_ok:
         sw = sandwich_inflation(acc_s, w_s, P_s, std, res, reference=lik.reference, prior_mean=nominal_acc,
-                                prior_std=prior_std)
+                                prior_std=prior_std, phi_prior=prior)
         kappa = max(1.0, sw["kappa"])  # never narrower than the fitted model says
         info["sandwich"] = {"kappa": sw["kappa"], "applied": kappa, "lags": sw["lags"],
                             "std_ratio_median": float(np.median(sw["std_ratio"])),
@@ -288,15 +311,16 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings):
                 warnings.simplefilter("ignore", RuntimeWarning)
                 res = fit_map_tempered(acc_s, w_s, P_s, std * math.sqrt(kappa), kappa, reference=lik.reference,
                                        prior_mean=nominal_acc, prior_std=prior_std, init_positions=res.positions,
-                                       init_omega=res.omega)
+                                       init_omega=res.omega, phi_prior=prior)
     elif inflate:
         info["sandwich"] = {"kappa": None, "applied": 1.0, "why": "no Laplace covariance at the MAP"}
-    info["tempering"] = ("likelihood^(1/kappa): Gaussian exponent via std x sqrt(kappa), Occam term "
-                         "(T/2) log|M| weighted 1/kappa") if kappa > 1.0 else None
+    info["tempering"] = (("likelihood^(1/kappa): Gaussian exponent via std x sqrt(kappa)"
+                          + (" and the phi prior's F x kappa" if prior is not None else "")
+                          + ", Occam term (T/2) log|M| weighted 1/kappa") if kappa > 1.0 else None)
     info["std_used"] = [float(v) for v in std * math.sqrt(kappa)]
     settings["noise_model"] = info
     new = TemperedLikelihood(acc_s, GyroPosterior(w_s, P_s, lik.omega.method), std * math.sqrt(kappa), 1, kappa,
-                             reference=lik.reference, dtype=lik.dtype, device=lik.device)
+                             reference=lik.reference, dtype=lik.dtype, device=lik.device, phi_prior=prior)
     new.imu_labels, new.gyro_labels = lik.imu_labels, lik.gyro_labels
     new.sample_index, new.nominal_positions = lik.sample_index, lik.nominal_positions
     return new, _usable_map(res, settings), nm
@@ -333,6 +357,7 @@ def calibrate(
     noise: str = DEFAULTS["noise"],
     noise_bins: int = DEFAULTS["noise_bins"],
     noise_inflation: bool = DEFAULTS["noise_inflation"],
+    phi_prior=DEFAULTS["phi_prior"],
 ) -> CalibrationResult:
     """Sample the posterior of the accelerometer-triad positions of one recording with PmMH.
 
@@ -381,6 +406,16 @@ def calibrate(
     noise_bins : quantile bins of |ω̄| for a rate-dependent noise factor (default 1 = one level
         per triad; see :mod:`accel_bayes.prep.noise` for why more bins are not the default).
     noise_inflation : temper by the sandwich factor κ ≥ 1 (default True; estimated noise only).
+    phi_prior : the prior on φ_t = [ω̇_t; s_t] (angular acceleration, specific force) that the
+        likelihood integrates out (:mod:`accel_bayes.prep.phi_prior`).  "empirical" (default) — a
+        zero-mean Gaussian whose 6×6 covariance is the type-II ML estimate from the recording
+        (with the noise the chains use); it removes the inward pull of the flat prior's
+        −(T/2)·log|M(θ)| (demo configuration: array scale 0.99812 ± 0.00034 flat, 0.99978 ±
+        0.00032 empirical, 0.99990 ± 0.00031 for the log|M|-free reference;
+        experiments/phi_prior_probe.md).  "flat" — [C21] as published (DESIGN §4; what the paper
+        reproductions use).  A :class:`~accel_bayes.prep.phi_prior.PhiPrior`, (σ_ω̇ rad/s²,
+        σ_s m/s²), six stds or a (6, 6) covariance — that prior.  What was used is in
+        ``settings["phi_prior"]``.
     proposal : "rw" (Gaussian random walk only, [C21] eq. 27 with a shaped covariance),
         "mixture" (random walk mixed with independence moves from the Laplace approximation or
         the warm-up moments), "auto" (mixture when a MAP is used, else rw).
@@ -398,14 +433,14 @@ def calibrate(
     # 1 load, 2 prepare, 3 noise, 4 MAP, 5 central θ and N, 6 posterior, 7 summary; writing the
     # files is :func:`write_outputs`.
     opts = _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
-                     checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select)
+                     checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select, phi_prior)
     noise_bins = opts["noise_bins"]
     raw, sha, src = _load_step(recording)
     _check_resume(raw, sha, opts, checkpoint=checkpoint, resume=resume, prior=prior, prior_std=prior_std,
                   use_map=use_map, init=init, gyro_method=gyro_method, select=select, drop_clipped=drop_clipped,
                   proposal=proposal, independence_prob=independence_prob, target_accept_prob=target_accept_prob,
                   intrinsics=intrinsics, drop_static=drop_static, min_rotation=min_rotation, noise=noise,
-                  noise_bins=noise_bins, noise_inflation=noise_inflation)
+                  noise_bins=noise_bins, noise_inflation=noise_inflation, phi_prior=phi_prior)
     # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
     pre, rec = _prepare_step(raw, intrinsics=intrinsics, drop_static=drop_static, drop_clipped=drop_clipped,
                                min_rotation=min_rotation, select=select)
@@ -441,7 +476,8 @@ def calibrate(
         settings["input"] = src
     extra = {"preprocess": pre}
 
-    lik, map_res = _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra)
+    lik, map_res = _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra,
+                               phi_prior)
     map_res = _map_step(lik, nominal_acc, ps, noise_mode, use_map, map_res, settings)
     lik, theta_c, lap, N = _central_step(lik, pri, map_res, opts, proposal, settings)
     run = _posterior_step(lik, pri, theta_c, lap, opts, proposal=proposal, independence_prob=independence_prob,
@@ -479,7 +515,7 @@ def _load_step(recording):
 
 def _check_resume(raw, sha, opts, *, checkpoint, resume, prior, prior_std, use_map, init, gyro_method, select,
                   drop_clipped, proposal, independence_prob, target_accept_prob, intrinsics, drop_static,
-                  min_rotation, noise, noise_bins, noise_inflation):
+                  min_rotation, noise, noise_bins, noise_inflation, phi_prior):
     """What the run depends on, known before any computation (stored in ``opts["request"]``): a
     resumed checkpoint is checked against it here, not after minutes of preprocessing and MAP."""
     options = {k: v for k, v in opts.items() if k not in ("checkpoint_every", "noise_bins", "request")}
@@ -490,7 +526,8 @@ def _check_resume(raw, sha, opts, *, checkpoint, resume, prior, prior_std, use_m
         intrinsics=intrinsics if isinstance(intrinsics, (str, bool, os.PathLike)) or intrinsics is None
         else _intrinsics_key(intrinsics),
         drop_static=bool(drop_static), min_rotation=min_rotation, noise=noise, noise_bins=noise_bins,
-        noise_inflation=bool(noise_inflation))
+        noise_inflation=bool(noise_inflation),
+        phi_prior=phi_prior if isinstance(phi_prior, str) else PhiPrior.coerce(phi_prior).cov.flatten().tolist())
     request = json.loads(json.dumps({"version": __version__, "recording": sha or _recording_hash(raw),
                                      "options": options}, default=str))
     if resume and checkpoint is not None and Path(checkpoint).exists():
@@ -508,15 +545,34 @@ def _prepare_step(raw, *, intrinsics, drop_static, drop_clipped, min_rotation, s
     return pre, rec
 
 
-def _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra):
-    """Step 3, noise: with ``noise_mode`` "estimate" the noise model fitted with the MAP (and the
-    tempered likelihood of that target, :func:`_estimate_noise`); "stated" keeps the recording's.
-    Returns (likelihood the chains use, the MAP of the estimated-noise target or None)."""
+def _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra, phi_prior):
+    """Step 3, noise and the prior on φ: with ``noise_mode`` "estimate" the noise model fitted with
+    the MAP (and the tempered likelihood of that target, :func:`_estimate_noise`); "stated" keeps
+    the recording's.  Either way the prior on φ (:func:`_phi_prior_step`) is set with the noise
+    the chains use.  Returns (likelihood the chains use, the MAP of the estimated-noise target or
+    None)."""
     if noise_mode != "estimate":
-        return lik, None
-    lik, map_res, nm = _estimate_noise(lik, nominal_acc, ps, noise_bins, bool(noise_inflation), settings)
+        prior = _phi_prior_step(lik.acc, lik.omega.mean, lik.acc_noise_std, nominal_acc, phi_prior, settings)
+        return lik.with_phi_prior(prior), None
+    lik, map_res, nm = _estimate_noise(lik, nominal_acc, ps, noise_bins, bool(noise_inflation), settings,
+                                       phi_prior=phi_prior)
     extra["noise"] = nm
     return lik, map_res
+
+
+def _phi_prior_step(acc, omega_mean, acc_noise_std, nominal_acc, phi_prior, settings):
+    """The prior on φ_t = [ω̇_t; s_t] the chains use (:mod:`accel_bayes.prep.phi_prior`): None for
+    "flat" ([C21]), the type-II ML estimate at the nominal design for "empirical" (default), or
+    the given one.  Recorded in ``settings["phi_prior"]`` (positions.json provenance)."""
+    if isinstance(phi_prior, str) and phi_prior == "flat":
+        settings["phi_prior"] = {"source": "flat"}
+        return None
+    if isinstance(phi_prior, str):
+        prior = empirical_phi_prior(acc, omega_mean, acc_noise_std, nominal_acc)
+    else:
+        prior = PhiPrior.coerce(phi_prior)
+    settings["phi_prior"] = prior.describe()
+    return prior
 
 
 def _map_step(lik, nominal_acc, ps, noise_mode, use_map, noise_map, settings):

@@ -54,7 +54,7 @@ class MapRun:
 
 def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_method: str = "sample_cov",
                   select: str = "all", max_iter: int = 100, drop_clipped: bool = True,
-                  progress: bool = False) -> MapRun:
+                  progress: bool = False, phi_prior="empirical") -> MapRun:
     """MAP positions (and Laplace covariance) of the accelerometer triads of one recording.
 
     recording : a path to a format-v1 file, a :class:`~accel_bayes.data.recording.Recording` or a
@@ -64,6 +64,8 @@ def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_metho
     select : "all", or "rotation" (drop samples whose mean gyro rate is below 0.5 rad/s).
     max_iter : LM iteration limit.
     drop_clipped : drop samples flagged clipped (the model cannot explain a sensor at its range).
+    phi_prior : the prior on φ = [ω̇; s], as in :func:`accel_bayes.pipelines.calibrate.calibrate`:
+        "empirical" (default, estimated from the recording), "flat" ([C21]) or a given prior.
     """
     from .. import __version__
     from ..errors import UserError
@@ -78,7 +80,7 @@ def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_metho
     t0 = time.perf_counter()
     res = fit_map_recording(rec, gyro_method=gyro_method, prior_std=prior_std,
                             select=None if select == "all" else "rotation", drop_clipped=drop_clipped,
-                            max_iter=max_iter, progress=progress)
+                            max_iter=max_iter, progress=progress, phi_prior=phi_prior)
     seconds = time.perf_counter() - t0
     labels = list(res.imu_labels)
     K = rec.K
@@ -89,7 +91,8 @@ def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_metho
     settings = {"prior_std": prior_std, "gyro_method": gyro_method, "select": select,
                 "max_iter": max_iter, "converged": bool(res.converged), "reason": res.reason,
                 "n_iter": int(res.n_iter), "imus_used": labels, "drop_clipped": drop_clipped,
-                "clipped_samples": n_clip}
+                "clipped_samples": n_clip,
+                "phi_prior": {"source": "flat"} if res.phi_prior is None else res.phi_prior.describe()}
     reasons = [] if res.converged else [f"LM stopped without converging ({res.reason}); the estimate may be poor"]
     doc = positions_document(method="map", reference_imu=int(rec.reference_imu), means=means, covs=covs,
                              diagnostics={"seconds": seconds, "log_posterior": float(res.log_posterior),

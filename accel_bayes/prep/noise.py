@@ -73,6 +73,7 @@ from ..data.outputs import to_jsonable
 from ..errors import UserError
 from ..likelihood import RaoBlackwellLikelihood, positions_from_theta
 from ..physics.models import G_matrix, H_matrix, u_of_omega
+from .phi_prior import PhiPrior
 from ..physics.jacobians import du_domega
 
 __all__ = ["NoiseModel", "residual_statistics", "update_noise", "scale_samples", "fit_map_with_noise",
@@ -306,7 +307,7 @@ def newey_west_lags(T: int) -> int:
 
 
 def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *, reference: int = 0,
-                       prior_mean=None, prior_std=DEFAULT_PRIOR_STD, lags: int | None = None) -> dict:
+                       prior_mean=None, prior_std=DEFAULT_PRIOR_STD, lags: int | None = None, phi_prior=None) -> dict:
     """How much wider the misspecification-robust (sandwich) covariance of θ is than the Laplace one.
 
     At the MAP of the (scaled) problem, with per-sample scores g_t = J̃_tᵀ r_t (r_t the whitened,
@@ -321,7 +322,8 @@ def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *,
     from ..inference.map import build_map_problem
 
     prob = build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, reference=reference, prior_mean=prior_mean,
-                             prior_std=prior_std, init_positions=map_result.positions, init_omega=map_result.omega)
+                             prior_std=prior_std, init_positions=map_result.positions, init_omega=map_result.omega,
+                             phi_prior=phi_prior)
     res_by_name = {r.name: r for r in prob.sample_residuals}
     accr, gyr = res_by_name["acc"], res_by_name["gyro"]
     g = {"theta": torch.as_tensor(map_result.theta, dtype=torch.float64)}
@@ -347,14 +349,6 @@ def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *,
 
 # ---------------------------------------------------------------------------- tempering (coarsening)
 
-def _logdet_M(positions: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
-    """log|HᵀΛH| (...,) for positions (..., A, 3) and Λ's diagonal (3A,) — O(A) per θ.  Invariant
-    to a common translation of the positions (H(r + c) = H(r)·E with det E = 1)."""
-    H = H_matrix(positions)
-    M = H.transpose(-1, -2) @ (lam[:, None] * H)
-    return torch.linalg.slogdet(M)[1]
-
-
 class TemperedLikelihood(RaoBlackwellLikelihood):
     """The [C21] likelihood raised to the power 1/κ (a coarsened / generalised-Bayes posterior).
 
@@ -365,19 +359,30 @@ class TemperedLikelihood(RaoBlackwellLikelihood):
     −(T/(2κ)) log|M(θ)| by adding the deterministic (1 − 1/κ)(T/2) log|M(θ)|.  p̂ times a
     deterministic function of θ is an unbiased estimator of that function × p, so PmMH stays
     exact for the tempered target.
+
+    With a proper prior N(0, F) on φ (``phi_prior``, the UNtempered F) the sample's density is
+    N(y; Gu, Q + HFHᵀ); its power 1/κ is the Gaussian with covariance κ(Q + HFHᵀ), i.e. noise
+    std × √κ AND F × κ (done here), times |Q + HFHᵀ|^(−1/(2κ)), whose θ-part is
+    |M + F⁻¹|^(−1/(2κ)) — unchanged under that joint scaling up to a constant, so the same Occam
+    re-weighting applies with M + F⁻¹ in place of M.
     """
 
     def __init__(self, acc, omega, acc_noise_std, num_draws, kappa: float, reference: int = 0,
-                 dtype=torch.float64, device=None):
-        super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device)
+                 dtype=torch.float64, device=None, phi_prior=None):
         self.kappa = float(kappa)
         if not self.kappa >= 1.0:
             raise UserError(f"kappa: expected a factor >= 1, got {kappa!r}")
+        prior = PhiPrior.coerce(phi_prior, dtype=dtype, device=device)
+        super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device,
+                         phi_prior=None if prior is None else prior.scaled(self.kappa))
 
     def occam_correction(self, positions) -> torch.Tensor:
-        """(1 − 1/κ)(T/2) log|M(θ)| for positions (..., A, 3)."""
+        """(1 − 1/κ)(T/2) log|M(θ) + F⁻¹| for positions (..., A, 3) (M alone for the flat prior);
+        O(A) per θ and invariant to a common translation (H(r + c) = H(r)·E with det E = 1)."""
         r = self._positions(positions)
-        return (1.0 - 1.0 / self.kappa) * 0.5 * self.T * _logdet_M(r, self.lam)
+        H = H_matrix(r)
+        M = self._with_phi_prior(H.transpose(-1, -2) @ (self.lam[:, None] * H))
+        return (1.0 - 1.0 / self.kappa) * 0.5 * self.T * torch.linalg.slogdet(M)[1]
 
     def log_phat(self, positions, *args, **kwargs) -> torch.Tensor:
         """log p̂ of the [C21] estimator plus the Occam re-weighting (class docstring)."""
@@ -386,18 +391,22 @@ class TemperedLikelihood(RaoBlackwellLikelihood):
 
 
 def fit_map_tempered(acc, omega_mean, omega_cov, acc_noise_std, kappa: float, *, reference: int = 0,
-                     prior_mean=None, prior_std=DEFAULT_PRIOR_STD, init_positions=None, init_omega=None, max_iter: int = 100):
+                     prior_mean=None, prior_std=DEFAULT_PRIOR_STD, init_positions=None, init_omega=None, max_iter: int = 100,
+                     phi_prior=None):
     """MAP and Laplace covariance of the tempered posterior (:class:`TemperedLikelihood`):
     :func:`accel_bayes.inference.map.build_map_problem` with ``acc_noise_std`` (already × √κ)
     and its log|M| term weighted by 1/κ; solved by the same Levenberg–Marquardt.  Returns a
     :class:`~accel_bayes.inference.map.MAPResult` (``converged`` False and a NaN covariance when
-    the Hessian is not positive definite)."""
+    the Hessian is not positive definite).  ``phi_prior``: the untempered prior on φ (scaled by κ
+    here, as in :class:`TemperedLikelihood`)."""
     from ..inference.lm.linear import NotPositiveDefinite
     from ..inference.lm import ExtraCost, LevenbergMarquardt
     from ..inference.map import MAPResult, build_map_problem
 
+    prior = PhiPrior.coerce(phi_prior)
     prob = build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, reference=reference, prior_mean=prior_mean,
-                             prior_std=prior_std, init_positions=init_positions, init_omega=init_omega)
+                             prior_std=prior_std, init_positions=init_positions, init_omega=init_omega,
+                             phi_prior=None if prior is None else prior.scaled(kappa))
     w = 1.0 / float(kappa)
     prob.extra = [ExtraCost(lambda g, e=e: w * e.fn(g), grad_hess=lambda g, e=e: tuple(w * v for v in e.grad_hess(g)),
                             step_hessian=e.step_hessian, name=e.name) for e in prob.extra]
