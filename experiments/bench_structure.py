@@ -67,8 +67,10 @@ WORKLOADS = {
         from accel_bayes.simulate import simulate
         from accel_bayes.inference.map import fit_map_recording
         sim = simulate(preset("mimu8"), "smooth", T=600, seed=1)
+        # the same work in both trees: [C21]'s flat φ (the default since issue #15 is the empirical prior)
+        kw = {"phi_prior": "flat"} if "phi_prior" in inspect.signature(fit_map_recording).parameters else {}
         tic()
-        res = fit_map_recording(sim.recording, progress=False)
+        res = fit_map_recording(sim.recording, progress=False, **kw)
         seconds, cpu = toc()
         value = res.positions.reshape(-1).tolist()
     """,
@@ -97,8 +99,9 @@ WORKLOADS = {
         from accel_bayes.simulate import simulate
         from accel_bayes.calibrate import calibrate
         sim = simulate(preset("mimu8"), "smooth", T=600, seed=1)
+        kw = {"phi_prior": "flat"} if "phi_prior" in inspect.signature(calibrate).parameters else {}
         tic()
-        res = calibrate(sim.recording, seed=1, progress=False)
+        res = calibrate(sim.recording, seed=1, progress=False, **kw)
         seconds, cpu = toc()
         value = [e["mean"] for e in res.positions["imus"]]
         value = [v for m in value for v in (m or [])]
@@ -106,6 +109,7 @@ WORKLOADS = {
 }
 
 PRELUDE = """
+import inspect
 import json, sys, time, warnings
 warnings.simplefilter("ignore")
 # an editable install's finder would serve modules missing from the tree under test

@@ -375,7 +375,7 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
 def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_rotation=None,
                       drop_clipped: bool = False, selection=None, acc_imus=None, gyro_imus=None,
                       prior_std=DEFAULT_PRIOR_STD,
-                      prior_mean=None, phi_prior=None, dtype=torch.float64, device=None, **kw) -> MAPResult:
+                      prior_mean=None, phi_prior="empirical", dtype=torch.float64, device=None, **kw) -> MAPResult:
     """:func:`fit_map` on a :class:`~accel_bayes.data.recording.Recording`.
 
     Data preparation is the likelihood's (:meth:`accel_bayes.likelihood.RaoBlackwellLikelihood.from_recording`):
