@@ -44,7 +44,7 @@ from __future__ import annotations
 from .adaptation import regularized_cov, warmup_windows
 from .checkpoint import CHECKPOINT_FORMAT, check_checkpoint_request, read_checkpoint
 from .kernel import PMMHKernel, Transition
-from .runner import PMMHRun, run_pmmh
+from .runner import STOP_REASONS, PMMHRun, run_pmmh, run_pmmh_until
 
-__all__ = ["PMMHKernel", "PMMHRun", "Transition", "run_pmmh", "read_checkpoint", "check_checkpoint_request",
+__all__ = ["PMMHKernel", "PMMHRun", "Transition", "run_pmmh", "run_pmmh_until", "STOP_REASONS", "read_checkpoint", "check_checkpoint_request",
            "CHECKPOINT_FORMAT", "warmup_windows", "regularized_cov"]
