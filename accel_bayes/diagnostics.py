@@ -223,7 +223,9 @@ ESS_PER_CHAIN = 100
 
 
 def convergence_warnings(rhat: float | None, ess_bulk: float | None, chains: int) -> list[str]:
-    """Why PmMH chains cannot be trusted yet, one sentence each; ``[]`` when they can.
+    """Why PmMH chains cannot be trusted yet, one sentence each; ``[]`` when they can — the older
+    summary form of the rule (max R̂, min bulk ESS, 100 per chain); ``calibrate`` decides with
+    :func:`convergence_check` (every coordinate, bulk and tail ESS).
 
     rhat : largest split R̂ (:func:`rhat_max`); ess_bulk : smallest bulk ESS (:func:`ess_bulk_min`),
     draws; chains : number of chains.  None or NaN (too few draws to compute the statistic) counts

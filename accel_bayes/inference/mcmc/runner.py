@@ -337,7 +337,11 @@ def run_pmmh_until(
     bar_cls = None
     if progress:
         from tqdm.auto import tqdm as bar_cls
-    last_line = ""
+    last_line = ""  # the last check, shown with the bars
+    if checks:  # resumed: the last check so far
+        h = checks[-1]
+        last_line = f"{h.get('draws')} draws/chain" + (
+            f": max R-hat {h['rhat_max']:.4f}" if isinstance(h.get("rhat_max"), float) else "")
     while stopped is None:
         if target is None:  # a new block (a resumed one keeps the target it was started with)
             target = min((done // B + 1) * B, Dmax)
@@ -363,11 +367,10 @@ def run_pmmh_until(
             bar = None
             if bar_cls is not None and start < stop_it:
                 first = 0 if done == 0 else W + done
-                desc = f"chain {c} draws {done}-{target}" + (f" (+{W} warm-up)" if first == 0 and W else "")
+                desc = (f"chain {c} draws {done}-{target}" + (f" (+{W} warm-up)" if first == 0 and W else "")
+                        + (f" [check {len(checks)}: {last_line}]" if last_line else ""))
                 bar = bar_cls(total=stop_it - first, initial=start - first, desc=desc, leave=False,
                               dynamic_ncols=True)
-                if last_line:
-                    bar.set_postfix_str(last_line, refresh=False)
             try:
                 _iterate(kernel, st, c, start, stop_it, W, bar, callback, checkpoint_every,
                          lambda it, c=c: save(c, it, kernel.state_dict(), time.perf_counter() - t_start))
