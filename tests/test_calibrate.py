@@ -227,6 +227,17 @@ def test_auto_unconverged_within_budget_is_status_4_and_says_why(sim, tmp_path, 
     assert any(w.startswith(("R-hat", "bulk ESS", "tail ESS")) for w in d["warnings"])
 
 
+def test_auto_wall_clock_stop_is_reported(sim):
+    """max_seconds is a safety stop tested after each check; hitting it is recorded as such (the
+    length then depends on the machine) and the result is not trusted."""
+    res = calibrate(sim.recording, check_every=30, max_draws=90, max_seconds=1e-9, **AUTO)
+    conv, d = res.settings["convergence"], res.positions["diagnostics"]
+    assert conv["stopped"] == "max_seconds" and conv["checks"] == 1 and res.run.num_samples == 30
+    assert "depends on the machine" in conv["why"] and conv["max_seconds"] == 1e-9
+    assert not d["converged"] and d["stopped"] == "max_seconds"
+    assert any("wall-clock budget (max_seconds)" in w for w in d["warnings"])
+
+
 def test_auto_resume_is_bit_exact(sim, tmp_path):
     """A run until converged killed inside its second block resumes to the very same draws."""
     kw = dict(check_every=30, max_draws=90, rhat_max=1.5, ess_min=1e6, **AUTO)  # never converges: 3 blocks
