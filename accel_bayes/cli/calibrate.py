@@ -11,7 +11,8 @@ Writes DIR/posterior.nc (ArviZ InferenceData), DIR/summary.csv (R̂, ESS, MCSE p
 DIR/positions.json (DESIGN §7.3) and trace/rank/autocorr/ellipses plots; prints a short table.
 
 Length of the chains: by default the chains run until converged — every coordinate with
-R̂ < 1.01 (``--rhat-max``) and bulk and tail ESS ≥ 400 (``--ess-min``), checked every 500 draws per
+R̂ < 1.01 (``--rhat-max``) and bulk and tail ESS ≥ 100 per chain, 400 for the 4 default chains
+(``--ess-min``), checked every 500 draws per
 chain (``--check-every``, a fixed count, so the result does not depend on the machine), up to
 20 000 draws per chain (``--max-draws``) or 3600 s of sampling (``--max-seconds``, a safety stop
 whose use makes the length machine-dependent and is reported).  ``--draws N`` runs exactly N draws
@@ -19,7 +20,7 @@ per chain instead (the fixed mode of earlier versions, same draws for the same s
 
 Exit status (DESIGN §7.5): 0 converged; 2 refused (bad option, recording or checkpoint — checked
 before any computation); 4 finished but the chains have not converged (some coordinate with
-R̂ ≥ 1.01, bulk or tail ESS < 400, or not computable; in the default mode: within the budget):
+R̂ ≥ 1.01, bulk or tail ESS < 100 per chain, or not computable; in the default mode: within the budget):
 the outputs are written, ``positions.json`` has ``diagnostics.converged: false`` and
 ``diagnostics.warnings`` (the coordinate, its value and the threshold of each failed criterion,
 and the budget that stopped the run), and one line on stderr says why.
@@ -70,8 +71,8 @@ def register(sub) -> None:
                    help="R-hat threshold of every coordinate (default %(default)s; also decides exit status 4 "
                         "with --draws)")
     c.add_argument("--ess-min", type=opt.positive("draws"), default=DEFAULTS["ess_min"], metavar="E",
-                   help="bulk and tail ESS threshold of every coordinate, all chains together (default "
-                        "%(default)s)")
+                   help="bulk and tail ESS threshold of every coordinate, all chains together (default 100 per "
+                        "chain: 400 for 4 chains)")
     p.add_argument("--num-draws", type=opt.count(1), default=None, metavar="N",
                    help="Monte Carlo draws per likelihood estimate (default: chosen so Var[log p̂] ≈ 1)")
     p.add_argument("--seed", type=opt.seed, default=0, help="random seed (default %(default)s)")

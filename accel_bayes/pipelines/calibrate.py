@@ -65,8 +65,8 @@ __all__ = ["calibrate", "CalibrationResult", "write_outputs", "positions_documen
 # pipeline took 3.5–4 min wall (≈ 2 min CPU) with R̂ ≤ 1.004 and bulk ESS ≥ 1600.
 #
 # Length of the chains (issue #15): ``draws`` None runs until converged — every coordinate with
-# R̂ < rhat_max and bulk and tail ESS ≥ ess_min (Vehtari et al. 2021: 1.01, and 100 per chain for
-# the 4 chains), checked every ``check_every`` kept draws per chain (a fixed count, never wall
+# R̂ < rhat_max and bulk and tail ESS ≥ ess_min (Vehtari et al. 2021: 1.01, and 100 per chain, i.e.
+# 400 for the 4 chains), checked every ``check_every`` kept draws per chain (a fixed count, never wall
 # time, so where a run stops does not depend on the machine), up to ``max_draws`` per chain
 # (20 000: 5–20× what the cases above needed, ≈ 10–25 min of sampling at the per-iteration costs
 # above) and ``max_seconds`` of sampling (a safety stop; a run that hits it has a machine-dependent
@@ -78,7 +78,7 @@ DEFAULTS = {
     "max_draws": 20_000,
     "check_every": 500,
     "rhat_max": dg.RHAT_MAX,
-    "ess_min": dg.ESS_MIN,
+    "ess_min": None,  # None: 100 per chain (dg.ESS_PER_CHAIN), 400 for the 4 chains
     "max_seconds": 3600.0,
     "prior": "gaussian",
     "prior_std": DEFAULT_PRIOR_STD,
@@ -170,7 +170,9 @@ def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_met
         "max_draws": _int_option("max_draws", max_draws, 1),
         "check_every": _int_option("check_every", check_every, 1),
         "rhat_max": _real_option("rhat_max", rhat_max, 1.0, "R-hat threshold"),
-        "ess_min": _real_option("ess_min", ess_min, 0.0, "effective draws, all chains together"),
+        # None: 100 per chain (``chains`` is checked above: the literal is evaluated in order)
+        "ess_min": float(dg.ESS_PER_CHAIN * int(chains)) if ess_min is None
+        else _real_option("ess_min", ess_min, 0.0, "effective draws, all chains together"),
         "max_seconds": _real_option("max_seconds", max_seconds, 0.0, "seconds", allow_none=True),
     }
     if num_draws is not None:
@@ -352,7 +354,7 @@ def calibrate(
     max_draws: int = DEFAULTS["max_draws"],
     check_every: int = DEFAULTS["check_every"],
     rhat_max: float = DEFAULTS["rhat_max"],
-    ess_min: float = DEFAULTS["ess_min"],
+    ess_min: float | None = DEFAULTS["ess_min"],
     max_seconds: float | None = DEFAULTS["max_seconds"],
     num_draws: int | None = None,
     seed: int = 0,
@@ -395,8 +397,8 @@ def calibrate(
         stops does not depend on the machine's speed.
     rhat_max : R̂ threshold, a coordinate passes when its rank-normalised split R̂ < rhat_max
         (default 1.01).
-    ess_min : bulk and tail ESS threshold, effective draws of all chains together (default 400 =
-        100 per chain for the default 4 chains; Vehtari et al. 2021).
+    ess_min : bulk and tail ESS threshold, effective draws of all chains together; None (default):
+        100 per chain, i.e. 400 for the default 4 chains (Vehtari et al. 2021).
     max_seconds : wall-clock budget of the sampling in seconds (warm-up included, the steps
         before it not), tested after each check (default 3600; None: no limit).  A safety stop:
         a run that hits it has a machine-dependent number of draws, is reported as not converged
