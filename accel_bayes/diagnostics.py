@@ -6,8 +6,10 @@ Every ArviZ call of the package lives in this module, so a move to ArviZ 1.x is 
   variable ``r`` with dims ("imu", "axis"), sample statistics, the log-likelihood estimates);
   :func:`save` / :func:`load` write and read it as NetCDF (h5netcdf engine).
 * Statistics: :func:`summarize` (R̂, bulk/tail ESS, MCSE: ``az.summary``), :func:`rhat_max`,
-  :func:`ess_bulk_min`, :func:`posterior_moments`; :func:`convergence_warnings` (the one rule
-  for "converged": R̂ < 1.01 and bulk ESS ≥ 100 per chain), :func:`format_stat`.
+  :func:`ess_bulk_min`, :func:`posterior_moments`; :func:`convergence_check` (the one rule for
+  "converged": every coordinate with R̂ < 1.01 and bulk and tail ESS ≥ 400, thresholds
+  adjustable; used by ``calibrate`` to decide when to stop and for its exit status),
+  :func:`convergence_warnings` (the older max-R̂ / min-bulk-ESS form), :func:`format_stat`.
 * Plots (Agg backend, each returns a ``matplotlib.figure.Figure``): :func:`plot_trace`,
   :func:`plot_rank`, :func:`plot_autocorr`, :func:`plot_ellipses` ([C21] Fig. 5) and
   :func:`save_plots`.
@@ -22,6 +24,7 @@ import contextlib
 import logging
 import math
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +49,10 @@ __all__ = [
     "rhat_max",
     "ess_bulk_min",
     "convergence_warnings",
+    "convergence_check",
+    "ConvergenceCheck",
+    "RHAT_MAX",
+    "ESS_MIN",
     "format_stat",
     "posterior_moments",
     "save",
@@ -216,7 +223,9 @@ ESS_PER_CHAIN = 100
 
 
 def convergence_warnings(rhat: float | None, ess_bulk: float | None, chains: int) -> list[str]:
-    """Why PmMH chains cannot be trusted yet, one sentence each; ``[]`` when they can.
+    """Why PmMH chains cannot be trusted yet, one sentence each; ``[]`` when they can — the older
+    summary form of the rule (max R̂, min bulk ESS, 100 per chain); ``calibrate`` decides with
+    :func:`convergence_check` (every coordinate, bulk and tail ESS).
 
     rhat : largest split R̂ (:func:`rhat_max`); ess_bulk : smallest bulk ESS (:func:`ess_bulk_min`),
     draws; chains : number of chains.  None or NaN (too few draws to compute the statistic) counts
@@ -232,6 +241,126 @@ def convergence_warnings(rhat: float | None, ess_bulk: float | None, chains: int
         out.append("bulk ESS could not be computed (too few draws per chain)")
     elif ess_bulk < need:
         out.append(f"min bulk ESS {ess_bulk:.0f} < {ESS_PER_CHAIN} per chain ({need} for {int(chains)})")
+    return out
+
+
+# Defaults of :func:`convergence_check` (Vehtari et al. 2021 §4: R̂ < 1.01, and bulk and tail ESS
+# > 100 per chain, i.e. 400 for the 4 default chains of ``calibrate``).
+RHAT_MAX = 1.01
+ESS_MIN = 400.0
+
+
+def _finite_or_none(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+@dataclass
+class ConvergenceCheck:
+    """Outcome of :func:`convergence_check` on C chains × D draws.
+
+    converged : every coordinate has R̂ < ``rhat_limit`` and bulk and tail ESS ≥ ``ess_min``
+        (all three computable).
+    failed : one human-readable sentence per failed criterion, naming the worst coordinate, its
+        value, the threshold and how many coordinates fail (``[]`` when converged).
+    rhat_max, ess_bulk_min, ess_tail_min : the worst values (NaN where not computable) and
+    rhat_at, ess_bulk_at, ess_tail_at : the coordinates where they occur.
+    chains, draws : C and D (draws per chain).
+    """
+
+    converged: bool
+    failed: list = field(default_factory=list)
+    rhat_max: float = float("nan")
+    ess_bulk_min: float = float("nan")
+    ess_tail_min: float = float("nan")
+    rhat_at: str | None = None
+    ess_bulk_at: str | None = None
+    ess_tail_at: str | None = None
+    rhat_limit: float = RHAT_MAX
+    ess_min: float = ESS_MIN
+    chains: int = 0
+    draws: int = 0
+
+    def as_dict(self) -> dict:
+        """Plain JSON-ready values (NaN → None)."""
+        return {"draws": int(self.draws), "chains": int(self.chains), "converged": bool(self.converged),
+                "rhat_max": _finite_or_none(self.rhat_max), "rhat_at": self.rhat_at,
+                "ess_bulk_min": _finite_or_none(self.ess_bulk_min), "ess_bulk_at": self.ess_bulk_at,
+                "ess_tail_min": _finite_or_none(self.ess_tail_min), "ess_tail_at": self.ess_tail_at,
+                "failed": list(self.failed)}
+
+    def line(self) -> str:
+        """One short line for a progress display."""
+        return (f"{self.draws} draws/chain: max R-hat {format_stat(self.rhat_max, '.4f')}, min ESS bulk "
+                f"{format_stat(self.ess_bulk_min, '.0f')} tail {format_stat(self.ess_tail_min, '.0f')}")
+
+    def __str__(self) -> str:
+        return self.line()
+
+
+def convergence_check(theta_chains, rhat_max: float = RHAT_MAX, ess_min: float = ESS_MIN, names=None
+                      ) -> ConvergenceCheck:
+    """The convergence rule: every coordinate has rank-normalised split R̂ < ``rhat_max`` and bulk
+    and tail ESS ≥ ``ess_min`` (ArviZ ``rhat`` and ``ess(method="bulk"/"tail")``).
+
+    theta_chains : (C, D, ...) array or tensor of draws, C chains × D draws; the trailing
+        dimensions are flattened into coordinates.
+    rhat_max : R̂ threshold (> 1); a coordinate passes when R̂ < rhat_max.
+    ess_min : ESS threshold, draws in total over the chains (ArviZ's ESS is pooled); a coordinate
+        passes when its bulk and its tail ESS are ≥ ess_min.
+    names : optional labels of the flattened coordinates (e.g. ``"r[3, y]"``) for the messages;
+        default ``"coordinate j"``.
+
+    A statistic that cannot be computed (NaN: too few draws) fails: convergence that cannot be
+    checked is not established.  Returns a :class:`ConvergenceCheck`.
+    """
+    x = _np(theta_chains)
+    if x is None or x.ndim < 2:
+        raise UserError(f"theta_chains: expected an array (chains, draws, ...), got shape "
+                        f"{None if x is None else x.shape}")
+    rl, em = float(rhat_max), float(ess_min)
+    if not (math.isfinite(rl) and rl > 1.0):
+        raise UserError(f"rhat_max: expected a finite number > 1, got {rhat_max!r}")
+    if not (math.isfinite(em) and em > 0):
+        raise UserError(f"ess_min: expected a finite number > 0, got {ess_min!r}")
+    C, D = int(x.shape[0]), int(x.shape[1])
+    flat = np.asarray(x, dtype=np.float64).reshape(C, D, -1)
+    P = flat.shape[-1]
+    names = [f"coordinate {j}" for j in range(P)] if names is None else [str(n) for n in names]
+    if len(names) != P:
+        raise UserError(f"names: expected {P} coordinate labels, got {len(names)}")
+    with warnings.catch_warnings(), _arviz_quiet(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore")
+        ds = az.convert_to_dataset({"x": flat}, dims={"x": ["coord"]})
+        rh = np.asarray(az.rhat(ds)["x"].values, dtype=np.float64).reshape(P)
+        eb = np.asarray(az.ess(ds, method="bulk")["x"].values, dtype=np.float64).reshape(P)
+        et = np.asarray(az.ess(ds, method="tail")["x"].values, dtype=np.float64).reshape(P)
+    failed = []
+    out = ConvergenceCheck(converged=False, rhat_limit=rl, ess_min=em, chains=C, draws=D)
+    # R̂: worst is the largest (NaN counts as worst)
+    bad = ~(rh < rl)
+    key = np.where(np.isfinite(rh), rh, np.inf)
+    j = int(np.argmax(key))
+    out.rhat_max, out.rhat_at = float(rh[j]), names[j]
+    if bad.any():
+        if not np.isfinite(rh[j]):
+            failed.append(f"R-hat could not be computed at {names[j]} (too few draws per chain)")
+        else:
+            failed.append(f"R-hat {rh[j]:.4f} at {names[j]} >= {rl:g} ({int(bad.sum())} of {P} coordinates fail)")
+    for kind, v in (("bulk", eb), ("tail", et)):
+        bad = ~(v >= em)
+        key = np.where(np.isfinite(v), v, -np.inf)
+        j = int(np.argmin(key))
+        setattr(out, f"ess_{kind}_min", float(v[j]))
+        setattr(out, f"ess_{kind}_at", names[j])
+        if bad.any():
+            if not np.isfinite(v[j]):
+                failed.append(f"{kind} ESS could not be computed at {names[j]} (too few draws per chain)")
+            else:
+                failed.append(f"{kind} ESS {v[j]:.0f} at {names[j]} < {em:g} ({int(bad.sum())} of {P} coordinates "
+                              "fail)")
+    out.failed = failed
+    out.converged = not failed
     return out
 
 

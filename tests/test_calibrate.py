@@ -140,6 +140,10 @@ def test_write_outputs(result, tmp_path):
 def test_calibrate_refuses_bad_options(sim):
     rec = sim.recording
     for kw, name in ((dict(chains=0), "chains"), (dict(draws=0), "draws"), (dict(warmup=-1), "warmup"),
+                     (dict(draws=2.5), "draws"), (dict(max_draws=0), "max_draws"), (dict(check_every=0), "check_every"),
+                     (dict(rhat_max=1.0), "rhat_max"), (dict(rhat_max="x"), "rhat_max"), (dict(ess_min=0), "ess_min"),
+                     (dict(ess_min=float("inf")), "ess_min"), (dict(max_seconds=-1.0), "max_seconds"),
+                     (dict(max_seconds=float("nan")), "max_seconds"),
                      (dict(prior_std=0.0), "prior_std"), (dict(prior_std=float("nan")), "prior_std"),
                      (dict(prior="flat"), "prior"), (dict(num_draws=0), "num_draws"),
                      (dict(gyro_method="x"), "gyro_method"), (dict(checkpoint_every=10), "checkpoint"),
@@ -171,11 +175,109 @@ def test_calibrate_resume_is_bit_exact(sim, tmp_path):
         calibrate(sim.recording, checkpoint=ck, resume=True, **dict(kw, seed=5))
 
 
+# ---------------------------------------------------------------------------- run until converged (issue #15)
+
+AUTO = dict(chains=2, warmup=100, num_draws=2, use_map=False, seed=4, progress=False)  # (always with max_draws)
+
+
+def test_auto_draws_are_those_of_one_fixed_run(sim):
+    """By default the chains run until converged: here (thresholds loose enough for short chains:
+    5 checks, 250 draws per chain, < 1 s) checked every 50 draws; the draws are exactly those of a
+    fixed run of that length, and the provenance records the criteria, the draws it took, every
+    check and why it stopped."""
+    kw = dict(chains=2, warmup=150, seed=4, progress=False)
+    res = calibrate(sim.recording, check_every=50, max_draws=400, rhat_max=1.05, ess_min=100, **kw)
+    conv = res.settings["convergence"]
+    D = res.run.num_samples
+    assert conv["mode"] == "until converged" and conv["stopped"] == "converged" and D % 50 == 0 and D > 50
+    assert conv["draws"] == D == res.settings["draws"] and conv["checks"] == D // 50 == len(conv["history"])
+    assert conv["criteria"]["rhat_max"] == 1.05 and conv["criteria"]["ess_bulk_min"] == 100
+    assert (conv["check_every"], conv["max_draws"], conv["max_seconds"]) == (50, 400, 3600.0)
+    assert [h["draws"] for h in conv["history"]] == list(range(50, D + 1, 50))
+    assert conv["history"][-1]["converged"] and not any(h["converged"] for h in conv["history"][:-1])
+    d = res.positions["diagnostics"]
+    assert d["converged"] and d["stopped"] == "converged" and d["draws_per_chain"] == D and d["checks"] == D // 50
+    assert d["criteria"] == {"rhat_max": 1.05, "ess_min": 100.0}
+    assert res.positions["provenance"]["settings"]["convergence"]["stopped"] == "converged"
+    assert d["rhat_max"] == pytest.approx(conv["history"][-1]["rhat_max"], rel=1e-12)
+    fixed = calibrate(sim.recording, draws=D, **kw)
+    assert fixed.settings["convergence"]["mode"] == "fixed draws" and fixed.settings["convergence"]["checks"] == 0
+    np.testing.assert_array_equal(res.idata.posterior["r"].values, fixed.idata.posterior["r"].values)
+    np.testing.assert_array_equal(res.idata.sample_stats["log_phat"].values,
+                                  fixed.idata.sample_stats["log_phat"].values)
+
+
+def test_auto_unconverged_within_budget_is_status_4_and_says_why(sim, tmp_path, capsys):
+    rec = tmp_path / "rec.nc"
+    write_recording(sim.recording, rec)
+    out = tmp_path / "out"
+    code = main(["calibrate", str(rec), "--out", str(out), "--chains", "2", "--warmup", "60", "--num-draws", "2",
+                 "--no-map", "--check-every", "30", "--max-draws", "70", "--quiet", "--no-plots"])
+    assert code == 4
+    doc = json.loads((out / "positions.json").read_text())
+    d, conv = doc["diagnostics"], doc["provenance"]["settings"]["convergence"]
+    assert conv["stopped"] == "max_draws" and conv["draws"] == 70 and conv["checks"] == 3
+    assert [h["draws"] for h in conv["history"]] == [30, 60, 70]
+    assert not d["converged"] and d["stopped"] == "max_draws" and d["draws_per_chain"] == 70
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not trustworthy" in err[0]
+    # which criterion failed: the coordinate, its value and the threshold; and the budget
+    assert "at r[" in err[0] and ("< 200" in err[0] or ">= 1.01" in err[0])  # 2 chains: ESS >= 200
+    assert "stopped unconverged after 70 draws per chain and 3 checks" in err[0] and "--max-draws" in err[0]
+    assert any(w.startswith(("R-hat", "bulk ESS", "tail ESS")) for w in d["warnings"])
+
+
+def test_auto_wall_clock_stop_is_reported(sim):
+    """max_seconds is a safety stop tested after each check; hitting it is recorded as such (the
+    length then depends on the machine) and the result is not trusted."""
+    res = calibrate(sim.recording, check_every=30, max_draws=90, max_seconds=1e-9, **AUTO)
+    conv, d = res.settings["convergence"], res.positions["diagnostics"]
+    assert conv["stopped"] == "max_seconds" and conv["checks"] == 1 and res.run.num_samples == 30
+    assert "depends on the machine" in conv["why"] and conv["max_seconds"] == 1e-9
+    assert not d["converged"] and d["stopped"] == "max_seconds"
+    assert any("wall-clock budget (max_seconds)" in w for w in d["warnings"])
+
+
+def test_auto_resume_is_bit_exact(sim, tmp_path):
+    """A run until converged killed inside its second block resumes to the very same draws."""
+    kw = dict(check_every=30, max_draws=90, rhat_max=1.5, ess_min=1e6, **AUTO)  # never converges: 3 blocks
+    full = calibrate(sim.recording, **kw)
+    assert full.settings["convergence"]["stopped"] == "max_draws" and full.run.num_samples == 90
+    ck = tmp_path / "ck.pt"
+
+    def kill(chain, i, kernel):
+        if (chain, i) == (1, 100 + 45):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        calibrate(sim.recording, checkpoint=ck, checkpoint_every=10, callback=kill, **kw)
+    resumed = calibrate(sim.recording, checkpoint=ck, checkpoint_every=10, resume=True, **kw)
+    assert resumed.run.resumed
+    np.testing.assert_array_equal(resumed.idata.posterior["r"].values, full.idata.posterior["r"].values)
+    assert resumed.settings["convergence"]["history"] == [
+        dict(h, seconds=r["seconds"]) for h, r in zip(full.settings["convergence"]["history"],
+                                                       resumed.settings["convergence"]["history"])]
+    # the budget is not part of what a resume must match: a larger one continues the same chains
+    more = calibrate(sim.recording, checkpoint=ck, resume=True, **dict(kw, max_draws=120))
+    assert more.run.num_samples == 120
+    longer = calibrate(sim.recording, **dict(kw, max_draws=120))
+    np.testing.assert_array_equal(more.idata.posterior["r"].values, longer.idata.posterior["r"].values)
+    # the criteria are: another ess_min is another run
+    with pytest.raises(UserError, match="different settings"):
+        calibrate(sim.recording, checkpoint=ck, resume=True, **dict(kw, ess_min=500))
+    # and a fixed-length run does not resume it
+    with pytest.raises(UserError, match="different settings"):
+        calibrate(sim.recording, checkpoint=ck, resume=True, draws=90, **AUTO)
+
+
 def _assert_status_matches_diagnostics(code, doc, chains):
-    """DESIGN §7.5: 0 when R̂ < 1.01 and bulk ESS >= 100 per chain, else 4 with the file marked."""
+    """DESIGN §7.5: 0 when every coordinate has R̂ < 1.01 and bulk and tail ESS >= 100 per chain
+    (the recorded default criteria), else 4 with the file marked."""
     d = doc["diagnostics"]
+    need = 100.0 * chains
+    assert d["criteria"] == {"rhat_max": 1.01, "ess_min": need}
     ok = d["rhat_max"] is not None and d["rhat_max"] < 1.01 and d["ess_bulk_min"] is not None \
-        and d["ess_bulk_min"] >= 100 * chains
+        and d["ess_bulk_min"] >= need and d["ess_tail_min"] is not None and d["ess_tail_min"] >= need
     assert code == (0 if ok else 4), (code, d)
     assert d["converged"] is ok and bool(d["warnings"]) is not ok
 
@@ -219,6 +321,11 @@ def test_cli_calibrate_switches(sim_noise, tmp_path, capsys):
 @pytest.mark.parametrize("args, needle", [
     (["--chains", "0"], "--chains"),
     (["--draws", "0"], "--draws"),
+    (["--max-draws", "0"], "--max-draws"),
+    (["--check-every", "-5"], "--check-every"),
+    (["--max-seconds", "0"], "--max-seconds"),
+    (["--rhat-max", "1"], "--rhat-max"),
+    (["--ess-min", "nan"], "--ess-min"),
     (["--prior-std", "-1"], "--prior-std"),
     (["--prior-std", "abc"], "--prior-std"),
     (["--num-draws", "0"], "--num-draws"),

@@ -150,6 +150,55 @@ def test_convergence_rule_R_hat_below_1_01_and_100_ESS_per_chain():
     assert len(convergence_warnings(None, float("nan"), 1)) == 2  # not computable: not established
 
 
+def _ar1(rho, C, D, P, seed):
+    """C independent stationary AR(1) chains of D draws, P coordinates, unit marginal variance."""
+    rng = np.random.default_rng(seed)
+    e = rng.normal(size=(C, D, P)) * np.sqrt(1 - rho * rho)
+    x = np.empty((C, D, P))
+    x[:, 0] = rng.normal(size=(C, P))
+    for t in range(1, D):
+        x[:, t] = rho * x[:, t - 1] + e[:, t]
+    return x
+
+
+def test_convergence_check_on_chains_with_a_known_answer():
+    """iid normal draws converge; chains with shifted means fail R-hat (at the shifted coordinate);
+    strongly autocorrelated AR(1) chains fail ESS (ρ = 0.98: ESS ≈ N(1−ρ)/(1+ρ) ≈ 40 of 4000
+    draws) though their R-hat may pass; too few draws cannot establish anything."""
+    rng = np.random.default_rng(0)
+    iid = rng.normal(size=(4, 500, 2, 3))
+    ok = dg.convergence_check(iid)
+    assert ok.converged and ok.failed == [] and ok.rhat_max < 1.01 and ok.ess_bulk_min >= 400
+    assert ok.ess_tail_min >= 400 and (ok.rhat_limit, ok.ess_min) == (1.01, 400.0)
+    assert ok.chains == 4 and ok.draws == 500
+    d = ok.as_dict()
+    assert d["converged"] is True and d["draws"] == 500 and d["rhat_at"].startswith("coordinate ")
+
+    shifted = iid.copy()
+    shifted[0, :, 1, 2] += 2.0  # chain 0 sits elsewhere in coordinate r[2, z]
+    names = [f"r[{i}, {a}]" for i in (1, 2) for a in "xyz"]
+    bad = dg.convergence_check(shifted, names=names)
+    assert not bad.converged and bad.rhat_at == "r[2, z]" and bad.rhat_max > 1.1
+    assert bad.failed[0].startswith("R-hat") and "r[2, z]" in bad.failed[0] and ">= 1.01" in bad.failed[0]
+    assert "1 of 6 coordinates" in bad.failed[0]
+
+    ar = dg.convergence_check(_ar1(0.98, 4, 1000, 3, seed=1))
+    assert not ar.converged and ar.ess_bulk_min < 400
+    assert any(f.startswith("bulk ESS") and "< 400" in f for f in ar.failed)
+    # the same chains with a lenient threshold pass, and a stricter one fails R-hat too
+    assert dg.convergence_check(_ar1(0.5, 4, 1000, 3, seed=1), ess_min=400).converged
+    assert not dg.convergence_check(iid, rhat_max=1.0001).converged
+
+    few = dg.convergence_check(iid[:, :2])
+    assert not few.converged and any("could not be computed" in f for f in few.failed)
+    with pytest.raises(UserError, match="rhat_max"):
+        dg.convergence_check(iid, rhat_max=1.0)
+    with pytest.raises(UserError, match="ess_min"):
+        dg.convergence_check(iid, ess_min=float("nan"))
+    with pytest.raises(UserError, match="names"):
+        dg.convergence_check(iid, names=["a"])
+
+
 def test_truth_check_against_the_closed_form():
     """truth_check on draws from N(truth + e, C) with known e and C (4 free IMUs, 12 coordinates,
     200 000 draws): χ² = eᵀC⁻¹e and the scale-mode z = uᵀe/(uᵀCu)^½ within 2 % (Monte Carlo error

@@ -10,10 +10,20 @@ recorded in ``positions.json`` (``provenance.settings.preprocess`` / ``noise_mod
 Writes DIR/posterior.nc (ArviZ InferenceData), DIR/summary.csv (R̂, ESS, MCSE per coordinate),
 DIR/positions.json (DESIGN §7.3) and trace/rank/autocorr/ellipses plots; prints a short table.
 
+Length of the chains: by default the chains run until converged — every coordinate with
+R̂ < 1.01 (``--rhat-max``) and bulk and tail ESS ≥ 100 per chain, 400 for the 4 default chains
+(``--ess-min``), checked every 500 draws per
+chain (``--check-every``, a fixed count, so the result does not depend on the machine), up to
+20 000 draws per chain (``--max-draws``) or 3600 s of sampling (``--max-seconds``, a safety stop
+whose use makes the length machine-dependent and is reported).  ``--draws N`` runs exactly N draws
+per chain instead (the fixed mode of earlier versions, same draws for the same seed).
+
 Exit status (DESIGN §7.5): 0 converged; 2 refused (bad option, recording or checkpoint — checked
-before any computation); 4 finished but the chains have not converged (R̂ ≥ 1.01, bulk ESS < 100
-per chain, or either not computable): the outputs are written, ``positions.json`` has
-``diagnostics.converged: false`` and ``diagnostics.warnings``, and one line on stderr says why.
+before any computation); 4 finished but the chains have not converged (some coordinate with
+R̂ ≥ 1.01, bulk or tail ESS < 100 per chain, or not computable; in the default mode: within the budget):
+the outputs are written, ``positions.json`` has ``diagnostics.converged: false`` and
+``diagnostics.warnings`` (the coordinate, its value and the threshold of each failed criterion,
+and the budget that stopped the run), and one line on stderr says why.
 """
 from __future__ import annotations
 
@@ -40,10 +50,29 @@ def register(sub) -> None:
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_DIR_HELP)
     p.add_argument("--chains", type=opt.count(1), default=DEFAULTS["chains"],
                    help="number of chains (default %(default)s)")
-    p.add_argument("--draws", type=opt.count(1), default=DEFAULTS["draws"],
-                   help="kept draws per chain (default %(default)s)")
+    p.add_argument("--draws", type=opt.count(1), default=DEFAULTS["draws"], metavar="N",
+                   help="run exactly N kept draws per chain (default: run until converged, see --max-draws)")
     p.add_argument("--warmup", type=opt.count(0), default=DEFAULTS["warmup"],
                    help="warm-up (adaptation) iterations per chain (default %(default)s)")
+    c = p.add_argument_group(
+        "run until converged (default; --draws N switches it off)",
+        "The chains are continued from their current state (the same seed gives the draws of one long run) until "
+        "every coordinate has R-hat < --rhat-max and bulk and tail ESS >= --ess-min, checked every --check-every "
+        "draws per chain (fixed counts, never wall time), up to --max-draws draws per chain or --max-seconds of "
+        "sampling. A run that stops unconverged exits with status 4 and says which criterion failed.")
+    c.add_argument("--max-draws", type=opt.count(1), default=DEFAULTS["max_draws"], metavar="N",
+                   help="most kept draws per chain (default %(default)s)")
+    c.add_argument("--check-every", type=opt.count(1), default=DEFAULTS["check_every"], metavar="N",
+                   help="kept draws per chain between convergence checks (default %(default)s)")
+    c.add_argument("--max-seconds", type=opt.positive("s"), default=DEFAULTS["max_seconds"], metavar="S",
+                   help="wall-clock safety stop of the sampling, seconds, tested after each check (default "
+                        "%(default)s); a run stopped by it has a machine-dependent length and is reported so")
+    c.add_argument("--rhat-max", type=opt.real(1.0, lo_open=True), default=DEFAULTS["rhat_max"], metavar="R",
+                   help="R-hat threshold of every coordinate (default %(default)s; also decides exit status 4 "
+                        "with --draws)")
+    c.add_argument("--ess-min", type=opt.positive("draws"), default=DEFAULTS["ess_min"], metavar="E",
+                   help="bulk and tail ESS threshold of every coordinate, all chains together (default 100 per "
+                        "chain: 400 for 4 chains)")
     p.add_argument("--num-draws", type=opt.count(1), default=None, metavar="N",
                    help="Monte Carlo draws per likelihood estimate (default: chosen so Var[log p̂] ≈ 1)")
     p.add_argument("--seed", type=opt.seed, default=0, help="random seed (default %(default)s)")
@@ -113,6 +142,8 @@ def _run(args) -> int:
             print(f"accel-bayes calibrate: no checkpoint at {ckpt}; starting afresh", file=sys.stderr)
     res = calibrate(
         args.recording, chains=args.chains, draws=args.draws, warmup=args.warmup, num_draws=args.num_draws,
+        max_draws=args.max_draws, check_every=args.check_every, max_seconds=args.max_seconds,
+        rhat_max=args.rhat_max, ess_min=args.ess_min,
         seed=args.seed, prior=args.prior, prior_std=args.prior_std, use_map=not args.no_map,
         gyro_method=args.gyro_method, select=args.select, proposal=args.proposal, progress=not args.quiet,
         checkpoint=ckpt, checkpoint_every=args.checkpoint_every, resume=args.resume,
@@ -130,9 +161,16 @@ def _run(args) -> int:
     print(f"files: {', '.join(str(out.final(p)) for p in paths.values())}")
     d = res.positions["diagnostics"]
     if not d["converged"]:
-        return untrusted("calibrate", d["warnings"] + ["run longer (--draws/--warmup)"],
-                         str(out.final(paths["positions"])))
+        return untrusted("calibrate", d["warnings"] + [_longer_hint(res.settings)], str(out.final(paths["positions"])))
     return EXIT_OK
+
+
+def _longer_hint(settings) -> str:
+    conv = settings.get("convergence") or {}
+    if conv.get("mode") == "fixed draws":
+        return "run longer (--draws/--warmup, or leave out --draws to run until converged)"
+    return ("run longer (raise --max-draws/--max-seconds; with --checkpoint-every, --resume continues the same "
+            "chains)")
 
 
 def format_table(res) -> str:
@@ -158,7 +196,11 @@ def format_table(res) -> str:
     elif res.settings.get("noise"):
         lines.append(f"noise: {res.settings['noise']} (the recording's acc_noise_std); gyro posterior "
                      f"{res.settings['gyro_method']}")
-    lines += [f"PmMH: {res.settings['chains']} chains × {res.settings['draws']} draws "
+    conv = res.settings.get("convergence") or {}
+    how = ""
+    if conv.get("mode") == "until converged":
+        how = f" (run until converged: {conv['checks']} checks every {conv['check_every']}, {conv['stopped']})"
+    lines += [f"PmMH: {res.settings['chains']} chains × {res.settings['draws']} draws{how} "
               f"(+{res.settings['warmup']} warm-up), N = {res.settings['num_draws']}, "
               f"T = {res.settings['T']}, {res.seconds:.1f} s; positions relative to IMU {doc['reference_imu']}",
               f"{'IMU':>4} {'x mm':>9} {'y mm':>9} {'z mm':>9} {'sx µm':>8} {'sy µm':>8} {'sz µm':>8} "
@@ -181,8 +223,9 @@ def format_table(res) -> str:
     d = doc["diagnostics"]
     lines.append(f"max R-hat {format_stat(d['rhat_max'], '.3f')}, "
                  f"min bulk ESS {format_stat(d['ess_bulk_min'], '.0f')}, "
+                 f"min tail ESS {format_stat(d.get('ess_tail_min'), '.0f')}, "
                  f"acceptance {', '.join(f'{a:.2f}' for a in d['acceptance_rate'])}")
     if not d["converged"]:
         lines.append(f"warning: {'; '.join(d['warnings'])}: the chains have not mixed well enough "
-                     "for reliable moments; run longer (--draws/--warmup) and check trace.png/rank.png")
+                     f"for reliable moments; {_longer_hint(res.settings)} and check trace.png/rank.png")
     return "\n".join(lines)

@@ -18,7 +18,10 @@
 4. N, the number of Monte Carlo draws per likelihood estimate, chosen so that Var[log p̂] ≈ 1
    at the central θ ([C21] §III-C, accepted range 0.1–3);
 5. C chains of :class:`~accel_bayes.inference.mcmc.PMMHKernel` (warm-up adaptation, then a
-   fixed exact kernel), crash-safe when a checkpoint file is given;
+   fixed exact kernel), crash-safe when a checkpoint file is given; by default continued until
+   every coordinate has R̂ < 1.01 and bulk and tail ESS ≥ 400, checked every 500 draws per chain,
+   up to 20 000 draws per chain (:func:`~accel_bayes.inference.mcmc.run_pmmh_until`), or a fixed
+   number of draws when ``draws`` is given;
 6. ArviZ diagnostics and the DESIGN §7.3 ``positions.json``.
 
 :func:`write_outputs` writes ``posterior.nc``, ``summary.csv``, ``positions.json`` and the plots.
@@ -41,7 +44,8 @@ from .. import __version__
 from .. import diagnostics as dg
 from ..data import positions as _positions_mod
 from ..errors import UserError
-from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh
+from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh, \
+    run_pmmh_until
 from ..inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
 from ..likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
     positions_from_theta
@@ -60,10 +64,26 @@ __all__ = ["calibrate", "CalibrationResult", "write_outputs", "positions_documen
 # the random walk alone gave R̂ > 1.8 (21 and 93 coordinates: O(d) steps per independent draw).
 # Real MIMU4444 recording (exp_1, T ≈ 5900 selected samples, estimated noise, N = 1): the whole
 # pipeline took 3.5–4 min wall (≈ 2 min CPU) with R̂ ≤ 1.004 and bulk ESS ≥ 1600.
+#
+# Length of the chains (issue #15): ``draws`` None runs until converged — every coordinate with
+# R̂ < rhat_max and bulk and tail ESS ≥ ess_min (Vehtari et al. 2021: 1.01, and 100 per chain, i.e.
+# 400 for the 4 chains), checked every ``check_every`` kept draws per chain (a fixed count, never wall
+# time, so where a run stops does not depend on the machine), up to ``max_draws`` per chain
+# (20 000: 20× the 1000 that sufficed in the cases above; 4 × 21 000 iterations at the ≈ 30 ms per
+# iteration measured for 8 IMUs, T = 600 on the loaded 2-core machine is ≈ 40 min) and
+# ``max_seconds`` of sampling (3600 s, a safety stop above that; a run that hits it has a
+# machine-dependent length and is reported as such).  An int ``draws`` runs exactly that many, as
+# before.  The demo board (mimu4444_8, smooth, T = 600, seed 1) converged at the first check, 500
+# draws per chain.
 DEFAULTS = {
     "chains": 4,
-    "draws": 1000,
+    "draws": None,
     "warmup": 1000,
+    "max_draws": 20_000,
+    "check_every": 500,
+    "rhat_max": dg.RHAT_MAX,
+    "ess_min": None,  # None: 100 per chain (dg.ESS_PER_CHAIN), 400 for the 4 chains
+    "max_seconds": 3600.0,
     "prior": "gaussian",
     "prior_std": DEFAULT_PRIOR_STD,
     "gyro_method": "auto",
@@ -125,16 +145,40 @@ def _int_option(name, v, lo):
     return int(v)
 
 
+def _real_option(name, v, lo, unit, allow_none=False):
+    """A finite number > ``lo`` (or None when ``allow_none``), else one-line UserError naming ``name``."""
+    if v is None and allow_none:
+        return None
+    want = f"expected a finite number > {lo:g} ({unit})" + (" or None" if allow_none else "")
+    if isinstance(v, bool):
+        raise UserError(f"{name}: {want}, got {v!r}")
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise UserError(f"{name}: {want}, got {v!r}") from None
+    if not (math.isfinite(x) and x > lo):
+        raise UserError(f"{name}: {want}, got {v!r}")
+    return x
+
+
 def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
-              checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select, phi_prior):
+              checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select,
+              max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior):
     """Every option of :func:`calibrate`, checked once before the recording is read; returns the
-    integer options as ints (``num_draws`` only when given)."""
+    integer options as ints (``num_draws`` only when given; ``draws`` None: run until converged)."""
     out = {
         "chains": _int_option("chains", chains, 1),
-        "draws": _int_option("draws", draws, 1),
+        "draws": None if draws is None else _int_option("draws", draws, 1),
         "warmup": _int_option("warmup", warmup, 0),
         "seed": _int_option("seed", seed, 0),
         "checkpoint_every": _int_option("checkpoint_every", checkpoint_every, 0),
+        "max_draws": _int_option("max_draws", max_draws, 1),
+        "check_every": _int_option("check_every", check_every, 1),
+        "rhat_max": _real_option("rhat_max", rhat_max, 1.0, "R-hat threshold"),
+        # None: 100 per chain (``chains`` is checked above: the literal is evaluated in order)
+        "ess_min": float(dg.ESS_PER_CHAIN * int(chains)) if ess_min is None
+        else _real_option("ess_min", ess_min, 0.0, "effective draws, all chains together"),
+        "max_seconds": _real_option("max_seconds", max_seconds, 0.0, "seconds", allow_none=True),
     }
     if num_draws is not None:
         out["num_draws"] = _int_option("num_draws", num_draws, 1)
@@ -332,8 +376,13 @@ def calibrate(
     recording,
     *,
     chains: int = DEFAULTS["chains"],
-    draws: int = DEFAULTS["draws"],
+    draws: int | None = DEFAULTS["draws"],
     warmup: int = DEFAULTS["warmup"],
+    max_draws: int = DEFAULTS["max_draws"],
+    check_every: int = DEFAULTS["check_every"],
+    rhat_max: float = DEFAULTS["rhat_max"],
+    ess_min: float | None = DEFAULTS["ess_min"],
+    max_seconds: float | None = DEFAULTS["max_seconds"],
     num_draws: int | None = None,
     seed: int = 0,
     prior: str = DEFAULTS["prior"],
@@ -362,8 +411,28 @@ def calibrate(
     """Sample the posterior of the accelerometer-triad positions of one recording with PmMH.
 
     recording : a :class:`~accel_bayes.data.recording.Recording` or a path to a format-v1 file.
-    chains, draws, warmup : C chains (run one after another), D kept draws and W warm-up
-        iterations each.
+    chains, warmup : C chains, W warm-up (adaptation) iterations each (default 4 and 1000); the
+        adaptation happens in warm-up only, the kept draws come from a fixed exact kernel.
+    draws : kept draws per chain.  None (default): run until converged — the chains are continued
+        (each from its current state, so the same seed gives the draws of one long run) until
+        every coordinate has R̂ < ``rhat_max`` and bulk and tail ESS ≥ ``ess_min``, checked every
+        ``check_every`` draws per chain, up to ``max_draws`` draws per chain or ``max_seconds``
+        of sampling.  An int: exactly that many draws (the chains of earlier versions, bit for
+        bit); the same criteria then only decide ``diagnostics.converged``.
+    max_draws : most kept draws per chain in the run-until-converged mode (default 20 000).
+    check_every : kept draws per chain between two convergence checks (default 500).  The checks
+        happen at fixed draw counts (500, 1000, …), never at wall-clock times, so where a run
+        stops does not depend on the machine's speed.
+    rhat_max : R̂ threshold, a coordinate passes when its rank-normalised split R̂ < rhat_max
+        (default 1.01).
+    ess_min : bulk and tail ESS threshold, effective draws of all chains together; None (default):
+        100 per chain, i.e. 400 for the default 4 chains (Vehtari et al. 2021).
+    max_seconds : wall-clock budget of the sampling in seconds (warm-up included, the steps
+        before it not), tested after each check (default 3600; None: no limit).  A safety stop:
+        a run that hits it has a machine-dependent number of draws, is reported as not converged
+        and says so (``settings["convergence"]["stopped"] == "max_seconds"``).
+        What a run did — the criteria, the draws it took, every check and why it stopped — is in
+        ``settings["convergence"]`` and the ``diagnostics`` block of ``positions.json``.
     num_draws : N, Monte Carlo draws per likelihood estimate; None chooses it so that
         Var[log p̂] ≈ 1 at the central θ (the MAP, or the prior mean) ([C21] §III-C).
     seed : one seed for everything random (N choice, chain starts, chains); same seed → same
@@ -423,7 +492,10 @@ def calibrate(
         uses at most 0.5 so the random walk's step size adapts).
     target_accept_prob : random-walk acceptance targeted in warm-up (default 0.15).
     progress : tqdm bars (stderr) with the acceptance rate.
-    checkpoint, checkpoint_every, resume : see :func:`accel_bayes.inference.mcmc.run_pmmh`.
+    checkpoint, checkpoint_every, resume : see :func:`accel_bayes.inference.mcmc.run_pmmh` and
+        :func:`~accel_bayes.inference.mcmc.run_pmmh_until` (a resume continues bit-exactly, also
+        in the middle of a block; a run stopped by ``max_draws``/``max_seconds`` can be resumed with
+        larger ones, which are not part of the settings a resume must match).
     callback : ``callback(chain, iteration, kernel)`` after every iteration.
 
     Returns a :class:`CalibrationResult`.
@@ -433,7 +505,8 @@ def calibrate(
     # 1 load, 2 prepare, 3 noise, 4 MAP, 5 central θ and N, 6 posterior, 7 summary; writing the
     # files is :func:`write_outputs`.
     opts = _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
-                     checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select, phi_prior)
+                     checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select,
+                     max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior)
     noise_bins = opts["noise_bins"]
     raw, sha, src = _load_step(recording)
     _check_resume(raw, sha, opts, checkpoint=checkpoint, resume=resume, prior=prior, prior_std=prior_std,
@@ -492,6 +565,7 @@ def calibrate(
     )
     summary = dg.summarize(idata)
     seconds = time.perf_counter() - t0
+    _convergence_settings(run, opts, settings)
     settings["acceptance_rate"] = [float(a) for a in run.acceptance_rate]
     settings["step_size"] = [float(s) for s in run.step_size]
     settings["divergences"] = int(sum(len(d.get("divergences", [])) for d in run.diagnostics))
@@ -518,7 +592,12 @@ def _check_resume(raw, sha, opts, *, checkpoint, resume, prior, prior_std, use_m
                   min_rotation, noise, noise_bins, noise_inflation, phi_prior):
     """What the run depends on, known before any computation (stored in ``opts["request"]``): a
     resumed checkpoint is checked against it here, not after minutes of preprocessing and MAP."""
-    options = {k: v for k, v in opts.items() if k not in ("checkpoint_every", "noise_bins", "request")}
+    # the budgets of the run-until-converged mode may change on resume (continue a run that hit
+    # them); in the fixed mode the convergence criteria do not change the draws either
+    skip = {"checkpoint_every", "noise_bins", "request", "max_draws", "max_seconds"}
+    if opts["draws"] is not None:
+        skip |= {"check_every", "rhat_max", "ess_min"}
+    options = {k: v for k, v in opts.items() if k not in skip}
     options.update(
         prior=prior, prior_std=float(prior_std), use_map=bool(use_map), init=init, gyro_method=gyro_method,
         select=_select_key(select), drop_clipped=bool(drop_clipped), proposal=proposal,
@@ -664,9 +743,52 @@ def _posterior_step(lik, pri, theta_c, lap, opts, *, proposal, independence_prob
     fingerprint["version"] = __version__
     fingerprint["request"] = request
     fingerprint = json.loads(json.dumps(fingerprint))
-    return run_pmmh(kernel, opts["draws"], opts["warmup"], C, init_theta, progress=progress, checkpoint=checkpoint,
-                    checkpoint_every=opts["checkpoint_every"], resume=resume, fingerprint=fingerprint,
-                    callback=callback)
+    if opts["draws"] is not None:
+        return run_pmmh(kernel, opts["draws"], opts["warmup"], C, init_theta, progress=progress,
+                        checkpoint=checkpoint, checkpoint_every=opts["checkpoint_every"], resume=resume,
+                        fingerprint=fingerprint, callback=callback)
+    names = _coordinate_names(settings["imu_labels"], lik.reference)
+
+    def check(theta):
+        return dg.convergence_check(theta, rhat_max=opts["rhat_max"], ess_min=opts["ess_min"], names=names)
+
+    return run_pmmh_until(kernel, check, opts["warmup"], C, init_theta, check_every=opts["check_every"],
+                          max_samples=opts["max_draws"], max_seconds=opts["max_seconds"], progress=progress,
+                          checkpoint=checkpoint, checkpoint_every=opts["checkpoint_every"], resume=resume,
+                          fingerprint=fingerprint, callback=callback)
+
+
+def _coordinate_names(imu_labels, reference: int) -> list[str]:
+    """``r[imu, axis]`` of the free coordinates, in θ's order (the rows of ``summary.csv``)."""
+    return [f"r[{k}, {a}]" for i, k in enumerate(imu_labels) if i != reference for a in dg.AXES]
+
+
+# why a run ended, in words (settings["convergence"]["stopped"] holds the key)
+_STOPPED = {"converged": "converged", "max_samples": "the draw budget (max_draws) was spent",
+            "max_seconds": "the wall-clock budget (max_seconds) was spent; the number of draws depends on the "
+                           "machine's speed", "fixed": "fixed number of draws"}
+
+
+def _convergence_settings(run, opts, settings) -> None:
+    """``settings["draws"]`` (the draws per chain it took) and ``settings["convergence"]``: the
+    criteria, the mode and budgets, the number of checks, why the run stopped and every check."""
+    auto = opts["draws"] is None
+    stopped = "max_draws" if run.stopped == "max_samples" else (run.stopped or "fixed")
+    settings["draws"] = run.num_samples
+    settings["convergence"] = {
+        "mode": "until converged" if auto else "fixed draws",
+        "criteria": {"rhat_max": opts["rhat_max"], "ess_bulk_min": opts["ess_min"], "ess_tail_min": opts["ess_min"],
+                     "rule": "every coordinate: R-hat < rhat_max, bulk ESS >= ess_min and tail ESS >= ess_min "
+                             "(ESS over all chains)"},
+        "check_every": opts["check_every"] if auto else None,
+        "max_draws": opts["max_draws"] if auto else None,
+        "max_seconds": opts["max_seconds"] if auto else None,
+        "draws": run.num_samples,
+        "checks": len(run.checks),
+        "stopped": stopped,
+        "why": _STOPPED["max_samples" if stopped == "max_draws" else stopped],
+        "history": [dict(c) for c in run.checks],
+    }
 
 
 def positions_document(idata, *, K: int, reference_imu: int, seconds: float, settings: dict,
@@ -674,9 +796,10 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
     """The DESIGN §7.3 document for a PmMH posterior (built by :mod:`accel_bayes.data.positions`, the
     one writer of the format): every IMU sorted by label, posterior mean/std/cov of its triad
     position relative to the reference IMU (array frame, m; zeros for the reference), R̂/ESS
-    diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.convergence_warnings`;
-    R̂/ESS are null where they cannot be computed) and provenance.  IMUs without an accelerometer
-    triad get null moments."""
+    diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.convergence_check`
+    with the criteria of ``settings["convergence"]`` (default R̂ < 1.01, bulk and tail ESS ≥ 400);
+    R̂/ESS are null where they cannot be computed; the draws per chain, the number of checks and
+    why the run stopped) and provenance.  IMUs without an accelerometer triad get null moments."""
     mom = dg.posterior_moments(idata)
     means = np.zeros((int(K), 3))
     covs = np.zeros((int(K), 3, 3))
@@ -688,15 +811,27 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
         if k not in estimated:  # no accelerometer triad: nothing to report (null in JSON)
             means[k] = np.nan
             covs[k] = np.nan
-    rhat = to_jsonable(float(dg.rhat_max(idata)), nonfinite="null")
-    ess = to_jsonable(float(dg.ess_bulk_min(idata)), nonfinite="null")
-    reasons = dg.convergence_warnings(rhat, ess, settings.get("chains", idata.posterior.sizes["chain"]))
+    conv = settings.get("convergence") or {}
+    crit = conv.get("criteria") or {}
+    x = idata.posterior[dg.VAR]
+    names = [f"r[{int(i)}, {a}]" for i in x.coords["imu"].values for a in x.coords["axis"].values]
+    chk = dg.convergence_check(x.values, rhat_max=crit.get("rhat_max", dg.RHAT_MAX),
+                               ess_min=crit.get("ess_bulk_min", dg.ESS_MIN), names=names)
+    reasons = list(chk.failed)
+    if reasons and conv.get("stopped") in ("max_draws", "max_seconds"):
+        reasons.append(f"stopped unconverged after {conv.get('draws')} draws per chain and {conv.get('checks')} "
+                       f"checks: {conv.get('why')}")
     diagnostics = {
-        "rhat_max": rhat,
-        "ess_bulk_min": ess,
+        "rhat_max": to_jsonable(float(chk.rhat_max), nonfinite="null"),
+        "ess_bulk_min": to_jsonable(float(chk.ess_bulk_min), nonfinite="null"),
         # added keys (§7.3 allows them): False with the reasons when R̂/ESS fail the rule, DESIGN §7.5 status 4
+        "ess_tail_min": to_jsonable(float(chk.ess_tail_min), nonfinite="null"),
         "converged": not reasons,
         "warnings": reasons,
+        "criteria": {"rhat_max": chk.rhat_limit, "ess_min": chk.ess_min},
+        "draws_per_chain": int(x.sizes["draw"]),
+        "checks": conv.get("checks"),
+        "stopped": conv.get("stopped"),
         "seconds": float(seconds),
         "acceptance_rate": settings.get("acceptance_rate"),
         "num_draws": settings.get("num_draws"),

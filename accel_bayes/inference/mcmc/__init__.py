@@ -2,8 +2,9 @@
 
 The package is split by concern: :mod:`.kernel` (:class:`PMMHKernel`, the state machine),
 :mod:`.proposals` (random walk, independence, their mixture), :mod:`.adaptation` (warm-up step
-size and covariance windows), :mod:`.runner` (:func:`run_pmmh`), :mod:`.checkpoint` (format,
-loading, fingerprints) and :mod:`.priors` (p(θ)).  ``accel_bayes.inference.pmmh`` and
+size and covariance windows), :mod:`.runner` (:func:`run_pmmh`, fixed length;
+:func:`run_pmmh_until`, extended block by block until a convergence check passes),
+:mod:`.checkpoint` (format, loading, fingerprints) and :mod:`.priors` (p(θ)).  ``accel_bayes.inference.pmmh`` and
 ``accel_bayes.inference.priors`` are aliases of this package and of :mod:`.priors` for one release.
 
 :class:`PMMHKernel` is a :class:`pyro.infer.mcmc.mcmc_kernel.MCMCKernel`, so
@@ -44,7 +45,7 @@ from __future__ import annotations
 from .adaptation import regularized_cov, warmup_windows
 from .checkpoint import CHECKPOINT_FORMAT, check_checkpoint_request, read_checkpoint
 from .kernel import PMMHKernel, Transition
-from .runner import PMMHRun, run_pmmh
+from .runner import STOP_REASONS, PMMHRun, run_pmmh, run_pmmh_until
 
-__all__ = ["PMMHKernel", "PMMHRun", "Transition", "run_pmmh", "read_checkpoint", "check_checkpoint_request",
+__all__ = ["PMMHKernel", "PMMHRun", "Transition", "run_pmmh", "run_pmmh_until", "STOP_REASONS", "read_checkpoint", "check_checkpoint_request",
            "CHECKPOINT_FORMAT", "warmup_windows", "regularized_cov"]
