@@ -83,6 +83,10 @@ __all__ = [
 # ~tens of MB whatever T·N·batch is, without a Python loop per sample.
 _CHUNK_ELEMS = 1 << 19
 
+# Up to this many draws per sample, log_phat evaluates q directly from d = u(ω) − u(ω̄)
+# (_lse_direct); above it the per-sample 6×10 maps F_t (_lse_shared) are cheaper per draw.
+_DIRECT_MAX_DRAWS = 8
+
 
 # ---------------------------------------------------------------------------- parameterisation
 
@@ -554,18 +558,101 @@ class RaoBlackwellLikelihood:
         N = z.shape[-2]
         B = int(np.prod(batch)) if len(batch) else 1
         proj = self.projection(r.reshape(B, self.A, 3), center=self.omega.mean)
-        F, floor = self._draw_maps(proj["c"], proj["b"], proj["C"])  # (B, T, 6, 10), (B, T)
         zt = z.transpose(-1, -2)  # (..., T, 3, N); a view of sample_z's storage
         zbatch = zt.shape[:-3]
-        # In-place temporaries and a reused feature buffer, unless autograd needs the originals.
-        inplace = not (torch.is_grad_enabled() and (F.requires_grad or zt.requires_grad))
-        if len(zbatch) == 0:
-            lse = self._lse_shared(zt, F, inplace)  # (B, T)
-        else:
+        if len(zbatch):
             zt = zt.expand(*batch, *zt.shape[-3:]).reshape(B, self.T, 3, N)
-            lse = self._lse_per_batch(zt, F, inplace)
+        fac = self._factor(proj["c"], proj["b"], proj["C"])
+        if fac is not None and N <= _DIRECT_MAX_DRAWS:
+            Rc, w, floor = fac
+            inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
+            lse = self._lse_direct(zt, Rc, w, inplace)  # (B, T)
+        else:
+            if fac is None:
+                F, floor = self._draw_maps_eig(proj["c"], proj["b"], proj["C"])  # (B, T, 6, 10), (B, T)
+            else:
+                F, floor = self._maps_from_factor(fac[0], fac[1]), fac[2]
+            # In-place temporaries and a reused feature buffer, unless autograd needs the originals.
+            inplace = not (torch.is_grad_enabled() and (F.requires_grad or zt.requires_grad))
+            if len(zbatch) == 0:
+                lse = self._lse_shared(zt, F, inplace)  # (B, T)
+            else:
+                lse = self._lse_per_batch(zt, F, inplace)
         out = (lse - 0.5 * floor).sum(-1) - self.T * math.log(N) - 0.5 * self.T * proj["logdetM"]
         return out.reshape(batch)
+
+    def _factor(self, c, b, C):
+        """(R_C, w, floor) with R_t = [[R_C, w_t], [0, √floor_t]] the upper-triangular factor of
+        C'_t = [[C, −b_t], [−b_tᵀ, c_t]] (see :meth:`_draw_maps`), or None when C is singular or
+        some remainder floor_t = c_t − ‖w_t‖² comes out negative by rounding (then the caller
+        takes the general 7×7 path).  R_C (B, 6, 6), w (B, 6, T), floor (B, T) ≥ 0.
+
+        C is the same at every t, so this is one 6×6 Cholesky and one triangular solve per θ: the
+        same arithmetic as the last row of a 7×7 Cholesky, without T factorisations.
+        """
+        Lc, info = torch.linalg.cholesky_ex(C)  # C = Lc Lcᵀ, R_C = Lcᵀ
+        if bool((info != 0).any()):
+            return None
+        w = torch.linalg.solve_triangular(Lc, b.transpose(-1, -2), upper=False).neg()  # −R_C⁻ᵀ b_t
+        floor = c - (w * w).sum(-2)
+        if not bool((floor >= 0).all()):
+            return None
+        return Lc.transpose(-1, -2), w, floor
+
+    def _lse_direct(self, zt, Rc, w, inplace=True):
+        """log Σ_n exp(−½(q_tn − floor_t)) → (B, T), with q_tn − floor_t = ‖R_C d_tn + w_t‖².
+
+        d_tn = u(ω_tn) − u(ω̄_t) is formed from v = L_t z_tn (ω = ω̄ + v) as
+        d_ij = ω_i v_j + ω̄_j v_i (exact for the quadratic u, no cancellation), θ-free and so
+        shared by all B positions when zt (T, 3, N) is; zt (B, T, 3, N) gives one per position.
+        Per draw that is ~40 flops for d plus a 6×6 triangular product per θ (one matrix product
+        over all t and n), instead of the 6×10 map F_t per (θ, t) of :meth:`_lse_shared`.
+        For N = 1 the log-sum-exp is the term itself (no exp/log).
+        """
+        B = Rc.shape[0]
+        T, N = zt.shape[-3], zt.shape[-1]
+        shared = zt.dim() == 3
+        Lt, mt = self._chol_t, self._mean_t  # (3, 3, T), (3, T)
+        pi, pj = self._pairs
+        out = []
+        step = self._chunk(N, 16 * B if shared else 16)
+        for t0 in range(0, T, step):
+            t1 = min(T, t0 + step)
+            zc = zt[..., t0:t1, :, :].transpose(-3, -2)  # (…, 3, τ, N) view
+            # v_i = Σ_j L_ij z_j  (…, 3, τ, N)
+            v = (Lt[:, :, t0:t1, None] * zc.unsqueeze(-4)).sum(-3)
+            m = mt[:, t0:t1, None]  # (3, τ, 1)
+            om = v + m
+            d = om.index_select(-3, pi).mul_(v.index_select(-3, pj))
+            d = d.add_(m.index_select(0, pj) * v.index_select(-3, pi)) if inplace else \
+                d + m.index_select(0, pj) * v.index_select(-3, pi)
+            tau = t1 - t0
+            y = Rc @ d.reshape(*d.shape[:-3], 6, tau * N)  # (B, 6, τN)
+            y = y.view(B, 6, tau, N)
+            y = y.add_(w[:, :, t0:t1, None]) if inplace else y + w[:, :, t0:t1, None]
+            s = (y.mul_(y) if inplace else y * y).sum(1)  # (B, τ, N)
+            out.append(s[..., 0].mul_(-0.5) if N == 1 else self._log_mean_exp_shifted(s))
+        return torch.cat(out, 1)
+
+    @property
+    def _chol_t(self) -> torch.Tensor:
+        """chol(cov_t) stored (3, 3, T) (cached)."""
+        if getattr(self, "_chol_t_cache", None) is None:
+            self._chol_t_cache = self.omega_chol.permute(1, 2, 0).contiguous()
+            self._mean_t_cache = self.omega.mean.T.contiguous()
+        return self._chol_t_cache
+
+    @property
+    def _mean_t(self) -> torch.Tensor:
+        """ω̄_t stored (3, T) (cached)."""
+        self._chol_t
+        return self._mean_t_cache
+
+    @property
+    def _pairs(self):
+        if getattr(self, "_pairs_cache", None) is None:
+            self._pairs_cache = (torch.tensor(_PAIRS_I, device=self.device), torch.tensor(_PAIRS_J, device=self.device))
+        return self._pairs_cache
 
     def _draw_maps(self, c, b, C):
         """(F, floor): q_tn = ‖F_t f(z_tn)‖² + floor_t, F (B, T, 6, 10), floor (B, T) ≥ 0.
@@ -573,7 +660,34 @@ class RaoBlackwellLikelihood:
         R_t is an upper-triangular factor of C'_t = [[C, −b_t], [−b_tᵀ, c_t]] = R_tᵀR_t, so the
         last row of R_t D_t is (0, …, 0, R_77) and floor = R_77² = min_d q is a lower bound of
         every q_tn: exp(−½(q − floor)) ≤ 1 never overflows (see :meth:`_lse_shared`).
+        R_t comes from :meth:`_factor` (one shared 6×6 Cholesky) or, where that declines, from
+        :meth:`_draw_maps_eig` (a 7×7 factor per sample).
         """
+        fac = self._factor(c, b, C)
+        if fac is None:
+            return self._draw_maps_eig(c, b, C)
+        return self._maps_from_factor(*fac[:2]), fac[2]
+
+    def _maps_from_factor(self, Rc, w):
+        """F_t = R_t[:6] D_t = [R_C D_t[:6, :9], w_t] (D_t's last row is e_10 and its last column
+        is zero above it) → (B, T, 6, 10), stored (T, B, 6, 10) so that :meth:`_lse_shared`'s
+        (T, 6B, 10) view needs no copy."""
+        B, T = w.shape[0], w.shape[-1]
+        F = torch.empty(T, B, 6, 10, dtype=w.dtype, device=w.device)
+        F[..., :9] = (Rc @ self._D6).view(B, 6, T, 9).permute(2, 0, 1, 3)
+        F[..., 9] = w.permute(2, 0, 1)
+        return F.permute(1, 0, 2, 3)
+
+    @property
+    def _D6(self) -> torch.Tensor:
+        """D_t[:6, :9] stored (6, T·9) (θ-free, cached): R_C @ _D6 is one matrix product."""
+        if getattr(self, "_D6_cache", None) is None:
+            self._D6_cache = self._D[:, :6, :9].permute(1, 0, 2).reshape(6, self.T * 9)
+        return self._D6_cache
+
+    def _draw_maps_eig(self, c, b, C):
+        """:meth:`_draw_maps` through a 7×7 factor per sample (the general path: Cholesky, and
+        for singular or rounding-indefinite C'_t an eigendecomposition square root)."""
         B, T = c.shape
         Cp = torch.empty(B, T, 7, 7, dtype=self.dtype, device=self.device)
         Cp[..., :6, :6] = C.unsqueeze(1)
