@@ -87,7 +87,7 @@ _CHUNK_ELEMS = 1 << 19
 # (_lse_direct); above it the per-sample 6×10 maps F_t (_lse_shared) are cheaper per draw.
 # The direct path works in smaller chunks (its temporaries then stay in cache).
 _DIRECT_MAX_DRAWS = 32
-_DIRECT_CHUNK_ELEMS = 1 << 16
+_DIRECT_CHUNK_ELEMS = 1 << 18
 
 
 # ---------------------------------------------------------------------------- parameterisation
@@ -672,27 +672,45 @@ class RaoBlackwellLikelihood:
         B = Rc.shape[0]
         T, N = zt.shape[-3], zt.shape[-1]
         shared = zt.dim() == 3
+        zb = () if shared else (B,)
         Lt, mt = self._chol_t, self._mean_t  # (3, 3, T), (3, T)
         pi, pj = self._pairs
         out = []
         step = max(1, _DIRECT_CHUNK_ELEMS // (N * (16 * B if shared else 16)))
+        # Without autograd the temporaries live in buffers reused across chunks and calls (fresh
+        # multi-100-kB allocations cost page faults comparable to the arithmetic).
+        ws = self._workspace if inplace else (lambda name, shape: None)
         for t0 in range(0, T, step):
             t1 = min(T, t0 + step)
-            zc = zt[..., t0:t1, :, :].transpose(-3, -2)  # (…, 3, τ, N) view
-            # v_i = Σ_j L_ij z_j  (…, 3, τ, N)
-            v = (Lt[:, :, t0:t1, None] * zc.unsqueeze(-4)).sum(-3)
-            m = mt[:, t0:t1, None]  # (3, τ, 1)
-            om = v + m
-            d = om.index_select(-3, pi).mul_(v.index_select(-3, pj))
-            d = d.add_(m.index_select(0, pj) * v.index_select(-3, pi)) if inplace else \
-                d + m.index_select(0, pj) * v.index_select(-3, pi)
             tau = t1 - t0
-            y = Rc @ d.reshape(*d.shape[:-3], 6, tau * N)  # (B, 6, τN)
+            zc = zt[..., t0:t1, :, :].transpose(-3, -2)  # (…, 3, τ, N) view
+            m = mt[:, t0:t1, None]  # (3, τ, 1)
+            # v_i = Σ_j L_ij z_j  (…, 3, τ, N)
+            prod = torch.mul(Lt[:, :, t0:t1, None], zc.unsqueeze(-4), out=ws("prod", (*zb, 3, 3, tau, N)))
+            v = torch.sum(prod, -3, out=ws("v", (*zb, 3, tau, N)))
+            om = torch.add(v, m, out=ws("om", (*zb, 3, tau, N)))
+            d = torch.index_select(om, -3, pi, out=ws("d", (*zb, 6, tau, N)))
+            tmp = torch.index_select(v, -3, pj, out=ws("tmp", (*zb, 6, tau, N)))
+            d = d.mul_(tmp) if inplace else d * tmp
+            tmp = torch.index_select(v, -3, pi, out=ws("tmp", (*zb, 6, tau, N)))
+            tmp = tmp.mul_(m.index_select(0, pj)) if inplace else tmp * m.index_select(0, pj)
+            d = d.add_(tmp) if inplace else d + tmp  # d_ij = ω_i v_j + ω̄_j v_i
+            y = torch.matmul(Rc, d.view(*zb, 6, tau * N), out=ws("y", (B, 6, tau * N)))
             y = y.view(B, 6, tau, N)
             y = y.add_(w[:, :, t0:t1, None]) if inplace else y + w[:, :, t0:t1, None]
-            s = (y.mul_(y) if inplace else y * y).sum(1)  # (B, τ, N)
-            out.append(s[..., 0].mul_(-0.5) if N == 1 else self._log_mean_exp_shifted(s))
+            y = y.mul_(y) if inplace else y * y
+            s = torch.sum(y, 1, out=ws("s", (B, tau, N)))  # (B, τ, N)
+            out.append(s[..., 0] * -0.5 if N == 1 else self._log_mean_exp_shifted(s))
         return torch.cat(out, 1)
+
+    def _workspace(self, name: str, shape: tuple) -> torch.Tensor:
+        """A scratch tensor of ``shape`` named ``name``, reused across calls (grown as needed)."""
+        cache = self.__dict__.setdefault("_ws_cache", {})
+        n = math.prod(shape)
+        buf = cache.get(name)
+        if buf is None or buf.numel() < n:
+            buf = cache[name] = torch.empty(n, dtype=self.dtype, device=self.device)
+        return buf[:n].view(shape)
 
     @property
     def _chol_t(self) -> torch.Tensor:
