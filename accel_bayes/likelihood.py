@@ -686,7 +686,7 @@ class RaoBlackwellLikelihood:
         Lt, mt = self._chol_t, self._mean_t  # (3, 3, T), (3, T)
         pi, pj = self._pairs
         out = []
-        step = max(1, _DIRECT_CHUNK_ELEMS // (N * (16 * B if shared else 16)))
+        step = max(1, _DIRECT_CHUNK_ELEMS // (16 * N * B))  # ~16 numbers per (draw, θ) in flight
         # Without autograd the temporaries live in buffers reused across chunks and calls (fresh
         # multi-100-kB allocations cost page faults comparable to the arithmetic).
         ws = self._workspace if inplace else (lambda name, shape: None)
