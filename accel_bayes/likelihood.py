@@ -489,7 +489,8 @@ class RaoBlackwellLikelihood:
 
         so c keeps the sum-of-squares form of the projected residual (no cancellation between
         the large φ part of y and the remainder).  Same quantities as :meth:`projection`, to
-        round-off, including a φ prior (M → M + F⁻¹, C += (K_wG_w)ᵀF⁻¹(K_wG_w)).
+        round-off, including a φ prior (M → M + F⁻¹, C += (K_wG_w)ᵀF⁻¹(K_wG_w)).  Without
+        autograd ``b`` is a view of a scratch buffer that the next call overwrites.
         """
         sl = self._sqrt_lam
         Hw = sl.unsqueeze(-1) * H_matrix(r)  # (B, 3A, 6)
@@ -511,12 +512,23 @@ class RaoBlackwellLikelihood:
         W = torch.cat((torch.cat((K.transpose(-1, -2), Gt), -1),
                        torch.cat((-PG.transpose(-1, -2), -C), -1)), -2)  # (B, 3A + 6, 12)
         yu = self._yu_w
-        pb = yu @ W  # (B, T, 12): φ̂, b
+        Bn, T = W.shape[0], self.T
+        # Without autograd the (B, T, ·) temporaries live in reused buffers (fresh MB-sized
+        # allocations cost page faults comparable to the arithmetic).
+        reuse = not (torch.is_grad_enabled() and r.requires_grad)
+        ws = self._workspace if reuse else (lambda name, shape: None)
+        # (B, T, 12): φ̂, b — one (T, 3A+6) × (3A+6, 12B) product for the whole batch
+        pb = torch.mm(yu, W.permute(1, 0, 2).reshape(n + 6, Bn * 12), out=ws("pb", (T, Bn * 12)))
+        pb = pb.view(T, Bn, 12).transpose(0, 1)
         phi, b = pb[..., :6], pb[..., 6:]
         V = torch.cat((Gw, Hw), -1).transpose(-1, -2)  # (B, 12, 3A)
-        U = torch.cat((yu[:, n:].expand(*phi.shape[:-1], 6), phi), -1)  # (B, T, 12)
-        e = yu[:, :n] - U @ V  # Λ^½ e (B, T, 3A)
-        c = (e * e).sum(-1)
+        U = torch.cat((yu[:, n:].expand(Bn, T, 6), phi), -1, out=ws("U", (Bn, T, 12)))
+        e = torch.matmul(U, V, out=ws("e", (Bn, T, n)))  # Λ^½ (y − e)
+        if reuse:
+            c = e.sub_(yu[:, :n]).square_().sum(-1)  # ‖Λ^½ e‖² (the sign of e is immaterial)
+        else:
+            e = yu[:, :n] - e  # Λ^½ e (B, T, 3A)
+            c = (e * e).sum(-1)
         if self.phi_prior_prec is not None:
             c = c + ((phi @ self.phi_prior_prec) * phi).sum(-1)
         return {"c": c, "b": b, "C": C, "logdetM": logdetM}
