@@ -11,9 +11,10 @@ same in both versions) and the relative difference is printed.
 
 Cases (``--cases``):
 
-* ``exp1`` — the real MIMU4444 recording exp_1 (8 IMUs) prepared as ``calibrate`` prepares it
-  (:func:`accel_bayes.prep.preprocess.preprocess`, stated noise, eq. 30 gyro posterior), N = 1;
-  skipped when the shared data are absent.
+* ``exp1`` — the real MIMU4444 recording exp_1 (8 IMUs, T = 5885) through the preparation of
+  ``calibrate`` (:func:`accel_bayes.prep.preprocess.preprocess`), N = 1, at the nominal
+  positions; stated noise and the eq. 30 gyro posterior (``calibrate`` would estimate the noise
+  and use the calibrated posterior: same cost); skipped when the shared data are absent.
 * ``mimu8`` — simulated 8-corner MIMU4444, ``smooth`` motion, T = 5900, N = 1 (exp_1-like).
 * ``plate7`` — 7 of those IMUs, T = 2600, N = 25.
 * ``mimu32`` — the 32-IMU board, [C21] §IV-A i.i.d. motion, σ_a = 0.04 m/s², T = 500, N = 1
