@@ -47,12 +47,20 @@ posterior mean) and d = u(ω) − u(ω̄_t),
     q_tn = c_t − 2 b_tᵀ d_tn + d_tnᵀ C d_tn,  c_t = r_tᵀSr_t, b_t = GᵀSr_t, C = GᵀSG,
 
 all three computed from φ-projected residuals (no cancellation between the large φ part of y
-and the small remainder).  Per draw, d_tn = D_t f(z_tn) with f = [z; u(z); 1] (ω = ω̄ + L z,
-u quadratic), so q_tn − R_77² = ‖F_t f(z_tn)‖² with F_t (6×10) from an upper-triangular factor
-R_t of the 7×7 matrix [[C, −b_t], [−b_tᵀ, c_t]]: a 6×10 matrix-vector product per draw,
-whatever A is, and a sum of squares (never negative).  R_77² = min_d q_t is a lower bound of
-every q_tn, so exp(−½(q − R_77²)) ≤ 1 cannot overflow; samples where every term underflows fall
-back to a max-shifted log-sum-exp.
+and the small remainder).  Let R_t be the upper-triangular factor of the 7×7 matrix
+[[C, −b_t], [−b_tᵀ, c_t]]; C does not depend on t, so R_t = [[R_C, w_t], [0, R_77,t]] with
+R_C the factor of C (one 6×6 Cholesky per θ), w_t = −R_C⁻ᵀb_t and R_77,t² = c_t − ‖w_t‖².  Then
+q_tn − R_77² = ‖R_C d_tn + w_t‖², a sum of squares (never negative), whatever A is.  For a
+few draws (N ≤ 32) d_tn is formed directly from v = L_t z_tn (d_ij = ω_i v_j + ω̄_j v_i, ω = ω̄ + v);
+for many, per draw d_tn = D_t f(z_tn) with f = [z; u(z); 1] and q_tn − R_77² = ‖F_t f(z_tn)‖²
+with F_t = R_t[:6] D_t (6×10).  R_77² = min_d q_t is a lower bound of every q_tn, so
+exp(−½(q − R_77²)) ≤ 1 cannot overflow; samples where every term underflows fall back to a
+max-shifted log-sum-exp.  (Where C is singular, A ≤ 3, or a remainder comes out negative by
+rounding, R_t comes from a 7×7 Cholesky or eigendecomposition per sample instead.)
+
+One log p̂ at N = 1 on exp_1 (T = 5885, A = 8) costs ≈ 0.9 ms on one core
+(experiments/bench_iteration.py): the projection (two matrix products over the data, ≈ 0.45 ms)
+and the per-draw work (≈ 0.2 ms).
 """
 from __future__ import annotations
 
@@ -82,6 +90,12 @@ __all__ = [
 # Budget (number of float64 elements) of one chunk of per-draw temporaries: keeps memory at
 # ~tens of MB whatever T·N·batch is, without a Python loop per sample.
 _CHUNK_ELEMS = 1 << 19
+
+# Up to this many draws per sample, log_phat evaluates q directly from d = u(ω) − u(ω̄)
+# (_lse_direct); above it the per-sample 6×10 maps F_t (_lse_shared) are cheaper per draw.
+# The direct path works in smaller chunks (its temporaries then stay in cache).
+_DIRECT_MAX_DRAWS = 32
+_DIRECT_CHUNK_ELEMS = 1 << 18
 
 
 # ---------------------------------------------------------------------------- parameterisation
@@ -472,6 +486,76 @@ class RaoBlackwellLikelihood:
         b = Le @ G
         return {"M": M, "L": L, "logdetM": logdetM, "C": C, "c": c, "b": b, "phi": phi}
 
+    def _projection_hot(self, r: torch.Tensor) -> dict:
+        """``c``, ``b``, ``C``, ``logdetM`` of :meth:`projection` centred at the gyro posterior
+        mean, for r (B, A, 3): log_phat's hot path, two passes over the data instead of five.
+
+        In the Λ^½-weighted coordinates (y_w = Λ^½y, H_w = Λ^½H, G_w = Λ^½G, cached θ-free
+        [y_w, u(ω̄)]) and with K_w = M⁻¹H_wᵀ, Ẽ_w = G_w − H_w K_w G_w (= Λ^½Ẽ), the centred
+        residual r_t = y_t − G u(ω̄_t) gives
+
+            [φ̂_t, b_t] = [y_w,t, u(ω̄_t)] · [[K_wᵀ, Ẽ_w], [−(K_w G_w)ᵀ, −C]]   (b = GᵀSr = ẼᵀΛr)
+            Λ^½ e_t = y_w,t − [u(ω̄_t), φ̂_t] · [G_wᵀ; H_wᵀ],   c_t = ‖Λ^½ e_t‖² (+ φ̂ᵀF⁻¹φ̂),
+
+        so c keeps the sum-of-squares form of the projected residual (no cancellation between
+        the large φ part of y and the remainder).  Same quantities as :meth:`projection`, to
+        round-off, including a φ prior (M → M + F⁻¹, C += (K_wG_w)ᵀF⁻¹(K_wG_w)).  Without
+        autograd ``b`` is a view of a scratch buffer that the next call overwrites.
+        """
+        sl = self._sqrt_lam
+        Hw = sl.unsqueeze(-1) * H_matrix(r)  # (B, 3A, 6)
+        Gw = sl.unsqueeze(-1) * G_matrix(r)
+        M = self._with_phi_prior(Hw.transpose(-1, -2) @ Hw)
+        L, info = torch.linalg.cholesky_ex(M)
+        if bool((info != 0).any()):
+            raise UserError("positions: H(θ)ᵀΛH(θ) is singular — the triads are (nearly) collinear "
+                            "or coincide, so ω̇ and s cannot be separated")
+        logdetM = 2 * torch.diagonal(L, dim1=-2, dim2=-1).log().sum(-1)
+        K = torch.cholesky_solve(Hw.transpose(-1, -2), L)  # M⁻¹H_wᵀ (B, 6, 3A)
+        PG = K @ Gw  # M⁻¹HᵀΛG
+        Gt = Gw - Hw @ PG  # Λ^½Ẽ
+        C = Gt.transpose(-1, -2) @ Gt
+        if self.phi_prior_prec is not None:
+            C = C + PG.transpose(-1, -2) @ self.phi_prior_prec @ PG
+        C = 0.5 * (C + C.transpose(-1, -2))
+        n = 3 * self.A
+        W = torch.cat((torch.cat((K.transpose(-1, -2), Gt), -1),
+                       torch.cat((-PG.transpose(-1, -2), -C), -1)), -2)  # (B, 3A + 6, 12)
+        yu = self._yu_w
+        Bn, T = W.shape[0], self.T
+        # Without autograd the (B, T, ·) temporaries live in reused buffers (fresh MB-sized
+        # allocations cost page faults comparable to the arithmetic).
+        reuse = not (torch.is_grad_enabled() and r.requires_grad)
+        ws = self._workspace if reuse else (lambda name, shape: None)
+        # (B, T, 12): φ̂, b — one (T, 3A+6) × (3A+6, 12B) product for the whole batch
+        pb = torch.mm(yu, W.permute(1, 0, 2).reshape(n + 6, Bn * 12), out=ws("pb", (T, Bn * 12)))
+        pb = pb.view(T, Bn, 12).transpose(0, 1)
+        phi, b = pb[..., :6], pb[..., 6:]
+        V = torch.cat((Gw, Hw), -1).transpose(-1, -2)  # (B, 12, 3A)
+        U = torch.cat((yu[:, n:].expand(Bn, T, 6), phi), -1, out=ws("U", (Bn, T, 12)))
+        e = torch.matmul(U, V, out=ws("e", (Bn, T, n)))  # Λ^½ (y − e)
+        if reuse:
+            c = e.sub_(yu[:, :n]).square_().sum(-1)  # ‖Λ^½ e‖² (the sign of e is immaterial)
+        else:
+            e = yu[:, :n] - e  # Λ^½ e (B, T, 3A)
+            c = (e * e).sum(-1)
+        if self.phi_prior_prec is not None:
+            c = c + ((phi @ self.phi_prior_prec) * phi).sum(-1)
+        return {"c": c, "b": b, "C": C, "logdetM": logdetM}
+
+    @property
+    def _sqrt_lam(self) -> torch.Tensor:
+        if getattr(self, "_sqrt_lam_cache", None) is None:
+            self._sqrt_lam_cache = self.lam.sqrt()
+        return self._sqrt_lam_cache
+
+    @property
+    def _yu_w(self) -> torch.Tensor:
+        """[Λ^½ y_t, u(ω̄_t)] (T, 3A + 6), θ-free (cached)."""
+        if getattr(self, "_yu_cache", None) is None:
+            self._yu_cache = torch.cat((self.y * self._sqrt_lam, u_of_omega(self.omega.mean)), -1)
+        return self._yu_cache
+
     # ------------------------------------------------------------------ exact given ω
     def log_lik_given_omega(self, positions: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
         """log p(y^a | ω_{1:T}, θ) with φ integrated out (flat prior, β → ∞; [C21] eq. 18–24 with
@@ -546,11 +630,13 @@ class RaoBlackwellLikelihood:
             for independent chains).
         Returns (...) — the dropped constants are listed in the module docstring.
 
-        Implementation: with d' = [u(ω) − u(ω̄_t); 1] = D_t f(z), f = [z; u(z); 1] (10 numbers per
-        draw, shared by all θ) and D_t fixed by the gyro posterior, q_tn = ‖R_t D_t f_tn‖² where
+        Implementation: with d' = [u(ω) − u(ω̄_t); 1], q_tn = ‖R_t d'_tn‖² where
         R_tᵀR_t = [[C, −b_t], [−b_tᵀ, c_t]] (7×7, PSD, R_t upper-triangular; its last row only
-        adds the constant R_77²).  So one draw costs a 6×10 matrix-vector
-        product whatever A is, and q ≥ 0 is a sum of squares (no cancellation).
+        adds the constant R_77²).  R_t = [[R_C, w_t], [0, R_77]] from one shared 6×6 factor
+        (:meth:`_factor`); for N ≤ 32 q − R_77² = ‖R_C d + w_t‖² with d from ω directly
+        (:meth:`_lse_direct`), otherwise d' = D_t f(z), f = [z; u(z); 1] and a 6×10 map per
+        sample (:meth:`_draw_maps`, :meth:`_lse_shared`).  Either way one draw costs O(1)
+        whatever A is, and q − R_77² ≥ 0 is a sum of squares (no cancellation).
         """
         r = self._positions(positions)
         batch = r.shape[:-2]
@@ -563,19 +649,120 @@ class RaoBlackwellLikelihood:
                 raise UserError(f"z: expected shape (..., T={self.T}, N, 3), got {tuple(z.shape)}")
         N = z.shape[-2]
         B = int(np.prod(batch)) if len(batch) else 1
-        proj = self.projection(r.reshape(B, self.A, 3), center=self.omega.mean)
-        F, floor = self._draw_maps(proj["c"], proj["b"], proj["C"])  # (B, T, 6, 10), (B, T)
+        proj = self._projection_hot(r.reshape(B, self.A, 3))
         zt = z.transpose(-1, -2)  # (..., T, 3, N); a view of sample_z's storage
         zbatch = zt.shape[:-3]
-        # In-place temporaries and a reused feature buffer, unless autograd needs the originals.
-        inplace = not (torch.is_grad_enabled() and (F.requires_grad or zt.requires_grad))
-        if len(zbatch) == 0:
-            lse = self._lse_shared(zt, F, inplace)  # (B, T)
-        else:
+        if len(zbatch):
             zt = zt.expand(*batch, *zt.shape[-3:]).reshape(B, self.T, 3, N)
-            lse = self._lse_per_batch(zt, F, inplace)
+        fac = self._factor(proj["c"], proj["b"], proj["C"])
+        if fac is not None and N <= _DIRECT_MAX_DRAWS:
+            Rc, w, floor = fac
+            inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
+            lse = self._lse_direct(zt, Rc, w, inplace)  # (B, T)
+        else:
+            if fac is None:
+                F, floor = self._draw_maps_eig(proj["c"], proj["b"], proj["C"])  # (B, T, 6, 10), (B, T)
+            else:
+                F, floor = self._maps_from_factor(fac[0], fac[1]), fac[2]
+            # In-place temporaries and a reused feature buffer, unless autograd needs the originals.
+            inplace = not (torch.is_grad_enabled() and (F.requires_grad or zt.requires_grad))
+            if len(zbatch) == 0:
+                lse = self._lse_shared(zt, F, inplace)  # (B, T)
+            else:
+                lse = self._lse_per_batch(zt, F, inplace)
         out = (lse - 0.5 * floor).sum(-1) - self.T * math.log(N) - 0.5 * self.T * proj["logdetM"]
         return out.reshape(batch)
+
+    def _factor(self, c, b, C):
+        """(R_C, w, floor) with R_t = [[R_C, w_t], [0, √floor_t]] the upper-triangular factor of
+        C'_t = [[C, −b_t], [−b_tᵀ, c_t]] (see :meth:`_draw_maps`), or None when C is singular or
+        some remainder floor_t = c_t − ‖w_t‖² comes out negative by rounding (then the caller
+        takes the general 7×7 path).  R_C (B, 6, 6), w (B, 6, T), floor (B, T) ≥ 0.
+
+        C is the same at every t, so this is one 6×6 Cholesky and one triangular solve per θ: the
+        same arithmetic as the last row of a 7×7 Cholesky, without T factorisations.
+        """
+        Lc, info = torch.linalg.cholesky_ex(C)  # C = Lc Lcᵀ, R_C = Lcᵀ
+        if bool((info != 0).any()):
+            return None
+        w = torch.linalg.solve_triangular(Lc, b.transpose(-1, -2), upper=False).neg()  # −R_C⁻ᵀ b_t
+        floor = c - (w * w).sum(-2)
+        if not bool((floor >= 0).all()):
+            return None
+        return Lc.transpose(-1, -2), w, floor
+
+    def _lse_direct(self, zt, Rc, w, inplace=True):
+        """log Σ_n exp(−½(q_tn − floor_t)) → (B, T), with q_tn − floor_t = ‖R_C d_tn + w_t‖².
+
+        d_tn = u(ω_tn) − u(ω̄_t) is formed from v = L_t z_tn (ω = ω̄ + v) as
+        d_ij = ω_i v_j + ω̄_j v_i (exact for the quadratic u, no cancellation), θ-free and so
+        shared by all B positions when zt (T, 3, N) is; zt (B, T, 3, N) gives one per position.
+        Per draw that is ~40 flops for d plus a 6×6 triangular product per θ (one matrix product
+        over all t and n), instead of the 6×10 map F_t per (θ, t) of :meth:`_lse_shared`.
+        For N = 1 the log-sum-exp is the term itself (no exp/log).
+        """
+        B = Rc.shape[0]
+        T, N = zt.shape[-3], zt.shape[-1]
+        shared = zt.dim() == 3
+        zb = () if shared else (B,)
+        Lt, mt = self._chol_t, self._mean_t  # (3, 3, T), (3, T)
+        pi, pj = self._pairs
+        out = []
+        step = max(1, _DIRECT_CHUNK_ELEMS // (16 * N * B))  # ~16 numbers per (draw, θ) in flight
+        # Without autograd the temporaries live in buffers reused across chunks and calls (fresh
+        # multi-100-kB allocations cost page faults comparable to the arithmetic).
+        ws = self._workspace if inplace else (lambda name, shape: None)
+        for t0 in range(0, T, step):
+            t1 = min(T, t0 + step)
+            tau = t1 - t0
+            zc = zt[..., t0:t1, :, :].transpose(-3, -2)  # (…, 3, τ, N) view
+            m = mt[:, t0:t1, None]  # (3, τ, 1)
+            # v_i = Σ_j L_ij z_j  (…, 3, τ, N)
+            prod = torch.mul(Lt[:, :, t0:t1, None], zc.unsqueeze(-4), out=ws("prod", (*zb, 3, 3, tau, N)))
+            v = torch.sum(prod, -3, out=ws("v", (*zb, 3, tau, N)))
+            om = torch.add(v, m, out=ws("om", (*zb, 3, tau, N)))
+            d = torch.index_select(om, -3, pi, out=ws("d", (*zb, 6, tau, N)))
+            tmp = torch.index_select(v, -3, pj, out=ws("tmp", (*zb, 6, tau, N)))
+            d = d.mul_(tmp) if inplace else d * tmp
+            tmp = torch.index_select(v, -3, pi, out=ws("tmp", (*zb, 6, tau, N)))
+            tmp = tmp.mul_(m.index_select(0, pj)) if inplace else tmp * m.index_select(0, pj)
+            d = d.add_(tmp) if inplace else d + tmp  # d_ij = ω_i v_j + ω̄_j v_i
+            y = torch.matmul(Rc, d.view(*zb, 6, tau * N), out=ws("y", (B, 6, tau * N)))
+            y = y.view(B, 6, tau, N)
+            y = y.add_(w[:, :, t0:t1, None]) if inplace else y + w[:, :, t0:t1, None]
+            y = y.mul_(y) if inplace else y * y
+            s = torch.sum(y, 1, out=ws("s", (B, tau, N)))  # (B, τ, N)
+            out.append(s[..., 0] * -0.5 if N == 1 else self._log_mean_exp_shifted(s))
+        return torch.cat(out, 1)
+
+    def _workspace(self, name: str, shape: tuple) -> torch.Tensor:
+        """A scratch tensor of ``shape`` named ``name``, reused across calls (grown as needed)."""
+        cache = self.__dict__.setdefault("_ws_cache", {})
+        n = math.prod(shape)
+        buf = cache.get(name)
+        if buf is None or buf.numel() < n:
+            buf = cache[name] = torch.empty(n, dtype=self.dtype, device=self.device)
+        return buf[:n].view(shape)
+
+    @property
+    def _chol_t(self) -> torch.Tensor:
+        """chol(cov_t) stored (3, 3, T) (cached)."""
+        if getattr(self, "_chol_t_cache", None) is None:
+            self._chol_t_cache = self.omega_chol.permute(1, 2, 0).contiguous()
+            self._mean_t_cache = self.omega.mean.T.contiguous()
+        return self._chol_t_cache
+
+    @property
+    def _mean_t(self) -> torch.Tensor:
+        """ω̄_t stored (3, T) (cached)."""
+        self._chol_t
+        return self._mean_t_cache
+
+    @property
+    def _pairs(self):
+        if getattr(self, "_pairs_cache", None) is None:
+            self._pairs_cache = (torch.tensor(_PAIRS_I, device=self.device), torch.tensor(_PAIRS_J, device=self.device))
+        return self._pairs_cache
 
     def _draw_maps(self, c, b, C):
         """(F, floor): q_tn = ‖F_t f(z_tn)‖² + floor_t, F (B, T, 6, 10), floor (B, T) ≥ 0.
@@ -583,7 +770,34 @@ class RaoBlackwellLikelihood:
         R_t is an upper-triangular factor of C'_t = [[C, −b_t], [−b_tᵀ, c_t]] = R_tᵀR_t, so the
         last row of R_t D_t is (0, …, 0, R_77) and floor = R_77² = min_d q is a lower bound of
         every q_tn: exp(−½(q − floor)) ≤ 1 never overflows (see :meth:`_lse_shared`).
+        R_t comes from :meth:`_factor` (one shared 6×6 Cholesky) or, where that declines, from
+        :meth:`_draw_maps_eig` (a 7×7 factor per sample).
         """
+        fac = self._factor(c, b, C)
+        if fac is None:
+            return self._draw_maps_eig(c, b, C)
+        return self._maps_from_factor(*fac[:2]), fac[2]
+
+    def _maps_from_factor(self, Rc, w):
+        """F_t = R_t[:6] D_t = [R_C D_t[:6, :9], w_t] (D_t's last row is e_10 and its last column
+        is zero above it) → (B, T, 6, 10), stored (T, B, 6, 10) so that :meth:`_lse_shared`'s
+        (T, 6B, 10) view needs no copy."""
+        B, T = w.shape[0], w.shape[-1]
+        F = torch.empty(T, B, 6, 10, dtype=w.dtype, device=w.device)
+        F[..., :9] = (Rc @ self._D6).view(B, 6, T, 9).permute(2, 0, 1, 3)
+        F[..., 9] = w.permute(2, 0, 1)
+        return F.permute(1, 0, 2, 3)
+
+    @property
+    def _D6(self) -> torch.Tensor:
+        """D_t[:6, :9] stored (6, T·9) (θ-free, cached): R_C @ _D6 is one matrix product."""
+        if getattr(self, "_D6_cache", None) is None:
+            self._D6_cache = self._D[:, :6, :9].permute(1, 0, 2).reshape(6, self.T * 9)
+        return self._D6_cache
+
+    def _draw_maps_eig(self, c, b, C):
+        """:meth:`_draw_maps` through a 7×7 factor per sample (the general path: Cholesky, and
+        for singular or rounding-indefinite C'_t an eigendecomposition square root)."""
         B, T = c.shape
         Cp = torch.empty(B, T, 7, 7, dtype=self.dtype, device=self.device)
         Cp[..., :6, :6] = C.unsqueeze(1)

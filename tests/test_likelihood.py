@@ -533,3 +533,106 @@ def test_phi_prior_log_phat_equals_dense_form():
     assert abs(float(lik.log_phat(POS4, z=z)) - float(dense)) < 1e-9
     with pytest.raises(UserError, match="phi_prior"):
         RaoBlackwellLikelihood(acc, om, 0.05, num_draws=4, phi_prior=(1.0, 0.0))
+
+
+# ---------------------------------------------------------------- 5. the hot-path variants (issue #15)
+
+def _dense_phi_prior_log_phat(lik, pos, z, prec):
+    """Eq. 26 densely with S_F = Λ − ΛH(M + F⁻¹)⁻¹HᵀΛ (``prec`` = F⁻¹, None for the flat prior)."""
+    r = pos - pos[lik.reference]
+    H, G = H_matrix(r), G_matrix(r)
+    Lam = torch.diag(lik.lam)
+    MF = H.T @ Lam @ H + (0 if prec is None else prec)
+    S = Lam - Lam @ H @ torch.linalg.inv(MF) @ H.T @ Lam
+    om = lik.omega.mean[:, None, :] + (lik.omega_chol[:, None] @ z.unsqueeze(-1)).squeeze(-1)
+    res = lik.y[:, None, :] - u_of_omega(om) @ G.T
+    q = torch.einsum("tni,ij,tnj->tn", res, S, res)
+    N = z.shape[-2]
+    return (torch.logsumexp(-0.5 * q, -1) - math.log(N)).sum() - 0.5 * lik.T * torch.linalg.slogdet(MF)[1]
+
+
+@pytest.mark.parametrize("N", [1, 3, 32, 33])
+def test_every_draw_path_equals_dense_form(small, N):
+    """N ≤ 32: q from d = u(ω) − u(ω̄) and the shared factor (direct path, N = 1 without exp/log);
+    N = 33: the 6×10 maps from the shared factor.  Shared z over a batch of θ and a z per θ."""
+    pos, lik, _ = small
+    P = pos + 0.004 * torch.randn(3, 5, 3, generator=_gen(101 + N), dtype=DT)
+    z = lik.sample_z(num_draws=N, generator=_gen(102 + N))
+    got = lik.log_phat(P, z=z)
+    for i in range(3):
+        dense = float(_dense_log_phat(lik, P[i], z))
+        assert abs(float(got[i]) - dense) < 1e-9 * abs(dense), (N, i, float(got[i]), dense)
+    zb = lik.sample_z((3,), num_draws=N, generator=_gen(103 + N))
+    got = lik.log_phat(P, z=zb)
+    for i in range(3):
+        dense = float(_dense_log_phat(lik, P[i], zb[i]))
+        assert abs(float(got[i]) - dense) < 1e-9 * abs(dense), (N, i, float(got[i]), dense)
+
+
+def test_direct_path_far_off_theta_and_chunks(small, monkeypatch):
+    """Direct path: a θ far from the data (every exp(−½q) underflows without the floor) and
+    several t-chunks give the dense value."""
+    import accel_bayes.likelihood as likmod
+
+    pos, lik, _ = small
+    z = lik.sample_z(num_draws=5, generator=_gen(111))
+    bad = pos * 3.0 + 0.05
+    want = float(_dense_log_phat(lik, bad, z))
+    assert abs(float(lik.log_phat(bad, z=z)) - want) < 1e-9 * abs(want)
+    monkeypatch.setattr(likmod, "_DIRECT_CHUNK_ELEMS", 5 * 16 * 2)  # 2 samples per chunk
+    assert abs(float(lik.log_phat(bad, z=z)) - want) < 1e-9 * abs(want)
+    P = pos + 0.002 * torch.randn(2, 5, 3, generator=_gen(112), dtype=DT)
+    got = lik.log_phat(P, z=z)
+    for i in range(2):
+        dense = float(_dense_log_phat(lik, P[i], z))
+        assert abs(float(got[i]) - dense) < 1e-9 * abs(dense)
+
+
+def test_direct_path_gradient_matches_finite_differences(small):
+    pos, lik, _ = small
+    for N in (1, 4):
+        z = lik.sample_z(num_draws=N, generator=_gen(121 + N))
+        p = (pos + 0.001).clone().requires_grad_(True)
+        (grad,) = torch.autograd.grad(lik.log_phat(p, z=z), p)
+        e = torch.zeros_like(pos)
+        e[3, 2] = 1e-6
+        fd = (lik.log_phat(pos + 0.001 + e, z=z) - lik.log_phat(pos + 0.001 - e, z=z)) / 2e-6
+        assert abs(float(grad[3, 2] - fd)) < 1e-4 * (1 + abs(float(fd)))
+
+
+def test_singular_factor_path_with_few_draws():
+    """A = 4 (rank S = 6 < 7): the shared factor declines and the 7×7/eigendecomposition path
+    is taken also for N within the direct range."""
+    acc, gyro, w = _simulate(POS4, 6, 0.05, 0.05, 3, seed=23)
+    om = gyro_posterior(gyro, torch.full((3,), 0.05, dtype=DT), "sample_cov")
+    lik = RaoBlackwellLikelihood(acc, om, torch.tensor([0.05, 0.04, 0.06, 0.05], dtype=DT), num_draws=3)
+    z = lik.sample_z(generator=_gen(131))
+    want = float(_dense_log_phat(lik, POS4, z))
+    assert abs(float(lik.log_phat(POS4, z=z)) - want) < 1e-9 * max(1.0, abs(want))
+
+
+@pytest.mark.parametrize("N", [1, 6, 40])
+def test_phi_prior_every_draw_path_equals_dense_form(N):
+    g = _gen(141)
+    pos = 0.05 * torch.randn(6, 3, generator=g, dtype=DT)
+    pos[0] = 0
+    acc, gyro, w = _simulate(pos, 9, 0.05, 0.03, 3, seed=142)
+    om = gyro_posterior(gyro, torch.full((3,), 0.03, dtype=DT), "calibrated")
+    B = torch.randn(6, 6, generator=g, dtype=DT)
+    Fcov = B @ B.T + 0.5 * torch.eye(6, dtype=DT)  # a full 6×6 F
+    lik = RaoBlackwellLikelihood(acc, om, torch.full((6,), 0.05, dtype=DT), num_draws=N, phi_prior=Fcov)
+    z = lik.sample_z(generator=_gen(143))
+    p = pos + 0.003 * torch.randn(6, 3, generator=g, dtype=DT)
+    want = float(_dense_phi_prior_log_phat(lik, p, z, torch.linalg.inv(Fcov)))
+    assert abs(float(lik.log_phat(p, z=z)) - want) < 1e-9 * abs(want), N
+
+
+@pytest.mark.parametrize("prior", [None, (3.0, 2.0)])
+def test_hot_projection_equals_projection(small, prior):
+    pos, lik0, _ = small
+    lik = RaoBlackwellLikelihood(lik0.acc, lik0.omega, lik0.acc_noise_std, num_draws=1, phi_prior=prior)
+    P = pos + 0.003 * torch.randn(2, 5, 3, generator=_gen(151), dtype=DT)
+    hot = lik._projection_hot(lik._positions(P))
+    ref = lik.projection(P, center=lik.omega.mean)
+    for k in ("c", "b", "C", "logdetM"):
+        assert torch.allclose(hot[k], ref[k], rtol=1e-10, atol=1e-10 * float(ref[k].abs().max())), k
