@@ -123,6 +123,9 @@ def register(sub) -> None:
                         "killed or interrupted)")
     p.add_argument("--resume", action="store_true",
                    help="continue from DIR/checkpoint.pt (a DIR holding it needs no --overwrite)")
+    p.add_argument("--threads", type=opt.count(1), default=DEFAULTS["threads"], metavar="K",
+                   help="torch CPU threads (default %(default)s: the tensors are small, and extra threads cost more "
+                        "than they give on a shared machine)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
@@ -149,7 +152,7 @@ def _run(args) -> int:
         checkpoint=ckpt, checkpoint_every=args.checkpoint_every, resume=args.resume,
         intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
         min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
-        noise_inflation=not args.no_noise_inflation, phi_prior=args.phi_prior,
+        noise_inflation=not args.no_noise_inflation, phi_prior=args.phi_prior, threads=args.threads,
     )
     n_kept = res.settings["preprocess"]["samples"].get("clipped_kept", 0)
     if n_kept:  # stderr: the table below goes to stdout, which is often redirected

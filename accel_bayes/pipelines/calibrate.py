@@ -51,6 +51,7 @@ from ..likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikeli
     positions_from_theta
 from ..prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
 from ..prep.phi_prior import PHI_PRIOR_CHOICES, PhiPrior, empirical_phi_prior
+from ..threads import DEFAULT_THREADS, torch_threads
 from ..data.outputs import to_jsonable, write_text
 from ..prep.preprocess import preprocess
 from ..data.io import load_recording
@@ -98,6 +99,7 @@ DEFAULTS = {
     "noise_bins": DEFAULT_RATE_BINS,
     "noise_inflation": True,
     "phi_prior": "empirical",
+    "threads": DEFAULT_THREADS,
 }
 
 # Upper bound on N·T when N is chosen automatically: one estimate then costs at most ~0.1 s here.
@@ -407,6 +409,7 @@ def calibrate(
     noise_bins: int = DEFAULTS["noise_bins"],
     noise_inflation: bool = DEFAULTS["noise_inflation"],
     phi_prior=DEFAULTS["phi_prior"],
+    threads: int | None = DEFAULTS["threads"],
 ) -> CalibrationResult:
     """Sample the posterior of the accelerometer-triad positions of one recording with PmMH.
 
@@ -497,82 +500,87 @@ def calibrate(
         in the middle of a block; a run stopped by ``max_draws``/``max_seconds`` can be resumed with
         larger ones, which are not part of the settings a resume must match).
     callback : ``callback(chain, iteration, kernel)`` after every iteration.
+    threads : torch CPU threads for the whole call (default 1, restored afterwards; None leaves
+        torch's setting): the tensors are small, and on a shared 2-core machine two threads made
+        one likelihood estimate 100× slower (:mod:`accel_bayes.threads`).  Results do not depend
+        on it beyond floating-point reduction order.
 
     Returns a :class:`CalibrationResult`.
     """
-    t0 = time.perf_counter()
-    # Steps: options (checked once, here, before the file is read: DESIGN §7.5 refuses early),
-    # 1 load, 2 prepare, 3 noise, 4 MAP, 5 central θ and N, 6 posterior, 7 summary; writing the
-    # files is :func:`write_outputs`.
-    opts = _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
-                     checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select,
-                     max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior)
-    noise_bins = opts["noise_bins"]
-    raw, sha, src = _load_step(recording)
-    _check_resume(raw, sha, opts, checkpoint=checkpoint, resume=resume, prior=prior, prior_std=prior_std,
-                  use_map=use_map, init=init, gyro_method=gyro_method, select=select, drop_clipped=drop_clipped,
-                  proposal=proposal, independence_prob=independence_prob, target_accept_prob=target_accept_prob,
-                  intrinsics=intrinsics, drop_static=drop_static, min_rotation=min_rotation, noise=noise,
-                  noise_bins=noise_bins, noise_inflation=noise_inflation, phi_prior=phi_prior)
-    # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
-    pre, rec = _prepare_step(raw, intrinsics=intrinsics, drop_static=drop_static, drop_clipped=drop_clipped,
-                               min_rotation=min_rotation, select=select)
-    noise_mode = ("estimate" if pre.has_rests else "stated") if noise == "auto" else noise
-    gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if gyro_method == "auto" else gyro_method
-    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gm, selection=pre.selection)
-    array = raw.sensor_array()
-    labels = list(lik.imu_labels)
-    ref_label = labels[lik.reference]
-    free_labels = [k for i, k in enumerate(labels) if i != lik.reference]
-    nominal_acc = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=torch.float64)
-    ps = float(prior_std)
-    if prior == "gaussian":
-        pri = GaussianPrior(nominal_acc, std=ps, reference=lik.reference)
-    else:
-        pri = BoxPrior.with_std(nominal_acc, std=ps, reference=lik.reference)
+    with torch_threads(threads):  # small tensors: one thread is faster on a shared machine (accel_bayes.threads)
+        t0 = time.perf_counter()
+        # Steps: options (checked once, here, before the file is read: DESIGN §7.5 refuses early),
+        # 1 load, 2 prepare, 3 noise, 4 MAP, 5 central θ and N, 6 posterior, 7 summary; writing the
+        # files is :func:`write_outputs`.
+        opts = _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
+                         checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select,
+                         max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior)
+        noise_bins = opts["noise_bins"]
+        raw, sha, src = _load_step(recording)
+        _check_resume(raw, sha, opts, checkpoint=checkpoint, resume=resume, prior=prior, prior_std=prior_std,
+                      use_map=use_map, init=init, gyro_method=gyro_method, select=select, drop_clipped=drop_clipped,
+                      proposal=proposal, independence_prob=independence_prob, target_accept_prob=target_accept_prob,
+                      intrinsics=intrinsics, drop_static=drop_static, min_rotation=min_rotation, noise=noise,
+                      noise_bins=noise_bins, noise_inflation=noise_inflation, phi_prior=phi_prior)
+        # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
+        pre, rec = _prepare_step(raw, intrinsics=intrinsics, drop_static=drop_static, drop_clipped=drop_clipped,
+                                   min_rotation=min_rotation, select=select)
+        noise_mode = ("estimate" if pre.has_rests else "stated") if noise == "auto" else noise
+        gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if gyro_method == "auto" else gyro_method
+        lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gm, selection=pre.selection)
+        array = raw.sensor_array()
+        labels = list(lik.imu_labels)
+        ref_label = labels[lik.reference]
+        free_labels = [k for i, k in enumerate(labels) if i != lik.reference]
+        nominal_acc = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=torch.float64)
+        ps = float(prior_std)
+        if prior == "gaussian":
+            pri = GaussianPrior(nominal_acc, std=ps, reference=lik.reference)
+        else:
+            pri = BoxPrior.with_std(nominal_acc, std=ps, reference=lik.reference)
 
-    settings = {
-        "chains": opts["chains"], "draws": opts["draws"], "warmup": opts["warmup"], "seed": opts["seed"],
-        "prior": prior, "prior_std": ps, "gyro_method": gm,
-        "select": select if (select is None or isinstance(select, str)) else "mask",
-        "drop_clipped": bool(drop_clipped), "drop_static": bool(drop_static),
-        "min_rotation": pre.summary["samples"]["min_rotation"],
-        "intrinsics": intrinsics if isinstance(intrinsics, (str, bool)) or intrinsics is None else "given",
-        "noise": noise_mode, "noise_bins": noise_bins if noise_mode == "estimate" else None,
-        "noise_inflation": bool(noise_inflation) if noise_mode == "estimate" else None,
-        "T": lik.T, "A": lik.A, "imu_labels": labels, "reference_imu": ref_label,
-        "samples": {"recording": int(rec.T), "used": int(lik.T)},
-        "target_accept_prob": float(target_accept_prob),
-        "preprocess": pre.summary,
-    }
-    if src is not None:
-        settings["input"] = src
-    extra = {"preprocess": pre}
+        settings = {
+            "chains": opts["chains"], "draws": opts["draws"], "warmup": opts["warmup"], "seed": opts["seed"],
+            "prior": prior, "prior_std": ps, "gyro_method": gm,
+            "select": select if (select is None or isinstance(select, str)) else "mask",
+            "drop_clipped": bool(drop_clipped), "drop_static": bool(drop_static),
+            "min_rotation": pre.summary["samples"]["min_rotation"],
+            "intrinsics": intrinsics if isinstance(intrinsics, (str, bool)) or intrinsics is None else "given",
+            "noise": noise_mode, "noise_bins": noise_bins if noise_mode == "estimate" else None,
+            "noise_inflation": bool(noise_inflation) if noise_mode == "estimate" else None,
+            "T": lik.T, "A": lik.A, "imu_labels": labels, "reference_imu": ref_label,
+            "samples": {"recording": int(rec.T), "used": int(lik.T)},
+            "target_accept_prob": float(target_accept_prob),
+            "preprocess": pre.summary,
+        }
+        if src is not None:
+            settings["input"] = src
+        extra = {"preprocess": pre}
 
-    lik, map_res = _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra,
-                               phi_prior)
-    map_res = _map_step(lik, nominal_acc, ps, noise_mode, use_map, map_res, settings)
-    lik, theta_c, lap, N = _central_step(lik, pri, map_res, opts, proposal, settings)
-    run = _posterior_step(lik, pri, theta_c, lap, opts, proposal=proposal, independence_prob=independence_prob,
-                          init=init, target_accept_prob=target_accept_prob, settings=settings, request=opts["request"],
-                          progress=progress, checkpoint=checkpoint, resume=resume, callback=callback)
+        lik, map_res = _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra,
+                                   phi_prior)
+        map_res = _map_step(lik, nominal_acc, ps, noise_mode, use_map, map_res, settings)
+        lik, theta_c, lap, N = _central_step(lik, pri, map_res, opts, proposal, settings)
+        run = _posterior_step(lik, pri, theta_c, lap, opts, proposal=proposal, independence_prob=independence_prob,
+                              init=init, target_accept_prob=target_accept_prob, settings=settings, request=opts["request"],
+                              progress=progress, checkpoint=checkpoint, resume=resume, callback=callback)
 
-    # step 7, summary: ArviZ diagnostics and the positions document
-    idata = dg.to_inference_data(
-        run.theta, free_labels, run.log_phat, log_prior=run.log_prior, accepted=run.accepted,
-        accept_prob=run.accept_prob, step_size=run.step_size, reference_imu=ref_label,
-        attrs={"method": "pmmh", "num_draws": int(N), "seed": opts["seed"], "accel_bayes_version": __version__},
-    )
-    summary = dg.summarize(idata)
-    seconds = time.perf_counter() - t0
-    _convergence_settings(run, opts, settings)
-    settings["acceptance_rate"] = [float(a) for a in run.acceptance_rate]
-    settings["step_size"] = [float(s) for s in run.step_size]
-    settings["divergences"] = int(sum(len(d.get("divergences", [])) for d in run.diagnostics))
-    positions = positions_document(idata, K=rec.K, reference_imu=ref_label, seconds=seconds, settings=settings,
-                                   input_sha256=sha, seed=opts["seed"])
-    return CalibrationResult(idata=idata, summary=summary, positions=positions, settings=settings, seconds=seconds,
-                             run=run, map_result=map_res, array=array, input_sha256=sha, extra=extra)
+        # step 7, summary: ArviZ diagnostics and the positions document
+        idata = dg.to_inference_data(
+            run.theta, free_labels, run.log_phat, log_prior=run.log_prior, accepted=run.accepted,
+            accept_prob=run.accept_prob, step_size=run.step_size, reference_imu=ref_label,
+            attrs={"method": "pmmh", "num_draws": int(N), "seed": opts["seed"], "accel_bayes_version": __version__},
+        )
+        summary = dg.summarize(idata)
+        seconds = time.perf_counter() - t0
+        _convergence_settings(run, opts, settings)
+        settings["acceptance_rate"] = [float(a) for a in run.acceptance_rate]
+        settings["step_size"] = [float(s) for s in run.step_size]
+        settings["divergences"] = int(sum(len(d.get("divergences", [])) for d in run.diagnostics))
+        positions = positions_document(idata, K=rec.K, reference_imu=ref_label, seconds=seconds, settings=settings,
+                                       input_sha256=sha, seed=opts["seed"])
+        return CalibrationResult(idata=idata, summary=summary, positions=positions, settings=settings, seconds=seconds,
+                                 run=run, map_result=map_res, array=array, input_sha256=sha, extra=extra)
 
 
 # ---------------------------------------------------------------------------- the steps of calibrate
