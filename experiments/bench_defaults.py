@@ -5,8 +5,9 @@ What a new user waits for: the wall time of ``calibrate(recording)`` with every 
 choice of N, the chains, the summary), and whether the result is converged — every coordinate
 R̂ < 1.01 and bulk and tail ESS ≥ 400.  The same recordings (format-v1 files written once into a
 temporary directory) go through this checkout and through a checkout of 7adf109 (a git worktree;
-``--base DIR``), each call in a fresh process with the machine's default threads, the two trees
-alternating case by case so that both see the same load.
+``--base DIR``), each call in a fresh process with one CPU thread (OMP_NUM_THREADS=1: what
+``calibrate`` now uses by default, and fair to 7adf109, whose two threads would only add contention
+on this shared machine), the two trees alternating case by case so that both see the same load.
 
 Workloads:
 
@@ -78,7 +79,9 @@ def ensure_base(path: Path | None) -> Path:
 
 
 def run_case(tree: Path, path: Path) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(tree))
+    # one thread in both trees: calibrate pins one now (accel_bayes.threads), and 7adf109 with two
+    # threads on a loaded shared machine would be slowed by contention, not by its algorithm
+    env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     out = subprocess.run([sys.executable, "-c", WORKER, str(path)], cwd="/tmp", env=env, capture_output=True,
                          text=True)
     if out.returncode != 0:
