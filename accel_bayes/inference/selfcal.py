@@ -259,6 +259,12 @@ def _block_tridiagonal_selected_inverse(D: torch.Tensor, B: torch.Tensor):
     return torch.as_tensor(Sig, dtype=D.dtype, device=D.device), torch.as_tensor(C, dtype=D.dtype, device=D.device)
 
 
+# The estimated q_ω starts this much below the raw-output guess: a stiff motion model ties ω to ∫ω̇
+# firmly in the first fit from zero motion (a loose one lets ω flip sign between segments and the
+# poses run off), and the fixed point then loosens it, at most ×_MAX_FACTOR per step.
+_START_STIFFNESS = 1e-3
+_MAX_FACTOR = 10.0
+
 # residual rows of each intensity in the whitened process residual
 _INTENSITY_ROWS = {"acc": slice(0, 3), "omega": slice(3, 9)}
 
@@ -272,13 +278,7 @@ def process_noise_statistics(states, positions, orientations, dt, W, inv_std, S=
     h_k = tr(J_k H⁻¹ J_kᵀ), computed from the diagonal and first off-diagonal blocks of H⁻¹.
     Returns {"acc": (rss, n, h), "omega": (rss, n, h)}.
     """
-    Jx, _, _ = triad_jacobians(states, orientations, positions, inv_std, S)
-    D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
-    Jp, Jn = process_jacobians(dt, W)
-    D[:-1] += Jp.transpose(-1, -2) @ Jp
-    D[1:] += Jn.transpose(-1, -2) @ Jn
-    B = Jp.transpose(-1, -2) @ Jn
-    Sig, C = _block_tridiagonal_selected_inverse(D, B)
+    Jp, Jn, Sig, C = _motion_posterior(states, positions, orientations, dt, W, inv_std, S)
     M = (Jp @ Sig[:-1] @ Jp.transpose(-1, -2) + Jp @ C @ Jn.transpose(-1, -2)
          + Jn @ C.transpose(-1, -2) @ Jp.transpose(-1, -2) + Jn @ Sig[1:] @ Jn.transpose(-1, -2))
     lev = torch.diagonal(M, dim1=-2, dim2=-1)  # (T−1, 9)
@@ -287,7 +287,70 @@ def process_noise_statistics(states, positions, orientations, dt, W, inv_std, S=
             for k, sl in _INTENSITY_ROWS.items()}
 
 
-def update_process_intensities(intensities: dict, stats: dict, max_factor: float = 100.0) -> dict:
+def _motion_posterior(states, positions, orientations, dt, W, inv_std, S=None):
+    """Process Jacobians and the selected blocks of the motion's Laplace covariance Σ = H_xx⁻¹
+    (poses held): (J_prev, J_next, Σ_i (T, 9, 9), Σ_{i,i+1} (T−1, 9, 9))."""
+    Jx, _, _ = triad_jacobians(states, orientations, positions, inv_std, S)
+    D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
+    Jp, Jn = process_jacobians(dt, W)
+    D[:-1] += Jp.transpose(-1, -2) @ Jp
+    D[1:] += Jn.transpose(-1, -2) @ Jn
+    B = Jp.transpose(-1, -2) @ Jn
+    Sig, C = _block_tridiagonal_selected_inverse(D, B)
+    return Jp, Jn, Sig, C
+
+
+def scale_orbit(positions, states, fixed: int, c: float):
+    """The accelerometer-only symmetry: poses and motion that explain the outputs exactly as well.
+
+    Free positions r_j → r_f + c (r_j − r_f) about the fixed triad f; ω → ω/√c, ω̇ → ω̇/c and
+    a_lin → a_lin + (1 − 1/c) K with K = ω̇×r_f + ω×(ω×r_f) (keeps the fixed triad's specific force;
+    zero when the fixed triad sits at the array origin).  Every triad's specific force is unchanged."""
+    rf = positions[fixed]
+    p = rf + c * (positions - rf)
+    a, w, wd = states[:, 0:3], states[:, 3:6], states[:, 6:9]
+    K = torch.cross(wd, rf.expand_as(wd), dim=-1) + torch.cross(w, torch.cross(w, rf.expand_as(w), dim=-1), dim=-1)
+    x = torch.cat((a + (1 - 1 / c) * K, w / math.sqrt(c), wd / c), -1)
+    return p, x
+
+
+def marginal_scale_score(states, positions, orientations, dt, W, inv_std, fixed: int, S=None) -> float:
+    """d/dc of −log p(z | poses on the scale orbit) at c = 1, motion integrated out (Laplace).
+
+    The joint MAP over poses and motion is biased along the scale orbit (:func:`scale_orbit`): the
+    data term is constant along it, so the MAP's scale is set by the motion prior alone, which
+    prefers slower motion (a larger board).  Integrating the motion out adds the volume of the
+    orbit map (det = c^(−9T/2)) and the posterior spread: with x = φ_c(x′),
+
+        d/dc [−log p] = 9T/2 + Σ_i r_iᵀ (J_prev,i v_i + J_next,i v_{i+1}) + tr(Λ V Σ),
+
+    r_i the whitened process residuals, v = dφ_c/dc at c = 1 (per sample (K, −ω/2, −ω̇)), V its
+    Jacobian, Λ = J_pᵀJ_p the process information and Σ the motion's Laplace covariance (poses
+    held).  The middle term vanishes at the joint MAP.
+    """
+    T = states.shape[0]
+    Jp, Jn, Sig, C = _motion_posterior(states, positions, orientations, dt, W, inv_std, S)
+    rf = positions[fixed]
+    w, wd = states[:, 3:6], states[:, 6:9]
+    K = torch.cross(wd, rf.expand_as(wd), dim=-1) + torch.cross(w, torch.cross(w, rf.expand_as(w), dim=-1), dim=-1)
+    v = torch.cat((K, -0.5 * w, -wd), -1)  # (T, 9)
+    V = torch.zeros(T, 9, 9, dtype=states.dtype, device=states.device)
+    eye3 = torch.eye(3, dtype=states.dtype, device=states.device)
+    V[:, 0:3, 3:6] = jac.df_domega(rf.expand(T, 1, 3), w)[:, 0]  # ∂(ω×(ω×r_f))/∂ω
+    V[:, 0:3, 6:9] = -skew(rf).expand(T, 3, 3)
+    V[:, 3:6, 3:6] = -0.5 * eye3
+    V[:, 6:9, 6:9] = -eye3
+    r = process_residuals(states, dt, W)
+    middle = float((r * ((Jp @ v[:-1].unsqueeze(-1)).squeeze(-1) + (Jn @ v[1:].unsqueeze(-1)).squeeze(-1))).sum())
+    JpT, JnT = Jp.transpose(-1, -2), Jn.transpose(-1, -2)
+    SL = torch.zeros_like(Sig)  # (Σ Λ)_ii
+    SL[:-1] += Sig[:-1] @ (JpT @ Jp) + C @ (JnT @ Jp)       # Σ_ii Λ_ii(prev part) + Σ_{i,i+1} Λ_{i+1,i}
+    SL[1:] += Sig[1:] @ (JnT @ Jn) + C.transpose(-1, -2) @ (JpT @ Jn)  # Σ_ii Λ_ii(next part) + Σ_{i,i−1} Λ_{i−1,i}
+    trace = float(torch.einsum("tij,tji->", V, SL))
+    return 4.5 * T + middle + trace
+
+
+def update_process_intensities(intensities: dict, stats: dict, max_factor: float = _MAX_FACTOR) -> dict:
     """One step of the type-II ML fixed point q_k ← q_k · rss_k / (n_k − h_k).
 
     The marginal likelihood of the intensities in the model linearised at the estimate (motion
@@ -706,6 +769,7 @@ def self_calibrate(
     acc_noise_std=0.02,
     process_variances: dict | None = None,
     process_noise="estimate",
+    marginal_scale: bool = True,
     noise_max_iter: int = 30,
     noise_rtol: float = 0.01,
     sensor_params=None,
@@ -838,8 +902,9 @@ def self_calibrate(
     else:
         if intensities is None:
             intensities = initial_process_intensities(acc, dt, p0, q0, fixed, inv_std)
+            intensities["omega"] *= _START_STIFFNESS
         sqrt_info = wnoj_process_whitening(dt, intensities)
-    noise = {"W": sqrt_info, "q": intensities, "history": []}
+    noise = {"W": sqrt_info, "q": intensities, "start": intensities, "history": []}
     if init_motion is None:
         x0 = torch.zeros(T, 9, dtype=dtype, device=acc.device)
     else:
@@ -852,6 +917,11 @@ def self_calibrate(
 
     def one_run(p_start, q_start, x_start, label):
         log = []
+        if mode == "estimate" and noise["q"] != noise["start"]:
+            # every run from zero motion starts stiff again (continuation, see _START_STIFFNESS):
+            # the re-run and the restart from the loose intensities let the poses run off.
+            noise["q"] = {"acc": noise["q"]["acc"], "omega": noise["q"]["omega"] * _START_STIFFNESS}
+            noise["W"] = wnoj_process_whitening(dt, noise["q"])
         x_start = x_start.clone()
         if warm_start_motion:
             # Motion-only stage at the start poses (a well-posed problem in the states alone);
@@ -958,6 +1028,8 @@ def self_calibrate(
     )
     if status == "ok" and covariance:
         _attach_covariance(out, res, A, fixed)
+    if status == "ok" and mode != "s16" and marginal_scale:
+        _correct_scale(out, res, A, fixed, dt, noise["W"], inv_std, S)
     out.seconds = _time.perf_counter() - t_start
     if status != "ok" and raise_on_divergence:
         raise SelfCalDiverged(f"self-calibration diverged: {why}", out)
@@ -1052,6 +1124,40 @@ def fit_check(result: SelfCalResult, nominal_positions, *, rms_limit: float = MI
     return FitCheck(rms_triad=rms_t, rms_process=rms_p, misfit=bool(misfit), inflation=float(inflation),
                     scale=scale, scale_std=scale_std, identified=identified, rms_limit=float(rms_limit),
                     scale_limit=float(scale_limit))
+
+
+def _correct_scale(out: SelfCalResult, res, A: int, fixed: int, dt, W, inv_std, S, max_steps: int = 4) -> None:
+    """Move the joint MAP along the scale orbit to the maximum of the Laplace marginal likelihood
+    of the poses (motion integrated out): Newton steps c ← c − score · Var(c), with the score of
+    :func:`marginal_scale_score` and Var(c) the Laplace variance of the scale along the fitted
+    board (positions' joint covariance, motion marginalised).  Records the steps in
+    ``out.process_noise["scale_correction"]``."""
+    from .lm.linear import NotPositiveDefinite
+
+    free = [j for j in range(A) if j != fixed]
+    if out.covariance is not None:
+        Cp = out.covariance[:3 * len(free), :3 * len(free)]
+    else:
+        try:
+            Cp = res.covariance()[:3 * len(free), :3 * len(free)]
+        except NotPositiveDefinite:
+            return
+    p, x, q = out.raw_positions.clone(), out.states.clone(), out.raw_orientations
+    total, steps = 1.0, []
+    for _ in range(max_steps):
+        d = (p - p[fixed])[free].reshape(-1)
+        dd = float(d @ d)
+        var_c = float(d @ Cp @ d) / dd ** 2 * total ** 2  # Cp is at the MAP's size; var of the relative scale
+        score = marginal_scale_score(x, p, q, dt, W, inv_std, fixed, S)
+        step = -score * var_c
+        step = max(min(step, 0.05), -0.05)
+        steps.append({"score": score, "var_c": var_c, "step": step})
+        p, x = scale_orbit(p, x, fixed, 1.0 + step)
+        total *= 1.0 + step
+        if abs(step) < 0.01 * math.sqrt(var_c):
+            break
+    out.raw_positions, out.states = p, x
+    out.process_noise["scale_correction"] = {"factor": total, "steps": steps}
 
 
 def _whitened_rms(F: float, count: int) -> float:
