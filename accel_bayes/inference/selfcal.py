@@ -768,7 +768,7 @@ def self_calibrate(
     fixed: int = 0,
     acc_noise_std=0.02,
     process_variances: dict | None = None,
-    process_noise="estimate",
+    process_noise="s16",
     marginal_scale: bool = True,
     noise_max_iter: int = 30,
     noise_rtol: float = 0.01,
