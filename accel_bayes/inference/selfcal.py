@@ -1126,11 +1126,12 @@ def fit_check(result: SelfCalResult, nominal_positions, *, rms_limit: float = MI
                     scale_limit=float(scale_limit))
 
 
-def _correct_scale(out: SelfCalResult, res, A: int, fixed: int, dt, W, inv_std, S, max_steps: int = 4) -> None:
+def _correct_scale(out: SelfCalResult, res, A: int, fixed: int, dt, W, inv_std, S, max_steps: int = 6) -> None:
     """Move the joint MAP along the scale orbit to the maximum of the Laplace marginal likelihood
-    of the poses (motion integrated out): Newton steps c ← c − score · Var(c), with the score of
-    :func:`marginal_scale_score` and Var(c) the Laplace variance of the scale along the fitted
-    board (positions' joint covariance, motion marginalised).  Records the steps in
+    of the poses (motion integrated out): the root of d(−log p)/dc (:func:`marginal_scale_score`),
+    bracketed from the joint MAP by Newton steps with Var(c), the Laplace variance of the scale along
+    the fitted board (positions' joint covariance, motion marginalised), then regula falsi.  The
+    covariance is the joint MAP's.  Records the evaluations in
     ``out.process_noise["scale_correction"]``."""
     from .lm.linear import NotPositiveDefinite
 
@@ -1142,20 +1143,47 @@ def _correct_scale(out: SelfCalResult, res, A: int, fixed: int, dt, W, inv_std, 
             Cp = res.covariance()[:3 * len(free), :3 * len(free)]
         except NotPositiveDefinite:
             return
-    p, x, q = out.raw_positions.clone(), out.states.clone(), out.raw_orientations
-    total, steps = 1.0, []
+    p0, x0, q = out.raw_positions.clone(), out.states.clone(), out.raw_orientations
+    d = (p0 - p0[fixed])[free].reshape(-1)
+    dd = float(d @ d)
+    var_c = float(d @ Cp @ d) / dd ** 2  # Laplace variance of the relative scale at the joint MAP
+    sd = math.sqrt(max(var_c, 1e-30))
+    steps = []
+
+    def g(c):  # d(−log p)/dc at the orbit point φ_c(MAP)
+        pc, xc = scale_orbit(p0, x0, fixed, c)
+        val = marginal_scale_score(xc, pc, q, dt, W, inv_std, fixed, S) / c
+        steps.append({"c": c, "dnll_dc": val})
+        return val
+
+    # Root of g(c) = 0: first bracket it (Newton steps with the Laplace curvature 1/Var(c), then
+    # secant extrapolation, at most 5 % per step), then the Illinois variant of regula falsi inside
+    # the bracket.  The Laplace curvature can be several times off, so plain Newton may oscillate.
+    a, ga = 1.0, g(1.0)
+    b = 1.0 - max(min(ga * var_c, 0.05), -0.05)
+    gb = g(b)
     for _ in range(max_steps):
-        d = (p - p[fixed])[free].reshape(-1)
-        dd = float(d @ d)
-        var_c = float(d @ Cp @ d) / dd ** 2 * total ** 2  # Cp is at the MAP's size; var of the relative scale
-        score = marginal_scale_score(x, p, q, dt, W, inv_std, fixed, S)
-        step = -score * var_c
-        step = max(min(step, 0.05), -0.05)
-        steps.append({"score": score, "var_c": var_c, "step": step})
-        p, x = scale_orbit(p, x, fixed, 1.0 + step)
-        total *= 1.0 + step
-        if abs(step) < 0.01 * math.sqrt(var_c):
+        if (ga > 0) != (gb > 0):
             break
+        slope = (gb - ga) / (b - a)
+        step = -gb / slope if slope > 0 else (b - a)
+        step = max(min(step, 0.05), -0.05)
+        a, ga, b = b, gb, b + step
+        gb = g(b)
+    if (ga > 0) != (gb > 0):
+        for _ in range(12):
+            if abs(b - a) < 0.01 * sd:
+                break
+            c = b - gb * (b - a) / (gb - ga)
+            gc = g(c)
+            if (gc > 0) != (gb > 0):
+                a, ga = b, gb
+            else:
+                ga = 0.5 * ga
+            b, gb = c, gc
+    c_b = b
+    p, x = scale_orbit(p0, x0, fixed, c_b)
+    total = c_b
     out.raw_positions, out.states = p, x
     out.process_noise["scale_correction"] = {"factor": total, "steps": steps}
 
