@@ -17,7 +17,7 @@ std.  Exit status: 0 on success; 2 on bad input (one line); 3 when the optimisat
 ([S16] Table III: positions → 0 or ∞, angular motion → 0 or ∞, non-finite or non-fitting
 estimate) — then one line on stderr says why, only ``convergence.png`` is written and no
 positions are reported; 4 when LM stopped at its iteration limit without converging, or when the
-fit check finds residuals that contradict the stated noise and the [S16] process variances (RMS
+fit check finds residuals that contradict the stated noise and the motion model (RMS
 of the whitened triad or process residuals > 1.5; the reported std are then inflated to match
 them) or a board scale the motion does not fix — every file is written, ``positions.json`` has
 ``diagnostics.fit_check``, ``converged`` and ``warnings``, and one line on stderr says so

@@ -813,6 +813,21 @@ def self_calibrate(
     acc_noise_std : m/s², scalar, (A,) or (A, 3); default 0.02 ([S16] §IV-B: σ² = 4·10⁻⁴).
     process_variances : dict acc / int / omega_dot of eq. 8 (default
         :data:`accel_bayes.physics.models.S16_PROCESS_VARIANCES`, the paper's 10³, 10⁻⁷, 10³).
+        Only with ``process_noise="s16"``.
+    process_noise : the motion model.  ``"s16"`` (default; the paper's experiments): eq. 8 with the
+        fixed ``process_variances``.  ``"estimate"`` (issue #12; the default of the pipeline and the
+        CLI): the continuous-time white-noise-on-jerk model (:func:`wnoj_process_covariance`; same
+        eq. 7 transition, ω the exact integral of ω̇) whose two intensities q_a, q_ω are estimated
+        by the type-II ML fixed point q ← q · rss/(n − h) (:func:`process_noise_statistics`,
+        :func:`update_process_intensities`) alternated with the joint LM; q_ω starts 10³ below the
+        raw-output guess (stiff) and every LM run from zero motion starts stiff again.  A dict
+        ``{"acc": q_a, "omega": q_ω}``: that model with fixed intensities.
+        ``result.process_noise`` records the mode, the intensities and the fixed-point history.
+    marginal_scale : with the continuous-time model, move the joint MAP along the accelerometer-only
+        scale orbit (:func:`scale_orbit`) to the maximum of the Laplace marginal likelihood of the
+        poses (:func:`marginal_scale_score`): the joint MAP's scale is set by the motion prior alone
+        and comes out too large (experiments/s16_handlike.md).  The covariance stays the MAP's.
+    noise_max_iter, noise_rtol : iteration limit and relative tolerance of the intensity fixed point.
     sensor_params : known triad parameters ``(S, offset)`` or a dict with keys "S" and "offset";
         S (A, 3, 3) upper-triangular (or its 6 parameters (A, 6), [S16] eq. 21), offset (A, 3).
         Default: ideal triads (S = I, o = 0).
@@ -1054,7 +1069,7 @@ class FitCheck:
     rms_triad, rms_process : RMS whitened triad / process residual of the returned run (≈ 1 or
         below when the model and the stated noise describe the data).
     misfit : rms_triad or rms_process > ``rms_limit``: the Laplace covariance assumes the stated
-        noise and the [S16] process variances, which the residuals contradict; ``inflation`` =
+        noise and the process model (fixed [S16] variances or estimated intensities), which the residuals contradict; ``inflation`` =
         max(rms_triad, rms_process)² is the factor a covariance takes to match them (1 when no
         misfit).  Only a necessary check: a fit can leave residuals ≈ 1 and still be wrong in
         scale (experiments/s16_fitcheck.md).
@@ -1078,7 +1093,7 @@ class FitCheck:
         if self.misfit:
             out.append(f"the residuals contradict the model (RMS of the whitened residuals: triad "
                        f"{self.rms_triad:.3g}, process {self.rms_process:.3g}; > {self.rms_limit:g} is a misfit): the "
-                       f"[S16] motion model or the stated noise does not describe this recording, so the poses may "
+                       f"motion model or the stated noise does not describe this recording, so the poses may "
                        f"be biased; the reported std are inflated by {math.sqrt(self.inflation):.3g}")
         if not self.identified:
             out.append(f"unidentified: the motion does not fix the board's scale (relative std "
