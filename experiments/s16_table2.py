@@ -95,7 +95,7 @@ def _errors(p_est, q_est, proto, idx):
     return pe, ae
 
 
-def run_trial(k: int, seed: int, T: int, physical_row: bool = True) -> dict:
+def run_trial(k: int, seed: int, T: int, physical_row: bool = True, process_noise: str = "s16") -> dict:
     """One noise draw: all methods on the same measurements; returns errors (µm, 10⁻³ °)."""
     C.one_thread()
     from accel_bayes.inference.conventional import conventional_calibrate
@@ -114,7 +114,7 @@ def run_trial(k: int, seed: int, T: int, physical_row: bool = True) -> dict:
     def selfcal(zz, label):
         r = self_calibrate(zz, dt, nominal_positions=proto["nominal_positions"],
                            nominal_orientations=proto["nominal_orientations"], fixed=0, acc_noise_std=0.02,
-                           sensor_params=(proto["sens"], proto["offset"]))
+                           sensor_params=(proto["sens"], proto["offset"]), process_noise=process_noise)
         if r.ok:
             out[label] = _errors(r.positions[1:], r.orientations[1:], proto, slice(1, 5))
         else:
@@ -175,12 +175,15 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     add_dask_arguments(ap)
     ap.add_argument("--no-physical", action="store_true", help="skip the 'physical ω̇' self-calibration row")
+    ap.add_argument("--process-noise", default="s16", choices=("s16", "estimate"),
+                    help="self-calibration motion model: s16 (the paper's, default) or estimate (issue #12)")
     ap.add_argument("--out", default="out/s16_table2.csv", help="per-trial CSV (default out/s16_table2.csv)")
     args = ap.parse_args(argv)
     n = args.trials if args.trials is not None else (20 if args.quick else 100)
     t0 = time.perf_counter()
     with dask_client(args, upload=("s16_common.py",)) as client:
-        results = map_tasks(client, run_trial, [dict(k=k, seed=args.seed, T=C.T_S16, physical_row=not args.no_physical)
+        results = map_tasks(client, run_trial, [dict(k=k, seed=args.seed, T=C.T_S16, physical_row=not args.no_physical,
+                                                     process_noise=args.process_noise)
                                                 for k in range(n)], desc="trials")
     wall = time.perf_counter() - t0
     results.sort(key=lambda r: r["trial"])

@@ -390,7 +390,9 @@ def test_cli_selfcal_writes_outputs(tmp_path, capsys):
     rec = tmp_path / "s16.nc"
     sim = _write_sim(rec, m, position_error_std=2e-3, orientation_error_std=0.02)
     out = tmp_path / "out"
-    code = _cli(["selfcal", str(rec), "--out", str(out), "--no-progress", "--seed", "4"])
+    # the paper's slow table-like motion: the [S16] model (the estimated motion model is biased in
+    # scale on such slow motion, experiments/s16_handlike.md)
+    code = _cli(["selfcal", str(rec), "--out", str(out), "--no-progress", "--seed", "4", "--process-noise", "s16"])
     assert code == 0
     printed = capsys.readouterr().out
     assert "(fixed)" in printed and "x mm" in printed
@@ -528,7 +530,7 @@ def test_fit_check_flags_misfit_inflates_the_std_and_exits_4(tmp_path, capsys):
     from accel_bayes.simulate import simulate
 
     sim = simulate(s16_plate(), "smooth", T=1000, seed=2)
-    run = selfcal(sim.recording, max_iter=100)
+    run = selfcal(sim.recording, max_iter=100, process_noise="s16")
     chk = run.check
     assert run.ok and chk.misfit and chk.rms_process > 1.5 and chk.inflation > 2.25
     assert any("residuals contradict" in w for w in run.warnings)
@@ -541,14 +543,15 @@ def test_fit_check_flags_misfit_inflates_the_std_and_exits_4(tmp_path, capsys):
     path = tmp_path / "smooth.nc"
     write_recording(sim.recording, path)
     capsys.readouterr()
-    rc = _cli(["selfcal", str(path), "--out", str(tmp_path / "o"), "--no-progress", "--max-iter", "100"])
+    rc = _cli(["selfcal", str(path), "--out", str(tmp_path / "o"), "--no-progress", "--max-iter", "100",
+               "--process-noise", "s16"])
     err = capsys.readouterr().err
     assert rc == 4 and "residuals contradict" in err and err.count("\n") == 1, err
 
     table = simulate(s16_plate(), "table", T=2000, seed=1)
     path = tmp_path / "table.nc"
     write_recording(table.recording, path)
-    rc = _cli(["selfcal", str(path), "--out", str(tmp_path / "t"), "--no-progress"])
+    rc = _cli(["selfcal", str(path), "--out", str(tmp_path / "t"), "--no-progress", "--process-noise", "s16"])
     out = capsys.readouterr().out
     assert rc == 0 and "whitened residual RMS" in out, out
     doc = json.loads((tmp_path / "t" / "positions.json").read_text())
@@ -578,3 +581,137 @@ def test_fit_check_scale_std_matches_draws_from_the_laplace_covariance():
     scales = draws @ u / (u @ u)
     assert abs(float(scales.std()) / (chk.scale_std / math.sqrt(chk.inflation)) - 1) < 0.03
     assert abs(float(scales.mean()) - chk.scale) < 5 * chk.scale_std
+
+
+# ----------------------------------------------------------------------------- estimated process noise (issue #12)
+
+def test_wnoj_process_covariance_is_an_exact_discretisation():
+    """Two steps of δ compose to one step of 2δ (F Q(δ) Fᵀ + Q(δ) = Q(2δ)), and W whitens Q."""
+    from accel_bayes.inference.selfcal import wnoj_process_covariance, wnoj_process_whitening
+
+    q = {"acc": 3.0, "omega": 40.0}
+    d = torch.tensor([0.01], dtype=F64)
+    Q1 = wnoj_process_covariance(d, q)[0]
+    Q2 = wnoj_process_covariance(2 * d, q)[0]
+    F = torch.eye(9, dtype=F64)
+    F[3:6, 6:9] = d * torch.eye(3, dtype=F64)
+    assert torch.allclose(F @ Q1 @ F.T + Q1, Q2, rtol=1e-12, atol=0)
+    W = wnoj_process_whitening(d, q)[0]
+    assert torch.allclose(W @ Q1 @ W.T, torch.eye(9, dtype=F64), atol=1e-10)
+
+
+def test_selected_inverse_matches_the_dense_inverse():
+    from accel_bayes.inference.selfcal import _block_tridiagonal_selected_inverse
+
+    gen = torch.Generator().manual_seed(5)
+    T, n = 6, 4
+    J = _rand(gen, T * n + 5, T * n)
+    band = torch.zeros(T * n, T * n, dtype=F64)
+    for i in range(T):
+        band[i * n:(i + 2) * n, i * n:(i + 2) * n] = 1
+    H = (J.T @ J + T * n * torch.eye(T * n, dtype=F64)) * band
+    D = torch.stack([H[i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(T)])
+    B = torch.stack([H[i * n:(i + 1) * n, (i + 1) * n:(i + 2) * n] for i in range(T - 1)])
+    Sig, C = _block_tridiagonal_selected_inverse(D, B)
+    Hi = torch.linalg.inv(H)
+    for i in range(T):
+        assert torch.allclose(Sig[i], Hi[i * n:(i + 1) * n, i * n:(i + 1) * n], atol=1e-12)
+    for i in range(T - 1):
+        assert torch.allclose(C[i], Hi[i * n:(i + 1) * n, (i + 1) * n:(i + 2) * n], atol=1e-12)
+
+
+def _wnoj_motion(T, dt, q, gen):
+    """States drawn from the continuous-time process model itself (exact discretisation)."""
+    from accel_bayes.inference.selfcal import wnoj_process_covariance
+
+    L = torch.linalg.cholesky(wnoj_process_covariance(torch.full((T - 1,), dt, dtype=F64), q))
+    w = (L @ torch.randn(T - 1, 9, 1, generator=gen, dtype=F64)).squeeze(-1)
+    x = torch.zeros(T, 9, dtype=F64)
+    x[0, 0:3] = torch.tensor([0.0, 0.0, 9.81], dtype=F64)
+    x[0, 3:6] = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+    for i in range(T - 1):
+        x[i + 1] = models.process_model(x[i], dt) + w[i]
+    return x
+
+
+def test_estimated_process_intensities_recover_the_true_ones():
+    """Motion drawn from the white-noise-on-jerk model with known intensities (q_a = 30 (m/s³)²s,
+    q_ω = 20 (rad/s³)²s), 600 samples at 250 Hz of the [S16] plate, σ = 0.02 m/s²: the type-II ML
+    fixed point (started 1000× too stiff in q_ω) returns both within 20 % (measured: q_a −0.6 %,
+    q_ω −15 %) and stops on its tolerance.  The poses themselves are NOT checked against their std
+    here: on this slow, weakly informative motion the fitted board is several std too large
+    (experiments/s16_handlike.md, "what is left")."""
+    gen = torch.Generator().manual_seed(31)
+    q_true = {"acc": 30.0, "omega": 20.0}
+    rate = 250.0
+    x = _wnoj_motion(600, 1 / rate, q_true, gen)
+    arr, p_true, q_rot, p_start, _ = _plate_truth(gen, 1e-3, 0.0)
+    z = models.triad_output(x, q_rot, p_true) + 0.02 * torch.randn(600, 5, 3, generator=gen, dtype=F64)
+    res = self_calibrate(z, 1 / rate, nominal_positions=p_start, nominal_orientations=q_rot, fixed=0,
+                         acc_noise_std=0.02, process_noise="estimate", rerun_from_estimate=False,
+                         marginal_scale=False, covariance=False)
+    assert res.ok and res.process_noise["mode"] == "estimate"
+    q_hat = res.process_noise["intensities"]
+    for k in q_true:
+        assert abs(q_hat[k] / q_true[k] - 1) < 0.2, (k, q_hat)
+    assert res.process_noise["history"][-1]["change"] < 0.01  # the fixed point was reached
+
+
+def test_marginal_scale_score_is_the_derivative_of_the_laplace_marginal():
+    """marginal_scale_score against a central difference of ½F(x̂_c) + ½ log det H_xx(x̂_c) along the
+    scale orbit (x̂_c the motion-only MAP at the orbit's poses), fixed triad off the origin."""
+    from accel_bayes.inference import selfcal as sc
+
+    gen = torch.Generator().manual_seed(41)
+    T, rate = 120, 250.0
+    q = {"acc": 30.0, "omega": 400.0}
+    x = _wnoj_motion(T, 1 / rate, q, gen)
+    arr, p_true, q_rot, _, _ = _plate_truth(gen, 0.0, 0.0)
+    z = models.triad_output(x, q_rot, p_true) + 0.02 * torch.randn(T, 5, 3, generator=gen, dtype=F64)
+    dt = torch.full((T - 1,), 1 / rate, dtype=F64)
+    W = sc.wnoj_process_whitening(dt, q)
+    inv_std = torch.full((5, 3), 50.0, dtype=F64)
+
+    def nll(c, x_start):
+        pc, xc = sc.scale_orbit(p_true, x_start, 0, c)
+        prob = sc.build_problem(z, dt, pc, q_rot, xc, 0, inv_std, W, poses_fixed=True)
+        r, _ = sc._run_lm(prob, max_iter=50, ftol=1e-15, xtol=1e-15, gtol=1e-13, progress=False, desc="")
+        Jx, _, _ = sc.triad_jacobians(r.locals, q_rot, pc, inv_std)
+        D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
+        Jp, Jn = sc.process_jacobians(dt, W)
+        D[:-1] += Jp.transpose(-1, -2) @ Jp
+        D[1:] += Jn.transpose(-1, -2) @ Jn
+        H = dense_from_blocks(torch.zeros(0, 0, dtype=F64), torch.zeros(T, 0, 9, dtype=F64), D,
+                              Jp.transpose(-1, -2) @ Jn)
+        return r.cost + 0.5 * torch.linalg.slogdet(H)[1].item(), r.locals, pc
+
+    _, x_hat, p1 = nll(1.0, x)
+    h = 1e-4
+    fd = (nll(1 + h, x_hat)[0] - nll(1 - h, x_hat)[0]) / (2 * h)
+    score = sc.marginal_scale_score(x_hat, p1, q_rot, dt, W, inv_std, 0)
+    assert abs(score - fd) < 0.02 * abs(fd) + 1.0, (score, fd)
+
+
+def test_paper_process_variances_stay_reproducible():
+    """process_noise='s16' is the [S16] eq. 8 model bit for bit: positions, cost and std of a
+    fixed case as computed by the code before the estimated process noise existed."""
+    g = torch.Generator().manual_seed(77)
+    x = simulate_process_motion(250, 1 / 125.0, seed=9, segment_length=30, omega_dot_std=6.0)
+    arr = s16_plate()
+    z = models.triad_output(x, arr.orientations, arr.positions) + 0.02 * torch.randn(250, 5, 3, generator=g, dtype=F64)
+    p0 = arr.positions + 1e-3 * torch.randn(5, 3, generator=g, dtype=F64) * torch.tensor([0, 1, 1, 1, 1.0], dtype=F64)[:, None]
+    res = self_calibrate(z, 1 / 125.0, nominal_positions=p0, nominal_orientations=arr.orientations, fixed=0,
+                         acc_noise_std=0.02, process_noise="s16")
+    ref = torch.tensor([[0.00078468304044551, 0.14664753369402445, 0.02395634211701675],
+                        [0.14398045305867724, -0.00132954285833591, 0.02196568713671391],
+                        [-0.00053275344573972, -0.14570985874675513, 0.01927705802488683],
+                        [-0.14568349655704133, 0.00285427523918835, 0.02271115374680235]], dtype=F64)
+    assert torch.allclose(res.positions[1:], ref, rtol=0, atol=1e-12)
+    assert abs(res.cost - 33473.35187315968) < 1e-6
+    assert abs(float(res.position_std[1, 1]) - 0.00050216629587036) < 1e-12
+    assert res.process_noise["mode"] == "s16" and res.process_noise["variances"] == models.S16_PROCESS_VARIANCES
+    with pytest.raises(ValueError, match="process_noise"):
+        self_calibrate(z, 1 / 125.0, nominal_positions=p0, fixed=0, process_noise="fixed")
+    with pytest.raises(ValueError, match="process_variances"):
+        self_calibrate(z, 1 / 125.0, nominal_positions=p0, fixed=0, process_variances={"acc": 1.0},
+                       process_noise="estimate")

@@ -17,7 +17,7 @@ std.  Exit status: 0 on success; 2 on bad input (one line); 3 when the optimisat
 ([S16] Table III: positions → 0 or ∞, angular motion → 0 or ∞, non-finite or non-fitting
 estimate) — then one line on stderr says why, only ``convergence.png`` is written and no
 positions are reported; 4 when LM stopped at its iteration limit without converging, or when the
-fit check finds residuals that contradict the stated noise and the [S16] process variances (RMS
+fit check finds residuals that contradict the stated noise and the motion model (RMS
 of the whitened triad or process residuals > 1.5; the reported std are then inflated to match
 them) or a board scale the motion does not fix — every file is written, ``positions.json`` has
 ``diagnostics.fit_check``, ``converged`` and ``warnings``, and one line on stderr says so
@@ -58,6 +58,10 @@ def register(sub) -> None:
                    "every sample as [S16] does); the process model bridges each gap exactly")
     p.add_argument("--no-rerun", action="store_true",
                    help="skip the [S16] §VI-A re-run from the estimated poses")
+    p.add_argument("--process-noise", choices=("estimate", "s16"), default="estimate",
+                   help="motion model: 'estimate' (default: continuous-time white-noise-on-jerk model, its two "
+                   "intensities estimated from the recording by type-II maximum likelihood, scale at the maximum of "
+                   "the Laplace marginal likelihood; issue #12) or 's16' (the paper's fixed eq. 8 variances)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     p.set_defaults(func=_run)
 
@@ -75,7 +79,8 @@ def _run(args) -> int:
     loaded = load_recording(args.recording)
     inp = prepare(loaded, fixed=args.fixed, drop_clipped=args.drop_clipped)  # bad input is refused before the output is touched
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
-    run = selfcal(inp, max_iter=args.max_iter, rerun=not args.no_rerun, seed=args.seed, progress=not args.no_progress)
+    run = selfcal(inp, max_iter=args.max_iter, rerun=not args.no_rerun, seed=args.seed, progress=not args.no_progress,
+                  process_noise=args.process_noise)
     res = run.result
     write_outputs(run, out.staging, title=f"selfcal {Path(args.recording).name}: {res.status}")
     if not run.ok:

@@ -49,6 +49,14 @@ __all__ = [
     "process_jacobians",
     "process_sqrt_information",
     "bridged_process_whitening",
+    "PROCESS_NOISE_MODES",
+    "wnoj_process_covariance",
+    "wnoj_process_whitening",
+    "initial_process_intensities",
+    "process_noise_statistics",
+    "update_process_intensities",
+    "scale_orbit",
+    "marginal_scale_score",
     "simulate_process_motion",
     "SelfCalResult",
     "SelfCalDiverged",
@@ -160,6 +168,210 @@ def bridged_process_whitening(dt: torch.Tensor, steps, variances: dict | None = 
         raise ValueError("process variances and time steps must be > 0")
     eye = torch.eye(9, dtype=dt.dtype, device=dt.device).expand_as(cov)
     return torch.linalg.solve_triangular(L, eye, upper=False)
+
+
+# ---------------------------------------------------------------------------- estimated process noise
+
+# process_noise modes of :func:`self_calibrate`: the paper's fixed eq. 8 variances, or the
+# continuous-time model below with its two intensities estimated from the recording.
+PROCESS_NOISE_MODES = ("s16", "estimate")
+
+
+def wnoj_process_covariance(dt: torch.Tensor, intensities: dict) -> torch.Tensor:
+    """Covariance (T−1, 9, 9) of the process noise of the continuous-time motion model.
+
+    The model behind ``process_noise="estimate"``: ω̈ (the jerk) is white noise of intensity
+    q_ω ((rad/s³)²·s) and ȧ_lin white noise of intensity q_a ((m/s³)²·s), per axis of the array
+    frame.  ω is then *exactly* the integral of ω̇ (no σ_int), and the exact discretisation over a
+    step Δt has the transition of [S16] eq. 7, x_{i+1} = [a ; ω + ω̇ Δt ; ω̇] + w, with
+
+        Cov(w_a) = q_a Δt I,   Cov([w_ω; w_ω̇]) = q_ω [[Δt³/3, Δt²/2], [Δt²/2, Δt]] ⊗ I
+
+    (the white-noise-on-jerk prior of continuous-time estimation).  Exact for any Δt, so left-out
+    samples need no bridge: the step to the next kept sample is just longer.
+    """
+    qa = torch.as_tensor(intensities["acc"], dtype=dt.dtype, device=dt.device)
+    qw = torch.as_tensor(intensities["omega"], dtype=dt.dtype, device=dt.device)
+    if not bool(qa > 0) or not bool(qw > 0) or not bool(torch.isfinite(qa) & torch.isfinite(qw)):
+        raise ValueError(f"process intensities must be finite and > 0, got {intensities}")
+    cov = torch.zeros(dt.shape + (9, 9), dtype=dt.dtype, device=dt.device)
+    idx = torch.arange(3, device=dt.device)
+    cov[:, idx, idx] = (qa * dt).unsqueeze(-1)
+    cov[:, 3 + idx, 3 + idx] = (qw * dt ** 3 / 3).unsqueeze(-1)
+    cov[:, 6 + idx, 6 + idx] = (qw * dt).unsqueeze(-1)
+    cov[:, 3 + idx, 6 + idx] = cov[:, 6 + idx, 3 + idx] = (qw * dt ** 2 / 2).unsqueeze(-1)
+    return cov
+
+
+def wnoj_process_whitening(dt: torch.Tensor, intensities: dict) -> torch.Tensor:
+    """W (T−1, 9, 9) with W Cov Wᵀ = I for :func:`wnoj_process_covariance` (inverse Cholesky
+    factor; block-diagonal between the a_lin rows 0–2 and the ω, ω̇ rows 3–8)."""
+    cov = wnoj_process_covariance(dt, intensities)
+    L, info = torch.linalg.cholesky_ex(cov)
+    if bool((info != 0).any()):
+        raise ValueError("process intensities and time steps must be > 0")
+    eye = torch.eye(9, dtype=dt.dtype, device=dt.device).expand_as(cov)
+    return torch.linalg.solve_triangular(L, eye, upper=False)
+
+
+def initial_process_intensities(acc: torch.Tensor, dt: torch.Tensor, positions: torch.Tensor,
+                                orientations: torch.Tensor, fixed: int, inv_std: torch.Tensor) -> dict:
+    """A start for the intensities from the raw outputs (the fixed point below refines it).
+
+    q_a from the fixed triad's sample-to-sample changes (≈ Δa_lin: E|Δa|² = 3 q_a Δt), q_ω from
+    the changes of the difference of each triad's output and the fixed one's, rotated into the
+    array frame with the nominal orientations (≈ Δω̇ × Δr plus centripetal changes, an upper
+    bound): E|Δω̇|² = 3 q_ω Δt.  Noise (2σ² per component) is subtracted.
+    """
+    R = quat_to_matrix(orientations)  # array → sensor
+    f = (R.transpose(-1, -2).unsqueeze(0) @ acc.unsqueeze(-1)).squeeze(-1)  # (T, A, 3) array frame
+    var_n = (1.0 / inv_std ** 2)  # (A, 3)
+    d0 = torch.diff(f[:, fixed], dim=0)
+    ms0 = (d0 ** 2).sum(-1) - 2 * var_n[fixed].sum()
+    qa = float((ms0.clamp_min(0) / (3 * dt)).mean())
+    others = [j for j in range(acc.shape[1]) if j != fixed]
+    qws = []
+    for j in others:
+        dr2 = float(((positions[j] - positions[fixed]) ** 2).sum())
+        dd = torch.diff(f[:, j] - f[:, fixed], dim=0)
+        ms = (dd ** 2).sum(-1) - 2 * (var_n[j].sum() + var_n[fixed].sum())
+        qws.append(float((ms.clamp_min(0) / (3 * dt)).mean()) / max(dr2, 1e-12))
+    qw = float(torch.tensor(qws).median()) if qws else 1.0
+    return {"acc": max(qa, 1e-6), "omega": max(qw, 1e-6)}
+
+
+def _block_tridiagonal_selected_inverse(D: torch.Tensor, B: torch.Tensor):
+    """Diagonal blocks Σ_i (T, n, n) and first off-diagonal blocks Σ_{i,i+1} (T−1, n, n) of H⁻¹ for a
+    symmetric positive definite block-tridiagonal H with diagonal blocks D (T, n, n) and
+    H_{i,i+1} = B_i (T−1, n, n) (forward elimination, then the backward recursion
+    Σ_i = S_i⁻¹ + G_i Σ_{i+1} G_iᵀ, Σ_{i,i+1} = −G_i Σ_{i+1}, G_i = S_i⁻¹ B_i; numpy loop over T)."""
+    import numpy as np
+
+    Dn, Bn = D.detach().cpu().numpy(), B.detach().cpu().numpy()
+    T = Dn.shape[0]
+    Sinv = np.empty_like(Dn)
+    S = Dn[0]
+    for i in range(T - 1):
+        Si = np.linalg.inv(S)
+        Sinv[i] = Si
+        S = Dn[i + 1] - Bn[i].T @ Si @ Bn[i]
+    Sinv[T - 1] = np.linalg.inv(S)
+    Sig = np.empty_like(Dn)
+    C = np.empty_like(Bn)
+    Sig[T - 1] = Sinv[T - 1]
+    for i in range(T - 2, -1, -1):
+        G = Sinv[i] @ Bn[i]
+        C[i] = -G @ Sig[i + 1]
+        Sig[i] = Sinv[i] - C[i] @ G.T
+    Sig = 0.5 * (Sig + Sig.transpose(0, 2, 1))
+    return torch.as_tensor(Sig, dtype=D.dtype, device=D.device), torch.as_tensor(C, dtype=D.dtype, device=D.device)
+
+
+# The estimated q_ω starts this much below the raw-output guess: a stiff motion model ties ω to ∫ω̇
+# firmly in the first fit from zero motion (a loose one lets ω flip sign between segments and the
+# poses run off), and the fixed point then loosens it, at most ×_MAX_FACTOR per step.
+_START_STIFFNESS = 1e-3
+_MAX_FACTOR = 10.0
+
+# residual rows of each intensity in the whitened process residual
+_INTENSITY_ROWS = {"acc": slice(0, 3), "omega": slice(3, 9)}
+
+
+def process_noise_statistics(states, positions, orientations, dt, W, inv_std, S=None) -> dict:
+    """Per intensity: the sum of squared whitened process residuals at the estimate, their number
+    and their leverage in the motion fit (poses held at the estimate).
+
+    With H the Gauss–Newton matrix of the motion states (triad + process rows; block
+    tridiagonal), a group k of whitened residual rows with Jacobian J_k has leverage
+    h_k = tr(J_k H⁻¹ J_kᵀ), computed from the diagonal and first off-diagonal blocks of H⁻¹.
+    Returns {"acc": (rss, n, h), "omega": (rss, n, h)}.
+    """
+    Jp, Jn, Sig, C = _motion_posterior(states, positions, orientations, dt, W, inv_std, S)
+    M = (Jp @ Sig[:-1] @ Jp.transpose(-1, -2) + Jp @ C @ Jn.transpose(-1, -2)
+         + Jn @ C.transpose(-1, -2) @ Jp.transpose(-1, -2) + Jn @ Sig[1:] @ Jn.transpose(-1, -2))
+    lev = torch.diagonal(M, dim1=-2, dim2=-1)  # (T−1, 9)
+    r = process_residuals(states, dt, W)
+    return {k: (float((r[:, sl] ** 2).sum()), int(r[:, sl].numel()), float(lev[:, sl].sum()))
+            for k, sl in _INTENSITY_ROWS.items()}
+
+
+def _motion_posterior(states, positions, orientations, dt, W, inv_std, S=None):
+    """Process Jacobians and the selected blocks of the motion's Laplace covariance Σ = H_xx⁻¹
+    (poses held): (J_prev, J_next, Σ_i (T, 9, 9), Σ_{i,i+1} (T−1, 9, 9))."""
+    Jx, _, _ = triad_jacobians(states, orientations, positions, inv_std, S)
+    D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
+    Jp, Jn = process_jacobians(dt, W)
+    D[:-1] += Jp.transpose(-1, -2) @ Jp
+    D[1:] += Jn.transpose(-1, -2) @ Jn
+    B = Jp.transpose(-1, -2) @ Jn
+    Sig, C = _block_tridiagonal_selected_inverse(D, B)
+    return Jp, Jn, Sig, C
+
+
+def scale_orbit(positions, states, fixed: int, c: float):
+    """The accelerometer-only symmetry: poses and motion that explain the outputs exactly as well.
+
+    Free positions r_j → r_f + c (r_j − r_f) about the fixed triad f; ω → ω/√c, ω̇ → ω̇/c and
+    a_lin → a_lin + (1 − 1/c) K with K = ω̇×r_f + ω×(ω×r_f) (keeps the fixed triad's specific force;
+    zero when the fixed triad sits at the array origin).  Every triad's specific force is unchanged."""
+    rf = positions[fixed]
+    p = rf + c * (positions - rf)
+    a, w, wd = states[:, 0:3], states[:, 3:6], states[:, 6:9]
+    K = torch.cross(wd, rf.expand_as(wd), dim=-1) + torch.cross(w, torch.cross(w, rf.expand_as(w), dim=-1), dim=-1)
+    x = torch.cat((a + (1 - 1 / c) * K, w / math.sqrt(c), wd / c), -1)
+    return p, x
+
+
+def marginal_scale_score(states, positions, orientations, dt, W, inv_std, fixed: int, S=None) -> float:
+    """d/dc of −log p(z | poses on the scale orbit) at c = 1, motion integrated out (Laplace).
+
+    The joint MAP over poses and motion is biased along the scale orbit (:func:`scale_orbit`): the
+    data term is constant along it, so the MAP's scale is set by the motion prior alone, which
+    prefers slower motion (a larger board).  Integrating the motion out adds the volume of the
+    orbit map (det = c^(−9T/2)) and the posterior spread: with x = φ_c(x′),
+
+        d/dc [−log p] = 9T/2 + Σ_i r_iᵀ (J_prev,i v_i + J_next,i v_{i+1}) + tr(Λ V Σ),
+
+    r_i the whitened process residuals, v = dφ_c/dc at c = 1 (per sample (K, −ω/2, −ω̇)), V its
+    Jacobian, Λ = J_pᵀJ_p the process information and Σ the motion's Laplace covariance (poses
+    held).  The middle term vanishes at the joint MAP.
+    """
+    T = states.shape[0]
+    Jp, Jn, Sig, C = _motion_posterior(states, positions, orientations, dt, W, inv_std, S)
+    rf = positions[fixed]
+    w, wd = states[:, 3:6], states[:, 6:9]
+    K = torch.cross(wd, rf.expand_as(wd), dim=-1) + torch.cross(w, torch.cross(w, rf.expand_as(w), dim=-1), dim=-1)
+    v = torch.cat((K, -0.5 * w, -wd), -1)  # (T, 9)
+    V = torch.zeros(T, 9, 9, dtype=states.dtype, device=states.device)
+    eye3 = torch.eye(3, dtype=states.dtype, device=states.device)
+    V[:, 0:3, 3:6] = jac.df_domega(rf.expand(T, 1, 3), w)[:, 0]  # ∂(ω×(ω×r_f))/∂ω
+    V[:, 0:3, 6:9] = -skew(rf).expand(T, 3, 3)
+    V[:, 3:6, 3:6] = -0.5 * eye3
+    V[:, 6:9, 6:9] = -eye3
+    r = process_residuals(states, dt, W)
+    middle = float((r * ((Jp @ v[:-1].unsqueeze(-1)).squeeze(-1) + (Jn @ v[1:].unsqueeze(-1)).squeeze(-1))).sum())
+    JpT, JnT = Jp.transpose(-1, -2), Jn.transpose(-1, -2)
+    SL = torch.zeros_like(Sig)  # (Σ Λ)_ii
+    SL[:-1] += Sig[:-1] @ (JpT @ Jp) + C @ (JnT @ Jp)       # Σ_ii Λ_ii(prev part) + Σ_{i,i+1} Λ_{i+1,i}
+    SL[1:] += Sig[1:] @ (JnT @ Jn) + C.transpose(-1, -2) @ (JpT @ Jn)  # Σ_ii Λ_ii(next part) + Σ_{i,i−1} Λ_{i−1,i}
+    trace = float(torch.einsum("tij,tji->", V, SL))
+    return 4.5 * T + middle + trace
+
+
+def update_process_intensities(intensities: dict, stats: dict, max_factor: float = _MAX_FACTOR) -> dict:
+    """One step of the type-II ML fixed point q_k ← q_k · rss_k / (n_k − h_k).
+
+    The marginal likelihood of the intensities in the model linearised at the estimate (motion
+    integrated out by Laplace) is stationary where each group's whitened residual sum of squares
+    equals its residual degrees of freedom n_k − h_k (as for the accelerometer noise in
+    :mod:`accel_bayes.prep.noise`); the factor is clamped to [1/max_factor, max_factor]."""
+    out = {}
+    for k, q in intensities.items():
+        rss, n, h = stats[k]
+        dof = max(n - h, 1e-3 * n)
+        fac = min(max(rss / dof, 1.0 / max_factor), max_factor)
+        out[k] = float(q) * fac
+    return out
 
 
 def _whiten(e: torch.Tensor, sqrt_info: torch.Tensor) -> torch.Tensor:
@@ -384,6 +596,7 @@ class SelfCalResult:
     lm_reason: str = ""
     n_iter: int = 0
     seconds: float = 0.0
+    process_noise: dict = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -563,6 +776,10 @@ def self_calibrate(
     fixed: int = 0,
     acc_noise_std=0.02,
     process_variances: dict | None = None,
+    process_noise="s16",
+    marginal_scale: bool = True,
+    noise_max_iter: int = 30,
+    noise_rtol: float = 0.01,
     sensor_params=None,
     init_motion=None,
     max_iter: int = 200,
@@ -604,6 +821,21 @@ def self_calibrate(
     acc_noise_std : m/s², scalar, (A,) or (A, 3); default 0.02 ([S16] §IV-B: σ² = 4·10⁻⁴).
     process_variances : dict acc / int / omega_dot of eq. 8 (default
         :data:`accel_bayes.physics.models.S16_PROCESS_VARIANCES`, the paper's 10³, 10⁻⁷, 10³).
+        Only with ``process_noise="s16"``.
+    process_noise : the motion model.  ``"s16"`` (default; the paper's experiments): eq. 8 with the
+        fixed ``process_variances``.  ``"estimate"`` (issue #12; the default of the pipeline and the
+        CLI): the continuous-time white-noise-on-jerk model (:func:`wnoj_process_covariance`; same
+        eq. 7 transition, ω the exact integral of ω̇) whose two intensities q_a, q_ω are estimated
+        by the type-II ML fixed point q ← q · rss/(n − h) (:func:`process_noise_statistics`,
+        :func:`update_process_intensities`) alternated with the joint LM; q_ω starts 10³ below the
+        raw-output guess (stiff) and every LM run from zero motion starts stiff again.  A dict
+        ``{"acc": q_a, "omega": q_ω}``: that model with fixed intensities.
+        ``result.process_noise`` records the mode, the intensities and the fixed-point history.
+    marginal_scale : with the continuous-time model, move the joint MAP along the accelerometer-only
+        scale orbit (:func:`scale_orbit`) to the maximum of the Laplace marginal likelihood of the
+        poses (:func:`marginal_scale_score`): the joint MAP's scale is set by the motion prior alone
+        and comes out too large (experiments/s16_handlike.md).  The covariance stays the MAP's.
+    noise_max_iter, noise_rtol : iteration limit and relative tolerance of the intensity fixed point.
     sensor_params : known triad parameters ``(S, offset)`` or a dict with keys "S" and "offset";
         S (A, 3, 3) upper-triangular (or its 6 parameters (A, 6), [S16] eq. 21), offset (A, 3).
         Default: ideal triads (S = I, o = 0).
@@ -675,11 +907,27 @@ def self_calibrate(
     check_triad_geometry(p0)
     dt = _time_steps(time_or_dt, T, dtype, acc.device)
     inv_std = _as_inv_std(acc_noise_std, A, dtype, acc.device)
-    if steps is None or bool((torch.as_tensor(steps) == 1).all()):
-        sqrt_info = process_sqrt_information(dt, process_variances)
-    else:
-        sqrt_info = bridged_process_whitening(dt, steps, process_variances)
     S, offset = _sensor_params(sensor_params, A, dtype, acc.device)
+    if isinstance(process_noise, dict):
+        mode, intensities = "fixed", {k: float(process_noise[k]) for k in ("acc", "omega")}
+    elif process_noise in PROCESS_NOISE_MODES:
+        mode, intensities = process_noise, None
+    else:
+        raise ValueError(f"process_noise: expected one of {PROCESS_NOISE_MODES} or a dict of intensities "
+                         f"acc, omega, got {process_noise!r}")
+    if mode != "s16" and process_variances is not None:
+        raise ValueError("process_variances are the [S16] eq. 8 variances: give them with process_noise='s16'")
+    if mode == "s16":
+        if steps is None or bool((torch.as_tensor(steps) == 1).all()):
+            sqrt_info = process_sqrt_information(dt, process_variances)
+        else:
+            sqrt_info = bridged_process_whitening(dt, steps, process_variances)
+    else:
+        if intensities is None:
+            intensities = initial_process_intensities(acc, dt, p0, q0, fixed, inv_std)
+            intensities["omega"] *= _START_STIFFNESS
+        sqrt_info = wnoj_process_whitening(dt, intensities)
+    noise = {"W": sqrt_info, "q": intensities, "start": intensities, "history": []}
     if init_motion is None:
         x0 = torch.zeros(T, 9, dtype=dtype, device=acc.device)
     else:
@@ -692,11 +940,16 @@ def self_calibrate(
 
     def one_run(p_start, q_start, x_start, label):
         log = []
+        if mode == "estimate" and noise["q"] != noise["start"]:
+            # every run from zero motion starts stiff again (continuation, see _START_STIFFNESS):
+            # the re-run and the restart from the loose intensities let the poses run off.
+            noise["q"] = {"acc": noise["q"]["acc"], "omega": noise["q"]["omega"] * _START_STIFFNESS}
+            noise["W"] = wnoj_process_whitening(dt, noise["q"])
         x_start = x_start.clone()
         if warm_start_motion:
             # Motion-only stage at the start poses (a well-posed problem in the states alone);
             # from zero motion it does not predetermine the sign of ω either ([S16] §VI-B).
-            prob0 = build_problem(acc, dt, p_start, q_start, x_start, fixed, inv_std, sqrt_info, S, offset,
+            prob0 = build_problem(acc, dt, p_start, q_start, x_start, fixed, inv_std, noise["W"], S, offset,
                                   poses_fixed=True)
             res0, log0 = _run_lm(prob0, max_iter=max_iter, ftol=1e-10, xtol=xtol, gtol=gtol, progress=progress,
                                  desc=f"selfcal {label} (motion)", damping=damping)
@@ -705,7 +958,7 @@ def self_calibrate(
             log.extend(log0)
             if bool(torch.isfinite(res0.locals).all()):
                 x_start = res0.locals
-        prob = build_problem(acc, dt, p_start, q_start, x_start, fixed, inv_std, sqrt_info, S, offset)
+        prob = build_problem(acc, dt, p_start, q_start, x_start, fixed, inv_std, noise["W"], S, offset)
         res, log1 = _run_lm(prob, max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol, progress=progress,
                             desc=f"selfcal {label}", damping=damping)
         offset_it = log[-1]["iteration"] if log else 0
@@ -713,6 +966,8 @@ def self_calibrate(
             e["stage"] = "joint"
             e["iteration"] += offset_it
         log.extend(log1[1:] if log else log1)
+        if mode == "estimate":
+            res = _estimate_noise(res, log, label)
         for e in log:
             e["F"] = e["F_triad"] + e["F_process"]
             e["F_per_constraint"] = e["F"] / n_total
@@ -729,6 +984,33 @@ def self_calibrate(
                    "converged": bool(res.converged), "diverged": why,
                    "positions": p.detach(), "orientations": q.detach(), "states": x.detach()}
         return res, log, F, why, summary
+
+    def _estimate_noise(res, log, label):
+        # Type-II ML of the process intensities: alternate the fixed-point update with the joint
+        # LM (warm-started at the previous estimate) until the intensities move < noise_rtol.
+        for k in range(noise_max_iter):
+            vals, x = res.values, res.locals
+            if not (bool(torch.isfinite(x).all()) and bool(torch.isfinite(vals["position"]).all())):
+                break
+            stats = process_noise_statistics(x, vals["position"], vals["rotation"], dt, noise["W"], inv_std, S)
+            new = update_process_intensities(noise["q"], stats)
+            change = max(abs(math.log(new[c] / noise["q"][c])) for c in new)
+            noise["history"].append({"run": label, "intensities": dict(noise["q"]),
+                                     "stats": stats, "change": change})
+            if change < noise_rtol:
+                break
+            noise["q"] = new
+            noise["W"] = wnoj_process_whitening(dt, new)
+            prob_k = build_problem(acc, dt, vals["position"], vals["rotation"], x, fixed, inv_std, noise["W"],
+                                   S, offset)
+            res, log_k = _run_lm(prob_k, max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol, progress=progress,
+                                 desc=f"selfcal {label} (noise {k + 1})", damping=damping)
+            off = log[-1]["iteration"]
+            for e in log_k:
+                e["stage"] = f"noise {k + 1}"
+                e["iteration"] += off
+            log.extend(log_k)  # its iteration 0 carries the cost at the new intensities
+        return res
 
     runs = []
     res, log, F, why, summ = one_run(p0, q0, x0, "first")
@@ -763,9 +1045,14 @@ def self_calibrate(
         raw_positions=res.values["position"].detach(), raw_orientations=res.values["rotation"].detach(),
         states=res.locals.detach(), cost=F, cost_log=log, full_cost_log=full_log, n_constraints=n_con, runs=runs,
         converged=bool(res.converged), lm_reason=res.reason, n_iter=res.n_iter,
+        process_noise={"mode": mode, "intensities": None if noise["q"] is None else dict(noise["q"]),
+                       "variances": models.process_variances(process_variances) if mode == "s16" else None,
+                       "history": noise["history"]},
     )
     if status == "ok" and covariance:
         _attach_covariance(out, res, A, fixed)
+    if status == "ok" and mode != "s16" and marginal_scale:
+        _correct_scale(out, res, A, fixed, dt, noise["W"], inv_std, S)
     out.seconds = _time.perf_counter() - t_start
     if status != "ok" and raise_on_divergence:
         raise SelfCalDiverged(f"self-calibration diverged: {why}", out)
@@ -790,7 +1077,7 @@ class FitCheck:
     rms_triad, rms_process : RMS whitened triad / process residual of the returned run (≈ 1 or
         below when the model and the stated noise describe the data).
     misfit : rms_triad or rms_process > ``rms_limit``: the Laplace covariance assumes the stated
-        noise and the [S16] process variances, which the residuals contradict; ``inflation`` =
+        noise and the process model (fixed [S16] variances or estimated intensities), which the residuals contradict; ``inflation`` =
         max(rms_triad, rms_process)² is the factor a covariance takes to match them (1 when no
         misfit).  Only a necessary check: a fit can leave residuals ≈ 1 and still be wrong in
         scale (experiments/s16_fitcheck.md).
@@ -814,7 +1101,7 @@ class FitCheck:
         if self.misfit:
             out.append(f"the residuals contradict the model (RMS of the whitened residuals: triad "
                        f"{self.rms_triad:.3g}, process {self.rms_process:.3g}; > {self.rms_limit:g} is a misfit): the "
-                       f"[S16] motion model or the stated noise does not describe this recording, so the poses may "
+                       f"motion model or the stated noise does not describe this recording, so the poses may "
                        f"be biased; the reported std are inflated by {math.sqrt(self.inflation):.3g}")
         if not self.identified:
             out.append(f"unidentified: the motion does not fix the board's scale (relative std "
@@ -860,6 +1147,68 @@ def fit_check(result: SelfCalResult, nominal_positions, *, rms_limit: float = MI
     return FitCheck(rms_triad=rms_t, rms_process=rms_p, misfit=bool(misfit), inflation=float(inflation),
                     scale=scale, scale_std=scale_std, identified=identified, rms_limit=float(rms_limit),
                     scale_limit=float(scale_limit))
+
+
+def _correct_scale(out: SelfCalResult, res, A: int, fixed: int, dt, W, inv_std, S, max_steps: int = 6) -> None:
+    """Move the joint MAP along the scale orbit to the maximum of the Laplace marginal likelihood
+    of the poses (motion integrated out): the root of d(−log p)/dc (:func:`marginal_scale_score`),
+    bracketed from the joint MAP by Newton steps with Var(c), the Laplace variance of the scale along
+    the fitted board (positions' joint covariance, motion marginalised), then regula falsi.  The
+    covariance is the joint MAP's.  Records the evaluations in
+    ``out.process_noise["scale_correction"]``."""
+    from .lm.linear import NotPositiveDefinite
+
+    free = [j for j in range(A) if j != fixed]
+    if out.covariance is not None:
+        Cp = out.covariance[:3 * len(free), :3 * len(free)]
+    else:
+        try:
+            Cp = res.covariance()[:3 * len(free), :3 * len(free)]
+        except NotPositiveDefinite:
+            return
+    p0, x0, q = out.raw_positions.clone(), out.states.clone(), out.raw_orientations
+    d = (p0 - p0[fixed])[free].reshape(-1)
+    dd = float(d @ d)
+    var_c = float(d @ Cp @ d) / dd ** 2  # Laplace variance of the relative scale at the joint MAP
+    sd = math.sqrt(max(var_c, 1e-30))
+    steps = []
+
+    def g(c):  # d(−log p)/dc at the orbit point φ_c(MAP)
+        pc, xc = scale_orbit(p0, x0, fixed, c)
+        val = marginal_scale_score(xc, pc, q, dt, W, inv_std, fixed, S) / c
+        steps.append({"c": c, "dnll_dc": val})
+        return val
+
+    # Root of g(c) = 0: first bracket it (Newton steps with the Laplace curvature 1/Var(c), then
+    # secant extrapolation, at most 5 % per step), then the Illinois variant of regula falsi inside
+    # the bracket.  The Laplace curvature can be several times off, so plain Newton may oscillate.
+    a, ga = 1.0, g(1.0)
+    b = 1.0 - max(min(ga * var_c, 0.05), -0.05)
+    gb = g(b)
+    for _ in range(max_steps):
+        if (ga > 0) != (gb > 0):
+            break
+        slope = (gb - ga) / (b - a)
+        step = -gb / slope if slope > 0 else (b - a)
+        step = max(min(step, 0.05), -0.05)
+        a, ga, b = b, gb, b + step
+        gb = g(b)
+    if (ga > 0) != (gb > 0):
+        for _ in range(12):
+            if abs(b - a) < 0.01 * sd:
+                break
+            c = b - gb * (b - a) / (gb - ga)
+            gc = g(c)
+            if (gc > 0) != (gb > 0):
+                a, ga = b, gb
+            else:
+                ga = 0.5 * ga
+            b, gb = c, gc
+    c_b = b
+    p, x = scale_orbit(p0, x0, fixed, c_b)
+    total = c_b
+    out.raw_positions, out.states = p, x
+    out.process_noise["scale_correction"] = {"factor": total, "steps": steps}
 
 
 def _whitened_rms(F: float, count: int) -> float:

@@ -165,7 +165,7 @@ def prepare(recording, *, fixed: int | None = None, selection=None, drop_clipped
 
 
 def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: int = 200, rerun: bool = True,
-            seed=None, progress: bool = False) -> SelfcalRun:
+            seed=None, progress: bool = False, process_noise="estimate", marginal_scale: bool = True) -> SelfcalRun:
     """[S16] self-calibration: poses of every accelerometer triad relative to the fixed one, jointly
     with the motion, from the accelerometers alone.
 
@@ -173,6 +173,11 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     selection : the samples to fit (:func:`prepare`; None: every sample).
     max_iter : LM iteration limit per stage.  rerun : the [S16] §VI-A re-run from the estimate.
     seed : recorded in the provenance only (the self-calibration draws no random numbers).
+    process_noise : "estimate" (default: the continuous-time white-noise-on-jerk motion model with
+        its intensities estimated from the recording, issue #12) or "s16" (the paper's fixed eq. 8
+        variances); see :func:`~accel_bayes.inference.selfcal.self_calibrate`.
+    marginal_scale : with the estimated process noise, move the estimate along the scale orbit to
+        the maximum of the Laplace marginal likelihood (motion integrated out).
     """
     from .. import __version__
     from ..data.positions import positions_document
@@ -188,7 +193,8 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     steps = None if inp.selection is None else np.diff(np.asarray(inp.selection.index))
     res = self_calibrate(inp.acc, time_s, steps=steps, nominal_positions=p_nom[labels],
                          nominal_orientations=q_nom[labels], fixed=fixed, acc_noise_std=noise,
-                         max_iter=max_iter, progress=progress, rerun_from_estimate=rerun)
+                         max_iter=max_iter, progress=progress, rerun_from_estimate=rerun,
+                         process_noise=process_noise, marginal_scale=marginal_scale)
     run = SelfcalRun(input=inp, result=res, seconds=time.perf_counter() - t0)
     if not res.ok:
         return run
@@ -214,7 +220,7 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     rcov = rcov * check.inflation
     runs = [{k: v for k, v in r.items() if k not in ("positions", "orientations", "states")} for r in res.runs]
     settings = {"fixed": fixed_label, "max_iter": max_iter, "rerun_from_estimate": rerun,
-                "process_variances": "S16 (acc 1e3, int 1e-7, omega_dot 1e3)", "imus_used": labels,
+                "process_noise": _process_noise_setting(res.process_noise), "imus_used": labels,
                 "acc_noise_std": noise.tolist(), "warm_start_motion": True,
                 "samples": int(len(time_s)), "selection": None if inp.selection is None else inp.selection.summary()}
     reasons = [] if res.converged else [f"LM stopped without converging ({res.lm_reason}); the estimate may be poor"]
@@ -244,6 +250,14 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     run.warnings = reasons
     run.check = check
     return run
+
+
+def _process_noise_setting(pn: dict) -> dict:
+    """The process model of a run, for the provenance (JSON-ready)."""
+    if pn.get("mode") == "s16":
+        return {"mode": "s16", "variances": pn.get("variances")}
+    return {"mode": pn.get("mode"), "model": "white noise on jerk (omega) and on d a_lin/dt, exact discretisation",
+            "intensities": pn.get("intensities"), "iterations": len(pn.get("history", []))}
 
 
 def write_convergence(run: SelfcalRun, out_dir, title: str = "") -> Path:
