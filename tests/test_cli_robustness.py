@@ -146,7 +146,7 @@ def test_map_not_converged_exits_4_and_marks_the_file(rec8, tmp_path, capsys):
 def test_selfcal_not_converged_exits_4_and_marks_the_file(tmp_path, capsys):
     path = tmp_path / "t3.nc"
     write_recording(simulate(preset("mimu8"), "smooth", 3, seed=0).recording, path)
-    rc, _, err = _cli(["selfcal", path, "--out", tmp_path / "o", "--no-progress"], capsys)
+    rc, _, err = _cli(["selfcal", path, "--out", tmp_path / "o", "--no-progress", "--process-noise", "s16"], capsys)
     assert rc == 4 and len(err) == 1 and "not trustworthy" in err[0], err
     d = json.loads((tmp_path / "o" / "positions.json").read_text())["diagnostics"]
     assert d["converged"] is False and d["warnings"]

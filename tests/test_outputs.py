@@ -41,7 +41,7 @@ COMMANDS = {
                   ["--chains", "2", "--draws", "10", "--warmup", "10", "--no-map", "--quiet"], 4,  # 10 draws: unconverged
                   {"posterior.nc", "summary.csv", "positions.json", "trace.png", "rank.png", "autocorr.png",
                    "ellipses.png"}),
-    "selfcal": ("dir", ["selfcal", "{rec}"], "--out", ["--no-progress", "--max-iter", "5"], 3, {"convergence.png"}),
+    "selfcal": ("dir", ["selfcal", "{rec}"], "--out", ["--no-progress", "--max-iter", "5", "--process-noise", "s16"], 3, {"convergence.png"}),
     "mismatch": ("dir", ["mismatch", "{rec}"], "--out", ["--effects", "acc_bias", "--twins", "5", "--no-figures"],
                  0, {"report.json", "report.md"}),
     "demo": ("dir", ["demo", "--quick", "--no-progress"], "--out", [], 0, None),
