@@ -41,7 +41,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(HERE))
-BASE_COMMIT = "7adf109"
+from bench_structure import BASE_COMMIT, ensure_base  # noqa: E402  (the one baseline worktree helper)
 
 # Runs in a fresh process with the tree under test first on PYTHONPATH; only names that exist at
 # 7adf109 and now (accel_bayes.calibrate is the old path, kept as an alias for one release).
@@ -65,17 +65,6 @@ WORKER = textwrap.dedent('''
                       "draws": int(post.sizes["draw"]), "chains": int(post.sizes["chain"]),
                       "mean": np.asarray(post.mean(("chain", "draw"))).tolist()}))
 ''')
-
-
-def ensure_base(path: Path | None) -> Path:
-    if path is not None:
-        return path
-    path = REPO / "experiments" / "out" / f"base_{BASE_COMMIT}"
-    if not (path / "accel_bayes").is_dir():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        subprocess.run(["git", "worktree", "add", "--detach", str(path), BASE_COMMIT], cwd=REPO, check=True,
-                       stdout=subprocess.DEVNULL)
-    return path
 
 
 def run_case(tree: Path, path: Path) -> dict:

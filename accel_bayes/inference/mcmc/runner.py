@@ -114,6 +114,19 @@ def _iterate(kernel, st, c, start, stop, W, bar, callback, checkpoint_every, sav
             save_at(i + 1)
 
 
+
+def _check_starts_and_checkpoint(kernel, C, initial_params, checkpoint, checkpoint_every):
+    """The chain starts as a (C, *event_shape) tensor of the kernel's dtype/device (or None) and the
+    checkpoint path (or None); one-line UserErrors for a wrong shape or checkpoint_every without a file."""
+    shape = kernel.event_shape
+    if initial_params is not None:
+        initial_params = torch.as_tensor(initial_params, dtype=kernel.dtype, device=kernel.device)
+        if tuple(initial_params.shape) != (C,) + shape:
+            raise UserError(f"initial_params: expected shape {(C,) + shape}, got {tuple(initial_params.shape)}")
+    if checkpoint_every and checkpoint is None:
+        raise UserError("checkpoint_every: needs a checkpoint file")
+    return initial_params, (Path(checkpoint) if checkpoint is not None else None)
+
 def run_pmmh(
     kernel: PMMHKernel,
     num_samples: int,
@@ -153,14 +166,7 @@ def run_pmmh(
             raise UserError(f"{nm}: expected an integer >= {lo}, got {v!r}")
     C, D, W = int(num_chains), int(num_samples), int(warmup_steps)
     shape = kernel.event_shape
-    dt, dev = kernel.dtype, kernel.device
-    if initial_params is not None:
-        initial_params = torch.as_tensor(initial_params, dtype=dt, device=dev)
-        if tuple(initial_params.shape) != (C,) + shape:
-            raise UserError(f"initial_params: expected shape {(C,) + shape}, got {tuple(initial_params.shape)}")
-    if checkpoint_every and checkpoint is None:
-        raise UserError("checkpoint_every: needs a checkpoint file")
-    ckpt = Path(checkpoint) if checkpoint is not None else None
+    initial_params, ckpt = _check_starts_and_checkpoint(kernel, C, initial_params, checkpoint, checkpoint_every)
     fp = dict(fingerprint or {})
     fp.update({"num_chains": C, "num_samples": D, "warmup_steps": W, "seed": kernel.seed,
                "event_shape": list(shape)})
@@ -286,14 +292,7 @@ def run_pmmh_until(
         raise UserError("check: expected a callable check(theta) -> object with .converged")
     C, B, W, Dmax = int(num_chains), int(check_every), int(warmup_steps), int(max_samples)
     shape = kernel.event_shape
-    dt, dev = kernel.dtype, kernel.device
-    if initial_params is not None:
-        initial_params = torch.as_tensor(initial_params, dtype=dt, device=dev)
-        if tuple(initial_params.shape) != (C,) + shape:
-            raise UserError(f"initial_params: expected shape {(C,) + shape}, got {tuple(initial_params.shape)}")
-    if checkpoint_every and checkpoint is None:
-        raise UserError("checkpoint_every: needs a checkpoint file")
-    ckpt = Path(checkpoint) if checkpoint is not None else None
+    initial_params, ckpt = _check_starts_and_checkpoint(kernel, C, initial_params, checkpoint, checkpoint_every)
     fp = dict(fingerprint or {})
     fp.update({"mode": "until-converged", "num_chains": C, "check_every": B, "warmup_steps": W,
                "seed": kernel.seed, "event_shape": list(shape)})
