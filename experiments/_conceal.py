@@ -96,6 +96,7 @@ __all__ = [
     "DEG",
     "G_WORLD",
     "EFFECTS",
+    "OUT_OF_VOCABULARY",
     "BOARDS",
     "EFFECT_RANGES",
     "AXIS_EFFECTS",
@@ -135,6 +136,13 @@ EFFECTS = (
     "saturation",
     "noise_level",
 )
+# Physics outside the report vocabulary (DESIGN §7.2).  ``gyro_lowpass`` is what the package's
+# extension ``gyro_delay`` describes to first order; ``acc_lowpass`` is outside the package's
+# catalogue too and must come out as a characterised ``unexplained`` (issue #11 item 2).
+OUT_OF_VOCABULARY = (
+    "gyro_lowpass",  # one IMU's gyroscope behind a first-order low-pass filter, {"time_constant"} s
+    "acc_lowpass",   # one IMU's accelerometer behind a first-order low-pass filter, {"time_constant"} s
+)
 # Effects that live on one sensing axis (the truth names it); the others have axis None.
 AXIS_EFFECTS = ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
                 "gyro_bias", "gyro_scale", "gyro_g_sensitivity", "saturation")
@@ -152,6 +160,8 @@ EFFECT_RANGES = {
     "gyro_g_sensitivity": (0.1 * DEG / G0, 0.3 * DEG / G0),  # rad/s per m/s²
     "noise_level": (1.2, 2.0),                      # × stated std
     "saturation": (0.90, 0.97),                     # limit / peak |output|
+    "gyro_lowpass": (2e-4, 1e-3),                   # s, time constant (bandwidth 160–800 Hz)
+    "acc_lowpass": (2e-4, 1e-3),                    # s
 }
 # Signed effects (the sign is drawn at random); the others are positive by nature.
 _SIGNED = ("time_offset", "acc_scale", "acc_misalignment", "acc_bias", "acc_nonlinearity", "gyro_bias",
@@ -602,8 +612,8 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
     """
     from accel_bayes.data.recording import Recording
 
-    if effect != "none" and effect not in EFFECTS:
-        raise ValueError(f"effect: expected 'none' or one of {EFFECTS}, got {effect!r}")
+    if effect != "none" and effect not in EFFECTS + OUT_OF_VOCABULARY:
+        raise ValueError(f"effect: expected 'none' or one of {EFFECTS + OUT_OF_VOCABULARY}, got {effect!r}")
     b = board_name if isinstance(board_name, Board) else board(board_name)
     K, ref = b.K, b.reference_imu
     ss = np.random.SeedSequence(int(seed)).spawn(5)
@@ -695,6 +705,12 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
     elif effect == "gyro_g_sensitivity":
         gyro[:, k, i] += mag * f_true[:, k, i]
         params = {"sensitivity": _vec(i, mag)}
+    elif effect == "gyro_lowpass":
+        gyro[:, k, :] = lowpass_output(trajectory, t, true_R[k], true_pos[k], mag, "gyro")
+        params = {"time_constant": mag}
+    elif effect == "acc_lowpass":
+        acc[:, k, :] = lowpass_output(trajectory, t, true_R[k], true_pos[k], mag, "acc")
+        params = {"time_constant": mag}
     clean_acc, clean_gyro = acc.copy(), gyro.copy()
 
     # --- noise, then clipping
@@ -748,6 +764,37 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
         "trajectory": trajectory.to_dict(),
     }
     return ConcealedCase(rec, truth, clean_acc, clean_gyro)
+
+
+def lowpass_output(traj: RotvecTrajectory, t: np.ndarray, R: np.ndarray, point: np.ndarray, tau: float,
+                   sensor: str = "gyro", oversample: int = 32, settle: float = 20.0) -> np.ndarray:
+    """One IMU's gyroscope (``sensor="gyro"``) or accelerometer (``"acc"``) behind a first-order
+    low-pass filter, τ ẏ = x − y, sampled at ``t`` (s): (T, 3) rad/s or m/s² in the sensor frame
+    of rotation ``R`` (array → sensor; the accelerometer senses at ``point``, array frame, m);
+    ``tau`` s.
+
+    Independent of the package: the unfiltered output x(t) of the continuous trajectory on a grid
+    ``oversample``× finer than the samples, starting ``settle``·τ before the first sample (the
+    filter's start state has then decayed by e^−20), and the exact solution of the ODE for an
+    input linear between grid points (step h, a = e^{−h/τ}, g = τ(1 − a)/h):
+
+        y(s + h) = a·y(s) + (g − a)·x(s) + (1 − g)·x(s + h).
+    """
+    from scipy.signal import lfilter, lfilter_zi
+
+    t = np.asarray(t, dtype=float)
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1e-2
+    h = dt / oversample
+    n_pre = int(math.ceil(settle * tau / h))
+    grid = t[0] + h * np.arange(-n_pre, oversample * (len(t) - 1) + 1)
+    acc, gyro = sensor_outputs(traj, grid, R[None], np.repeat(np.asarray(point, float)[None, None, :], 3, axis=1))
+    x = (gyro if sensor == "gyro" else acc)[:, 0, :]
+    a = math.exp(-h / tau)
+    g = tau * (1.0 - a) / h
+    b, den = [1.0 - g, g - a], [1.0, -a]
+    zi = lfilter_zi(b, den)[:, None] * x[0][None, :]  # start in the steady state of x(grid[0])
+    y, _ = lfilter(b, den, x, axis=0, zi=zi)
+    return y[n_pre + oversample * np.arange(len(t))]
 
 
 def _vec(i: int, value: float) -> list:

@@ -48,7 +48,10 @@ Procedure
      from being named as a bias or scale error; for a correctly named effect P ≈ 1;
    * ``noise_level`` is considered only in a round where no mean/clip effect is acceptable:
      any unmodelled mean structure also raises the residual power, so the variance explanation
-     comes last;
+     comes last; and it is refused (:func:`_heteroscedastic`) where its group's excess power
+     varies more than 1.25× across the quintiles of a motion covariate (significant by the
+     characteriser's F test): a constant factor does not describe such an excess, which is then
+     left to the characterised ``unexplained`` finding of step 7;
    * among the acceptable ones the smallest p-value (χ²_df of the robust evidence) wins.
 
    With several findings, each one's evidence is recomputed with all the others in the model
@@ -89,6 +92,7 @@ import torch
 from ..data.io import load_recording
 from ..errors import UserError
 from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
+from .characterise import characterise, describe
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
 from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
@@ -429,6 +433,43 @@ def _check_options(effects, alpha, max_findings, seed):
     return a, names
 
 
+#: the excess power of a noise_level candidate's group may vary by at most this factor between the
+#: lowest and the highest quintile of any motion covariate before the constant-factor explanation
+#: is refused (a concealed noise_level gives 1 ± 0.1 at T ≥ 1500 — sampling error only; the real MIMU data 10–40)
+HETEROSCEDASTIC_RATIO = 1.25
+
+
+def _heteroscedastic(char: dict, effect, alpha: float) -> str | None:
+    """Why a ``noise_level`` candidate contradicts the residuals' structure, or None.
+
+    ``noise_level`` predicts the same excess power at every sample.  Refused when, in its group
+    (one IMU's sensor; for imu=None the pooled sensor and each IMU, Bonferroni over the IMUs),
+    the characteriser's top covariate
+    (:func:`accel_bayes.mismatch.characterise.characterise`) both varies the mean z² by more than
+    :data:`HETEROSCEDASTIC_RATIO` between its lowest and highest quintile and is significant at
+    α / (number of covariates) by its F test."""
+    c = char.get(effect.which)
+    if not c:
+        return None
+    # imu=None claims the same factor for every IMU: any one IMU's structured excess refutes it
+    groups = ([(None, c["covariates"], 1)] + [(x["imu"], x["covariates"], len(c["imus"])) for x in c["imus"]]
+              if effect.imu is None else
+              [(x["imu"], x["covariates"], 1) for x in c["imus"] if x["imu"] == effect.imu])
+    for imu, rows, n_groups in groups:
+        if not rows:
+            continue
+        top = rows[0]
+        q = top["quintile_mean_z2"]
+        lo, hi = min(q), max(q)
+        ratio = hi / lo if lo > 0 else math.inf
+        if not (ratio > HETEROSCEDASTIC_RATIO and top["log10_p"] < math.log10(alpha / (len(rows) * n_groups))):
+            continue
+        where = "" if imu is None else f" on IMU {imu}"
+        return (f"the excess power{where} varies {ratio:.3g}× across the quintiles of {top['name']} "
+                f"(F-test log10 p = {top['log10_p']:.3g}); a constant noise factor does not describe it")
+    return None
+
+
 def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 3, refine: bool = True,
            posterior: bool = False, seed: int = 0, progress: bool = False, n_twins: int = 100,
            n_refit: int = 6, use_map: bool = True, loo_draws: int = 200) -> MismatchReport:
@@ -521,6 +562,19 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         ok = [r for r in results if r["effect"].kind != "noise" and r["evidence_robust"] > threshold]
         if not ok:
             ok = [r for r in results if r["effect"].kind == "noise" and r["evidence"] > threshold]
+            if ok:
+                # noise_level says "a constant factor": refuse it where the excess power varies
+                # strongly with the motion (the characteriser's covariates), and leave that excess
+                # to the characterised ``unexplained`` finding instead of hiding it in a variance
+                char_now = characterise(prep, current)
+                keep = []
+                for r in ok:
+                    why = _heteroscedastic(char_now, r["effect"], alpha)
+                    if why is None:
+                        keep.append(r)
+                    else:
+                        info.setdefault("refused", []).append({"candidate": r["effect"].label(), "why": why})
+                ok = keep
         best = min(ok, key=lambda r: r["log10_p"]) if ok else None
         if best is None:
             say("no further candidate above the threshold")
@@ -577,6 +631,11 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     t0 = _time.perf_counter()
     loc_final = loc0 if current is base else locate(prep, current, n_twins=n_twins, seed=seed + 1)
     tests = loc_final.excess_tests
+    # what the final model leaves, described (item 2 of issue #11): what it scales with, white or
+    # correlated in time, along the output's rate (timing-like) or isotropic
+    t_c = _time.perf_counter()
+    characterisation = characterise(prep, current)
+    timings["characterise_s"] = _time.perf_counter() - t_c
     unexplained = None
     if tests:
         from scipy.stats import chi2
@@ -593,10 +652,16 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             tw = time_window(prep, loc_final.reg, time_t["contributions"]) if time_t is not None else None
             where = {"regime": reg_t["bin"] if reg_t is not None else None, "time_s": tw,
                      "scheme": top["scheme"], "bin": top["bin"]}
+            char_u = characterisation.get(top["sensor"]) if top["sensor"] in ("acc", "gyro") else None
+            imu_c = None if char_u is None else next((r for r in char_u["imus"] if r["imu"] == top["imu"]), None)
             u = Unexplained(imu=top["imu"], axis=top["axis"], sensor=top["sensor"], where=where,
                             excess={"chi2_ratio": top["chi2_ratio"], "mean_z": top["mean_z"],
                                     "scheme": top["scheme"], "bin": top["bin"], "df": top["df"],
-                                    "threshold": thr_u})
+                                    "threshold": thr_u,
+                                    "scales_with": None if imu_c is None else imu_c["top_covariate"],
+                                    "lag1_autocorrelation": None if imu_c is None else imu_c["autocorrelation"].get("lag1"),
+                                    "anisotropy": None if imu_c is None else imu_c["anisotropy"]},
+                            characterisation=None if imu_c is None else describe(char_u, top["sensor"], top["imu"]))
             unexplained = Finding(effect=u, evidence=float(top["statistic"]), df=int(top["df"]),
                                   log10_p=float(top["log10_p"]), where=dict(u.where), explanation=u.explain(),
                                   screen_statistic=None)
@@ -634,5 +699,5 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
                         "T_given": int(len(rec.time)), "dropped_clipped": int(prep.n_dropped_clipped),
                         "preparation": prep.preparation,
                         "sample_rate_hz": rec.sample_rate},
-        prep=prep,
+        prep=prep, characterisation=characterisation,
     )

@@ -121,6 +121,7 @@ class MismatchReport:
     source: str | None = None
     recording_info: dict = field(default_factory=dict)
     prep: object = field(default=None, repr=False)
+    characterisation: dict | None = None  # what the final model leaves: accel_bayes.mismatch.characterise
 
     # ---------------------------------------------------------------- contract blocks
     @property
@@ -182,6 +183,7 @@ class MismatchReport:
             "screen_top_last_round": self.screens,
             "settings": self.settings,
             "timings_s": self.timings,
+            "characterisation": self.characterisation,
         }
         return d
 
@@ -293,6 +295,21 @@ class MismatchReport:
                 L.append(f"| {k} | {f4(v['real'])} | {f4(v['twin_mean'])} | {f4(v['twin_q95'])} | "
                          f"{f4(v['p_value'], '.3g')} |")
         L.append("")
+        if self.characterisation:
+            L += ["## What the final model leaves unexplained", "",
+                  "Per sensor: the excess of the standardized residuals (mean z² − 1), what it grows with (covariates "
+                  "ranked by η², the share of the per-sample excess power explained by the covariate's quintiles), "
+                  "its lag-1 autocorrelation and its anisotropy about the output's rate of change "
+                  "(`accel_bayes.mismatch.characterise`).", ""]
+            for sensor, c in self.characterisation.items():
+                L += [f"- {c['summary']}"]
+            L += ["", "| sensor | covariate | η² | power | mean z² per quintile |", "|---|---|---|---|---|"]
+            for sensor, c in self.characterisation.items():
+                for row in c["covariates"]:
+                    pw = "–" if row["power"] is None else f"{row['power']:.2f}"
+                    L.append(f"| {sensor} | {_cell(row['name'])} | {row['eta2']:.3g} | {pw} | "
+                             f"{', '.join(f'{v:.3g}' for v in row['quintile_mean_z2'])} |")
+            L.append("")
         L += ["## Located excess (baseline, worst cells)", "", "| IMU | sensor | axis | χ²/n | excess z | bias z | lag-1 z |",
               "|---|---|---|---|---|---|---|"]
         for c in sorted(self.location.cells, key=lambda c: -c["excess_z"])[:8]:
@@ -345,7 +362,7 @@ def _vec(v, nd: int = 3):
 
 def validate_report(doc: dict) -> None:
     """Raise :class:`~accel_bayes.errors.UserError` if ``doc`` breaks the DESIGN §7.2 contract."""
-    from ..physics.effects import VOCABULARY
+    from ..physics.effects import EXTENSIONS, VOCABULARY
 
     def need(cond, msg):
         if not cond:
@@ -364,7 +381,8 @@ def validate_report(doc: dict) -> None:
     for f in doc["findings"]:
         for k in ("effect", "imu", "axis", "evidence", "parameters", "where", "explanation"):
             need(k in f, f"finding missing key {k!r}")
-        need(f["effect"] in VOCABULARY, f"unknown effect {f['effect']!r}; expected one of {VOCABULARY}")
+        need(f["effect"] in VOCABULARY + EXTENSIONS,
+             f"unknown effect {f['effect']!r}; expected one of {VOCABULARY + EXTENSIONS}")
         need(f["imu"] is None or isinstance(f["imu"], int), "finding imu must be an int label or null")
         need(f["axis"] in (None, "x", "y", "z"), "finding axis must be x, y, z or null")
         need(isinstance(f["where"], dict) and "regime" in f["where"] and "time_s" in f["where"],

@@ -23,6 +23,15 @@ unexplained            a located mismatch no candidate explains (finding     –
                        kind only, no signal model)
 =====================  ====================================================  ==========  =========
 
+Extensions — documented effects of our own beyond the vocabulary (``in_vocabulary = False``,
+listed in :data:`EXTENSIONS`, reported under their own names, which DESIGN §7.2 allows; a
+scorer of the vocabulary does not credit them):
+
+=====================  ====================================================  ==========  =========
+gyro_delay             gyroscope output delayed relative to its own          yes         no
+                       accelerometer (filter group delay, sampling delay)
+=====================  ====================================================  ==========  =========
+
 Every effect class holds
 
 * ``name``, ``description`` (plain-language physics), ``local_imu`` / ``local_axis``;
@@ -86,10 +95,13 @@ from .accelerometer import (acc_gain_effects, acc_gain_of_effects, gain_to_intri
                             s16_gain, triangular_gauge)
 from .mounting import TriadOrientation
 from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity
-from .timing import TimeOffset, sample_times
+from .timing import GyroDelay, TimeOffset, sample_times
 from .output import Saturation, NoiseLevel, Unexplained
 
-VOCABULARY = tuple(n for n, c in EFFECTS.items() if c.vocabulary_name is None)  # DESIGN §7.2 table order
+VOCABULARY = tuple(n for n, c in EFFECTS.items()
+                   if c.vocabulary_name is None and c.in_vocabulary)  # DESIGN §7.2 table order
+#: documented effects of our own beyond the vocabulary (DESIGN §7.2 allows them in reports)
+EXTENSIONS = tuple(n for n, c in EFFECTS.items() if not c.in_vocabulary)
 
 __all__ = [
     "AXES",
@@ -120,6 +132,8 @@ __all__ = [
     "Unexplained",
     "EFFECTS",
     "VOCABULARY",
+    "EXTENSIONS",
+    "GyroDelay",
     "register_effect",
     "get_effect",
     "make_effect",

@@ -164,6 +164,9 @@ class Effect:
 
     name: ClassVar[str] = ""
     vocabulary_name: ClassVar[str | None] = None  # name in reports if not ``name`` (DESIGN §7.2)
+    # False: a documented effect of our own beyond the DESIGN §7.2 vocabulary (reported under its
+    # ``name``; listed in ``EXTENSIONS``, which reports may also use)
+    in_vocabulary: ClassVar[bool] = True
     description: ClassVar[str] = ""
     kind: ClassVar[str] = "mean"  # "mean" | "clip" | "noise" | "finding"
     local_imu: ClassVar[bool] = True

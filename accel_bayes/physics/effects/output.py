@@ -175,8 +175,11 @@ class Unexplained(Effect):
     sensor = "both"
     parameters = ()
 
-    def __init__(self, imu=None, axis=None, params=None, sensor=None, where=None, excess=None):
+    def __init__(self, imu=None, axis=None, params=None, sensor=None, where=None, excess=None,
+                 characterisation=None):
         self.imu = None if imu is None else int(imu)
+        # one sentence from accel_bayes.mismatch.characterise: what the excess scales with and its shape
+        self.characterisation = characterisation
         self.axis = axis
         self.axis_index = None if axis is None else _axis_index(axis)
         self.which = sensor
@@ -204,5 +207,8 @@ class Unexplained(Effect):
             when += f" between {tw[0]:.3g} s and {tw[1]:.3g} s"
         ratio = self.excess.get("chi2_ratio")
         size = f" (residual power {ratio:.3g}× the stated noise)" if ratio else ""
-        return (f"Residuals of {where} exceed the stated noise{when}{size}, and none of the candidate effects "
+        text = (f"Residuals of {where} exceed the stated noise{when}{size}, and none of the candidate effects "
                 f"explains them.")
+        if self.characterisation:
+            text += " " + self.characterisation
+        return text
