@@ -65,7 +65,7 @@ one), with the DESIGN §7.2 names and parameters:
 ``gyro_g_sensitivity`` ω_i ← ω_i + k f_i (f: the IMU's own specific force, sensor frame),
                      |k| = 0.1–0.3 (°/s)/g.
 ``gyro_nonlinearity`` ω_i ← ω_i + k₂ ω_i² (ω_i the true sensor-frame rate of the axis),
-                     |k₂| = 2·10⁻⁵–10⁻⁴ (rad/s)⁻¹: on the default motion (RMS |ω| 250–600 °/s,
+                     |k₂| = 4·10⁻⁵–2·10⁻⁴ (rad/s)⁻¹: on the default motion (RMS |ω| 250–600 °/s,
                      peaks of several rad/s per axis) k₂ω² reaches a few to tens of times the
                      gyro noise σ_g = 0.05–0.15 °/s at the rate peaks (DESIGN §7.2 vocabulary 1.1).
 ``noise_level``      the IMU's *accelerometer* noise is factor × the stated std,
@@ -157,7 +157,7 @@ EFFECT_RANGES = {
     "gyro_g_sensitivity": (0.1 * DEG / G0, 0.3 * DEG / G0),  # rad/s per m/s²
     "noise_level": (1.2, 2.0),                      # × stated std
     "saturation": (0.90, 0.97),                     # limit / peak |output|
-    "gyro_nonlinearity": (2e-5, 1e-4),              # (rad/s)⁻¹
+    "gyro_nonlinearity": (4e-5, 2e-4),              # (rad/s)⁻¹
 }
 # Signed effects (the sign is drawn at random); the others are positive by nature.
 _SIGNED = ("time_offset", "acc_scale", "acc_misalignment", "acc_bias", "acc_nonlinearity", "gyro_bias",
