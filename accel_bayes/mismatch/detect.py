@@ -90,6 +90,7 @@ from ..data.io import load_recording
 from ..errors import UserError
 from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
+from .budget import residual_budget
 from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
 from .model import ModelFit
@@ -619,6 +620,9 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             post = posterior_comparison(prep.source, refined, seed=seed, progress=progress,
                                         index=prep.selection.index)
     timings["refine_s"] = _time.perf_counter() - t0
+    # residual budget (vocabulary 1.1): against the model with the findings, also with
+    # refine=False (it is fitted already); b = 0 where nothing was found
+    budget = residual_budget(prep, base, None if current is base else current)
     timings["total_s"] = _time.perf_counter() - t_start
     settings = {"effects": names if names is not None else list(EFFECTS), "alpha": alpha,
                 "max_findings": int(max_findings), "refine": bool(refine), "posterior": bool(posterior),
@@ -628,7 +632,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         findings=findings, baseline_fit=base, refined_fit=refined, threshold=threshold, alpha=alpha, n_candidates=m,
         df_max=df_max, location=loc0, location_after=None if current is base else loc_final,
         comparison=comparison, posterior=post, settings=settings, timings=timings, rounds=rounds,
-        withdrawn=withdrawn,
+        withdrawn=withdrawn, budget=budget,
         screens=[s.to_dict() for s in last_screens[:20]], baseline_info=base_info, source=source,
         recording_info={"T": prep.T, "K": prep.K, "reference_imu": prep.ref, "description": rec.description,
                         "T_given": int(len(rec.time)), "dropped_clipped": int(prep.n_dropped_clipped),
