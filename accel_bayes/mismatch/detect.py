@@ -63,6 +63,11 @@ Procedure
    by a p-value that stays finite for any statistic (:func:`accel_bayes.mismatch.locate.log10_chi2_sf`;
    with SciPy's underflowing ``logsf`` every cell beyond χ² ≈ 1400 tied at −inf and the first
    cell enumerated — IMU 0, accelerometer x — was reported whatever the data).
+8. **Budget** (:func:`accel_bayes.mismatch.budget.residual_budget`, vocabulary 1.1): per sensor and
+   per |ω| and |ω̇| quantile band of the baseline motion, the excess variance the baseline leaves
+   (a, leverage-corrected squared residual minus the stated variance) and the part the final
+   model accounts for (b, the squared residual its mean effects remove plus the variance its
+   variance effects predict); b = 0 when nothing was found.  Reported also with ``refine=False``.
 
 Threshold rule (reported as ``threshold``): Bonferroni over the m candidates tried,
 
@@ -439,7 +444,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     ----------
     recording : :class:`~accel_bayes.data.recording.Recording` or path to a format-v1 file (needs
         gyroscope data).
-    effects : effect names to try (list or comma-separated string; default all of vocabulary v1);
+    effects : effect names to try (list or comma-separated string; default every registered effect,
+        i.e. vocabulary v1.1 with ``gyro_nonlinearity``);
         ``unexplained`` is always considered.
     alpha : family-wise error rate of the Bonferroni threshold (default 0.01).
     max_findings : most effects added to the model (default 3).
