@@ -184,3 +184,32 @@ def test_budget_noise_level_and_variance_hook():
     for key, r in rows2.items():
         add = v * 3 / 24 if key[0] == "gyro" else 0.0
         assert r["excess_var_explained"] == pytest.approx(rows[key]["excess_var_explained"] + add, rel=1e-9, abs=1e-15)
+
+
+def test_model_jacobians_of_gyro_nonlinearity_match_finite_differences():
+    """The augmented model's forward-mode Jacobian (mismatch/model.py: the effect pushed through
+    ``torch.func.jvp`` with the context's closed-form tangents) against central differences of
+    its own residual function, for k2 ≠ 0: ∂r/∂k2 and ∂r/∂ω (the effect's k2·ω² adds 2 k2 ω_a R
+    to the gyro rows of its IMU)."""
+    import torch
+
+    case = C.make_case("mimu8", "gyro_nonlinearity", seed=2, T=120)
+    prep = prepare(case.recording)
+    e = make_effect("gyro_nonlinearity", imu=3, axis="x", parameters={"k2": 5e-3})
+    fit = fit_model(prep, [e], max_iter=2, laplace=False)
+    model, th, eta, x = fit.lm.model, fit.lm.theta, fit.lm.eta.clone(), fit.lm.x.clone()
+    eta = eta + 5e-3  # well away from 0, so the ω-derivative of the effect is large
+    r, Jx, _, Je = model.jacobians(th, eta, x)
+    h = 1e-6
+    fd = (model.residual(th, eta + h, x) - model.residual(th, eta - h, x)) / (2 * h)
+    np.testing.assert_allclose(Je[..., 0].numpy(), fd.numpy(), rtol=1e-6, atol=1e-6)
+    assert float(Je[:, 1, 3, 0].abs().max()) > 0 and float(Je[:, 1, [0, 1, 2, 4, 5, 6, 7]].abs().max()) == 0
+    for j in range(3):  # ω components
+        dx = torch.zeros_like(x)
+        dx[:, j] = h
+        fd = (model.residual(th, eta, x + dx) - model.residual(th, eta, x - dx)) / (2 * h)
+        np.testing.assert_allclose(Jx[..., j].numpy(), fd.numpy(), rtol=1e-6, atol=1e-5)
+    # the effect's share of ∂r/∂ω is there: without it the gyro row of IMU 3 axis x differs
+    nominal = fit_model(prep, [], max_iter=1, laplace=False).lm.model
+    _, Jx0, _, _ = nominal.jacobians(th, torch.zeros(0, dtype=torch.float64), x)
+    assert float((Jx[:, 1, 3, 0, 0:3] - Jx0[:, 1, 3, 0, 0:3]).abs().max()) > 1e-3 * float(Jx0[:, 1, 3, 0, 0:3].abs().max())
