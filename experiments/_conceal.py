@@ -64,6 +64,10 @@ one), with the DESIGN §7.2 names and parameters:
 ``gyro_scale``       ω_i ← (1 + s) ω_i, |s| = 0.05–0.5 %.
 ``gyro_g_sensitivity`` ω_i ← ω_i + k f_i (f: the IMU's own specific force, sensor frame),
                      |k| = 0.1–0.3 (°/s)/g.
+``gyro_nonlinearity`` ω_i ← ω_i + k₂ ω_i² (ω_i the true sensor-frame rate of the axis),
+                     |k₂| = 4·10⁻⁵–2·10⁻⁴ (rad/s)⁻¹: on the default motion (RMS |ω| 250–600 °/s,
+                     peaks of several rad/s per axis) k₂ω² reaches a few to tens of times the
+                     gyro noise σ_g = 0.05–0.15 °/s at the rate peaks (DESIGN §7.2 vocabulary 1.1).
 ``noise_level``      the IMU's *accelerometer* noise is factor × the stated std,
                      factor = 1.2–2 (gyro noise stays as stated; axis is None).
 ``saturation``       the IMU's accelerometer triad clips at ±L on every axis, L = 0.90–0.97 ×
@@ -135,6 +139,7 @@ EFFECTS = (
     "time_offset",
     "saturation",
     "noise_level",
+    "gyro_nonlinearity",  # vocabulary 1.1; appended so the seeds of the other effects' cases stay put
 )
 # Physics outside the report vocabulary (DESIGN §7.2).  ``gyro_lowpass`` is what the package's
 # extension ``gyro_delay`` describes to first order; ``acc_lowpass`` is outside the package's
@@ -145,7 +150,7 @@ OUT_OF_VOCABULARY = (
 )
 # Effects that live on one sensing axis (the truth names it); the others have axis None.
 AXIS_EFFECTS = ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
-                "gyro_bias", "gyro_scale", "gyro_g_sensitivity", "saturation")
+                "gyro_bias", "gyro_scale", "gyro_g_sensitivity", "gyro_nonlinearity", "saturation")
 # |magnitude| ranges, SI units (the brief's ranges converted).
 EFFECT_RANGES = {
     "time_offset": (1e-4, 1e-3),                    # s
@@ -160,12 +165,13 @@ EFFECT_RANGES = {
     "gyro_g_sensitivity": (0.1 * DEG / G0, 0.3 * DEG / G0),  # rad/s per m/s²
     "noise_level": (1.2, 2.0),                      # × stated std
     "saturation": (0.90, 0.97),                     # limit / peak |output|
+    "gyro_nonlinearity": (4e-5, 2e-4),              # (rad/s)⁻¹
     "gyro_lowpass": (2e-4, 1e-3),                   # s, time constant (bandwidth 160–800 Hz)
     "acc_lowpass": (2e-4, 1e-3),                    # s
 }
 # Signed effects (the sign is drawn at random); the others are positive by nature.
 _SIGNED = ("time_offset", "acc_scale", "acc_misalignment", "acc_bias", "acc_nonlinearity", "gyro_bias",
-           "gyro_scale", "gyro_g_sensitivity")
+           "gyro_scale", "gyro_g_sensitivity", "gyro_nonlinearity")
 
 
 # ============================================================================ rotations (numpy)
@@ -711,6 +717,11 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
     elif effect == "acc_lowpass":
         acc[:, k, :] = lowpass_output(trajectory, t, true_R[k], true_pos[k], mag, "acc")
         params = {"time_constant": mag}
+    elif effect == "gyro_nonlinearity":
+        # the rate the axis truly feels, squared: w_true is the gyro output before any error
+        w_true = gyro[:, k, i].copy()
+        gyro[:, k, i] = w_true + mag * w_true * w_true
+        params = {"k2": mag}
     clean_acc, clean_gyro = acc.copy(), gyro.copy()
 
     # --- noise, then clipping

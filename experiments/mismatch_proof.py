@@ -178,6 +178,7 @@ def _finding_axis(finding: dict):
 
 _PARAM_KEY = {"acc_bias": "bias", "acc_scale": "scale", "acc_misalignment": "coupling", "acc_nonlinearity": "k2",
               "gyro_bias": "bias", "gyro_scale": "scale", "gyro_g_sensitivity": "sensitivity",
+              "gyro_nonlinearity": "k2",
               "time_offset": "offset", "noise_level": "factor", "saturation": "limit",
               "axis_displacement": "displacement", "triad_orientation": "rotation_vector"}
 
@@ -506,7 +507,7 @@ def print_report(sc: dict, out=None) -> dict:
 _SHORT = {"acc_bias": "a.bias", "acc_scale": "a.scale", "acc_misalignment": "a.misal", "acc_nonlinearity": "a.nonlin",
           "axis_displacement": "displ", "triad_orientation": "orient", "gyro_bias": "g.bias", "gyro_scale": "g.scale",
           "gyro_g_sensitivity": "g.gsens", "time_offset": "t.offset", "saturation": "satur", "noise_level": "noise",
-          "none": "none", "unexplained": "unexpl", "error": "error"}
+          "gyro_nonlinearity": "g.nonlin", "none": "none", "unexplained": "unexpl", "error": "error"}
 
 
 def _scatter_by_limit(ax, x, y, above, color) -> None:

@@ -197,6 +197,13 @@ def test_effects_act_where_the_truth_says():
             traj = C.RotvecTrajectory.from_dict(tr["trajectory"])
             f = traj.specific_force(case.recording.time, xk)
             np.testing.assert_allclose(case.recording.acc[:, k, i], f @ R[k][i], atol=1e-10)
+        if eff == "gyro_nonlinearity":
+            # the axis gains k2·ω_i² on the rate the twin (no effect, same motion) reads
+            i = "xyz".index(tr["axis"])
+            w = twin.recording.gyro[:, k, i]
+            np.testing.assert_allclose(case.recording.gyro[:, k, i] - w, tr["parameters"]["k2"] * w * w,
+                                       rtol=1e-9, atol=1e-15)
+            assert 4e-5 <= abs(tr["parameters"]["k2"]) <= 2e-4
         if eff == "saturation":
             lim = tr["parameters"]["limit"]
             assert np.abs(case.recording.acc[:, k]).max() <= lim + 1e-12

@@ -24,7 +24,7 @@ DESIGN_PARAMS = {
     "acc_bias": {"bias"}, "acc_scale": {"scale"}, "acc_misalignment": {"coupling", "from_axis"},
     "acc_nonlinearity": {"k2"}, "axis_displacement": {"displacement"}, "triad_orientation": {"rotation_vector"},
     "gyro_bias": {"bias"}, "gyro_scale": {"scale"}, "gyro_misalignment": {"coupling", "from_axis"},
-    "gyro_g_sensitivity": {"sensitivity"}, "time_offset": {"offset"},
+    "gyro_g_sensitivity": {"sensitivity"}, "gyro_nonlinearity": {"k2"}, "time_offset": {"offset"},
     "saturation": {"limit", "clipped_fraction"}, "noise_level": {"factor"},
 }
 
@@ -49,7 +49,7 @@ def test_vocabulary_and_parameters():
     # cross-axis part of gyro_scale and is reported under that name.
     assert VOCABULARY == ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
                           "triad_orientation", "gyro_bias", "gyro_scale", "gyro_g_sensitivity",
-                          "time_offset",
+                          "gyro_nonlinearity", "time_offset",
                           "saturation", "noise_level", "unexplained")
     assert EFFECTS["gyro_misalignment"].vocabulary_name == "gyro_scale"
     e = make_effect("gyro_scale", imu=2, axis="z", parameters={"scale": 0.01, "from_axis": "x"})
@@ -77,7 +77,7 @@ def test_vocabulary_and_parameters():
     assert len(EFFECTS["acc_misalignment"].candidates(layout)) == 8 * 6
     assert len(EFFECTS["gyro_misalignment"].candidates(layout)) == 8 * 6
     # every IMU-local effect has candidates at the reference IMU too (identifiable, module docstring)
-    for name in ("axis_displacement", "triad_orientation", "gyro_misalignment", "gyro_scale"):
+    for name in ("axis_displacement", "triad_orientation", "gyro_misalignment", "gyro_scale", "gyro_nonlinearity"):
         assert 0 in {c.imu for c in EFFECTS[name].candidates(layout)}, name
     with pytest.raises(UserError):
         get_effect("acc_wobble")
@@ -135,6 +135,41 @@ def test_closed_forms(setup):
     S = torch.tensor([1e-4, -2e-4, 3e-4], dtype=torch.float64)
     _, dg = _one("gyro_g_sensitivity", imu=k, parameters={"sensitivity": S}).perturbation(None, ctx)
     assert torch.allclose(dg[:, k], S * ctx.acc[:, k], rtol=0, atol=1e-15)
+
+
+def test_gyro_nonlinearity_against_independent_numpy():
+    """gyro_nonlinearity on random motion, mounting and k2 against numpy from first principles:
+    the sensor-frame rate is R(q) ω with R(q) written out from the quaternion here (DESIGN §7.0,
+    array → sensor), the axis' output gains k2 (R ω)_a², every other output is untouched."""
+    rng = np.random.default_rng(11)
+    T, K = 50, 4
+    omega = rng.normal(0, 4.0, (T, 3))  # rad/s
+    q = rng.normal(size=(K, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    pos = rng.normal(0, 0.02, (K, 3))
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+    ctx = SignalContext.from_motion(t(pos), t(q), t(omega), t(rng.normal(0, 20, (T, 3))), t(rng.normal(0, 9, (T, 3))))
+    for k, a in ((2, "z"), (0, "x"), (3, "y")):
+        k2 = float(rng.normal(0, 1e-3))
+        da, dg = make_effect("gyro_nonlinearity", imu=k, axis=a, parameters={"k2": k2}).perturbation(None, ctx)
+        w, x, y, z = q[k]
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        i = "xyz".index(a)
+        expect = np.zeros((T, K, 3))
+        expect[:, k, i] = k2 * (omega @ R.T)[:, i] ** 2
+        np.testing.assert_allclose(dg.numpy(), expect, rtol=1e-12, atol=1e-15)
+        assert float(da.abs().max()) == 0
+        # even in ω: the same motion run backwards gives the same perturbation
+        ctx_r = SignalContext.from_motion(ctx.positions, ctx.orientations, -ctx.omega, ctx.omega_dot, ctx.s)
+        _, dg_r = make_effect("gyro_nonlinearity", imu=k, axis=a, parameters={"k2": k2}).perturbation(None, ctx_r)
+        assert torch.allclose(dg_r, dg, rtol=1e-12, atol=1e-15)
+    e = make_effect("gyro_nonlinearity", imu=1, axis="y", parameters={"k2": -2e-4})
+    assert e.explain().endswith(".") and "too low" in e.explain() and "IMU 1" in e.explain()
+    assert e.report_parameters() == {"k2": -2e-4}
+    assert EFFECTS["gyro_nonlinearity"].parameters[0].unit == "(rad s-1)-1"
+    assert len(EFFECTS["gyro_nonlinearity"].candidates(CandidateLayout(3, np.ones(3, bool), np.array([1, 0, 1], bool)))) == 6
 
 
 def test_axis_displacement_is_the_specific_force_at_the_displaced_point(setup):
@@ -214,7 +249,7 @@ def test_output_rates_finite_differences():
 
 @pytest.mark.parametrize("name,kw", [("acc_scale", {"axis": "y"}), ("axis_displacement", {"axis": "x"}),
                                      ("triad_orientation", {}), ("gyro_g_sensitivity", {}),
-                                     ("acc_nonlinearity", {"axis": "z"})])
+                                     ("acc_nonlinearity", {"axis": "z"}), ("gyro_nonlinearity", {"axis": "y"})])
 def test_perturbation_gradients_match_finite_differences(setup, name, kw):
     arr, tr, pos, q, ctx = setup
     e = make_effect(name, imu=4, **kw)

@@ -34,7 +34,7 @@ def register(subparsers) -> None:
     p.add_argument("--alpha", type=opt.fraction(lo_open=True), default=0.01,
                    help="family-wise error rate of the Bonferroni-corrected threshold (default 0.01)")
     p.add_argument("--effects", default=None, metavar="A,B,...",
-                   help="comma-separated effect names to try (default: all of vocabulary v1)")
+                   help="comma-separated effect names to try (default: all of vocabulary v1.1)")
     p.add_argument("--max-findings", type=opt.count(0), default=3, help="most effects added to the model (default 3)")
     p.add_argument("--no-refine", action="store_true", help="skip the refined-model comparison (refined = null)")
     p.add_argument("--posterior", action="store_true",

@@ -66,6 +66,11 @@ Procedure
    by a p-value that stays finite for any statistic (:func:`accel_bayes.mismatch.locate.log10_chi2_sf`;
    with SciPy's underflowing ``logsf`` every cell beyond χ² ≈ 1400 tied at −inf and the first
    cell enumerated — IMU 0, accelerometer x — was reported whatever the data).
+8. **Budget** (:func:`accel_bayes.mismatch.budget.residual_budget`, vocabulary 1.1): per sensor and
+   per |ω| and |ω̇| quantile band of the baseline motion, the excess variance the baseline leaves
+   (a, leverage-corrected squared residual minus the stated variance) and the part the final
+   model accounts for (b, the squared residual its mean effects remove plus the variance its
+   variance effects predict); b = 0 when nothing was found.  Reported also with ``refine=False``.
 
 Threshold rule (reported as ``threshold``): Bonferroni over the m candidates tried,
 
@@ -94,6 +99,7 @@ from ..errors import UserError
 from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
 from .characterise import characterise, describe
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
+from .budget import residual_budget
 from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
 from .model import ModelFit
@@ -479,7 +485,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     ----------
     recording : :class:`~accel_bayes.data.recording.Recording` or path to a format-v1 file (needs
         gyroscope data).
-    effects : effect names to try (list or comma-separated string; default all of vocabulary v1);
+    effects : effect names to try (list or comma-separated string; default every registered effect,
+        i.e. vocabulary v1.1 with ``gyro_nonlinearity``);
         ``unexplained`` is always considered.
     alpha : family-wise error rate of the Bonferroni threshold (default 0.01).
     max_findings : most effects added to the model (default 3).
@@ -684,6 +691,9 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             post = posterior_comparison(prep.source, refined, seed=seed, progress=progress,
                                         index=prep.selection.index)
     timings["refine_s"] = _time.perf_counter() - t0
+    # residual budget (vocabulary 1.1): against the model with the findings, also with
+    # refine=False (it is fitted already); b = 0 where nothing was found
+    budget = residual_budget(prep, base, None if current is base else current)
     timings["total_s"] = _time.perf_counter() - t_start
     settings = {"effects": names if names is not None else list(EFFECTS), "alpha": alpha,
                 "max_findings": int(max_findings), "refine": bool(refine), "posterior": bool(posterior),
@@ -693,7 +703,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         findings=findings, baseline_fit=base, refined_fit=refined, threshold=threshold, alpha=alpha, n_candidates=m,
         df_max=df_max, location=loc0, location_after=None if current is base else loc_final,
         comparison=comparison, posterior=post, settings=settings, timings=timings, rounds=rounds,
-        withdrawn=withdrawn,
+        withdrawn=withdrawn, budget=budget,
         screens=[s.to_dict() for s in last_screens[:20]], baseline_info=base_info, source=source,
         recording_info={"T": prep.T, "K": prep.K, "reference_imu": prep.ref, "description": rec.description,
                         "T_given": int(len(rec.time)), "dropped_clipped": int(prep.n_dropped_clipped),

@@ -2,7 +2,10 @@
 
 :class:`MismatchReport` is what :func:`accel_bayes.mismatch.detect` returns.  The contract keys
 of §7.2 are exactly those of :meth:`MismatchReport.to_dict`'s top level (``schema``,
-``mismatch_detected``, ``threshold``, ``baseline``, ``findings``, ``refined``); everything else
+``mismatch_detected``, ``threshold``, ``baseline``, ``findings``, ``refined`` and, vocabulary 1.1,
+``budget``: the residual budget per sensor and motion regime, :mod:`accel_bayes.mismatch.budget`;
+``refined.chi2_per_dof_stated`` is the refined mean model's χ²/dof under the stated noise, also
+kept under its earlier name ``chi2_per_dof_stated_noise``); everything else
 (located-excess tables, per-regime statistics, PPC, screening and refit logs, geometry before
 and after, ELPD, timings) lives under the added key ``details`` or as added keys inside the
 contract blocks, which §7.2 allows.  :func:`validate_report` checks a dict against the contract.
@@ -122,6 +125,7 @@ class MismatchReport:
     recording_info: dict = field(default_factory=dict)
     prep: object = field(default=None, repr=False)
     characterisation: dict | None = None  # what the final model leaves: accel_bayes.mismatch.characterise
+    budget: list = field(default_factory=list)
 
     # ---------------------------------------------------------------- contract blocks
     @property
@@ -143,7 +147,8 @@ class MismatchReport:
         d = {"effects": [e.vocabulary_name or e.name for e in r.effects], "loglik": float(r.loglik),
              "chi2_per_dof": float(r.chi2_per_dof_model if noise else r.chi2_per_dof),
              "chi2_noise": "refined (noise_level in the model)" if noise else "stated",
-             "chi2_per_dof_stated_noise": float(r.chi2_per_dof), "dof": int(r.dof),
+             "chi2_per_dof_stated": float(r.chi2_per_dof), "chi2_per_dof_stated_noise": float(r.chi2_per_dof),
+             "dof": int(r.dof),
              "labels": [e.label() for e in r.effects]}
         if self.comparison and "elpd_loo" in self.comparison and "difference" in self.comparison["elpd_loo"]:
             e = self.comparison["elpd_loo"]
@@ -161,6 +166,7 @@ class MismatchReport:
             "baseline": self.baseline,
             "findings": [f.to_dict() for f in self.findings],
             "refined": self.refined,
+            "budget": self.budget,
             "details": self.details(),
         }
         return to_jsonable(doc, nonfinite="null", unknown="keep")
@@ -282,6 +288,7 @@ class MismatchReport:
             for k in range(len(pb)):
                 L.append(f"| {k} | {_vec(pb[k] * 1e3)} | {_vec(pr[k] * 1e3)} | {_vec((pr[k] - pb[k]) * 1e6, 1)} |")
             L.append("")
+        L += _budget_markdown(d.get("budget") or [])
         if self.posterior:
             L += ["## Posterior (PmMH) before/after correction", "", "```", json.dumps(to_jsonable(self.posterior, nonfinite="null", unknown="keep"), indent=1)[:4000],
                   "```", ""]
@@ -323,6 +330,30 @@ class MismatchReport:
         t = self.timings
         L += ["## Run", "", f"Total {t.get('total_s', float('nan')):.1f} s; settings: `{json.dumps(to_jsonable(self.settings, nonfinite='null', unknown='keep'))}`.", ""]
         return "\n".join(L)
+
+
+def _budget_markdown(rows: list) -> list:
+    """The ``budget`` rows as a Markdown section (a table per sensor), b/a where a > 0."""
+    if not rows:
+        return []
+    L = ["## Residual budget", "",
+         "Excess variance per channel-sample (sensor units²): a = mean leverage-corrected squared baseline "
+         "residual − stated variance; b = the part the model with the findings accounts for (removed by its "
+         "mean effects + predicted by its variance effects). A model that explains the misfit has b ≈ a in "
+         "every regime. Bands are quantiles of the baseline's fitted |ω| and |ω̇|.", ""]
+    for sensor, unit in (("acc", "(m/s²)²"), ("gyro", "(rad/s)²")):
+        rs = [r for r in rows if r["sensor"] == sensor]
+        if not rs:
+            continue
+        L += [f"**{sensor}** ({unit})", "", "| regime | samples | a | a / σ² | b | b / a |", "|---|---|---|---|---|---|"]
+        for r in rs:
+            a, b, s2 = r["excess_var_observed"], r["excess_var_explained"], r.get("stated_var")
+            f = lambda x: "–" if x is None or x != x else f"{x:.3g}"  # noqa: E731
+            rel = f(a / s2) if s2 else "–"
+            ratio = f(b / a) if a is not None and a == a and a > 0 else "–"
+            L.append(f"| {_cell(r['regime'])} | {r['samples']} | {f(a)} | {rel} | {f(b)} | {ratio} |")
+        L.append("")
+    return L
 
 
 def _preparation_line(prep: dict | None) -> str:
@@ -397,4 +428,11 @@ def validate_report(doc: dict) -> None:
         need(all(k in r for k in ("effects", "loglik", "chi2_per_dof")), "refined needs effects, loglik, chi2_per_dof")
     if not doc["mismatch_detected"]:
         need(doc["refined"] is None, "a clean report has refined = null")
+    if "budget" in doc:  # vocabulary 1.1
+        need(isinstance(doc["budget"], list), "budget must be a list")
+        for r in doc["budget"]:
+            need(isinstance(r, dict) and r.get("sensor") in ("acc", "gyro") and isinstance(r.get("regime"), str)
+                 and isinstance(r.get("samples"), int) and all(k in r for k in ("excess_var_observed",
+                                                                                  "excess_var_explained")),
+                 "budget rows need sensor (acc|gyro), regime, samples, excess_var_observed, excess_var_explained")
     _ = ev

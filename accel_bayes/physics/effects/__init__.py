@@ -1,6 +1,6 @@
 """The effects library: one class per physical effect the nominal array model leaves out.
 
-Vocabulary v1 (DESIGN §7.2) — each entry is one class below, registered under its name in
+Vocabulary v1.1 (DESIGN §7.2) — each entry is one class below, registered under its name in
 :data:`EFFECTS`; adding an effect is adding one class (STYLE.md, Kalibr's ``IccSensors``):
 
 =====================  ====================================================  ==========  =========
@@ -16,6 +16,7 @@ gyro_bias              gyroscope offset                                      yes
 gyro_scale             gyroscope scale-factor error                          yes         yes
   (gyro_misalignment)  the off-diagonal part of gyro_scale, see below        yes         yes
 gyro_g_sensitivity     gyro output that depends on specific force            yes         no
+gyro_nonlinearity      second-order gyroscope response (k2·ω², vocab. 1.1)   yes         yes
 time_offset            one IMU sampled late relative to the others           yes         no
 saturation             samples clipped at (an unstated) sensor range         optional    optional
 noise_level            noise larger than stated                              optional    no
@@ -83,8 +84,9 @@ triad beyond what the accelerometers constrain (the score test in
 
 Layout (one module per sensor): :mod:`.base` (context, parameters, the :class:`Effect` base
 class, registry, composition), :mod:`.accelerometer`, :mod:`.mounting`, :mod:`.gyroscope`,
-:mod:`.timing`, :mod:`.output`.  The import order below is the registration order, which is the
-DESIGN §7.2 table order of :data:`VOCABULARY`.
+:mod:`.timing`, :mod:`.output`.  The import order below is the registration order, which is the order
+of :data:`VOCABULARY`: the DESIGN §7.2 table order, except that the vocabulary-1.1 additions sit
+with their sensor's module (``gyro_nonlinearity`` after ``gyro_g_sensitivity``).
 """
 from __future__ import annotations
 
@@ -94,7 +96,7 @@ from .accelerometer import AccBias, AccScale, AccMisalignment, AccNonlinearity, 
 from .accelerometer import (acc_gain_effects, acc_gain_of_effects, gain_to_intrinsics, gain_to_s16, intrinsics_gain,
                             s16_gain, triangular_gauge)
 from .mounting import TriadOrientation
-from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity
+from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity, GyroNonlinearity
 from .timing import GyroDelay, TimeOffset, sample_times
 from .output import Saturation, NoiseLevel, Unexplained
 
@@ -125,6 +127,7 @@ __all__ = [
     "GyroScale",
     "GyroMisalignment",
     "GyroGSensitivity",
+    "GyroNonlinearity",
     "TimeOffset",
     "sample_times",
     "Saturation",

@@ -1,5 +1,5 @@
-"""Gyroscope effects: bias, scale factor, misalignment (off-diagonal scale), g-sensitivity.
-Sensor frame of the IMU, SI units (DESIGN §7.2).
+"""Gyroscope effects: bias, scale factor, misalignment (off-diagonal scale), g-sensitivity,
+second-order response.  Sensor frame of the IMU, SI units (DESIGN §7.2).
 """
 from __future__ import annotations
 
@@ -130,3 +130,37 @@ class GyroGSensitivity(Effect):
         per_g = [float(v) * G0 / DEG_TO_RAD for v in s]
         return (f"IMU {self.imu}'s gyroscope reading shifts with the specific force it feels "
                 f"([{', '.join(f'{v:.3g}' for v in per_g)}] (°/s)/g on x, y, z): a g-sensitive gyro.")
+
+
+@register_effect
+class GyroNonlinearity(Effect):
+    """Second-order response of one gyroscope axis (DESIGN §7.2 vocabulary 1.1):
+    output_a += k2 · ω_a², k2 in (rad/s)⁻¹, ω_a the true rotation rate about sensor axis a
+    (the nominal output ``ctx.gyro``).  Exact (the effect is this term, nothing is linearised).
+
+    Identifiability: ω_a² is even in ω_a, so it is told apart from ``gyro_scale`` (odd) by any
+    recording whose rate changes sign, and from ``gyro_bias`` (constant) by any recording whose
+    |ω_a| varies; the rate itself is pinned by the other gyros and the accelerometer lever arms,
+    so every gyro axis, the reference IMU's included, is a candidate (the score test drops one
+    whose efficient information is singular in a given recording)."""
+
+    name = "gyro_nonlinearity"
+    description = "second-order gyroscope response"
+    local_axis = True
+    sensor = "gyro"
+    # prior scale: 0.01 (rad/s)⁻¹ is 1 rad/s of error at 10 rad/s, far beyond any MEMS gyro, so
+    # the prior is weak wherever the data say anything
+    parameters = (Param("k2", (), "(rad s-1)-1", 1e-2, "output += k2 · ω²"),)
+
+    def perturbation(self, params, ctx):
+        p = self._p(params)
+        k = self._imu_checked(ctx)
+        m = _onehot(ctx.K, k, self.axis_index, ctx.gyro)
+        return torch.zeros_like(ctx.acc), p["k2"] * m * ctx.gyro * ctx.gyro
+
+    def explain(self, params=None):
+        k2 = float(self._p(params)["k2"])
+        w = 100 * DEG_TO_RAD  # a reference rate the sentence can quote in familiar units
+        return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope responds quadratically to the rotation rate: "
+                f"it adds {_fmt(k2, '(rad/s)⁻¹')} × ω², i.e. {_fmt(abs(k2) * w * w / DEG_TO_RAD, '°/s')} "
+                f"{'too high' if k2 > 0 else 'too low'} at 100 °/s either way round (a second-order nonlinearity).")

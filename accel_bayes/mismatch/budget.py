@@ -1,0 +1,117 @@
+"""The residual budget of a mismatch report (DESIGN §7.2 vocabulary 1.1, top-level ``budget``):
+how much excess variance the baseline leaves per sensor and motion regime, and how much of it
+the refined model accounts for.
+
+One row per sensor (``"acc"``, ``"gyro"``) and regime::
+
+    {"sensor": "gyro", "regime": "|omega| 90-100%", "samples": n, "channel_samples": n_c,
+     "excess_var_observed": a, "excess_var_explained": b, "stated_var": s2}
+
+Regimes (:func:`budget_regimes`): ``"all"``, and the quantile bands 0–25, 25–50, 50–75, 75–90 and
+90–100 % of |ω| (``"|omega| 0-25%"`` …) and of |ω̇| (``"|omega_dot| 0-25%"`` …), from the
+*baseline* fit's motion, so the rows of a and b cover the same samples.  ``samples`` counts the
+time samples of the band, ``channel_samples`` the observed outputs of the sensor in it (every
+IMU, every axis); a, b and ``stated_var`` are means over those channel-samples, in the sensor's
+units² ((m/s²)² or (rad/s)²).
+
+* ``a`` = mean of r̃² − σ², r the baseline residual, σ the stated noise std of the output's IMU.
+  r̃² = r²/(1 − h) is the *leverage-corrected* squared residual (h the leverage of the sample's
+  fitted motion state, :mod:`accel_bayes.mismatch.locate`): the per-sample motion [ω, ω̇, s] is
+  fitted, which shrinks E[r²] to σ²(1 − h) — on a clean recording plain r² − σ² would be −σ²·h̄
+  (−19 % of σ² with 8 IMUs) instead of 0.  Under the nominal model E[r̃²] = σ², so a ≈ 0 on clean
+  data and a > 0 is the variance the model misses.
+* ``b`` = (mean r̃²_baseline − mean r̃²_refined) + mean predicted extra variance, i.e. what the
+  refined model's mean effects remove from the residuals plus what its variance effects predict
+  on top of the stated noise:
+
+  - ``noise_level``: (c² − 1) σ², c the fitted noise factor of the output's IMU/sensor;
+  - any other effect in the refined model that defines ``predicted_variance(params, ctx)``
+    returning (acc_var, gyro_var), each (T, K, 3) in units² on top of the stated noise (the hook
+    for random effects such as ``sampling_jitter``; ``ctx`` is the refined fit's
+    :class:`~accel_bayes.physics.effects.SignalContext`, which carries the output rates).
+
+  A refined model that explains the misfit has b ≈ a in every row, not only in ``"all"``.  With
+  no refined model (clean recording), b = 0.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .model import ModelFit
+from .prepared import Prepared
+
+__all__ = ["BANDS", "budget_regimes", "leverage_corrected_sq", "predicted_extra_variance", "residual_budget"]
+
+BANDS = ((0, 25), (25, 50), (50, 75), (75, 90), (90, 100))  # quantile bands, %
+
+
+def budget_regimes(fit: ModelFit) -> list[tuple[str, np.ndarray]]:
+    """[(regime name, (T,) bool sample mask)]: "all", then the :data:`BANDS` of |ω| and of |ω̇|
+    (rad/s, rad/s²) of ``fit``'s motion.  Band edges are quantiles; the top band includes its
+    maximum, every other band its lower edge and not its upper one."""
+    x = fit.x.detach().cpu().numpy()
+    T = x.shape[0]
+    out = [("all", np.ones(T, bool))]
+    for name, v in (("|omega|", np.linalg.norm(x[:, 0:3], axis=1)), ("|omega_dot|", np.linalg.norm(x[:, 3:6], axis=1))):
+        edges = np.quantile(v, [b[0] / 100 for b in BANDS[1:]])  # inner edges 25, 50, 75, 90 %
+        lab = np.digitize(v, edges, right=False)
+        for j, (lo, hi) in enumerate(BANDS):
+            out.append((f"{name} {lo}-{hi}%", lab == j))
+    return out
+
+
+def leverage_corrected_sq(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
+    """(acc, gyro) (T, K, 3): r²/(1 − h), raw residual r of ``fit`` (units²), h the leverage of
+    the sample's motion state (module docstring); 0 where unobserved."""
+    h = fit.linear().h.reshape(prep.T, 2, prep.K, 3)
+    one_minus = (1 - h).clamp_min(1e-3)  # as in locate.standardized
+    return (fit.res_acc ** 2 / one_minus[:, 0] * prep.m_acc, fit.res_gyro ** 2 / one_minus[:, 1] * prep.m_gyro)
+
+
+def predicted_extra_variance(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
+    """(acc, gyro) (T, K, 3) the variance ``fit``'s model adds to the stated noise, units²: the
+    noise factors' (c² − 1) σ² plus every effect's ``predicted_variance(params, ctx)`` where it
+    has one (module docstring); 0 where unobserved."""
+    va = ((fit.acc_factor ** 2 - 1) * prep.sigma_acc ** 2)[None, :, None].expand(prep.T, prep.K, 3).clone()
+    vg = ((fit.gyro_factor ** 2 - 1) * prep.sigma_gyro ** 2)[None, :, None].expand(prep.T, prep.K, 3).clone()
+    for e in fit.effects:
+        fn = getattr(e, "predicted_variance", None)
+        if fn is not None:
+            a, g = fn(None, fit.ctx)
+            va, vg = va + a, vg + g
+    return va * prep.m_acc, vg * prep.m_gyro
+
+
+def residual_budget(prep: Prepared, baseline: ModelFit, refined: ModelFit | None = None) -> list[dict]:
+    """The budget rows of the module docstring for ``baseline`` and ``refined`` (None: b = 0),
+    sensors acc then gyro, regimes in :func:`budget_regimes` order.  Sensors without any
+    observed output are left out."""
+    regs = budget_regimes(baseline)
+    base_sq = leverage_corrected_sq(prep, baseline)
+    if refined is not None:
+        ref_sq = leverage_corrected_sq(prep, refined)
+        extra = predicted_extra_variance(prep, refined)
+    rows = []
+    for j, sensor in enumerate(("acc", "gyro")):
+        mask = prep.m_acc if sensor == "acc" else prep.m_gyro
+        sig2 = ((prep.sigma_acc if sensor == "acc" else prep.sigma_gyro) ** 2)[None, :, None] * mask
+        # per time sample: (observed count, Σ r̃²_base, Σ σ², Σ r̃²_ref, Σ predicted extra)
+        per_t = [mask.sum((1, 2)), base_sq[j].sum((1, 2)), sig2.sum((1, 2))]
+        if refined is not None:
+            per_t += [ref_sq[j].sum((1, 2)), extra[j].sum((1, 2))]
+        per_t = np.stack([v.detach().cpu().numpy() for v in per_t], 1)
+        if per_t[:, 0].sum() == 0:
+            continue
+        for name, sel in regs:
+            s = per_t[sel].sum(0)
+            n = float(s[0])
+            if n == 0:
+                a = b = s2 = float("nan")
+            else:
+                a = (s[1] - s[2]) / n
+                s2 = s[2] / n
+                b = ((s[1] - s[3]) + s[4]) / n if refined is not None else 0.0
+            rows.append({"sensor": sensor, "regime": name, "samples": int(sel.sum()), "channel_samples": int(n),
+                         "excess_var_observed": float(a), "excess_var_explained": float(b), "stated_var": float(s2)})
+    return rows
