@@ -17,7 +17,7 @@ from .fit import baseline_fit, fit_model
 from .model import ModelFit, _loglik_terms
 from .prepared import Prepared
 
-__all__ = ["heldout_fit"]
+__all__ = ["heldout_fit", "noise_variances", "predictive_loglik"]
 
 
 class _Fixed:
@@ -67,7 +67,8 @@ class _Fixed:
         return "fixed:" + self.inner.label()
 
 
-def heldout_fit(prep: Prepared, effects, *, base: "ModelFit | None" = None, prior_std: float = DEFAULT_PRIOR_STD) -> dict:
+def heldout_fit(prep: Prepared, effects, *, base: "ModelFit | None" = None, prior_std: float = DEFAULT_PRIOR_STD,
+                return_fit: bool = False) -> dict:
     """Log-likelihood of a recording under the nominal model and under the nominal model plus
     ``effects`` **held at their given parameter values** (e.g. estimated on another recording).
 
@@ -80,6 +81,8 @@ def heldout_fit(prep: Prepared, effects, *, base: "ModelFit | None" = None, prio
     rates (from ``base``).
 
     base : the nominal fit of ``prep`` (:func:`baseline_fit`), computed if None.
+    return_fit : also return the fit with the fixed effects under ``"fit"`` (a
+        :class:`~accel_bayes.mismatch.model.ModelFit`, not JSON) and the nominal one under ``"base"``.
     Returns {"loglik_nominal", "loglik_fixed", "difference" (fixed − nominal), "per_sample"
     (difference / T), "chi2_per_dof_nominal", "chi2_per_dof_fixed" (stated noise),
     "effects" (labels used), "skipped", "converged", "seconds"}.
@@ -107,9 +110,75 @@ def heldout_fit(prep: Prepared, effects, *, base: "ModelFit | None" = None, prio
     # χ² with the stated noise for both models
     _, quad_stated = _loglik_terms(prep, f.res_acc, f.res_gyro, torch.ones(prep.K, dtype=torch.float64),
                                    torch.ones(prep.K, dtype=torch.float64))
-    return {"loglik_nominal": base.loglik, "loglik_fixed": f.loglik, "difference": f.loglik - base.loglik,
+    out = {"loglik_nominal": base.loglik, "loglik_fixed": f.loglik, "difference": f.loglik - base.loglik,
             "per_sample": (f.loglik - base.loglik) / prep.T,
             "chi2_per_dof_nominal": base.chi2_per_dof, "chi2_per_dof_fixed": quad_stated / max(base.dof, 1),
             "positions_nominal": base.positions.tolist(), "positions_fixed": f.positions.tolist(),
             "effects": used, "skipped": skipped, "converged": bool(f.converged) and bool(base.converged),
             "seconds": _time.perf_counter() - t0}
+    if return_fit:
+        out.update(fit=f, base=base)
+    return out
+
+
+# ---------------------------------------------------------------------- held-out predictive density
+
+def noise_variances(prep: Prepared, fit: ModelFit, *, omega_edges=None, extra=None) -> dict:
+    """A Gaussian noise model fitted to a fit's residuals: the variance per IMU, sensor and, with
+    ``omega_edges`` (rad/s, increasing inner edges), per |ω| band of the fit's motion — the mean
+    leverage-corrected squared residual r²/(1 − h) of the cell minus ``extra`` (a (acc, gyro)
+    pair of (T, K, 3) variances the model already predicts per sample, e.g. a random effect's),
+    floored at 1 % of the stated variance.  Units²; returns {"edges": edges or [], "acc": (K, B),
+    "gyro": (K, B)} numpy arrays, B = len(edges) + 1 bands.
+
+    The physics-free baseline of the held-out comparison (issue #11 item 4) is this with the
+    |ω| bands of the *source* recording on its nominal fit; a physics model is its findings plus
+    this without bands on its refined fit."""
+    import numpy as np
+
+    from .budget import leverage_corrected_sq
+
+    sq = leverage_corrected_sq(prep, fit)
+    edges = [] if omega_edges is None else [float(e) for e in omega_edges]
+    lab = np.digitize(np.linalg.norm(fit.x[:, 0:3].detach().cpu().numpy(), axis=1), edges)
+    out = {"edges": edges}
+    for j, (name, sig, m) in enumerate((("acc", prep.sigma_acc, prep.m_acc), ("gyro", prep.sigma_gyro, prep.m_gyro))):
+        r2 = sq[j].detach().cpu().numpy()
+        if extra is not None:
+            r2 = r2 - extra[j].detach().cpu().numpy()
+        mm = m.detach().cpu().numpy()
+        v = np.zeros((prep.K, len(edges) + 1))
+        floor = 0.01 * sig.detach().cpu().numpy() ** 2
+        for b in range(len(edges) + 1):
+            sel = lab == b
+            n = mm[sel].sum((0, 2))
+            s = (r2[sel] * mm[sel]).sum((0, 2))
+            v[:, b] = np.where(n > 0, s / np.maximum(n, 1), np.nan)
+        # a band with no samples in the source borrows the IMU's overall level
+        overall = (r2 * mm).sum((0, 2)) / np.maximum(mm.sum((0, 2)), 1)
+        v = np.where(np.isfinite(v), v, overall[:, None])
+        out[name] = np.maximum(v, floor[:, None])
+    return out
+
+
+def predictive_loglik(prep: Prepared, fit: ModelFit, noise: dict, *, extra=None) -> float:
+    """Σ over observed outputs of log N(r̃; 0, v): r̃² = r²/(1 − h) the leverage-corrected squared
+    residual of ``fit`` (so that a fit's shrinkage of its own residuals does not pass for
+    predictive skill), v the variance of ``noise`` (:func:`noise_variances`, possibly from another
+    recording; bands by this fit's |ω|) plus ``extra`` ((acc, gyro) (T, K, 3) per-sample variances
+    predicted by the model's random effects).  Nats."""
+    import numpy as np
+
+    from .budget import leverage_corrected_sq
+
+    sq = leverage_corrected_sq(prep, fit)
+    lab = np.digitize(np.linalg.norm(fit.x[:, 0:3].detach().cpu().numpy(), axis=1), noise["edges"])
+    total = 0.0
+    for j, (name, m) in enumerate((("acc", prep.m_acc), ("gyro", prep.m_gyro))):
+        r2 = sq[j].detach().cpu().numpy()
+        v = np.asarray(noise[name])[:, lab].T[:, :, None] * np.ones_like(r2)  # (T, K, 3)
+        if extra is not None:
+            v = v + extra[j].detach().cpu().numpy()
+        mm = m.detach().cpu().numpy() > 0
+        total += float((-0.5 * (r2 / v + np.log(2 * np.pi * v)))[mm].sum())
+    return total
