@@ -1,35 +1,38 @@
 #!/usr/bin/env python3
-"""Model-mismatch discovery on the six real MIMU4444 experiments (issue #5, item 7).
+"""Model-mismatch discovery on the six real MIMU4444 experiments, whole recordings (issue #11).
 
 For each experiment ``exp_i`` (``../shared/data/mimu4444-bcd``):
 
-1. import the raw stream (:func:`accel_bayes.data.mimu.import_mimu`: checksums, rests, noise from the
-   rests), estimate the accelerometer intrinsics and gyro biases from the rests
-   (:func:`accel_bayes.prep.intrinsics.estimate_intrinsics`) and apply them
-   (:meth:`Intrinsics.apply`), keep the samples labelled ``dynamic`` by the importer;
-2. run the detector **unchanged** (:func:`accel_bayes.mismatch.detect`, default options) and
-   write its report (``OUT/exp_i/report.json`` + ``report.md``);
-3. held-out check: the effects found on experiment i — their fitted parameters held fixed —
-   are added to the nominal model of experiment j's dynamic data; positions and motion are
-   re-fitted on j in both models (:func:`accel_bayes.mismatch.transfer.heldout_fit`), and the
-   log-likelihood difference (fixed effects − nominal) is reported for every ordered pair
-   (the diagonal i = j is the in-sample value, for reference);
-4. repeatability: the spread of the six position estimates per IMU, from the nominal fit
-   (baseline) and from the refined fit (found effects modelled).
+1. ``detect`` — the raw import (:func:`accel_bayes.data.mimu.import_mimu`: checksums, rests, noise
+   from the rests) goes to :func:`accel_bayes.mismatch.detect` **unchanged, with its defaults**:
+   the detector prepares it as ``calibrate`` does (intrinsics from the rests, the one sample
+   selection: rests, clipped and slowly rotating samples dropped) and uses every kept sample.
+   Its report (``OUT/exp_i/report.json`` + ``report.md``) carries the §7.2 budget (excess
+   variance per sensor and |ω| / |ω̇| band, and what the findings explain) and the
+   characterisation of what is left;
+2. ``shares`` — each finding's share of the explained excess, in sequence (the model with the
+   first k findings, refitted) and by dropping it from the final model (refitted without it);
+3. ``heldout`` — for every ordered pair (i → j), the findings of i with their parameters fixed
+   on j (positions and motion refitted, :func:`accel_bayes.mismatch.transfer.heldout_fit`) and
+   two held-out predictive log densities of j's residuals
+   (:func:`accel_bayes.mismatch.transfer.predictive_loglik`): the **physics model** — i's findings
+   plus a noise level per IMU and sensor fitted on i's refined residuals (and i's random effects'
+   predicted variance) — against the **physics-free baseline** — the nominal model plus a noise
+   level per IMU, sensor and |ω| band (the five §7.2 bands, edges from i) fitted on i's nominal
+   residuals; the gain per sample is their difference (> 0: the physics predicts j better than a
+   variance that only soaks up misfit);
+4. ``summary`` — tables and figures (``OUT/summary.md``, ``OUT/*.png``).
 
-Everything is cached per experiment in ``OUT`` so a run can be interrupted and resumed; the
-summary (``OUT/summary.json``, ``OUT/summary.md``, figures) is rebuilt from what is there.
+Everything is cached per experiment in ``OUT`` so a run can be interrupted and resumed.
 
     python experiments/mimu_mismatch.py                          # all stages, all six experiments
     python experiments/mimu_mismatch.py --stage detect --experiments 1 2
     python experiments/mimu_mismatch.py --stage heldout
-    python experiments/mimu_mismatch.py --stage heldout-single     # each finding alone
     python experiments/mimu_mismatch.py --stage summary
-    python experiments/mimu_mismatch.py --max-samples 3000       # subsample: last N dynamic samples
+    python experiments/mimu_mismatch.py --max-samples 3000       # subsample (off by default): last N kept samples
 
 Honesty notes: the detector's options are its defaults; ``--max-samples`` (off by default)
-keeps only the last N dynamic samples (the continuous hand rotation at the end of each
-experiment) and is recorded in the outputs.
+keeps only the last N samples of the recording and is recorded in the outputs.
 """
 from __future__ import annotations
 
@@ -49,33 +52,27 @@ sys.path.insert(0, str(HERE))
 from _data import data_dir  # noqa: E402
 
 
-def load_dynamic(i: int, data: Path, max_samples: int | None = None):
-    """Experiment i: imported, intrinsics applied, dynamic samples only.  Returns (rec, info)."""
-    from accel_bayes.prep.intrinsics import estimate_intrinsics
+def load_recording(i: int, data: Path, max_samples: int | None = None):
+    """Experiment i as imported (rests and all: the detector prepares it itself), optionally only
+    its last ``max_samples`` samples.  Returns (rec, info)."""
     from accel_bayes.data.mimu import import_mimu
 
     raw = import_mimu(data / f"exp_{i}" / "data.bin.gz")
-    intr = estimate_intrinsics(raw)
-    cal = intr.apply(raw)
-    seg = np.asarray(cal.segment)
-    keep = seg == "dynamic"
-    if max_samples is not None and keep.sum() > max_samples:
-        idx = np.flatnonzero(keep)[-int(max_samples):]
-        keep = np.zeros_like(keep)
-        keep[idx] = True
-    rec = cal.select(keep)
-    gc = None if rec.gyro_clipped is None else np.asarray(rec.gyro_clipped)
-    info = {"experiment": i, "T_total": int(len(seg)), "T_dynamic": int((seg == "dynamic").sum()),
-            "T_used": int(keep.sum()), "max_samples": max_samples, "K": int(rec.K),
-            "sample_rate_hz": float(raw.sample_rate),
-            "gyro_clipped_fraction": None if gc is None else float(gc.mean()),
-            "acc_noise_std": np.asarray(rec.acc_noise_std).tolist(),
-            "gyro_noise_std": np.asarray(rec.gyro_noise_std).tolist()}
+    rec = raw
+    if max_samples is not None and raw.T > max_samples:
+        keep = np.zeros(raw.T, dtype=bool)
+        keep[-int(max_samples):] = True
+        rec = raw.select(keep)
+    seg = np.asarray(raw.segment) if raw.segment is not None else np.array([])
+    info = {"experiment": i, "T_total": int(raw.T), "T_dynamic": int((seg == "dynamic").sum()),
+            "T_given": int(rec.T), "max_samples": max_samples, "K": int(raw.K),
+            "sample_rate_hz": float(raw.sample_rate)}
     return rec, info
 
 
-def _effects_from_report(doc: dict):
-    """The model effects of a report's findings (``unexplained`` has no model and is skipped)."""
+def _effects_from_report(doc: dict, kinds=("mean", "clip", "noise", "random")):
+    """The model effects of a report's findings, parameters as reported (``unexplained`` has no
+    model and is skipped)."""
     from accel_bayes.mismatch import make_effect
 
     out = []
@@ -85,8 +82,35 @@ def _effects_from_report(doc: dict):
         params = dict(f.get("parameters") or {})
         if "sensor" in f and "sensor" not in params:
             params["sensor"] = f["sensor"]
-        out.append(make_effect(f["effect"], imu=f.get("imu"), axis=f.get("axis"), parameters=params))
+        e = make_effect(f["effect"], imu=f.get("imu"), axis=f.get("axis"), parameters=params)
+        if e.kind in kinds:
+            out.append(e)
     return out
+
+
+def _random_variance(effects, ctx, like):
+    """(acc, gyro) (T, K, 3) variance the random effects among ``effects`` predict on a fit's
+    signal context (zeros without any), units²."""
+    import torch
+
+    va, vg = torch.zeros_like(like), torch.zeros_like(like)
+    for e in effects:
+        fn = getattr(e, "predicted_variance", None) or (getattr(e, "variance", None) if e.kind == "random" else None)
+        if fn is not None:
+            a, g = fn(None, ctx)
+            va, vg = va + a, vg + g
+    return va, vg
+
+
+def _prepared(i, args, cache):
+    from accel_bayes.mismatch import baseline_fit, prepare
+
+    if i not in cache:
+        rec, _ = load_recording(i, args.data, args.max_samples)
+        prep = prepare(rec)
+        base, _ = baseline_fit(prep)
+        cache[i] = (prep, base)
+    return cache[i]
 
 
 # ---------------------------------------------------------------------------- stages
@@ -99,84 +123,121 @@ def stage_detect(args, exps):
         if (d / "report.json").exists() and not args.redo:
             print(f"exp_{i}: report exists, skipped (--redo to recompute)")
             continue
-        rec, info = load_dynamic(i, args.data, args.max_samples)
-        print(f"exp_{i}: T = {info['T_used']} dynamic samples (of {info['T_total']}), K = {info['K']}; detecting …",
-              flush=True)
+        rec, info = load_recording(i, args.data, args.max_samples)
+        print(f"exp_{i}: T = {info['T_given']} samples given, K = {info['K']}; detecting …", flush=True)
         t0 = time.perf_counter()
         rep = detect(rec, seed=0, progress=args.progress, **args.detect_kwargs)
         secs = time.perf_counter() - t0
         rep.write(d, figures=not args.no_figures)
         info["detect_seconds"] = secs
         info["detect_kwargs"] = args.detect_kwargs
+        info["T_used"] = int(rep.recording_info["T"])
         (d / "info.json").write_text(json.dumps(info, indent=1))
         doc = rep.to_dict()
-        print(f"exp_{i}: {secs:.0f} s; χ²/dof {doc['baseline']['chi2_per_dof']:.4g} → "
+        print(f"exp_{i}: {secs:.0f} s, T used {info['T_used']}; χ²/dof {doc['baseline']['chi2_per_dof']:.4g} → "
               f"{(doc['refined'] or doc['baseline'])['chi2_per_dof']:.4g}; findings "
               + ", ".join(f"{f['effect']}[imu={f['imu']},axis={f['axis']}] {f['evidence']:.4g}" for f in doc["findings"]),
               flush=True)
 
 
+def _budget_all(rows, sensor):
+    r = next(x for x in rows if x["sensor"] == sensor and x["regime"] == "all")
+    return r["excess_var_observed"], r["excess_var_explained"]
+
+
+def stage_shares(args, exps):
+    """Each finding's share of the explained excess variance ("all" rows of the budget): in
+    sequence (first k findings, refitted) and dropped from the final model (refitted without it)."""
+    from accel_bayes.mismatch.budget import residual_budget
+    from accel_bayes.mismatch.fit import fit_model
+
+    cache = {}
+    for i in exps:
+        p = args.out / f"exp_{i}" / "report.json"
+        sp = args.out / f"exp_{i}" / "shares.json"
+        if not p.exists() or (sp.exists() and not args.redo):
+            continue
+        doc = json.loads(p.read_text())
+        effs = _effects_from_report(doc)
+        if not effs:
+            sp.write_text(json.dumps({"sequence": [], "drop_one": []}))
+            continue
+        prep, base = _prepared(i, args, cache)
+        out = {"sequence": [], "drop_one": []}
+        for k in range(1, len(effs) + 1):
+            f = fit_model(prep, [e.copy() for e in effs[:k]], init=base, laplace=False)
+            rows = residual_budget(prep, base, f)
+            out["sequence"].append({"effects": [e.label() for e in effs[:k]],
+                                    **{s: _budget_all(rows, s) for s in ("acc", "gyro")}})
+        for k in range(len(effs)):
+            rest = [e.copy() for j, e in enumerate(effs) if j != k]
+            f = fit_model(prep, rest, init=base, laplace=False) if rest else base
+            rows = residual_budget(prep, base, f if rest else None)
+            out["drop_one"].append({"dropped": effs[k].label(), **{s: _budget_all(rows, s) for s in ("acc", "gyro")}})
+        sp.write_text(json.dumps(out, indent=1))
+        print(f"exp_{i}: shares " + "; ".join(
+            f"{r['effects'][-1]}: b/a acc {r['acc'][1] / r['acc'][0]:.3f}, gyro {r['gyro'][1] / r['gyro'][0]:.3f}"
+            for r in out["sequence"]), flush=True)
+
+
 def stage_heldout(args, exps):
-    from accel_bayes.mismatch import baseline_fit, prepare
-    from accel_bayes.mismatch.transfer import heldout_fit
+    from accel_bayes.mismatch.budget import BANDS
+    from accel_bayes.mismatch.transfer import heldout_fit, noise_variances, predictive_loglik
 
     path = args.out / "heldout.json"
     res = json.loads(path.read_text()) if path.exists() and not args.redo else {}
-    reports = {}
-    for i in exps:
-        p = args.out / f"exp_{i}" / "report.json"
-        if p.exists():
-            reports[i] = json.loads(p.read_text())
+    reports = {i: json.loads((args.out / f"exp_{i}" / "report.json").read_text()) for i in exps
+               if (args.out / f"exp_{i}" / "report.json").exists()}
     if not reports:
         print("heldout: no reports yet; run --stage detect first")
         return
+    cache, models = {}, {}
+
+    def source_models(i):
+        """i's physics model (findings, noise per IMU/sensor on its refined fit) and its
+        physics-free baseline (noise per IMU/sensor/|ω| band on its nominal fit)."""
+        if i not in models:
+            from accel_bayes.mismatch.fit import fit_model
+
+            prep, base = _prepared(i, args, cache)
+            w = np.linalg.norm(base.x[:, 0:3].numpy(), axis=1)
+            edges = np.quantile(w, [b[0] / 100 for b in BANDS[1:]]).tolist()
+            effs = _effects_from_report(reports[i])
+            mean_effs = [e for e in effs if e.kind in ("mean", "clip")]
+            refined = fit_model(prep, [e.copy() for e in mean_effs], init=base, laplace=False) if mean_effs else base
+            extra = _random_variance(effs, refined.ctx, refined.res_acc)
+            models[i] = {"effects": effs, "physics_noise": noise_variances(prep, refined, extra=extra),
+                         "physics_noise_banded": noise_variances(prep, refined, omega_edges=edges, extra=extra),
+                         "baseline_noise": noise_variances(prep, base, omega_edges=edges), "edges": edges}
+        return models[i]
+
     for j in exps:
         todo = [i for i in reports if f"{i}->{j}" not in res]
         if not todo:
             continue
-        rec, info = load_dynamic(j, args.data, args.max_samples)
-        prep = prepare(rec)
-        t0 = time.perf_counter()
-        base, _ = baseline_fit(prep)
-        tb = time.perf_counter() - t0
+        prep, base = _prepared(j, args, cache)
         for i in todo:
-            effs = _effects_from_report(reports[i])
-            if not effs:
-                res[f"{i}->{j}"] = {"source": i, "target": j, "effects": [], "difference": 0.0, "note": "no findings"}
-                continue
-            h = heldout_fit(prep, effs, base=base)
-            h.update(source=i, target=j, T=prep.T, baseline_seconds=tb)
+            t0 = time.perf_counter()
+            m = source_models(i)
+            fixed = [e for e in m["effects"] if e.kind in ("mean", "clip")]
+            h = heldout_fit(prep, fixed, base=base, return_fit=True) if fixed else {
+                "difference": 0.0, "per_sample": 0.0, "fit": base, "effects": [], "skipped": []}
+            f = h.pop("fit")
+            h.pop("base", None)
+            extra = _random_variance(m["effects"], f.ctx, f.res_acc)
+            ll_phys = predictive_loglik(prep, f, m["physics_noise"], extra=extra)
+            ll_free = predictive_loglik(prep, base, m["baseline_noise"])
+            # the same banded variance model on both sides: what the findings' *mean* part adds
+            ll_phys_b = predictive_loglik(prep, f, m["physics_noise_banded"], extra=extra)
+            h.update(source=i, target=j, T=prep.T, effects=[e.label() for e in m["effects"]],
+                     predictive_physics=ll_phys, predictive_baseline=ll_free, predictive_physics_banded=ll_phys_b,
+                     gain_per_sample=(ll_phys - ll_free) / prep.T,
+                     gain_banded_per_sample=(ll_phys_b - ll_free) / prep.T, seconds=time.perf_counter() - t0)
             res[f"{i}->{j}"] = h
-            print(f"held-out exp_{i} → exp_{j}: Δlog L = {h['difference']:+.1f} ({h['per_sample']:+.3f} per sample), "
-                  f"χ²/dof {h['chi2_per_dof_nominal']:.4g} → {h['chi2_per_dof_fixed']:.4g} [{h['seconds']:.0f} s]",
-                  flush=True)
-            path.write_text(json.dumps(res, indent=1))
-    path.write_text(json.dumps(res, indent=1))
-
-
-def stage_heldout_single(args, exps):
-    """The held-out check per finding: each effect found on experiment i, alone and with its
-    parameters fixed, on every experiment j (which findings carry over)."""
-    from accel_bayes.mismatch import baseline_fit, prepare
-    from accel_bayes.mismatch.transfer import heldout_fit
-
-    path = args.out / "heldout_single.json"
-    res = json.loads(path.read_text()) if path.exists() and not args.redo else {}
-    reports = {i: json.loads((args.out / f"exp_{i}" / "report.json").read_text()) for i in exps
-               if (args.out / f"exp_{i}" / "report.json").exists()}
-    for j in exps:
-        todo = [(i, e) for i in reports for e in _effects_from_report(reports[i]) if f"{i}:{e.label()}->{j}" not in res]
-        if not todo:
-            continue
-        rec, _ = load_dynamic(j, args.data, args.max_samples)
-        prep = prepare(rec)
-        base, _ = baseline_fit(prep)
-        for i, e in todo:
-            h = heldout_fit(prep, [e], base=base)
-            res[f"{i}:{e.label()}->{j}"] = {"source": i, "target": j, "effect": e.label(),
-                                              "difference": h["difference"], "per_sample": h["per_sample"]}
-            print(f"held-out (single) exp_{i} {e.label()} → exp_{j}: Δlog L = {h['difference']:+.4g}", flush=True)
-        path.write_text(json.dumps(res, indent=1))
+            print(f"held-out exp_{i} → exp_{j}: gain over the physics-free baseline {h['gain_per_sample']:+.3f} "
+                  f"nats/sample; Δlog L (stated noise) {h['difference']:+.1f} [{h['seconds']:.0f} s]", flush=True)
+            path.write_text(json.dumps(res, indent=1, default=float))
+    path.write_text(json.dumps(res, indent=1, default=float))
 
 
 def _spread(P: np.ndarray) -> dict:
@@ -196,26 +257,26 @@ def stage_summary(args, exps):
             continue
         doc = json.loads(p.read_text())
         info = json.loads((args.out / f"exp_{i}" / "info.json").read_text())
+        sp = args.out / f"exp_{i}" / "shares.json"
         det = doc["details"]
         ref = doc["refined"]
         P0.append(np.asarray(det["positions_baseline"]))
         P1.append(np.asarray(det["positions_refined"] if det["positions_refined"] is not None else det["positions_baseline"]))
-        rows.append({"experiment": i, "T": info["T_used"], "seconds": info["detect_seconds"],
-                     "chi2_before": doc["baseline"]["chi2_per_dof"], "loglik_before": doc["baseline"]["loglik"],
+        rows.append({"experiment": i, "T": info.get("T_used"), "T_given": info.get("T_given"),
+                     "seconds": info["detect_seconds"],
+                     "chi2_before": doc["baseline"]["chi2_per_dof"],
                      "chi2_after": ref["chi2_per_dof"] if ref else None,
-                     "chi2_after_stated": ref.get("chi2_per_dof_stated_noise") if ref else None,
+                     "chi2_after_stated": ref.get("chi2_per_dof_stated") if ref else None,
                      "chi2_noise": ref.get("chi2_noise") if ref else None,
-                     "loglik_after": ref["loglik"] if ref else None,
-                     "elpd_difference": ref.get("elpd_loo_difference") if ref else None,
                      "threshold": doc["threshold"],
-                     "findings": [{k: f.get(k) for k in ("effect", "imu", "axis", "sensor", "evidence", "parameters")}
+                     "findings": [{k: f.get(k) for k in ("effect", "imu", "axis", "evidence", "parameters", "explanation")}
                                   for f in doc["findings"]],
-                     "withdrawn": det.get("withdrawn")})
+                     "budget": doc.get("budget") or [],
+                     "characterisation": det.get("characterisation") or {},
+                     "shares": json.loads(sp.read_text()) if sp.exists() else None})
     hpath = args.out / "heldout.json"
     held = json.loads(hpath.read_text()) if hpath.exists() else {}
-    spath = args.out / "heldout_single.json"
-    summary = {"experiments": rows, "heldout": held,
-               "heldout_single": json.loads(spath.read_text()) if spath.exists() else {}}
+    summary = {"experiments": rows, "heldout": held}
     if len(P0) >= 2:
         summary["repeatability_baseline"] = _spread(np.stack(P0))
         summary["repeatability_refined"] = _spread(np.stack(P1))
@@ -225,142 +286,193 @@ def stage_summary(args, exps):
     (args.out / "summary.md").write_text(md)
     print(md)
     if not args.no_figures:
-        try:
-            figures(summary, np.stack(P0) if P0 else None, np.stack(P1) if P1 else None, args.out)
-        except Exception as exc:  # figures are a convenience
-            print(f"figures failed: {exc}", file=sys.stderr)
+        figures(summary, args.out)
 
 
 def _fmt_params(p: dict) -> str:
     out = []
     for k, v in (p or {}).items():
-        if k in ("rotation_vector_array",):
+        if k in ("rotation_vector_array", "characterisation"):
             continue
         if isinstance(v, list):
-            out.append(f"{k}=[" + ", ".join(f"{x:.3g}" for x in v) + "]")
+            out.append(f"{k}=[" + ", ".join(f"{x:.3g}" if isinstance(x, float) else str(x) for x in v) + "]")
         elif isinstance(v, float):
             out.append(f"{k}={v:.4g}")
+        elif isinstance(v, dict):
+            continue
         else:
             out.append(f"{k}={v}")
     return "; ".join(out)
 
 
+def _cell(x) -> str:
+    return str(x).replace("|", "\\|")
+
+
+def _char_row(experiment, sensor: str, c: dict) -> str:
+    """One row of the characterisation table."""
+    top = c["covariates"][0] if c["covariates"] else None
+    ac, an = c["autocorrelation"], c["anisotropy"]
+    top_s = "" if top is None else f"{_cell(top['name'])} ({top['eta2']:.3g})"
+    pw = "" if top is None or top["power"] is None else f"{top['power']:.2f}"
+    lag = "" if ac["lag1_mean"] is None else f"{ac['lag1_mean']:.2f} ({ac['lag1_range'][0]:.2f}–{ac['lag1_range'][1]:.2f})"
+    ani = "" if an["median"] is None else f"{an['median']:.2f} ({an['range'][0]:.2f}–{an['range'][1]:.2f})"
+    return f"| {experiment} | {sensor} | {c['excess']:.4g} | {top_s} | {pw} | {lag} | {ani} |"
+
+
 def summary_markdown(s: dict) -> str:
-    L = []
-    L.append("### Findings per experiment\n")
-    L.append("| exp | T | effect | IMU | axis | sensor | evidence | parameters |")
-    L.append("|---|---|---|---|---|---|---|---|")
+    L = ["### Findings per experiment (whole recordings, detector defaults)\n",
+         "| exp | T used | detect (s) | effect | IMU | axis | evidence | parameters |", "|---|---|---|---|---|---|---|---|"]
     for r in s["experiments"]:
         if not r["findings"]:
-            L.append(f"| {r['experiment']} | {r['T']} | (none) | | | | | |")
+            L.append(f"| {r['experiment']} | {r['T']} | {r['seconds']:.0f} | (none) | | | | |")
         for f in r["findings"]:
-            L.append(f"| {r['experiment']} | {r['T']} | {f['effect']} | {f['imu']} | {f['axis'] or ''} | "
-                     f"{f.get('sensor') or ''} | {f['evidence']:.4g} | {_fmt_params(f['parameters'])} |")
-    L.append("\n### Fit before/after (dynamic samples, intrinsics applied)\n")
-    L.append("| exp | χ²/dof nominal | χ²/dof refined | (noise) | χ²/dof refined, stated noise | log L nominal | "
-             "log L refined | Δ log L | Δ ELPD (LOO) | threshold | detect s |")
-    L.append("|---|---|---|---|---|---|---|---|---|---|---|")
+            L.append(f"| {r['experiment']} | {r['T']} | {r['seconds']:.0f} | {f['effect']} | {f['imu']} | {f['axis'] or ''} | "
+                     f"{f['evidence']:.4g} | {_cell(_fmt_params(f['parameters']))} |")
+    L += ["\n### Fit before/after\n", "| exp | χ²/dof nominal | χ²/dof refined | (noise) | refined mean model, stated noise | threshold |",
+          "|---|---|---|---|---|---|"]
     for r in s["experiments"]:
-        a = r["chi2_after"]
-        la = r["loglik_after"]
-        dl = "" if la is None else f"{la - r['loglik_before']:.4g}"
-        L.append(f"| {r['experiment']} | {r['chi2_before']:.4g} | {'' if a is None else f'{a:.4g}'} | "
-                 f"{r['chi2_noise'] or ''} | {'' if r['chi2_after_stated'] is None else format(r['chi2_after_stated'], '.4g')} | "
-                 f"{r['loglik_before']:.6g} | {'' if la is None else f'{la:.6g}'} | "
-                 f"{dl} | "
-                 f"{'' if r['elpd_difference'] is None else format(r['elpd_difference'], '.4g')} | {r['threshold']:.3g} | "
-                 f"{r['seconds']:.0f} |")
+        f4 = lambda v: "" if v is None else f"{v:.4g}"  # noqa: E731
+        L.append(f"| {r['experiment']} | {r['chi2_before']:.4g} | {f4(r['chi2_after'])} | {r['chi2_noise'] or ''} | "
+                 f"{f4(r['chi2_after_stated'])} | {r['threshold']:.3g} |")
+    # budget: b/a per sensor and regime, experiments as columns
+    if any(r["budget"] for r in s["experiments"]):
+        ex = [r for r in s["experiments"] if r["budget"]]
+        for sensor, unit in (("acc", "(m/s²)²"), ("gyro", "(rad/s)²")):
+            regimes = [b["regime"] for b in ex[0]["budget"] if b["sensor"] == sensor]
+            L += [f"\n### Residual budget, {sensor}: excess variance a {unit} and the share b/a the findings explain\n",
+                  "| regime | " + " | ".join(f"exp {r['experiment']}: a, b/a" for r in ex) + " |",
+                  "|---|" + "---|" * len(ex)]
+            for reg in regimes:
+                cells = []
+                for r in ex:
+                    b = next((x for x in r["budget"] if x["sensor"] == sensor and x["regime"] == reg), None)
+                    cells.append("" if b is None else
+                                 f"{b['excess_var_observed']:.3g}, {b['excess_var_explained'] / b['excess_var_observed']:.3f}"
+                                 if b["excess_var_observed"] > 0 else f"{b['excess_var_observed']:.3g}, –")
+                L.append(f"| {_cell(reg)} | " + " | ".join(cells) + " |")
+    # shares
+    if any(r["shares"] and r["shares"]["sequence"] for r in s["experiments"]):
+        L += ["\n### Each finding's share of the excess (\"all\" rows: b/a after adding it in sequence; "
+              "b/a lost when it alone is dropped from the final model)\n",
+              "| exp | finding | acc b/a in sequence | gyro b/a in sequence | acc b/a lost when dropped | gyro b/a lost when dropped |",
+              "|---|---|---|---|---|---|"]
+        for r in s["experiments"]:
+            sh = r["shares"]
+            if not sh or not sh["sequence"]:
+                continue
+            final = sh["sequence"][-1]
+            for k, seq in enumerate(sh["sequence"]):
+                lab = seq["effects"][-1]
+                drop = next((d for d in sh["drop_one"] if d["dropped"] == lab), None)
+                ratio = lambda v: v[1] / v[0] if v[0] > 0 else float("nan")  # noqa: E731
+                lost = ("", "") if drop is None else tuple(f"{ratio(final[s_]) - ratio(drop[s_]):+.4f}" for s_ in ("acc", "gyro"))
+                L.append(f"| {r['experiment']} | {_cell(lab)} | {ratio(seq['acc']):.4f} | {ratio(seq['gyro']):.4f} | "
+                         f"{lost[0]} | {lost[1]} |")
+    # characterisation
+    if any(r["characterisation"] for r in s["experiments"]):
+        L += ["\n### What is left, characterised (final model of each experiment)\n",
+              "| exp | sensor | excess (mean z² − 1) | top covariate (η²) | power law | lag-1 autocorr. (IMU range) | anisotropy (median, range) |",
+              "|---|---|---|---|---|---|---|"]
+        for r in s["experiments"]:
+            for sensor, c in (r["characterisation"] or {}).items():
+                L.append(_char_row(r["experiment"], sensor, c))
     held = s.get("heldout") or {}
     if held:
         ex = sorted({v["source"] for v in held.values()} | {v["target"] for v in held.values()})
-        L.append("\n### Held-out check: Δ log L (effects of the row's experiment, parameters fixed) − (nominal), "
-                 "on the column's experiment\n")
-        L.append("| from \\ on | " + " | ".join(f"exp {j}" for j in ex) + " |")
-        L.append("|---|" + "---|" * len(ex))
+        L += ["\n### Held-out: gain of the physics model over the physics-free baseline (nats per sample) on the "
+              "column's experiment, both models from the row's experiment\n",
+              "| from \\ on | " + " | ".join(f"exp {j}" for j in ex) + " |", "|---|" + "---|" * len(ex)]
         for i in ex:
             cells = []
             for j in ex:
                 v = held.get(f"{i}->{j}")
-                cells.append("" if v is None else (f"{v['difference']:+.4g}" + (" (in-sample)" if i == j else "")))
+                cells.append("" if v is None or "gain_per_sample" not in v else
+                             f"{v['gain_per_sample']:+.3f}" + (" (in-sample)" if i == j else ""))
             L.append(f"| exp {i} | " + " | ".join(cells) + " |")
-        off = [v for v in held.values() if v["source"] != v["target"] and v.get("effects")]
-        pos = sum(v["difference"] > 0 for v in off)
-        L.append(f"\nOff-diagonal pairs with findings: {len(off)}; log-likelihood raised in {pos}/{len(off)}.")
-        L.append("\nPer sample (Δ log L / T):\n")
-        L.append("| from \\ on | " + " | ".join(f"exp {j}" for j in ex) + " |")
-        L.append("|---|" + "---|" * len(ex))
+        off = [v for v in held.values() if v["source"] != v["target"] and "gain_per_sample" in v]
+        L.append(f"\nOff-diagonal pairs: {len(off)}; the physics model predicts better than the physics-free "
+                 f"baseline on **{sum(v['gain_per_sample'] > 0 for v in off)}/{len(off)}**.")
+        L += ["\nThe same with the physics model's noise also banded by |ω| (the same variance model on both sides: "
+              "what the findings' mean part adds), nats per sample:\n",
+              "| from \\ on | " + " | ".join(f"exp {j}" for j in ex) + " |", "|---|" + "---|" * len(ex)]
         for i in ex:
             L.append(f"| exp {i} | " + " | ".join(
-                "" if held.get(f"{i}->{j}") is None or "per_sample" not in held[f"{i}->{j}"]
-                else f"{held[f'{i}->{j}']['per_sample']:+.3f}" for j in ex) + " |")
-    single = s.get("heldout_single") or {}
-    if single:
-        L.append("\n### Held-out check per finding (each finding alone, parameters fixed; off-diagonal targets)\n")
-        L.append("| found on | finding | in-sample Δ log L | targets raised | median Δ log L per sample on the others | "
-                 "min | max |")
-        L.append("|---|---|---|---|---|---|---|")
-        keys = sorted({(v["source"], v["effect"]) for v in single.values()})
-        for i, lab in keys:
-            vs = [v for v in single.values() if v["source"] == i and v["effect"] == lab]
-            off = [v["per_sample"] for v in vs if v["target"] != i]
-            ins = [v["difference"] for v in vs if v["target"] == i]
-            L.append(f"| exp {i} | {lab} | {'' if not ins else format(ins[0], '.4g')} | "
-                     f"{sum(x > 0 for x in off)}/{len(off)} | {np.median(off):+.1f} | {min(off):+.1f} | {max(off):+.1f} |"
-                     if off else f"| exp {i} | {lab} | | | | | |")
+                "" if held.get(f"{i}->{j}") is None or "gain_banded_per_sample" not in held[f"{i}->{j}"]
+                else f"{held[f'{i}->{j}']['gain_banded_per_sample']:+.3f}" for j in ex) + " |")
+        offb = [v for v in off if "gain_banded_per_sample" in v]
+        L.append(f"\nOff-diagonal pairs where the findings' mean part helps: "
+                 f"**{sum(v['gain_banded_per_sample'] > 0 for v in offb)}/{len(offb)}**.")
+        L += ["\nThe findings alone, parameters fixed, stated noise: Δ log L per sample (fixed effects − nominal):\n",
+              "| from \\ on | " + " | ".join(f"exp {j}" for j in ex) + " |", "|---|" + "---|" * len(ex)]
+        for i in ex:
+            L.append(f"| exp {i} | " + " | ".join(
+                "" if held.get(f"{i}->{j}") is None else f"{held[f'{i}->{j}']['per_sample']:+.3f}" for j in ex) + " |")
     if "repeatability_baseline" in s:
         b, a = s["repeatability_baseline"], s["repeatability_refined"]
-        L.append(f"\n### Repeatability of the position estimates across experiments "
-                 f"{s['repeatability_experiments']} (relative to IMU 0)\n")
-        L.append("| IMU | std x/y/z nominal fit (µm) | RMS dist. to mean, nominal (µm) | std x/y/z refined fit (µm) | "
-                 "RMS dist. to mean, refined (µm) |")
-        L.append("|---|---|---|---|---|")
+        L += [f"\n### Repeatability of the position estimates across experiments {s['repeatability_experiments']} "
+              "(relative to IMU 0)\n",
+              "| IMU | std x/y/z nominal fit (µm) | RMS dist. to mean, nominal (µm) | std x/y/z refined fit (µm) | "
+              "RMS dist. to mean, refined (µm) |", "|---|---|---|---|---|"]
         for k in range(len(b["rms_um"])):
             L.append(f"| {k} | {' / '.join(f'{v:.0f}' for v in b['std_um'][k])} | {b['rms_um'][k]:.0f} | "
                      f"{' / '.join(f'{v:.0f}' for v in a['std_um'][k])} | {a['rms_um'][k]:.0f} |")
-        kk = range(1, len(b["rms_um"]))
-        L.append(f"| mean (IMUs 1–{len(b['rms_um']) - 1}) | | {np.mean([b['rms_um'][k] for k in kk]):.0f} | | "
-                 f"{np.mean([a['rms_um'][k] for k in kk]):.0f} |")
     return "\n".join(L) + "\n"
 
 
-def figures(s, P0, P1, out: Path):
+def figures(s, out: Path):
+    """Budget b/a per regime and sensor for every experiment; the held-out gain matrix."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if P0 is not None and len(P0) >= 2:
-        K = P0.shape[1]
-        fig, axes = plt.subplots(2, (K + 1) // 2, figsize=(3 * ((K + 1) // 2), 6))
-        for k, ax in zip(range(K), axes.ravel()):
-            m = P0[:, k].mean(0)
-            ax.scatter((P0[:, k, 0] - m[0]) * 1e3, (P0[:, k, 1] - m[1]) * 1e3, marker="o", label="nominal fit")
-            ax.scatter((P1[:, k, 0] - m[0]) * 1e3, (P1[:, k, 1] - m[1]) * 1e3, marker="x", label="refined fit")
-            ax.set_title(f"IMU {k}")
-            ax.set_xlabel("x − mean (mm)")
-            ax.set_ylabel("y − mean (mm)")
-        axes.ravel()[0].legend(fontsize=7)
+    ex = [r for r in s["experiments"] if r["budget"]]
+    if ex:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+        for ax, sensor in zip(axes, ("acc", "gyro")):
+            regs = [b["regime"] for b in ex[0]["budget"] if b["sensor"] == sensor]
+            xs = np.arange(len(regs))
+            for r in ex:
+                v = []
+                for reg in regs:
+                    b = next(x for x in r["budget"] if x["sensor"] == sensor and x["regime"] == reg)
+                    v.append(b["excess_var_explained"] / b["excess_var_observed"] if b["excess_var_observed"] > 0 else np.nan)
+                ax.plot(xs, v, marker="o", label=f"exp {r['experiment']}")
+            ax.axhline(0.9, color="grey", ls="--", lw=1, label="aim 0.9")
+            ax.set_xticks(xs, [g.replace("|omega_dot|", "|dω/dt|").replace("|omega|", "|ω|") for g in regs], rotation=60,
+                          ha="right", fontsize=8)
+            ax.set_title({"acc": "accelerometers", "gyro": "gyroscopes"}[sensor])
+            ax.set_ylabel("explained share b/a of the excess variance")
+            ax.set_ylim(-0.05, 1.05)
+        axes[1].legend(fontsize=7, loc="upper right")
         fig.tight_layout()
-        fig.savefig(out / "positions_spread.png", dpi=90)
+        fig.savefig(out / "budget_share.png", dpi=100)
         plt.close(fig)
     held = s.get("heldout") or {}
     if held:
-        ex = sorted({v["source"] for v in held.values()} | {v["target"] for v in held.values()})
-        M = np.full((len(ex), len(ex)), np.nan)
-        for a, i in enumerate(ex):
-            for b, j in enumerate(ex):
+        exn = sorted({v["source"] for v in held.values()} | {v["target"] for v in held.values()})
+        M = np.full((len(exn), len(exn)), np.nan)
+        for a, i in enumerate(exn):
+            for b, j in enumerate(exn):
                 v = held.get(f"{i}->{j}")
-                if v is not None and "per_sample" in v:
-                    M[a, b] = v["per_sample"]
-        fig, ax = plt.subplots(figsize=(5, 4))
-        im = ax.imshow(M, cmap="viridis")
-        ax.set_xticks(range(len(ex)), [f"exp {j}" for j in ex])
-        ax.set_yticks(range(len(ex)), [f"exp {i}" for i in ex])
+                if v is not None and "gain_per_sample" in v:
+                    M[a, b] = v["gain_per_sample"]
+        lim = np.nanmax(np.abs(M)) if np.isfinite(M).any() else 1.0
+        fig, ax = plt.subplots(figsize=(5.5, 4.5))
+        im = ax.imshow(M, cmap="RdBu", vmin=-lim, vmax=lim)
+        ax.set_xticks(range(len(exn)), [f"exp {j}" for j in exn])
+        ax.set_yticks(range(len(exn)), [f"exp {i}" for i in exn])
         ax.set_xlabel("applied to")
         ax.set_ylabel("estimated on")
-        fig.colorbar(im, label="Δ log L per sample")
+        for a in range(len(exn)):
+            for b in range(len(exn)):
+                if np.isfinite(M[a, b]):
+                    ax.text(b, a, f"{M[a, b]:+.2f}", ha="center", va="center", fontsize=8,
+                            color="white" if abs(M[a, b]) > 0.5 * lim else "black")
+        fig.colorbar(im, label="physics − physics-free (nats per sample)")
         fig.tight_layout()
-        fig.savefig(out / "heldout_matrix.png", dpi=90)
+        fig.savefig(out / "heldout_gain.png", dpi=100)
         plt.close(fig)
 
 
@@ -369,8 +481,8 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=None, help="folder with exp_1..exp_6 (default ../shared/data/mimu4444-bcd)")
     ap.add_argument("--out", type=Path, default=HERE / "out" / "mimu_mismatch")
     ap.add_argument("--experiments", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
-    ap.add_argument("--stage", choices=("detect", "heldout", "heldout-single", "summary", "all"), default="all")
-    ap.add_argument("--max-samples", type=int, default=None, help="keep the last N dynamic samples (default all)")
+    ap.add_argument("--stage", choices=("detect", "shares", "heldout", "summary", "all"), default="all")
+    ap.add_argument("--max-samples", type=int, default=None, help="keep the last N samples (default all)")
     ap.add_argument("--detect-opt", action="append", default=[], metavar="KEY=VALUE",
                     help="extra keyword for detect() (JSON value), e.g. n_twins=20; default none")
     ap.add_argument("--redo", action="store_true", help="recompute cached results")
@@ -386,17 +498,17 @@ def main(argv=None) -> int:
             args.detect_kwargs[k] = json.loads(v)
         except ValueError:
             args.detect_kwargs[k] = v
-    import torch
+    from accel_bayes.threads import torch_threads
 
-    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))
-    if args.stage in ("detect", "all"):
-        stage_detect(args, args.experiments)
-    if args.stage in ("heldout", "all"):
-        stage_heldout(args, args.experiments)
-    if args.stage in ("heldout-single", "all"):
-        stage_heldout_single(args, args.experiments)
-    if args.stage in ("summary", "all"):
-        stage_summary(args, args.experiments)
+    with torch_threads(1):
+        if args.stage in ("detect", "all"):
+            stage_detect(args, args.experiments)
+        if args.stage in ("shares", "all"):
+            stage_shares(args, args.experiments)
+        if args.stage in ("heldout", "all"):
+            stage_heldout(args, args.experiments)
+        if args.stage in ("summary", "all"):
+            stage_summary(args, args.experiments)
     return 0
 
 
