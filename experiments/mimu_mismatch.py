@@ -317,7 +317,11 @@ def _char_row(experiment, sensor: str, c: dict) -> str:
     pw = "" if top is None or top["power"] is None else f"{top['power']:.2f}"
     lag = "" if ac["lag1_mean"] is None else f"{ac['lag1_mean']:.2f} ({ac['lag1_range'][0]:.2f}–{ac['lag1_range'][1]:.2f})"
     ani = "" if an["median"] is None else f"{an['median']:.2f} ({an['range'][0]:.2f}–{an['range'][1]:.2f})"
-    return f"| {experiment} | {sensor} | {c['excess']:.4g} | {top_s} | {pw} | {lag} | {ani} |"
+    w = c.get("timing_wander")
+    wan = "" if not w else (f"{w['sigma_ms_range'][0]:.2f}–{w['sigma_ms_range'][1]:.2f} ms, ρ {w['rho_range'][0]:.2f}–"
+                            f"{w['rho_range'][1]:.2f}, share {w['share_range'][0]:.2f}–{w['share_range'][1]:.2f}, "
+                            f"LR {w['evidence_range'][0]:.3g}–{w['evidence_range'][1]:.3g}")
+    return f"| {experiment} | {sensor} | {c['excess']:.4g} | {top_s} | {pw} | {lag} | {ani} | {wan} |"
 
 
 def summary_markdown(s: dict) -> str:
@@ -372,8 +376,9 @@ def summary_markdown(s: dict) -> str:
     # characterisation
     if any(r["characterisation"] for r in s["experiments"]):
         L += ["\n### What is left, characterised (final model of each experiment)\n",
-              "| exp | sensor | excess (mean z² − 1) | top covariate (η²) | power law | lag-1 autocorr. (IMU range) | anisotropy (median, range) |",
-              "|---|---|---|---|---|---|---|"]
+              "| exp | sensor | excess (mean z² − 1) | top covariate (η²) | power law | lag-1 autocorr. (IMU range) | "
+              "anisotropy (median, range) | AR(1) timing wander over the IMUs: σ, ρ, share of the excess, LR |",
+              "|---|---|---|---|---|---|---|---|"]
         for r in s["experiments"]:
             for sensor, c in (r["characterisation"] or {}).items():
                 L.append(_char_row(r["experiment"], sensor, c))

@@ -23,7 +23,11 @@ standardized residuals z = r / (σ c √(1 − h)) of :func:`accel_bayes.mismatc
   ρ ≈ 0; slowly varying errors (mean effects, drifting timing, filters) give ρ > 0;
 * **anisotropy** — on the samples where the triad's own output rate is above its median, the
   mean of (z·u)² along the rate direction u over the mean per perpendicular direction: ≈ 1 for
-  isotropic extra noise, ≫ 1 for a timing error (which moves the output along its rate).
+  isotropic extra noise, ≫ 1 for a timing error (which moves the output along its rate);
+* **timing wander** — the AR(1) sampling-instant error of :mod:`accel_bayes.mismatch.wander`
+  fitted per triad together with a white-noise factor: its std σ_δ (ms), lag-one correlation ρ,
+  the likelihood ratio against the best noise-only model (``evidence``) and the share of the
+  triad's excess power it accounts for.
 
 The covariates, the autocorrelation and the anisotropy are computed per IMU and sensor and pooled
 over the IMUs; :func:`characterise` returns both, and :func:`describe` turns one IMU/sensor (or a
@@ -202,6 +206,12 @@ def characterise(prep: Prepared, fit: ModelFit) -> dict:
         rate = None if rate is None else rate.detach().cpu().double().numpy()
         tot_excess = float(np.nansum(z2) - obs.sum())
         imus = []
+        try:
+            from .wander import wander_table
+
+            wander = {r["imu"]: r for r in wander_table(prep, fit, sensors=(sensor,))[sensor]}
+        except Exception:  # a diagnostic: never let it stop a report (e.g. a fit without output rates)
+            wander = {}
         for k in range(K):
             if not obs[:, k].any():
                 continue
@@ -215,7 +225,8 @@ def characterise(prep: Prepared, fit: ModelFit) -> dict:
                          "share": exc_k / tot_excess if tot_excess > 0 else None, "axes": axes,
                          "covariates": rows, "top_covariate": top,
                          "autocorrelation": _autocorrelation(zs[:, k], nb),
-                         "anisotropy": None if rate is None else _anisotropy(zs[:, k], rate[:, k])})
+                         "anisotropy": None if rate is None else _anisotropy(zs[:, k], rate[:, k]),
+                         "timing_wander": wander.get(k)})
         # pooled over IMUs: per-IMU covariates enter with their own values
         covs_p = {nm: np.repeat(v[:, None], K, 1).reshape(-1) for nm, v in gcov.items()}
         covs_p.update({nm: v.reshape(-1) for nm, v in icov.items()})
@@ -223,7 +234,13 @@ def characterise(prep: Prepared, fit: ModelFit) -> dict:
         ac = [r["autocorrelation"] for r in imus]
         lag1 = [a["lag1"] for a in ac if a.get("lag1") is not None]
         an = [r["anisotropy"] for r in imus if r["anisotropy"] is not None]
+        tw = [r["timing_wander"] for r in imus if r.get("timing_wander")]
         d = {"excess": float(np.nanmean(z2) - 1.0), "imus": imus, "covariates": rows_p, "top_covariate": top_p,
+             "timing_wander": None if not tw else {
+                 "sigma_ms_range": [min(x["sigma_ms"] for x in tw), max(x["sigma_ms"] for x in tw)],
+                 "rho_range": [min(x["rho"] for x in tw), max(x["rho"] for x in tw)],
+                 "evidence_range": [min(x["evidence"] for x in tw), max(x["evidence"] for x in tw)],
+                 "share_range": [min(x["share"] or 0 for x in tw), max(x["share"] or 0 for x in tw)]},
              "autocorrelation": {"lag1_mean": float(np.mean(lag1)) if lag1 else None,
                                  "lag1_range": [float(min(lag1)), float(max(lag1))] if lag1 else None},
              "anisotropy": {"median": float(np.median(an)) if an else None,
@@ -249,11 +266,17 @@ def describe(d: dict, sensor: str, imu: int | None = None) -> str:
     """One sentence for a sensor's characterisation ``d`` (from :func:`characterise`), pooled or
     for one IMU."""
     what = {"acc": "accelerometer", "gyro": "gyroscope"}[sensor]
+    wander = ""
     if imu is not None:
         r = next((x for x in d["imus"] if x["imu"] == imu), None)
         if r is None:
             return ""
         rows, lag1, an = r["covariates"], r["autocorrelation"].get("lag1"), r["anisotropy"]
+        w = r.get("timing_wander")
+        if w and w["evidence"] > 0 and w.get("share") is not None:
+            wander = (f" A wandering timing error (std {w['sigma_ms']:.3g} ms, lag-one correlation {w['rho']:.2f}) "
+                      f"would account for {100 * w['share']:.0f} % of it (likelihood ratio {w['evidence']:.3g} "
+                      f"against extra white noise).")
         head = f"IMU {imu}'s {what} excess (mean z² − 1 = {r['excess']:.3g}"
         head += f", {100 * r['share']:.0f} % of the {what} total)" if r.get("share") is not None else ")"
     else:
@@ -262,11 +285,12 @@ def describe(d: dict, sensor: str, imu: int | None = None) -> str:
         where = ", ".join(f"IMU {r['imu']} {100 * (r['share'] or 0):.0f} %" for r in big)
         head = f"The {what} excess (mean z² − 1 = {d['excess']:.3g}; largest shares {where})"
     if not rows:
-        return head + "."
+        return head + "." + wander
     top = rows[0]
     lo, hi = top["quintile_mean_z2"][0], top["quintile_mean_z2"][-1]
     grow = f"its power goes from {lo:.3g} to {hi:.3g}× the model's noise across the quintiles of {top['name']}"
     if top.get("power") is not None:
         grow += f" (∝ {top['name']}^{top['power']:.2g})"
     shape = _shape_words(lag1, an)
-    return f"{head} grows most with {top['name']} (η² {top['eta2']:.2g}): {grow}" + (f"; it is {shape}." if shape else ".")
+    return (f"{head} grows most with {top['name']} (η² {top['eta2']:.2g}): {grow}" + (f"; it is {shape}." if shape else ".")
+            + wander)
