@@ -71,6 +71,9 @@ one), with the DESIGN §7.2 names and parameters:
                      flags are NOT set and ``acc_range`` keeps the design value (the sensor
                      saturates below its stated range, unannounced: the detector must find
                      it).  The truth's axis is the axis with the most clipped samples.
+``sampling_jitter``  each sample of the IMU (acc and gyro alike) is the exact kinematics at
+                     its own instant t + δ_t, δ_t ~ U(−w/2, w/2) i.i.d. per sample, w = 0.1–1 ms
+                     (axis None); δ drawn from the effect stream after every other draw.
 ==================== ====================================================================
 
 Signs are random.  Sensor errors act on the noise-free signal; white noise is added after them
@@ -134,6 +137,7 @@ EFFECTS = (
     "time_offset",
     "saturation",
     "noise_level",
+    "sampling_jitter",
 )
 # Effects that live on one sensing axis (the truth names it); the others have axis None.
 AXIS_EFFECTS = ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
@@ -152,6 +156,7 @@ EFFECT_RANGES = {
     "gyro_g_sensitivity": (0.1 * DEG / G0, 0.3 * DEG / G0),  # rad/s per m/s²
     "noise_level": (1.2, 2.0),                      # × stated std
     "saturation": (0.90, 0.97),                     # limit / peak |output|
+    "sampling_jitter": (1e-4, 1e-3),                # s, full width of the uniform instant error
 }
 # Signed effects (the sign is drawn at random); the others are positive by nature.
 _SIGNED = ("time_offset", "acc_scale", "acc_misalignment", "acc_bias", "acc_nonlinearity", "gyro_bias",
@@ -671,6 +676,12 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
         params = {"rotation_vector": rho}
 
     acc, gyro = sensor_outputs(trajectory, t, true_R, points, time_offset)
+    if effect == "sampling_jitter":
+        # the IMU looks at the rigid body at its own random instants (exact kinematics there)
+        delta = rng_eff.uniform(-0.5 * mag, 0.5 * mag, size=t.shape[0])
+        a_k, g_k = sensor_outputs(trajectory, t + delta, true_R[k:k + 1], points[k:k + 1])
+        acc[:, k], gyro[:, k] = a_k[:, 0], g_k[:, 0]
+        params = {"width": mag}
     f_true = acc.copy()  # the specific force each accelerometer axis sees (before sensor errors)
 
     # --- sensor errors on the noise-free signal

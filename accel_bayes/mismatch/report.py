@@ -141,7 +141,9 @@ class MismatchReport:
         noise = r.has_noise_effect
         d = {"effects": [e.vocabulary_name or e.name for e in r.effects], "loglik": float(r.loglik),
              "chi2_per_dof": float(r.chi2_per_dof_model if noise else r.chi2_per_dof),
-             "chi2_noise": "refined (noise_level in the model)" if noise else "stated",
+             "chi2_noise": ("refined (the model's own per-sample variance: "
+                            + ", ".join(sorted({e.name for e in r.effects if e.kind in ("noise", "random")})) + ")")
+             if noise else "stated",
              "chi2_per_dof_stated_noise": float(r.chi2_per_dof), "dof": int(r.dof),
              "labels": [e.label() for e in r.effects]}
         if self.comparison and "elpd_loo" in self.comparison and "difference" in self.comparison["elpd_loo"]:

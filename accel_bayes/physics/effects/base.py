@@ -165,7 +165,7 @@ class Effect:
     name: ClassVar[str] = ""
     vocabulary_name: ClassVar[str | None] = None  # name in reports if not ``name`` (DESIGN §7.2)
     description: ClassVar[str] = ""
-    kind: ClassVar[str] = "mean"  # "mean" | "clip" | "noise" | "finding"
+    kind: ClassVar[str] = "mean"  # "mean" | "clip" | "noise" | "random" | "finding"
     local_imu: ClassVar[bool] = True
     local_axis: ClassVar[bool] = False
     sensor: ClassVar[str] = "acc"  # which outputs it perturbs: "acc", "gyro", "both"
