@@ -80,7 +80,7 @@ triad beyond what the accelerometers constrain (the score test in
 Layout (one module per sensor): :mod:`.base` (context, parameters, the :class:`Effect` base
 class, registry, composition), :mod:`.accelerometer`, :mod:`.mounting`, :mod:`.gyroscope`,
 :mod:`.timing`, :mod:`.output`, :mod:`.jitter`.  The import order below is the registration order, which is the
-DESIGN §7.2 table order of :data:`VOCABULARY`.
+DESIGN §7.2 table order of :data:`VOCABULARY` for vocabulary 1.0, followed by the 1.1 additions.
 """
 from __future__ import annotations
 
