@@ -108,7 +108,7 @@ def _pose_kinematics(trajectory, t, r, Rk):
     h = 2e-3
     pdd = C.fd_second_derivative(pos, t, h)
     R0 = Rwb(t)
-    acc = np.einsum("ij,tkj->ti", Rk, R0.transpose(0, 2, 1)[:, None] @ (pdd - C.G_WORLD)[:, :, None])
+    acc = np.einsum("tji,tj->ti", R0, pdd - C.G_WORLD) @ Rk.T
     hh = 1e-4
     Rd = (-Rwb(t + 2 * hh) + 8 * Rwb(t + hh) - 8 * Rwb(t - hh) + Rwb(t - 2 * hh)) / (12 * hh)
     W = R0.transpose(0, 2, 1) @ Rd
@@ -167,20 +167,20 @@ def _named(case, **kw):
     from accel_bayes.mismatch import detect
 
     rep = detect(case.recording, seed=0, **{**FAST, **kw})
-    f = [x for x in rep.findings if x.effect.name != "unexplained"]
+    f = [x for x in rep.findings if x.effect != "unexplained"]
     return rep, f
 
 
 def test_detects_concealed_jitter_with_its_width():
     case = C.make_case("mimu8", "sampling_jitter", seed=2, T=500)
     rep, f = _named(case, effects=VARIANCE_EFFECTS, max_findings=2)
-    assert f and f[0].effect.name == "sampling_jitter" and f[0].effect.imu == case.truth["imu"]
-    lo, hi = f[0].effect.stats["width_interval_s"]
+    assert f and f[0].effect == "sampling_jitter" and f[0].model.imu == case.truth["imu"]
+    lo, hi = f[0].model.stats["width_interval_s"]
     assert lo <= case.truth["magnitude"] <= hi and hi - lo < 0.2 * case.truth["magnitude"]
     d = rep.to_dict()
     assert d["refined"]["chi2_noise"].startswith("refined") and abs(d["refined"]["chi2_per_dof"] - 1) < 0.05
     assert "sampling_jitter" in d["refined"]["effects"]
-    assert d["findings"][0]["parameters"]["width"] == pytest.approx(f[0].effect.params["width"].item())
+    assert d["findings"][0]["parameters"]["width"] == pytest.approx(f[0].model.params["width"].item())
     assert d["findings"][0]["axis"] is None
 
 
@@ -195,10 +195,10 @@ def test_noise_level_and_jitter_are_not_confused():
         for seed in (11, 12, 13, 14):
             case = C.make_case("mimu8", eff, seed=seed, T=500)
             rep, f = _named(case, max_findings=2)
-            ok = bool(f) and f[0].effect.name == eff and f[0].effect.imu == case.truth["imu"]
+            ok = bool(f) and f[0].effect == eff and f[0].model.imu == case.truth["imu"]
             if ok and eff == "sampling_jitter":
-                lo, hi = f[0].effect.stats["width_interval_s"]
+                lo, hi = f[0].model.stats["width_interval_s"]
                 ok = lo <= case.truth["magnitude"] <= hi
             if not ok:
-                wrong.append((eff, seed, [(x.effect.label(), x.evidence) for x in f]))
+                wrong.append((eff, seed, [(x.model.label(), x.evidence) for x in f]))
     assert not wrong, wrong

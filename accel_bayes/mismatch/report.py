@@ -39,8 +39,10 @@ class Finding:
 
     model : the fitted :class:`~accel_bayes.physics.effects.Effect` (or ``Unexplained``).
     evidence : 2·(log L with − log L without) at the fitted optima (restricted likelihood ratio
-        for ``noise_level``; the located-excess statistic for ``unexplained``).
-    df : its degrees of freedom; log10_p : log10 of its χ²_df tail probability.
+        for ``noise_level``; the profiled exact marginal likelihood ratio for ``sampling_jitter``;
+        the located-excess statistic for ``unexplained``).
+    df : its degrees of freedom; log10_p : log10 of its χ²_df tail probability (for
+        ``sampling_jitter``, a boundary hypothesis, of the ½χ²₀ + ½χ²₁ mixture).
     where : {"regime": …, "time_s": [t0, t1] or None, …}.
     """
 
