@@ -10,6 +10,9 @@ with the nominal array model, name the physics the model left out, add it, refit
   with geometry and motion; :mod:`.compare` — before/after comparison (χ²/dof, log-likelihood,
   ELPD by PSIS-LOO); :mod:`.transfer` — held-out transfer of effects to another recording;
   (:mod:`.refine` — deprecated re-export of those);
+* :mod:`.jitter` — random effects (``sampling_jitter``): the exact marginal likelihood at a
+  mean fit, the profiled width, :func:`random_variance` (predicted extra variance per sample
+  and channel, for variance budgets);
 * :mod:`.report` — :class:`MismatchReport`, the §7.2 ``report.json`` and the human report.
 
 >>> from accel_bayes.mismatch import detect          # doctest: +SKIP
@@ -20,6 +23,7 @@ from .detect import candidate_effects, detect, screen, threshold_rule
 from .locate import Location, locate
 from .compare import compare_fits
 from .fit import baseline_fit, fit_model
+from .jitter import jitter_evidence, random_variance
 from .model import ModelFit
 from .prepared import Prepared, prepare
 from .report import SCHEMA, Finding, MismatchReport, validate_report
@@ -29,4 +33,5 @@ __all__ = [
     "EFFECTS", "VOCABULARY", "Effect", "SignalContext", "get_effect", "make_effect", "register_effect",
     "candidate_effects", "screen", "threshold_rule", "locate", "Location",
     "prepare", "Prepared", "baseline_fit", "fit_model", "compare_fits", "ModelFit",
+    "jitter_evidence", "random_variance",
 ]
