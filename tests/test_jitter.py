@@ -82,16 +82,18 @@ def test_marginal_matches_quadrature_of_the_nonlinear_signal():
             mx = ll.max()
             brute = mx + math.log(np.trapezoid(np.exp(ll - mx), grid) / w) - ll0
             # neglected term: the δ²/2·f'' part of f(t + δ) − μ − vδ, in noise units, times the
-            # whitened residual it multiplies (≲ 6), plus quadrature error
+            # whitened residual it multiplies (≲ 2 here), plus quadrature error.  Measured: the
+            # differences are 5e-5–1.8e-3, the bounds 8e-3–1.5e-2
             f2 = (f(t[i:i + 1] + 1e-4) - 2 * f(t[i:i + 1]) + f(t[i:i + 1] - 1e-4))[0] / 1e-8
-            bound = 6 * np.sqrt(((w / 2) ** 4 / 4 * f2 ** 2 / D).sum()) + 1e-6
+            bound = 2 * np.sqrt(((w / 2) ** 4 / 4 * f2 ** 2 / D).sum()) + 1e-6
             assert abs(closed[i] - brute) <= bound, (k, i, closed[i], brute, bound)
-            assert bound < 0.05
+            assert bound < 0.02
         # the moment-matched Gaussian is a different likelihood here (√a·w ≫ 1): it must fail
+        # (measured max differences 0.23 and 0.30)
         Sig = np.diag(D)[None] + w * w / 12 * v[:, :, None] * v[:, None, :]
         ll_mm = np.array([-0.5 * r[i] @ np.linalg.solve(Sig[i], r[i]) - 0.5 * np.linalg.slogdet(Sig[i])[1]
                           for i in range(t.size)]) + 0.5 * np.log(D).sum() + 0.5 * ((r ** 2) / D).sum(-1)
-        assert np.abs(ll_mm - closed).max() > 0.2
+        assert np.abs(ll_mm - closed).max() > 0.1
 
 
 def _pose_kinematics(trajectory, t, r, Rk):
