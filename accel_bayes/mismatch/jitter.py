@@ -112,8 +112,12 @@ def jitter_evidence(prep, fit, effect) -> tuple[float, dict]:
 def fit_random_effects(prep, fit) -> None:
     """Estimate the width of every random effect in ``fit`` (profile maximum at the fit's mean;
     writes ``params``, ``std`` and ``stats["width_interval_s"]``) and add their exact marginal
-    gains to ``fit.loglik_t``/``fit.loglik``; ``fit.chi2`` becomes Σ r²/(model variance +
-    predicted random variance) (moment form, for χ²/dof)."""
+    gains to ``fit.loglik_t``/``fit.loglik`` (gains of the leverage-corrected residuals, as the
+    evidence uses; the Gaussian part stays the plain one at the fitted mean); ``fit.chi2``
+    becomes Σ r²/(noise variance + predicted random variance) (moment form, for χ²/dof).
+    Downstream: ELPD by PSIS-LOO (:mod:`.compare`) starts from these per-sample values and
+    perturbs them in the fit's (re-weighted) whitening — an approximation for random effects;
+    :func:`~accel_bayes.mismatch.compare.corrected_recording` does not represent them."""
     rand = [e for e in fit.effects if e.kind == "random"]
     if not rand:
         return
