@@ -80,14 +80,15 @@ def _max_width(prep) -> float:
 def profile_width(a: torch.Tensor, b: torch.Tensor, w_max: float) -> dict:
     """Maximise G(w) = Σ_t log_marginal_gain(a_t, b_t, w) over 0 ≤ w ≤ w_max (a log grid, then a
     bounded Brent refinement).  Returns {"width", "gain" (= G(ŵ) ≥ 0), "interval" [lo, hi]
-    (profile 95 %), "std"}."""
+    (profile 95 %, endpoints to 0.1 % of ŵ), "std"}."""
     from scipy.optimize import brentq, minimize_scalar
 
     def G(w):
         return float(log_marginal_gain(a, b, float(w)).sum()) if w > 0 else 0.0
 
     grid = np.r_[0.0, np.logspace(math.log10(w_max) - 4, math.log10(w_max), 41)]
-    vals = np.array([G(w) for w in grid])
+    # the whole grid in one vectorised evaluation (T × 41)
+    vals = np.r_[0.0, log_marginal_gain(a[:, None], b[:, None], torch.as_tensor(grid[None, 1:])).sum(0).numpy()]
     j = int(np.argmax(vals))
     if j == 0:
         w_hat, g_hat = 0.0, 0.0
@@ -96,8 +97,8 @@ def profile_width(a: torch.Tensor, b: torch.Tensor, w_max: float) -> dict:
         res = minimize_scalar(lambda w: -G(w), bounds=(lo, hi), method="bounded", options={"xatol": 1e-4 * grid[j]})
         w_hat, g_hat = (float(res.x), -float(res.fun)) if -res.fun >= vals[j] else (float(grid[j]), float(vals[j]))
     f = lambda w: 2 * (g_hat - G(w)) - CHI2_1_95  # noqa: E731
-    lo = 0.0 if f(0.0) <= 0 or w_hat == 0 else brentq(f, 0.0, w_hat, xtol=1e-4 * w_hat)
-    hi = w_max if f(w_max) <= 0 else brentq(f, w_hat, w_max, xtol=1e-4 * max(w_hat, 1e-4 * w_max))
+    lo = 0.0 if f(0.0) <= 0 or w_hat == 0 else brentq(f, 0.0, w_hat, xtol=1e-3 * w_hat)
+    hi = w_max if f(w_max) <= 0 else brentq(f, w_hat, w_max, xtol=1e-3 * max(w_hat, 1e-4 * w_max))
     return {"width": w_hat, "gain": g_hat, "interval": [float(lo), float(hi)], "std": (hi - lo) / 3.92}
 
 
