@@ -83,15 +83,18 @@ def main(argv=None):
     lines = ["# sampling_jitter versus noise_level (issue #11)", "",
              "Regenerate: `PYTHONPATH=. python experiments/jitter_confusion.py"
              + (" --real" if a.real else "") + "` (this file is its output).", "",
-             __doc__.split("\n\n")[1].strip(), "",
+             "\n\n".join(__doc__.split("\n\n")[1:3]).strip(), "",
              f"**{n_ok}/{len(rows)} cases named correctly** (right effect, right IMU, and for jitter the true "
              "width inside the 95 % profile interval); confusion "
              f"{100 * (len(rows) - n_ok) / len(rows):.0f} %.", "",
              "| case | truth | named first | estimate | 95 % interval | evidence | round-1 best jitter LR | "
              "round-1 best noise_level LR | ok |", "|---|---|---|---|---|---|---|---|---|"]
+    note = ["", "Round-1 columns: the likelihood ratios of the best refitted candidate of each kind in the first "
+            "round; blank = none refitted (screen statistic below half the threshold)."]
     for r in rows:
         lines.append(f"| {r['case']} | {r['truth']} | {r['named']} | {r['estimate']} | {r['interval']} | {r['evidence']} | "
                      f"{r['jitter_r1']} | {r['noise_r1']} | {'yes' if r['ok'] else '**no**'} |")
+    lines += note
     if a.real:
         sys.path.insert(0, str(HERE))
         from mimu_mismatch import load_dynamic
