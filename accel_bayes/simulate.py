@@ -14,6 +14,7 @@ motion, the geometry errors and the sensor noise, in that order.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -59,6 +60,7 @@ class SimResult:
     true_orientations: torch.Tensor
     acc_clean: torch.Tensor
     gyro_clean: torch.Tensor
+    sampling_instants: dict | None = None  # IMU → (T,) s: the instants a sampling_jitter IMU sampled at
 
 
 def motion_rms(trace: MotionTrace) -> tuple[float, float]:
@@ -139,7 +141,11 @@ def simulate(
         continuous motion), ``noise_level`` scales the true noise (the recording still states
         the nominal noise), ``saturation`` clips after the noise (and is *not* flagged in
         ``acc_clipped``/``gyro_clipped``: an unstated range).  Listed in ``truth["effects"]``;
-        ``acc_clean``/``gyro_clean`` then include the mean effects.
+        ``acc_clean``/``gyro_clean`` then include the mean effects.  ``sampling_jitter`` (kind
+        "random") is simulated exactly: the IMU's outputs are the continuous trajectory evaluated
+        at the jittered instants t (+ its time offset) + δ, δ ~ U(−w/2, w/2) per sample, drawn
+        from the noise stream *after* the noise (so adding it never shifts the noise draws);
+        the instants are returned in ``SimResult.sampling_instants``.
     validate : check the result with :func:`accel_bayes.data.validation.validate_recording` when
         that module is available.
 
@@ -210,6 +216,7 @@ def simulate(
     e_acc = torch.randn(Tn, K, 3, generator=g_noise, dtype=torch.float64)
     e_gyro = torch.randn(Tn, K, 3, generator=g_noise, dtype=torch.float64)
     eff_list = _effects_list(effects)
+    instants = _jitter(eff_list, tr, kind, time, offsets, p_true, q_true, acc0, gyro0, g_noise)
     if eff_list:
         acc, gyro, acc0, gyro0 = _apply_effects(eff_list, tr, kind, time, omega, omega_dot, s, p_true, q_true,
                                                 acc0, gyro0, acc_std[:, None] * e_acc, gyro_std[:, None] * e_gyro)
@@ -283,7 +290,7 @@ def simulate(
     if validate:
         _validate(rec)
     return SimResult(recording=rec, truth=truth, motion=tr, true_positions=p_true, true_orientations=q_true,
-                     acc_clean=acc0, gyro_clean=gyro0)
+                     acc_clean=acc0, gyro_clean=gyro0, sampling_instants=instants)
 
 
 def _validate(rec: Recording) -> None:
@@ -312,6 +319,30 @@ def _effects_list(effects) -> list:
             out.append(make_effect(name, **d))
         else:
             raise UserError(f"effects: expected Effect instances or dicts, got {type(e).__name__}")
+    return out
+
+
+def _jitter(eff_list, tr, kind, time, offsets, p_true, q_true, acc0, gyro0, g_noise):
+    """Exact sampling jitter (see ``effects`` in :func:`simulate`): overwrite the jittered IMUs'
+    columns of ``acc0``/``gyro0`` in place with the trajectory at their sampling instants.
+    Returns {IMU: (T,) instants in s} or None."""
+    from .physics.effects.jitter import jittered_times
+
+    jit = [e for e in eff_list if e.kind == "random"]
+    if not jit:
+        return None
+    if tr.trajectory is None:
+        raise UserError(f"effects: sampling_jitter needs a continuous motion ('smooth' or 'table'); {kind!r} has none")
+    out = {}
+    cast = lambda x: x.detach().to(dtype=torch.float64, device="cpu")  # noqa: E731
+    for e in jit:
+        k = e._imu_checked(SimpleNamespace(K=acc0.shape[1]))
+        base = time if offsets is None else sample_times(time, offsets[k])
+        t_k = jittered_times(base, float(e.params["width"]), g_noise)
+        m = tr.trajectory.trace(t_k)
+        a_k, g_k = imu_outputs(p_true[k:k + 1], q_true[k:k + 1], cast(m.omega), cast(m.omega_dot), cast(m.s))
+        acc0[:, k], gyro0[:, k] = a_k[:, 0], g_k[:, 0]
+        out[k] = t_k
     return out
 
 

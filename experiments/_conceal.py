@@ -75,6 +75,9 @@ one), with the DESIGN §7.2 names and parameters:
                      flags are NOT set and ``acc_range`` keeps the design value (the sensor
                      saturates below its stated range, unannounced: the detector must find
                      it).  The truth's axis is the axis with the most clipped samples.
+``sampling_jitter``  each sample of the IMU (acc and gyro alike) is the exact kinematics at
+                     its own instant t + δ_t, δ_t ~ U(−w/2, w/2) i.i.d. per sample, w = 0.1–1 ms
+                     (axis None); δ drawn from the effect stream after every other draw.
 ==================== ====================================================================
 
 Signs are random.  Sensor errors act on the noise-free signal; white noise is added after them
@@ -140,6 +143,7 @@ EFFECTS = (
     "saturation",
     "noise_level",
     "gyro_nonlinearity",  # vocabulary 1.1; appended so the seeds of the other effects' cases stay put
+    "sampling_jitter",
 )
 # Physics outside the report vocabulary (DESIGN §7.2).  ``gyro_lowpass`` is what the package's
 # extension ``gyro_delay`` describes to first order; ``acc_lowpass`` is outside the package's
@@ -168,6 +172,7 @@ EFFECT_RANGES = {
     "gyro_nonlinearity": (4e-5, 2e-4),              # (rad/s)⁻¹
     "gyro_lowpass": (2e-4, 1e-3),                   # s, time constant (bandwidth 160–800 Hz)
     "acc_lowpass": (2e-4, 1e-3),                    # s
+    "sampling_jitter": (1e-4, 1e-3),                # s, full width of the uniform instant error
 }
 # Signed effects (the sign is drawn at random); the others are positive by nature.
 _SIGNED = ("time_offset", "acc_scale", "acc_misalignment", "acc_bias", "acc_nonlinearity", "gyro_bias",
@@ -687,6 +692,12 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
         params = {"rotation_vector": rho}
 
     acc, gyro = sensor_outputs(trajectory, t, true_R, points, time_offset)
+    if effect == "sampling_jitter":
+        # the IMU looks at the rigid body at its own random instants (exact kinematics there)
+        delta = rng_eff.uniform(-0.5 * mag, 0.5 * mag, size=t.shape[0])
+        a_k, g_k = sensor_outputs(trajectory, t + delta, true_R[k:k + 1], points[k:k + 1])
+        acc[:, k], gyro[:, k] = a_k[:, 0], g_k[:, 0]
+        params = {"width": mag}
     f_true = acc.copy()  # the specific force each accelerometer axis sees (before sensor errors)
 
     # --- sensor errors on the noise-free signal

@@ -25,7 +25,7 @@ DESIGN_PARAMS = {
     "acc_nonlinearity": {"k2"}, "axis_displacement": {"displacement"}, "triad_orientation": {"rotation_vector"},
     "gyro_bias": {"bias"}, "gyro_scale": {"scale"}, "gyro_misalignment": {"coupling", "from_axis"},
     "gyro_g_sensitivity": {"sensitivity"}, "gyro_nonlinearity": {"k2"}, "time_offset": {"offset"},
-    "saturation": {"limit", "clipped_fraction"}, "noise_level": {"factor"},
+    "saturation": {"limit", "clipped_fraction"}, "noise_level": {"factor"}, "sampling_jitter": {"width"},
 }
 
 
@@ -50,7 +50,7 @@ def test_vocabulary_and_parameters():
     assert VOCABULARY == ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
                           "triad_orientation", "gyro_bias", "gyro_scale", "gyro_g_sensitivity",
                           "gyro_nonlinearity", "time_offset",
-                          "saturation", "noise_level", "unexplained")
+                          "saturation", "noise_level", "unexplained", "sampling_jitter")
     assert EFFECTS["gyro_misalignment"].vocabulary_name == "gyro_scale"
     e = make_effect("gyro_scale", imu=2, axis="z", parameters={"scale": 0.01, "from_axis": "x"})
     assert e.name == "gyro_misalignment" and e.vocabulary_parameters() == {"scale": 0.01, "from_axis": "x"}
@@ -368,9 +368,12 @@ def test_report_parameters_round_trip(setup):
         if cls.kind == "finding":
             continue
         e = cls.candidates(layout)[5]
+        # (a width is >= 0 by definition)
         vals = {p.name: (1e-3 * torch.randn(p.shape, generator=g, dtype=torch.float64) if p.null == 0 else
                          torch.tensor(1.3 if name == "noise_level" else 4.0, dtype=torch.float64))
                 for p in cls.parameters}
+        if name == "sampling_jitter":
+            vals = {k: v.abs() for k, v in vals.items()}
         e.set_params(vals)
         rp = e.report_parameters()
         json_rp = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in rp.items()}

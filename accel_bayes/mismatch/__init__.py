@@ -12,6 +12,9 @@ with the nominal array model, name the physics the model left out, add it, refit
   (:mod:`.refine` — deprecated re-export of those);
 * :mod:`.budget` — the residual budget (excess variance per sensor and motion regime, observed
   and explained; vocabulary 1.1);
+* :mod:`.jitter` — random effects (``sampling_jitter``): the exact marginal likelihood at a
+  mean fit, the profiled width, :func:`random_variance` (predicted extra variance per sample
+  and channel, for variance budgets);
 * :mod:`.report` — :class:`MismatchReport`, the §7.2 ``report.json`` and the human report.
 
 >>> from accel_bayes.mismatch import detect          # doctest: +SKIP
@@ -22,6 +25,7 @@ from .detect import candidate_effects, detect, screen, threshold_rule
 from .locate import Location, locate
 from .compare import compare_fits
 from .fit import baseline_fit, fit_model
+from .jitter import jitter_evidence, random_variance
 from .model import ModelFit
 from .prepared import Prepared, prepare
 from .report import SCHEMA, Finding, MismatchReport, validate_report
@@ -31,4 +35,5 @@ __all__ = [
     "EFFECTS", "VOCABULARY", "Effect", "SignalContext", "get_effect", "make_effect", "register_effect",
     "candidate_effects", "screen", "threshold_rule", "locate", "Location",
     "prepare", "Prepared", "baseline_fit", "fit_model", "compare_fits", "ModelFit",
+    "jitter_evidence", "random_variance",
 ]

@@ -30,6 +30,11 @@ Procedure
      recording and are dropped;
    * ``noise_level`` — the restricted (leverage-corrected) likelihood ratio for a variance
      factor, n(m − 1 − log m), m the mean z² of the group (exact, no refit needed);
+   * ``sampling_jitter`` (a random effect) — the exact marginal likelihood of the uniform
+     sampling-instant error at the current mean fit, profiled over the width w in 1-D
+     (:mod:`accel_bayes.mismatch.jitter`: leverage-corrected like ``noise_level``); statistic
+     2·(max_w log L − log L(w = 0)), a boundary hypothesis whose null distribution is the
+     50:50 mixture ½χ²₀ + ½χ²₁, so its p-value is half the χ²₁ one;
    * ``saturation`` — the gain in Σr² from clamping the fitted outputs at a limit L, profiled
      over L on a grid from the channel's largest |output| down to 80 % of it.
 5. **Refit** the best screened candidate of each effect class and the overall top three
@@ -46,12 +51,16 @@ Procedure
      the refit — exceeds the threshold.  This F-test-like guard keeps noise larger than stated
      (which inflates every mean candidate's likelihood ratio on that IMU by the same factor)
      from being named as a bias or scale error; for a correctly named effect P ≈ 1;
-   * ``noise_level`` is considered only in a round where no mean/clip effect is acceptable:
-     any unmodelled mean structure also raises the residual power, so the variance explanation
-     comes last; and it is refused (:func:`_heteroscedastic`) where its group's excess power
-     varies more than 1.25× across the quintiles of a motion covariate (significant by the
-     characteriser's F test): a constant factor does not describe such an excess, which is then
-     left to the characterised ``unexplained`` finding of step 7;
+   * ``noise_level`` and the random effects (``sampling_jitter``) are considered only in a round
+     where no mean/clip effect is acceptable: any unmodelled mean structure also raises the
+     residual power, so the variance explanations come last.  They compete on equal terms
+     (both a likelihood ratio of leverage-corrected residuals): ``noise_level`` predicts a
+     constant variance factor on one sensor, ``sampling_jitter`` variance growing with the
+     squared output rate on both sensors of the IMU.  ``noise_level`` is refused
+     (:func:`_heteroscedastic`) where its group's excess power varies more than 1.25× across the
+     quintiles of a motion covariate (significant by the characteriser's F test): a constant
+     factor does not describe such an excess, which is then left to a better variance model or
+     to the characterised ``unexplained`` finding of step 7;
    * among the acceptable ones the smallest p-value (χ²_df of the robust evidence) wins.
 
    With several findings, each one's evidence is recomputed with all the others in the model
@@ -77,7 +86,8 @@ Threshold rule (reported as ``threshold``): Bonferroni over the m candidates tri
     threshold = χ²_{d_max} quantile at 1 − α/m,
 
 with d_max the largest number of parameters of any candidate (3).  One number for every finding,
-conservative for candidates with fewer parameters.  Findings are ranked by the p-value of their
+conservative for candidates with fewer parameters (and for ``sampling_jitter``, whose boundary
+null ½χ²₀ + ½χ²₁ is not used to lower it).  Findings are ranked by the p-value of their
 evidence under χ²_df (most supported first; equal to ranking by evidence for equal df).
 
 Budget: one baseline fit, one screen per round (vectorised algebra, a few ms per candidate) and
@@ -102,6 +112,7 @@ from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_w
 from .budget import residual_budget
 from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
+from .jitter import jitter_evidence, variance_ratio
 from .model import ModelFit
 from .prepared import Prepared, prepare
 from .report import Finding, MismatchReport
@@ -258,6 +269,7 @@ def noise_evidence(prep: Prepared, fit: ModelFit, effect) -> tuple[float, float,
     z2 = (lin.r ** 2 / (1 - lin.h).clamp_min(1e-3)).reshape(T, 2, K, 3)
     z2 = z2[:, 0] if effect.which == "acc" else z2[:, 1]
     mask = prep.m_acc if effect.which == "acc" else prep.m_gyro
+    # (lin.r is whitened by the fit's weights, which include random effects' predicted variance)
     own = any(e is effect or (e.label() == effect.label() and e.kind == "noise") for e in fit.effects)
     if own:
         z2 = z2 * float(effect.params["factor"]) ** 2
@@ -279,6 +291,28 @@ def _noise_screen(prep, fit, cands) -> list[Screen]:
             continue
         c.set_params({"factor": fac})
         out.append(Screen(c, stat, 1, _log10_sf(stat, 1), True, {"factor": torch.tensor(fac)}))
+    return out
+
+
+def _log10_p(stat: float, effect) -> float:
+    """log10 p-value of an evidence: χ²_df, or for a random effect (a variance on the boundary
+    w = 0) the 50:50 mixture ½χ²₀ + ½χ²₁."""
+    lp = _log10_sf(stat, effect.df)
+    return lp + math.log10(0.5) if effect.kind == "random" and stat > 0 else lp
+
+
+def _jitter_screen(prep, fit, cands) -> list[Screen]:
+    """Random-effect candidates (``sampling_jitter``): the profiled exact marginal likelihood
+    ratio at the current fit (module docstring, step 4)."""
+    out = []
+    for c in cands:
+        if prep.acc_rate is None:
+            out.append(Screen(c, 0.0, 1, 0.0, identifiable=False))
+            continue
+        stat, prof = jitter_evidence(prep, fit, c)
+        c.set_params({"width": prof["width"]})
+        c.stats["width_interval_s"] = prof["interval"]
+        out.append(Screen(c, stat, 1, _log10_p(stat, c), True, {"width": torch.tensor(prof["width"])}))
     return out
 
 
@@ -324,7 +358,9 @@ def screen(prep: Prepared, fit: ModelFit, candidates) -> list[Screen]:
     mean = [c for c in candidates if c.kind == "mean"]
     clip = [c for c in candidates if c.kind == "clip"]
     noise = [c for c in candidates if c.kind == "noise"]
-    out = _score_tests(prep, fit, mean) + _saturation_screen(prep, fit, clip) + _noise_screen(prep, fit, noise)
+    rand = [c for c in candidates if c.kind == "random"]
+    out = (_score_tests(prep, fit, mean) + _saturation_screen(prep, fit, clip) + _noise_screen(prep, fit, noise)
+           + _jitter_screen(prep, fit, rand))
     out.sort(key=lambda s: s.log10_p)
     return out
 
@@ -358,7 +394,7 @@ def alternatives(best: dict, results: list[dict]) -> list[dict]:
     e_b = best["evidence_robust"] - 2 * best["effect"].df
     out = []
     for r in results:
-        if r is best or r["effect"].kind == "noise":
+        if r is best or r["effect"].kind in ("noise", "random"):
             continue
         rel = math.exp(min(0.0, (r["evidence_robust"] - 2 * r["effect"].df - e_b) / 2))
         if rel >= ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD:
@@ -371,6 +407,8 @@ def alternatives(best: dict, results: list[dict]) -> list[dict]:
 def _evidence(prep, with_fit: ModelFit, without_fit: ModelFit, effect) -> float:
     if effect.kind == "noise":
         return noise_evidence(prep, with_fit, effect)[0]
+    if effect.kind == "random":
+        return jitter_evidence(prep, with_fit, effect)[0]
     return 2.0 * (with_fit.loglik - without_fit.loglik)
 
 
@@ -381,8 +419,9 @@ def _group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> floa
     T, K = prep.T, prep.K
     which = getattr(effect, "which", None) or effect.sensor
     groups = ("acc", "gyro") if which == "both" else (which,)
-    za = (fit.res_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None]) ** 2
-    zg = (fit.res_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None]) ** 2
+    ratio = variance_ratio(prep, fit)  # random effects' predicted variance is not excess
+    za = (fit.res_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None]) ** 2 / ratio[:, 0]
+    zg = (fit.res_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None]) ** 2 / ratio[:, 1]
     hh = h.reshape(T, 2, K, 3)
     num = den = 0.0
     for gname in groups:
@@ -554,9 +593,9 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             # noise-robust evidence of mean effects: the LR over the residual power left in the
             # effect's IMU/sensor group (an F-test-like guard: noise larger than stated inflates
             # every mean candidate's LR by the same factor)
-            power = 1.0 if cand.kind == "noise" else _group_power(prep, f, cand, h_cur)
+            power = 1.0 if cand.kind in ("noise", "random") else _group_power(prep, f, cand, h_cur)
             ev_r = ev / max(power, 1.0)
-            lp = _log10_sf(ev_r, cand.df)
+            lp = _log10_p(ev_r, cand)
             info["refits"].append({"candidate": cand.label(), "evidence": ev, "evidence_robust": ev_r,
                                    "group_power_after": power, "df": cand.df, "log10_p": lp,
                                    "screen_statistic": sc.statistic, "seconds": f.seconds})
@@ -566,17 +605,18 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         rounds.append(info)
         # mean (and clip) effects first; noise_level only when no structured effect passes,
         # because any unmodelled mean structure also raises the residual power
-        ok = [r for r in results if r["effect"].kind != "noise" and r["evidence_robust"] > threshold]
+        variance_kinds = ("noise", "random")
+        ok = [r for r in results if r["effect"].kind not in variance_kinds and r["evidence_robust"] > threshold]
         if not ok:
-            ok = [r for r in results if r["effect"].kind == "noise" and r["evidence"] > threshold]
-            if ok:
+            ok = [r for r in results if r["effect"].kind in variance_kinds and r["evidence"] > threshold]
+            if any(r["effect"].kind == "noise" for r in ok):
                 # noise_level says "a constant factor": refuse it where the excess power varies
                 # strongly with the motion (the characteriser's covariates), and leave that excess
-                # to the characterised ``unexplained`` finding instead of hiding it in a variance
+                # to a better variance model or to the characterised ``unexplained`` finding
                 char_now = characterise(prep, current)
                 keep = []
                 for r in ok:
-                    why = _heteroscedastic(char_now, r["effect"], alpha)
+                    why = _heteroscedastic(char_now, r["effect"], alpha) if r["effect"].kind == "noise" else None
                     if why is None:
                         keep.append(r)
                     else:
@@ -626,7 +666,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             where = {"regime": "all regimes", "time_s": None}
         else:
             where = regime_concentration(prep, reg, gain)
-        findings.append(Finding(effect=eff, evidence=float(ev), df=eff.df, log10_p=_log10_sf(ev, eff.df),
+        findings.append(Finding(effect=eff, evidence=float(ev), df=eff.df, log10_p=_log10_p(ev, eff),
                                 where=where, explanation=eff.explain(), screen_statistic=acc_["screen"].statistic,
                                 orientations=prep.q,
                                 extra={"evidence_when_added": acc_["evidence"],

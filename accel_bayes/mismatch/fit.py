@@ -11,6 +11,14 @@ re-estimated in closed form, c² = mean of z² = r²/(σ²(1 − h)) over the IM
 residuals of that sensor, with h the leverage of the per-sample motion states (REML-like: the
 leverage correction keeps E[z²] = 1 under the stated noise), and the fit repeated (≤ 5 rounds).
 
+Random effects (``sampling_jitter``) are not in the least-squares problem either: after the
+fit their widths are profiled on the exact marginal likelihood at the fitted mean and their
+gains added to the log-likelihood (:mod:`accel_bayes.mismatch.jitter`), and the mean is refitted
+with per-sample weights 1/(noise variance + predicted random variance) (IRLS-style, diagonal:
+the moment-matched variance's diagonal), ≤ ``random_rounds`` times until the widths settle.
+With noise factors in the same model, z² is taken in those weights, so the factors measure
+noise beyond the random effects' prediction.
+
 The baseline (:func:`baseline_fit`) starts from the package's MAP
 (:func:`accel_bayes.inference.map.fit_map_recording`, calibrated gyros) and is re-optimised under
 the augmented model's objective, so "with" and "without" an effect are always two optima of the
@@ -31,6 +39,7 @@ from ..inference.lm import LevenbergMarquardt, Linearization, StoppingRule
 from ..physics.effects import check_effects, model_outputs, noise_factors, output_rates
 from .model import ModelFit, _detach_ctx, _gyro_mean, _init_locals, _local_leverage, _loglik_terms, _mean_effects, \
     _Model, _positions, _split_eta
+from .jitter import fit_random_effects, variance_ratio
 from .prepared import Prepared
 
 __all__ = ["fit_model", "baseline_fit"]
@@ -87,7 +96,7 @@ def _lm_solve(model: _Model, theta, eta, x, *, max_iter: int = 60, ftol: float =
 
 def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, init_positions=None, init_x=None,
               prior_std: float = DEFAULT_PRIOR_STD, max_iter: int = 60, noise_rounds: int = 5,
-              laplace: bool = True, progress: bool = False) -> ModelFit:
+              laplace: bool = True, progress: bool = False, random_rounds: int = 4) -> ModelFit:
     """Fit the augmented model (module docstring) with ``effects`` (their current ``params`` are
     the starting values; estimates are written back into them, with Laplace ``std``).
 
@@ -112,6 +121,7 @@ def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, ini
         pos0 = pos0 - pos0[prep.ref]
         x0 = _init_locals(prep, pos0, _gyro_mean(prep)) if init_x is None else torch.as_tensor(init_x, dtype=torch.float64)
     noise_eff = [e for e in effects if e.kind == "noise"]
+    rand_eff = [e for e in effects if e.kind == "random"]
     fa, fg = noise_factors(noise_eff, K)  # each noise effect starts from its current factor
     mean_eff = _mean_effects(effects)
     eta0 = torch.cat([e.flatten() for e in mean_eff]) if mean_eff else torch.zeros(0, dtype=torch.float64)
@@ -120,7 +130,11 @@ def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, ini
     free = prep.free_imus
 
     def solve(pos0, x0, eta0, fa, fg):
-        model = _Model(prep, effects, fa, fg, pos0, prior_std)
+        # random effects' current widths (a candidate's screening estimate, a previous fit's) give
+        # the per-sample weights; None while every width is 0
+        ratio = variance_ratio(prep, None, rand_eff, fa, fg) if any(float(e.params["width"]) > 0 for e in rand_eff) \
+            else None
+        model = _Model(prep, effects, fa, fg, pos0, prior_std, var_ratio=ratio)
         th0 = pos0[torch.as_tensor(free)].clone() if free else pos0.new_zeros(0, 3)
         lm = _lm_solve(model, th0, eta0.clone(), x0.clone(), max_iter=max_iter)
         return lm, model, _positions(lm.theta, prep, pos0), lm.x, lm.eta
@@ -153,7 +167,28 @@ def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, ini
             break
     if noise_eff and rounds > 1:
         lm, model, pos0, x0, eta0 = solve(pos0, x0, eta0, fa, fg)
-    # write back and evaluate
+    fit = _evaluate(prep, effects, mean_eff, lm, model, pos0, x0, eta0, fa, fg, t0)
+    # random effects: widths profiled at the mean, the mean re-weighted by noise + predicted
+    # random variance (IRLS), until the widths settle (accel_bayes.mismatch.jitter)
+    for _ in range(random_rounds if rand_eff else 0):
+        w_old = [float(e.params["width"]) for e in rand_eff]
+        fit_random_effects(prep, fit)
+        w_new = [float(e.params["width"]) for e in rand_eff]
+        if max(abs(a - b) / max(b, 1e-12) for a, b in zip(w_old, w_new)) < 1e-3:
+            break
+        lm, model, pos0, x0, eta0 = solve(pos0, x0, eta0, fa, fg)
+        fit = _evaluate(prep, effects, mean_eff, lm, model, pos0, x0, eta0, fa, fg, t0)
+    else:
+        if rand_eff:
+            fit_random_effects(prep, fit)
+    if mean_eff and laplace:
+        _effect_std(fit, mean_eff)
+    return fit
+
+
+def _evaluate(prep, effects, mean_eff, lm, model, pos0, x0, eta0, fa, fg, t0) -> ModelFit:
+    """The :class:`ModelFit` of a converged solve (estimates written back into the effects)."""
+    K = prep.K
     with torch.no_grad():
         acc, gyro, ctx = model.outputs(lm.theta, lm.eta, lm.x)
         if mean_eff:
@@ -176,8 +211,6 @@ def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, ini
                    n_iter=int(lm.n_iter), seconds=_time.perf_counter() - t0, pred_acc=acc.detach(),
                    pred_gyro=gyro.detach(), res_acc=res_acc.detach(), res_gyro=res_gyro.detach(),
                    ctx=_detach_ctx(ctx), lm=lm, _prep=prep)
-    if mean_eff and laplace:
-        _effect_std(fit, mean_eff)
     return fit
 
 

@@ -195,7 +195,9 @@ class ModelFit:
 
     @property
     def has_noise_effect(self) -> bool:
-        return any(e.kind == "noise" for e in self.effects)
+        """Whether the model's per-sample variance differs from the stated noise (a
+        ``noise_level`` or a random effect such as ``sampling_jitter``)."""
+        return any(e.kind in ("noise", "random") for e in self.effects)
 
     @property
     def effect_names(self) -> list[str]:
@@ -248,7 +250,7 @@ class _Model:
     docstring).  Globals: θ (F, 3) positions of the free IMUs, η (p,) effect parameters;
     locals x (T, 9)."""
 
-    def __init__(self, prep: Prepared, effects, acc_factor, gyro_factor, base_positions, prior_std):
+    def __init__(self, prep: Prepared, effects, acc_factor, gyro_factor, base_positions, prior_std, var_ratio=None):
         self.prep = prep
         self.effects = _mean_effects(effects)
         # effects act on few IMUs: evaluate them on the sub-context of the IMUs they touch
@@ -269,6 +271,12 @@ class _Model:
         self.R = quat_to_matrix(prep.q)  # (K, 3, 3)
         self.wa = prep.m_acc / (prep.sigma_acc * acc_factor)[None, :, None]
         self.wg = prep.m_gyro / (prep.sigma_gyro * gyro_factor)[None, :, None]
+        self.var_ratio = var_ratio
+        if var_ratio is not None:
+            # random effects (sampling_jitter): per-sample weights 1/(noise + predicted random
+            # variance), the IRLS re-weighting of the mean (accel_bayes.mismatch.jitter)
+            self.wa = self.wa / torch.sqrt(var_ratio[:, 0])
+            self.wg = self.wg / torch.sqrt(var_ratio[:, 1])
         self.base = base_positions
         self.free = prep.free_imus
         self.F = len(self.free)

@@ -42,8 +42,10 @@ class Finding:
 
     model : the fitted :class:`~accel_bayes.physics.effects.Effect` (or ``Unexplained``).
     evidence : 2·(log L with − log L without) at the fitted optima (restricted likelihood ratio
-        for ``noise_level``; the located-excess statistic for ``unexplained``).
-    df : its degrees of freedom; log10_p : log10 of its χ²_df tail probability.
+        for ``noise_level``; the profiled exact marginal likelihood ratio for ``sampling_jitter``;
+        the located-excess statistic for ``unexplained``).
+    df : its degrees of freedom; log10_p : log10 of its χ²_df tail probability (for
+        ``sampling_jitter``, a boundary hypothesis, of the ½χ²₀ + ½χ²₁ mixture).
     where : {"regime": …, "time_s": [t0, t1] or None, …}.
     """
 
@@ -146,7 +148,9 @@ class MismatchReport:
         noise = r.has_noise_effect
         d = {"effects": [e.vocabulary_name or e.name for e in r.effects], "loglik": float(r.loglik),
              "chi2_per_dof": float(r.chi2_per_dof_model if noise else r.chi2_per_dof),
-             "chi2_noise": "refined (noise_level in the model)" if noise else "stated",
+             "chi2_noise": ("refined (the model's own per-sample variance: "
+                            + ", ".join(sorted({e.name for e in r.effects if e.kind in ("noise", "random")})) + ")")
+             if noise else "stated",
              "chi2_per_dof_stated": float(r.chi2_per_dof), "chi2_per_dof_stated_noise": float(r.chi2_per_dof),
              "dof": int(r.dof),
              "labels": [e.label() for e in r.effects]}

@@ -20,6 +20,7 @@ gyro_nonlinearity      second-order gyroscope response (k2·ω², vocab. 1.1)   
 time_offset            one IMU sampled late relative to the others           yes         no
 saturation             samples clipped at (an unstated) sensor range         optional    optional
 noise_level            noise larger than stated                              optional    no
+sampling_jitter        samples taken at random instants (free-running clock)  yes         no
 unexplained            a located mismatch no candidate explains (finding     –           –
                        kind only, no signal model)
 =====================  ====================================================  ==========  =========
@@ -43,7 +44,7 @@ Every effect class holds
   outputs of :func:`accel_bayes.physics.models.imu_outputs`, the package's one signal model);
 * :meth:`Effect.report_parameters` (JSON) and :meth:`Effect.explain` (one sentence).
 
-Three kinds of effect (``Effect.kind``):
+Four kinds of effect (``Effect.kind``):
 
 ``"mean"``
     adds ``(d_acc, d_gyro)`` (T, K, 3), sensor frame, to the nominal outputs.  All mean effects
@@ -61,6 +62,10 @@ Three kinds of effect (``Effect.kind``):
     ``factor``.  Its likelihood term is the Gaussian normaliser −n·log(factor) plus the
     rescaled quadratic form; the fitting code estimates it in closed form from
     leverage-corrected residuals (see :mod:`accel_bayes.mismatch.fit`).
+
+``"random"`` (sampling_jitter)
+    changes no mean; adds a random, sample-to-sample independent term whose marginal
+    likelihood the detector evaluates exactly (:mod:`.jitter`); skipped by the mean machinery.
 
 Linearised terms (documented per class): ``time_offset`` uses δ·d/dt of the nominal output (the
 context supplies the rates); everything else is exact (``axis_displacement`` is exact because
@@ -84,9 +89,10 @@ triad beyond what the accelerometers constrain (the score test in
 
 Layout (one module per sensor): :mod:`.base` (context, parameters, the :class:`Effect` base
 class, registry, composition), :mod:`.accelerometer`, :mod:`.mounting`, :mod:`.gyroscope`,
-:mod:`.timing`, :mod:`.output`.  The import order below is the registration order, which is the order
-of :data:`VOCABULARY`: the DESIGN §7.2 table order, except that the vocabulary-1.1 additions sit
-with their sensor's module (``gyro_nonlinearity`` after ``gyro_g_sensitivity``).
+:mod:`.timing`, :mod:`.output`, :mod:`.jitter`.  The import order below is the registration order, which
+is the order of :data:`VOCABULARY`: the DESIGN §7.2 table order, except that the vocabulary-1.1
+additions sit with their module (``gyro_nonlinearity`` after ``gyro_g_sensitivity``,
+``sampling_jitter`` after ``unexplained``).
 """
 from __future__ import annotations
 
@@ -99,6 +105,7 @@ from .mounting import TriadOrientation
 from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity, GyroNonlinearity
 from .timing import GyroDelay, TimeOffset, sample_times
 from .output import Saturation, NoiseLevel, Unexplained
+from .jitter import SamplingJitter, jittered_times, log_marginal_gain
 
 VOCABULARY = tuple(n for n, c in EFFECTS.items()
                    if c.vocabulary_name is None and c.in_vocabulary)  # DESIGN §7.2 table order
@@ -133,6 +140,9 @@ __all__ = [
     "Saturation",
     "NoiseLevel",
     "Unexplained",
+    "SamplingJitter",
+    "jittered_times",
+    "log_marginal_gain",
     "EFFECTS",
     "VOCABULARY",
     "EXTENSIONS",

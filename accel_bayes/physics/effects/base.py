@@ -168,7 +168,7 @@ class Effect:
     # ``name``; listed in ``EXTENSIONS``, which reports may also use)
     in_vocabulary: ClassVar[bool] = True
     description: ClassVar[str] = ""
-    kind: ClassVar[str] = "mean"  # "mean" | "clip" | "noise" | "finding"
+    kind: ClassVar[str] = "mean"  # "mean" | "clip" | "noise" | "random" | "finding"
     local_imu: ClassVar[bool] = True
     local_axis: ClassVar[bool] = False
     sensor: ClassVar[str] = "acc"  # which outputs it perturbs: "acc", "gyro", "both"

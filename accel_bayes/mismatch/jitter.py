@@ -1,0 +1,168 @@
+"""Random effects in the mismatch model: the exact ``sampling_jitter`` marginal likelihood at a
+mean fit, its width profiled in 1-D, and the predicted extra variance of random effects.
+
+At a fit (:class:`~accel_bayes.mismatch.model.ModelFit`), per IMU k and sample t, the six whitened
+residuals r̃ (acc xyz, gyro xyz; whitened by the model noise σ·factor) and the whitened output rate
+ṽ = v/(σ·factor) enter the exact marginal of :mod:`accel_bayes.physics.effects.jitter`
+(:func:`~accel_bayes.physics.effects.log_marginal_gain`, D = I in whitened units) through
+a = ũᵀũ and b = ũᵀr̃.  Two corrections make it comparable with ``noise_level``'s restricted
+(leverage-corrected) likelihood ratio (:func:`accel_bayes.mismatch.detect.noise_evidence`):
+
+* the per-sample motion states absorb part of every residual: the jitter direction seen in
+  the residuals is the projected u = (I − Jx (JxᵀJx)⁻¹ Jxᵀ) ṽ (IMU k's rows; exact per sample),
+  not ṽ itself — without it the width would come out low by ≈ √(1 − h);
+* the residuals and the direction are divided by √(1 − h) (h the motion-state leverage), so the
+  noise part of r̃ has unit variance again (REML-like, as for ``noise_level``).
+
+Evidence = 2·(max_w Σ_t gain_t(w) − 0): the likelihood ratio against w = 0, a hypothesis on the
+boundary of the parameter space (w ≥ 0), so under the null it is distributed as the 50:50
+mixture ½χ²₀ + ½χ²₁ (Self & Liang 1987) and its p-value is ½·P(χ²₁ > stat).  The detector's
+threshold (χ²₃ Bonferroni quantile) is not lowered for it: conservative.  Uncertainty: the
+profile-likelihood 95 % interval {w : 2(ℓ(ŵ) − ℓ(w)) ≤ χ²₁,0.95}, and a std = interval length /
+3.92.
+
+The mean **is** re-weighted (:func:`~accel_bayes.mismatch.fit.fit_model`, IRLS-style): a refit
+with random effects weights each channel by 1/(σ² + predicted random variance), the diagonal of
+the moment-matched covariance D + (w²/12) v vᵀ, alternating with the width profile until the
+widths settle.  The exact marginal is then evaluated at that mean: the residuals and the
+direction are taken back from the fit's weights to the noise whitening (D) before a and b are
+formed.  Without the re-weighting a jittered IMU keeps pulling the per-sample motion states,
+and ``noise_level`` — whose refit does re-weight — would win on an unequal footing.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..physics.effects.jitter import log_marginal_gain
+
+__all__ = ["jitter_ab", "profile_width", "jitter_evidence", "random_variance", "variance_ratio", "fit_random_effects",
+           "CHI2_1_95"]
+
+CHI2_1_95 = 3.841458820694124  # χ²₁ 95 % quantile: the profile-likelihood interval
+
+
+def _rows(K: int, k: int) -> torch.Tensor:
+    return torch.tensor([3 * k, 3 * k + 1, 3 * k + 2, 3 * K + 3 * k, 3 * K + 3 * k + 1, 3 * K + 3 * k + 2])
+
+
+def jitter_ab(prep, fit, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(a, b), each (T,), of IMU k at a fit (module docstring): a = ũᵀũ in s⁻², b = ũᵀr̃ in s⁻¹."""
+    lin = fit.linear()
+    K = prep.K
+    rows = _rows(K, k)
+    # the fit's weights: noise (σ·factor) and, where random effects were in the refit, their
+    # predicted variance (IRLS); lin is whitened by them.  back = (model weight → noise weight)
+    model = getattr(fit.lm, "model", None)
+    vr = getattr(model, "var_ratio", None)
+    back = torch.ones(prep.T, 6, dtype=torch.float64) if vr is None else \
+        torch.sqrt(torch.cat((vr[:, 0, k], vr[:, 1, k]), -1))
+    wa = prep.m_acc[:, k] / (prep.sigma_acc[k] * fit.acc_factor[k])
+    wg = prep.m_gyro[:, k] / (prep.sigma_gyro[k] * fit.gyro_factor[k])
+    v = torch.cat((prep.acc_rate[:, k] * wa, prep.gyro_rate[:, k] * wg), -1) / back  # (T, 6), model whitening
+    Jx = lin.Jx[:, rows]  # (T, 6, 9)
+    # the direction left in the residuals after the (weighted) motion states took their share
+    u = v - (Jx @ (lin.Vinv @ (Jx.transpose(-1, -2) @ v.unsqueeze(-1)))).squeeze(-1)
+    s = torch.sqrt((1 - lin.h[:, rows]).clamp_min(1e-3))
+    ut, rt = u * back / s, lin.r[:, rows] * back / s  # noise whitening, leverage-corrected
+    return (ut * ut).sum(-1), (ut * rt).sum(-1)
+
+
+def _max_width(prep) -> float:
+    """Upper bound of the width search: one median sample interval (a wider jitter would reorder
+    samples, and the linearisation in δ would no longer hold)."""
+    t = np.asarray(prep.time, dtype=float)
+    return float(np.median(np.diff(t))) if len(t) > 1 else 1e-2
+
+
+def profile_width(a: torch.Tensor, b: torch.Tensor, w_max: float) -> dict:
+    """Maximise G(w) = Σ_t log_marginal_gain(a_t, b_t, w) over 0 ≤ w ≤ w_max (a log grid, then a
+    bounded Brent refinement).  Returns {"width", "gain" (= G(ŵ) ≥ 0), "interval" [lo, hi]
+    (profile 95 %, endpoints to 0.1 % of ŵ), "std"}."""
+    from scipy.optimize import brentq, minimize_scalar
+
+    def G(w):
+        return float(log_marginal_gain(a, b, float(w)).sum()) if w > 0 else 0.0
+
+    grid = np.r_[0.0, np.logspace(math.log10(w_max) - 4, math.log10(w_max), 41)]
+    # the whole grid in one vectorised evaluation (T × 41)
+    vals = np.r_[0.0, log_marginal_gain(a[:, None], b[:, None], torch.as_tensor(grid[None, 1:])).sum(0).numpy()]
+    j = int(np.argmax(vals))
+    if j == 0:
+        w_hat, g_hat = 0.0, 0.0
+    else:
+        lo, hi = grid[j - 1], grid[min(j + 1, len(grid) - 1)]
+        res = minimize_scalar(lambda w: -G(w), bounds=(lo, hi), method="bounded", options={"xatol": 1e-4 * grid[j]})
+        w_hat, g_hat = (float(res.x), -float(res.fun)) if -res.fun >= vals[j] else (float(grid[j]), float(vals[j]))
+    f = lambda w: 2 * (g_hat - G(w)) - CHI2_1_95  # noqa: E731
+    lo = 0.0 if f(0.0) <= 0 or w_hat == 0 else brentq(f, 0.0, w_hat, xtol=1e-3 * w_hat)
+    hi = w_max if f(w_max) <= 0 else brentq(f, w_hat, w_max, xtol=1e-3 * max(w_hat, 1e-4 * w_max))
+    return {"width": w_hat, "gain": g_hat, "interval": [float(lo), float(hi)], "std": (hi - lo) / 3.92}
+
+
+def jitter_evidence(prep, fit, effect) -> tuple[float, dict]:
+    """(evidence, profile) of a ``sampling_jitter`` effect at a fit: evidence = 2·G(ŵ), the
+    likelihood ratio against w = 0 (module docstring); profile from :func:`profile_width`."""
+    a, b = jitter_ab(prep, fit, int(effect.imu))
+    prof = profile_width(a, b, _max_width(prep))
+    return 2.0 * prof["gain"], prof
+
+
+def fit_random_effects(prep, fit) -> None:
+    """Estimate the width of every random effect in ``fit`` (profile maximum at the fit's mean;
+    writes ``params``, ``std`` and ``stats["width_interval_s"]``) and add their exact marginal
+    gains to ``fit.loglik_t``/``fit.loglik`` (gains of the leverage-corrected residuals, as the
+    evidence uses; the Gaussian part stays the plain one at the fitted mean); ``fit.chi2``
+    becomes Σ r²/(noise variance + predicted random variance) (moment form, for χ²/dof).
+    Downstream: ELPD by PSIS-LOO (:mod:`.compare`) starts from these per-sample values and
+    perturbs them in the fit's (re-weighted) whitening — an approximation for random effects;
+    :func:`~accel_bayes.mismatch.compare.corrected_recording` does not represent them."""
+    rand = [e for e in fit.effects if e.kind == "random"]
+    if not rand:
+        return
+    w_max = _max_width(prep)
+    for e in rand:
+        a, b = jitter_ab(prep, fit, int(e.imu))
+        prof = profile_width(a, b, w_max)
+        e.set_params({"width": prof["width"]})
+        e.std = {"width": torch.tensor(prof["std"], dtype=torch.float64)}
+        e.stats["width_interval_s"] = prof["interval"]
+        fit.loglik_t = fit.loglik_t + log_marginal_gain(a, b, prof["width"])
+    fit.loglik = float(fit.loglik_t.sum())
+    ratio = variance_ratio(prep, fit)
+    za = fit.res_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None] * prep.m_acc
+    zg = fit.res_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None] * prep.m_gyro
+    fit.chi2 = float((za ** 2 / ratio[:, 0]).sum() + (zg ** 2 / ratio[:, 1]).sum())
+
+
+def random_variance(prep, fit=None, effects=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Predicted extra variance of the random effects (``effects``, default those in ``fit``) per
+    sample and channel, (acc (T, K, 3) in (m/s²)², gyro (T, K, 3) in (rad/s)²): the diagonal of
+    their moment-matched covariance ((w²/12)·rate² for ``sampling_jitter``, rates of the
+    baseline fit, ``prep.acc_rate``/``prep.gyro_rate``).  The hook for variance budgets (DESIGN
+    §7.2 ``budget``: the part of the excess a random effect predicts)."""
+    from types import SimpleNamespace
+
+    effects = fit.effects if effects is None else effects
+    va = torch.zeros(prep.T, prep.K, 3, dtype=torch.float64)
+    vg = torch.zeros_like(va)
+    ctx = SimpleNamespace(acc=va, gyro=vg, K=prep.K, acc_rate=prep.acc_rate, gyro_rate=prep.gyro_rate)
+    for e in effects:
+        if e.kind == "random":
+            da, dg = e.variance(None, ctx)
+            va, vg = va + da * prep.m_acc, vg + dg * prep.m_gyro
+    return va, vg
+
+
+def variance_ratio(prep, fit=None, effects=None, acc_factor=None, gyro_factor=None) -> torch.Tensor:
+    """(T, 2, K, 3): 1 + predicted random variance / noise variance (σ·factor)² per channel —
+    what a squared noise-whitened residual is divided by to be ~1 under the full model.
+    Effects and factors from ``fit`` unless given."""
+    fa = fit.acc_factor if acc_factor is None else acc_factor
+    fg = fit.gyro_factor if gyro_factor is None else gyro_factor
+    va, vg = random_variance(prep, fit, effects)
+    sa = (prep.sigma_acc * fa)[None, :, None] ** 2
+    sg = (prep.sigma_gyro * fg)[None, :, None] ** 2
+    return torch.stack((1 + va / sa, 1 + vg / sg), 1)
