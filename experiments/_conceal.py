@@ -151,6 +151,7 @@ EFFECTS = (
 OUT_OF_VOCABULARY = (
     "gyro_lowpass",  # one IMU's gyroscope behind a first-order low-pass filter, {"time_constant"} s
     "acc_lowpass",   # one IMU's accelerometer behind a first-order low-pass filter, {"time_constant"} s
+    "timing_wander",  # the package's extension: one IMU's gyro sampled at AR(1)-wandering instants
 )
 # Effects that live on one sensing axis (the truth names it); the others have axis None.
 AXIS_EFFECTS = ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
@@ -172,6 +173,7 @@ EFFECT_RANGES = {
     "gyro_nonlinearity": (4e-5, 2e-4),              # (rad/s)⁻¹
     "gyro_lowpass": (2e-4, 1e-3),                   # s, time constant (bandwidth 160–800 Hz)
     "acc_lowpass": (2e-4, 1e-3),                    # s
+    "timing_wander": (3e-4, 2e-3),                  # s, √12 × the std of the instant error
     "sampling_jitter": (1e-4, 1e-3),                # s, full width of the uniform instant error
 }
 # Signed effects (the sign is drawn at random); the others are positive by nature.
@@ -698,6 +700,19 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
         a_k, g_k = sensor_outputs(trajectory, t + delta, true_R[k:k + 1], points[k:k + 1])
         acc[:, k], gyro[:, k] = a_k[:, 0], g_k[:, 0]
         params = {"width": mag}
+    elif effect == "timing_wander":
+        # one IMU's gyroscope reads the rigid body at instants t + δ_t, δ a stationary AR(1)
+        # process (std width/√12, lag-one correlation ρ drawn in 0.5–0.95): exact kinematics there
+        rho = float(rng_eff.uniform(0.5, 0.95))
+        sd = mag / math.sqrt(12.0)
+        e = rng_eff.standard_normal(t.shape[0])
+        delta = np.empty(t.shape[0])
+        delta[0] = sd * e[0]
+        for j in range(1, t.shape[0]):
+            delta[j] = rho * delta[j - 1] + math.sqrt(1.0 - rho * rho) * sd * e[j]
+        _, g_k = sensor_outputs(trajectory, t + delta, true_R[k:k + 1], points[k:k + 1])
+        gyro[:, k] = g_k[:, 0]
+        params = {"width": mag, "correlation": rho, "sensor": "gyro"}
     f_true = acc.copy()  # the specific force each accelerometer axis sees (before sensor errors)
 
     # --- sensor errors on the noise-free signal

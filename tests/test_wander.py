@@ -113,3 +113,51 @@ def test_ar1_gain_with_noise_factor_matches_dense():
     dense = -0.5 * (x @ np.linalg.solve(C, x) + np.linalg.slogdet(C)[1]) + 0.5 * (x @ x)
     got = ar1_gain((u * u).sum(1), (u * r).sum(1), steps, sigma, rho, c, float(x @ x), 3 * T)
     assert abs(got - dense) < 1e-8
+
+
+def test_timing_wander_named_on_a_concealed_recording():
+    """experiments/_conceal.py (independent generator: exact kinematics at AR(1)-wandering
+    instants of one IMU's gyro): the detector names timing_wander on the right IMU's gyro with
+    width and correlation close to the truth, and nothing else of the vocabulary on that IMU."""
+    import sys
+    from pathlib import Path
+
+    import torch
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    import _conceal as C
+    from accel_bayes.mismatch import detect
+
+    torch.set_num_threads(1)
+    case = C.make_case("mimu8", "timing_wander", seed=2, T=1500)
+    truth = case.truth["parameters"]
+    doc = detect(case.recording, seed=0).to_dict()
+    first = doc["findings"][0]
+    assert (first["effect"], first["imu"], first["parameters"]["sensor"]) == ("timing_wander", case.truth["imu"], "gyro")
+    # measured on seeds 0–2 at T ≈ 2000: width within 3 %, correlation within 0.015
+    assert abs(first["parameters"]["width"] / truth["width"] - 1) < 0.1, (first, truth)
+    assert abs(first["parameters"]["correlation"] - truth["correlation"]) < 0.05, (first, truth)
+    vocab = [f for f in doc["findings"][1:] if f["effect"] not in ("unexplained",) and f["imu"] == case.truth["imu"]]
+    assert not vocab, vocab
+
+
+def test_timing_wander_variance_is_on_its_sensor_only():
+    import torch
+
+    from accel_bayes.physics.effects import SignalContext, make_effect
+
+    T, K = 5, 3
+    z = torch.zeros(T, 3, dtype=torch.float64)
+    rate = torch.ones(T, K, 3, dtype=torch.float64) * 2.0
+    ctx = SignalContext(torch.arange(T, dtype=torch.float64), z, z, z, torch.zeros(K, 3, dtype=torch.float64),
+                        torch.tensor([[1.0, 0, 0, 0]] * K, dtype=torch.float64), rate.clone(), rate.clone(), rate, rate)
+    e = make_effect("timing_wander", imu=1, parameters={"width": 1e-3, "correlation": 0.5, "sensor": "gyro"})
+    va, vg = e.variance(None, ctx)
+    assert float(va.abs().max()) == 0.0
+    assert torch.allclose(vg[:, 1], torch.full((T, 3), 1e-6 / 12 * 4.0, dtype=torch.float64))
+    assert float(vg[:, [0, 2]].abs().max()) == 0.0
+    import pytest
+
+    from accel_bayes.errors import UserError
+    with pytest.raises(UserError, match="correlation"):
+        make_effect("timing_wander", imu=1, parameters={"width": 1e-3, "correlation": 1.0})

@@ -60,7 +60,11 @@ Procedure
      (:func:`_heteroscedastic`) where its group's excess power varies more than 1.25× across the
      quintiles of a motion covariate (significant by the characteriser's F test): a constant
      factor does not describe such an excess, which is then left to a better variance model or
-     to the characterised ``unexplained`` finding of step 7;
+     to the characterised ``unexplained`` finding of step 7.  Exception to "mean first": a random
+     effect whose evidence exceeds :data:`RANDOM_DOMINANCE` (10) × the best acceptable mean
+     candidate's is taken first (a wandering timing error looks like structure to every mean
+     candidate, each explaining a small part of it).  At most one random effect per IMU and
+     sensor is in the model (each is profiled as if alone);
    * among the acceptable ones the smallest p-value (χ²_df of the robust evidence) wins.
 
    With several findings, each one's evidence is recomputed with all the others in the model
@@ -310,7 +314,7 @@ def _jitter_screen(prep, fit, cands) -> list[Screen]:
             out.append(Screen(c, 0.0, 1, 0.0, identifiable=False))
             continue
         stat, prof = jitter_evidence(prep, fit, c)
-        c.set_params({"width": prof["width"]})
+        c.set_params({p.name: prof[p.name] for p in c.parameters if p.name in prof})
         c.stats["width_interval_s"] = prof["interval"]
         out.append(Screen(c, stat, 1, _log10_p(stat, c), True, {"width": torch.tensor(prof["width"])}))
     return out
@@ -484,6 +488,19 @@ def _check_options(effects, alpha, max_findings, seed):
 HETEROSCEDASTIC_RATIO = 1.25
 
 
+#: a random effect is accepted in a round where mean effects are acceptable too when its evidence
+#: exceeds this many times the best mean candidate's noise-robust evidence
+RANDOM_DOMINANCE = 10.0
+
+
+def _random_channels(effect) -> tuple:
+    """The sensors a random effect's variance acts on ("acc", "gyro")."""
+    which = getattr(effect, "which", None)
+    if which in ("acc", "gyro"):
+        return (which,)
+    return ("acc", "gyro") if effect.sensor == "both" else (effect.sensor,)
+
+
 def _heteroscedastic(char: dict, effect, alpha: float) -> str | None:
     """Why a ``noise_level`` candidate contradicts the residuals' structure, or None.
 
@@ -571,7 +588,11 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     last_screens: list[Screen] = []
     for rnd in range(int(max_findings)):
         in_model = {e.label() for e in current.effects}
-        pool = [c.copy() for c in cands_all if c.label() not in in_model]
+        taken = {(e.imu, ch) for e in current.effects if e.kind == "random" for ch in _random_channels(e)}
+        # one random effect per IMU and sensor: two would each be profiled as if alone and
+        # count the same variance twice
+        pool = [c.copy() for c in cands_all if c.label() not in in_model
+                and not (c.kind == "random" and any((c.imu, ch) in taken for ch in _random_channels(c)))]
         ts = _time.perf_counter()
         screens = screen(prep, current, pool)
         last_screens = screens
@@ -607,7 +628,13 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         # because any unmodelled mean structure also raises the residual power
         variance_kinds = ("noise", "random")
         ok = [r for r in results if r["effect"].kind not in variance_kinds and r["evidence_robust"] > threshold]
-        if not ok:
+        dominant = [r for r in results if r["effect"].kind == "random" and ok
+                    and r["evidence"] > RANDOM_DOMINANCE * max(x["evidence_robust"] for x in ok)]
+        if dominant:
+            # a correlated timing error looks like structure to every mean candidate, yet each
+            # explains a small part of it: a random effect far ahead of all of them goes first
+            ok = dominant
+        elif not ok:
             ok = [r for r in results if r["effect"].kind in variance_kinds and r["evidence"] > threshold]
             if any(r["effect"].kind == "noise" for r in ok):
                 # noise_level says "a constant factor": refuse it where the excess power varies

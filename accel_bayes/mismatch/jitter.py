@@ -48,8 +48,10 @@ def _rows(K: int, k: int) -> torch.Tensor:
     return torch.tensor([3 * k, 3 * k + 1, 3 * k + 2, 3 * K + 3 * k, 3 * K + 3 * k + 1, 3 * K + 3 * k + 2])
 
 
-def jitter_ab(prep, fit, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(a, b), each (T,), of IMU k at a fit (module docstring): a = ũᵀũ in s⁻², b = ũᵀr̃ in s⁻¹."""
+def jitter_ab(prep, fit, k: int, sensor: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(a, b), each (T,), of IMU k at a fit (module docstring): a = ũᵀũ in s⁻², b = ũᵀr̃ in s⁻¹.
+    ``sensor`` "acc" or "gyro" restricts them to that triad's three channels (``timing_wander``);
+    None uses all six (``sampling_jitter``)."""
     lin = fit.linear()
     K = prep.K
     rows = _rows(K, k)
@@ -67,7 +69,29 @@ def jitter_ab(prep, fit, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     u = v - (Jx @ (lin.Vinv @ (Jx.transpose(-1, -2) @ v.unsqueeze(-1)))).squeeze(-1)
     s = torch.sqrt((1 - lin.h[:, rows]).clamp_min(1e-3))
     ut, rt = u * back / s, lin.r[:, rows] * back / s  # noise whitening, leverage-corrected
+    if sensor is not None:
+        sl = slice(0, 3) if sensor == "acc" else slice(3, 6)
+        ut, rt = ut[:, sl], rt[:, sl]
     return (ut * ut).sum(-1), (ut * rt).sum(-1)
+
+
+def _wander_profile(prep, fit, effect) -> dict:
+    """``timing_wander`` at a fit: (width, correlation) by maximum marginal likelihood of the AR(1)
+    instant error on the effect's triad (:func:`accel_bayes.mismatch.wander.fit_wander`, noise at
+    the model's), as a profile dict like :func:`profile_width`'s plus "correlation" and
+    "correlation_std"."""
+    from .wander import fit_wander
+
+    a, b = jitter_ab(prep, fit, int(effect.imu), effect.which)
+    t = np.asarray(prep.time, dtype=float)
+    dt = np.diff(t)
+    steps = dt / float(np.median(dt)) if len(dt) else np.zeros(0)
+    f = fit_wander(a.numpy(), b.numpy(), steps, sigma_max=_max_width(prep) / math.sqrt(12.0))
+    w = math.sqrt(12.0) * f["sigma"]
+    w_std = None if f["sigma_std"] is None else math.sqrt(12.0) * f["sigma_std"]
+    iv = [max(0.0, w - 1.96 * w_std), w + 1.96 * w_std] if w_std is not None else [0.0, w]
+    return {"width": w, "correlation": f["rho"], "gain": f["gain"], "interval": iv,
+            "std": w_std if w_std is not None else float("nan"), "correlation_std": f["rho_std"]}
 
 
 def _max_width(prep) -> float:
@@ -105,6 +129,9 @@ def profile_width(a: torch.Tensor, b: torch.Tensor, w_max: float) -> dict:
 def jitter_evidence(prep, fit, effect) -> tuple[float, dict]:
     """(evidence, profile) of a ``sampling_jitter`` effect at a fit: evidence = 2·G(ŵ), the
     likelihood ratio against w = 0 (module docstring); profile from :func:`profile_width`."""
+    if effect.name == "timing_wander":
+        prof = _wander_profile(prep, fit, effect)
+        return 2.0 * prof["gain"], prof
     a, b = jitter_ab(prep, fit, int(effect.imu))
     prof = profile_width(a, b, _max_width(prep))
     return 2.0 * prof["gain"], prof
@@ -124,6 +151,17 @@ def fit_random_effects(prep, fit) -> None:
         return
     w_max = _max_width(prep)
     for e in rand:
+        if e.name == "timing_wander":
+            # the AR(1) gain is not a sum over samples: spread evenly over them (only the total
+            # enters the evidence; the per-sample split matters for PSIS-LOO, approximate anyway)
+            prof = _wander_profile(prep, fit, e)
+            e.set_params({"width": prof["width"], "correlation": prof["correlation"]})
+            e.std = {"width": torch.tensor(prof["std"], dtype=torch.float64)}
+            if prof["correlation_std"] is not None:
+                e.std["correlation"] = torch.tensor(prof["correlation_std"], dtype=torch.float64)
+            e.stats["width_interval_s"] = prof["interval"]
+            fit.loglik_t = fit.loglik_t + prof["gain"] / prep.T
+            continue
         a, b = jitter_ab(prep, fit, int(e.imu))
         prof = profile_width(a, b, w_max)
         e.set_params({"width": prof["width"]})

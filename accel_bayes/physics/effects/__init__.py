@@ -32,6 +32,9 @@ scorer of the vocabulary does not credit them):
 =====================  ====================================================  ==========  =========
 gyro_delay             gyroscope output delayed relative to its own          yes         no
                        accelerometer (filter group delay, sampling delay)
+timing_wander          one sensor's sampling instants wander around their    yes         no
+                       time stamps (AR(1) instant error: beating clocks);
+                       random effect {"width", "correlation"}, option sensor
 =====================  ====================================================  ==========  =========
 
 Every effect class holds
@@ -105,7 +108,7 @@ from .mounting import TriadOrientation
 from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity, GyroNonlinearity
 from .timing import GyroDelay, TimeOffset, sample_times
 from .output import Saturation, NoiseLevel, Unexplained
-from .jitter import SamplingJitter, jittered_times, log_marginal_gain
+from .jitter import SamplingJitter, TimingWander, jittered_times, log_marginal_gain
 
 VOCABULARY = tuple(n for n, c in EFFECTS.items()
                    if c.vocabulary_name is None and c.in_vocabulary)  # DESIGN §7.2 table order
@@ -147,6 +150,7 @@ __all__ = [
     "VOCABULARY",
     "EXTENSIONS",
     "GyroDelay",
+    "TimingWander",
     "register_effect",
     "get_effect",
     "make_effect",

@@ -134,3 +134,69 @@ class SamplingJitter(Effect):
         tail = f" (95 % interval {iv[0] * 1e3:.3g}–{iv[1] * 1e3:.3g} ms)" if iv else ""
         return (f"IMU {self.imu} takes each sample at a random instant within ±{w / 2 * 1e3:.3g} ms of its time stamp"
                 f"{tail}, so its readings scatter more where the motion changes fast.")
+
+
+@register_effect
+class TimingWander(SamplingJitter):
+    """The sampling instants of one sensor triad of IMU k wander around their time stamps: the
+    instant error δ_t is a stationary Gauss–Markov (AR(1)) process with the variance of a uniform
+    jitter of full width ``width`` (σ_δ = width/√12) and lag-one ``correlation`` ρ between
+    consecutive samples (ρ^(Δt/Δt₀) across a gap of Δt, Δt₀ the median step).  ρ = 0 is
+    ``sampling_jitter`` in its Gaussian form on one sensor; ρ → 1 a drifting time offset.  The
+    physics: a sensor sampled on its own free-running clock and read by a host on another, whose
+    beat wanders with the clocks' frequencies (e.g. an IMU's internal output-data-rate clock read
+    at 62.5 Hz).
+
+    Not in the DESIGN §7.2 vocabulary (an extension, reported under this name).  Kind
+    ``"random"``: no mean change; the detector fits (width, correlation) on the exact marginal
+    likelihood of the linearised model (:mod:`accel_bayes.mismatch.wander`, banded O(T)).  Its
+    predicted extra variance per sample is that of the instant error, (width²/12)·rate², on the
+    sensor's channels of IMU k."""
+
+    name = "timing_wander"
+    in_vocabulary = False
+    description = "sampling instants of one sensor that wander around their time stamps (beating clocks)"
+    sensor = "gyro"
+    options = ("sensor",)
+    parameters = (Param("width", (), "s", None, "√12 × the std of the instant error (the width of a uniform jitter "
+                        "with the same variance)", null=0.0),
+                  Param("correlation", (), "1", None, "lag-one correlation of the instant error", null=0.0))
+
+    def __init__(self, imu=None, axis=None, params=None, sensor: str = "gyro"):
+        if sensor not in ("acc", "gyro"):
+            raise UserError(f"timing_wander: sensor: expected 'acc' or 'gyro', got {sensor!r}")
+        self.which = sensor
+        super().__init__(imu, axis, params)
+
+    def set_params(self, values: dict) -> "TimingWander":
+        super().set_params(values)
+        r = float(self.params["correlation"])
+        if not 0.0 <= r < 1.0:
+            raise UserError(f"timing_wander: correlation: expected 0 <= correlation < 1, got {r!r}")
+        return self
+
+    def location(self):
+        return {"imu": self.imu, "axis": None, "sensor": self.which}
+
+    @classmethod
+    def candidates(cls, layout):
+        from .output import _imus_by_sensor
+
+        return [cls(imu=k, sensor=sensor) for sensor, ks in _imus_by_sensor(layout) for k in ks]
+
+    def variance(self, params, ctx):
+        va, vg = super().variance(params, ctx)
+        return (va, torch.zeros_like(vg)) if self.which == "acc" else (torch.zeros_like(va), vg)
+
+    def report_parameters(self, params=None):
+        out = super().report_parameters(params)
+        out["sensor"] = self.which
+        return out
+
+    def explain(self, params=None):
+        p = self._p(params)
+        sd = float(p["width"]) / math.sqrt(12.0)
+        what = "accelerometer" if self.which == "acc" else "gyroscope"
+        return (f"IMU {self.imu}'s {what} samples at instants that wander around their time stamps (std "
+                f"{sd * 1e3:.3g} ms, correlation {float(p['correlation']):.2f} between consecutive samples), as a sensor "
+                f"on its own free-running clock would: its readings lag or lead the motion by a slowly changing amount.")
