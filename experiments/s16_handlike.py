@@ -99,14 +99,18 @@ def run_one(i: int, process_noise: str, marginal_scale: bool = True) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n", type=int, default=24, help="number of recordings (default 24)")
-    ap.add_argument("--process-noise", default="estimate", choices=("estimate", "s16"))
+    ap.add_argument("--process-noise", default="estimate", choices=("estimate", "estimate-snap", "s16"))
+    ap.add_argument("--only", type=str, default=None,
+                    help="comma-separated recording indices to run (a subset; default all --n)")
     ap.add_argument("--no-marginal-scale", action="store_true", help="keep the joint MAP's scale")
     ap.add_argument("--out", default=None, help="results document (default experiments/s16_handlike[_s16].md)")
     args = ap.parse_args(argv)
-    out = args.out or str(HERE / ("s16_handlike.md" if args.process_noise == "estimate" else "s16_handlike_s16.md"))
+    default_names = {"estimate": "s16_handlike.md", "estimate-snap": "s16_handlike_snap.md", "s16": "s16_handlike_s16.md"}
+    out = args.out or str(HERE / default_names[args.process_noise])
     t0 = time.perf_counter()
     rows = []
-    for i in range(args.n):
+    which = range(args.n) if args.only is None else [int(v) for v in args.only.split(",")]
+    for i in which:
         r = run_one(i, args.process_noise, not args.no_marginal_scale)
         rows.append(r)
         if r["ok"]:
