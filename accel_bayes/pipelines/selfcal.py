@@ -246,7 +246,8 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     run.poses = [[k, *(means[k] * 1e3), *(pstd[k] * 1e6), *np.degrees(dq[k]), ang[k], astd[k],
                   int(k == fixed_label), int(inp.has_acc[k])] for k in range(K)]
     run.means, run.pstd, run.angle, run.angle_std = means, pstd, ang, astd
-    run.motion = np.column_stack([time_s, res.states.detach().cpu().numpy()])
+    # motion.csv keeps [a_lin, ω, ω̇]; the smoother model's extra derivatives (ω̈, ȧ_lin) stay in the result
+    run.motion = np.column_stack([time_s, res.states[:, :9].detach().cpu().numpy()])
     run.warnings = reasons
     run.check = check
     return run
@@ -256,7 +257,9 @@ def _process_noise_setting(pn: dict) -> dict:
     """The process model of a run, for the provenance (JSON-ready)."""
     if pn.get("mode") == "s16":
         return {"mode": "s16", "variances": pn.get("variances")}
-    return {"mode": pn.get("mode"), "model": "white noise on jerk (omega) and on d a_lin/dt, exact discretisation",
+    model = ("white noise on snap (omega) and on d2 a_lin/dt2, exact discretisation" if pn.get("state_dim", 9) == 15
+             else "white noise on jerk (omega) and on d a_lin/dt, exact discretisation")
+    return {"mode": pn.get("mode"), "model": model,
             "intensities": pn.get("intensities"), "iterations": len(pn.get("history", []))}
 
 
