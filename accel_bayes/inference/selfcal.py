@@ -16,7 +16,9 @@ The factor graph of [S16] Fig. 2 / eq. 15:
 
 * one triad's pose is fixed at its nominal value ([S16] eq. 16): it defines the array frame.
 
-Unknowns are the motion states x_i = [a_lin, ω, ω̇] (T, 9) — local blocks, one per sample,
+Unknowns are the motion states x_i = [a_lin, ω, ω̇] (T, 9) — or, with the smoother continuous-time
+motion model of issue #12 (``process_noise="estimate-snap"``), [a_lin, ω, ω̇, ω̈, ȧ_lin] (T, 15),
+whose extra derivatives enter the process residuals only — local blocks, one per sample,
 coupled in a chain by the process residuals — and the poses of the free triads (global blocks:
 a Euclidean position and a unit quaternion).  Quaternions are updated on their manifold with
 the exponential-map box-plus q ⊞ δ = q ∘ exp(δ) (:func:`accel_bayes.physics.geometry.boxplus`; δ is a
@@ -977,13 +979,13 @@ def self_calibrate(
         :data:`accel_bayes.physics.models.S16_PROCESS_VARIANCES`, the paper's 10³, 10⁻⁷, 10³).
         Only with ``process_noise="s16"``.
     process_noise : the motion model.  ``"s16"`` (default; the paper's experiments): eq. 8 with the
-        fixed ``process_variances``.  ``"estimate"`` (issue #12; the default of the pipeline and the
-        CLI): the continuous-time white-noise-on-jerk model (:func:`wnoj_process_covariance`; same
+        fixed ``process_variances``.  ``"estimate"`` (issue #12): the continuous-time white-noise-on-jerk model (:func:`wnoj_process_covariance`; same
         eq. 7 transition, ω the exact integral of ω̇) whose two intensities q_a, q_ω are estimated
         by the type-II ML fixed point q ← q · rss/(n − h) (:func:`process_noise_statistics`,
         :func:`update_process_intensities`) alternated with the joint LM; q_ω starts 10³ below the
         raw-output guess (stiff) and every LM run from zero motion starts stiff again.  A dict
-        ``"estimate-snap"`` (issue #12): the smoother continuous-time model — white noise on the snap
+        ``"estimate-snap"`` (issue #12; the default of the pipeline and the CLI): the smoother
+        continuous-time model — white noise on the snap
         ω⃛ and on ä_lin, state x = [a_lin, ω, ω̇, ω̈, ȧ_lin] (T, 15), exact discretisation
         (:func:`continuous_process_covariance`, :func:`integrated_wiener_covariance`); ω̇ and a_lin
         are then smooth paths, as in hand motion, where the jerk model makes ω̇ a Brownian path.

@@ -165,7 +165,7 @@ def prepare(recording, *, fixed: int | None = None, selection=None, drop_clipped
 
 
 def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: int = 200, rerun: bool = True,
-            seed=None, progress: bool = False, process_noise="estimate", marginal_scale: bool = True) -> SelfcalRun:
+            seed=None, progress: bool = False, process_noise="estimate-snap", marginal_scale: bool = True) -> SelfcalRun:
     """[S16] self-calibration: poses of every accelerometer triad relative to the fixed one, jointly
     with the motion, from the accelerometers alone.
 
@@ -173,10 +173,13 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     selection : the samples to fit (:func:`prepare`; None: every sample).
     max_iter : LM iteration limit per stage.  rerun : the [S16] §VI-A re-run from the estimate.
     seed : recorded in the provenance only (the self-calibration draws no random numbers).
-    process_noise : "estimate" (default: the continuous-time white-noise-on-jerk motion model with
-        its intensities estimated from the recording, issue #12) or "s16" (the paper's fixed eq. 8
-        variances); see :func:`~accel_bayes.inference.selfcal.self_calibrate`.
-    marginal_scale : with the estimated process noise, move the estimate along the scale orbit to
+    process_noise : "estimate-snap" (default: the continuous-time motion model with white noise on
+        the snap ω⃛ and on ä_lin — smooth ω̇ and a_lin, as in hand motion — its two intensities
+        estimated from the recording, issue #12; experiments/s16_handlike.md), "estimate" (white
+        noise on the jerk; its board comes out up to 1 % small on hand-like motion,
+        experiments/s16_handlike_jerk.md) or "s16" (the paper's fixed eq. 8 variances); see
+        :func:`~accel_bayes.inference.selfcal.self_calibrate`.
+    marginal_scale : with an estimated process noise, move the estimate along the scale orbit to
         the maximum of the Laplace marginal likelihood (motion integrated out).
     """
     from .. import __version__
