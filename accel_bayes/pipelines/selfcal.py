@@ -165,7 +165,7 @@ def prepare(recording, *, fixed: int | None = None, selection=None, drop_clipped
 
 
 def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: int = 200, rerun: bool = True,
-            seed=None, progress: bool = False, process_noise="estimate-snap", marginal_scale: bool = True) -> SelfcalRun:
+            seed=None, progress: bool = False, process_noise="estimate-snap", marginal_scale: bool | str = True) -> SelfcalRun:
     """[S16] self-calibration: poses of every accelerometer triad relative to the fixed one, jointly
     with the motion, from the accelerometers alone.
 
@@ -180,7 +180,8 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
         experiments/s16_handlike_jerk.md) or "s16" (the paper's fixed eq. 8 variances); see
         :func:`~accel_bayes.inference.selfcal.self_calibrate`.
     marginal_scale : with an estimated process noise, move the estimate along the scale orbit to
-        the maximum of the Laplace marginal likelihood (motion integrated out).
+        the maximum of the Laplace marginal likelihood (motion integrated out); "score": at the root
+        of its approximate derivative instead (the earlier method); False: keep the joint MAP.
     """
     from .. import __version__
     from ..data.positions import positions_document
