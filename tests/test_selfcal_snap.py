@@ -257,7 +257,8 @@ def test_snap_model_scale_on_a_short_concealed_handlike_recording_at_62_5_hz():
     case = E.case(12346, 3)
     run = selfcal(case.recording, max_iter=100)  # the default motion model is estimate-snap
     assert run.ok and not run.warnings
-    assert run.document["provenance"]["settings"]["process_noise"]["mode"] == "estimate-snap"
+    setting = run.document["provenance"]["settings"]["process_noise"]
+    assert setting["mode"] == "estimate-snap" and setting["scale_correction"]["method"] == "laplace"
     tr = np.asarray(case.truth["true_relative_position"], dtype=float)
     free = [k for k in range(tr.shape[0]) if k != run.input.fixed_label]
     scale = float((run.means[free] * tr[free]).sum() / (tr[free] ** 2).sum())

@@ -1497,7 +1497,7 @@ def _correct_scale(out: SelfCalResult, res, A: int, fixed: int, dt, W, inv_std, 
     p, x = scale_orbit(p0, x0, fixed, c_b)
     total = c_b
     out.raw_positions, out.states = p, x
-    out.process_noise["scale_correction"] = {"factor": total, "steps": steps}
+    out.process_noise["scale_correction"] = {"method": "score", "factor": total, "steps": steps}
 
 
 def _whitened_rms(F: float, count: int) -> float:

@@ -263,8 +263,11 @@ def _process_noise_setting(pn: dict) -> dict:
         return {"mode": "s16", "variances": pn.get("variances")}
     model = ("white noise on snap (omega) and on d2 a_lin/dt2, exact discretisation" if pn.get("state_dim", 9) == 15
              else "white noise on jerk (omega) and on d a_lin/dt, exact discretisation")
+    corr = pn.get("scale_correction")
     return {"mode": pn.get("mode"), "model": model,
-            "intensities": pn.get("intensities"), "iterations": len(pn.get("history", []))}
+            "intensities": pn.get("intensities"), "iterations": len(pn.get("history", [])),
+            "scale_correction": None if corr is None else {"method": corr.get("method", "score"),
+                                                            "factor": float(corr["factor"])}}
 
 
 def write_convergence(run: SelfcalRun, out_dir, title: str = "") -> Path:
