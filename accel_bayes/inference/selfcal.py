@@ -999,7 +999,7 @@ def self_calibrate(
     marginal_scale : with the continuous-time model, move the joint MAP along the accelerometer-only
         scale orbit (:func:`scale_orbit`) to the maximum of the Laplace marginal likelihood of the
         poses (:func:`marginal_scale_score`): the joint MAP's scale is set by the motion prior alone
-        and comes out too large (experiments/s16_handlike.md).  The covariance stays the MAP's.
+        and comes out too large (experiments/s16_handlike_map.md).  The covariance stays the MAP's.
         ``True`` (default): the Laplace marginal −log p(z | poses_c) ≈ ½F(x̂_c) + ½ log det H_xx(x̂_c)
         itself is minimised over the orbit parameter c (x̂_c the motion-only MAP at the orbit's
         poses; :func:`laplace_scale_nll`, safeguarded parabolic steps).  ``"score"``: the root of
