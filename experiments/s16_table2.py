@@ -175,8 +175,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     add_dask_arguments(ap)
     ap.add_argument("--no-physical", action="store_true", help="skip the 'physical ω̇' self-calibration row")
-    ap.add_argument("--process-noise", default="s16", choices=("s16", "estimate"),
-                    help="self-calibration motion model: s16 (the paper's, default) or estimate (issue #12)")
+    ap.add_argument("--process-noise", default="s16", choices=("s16", "estimate", "estimate-snap"),
+                    help="self-calibration motion model: s16 (the paper's, default), estimate or estimate-snap (issue #12)")
     ap.add_argument("--out", default="out/s16_table2.csv", help="per-trial CSV (default out/s16_table2.csv)")
     args = ap.parse_args(argv)
     n = args.trials if args.trials is not None else (20 if args.quick else 100)

@@ -390,8 +390,8 @@ def test_cli_selfcal_writes_outputs(tmp_path, capsys):
     rec = tmp_path / "s16.nc"
     sim = _write_sim(rec, m, position_error_std=2e-3, orientation_error_std=0.02)
     out = tmp_path / "out"
-    # the paper's slow table-like motion: the [S16] model (the estimated motion model is biased in
-    # scale on such slow motion, experiments/s16_handlike.md)
+    # the paper's slow table-like motion: the [S16] model (the estimated jerk model is biased in
+    # scale on such slow motion, experiments/s16_handlike_jerk.md)
     code = _cli(["selfcal", str(rec), "--out", str(out), "--no-progress", "--seed", "4", "--process-noise", "s16"])
     assert code == 0
     printed = capsys.readouterr().out
@@ -640,7 +640,7 @@ def test_estimated_process_intensities_recover_the_true_ones():
     fixed point (started 1000× too stiff in q_ω) returns both within 20 % (measured: q_a −0.6 %,
     q_ω −15 %) and stops on its tolerance.  The poses themselves are NOT checked against their std
     here: on this slow, weakly informative motion the fitted board is several std too large
-    (experiments/s16_handlike.md, "what is left")."""
+    (the jerk model: experiments/s16_handlike_jerk.md; the smoother default: s16_handlike.md)."""
     gen = torch.Generator().manual_seed(31)
     q_true = {"acc": 30.0, "omega": 20.0}
     rate = 250.0

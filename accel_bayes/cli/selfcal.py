@@ -58,10 +58,13 @@ def register(sub) -> None:
                    "every sample as [S16] does); the process model bridges each gap exactly")
     p.add_argument("--no-rerun", action="store_true",
                    help="skip the [S16] §VI-A re-run from the estimated poses")
-    p.add_argument("--process-noise", choices=("estimate", "s16"), default="estimate",
-                   help="motion model: 'estimate' (default: continuous-time white-noise-on-jerk model, its two "
-                   "intensities estimated from the recording by type-II maximum likelihood, scale at the maximum of "
-                   "the Laplace marginal likelihood; issue #12) or 's16' (the paper's fixed eq. 8 variances)")
+    p.add_argument("--process-noise", choices=("estimate-snap", "estimate", "s16"), default="estimate-snap",
+                   help="motion model: 'estimate-snap' (default: continuous-time model with white noise on the snap "
+                   "of the rotation and on the second derivative of the linear acceleration, smooth like hand motion; "
+                   "its two intensities estimated from the recording by type-II maximum likelihood, scale at the "
+                   "maximum of the Laplace marginal likelihood; issue #12), 'estimate' (the same with white noise on "
+                   "the jerk: rougher, its board comes out up to 1 %% small on hand-like motion, "
+                   "experiments/s16_handlike.md) or 's16' (the paper's fixed eq. 8 variances)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     p.set_defaults(func=_run)
 

@@ -165,7 +165,7 @@ def prepare(recording, *, fixed: int | None = None, selection=None, drop_clipped
 
 
 def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: int = 200, rerun: bool = True,
-            seed=None, progress: bool = False, process_noise="estimate", marginal_scale: bool = True) -> SelfcalRun:
+            seed=None, progress: bool = False, process_noise="estimate-snap", marginal_scale: bool | str = True) -> SelfcalRun:
     """[S16] self-calibration: poses of every accelerometer triad relative to the fixed one, jointly
     with the motion, from the accelerometers alone.
 
@@ -173,11 +173,15 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     selection : the samples to fit (:func:`prepare`; None: every sample).
     max_iter : LM iteration limit per stage.  rerun : the [S16] §VI-A re-run from the estimate.
     seed : recorded in the provenance only (the self-calibration draws no random numbers).
-    process_noise : "estimate" (default: the continuous-time white-noise-on-jerk motion model with
-        its intensities estimated from the recording, issue #12) or "s16" (the paper's fixed eq. 8
-        variances); see :func:`~accel_bayes.inference.selfcal.self_calibrate`.
-    marginal_scale : with the estimated process noise, move the estimate along the scale orbit to
-        the maximum of the Laplace marginal likelihood (motion integrated out).
+    process_noise : "estimate-snap" (default: the continuous-time motion model with white noise on
+        the snap ω⃛ and on ä_lin — smooth ω̇ and a_lin, as in hand motion — its two intensities
+        estimated from the recording, issue #12; experiments/s16_handlike.md), "estimate" (white
+        noise on the jerk; its board comes out up to 1 % small on hand-like motion,
+        experiments/s16_handlike_jerk.md) or "s16" (the paper's fixed eq. 8 variances); see
+        :func:`~accel_bayes.inference.selfcal.self_calibrate`.
+    marginal_scale : with an estimated process noise, move the estimate along the scale orbit to
+        the maximum of the Laplace marginal likelihood (motion integrated out); "score": at the root
+        of its approximate derivative instead (the earlier method); False: keep the joint MAP.
     """
     from .. import __version__
     from ..data.positions import positions_document
@@ -246,7 +250,8 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     run.poses = [[k, *(means[k] * 1e3), *(pstd[k] * 1e6), *np.degrees(dq[k]), ang[k], astd[k],
                   int(k == fixed_label), int(inp.has_acc[k])] for k in range(K)]
     run.means, run.pstd, run.angle, run.angle_std = means, pstd, ang, astd
-    run.motion = np.column_stack([time_s, res.states.detach().cpu().numpy()])
+    # motion.csv keeps [a_lin, ω, ω̇]; the smoother model's extra derivatives (ω̈, ȧ_lin) stay in the result
+    run.motion = np.column_stack([time_s, res.states[:, :9].detach().cpu().numpy()])
     run.warnings = reasons
     run.check = check
     return run
@@ -256,8 +261,13 @@ def _process_noise_setting(pn: dict) -> dict:
     """The process model of a run, for the provenance (JSON-ready)."""
     if pn.get("mode") == "s16":
         return {"mode": "s16", "variances": pn.get("variances")}
-    return {"mode": pn.get("mode"), "model": "white noise on jerk (omega) and on d a_lin/dt, exact discretisation",
-            "intensities": pn.get("intensities"), "iterations": len(pn.get("history", []))}
+    model = ("white noise on snap (omega) and on d2 a_lin/dt2, exact discretisation" if pn.get("state_dim", 9) == 15
+             else "white noise on jerk (omega) and on d a_lin/dt, exact discretisation")
+    corr = pn.get("scale_correction")
+    return {"mode": pn.get("mode"), "model": model,
+            "intensities": pn.get("intensities"), "iterations": len(pn.get("history", [])),
+            "scale_correction": None if corr is None else {"method": corr.get("method", "score"),
+                                                            "factor": float(corr["factor"])}}
 
 
 def write_convergence(run: SelfcalRun, out_dir, title: str = "") -> Path:
