@@ -48,10 +48,11 @@ def _rows(K: int, k: int) -> torch.Tensor:
     return torch.tensor([3 * k, 3 * k + 1, 3 * k + 2, 3 * K + 3 * k, 3 * K + 3 * k + 1, 3 * K + 3 * k + 2])
 
 
-def jitter_ab(prep, fit, k: int, sensor: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power: bool = False):
     """(a, b), each (T,), of IMU k at a fit (module docstring): a = ũᵀũ in s⁻², b = ũᵀr̃ in s⁻¹.
     ``sensor`` "acc" or "gyro" restricts them to that triad's three channels (``timing_wander``);
-    None uses all six (``sampling_jitter``)."""
+    None uses all six (``sampling_jitter``).  ``with_residual_power`` (with a sensor): also
+    Σ r̃ᵀr̃ and the number of observed channels of the triad."""
     lin = fit.linear()
     K = prep.K
     rows = _rows(K, k)
@@ -72,26 +73,40 @@ def jitter_ab(prep, fit, k: int, sensor: str | None = None) -> tuple[torch.Tenso
     if sensor is not None:
         sl = slice(0, 3) if sensor == "acc" else slice(3, 6)
         ut, rt = ut[:, sl], rt[:, sl]
+        if with_residual_power:
+            m = (prep.m_acc if sensor == "acc" else prep.m_gyro)[:, k]
+            return (ut * ut).sum(-1), (ut * rt).sum(-1), float((rt * rt * m).sum()), int(m.sum())
     return (ut * ut).sum(-1), (ut * rt).sum(-1)
 
 
 def _wander_profile(prep, fit, effect) -> dict:
     """``timing_wander`` at a fit: (width, correlation) by maximum marginal likelihood of the AR(1)
-    instant error on the effect's triad (:func:`accel_bayes.mismatch.wander.fit_wander`, noise at
-    the model's), as a profile dict like :func:`profile_width`'s plus "correlation" and
-    "correlation_std"."""
-    from .wander import fit_wander
+    instant error on the effect's triad, fitted together with a white-noise factor c of the triad
+    (:func:`accel_bayes.mismatch.wander.fit_wander`); the gain and the evidence are against the
+    triad's best noise-only model (``gain``: what the timing term adds), and the inflation itself
+    becomes the effect's ``excess_noise_var`` ((c² − 1)·σ², units², ≥ 0; ``noise_only_gain`` its
+    log-likelihood gain over the model's noise).  The detector's evidence is the sum of the two
+    gains (against the current model, like every variance candidate's): it beats ``noise_level``
+    only by what the timing term adds.  A profile dict like :func:`profile_width`'s plus
+    "correlation", "correlation_std", "excess_noise_var" and "noise_only_gain"."""
+    from .wander import _noise_only_gain, fit_wander
 
-    a, b = jitter_ab(prep, fit, int(effect.imu), effect.which)
+    k = int(effect.imu)
+    a, b, rr, n = jitter_ab(prep, fit, k, effect.which, with_residual_power=True)
     t = np.asarray(prep.time, dtype=float)
     dt = np.diff(t)
     steps = dt / float(np.median(dt)) if len(dt) else np.zeros(0)
-    f = fit_wander(a.numpy(), b.numpy(), steps, sigma_max=_max_width(prep) / math.sqrt(12.0))
+    f = fit_wander(a.numpy(), b.numpy(), steps, sigma_max=_max_width(prep) / math.sqrt(12.0), rr=rr, n=n)
+    c = max(float(f["c"]), 1.0)  # no variance below the model's noise
+    sig = float((prep.sigma_acc[k] * fit.acc_factor[k]) if effect.which == "acc" else
+                (prep.sigma_gyro[k] * fit.gyro_factor[k]))
     w = math.sqrt(12.0) * f["sigma"]
     w_std = None if f["sigma_std"] is None else math.sqrt(12.0) * f["sigma_std"]
     iv = [max(0.0, w - 1.96 * w_std), w + 1.96 * w_std] if w_std is not None else [0.0, w]
     return {"width": w, "correlation": f["rho"], "gain": f["gain"], "interval": iv,
-            "std": w_std if w_std is not None else float("nan"), "correlation_std": f["rho_std"]}
+            "std": w_std if w_std is not None else float("nan"), "correlation_std": f["rho_std"],
+            "excess_noise_var": (c * c - 1.0) * sig * sig,
+            "noise_only_gain": _noise_only_gain(rr, n)[1]}
 
 
 def _max_width(prep) -> float:
@@ -130,8 +145,11 @@ def jitter_evidence(prep, fit, effect) -> tuple[float, dict]:
     """(evidence, profile) of a ``sampling_jitter`` effect at a fit: evidence = 2·G(ŵ), the
     likelihood ratio against w = 0 (module docstring); profile from :func:`profile_width`."""
     if effect.name == "timing_wander":
+        # against the current model (N(0, I) in its noise units), as every other variance
+        # candidate's evidence: the wander's own white-noise part competes with noise_level's
+        # inflation on equal terms, and the wander wins only by what the timing term adds
         prof = _wander_profile(prep, fit, effect)
-        return 2.0 * prof["gain"], prof
+        return 2.0 * (prof["gain"] + prof["noise_only_gain"]), prof
     a, b = jitter_ab(prep, fit, int(effect.imu))
     prof = profile_width(a, b, _max_width(prep))
     return 2.0 * prof["gain"], prof
@@ -155,12 +173,13 @@ def fit_random_effects(prep, fit) -> None:
             # the AR(1) gain is not a sum over samples: spread evenly over them (only the total
             # enters the evidence; the per-sample split matters for PSIS-LOO, approximate anyway)
             prof = _wander_profile(prep, fit, e)
-            e.set_params({"width": prof["width"], "correlation": prof["correlation"]})
+            e.set_params({"width": prof["width"], "correlation": prof["correlation"],
+                          "excess_noise_var": prof["excess_noise_var"]})
             e.std = {"width": torch.tensor(prof["std"], dtype=torch.float64)}
             if prof["correlation_std"] is not None:
                 e.std["correlation"] = torch.tensor(prof["correlation_std"], dtype=torch.float64)
             e.stats["width_interval_s"] = prof["interval"]
-            fit.loglik_t = fit.loglik_t + prof["gain"] / prep.T
+            fit.loglik_t = fit.loglik_t + (prof["gain"] + prof["noise_only_gain"]) / prep.T
             continue
         a, b = jitter_ab(prep, fit, int(e.imu))
         prof = profile_width(a, b, w_max)

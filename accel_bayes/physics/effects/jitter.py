@@ -151,7 +151,9 @@ class TimingWander(SamplingJitter):
     ``"random"``: no mean change; the detector fits (width, correlation) on the exact marginal
     likelihood of the linearised model (:mod:`accel_bayes.mismatch.wander`, banded O(T)).  Its
     predicted extra variance per sample is that of the instant error, (width²/12)·rate², on the
-    sensor's channels of IMU k."""
+    sensor's channels of IMU k, plus ``excess_noise_var``: the white noise the triad has beyond the
+    model's, fitted together with the wander so that the wander is not credited with a constant
+    variance inflation (its evidence is against the triad's best noise-only model)."""
 
     name = "timing_wander"
     in_vocabulary = False
@@ -160,7 +162,9 @@ class TimingWander(SamplingJitter):
     options = ("sensor",)
     parameters = (Param("width", (), "s", None, "√12 × the std of the instant error (the width of a uniform jitter "
                         "with the same variance)", null=0.0),
-                  Param("correlation", (), "1", None, "lag-one correlation of the instant error", null=0.0))
+                  Param("correlation", (), "1", None, "lag-one correlation of the instant error", null=0.0),
+                  Param("excess_noise_var", (), "sensor units²", None, "white noise the triad has beyond the model's "
+                        "(fitted with the wander, so that the wander is not credited with it)", null=0.0))
 
     def __init__(self, imu=None, axis=None, params=None, sensor: str = "gyro"):
         if sensor not in ("acc", "gyro"):
@@ -173,6 +177,8 @@ class TimingWander(SamplingJitter):
         r = float(self.params["correlation"])
         if not 0.0 <= r < 1.0:
             raise UserError(f"timing_wander: correlation: expected 0 <= correlation < 1, got {r!r}")
+        if float(self.params["excess_noise_var"]) < 0:
+            raise UserError("timing_wander: excess_noise_var: expected a variance >= 0")
         return self
 
     def location(self):
@@ -186,7 +192,13 @@ class TimingWander(SamplingJitter):
 
     def variance(self, params, ctx):
         va, vg = super().variance(params, ctx)
-        return (va, torch.zeros_like(vg)) if self.which == "acc" else (torch.zeros_like(va), vg)
+        extra = float(self._p(params)["excess_noise_var"])
+        k = self._imu_checked(ctx)
+        if self.which == "acc":
+            va[:, k] = va[:, k] + extra
+            return va, torch.zeros_like(vg)
+        vg[:, k] = vg[:, k] + extra
+        return torch.zeros_like(va), vg
 
     def report_parameters(self, params=None):
         out = super().report_parameters(params)
