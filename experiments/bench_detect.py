@@ -31,7 +31,9 @@ Workloads (the same samples in both trees):
 one that runs out is reported as "> timeout" and the speedup as a lower bound.  ``--full`` lifts
 the timeout.
 
-    python experiments/bench_detect.py [--base DIR] [--only mimu_exp1,mimu32_T3000] [--timeout S | --full]
+    python experiments/bench_detect.py [--base DIR] [--only mimu_exp1,mimu32_T3000] [--timeout S | --full] [--md PATH]
+
+``--md PATH`` also writes the printed lines as a results document (``experiments/bench_detect.md``).
 """
 from __future__ import annotations
 
@@ -137,7 +139,16 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default=",".join(WORKLOADS), help="comma-separated workloads")
     ap.add_argument("--timeout", type=float, default=300.0, help=f"seconds per {BASE_COMMIT} call (default 300)")
     ap.add_argument("--full", action="store_true", help=f"no timeout for {BASE_COMMIT}")
+    ap.add_argument("--md", type=Path, default=None, help="also write the printed lines to this markdown file")
     args = ap.parse_args(argv)
+    lines = []
+
+    def print(*a, **k):  # noqa: A001  every printed line also goes to --md
+        import builtins
+
+        lines.append(" ".join(str(x) for x in a))
+        builtins.print(*a, **k)
+
     only = [w for w in args.only.split(",") if w]
     for w in only:
         if w not in WORKLOADS:
@@ -167,6 +178,11 @@ def main(argv=None) -> int:
                 print(f"RESULT detect_{wl}: ours {xo:.1f} s, {BASE_COMMIT} {rb['seconds']:.1f} s, "
                       f"speedup {rb['seconds'] / xo:.2f}x")
     print(f"load average at the end: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    if args.md is not None:
+        cmd = "python experiments/bench_detect.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        args.md.write_text("# detect on whole recordings, ours vs 7adf109 (issue #11 item 3)\n\n"
+                           "Written by `experiments/bench_detect.py` (its docstring says what is measured and how).\n\n"
+                           f"Command: `{cmd.strip()}`\n\n```\n" + "\n".join(lines) + "\n```\n")
     return 0
 
 

@@ -80,6 +80,8 @@ cores.
 from __future__ import annotations
 
 import copy as _copy
+import functools
+import inspect
 import math
 import time as _time
 from dataclasses import dataclass
@@ -90,6 +92,7 @@ import torch
 from ..data.io import load_recording
 from ..errors import UserError
 from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
+from ..threads import DEFAULT_THREADS, torch_threads
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
 from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
@@ -430,6 +433,25 @@ def _check_options(effects, alpha, max_findings, seed):
     return a, names
 
 
+def _pinned_threads(fn):
+    """Give ``fn`` a keyword ``threads`` (default :data:`~accel_bayes.threads.DEFAULT_THREADS` = 1) and
+    run it under :func:`~accel_bayes.threads.torch_threads`, as ``calibrate`` runs: the detector's
+    tensors are (T, 6K, ·) blocks and tiny per-sample systems, where a second torch thread only adds
+    synchronisation on a shared machine.  ``None`` leaves torch's setting alone.  Results do not
+    depend on it beyond floating-point reduction order."""
+    sig = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def wrapper(*args, threads: int | None = DEFAULT_THREADS, **kwargs):
+        with torch_threads(threads):
+            return fn(*args, **kwargs)
+
+    extra = inspect.Parameter("threads", inspect.Parameter.KEYWORD_ONLY, default=DEFAULT_THREADS)
+    wrapper.__signature__ = sig.replace(parameters=[*sig.parameters.values(), extra])
+    return wrapper
+
+
+@_pinned_threads
 def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 3, refine: bool = True,
            posterior: bool = False, seed: int = 0, progress: bool = False, n_twins: int = 100,
            n_refit: int = 6, use_map: bool = True, loo_draws: int = 200) -> MismatchReport:
@@ -449,6 +471,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         chains) before and after correcting the recording for the findings (slow).
     seed : seeds the PPC twins, the Laplace draws and the posterior runs.
     progress : print stage messages (and LM progress bars).
+    threads : torch CPU threads for the call (default 1, restored afterwards; None leaves torch's
+        setting; :func:`_pinned_threads`).
     n_twins : PPC twins; n_refit : LM refits per round; use_map : start the baseline from the
         package's MAP; loo_draws : Laplace draws for PSIS-LOO.
 
