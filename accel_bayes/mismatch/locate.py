@@ -144,12 +144,12 @@ def _batch_stats(z: torch.Tensor, mask: torch.Tensor, reg_labels: list):
     """Headline statistics of z (..., T, K, 6) for the PPC (batched over leading dims)."""
     zz = torch.where(mask, z, torch.zeros_like(z))
     n = mask.sum(-3).double()
-    chi2_cell = (zz ** 2).sum(-3)
+    z2 = zz ** 2
+    chi2_cell = z2.sum(-3)
     excess = (chi2_cell - n) / torch.sqrt(2 * n.clamp_min(1))
     both = (mask[1:] & mask[:-1])
     lag = ((zz[..., 1:, :, :] * zz[..., :-1, :, :] * both).sum(-3) / torch.sqrt(n.clamp_min(1))).abs()
     reg_max = []
-    z2 = zz ** 2
     tdim = z2.dim() - 3
     for lab, nb in reg_labels:
         idx = torch.as_tensor(lab, dtype=torch.long)
@@ -189,7 +189,7 @@ def ppc(prep: Prepared, fit: ModelFit, *, n_twins: int = 100, seed: int = 0, reg
     while done < n_twins:
         b = min(batch, n_twins - done)
         e = torch.randn(b, T, 6 * K, generator=g, dtype=torch.float32).double() * m_rows
-        rt = lin.project(e) * m_rows
+        rt = lin.project(e)  # unobserved rows are zeroed by the mask in _batch_stats
         zt = (rt / scale).reshape(b, T, 2, K, 3).permute(0, 1, 3, 2, 4).reshape(b, T, K, 6)
         st = _batch_stats(zt, mask, reg_labels)
         for k in stats:
