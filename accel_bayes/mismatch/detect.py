@@ -64,7 +64,9 @@ Procedure
      effect whose evidence exceeds :data:`RANDOM_DOMINANCE` (10) × the best acceptable mean
      candidate's is taken first (a wandering timing error looks like structure to every mean
      candidate, each explaining a small part of it).  At most one random effect per IMU and
-     sensor is in the model (each is profiled as if alone);
+     sensor is in the model (each is profiled as if alone).  ``noise_level`` refits of step 5
+     are only done in a round where no mean/clip candidate is acceptable (elsewhere the
+     round's ``refits`` list them as skipped);
    * among the acceptable ones the smallest p-value (χ²_df of the robust evidence) wins.
 
    With several findings, each one's evidence is recomputed with all the others in the model
@@ -95,12 +97,16 @@ null ½χ²₀ + ½χ²₁ is not used to lower it).  Findings are ranked by the
 evidence under χ²_df (most supported first; equal to ranking by evidence for equal df).
 
 Budget: one baseline fit, one screen per round (vectorised algebra, a few ms per candidate) and
-at most ``n_refit`` LM refits per round; a 32-IMU, T = 3000 recording stays within minutes on two
-cores.
+at most ``n_refit`` LM refits per round (``noise_level`` ones only in a round that needs them);
+every sample the prepared selection keeps is used.  ``experiments/bench_detect.py`` (one thread):
+the whole real MIMU exp_1 (5885 samples kept, 8 IMUs) in ~20 s and a 32-IMU, T = 3000 recording in
+~20–30 s on the shared 2-core machine (``experiments/bench_detect.md``).
 """
 from __future__ import annotations
 
 import copy as _copy
+import functools
+import inspect
 import math
 import time as _time
 from dataclasses import dataclass
@@ -112,6 +118,7 @@ from ..data.io import load_recording
 from ..errors import UserError
 from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
 from .characterise import characterise, describe
+from ..threads import DEFAULT_THREADS, torch_threads
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
 from .budget import residual_budget
 from .compare import compare_fits
@@ -532,6 +539,25 @@ def _heteroscedastic(char: dict, effect, alpha: float) -> str | None:
     return None
 
 
+def _pinned_threads(fn):
+    """Give ``fn`` a keyword ``threads`` (default :data:`~accel_bayes.threads.DEFAULT_THREADS` = 1) and
+    run it under :func:`~accel_bayes.threads.torch_threads`, as ``calibrate`` runs: the detector's
+    tensors are (T, 6K, ·) blocks and tiny per-sample systems, where a second torch thread only adds
+    synchronisation on a shared machine.  ``None`` leaves torch's setting alone.  Results do not
+    depend on it beyond floating-point reduction order."""
+    sig = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def wrapper(*args, threads: int | None = DEFAULT_THREADS, **kwargs):
+        with torch_threads(threads):
+            return fn(*args, **kwargs)
+
+    extra = inspect.Parameter("threads", inspect.Parameter.KEYWORD_ONLY, default=DEFAULT_THREADS)
+    wrapper.__signature__ = sig.replace(parameters=[*sig.parameters.values(), extra])
+    return wrapper
+
+
+@_pinned_threads
 def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 3, refine: bool = True,
            posterior: bool = False, seed: int = 0, progress: bool = False, n_twins: int = 100,
            n_refit: int = 6, use_map: bool = True, loo_draws: int = 200) -> MismatchReport:
@@ -552,6 +578,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         chains) before and after correcting the recording for the findings (slow).
     seed : seeds the PPC twins, the Laplace draws and the posterior runs.
     progress : print stage messages (and LM progress bars).
+    threads : torch CPU threads for the call (default 1, restored afterwards; None leaves torch's
+        setting; :func:`_pinned_threads`).
     n_twins : PPC twins; n_refit : LM refits per round; use_map : start the baseline from the
         package's MAP; loo_draws : Laplace draws for PSIS-LOO.
 
@@ -602,14 +630,15 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         say(f"round {rnd + 1}: screened {len(screens)}; refitting {[s.effect.label() for s in chosen]}")
         h_cur = current.linear().h
         results = []
-        for sc in chosen:
+
+        def refit(sc):
             cand = sc.effect
             try:
                 model_eff = [e.copy() for e in current.effects] + [cand]
                 f = fit_model(prep, model_eff, init=current, laplace=False)
             except Exception as exc:  # a candidate that cannot be fitted is reported, not fatal
                 info["refits"].append({"candidate": cand.label(), "error": f"{type(exc).__name__}: {exc}"})
-                continue
+                return
             ev = _evidence(prep, f, current, cand)
             # noise-robust evidence of mean effects: the LR over the residual power left in the
             # effect's IMU/sensor group (an F-test-like guard: noise larger than stated inflates
@@ -623,6 +652,22 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             f.drop_linear()
             results.append({"effect": f.effects[-1], "fit": f, "evidence": ev, "evidence_robust": ev_r,
                             "log10_p": lp, "screen": sc, "without": current})
+
+        for sc in chosen:
+            if sc.effect.kind != "noise":
+                refit(sc)
+        # noise_level is only considered in a round where no mean/clip candidate is acceptable
+        # (below), so its refits are only done then: each one is up to ``noise_rounds`` + 1
+        # LM solves, and on a badly fitting recording (real MIMU data, χ²/dof ~ 3000) they were
+        # 3/4 of the detector's time while their result could not change the verdict.
+        mean_ok = any(r["evidence_robust"] > threshold for r in results)
+        for sc in chosen:
+            if sc.effect.kind == "noise":
+                if mean_ok:
+                    info["refits"].append({"candidate": sc.effect.label(), "screen_statistic": sc.statistic,
+                                           "skipped": "a mean/clip candidate is acceptable in this round"})
+                else:
+                    refit(sc)
         rounds.append(info)
         # mean (and clip) effects first; noise_level only when no structured effect passes,
         # because any unmodelled mean structure also raises the residual power
