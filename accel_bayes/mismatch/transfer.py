@@ -161,24 +161,53 @@ def noise_variances(prep: Prepared, fit: ModelFit, *, omega_edges=None, extra=No
     return out
 
 
-def predictive_loglik(prep: Prepared, fit: ModelFit, noise: dict, *, extra=None) -> float:
+def predictive_loglik(prep: Prepared, fit: ModelFit, noise: dict, *, extra=None, wander=(), per_sensor: bool = False):
     """Σ over observed outputs of log N(r̃; 0, v): r̃² = r²/(1 − h) the leverage-corrected squared
     residual of ``fit`` (so that a fit's shrinkage of its own residuals does not pass for
     predictive skill), v the variance of ``noise`` (:func:`noise_variances`, possibly from another
     recording; bands by this fit's |ω|) plus ``extra`` ((acc, gyro) (T, K, 3) per-sample variances
-    predicted by the model's random effects).  Nats."""
+    predicted by the model's independent random effects).  Nats.
+
+    ``wander``: ``timing_wander`` effects (parameters held, e.g. from another recording); their
+    triads get the exact joint density of the AR(1) timing error with white noise of variance
+    v + ``excess_noise_var`` (:func:`accel_bayes.mismatch.wander.ar1_gain`) instead of
+    independent terms — the correlated error predicts a sample from its neighbours, which a
+    marginal variance cannot express.  (Unbanded ``noise`` only for those triads: the first
+    band's variance is used.)  ``per_sensor``: return {"acc": nats, "gyro": nats} instead."""
+    import math
+
     import numpy as np
 
     from .budget import leverage_corrected_sq
+    from .jitter import jitter_ab
+    from .wander import ar1_gain
 
     sq = leverage_corrected_sq(prep, fit)
     lab = np.digitize(np.linalg.norm(fit.x[:, 0:3].detach().cpu().numpy(), axis=1), noise["edges"])
-    total = 0.0
+    joint = {(int(e.imu), e.which): e for e in wander}
+    parts = {}
     for j, (name, m) in enumerate((("acc", prep.m_acc), ("gyro", prep.m_gyro))):
+        total = 0.0
         r2 = sq[j].detach().cpu().numpy()
         v = np.asarray(noise[name])[:, lab].T[:, :, None] * np.ones_like(r2)  # (T, K, 3)
         if extra is not None:
             v = v + extra[j].detach().cpu().numpy()
         mm = m.detach().cpu().numpy() > 0
-        total += float((-0.5 * (r2 / v + np.log(2 * np.pi * v)))[mm].sum())
-    return total
+        dens = -0.5 * (r2 / v + np.log(2 * np.pi * v))
+        for k in range(prep.K):
+            e = joint.get((k, name))
+            if e is None:
+                total += float(dens[:, k][mm[:, k]].sum())
+                continue
+            sig_m = float((prep.sigma_acc[k] * fit.acc_factor[k]) if name == "acc" else
+                          (prep.sigma_gyro[k] * fit.gyro_factor[k]))
+            a, b, rr, n = jitter_ab(prep, fit, k, name, with_residual_power=True)
+            t = prep.time.detach().cpu().double().numpy()
+            steps = np.diff(t) / float(np.median(np.diff(t)))
+            white = float(np.asarray(noise[name])[k, 0]) + float(e.params["excess_noise_var"])
+            c = math.sqrt(white) / sig_m
+            g = ar1_gain(a.numpy(), b.numpy(), steps, float(e.params["width"]) / math.sqrt(12.0),
+                         float(e.params["correlation"]), c, rr, n)
+            total += g - 0.5 * rr - 0.5 * n * math.log(2 * math.pi) - n * math.log(sig_m)
+        parts[name] = total
+    return parts if per_sensor else parts["acc"] + parts["gyro"]
