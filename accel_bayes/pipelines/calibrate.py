@@ -16,7 +16,9 @@
    θ for choosing N, over-dispersed chain starts, the random-walk shape and an independence
    proposal;
 4. N, the number of Monte Carlo draws per likelihood estimate, chosen so that Var[log p̂] ≈ 1
-   at the central θ ([C21] §III-C, accepted range 0.1–3);
+   at the central θ ([C21] §III-C, accepted range 0.1–3); where that needs N > 1, instead the
+   correlated pseudo-marginal kernel with N = 1 and a correlation ρ of successive estimates
+   measured at the central θ (Deligiannidis, Doucet & Pitt 2018);
 5. C chains of :class:`~accel_bayes.inference.mcmc.PMMHKernel` (warm-up adaptation, then a
    fixed exact kernel), crash-safe when a checkpoint file is given; by default continued until
    every coordinate has R̂ < 1.01 and bulk and tail ESS ≥ 400, checked every 500 draws per chain,
@@ -436,7 +438,8 @@ def calibrate(
         every coordinate has R̂ < ``rhat_max`` and bulk and tail ESS ≥ ``ess_min``, checked every
         ``check_every`` draws per chain, up to ``max_draws`` draws per chain or ``max_seconds``
         of sampling.  An int: exactly that many draws (the chains of earlier versions, bit for
-        bit); the same criteria then only decide ``diagnostics.converged``.
+        bit where the sampler is unchanged — ``correlation`` 0 or an automatic N of 1); the same
+        criteria then only decide ``diagnostics.converged``.
     max_draws : most kept draws per chain in the run-until-converged mode (default 20 000).
     check_every : kept draws per chain between two convergence checks (default 500).  The checks
         happen at fixed draw counts (500, 1000, …), never at wall-clock times, so where a run
@@ -452,7 +455,18 @@ def calibrate(
         What a run did — the criteria, the draws it took, every check and why it stopped — is in
         ``settings["convergence"]`` and the ``diagnostics`` block of ``positions.json``.
     num_draws : N, Monte Carlo draws per likelihood estimate; None chooses it so that
-        Var[log p̂] ≈ 1 at the central θ (the MAP, or the prior mean) ([C21] §III-C).
+        Var[log p̂] ≈ 1 at the central θ (the MAP, or the prior mean) ([C21] §III-C) — or 1
+        with the correlated kernel, see ``correlation``.
+    correlation : "auto" (default) or ρ in [0, 1).  ρ > 0: the correlated pseudo-marginal
+        kernel (Deligiannidis, Doucet & Pitt 2018; :class:`~accel_bayes.inference.mcmc.PMMHKernel`):
+        the standard normals z (T, N, 3) of the estimate are part of each chain's state and are
+        moved with each proposal by z' = ρ z + √(1 − ρ²) ε, exact for the same posterior.  "auto":
+        when ``num_draws`` is None and fresh draws would need N > 1, N = 1 and ρ such that
+        Var[log p̂(θ, z') − log p̂(θ, z)] ≈ 1 at the central θ
+        (:func:`~accel_bayes.likelihood.choose_correlation`, seeded); otherwise 0.  0: fresh draws
+        every iteration ([C21] Alg. 1, the chains of earlier versions).  A number: that ρ with N
+        as given or chosen by the fresh-draw rule.  Recorded in ``settings["correlation"]``,
+        ``settings["correlation_table"]`` and ``settings["correlation_rule"]``.
     seed : one seed for everything random (N choice, chain starts, chains); same seed → same
         draws, bit for bit.
     prior, prior_std : "gaussian" — N(design position, σ²) per coordinate ([C21] §IV-A, σ = 3 mm);
