@@ -436,7 +436,8 @@ class PMMHKernel(MCMCKernel):
     # ------------------------------------------------------------------ state for checkpoints
     def state_dict(self) -> dict:
         """Everything :meth:`sample` depends on, for a bit-exact resume (tensors and plain types).
-        The keys are those of checkpoint format ``accel_bayes.pmmh-checkpoint/1``."""
+        The keys are those of checkpoint format ``accel_bayes.pmmh-checkpoint/1``, plus ``"z"``
+        (T, N, 3) when ``correlation`` > 0."""
         return {
             "chain": self.chain, "t": self._t, "warmup_steps": self._warmup_steps,
             "theta": self._theta.clone(), "log_phat": self._log_phat.clone(), "log_prior": self._log_prior.clone(),
@@ -446,7 +447,8 @@ class PMMHKernel(MCMCKernel):
             "ind_mean": None if self._ind.mean is None else self._ind.mean.clone(),
             "ind_cov": None if self._ind.cov is None else self._ind.cov.clone(),
             **self._stats.state_dict(),
-            "z": None if self._z is None else self._z.clone(),
+            # the correlated kernel's normals; absent at ρ = 0, whose keys stay those of format 1
+            **({} if self._z is None else {"z": self._z.clone()}),
         }
 
     def load_state_dict(self, state: dict) -> None:
