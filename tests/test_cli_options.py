@@ -39,7 +39,8 @@ COMMANDS = {
         "--chains": "count1", "--draws": "count1", "--warmup": "count0", "--num-draws": "count1",
         "--seed": "seed", "--prior-std": "positive", "--min-rotation": "nonnegative", "--noise-bins": "count1",
         "--checkpoint-every": "count0", "--max-draws": "count1", "--threads": "count1", "--check-every": "count1",
-        "--max-seconds": "positive", "--rhat-max": "positive", "--ess-min": "positive"}),
+        "--max-seconds": "positive", "--rhat-max": "positive", "--ess-min": "positive",
+        "--correlation": "fraction"}),
     "selfcal": (["{tmp}/none.nc", "--out", "{tmp}/out"], {
         "--fixed": "count0", "--max-iter": "count1", "--seed": "seed"}),
     "mismatch": (["{tmp}/none.nc", "--out", "{tmp}/out"], {

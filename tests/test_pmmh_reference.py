@@ -73,6 +73,16 @@ def test_chains_bit_identical_to_stored_reference():
             assert np.array_equal(got, want), (name, f)
 
 
+def test_explicit_rho_zero_is_the_stored_reference():
+    # correlation=0.0 (fresh draws; the correlated pseudo-marginal kernel off) is the kernel of 08a5d11
+    lik = _NoisyGaussian()
+    prior = GaussianPrior(torch.zeros(3, 3, dtype=torch.float64), std=3e-3)
+    run = run_pmmh(PMMHKernel(lik, prior, seed=17, independence_prob=0.3, correlation=0.0), S, W, C, progress=False)
+    ref = np.load(REFERENCE)
+    for f in FIELDS:
+        assert np.array_equal(getattr(run, f).numpy(), ref[f"adapted/{f}"]), f
+
+
 def test_checkpoint_written_before_refactor_resumes_bit_exact(tmp_path):
     # the checkpoint stops chain 0 inside its warm-up windows (iteration 150) of the "adapted" run
     ck = tmp_path / "old.ckpt"

@@ -118,6 +118,11 @@ def register(sub) -> None:
                         "'sample_cov' = [C21] eq. 30)")
     p.add_argument("--proposal", choices=("auto", "rw", "mixture"), default="auto",
                    help="proposal: random walk, or random walk mixed with independence moves (default %(default)s)")
+    p.add_argument("--correlation", type=_correlation, default=DEFAULTS["correlation"], metavar="{auto,RHO}",
+                   help="correlated pseudo-marginal sampling: the chains carry the estimator's normals z and move "
+                        "them by z' = RHO z + sqrt(1 - RHO^2) e. 'auto' (default): when fresh draws would need "
+                        "N > 1 per estimate, N = 1 and RHO from the data (Var of the log-estimate change ~ 1); "
+                        "0: fresh draws every iteration ([C21])")
     p.add_argument("--checkpoint-every", type=opt.count(0), default=0, metavar="K",
                    help="save the sampler state to DIR/checkpoint.pt every K iterations (kept if the run is "
                         "killed or interrupted)")
@@ -129,6 +134,11 @@ def register(sub) -> None:
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
+
+
+def _correlation(s: str):
+    """--correlation: 'auto' or a number in [0, 1)."""
+    return "auto" if s == "auto" else opt.fraction()(s)
 
 
 def _run(args) -> int:
@@ -153,6 +163,7 @@ def _run(args) -> int:
         intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
         min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
         noise_inflation=not args.no_noise_inflation, phi_prior=args.phi_prior, threads=args.threads,
+        correlation=args.correlation,
     )
     n_kept = res.settings["preprocess"]["samples"].get("clipped_kept", 0)
     if n_kept:  # stderr: the table below goes to stdout, which is often redirected
@@ -205,7 +216,8 @@ def format_table(res) -> str:
         how = f" (run until converged: {conv['checks']} checks every {conv['check_every']}, {conv['stopped']})"
     lines += [f"PmMH: {res.settings['chains']} chains × {res.settings['draws']} draws{how} "
               f"(+{res.settings['warmup']} warm-up), N = {res.settings['num_draws']}, "
-              f"T = {res.settings['T']}, {res.seconds:.1f} s; positions relative to IMU {doc['reference_imu']}",
+              + (f"correlated rho = {res.settings['correlation']:.4f}, " if res.settings.get("correlation") else "")
+              + f"T = {res.settings['T']}, {res.seconds:.1f} s; positions relative to IMU {doc['reference_imu']}",
               f"{'IMU':>4} {'x mm':>9} {'y mm':>9} {'z mm':>9} {'sx µm':>8} {'sy µm':>8} {'sz µm':>8} "
               f"{'R-hat':>6} {'ESS':>7}"]
     for e in doc["imus"]:

@@ -16,7 +16,9 @@
    θ for choosing N, over-dispersed chain starts, the random-walk shape and an independence
    proposal;
 4. N, the number of Monte Carlo draws per likelihood estimate, chosen so that Var[log p̂] ≈ 1
-   at the central θ ([C21] §III-C, accepted range 0.1–3);
+   at the central θ ([C21] §III-C, accepted range 0.1–3); where that needs N > 1, instead the
+   correlated pseudo-marginal kernel with N = 1 and a correlation ρ of successive estimates
+   measured at the central θ (Deligiannidis, Doucet & Pitt 2018);
 5. C chains of :class:`~accel_bayes.inference.mcmc.PMMHKernel` (warm-up adaptation, then a
    fixed exact kernel), crash-safe when a checkpoint file is given; by default continued until
    every coordinate has R̂ < 1.01 and bulk and tail ESS ≥ 400, checked every 500 draws per chain,
@@ -47,7 +49,8 @@ from ..errors import UserError
 from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh, \
     run_pmmh_until
 from ..inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
-from ..likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_num_draws, \
+from ..likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_correlation, \
+    choose_num_draws, \
     positions_from_theta
 from ..prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
 from ..prep.phi_prior import PHI_PRIOR_CHOICES, PhiPrior, empirical_phi_prior
@@ -90,6 +93,7 @@ DEFAULTS = {
     "gyro_method": "auto",
     "target_accept_prob": 0.15,
     "independence_prob": 0.8,
+    "correlation": "auto",
     "start_overdispersion": 1.5,
     "drop_clipped": True,
     "intrinsics": "auto",
@@ -106,6 +110,13 @@ DEFAULTS = {
 # Far from the posterior (e.g. at the prior mean of a long recording) Var[log p̂] can need a huge
 # N; the chains do not stay there, so the cap only costs some stickiness early in warm-up.
 NUM_DRAWS_BUDGET = 300_000
+
+# Correlated pseudo-marginal defaults (correlation="auto", Deligiannidis, Doucet & Pitt 2018): when
+# the automatic N of fresh-draw PmMH exceeds 1, the chains instead carry the estimator's normals z
+# and move them by z' = ρz + √(1−ρ²)ε with N = CPM_NUM_DRAWS; ρ is set from seeded draws at the
+# central θ so that Var[log p̂(θ, z') − log p̂(θ, z)] ≈ CPM_TARGET_VAR (likelihood.choose_correlation).
+CPM_NUM_DRAWS = 1
+CPM_TARGET_VAR = 1.0
 
 _PRIORS = ("gaussian", "box")
 _GYRO_METHODS = ("auto", "sample_cov", "sample_cov_mean", "calibrated")
@@ -165,7 +176,7 @@ def _real_option(name, v, lo, unit, allow_none=False):
 
 def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
               checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select,
-              max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior):
+              max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior, correlation="auto"):
     """Every option of :func:`calibrate`, checked once before the recording is read; returns the
     integer options as ints (``num_draws`` only when given; ``draws`` None: run until converged)."""
     out = {
@@ -198,6 +209,11 @@ def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_met
         raise UserError(f"proposal: expected one of {_PROPOSALS}, got {proposal!r}")
     if init not in ("auto", "map", "prior"):
         raise UserError(f"init: expected 'auto', 'map' or 'prior', got {init!r}")
+    if not (isinstance(correlation, str) and correlation == "auto"):
+        if isinstance(correlation, bool) or not isinstance(correlation, (int, float, np.floating)) \
+                or not 0.0 <= float(correlation) < 1.0:
+            raise UserError(f"correlation: expected 'auto' or a number in [0, 1), got {correlation!r}")
+    out["correlation"] = correlation if isinstance(correlation, str) else float(correlation)
     if independence_prob is not None and not 0.0 <= float(independence_prob) < 1.0:
         raise UserError(f"independence_prob: expected a number in [0, 1), got {independence_prob!r}")
     if (out["checkpoint_every"] or resume) and checkpoint is None:
@@ -410,6 +426,7 @@ def calibrate(
     noise_inflation: bool = DEFAULTS["noise_inflation"],
     phi_prior=DEFAULTS["phi_prior"],
     threads: int | None = DEFAULTS["threads"],
+    correlation=DEFAULTS["correlation"],
 ) -> CalibrationResult:
     """Sample the posterior of the accelerometer-triad positions of one recording with PmMH.
 
@@ -421,7 +438,8 @@ def calibrate(
         every coordinate has R̂ < ``rhat_max`` and bulk and tail ESS ≥ ``ess_min``, checked every
         ``check_every`` draws per chain, up to ``max_draws`` draws per chain or ``max_seconds``
         of sampling.  An int: exactly that many draws (the chains of earlier versions, bit for
-        bit); the same criteria then only decide ``diagnostics.converged``.
+        bit where the sampler is unchanged — ``correlation`` 0 or an automatic N of 1); the same
+        criteria then only decide ``diagnostics.converged``.
     max_draws : most kept draws per chain in the run-until-converged mode (default 20 000).
     check_every : kept draws per chain between two convergence checks (default 500).  The checks
         happen at fixed draw counts (500, 1000, …), never at wall-clock times, so where a run
@@ -437,7 +455,18 @@ def calibrate(
         What a run did — the criteria, the draws it took, every check and why it stopped — is in
         ``settings["convergence"]`` and the ``diagnostics`` block of ``positions.json``.
     num_draws : N, Monte Carlo draws per likelihood estimate; None chooses it so that
-        Var[log p̂] ≈ 1 at the central θ (the MAP, or the prior mean) ([C21] §III-C).
+        Var[log p̂] ≈ 1 at the central θ (the MAP, or the prior mean) ([C21] §III-C) — or 1
+        with the correlated kernel, see ``correlation``.
+    correlation : "auto" (default) or ρ in [0, 1).  ρ > 0: the correlated pseudo-marginal
+        kernel (Deligiannidis, Doucet & Pitt 2018; :class:`~accel_bayes.inference.mcmc.PMMHKernel`):
+        the standard normals z (T, N, 3) of the estimate are part of each chain's state and are
+        moved with each proposal by z' = ρ z + √(1 − ρ²) ε, exact for the same posterior.  "auto":
+        when ``num_draws`` is None and fresh draws would need N > 1, N = 1 and ρ such that
+        Var[log p̂(θ, z') − log p̂(θ, z)] ≈ 1 at the central θ
+        (:func:`~accel_bayes.likelihood.choose_correlation`, seeded); otherwise 0.  0: fresh draws
+        every iteration ([C21] Alg. 1, the chains of earlier versions).  A number: that ρ with N
+        as given or chosen by the fresh-draw rule.  Recorded in ``settings["correlation"]``,
+        ``settings["correlation_table"]`` and ``settings["correlation_rule"]``.
     seed : one seed for everything random (N choice, chain starts, chains); same seed → same
         draws, bit for bit.
     prior, prior_std : "gaussian" — N(design position, σ²) per coordinate ([C21] §IV-A, σ = 3 mm);
@@ -514,7 +543,7 @@ def calibrate(
         # files is :func:`write_outputs`.
         opts = _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_method, checkpoint,
                          checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select,
-                         max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior)
+                         max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior, correlation)
         noise_bins = opts["noise_bins"]
         raw, sha, src = _load_step(recording)
         _check_resume(raw, sha, opts, checkpoint=checkpoint, resume=resume, prior=prior, prior_std=prior_std,
@@ -702,11 +731,37 @@ def _central_step(lik, pri, map_res, opts, proposal, settings):
                                           f"N = {N2} (predicted Var {table[-1]['var'] * table[-1]['num_draws'] / N2:.2g}) "
                                           "minimises cost/acceptance of independence moves")
             N = N2
+    rho, rho_table = _correlation_step(lik, theta_c, opts, table, N, settings)
+    if rho > 0 and opts["correlation"] == "auto":
+        N = CPM_NUM_DRAWS
+    settings["correlation"] = float(rho)
+    settings["correlation_table"] = rho_table
     lik.num_draws = int(N)
     settings["num_draws"] = int(N)
     settings["num_draws_auto"] = "num_draws" not in opts
     settings["var_log_phat"] = [{"num_draws": int(r["num_draws"]), "var": float(r["var"])} for r in table]
     return lik, theta_c, lap, N
+
+
+def _correlation_step(lik, theta_c, opts, table, N, settings):
+    """ρ of the correlated pseudo-marginal kernel and its measurement table.  "auto": when N was
+    chosen automatically and came out above 1 (a noisy estimator), ρ from
+    :func:`~accel_bayes.likelihood.choose_correlation` at the central θ with N = CPM_NUM_DRAWS
+    (the caller then uses that N); otherwise 0 — fresh draws, the chains of earlier versions.
+    A number: that ρ with the N chosen as before."""
+    c = opts["correlation"]
+    if c != "auto":
+        return float(c), []
+    if "num_draws" in opts or not table or int(N) <= 1 or not hasattr(lik, "sample_z"):
+        return 0.0, []
+    pos = positions_from_theta(theta_c, lik.reference, lik.A)
+    rho, rows = choose_correlation(lik, pos, CPM_NUM_DRAWS, target=CPM_TARGET_VAR, seed=opts["seed"])
+    if rho > 0:
+        settings["correlation_rule"] = (
+            f"fresh draws would need N = {int(N)}; correlated pseudo-marginal with N = {CPM_NUM_DRAWS} and "
+            f"rho = {rho:.6g} (Var[log p-hat(theta, z') - log p-hat(theta, z)] = {rows[-1]['var']:.3g} at the "
+            f"central theta, target {CPM_TARGET_VAR:g})")
+    return rho, [{k: float(v) for k, v in r.items()} for r in rows]
 
 
 def _posterior_step(lik, pri, theta_c, lap, opts, *, proposal, independence_prob, init, target_accept_prob,
@@ -739,12 +794,12 @@ def _posterior_step(lik, pri, theta_c, lap, opts, *, proposal, independence_prob
         settings["start"] = "prior draws"
     if lap is not None:
         kernel = PMMHKernel(lik, pri, seed=opts["seed"], proposal_cov=lap, target_accept_prob=float(target_accept_prob),
-                            independence_prob=p_ind,
+                            independence_prob=p_ind, correlation=float(settings.get("correlation", 0.0)),
                             independence_mean=theta_c if p_ind > 0 else None,
                             independence_cov=lap if p_ind > 0 else None)
     else:
         kernel = PMMHKernel(lik, pri, seed=opts["seed"], target_accept_prob=float(target_accept_prob),
-                            independence_prob=p_ind)
+                            independence_prob=p_ind, correlation=float(settings.get("correlation", 0.0)))
 
     fingerprint = {k: v for k, v in settings.items() if k not in ("var_log_phat", "input")}
     fingerprint["data_sha256"] = _data_fingerprint(lik)
