@@ -163,6 +163,8 @@ def document(rows, summ, args, wall) -> str:
                 "coordinates per run)."]
     else:
         cmd = f"python experiments/phi_prior_calibration.py --set boards --workers {args.workers}"
+        if args.forms != ",".join(FORMS):
+            cmd += f" --forms {args.forms}"
         what = ["The 20 random boards and the two regression boards of `experiments/_boards.py` (independent",
                 "simulator `_conceal`: 6–10 IMUs over 6–16 cm, smooth random motion, 100–250 Hz, T ≈ 2500, no",
                 "rests), `calibrate` with its defaults and `phi_prior` = empirical (default) or flat, on the same data.",
