@@ -64,7 +64,8 @@ Procedure
      effect whose evidence exceeds :data:`RANDOM_DOMINANCE` (10) × the best acceptable mean
      candidate's is taken first (a wandering timing error looks like structure to every mean
      candidate, each explaining a small part of it).  At most one random effect per IMU and
-     sensor is in the model (each is profiled as if alone).  ``noise_level`` refits of step 5
+     sensor is in the model (each is profiled as if alone), and a ``timing_wander`` only where its
+     timing term alone (against the triad's best noise-only fit) passes the threshold.  ``noise_level`` refits of step 5
      are only done in a round where no mean/clip candidate is acceptable (elsewhere the
      round's ``refits`` list them as skipped);
    * among the acceptable ones the smallest p-value (χ²_df of the robust evidence) wins.
@@ -660,7 +661,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         # (below), so its refits are only done then: each one is up to ``noise_rounds`` + 1
         # LM solves, and on a badly fitting recording (real MIMU data, χ²/dof ~ 3000) they were
         # 3/4 of the detector's time while their result could not change the verdict.
-        mean_ok = any(r["evidence_robust"] > threshold for r in results)
+        mean_ok = any(r["effect"].kind not in ("noise", "random") and r["evidence_robust"] > threshold for r in results)
         for sc in chosen:
             if sc.effect.kind == "noise":
                 if mean_ok:
@@ -675,12 +676,22 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         ok = [r for r in results if r["effect"].kind not in variance_kinds and r["evidence_robust"] > threshold]
         dominant = [r for r in results if r["effect"].kind == "random" and ok
                     and r["evidence"] > RANDOM_DOMINANCE * max(x["evidence_robust"] for x in ok)]
+        # a timing_wander carries its triad's white-noise excess too: accept it only where the
+        # timing term alone passes the threshold, otherwise it is noise_level under another name
+        refused_w = [r for r in results if r["effect"].name == "timing_wander"
+                     and r["effect"].stats.get("timing_evidence", math.inf) <= threshold]
+        for r in refused_w:
+            info.setdefault("refused", []).append({"candidate": r["effect"].label(),
+                                                   "why": f"its timing term alone has evidence "
+                                                          f"{r['effect'].stats['timing_evidence']:.4g} <= threshold"})
+        results_ok = [r for r in results if r not in refused_w]
+        dominant = [r for r in dominant if r not in refused_w]
         if dominant:
             # a correlated timing error looks like structure to every mean candidate, yet each
             # explains a small part of it: a random effect far ahead of all of them goes first
             ok = dominant
         elif not ok:
-            ok = [r for r in results if r["effect"].kind in variance_kinds and r["evidence"] > threshold]
+            ok = [r for r in results_ok if r["effect"].kind in variance_kinds and r["evidence"] > threshold]
             if any(r["effect"].kind == "noise" for r in ok):
                 # noise_level says "a constant factor": refuse it where the excess power varies
                 # strongly with the motion (the characteriser's covariates), and leave that excess

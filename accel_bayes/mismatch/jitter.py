@@ -179,6 +179,9 @@ def fit_random_effects(prep, fit) -> None:
             if prof["correlation_std"] is not None:
                 e.std["correlation"] = torch.tensor(prof["correlation_std"], dtype=torch.float64)
             e.stats["width_interval_s"] = prof["interval"]
+            # the timing term's own likelihood ratio (against the triad's best noise-only model):
+            # the detector accepts a wander only where this alone passes its threshold
+            e.stats["timing_evidence"] = 2.0 * prof["gain"]
             fit.loglik_t = fit.loglik_t + (prof["gain"] + prof["noise_only_gain"]) / prep.T
             continue
         a, b = jitter_ab(prep, fit, int(e.imu))
