@@ -1,0 +1,140 @@
+"""Accelerometer-only [S16] self-calibration of the MIMU4444 experiments (issue #12 item 4).
+
+Per experiment: import, intrinsics from its own rests applied and rests / clipped / slow samples
+dropped exactly as ``calibrate`` does (:func:`accel_bayes.prep.preprocess.preprocess`); then a
+window of ``--window`` consecutive *kept* samples (starting at kept sample ``--start``) is
+self-calibrated with the pipeline defaults (``process_noise="estimate-snap"``, gyros ignored;
+the process model bridges the dropped samples inside the window).  The result is compared per
+IMU and coordinate with the gyro-aided posterior of the whole experiment
+(``experiments/out/mimu_repeatability/exp_N/positions.json``, written by
+``experiments/mimu_repeatability.py``): z = (m_selfcal − m_calibrate) / sqrt(s_selfcal² + s_calibrate²).
+The misfit check (:func:`accel_bayes.inference.selfcal.fit_check`) is reported; a flagged run is
+*not* a calibration (``accel-bayes selfcal`` exits 4 on it).
+
+    python experiments/s16_mimu.py [--experiments 1] [--window 800] [--start 0]
+        [--gyro-aided DIR] [--md experiments/s16_mimu.md]
+
+Runtime: a few minutes per experiment for an 800-sample window on one core of the shared machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from _data import data_dir  # noqa: E402
+
+
+def run_one(exp: int, data: Path, window: int, start: int, max_iter: int) -> dict:
+    """Self-calibrate a window of experiment ``exp``'s calibrate-selected samples."""
+    from accel_bayes.data.mimu import import_mimu
+    from accel_bayes.pipelines.selfcal import selfcal
+    from accel_bayes.prep.preprocess import preprocess
+
+    rec = import_mimu(Path(data) / f"exp_{exp}" / "data.bin.gz")
+    pre = preprocess(rec)
+    idx = np.asarray(pre.selection.index)
+    if start + window > idx.size:
+        raise SystemExit(f"exp_{exp}: only {idx.size} kept samples, window {start}+{window} too long")
+    lo, hi = int(idx[start]), int(idx[start + window - 1])
+    mask = np.zeros(rec.T, bool)
+    mask[lo:hi + 1] = True
+    pre_w = preprocess(rec, select=mask)
+    t0 = time.perf_counter()
+    run = selfcal(pre_w.recording, selection=pre_w.selection, max_iter=max_iter, seed=0)
+    out = {"exp": exp, "samples": int(pre_w.selection.n_kept), "span": [lo, hi + 1],
+           "span_s": float(rec.time[hi] - rec.time[lo]), "seconds": time.perf_counter() - t0,
+           "ok": bool(run.ok), "reason": str(run.result.lm_reason)}
+    if run.ok:
+        out.update(mean=run.means.tolist(), std=run.pstd.tolist(), check=run.check.to_dict(),
+                   warnings=list(run.warnings), converged=bool(run.result.converged))
+    else:
+        P = run.result.positions
+        if P is not None:
+            P = P.detach().cpu().numpy()
+            out["max_pos_m"] = float(np.abs(P - P[run.input.fixed]).max())
+    return out
+
+
+def compare(r: dict, gyro: dict) -> dict:
+    """z per IMU and coordinate of the self-calibration against the gyro-aided posterior."""
+    ms, ss = np.array(r["mean"]), np.array(r["std"])
+    mg = np.array([e["mean"] for e in gyro["imus"]])
+    sg = np.array([e["std"] for e in gyro["imus"]])
+    z = (ms - mg) / np.sqrt(ss ** 2 + sg ** 2)
+    z[gyro["reference_imu"]] = np.nan
+    return {"z": z, "d": ms - mg, "ss": ss, "sg": sg}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--experiments", default="1")
+    ap.add_argument("--window", type=int, default=800)
+    ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--max-iter", type=int, default=200)
+    ap.add_argument("--data", default=None)
+    ap.add_argument("--gyro-aided", default=str(HERE / "out" / "mimu_repeatability"))
+    ap.add_argument("--md", default=None)
+    a = ap.parse_args(argv)
+    data = Path(a.data) if a.data else data_dir() if callable(data_dir) else data_dir
+    rows, lines = [], []
+    for exp in [int(e) for e in a.experiments.split(",")]:
+        r = run_one(exp, data, a.window, a.start, a.max_iter)
+        rows.append(r)
+        print(json.dumps({k: v for k, v in r.items() if k not in ("mean", "std")}), flush=True)
+        gp = Path(a.gyro_aided) / f"exp_{exp}" / "positions.json"
+        if r["ok"] and gp.exists():
+            c = compare(r, json.loads(gp.read_text()))
+            r["cmp"] = {k: v.tolist() for k, v in c.items()}
+            zz = c["z"][np.isfinite(c["z"])]
+            print(f"RESULT s16_mimu exp_{exp}: max |z| {np.abs(zz).max():.2f}, RMS z {math.sqrt(np.mean(zz**2)):.2f}; "
+                  f"selfcal std median {np.median(c['ss'][np.isfinite(c['z'])])*1e6:.0f} um, "
+                  f"gyro-aided {np.median(c['sg'][np.isfinite(c['z'])])*1e6:.0f} um", flush=True)
+    if a.md:
+        Path(a.md).write_text(report(rows, a))
+    return 0
+
+
+def report(rows, a) -> str:
+    L = ["# [S16] accelerometer-only self-calibration of the MIMU4444 experiments (issue #12 item 4)", "",
+         f"Generated by `python experiments/s16_mimu.py --experiments {a.experiments} --window {a.window} "
+         f"--start {a.start} --md experiments/s16_mimu.md` (pipeline defaults: `process_noise=\"estimate-snap\"`, "
+         "Laplace-marginal scale, gyros ignored).", "",
+         "| exp | kept samples | span (samples, s) | ok | LM | triad RMS (whitened) | process RMS | misfit | scale | scale std | seconds |",
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        c = r.get("check", {})
+        f = lambda k, fmt: (fmt.format(c[k]) if k in c and c[k] is not None else "–")  # noqa: E731
+        L.append(f"| {r['exp']} | {r['samples']} | {r['span'][0]}–{r['span'][1]}, {r['span_s']:.1f} | "
+                 f"{'yes' if r['ok'] else 'DIVERGED'} | {r['reason']} | {f('rms_triad', '{:.2f}')} | "
+                 f"{f('rms_process', '{:.2f}')} | {f('misfit', '{}')} | {f('scale', '{:.5f}')} | "
+                 f"{f('scale_std', '{:.2g}')} | {r['seconds']:.0f} |")
+    for r in rows:
+        if "cmp" not in r:
+            continue
+        L += ["", f"## exp_{r['exp']}: self-calibration vs gyro-aided posterior (whole experiment)", "",
+              "| IMU | selfcal x, y, z (mm) | std (µm) | gyro-aided x, y, z (mm) | std (µm) | z x, y, z |",
+              "|---|---|---|---|---|---|"]
+        m, s = np.array(r["mean"]), np.array(r["std"])
+        d, sg, z = np.array(r["cmp"]["d"]), np.array(r["cmp"]["sg"]), np.array(r["cmp"]["z"])
+        mg = m - d
+        for k in range(len(m)):
+            L.append(f"| {k} | {', '.join(f'{v*1e3:.3f}' for v in m[k])} | {', '.join(f'{v*1e6:.0f}' for v in s[k])} | "
+                     f"{', '.join(f'{v*1e3:.3f}' for v in mg[k])} | {', '.join(f'{v*1e6:.0f}' for v in sg[k])} | "
+                     f"{', '.join('–' if not np.isfinite(v) else f'{v:.2f}' for v in z[k])} |")
+        if r.get("warnings"):
+            L += ["", "Warnings (the pipeline marks the run not trustworthy; `accel-bayes selfcal` exits 4):", ""]
+            L += [f"- {w}" for w in r["warnings"]]
+    return "\n".join(L) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
