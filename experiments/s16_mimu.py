@@ -33,8 +33,10 @@ sys.path.insert(0, str(HERE))
 from _data import data_dir  # noqa: E402
 
 
-def run_one(exp: int, data: Path, window: int, start: int, max_iter: int) -> dict:
-    """Self-calibrate a window of experiment ``exp``'s calibrate-selected samples."""
+def run_one(exp: int, data: Path, window: int, start: int, max_iter: int, span=None, min_rotation="default") -> dict:
+    """Self-calibrate a window of experiment ``exp``'s calibrate-selected samples: the ``window``
+    kept samples from kept sample ``start`` on, or (``span`` = (lo, hi)) those of raw samples lo..hi−1;
+    ``min_rotation`` None keeps slow samples (rad/s; "default": calibrate's threshold)."""
     from accel_bayes.data.mimu import import_mimu
     from accel_bayes.pipelines.selfcal import selfcal
     from accel_bayes.prep.preprocess import preprocess
@@ -44,10 +46,14 @@ def run_one(exp: int, data: Path, window: int, start: int, max_iter: int) -> dic
     idx = np.asarray(pre.selection.index)
     if start + window > idx.size:
         raise SystemExit(f"exp_{exp}: only {idx.size} kept samples, window {start}+{window} too long")
-    lo, hi = int(idx[start]), int(idx[start + window - 1])
+    if span is None:
+        lo, hi = int(idx[start]), int(idx[start + window - 1])
+    else:
+        lo, hi = int(span[0]), int(span[1]) - 1
     mask = np.zeros(rec.T, bool)
     mask[lo:hi + 1] = True
-    pre_w = preprocess(rec, select=mask)
+    kw = {} if min_rotation == "default" else {"min_rotation": min_rotation}
+    pre_w = preprocess(rec, select=mask, **kw)
     t0 = time.perf_counter()
     run = selfcal(pre_w.recording, selection=pre_w.selection, max_iter=max_iter, seed=0)
     out = {"exp": exp, "samples": int(pre_w.selection.n_kept), "span": [lo, hi + 1],
@@ -57,10 +63,7 @@ def run_one(exp: int, data: Path, window: int, start: int, max_iter: int) -> dic
         out.update(mean=run.means.tolist(), std=run.pstd.tolist(), check=run.check.to_dict(),
                    warnings=list(run.warnings), converged=bool(run.result.converged))
     else:
-        P = run.result.positions
-        if P is not None:
-            P = P.detach().cpu().numpy()
-            out["max_pos_m"] = float(np.abs(P - P[run.input.fixed]).max())
+        out["reason"] = str(run.result.reason)
     return out
 
 
@@ -79,15 +82,18 @@ def main(argv=None) -> int:
     ap.add_argument("--experiments", default="1")
     ap.add_argument("--window", type=int, default=800)
     ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--span", default=None, help="raw sample range LO:HI instead of --window/--start")
+    ap.add_argument("--keep-slow", action="store_true", help="keep samples with |w| < 0.5 rad/s (rests still dropped)")
     ap.add_argument("--max-iter", type=int, default=200)
     ap.add_argument("--data", default=None)
     ap.add_argument("--gyro-aided", default=str(HERE / "out" / "mimu_repeatability"))
     ap.add_argument("--md", default=None)
     a = ap.parse_args(argv)
-    data = Path(a.data) if a.data else data_dir() if callable(data_dir) else data_dir
+    data = Path(a.data) if a.data else data_dir()
     rows, lines = [], []
     for exp in [int(e) for e in a.experiments.split(",")]:
-        r = run_one(exp, data, a.window, a.start, a.max_iter)
+        span = None if a.span is None else tuple(int(v) for v in a.span.split(":"))
+        r = run_one(exp, data, a.window, a.start, a.max_iter, span, None if a.keep_slow else "default")
         rows.append(r)
         print(json.dumps({k: v for k, v in r.items() if k not in ("mean", "std")}), flush=True)
         gp = Path(a.gyro_aided) / f"exp_{exp}" / "positions.json"
