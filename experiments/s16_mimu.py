@@ -33,10 +33,12 @@ sys.path.insert(0, str(HERE))
 from _data import data_dir  # noqa: E402
 
 
-def run_one(exp: int, data: Path, window: int, start: int, max_iter: int, span=None, min_rotation="default") -> dict:
+def run_one(exp: int, data: Path, window: int, start: int, max_iter: int, span=None, min_rotation="default",
+            noise=None) -> dict:
     """Self-calibrate a window of experiment ``exp``'s calibrate-selected samples: the ``window``
     kept samples from kept sample ``start`` on, or (``span`` = (lo, hi)) those of raw samples lo..hi−1;
-    ``min_rotation`` None keeps slow samples (rad/s; "default": calibrate's threshold)."""
+    ``min_rotation`` None keeps slow samples (rad/s; "default": calibrate's threshold); ``noise``:
+    (K,) accelerometer noise std to use instead of the stated one, m/s² (diagnostic)."""
     from accel_bayes.data.mimu import import_mimu
     from accel_bayes.pipelines.selfcal import selfcal
     from accel_bayes.prep.preprocess import preprocess
@@ -54,8 +56,13 @@ def run_one(exp: int, data: Path, window: int, start: int, max_iter: int, span=N
     mask[lo:hi + 1] = True
     kw = {} if min_rotation == "default" else {"min_rotation": min_rotation}
     pre_w = preprocess(rec, select=mask, **kw)
+    rw = pre_w.recording
+    if noise is not None:
+        import dataclasses
+
+        rw = dataclasses.replace(rw, acc_noise_std=np.asarray(noise, dtype=float))
     t0 = time.perf_counter()
-    run = selfcal(pre_w.recording, selection=pre_w.selection, max_iter=max_iter, seed=0)
+    run = selfcal(rw, selection=pre_w.selection, max_iter=max_iter, seed=0)
     out = {"exp": exp, "samples": int(pre_w.selection.n_kept), "span": [lo, hi + 1],
            "span_s": float(rec.time[hi] - rec.time[lo]), "seconds": time.perf_counter() - t0,
            "ok": bool(run.ok), "reason": str(run.result.lm_reason)}
@@ -84,6 +91,8 @@ def main(argv=None) -> int:
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--span", default=None, help="raw sample range LO:HI instead of --window/--start")
     ap.add_argument("--keep-slow", action="store_true", help="keep samples with |w| < 0.5 rad/s (rests still dropped)")
+    ap.add_argument("--noise-from-gyro-aided", action="store_true",
+                    help="diagnostic: use the gyro-aided run's estimated noise levels instead of the stated ones")
     ap.add_argument("--max-iter", type=int, default=200)
     ap.add_argument("--data", default=None)
     ap.add_argument("--gyro-aided", default=str(HERE / "out" / "mimu_repeatability"))
@@ -93,10 +102,14 @@ def main(argv=None) -> int:
     rows, lines = [], []
     for exp in [int(e) for e in a.experiments.split(",")]:
         span = None if a.span is None else tuple(int(v) for v in a.span.split(":"))
-        r = run_one(exp, data, a.window, a.start, a.max_iter, span, None if a.keep_slow else "default")
+        gp = Path(a.gyro_aided) / f"exp_{exp}" / "positions.json"
+        noise = None
+        if a.noise_from_gyro_aided:
+            noise = json.loads(gp.read_text())["provenance"]["settings"]["noise_model"]["std"]
+        r = run_one(exp, data, a.window, a.start, a.max_iter, span, None if a.keep_slow else "default", noise)
+        r["noise"] = "gyro-aided estimate" if noise is not None else "stated"
         rows.append(r)
         print(json.dumps({k: v for k, v in r.items() if k not in ("mean", "std")}), flush=True)
-        gp = Path(a.gyro_aided) / f"exp_{exp}" / "positions.json"
         if r["ok"] and gp.exists():
             c = compare(r, json.loads(gp.read_text()))
             r["cmp"] = {k: v.tolist() for k, v in c.items()}
