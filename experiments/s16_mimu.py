@@ -177,7 +177,7 @@ def report(rows, a) -> str:
             f"{max(r['clipped_fraction'] for r in rows):.0%} of the samples with a sensor at its range, against "
             "RMS |ω| 250–600 °/s for the simulated hand motion the process model was validated on "
             "(`s16_handlike.md`, `s16_handlike_62hz.md`).  Even the gyro-aided model, which needs no process "
-            "model, fits these samples only with a noise level of 1.4–1.7 m/s² against 0.04–0.08 m/s² stated "
+            "model, fits these samples only with noise levels of 1.25–2.02 m/s² against 0.04–0.08 m/s² stated "
             "(`mimu_repeatability.md`).  No self-calibrated positions are presented.")
     else:
         L.append(f"{len(rows) - len(bad)} of {len(rows)} windows converged without a warning; their z against the "
