@@ -30,6 +30,13 @@ linearise (residuals, analytic Jacobians, normal-equation blocks), damped Schur 
 and trial cost — timed directly (best of ``--repeat``), at the true motion with the free triads
 moved by 1 mm.  Per-sample time constant or falling ⇒ linear scaling.
 
+Last, time to solution on a hand-like recording (issue #12 item 5): recording 0 of
+``experiments/s16_handlike.py`` (the issue's cube8 board, 250 Hz, T = 2968, independent generator,
+smooth hand-like motion), ``pipelines.selfcal.selfcal`` with the pipeline default
+(``estimate-snap``: intensities and scale fitted) against the [S16] fixed-variance mode on the
+same recording — wall time, LM iterations and the scale error against the truth (``--no-handlike``
+skips it).
+
 Usage: ``python experiments/bench_lm.py [--sizes 675,6750,67500] [--repeat 3]`` (a few minutes;
 SciPy takes most of it).  Ends with RESULT / INFO lines (DESIGN §7.4).
 """
@@ -71,7 +78,7 @@ def warm_start(z, dt, proto):
     from accel_bayes.inference.lm import LevenbergMarquardt
     from accel_bayes.inference.selfcal import build_problem, process_sqrt_information
 
-    S = __import__("accel_bayes").models.sensitivity_matrix(proto["sens"])
+    S = __import__("accel_bayes.physics.models", fromlist=["models"]).sensitivity_matrix(proto["sens"])
     inv = torch.full((5, 3), 1 / 0.02, dtype=torch.float64)
     W = process_sqrt_information(dt)
     prob = build_problem(z, dt, proto["nominal_positions"], proto["nominal_orientations"],
@@ -166,7 +173,7 @@ def iteration_time(T: int, repeat: int) -> dict:
     from accel_bayes.inference.selfcal import build_problem, process_sqrt_information
 
     z, dt, proto, x = make_problem(T)
-    S = __import__("accel_bayes").models.sensitivity_matrix(proto["sens"])
+    S = __import__("accel_bayes.physics.models", fromlist=["models"]).sensitivity_matrix(proto["sens"])
     inv = torch.full((5, 3), 1 / 0.02, dtype=torch.float64)
     W = process_sqrt_information(dt)
     p = proto["positions"].clone()
@@ -197,11 +204,42 @@ def iteration_time(T: int, repeat: int) -> dict:
     return best
 
 
+def handlike() -> None:
+    """Time to solution of ``selfcal`` on the hand-like recording 0 of ``s16_handlike.py``: the
+    pipeline default against the [S16] fixed variances (module docstring)."""
+    import time as _t
+
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import s16_handlike as H
+    from accel_bayes.pipelines.selfcal import selfcal
+
+    _, case = H.recording(0)
+    truth = np.asarray(case.truth["true_relative_position"])
+    out = {}
+    for mode in ("estimate-snap", "s16"):
+        t0 = _t.perf_counter()
+        run = selfcal(case.recording, max_iter=100, process_noise=mode)
+        secs = _t.perf_counter() - t0
+        scale = None
+        if run.ok:
+            free = [k for k in range(truth.shape[0]) if k != run.input.fixed_label]
+            scale = float((run.means[free] * truth[free]).sum() / (truth[free] ** 2).sum())
+        out[mode] = (secs, run)
+        print(f"hand-like (s16_handlike recording 0, T = {case.recording.T}): {mode:13s} {secs:6.2f} s, ok {run.ok}"
+              + ("" if scale is None else f", scale − 1 = {1e3 * (scale - 1):+.2f} ‰"))
+    (t_e, _), (t_s, _) = out["estimate-snap"], out["s16"]
+    print(f"INFO lm_selfcal_handlike_time_to_solution: ours (estimate-snap, default) {t_e:.2f} s, "
+          f"s16 fixed variances {t_s:.2f} s (the [S16] mode ends in a misfit on this motion, s16_handlike_s16.md)")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="675,6750,67500", help="sample counts for the per-iteration scaling")
     ap.add_argument("--repeat", type=int, default=3, help="repetitions of the timed runs (best is kept)")
     ap.add_argument("--scipy-repeat", type=int, default=1, help="repetitions of the SciPy run (best is kept)")
+    ap.add_argument("--no-handlike", action="store_true", help="skip the hand-like time to solution")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     sizes = [int(s) for s in args.sizes.split(",") if s]
@@ -265,6 +303,8 @@ def main(argv=None) -> int:
         print(f"INFO lm_per_iteration_scaling: T {lo} -> {hi} (x{hi / lo:g} samples): time per iteration "
               f"x{growth:.1f} ({per[lo] * 1e3:.1f} -> {per[hi] * 1e3:.1f} ms), per-sample ratio "
               f"{growth / (hi / lo):.2f} ({'<= 1.15: linear or better' if growth / (hi / lo) <= 1.15 else 'WORSE than linear'})")
+    if not args.no_handlike:
+        handlike()
     ok = rel <= 1e-6 and speed >= 10
     print(f"SUMMARY bench_lm: speedup {speed:.1f}x vs scipy TRF (need >= 10), final costs agree to {rel:.1e}: "
           f"{'ok' if ok else 'NOT ok'}")
