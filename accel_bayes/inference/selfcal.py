@@ -1375,6 +1375,25 @@ def laplace_scale_nll(c: float, positions, states, orientations, fixed: int, acc
     return float(r.cost) + 0.5 * logdet, pc, x
 
 
+def _scale_orbit_start(out: SelfCalResult, res, A: int, fixed: int):
+    """Where both scale corrections start: (positions, states and orientations of the joint MAP,
+    copies; Var(c), the Laplace variance of the relative scale c along the fitted board, from the
+    positions' joint covariance), or None when the MAP has no usable covariance."""
+    from .lm.linear import NotPositiveDefinite
+
+    free = [j for j in range(A) if j != fixed]
+    if out.covariance is not None:
+        Cp = out.covariance[:3 * len(free), :3 * len(free)]
+    else:
+        try:
+            Cp = res.covariance()[:3 * len(free), :3 * len(free)]
+        except NotPositiveDefinite:
+            return None
+    p0, x0, q = out.raw_positions.clone(), out.states.clone(), out.raw_orientations
+    d = (p0 - p0[fixed])[free].reshape(-1)
+    return p0, x0, q, float(d @ Cp @ d) / float(d @ d) ** 2
+
+
 def _laplace_scale(out: SelfCalResult, res, A: int, fixed: int, acc, dt, W, inv_std, S, offset, max_iter: int,
                    max_steps: int = 10) -> None:
     """Move the joint MAP along the scale orbit to the minimum of the Laplace marginal
@@ -1386,18 +1405,11 @@ def _laplace_scale(out: SelfCalResult, res, A: int, fixed: int, acc, dt, W, inv_
     import numpy as np
     from .lm.linear import NotPositiveDefinite
 
-    free = [j for j in range(A) if j != fixed]
-    if out.covariance is not None:
-        Cp = out.covariance[:3 * len(free), :3 * len(free)]
-    else:
-        try:
-            Cp = res.covariance()[:3 * len(free), :3 * len(free)]
-        except NotPositiveDefinite:
-            return
-    p0, x0, q = out.raw_positions.clone(), out.states.clone(), out.raw_orientations
-    d = (p0 - p0[fixed])[free].reshape(-1)
-    dd = float(d @ d)
-    sd = math.sqrt(max(float(d @ Cp @ d) / dd ** 2, 1e-16))
+    start = _scale_orbit_start(out, res, A, fixed)
+    if start is None:
+        return
+    p0, x0, q, var_c = start
+    sd = math.sqrt(max(var_c, 1e-16))
     evals = {}
     steps = []
 
@@ -1445,20 +1457,10 @@ def _correct_scale(out: SelfCalResult, res, A: int, fixed: int, dt, W, inv_std, 
     the fitted board (positions' joint covariance, motion marginalised), then regula falsi.  The
     covariance is the joint MAP's.  Records the evaluations in
     ``out.process_noise["scale_correction"]``."""
-    from .lm.linear import NotPositiveDefinite
-
-    free = [j for j in range(A) if j != fixed]
-    if out.covariance is not None:
-        Cp = out.covariance[:3 * len(free), :3 * len(free)]
-    else:
-        try:
-            Cp = res.covariance()[:3 * len(free), :3 * len(free)]
-        except NotPositiveDefinite:
-            return
-    p0, x0, q = out.raw_positions.clone(), out.states.clone(), out.raw_orientations
-    d = (p0 - p0[fixed])[free].reshape(-1)
-    dd = float(d @ d)
-    var_c = float(d @ Cp @ d) / dd ** 2  # Laplace variance of the relative scale at the joint MAP
+    start = _scale_orbit_start(out, res, A, fixed)
+    if start is None:
+        return
+    p0, x0, q, var_c = start
     sd = math.sqrt(max(var_c, 1e-30))
     steps = []
 
