@@ -89,20 +89,6 @@ def _effects_from_report(doc: dict, kinds=("mean", "clip", "noise", "random")):
     return out
 
 
-def _random_variance(effects, ctx, like):
-    """(acc, gyro) (T, K, 3) variance the random effects among ``effects`` predict on a fit's
-    signal context (zeros without any), units²."""
-    import torch
-
-    va, vg = torch.zeros_like(like), torch.zeros_like(like)
-    for e in effects:
-        fn = getattr(e, "predicted_variance", None) or (getattr(e, "variance", None) if e.kind == "random" else None)
-        if fn is not None:
-            a, g = fn(None, ctx)
-            va, vg = va + a, vg + g
-    return va, vg
-
-
 def _prepared(i, args, cache):
     from accel_bayes.mismatch import baseline_fit, prepare
 
@@ -183,6 +169,7 @@ def stage_shares(args, exps):
 
 def stage_heldout(args, exps):
     from accel_bayes.mismatch.budget import BANDS
+    from accel_bayes.mismatch.jitter import random_variance
     from accel_bayes.mismatch.transfer import heldout_fit, noise_variances, predictive_loglik
 
     path = args.out / "heldout.json"
@@ -208,7 +195,7 @@ def stage_heldout(args, exps):
             refined = fit_model(prep, [e.copy() for e in mean_effs], init=base, laplace=False) if mean_effs else base
             # the white noise left for the physics model: the residual variance less what its
             # random effects predict (a wander's marginal variance and its excess white noise)
-            extra = _random_variance(effs, refined.ctx, refined.res_acc)
+            extra = random_variance(prep, effects=effs)
             models[i] = {"effects": effs, "physics_noise": noise_variances(prep, refined, extra=extra),
                          "physics_noise_banded": noise_variances(prep, refined, omega_edges=edges, extra=extra),
                          "baseline_noise": noise_variances(prep, base, omega_edges=edges), "edges": edges}
@@ -230,7 +217,7 @@ def stage_heldout(args, exps):
             # independent random effects (sampling_jitter) add a variance per sample; a timing
             # wander enters through its joint AR(1) density (transfer.predictive_loglik)
             wander = [e for e in m["effects"] if e.name == "timing_wander"]
-            extra = _random_variance([e for e in m["effects"] if e.name != "timing_wander"], f.ctx, f.res_acc)
+            extra = random_variance(prep, effects=[e for e in m["effects"] if e.name != "timing_wander"])
             pp = predictive_loglik(prep, f, m["physics_noise"], extra=extra, wander=wander, per_sensor=True)
             pf = predictive_loglik(prep, base, m["baseline_noise"], per_sensor=True)
             ll_phys, ll_free = pp["acc"] + pp["gyro"], pf["acc"] + pf["gyro"]

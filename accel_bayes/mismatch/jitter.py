@@ -79,6 +79,19 @@ def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power:
     return (ut * ut).sum(-1), (ut * rt).sum(-1)
 
 
+def triad_wander(prep, fit, k: int, sensor: str, sigma_max: float):
+    """:func:`accel_bayes.mismatch.wander.fit_wander` on IMU k's ``sensor`` triad at a fit, its
+    white-noise factor fitted too: (the fit's dict, Σa (s⁻²), Σ r̃ᵀr̃, number of observed
+    channels), a and r̃ from :func:`jitter_ab` (projected, leverage-corrected, noise-whitened).
+    ``sigma_max`` bounds the instant std (s).  The one fit behind ``timing_wander`` and the
+    characteriser's timing column."""
+    from .wander import fit_wander, sample_steps
+
+    a, b, rr, n = jitter_ab(prep, fit, k, sensor, with_residual_power=True)
+    f = fit_wander(a.numpy(), b.numpy(), sample_steps(prep.time), sigma_max=sigma_max, rr=rr, n=n)
+    return f, float(a.sum()), rr, n
+
+
 def _wander_profile(prep, fit, effect) -> dict:
     """``timing_wander`` at a fit: (width, correlation) by maximum marginal likelihood of the AR(1)
     instant error on the effect's triad, fitted together with a white-noise factor c of the triad
@@ -89,14 +102,10 @@ def _wander_profile(prep, fit, effect) -> dict:
     gains (against the current model, like every variance candidate's): it beats ``noise_level``
     only by what the timing term adds.  A profile dict like :func:`profile_width`'s plus
     "correlation", "correlation_std", "excess_noise_var" and "noise_only_gain"."""
-    from .wander import _noise_only_gain, fit_wander
+    from .wander import _noise_only_gain
 
     k = int(effect.imu)
-    a, b, rr, n = jitter_ab(prep, fit, k, effect.which, with_residual_power=True)
-    t = np.asarray(prep.time, dtype=float)
-    dt = np.diff(t)
-    steps = dt / float(np.median(dt)) if len(dt) else np.zeros(0)
-    f = fit_wander(a.numpy(), b.numpy(), steps, sigma_max=_max_width(prep) / math.sqrt(12.0), rr=rr, n=n)
+    f, _, rr, n = triad_wander(prep, fit, k, effect.which, _max_width(prep) / math.sqrt(12.0))
     c = max(float(f["c"]), 1.0)  # no variance below the model's noise
     sig = float((prep.sigma_acc[k] * fit.acc_factor[k]) if effect.which == "acc" else
                 (prep.sigma_gyro[k] * fit.gyro_factor[k]))

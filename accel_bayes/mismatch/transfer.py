@@ -180,11 +180,12 @@ def predictive_loglik(prep: Prepared, fit: ModelFit, noise: dict, *, extra=None,
 
     from .budget import leverage_corrected_sq
     from .jitter import jitter_ab
-    from .wander import ar1_gain
+    from .wander import ar1_gain, sample_steps
 
     sq = leverage_corrected_sq(prep, fit)
     lab = np.digitize(np.linalg.norm(fit.x[:, 0:3].detach().cpu().numpy(), axis=1), noise["edges"])
     joint = {(int(e.imu), e.which): e for e in wander}
+    steps = sample_steps(prep.time) if joint else None
     parts = {}
     for j, (name, m) in enumerate((("acc", prep.m_acc), ("gyro", prep.m_gyro))):
         total = 0.0
@@ -202,8 +203,6 @@ def predictive_loglik(prep: Prepared, fit: ModelFit, noise: dict, *, extra=None,
             sig_m = float((prep.sigma_acc[k] * fit.acc_factor[k]) if name == "acc" else
                           (prep.sigma_gyro[k] * fit.gyro_factor[k]))
             a, b, rr, n = jitter_ab(prep, fit, k, name, with_residual_power=True)
-            t = prep.time.detach().cpu().double().numpy()
-            steps = np.diff(t) / float(np.median(np.diff(t)))
             white = float(np.asarray(noise[name])[k, 0]) + float(e.params["excess_noise_var"])
             c = math.sqrt(white) / sig_m
             g = ar1_gain(a.numpy(), b.numpy(), steps, float(e.params["width"]) / math.sqrt(12.0),

@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-__all__ = ["ar1_precision_bands", "ar1_gain", "fit_wander"]
+__all__ = ["ar1_precision_bands", "ar1_gain", "fit_wander", "sample_steps", "wander_table"]
 
 
 def _phis(steps: np.ndarray, rho: float) -> np.ndarray:
@@ -154,31 +154,12 @@ def fit_wander(a, b, steps, *, sigma_max: float, rho_max: float = 0.995, rr: flo
             "evidence": 2.0 * (g - g0), "sigma_std": sig_std, "rho_std": rho_std}
 
 
-def wander_ab(prep, fit, k: int, sensor: str):
-    """(a, b, steps) of IMU k's ``sensor`` triad ("acc" or "gyro") at a fit: ũ the whitened output
-    rate with the per-sample motion states' share projected out (exact per sample) and r̃ the
-    whitened residual, both divided by √(1 − h) (leverage-corrected, as the detector's variance
-    tests are); a = ũᵀũ (s⁻²), b = ũᵀr̃ (s⁻¹), steps = time steps in median steps.  Needs the
-    fit's output rates (``fit.ctx.acc_rate``/``gyro_rate``)."""
-    import torch
-
-    lin = fit.linear()
-    K = prep.K
-    off = 0 if sensor == "acc" else 3 * K
-    rows = torch.arange(off + 3 * k, off + 3 * k + 3)
-    if sensor == "acc":
-        sig, m, rate = prep.sigma_acc[k] * fit.acc_factor[k], prep.m_acc[:, k], fit.ctx.acc_rate[:, k]
-    else:
-        sig, m, rate = prep.sigma_gyro[k] * fit.gyro_factor[k], prep.m_gyro[:, k], fit.ctx.gyro_rate[:, k]
-    v = rate * m / sig
-    Jx = lin.Jx[:, rows]
-    u = v - (Jx @ (lin.Vinv @ (Jx.transpose(-1, -2) @ v.unsqueeze(-1)))).squeeze(-1)
-    s = torch.sqrt((1 - lin.h[:, rows]).clamp_min(1e-3))
-    ut, rt = u / s, lin.r[:, rows] / s
-    t = prep.time.detach().cpu().double().numpy()
+def sample_steps(time) -> np.ndarray:
+    """(T−1,) the steps between consecutive sample times in units of the median step: the
+    ``steps`` the AR(1) correlation decays over (ρ^step; a selection gap is a long step)."""
+    t = np.asarray(time, dtype=float)
     dt = np.diff(t)
-    steps = dt / float(np.median(dt)) if len(dt) else np.zeros(0)
-    return (ut * ut).sum(-1).numpy(), (ut * rt).sum(-1).numpy(), steps
+    return dt / float(np.median(dt)) if len(dt) else np.zeros(0)
 
 
 def wander_table(prep, fit, sensors=("gyro", "acc"), sigma_max: float | None = None) -> dict:
@@ -187,7 +168,7 @@ def wander_table(prep, fit, sensors=("gyro", "acc"), sigma_max: float | None = N
     over the excess Σ(r̃² − 1) of the triad (the part of its excess power a wandering timing error
     of that size accounts for; the rest is white noise c² − 1).  ``evidence`` is against the
     best noise-only model of the triad, so a constant variance inflation earns nothing."""
-    import torch
+    from .jitter import triad_wander
 
     t = prep.time.detach().cpu().double().numpy()
     sigma_max = float(np.median(np.diff(t))) if sigma_max is None else sigma_max
@@ -198,14 +179,9 @@ def wander_table(prep, fit, sensors=("gyro", "acc"), sigma_max: float | None = N
             m = prep.m_acc[:, k] if sensor == "acc" else prep.m_gyro[:, k]
             if not bool(m.any()):
                 continue
-            a, b, steps = wander_ab(prep, fit, k, sensor)
-            lin = fit.linear()
-            off = 0 if sensor == "acc" else 3 * prep.K
-            r2 = lin.r[:, off + 3 * k:off + 3 * k + 3] ** 2 / (1 - lin.h[:, off + 3 * k:off + 3 * k + 3]).clamp_min(1e-3)
-            rr, n = float((r2 * m).sum()), int(m.sum())
-            f = fit_wander(a, b, steps, sigma_max=sigma_max, rr=rr, n=n)
+            f, a_sum, rr, n = triad_wander(prep, fit, k, sensor, sigma_max)
             excess = rr - n
             rows.append({"imu": k, "sigma_ms": 1e3 * f["sigma"], "rho": f["rho"], "c": f["c"], "evidence": f["evidence"],
-                         "share": (f["sigma"] ** 2 * float(a.sum()) / excess) if excess > 0 else None})
+                         "share": (f["sigma"] ** 2 * a_sum / excess) if excess > 0 else None})
         out[sensor] = rows
     return out
