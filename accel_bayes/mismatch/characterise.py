@@ -207,7 +207,7 @@ def characterise(prep: Prepared, fit: ModelFit) -> dict:
         tot_excess = float(np.nansum(z2) - obs.sum())
         imus = []
         try:
-            from .wander import wander_table
+            from .jitter import wander_table
 
             wander = {r["imu"]: r for r in wander_table(prep, fit, sensors=(sensor,))[sensor]}
         except Exception:  # a diagnostic: never let it stop a report (e.g. a fit without output rates)

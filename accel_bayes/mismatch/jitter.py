@@ -39,6 +39,7 @@ import torch
 from ..physics.effects.jitter import log_marginal_gain
 
 __all__ = ["jitter_ab", "profile_width", "jitter_evidence", "random_variance", "variance_ratio", "fit_random_effects",
+           "triad_wander", "wander_table",
            "CHI2_1_95"]
 
 CHI2_1_95 = 3.841458820694124  # χ²₁ 95 % quantile: the profile-likelihood interval
@@ -48,11 +49,17 @@ def _rows(K: int, k: int) -> torch.Tensor:
     return torch.tensor([3 * k, 3 * k + 1, 3 * k + 2, 3 * K + 3 * k, 3 * K + 3 * k + 1, 3 * K + 3 * k + 2])
 
 
-def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power: bool = False):
+def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power: bool = False,
+              whitening: str = "noise"):
     """(a, b), each (T,), of IMU k at a fit (module docstring): a = ũᵀũ in s⁻², b = ũᵀr̃ in s⁻¹.
     ``sensor`` "acc" or "gyro" restricts them to that triad's three channels (``timing_wander``);
     None uses all six (``sampling_jitter``).  ``with_residual_power`` (with a sensor): also
-    Σ r̃ᵀr̃ and the number of observed channels of the triad."""
+    Σ r̃ᵀr̃ and the number of observed channels of the triad.  ``whitening``: "noise" (default:
+    the model's noise σ·factor, the random effects' own variance taken back out — what a random
+    effect is fitted on) or "model" (the fit's full weights, random effects included — what the
+    fit leaves, as the characteriser describes it)."""
+    if whitening not in ("noise", "model"):
+        raise ValueError(f"whitening: expected 'noise' or 'model', got {whitening!r}")
     lin = fit.linear()
     K = prep.K
     rows = _rows(K, k)
@@ -60,7 +67,7 @@ def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power:
     # predicted variance (IRLS); lin is whitened by them.  back = (model weight → noise weight)
     model = getattr(fit.lm, "model", None)
     vr = getattr(model, "var_ratio", None)
-    back = torch.ones(prep.T, 6, dtype=torch.float64) if vr is None else \
+    back = torch.ones(prep.T, 6, dtype=torch.float64) if vr is None or whitening == "model" else \
         torch.sqrt(torch.cat((vr[:, 0, k], vr[:, 1, k]), -1))
     wa = prep.m_acc[:, k] / (prep.sigma_acc[k] * fit.acc_factor[k])
     wg = prep.m_gyro[:, k] / (prep.sigma_gyro[k] * fit.gyro_factor[k])
@@ -79,15 +86,16 @@ def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power:
     return (ut * ut).sum(-1), (ut * rt).sum(-1)
 
 
-def triad_wander(prep, fit, k: int, sensor: str, sigma_max: float):
+def triad_wander(prep, fit, k: int, sensor: str, sigma_max: float, whitening: str = "noise"):
     """:func:`accel_bayes.mismatch.wander.fit_wander` on IMU k's ``sensor`` triad at a fit, its
     white-noise factor fitted too: (the fit's dict, Σa (s⁻²), Σ r̃ᵀr̃, number of observed
     channels), a and r̃ from :func:`jitter_ab` (projected, leverage-corrected, noise-whitened).
-    ``sigma_max`` bounds the instant std (s).  The one fit behind ``timing_wander`` and the
-    characteriser's timing column."""
+    ``sigma_max`` bounds the instant std (s); ``whitening`` as in :func:`jitter_ab`.  The one fit
+    behind ``timing_wander`` (noise whitening) and the characteriser's timing column (model
+    whitening: what the fit leaves)."""
     from .wander import fit_wander, sample_steps
 
-    a, b, rr, n = jitter_ab(prep, fit, k, sensor, with_residual_power=True)
+    a, b, rr, n = jitter_ab(prep, fit, k, sensor, with_residual_power=True, whitening=whitening)
     f = fit_wander(a.numpy(), b.numpy(), sample_steps(prep.time), sigma_max=sigma_max, rr=rr, n=n)
     return f, float(a.sum()), rr, n
 
@@ -235,3 +243,27 @@ def variance_ratio(prep, fit=None, effects=None, acc_factor=None, gyro_factor=No
     sa = (prep.sigma_acc * fa)[None, :, None] ** 2
     sg = (prep.sigma_gyro * fg)[None, :, None] ** 2
     return torch.stack((1 + va / sa, 1 + vg / sg), 1)
+
+
+def wander_table(prep, fit, sensors=("gyro", "acc"), sigma_max: float | None = None) -> dict:
+    """:func:`fit_wander` (noise factor c fitted too) on every IMU's triads at a fit: {sensor:
+    [{imu, sigma_ms, rho, c, evidence, share}]}, ``share`` = the predicted timing variance σ²·Σa
+    over the excess Σ(r̃² − 1) of the triad (the part of its excess power a wandering timing error
+    of that size accounts for; the rest is white noise c² − 1).  ``evidence`` is against the
+    best noise-only model of the triad, so a constant variance inflation earns nothing.  Residuals
+    in the fit's own whitening (random effects already in the fit included): what the fit leaves."""
+    t = prep.time.detach().cpu().double().numpy()
+    sigma_max = float(np.median(np.diff(t))) if sigma_max is None else sigma_max
+    out = {}
+    for sensor in sensors:
+        rows = []
+        for k in range(prep.K):
+            m = prep.m_acc[:, k] if sensor == "acc" else prep.m_gyro[:, k]
+            if not bool(m.any()):
+                continue
+            f, a_sum, rr, n = triad_wander(prep, fit, k, sensor, sigma_max, whitening="model")
+            excess = rr - n
+            rows.append({"imu": k, "sigma_ms": 1e3 * f["sigma"], "rho": f["rho"], "c": f["c"], "evidence": f["evidence"],
+                         "share": (f["sigma"] ** 2 * a_sum / excess) if excess > 0 else None})
+        out[sensor] = rows
+    return out

@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-__all__ = ["ar1_precision_bands", "ar1_gain", "fit_wander", "sample_steps", "wander_table"]
+__all__ = ["ar1_precision_bands", "ar1_gain", "fit_wander", "sample_steps"]
 
 
 def _phis(steps: np.ndarray, rho: float) -> np.ndarray:
@@ -160,28 +160,3 @@ def sample_steps(time) -> np.ndarray:
     t = np.asarray(time, dtype=float)
     dt = np.diff(t)
     return dt / float(np.median(dt)) if len(dt) else np.zeros(0)
-
-
-def wander_table(prep, fit, sensors=("gyro", "acc"), sigma_max: float | None = None) -> dict:
-    """:func:`fit_wander` (noise factor c fitted too) on every IMU's triads at a fit: {sensor:
-    [{imu, sigma_ms, rho, c, evidence, share}]}, ``share`` = the predicted timing variance σ²·Σa
-    over the excess Σ(r̃² − 1) of the triad (the part of its excess power a wandering timing error
-    of that size accounts for; the rest is white noise c² − 1).  ``evidence`` is against the
-    best noise-only model of the triad, so a constant variance inflation earns nothing."""
-    from .jitter import triad_wander
-
-    t = prep.time.detach().cpu().double().numpy()
-    sigma_max = float(np.median(np.diff(t))) if sigma_max is None else sigma_max
-    out = {}
-    for sensor in sensors:
-        rows = []
-        for k in range(prep.K):
-            m = prep.m_acc[:, k] if sensor == "acc" else prep.m_gyro[:, k]
-            if not bool(m.any()):
-                continue
-            f, a_sum, rr, n = triad_wander(prep, fit, k, sensor, sigma_max)
-            excess = rr - n
-            rows.append({"imu": k, "sigma_ms": 1e3 * f["sigma"], "rho": f["rho"], "c": f["c"], "evidence": f["evidence"],
-                         "share": (f["sigma"] ** 2 * a_sum / excess) if excess > 0 else None})
-        out[sensor] = rows
-    return out
