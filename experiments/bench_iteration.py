@@ -26,8 +26,17 @@ probability 0.3, MAP-like centre = the true/nominal positions): propose, prior, 
 log p̂, accept/reject.
 
     python experiments/bench_iteration.py [--peer /work/h2base] [--rounds 15] [--block 20]
+    python experiments/bench_iteration.py --device cuda [--cases exp1,mimu8,plate7,mimu32,mimu32k]
 
 Output ends with lines ``RESULT <name>: ours x ms, peer y ms, speedup rx``.
+
+``--device DEV`` (issue #15 item 4) runs "ours" with the likelihood, its standard normals, the prior
+and the kernel's generator on DEV, and the peer is this same checkout on the CPU (``--peer`` is then
+ignored): the RESULT lines read ``RESULT <name>[DEV]: ours x ms (DEV), peer y ms (cpu), speedup rx``.
+Times on a GPU include a ``torch.cuda.synchronize()`` after every call (otherwise only the kernel
+launches would be timed), and log p̂ on the same z is compared between the devices before timing.
+The CPU stays the default; nothing else in the package needs a GPU.  That the hot path creates no
+tensor on the wrong device is tested without a GPU (tests/test_device.py).
 """
 from __future__ import annotations
 
@@ -47,7 +56,7 @@ NOEDITABLE = "/tmp/noeditable"  # hides an editable install of another checkout,
 
 # ---------------------------------------------------------------------------- worker side
 
-def _build(name):
+def _build(name, device="cpu"):
     import torch
     from accel_bayes.likelihood import RaoBlackwellLikelihood
     from accel_bayes.physics import arrays
@@ -64,21 +73,21 @@ def _build(name):
             return None
         pre = preprocess(import_mimu(path))
         rec = pre.recording
-        lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, selection=pre.selection)
-        return lik, lik.nominal_positions.clone()
+        lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, selection=pre.selection, device=device)
+        return lik, lik.nominal_positions.clone().to(device)
     if name in ("mimu8", "plate7"):
         T, N, seed = (5900, 1, 1) if name == "mimu8" else (2600, 25, 2)
         sim = simulate(arrays.mimu4444_8(), "smooth", T=T, seed=seed)
         acc = None if name == "mimu8" else list(range(7))
-        lik = RaoBlackwellLikelihood.from_recording(sim.recording, num_draws=N, acc_imus=acc)
+        lik = RaoBlackwellLikelihood.from_recording(sim.recording, num_draws=N, acc_imus=acc, device=device)
     elif name in ("mimu32", "mimu32k"):
         sim = simulate(arrays.mimu4444_32(), "iid", T=500, seed=3, position_error_std=0.0, acc_noise_std=0.04,
                        clip=False)
         lik = RaoBlackwellLikelihood.from_recording(sim.recording, num_draws=1000 if name == "mimu32k" else 1,
-                                                    gyro_method="calibrated")
+                                                    gyro_method="calibrated", device=device)
     else:
         raise SystemExit(f"unknown case {name!r}")
-    return lik, sim.true_positions[list(lik.imu_labels)].clone()
+    return lik, sim.true_positions[list(lik.imu_labels)].clone().to(device)
 
 
 def _kernel(lik, pos):
@@ -89,7 +98,7 @@ def _kernel(lik, pos):
 
     th = theta_from_positions(pos, lik.reference)
     d = th.numel()
-    cov = torch.eye(d, dtype=torch.float64) * (20e-6) ** 2
+    cov = torch.eye(d, dtype=torch.float64, device=pos.device) * (20e-6) ** 2
     prior = GaussianPrior(pos, std=3e-3, reference=lik.reference)
     k = PMMHKernel(lik, prior, seed=3, proposal_cov=cov, independence_prob=0.3, independence_mean=th,
                    independence_cov=cov, step_size=0.5)
@@ -105,37 +114,52 @@ def worker():
     built = {}
     for line in sys.stdin:
         cmd = json.loads(line)
-        op, name = cmd["op"], cmd["case"]
-        if name not in built:
-            b = _build(name)
-            built[name] = None if b is None else (*b, _kernel(*b))
-        if built[name] is None:
+        op, name, device = cmd["op"], cmd["case"], cmd.get("device", "cpu")
+        if (name, device) not in built:
+            b = _build(name, device) if device != "cpu" else _build(name)  # cpu: exactly the calls of the stored runs
+            built[name, device] = None if b is None else (*b, _kernel(*b))
+        if built[name, device] is None:
             print(json.dumps({"missing": True}), flush=True)
             continue
-        lik, pos, kern = built[name]
+        lik, pos, kern = built[name, device]
+        sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
         if op == "value":
-            z = lik.sample_z(generator=torch.Generator().manual_seed(123))
-            P = pos + 2e-4 * torch.randn(4, *pos.shape, generator=torch.Generator().manual_seed(7), dtype=pos.dtype)
-            P[0] = pos
-            v = lik.log_phat(P, z=z)
+            # the same normals on every device: drawn on the CPU with one seed, then moved
+            z = lik.sample_z(generator=torch.Generator().manual_seed(123)) if device == "cpu" else \
+                _cpu_z(lik).to(device)
+            P = pos.cpu() + 2e-4 * torch.randn(4, *pos.shape, generator=torch.Generator().manual_seed(7),
+                                               dtype=pos.dtype)
+            P[0] = pos.cpu()
+            v = lik.log_phat(P.to(device), z=z).cpu()
             print(json.dumps({"value": [float(x) for x in v], "T": lik.T, "A": lik.A, "N": lik.num_draws}),
                   flush=True)
             continue
         if op == "logphat":
-            gen = torch.Generator().manual_seed(1)
+            gen = torch.Generator(device=device).manual_seed(1)
             fn = lambda: lik.log_phat(pos, generator=gen)  # noqa: E731
         else:
             fn = lambda: kern.sample({})  # noqa: E731
         fn()
+        sync()
         ts = []
         for _ in range(int(cmd["reps"])):
             t0 = time.perf_counter()
             fn()
+            sync()
             ts.append(time.perf_counter() - t0)
         out = {"times": ts}
         if op == "iteration":
             out["accept"] = kern.diagnostics()["acceptance rate"]
         print(json.dumps(out), flush=True)
+
+
+def _cpu_z(lik):
+    """The standard normals ``lik.sample_z`` draws on the CPU with seed 123 (float32, then cast),
+    for comparing log p̂ across devices on the same z."""
+    import torch
+
+    zt = torch.randn(lik.T, 3, lik.num_draws, generator=torch.Generator().manual_seed(123), dtype=torch.float32)
+    return zt.to(lik.dtype).transpose(-1, -2)
 
 
 # ---------------------------------------------------------------------------- driver side
@@ -170,22 +194,34 @@ def main(argv=None):
     ap.add_argument("--cases", default="exp1,mimu8,plate7,mimu32,mimu32k")
     ap.add_argument("--rounds", type=int, default=15, help="alternations ours/peer per measurement")
     ap.add_argument("--block", type=int, default=20, help="calls per worker per round")
+    ap.add_argument("--device", default="cpu",
+                    help="device of 'ours' (e.g. cuda); not cpu: the peer is this checkout on the CPU")
     args = ap.parse_args(argv)
     if args.worker:
         return worker()
-    if not (args.peer / "accel_bayes").is_dir():
+    dev = args.device
+    if dev != "cpu":
+        import torch
+
+        try:
+            torch.empty(1, device=dev)
+        except Exception as exc:  # noqa: BLE001 — any failure means the device is not usable here
+            raise SystemExit(f"--device: {dev!r} is not usable here ({str(exc).splitlines()[0]})") from None
+        args.peer = ROOT
+    elif not (args.peer / "accel_bayes").is_dir():
         raise SystemExit(f"--peer {args.peer}: no accel_bayes there (git -C {ROOT} worktree add {args.peer} 368b126)")
     ours, peer = Worker(ROOT), Worker(args.peer)
     peer_rev = subprocess.run(["git", "-C", str(args.peer), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True).stdout.strip()
     ours_rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True).stdout.strip()
-    print(f"ours {ROOT} ({ours_rev}), peer {args.peer} ({peer_rev}); 1 torch thread each; "
+    print(f"ours {ROOT} ({ours_rev}) on {dev}, peer {args.peer} ({peer_rev}) on cpu; 1 torch thread each; "
           f"{args.rounds} rounds × {args.block} calls, alternating; medians of wall-clock times")
+    tag, on = ("", "") if dev == "cpu" else (f"[{dev}]", f" ({dev})")
     results = []
     try:
         for name in args.cases.split(","):
-            a, b = ours.ask(op="value", case=name), peer.ask(op="value", case=name)
+            a, b = ours.ask(op="value", case=name, device=dev), peer.ask(op="value", case=name)
             if a.get("missing"):
                 print(f"{name}: data not found, skipped")
                 continue
@@ -198,8 +234,8 @@ def main(argv=None):
                 ta, tb, acc = [], [], None
                 for r in range(args.rounds):
                     first, second = (ours, peer) if r % 2 == 0 else (peer, ours)
-                    x = first.ask(op=op, case=name, reps=reps)
-                    y = second.ask(op=op, case=name, reps=reps)
+                    x = first.ask(op=op, case=name, reps=reps, **({"device": dev} if first is ours else {}))
+                    y = second.ask(op=op, case=name, reps=reps, **({"device": dev} if second is ours else {}))
                     xa, xb = (x, y) if first is ours else (y, x)
                     ta += xa["times"]
                     tb += xb["times"]
@@ -208,12 +244,12 @@ def main(argv=None):
                 extra = f"  (acceptance in the timed iterations {acc:.2f})" if acc is not None else ""
                 print(f"  {op:9s}: ours median {ma:7.3f} ms, peer {mb:7.3f} ms, speedup {mb / ma:.2f}x "
                       f"({len(ta)} calls each){extra}")
-                results.append((f"{op}_{name}", ma, mb))
+                results.append((f"{op}_{name}{tag}", ma, mb))
     finally:
         ours.close()
         peer.close()
     for nm, ma, mb in results:
-        print(f"RESULT {nm}: ours {ma:.3f} ms, peer {mb:.3f} ms, speedup {mb / ma:.2f}x")
+        print(f"RESULT {nm}: ours {ma:.3f} ms{on}, peer {mb:.3f} ms{' (cpu)' if on else ''}, speedup {mb / ma:.2f}x")
 
 
 if __name__ == "__main__":

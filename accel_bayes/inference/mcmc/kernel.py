@@ -311,7 +311,7 @@ class PMMHKernel(MCMCKernel):
         """log p̂(y | θ): with the given standard normals z, else fresh ones from the chain's generator."""
         pos = positions_from_theta(theta, self.reference, self.A)
         out = self.likelihood.log_phat(pos, generator=self._gen) if z is None else self.likelihood.log_phat(pos, z=z)
-        return torch.as_tensor(out, dtype=self.dtype).reshape(())
+        return torch.as_tensor(out, dtype=self.dtype, device=self.device).reshape(())
 
     def _propose_z(self) -> torch.Tensor:
         """z' = ρ z + √(1 − ρ²) ε (Crank–Nicolson: leaves N(0, I) invariant and is reversible with
@@ -347,7 +347,7 @@ class PMMHKernel(MCMCKernel):
                 log_alpha = (float(lphat_p) + float(lprior_p) - float(self._current_log_phat())
                              - float(self._log_prior) + float(log_q_ratio))
                 alpha = math.exp(min(0.0, log_alpha))
-                u = float(torch.rand((), generator=self._gen, dtype=self.dtype))
+                u = float(torch.rand((), generator=self._gen, dtype=self.dtype, device=self.device))
                 if u < alpha:
                     accepted = True
                     self._theta = prop

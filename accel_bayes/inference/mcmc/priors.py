@@ -24,8 +24,16 @@ __all__ = ["GaussianPrior", "BoxPrior", "DEFAULT_PRIOR_STD"]
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
+def _device_of(x, device):
+    """The device asked for, else the device of a tensor argument: a float std or bound must land
+    beside the GPU positions it goes with, not on torch's default device (tests/test_device.py)."""
+    if device is not None:
+        return device
+    return x.device if isinstance(x, torch.Tensor) else None
+
+
 def _as_tensor(x, dtype, device):
-    return torch.as_tensor(x, dtype=dtype, device=device)
+    return torch.as_tensor(x, dtype=dtype, device=_device_of(x, device))
 
 
 class GaussianPrior:
@@ -43,6 +51,7 @@ class GaussianPrior:
     def __init__(self, mean_positions, std=DEFAULT_PRIOR_STD, reference: int = 0,
                  dtype=torch.float64, device=None):
         pos = _as_tensor(mean_positions, dtype, device)
+        device = pos.device
         if pos.ndim != 2 or pos.shape[-1] != 3 or pos.shape[0] < 2:
             raise UserError(f"mean_positions: expected shape (A, 3) with A >= 2, got {tuple(pos.shape)}")
         A = pos.shape[0]
@@ -91,8 +100,8 @@ class BoxPrior:
     """
 
     def __init__(self, low, high, dtype=torch.float64, device=None):
-        lo = _as_tensor(low, dtype, device)
-        hi = _as_tensor(high, dtype, device)
+        lo = _as_tensor(low, dtype, _device_of(low, device))
+        hi = _as_tensor(high, dtype, lo.device)
         lo, hi = torch.broadcast_tensors(lo, hi)
         if lo.ndim != 2 or lo.shape[-1] != 3:
             raise UserError(f"low/high: expected shape (A-1, 3), got {tuple(lo.shape)}")
@@ -111,6 +120,7 @@ class BoxPrior:
         """Box of half-width ``half_width`` (m, float or (A−1, 3)) around the design positions
         relative to the reference row of ``mean_positions`` (A, 3)."""
         pos = _as_tensor(mean_positions, dtype, device)
+        device = pos.device
         if pos.ndim != 2 or pos.shape[-1] != 3 or pos.shape[0] < 2:
             raise UserError(f"mean_positions: expected shape (A, 3) with A >= 2, got {tuple(pos.shape)}")
         if not 0 <= int(reference) < pos.shape[0]:
@@ -129,7 +139,7 @@ class BoxPrior:
         """The box centred on the design positions whose per-coordinate standard deviation is
         ``std`` (half-width √3·std), so ``--prior box --prior-std`` means the same spread as the
         Gaussian prior."""
-        s = _as_tensor(std, dtype, device)
+        s = _as_tensor(std, dtype, _device_of(mean_positions, device))
         if not bool(torch.isfinite(s).all()) or bool((s <= 0).any()):
             raise UserError(f"prior_std: expected a finite value > 0 (metres), got {std}")
         return cls.around(mean_positions, math.sqrt(3.0) * s, reference, dtype=dtype, device=device)

@@ -107,7 +107,7 @@ class ProposalMixture:
         use_ind = False
         if self.independence_prob > 0 and self.independence.available:
             p_ind = min(self.independence_prob, WARMUP_MAX_INDEPENDENCE) if warming_up else self.independence_prob
-            use_ind = bool(torch.rand((), generator=generator, dtype=theta.dtype) < p_ind)
+            use_ind = bool(torch.rand((), generator=generator, dtype=theta.dtype, device=theta.device) < p_ind)
         eps = torch.randn(theta.numel(), generator=generator, dtype=theta.dtype, device=theta.device)
         if use_ind:
             prop = self.independence.propose(eps)
