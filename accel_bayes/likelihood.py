@@ -413,6 +413,30 @@ class RaoBlackwellLikelihood:
         new.phi_prior_prec = None if new.phi_prior is None else new.phi_prior.precision
         return new
 
+    def to(self, device) -> "RaoBlackwellLikelihood":
+        """A copy whose tensors live on ``device`` (e.g. "cuda"); the chains then run there.
+
+        Every tensor attribute (the data, Λ, the gyro posterior and its Cholesky factors, the
+        prior on φ, the nominal positions) is moved; the lazily built caches (names ``_*``) are
+        dropped and rebuilt on first use on the new device.  Subclasses (the tempered and the
+        per-sample-scaled likelihoods) keep their extra attributes the same way.  ``self`` is
+        unchanged; on the same device the copy shares its tensors."""
+        import copy
+
+        device = torch.device(device)
+        new = copy.copy(self)
+        for name, value in list(vars(self).items()):
+            if name.startswith("_"):
+                delattr(new, name)  # caches: rebuilt on the new device when first needed
+            elif isinstance(value, torch.Tensor):
+                setattr(new, name, value.to(device))
+            elif isinstance(value, GyroPosterior):
+                setattr(new, name, value.to(device=device))
+            elif isinstance(value, PhiPrior):
+                setattr(new, name, PhiPrior.coerce(value, dtype=self.dtype, device=device))
+        new.device = new.acc.device
+        return new
+
     # ------------------------------------------------------------------ helpers
     def _positions(self, positions: torch.Tensor) -> torch.Tensor:
         positions = torch.as_tensor(positions, dtype=self.dtype, device=self.device)

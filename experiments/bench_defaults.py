@@ -25,6 +25,11 @@ chain on these sizes).  Output: one line per case, then::
     RESULT defaults_<workload>_<stat>: ours <x> s, 7adf109 <y> s, speedup <r>x
 
     python experiments/bench_defaults.py [--base DIR] [--only boards,mimu_exp1,mimu32] [--boards 20]
+    python experiments/bench_defaults.py --device cuda [--only ...]     # issue #15 item 4
+
+``--device DEV``: "ours" is ``calibrate(..., device=DEV)`` (the chains on DEV; preparation, MAP and
+summary stay on the CPU) and the peer is this same checkout on the CPU instead of 7adf109; the
+RESULT lines then read ``RESULT defaults_<workload>_<stat>[DEV]: ours x s (DEV), cpu y s, …``.
 """
 from __future__ import annotations
 
@@ -53,9 +58,9 @@ WORKER = textwrap.dedent('''
     import numpy as np
     import arviz as az
     from accel_bayes.calibrate import calibrate
-    path = sys.argv[1]
+    path, device = sys.argv[1], (sys.argv[2] if len(sys.argv) > 2 else None)
     t0 = time.perf_counter()
-    res = calibrate(path, seed=0, progress=False)
+    res = calibrate(path, seed=0, progress=False, **({"device": device} if device else {}))
     seconds = time.perf_counter() - t0
     post = res.idata.posterior["r"]
     ess_b = float(az.ess(res.idata, method="bulk")["r"].min())
@@ -67,12 +72,12 @@ WORKER = textwrap.dedent('''
 ''')
 
 
-def run_case(tree: Path, path: Path) -> dict:
+def run_case(tree: Path, path: Path, device: str | None = None) -> dict:
     # one thread in both trees: calibrate pins one now (accel_bayes.threads), and 7adf109 with two
     # threads on a loaded shared machine would be slowed by contention, not by its algorithm
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    out = subprocess.run([sys.executable, "-c", WORKER, str(path)], cwd="/tmp", env=env, capture_output=True,
-                         text=True)
+    out = subprocess.run([sys.executable, "-c", WORKER, str(path)] + ([device] if device else []), cwd="/tmp",
+                         env=env, capture_output=True, text=True)
     if out.returncode != 0:
         raise SystemExit(f"calibrate failed in {tree} on {path}:\n{out.stderr[-2000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -126,9 +131,21 @@ def main(argv=None) -> int:
     ap.add_argument("--base", type=Path, default=None, help=f"checkout of {BASE_COMMIT} (default: a worktree in experiments/out)")
     ap.add_argument("--only", default="boards,mimu_exp1,mimu32", help="comma-separated workloads")
     ap.add_argument("--boards", type=int, default=20, help="number of random boards (default 20)")
+    ap.add_argument("--device", default=None, metavar="DEV",
+                    help="run ours with calibrate(device=DEV) against this checkout on the CPU (e.g. cuda)")
     args = ap.parse_args(argv)
     only = set(args.only.split(","))
-    base = ensure_base(args.base)
+    if args.device:
+        from accel_bayes.pipelines.calibrate import _device_option
+        from accel_bayes.errors import UserError
+
+        try:
+            _device_option(args.device, None)
+        except UserError as exc:
+            raise SystemExit(f"--device: {str(exc).split(': ', 1)[1]}") from None
+        base, peer, tag, on = REPO, "cpu", f"[{args.device}]", f" ({args.device})"
+    else:
+        base, peer, tag, on = ensure_base(args.base), BASE_COMMIT, "", ""
     res = {}
     with tempfile.TemporaryDirectory() as td:
         cases = write_cases(Path(td), only, args.boards)
@@ -136,21 +153,21 @@ def main(argv=None) -> int:
             res[wl] = []
             for i, (name, p) in enumerate(items):
                 order = [("ours", REPO), ("base", base)] if i % 2 == 0 else [("base", base), ("ours", REPO)]
-                r = {who: run_case(tree, p) for who, tree in order}
+                r = {who: run_case(tree, p, args.device if who == "ours" else None) for who, tree in order}
                 res[wl].append((name, r))
-                print(f"{wl} {name}: ours {_fmt(r['ours'])} | {BASE_COMMIT} {_fmt(r['base'])}", flush=True)
+                print(f"{wl} {name}: ours{on} {_fmt(r['ours'])} | {peer} {_fmt(r['base'])}", flush=True)
     for wl, rows in res.items():
         ours = [r["ours"] for _, r in rows]
         basr = [r["base"] for _, r in rows]
         n_ok = sum(converged(r) for r in ours), sum(converged(r) for r in basr)
         print(f"INFO defaults_{wl}: converged (R̂ < 1.01, bulk and tail ESS ≥ 400) in {n_ok[0]}/{len(ours)} cases "
-              f"(ours), {n_ok[1]}/{len(basr)} ({BASE_COMMIT})")
+              f"(ours{on}), {n_ok[1]}/{len(basr)} ({peer})")
         stats = [("median", statistics.median)] if len(rows) > 1 else [("wall", statistics.median)]
         if len(rows) > 1:
             stats.append(("max", max))
         for stat, f in stats:
             xo, xb = f([r["seconds"] for r in ours]), f([r["seconds"] for r in basr])
-            print(f"RESULT defaults_{wl}_{stat}: ours {xo:.1f} s, {BASE_COMMIT} {xb:.1f} s, speedup {xb / xo:.2f}x")
+            print(f"RESULT defaults_{wl}_{stat}{tag}: ours {xo:.1f} s{on}, {peer} {xb:.1f} s, speedup {xb / xo:.2f}x")
     return 0
 
 

@@ -102,3 +102,28 @@ def test_priors_follow_their_positions(setup, meta_default):
     for prior in (GaussianPrior(pos, std=3e-3), BoxPrior.with_std(pos, 3e-3), BoxPrior.around(pos, 5e-3)):
         assert prior.std.device == CPU
         assert bool(torch.isfinite(prior.log_prob(prior.mean)))
+
+
+def test_calibrate_device_path_matches_default():
+    """``calibrate(device="cpu")`` takes the device path of step 6 (the likelihood, prior and starts
+    copied with ``.to``, the draws brought back) and must give the default path's draws bit for bit."""
+    from accel_bayes.pipelines.calibrate import calibrate
+
+    sim = simulate(arrays.mimu4444_8(), "smooth", T=200, seed=5)
+    kw = dict(chains=2, draws=30, warmup=30, seed=2, progress=False)
+    a = calibrate(sim.recording, **kw)
+    b = calibrate(sim.recording, device="cpu", **kw)
+    assert torch.equal(a.run.theta, b.run.theta) and torch.equal(a.run.log_phat, b.run.log_phat)
+    assert a.settings["device"] == b.settings["device"] == "cpu"
+    assert b.run.theta.device == CPU
+
+
+@pytest.mark.parametrize("device, field", [("nonsense", "device"), ("cuda", "device")])
+def test_calibrate_refuses_unusable_device(device, field):
+    from accel_bayes.errors import UserError
+    from accel_bayes.pipelines.calibrate import calibrate
+
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("a GPU is present: 'cuda' is usable")
+    with pytest.raises(UserError, match=f"^{field}: "):
+        calibrate("/nonexistent.nc", device=device)

@@ -131,9 +131,26 @@ def register(sub) -> None:
     p.add_argument("--threads", type=opt.count(1), default=DEFAULTS["threads"], metavar="K",
                    help="torch CPU threads (default %(default)s: the tensors are small, and extra threads cost more "
                         "than they give on a shared machine)")
+    p.add_argument("--device", type=_device, default=None, metavar="DEV",
+                   help="run the chains on DEV, e.g. cuda (default: the CPU; loading, MAP and summary stay on the "
+                        "CPU; another device draws other random numbers; no --checkpoint-every/--resume)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
+
+
+def _device(s: str):
+    """--device: a torch device torch can allocate on here."""
+    import argparse
+
+    from ..errors import UserError
+    from ..pipelines.calibrate import _device_option
+
+    try:
+        _device_option(s, None)
+    except UserError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+    return s
 
 
 def _correlation(s: str):
@@ -163,7 +180,7 @@ def _run(args) -> int:
         intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
         min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
         noise_inflation=not args.no_noise_inflation, phi_prior=args.phi_prior, threads=args.threads,
-        correlation=args.correlation,
+        correlation=args.correlation, device=args.device,
     )
     n_kept = res.settings["preprocess"]["samples"].get("clipped_kept", 0)
     if n_kept:  # stderr: the table below goes to stdout, which is often redirected

@@ -234,6 +234,26 @@ def _validate(chains, draws, warmup, num_draws, seed, prior, prior_std, gyro_met
     return out
 
 
+def _device_option(device, checkpoint):
+    """The chains' device: None (the default path, on the CPU), else a usable ``torch.device``;
+    refused with a one-line error when torch cannot allocate there."""
+    if device is None:
+        return None
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise UserError(f"device: expected a torch device such as 'cpu' or 'cuda', got {device!r}") from None
+    try:
+        torch.empty(1, device=dev)
+    except Exception as exc:  # noqa: BLE001 — whatever torch raises, the device is not usable here
+        raise UserError(f"device: {str(dev)!r} is not usable here ({str(exc).splitlines()[0]})") from None
+    # an explicit "cpu" takes the device path too (its draws equal the default path's, bit for bit:
+    # tests/test_device.py), and keeps checkpoints
+    if checkpoint is not None and dev.type != "cpu":
+        raise UserError(f"checkpoint: not supported with device={str(dev)!r} (checkpoints hold CPU chain states)")
+    return dev
+
+
 def _data_fingerprint(lik) -> str:
     h = hashlib.sha256()
     for t in (lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std):
@@ -427,6 +447,7 @@ def calibrate(
     phi_prior=DEFAULTS["phi_prior"],
     threads: int | None = DEFAULTS["threads"],
     correlation=DEFAULTS["correlation"],
+    device=None,
 ) -> CalibrationResult:
     """Sample the posterior of the accelerometer-triad positions of one recording with PmMH.
 
@@ -529,6 +550,12 @@ def calibrate(
         in the middle of a block; a run stopped by ``max_draws``/``max_seconds`` can be resumed with
         larger ones, which are not part of the settings a resume must match).
     callback : ``callback(chain, iteration, kernel)`` after every iteration.
+    device : where the chains run — None or "cpu" (default), or a torch device such as "cuda".
+        Only step 6 (the PmMH chains: likelihood estimates, prior, proposals, the chains'
+        generators) moves there; loading, preparation, noise, MAP and summary stay on the CPU, and
+        the draws come back to the CPU.  On another device the generators differ, so the same
+        seed gives other (equally valid) draws than on the CPU.  Not with ``checkpoint``.
+        Recorded in ``settings["device"]``.
     threads : torch CPU threads for the whole call (default 1, restored afterwards; None leaves
         torch's setting): the tensors are small, and on a shared 2-core machine two threads made
         one likelihood estimate 100× slower (:mod:`accel_bayes.threads`).  Results do not depend
@@ -545,6 +572,7 @@ def calibrate(
                          checkpoint_every, resume, proposal, independence_prob, init, noise, noise_bins, select,
                          max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior, correlation)
         noise_bins = opts["noise_bins"]
+        opts["device"] = _device_option(device, checkpoint)
         raw, sha, src = _load_step(recording)
         _check_resume(raw, sha, opts, checkpoint=checkpoint, resume=resume, prior=prior, prior_std=prior_std,
                       use_map=use_map, init=init, gyro_method=gyro_method, select=select, drop_clipped=drop_clipped,
@@ -792,6 +820,12 @@ def _posterior_step(lik, pri, theta_c, lap, opts, *, proposal, independence_prob
     else:
         init_theta = pri.sample((C,), generator=g)
         settings["start"] = "prior draws"
+    dev = opts.get("device")
+    lik_cpu = lik
+    if dev is not None:  # only the chains run on the device (tests/test_device.py: no stray CPU tensors)
+        lik, pri = lik.to(dev), pri.to(dev)
+        theta_c, init_theta = theta_c.to(dev), init_theta.to(dev)
+        lap = None if lap is None else lap.to(dev)
     if lap is not None:
         kernel = PMMHKernel(lik, pri, seed=opts["seed"], proposal_cov=lap, target_accept_prob=float(target_accept_prob),
                             independence_prob=p_ind, correlation=float(settings.get("correlation", 0.0)),
@@ -802,23 +836,35 @@ def _posterior_step(lik, pri, theta_c, lap, opts, *, proposal, independence_prob
                             independence_prob=p_ind, correlation=float(settings.get("correlation", 0.0)))
 
     fingerprint = {k: v for k, v in settings.items() if k not in ("var_log_phat", "input")}
-    fingerprint["data_sha256"] = _data_fingerprint(lik)
+    fingerprint["data_sha256"] = _data_fingerprint(lik_cpu)
     fingerprint["version"] = __version__
     fingerprint["request"] = request
     fingerprint = json.loads(json.dumps(fingerprint))
+    # after the fingerprint: CPU checkpoints of earlier versions stay resumable (a device run has none)
+    settings["device"] = "cpu" if dev is None else str(dev)
     if opts["draws"] is not None:
-        return run_pmmh(kernel, opts["draws"], opts["warmup"], C, init_theta, progress=progress,
-                        checkpoint=checkpoint, checkpoint_every=opts["checkpoint_every"], resume=resume,
-                        fingerprint=fingerprint, callback=callback)
+        run = run_pmmh(kernel, opts["draws"], opts["warmup"], C, init_theta, progress=progress,
+                       checkpoint=checkpoint, checkpoint_every=opts["checkpoint_every"], resume=resume,
+                       fingerprint=fingerprint, callback=callback)
+        return run if dev is None else _run_on_cpu(run)
     names = _coordinate_names(settings["imu_labels"], lik.reference)
 
     def check(theta):
-        return dg.convergence_check(theta, rhat_max=opts["rhat_max"], ess_min=opts["ess_min"], names=names)
+        return dg.convergence_check(theta.cpu(), rhat_max=opts["rhat_max"], ess_min=opts["ess_min"], names=names)
 
-    return run_pmmh_until(kernel, check, opts["warmup"], C, init_theta, check_every=opts["check_every"],
-                          max_samples=opts["max_draws"], max_seconds=opts["max_seconds"], progress=progress,
-                          checkpoint=checkpoint, checkpoint_every=opts["checkpoint_every"], resume=resume,
-                          fingerprint=fingerprint, callback=callback)
+    run = run_pmmh_until(kernel, check, opts["warmup"], C, init_theta, check_every=opts["check_every"],
+                         max_samples=opts["max_draws"], max_seconds=opts["max_seconds"], progress=progress,
+                         checkpoint=checkpoint, checkpoint_every=opts["checkpoint_every"], resume=resume,
+                         fingerprint=fingerprint, callback=callback)
+    return run if dev is None else _run_on_cpu(run)
+
+
+def _run_on_cpu(run):
+    """The chains' draws and statistics back on the CPU (the summary and ArviZ work there)."""
+    import dataclasses
+
+    return dataclasses.replace(run, **{f.name: getattr(run, f.name).cpu() for f in dataclasses.fields(run)
+                                       if isinstance(getattr(run, f.name), torch.Tensor)})
 
 
 def _coordinate_names(imu_labels, reference: int) -> list[str]:

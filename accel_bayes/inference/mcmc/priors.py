@@ -36,6 +36,17 @@ def _as_tensor(x, dtype, device):
     return torch.as_tensor(x, dtype=dtype, device=_device_of(x, device))
 
 
+def _prior_to(prior, device):
+    """A copy of ``prior`` with its tensors on ``device`` (the chains' device)."""
+    import copy
+
+    new = copy.copy(prior)
+    for name, value in vars(prior).items():
+        if isinstance(value, torch.Tensor):
+            setattr(new, name, value.to(device))
+    return new
+
+
 class GaussianPrior:
     """Independent Gaussian prior on the relative positions θ ([C21] §IV-A).
 
@@ -81,6 +92,10 @@ class GaussianPrior:
         shape = tuple(shape)
         eps = torch.randn(shape + self.shape, generator=generator, dtype=self.mean.dtype, device=self.mean.device)
         return self.mean + self.std * eps
+
+    def to(self, device) -> "GaussianPrior":
+        """A copy on ``device``."""
+        return _prior_to(self, device)
 
     def covariance(self) -> torch.Tensor:
         """Prior covariance of vec(θ), (3(A−1), 3(A−1)), diagonal."""
@@ -143,6 +158,10 @@ class BoxPrior:
         if not bool(torch.isfinite(s).all()) or bool((s <= 0).any()):
             raise UserError(f"prior_std: expected a finite value > 0 (metres), got {std}")
         return cls.around(mean_positions, math.sqrt(3.0) * s, reference, dtype=dtype, device=device)
+
+    def to(self, device) -> "BoxPrior":
+        """A copy on ``device``."""
+        return _prior_to(self, device)
 
     @property
     def shape(self) -> tuple:
