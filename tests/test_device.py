@@ -20,7 +20,9 @@ benchmark on it beside the CPU (its docstring).
 import pytest
 import torch
 
-from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh
+from types import SimpleNamespace
+
+from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh, run_pmmh_until
 from accel_bayes.inference.mcmc.priors import BoxPrior, GaussianPrior
 from accel_bayes.likelihood import RaoBlackwellLikelihood, theta_from_positions
 from accel_bayes.physics import arrays
@@ -94,6 +96,16 @@ def test_runner_stays_on_its_device(setup, meta_default):
                    progress=False)
     assert res.theta.device == CPU and res.theta.shape[:2] == (2, 6)
     assert bool(torch.isfinite(res.log_phat).all())
+    seen = []
+
+    def check(theta):  # converged at the second check
+        seen.append(theta.shape[1])
+        return SimpleNamespace(converged=len(seen) == 2)
+
+    k2 = _kernel(setup["lik"], prior, th, cov, 0.5)
+    res2 = run_pmmh_until(k2, check, 4, 2, torch.stack([th, th + 1e-5]), check_every=3, max_samples=12,
+                          progress=False)
+    assert seen == [3, 6] and res2.stopped == "converged" and res2.theta.device == CPU
 
 
 def test_priors_follow_their_positions(setup, meta_default):
