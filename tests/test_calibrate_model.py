@@ -176,3 +176,23 @@ def test_cli_model_refuses_a_report_of_another_recording(wander_case, tmp_path, 
     assert rc == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "details.recording.K" in err[0]
+
+
+def test_noise_bins_on_a_given_covariate(wander_case):
+    """fit_map_with_noise(covariate=|ω̄|) is the default rate binning; a wrong shape is refused."""
+    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.prep.noise import fit_map_with_noise
+
+    rec, _, _ = wander_case
+    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method="calibrated")
+    nominal = torch.as_tensor(np.asarray(rec.nominal_position), dtype=torch.float64)
+    kw = dict(reference=lik.reference, prior_mean=nominal, bins=3, max_rounds=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a, na = fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, **kw)
+        b, nb = fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std,
+                                   covariate=lik.omega.mean.norm(dim=-1).numpy(), **kw)
+    np.testing.assert_array_equal(na.bin_scale, nb.bin_scale)
+    np.testing.assert_array_equal(np.asarray(a.theta), np.asarray(b.theta))
+    with pytest.raises(UserError, match="covariate"):
+        fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, covariate=np.ones(3), **kw)

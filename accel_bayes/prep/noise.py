@@ -243,11 +243,13 @@ def rate_bins(omega_norm, n_bins: int) -> np.ndarray:
 
 def fit_map_with_noise(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, prior_mean=None,
                        prior_std=DEFAULT_PRIOR_STD, bins: int = DEFAULT_RATE_BINS, max_rounds: int = 8, rtol: float = 0.01,
-                       fit_kwargs: dict | None = None):
+                       fit_kwargs: dict | None = None, covariate=None):
     """Alternate the MAP and the type-II ML noise update until σ and s move by < ``rtol``.
 
     Arguments as :func:`accel_bayes.inference.map.fit_map` (array frame, m/s², rad/s, m);
     ``bins``: number of |ω̄| quantile bins of the rate-dependent factor (1: one σ per triad).
+    ``covariate``: (T,) values whose quantile bins carry the factor instead of |ω̄_t| (e.g. |ω̇_t|,
+    rad/s²); ``model.sample_scale`` must then be given the same values.
     Each round warm-starts the MAP from the previous mode.  Returns ``(map_result, model)``:
     the MAP of the SCALED data (:func:`scale_samples` with ``model.sample_scale(|ω̄|)``; its
     positions are those of the original problem, its ω is scaled by 1/√s_t) and the
@@ -262,7 +264,9 @@ def fit_map_with_noise(acc, omega_mean, omega_cov, acc_noise_std, *, reference: 
     omega_cov = torch.as_tensor(omega_cov, dtype=torch.float64)
     A = acc.shape[1]
     stated = _std_rows(acc_noise_std, A)
-    wn = omega_mean.norm(dim=-1).numpy()
+    wn = omega_mean.norm(dim=-1).numpy() if covariate is None else np.asarray(covariate, dtype=np.float64)
+    if wn.shape != (acc.shape[0],) or not np.isfinite(wn).all():
+        raise UserError(f"covariate: expected {acc.shape[0]} finite values, got shape {wn.shape}")
     edges = rate_bins(wn, bins)
     bidx = np.clip(np.searchsorted(edges, wn, side="right") - 1, 0, len(edges) - 2)
     counts = np.bincount(bidx, minlength=len(edges) - 1)
