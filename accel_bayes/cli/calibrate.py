@@ -220,7 +220,7 @@ def format_table(res) -> str:
         sw = mod.get("sandwich") or {}
         lines.append(f"model: {mod.get('source') or 'in memory'} (sha256 {mod['sha256'][:12]}): {len(mod['used'])} finding(s) "
                      f"in the likelihood, {len(mod['skipped'])} skipped"
-                     + (f"; sandwich/posterior std ratio at the MAP max {sw['std_ratio_max']:.2f}, median "
+                     + (f"; sandwich/Laplace std ratio at the MAP max {sw['std_ratio_max']:.2f}, median "
                         f"{sw['std_ratio_median']:.2f} (kappa {sw['kappa']:.2f}, tempering {sw['tempering_applied']:.2f})"
                         if sw.get("kappa") is not None else ""))
     conv = res.settings.get("convergence") or {}
