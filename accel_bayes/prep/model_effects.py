@@ -81,8 +81,9 @@ class CalibrationModel:
     def check_recording(self, rec) -> None:
         """Refuse (one-line :class:`UserError` naming the field) a report that was not made on
         ``rec`` (the recording as loaded, before any selection): its IMU count K and its number
-        of samples (``details.recording.T_given``) must match, and every IMU a used finding names
-        must have a gyroscope."""
+        of samples (``details.recording.T_given``, what ``detect`` was given: a report made on a
+        cut recording is refused for the whole one) must match, and every IMU a used finding
+        names must have a gyroscope.  A report without ``details.recording`` is not checked."""
         r = self.recording
         if "K" in r and int(r["K"]) != int(rec.K):
             raise UserError(f"model: details.recording.K: the report is for {r['K']} IMUs, the recording has {rec.K}")
@@ -134,7 +135,10 @@ def load_model(model) -> CalibrationModel:
 
     doc, source, sha = _read(model)
     validate_report(doc)  # schema (format version) and vocabulary of every finding
-    rec_info = ((doc.get("details") or {}).get("recording") or {}) if isinstance(doc.get("details"), dict) else {}
+    details = doc.get("details") or {}
+    if not isinstance(details, dict):
+        raise UserError("model: details: expected an object")
+    rec_info = details.get("recording") or {}
     if not isinstance(rec_info, dict):
         raise UserError("model: details.recording: expected an object")
     for key in ("K", "T_given", "T"):
