@@ -108,6 +108,11 @@ def register(sub) -> None:
                    help="gyro-rate bins of the estimated noise model (default %(default)s; 1 = one level per IMU)")
     g.add_argument("--no-noise-inflation", action="store_true",
                    help="with estimated noise: do not apply the sandwich (misspecification) factor")
+    p.add_argument("--model", default=None, metavar="REPORT.json",
+                   help="a mismatch report of this recording (accel-bayes mismatch): its random gyroscope effects "
+                        "(timing_wander, sampling_jitter) become per-sample gyro covariances in the likelihood; the "
+                        "sandwich is then measured and recorded, not applied (refused if the report is for another "
+                        "recording)")
     p.add_argument("--phi-prior", choices=("empirical", "flat"), default=DEFAULTS["phi_prior"],
                    help="prior on φ = [ω̇; s] that the likelihood integrates out: 'empirical' (default: a Gaussian "
                         "whose covariance is estimated from the recording; removes the flat prior's inward pull on "
@@ -164,7 +169,7 @@ def _run(args) -> int:
 
     # the checkpoint lives in DIR itself (a killed run keeps it) and joins the committed set
     out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",),
-                    inputs=(args.recording, args.intrinsics)).open()
+                    inputs=(args.recording, args.intrinsics, args.model)).open()
     ckpt = None
     if args.checkpoint_every or args.resume:
         ckpt = out.ensure_target() / "checkpoint.pt"
@@ -179,8 +184,8 @@ def _run(args) -> int:
         checkpoint=ckpt, checkpoint_every=args.checkpoint_every, resume=args.resume,
         intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
         min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
-        noise_inflation=not args.no_noise_inflation, phi_prior=args.phi_prior, threads=args.threads,
-        correlation=args.correlation, device=args.device,
+        noise_inflation=False if args.no_noise_inflation else None, phi_prior=args.phi_prior, threads=args.threads,
+        correlation=args.correlation, model=args.model, device=args.device,
     )
     n_kept = res.settings["preprocess"]["samples"].get("clipped_kept", 0)
     if n_kept:  # stderr: the table below goes to stdout, which is often redirected
@@ -227,6 +232,14 @@ def format_table(res) -> str:
     elif res.settings.get("noise"):
         lines.append(f"noise: {res.settings['noise']} (the recording's acc_noise_std); gyro posterior "
                      f"{res.settings['gyro_method']}")
+    mod = res.settings.get("model")
+    if mod:
+        sw = mod.get("sandwich") or {}
+        lines.append(f"model: {mod.get('source') or 'in memory'} (sha256 {mod['sha256'][:12]}): {len(mod['used'])} finding(s) "
+                     f"in the likelihood, {len(mod['skipped'])} skipped"
+                     + (f"; sandwich/Laplace std ratio at the MAP max {sw['std_ratio_max']:.2f}, median "
+                        f"{sw['std_ratio_median']:.2f} (kappa {sw['kappa']:.2f}, tempering {sw['tempering_applied']:.2f})"
+                        if sw.get("kappa") is not None else ""))
     conv = res.settings.get("convergence") or {}
     how = ""
     if conv.get("mode") == "until converged":

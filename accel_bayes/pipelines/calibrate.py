@@ -101,7 +101,7 @@ DEFAULTS = {
     "min_rotation": DEFAULT_MIN_ROTATION,
     "noise": "auto",
     "noise_bins": DEFAULT_RATE_BINS,
-    "noise_inflation": True,
+    "noise_inflation": None,  # None: True without a model, False with one
     "phi_prior": "empirical",
     "threads": DEFAULT_THREADS,
 }
@@ -443,10 +443,11 @@ def calibrate(
     min_rotation: float | None = DEFAULTS["min_rotation"],
     noise: str = DEFAULTS["noise"],
     noise_bins: int = DEFAULTS["noise_bins"],
-    noise_inflation: bool = DEFAULTS["noise_inflation"],
+    noise_inflation: bool | None = DEFAULTS["noise_inflation"],
     phi_prior=DEFAULTS["phi_prior"],
     threads: int | None = DEFAULTS["threads"],
     correlation=DEFAULTS["correlation"],
+    model=None,
     device=None,
 ) -> CalibrationResult:
     """Sample the posterior of the accelerometer-triad positions of one recording with PmMH.
@@ -527,7 +528,18 @@ def calibrate(
         truth).  What was estimated is in ``settings["noise_model"]``.
     noise_bins : quantile bins of |ω̄| for a rate-dependent noise factor (default 1 = one level
         per triad; see :mod:`accel_bayes.prep.noise` for why more bins are not the default).
-    noise_inflation : temper by the sandwich factor κ ≥ 1 (default True; estimated noise only).
+    noise_inflation : temper by the sandwich factor κ ≥ 1 (estimated noise only).  None (default):
+        True without ``model``, False with one (the model's variances at their type-II ML values,
+        untempered; the sandwich is then measured and recorded, not applied).
+    model : None (default: the likelihood as before, bit for bit) or a mismatch report (DESIGN §7.2
+        ``report.json`` path, dict or :class:`~accel_bayes.mismatch.report.MismatchReport`) of this
+        recording: its random gyroscope effects (``timing_wander``, ``sampling_jitter``) become
+        per-sample gyro covariances and the gyro posterior of ω_t their precision-weighted fusion
+        (:mod:`accel_bayes.prep.model_effects`; ``gyro_method`` must be "auto" or "calibrated");
+        what it cannot carry is skipped with the reason.  The report is checked against the
+        recording (IMU count, number of samples: refused otherwise).  The sandwich-to-Laplace std
+        ratio per coordinate at the MAP is recorded in ``settings["model"]["sandwich"]``, with the
+        report's SHA-256 and the findings used and skipped.
     phi_prior : the prior on φ_t = [ω̇_t; s_t] (angular acceleration, specific force) that the
         likelihood integrates out (:mod:`accel_bayes.prep.phi_prior`).  "empirical" (default) — a
         zero-mean Gaussian whose 6×6 covariance is the type-II ML estimate from the recording
@@ -573,18 +585,30 @@ def calibrate(
                          max_draws, check_every, rhat_max, ess_min, max_seconds, phi_prior, correlation)
         noise_bins = opts["noise_bins"]
         opts["device"] = _device_option(device, checkpoint)
+        cmodel = _model_option(model, gyro_method)
+        if noise_inflation is None:
+            noise_inflation = cmodel is None  # with a model: measured, not applied
         raw, sha, src = _load_step(recording)
+        if cmodel is not None:
+            cmodel.check_recording(raw)
         _check_resume(raw, sha, opts, checkpoint=checkpoint, resume=resume, prior=prior, prior_std=prior_std,
                       use_map=use_map, init=init, gyro_method=gyro_method, select=select, drop_clipped=drop_clipped,
                       proposal=proposal, independence_prob=independence_prob, target_accept_prob=target_accept_prob,
                       intrinsics=intrinsics, drop_static=drop_static, min_rotation=min_rotation, noise=noise,
-                      noise_bins=noise_bins, noise_inflation=noise_inflation, phi_prior=phi_prior)
+                      noise_bins=noise_bins, noise_inflation=noise_inflation, phi_prior=phi_prior,
+                      model=None if cmodel is None else cmodel.sha256)
         # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
         pre, rec = _prepare_step(raw, intrinsics=intrinsics, drop_static=drop_static, drop_clipped=drop_clipped,
                                    min_rotation=min_rotation, select=select)
         noise_mode = ("estimate" if pre.has_rests else "stated") if noise == "auto" else noise
         gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if gyro_method == "auto" else gyro_method
+        if cmodel is not None:
+            gm = "calibrated"  # the model's fused posterior generalises it (prep.model_effects)
         lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gm, selection=pre.selection)
+        gyro_info = None
+        if cmodel is not None:
+            lik, gyro_info = _model_gyro_step(lik, rec, cmodel)
+            gm = "model"
         array = raw.sensor_array()
         labels = list(lik.imu_labels)
         ref_label = labels[lik.reference]
@@ -617,6 +641,10 @@ def calibrate(
         lik, map_res = _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, settings, extra,
                                    phi_prior)
         map_res = _map_step(lik, nominal_acc, ps, noise_mode, use_map, map_res, settings)
+        if cmodel is not None:
+            settings["model"] = cmodel.describe()
+            settings["model"]["gyro_posterior"] = gyro_info
+            settings["model"]["sandwich"] = _sandwich_record(lik, map_res, nominal_acc, ps, free_labels)
         lik, theta_c, lap, N = _central_step(lik, pri, map_res, opts, proposal, settings)
         run = _posterior_step(lik, pri, theta_c, lap, opts, proposal=proposal, independence_prob=independence_prob,
                               init=init, target_accept_prob=target_accept_prob, settings=settings, request=opts["request"],
@@ -654,7 +682,7 @@ def _load_step(recording):
 
 def _check_resume(raw, sha, opts, *, checkpoint, resume, prior, prior_std, use_map, init, gyro_method, select,
                   drop_clipped, proposal, independence_prob, target_accept_prob, intrinsics, drop_static,
-                  min_rotation, noise, noise_bins, noise_inflation, phi_prior):
+                  min_rotation, noise, noise_bins, noise_inflation, phi_prior, model=None):
     """What the run depends on, known before any computation (stored in ``opts["request"]``): a
     resumed checkpoint is checked against it here, not after minutes of preprocessing and MAP."""
     # the budgets of the run-until-converged mode may change on resume (continue a run that hit
@@ -672,11 +700,75 @@ def _check_resume(raw, sha, opts, *, checkpoint, resume, prior, prior_std, use_m
         drop_static=bool(drop_static), min_rotation=min_rotation, noise=noise, noise_bins=noise_bins,
         noise_inflation=bool(noise_inflation),
         phi_prior=phi_prior if isinstance(phi_prior, str) else PhiPrior.coerce(phi_prior).cov.flatten().tolist())
+    if model is not None:  # only with a model: the request of a run without one is unchanged
+        options["model"] = model
     request = json.loads(json.dumps({"version": __version__, "recording": sha or _recording_hash(raw),
                                      "options": options}, default=str))
     if resume and checkpoint is not None and Path(checkpoint).exists():
         check_checkpoint_request(read_checkpoint(checkpoint), request, checkpoint)
     opts["request"] = request
+
+
+def _model_option(model, gyro_method):
+    """The mismatch report of ``model`` read and checked (:func:`accel_bayes.prep.model_effects.load_model`),
+    or None.  Its fused gyro posterior replaces the "calibrated" one, so ``gyro_method`` must be
+    "auto" or "calibrated"."""
+    if model is None:
+        return None
+    if gyro_method not in ("auto", "calibrated"):
+        raise UserError(f"gyro_method: a model's gyro posterior replaces 'calibrated'; expected 'auto' or "
+                        f"'calibrated' with model, got {gyro_method!r}")
+    from ..prep.model_effects import load_model
+
+    return load_model(model)
+
+
+def _model_gyro_step(lik, rec, cmodel):
+    """The likelihood with the model's gyro posterior (:func:`accel_bayes.prep.model_effects.fused_gyro_posterior`)
+    on the same samples, and a summary of what it changed: the median posterior std of ω per
+    axis before and after, and the median share of the precision the gyros with a finding keep."""
+    from ..prep.model_effects import fused_gyro_posterior
+
+    idx = np.asarray(lik.sample_index)
+    glabels = list(lik.gyro_labels)
+    gyro = rec.gyro_tensor("array", dtype=torch.float64)[torch.as_tensor(idx)][:, torch.as_tensor(glabels)]
+    gstd = np.asarray(rec.gyro_noise_std, dtype=np.float64)[glabels]
+    time_s = np.asarray(rec.time, dtype=np.float64)[idx]
+    effects = [(k, e) for _, k, e in cmodel.gyro_effects]
+    omega, wdot = fused_gyro_posterior(gyro, gstd, glabels, time_s, effects)
+    new = RaoBlackwellLikelihood(lik.acc, omega, lik.acc_noise_std, lik.num_draws, reference=lik.reference,
+                                 dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior)
+    for name in ("imu_labels", "gyro_labels", "sample_index", "selection", "nominal_positions"):
+        setattr(new, name, getattr(lik, name))
+    sd = lambda P: float(torch.diagonal(P, dim1=-2, dim2=-1).sqrt().median())  # noqa: E731
+    info = {"method": "model (precision-weighted fusion with per-sample gyro covariances)",
+            "omega_std_median_rad_s": {"calibrated": sd(lik.omega.cov), "model": sd(omega.cov)},
+            "omega_dot_norm_median_rad_s2": float(wdot.norm(dim=-1).median()),
+            "omega_shift_rms_rad_s": float((omega.mean - lik.omega.mean).norm(dim=-1).pow(2).mean().sqrt())}
+    return new, info
+
+
+def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
+    """The sandwich covariance at the MAP of the chains' likelihood against its Laplace covariance
+    (:func:`accel_bayes.prep.noise.sandwich_inflation`): per free coordinate the Laplace std, the
+    sandwich std and their ratio (m, m, 1), κ and the lags — what the model still misses."""
+    from ..prep.noise import sandwich_inflation
+
+    if map_res is None:
+        return {"kappa": None, "why": "no usable MAP"}
+    kappa = float(getattr(lik, "kappa", 1.0))
+    std = lik.acc_noise_std
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        sw = sandwich_inflation(lik.acc, lik.omega.mean, lik.omega.cov, std, map_res, reference=lik.reference,
+                                prior_mean=nominal_acc, prior_std=prior_std, phi_prior=lik.phi_prior)
+    lap = np.sqrt(np.clip(np.diagonal(np.asarray(map_res.laplace_cov, dtype=np.float64)), 0, None))
+    ratio = np.asarray(sw["std_ratio"], dtype=np.float64)
+    names = [f"r[{k}, {a}]" for k in free_labels for a in dg.AXES]
+    return {"kappa": float(sw["kappa"]), "lags": int(sw["lags"]), "tempering_applied": kappa,
+            "std_ratio_max": float(ratio.max()), "std_ratio_median": float(np.median(ratio)),
+            "coordinates": names, "laplace_std_m": [float(v) for v in lap],
+            "sandwich_std_m": [float(v) for v in lap * ratio], "std_ratio": [float(v) for v in ratio]}
 
 
 def _prepare_step(raw, *, intrinsics, drop_static, drop_clipped, min_rotation, select):

@@ -72,7 +72,7 @@ from ..constants import DEFAULT_PRIOR_STD
 from ..data.outputs import to_jsonable
 from ..errors import UserError
 from ..likelihood import RaoBlackwellLikelihood, positions_from_theta
-from ..physics.models import G_matrix, H_matrix, u_of_omega
+from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
 from .phi_prior import PhiPrior
 from ..physics.jacobians import du_domega
 
@@ -243,11 +243,13 @@ def rate_bins(omega_norm, n_bins: int) -> np.ndarray:
 
 def fit_map_with_noise(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, prior_mean=None,
                        prior_std=DEFAULT_PRIOR_STD, bins: int = DEFAULT_RATE_BINS, max_rounds: int = 8, rtol: float = 0.01,
-                       fit_kwargs: dict | None = None):
+                       fit_kwargs: dict | None = None, covariate=None):
     """Alternate the MAP and the type-II ML noise update until σ and s move by < ``rtol``.
 
     Arguments as :func:`accel_bayes.inference.map.fit_map` (array frame, m/s², rad/s, m);
     ``bins``: number of |ω̄| quantile bins of the rate-dependent factor (1: one σ per triad).
+    ``covariate``: (T,) values whose quantile bins carry the factor instead of |ω̄_t| (e.g. |ω̇_t|,
+    rad/s²); ``model.sample_scale`` must then be given the same values.
     Each round warm-starts the MAP from the previous mode.  Returns ``(map_result, model)``:
     the MAP of the SCALED data (:func:`scale_samples` with ``model.sample_scale(|ω̄|)``; its
     positions are those of the original problem, its ω is scaled by 1/√s_t) and the
@@ -262,7 +264,9 @@ def fit_map_with_noise(acc, omega_mean, omega_cov, acc_noise_std, *, reference: 
     omega_cov = torch.as_tensor(omega_cov, dtype=torch.float64)
     A = acc.shape[1]
     stated = _std_rows(acc_noise_std, A)
-    wn = omega_mean.norm(dim=-1).numpy()
+    wn = omega_mean.norm(dim=-1).numpy() if covariate is None else np.asarray(covariate, dtype=np.float64)
+    if wn.shape != (acc.shape[0],) or not np.isfinite(wn).all():
+        raise UserError(f"covariate: expected {acc.shape[0]} finite values, got shape {wn.shape}")
     edges = rate_bins(wn, bins)
     bidx = np.clip(np.searchsorted(edges, wn, side="right") - 1, 0, len(edges) - 2)
     counts = np.bincount(bidx, minlength=len(edges) - 1)
@@ -307,7 +311,8 @@ def newey_west_lags(T: int) -> int:
 
 
 def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *, reference: int = 0,
-                       prior_mean=None, prior_std=DEFAULT_PRIOR_STD, lags: int | None = None, phi_prior=None) -> dict:
+                       prior_mean=None, prior_std=DEFAULT_PRIOR_STD, lags: int | None = None, phi_prior=None,
+                       cluster: str = "sample") -> dict:
     """How much wider the misspecification-robust (sandwich) covariance of θ is than the Laplace one.
 
     At the MAP of the (scaled) problem, with per-sample scores g_t = J̃_tᵀ r_t (r_t the whitened,
@@ -318,6 +323,18 @@ def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *,
     If the model were right, B ≈ A (data part) and C ≈ A⁻¹.  Returns {"kappa": mean over
     coordinates of diag(C)/diag(A⁻¹) (average variance inflation), "std_ratio": (n,)
     sqrt of the per-coordinate ratios, "lags": L}.
+
+    ``cluster``: the unit whose scores are summed before the outer product — "sample" (default:
+    all 3A channels of a sample, so errors shared by the triads of a sample count), "triad" (each
+    triad's 3 channels; shared errors across triads ignored) or "channel" (each channel alone).
+    Comparing them splits the misspecification: "channel" sees heteroscedasticity only, "triad"
+    adds the correlation within a triad, "sample" the correlation between triads.  The lag terms
+    pair each unit with itself ``l`` samples later.  A unit smaller than the sample drops the
+    (negative) correlations the φ projection itself puts between channels, so it is not 1 under
+    the model: "std_ratio_white" (flat φ prior only, else None) is what the same clustering gives
+    in expectation under the model's white noise, r_t = P⊥ e_t (B_white = Σ_t Σ_u J̃_tuᵀ P⊥_uu J̃_tu,
+    P⊥ = I − Hw M⁻¹ Hwᵀ), and "std_ratio_relative" = std_ratio / std_ratio_white the misfit
+    that clustering sees.
     """
     from ..inference.map import build_map_problem
 
@@ -334,17 +351,43 @@ def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *,
     Li = gyr.data[1]
     Hww = Jw.transpose(-1, -2) @ Jw + Li.transpose(-1, -2) @ Li
     Jp = Jt - Jw @ torch.linalg.solve(Hww, Jw.transpose(-1, -2) @ Jt)
-    s = (Jp.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)  # (T, n)
-    T = s.shape[0]
+    if cluster not in ("sample", "triad", "channel"):
+        raise UserError(f"cluster: expected 'sample', 'triad' or 'channel', got {cluster!r}")
+    T, m, n = Jp.shape
+    A = int(torch.as_tensor(acc).shape[1])
+    if cluster != "sample" and m != 3 * A:
+        raise UserError(f"cluster: {cluster!r} needs the flat phi prior (the residual has {m} rows, not 3A = {3 * A})")
+    per = {"sample": m, "triad": 3, "channel": 1}[cluster]
+    if cluster == "sample":
+        s = (Jp.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)  # (T, n)
+    else:  # rows are triad-major (3 per triad), as the likelihood stacks them
+        s = (Jp * r.unsqueeze(-1)).reshape(T, m // per, per, n).sum(2).reshape(T * (m // per), n)  # (T·units, n)
     L = newey_west_lags(T) if lags is None else int(lags)
     B = s.T @ s
+    u = m // per
     for lag in range(1, min(L, T - 1) + 1):  # L ≈ 10: a handful of (n × n) products
-        Gm = s[:-lag].T @ s[lag:]
+        Gm = s[:-lag * u].T @ s[lag * u:]  # unit c of sample t with unit c of sample t + lag
         B = B + (1.0 - lag / (L + 1.0)) * (Gm + Gm.T)
     Ainv = torch.as_tensor(map_result.laplace_cov, dtype=torch.float64)
     C = Ainv @ B @ Ainv
     ratio = torch.diagonal(C) / torch.diagonal(Ainv)
-    return {"kappa": float(ratio.mean()), "std_ratio": ratio.clamp_min(0).sqrt().numpy(), "lags": L}
+    out = {"kappa": float(ratio.mean()), "std_ratio": ratio.clamp_min(0).sqrt().numpy(), "lags": L}
+    if m == 3 * A:  # flat φ prior: r_t = P⊥ z_t, P⊥ the same for every sample
+        Hw = _sqrt_lam_rows(acc_noise_std, A)[:, None] * H_matrix(torch.as_tensor(map_result.positions, dtype=torch.float64))
+        Pp = torch.eye(m, dtype=torch.float64) - Hw @ torch.linalg.solve(Hw.T @ Hw, Hw.T)
+        mask = torch.block_diag(*[torch.ones(per, per, dtype=torch.float64)] * (m // per))
+        Bw = torch.einsum("tci,cd,tdj->ij", Jp, Pp * mask, Jp)
+        white = (torch.diagonal(Ainv @ Bw @ Ainv) / torch.diagonal(Ainv)).clamp_min(0).sqrt().numpy()
+        out["std_ratio_white"] = white
+        out["std_ratio_relative"] = out["std_ratio"] / white
+    else:
+        out["std_ratio_white"] = out["std_ratio_relative"] = None
+    return out
+
+
+def _sqrt_lam_rows(acc_noise_std, A: int) -> torch.Tensor:
+    """(3A,) Λ^{1/2}: 1/σ per row, triad-major (the whitening of the likelihood's rows)."""
+    return acc_noise_std_per_axis(acc_noise_std, A, dtype=torch.float64).reshape(3 * A).reciprocal()
 
 
 # ---------------------------------------------------------------------------- tempering (coarsening)

@@ -1,0 +1,226 @@
+"""What a mismatch report found, put into the calibration's likelihood (issue #11 item 5).
+
+``accel-bayes calibrate REC --model report.json`` (:func:`accel_bayes.pipelines.calibrate.calibrate`
+with ``model=``) reads a DESIGN §7.2 report (:func:`load_model`), checks that it belongs to the
+recording (:meth:`CalibrationModel.check_recording`) and uses its findings as follows.
+
+Random gyroscope effects → the per-sample gyro posterior
+--------------------------------------------------------
+For ``timing_wander`` on IMU k's gyroscope (and the gyro half of ``sampling_jitter`` on IMU k) the
+gyro's error at sample t is, to first order in the instant error δ_t (std σ_δ = width/√12, the
+effect's own parametrisation, :class:`~accel_bayes.physics.effects.jitter.TimingWander`),
+ω̇_t δ_t plus white noise; its moment-matched per-sample covariance is
+
+    C_t,k = σ_k² I₃ + (width²/12) ω̇_t ω̇_tᵀ + excess_noise_var · I₃         (rad/s)²,
+
+σ_k the recording's stated gyro noise, ω̇_t (rad/s²) the rate of change of the motion
+(:func:`~accel_bayes.physics.effects.output_rates`, second-order differences within each run of
+contiguous samples — the rates the detector uses — of the inverse-variance gyro mean).  Gyros
+without a finding keep C_t,k = σ_k² I₃.  The posterior of ω_t given the G gyros (flat prior,
+precision-weighted fusion, the generalised least-squares estimate)
+
+    P_t = (Σ_k C_t,k⁻¹)⁻¹,      ω̄_t = P_t Σ_k C_t,k⁻¹ y_t,k,
+
+replaces :func:`~accel_bayes.likelihood.gyro_posterior`'s "calibrated" one (which it equals when
+the report has no such finding): a wandering gyro counts less where ω̇ is large, and ω's
+posterior covariance grows there.
+
+What a per-sample covariance cannot carry: the AR(1) correlation of the instant error from one
+sample to the next (``correlation`` ≈ 0.7–0.87 on the MIMU data).  The likelihood treats the
+samples as independent given θ; what that leaves is what the sandwich covariance measures
+(:func:`accel_bayes.prep.noise.sandwich_inflation`, Newey–West lags), and ``calibrate`` records it.
+
+Everything else → recorded as skipped, with the reason
+------------------------------------------------------
+* ``unexplained``: carries no model;
+* random effects on accelerometers (``timing_wander`` with sensor ``acc``, the acc half of
+  ``sampling_jitter``): the likelihood has one noise level per triad, constant over the samples
+  (a per-sample scale must be common to all triads, :func:`accel_bayes.prep.noise.scale_samples`),
+  so a per-triad, per-sample variance has no place in it; the type-II ML level absorbs it;
+* mean, clip and noise-level effects: not applied by this version (none of the six MIMU reports
+  has one); a warning says so.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+
+__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior"]
+
+# effects whose gyroscope part is a per-sample timing error (the moment-matched covariance above)
+_TIMING = ("timing_wander", "sampling_jitter")
+
+
+@dataclass
+class CalibrationModel:
+    """A mismatch report read for the calibration (module docstring).
+
+    source : the file path, or None for an in-memory report.
+    sha256 : SHA-256 of the file's bytes (of its canonical JSON for a dict).
+    recording : the report's ``details.recording`` block ({} if absent): T, K, T_given, ….
+    gyro_effects : [(finding index, IMU label, effect)] — the random gyro effects used.
+    used, skipped : [{"finding", "effect", "imu", "sensor", "how"/"why"}] per finding.
+    """
+
+    source: str | None
+    sha256: str
+    recording: dict
+    gyro_effects: list = field(default_factory=list)
+    used: list = field(default_factory=list)
+    skipped: list = field(default_factory=list)
+
+    def check_recording(self, rec) -> None:
+        """Refuse (one-line :class:`UserError` naming the field) a report that was not made on
+        ``rec`` (the recording as loaded, before any selection): its IMU count K and its number
+        of samples (``details.recording.T_given``, what ``detect`` was given: a report made on a
+        cut recording is refused for the whole one) must match, and every IMU a used finding
+        names must have a gyroscope.  A report without ``details.recording`` is not checked."""
+        r = self.recording
+        if "K" in r and int(r["K"]) != int(rec.K):
+            raise UserError(f"model: details.recording.K: the report is for {r['K']} IMUs, the recording has {rec.K}")
+        if "T_given" in r and int(r["T_given"]) != int(rec.T):
+            raise UserError(f"model: details.recording.T_given: the report was made on {r['T_given']} samples, the "
+                            f"recording has {rec.T}")
+        has_gyro = np.asarray(rec.has_gyro, dtype=bool)
+        for i, k, _ in self.gyro_effects:
+            if not (0 <= k < len(has_gyro)) or not has_gyro[k]:
+                raise UserError(f"model: findings[{i}].imu: IMU {k} has no gyroscope in the recording")
+
+    def describe(self) -> dict:
+        """The provenance record (``settings["model"]``, positions.json)."""
+        return {"source": self.source, "sha256": self.sha256,
+                "recording": {k: self.recording.get(k) for k in ("T", "K", "T_given") if k in self.recording},
+                "used": list(self.used), "skipped": list(self.skipped),
+                "gyro_covariance": "C_tk = sigma_k^2 I + sum over findings on gyro k of (width^2/12) wdot_t wdot_t^T "
+                                   "+ excess_noise_var I; omega posterior by precision-weighted fusion per sample; "
+                                   "AR(1) correlation not carried (left to the sandwich)"}
+
+
+def _read(model):
+    """(dict, source path or None, sha256) of a report given as a path, a dict or a report object."""
+    if hasattr(model, "to_dict") and not isinstance(model, dict):
+        model = model.to_dict()
+    if isinstance(model, dict):
+        blob = json.dumps(model, sort_keys=True, default=str).encode()
+        return model, None, hashlib.sha256(blob).hexdigest()
+    if not isinstance(model, (str, Path)):
+        raise UserError(f"model: expected a report.json path, a report dict or None, got {type(model).__name__}")
+    p = Path(model)
+    try:
+        blob = p.read_bytes()
+    except OSError as exc:
+        raise UserError(f"model: cannot read {p}: {exc.strerror or exc}") from None
+    try:
+        doc = json.loads(blob)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise UserError(f"model: {p} is not JSON ({exc})") from None
+    return doc, str(p), hashlib.sha256(blob).hexdigest()
+
+
+def load_model(model) -> CalibrationModel:
+    """Read and check a mismatch report (path, dict or :class:`~accel_bayes.mismatch.report.MismatchReport`)
+    and sort its findings into used and skipped (module docstring).  Bad input → one-line
+    :class:`UserError` naming the field."""
+    from ..mismatch.report import validate_report
+    from ..physics.effects import make_effect
+
+    doc, source, sha = _read(model)
+    validate_report(doc)  # schema (format version) and vocabulary of every finding
+    details = doc.get("details") or {}
+    if not isinstance(details, dict):
+        raise UserError("model: details: expected an object")
+    rec_info = details.get("recording") or {}
+    if not isinstance(rec_info, dict):
+        raise UserError("model: details.recording: expected an object")
+    for key in ("K", "T_given", "T"):
+        v = rec_info.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise UserError(f"model: details.recording.{key}: expected a positive integer, got {v!r}")
+    out = CalibrationModel(source=source, sha256=sha, recording=dict(rec_info))
+    for i, f in enumerate(doc["findings"]):
+        name, imu = f["effect"], f.get("imu")
+        params = dict(f.get("parameters") or {})
+        sensor = f.get("sensor") or params.get("sensor")
+        row = {"finding": i, "effect": name, "imu": imu, "sensor": sensor}
+        if name == "unexplained":
+            out.skipped.append({**row, "why": "no model: an unexplained excess names no physics to put in the "
+                                              "likelihood (the type-II ML noise level and the sandwich cover it)"})
+            continue
+        if name == "timing_wander" and "sensor" in f and "sensor" not in params:
+            params["sensor"] = f["sensor"]
+        try:
+            e = make_effect(name, imu=imu, axis=f.get("axis"), parameters=params)
+        except UserError as exc:
+            raise UserError(f"model: findings[{i}]: {exc}") from None
+        if e.kind != "random":
+            out.skipped.append({**row, "why": f"{e.kind} effect: not applied by calibrate --model in this version "
+                                              "(only random gyroscope effects are)"})
+            warnings.warn(f"model: findings[{i}] ({e.label()}): {e.kind} effects are not applied; skipped",
+                          RuntimeWarning, stacklevel=2)
+            continue
+        if name not in _TIMING:  # pragma: no cover - no other random effect in the catalogue today
+            out.skipped.append({**row, "why": "random effect without a per-sample gyro covariance"})
+            continue
+        which = getattr(e, "which", "both")
+        for p in e.parameters:
+            v = float(e.params[p.name])
+            if not (math.isfinite(v) and v >= 0):
+                raise UserError(f"model: findings[{i}].parameters.{p.name}: expected a finite value >= 0, got {v!r}")
+        if which == "acc":
+            out.skipped.append({**row, "why": "accelerometer random effect: the likelihood has one noise level per "
+                                              "triad, constant over samples; the type-II ML level absorbs it"})
+            continue
+        out.gyro_effects.append((i, int(e.imu), e))
+        how = ("gyro covariance += (width^2/12) wdot wdot^T" +
+               (" + excess_noise_var I" if name == "timing_wander" else ""))
+        out.used.append({**row, "sensor": "gyro", "how": how,
+                         "parameters": {p.name: float(e.params[p.name]) for p in e.parameters}})
+        if which == "both":
+            out.skipped.append({**row, "sensor": "acc", "why": "accelerometer half of sampling_jitter: the likelihood "
+                                                               "has one noise level per triad, constant over samples"})
+    return out
+
+
+def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects):
+    """The gyro posterior of ω_t with the report's random gyro effects (module docstring).
+
+    gyro : (T, G, 3) rad/s, array frame, the selected samples.  gyro_std : (G,) rad/s stated noise.
+    gyro_labels : the G IMU labels of the gyros.  time : (T,) s of those samples (gaps allowed).
+    effects : [(IMU label, effect)] with ``params`` width (s) and, for ``timing_wander``,
+    excess_noise_var ((rad/s)²).
+    Returns (:class:`~accel_bayes.likelihood.GyroPosterior` with method "model", ω̇ (T, 3) rad/s²).
+    """
+    from ..likelihood import GyroPosterior
+    from ..physics.effects import output_rates
+
+    y = torch.as_tensor(gyro, dtype=torch.float64)
+    T, G, _ = y.shape
+    s = torch.as_tensor(np.asarray(gyro_std, dtype=np.float64))
+    labels = [int(k) for k in gyro_labels]
+    w = s.pow(-2)
+    mean0 = (y * w[:, None]).sum(1) / w.sum()  # the "calibrated" mean: where ω̇ is read from
+    wdot = output_rates(torch.as_tensor(time, dtype=torch.float64), mean0[:, None], mean0[:, None])[1][:, 0]
+    eye = torch.eye(3, dtype=torch.float64)
+    outer = wdot[:, :, None] * wdot[:, None, :]  # (T, 3, 3)
+    C = (s**2)[None, :, None, None] * eye.expand(T, G, 3, 3).clone()
+    for k, e in effects:
+        g = labels.index(int(k))
+        width = float(e.params["width"])
+        C[:, g] += (width * width / 12.0) * outer
+        if "excess_noise_var" in e.params:
+            C[:, g] += float(e.params["excess_noise_var"]) * eye
+    Pk = torch.linalg.inv(C)  # (T, G, 3, 3) per-gyro precisions
+    prec = Pk.sum(1)
+    cov = torch.linalg.inv(prec)
+    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    mean = (cov @ (Pk @ y.unsqueeze(-1)).sum(1)).squeeze(-1)
+    return GyroPosterior(mean, cov, "model"), wdot
