@@ -80,6 +80,13 @@ one), with the DESIGN §7.2 names and parameters:
                      (axis None); δ drawn from the effect stream after every other draw.
 ==================== ====================================================================
 
+Multi-effect cases (:func:`make_multi_case`, issue #11 item 6) mimic the real MIMU4444
+recordings instead: the mimu8 board at 62.5 Hz, vigorous motion (RMS |ω| 600–1200 °/s), a 3 × 3
+linear gyro error (scale and couplings up to 1.5–2.7 %) and gyro biases on *every* IMU, and at
+most one of ``sampling_jitter``, ``gyro_nonlinearity``, ``timing_wander`` (gyro) on one random
+non-reference IMU; its ``effect="none"`` twin keeps the linear errors, and ``gyro_linear=False``
+gives the control without them.
+
 Signs are random.  Sensor errors act on the noise-free signal; white noise is added after them
 and clipping after the noise (an ADC clips what it sees).  Every case also moves every IMU's true
 position off the design by a random 0.1–0.3 mm, so the geometry has something to estimate.
