@@ -907,7 +907,7 @@ MULTI_RANGES = {
 
 
 def make_multi_case(seed: int = 0, effect: str = "none", board_name: str | Board = "mimu8", *,
-                    T: int | None = None, noise: bool = True, gyro_linear: bool = True,
+                    T: int | None = None, noise: bool = True, gyro_linear: bool | float = True,
                     position_error: tuple = (1e-4, 3e-4)) -> ConcealedCase:
     """A MIMU-like recording with linear gyro errors on every IMU plus at most one new effect.
 
@@ -934,7 +934,7 @@ def make_multi_case(seed: int = 0, effect: str = "none", board_name: str | Board
 
     ``gyro_linear=False`` switches the linear gyro errors off (E_k = 0, b_k = 0; still drawn, so
     everything else stays the same): the control that tells what the new effect alone looks like
-    on the same motion.
+    on the same motion.  A number scales E_k and b_k instead (``True`` = 1: the real magnitudes).
 
     Settings (seeded): rate 62.5 Hz; T 3000–5000 samples (``T`` overrides); σ_a 0.03–0.05 m/s²,
     σ_g 0.002–0.006 rad/s (stated = true); RMS |ω| 600–1200 °/s from rotation-vector sinusoids
@@ -985,8 +985,8 @@ def make_multi_case(seed: int = 0, effect: str = "none", board_name: str | Board
     c = rng_lin.uniform(*R["gyro_linear_max"], size=K)
     E = c[:, None, None] * M / np.abs(M).max(axis=(1, 2), keepdims=True)
     bias = rng_lin.choice([-1.0, 1.0], size=(K, 3)) * rng_lin.uniform(*R["gyro_bias"], size=(K, 3))
-    if not gyro_linear:
-        E, bias = np.zeros_like(E), np.zeros_like(bias)
+    if float(gyro_linear) != 1.0:
+        E, bias = float(gyro_linear) * E, float(gyro_linear) * bias
 
     # New-effect draws, always in the same order (the stream is the effect's alone).
     k = int(rng_eff.choice([j for j in range(K) if j != ref]))
@@ -1050,7 +1050,7 @@ def make_multi_case(seed: int = 0, effect: str = "none", board_name: str | Board
     w = traj.omega_body(t)
     truth = {
         "generator": "experiments/_conceal.py:make_multi_case",
-        "board": b.name, "seed": int(seed), "effect": effect, "with_gyro_linear": bool(gyro_linear),
+        "board": b.name, "seed": int(seed), "effect": effect, "gyro_linear_factor": float(gyro_linear),
         "imu": k if effect != "none" else None,
         "axis": AXES[i] if effect == "gyro_nonlinearity" else None,
         "magnitude": mag,

@@ -442,6 +442,8 @@ def test_multi_case_hides_linear_gyro_errors_and_one_new_effect():
             np.testing.assert_array_equal(case.recording.acc, twin.recording.acc)
     # the control: the same new effect without linear gyro errors
     ctl = C.make_multi_case(4, "gyro_nonlinearity", T=T, noise=False, gyro_linear=False)
+    half = C.make_multi_case(4, "none", T=T, noise=False, gyro_linear=0.5)
+    np.testing.assert_allclose(half.truth["gyro_linear"]["matrix"], 0.5 * E, rtol=1e-15)
     k = ctl.truth["imu"]
     np.testing.assert_allclose(ctl.recording.gyro[:, 0], w @ R[0].T, atol=1e-12)
     assert ctl.truth["imu"] == C.make_multi_case(4, "gyro_nonlinearity", T=T).truth["imu"] == k
