@@ -82,6 +82,7 @@ _RUN_COLS = ("seconds", "mismatch_detected", "threshold", "chi2_before", "chi2_a
 COLUMNS = ("case", "seed", "effect_true", "imu_true", "axis_true", "magnitude", "correlation", "T", "sigma_a",
            "sigma_g_dps", "omega_rms_dps", "lambda_oracle", "lambda_oracle_control") + \
     tuple(p + c for p in RUNS for c in _RUN_COLS) + ("error",)
+CLEAN_COLUMNS = ("case", "seed", "T") + _RUN_COLS + ("error",)
 OPTION_KEYS = ("seed", "T", "control", "linear", "detect_kwargs")
 MARKER = "<!-- reading: hand-written below this line, kept when the document is regenerated -->"
 
@@ -137,6 +138,18 @@ def run_case(case_id: str, seed: int, effect: str, T: int | None, control: bool,
     except Exception as exc:  # a crash is a failed case, not a crashed benchmark
         row["error"] = f"{type(exc).__name__}: {exc}"
         row["traceback"] = traceback.format_exc(limit=6)
+    return row
+
+
+def run_clean(case_id: str, seed: int, T: int | None, detect_kwargs: dict) -> dict:
+    """The truly clean set of a seed: no linear gyro errors, no new effect (the control's twin)."""
+    row = {"case": case_id, "seed": seed}
+    try:
+        rec = make_multi_case(seed, "none", T=T, gyro_linear=False).recording
+        row["T"] = rec.T
+        _run_detect(rec, detect_kwargs, "", row)
+    except Exception as exc:
+        row["error"] = f"{type(exc).__name__}: {exc}"
     return row
 
 
@@ -252,6 +265,14 @@ def summarize(rows: list[dict]) -> dict:
     return out
 
 
+def summarize_clean(rows: list[dict]) -> dict:
+    ok = [r for r in rows if r.get("error") is None]
+    return {"n": len(ok), "errors": len(rows) - len(ok), "flagged": _frac(r.get("mismatch_detected") for r in ok),
+            "chi2_ok": _frac(r.get("chi2_after") is not None and abs(float(r["chi2_after"]) - 1) <= CHI2_TOL
+                             for r in ok),
+            "findings": [f"{r['case']}: {_cell(r.get('findings'))}" for r in ok if r.get("mismatch_detected")]}
+
+
 def _verdict(v: float, target: float, upper: bool = False) -> str:
     if v != v:
         return "n/a"
@@ -280,13 +301,13 @@ def read_rows(path: Path) -> list[dict]:
         return [{k: conv(k, v) for k, v in r.items()} for r in csv.DictReader(f)]
 
 
-def _append_row(path: Path, row: dict) -> None:
+def _append_row(path: Path, row: dict, columns=COLUMNS) -> None:
     new = not path.exists()
     with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(COLUMNS), extrasaction="ignore")
+        w = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
         if new:
             w.writeheader()
-        w.writerow({c: row.get(c) for c in COLUMNS})
+        w.writerow({c: row.get(c) for c in columns})
         f.flush()
         os.fsync(f.fileno())
 
@@ -364,7 +385,8 @@ def _wander_lines(rows: list[dict]) -> list[str]:
             "wander findings).", ""]
 
 
-def write_doc(rows: list[dict], sm: dict, doc: Path, command: str, options: dict, csv_path: Path) -> None:
+def write_doc(rows: list[dict], sm: dict, doc: Path, command: str, options: dict, csv_path: Path,
+              clean: list[dict] | None = None) -> None:
     old = doc.read_text() if doc.exists() else ""
     reading = old[old.index(MARKER):] if MARKER in old else MARKER + "\n"
     L = ["# Blind multi-effect proof on MIMU-like data (issue #11 item 6)", "",
@@ -404,6 +426,13 @@ def write_doc(rows: list[dict], sm: dict, doc: Path, command: str, options: dict
           f"[{_verdict(t['flagged'][0], TARGETS['twin_flagged'], upper=True)}, target ≤ 5 %]; "
           f"`mismatch_detected` {_fmt(t['mismatch_detected'])} (expected: they have errors); a noise_level "
           f"finding {_fmt(t['confusion'])}, a sampling_jitter finding {_fmt(t['spurious_jitter'])}; refined χ²/dof within 10 % {_fmt(t['chi2_ok'])}.", ""]
+    if clean:
+        c = summarize_clean(clean)
+        L += [f"**Truly clean sets** (the controls' twins: no linear gyro errors, no new effect) — {c['n']}: "
+              f"`mismatch_detected` {_fmt(c['flagged'])} "
+              f"[{_verdict(c['flagged'][0], TARGETS['twin_flagged'], upper=True)}, target ≤ 5 %]"
+              + (f" ({'; '.join(c['findings'])})" if c["findings"] else "")
+              + f"; refined χ²/dof within 10 % {_fmt(c['chi2_ok'])}.", ""]
     L += _wander_lines(rows)
     secs = [float(r[p + "seconds"]) for r in rows for p in RUNS if r.get(p + "seconds") is not None]
     if secs:
@@ -461,6 +490,9 @@ def main(argv=None) -> int:
                     help="factor on the linear gyro errors of the effect cases and twins (default 1: the real "
                          "magnitudes; e.g. 0.1 to see how small they must be for the detector to cope; use "
                          "another --out and --doc)")
+    ap.add_argument("--clean", type=int, default=0, metavar="N",
+                    help="also run N truly clean sets (seeds of cases 0..N-1 without linear gyro errors or new "
+                         "effect; OUT/clean.csv), after the cases")
     ap.add_argument("--out", default=str(OUT_DEFAULT), help="directory of cases.csv and options.json")
     ap.add_argument("--doc", default=str(DOC_DEFAULT), help="the markdown written from the rows")
     ap.add_argument("--max-cases", type=int, default=None, help="run at most N new cases this time")
@@ -469,7 +501,7 @@ def main(argv=None) -> int:
     add_dask_arguments(ap, default_workers=1)
     args = ap.parse_args(argv)
     out, doc = Path(args.out), Path(args.doc)
-    csv_path, opt_path = out / "cases.csv", out / "options.json"
+    csv_path, opt_path, clean_path = out / "cases.csv", out / "options.json", out / "clean.csv"
     detect_kwargs = {}  # the detector's defaults: blind
     options = {"seed": args.seed, "T": args.T, "control": bool(args.control), "linear": args.linear,
                "detect_kwargs": detect_kwargs}
@@ -482,7 +514,7 @@ def main(argv=None) -> int:
         rows = read_rows(csv_path)
         sm = summarize(rows)
         print_summary(sm)
-        write_doc(rows, sm, doc, command, options, csv_path)
+        write_doc(rows, sm, doc, command, options, csv_path, read_rows(clean_path))
         print(f"wrote {doc}")
         return 0
     out.mkdir(parents=True, exist_ok=True)
@@ -496,13 +528,24 @@ def main(argv=None) -> int:
     todo = [c for c in build_cases(args.cases, args.seed) if c["case_id"] not in done]
     if args.max_cases is not None:
         todo = todo[:max(0, args.max_cases)]
-    print(f"mismatch_multi: {args.cases} cases, {len(done)} done, running {len(todo)}", flush=True)
+
     params = [dict(**c, T=args.T, control=args.control, detect_kwargs=detect_kwargs, linear=args.linear)
               for c in todo]
+    done_clean = {r["case"] for r in read_rows(clean_path)}
+    clean_todo = [dict(case_id="clean-" + c["case_id"], seed=c["seed"], T=args.T, detect_kwargs=detect_kwargs)
+                  for c in build_cases(args.clean, args.seed) if "clean-" + c["case_id"] not in done_clean]
+    tasks = [(run_case, p) for p in params] + [(run_clean, p) for p in clean_todo]
+    print(f"mismatch_multi: {args.cases} cases, {len(done)} done, running {len(todo)} (+ {len(clean_todo)} clean)",
+          flush=True)
     t0 = time.perf_counter()
     within = lambda: args.time_budget is None or time.perf_counter() - t0 < args.time_budget  # noqa: E731
 
     def on_row(row):
+        if row["case"].startswith("clean-"):
+            _append_row(clean_path, row, CLEAN_COLUMNS)
+            print(f"  {row['case']} ({row.get('seconds', 0) or 0:.0f} s): " + (row.get("error") or _cell(row.get("findings"))),
+                  flush=True)
+            return
         rows.append(row)
         _append_row(csv_path, row)
         s = score_run(row, "") if row.get("findings") else None
@@ -513,23 +556,23 @@ def main(argv=None) -> int:
 
     with dask_client(args) as client:
         if client is None:
-            for p in params:
+            for fn, p in tasks:
                 if not within():
                     break
-                on_row(run_single_threaded(run_case, p))
+                on_row(run_single_threaded(fn, p))
         else:
             from distributed import as_completed
 
-            queue, ac = list(params), as_completed()
+            queue, ac = list(tasks), as_completed()
             for _ in range(min(max(1, int(args.workers)), len(queue))):
-                ac.add(client.submit(run_single_threaded, run_case, queue.pop(0), pure=False))
+                ac.add(client.submit(run_single_threaded, *queue.pop(0), pure=False))
             for fut in ac:
                 on_row(fut.result())
                 if queue and within():
-                    ac.add(client.submit(run_single_threaded, run_case, queue.pop(0), pure=False))
+                    ac.add(client.submit(run_single_threaded, *queue.pop(0), pure=False))
     sm = summarize(rows)
     print_summary(sm)
-    write_doc(rows, sm, doc, command, options, csv_path)
+    write_doc(rows, sm, doc, command, options, csv_path, read_rows(clean_path))
     print(f"ran {len(rows) - len(done)} case(s) in {time.perf_counter() - t0:.0f} s; wrote {doc}")
     return 0
 
