@@ -45,11 +45,16 @@ twin sharing everything else) is at least 2 × the report's threshold (the rule 
 
 Run (resumable: finished cases are appended to ``OUT/cases.csv`` at once, a rerun skips them)::
 
-    OMP_NUM_THREADS=1 python3 experiments/mismatch_multi.py --cases 15 --workers 1
+    OMP_NUM_THREADS=1 python3 experiments/mismatch_multi.py --cases 21 --clean 21 --workers 1
     python3 experiments/mismatch_multi.py --rescore   # score the stored rows, rewrite the .md
+    # the variant with the linear gyro errors at 0.1 × (controls are the main run's)
+    python3 experiments/mismatch_multi.py --cases 12 --linear 0.1 --no-control \
+        --out experiments/results/mismatch_multi_linear0.1 --doc experiments/mismatch_multi_linear0.1.md
 
-One detect takes ~25–40 s here (T 3000–5000, 8 IMUs, one thread), so a case with its twin and
-control ~1.5–2 min.
+``--clean N`` adds N truly clean sets (the seeds of cases 0..N−1 with neither linear errors nor
+new effect: the false-alarm figure).  One detect takes ~35–120 s on an effect case or twin
+(T 3000–5000, 8 IMUs, one thread, shared machine), ~20 s on a control, a few s on a clean set:
+~2 min per case with its twin and control.
 """
 from __future__ import annotations
 
