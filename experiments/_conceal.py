@@ -80,6 +80,13 @@ one), with the DESIGN §7.2 names and parameters:
                      (axis None); δ drawn from the effect stream after every other draw.
 ==================== ====================================================================
 
+Multi-effect cases (:func:`make_multi_case`, issue #11 item 6) mimic the real MIMU4444
+recordings instead: the mimu8 board at 62.5 Hz, vigorous motion (RMS |ω| 600–1200 °/s), a 3 × 3
+linear gyro error (scale and couplings up to 1.5–2.7 %) and gyro biases on *every* IMU, and at
+most one of ``sampling_jitter``, ``gyro_nonlinearity``, ``timing_wander`` (gyro) on one random
+non-reference IMU; its ``effect="none"`` twin keeps the linear errors, and ``gyro_linear=False``
+gives the control without them.
+
 Signs are random.  Sensor errors act on the noise-free signal; white noise is added after them
 and clipping after the noise (an ADC clips what it sees).  Every case also moves every IMU's true
 position off the design by a random 0.1–0.3 mm, so the geometry has something to estimate.
@@ -122,6 +129,9 @@ __all__ = [
     "make_case",
     "save_case",
     "oracle_noncentrality",
+    "MULTI_EFFECTS",
+    "MULTI_RANGES",
+    "make_multi_case",
 ]
 
 G0 = 9.80665  # m/s², standard gravity (same constant as accel_bayes.physics.arrays.G0)
@@ -868,3 +878,188 @@ def oracle_noncentrality(case: ConcealedCase, twin: ConcealedCase) -> float:
     sa = np.asarray(rec.acc_noise_std)[None, :, None]
     sg = np.asarray(rec.gyro_noise_std)[None, :, None]
     return float((((rec.acc - rec0.acc) / sa) ** 2).sum() + (((rec.gyro - rec0.gyro) / sg) ** 2).sum())
+
+
+# ============================================================================ multi-effect cases
+
+# The new effects of vocabulary 1.1 and the extension seen on the real MIMU data, one of which a
+# multi-effect case hides on top of the linear gyro errors of every IMU (issue #11 item 6).
+MULTI_EFFECTS = ("sampling_jitter", "gyro_nonlinearity", "timing_wander")
+# Ranges of a multi-effect case (SI units), chosen to mimic the real MIMU4444 recordings
+# (experiments/mimu_mismatch.md): vigorous hand shaking at 62.5 Hz, rest noise levels, gyro
+# scale/misalignment errors of a few per cent and the timing wander the detector found there.
+MULTI_RANGES = {
+    "T": (3000, 5000),                         # samples
+    "rate": 62.5,                              # Hz (the MIMU4444 host rate)
+    "sigma_a": (0.03, 0.05),                   # m/s², the rests' accelerometer noise (≈ 0.04)
+    "sigma_g": (0.002, 0.006),                 # rad/s, the rests' gyro noise
+    "omega_rms": (600 * DEG, 1200 * DEG),      # rad/s, RMS |ω| (real: 1700–1900 °/s, clipped)
+    "acc_rms": (5.0, 15.0),                    # m/s², RMS |p̈₀| of the board origin
+    "freq_range": (0.5, 7.0),                  # Hz, frequencies of the rotation-vector sinusoids
+    "omega_peak_fraction": 0.95,               # largest |ω| component ≤ this × the gyro range
+    "gyro_linear_max": (0.015, 0.027),         # largest |entry| of an IMU's gyro error matrix E_k
+    "gyro_bias": (0.05 * DEG, 0.5 * DEG),      # rad/s, |b| per gyro axis
+    "sampling_jitter": (1e-4, 1e-3),           # s, full width of the uniform instant error
+    "gyro_nonlinearity": (2.0, 6.0),           # k2·ω² at the axis' largest |ω|, in units of σ_g
+    "timing_wander": (1.1e-3, 1.35e-3),        # s, √12 × the std of the gyro's instant error
+    "timing_wander_correlation": (0.70, 0.87),  # lag-one correlation of that instant error
+}
+
+
+def make_multi_case(seed: int = 0, effect: str = "none", board_name: str | Board = "mimu8", *,
+                    T: int | None = None, noise: bool = True, gyro_linear: bool | float = True,
+                    position_error: tuple = (1e-4, 3e-4)) -> ConcealedCase:
+    """A MIMU-like recording with linear gyro errors on every IMU plus at most one new effect.
+
+    What it hides (sensor frame, SI units; the recording states none of it):
+
+    * **linear gyro errors on every IMU** (the reference too): ω_out = (I + E_k) ω + b_k, with ω
+      the true sensor-frame rate at the gyro's sampling instant.  E_k (3 × 3, relative; diagonal =
+      scale-factor errors, off-diagonal = cross-axis couplings, DESIGN §7.2 ``gyro_scale``) is
+      c_k · M/max|M|, M uniform in [−1, 1]^(3×3) and c_k = 1.5–2.7 %: the largest entry is c_k,
+      the size of the couplings seen on the real MIMU4444 gyros.  b_k: every axis ±(0.05–0.5) °/s
+      (``gyro_bias``).  The recording has no rests, so the detector's preparation cannot remove
+      the biases either.
+    * **one new effect** (``effect`` in :data:`MULTI_EFFECTS`, or ``"none"`` for the clean twin)
+      on one random non-reference IMU:
+
+      - ``sampling_jitter``: every sample of the IMU (acc and gyro) is the exact kinematics at
+        t + δ_t, δ_t ~ U(−w/2, w/2) i.i.d., w = 0.1–1 ms;
+      - ``gyro_nonlinearity``: gyro axis i (random) gains k₂ ω_i² (ω_i the true rate of that
+        axis, before the linear errors), |k₂| chosen so that k₂ max ω_i² = m σ_g, m = 2–6, random
+        sign: the term reaches a few times the gyro noise at the rate peaks;
+      - ``timing_wander``: the IMU's gyroscope is the exact kinematics at t + δ_t, δ a stationary
+        AR(1) process with std w/√12, w = 1.1–1.35 ms, lag-one correlation 0.70–0.87 (what the
+        detector found on the real gyros).
+
+    ``gyro_linear=False`` switches the linear gyro errors off (E_k = 0, b_k = 0; still drawn, so
+    everything else stays the same): the control that tells what the new effect alone looks like
+    on the same motion.  A number scales E_k and b_k instead (``True`` = 1: the real magnitudes).
+
+    Settings (seeded): rate 62.5 Hz; T 3000–5000 samples (``T`` overrides); σ_a 0.03–0.05 m/s²,
+    σ_g 0.002–0.006 rad/s (stated = true); RMS |ω| 600–1200 °/s from rotation-vector sinusoids
+    of 0.5–7 Hz, each |ω| component below 95 % of the gyro range (no clipping); RMS origin
+    acceleration 5–15 m/s²; every IMU's true position off the design by 0.1–0.3 mm.
+
+    Randomness: the seed is split into independent streams (settings, trajectory, geometry,
+    noise, linear gyro errors, new effect), so ``effect="none"`` with the same seed is the exact
+    clean twin (same motion, geometry, linear errors and noise draws), and the three effects of
+    one seed share everything but the effect stream's use.
+
+    Returns a :class:`ConcealedCase` whose ``truth`` has ``effect``, ``imu``, ``axis`` (the
+    nonlinear gyro axis, else None), ``magnitude`` (width s, or k₂ (rad/s)⁻¹), ``parameters``
+    (DESIGN §7.2 names; ``instants`` = the sampling-instant errors δ_t (s) for the timing
+    effects), ``gyro_linear`` {"matrix": E (K, 3, 3), "bias": b (K, 3) rad/s}, the true geometry,
+    the settings and the trajectory.
+    """
+    from accel_bayes.data.recording import Recording
+
+    if effect != "none" and effect not in MULTI_EFFECTS:
+        raise ValueError(f"effect: expected 'none' or one of {MULTI_EFFECTS}, got {effect!r}")
+    b = board_name if isinstance(board_name, Board) else board(board_name)
+    K, ref = b.K, b.reference_imu
+    ss = np.random.SeedSequence(int(seed)).spawn(6)
+    rng_set, rng_traj, rng_geo, rng_noise, rng_lin, rng_eff = (np.random.default_rng(s) for s in ss)
+    R = MULTI_RANGES
+
+    lo, hi = R["T"]
+    st = {"T": int(rng_set.integers(lo, hi + 1)), "rate": float(R["rate"]),
+          "sigma_a": float(rng_set.uniform(*R["sigma_a"])), "sigma_g": float(rng_set.uniform(*R["sigma_g"])),
+          "omega_rms": float(rng_set.uniform(*R["omega_rms"])), "acc_rms": float(rng_set.uniform(*R["acc_rms"]))}
+    if T is not None:
+        st["T"] = int(T)
+    t = np.arange(st["T"]) / st["rate"]
+    peak = R["omega_peak_fraction"] * b.gyro_range if b.gyro_range else None
+    traj = RotvecTrajectory.random(rng_traj, t, omega_rms=st["omega_rms"], acc_rms=st["acc_rms"],
+                                   freq_range=R["freq_range"], omega_peak_max=peak)
+
+    offs = _random_unit(rng_geo, K) * rng_geo.uniform(*position_error, size=(K, 1))
+    true_pos = b.positions + offs
+    true_R = b.rotations
+    points = np.repeat(true_pos[:, None, :], 3, axis=1)
+    e_acc = rng_noise.standard_normal((st["T"], K, 3))
+    e_gyro = rng_noise.standard_normal((st["T"], K, 3))
+
+    # Linear gyro errors of every IMU (drawn whatever the effect: the twin shares them).
+    M = rng_lin.uniform(-1.0, 1.0, size=(K, 3, 3))
+    c = rng_lin.uniform(*R["gyro_linear_max"], size=K)
+    E = c[:, None, None] * M / np.abs(M).max(axis=(1, 2), keepdims=True)
+    bias = rng_lin.choice([-1.0, 1.0], size=(K, 3)) * rng_lin.uniform(*R["gyro_bias"], size=(K, 3))
+    if float(gyro_linear) != 1.0:
+        E, bias = float(gyro_linear) * E, float(gyro_linear) * bias
+
+    # New-effect draws, always in the same order (the stream is the effect's alone).
+    k = int(rng_eff.choice([j for j in range(K) if j != ref]))
+    i = int(rng_eff.integers(0, 3))
+    sign = float(rng_eff.choice([-1.0, 1.0]))
+    u_mag = float(rng_eff.uniform())
+    u_rho = float(rng_eff.uniform())
+    e_inst = rng_eff.standard_normal(st["T"])  # the instant errors' driving draws
+
+    acc, gyro = sensor_outputs(traj, t, true_R, points)
+    mag, params, delta = None, {}, None
+    if effect == "sampling_jitter":
+        lo, hi = R["sampling_jitter"]
+        mag = lo + (hi - lo) * u_mag
+        # δ uniform in ±w/2 from the standard-normal draw through Φ (keeps one draw per sample)
+        from scipy.special import ndtr
+
+        delta = mag * (ndtr(e_inst) - 0.5)
+        a_k, g_k = sensor_outputs(traj, t + delta, true_R[k:k + 1], points[k:k + 1])
+        acc[:, k], gyro[:, k] = a_k[:, 0], g_k[:, 0]
+        params = {"width": mag}
+    elif effect == "timing_wander":
+        lo, hi = R["timing_wander"]
+        mag = lo + (hi - lo) * u_mag
+        rlo, rhi = R["timing_wander_correlation"]
+        rho = rlo + (rhi - rlo) * u_rho
+        sd = mag / math.sqrt(12.0)
+        # stationary AR(1): δ_0 ~ N(0, sd²), δ_j = ρ δ_{j−1} + √(1 − ρ²) sd e_j  (scipy's lfilter
+        # runs the recursion; its initial state puts δ_0 = sd e_0)
+        from scipy.signal import lfilter
+
+        drive = math.sqrt(1.0 - rho * rho) * sd * e_inst
+        drive[0] = sd * e_inst[0]
+        delta = lfilter([1.0], [1.0, -rho], drive)
+        _, g_k = sensor_outputs(traj, t + delta, true_R[k:k + 1], points[k:k + 1])
+        gyro[:, k] = g_k[:, 0]
+        params = {"width": mag, "correlation": rho, "sensor": "gyro"}
+    w_true = gyro.copy()  # the rate each gyro axis truly feels at its sampling instant
+    gyro = np.einsum("kij,tkj->tki", np.eye(3)[None] + E, w_true) + bias[None]
+    if effect == "gyro_nonlinearity":
+        lo, hi = R["gyro_nonlinearity"]
+        m = lo + (hi - lo) * u_mag
+        w2 = w_true[:, k, i] ** 2
+        mag = sign * m * st["sigma_g"] / float(w2.max())
+        gyro[:, k, i] += mag * w2
+        params = {"k2": mag, "peak_over_sigma_g": m}
+    clean_acc, clean_gyro = acc.copy(), gyro.copy()
+    if noise:
+        acc = acc + e_acc * st["sigma_a"]
+        gyro = gyro + e_gyro * st["sigma_g"]
+
+    rec = Recording(
+        time=t, acc=acc, gyro=gyro,
+        nominal_position=b.positions.copy(), nominal_orientation=b.orientations.copy(),
+        acc_noise_std=np.full(K, st["sigma_a"]), gyro_noise_std=np.full(K, st["sigma_g"]),
+        reference_imu=ref, acc_range=b.acc_range, gyro_range=b.gyro_range,
+        description=f"blind multi-effect test recording ({b.name} board, MIMU-like)",
+        source="experiments/_conceal.py make_multi_case: independent first-principles simulator; ground truth in "
+               "the sidecar",
+    )
+    w = traj.omega_body(t)
+    truth = {
+        "generator": "experiments/_conceal.py:make_multi_case",
+        "board": b.name, "seed": int(seed), "effect": effect, "gyro_linear_factor": float(gyro_linear),
+        "imu": k if effect != "none" else None,
+        "axis": AXES[i] if effect == "gyro_nonlinearity" else None,
+        "magnitude": mag,
+        "parameters": {**params, **({"instants": delta} if delta is not None else {})},
+        "gyro_linear": {"matrix": E, "bias": bias},
+        "true_position": true_pos, "true_relative_position": true_pos - true_pos[ref],
+        "true_orientation": b.orientations.copy(), "nominal_position": b.positions,
+        "settings": {**st, "omega_rms_achieved": float(np.sqrt((w * w).sum(-1).mean())),
+                     "omega_peak_component": float(np.abs(w).max()), "noise": bool(noise)},
+        "trajectory": traj.to_dict(),
+    }
+    return ConcealedCase(rec, truth, clean_acc, clean_gyro)

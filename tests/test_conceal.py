@@ -374,3 +374,76 @@ def test_proof_store_gains_baseline_twins_and_a_figure(tmp_path, monkeypatch):
     assert [r["pos_err_clean_um"] for r in rows if r["effect_true"] != "none"] == [11.0, 11.0]
     assert __import__("json").loads((out / "options.json").read_text())["twin"] == "baseline"
     assert (out / "summary.png").stat().st_size > 10_000
+
+
+def test_multi_case_hides_linear_gyro_errors_and_one_new_effect():
+    # make_multi_case (issue #11 item 6): deterministic per seed; the clean twin shares motion,
+    # geometry, linear gyro errors and noise; each new effect is where and what the truth says,
+    # checked against the exact kinematics at the recorded sampling instants.
+    T = 300
+    a = C.make_multi_case(4, "sampling_jitter", T=T)
+    b = C.make_multi_case(4, "sampling_jitter", T=T)
+    np.testing.assert_array_equal(a.recording.acc, b.recording.acc)
+    np.testing.assert_array_equal(a.recording.gyro, b.recording.gyro)
+    assert a.recording.time[1] - a.recording.time[0] == pytest.approx(1 / 62.5)
+    assert not np.array_equal(a.recording.gyro, C.make_multi_case(5, "sampling_jitter", T=T).recording.gyro)
+
+    twin = C.make_multi_case(4, "none", T=T, noise=False)
+    tr0 = twin.truth
+    R = C.board("mimu8").rotations
+    E, bias = np.asarray(tr0["gyro_linear"]["matrix"]), np.asarray(tr0["gyro_linear"]["bias"])
+    c = np.abs(E).max(axis=(1, 2))
+    assert (c >= 0.015).all() and (c <= 0.027).all()
+    assert (np.abs(bias) >= 0.05 * C.DEG - 1e-15).all() and (np.abs(bias) <= 0.5 * C.DEG + 1e-15).all()
+    traj = C.RotvecTrajectory.from_dict(tr0["trajectory"])
+    t = twin.recording.time
+    w = traj.omega_body(t)  # (T, 3) array frame
+    # every IMU's gyro reads (I + E_k) R_k ω + b_k
+    expect = np.einsum("kij,kjl,tl->tki", np.eye(3)[None] + E, R, w) + bias[None]
+    np.testing.assert_allclose(twin.recording.gyro, expect, atol=1e-12)
+    assert 600 <= tr0["settings"]["omega_rms_achieved"] / C.DEG <= 1200
+    assert tr0["settings"]["omega_peak_component"] <= 0.95 * 2000 * C.DEG + 1e-9
+
+    for eff in C.MULTI_EFFECTS:
+        case = C.make_multi_case(4, eff, T=T, noise=False)
+        tr = case.truth
+        k = tr["imu"]
+        assert k is not None and k != 0
+        np.testing.assert_array_equal(tr["gyro_linear"]["matrix"], E)  # the twin's linear errors
+        others = [j for j in range(8) if j != k]
+        np.testing.assert_array_equal(case.recording.acc[:, others], twin.recording.acc[:, others])
+        np.testing.assert_array_equal(case.recording.gyro[:, others], twin.recording.gyro[:, others])
+        if eff in ("sampling_jitter", "timing_wander"):
+            d = np.asarray(tr["parameters"]["instants"])
+            wk = traj.omega_body(t + d)  # the exact rate at the IMU's own instants
+            np.testing.assert_allclose(case.recording.gyro[:, k], wk @ R[k].T @ (np.eye(3) + E[k]).T + bias[k],
+                                       atol=1e-12)
+            if eff == "sampling_jitter":
+                w_ = tr["magnitude"]
+                assert 1e-4 <= w_ <= 1e-3 and np.abs(d).max() <= w_ / 2 and np.abs(d).max() > 0.4 * w_
+                f = traj.specific_force(t + d, np.asarray(tr["true_position"][k]))
+                np.testing.assert_allclose(case.recording.acc[:, k], f @ R[k].T, atol=1e-10)
+            else:
+                np.testing.assert_array_equal(case.recording.acc[:, k], twin.recording.acc[:, k])
+                w_, rho = tr["magnitude"], tr["parameters"]["correlation"]
+                assert 1.1e-3 <= w_ <= 1.35e-3 and 0.70 <= rho <= 0.87
+                # AR(1): the innovations δ_j − ρ δ_{j−1} have std √(1 − ρ²) w/√12
+                innov = d[1:] - rho * d[:-1]
+                assert np.std(innov) == pytest.approx(math.sqrt(1 - rho * rho) * w_ / math.sqrt(12), rel=0.2)
+                assert np.std(d) == pytest.approx(w_ / math.sqrt(12), rel=0.5)
+        else:  # gyro_nonlinearity: axis i gains k2·ω_i², ω_i the true rate of that axis
+            i = "xyz".index(tr["axis"])
+            wi = (w @ R[k].T)[:, i]
+            dg = case.recording.gyro[:, k] - twin.recording.gyro[:, k]
+            np.testing.assert_allclose(dg[:, i], tr["magnitude"] * wi * wi, rtol=1e-9, atol=1e-15)
+            assert np.abs(np.delete(dg, i, axis=1)).max() == 0
+            m = abs(tr["magnitude"]) * (wi * wi).max() / tr["settings"]["sigma_g"]
+            assert 2.0 <= m <= 6.0
+            np.testing.assert_array_equal(case.recording.acc, twin.recording.acc)
+    # the control: the same new effect without linear gyro errors
+    ctl = C.make_multi_case(4, "gyro_nonlinearity", T=T, noise=False, gyro_linear=False)
+    half = C.make_multi_case(4, "none", T=T, noise=False, gyro_linear=0.5)
+    np.testing.assert_allclose(half.truth["gyro_linear"]["matrix"], 0.5 * E, rtol=1e-15)
+    k = ctl.truth["imu"]
+    np.testing.assert_allclose(ctl.recording.gyro[:, 0], w @ R[0].T, atol=1e-12)
+    assert ctl.truth["imu"] == C.make_multi_case(4, "gyro_nonlinearity", T=T).truth["imu"] == k
