@@ -1,0 +1,304 @@
+#!/usr/bin/env python3
+"""Is the real-data ``timing_wander`` nothing but linear gyro errors?  (issue #11)
+
+The detector names ``timing_wander`` on the gyros of IMUs 5, 4, 1 of every real MIMU4444
+experiment (experiments/mimu_mismatch.md) — and names the same signature on simulated
+MIMU-like data whose only errors are constant linear gyro errors (the clean twins of
+``_conceal.make_multi_case``; experiments/mismatch_multi.md).  This script removes the
+RELATIVE linear gyro errors before the detector sees the data, and runs the detector again.
+
+The correction (:func:`fit_relative_gyro_linear`, independent of the detector)
+------------------------------------------------------------------------------
+All gyros of a rigid array measure the same angular rate ω_t (array frame), whatever their
+position.  For IMU k with sensor-frame output y_kt and nominal orientation R_k
+(v_sensor = R_k v_array, DESIGN §7.0) let z_kt = R_kᵀ y_kt (array frame) and ω̄_t the mean of
+the z_kt over the IMUs (all gyros, IMU k included).  Least squares on the selected samples
+
+    z_kt ≈ A_k ω̄_t + b_k,     A_k = I + E_k  (3 × 3),  b_k (3,)
+
+(every IMU against the same regressor [ω̄_t, 1]).  Iterated: ω̄ is recomputed from the corrected
+outputs and the fit repeated on the ORIGINAL z (``n_iter`` = 2 passes, the last one's A_k, b_k
+are the whole map).  The frame is fixed by the mean gyro: the A_k are renormalised exactly so
+that mean_k A_k = I and mean_k b_k = 0 (A_k ← A_k Ā⁻¹, b_k ← b_k − A_k b̄, the same family of
+maps re-expressed against ω̄' = Ā ω̄ + b̄), i.e. **mean over IMUs of E_k = 0 and of b_k = 0**: a
+linear error common to all gyros is not touched (it is not observable from gyros alone).
+Correction: z_kt ← A_k⁻¹ (z_kt − b_k), back to the sensor frame y_kt = R_k z_kt.
+E_k are reported in the array frame, in %.
+
+How the detector gets the corrected samples
+-------------------------------------------
+``detect`` prepares the recording itself (``mismatch.prepared.prepare``: intrinsics from the
+rests, the one sample selection).  This script wraps that very function: the recording is
+preprocessed as always (:func:`accel_bayes.prep.preprocess.preprocess`, defaults), the map is
+fitted on the KEPT samples of the preprocessed recording (intrinsics applied), applied to every
+sample of it (rests included — so ``Prepared.rec``, ``.source`` and the tensors agree), and the
+corrected ``Preprocessed`` is converted by the unchanged ``prepare``.  The selection is the
+uncorrected recording's (it is not recomputed).  Everything else in ``detect`` runs with its
+defaults, blind.
+
+    python experiments/gyro_linear_check.py real              # six real experiments
+    python experiments/gyro_linear_check.py sim               # the simulated cases (CASES below)
+    python experiments/gyro_linear_check.py doc               # tables → OUT/tables.md
+
+Results: ``experiments/results/gyro_linear_check/{real,sim}.jsonl`` (one line per recording,
+resumable).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+OUT = HERE / "results" / "gyro_linear_check"
+
+# simulated cases: (case id, seed, effect) — the seeds of experiments/results/mismatch_multi/cases.csv
+SIM_CASES = [
+    ("timing_wander-002", 1700005, "timing_wander"),
+    ("timing_wander-005", 1700008, "timing_wander"),
+    ("timing_wander-008", 1700011, "timing_wander"),
+    ("timing_wander-011", 1700014, "timing_wander"),
+    ("sampling_jitter-000", 1700003, "sampling_jitter"),
+    ("sampling_jitter-003", 1700006, "sampling_jitter"),
+    ("timing_wander-014", 1700017, "timing_wander"),
+]
+
+
+# ----------------------------------------------------------------------------- the routine
+
+def _rotations(q: np.ndarray) -> np.ndarray:
+    import torch
+
+    from accel_bayes.physics.geometry import quat_to_matrix
+
+    return quat_to_matrix(torch.as_tensor(np.asarray(q, dtype=np.float64))).numpy()
+
+
+def fit_relative_gyro_linear(gyro: np.ndarray, q: np.ndarray, keep: np.ndarray | None = None,
+                             n_iter: int = 2) -> dict:
+    """Relative linear gyro errors of an array from its own gyros.
+
+    gyro (T, K, 3) sensor-frame outputs (NaN = missing), q (K, 4) nominal orientations,
+    keep (T,) bool: the samples to fit on (default all).  Returns {"A": (K, 3, 3), "E": A − I,
+    "b": (K, 3), "R": (K, 3, 3)} in the array frame, with mean_k A_k = I and mean_k b_k = 0
+    exactly, and "rms_before"/"rms_after" (K,): RMS over the fitted samples of z_k − ω̄ before
+    and after the correction (rad/s).  IMUs whose gyro is all NaN get A = I, b = 0 and are left
+    out of ω̄.
+    """
+    R = _rotations(q)
+    T, K, _ = gyro.shape
+    keep = np.ones(T, bool) if keep is None else np.asarray(keep, bool)
+    z = np.einsum("kji,tkj->tki", R, gyro)  # R_kᵀ y_k
+    has = np.isfinite(z).all(-1).any(0)
+    rows = keep & np.isfinite(z[:, has]).all((1, 2))
+    zk = z[rows][:, has]  # (n, K', 3)
+    Kh = zk.shape[1]
+    A = np.repeat(np.eye(3)[None], Kh, 0)
+    b = np.zeros((Kh, 3))
+    zc = zk.copy()
+    for _ in range(int(n_iter)):
+        wbar = zc.mean(1)  # (n, 3)
+        X = np.concatenate([wbar, np.ones((len(wbar), 1))], 1)  # (n, 4)
+        coef, *_ = np.linalg.lstsq(X, zk.reshape(len(zk), -1), rcond=None)  # (4, Kh*3)
+        coef = coef.reshape(4, Kh, 3)
+        A = np.transpose(coef[:3], (1, 2, 0))  # A[k] (3, 3): z_k ≈ A_k ω̄ + b_k
+        b = coef[3]
+        Abar_inv = np.linalg.inv(A.mean(0))
+        A = A @ Abar_inv
+        b = b - np.einsum("kij,j->ki", A, b.mean(0))
+        zc = np.einsum("kij,tkj->tki", np.linalg.inv(A), zk - b[None])
+    A_all = np.repeat(np.eye(3)[None], K, 0)
+    b_all = np.zeros((K, 3))
+    A_all[has], b_all[has] = A, b
+    rms = lambda v: np.sqrt(((v - v.mean(1, keepdims=True)) ** 2).sum(-1).mean(0))  # noqa: E731
+    rb, ra = np.full(K, np.nan), np.full(K, np.nan)
+    rb[has], ra[has] = rms(zk), rms(zc)
+    return {"A": A_all, "E": A_all - np.eye(3)[None], "b": b_all, "R": R, "has": has,
+            "n_samples": int(rows.sum()), "rms_before": rb, "rms_after": ra}
+
+
+def apply_relative_gyro_linear(gyro: np.ndarray, fit: dict) -> np.ndarray:
+    """y_k ← R_k A_k⁻¹ (R_kᵀ y_k − b_k) for every sample (NaN stays NaN)."""
+    R, A, b = fit["R"], fit["A"], fit["b"]
+    z = np.einsum("kji,tkj->tki", R, gyro)
+    zc = np.einsum("kij,tkj->tki", np.linalg.inv(A), z - b[None])
+    return np.einsum("kij,tkj->tki", R, zc)
+
+
+def corrected_preprocessed(rec, record: dict | None = None):
+    """The calibration's preprocessing of ``rec`` (defaults) with the relative linear gyro errors
+    fitted on its kept samples and removed from every sample.  ``record`` gets the fit."""
+    from accel_bayes.prep.preprocess import preprocess
+
+    pre = preprocess(rec)
+    r = pre.recording
+    g = np.asarray(r.gyro, dtype=np.float64)
+    fit = fit_relative_gyro_linear(g, np.asarray(r.nominal_orientation), keep=pre.selection.keep)
+    rc = dataclasses.replace(r, gyro=apply_relative_gyro_linear(g, fit))
+    if record is not None:
+        record.update(fit)
+    return dataclasses.replace(pre, recording=rc)
+
+
+class corrected_detector:
+    """Context: inside it ``accel_bayes.mismatch.detect`` prepares every recording through
+    :func:`corrected_preprocessed` (the fit lands in ``self.fit``)."""
+
+    def __enter__(self):
+        import importlib
+
+        self.mod = importlib.import_module("accel_bayes.mismatch.detect")
+        self.orig = self.mod.prepare
+        self.fit = {}
+
+        def prepare(rec, **kw):
+            if kw:
+                raise RuntimeError(f"unexpected prepare options {kw}")
+            return self.orig(corrected_preprocessed(rec, self.fit))
+
+        self.mod.prepare = prepare
+        return self
+
+    def __exit__(self, *exc):
+        self.mod.prepare = self.orig
+
+
+# ----------------------------------------------------------------------------- measurements
+
+def gyro_chi2(rec, corrected: bool) -> dict:
+    """Nominal baseline fit (the detector's own, ``mismatch.fit.baseline_fit``) of the prepared
+    recording, corrected or not: χ²/dof overall and the mean z² per sensor (z = residual /
+    stated σ, observed channels) — the "gyro excess" before/after."""
+    from accel_bayes.mismatch import baseline_fit, prepare
+
+    prep = prepare(corrected_preprocessed(rec) if corrected else rec)
+    base, _ = baseline_fit(prep)
+    zg = (base.res_gyro / prep.sigma_gyro[None, :, None]) ** 2 * prep.m_gyro
+    za = (base.res_acc / prep.sigma_acc[None, :, None]) ** 2 * prep.m_acc
+    return {"chi2_per_dof": float(base.chi2_per_dof), "T": prep.T,
+            "gyro_mean_z2": float(zg.sum() / prep.m_gyro.sum()), "acc_mean_z2": float(za.sum() / prep.m_acc.sum()),
+            "gyro_mean_z2_per_imu": (zg.sum((0, 2)) / prep.m_gyro.sum((0, 2)).clamp(min=1)).tolist()}
+
+
+def _short(rep: dict) -> list:
+    return [{"effect": f["effect"], "imu": f.get("imu"), "axis": f.get("axis"), "evidence": f.get("evidence"),
+             "parameters": f.get("parameters")} for f in rep.get("findings") or []]
+
+
+def run_detect(rec, corrected: bool) -> dict:
+    from accel_bayes.mismatch import detect
+
+    t0 = time.perf_counter()
+    if corrected:
+        with corrected_detector() as cd:
+            rep = detect(rec).to_dict()
+        fit = cd.fit
+    else:
+        rep, fit = detect(rec).to_dict(), None
+    out = {"seconds": time.perf_counter() - t0, "chi2_before": rep["baseline"]["chi2_per_dof"],
+           "chi2_after": (rep.get("refined") or rep["baseline"])["chi2_per_dof"],
+           "chi2_after_stated": (rep.get("refined") or {}).get("chi2_per_dof_stated"),
+           "threshold": rep["threshold"], "T_used": rep["details"]["recording"].get("T"),
+           "findings": _short(rep)}
+    if fit:
+        out["E_pct"] = (100 * fit["E"]).tolist()
+        out["b_dps"] = np.degrees(fit["b"]).tolist()
+        out["fit_samples"] = fit["n_samples"]
+        out["rms_before"] = fit["rms_before"].tolist()
+        out["rms_after"] = fit["rms_after"].tolist()
+    return out
+
+
+def _done(path: Path) -> set:
+    if not path.exists():
+        return set()
+    return {json.loads(l)["id"] for l in path.read_text().splitlines() if l.strip()}
+
+
+def _append(path: Path, row: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        f.write(json.dumps(row, default=float) + "\n")
+
+
+def _line(row):
+    return "; ".join(f"{f['effect']}[{f['imu']}{f['axis'] or ''}] {f['evidence']:.3g}" for f in row["findings"])
+
+
+def stage_real(args):
+    from _data import data_dir
+
+    from accel_bayes.data.mimu import import_mimu
+
+    path = OUT / "real.jsonl"
+    done = _done(path)
+    for i in args.experiments:
+        if f"exp_{i}" in done:
+            continue
+        rec = import_mimu(data_dir() / f"exp_{i}" / "data.bin.gz")
+        row = {"id": f"exp_{i}", "experiment": i,
+               "baseline_uncorrected": gyro_chi2(rec, False), "baseline_corrected": gyro_chi2(rec, True)}
+        if args.before:
+            row["detect_uncorrected"] = run_detect(rec, False)
+        row["detect_corrected"] = run_detect(rec, True)
+        _append(path, row)
+        d = row["detect_corrected"]
+        print(f"exp_{i}: {d['seconds']:.0f} s; χ²/dof {d['chi2_before']:.4g} → {d['chi2_after']:.4g}; "
+              f"gyro mean z² {row['baseline_uncorrected']['gyro_mean_z2']:.4g} → "
+              f"{row['baseline_corrected']['gyro_mean_z2']:.4g}; {_line(d)}", flush=True)
+
+
+def stage_sim(args):
+    from _conceal import make_multi_case
+
+    path = OUT / "sim.jsonl"
+    done = _done(path)
+    todo = []
+    for cid, seed, eff in SIM_CASES[: args.n_sim]:
+        todo.append((cid, seed, eff))
+        todo.append((f"twin-{cid}", seed, "none"))
+    order = [t for t in todo if t[2] == "none"] + [t for t in todo if t[2] != "none"] if args.twins_first else todo
+    for cid, seed, eff in order:
+        if cid in done:
+            continue
+        case = make_multi_case(seed, eff)
+        tr = case.truth
+        A_true = np.eye(3)[None] + np.asarray(tr["gyro_linear"]["matrix"])  # sensor frame
+        R = _rotations(np.asarray(case.recording.nominal_orientation))
+        A_arr = np.einsum("kji,kjl,klm->kim", R, A_true, R)  # R_kᵀ A_k R_k
+        A_rel = A_arr @ np.linalg.inv(A_arr.mean(0))
+        row = {"id": cid, "seed": seed, "effect_true": eff, "imu_true": tr.get("imu") if eff != "none" else None,
+               "parameters_true": tr.get("parameters") if eff != "none" else None,
+               "E_true_rel_pct": (100 * (A_rel - np.eye(3))).tolist(),
+               "baseline_uncorrected": gyro_chi2(case.recording, False),
+               "baseline_corrected": gyro_chi2(case.recording, True)}
+        row["detect_corrected"] = d = run_detect(case.recording, True)
+        E_est = np.asarray(d["E_pct"])
+        row["E_error_max_pct"] = float(np.abs(E_est - np.asarray(row["E_true_rel_pct"])).max())
+        _append(path, row)
+        print(f"{cid}: {d['seconds']:.0f} s; χ²/dof {d['chi2_before']:.4g} → {d['chi2_after']:.4g}; max |E est − E true| "
+              f"{row['E_error_max_pct']:.3f} %; {_line(d)}", flush=True)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("stage", choices=("real", "sim"))
+    ap.add_argument("--experiments", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
+    ap.add_argument("--before", action="store_true", help="also detect on the uncorrected real recording")
+    ap.add_argument("--n-sim", type=int, default=6, help="how many of SIM_CASES (each with its clean twin)")
+    ap.add_argument("--twins-first", action="store_true")
+    args = ap.parse_args(argv)
+    from accel_bayes.threads import torch_threads
+
+    with torch_threads(1):
+        {"real": stage_real, "sim": stage_sim}[args.stage](args)
+
+
+if __name__ == "__main__":
+    main()
