@@ -38,7 +38,10 @@ defaults, blind.
 
     python experiments/gyro_linear_check.py real              # six real experiments
     python experiments/gyro_linear_check.py sim               # the simulated cases (CASES below)
-    python experiments/gyro_linear_check.py doc               # tables → OUT/tables.md
+    python experiments/gyro_linear_check.py diag              # what is left after the correction (no detector)
+    python experiments/gyro_linear_check.py common --only timing_wander-002 timing_wander-011
+                                                  # control: twins corrected with the TRUE errors
+    python experiments/gyro_linear_check.py tables            # markdown tables of the stored results
 
 Results: ``experiments/results/gyro_linear_check/{real,sim}.jsonl`` (one line per recording,
 resumable).
@@ -274,7 +277,7 @@ def stage_sim(args):
         A_arr = np.einsum("kji,kjl,klm->kim", R, A_true, R)  # R_kᵀ A_k R_k
         A_rel = A_arr @ np.linalg.inv(A_arr.mean(0))
         row = {"id": cid, "seed": seed, "effect_true": eff, "imu_true": tr.get("imu") if eff != "none" else None,
-               "parameters_true": tr.get("parameters") if eff != "none" else None,
+               "parameters_true": {k: v for k, v in (tr.get("parameters") or {}).items() if k != "instants"} if eff != "none" else None,
                "E_true_rel_pct": (100 * (A_rel - np.eye(3))).tolist(),
                "baseline_uncorrected": gyro_chi2(case.recording, False),
                "baseline_corrected": gyro_chi2(case.recording, True)}
@@ -286,18 +289,241 @@ def stage_sim(args):
               f"{row['E_error_max_pct']:.3f} %; {_line(d)}", flush=True)
 
 
+def residual_diagnostic(rec, make_case=None) -> dict:
+    """What is left of the gyros' disagreement after the correction (no detector involved).
+
+    On the kept samples (and their neighbours kept), r_kt = z_kt − ω̄_t with z the corrected
+    array-frame gyro outputs and ω̄ their mean; ω̇̄ by central differences of ω̄.  Per IMU: RMS of
+    r (°/s); R² of r on [ω̇̄, 1] (a constant time offset), on the IMU's own specific force
+    (g-sensitivity), on the six products ω_i ω_j (quadratic response) and on all of them; the
+    share of r's power along the direction of ω̇̄_t (1/3 for an isotropic error, → 1 for a
+    sampling-instant error δ_kt ω̇_t), in all samples and in the half with the larger |ω̇|, and
+    along ω̄_t; the implied instant error δ_kt = r·ω̇ / |ω̇|² (its RMS in the larger-|ω̇| half and
+    its lag-1 autocorrelation).
+    """
+    from accel_bayes.prep.preprocess import preprocess
+
+    pre = preprocess(rec)
+    r = pre.recording
+    keep = pre.selection.keep
+    g = np.asarray(r.gyro, dtype=np.float64)
+    fit = fit_relative_gyro_linear(g, np.asarray(r.nominal_orientation), keep=keep)
+    R = fit["R"]
+    z = np.einsum("kji,tkj->tki", R, apply_relative_gyro_linear(g, fit))
+    f = np.einsum("kji,tkj->tki", R, np.asarray(r.acc, dtype=np.float64))
+    t = np.asarray(r.time, dtype=np.float64)
+    dt = float(np.median(np.diff(t)))
+    wbar = z.mean(1)
+    wdot = np.gradient(wbar, dt, axis=0)
+    ok = keep.copy()
+    ok[1:] &= keep[:-1]
+    ok[:-1] &= keep[1:]
+    ok &= np.isfinite(z).all((1, 2)) & np.isfinite(f).all((1, 2))
+    res = (z - wbar[:, None])[ok]
+    w, wd = wbar[ok], wdot[ok]
+    nwd = np.linalg.norm(wd, axis=1)
+    big = nwd > np.median(nwd)
+    u, uw = wd / nwd[:, None], w / np.linalg.norm(w, axis=1, keepdims=True)
+    quad = np.stack([w[:, 0] ** 2, w[:, 1] ** 2, w[:, 2] ** 2, w[:, 0] * w[:, 1], w[:, 0] * w[:, 2], w[:, 1] * w[:, 2]], 1)
+    out = {"rate_hz": 1 / dt, "n": int(ok.sum()), "rms_omega_dps": float(np.degrees(np.sqrt((w ** 2).sum(1).mean()))),
+           "rms_omega_dot_dps2": float(np.degrees(np.sqrt((wd ** 2).sum(1).mean()))), "imus": []}
+    for k in range(res.shape[1]):
+        rk = res[:, k]
+        tot = (rk ** 2).sum()
+
+        def r2(X):
+            X = np.concatenate([X, np.ones((len(X), 1))], 1)
+            c, *_ = np.linalg.lstsq(X, rk, rcond=None)
+            return float(1 - ((rk - X @ c) ** 2).sum() / tot)
+
+        p = (rk ** 2).sum(1)
+        along, alw = (rk * u).sum(1) ** 2, (rk * uw).sum(1) ** 2
+        d = (rk * wd).sum(1) / (wd ** 2).sum(1)
+        out["imus"].append({
+            "imu": k, "rms_dps": float(np.degrees(np.sqrt(p.mean()))),
+            "r2_omega_dot": r2(wd), "r2_specific_force": r2(f[ok, k]), "r2_quadratic": r2(quad),
+            "r2_all": r2(np.concatenate([wd, f[ok, k], quad], 1)),
+            "share_along_omega_dot": float(along.sum() / p.sum()),
+            "share_along_omega_dot_top_half": float(along[big].sum() / p[big].sum()),
+            "share_along_omega": float(alw.sum() / p.sum()),
+            "delta_rms_ms_top_half": float(np.sqrt(np.mean(d[big] ** 2)) * 1e3),
+            "delta_lag1": float(np.corrcoef(d[:-1], d[1:])[0, 1])})
+    return out
+
+
+def stage_diag(args):
+    """The residual diagnostic on the six real experiments and on the simulated SIM_CASES."""
+    from _conceal import make_multi_case
+    from _data import data_dir
+
+    from accel_bayes.data.mimu import import_mimu
+
+    path = OUT / "diag.jsonl"
+    done = _done(path)
+    items = [(f"exp_{i}", lambda i=i: import_mimu(data_dir() / f"exp_{i}" / "data.bin.gz")) for i in args.experiments]
+    for cid, seed, eff in SIM_CASES[: args.n_sim]:
+        items.append((f"twin-{cid}", lambda s=seed: make_multi_case(s, "none").recording))
+        items.append((cid, lambda s=seed, e=eff: make_multi_case(s, e).recording))
+    for cid, load in items:
+        if cid in done:
+            continue
+        row = {"id": cid, **residual_diagnostic(load())}
+        _append(path, row)
+        print(cid, " ".join(f"{m['imu']}:{m['rms_dps']:.2f}°/s,{m['share_along_omega_dot_top_half']:.2f},"
+                            f"{m['delta_rms_ms_top_half']:.3f}ms" for m in row["imus"]), flush=True)
+
+
+def _fmt_find(f) -> str:
+    p = f.get("parameters") or {}
+    extra = ""
+    if f["effect"] == "timing_wander":
+        extra = f" (w {1e3 * p['width']:.2f} ms, ρ {p['correlation']:.2f})"
+    elif f["effect"] == "sampling_jitter":
+        extra = f" (w {1e3 * p['width']:.2f} ms)"
+    return f"{f['effect']}[{f['imu']}{f['axis'] or ''}] {f['evidence']:.2g}{extra}"
+
+
+def stage_tables(args):
+    """Markdown tables of everything stored (printed; pasted into gyro_linear_check.md)."""
+    L = []
+    real = [json.loads(l) for l in (OUT / "real.jsonl").read_text().splitlines() if l.strip()] \
+        if (OUT / "real.jsonl").exists() else []
+    if real:
+        L += ["### Real experiments: detect before / after the correction", "",
+              "| exp | detect (s) before / after | χ²/dof nominal → refined, before | χ²/dof nominal → refined, after | findings before | findings after |",
+              "|---|---|---|---|---|---|"]
+        for r in real:
+            u, c = r.get("detect_uncorrected"), r["detect_corrected"]
+            L.append(f"| {r['experiment']} | {u['seconds']:.0f} / {c['seconds']:.0f} | {u['chi2_before']:.4g} → {u['chi2_after']:.4g} | "
+                     f"{c['chi2_before']:.4g} → {c['chi2_after']:.4g} | " + "; ".join(_fmt_find(f) for f in u["findings"])
+                     + " | " + "; ".join(_fmt_find(f) for f in c["findings"]) + " |")
+        L += ["", "### Real experiments: gyro excess of the nominal (baseline) fit before / after the correction", "",
+              "| exp | T | χ²/dof (all) before → after | gyro mean z² before → after (share removed) | acc mean z² before → after | "
+              "RMS gyro − mean gyro (°/s) per IMU 0…7 before | after |", "|---|---|---|---|---|---|---|"]
+        for r in real:
+            b0, b1, c = r["baseline_uncorrected"], r["baseline_corrected"], r["detect_corrected"]
+            L.append(f"| {r['experiment']} | {b0['T']} | {b0['chi2_per_dof']:.4g} → {b1['chi2_per_dof']:.4g} | "
+                     f"{b0['gyro_mean_z2']:.4g} → {b1['gyro_mean_z2']:.4g} ({1 - b1['gyro_mean_z2'] / b0['gyro_mean_z2']:.0%}) | "
+                     f"{b0['acc_mean_z2']:.4g} → {b1['acc_mean_z2']:.4g} | "
+                     + " ".join(f"{np.degrees(v):.1f}" for v in c["rms_before"]) + " | "
+                     + " ".join(f"{np.degrees(v):.1f}" for v in c["rms_after"]) + " |")
+        E = np.array([r["detect_corrected"]["E_pct"] for r in real])  # (n, K, 3, 3) %
+        b = np.array([r["detect_corrected"]["b_dps"] for r in real])
+        L += ["", "### Real experiments: the fitted relative gyro error matrices E_k (array frame, %, mean over IMUs = 0)", "",
+              "Rows: IMU; entries E_xx E_xy E_xz / E_yx E_yy E_yz / E_zx E_zy E_zz; per experiment, then the mean over "
+              "the experiments and the largest spread (max − min over experiments) of any entry.", ""]
+        L += ["| IMU | " + " | ".join(f"exp {r['experiment']}" for r in real) + " | mean | max spread | bias b_k (°/s), mean over exps |",
+              "|---|" + "---|" * (len(real) + 3)]
+        fm = lambda M: " / ".join(" ".join(f"{v:+.2f}" for v in row) for row in M)  # noqa: E731
+        for k in range(E.shape[1]):
+            L.append(f"| {k} | " + " | ".join(fm(E[j, k]) for j in range(len(real))) + f" | {fm(E[:, k].mean(0))} | "
+                     f"{(E[:, k].max(0) - E[:, k].min(0)).max():.3f} | "
+                     + " ".join(f"{v:+.3f}" for v in b[:, k].mean(0)) + " |")
+        L.append("")
+        L.append(f"Largest |E| entry over IMUs and experiments: {np.abs(E).max():.2f} %; largest spread of an entry across "
+                 f"the six experiments: {(E.max(0) - E.min(0)).max():.3f} % (median {np.median(E.max(0) - E.min(0)):.3f} %).")
+    sim = [json.loads(l) for l in (OUT / "sim.jsonl").read_text().splitlines() if l.strip()] \
+        if (OUT / "sim.jsonl").exists() else []
+    if sim:
+        import csv
+
+        prev = {}
+        for src in (HERE / "results" / "mismatch_multi" / "cases.csv", Path("/work/hB/experiments/results/mismatch_multi/cases.csv")):
+            if src.exists():
+                for row in csv.DictReader(open(src)):
+                    prev[row["case"]] = row
+                break
+        L += ["", "### Simulated cases (make_multi_case): detect after the correction, against the uncorrected run of "
+              "mismatch_multi (cases.csv)", "",
+              "| recording | truth | max \\|E est − E true\\| (%) | detect (s) | χ²/dof nominal → refined, uncorrected (CSV) | after correction | "
+              "findings uncorrected (CSV) | findings after correction |", "|---|---|---|---|---|---|---|---|"]
+        for r in sim:
+            cid = r["id"]
+            twin = cid.startswith("twin-")
+            p = prev.get(cid[5:] if twin else cid, {})
+            pre = "twin_" if twin else ""
+            try:
+                pf = "; ".join(_fmt_find(f) for f in json.loads(p.get(pre + "findings") or "[]"))
+                pchi = f"{float(p[pre + 'chi2_before']):.4g} → {float(p[pre + 'chi2_after']):.4g}"
+            except (KeyError, ValueError):
+                pf, pchi = "", ""
+            if twin:
+                truth = "linear gyro errors only"
+            else:
+                tp = r["parameters_true"] or {}
+                truth = f"{r['effect_true']} IMU {r['imu_true']}, w {1e3 * tp.get('width', float('nan')):.2f} ms" + (
+                    f", ρ {tp['correlation']:.2f}" if "correlation" in tp else "")
+            d = r["detect_corrected"]
+            L.append(f"| {cid} | {truth} | {r['E_error_max_pct']:.3f} | {d['seconds']:.0f} | {pchi} | {d['chi2_before']:.4g} → "
+                     f"{d['chi2_after']:.4g} | {pf} | " + "; ".join(_fmt_find(f) for f in d["findings"]) + " |")
+    dg = [json.loads(l) for l in (OUT / "diag.jsonl").read_text().splitlines() if l.strip()] \
+        if (OUT / "diag.jsonl").exists() else []
+    if dg:
+        L += ["", "### What is left after the correction (residual_diagnostic, no detector)", "",
+              "Per recording: RMS |ω̄|, RMS |ω̇̄|; then per IMU the median over IMUs and the range: RMS of gyro − mean gyro "
+              "after the correction (°/s), R² of it on ω̇ (constant time offset) / specific force (g-sensitivity) / ω_iω_j "
+              "(quadratic) / all, share of its power along ω̇ (top half of |ω̇|; 1/3 = isotropic, 1 = pure timing error), "
+              "implied instant error δ RMS (ms, top half of |ω̇|) and its lag-1 autocorrelation.", "",
+              "| recording | RMS \\|ω\\| °/s | RMS \\|ω̇\\| °/s² | RMS residual °/s | R² ω̇ | R² f | R² quad | R² all | along ω̇ | along ω̇ (top half) | δ RMS ms | δ lag-1 |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in dg:
+            def m(key, fmt):
+                v = np.array([x[key] for x in r["imus"]])
+                return f"{np.median(v):{fmt}} ({v.min():{fmt}}–{v.max():{fmt}})"
+            L.append(f"| {r['id']} | {r['rms_omega_dps']:.0f} | {r['rms_omega_dot_dps2']:.3g} | {m('rms_dps', '.2f')} | {m('r2_omega_dot', '.3f')} | "
+                     f"{m('r2_specific_force', '.3f')} | {m('r2_quadratic', '.3f')} | {m('r2_all', '.3f')} | {m('share_along_omega_dot', '.2f')} | "
+                     f"{m('share_along_omega_dot_top_half', '.2f')} | {m('delta_rms_ms_top_half', '.3f')} | {m('delta_lag1', '.2f')} |")
+    print("\n".join(L))
+
+
+def stage_common(args):
+    """Control for the corrected twins: the clean twin corrected with the TRUE linear gyro errors
+    (every IMU's (I + E_k) and b_k, sensor frame: the common part included, which the relative
+    correction cannot see), then detect with defaults.  Also records the common part (mean over
+    IMUs of the true array-frame A_k, minus I) that the relative correction leaves."""
+    from _conceal import make_multi_case
+
+    from accel_bayes.mismatch import detect
+
+    path = OUT / "common.jsonl"
+    done = _done(path)
+    for cid, seed, eff in SIM_CASES[: args.n_sim]:
+        if cid.split("-")[0] not in ("timing_wander", "sampling_jitter") or f"truefix-twin-{cid}" in done:
+            continue
+        if args.only and cid not in args.only:
+            continue
+        case = make_multi_case(seed, "none")
+        rec = case.recording
+        E = np.asarray(case.truth["gyro_linear"]["matrix"])
+        bias = np.asarray(case.truth["gyro_linear"]["bias"])
+        A = np.eye(3)[None] + E
+        g = np.asarray(rec.gyro, dtype=np.float64)
+        gc = np.einsum("kij,tkj->tki", np.linalg.inv(A), g - bias[None])
+        R = _rotations(np.asarray(rec.nominal_orientation))
+        common = np.einsum("kji,kjl,klm->kim", R, A, R).mean(0) - np.eye(3)
+        t0 = time.perf_counter()
+        rep = detect(dataclasses.replace(rec, gyro=gc)).to_dict()
+        row = {"id": f"truefix-twin-{cid}", "seed": seed, "common_E_pct": (100 * common).tolist(),
+               "seconds": time.perf_counter() - t0, "chi2_before": rep["baseline"]["chi2_per_dof"],
+               "chi2_after": (rep.get("refined") or rep["baseline"])["chi2_per_dof"], "findings": _short(rep)}
+        _append(path, row)
+        print(f"{row['id']}: common part max |E| {np.abs(common).max() * 100:.2f} %; {row['seconds']:.0f} s; "
+              f"χ²/dof {row['chi2_before']:.4g} → {row['chi2_after']:.4g}; {_line(row) if row['findings'] else 'no findings'}", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("stage", choices=("real", "sim"))
+    ap.add_argument("stage", choices=("real", "sim", "diag", "tables", "common"))
     ap.add_argument("--experiments", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     ap.add_argument("--before", action="store_true", help="also detect on the uncorrected real recording")
     ap.add_argument("--n-sim", type=int, default=6, help="how many of SIM_CASES (each with its clean twin)")
     ap.add_argument("--twins-first", action="store_true")
+    ap.add_argument("--only", nargs="*", default=None, help="common: only these case ids")
     args = ap.parse_args(argv)
     from accel_bayes.threads import torch_threads
 
     with torch_threads(1):
-        {"real": stage_real, "sim": stage_sim}[args.stage](args)
+        {"real": stage_real, "sim": stage_sim, "diag": stage_diag, "tables": stage_tables, "common": stage_common}[args.stage](args)
 
 
 if __name__ == "__main__":
