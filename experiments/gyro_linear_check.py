@@ -41,6 +41,7 @@ defaults, blind.
     python experiments/gyro_linear_check.py diag              # what is left after the correction (no detector)
     python experiments/gyro_linear_check.py common --only timing_wander-002 timing_wander-011
                                                   # control: twins corrected with the TRUE errors
+    python experiments/gyro_linear_check.py crosscorr         # δ across IMUs and lags (real data, printed)
     python experiments/gyro_linear_check.py tables            # markdown tables of the stored results
 
 Results: ``experiments/results/gyro_linear_check/{real,sim}.jsonl`` (one line per recording,
@@ -511,9 +512,46 @@ def stage_common(args):
               f"χ²/dof {row['chi2_before']:.4g} → {row['chi2_after']:.4g}; {_line(row) if row['findings'] else 'no findings'}", flush=True)
 
 
+def stage_crosscorr(args):
+    """The implied instant errors δ_kt of residual_diagnostic (faster half of the samples) on the
+    real experiments: their correlation across IMUs (−1/(K−1) for independent errors, since each is
+    taken against the mean gyro) and their autocorrelation at lags 1, 2, 3, 5 (consecutive kept
+    samples only).  Printed."""
+    from _data import data_dir
+
+    from accel_bayes.data.mimu import import_mimu
+    from accel_bayes.prep.preprocess import preprocess
+
+    for i in args.experiments:
+        pre = preprocess(import_mimu(data_dir() / f"exp_{i}" / "data.bin.gz"))
+        r, keep = pre.recording, pre.selection.keep
+        g = np.asarray(r.gyro, dtype=np.float64)
+        fit = fit_relative_gyro_linear(g, np.asarray(r.nominal_orientation), keep=keep)
+        z = np.einsum("kji,tkj->tki", fit["R"], apply_relative_gyro_linear(g, fit))
+        wbar = z.mean(1)
+        wd = np.gradient(wbar, float(np.median(np.diff(r.time))), axis=0)
+        ok = keep.copy()
+        ok[1:] &= keep[:-1]
+        ok[:-1] &= keep[1:]
+        res, wd = (z - wbar[:, None])[ok], wd[ok]
+        n = np.linalg.norm(wd, axis=1)
+        big = n > np.median(n)
+        d = (res * wd[:, None]).sum(2) / (wd ** 2).sum(1)[:, None]
+        K = d.shape[1]
+        C = np.corrcoef(d[big].T)[~np.eye(K, dtype=bool)]
+        print(f"exp_{i}: correlation of δ across IMUs: median {np.median(C):.3f}, range {C.min():.3f}…{C.max():.3f} "
+              f"(independent: {-1 / (K - 1):.3f})")
+        idx = np.flatnonzero(ok)
+        pos = {t: j for j, t in enumerate(idx)}
+        for lag in (1, 2, 3, 5):
+            a = np.array([pos[t] for t in idx if t + lag in pos])
+            b = np.array([pos[t + lag] for t in idx if t + lag in pos])
+            print(f"  lag {lag}: " + " ".join(f"{np.corrcoef(d[a, k], d[b, k])[0, 1]:+.2f}" for k in range(K)))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("stage", choices=("real", "sim", "diag", "tables", "common"))
+    ap.add_argument("stage", choices=("real", "sim", "diag", "tables", "common", "crosscorr"))
     ap.add_argument("--experiments", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     ap.add_argument("--before", action="store_true", help="also detect on the uncorrected real recording")
     ap.add_argument("--n-sim", type=int, default=6, help="how many of SIM_CASES (each with its clean twin)")
@@ -523,7 +561,7 @@ def main(argv=None):
     from accel_bayes.threads import torch_threads
 
     with torch_threads(1):
-        {"real": stage_real, "sim": stage_sim, "diag": stage_diag, "tables": stage_tables, "common": stage_common}[args.stage](args)
+        {"real": stage_real, "sim": stage_sim, "diag": stage_diag, "tables": stage_tables, "common": stage_common, "crosscorr": stage_crosscorr}[args.stage](args)
 
 
 if __name__ == "__main__":
