@@ -429,7 +429,7 @@ def stage_tables(args):
         import csv
 
         prev = {}
-        for src in (HERE / "results" / "mismatch_multi" / "cases.csv", Path("/work/hB/experiments/results/mismatch_multi/cases.csv")):
+        for src in (HERE / "results" / "mismatch_multi" / "cases.csv",):
             if src.exists():
                 for row in csv.DictReader(open(src)):
                     prev[row["case"]] = row
