@@ -157,7 +157,15 @@ def plot(rows: list[dict], path: Path, motions: list[str], pos_levels, rot_level
                     rate.append(100.0 * np.mean(s))
                     counts.add(len(s))
             if lv_m:
-                ax.plot(lv_m, rate, marker="os^Dv<>p"[i % 8], ls="--" if " [" in m else "-",
+                # one colour and marker per motion; a --process-noise run (e.g. "[snap]") keeps its motion's
+                # colour with hollow markers, a --variant gets its own colour; tagged rows are dashed
+                base, _, tag = m.partition(" [")
+                k = list(C.MOTIONS).index(base) if base in C.MOTIONS else i
+                model_tag = tag.rstrip("]") in PROCESS_NOISE_TAGS.values()
+                color = f"C{k % 10}" if (not tag or model_tag) else (f"C{4 + sorted(VARIANTS).index(tag.rstrip(']'))}"
+                                                                   if tag.rstrip("]") in VARIANTS else f"C{(4 + i) % 10}")
+                ax.plot(lv_m, rate, marker="os^Dv<>p"[(k if not tag or model_tag else i) % 8], color=color,
+                        ls="--" if tag else "-", mfc="none" if model_tag else color,
                         label=f"{m} ({'/'.join(str(c) for c in sorted(counts))} trials / level)")
         if kind == "position":
             # [S16] §VI-B: beyond half the spacing of neighbouring triads (16.91 cm) a triad may
