@@ -20,7 +20,8 @@ Writes ``--out`` (CSV, one row per run) and ``--fig`` (PNG: success rate vs posi
 orientation error, one line per motion).  Usage::
 
     python experiments/s16_convergence.py [--quick] [--trials N] [--motions a,b] [--levels-pos CM,..]
-        [--levels-rot DEG,..] [--scheduler ADDR] [--workers W]
+        [--levels-rot DEG,..] [--variant V] [--process-noise {s16,estimate,estimate-snap}]
+        [--scheduler ADDR] [--workers W]
 
 Default: all four motions, 100 trials per level, 9 position levels (0.5–16 cm) and 9 orientation
 levels (5–180°): 7 200 self-calibrations, many hours on two cores.  ``--quick`` (a smoke test of
@@ -34,7 +35,12 @@ motions)::
 The SUMMARY line states exactly which table-like levels and how many trials it covers.
 ``--first-trial N`` starts the trial numbering at N, so a later run adds new trials to the same
 levels (each trial's start is seeded by motion, kind, level and trial number); the CSVs of
-separate runs are merged by ``--replot a.csv,b.csv,...``.  The committed figure
+separate runs are merged by ``--replot a.csv,b.csv,...``.  ``--process-noise`` picks the motion
+model of ``self_calibrate``: ``s16`` (default, the paper's fixed variances; the model of the stored
+runs), ``estimate`` or ``estimate-snap`` (issue #12; the pipeline/CLI default); rows of a non-default
+model are labelled ``MOTION [jerk]`` / ``MOTION [snap]`` (like ``--variant``'s) and get their own
+SUMMARY line.  The start of trial k does not depend on the model, so the models are compared on the
+same starts.  The committed figure
 (``experiments/figures/s16_convergence.png``, numbers in ``experiments/s16_results.md``) merges
 the runs kept in ``experiments/results/s16_convergence/``.
 """
@@ -71,6 +77,9 @@ VARIANTS = {
     "no-remedies": {"rerun_from_estimate": False, "restart_on_divergence": False},
     "s16": {"rerun_from_estimate": False, "restart_on_divergence": False, "warm_start_motion": False},
 }
+# --process-noise: the motion model of self_calibrate ("s16", the paper's fixed variances, is the default
+# and the model of the stored runs); a non-default one tags the row's motion label, like a --variant
+PROCESS_NOISE_TAGS = {"s16": None, "estimate": "jerk", "estimate-snap": "snap"}
 
 _CACHE: dict = {}
 
@@ -87,14 +96,15 @@ def _recording(motion: str, seed: int):
 
 
 def run_one(task: tuple) -> dict:
-    """task = (motion, kind "position"/"orientation", level, trial, seed[, variant])."""
+    """task = (motion, kind "position"/"orientation", level, trial, seed[, variant[, process_noise]])."""
     C.one_thread()
     from accel_bayes.physics.geometry import boxplus, rotation_angle
     from accel_bayes.inference.selfcal import self_calibrate
 
     motion, kind, level, trial, seed = task[:5]
     variant = task[5] if len(task) > 5 else "default"
-    opts = {"rerun_from_estimate": "auto", **VARIANTS[variant]}
+    process_noise = task[6] if len(task) > 6 else "s16"
+    opts = {"rerun_from_estimate": "auto", **VARIANTS[variant], "process_noise": process_noise}
     z, proto = _recording(motion, seed)
     # a deterministic seed per task (Python's str hash is salted per process)
     g = torch.Generator().manual_seed(zlib.crc32(f"{motion}|{kind}|{float(level)}|{trial}|{seed}".encode()))
@@ -116,8 +126,9 @@ def run_one(task: tuple) -> dict:
         pe = float((r.positions[1:] - proto["positions"][1:]).norm(dim=-1).max())
         ae = float(rotation_angle(r.orientations[1:], proto["orientations"][1:]).max() * RAD_TO_DEG)
     success = bool(r.ok and pe < SUCCESS_POS and ae < SUCCESS_ROT_DEG)
-    # a variant's rows carry it in the motion label, so plots and tables show it as its own line
-    label = motion if variant == "default" else f"{motion} [{variant}]"
+    # a variant's or process model's rows carry it in the motion label, so plots and tables show it as its own line
+    tags = [t for t in (None if variant == "default" else variant, PROCESS_NOISE_TAGS[process_noise]) if t]
+    label = f"{motion} [{', '.join(tags)}]" if tags else motion
     return {"motion": label, "kind": kind, "level": level, "trial": trial, "success": success, "status": r.status,
             "reason": r.reason[:80], "max_pos_err_mm": pe * 1e3, "max_ang_err_deg": ae,
             "runs": len(r.runs), "iterations": sum(u["iterations"] for u in r.runs),
@@ -146,7 +157,15 @@ def plot(rows: list[dict], path: Path, motions: list[str], pos_levels, rot_level
                     rate.append(100.0 * np.mean(s))
                     counts.add(len(s))
             if lv_m:
-                ax.plot(lv_m, rate, marker="os^Dv<>p"[i % 8], ls="--" if " [" in m else "-",
+                # one colour and marker per motion; a --process-noise run (e.g. "[snap]") keeps its motion's
+                # colour with hollow markers, a --variant gets its own colour; tagged rows are dashed
+                base, _, tag = m.partition(" [")
+                k = list(C.MOTIONS).index(base) if base in C.MOTIONS else i
+                model_tag = tag.rstrip("]") in PROCESS_NOISE_TAGS.values()
+                color = f"C{k % 10}" if (not tag or model_tag) else (f"C{4 + sorted(VARIANTS).index(tag.rstrip(']'))}"
+                                                                   if tag.rstrip("]") in VARIANTS else f"C{(4 + i) % 10}")
+                ax.plot(lv_m, rate, marker="os^Dv<>p"[(k if not tag or model_tag else i) % 8], color=color,
+                        ls="--" if tag else "-", mfc="none" if model_tag else color,
                         label=f"{m} ({'/'.join(str(c) for c in sorted(counts))} trials / level)")
         if kind == "position":
             # [S16] §VI-B: beyond half the spacing of neighbouring triads (16.91 cm) a triad may
@@ -218,8 +237,18 @@ def report(rows, motions, pos_levels, rot_levels) -> None:
               f"max pos err {r['max_pos_err_mm']:.3g} mm, max ang err {r['max_ang_err_deg']:.3g}°")
     print("mean time per self-calibration: "
           + ", ".join(f"{m} {np.mean([r['seconds'] for r in rows if r['motion'] == m]):.2f} s" for m in motions))
-    table_rows = [r for r in rows if r["motion"] in ("table1", "table2")
-                  and ((r["kind"] == "position" and r["level"] <= 2) or (r["kind"] == "orientation" and r["level"] <= 20))]
+    small = [r for r in rows if (r["kind"] == "position" and r["level"] <= 2) or (r["kind"] == "orientation" and r["level"] <= 20)]
+    # the must-show SUMMARY reads the untagged rows (the package default); each tag (a --variant or
+    # --process-noise run) gets its own SUMMARY line
+    tags = sorted({r["motion"].partition(" ")[2] for r in small if r["motion"].partition(" ")[0] in ("table1", "table2")})
+    if "" in tags or not tags:
+        _summary([r for r in small if r["motion"] in ("table1", "table2")], "")
+    for tag in tags:
+        if tag:
+            _summary([r for r in small if r["motion"] in (f"table1 {tag}", f"table2 {tag}")], f" {tag}")
+
+
+def _summary(table_rows, tag) -> None:
     if table_rows:
         cells = {}
         for r in table_rows:
@@ -229,7 +258,7 @@ def report(rows, motions, pos_levels, rot_levels) -> None:
                             f"x{c}" for (m, k, lv), c in sorted(cells.items()))
         n_ok = sum(r["success"] for r in table_rows)
         table_ok = n_ok == len(table_rows)
-        print(f"SUMMARY s16_convergence: table-like motions up to 2 cm / 20 deg: {n_ok}/{len(table_rows)} successful "
+        print(f"SUMMARY s16_convergence{tag}: table-like motions up to 2 cm / 20 deg: {n_ok}/{len(table_rows)} successful "
               f"({100.0 * n_ok / len(table_rows):.1f} %; runs per level: {cov_txt}): {'100% yes' if table_ok else 'NO'}")
     else:
         print("SUMMARY s16_convergence: no table-like level up to 2 cm / 20 deg was run")
@@ -253,6 +282,10 @@ def main(argv=None) -> int:
                     help="default: the package's self_calibrate (warm start, re-run and restart remedies); "
                          "no-remedies: without the re-run and restart; s16: also without the motion-only warm "
                          "start (the paper's procedure). Non-default rows are labelled 'MOTION [VARIANT]'")
+    ap.add_argument("--process-noise", default="s16", choices=list(PROCESS_NOISE_TAGS),
+                    help="self-calibration motion model: s16 (the paper's fixed variances, default; the stored "
+                         "runs), estimate (white noise on the jerk) or estimate-snap (white noise on the snap, the "
+                         "pipeline/CLI default; issue #12). Non-s16 rows are labelled 'MOTION [jerk]' / 'MOTION [snap]'")
     ap.add_argument("--seed", type=int, default=1)
     add_dask_arguments(ap)
     ap.add_argument("--out", default="out/s16_convergence.csv")
@@ -287,8 +320,10 @@ def main(argv=None) -> int:
     if args.first_trial < 0:
         ap.error("--first-trial: expected an integer >= 0")
     trials = range(args.first_trial, args.first_trial + n)
-    tasks = [(m, "position", lv, k, args.seed, args.variant) for m in motions for lv in pos_levels for k in trials]
-    tasks += [(m, "orientation", lv, k, args.seed, args.variant) for m in motions for lv in rot_levels for k in trials]
+    tasks = [(m, "position", lv, k, args.seed, args.variant, args.process_noise) for m in motions
+              for lv in pos_levels for k in trials]
+    tasks += [(m, "orientation", lv, k, args.seed, args.variant, args.process_noise) for m in motions
+              for lv in rot_levels for k in trials]
     # longest first (the 20 s motion), so the pool does not idle at the end
     tasks.sort(key=lambda t: -C.MOTIONS[t[0]]["T"])
     t0 = time.perf_counter()
@@ -301,7 +336,7 @@ def main(argv=None) -> int:
         w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
         w.writeheader()
         w.writerows(rows)
-    labels = list(dict.fromkeys(r["motion"] for r in rows))  # motion names, tagged with a non-default variant
+    labels = list(dict.fromkeys(r["motion"] for r in rows))  # motion names, tagged with a non-default variant/model
     plot(rows, Path(args.fig), labels, pos_levels, rot_levels)
     print(f"{len(rows)} self-calibrations in {wall:.0f} s wall; CSV {out}, figure {args.fig}")
     report(rows, labels, pos_levels, rot_levels)
