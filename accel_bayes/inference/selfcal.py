@@ -428,16 +428,23 @@ def process_noise_statistics(states, positions, orientations, dt, W, inv_std, S=
             for k, sl in rows.items()}
 
 
-def _motion_posterior(states, positions, orientations, dt, W, inv_std, S=None):
-    """Process Jacobians and the selected blocks of the motion's Laplace covariance Σ = H_xx⁻¹
-    (poses held): (J_prev, J_next, Σ_i (T, 9, 9), Σ_{i,i+1} (T−1, 9, 9))."""
+def _motion_hessian(states, positions, orientations, dt, W, inv_std, S=None):
+    """The Gauss–Newton matrix H_xx of the motion with the poses held (triad + process rows),
+    block tridiagonal: (J_prev, J_next, diagonal blocks D (T, d, d), off-diagonal blocks
+    B = J_prevᵀ J_next (T−1, d, d))."""
     Jx, _, _ = triad_jacobians(states, orientations, positions, inv_std, S)
     Jx = _pad_state_columns(Jx, states.shape[-1])
     D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
     Jp, Jn = process_jacobians(dt, W)
     D[:-1] += Jp.transpose(-1, -2) @ Jp
     D[1:] += Jn.transpose(-1, -2) @ Jn
-    B = Jp.transpose(-1, -2) @ Jn
+    return Jp, Jn, D, Jp.transpose(-1, -2) @ Jn
+
+
+def _motion_posterior(states, positions, orientations, dt, W, inv_std, S=None):
+    """Process Jacobians and the selected blocks of the motion's Laplace covariance Σ = H_xx⁻¹
+    (poses held): (J_prev, J_next, Σ_i (T, 9, 9), Σ_{i,i+1} (T−1, 9, 9))."""
+    Jp, Jn, D, B = _motion_hessian(states, positions, orientations, dt, W, inv_std, S)
     Sig, C = _block_tridiagonal_selected_inverse(D, B)
     return Jp, Jn, Sig, C
 
@@ -1365,13 +1372,8 @@ def laplace_scale_nll(c: float, positions, states, orientations, fixed: int, acc
     prob = build_problem(acc, dt, pc, orientations, xc, fixed, inv_std, W, S, offset, poses_fixed=True)
     r, _ = _run_lm(prob, max_iter=max_iter, ftol=1e-14, xtol=1e-14, gtol=1e-12, progress=False, desc="scale")
     x = r.locals
-    Jx, _, _ = triad_jacobians(x, orientations, pc, inv_std, S)
-    Jx = _pad_state_columns(Jx, x.shape[-1])
-    D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
-    Jp, Jn = process_jacobians(dt, W)
-    D[:-1] += Jp.transpose(-1, -2) @ Jp
-    D[1:] += Jn.transpose(-1, -2) @ Jn
-    logdet = _block_tridiagonal_logdet(D, Jp.transpose(-1, -2) @ Jn)
+    _, _, D, B = _motion_hessian(x, pc, orientations, dt, W, inv_std, S)
+    logdet = _block_tridiagonal_logdet(D, B)
     return float(r.cost) + 0.5 * logdet, pc, x
 
 
