@@ -38,7 +38,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _data import data_dir  # noqa: E402
-from mimu_repeatability import analyse  # noqa: E402
+from mimu_repeatability import analyse, coordinate_diagnostics  # noqa: E402
 
 VARIANTS = ("without", "with")
 AIM_RATIO = 1.15
@@ -58,14 +58,7 @@ def run_one(exp: int, variant: str, data: Path, reports: Path, chains: int, draw
         warnings.simplefilter("ignore", RuntimeWarning)
         res = calibrate(rec, chains=chains, draws=draws, warmup=warmup, seed=seed, progress=False, model=model)
     doc, st, summ = res.positions, res.settings, res.summary
-    rh = np.full((rec.K, 3), np.nan)
-    ess = np.full((rec.K, 3), np.nan)
-    for e in doc["imus"]:
-        for a, ax in enumerate("xyz"):
-            key = f"r[{e['imu']}, {ax}]"
-            if key in summ.index:
-                rh[e["imu"], a] = float(summ.loc[key, "r_hat"])
-                ess[e["imu"], a] = float(summ.loc[key, "ess_bulk"])
+    rh, ess = coordinate_diagnostics(doc, summ, rec.K)
     nm = st.get("noise_model") or {}
     sw0 = nm.get("sandwich") or {}
     out = {

@@ -51,6 +51,20 @@ ESS_MIN = 400
 
 # ---------------------------------------------------------------------------- tasks (run on workers)
 
+def coordinate_diagnostics(doc: dict, summ, K: int) -> tuple[np.ndarray, np.ndarray]:
+    """(R̂, bulk ESS), each (K, 3) per IMU row and axis, from a calibration's positions document
+    and ArviZ summary (NaN for the reference IMU, which has no coordinate)."""
+    rh = np.full((K, 3), np.nan)
+    ess = np.full((K, 3), np.nan)
+    for e in doc["imus"]:
+        for a, ax in enumerate("xyz"):
+            key = f"r[{e['imu']}, {ax}]"
+            if key in summ.index:
+                rh[e["imu"], a] = float(summ.loc[key, "r_hat"])
+                ess[e["imu"], a] = float(summ.loc[key, "ess_bulk"])
+    return rh, ess
+
+
 def run_experiment(exp: int, data: str, out: str, chains: int, draws: int, warmup: int, seed: int) -> dict:
     """Import experiment ``exp`` and calibrate it with the pipeline defaults; write its outputs."""
     from accel_bayes.pipelines.calibrate import calibrate, write_outputs
@@ -63,14 +77,7 @@ def run_experiment(exp: int, data: str, out: str, chains: int, draws: int, warmu
     doc = res.positions
     summ = res.summary
     labels = [e["imu"] for e in doc["imus"]]
-    rh = np.full((len(labels), 3), np.nan)
-    ess = np.full((len(labels), 3), np.nan)
-    for e in doc["imus"]:
-        for a, ax in enumerate("xyz"):
-            key = f"r[{e['imu']}, {ax}]"
-            if key in summ.index:
-                rh[e["imu"], a] = float(summ.loc[key, "r_hat"])
-                ess[e["imu"], a] = float(summ.loc[key, "ess_bulk"])
+    rh, ess = coordinate_diagnostics(doc, summ, len(labels))
     st = res.settings
     nm = st.get("noise_model") or {}
     return {
