@@ -76,8 +76,7 @@ def run_experiment(exp: int, data: str, out: str, chains: int, draws: int, warmu
     write_outputs(res, Path(out) / f"exp_{exp}", plots=True)
     doc = res.positions
     summ = res.summary
-    labels = [e["imu"] for e in doc["imus"]]
-    rh, ess = coordinate_diagnostics(doc, summ, len(labels))
+    rh, ess = coordinate_diagnostics(doc, summ, len(doc["imus"]))
     st = res.settings
     nm = st.get("noise_model") or {}
     return {
