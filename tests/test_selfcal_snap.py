@@ -223,6 +223,17 @@ def _handlike(i):
 
 
 @pytest.mark.slow
+def _assert_scale_and_coordinates_within_their_std(run, case):
+    """The board's scale (fitted · true / |true|², free triads) within 3 reported std of 1, and
+    every free coordinate within 4 reported std of the truth."""
+    tr = np.asarray(case.truth["true_relative_position"], dtype=float)
+    free = [k for k in range(tr.shape[0]) if k != run.input.fixed_label]
+    scale = float((run.means[free] * tr[free]).sum() / (tr[free] ** 2).sum())
+    assert abs(scale - 1) < 3 * run.check.scale_std, (scale, run.check.scale_std)
+    z = (run.means - tr)[free] / run.pstd[free]
+    assert np.abs(z).max() < 4
+
+
 def test_snap_model_scale_on_a_concealed_handlike_recording():
     """Recording 5 of experiments/s16_handlike.py (independent numpy simulator, hand-like sums of
     sinusoids, random 3-D block, 62.5 Hz, T = 1686 — the jerk model's board came out −0.8 %, 4 std
@@ -233,12 +244,7 @@ def test_snap_model_scale_on_a_concealed_handlike_recording():
     label, case = _handlike(5)
     run = selfcal(case.recording, max_iter=100, process_noise="estimate-snap")
     assert run.ok and not run.warnings
-    tr = np.asarray(case.truth["true_relative_position"], dtype=float)
-    free = [k for k in range(tr.shape[0]) if k != run.input.fixed_label]
-    scale = float((run.means[free] * tr[free]).sum() / (tr[free] ** 2).sum())
-    assert abs(scale - 1) < 3 * run.check.scale_std, (scale, run.check.scale_std)
-    z = (run.means - tr)[free] / run.pstd[free]
-    assert np.abs(z).max() < 4
+    _assert_scale_and_coordinates_within_their_std(run, case)
     assert run.motion.shape == (len(run.input.time), 10)
 
 
@@ -259,12 +265,7 @@ def test_snap_model_scale_on_a_short_concealed_handlike_recording_at_62_5_hz():
     assert run.ok and not run.warnings
     setting = run.document["provenance"]["settings"]["process_noise"]
     assert setting["mode"] == "estimate-snap" and setting["scale_correction"]["method"] == "laplace"
-    tr = np.asarray(case.truth["true_relative_position"], dtype=float)
-    free = [k for k in range(tr.shape[0]) if k != run.input.fixed_label]
-    scale = float((run.means[free] * tr[free]).sum() / (tr[free] ** 2).sum())
-    assert abs(scale - 1) < 3 * run.check.scale_std, (scale, run.check.scale_std)
-    z = (run.means - tr)[free] / run.pstd[free]
-    assert np.abs(z).max() < 4
+    _assert_scale_and_coordinates_within_their_std(run, case)
 
 
 def test_block_tridiagonal_logdet_matches_the_dense_one():
