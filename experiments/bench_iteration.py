@@ -126,7 +126,7 @@ def worker():
         if op == "value":
             # the same normals on every device: drawn on the CPU with one seed, then moved
             z = lik.sample_z(generator=torch.Generator().manual_seed(123)) if device == "cpu" else \
-                _cpu_z(lik).to(device)
+                lik.to("cpu").sample_z(generator=torch.Generator().manual_seed(123)).to(device)
             P = pos.cpu() + 2e-4 * torch.randn(4, *pos.shape, generator=torch.Generator().manual_seed(7),
                                                dtype=pos.dtype)
             P[0] = pos.cpu()
@@ -151,15 +151,6 @@ def worker():
         if op == "iteration":
             out["accept"] = kern.diagnostics()["acceptance rate"]
         print(json.dumps(out), flush=True)
-
-
-def _cpu_z(lik):
-    """The standard normals ``lik.sample_z`` draws on the CPU with seed 123 (float32, then cast),
-    for comparing log p̂ across devices on the same z."""
-    import torch
-
-    zt = torch.randn(lik.T, 3, lik.num_draws, generator=torch.Generator().manual_seed(123), dtype=torch.float32)
-    return zt.to(lik.dtype).transpose(-1, -2)
 
 
 # ---------------------------------------------------------------------------- driver side
