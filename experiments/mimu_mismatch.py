@@ -132,9 +132,26 @@ def _budget_all(rows, sensor):
     return r["excess_var_observed"], r["excess_var_explained"]
 
 
+def _block_correction(prep, blocks):
+    """``prep`` with the gyro linear blocks (the detector's stage 3a) inverted on its gyros, as the
+    detector itself does before its rounds (:func:`accel_bayes.mismatch.gyro_linear.corrected_gyro`)."""
+    import torch
+
+    from accel_bayes.mismatch.gyro_linear import corrected_gyro
+
+    A = torch.eye(3, dtype=torch.float64).repeat(prep.K, 1, 1)
+    b = torch.zeros(prep.K, 3, dtype=torch.float64)
+    for e in blocks:
+        A[e.imu] = A[e.imu] + e.params["matrix"]
+        b[e.imu] = e.params["bias"]
+    return corrected_gyro(prep, A, b)
+
+
 def stage_shares(args, exps):
     """Each finding's share of the explained excess variance ("all" rows of the budget): in
-    sequence (first k findings, refitted) and dropped from the final model (refitted without it)."""
+    sequence (first k findings, refitted) and dropped from the final model (refitted without it).
+    The gyro linear blocks count as one group, held at the report's values (the recording
+    corrected for them, as the detector does), first in the sequence."""
     from accel_bayes.mismatch.budget import residual_budget
     from accel_bayes.mismatch.fit import fit_model
 
@@ -150,17 +167,31 @@ def stage_shares(args, exps):
             sp.write_text(json.dumps({"sequence": [], "drop_one": []}))
             continue
         prep, base = _prepared(i, args, cache)
+        blocks = [e for e in effs if e.name == "gyro_linear"]
+        rest = [e for e in effs if e.name != "gyro_linear"]
+        prep_b = _block_correction(prep, blocks) if blocks else prep
+        # the units of the sequence: the block group (one step), then each other finding
+        units = ([("gyro_linear blocks on IMUs " + ",".join(str(e.imu) for e in blocks), None)] if blocks else []) + \
+            [(e.label(), e) for e in rest]
+
+        def fit_of(use_blocks, effects):
+            pp = prep_b if use_blocks else prep
+            if not effects and not use_blocks:
+                return None
+            return fit_model(pp, [e.copy() for e in effects], init=base, laplace=False)
+
         out = {"sequence": [], "drop_one": []}
-        for k in range(1, len(effs) + 1):
-            f = fit_model(prep, [e.copy() for e in effs[:k]], init=base, laplace=False)
+        for k in range(1, len(units) + 1):
+            sel = units[:k]
+            f = fit_of(bool(blocks), [e for _, e in sel if e is not None]) if blocks else fit_of(False, [e for _, e in sel])
             rows = residual_budget(prep, base, f)
-            out["sequence"].append({"effects": [e.label() for e in effs[:k]],
-                                    **{s: _budget_all(rows, s) for s in ("acc", "gyro")}})
-        for k in range(len(effs)):
-            rest = [e.copy() for j, e in enumerate(effs) if j != k]
-            f = fit_model(prep, rest, init=base, laplace=False) if rest else base
-            rows = residual_budget(prep, base, f if rest else None)
-            out["drop_one"].append({"dropped": effs[k].label(), **{s: _budget_all(rows, s) for s in ("acc", "gyro")}})
+            out["sequence"].append({"effects": [lab for lab, _ in sel], **{s: _budget_all(rows, s) for s in ("acc", "gyro")}})
+        for k in range(len(units)):
+            keep = [u for j, u in enumerate(units) if j != k]
+            use_b = bool(blocks) and units[k][1] is not None
+            f = fit_of(use_b, [e for _, e in keep if e is not None])
+            rows = residual_budget(prep, base, f)
+            out["drop_one"].append({"dropped": units[k][0], **{s: _budget_all(rows, s) for s in ("acc", "gyro")}})
         sp.write_text(json.dumps(out, indent=1))
         print(f"exp_{i}: shares " + "; ".join(
             f"{r['effects'][-1]}: b/a acc {r['acc'][1] / r['acc'][0]:.3f}, gyro {r['gyro'][1] / r['gyro'][0]:.3f}"

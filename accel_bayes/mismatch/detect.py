@@ -19,6 +19,18 @@ Procedure
 3. **Candidates**: every location of every requested effect class
    (:meth:`Effect.candidates`; the identifiability rules are in
    :mod:`accel_bayes.physics.effects`).  m = their number.
+3a. **Gyro linear stage** (:mod:`accel_bayes.mismatch.gyro_linear`): every gyroscope's whole
+   linear error (3 × 3 scale/misalignment + offset, :class:`~accel_bayes.physics.effects.GyroLinear`,
+   12 parameters per IMU) is tested as a group and per IMU, fitted in closed form alternating
+   with the motion (its part common to all gyros through the accelerometer lever arms), and the
+   recording is corrected for the blocks that pass; the rounds below run on the corrected
+   recording with the blocks held fixed, and never try a gyro scale/misalignment/bias term on
+   an IMU that has a block.  Each block is a finding (vocabulary ``gyro_scale``, axis null,
+   parameters {"scale": 3 × 3, "bias": 3}); ``max_findings`` counts the rounds' findings only.
+   Why: raw MEMS gyros carry all twelve terms on every IMU, and one term per round leaves the
+   rest in the residual, where a random timing effect explains them better (1/21 concealed
+   multi-effect cases named right before this stage, experiments/mismatch_multi.md).  Skipped
+   when ``effects`` does not name ``gyro_linear`` (the default names every effect).
 4. **Screen** (cheap, all candidates, at the current fit):
 
    * mean effects — the score (Lagrange-multiplier) test: u = ∂logL/∂η at η = 0 and the
@@ -88,13 +100,15 @@ Procedure
    model accounts for (b, the squared residual its mean effects remove plus the variance its
    variance effects predict); b = 0 when nothing was found.  Reported also with ``refine=False``.
 
-Threshold rule (reported as ``threshold``): Bonferroni over the m candidates tried,
+Threshold rule (reported as ``threshold``): Bonferroni over the m tests made (the round
+candidates, plus the gyro linear stage's group test and one test per gyro),
 
     threshold = χ²_{d_max} quantile at 1 − α/m,
 
 with d_max the largest number of parameters of any candidate (3).  One number for every finding,
 conservative for candidates with fewer parameters (and for ``sampling_jitter``, whose boundary
-null ½χ²₀ + ½χ²₁ is not used to lower it).  Findings are ranked by the p-value of their
+null ½χ²₀ + ½χ²₁ is not used to lower it).  The gyro linear stage holds its group to χ²_{12n}, each
+block to χ²_12 and each block's terms to χ²_1, all at 1 − α/m.  Findings are ranked by the p-value of their
 evidence under χ²_df (most supported first; equal to ranking by evidence for equal df).
 
 Budget: one baseline fit, one screen per round (vectorised algebra, a few ms per candidate) and
@@ -124,6 +138,7 @@ from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_w
 from .budget import residual_budget
 from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
+from .gyro_linear import gyro_linear_stage
 from .jitter import jitter_evidence, variance_ratio
 from .model import ModelFit
 from .prepared import Prepared, prepare
@@ -167,7 +182,8 @@ def candidate_effects(prep: Prepared, effects=None) -> list[Effect]:
     out = []
     for nm in names:
         cls = get_effect(nm)
-        out += cls.candidates(prep.layout)
+        if getattr(cls, "screened", True):  # gyro_linear: tested in its own stage (step 4a)
+            out += cls.candidates(prep.layout)
     return out
 
 
@@ -446,6 +462,12 @@ def _group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> floa
     return num / den if den > 0 else 1.0
 
 
+# ------------------------------------------------------------------------------ gyro linear stage
+
+#: the vocabulary terms a gyro_linear block contains (never round candidates on an IMU that has one)
+_GYRO_LINEAR_TERMS = ("gyro_bias", "gyro_scale", "gyro_misalignment")
+
+
 # ------------------------------------------------------------------------------ detect
 
 def _check_recording(rec) -> None:
@@ -569,7 +591,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     recording : :class:`~accel_bayes.data.recording.Recording` or path to a format-v1 file (needs
         gyroscope data).
     effects : effect names to try (list or comma-separated string; default every registered effect,
-        i.e. vocabulary v1.1 with ``gyro_nonlinearity``);
+        i.e. vocabulary v1.1 and the extensions; ``gyro_linear`` switches the gyro linear stage, step 3a);
         ``unexplained`` is always considered.
     alpha : family-wise error rate of the Bonferroni threshold (default 0.01).
     max_findings : most effects added to the model (default 3).
@@ -605,7 +627,9 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     say(f"locate: {loc0.summary}")
 
     cands_all = candidate_effects(prep, names)
-    m = len(cands_all)
+    gyro_stage = (names is None or "gyro_linear" in names) and int(np.asarray(prep.has_gyro).sum()) >= 2
+    # Bonferroni over every test: the round candidates, and the stage's group and per-block tests
+    m = len(cands_all) + (int(np.asarray(prep.has_gyro).sum()) + 1 if gyro_stage else 0)
     df_max = max([c.df for c in cands_all] + [1])
     threshold = threshold_rule(m, df_max, alpha)
     say(f"{m} candidates, threshold {threshold:.4g} (χ²_{df_max}, 1 − {alpha}/{m})")
@@ -614,14 +638,25 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     accepted: list[dict] = []
     rounds = []
     t0 = _time.perf_counter()
+    stage = None
+    if gyro_stage:
+        # step 4a: every gyro's linear error, held fixed from here on (the rounds run on the recording
+        # corrected for it: accel_bayes.mismatch.gyro_linear)
+        stage = gyro_linear_stage(prep, base, m=m, alpha=alpha)
+        prep, current = stage.prep, stage.fit
+        say(f"gyro linear stage: {stage.info['result']}")
+    timings["gyro_linear_s"] = _time.perf_counter() - t0
+    blocked = {e.imu for e in stage.blocks} if stage is not None else set()
     last_screens: list[Screen] = []
     for rnd in range(int(max_findings)):
         in_model = {e.label() for e in current.effects}
         taken = {(e.imu, ch) for e in current.effects if e.kind == "random" for ch in _random_channels(e)}
         # one random effect per IMU and sensor: two would each be profiled as if alone and
-        # count the same variance twice
+        # count the same variance twice; no gyro scale/misalignment/bias term where a gyro_linear
+        # block already holds all twelve
         pool = [c.copy() for c in cands_all if c.label() not in in_model
-                and not (c.kind == "random" and any((c.imu, ch) in taken for ch in _random_channels(c)))]
+                and not (c.kind == "random" and any((c.imu, ch) in taken for ch in _random_channels(c)))
+                and not (c.name in _GYRO_LINEAR_TERMS and c.imu in blocked)]
         ts = _time.perf_counter()
         screens = screen(prep, current, pool)
         last_screens = screens
@@ -755,6 +790,15 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
                                 extra={"evidence_when_added": acc_["evidence"],
                                        "evidence_noise_robust": acc_["evidence_robust"],
                                        "alternatives": acc_.get("alternatives", [])}))
+    fixed = list(stage.blocks) if stage is not None else []
+    for e in fixed:  # the gyro linear stage's blocks (held fixed in every fit above)
+        ev = float(e.stats["statistic_robust"])
+        findings.append(Finding(effect=e, evidence=ev, df=e.df, log10_p=_log10_sf(ev, e.df),
+                                where=regime_concentration(prep, reg, stage.gain_t), explanation=e.explain(),
+                                screen_statistic=None, orientations=prep.q,
+                                extra={"evidence_kind": "the block's conditional likelihood ratio at the final rates "
+                                                        "over max(1, P) (gyro linear stage)",
+                                       "evidence_raw": float(e.stats["statistic"])}))
     timings["evidence_s"] = _time.perf_counter() - t0
 
     # ---- unexplained located excess at the final model
@@ -804,7 +848,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     comparison = None
     post = None
     t0 = _time.perf_counter()
-    if refine and accepted:
+    if refine and (accepted or fixed):
         refined = current
         comparison = compare_fits(base, refined, draws=loo_draws, seed=seed)
         say(f"refined: χ²/dof {base.chi2_per_dof:.4g} → {refined.chi2_per_dof:.4g}")
@@ -833,4 +877,5 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
                         "preparation": prep.preparation,
                         "sample_rate_hz": rec.sample_rate},
         prep=prep, characterisation=characterisation,
+        gyro_linear=None if stage is None else stage.info, fixed_effects=fixed,
     )

@@ -90,7 +90,8 @@ class Finding:
         if sensor is not None:
             d["sensor"] = sensor
         if self.model.std:
-            d["std"] = {k: (float(v) if v.dim() == 0 else [float(x) for x in v]) for k, v in self.model.std.items()}
+            d["std"] = {k: (float(v) if v.dim() == 0 else v.detach().cpu().double().tolist())
+                        for k, v in self.model.std.items()}
         if self.screen_statistic is not None:
             d["screen_statistic"] = float(self.screen_statistic)
         d.update({k: v for k, v in self.extra.items() if k not in d})
@@ -128,6 +129,8 @@ class MismatchReport:
     prep: object = field(default=None, repr=False)
     characterisation: dict | None = None  # what the final model leaves: accel_bayes.mismatch.characterise
     budget: list = field(default_factory=list)
+    gyro_linear: dict | None = None  # the detector's gyro linear stage (step 4a): tests, blocks kept
+    fixed_effects: list = field(default_factory=list)  # its blocks: in the refined model, not in refined_fit.effects
 
     # ---------------------------------------------------------------- contract blocks
     @property
@@ -146,14 +149,15 @@ class MismatchReport:
             return None
         r = self.refined_fit
         noise = r.has_noise_effect
-        d = {"effects": [e.vocabulary_name or e.name for e in r.effects], "loglik": float(r.loglik),
+        allfx = list(self.fixed_effects) + list(r.effects)
+        d = {"effects": [e.vocabulary_name or e.name for e in allfx], "loglik": float(r.loglik),
              "chi2_per_dof": float(r.chi2_per_dof_model if noise else r.chi2_per_dof),
              "chi2_noise": ("refined (the model's own per-sample variance: "
                             + ", ".join(sorted({e.name for e in r.effects if e.kind in ("noise", "random")})) + ")")
              if noise else "stated",
              "chi2_per_dof_stated": float(r.chi2_per_dof), "chi2_per_dof_stated_noise": float(r.chi2_per_dof),
              "dof": int(r.dof),
-             "labels": [e.label() for e in r.effects]}
+             "labels": [e.label() for e in allfx]}
         if self.comparison and "elpd_loo" in self.comparison and "difference" in self.comparison["elpd_loo"]:
             e = self.comparison["elpd_loo"]
             d["elpd_loo"] = e["after"]["elpd_loo"]
@@ -177,8 +181,10 @@ class MismatchReport:
 
     def details(self) -> dict:
         d = {
-            "threshold_rule": (f"Bonferroni over the m = {self.n_candidates} candidates tried: chi2_{self.df_max} "
-                               f"quantile at 1 - alpha/m, alpha = {self.alpha}"),
+            "threshold_rule": (f"Bonferroni over the m = {self.n_candidates} tests made (round candidates and "
+                               f"the gyro linear stage's tests): chi2_{self.df_max} quantile at 1 - alpha/m, "
+                               f"alpha = {self.alpha}; a gyro_linear block (df 12) against its own chi2_12 quantile "
+                               f"at 1 - alpha/m"),
             "alpha": self.alpha, "n_candidates": self.n_candidates, "df_max": self.df_max,
             "recording": {**self.recording_info, "source": self.source},
             "baseline_start": self.baseline_info,
@@ -188,6 +194,7 @@ class MismatchReport:
             "positions_refined": None if self.refined_fit is None or not self.findings else self.refined_fit.positions.tolist(),
             "comparison": self.comparison,
             "posterior": self.posterior,
+            "gyro_linear_stage": self.gyro_linear,
             "rounds": self.rounds,
             "withdrawn": self.withdrawn,
             "screen_top_last_round": self.screens,

@@ -727,11 +727,14 @@ def _model_gyro_step(lik, rec, cmodel):
     """The likelihood with the model's gyro posterior (:func:`accel_bayes.prep.model_effects.fused_gyro_posterior`)
     on the same samples, and a summary of what it changed: the median posterior std of ω per
     axis before and after, and the median share of the precision the gyros with a finding keep."""
-    from ..prep.model_effects import fused_gyro_posterior
+    from ..prep.model_effects import corrected_gyro_array, fused_gyro_posterior
 
     idx = np.asarray(lik.sample_index)
     glabels = list(lik.gyro_labels)
     gyro = rec.gyro_tensor("array", dtype=torch.float64)[torch.as_tensor(idx)][:, torch.as_tensor(glabels)]
+    if cmodel.gyro_linear:  # the report's gyro linear blocks, inverted first
+        q = np.asarray(rec.nominal_orientation, dtype=np.float64)[glabels]
+        gyro = corrected_gyro_array(gyro, q, glabels, [(k, e) for _, k, e in cmodel.gyro_linear])
     gstd = np.asarray(rec.gyro_noise_std, dtype=np.float64)[glabels]
     time_s = np.asarray(rec.time, dtype=np.float64)[idx]
     effects = [(k, e) for _, k, e in cmodel.gyro_effects]

@@ -30,6 +30,14 @@ sample to the next (``correlation`` ≈ 0.7–0.87 on the MIMU data).  The likel
 samples as independent given θ; what that leaves is what the sandwich covariance measures
 (:func:`accel_bayes.prep.noise.sandwich_inflation`, Newey–West lags), and ``calibrate`` records it.
 
+Gyro linear blocks → the gyro outputs corrected
+-----------------------------------------------
+A ``gyro_scale`` finding with a 3 × 3 ``scale`` and a ``bias`` (the detector's gyro linear stage,
+:class:`~accel_bayes.physics.effects.GyroLinear`: y_k = (I + M_k) g_k + b_k, sensor frame) is
+inverted on IMU k's gyro outputs before anything else, y_k ← (I + M_k)⁻¹(y_k − b_k) — what the
+detector did to the recording before it named the other effects.  The rates ω̇ of the timing
+effects are then read from the corrected gyros.
+
 Everything else → recorded as skipped, with the reason
 ------------------------------------------------------
 * ``unexplained``: carries no model;
@@ -37,8 +45,7 @@ Everything else → recorded as skipped, with the reason
   ``sampling_jitter``): the likelihood has one noise level per triad, constant over the samples
   (a per-sample scale must be common to all triads, :func:`accel_bayes.prep.noise.scale_samples`),
   so a per-triad, per-sample variance has no place in it; the type-II ML level absorbs it;
-* mean, clip and noise-level effects: not applied by this version (none of the six MIMU reports
-  has one); a warning says so.
+* other mean, clip and noise-level effects: not applied by this version; a warning says so.
 """
 from __future__ import annotations
 
@@ -54,7 +61,7 @@ import torch
 
 from ..errors import UserError
 
-__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior"]
+__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array"]
 
 # effects whose gyroscope part is a per-sample timing error (the moment-matched covariance above)
 _TIMING = ("timing_wander", "sampling_jitter")
@@ -68,6 +75,7 @@ class CalibrationModel:
     sha256 : SHA-256 of the file's bytes (of its canonical JSON for a dict).
     recording : the report's ``details.recording`` block ({} if absent): T, K, T_given, ….
     gyro_effects : [(finding index, IMU label, effect)] — the random gyro effects used.
+    gyro_linear : [(finding index, IMU label, GyroLinear)] — the gyro linear blocks used.
     used, skipped : [{"finding", "effect", "imu", "sensor", "how"/"why"}] per finding.
     """
 
@@ -75,6 +83,7 @@ class CalibrationModel:
     sha256: str
     recording: dict
     gyro_effects: list = field(default_factory=list)
+    gyro_linear: list = field(default_factory=list)
     used: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
 
@@ -91,7 +100,7 @@ class CalibrationModel:
             raise UserError(f"model: details.recording.T_given: the report was made on {r['T_given']} samples, the "
                             f"recording has {rec.T}")
         has_gyro = np.asarray(rec.has_gyro, dtype=bool)
-        for i, k, _ in self.gyro_effects:
+        for i, k, _ in self.gyro_effects + self.gyro_linear:
             if not (0 <= k < len(has_gyro)) or not has_gyro[k]:
                 raise UserError(f"model: findings[{i}].imu: IMU {k} has no gyroscope in the recording")
 
@@ -161,6 +170,12 @@ def load_model(model) -> CalibrationModel:
             e = make_effect(name, imu=imu, axis=f.get("axis"), parameters=params)
         except UserError as exc:
             raise UserError(f"model: findings[{i}]: {exc}") from None
+        if e.name == "gyro_linear" and e.imu is not None:
+            out.gyro_linear.append((i, int(e.imu), e))
+            out.used.append({**row, "sensor": "gyro", "how": "gyro outputs corrected: y <- (I + scale)^-1 (y - bias), "
+                                                            "sensor frame",
+                             "parameters": {"scale": e.params["matrix"].tolist(), "bias": e.params["bias"].tolist()}})
+            continue
         if e.kind != "random":
             out.skipped.append({**row, "why": f"{e.kind} effect: not applied by calibrate --model in this version "
                                               "(only random gyroscope effects are)"})
@@ -188,6 +203,25 @@ def load_model(model) -> CalibrationModel:
             out.skipped.append({**row, "sensor": "acc", "why": "accelerometer half of sampling_jitter: the likelihood "
                                                                "has one noise level per triad, constant over samples"})
     return out
+
+
+def corrected_gyro_array(gyro, orientations, gyro_labels, blocks):
+    """Invert the gyro linear blocks on array-frame gyro outputs (module docstring).
+
+    gyro : (T, G, 3) rad/s array frame; orientations : (G, 4) the gyros' nominal quaternions (array →
+    sensor); gyro_labels : the G IMU labels; blocks : [(IMU label, GyroLinear)].  Returns a new tensor:
+    y_a ← R_kᵀ (I + M_k)⁻¹ (R_k y_a − b_k) for each block's gyro, unchanged elsewhere."""
+    from ..physics.geometry import quat_to_matrix
+
+    y = torch.as_tensor(gyro, dtype=torch.float64).clone()
+    labels = [int(k) for k in gyro_labels]
+    R = quat_to_matrix(torch.as_tensor(np.asarray(orientations, dtype=np.float64)))
+    eye = torch.eye(3, dtype=torch.float64)
+    for k, e in blocks:
+        g = labels.index(int(k))
+        ys = y[:, g] @ R[g].T - e.params["bias"]
+        y[:, g] = torch.linalg.solve(eye + e.params["matrix"], ys.T).T @ R[g]
+    return y
 
 
 def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects):

@@ -15,6 +15,8 @@ triad_orientation      IMU mounted rotated from its nominal orientation      yes
 gyro_bias              gyroscope offset                                      yes         yes
 gyro_scale             gyroscope scale-factor error                          yes         yes
   (gyro_misalignment)  the off-diagonal part of gyro_scale, see below        yes         yes
+  (gyro_linear)        a triad's whole 3 × 3 gyro_scale + gyro_bias, one     yes         no
+                       12-parameter block (the detector's stage 4a)
 gyro_g_sensitivity     gyro output that depends on specific force            yes         no
 gyro_nonlinearity      second-order gyroscope response (k2·ω², vocab. 1.1)   yes         yes
 time_offset            one IMU sampled late relative to the others           yes         no
@@ -105,7 +107,7 @@ from .accelerometer import AccBias, AccScale, AccMisalignment, AccNonlinearity, 
 from .accelerometer import (acc_gain_effects, acc_gain_of_effects, gain_to_intrinsics, gain_to_s16, intrinsics_gain,
                             s16_gain, triangular_gauge)
 from .mounting import TriadOrientation
-from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity, GyroNonlinearity
+from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity, GyroNonlinearity, GyroLinear
 from .timing import GyroDelay, TimeOffset, sample_times
 from .output import Saturation, NoiseLevel, Unexplained
 from .jitter import SamplingJitter, TimingWander, jittered_times, log_marginal_gain
@@ -138,6 +140,7 @@ __all__ = [
     "GyroMisalignment",
     "GyroGSensitivity",
     "GyroNonlinearity",
+    "GyroLinear",
     "TimeOffset",
     "sample_times",
     "Saturation",

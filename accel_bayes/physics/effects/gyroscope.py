@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from ...constants import DEG_TO_RAD, G0
+from ...errors import UserError
 from .base import Effect, Param, register_effect, _fmt, _onehot, _CrossAxisCoupling
 
 
@@ -164,3 +165,87 @@ class GyroNonlinearity(Effect):
         return (f"The {self.axis} axis of IMU {self.imu}'s gyroscope responds quadratically to the rotation rate: "
                 f"it adds {_fmt(k2, '(rad/s)⁻¹')} × ω², i.e. {_fmt(abs(k2) * w * w / DEG_TO_RAD, '°/s')} "
                 f"{'too high' if k2 > 0 else 'too low'} at 100 °/s either way round (a second-order nonlinearity).")
+
+
+@register_effect
+class GyroLinear(Effect):
+    """The whole linear error of one gyroscope triad: output += M·ω + b, sensor frame, with M
+    (3 × 3, relative: its diagonal is the three scale-factor errors, its off-diagonal entries
+    the cross-axis couplings) and b (rad/s) the offsets — ``gyro_scale`` on every axis,
+    ``gyro_misalignment`` on every pair and ``gyro_bias`` on every axis of the IMU at once.
+
+    Why one 12-parameter block.  Raw MEMS gyros carry all twelve terms together (the MIMU4444's
+    reach 1.85 % per entry, experiments/gyro_linear_check.md), and a detector that adds one 1-df
+    term per round leaves the other eleven in the residual, where a random timing effect
+    explains them better (experiments/mismatch_multi.md: 1/21 cases named right while they were
+    there).  The detector tests these blocks in a stage of their own, before its rounds
+    (:mod:`accel_bayes.mismatch.detect`, step 4a); they are not round candidates
+    (``screened = False``).
+
+    Reported under the vocabulary name ``gyro_scale`` (DESIGN §7.2: "gyroscope scale-factor /
+    misalignment error") with axis null and parameters {"scale": M as 3 rows (output axis) of 3
+    (from axis), "bias": b}; a report finding of that form is read back as this class.
+
+    ``imu=None``: the same error on every gyro, expressed in the **array** frame (matrix and
+    bias array-frame; IMU k's sensor-frame block is R_k·matrix·R_kᵀ and R_k·bias).  The gyros
+    alone cannot see such a common error (the rate absorbs it); the accelerometer lever arms do,
+    through the centripetal terms, which is how the detector's stage fits it (after the
+    relative blocks, see :mod:`accel_bayes.mismatch.gyro_linear`).
+    """
+
+    name = "gyro_linear"
+    vocabulary_name = "gyro_scale"
+    description = "gyroscope scale-factor, misalignment and offset errors of one triad"
+    screened = False
+    sensor = "gyro"
+    parameters = (Param("matrix", (3, 3), "1", 0.05, "relative linear error: output += matrix · ω"),
+                  Param("bias", (3,), "rad s-1", 0.1, "offset added to the three gyro outputs"))
+
+    @classmethod
+    def reads_report(cls, axis, parameters, options):
+        s = parameters.get("scale")
+        return axis is None and isinstance(s, (list, tuple)) and len(s) == 3
+
+    @classmethod
+    def from_report(cls, parameters, options):
+        if "scale" in parameters:
+            parameters["matrix"] = parameters.pop("scale")
+        return parameters, options
+
+    def __init__(self, imu=None, axis=None, params=None):
+        if imu is None:  # the common (array-frame) error of every gyro
+            if axis is not None:
+                raise UserError(f"{self.name}: is not local to one axis; axis must be None, got {axis!r}")
+            self.imu, self.axis, self.axis_index = None, None, None
+            self._init_params(params)
+        else:
+            super().__init__(imu, axis, params)
+
+    def vocabulary_parameters(self, params=None):
+        """The report's parameters under the vocabulary name gyro_scale: {"scale": 3 × 3 rows,
+        "bias": 3-vector (rad/s)}."""
+        p = self._p(params)
+        return {"scale": p["matrix"].detach().cpu().double().tolist(),
+                "bias": p["bias"].detach().cpu().double().tolist()}
+
+    def perturbation(self, params, ctx):
+        p = self._p(params)
+        if self.imu is None:
+            R = ctx.rotation  # (K, 3, 3) array → sensor
+            Mk = R @ p["matrix"] @ R.transpose(1, 2)
+            bk = R @ p["bias"]
+            return torch.zeros_like(ctx.acc), torch.einsum("kij,tkj->tki", Mk, ctx.gyro) + bk
+        k = self._imu_checked(ctx)
+        m = _onehot(ctx.K, k, None, ctx.gyro)
+        return torch.zeros_like(ctx.acc), m * (ctx.gyro @ p["matrix"].transpose(0, 1) + p["bias"])
+
+    def explain(self, params=None):
+        p = self._p(params)
+        M = p["matrix"].detach().cpu().double()
+        b = p["bias"].detach().cpu().double()
+        diag = ", ".join(f"{100 * float(M[i, i]):+.3g} %" for i in range(3))
+        off = float((M - torch.diag(torch.diagonal(M))).abs().max())
+        who = "Every gyroscope (array frame) has" if self.imu is None else f"IMU {self.imu}'s gyroscope has"
+        return (f"{who} a linear error: scale-factor errors {diag} on x, y, z, cross-axis "
+                f"couplings up to {100 * off:.3g} %, offsets up to {float(b.abs().max()) / DEG_TO_RAD:.3g} °/s "
+                f"(a gyro scale / misalignment / bias error, all twelve terms fitted together).")

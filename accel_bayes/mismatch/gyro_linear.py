@@ -1,0 +1,232 @@
+"""The detector's gyro linear stage (:func:`accel_bayes.mismatch.detect.detect`, step 4a): every
+gyroscope's whole linear error, y_k = (I + M_k) g_k + b_k (sensor frame; g_k the true rate
+R_k ω, M_k 3 × 3 relative, b_k rad/s; :class:`~accel_bayes.physics.effects.GyroLinear`), before
+the rounds that name one effect at a time.
+
+Why a stage of its own.  Raw MEMS gyros carry all twelve terms on every IMU (the MIMU4444's
+reach 1.85 % per entry and repeat across recordings to ≤ 0.11 %, experiments/gyro_linear_check.md).
+A round adds one 1-df term, leaving eleven per IMU in the residual, where a random timing
+effect explains them better: with such errors on every IMU the detector named the concealed
+effect right in 1 of 21 cases (experiments/mismatch_multi.md, before this stage).
+
+How (block-coordinate maximum likelihood on the detector's own model):
+
+1. **Relative blocks, closed form.**  Given the fitted rates ĝ_k (the nominal gyro outputs of
+   the current fit), each IMU's [I + M_k | b_k] is the least-squares regression of its gyro
+   outputs on [ĝ_k, 1] — the exact conditional maximum-likelihood estimate, since the block is
+   linear and acts on that gyro alone.  The recording is corrected, y ← (I + M_k)⁻¹(y − b_k), the
+   motion and geometry refitted (:func:`~accel_bayes.mismatch.fit.fit_model`, no effects), and
+   the regression repeated on the original outputs (``passes``, default 2).  The fitted rate
+   follows the gyros, so these blocks are relative to the array's mean gyro.
+2. **The common part, through the lever arms.**  An error shared by all gyros moves the fitted
+   rate with it and is only seen by the accelerometers' centripetal terms; it is fitted as
+   one array-frame ``GyroLinear(imu=None)`` (12 parameters) by the LM solver on the corrected
+   recording, kept when its likelihood ratio passes χ²_12 at 1 − α/m, and folded into every
+   IMU's block: I + M_k ← (I + M_k)(I + R_k C R_kᵀ), b_k ← (I + M_k) R_k c + b_k.
+3. **Tests.**  Before any refit, the group's conditional statistic Σ_k Σ_t |M_k ĝ_kt + b_k|²/σ_k²
+   at the baseline (noise-robust: over max(1, P), P the mean z² left in the gyros after the
+   regression) is held to χ²_{12n} at 1 − α/m; below it the stage stops (cost: n regressions).
+   After the fit, each block's statistic (the same sum for its IMU, over max(1, P_k)) is held to
+   χ²_12 at 1 − α/m, and at least two of its twelve terms must pass χ²_1 at 1 − α/m on their own
+   (z² with the noise-robust standard deviations below): a gyro with a single scale, coupling or
+   offset error is left to the rounds, which name that term on its axis.  Blocks that fail are
+   dropped and the recording is corrected with the others.
+
+The array-size gauge.  The same isotropic scale error on every gyro is a rescaling of the whole
+array (the centripetal terms grow with ω², the tangential ones are free per sample, the
+positions scale), so no data see it.  The stage holds the *median* gyro's isotropic scale at
+zero: one badly scaled gyro then carries its own error instead of spreading a seventh of it
+over the others (which the rounds would otherwise meet as eight small blocks).
+
+The stage returns the corrected :class:`~accel_bayes.mismatch.prepared.Prepared` (the rounds
+run on it, the blocks held at their estimates), the fit on it, and the kept blocks with their
+statistics and standard deviations (the regression's, σ_k² (XᵀX)⁻¹ per output axis, rate
+uncertainty neglected: the rate is pinned by all n gyros).  The data transform's Jacobian
+(|I + M_k|⁻¹ per sample, ~1 ± 0.03) is left out of the log-likelihoods compared.
+
+Measured: experiments/mismatch_multi.md (the 21 concealed multi-effect cases) and
+experiments/mimu_mismatch.md (the six real recordings).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time as _time
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from ..physics.effects import GyroLinear
+from ..physics.geometry import quat_to_matrix
+from .fit import fit_model
+from .model import ModelFit
+from .prepared import Prepared
+
+__all__ = ["GyroLinearStage", "gyro_linear_stage", "relative_blocks", "corrected_gyro"]
+
+
+@dataclasses.dataclass
+class GyroLinearStage:
+    """What the stage found: ``prep`` (corrected, or the input when nothing was kept), ``fit``
+    (on ``prep``), ``blocks`` (kept :class:`GyroLinear` effects, parameters and ``std`` set,
+    ``stats`` with the statistic), ``gain_t`` (T,) the per-sample statistic of the kept blocks,
+    ``info`` (the report's ``details.gyro_linear_stage``)."""
+
+    prep: Prepared
+    fit: ModelFit
+    blocks: list
+    gain_t: np.ndarray | None
+    info: dict
+
+
+def relative_blocks(prep: Prepared, g_hat: torch.Tensor, imus) -> dict:
+    """Step 1's regression: per IMU k in ``imus``, y_k ≈ A_k ĝ_k + b_k over its observed samples.
+
+    g_hat (T, K, 3) fitted sensor-frame rates (rad/s).  Returns {"A": (K, 3, 3), "b": (K, 3)} (identity/zero
+    for IMUs not in ``imus``), "stat" (K,) Σ_t |(A_k − I) ĝ_kt + b_k|²/σ_k², "stat_t" (T, K), "cov" (K, 4, 4)
+    (XᵀX)⁻¹σ_k² (the covariance of each output axis' row [A_k − I | b_k]) and "rss_z2" (K,) the mean z² left.
+    """
+    T, K = prep.T, prep.K
+    A = torch.eye(3, dtype=torch.float64).repeat(K, 1, 1)
+    b = torch.zeros(K, 3, dtype=torch.float64)
+    stat = torch.zeros(K, dtype=torch.float64)
+    stat_t = torch.zeros(T, K, dtype=torch.float64)
+    cov = torch.zeros(K, 4, 4, dtype=torch.float64)
+    rss = torch.ones(K, dtype=torch.float64)
+    for k in imus:
+        rows = prep.m_gyro[:, k].min(-1).values > 0
+        if int(rows.sum()) < 12:
+            continue
+        X = torch.cat((g_hat[rows, k], torch.ones(int(rows.sum()), 1, dtype=torch.float64)), 1)
+        Y = prep.y_gyro[rows, k]
+        beta = torch.linalg.lstsq(X, Y).solution  # (4, 3): Y ≈ X β
+        A[k], b[k] = beta[:3].T, beta[3]
+        s2 = float(prep.sigma_gyro[k]) ** 2
+        d = (X[:, :3] @ (A[k] - torch.eye(3, dtype=torch.float64)).T + b[k])
+        stat_t[rows, k] = (d ** 2).sum(-1) / s2
+        stat[k] = stat_t[:, k].sum()
+        cov[k] = torch.linalg.inv(X.T @ X) * s2
+        rss[k] = ((Y - X @ beta) ** 2).sum() / s2 / max(int(rows.sum()) * 3 - 12, 1)
+    return {"A": A, "b": b, "stat": stat, "stat_t": stat_t, "cov": cov, "rss_z2": rss}
+
+
+def corrected_gyro(prep: Prepared, A: torch.Tensor, b: torch.Tensor) -> Prepared:
+    """``prep`` with every gyro output y_k replaced by A_k⁻¹(y_k − b_k) (unobserved channels stay 0)."""
+    y = torch.einsum("kij,tkj->tki", torch.linalg.inv(A), prep.y_gyro - b[None])
+    return dataclasses.replace(prep, y_gyro=y * prep.m_gyro)
+
+
+def _power(prep: Prepared, fit: ModelFit, imu) -> float:
+    from .detect import _group_power
+
+    return _group_power(prep, fit, SimpleNamespace(sensor="gyro", imu=imu), fit.linear().h)
+
+
+def gyro_linear_stage(prep: Prepared, base: ModelFit, *, m: int, alpha: float, passes: int = 2) -> GyroLinearStage:
+    """Run step 4a (module docstring) from the baseline fit ``base`` of ``prep``; ``m`` and
+    ``alpha`` are the detector's Bonferroni count and family-wise error rate."""
+    from scipy.stats import chi2
+
+    t0 = _time.perf_counter()
+    imus = [int(k) for k in np.flatnonzero(prep.has_gyro)]
+    n = len(imus)
+    thr_group = float(chi2.isf(alpha / m, 12 * n))
+    thr_block = float(chi2.isf(alpha / m, 12))
+    info = {"imus": imus, "group_df": 12 * n, "group_threshold": thr_group, "block_threshold": thr_block}
+
+    def done(result, prep_=prep, fit_=base, blocks=(), gain_t=None):
+        info["result"] = result
+        info["seconds"] = _time.perf_counter() - t0
+        return GyroLinearStage(prep_, fit_, list(blocks), gain_t, info)
+
+    # 3 (first half): the cheap group test at the baseline
+    rel = relative_blocks(prep, base.ctx.gyro, imus)
+    p_left = float(rel["rss_z2"][imus].mean())
+    g_stat = float(rel["stat"].sum()) / max(p_left, 1.0)
+    info.update({"group_statistic": float(rel["stat"].sum()), "group_statistic_robust": g_stat,
+                 "gyro_power_left": p_left})
+    if g_stat <= thr_group:
+        return done("group below its threshold: no gyro linear errors")
+    # 1: relative blocks, alternating with the motion
+    fit = base
+    for _ in range(int(passes)):
+        rel = relative_blocks(prep, fit.ctx.gyro, imus)
+        prep_c = corrected_gyro(prep, rel["A"], rel["b"])
+        fit = fit_model(prep_c, (), init=fit, laplace=False)
+    A, b = rel["A"].clone(), rel["b"].clone()
+    # 2: the common part, through the lever arms
+    common = GyroLinear(imu=None)
+    try:
+        fc = fit_model(prep_c, [common], init=fit, laplace=False)
+        lr = 2.0 * (fc.loglik - fit.loglik) / max(_power(prep_c, fc, None), 1.0)
+    except Exception as exc:  # the common part is a refinement; without it the blocks are relative
+        fc, lr = None, float("nan")
+        info["common_error"] = f"{type(exc).__name__}: {exc}"
+    info["common_statistic_robust"] = lr
+    if fc is not None and lr > thr_block:
+        e = fc.effects[0]
+        R = quat_to_matrix(prep.q)  # array → sensor
+        C = R @ e.params["matrix"] @ R.transpose(1, 2)
+        c = R @ e.params["bias"]
+        hg = torch.as_tensor(prep.has_gyro)
+        A_new = A @ (torch.eye(3, dtype=torch.float64) + C)
+        b_new = torch.einsum("kij,kj->ki", A, c) + b
+        A = torch.where(hg[:, None, None], A_new, A)
+        b = torch.where(hg[:, None], b_new, b)
+        info["common"] = {"matrix": e.params["matrix"].tolist(), "bias": e.params["bias"].tolist(), "kept": True}
+        fit = fc
+    # the array-size gauge: the same scale error on every gyro is a rescaling of the whole array
+    # (the rates' centripetal terms grow with ω², the tangential ones are free per sample), so it is
+    # not seen by any data; hold the median gyro's isotropic scale at zero
+    hg = torch.as_tensor(prep.has_gyro)
+    iso = torch.stack([torch.diagonal(A[k]).sum() / 3 - 1 for k in imus])
+    c = float(iso.median())
+    A = torch.where(hg[:, None, None], A / (1 + c), A)
+    b = torch.where(hg[:, None], b / (1 + c), b)
+    info["isotropic_gauge"] = {"rule": "median gyro's isotropic scale error held at 0", "removed": c}
+    # 3 (second half): each block's statistic at the fit and its terms' z-scores
+    prep_c = corrected_gyro(prep, A, b)
+    fit = fit_model(prep_c, (), init=fit, laplace=False)
+    I3 = torch.eye(3, dtype=torch.float64)
+    g_hat = fit.ctx.gyro
+    cov = relative_blocks(prep, g_hat, imus)["cov"]
+    thr_term = float(chi2.isf(alpha / m, 1))
+    info["term_threshold"] = thr_term
+    blocks_info, keep = {}, []
+    for k in imus:
+        rows = prep.m_gyro[:, k].min(-1).values > 0
+        d = g_hat[:, k] @ (A[k] - I3).T + b[k]
+        st_t = ((d ** 2).sum(-1) / float(prep.sigma_gyro[k]) ** 2) * rows
+        p_k = _power(prep_c, fit, k)
+        st = float(st_t.sum()) / max(p_k, 1.0)
+        sd = cov[k].diagonal().clamp_min(0).sqrt() * max(p_k, 1.0) ** 0.5
+        z2 = (torch.cat((A[k] - I3, b[k][:, None]), 1) / sd[None, :]) ** 2  # (3, 4): [M | b] rows
+        n_terms = int((z2 > thr_term).sum())
+        blocks_info[k] = {"statistic": float(st_t.sum()), "statistic_robust": st, "gyro_power_after": p_k,
+                          "significant_terms": n_terms}
+        # one significant term is the rounds' business: a single scale, coupling or offset is named
+        # there on its own axis (and a second-order response is not mistaken for an offset block)
+        if st > thr_block and n_terms >= 2:
+            keep.append(k)
+    info["blocks"] = blocks_info
+    info["kept"] = keep
+    if not keep:
+        return done("no block above its threshold with two or more significant terms")
+    if len(keep) < n:
+        drop = torch.tensor([k not in keep for k in range(prep.K)])
+        A = torch.where(drop[:, None, None], I3.expand_as(A), A)
+        b = torch.where(drop[:, None], torch.zeros_like(b), b)
+        prep_c = corrected_gyro(prep, A, b)
+        fit = fit_model(prep_c, (), init=fit, laplace=False)
+    cov = relative_blocks(prep, fit.ctx.gyro, keep)["cov"]
+    blocks, gain_t = [], np.zeros(prep.T)
+    for k in keep:
+        e = GyroLinear(imu=k, params={"matrix": A[k] - I3, "bias": b[k]})
+        sd = cov[k].diagonal().clamp_min(0).sqrt() * max(blocks_info[k]["gyro_power_after"], 1.0) ** 0.5
+        e.std = {"matrix": sd[:3].expand(3, 3).clone(), "bias": sd[3].expand(3).clone()}
+        e.stats = dict(blocks_info[k])
+        blocks.append(e)
+        d = fit.ctx.gyro[:, k] @ (A[k] - I3).T + b[k]
+        gain_t += ((d ** 2).sum(-1) / float(prep.sigma_gyro[k]) ** 2).numpy() / max(blocks_info[k]["gyro_power_after"], 1.0)
+    info["evidence_group"] = 2.0 * (fit.loglik - base.loglik)
+    return done(f"kept blocks on IMUs {keep}", prep_c, fit, blocks, gain_t)
