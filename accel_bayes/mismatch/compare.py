@@ -160,12 +160,14 @@ def corrected_recording(rec, fit: ModelFit, index=None):
 
 
 def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, draws: int = 400,
-                         warmup: int = 400, progress: bool = False, index=None) -> dict:
+                         warmup: int = 400, progress: bool = False, index=None, corrected_base=None) -> dict:
     """PmMH posterior of the positions (:func:`accel_bayes.pipelines.calibrate.calibrate`, short chains)
     on the recording as given and on :func:`corrected_recording` (``index`` as there) — an
     adapter over the calibration pipeline, which itself knows no effects.  Given the whole
     prepared recording (``Prepared.source``, rests included) the calibration keeps its own
-    protocol: the same selection, noise estimated as for a recording with rests.  Returns both
+    protocol: the same selection, noise estimated as for a recording with rests.  ``corrected_base``:
+    the recording ``fit`` was fitted to when that is not ``rec`` (the detector's gyro linear stage
+    corrects the gyros first), the "after" run corrects it.  Returns both
     ``positions.json``-style documents' per-IMU means/stds and their R̂/ESS diagnostics, or an
     error note."""
     try:
@@ -173,7 +175,8 @@ def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, 
     except ImportError as exc:  # pragma: no cover
         return {"error": f"accel_bayes.pipelines.calibrate unavailable: {exc}"}
     out = {"settings": {"chains": chains, "draws": draws, "warmup": warmup, "seed": int(seed)}}
-    for tag, r in (("before", rec), ("after", corrected_recording(rec, fit, index=index))):
+    after = corrected_recording(rec if corrected_base is None else corrected_base, fit, index=index)
+    for tag, r in (("before", rec), ("after", after)):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")

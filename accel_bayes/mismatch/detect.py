@@ -138,7 +138,7 @@ from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_w
 from .budget import residual_budget
 from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
-from .gyro_linear import gyro_linear_stage
+from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
 from .jitter import jitter_evidence, variance_ratio
 from .model import ModelFit
 from .prepared import Prepared, prepare
@@ -523,6 +523,12 @@ HETEROSCEDASTIC_RATIO = 1.25
 RANDOM_DOMINANCE = 10.0
 
 
+#: alternations of (gyro linear blocks | the rounds' findings) after each accepted finding: a block and
+#: a finding on the same gyro share part of their signature (an offset and a second-order response), so
+#: one re-estimate of the blocks leaves the finding's parameter biased; three settle it
+REFRESH_PASSES = 3
+
+
 def _random_channels(effect) -> tuple:
     """The sensors a random effect's variance acts on ("acc", "gyro")."""
     which = getattr(effect, "which", None)
@@ -643,7 +649,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         # step 4a: every gyro's linear error, held fixed from here on (the rounds run on the recording
         # corrected for it: accel_bayes.mismatch.gyro_linear)
         stage = gyro_linear_stage(prep, base, m=m, alpha=alpha)
-        prep, current = stage.prep, stage.fit
+        prep0, prep, current = prep, stage.prep, stage.fit
         say(f"gyro linear stage: {stage.info['result']}")
     timings["gyro_linear_s"] = _time.perf_counter() - t0
     blocked = {e.imu for e in stage.blocks} if stage is not None else set()
@@ -748,6 +754,11 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         best["alternatives"] = alternatives(best, results)
         accepted.append(best)
         current = best["fit"]
+        if stage is not None and stage.blocks:
+            # the blocks were fitted without this finding: re-estimate them given it (gyro_linear.refresh_blocks)
+            for _ in range(REFRESH_PASSES):
+                current = refresh_blocks(prep0, stage, current)
+            prep = stage.prep
     timings["detection_s"] = _time.perf_counter() - t0
 
     # ---- evidence with all other findings in the model (drop-one); a finding whose evidence falls
@@ -855,7 +866,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         if posterior:
             from .compare import posterior_comparison
 
-            post = posterior_comparison(prep.source, refined, seed=seed, progress=progress,
+            fixed_src = None if stage is None else block_corrected_recording(prep.source, stage.blocks)
+            post = posterior_comparison(prep.source, refined, seed=seed, progress=progress, corrected_base=fixed_src,
                                         index=prep.selection.index)
     timings["refine_s"] = _time.perf_counter() - t0
     # residual budget (vocabulary 1.1): against the model with the findings, also with
