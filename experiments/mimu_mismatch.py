@@ -252,8 +252,11 @@ def stage_heldout(args, exps):
             pp = predictive_loglik(prep, f, m["physics_noise"], extra=extra, wander=wander, per_sensor=True)
             pf = predictive_loglik(prep, base, m["baseline_noise"], per_sensor=True)
             ll_phys, ll_free = pp["acc"] + pp["gyro"], pf["acc"] + pf["gyro"]
-            # the same banded variance model on both sides: what the findings add beyond it
-            ll_phys_b = predictive_loglik(prep, f, m["physics_noise_banded"], extra=extra)
+            # the same banded variance model on both sides: what the findings add beyond it (every random
+            # effect as an independent variance here, a wander's marginal one included: physics_noise_banded
+            # had it taken out)
+            extra_all = random_variance(prep, effects=m["effects"])
+            ll_phys_b = predictive_loglik(prep, f, m["physics_noise_banded"], extra=extra_all)
             h.update(source=i, target=j, T=prep.T, effects=[e.label() for e in m["effects"]],
                      predictive_physics=ll_phys, predictive_baseline=ll_free, predictive_physics_banded=ll_phys_b,
                      gain_per_sample=(ll_phys - ll_free) / prep.T,
@@ -334,7 +337,7 @@ def write_doc(args, md: str) -> None:
                         ("heldout_gain.png", "Held-out gain of the physics model over the physics-free baseline")):
         src = args.out / name
         if src.exists():
-            dst = figdir / f"mimu_mismatch_{name}"
+            dst = figdir / f"{doc.stem}_{name}"  # one set of figures per results document
             shutil.copyfile(src, dst)
             figs.append(f"![{title}](figures/{dst.name})")
     reading = ""

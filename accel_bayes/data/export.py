@@ -123,7 +123,8 @@ def gyro_intrinsics_from_report(report: dict, K: int):
     """Per IMU (Tw, R_IMUtoGYRO, Tg, time_offset or None, notes) from a mismatch report (§7.2).
 
     ``gyro_scale`` findings fill M (relative scale on the diagonal, ``from_axis`` couplings off
-    it), ``gyro_g_sensitivity`` the diagonal of Tg (rad s-1 per m s-2), ``time_offset`` the
+    it; a block finding with axis null and a 3 × 3 ``scale``, the detector's gyro linear stage, adds
+    the whole matrix), ``gyro_g_sensitivity`` the diagonal of Tg (rad s-1 per m s-2), ``time_offset`` the
     offset (s, positive = late).  Tw · R_IMUtoGYRO = I + M, Tw lower-triangular."""
     from ..mismatch.report import validate_report
 
@@ -137,7 +138,10 @@ def gyro_intrinsics_from_report(report: dict, K: int):
         if k is None or not 0 <= k < K:
             continue
         try:
-            if name == "gyro_scale":
+            if name == "gyro_scale" and f["axis"] is None:  # a gyro linear block: the whole 3 × 3 (and offset)
+                M[k] += np.asarray(p["scale"], dtype=np.float64).reshape(3, 3)
+                notes[k].append("gyro_scale 3x3 block (its offset, bias, is not part of Tw/R_IMUtoGYRO)")
+            elif name == "gyro_scale":
                 a = AXES.index(f["axis"])
                 b = AXES.index(p.get("from_axis") or f["axis"])
                 M[k, a, b] += float(p["scale"])
