@@ -197,3 +197,18 @@ def test_a_second_order_gyro_response_behind_real_size_linear_errors():
     k2, sd = other[0].parameters["k2"], other[0].to_dict()["std"]["k2"]
     assert abs(k2 - tr["parameters"]["k2"]) < 3 * sd  # 2.67e-5 vs 2.65e-5 at seed 1700004
     assert rep.refined["chi2_per_dof"] < 1.1
+
+
+def test_one_erroneous_gyro_is_left_to_the_rounds():
+    # a single gyro's scale error leaks 1/n of itself into every other gyro through the fitted rate;
+    # the stage must see that pattern and leave the error to the rounds, which name it on its axis
+    # (mismatch_proof's gyro_scale-001: without the spread rule it came out as a block, axis null)
+    seed = 1 * 1_000_003 + (C.EFFECTS.index("gyro_scale") + 1) * 10_000 + 1
+    case = C.make_case("mimu8", "gyro_scale", seed, T=1500)
+    rep = detect(case.recording, max_findings=1)
+    st = rep.gyro_linear
+    assert st["group_statistic_robust"] > st["group_threshold"]  # the group test alone would fire
+    assert st["spread_share"] < 0.1 and "one gyro" in st["result"]
+    top = rep.findings[0]
+    tr = case.truth
+    assert (top.effect, top.imu, top.axis) == ("gyro_scale", tr["imu"], C.AXES[tr["axis"]] if isinstance(tr["axis"], int) else tr["axis"])
