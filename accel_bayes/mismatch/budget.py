@@ -41,7 +41,7 @@ import torch
 from .model import ModelFit
 from .prepared import Prepared
 
-__all__ = ["BANDS", "budget_regimes", "leverage_corrected_sq", "predicted_extra_variance", "residual_budget"]
+__all__ = ["BANDS", "budget_regimes", "leverage_corrected_sq", "predicted_extra_variance", "residual_budget", "group_power"]
 
 BANDS = ((0, 25), (25, 50), (50, 75), (75, 90), (90, 100))  # quantile bands, %
 
@@ -115,3 +115,27 @@ def residual_budget(prep: Prepared, baseline: ModelFit, refined: ModelFit | None
             rows.append({"sensor": sensor, "regime": name, "samples": int(sel.sum()), "channel_samples": int(n),
                          "excess_var_observed": float(a), "excess_var_explained": float(b), "stated_var": float(s2)})
     return rows
+
+
+def group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> float:
+    """Mean leverage-corrected z² (model noise units) of the IMU/sensor group(s) an effect acts
+    on, at a fit; ``h`` (T, m) the leverage of the per-sample motion states (from the fit the
+    candidate extends: the leverage hardly moves when one effect is added)."""
+    T, K = prep.T, prep.K
+    which = getattr(effect, "which", None) or effect.sensor
+    groups = ("acc", "gyro") if which == "both" else (which,)
+    from .jitter import variance_ratio
+
+    ratio = variance_ratio(prep, fit)  # random effects' predicted variance is not excess
+    za = (fit.res_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None]) ** 2 / ratio[:, 0]
+    zg = (fit.res_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None]) ** 2 / ratio[:, 1]
+    hh = h.reshape(T, 2, K, 3)
+    num = den = 0.0
+    for gname in groups:
+        z2 = (za if gname == "acc" else zg) / (1 - hh[:, 0 if gname == "acc" else 1]).clamp_min(1e-3)
+        m = prep.m_acc if gname == "acc" else prep.m_gyro
+        if effect.imu is not None:
+            z2, m = z2[:, effect.imu], m[:, effect.imu]
+        num += float((z2 * m).sum())
+        den += float(m.sum())
+    return num / den if den > 0 else 1.0

@@ -135,11 +135,11 @@ from ..physics.effects import EFFECTS, Effect, Unexplained, get_effect
 from .characterise import characterise, describe
 from ..threads import DEFAULT_THREADS, torch_threads
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
-from .budget import residual_budget
+from .budget import group_power, residual_budget
 from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
-from .jitter import jitter_evidence, variance_ratio
+from .jitter import jitter_evidence
 from .model import ModelFit
 from .prepared import Prepared, prepare
 from .report import Finding, MismatchReport
@@ -440,28 +440,6 @@ def _evidence(prep, with_fit: ModelFit, without_fit: ModelFit, effect) -> float:
     return 2.0 * (with_fit.loglik - without_fit.loglik)
 
 
-def _group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> float:
-    """Mean leverage-corrected z² (model noise units) of the IMU/sensor group(s) an effect acts
-    on, at a fit; ``h`` (T, m) the leverage of the per-sample motion states (from the fit the
-    candidate extends: the leverage hardly moves when one effect is added)."""
-    T, K = prep.T, prep.K
-    which = getattr(effect, "which", None) or effect.sensor
-    groups = ("acc", "gyro") if which == "both" else (which,)
-    ratio = variance_ratio(prep, fit)  # random effects' predicted variance is not excess
-    za = (fit.res_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None]) ** 2 / ratio[:, 0]
-    zg = (fit.res_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None]) ** 2 / ratio[:, 1]
-    hh = h.reshape(T, 2, K, 3)
-    num = den = 0.0
-    for gname in groups:
-        z2 = (za if gname == "acc" else zg) / (1 - hh[:, 0 if gname == "acc" else 1]).clamp_min(1e-3)
-        m = prep.m_acc if gname == "acc" else prep.m_gyro
-        if effect.imu is not None:
-            z2, m = z2[:, effect.imu], m[:, effect.imu]
-        num += float((z2 * m).sum())
-        den += float(m.sum())
-    return num / den if den > 0 else 1.0
-
-
 # ------------------------------------------------------------------------------ gyro linear stage
 
 #: the vocabulary terms a gyro_linear block contains (never round candidates on an IMU that has one)
@@ -685,7 +663,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             # noise-robust evidence of mean effects: the LR over the residual power left in the
             # effect's IMU/sensor group (an F-test-like guard: noise larger than stated inflates
             # every mean candidate's LR by the same factor)
-            power = 1.0 if cand.kind in ("noise", "random") else _group_power(prep, f, cand, h_cur)
+            power = 1.0 if cand.kind in ("noise", "random") else group_power(prep, f, cand, h_cur)
             ev_r = ev / max(power, 1.0)
             lp = _log10_p(ev_r, cand)
             info["refits"].append({"candidate": cand.label(), "evidence": ev, "evidence_robust": ev_r,

@@ -59,6 +59,7 @@ import torch
 
 from ..physics.effects import GyroLinear
 from ..physics.geometry import quat_to_matrix
+from .budget import group_power
 from .fit import fit_model
 from .model import ModelFit
 from .prepared import Prepared
@@ -150,9 +151,7 @@ def corrected_gyro(prep: Prepared, A: torch.Tensor, b: torch.Tensor) -> Prepared
 
 
 def _power(prep: Prepared, fit: ModelFit, imu) -> float:
-    from .detect import _group_power
-
-    return _group_power(prep, fit, SimpleNamespace(sensor="gyro", imu=imu), fit.linear().h)
+    return group_power(prep, fit, SimpleNamespace(sensor="gyro", imu=imu), fit.linear().h)
 
 
 def gyro_linear_stage(prep: Prepared, base: ModelFit, *, m: int, alpha: float, passes: int = 2) -> GyroLinearStage:
