@@ -359,13 +359,19 @@ def write_doc(args, md: str) -> None:
     print(f"written {doc}")
 
 
+def _fmt_list(v) -> str:
+    """[a, b, …] with 3 significant digits, nested lists (a gyro block's 3 × 3 scale) included."""
+    return "[" + ", ".join(f"{x:.3g}" if isinstance(x, float) else _fmt_list(x) if isinstance(x, list) else str(x)
+                           for x in v) + "]"
+
+
 def _fmt_params(p: dict) -> str:
     out = []
     for k, v in (p or {}).items():
         if k in ("rotation_vector_array", "characterisation"):
             continue
         if isinstance(v, list):
-            out.append(f"{k}=[" + ", ".join(f"{x:.3g}" if isinstance(x, float) else str(x) for x in v) + "]")
+            out.append(f"{k}={_fmt_list(v)}")
         elif isinstance(v, float):
             out.append(f"{k}={v:.4g}")
         elif isinstance(v, dict):

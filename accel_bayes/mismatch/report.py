@@ -389,8 +389,8 @@ def _na(x):
 
 
 def _short(v):
-    if isinstance(v, list):
-        return "[" + ", ".join(f"{x:.3g}" if isinstance(x, (int, float)) else str(x) for x in v) + "]"
+    if isinstance(v, list):  # nested lists too (a gyro linear block's 3 × 3 scale)
+        return "[" + ", ".join(f"{x:.3g}" if isinstance(x, (int, float)) else _short(x) for x in v) + "]"
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
