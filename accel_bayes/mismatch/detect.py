@@ -114,8 +114,9 @@ evidence under χ²_df (most supported first; equal to ranking by evidence for e
 Budget: one baseline fit, one screen per round (vectorised algebra, a few ms per candidate) and
 at most ``n_refit`` LM refits per round (``noise_level`` ones only in a round that needs them);
 every sample the prepared selection keeps is used.  ``experiments/bench_detect.py`` (one thread):
-the whole real MIMU exp_1 (5885 samples kept, 8 IMUs) in ~20 s and a 32-IMU, T = 3000 recording in
-~20–30 s on the shared 2-core machine (``experiments/bench_detect.md``).
+the whole real MIMU exp_1 (5885 samples kept, 8 IMUs; gyro linear stage, blocks on all eight gyros,
+three rounds) in 37 s and a 32-IMU, T = 3000 recording in 26 s, at load ≈ 1.5–2 on the shared 2-core
+machine (``experiments/bench_detect.md``; 7adf109: 127 s and 30 s).
 """
 from __future__ import annotations
 
