@@ -183,7 +183,7 @@ def candidate_effects(prep: Prepared, effects=None) -> list[Effect]:
     out = []
     for nm in names:
         cls = get_effect(nm)
-        if getattr(cls, "screened", True):  # gyro_linear: tested in its own stage (step 4a)
+        if getattr(cls, "screened", True):  # gyro_linear: tested in its own stage (step 3a)
             out += cls.candidates(prep.layout)
     return out
 
@@ -441,12 +441,6 @@ def _evidence(prep, with_fit: ModelFit, without_fit: ModelFit, effect) -> float:
     return 2.0 * (with_fit.loglik - without_fit.loglik)
 
 
-# ------------------------------------------------------------------------------ gyro linear stage
-
-#: the vocabulary terms a gyro_linear block contains (never round candidates on an IMU that has one)
-_GYRO_LINEAR_TERMS = ("gyro_bias", "gyro_scale", "gyro_misalignment")
-
-
 # ------------------------------------------------------------------------------ detect
 
 def _check_recording(rec) -> None:
@@ -501,6 +495,9 @@ HETEROSCEDASTIC_RATIO = 1.25
 #: exceeds this many times the best mean candidate's noise-robust evidence
 RANDOM_DOMINANCE = 10.0
 
+
+#: the vocabulary terms a gyro_linear block contains (never round candidates on an IMU that has one)
+_GYRO_LINEAR_TERMS = ("gyro_bias", "gyro_scale", "gyro_misalignment")
 
 #: alternations of (gyro linear blocks | the rounds' findings) after each accepted finding: a block and
 #: a finding on the same gyro share part of their signature (an offset and a second-order response), so
@@ -612,9 +609,10 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     say(f"locate: {loc0.summary}")
 
     cands_all = candidate_effects(prep, names)
-    gyro_stage = (names is None or "gyro_linear" in names) and int(np.asarray(prep.has_gyro).sum()) >= 2
+    n_gyro = int(np.asarray(prep.has_gyro).sum())
+    gyro_stage = (names is None or "gyro_linear" in names) and n_gyro >= 2
     # Bonferroni over every test: the round candidates, and the stage's group and per-block tests
-    m = len(cands_all) + (int(np.asarray(prep.has_gyro).sum()) + 1 if gyro_stage else 0)
+    m = len(cands_all) + (n_gyro + 1 if gyro_stage else 0)
     df_max = max([c.df for c in cands_all] + [1])
     threshold = threshold_rule(m, df_max, alpha)
     say(f"{m} candidates, threshold {threshold:.4g} (χ²_{df_max}, 1 − {alpha}/{m})")
@@ -625,7 +623,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     t0 = _time.perf_counter()
     stage = None
     if gyro_stage:
-        # step 4a: every gyro's linear error, held fixed from here on (the rounds run on the recording
+        # step 3a: every gyro's linear error, held fixed from here on (the rounds run on the recording
         # corrected for it: accel_bayes.mismatch.gyro_linear)
         stage = gyro_linear_stage(prep, base, m=m, alpha=alpha)
         prep0, prep, current = prep, stage.prep, stage.fit

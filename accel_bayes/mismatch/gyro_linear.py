@@ -1,4 +1,4 @@
-"""The detector's gyro linear stage (:func:`accel_bayes.mismatch.detect.detect`, step 4a): every
+"""The detector's gyro linear stage (:func:`accel_bayes.mismatch.detect.detect`, step 3a): every
 gyroscope's whole linear error, y_k = (I + M_k) g_k + b_k (sensor frame; g_k the true rate
 R_k ω, M_k 3 × 3 relative, b_k rad/s; :class:`~accel_bayes.physics.effects.GyroLinear`), before
 the rounds that name one effect at a time.
@@ -110,35 +110,53 @@ def _spread_share(prep: Prepared, g_hat: torch.Tensor, rel: dict, imus) -> float
     return num / den if den > 0 else 1.0
 
 
+def _rows(prep: Prepared, k: int) -> torch.Tensor:
+    """(T,) bool: the samples where IMU k's three gyro channels are observed."""
+    return prep.m_gyro[:, k].min(-1).values > 0
+
+
+def _design(g_k: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """The regression design [g_k, 1] (n, 4) of one gyro's block on the given rows."""
+    return torch.cat((g_k[rows], torch.ones(int(rows.sum()), 1, dtype=torch.float64)), 1)
+
+
+def _block_stat_t(g_k: torch.Tensor, A_k: torch.Tensor, b_k: torch.Tensor, sigma: float, rows) -> torch.Tensor:
+    """(T,) per-sample statistic |(A_k − I) g_kt + b_k|²/σ² of one block (0 off ``rows``)."""
+    d = g_k @ (A_k - torch.eye(3, dtype=torch.float64)).T + b_k
+    return (d ** 2).sum(-1) / sigma ** 2 * rows
+
+
+def _block_sd(g_k: torch.Tensor, rows, sigma: float, power: float) -> torch.Tensor:
+    """(4,) standard deviations of each output axis' row [A_k − I | b_k] of a block fitted on
+    [g_k, 1]: σ √diag((XᵀX)⁻¹), inflated by √max(1, P) (P the gyro's leftover power)."""
+    X = _design(g_k, rows)
+    return (torch.linalg.inv(X.T @ X).diagonal().clamp_min(0) * sigma ** 2 * max(power, 1.0)).sqrt()
+
+
 def relative_blocks(prep: Prepared, g_hat: torch.Tensor, imus) -> dict:
     """Step 1's regression: per IMU k in ``imus``, y_k ≈ A_k ĝ_k + b_k over its observed samples.
 
     g_hat (T, K, 3) fitted sensor-frame rates (rad/s).  Returns {"A": (K, 3, 3), "b": (K, 3)} (identity/zero
-    for IMUs not in ``imus``), "stat" (K,) Σ_t |(A_k − I) ĝ_kt + b_k|²/σ_k², "stat_t" (T, K), "cov" (K, 4, 4)
-    (XᵀX)⁻¹σ_k² (the covariance of each output axis' row [A_k − I | b_k]) and "rss_z2" (K,) the mean z² left.
+    for IMUs not in ``imus``), "stat" (K,) Σ_t |(A_k − I) ĝ_kt + b_k|²/σ_k², "stat_t" (T, K) and
+    "rss_z2" (K,) the mean z² left.
     """
     T, K = prep.T, prep.K
     A = torch.eye(3, dtype=torch.float64).repeat(K, 1, 1)
     b = torch.zeros(K, 3, dtype=torch.float64)
-    stat = torch.zeros(K, dtype=torch.float64)
     stat_t = torch.zeros(T, K, dtype=torch.float64)
-    cov = torch.zeros(K, 4, 4, dtype=torch.float64)
     rss = torch.ones(K, dtype=torch.float64)
     for k in imus:
-        rows = prep.m_gyro[:, k].min(-1).values > 0
+        rows = _rows(prep, k)
         if int(rows.sum()) < 12:
             continue
-        X = torch.cat((g_hat[rows, k], torch.ones(int(rows.sum()), 1, dtype=torch.float64)), 1)
+        X = _design(g_hat[:, k], rows)
         Y = prep.y_gyro[rows, k]
         beta = torch.linalg.lstsq(X, Y).solution  # (4, 3): Y ≈ X β
         A[k], b[k] = beta[:3].T, beta[3]
-        s2 = float(prep.sigma_gyro[k]) ** 2
-        d = (X[:, :3] @ (A[k] - torch.eye(3, dtype=torch.float64)).T + b[k])
-        stat_t[rows, k] = (d ** 2).sum(-1) / s2
-        stat[k] = stat_t[:, k].sum()
-        cov[k] = torch.linalg.inv(X.T @ X) * s2
-        rss[k] = ((Y - X @ beta) ** 2).sum() / s2 / max(int(rows.sum()) * 3 - 12, 1)
-    return {"A": A, "b": b, "stat": stat, "stat_t": stat_t, "cov": cov, "rss_z2": rss}
+        sigma = float(prep.sigma_gyro[k])
+        stat_t[:, k] = _block_stat_t(g_hat[:, k], A[k], b[k], sigma, rows)
+        rss[k] = ((Y - X @ beta) ** 2).sum() / sigma ** 2 / max(int(rows.sum()) * 3 - 12, 1)
+    return {"A": A, "b": b, "stat": stat_t.sum(0), "stat_t": stat_t, "rss_z2": rss}
 
 
 def corrected_gyro(prep: Prepared, A: torch.Tensor, b: torch.Tensor) -> Prepared:
@@ -150,12 +168,17 @@ def corrected_gyro(prep: Prepared, A: torch.Tensor, b: torch.Tensor) -> Prepared
     return dataclasses.replace(prep, y_gyro=y * prep.m_gyro, sigma_gyro=sg)
 
 
+def _set_std(e: GyroLinear, sd: torch.Tensor) -> None:
+    """A block's std from its rows' (4,) standard deviations: column j of the matrix, the offset."""
+    e.std = {"matrix": sd[:3].expand(3, 3).clone(), "bias": sd[3].expand(3).clone()}
+
+
 def _power(prep: Prepared, fit: ModelFit, imu) -> float:
     return group_power(prep, fit, SimpleNamespace(sensor="gyro", imu=imu), fit.linear().h)
 
 
 def gyro_linear_stage(prep: Prepared, base: ModelFit, *, m: int, alpha: float, passes: int = 2) -> GyroLinearStage:
-    """Run step 4a (module docstring) from the baseline fit ``base`` of ``prep``; ``m`` and
+    """Run step 3a (module docstring) from the baseline fit ``base`` of ``prep``; ``m`` and
     ``alpha`` are the detector's Bonferroni count and family-wise error rate."""
     from scipy.stats import chi2
 
@@ -226,17 +249,15 @@ def gyro_linear_stage(prep: Prepared, base: ModelFit, *, m: int, alpha: float, p
     fit = fit_model(prep_c, (), init=fit, laplace=False)
     I3 = torch.eye(3, dtype=torch.float64)
     g_hat = fit.ctx.gyro
-    cov = relative_blocks(prep, g_hat, imus)["cov"]
     thr_term = float(chi2.isf(alpha / m, 1))
     info["term_threshold"] = thr_term
     blocks_info, keep = {}, []
     for k in imus:
-        rows = prep.m_gyro[:, k].min(-1).values > 0
-        d = g_hat[:, k] @ (A[k] - I3).T + b[k]
-        st_t = ((d ** 2).sum(-1) / float(prep.sigma_gyro[k]) ** 2) * rows
+        rows, sigma = _rows(prep, k), float(prep.sigma_gyro[k])
+        st_t = _block_stat_t(g_hat[:, k], A[k], b[k], sigma, rows)
         p_k = _power(prep_c, fit, k)
         st = float(st_t.sum()) / max(p_k, 1.0)
-        sd = cov[k].diagonal().clamp_min(0).sqrt() * max(p_k, 1.0) ** 0.5
+        sd = _block_sd(g_hat[:, k], rows, sigma, p_k)
         z2 = (torch.cat((A[k] - I3, b[k][:, None]), 1) / sd[None, :]) ** 2  # (3, 4): [M | b] rows
         n_terms = int((z2 > thr_term).sum())
         blocks_info[k] = {"statistic": float(st_t.sum()), "statistic_robust": st, "gyro_power_after": p_k,
@@ -255,29 +276,27 @@ def gyro_linear_stage(prep: Prepared, base: ModelFit, *, m: int, alpha: float, p
         b = torch.where(drop[:, None], torch.zeros_like(b), b)
         prep_c = corrected_gyro(prep, A, b)
         fit = fit_model(prep_c, (), init=fit, laplace=False)
-    cov = relative_blocks(prep, fit.ctx.gyro, keep)["cov"]
     blocks, gain_t = [], np.zeros(prep.T)
     for k in keep:
+        rows, sigma, p_k = _rows(prep, k), float(prep.sigma_gyro[k]), blocks_info[k]["gyro_power_after"]
         e = GyroLinear(imu=k, params={"matrix": A[k] - I3, "bias": b[k]})
-        sd = cov[k].diagonal().clamp_min(0).sqrt() * max(blocks_info[k]["gyro_power_after"], 1.0) ** 0.5
-        e.std = {"matrix": sd[:3].expand(3, 3).clone(), "bias": sd[3].expand(3).clone()}
+        _set_std(e, _block_sd(fit.ctx.gyro[:, k], rows, sigma, p_k))
         e.stats = dict(blocks_info[k])
         blocks.append(e)
-        d = fit.ctx.gyro[:, k] @ (A[k] - I3).T + b[k]
-        gain_t += ((d ** 2).sum(-1) / float(prep.sigma_gyro[k]) ** 2).numpy() / max(blocks_info[k]["gyro_power_after"], 1.0)
+        # over every sample (unmasked, unlike the refresh's): it only says where the block acts
+        gain_t += _block_stat_t(fit.ctx.gyro[:, k], A[k], b[k], sigma, True).numpy() / max(p_k, 1.0)
     info["evidence_group"] = 2.0 * (fit.loglik - base.loglik)
     return done(f"kept blocks on IMUs {keep}", prep_c, fit, blocks, gain_t)
 
 
 def block_corrected_recording(rec, blocks):
     """A :class:`~accel_bayes.data.recording.Recording` with the stage's blocks inverted on its gyro
-    outputs (every sample; NaN stays NaN): what the rounds were run on, for the posterior comparison."""
+    outputs (every sample; a sample with a NaN channel stays NaN): what the rounds were run on, for the posterior comparison."""
     if not blocks:
         return rec
     g = np.array(rec.gyro, dtype=np.float64, copy=True)
     for e in blocks:
-        A = np.eye(3) + e.params["matrix"].numpy()
-        g[:, e.imu] = np.linalg.solve(A, (g[:, e.imu] - e.params["bias"].numpy()).T).T
+        g[:, e.imu] = e.invert(g[:, e.imu])
     return dataclasses.replace(rec, gyro=g)
 
 
@@ -302,8 +321,8 @@ def refresh_blocks(prep0: Prepared, stage: GyroLinearStage, fit: ModelFit) -> Mo
     pred = fit.pred_gyro
     for e in stage.blocks:
         k = e.imu
-        rows = prep0.m_gyro[:, k].min(-1).values > 0
-        X = torch.cat((pred[rows, k], torch.ones(int(rows.sum()), 1, dtype=torch.float64)), 1)
+        rows = _rows(prep0, k)
+        X = _design(pred[:, k], rows)
         for i in range(3):
             sw = ratio[rows, k, i].rsqrt()[:, None]
             beta = torch.linalg.lstsq(X * sw, prep0.y_gyro[rows, k, i:i + 1] * sw).solution[:, 0]
@@ -313,15 +332,11 @@ def refresh_blocks(prep0: Prepared, stage: GyroLinearStage, fit: ModelFit) -> Mo
     gain_t = np.zeros(prep0.T)
     for e in stage.blocks:
         k = e.imu
-        rows = prep0.m_gyro[:, k].min(-1).values > 0
-        s2 = float(prep0.sigma_gyro[k]) ** 2
-        d = fit.pred_gyro[:, k] @ (A[k] - I3).T + b[k]
-        st_t = ((d ** 2).sum(-1) / s2) * rows
+        rows, sigma = _rows(prep0, k), float(prep0.sigma_gyro[k])
+        st_t = _block_stat_t(fit.pred_gyro[:, k], A[k], b[k], sigma, rows)
         p_k = _power(prep_c, fit, k)
-        X = torch.cat((fit.pred_gyro[rows, k], torch.ones(int(rows.sum()), 1, dtype=torch.float64)), 1)
-        sd = (torch.linalg.inv(X.T @ X).diagonal().clamp_min(0) * s2 * max(p_k, 1.0)).sqrt()
         e.set_params({"matrix": A[k] - I3, "bias": b[k]})
-        e.std = {"matrix": sd[:3].expand(3, 3).clone(), "bias": sd[3].expand(3).clone()}
+        _set_std(e, _block_sd(fit.pred_gyro[:, k], rows, sigma, p_k))
         e.stats.update({"statistic": float(st_t.sum()), "statistic_robust": float(st_t.sum()) / max(p_k, 1.0),
                         "gyro_power_after": p_k, "refreshed": e.stats.get("refreshed", 0) + 1})
         gain_t += st_t.numpy() / max(p_k, 1.0)

@@ -129,7 +129,7 @@ class MismatchReport:
     prep: object = field(default=None, repr=False)
     characterisation: dict | None = None  # what the final model leaves: accel_bayes.mismatch.characterise
     budget: list = field(default_factory=list)
-    gyro_linear: dict | None = None  # the detector's gyro linear stage (step 4a): tests, blocks kept
+    gyro_linear: dict | None = None  # the detector's gyro linear stage (step 3a): tests, blocks kept
     fixed_effects: list = field(default_factory=list)  # its blocks: in the refined model, not in refined_fit.effects
 
     # ---------------------------------------------------------------- contract blocks

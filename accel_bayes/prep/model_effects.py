@@ -216,11 +216,9 @@ def corrected_gyro_array(gyro, orientations, gyro_labels, blocks):
     y = torch.as_tensor(gyro, dtype=torch.float64).clone()
     labels = [int(k) for k in gyro_labels]
     R = quat_to_matrix(torch.as_tensor(np.asarray(orientations, dtype=np.float64)))
-    eye = torch.eye(3, dtype=torch.float64)
     for k, e in blocks:
         g = labels.index(int(k))
-        ys = y[:, g] @ R[g].T - e.params["bias"]
-        y[:, g] = torch.linalg.solve(eye + e.params["matrix"], ys.T).T @ R[g]
+        y[:, g] = e.invert(y[:, g] @ R[g].T) @ R[g]  # to the sensor frame, inverted, back
     return y
 
 

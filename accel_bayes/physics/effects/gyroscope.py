@@ -179,7 +179,7 @@ class GyroLinear(Effect):
     term per round leaves the other eleven in the residual, where a random timing effect
     explains them better (experiments/mismatch_multi.md: 1/21 cases named right while they were
     there).  The detector tests these blocks in a stage of their own, before its rounds
-    (:mod:`accel_bayes.mismatch.detect`, step 4a); they are not round candidates
+    (:mod:`accel_bayes.mismatch.detect`, step 3a); they are not round candidates
     (``screened = False``).
 
     Reported under the vocabulary name ``gyro_scale`` (DESIGN §7.2: "gyroscope scale-factor /
@@ -227,6 +227,17 @@ class GyroLinear(Effect):
         p = self._p(params)
         return {"scale": p["matrix"].detach().cpu().double().tolist(),
                 "bias": p["bias"].detach().cpu().double().tolist()}
+
+    def invert(self, y):
+        """The rate a gyro with this (one-IMU) block saw: (I + matrix)⁻¹ (y − bias), y (..., 3)
+        sensor-frame outputs, rad/s (numpy array or tensor, returned as given; a sample with a NaN
+        channel comes back NaN on all three)."""
+        if self.imu is None:
+            raise UserError(f"{self.name}: invert needs a one-IMU block (the common block is array-frame)")
+        p = self.params
+        t = torch.as_tensor(y, dtype=torch.float64)
+        out = torch.linalg.solve(torch.eye(3, dtype=torch.float64) + p["matrix"], (t - p["bias"]).unsqueeze(-1)).squeeze(-1)
+        return out if torch.is_tensor(y) else out.numpy()
 
     def perturbation(self, params, ctx):
         p = self._p(params)
