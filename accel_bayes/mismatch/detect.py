@@ -44,7 +44,7 @@ Procedure
      factor, n(m − 1 − log m), m the mean z² of the group (exact, no refit needed);
    * ``sampling_jitter`` (a random effect) — the exact marginal likelihood of the uniform
      sampling-instant error at the current mean fit, profiled over the width w in 1-D
-     (:mod:`accel_bayes.mismatch.jitter`: leverage-corrected like ``noise_level``); statistic
+     (:mod:`accel_bayes.mismatch.jitter`: the restricted likelihood, exact per sample); statistic
      2·(max_w log L − log L(w = 0)), a boundary hypothesis whose null distribution is the
      50:50 mixture ½χ²₀ + ½χ²₁, so its p-value is half the χ²₁ one;
    * ``saturation`` — the gain in Σr² from clamping the fitted outputs at a limit L, profiled

@@ -5,14 +5,20 @@ At a fit (:class:`~accel_bayes.mismatch.model.ModelFit`), per IMU k and sample t
 residuals r̃ (acc xyz, gyro xyz; whitened by the model noise σ·factor) and the whitened output rate
 ṽ = v/(σ·factor) enter the exact marginal of :mod:`accel_bayes.physics.effects.jitter`
 (:func:`~accel_bayes.physics.effects.log_marginal_gain`, D = I in whitened units) through
-a = ũᵀũ and b = ũᵀr̃.  Two corrections make it comparable with ``noise_level``'s restricted
-(leverage-corrected) likelihood ratio (:func:`accel_bayes.mismatch.detect.noise_evidence`):
+a_t and b_t, formed as the *restricted* (REML) likelihood of the residuals, exact per sample:
 
-* the per-sample motion states absorb part of every residual: the jitter direction seen in
-  the residuals is the projected u = (I − Jx (JxᵀJx)⁻¹ Jxᵀ) ṽ (IMU k's rows; exact per sample),
-  not ṽ itself — without it the width would come out low by ≈ √(1 − h);
-* the residuals and the direction are divided by √(1 − h) (h the motion-state leverage), so the
-  noise part of r̃ has unit variance again (REML-like, as for ``noise_level``).
+* the per-sample motion states absorb part of every residual: with P = I − Jx (JxᵀJx)⁻¹ Jxᵀ the
+  sample's residual-maker (all 6K rows) and ṽ the rate direction (non-zero on IMU k's rows
+  only), the residual is r = P(ṽδ + e), so on the range of P its covariance is I + σ_δ² u uᵀ
+  with u = Pṽ.  In any orthonormal basis Z of that range, Zᵀu and Zᵀr give
+  a = uᵀu = ṽᵀPṽ = ṽ_kᵀu_k and b = uᵀr = ṽᵀr = ṽ_kᵀr_k (P r = r): only IMU k's rows are needed,
+  and under the null b ~ N(0, a) exactly;
+* no leverage correction enters a or b.  (Until 2026-11-26 they were ũᵀũ and ũᵀr̃ with u and r
+  divided by √(1 − h): that made Var b ≠ a under the null — b grew faster than a where the
+  rate was large — and a clean simulation gave acc timing evidences of 9–14 (median) instead of
+  ≈ 0, the false alarms of ``experiments/mismatch_proof.md``'s re-check.)  The white-noise
+  factor's residual power Σ r²/(1 − h) is leverage-corrected (REML-like, as ``noise_level``'s
+  :func:`accel_bayes.mismatch.detect.noise_evidence`).
 
 Evidence = 2·(max_w Σ_t gain_t(w) − 0): the likelihood ratio against w = 0, a hypothesis on the
 boundary of the parameter space (w ≥ 0), so under the null it is distributed as the 50:50
@@ -51,7 +57,8 @@ def _rows(K: int, k: int) -> torch.Tensor:
 
 def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power: bool = False,
               whitening: str = "noise"):
-    """(a, b), each (T,), of IMU k at a fit (module docstring): a = ũᵀũ in s⁻², b = ũᵀr̃ in s⁻¹.
+    """(a, b), each (T,), of IMU k at a fit (module docstring): a = ṽᵀPṽ in s⁻², b = ṽᵀr in s⁻¹
+    (restricted to IMU k's rows, exact per sample: Var b = a under the null).
     ``sensor`` "acc" or "gyro" restricts them to that triad's three channels (``timing_wander``);
     None uses all six (``sampling_jitter``).  ``with_residual_power`` (with a sensor): also
     Σ r̃ᵀr̃ and the number of observed channels of the triad.  ``whitening``: "noise" (default:
@@ -72,18 +79,23 @@ def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power:
     wa = prep.m_acc[:, k] / (prep.sigma_acc[k] * fit.acc_factor[k])
     wg = prep.m_gyro[:, k] / (prep.sigma_gyro[k] * fit.gyro_factor[k])
     v = torch.cat((prep.acc_rate[:, k] * wa, prep.gyro_rate[:, k] * wg), -1) / back  # (T, 6), model whitening
+    sl = slice(0, 6) if sensor is None else slice(0, 3) if sensor == "acc" else slice(3, 6)
+    if sensor is not None:  # a one-triad timing error moves only that triad's outputs
+        keep = torch.zeros(6, dtype=v.dtype)
+        keep[sl] = 1.0
+        v = v * keep
     Jx = lin.Jx[:, rows]  # (T, 6, 9)
-    # the direction left in the residuals after the (weighted) motion states took their share
+    # u = P_kk v: the direction left in the residuals after the (weighted) motion states took their share
     u = v - (Jx @ (lin.Vinv @ (Jx.transpose(-1, -2) @ v.unsqueeze(-1)))).squeeze(-1)
-    s = torch.sqrt((1 - lin.h[:, rows]).clamp_min(1e-3))
-    ut, rt = u * back / s, lin.r[:, rows] * back / s  # noise whitening, leverage-corrected
-    if sensor is not None:
-        sl = slice(0, 3) if sensor == "acc" else slice(3, 6)
-        ut, rt = ut[:, sl], rt[:, sl]
-        if with_residual_power:
-            m = (prep.m_acc if sensor == "acc" else prep.m_gyro)[:, k]
-            return (ut * ut).sum(-1), (ut * rt).sum(-1), float((rt * rt * m).sum()), int(m.sum())
-    return (ut * ut).sum(-1), (ut * rt).sum(-1)
+    # noise whitening: v, u and r back from the model's weights (exact when there are none)
+    vk, uk, rk = (v * back)[:, sl], (u * back)[:, sl], (lin.r[:, rows] * back)[:, sl]
+    a, b = (vk * uk).sum(-1), (vk * rk).sum(-1)
+    if sensor is not None and with_residual_power:
+        h = lin.h[:, rows][:, sl]
+        m = (prep.m_acc if sensor == "acc" else prep.m_gyro)[:, k]
+        rt2 = rk * rk / (1 - h).clamp_min(1e-3)  # leverage-corrected residual power
+        return a, b, float((rt2 * m).sum()), int(m.sum())
+    return a, b
 
 
 def triad_wander(prep, fit, k: int, sensor: str, sigma_max: float, whitening: str = "noise"):
