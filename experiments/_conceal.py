@@ -156,16 +156,18 @@ EFFECTS = (
     "sampling_jitter",
 )
 # Physics outside the report vocabulary (DESIGN §7.2).  ``gyro_lowpass`` is what the package's
-# extension ``gyro_delay`` describes to first order; ``acc_lowpass`` is outside the package's
+# extension ``gyro_delay`` describes to first order, ``acc_lowpass`` what its extension
+# ``timing_wander`` (accelerometer, correlation ≈ 1) does; ``acc_drift`` is outside the package's
 # catalogue too and must come out as a characterised ``unexplained`` (issue #11 item 2).
 OUT_OF_VOCABULARY = (
     "gyro_lowpass",  # one IMU's gyroscope behind a first-order low-pass filter, {"time_constant"} s
     "acc_lowpass",   # one IMU's accelerometer behind a first-order low-pass filter, {"time_constant"} s
     "timing_wander",  # the package's extension: one IMU's gyro sampled at AR(1)-wandering instants
+    "acc_drift",     # one accelerometer axis's bias drifts linearly through the recording, {"drift"} m/s²
 )
 # Effects that live on one sensing axis (the truth names it); the others have axis None.
 AXIS_EFFECTS = ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
-                "gyro_bias", "gyro_scale", "gyro_g_sensitivity", "gyro_nonlinearity", "saturation")
+                "gyro_bias", "gyro_scale", "gyro_g_sensitivity", "gyro_nonlinearity", "saturation", "acc_drift")
 # |magnitude| ranges, SI units (the brief's ranges converted).
 EFFECT_RANGES = {
     "time_offset": (1e-4, 1e-3),                    # s
@@ -185,10 +187,11 @@ EFFECT_RANGES = {
     "acc_lowpass": (2e-4, 1e-3),                    # s
     "timing_wander": (3e-4, 2e-3),                  # s, √12 × the std of the instant error
     "sampling_jitter": (1e-4, 1e-3),                # s, full width of the uniform instant error
+    "acc_drift": (0.05, 0.15),                      # m/s², the bias at the recording's end (−that at its start)
 }
 # Signed effects (the sign is drawn at random); the others are positive by nature.
 _SIGNED = ("time_offset", "acc_scale", "acc_misalignment", "acc_bias", "acc_nonlinearity", "gyro_bias",
-           "gyro_scale", "gyro_g_sensitivity", "gyro_nonlinearity")
+           "gyro_scale", "gyro_g_sensitivity", "gyro_nonlinearity", "acc_drift")
 
 
 # ============================================================================ rotations (numpy)
@@ -753,6 +756,12 @@ def make_case(board_name: str | Board = "mimu8", effect: str = "none", seed: int
     elif effect == "acc_lowpass":
         acc[:, k, :] = lowpass_output(trajectory, t, true_R[k], true_pos[k], mag, "acc")
         params = {"time_constant": mag}
+    elif effect == "acc_drift":
+        # a bias that drifts linearly in time (a sensor warming up): −drift at the first sample,
+        # +drift at the last, zero on average over uniformly spaced samples — no constant bias
+        # and no term of the package's catalogue describes it
+        acc[:, k, i] += mag * (2.0 * (t - t[0]) / (t[-1] - t[0]) - 1.0)
+        params = {"drift": mag}
     elif effect == "gyro_nonlinearity":
         # the rate the axis truly feels, squared: w_true is the gyro output before any error
         w_true = gyro[:, k, i].copy()

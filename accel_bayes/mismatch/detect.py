@@ -777,7 +777,11 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
                                 orientations=prep.q,
                                 extra={"evidence_when_added": acc_["evidence"],
                                        "evidence_noise_robust": acc_["evidence_robust"],
-                                       "alternatives": acc_.get("alternatives", [])}))
+                                       "alternatives": acc_.get("alternatives", []),
+                                       # a wander's estimated instants (jitter.random_offsets): mean, rms, s
+                                       **({"instants_s": {"mean": eff.stats["instant_mean_s"],
+                                                          "rms": eff.stats["instant_rms_s"]}}
+                                          if "instant_mean_s" in eff.stats else {})}))
     fixed = list(stage.blocks) if stage is not None else []
     for e in fixed:  # the gyro linear stage's blocks (held fixed in every fit above)
         ev = float(e.stats["statistic_robust"])

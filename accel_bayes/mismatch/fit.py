@@ -11,11 +11,14 @@ re-estimated in closed form, c² = mean of z² = r²/(σ²(1 − h)) over the IM
 residuals of that sensor, with h the leverage of the per-sample motion states (REML-like: the
 leverage correction keeps E[z²] = 1 under the stated noise), and the fit repeated (≤ 5 rounds).
 
-Random effects (``sampling_jitter``) are not in the least-squares problem either: after the
-fit their widths are profiled on the exact marginal likelihood at the fitted mean and their
-gains added to the log-likelihood (:mod:`accel_bayes.mismatch.jitter`), and the mean is refitted
-with per-sample weights 1/(noise variance + predicted random variance) (IRLS-style, diagonal:
-the moment-matched variance's diagonal), ≤ ``random_rounds`` times until the widths settle.
+Random effects (``sampling_jitter``, ``timing_wander``) are not in the least-squares problem
+either: after the fit their parameters are profiled on the exact marginal likelihood at the
+fitted mean and their gains added to the log-likelihood (:mod:`accel_bayes.mismatch.jitter`), and
+the mean is refitted, ≤ ``random_rounds`` times until the parameters and the offsets settle:
+``sampling_jitter`` with per-sample weights 1/(noise variance + predicted random variance)
+(IRLS-style, diagonal: the moment-matched variance's diagonal); ``timing_wander`` with its
+conditional mean taken off the outputs (GLS; the model's ``offset``), its white part alone in the
+weights.
 With noise factors in the same model, z² is taken in those weights, so the factors measure
 noise beyond the random effects' prediction.
 
@@ -30,6 +33,7 @@ import math
 import time as _time
 import warnings
 from dataclasses import dataclass, field
+from dataclasses import replace as _dc_replace
 
 import torch
 
@@ -39,7 +43,7 @@ from ..inference.lm import LevenbergMarquardt, Linearization, StoppingRule
 from ..physics.effects import check_effects, model_outputs, noise_factors, output_rates
 from .model import ModelFit, _detach_ctx, _gyro_mean, _init_locals, _local_leverage, _loglik_terms, _mean_effects, \
     _Model, _positions, _split_eta
-from .jitter import fit_random_effects, variance_ratio
+from .jitter import fit_random_effects, random_offsets, variance_ratio, weight_effects
 from .prepared import Prepared
 
 __all__ = ["fit_model", "baseline_fit"]
@@ -129,12 +133,16 @@ def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, ini
     lm = model = None
     free = prep.free_imus
 
+    offset = None
+
     def solve(pos0, x0, eta0, fa, fg):
         # random effects' current widths (a candidate's screening estimate, a previous fit's) give
-        # the per-sample weights; None while every width is 0
-        ratio = variance_ratio(prep, None, rand_eff, fa, fg) if any(float(e.params["width"]) > 0 for e in rand_eff) \
+        # the per-sample weights; None while every width is 0.  A timing_wander's conditional mean
+        # (``offset``, once known) is taken off the outputs instead of re-weighting its triad
+        wts = weight_effects(rand_eff) if offset is not None else rand_eff
+        ratio = variance_ratio(prep, None, wts, fa, fg) if any(float(e.params["width"]) > 0 for e in rand_eff) \
             else None
-        model = _Model(prep, effects, fa, fg, pos0, prior_std, var_ratio=ratio)
+        model = _Model(prep, effects, fa, fg, pos0, prior_std, var_ratio=ratio, offset=offset)
         th0 = pos0[torch.as_tensor(free)].clone() if free else pos0.new_zeros(0, 3)
         lm = _lm_solve(model, th0, eta0.clone(), x0.clone(), max_iter=max_iter)
         return lm, model, _positions(lm.theta, prep, pos0), lm.x, lm.eta
@@ -170,14 +178,30 @@ def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, ini
     fit = _evaluate(prep, effects, mean_eff, lm, model, pos0, x0, eta0, fa, fg, t0)
     # random effects: widths profiled at the mean, the mean re-weighted by noise + predicted
     # random variance (IRLS), until the widths settle (accel_bayes.mismatch.jitter)
+    # A timing_wander's conditional mean is taken off the outputs (GLS mean, random_offsets):
+    # the rounds also go on until that offset settles (≤ 1 % of the noise std anywhere)
+    sig = torch.stack((prep.sigma_acc * fa, prep.sigma_gyro * fg))[None, :, :, None]  # (1, 2, K, 1)
     for _ in range(random_rounds if rand_eff else 0):
         w_old = [float(e.params["width"]) for e in rand_eff]
         fit_random_effects(prep, fit)
         w_new = [float(e.params["width"]) for e in rand_eff]
-        if max(abs(a - b) / max(b, 1e-12) for a, b in zip(w_old, w_new)) < 1e-3:
+        new_off = random_offsets(prep, fit, rand_eff)
+        off_settled = (new_off is None and offset is None) or (
+            new_off is not None and offset is not None and float(((new_off - offset) / sig).abs().max()) < 1e-2)
+        if max(abs(a - b) / max(b, 1e-12) for a, b in zip(w_old, w_new)) < 1e-3 and off_settled:
             break
+        offset = new_off
         lm, model, pos0, x0, eta0 = solve(pos0, x0, eta0, fa, fg)
         fit = _evaluate(prep, effects, mean_eff, lm, model, pos0, x0, eta0, fa, fg, t0)
+        if offset is not None:
+            # the fit's linear system (fit.linear(): every residual diagnostic, the evidences, the
+            # Laplace std) is that of the recorded outputs at the GLS mean, whitened by the noise
+            # plus the random effects' whole predicted variance, as with re-weighting alone: the
+            # residuals with the conditional means taken off are shrunk below the noise (the
+            # BLUP takes part of the noise along the rate too) and would read as too little noise
+            diag = _Model(prep, effects, fa, fg, pos0, prior_std, var_ratio=variance_ratio(prep, None, rand_eff, fa, fg))
+            diag.gls_offset = offset  # what the mean fit took off (jitter._noise_projection)
+            fit.lm = _dc_replace(fit.lm, model=diag)
     else:
         if rand_eff:
             fit_random_effects(prep, fit)

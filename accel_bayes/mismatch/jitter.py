@@ -27,13 +27,25 @@ threshold (χ²₃ Bonferroni quantile) is not lowered for it: conservative.  Un
 profile-likelihood 95 % interval {w : 2(ℓ(ŵ) − ℓ(w)) ≤ χ²₁,0.95}, and a std = interval length /
 3.92.
 
-The mean **is** re-weighted (:func:`~accel_bayes.mismatch.fit.fit_model`, IRLS-style): a refit
-with random effects weights each channel by 1/(σ² + predicted random variance), the diagonal of
-the moment-matched covariance D + (w²/12) v vᵀ, alternating with the width profile until the
-widths settle.  The exact marginal is then evaluated at that mean: the residuals and the
-direction are taken back from the fit's weights to the noise whitening (D) before a and b are
-formed.  Without the re-weighting a jittered IMU keeps pulling the per-sample motion states,
-and ``noise_level`` — whose refit does re-weight — would win on an unequal footing.
+The mean is refitted with the random effects in the model (:func:`~accel_bayes.mismatch.fit.fit_model`),
+alternating with their parameters until they settle:
+
+* ``sampling_jitter`` re-weights (IRLS-style): each channel gets 1/(σ² + predicted random
+  variance), the diagonal of the moment-matched covariance D + (w²/12) v vᵀ;
+* ``timing_wander`` is taken off the outputs (GLS): its conditional mean E[δ_t | r]·rate
+  (:func:`random_offsets`, the banded solve of :func:`accel_bayes.mismatch.wander.ar1_conditional_mean`)
+  is subtracted and the motion refitted; only its white part stays in the weights.  With the
+  restricted b = ṽᵀP y this is Henderson's mixed-model solution in one step (per-sample motion
+  states; a few rounds for the positions).  Re-weighting alone left the wandering triad's mean
+  in the motion fit: a first-order low-pass on one accelerometer (a nearly constant timing error)
+  then leaked into the other IMUs' residuals and was named there (timing evidences up to 500 on
+  IMUs without any effect; ``tests/test_wander.py``).
+
+The exact marginal is then evaluated at that mean, on the residuals of the recorded outputs
+projected in the noise whitening D (:func:`_noise_projection`; the fit's diagnostic system, see
+:func:`accel_bayes.mismatch.fit.fit_model`, is whitened by the full predicted variance).  Without the refit a jittered IMU keeps pulling the
+per-sample motion states, and ``noise_level`` — whose refit does re-weight — would win on an
+unequal footing.
 """
 from __future__ import annotations
 
@@ -45,7 +57,7 @@ import torch
 from ..physics.effects.jitter import log_marginal_gain
 
 __all__ = ["jitter_ab", "profile_width", "jitter_evidence", "random_variance", "variance_ratio", "fit_random_effects",
-           "triad_wander", "wander_table",
+           "triad_wander", "wander_table", "random_offsets", "weight_effects",
            "CHI2_1_95"]
 
 CHI2_1_95 = 3.841458820694124  # χ²₁ 95 % quantile: the profile-likelihood interval
@@ -55,43 +67,92 @@ def _rows(K: int, k: int) -> torch.Tensor:
     return torch.tensor([3 * k, 3 * k + 1, 3 * k + 2, 3 * K + 3 * k, 3 * K + 3 * k + 1, 3 * K + 3 * k + 2])
 
 
+def _noise_projection(prep, fit):
+    """The fit's per-sample linearisation in the **noise** whitening (σ·factor, no random-effect
+    weights): (Jx (T, 6K, 9), (JxᵀJx)⁻¹ (T, 9, 9), r (T, 6K) the residuals of the recorded
+    outputs, h (T, 6K) the leverage, o (T, 6K) or None the wanders' conditional means that the
+    mean fit took off the outputs (``gls_offset``, same whitening)).  The fit's own system
+    (:meth:`ModelFit.linear`) is whitened by its weights, which for a fit with random effects
+    include their predicted variance; the restricted likelihood of a random effect does not (P y
+    does not depend on how the motion was fitted).  Cached on the fit."""
+    lin = fit.linear()
+    model = getattr(fit.lm, "model", None)
+    vr = getattr(model, "var_ratio", None)
+    off = getattr(model, "gls_offset", None)
+    if vr is None:
+        return lin.Jx, lin.Vinv, lin.r, lin.h, None
+    cached = getattr(fit, "_noise_projection", None)
+    if cached is not None and cached[0] is lin:
+        return cached[1]
+    T, m = lin.r.shape
+    back = torch.sqrt(vr.reshape(T, m))
+    Jx = lin.Jx * back.unsqueeze(-1)
+    r = lin.r * back
+    Vinv = torch.linalg.inv(Jx.transpose(-1, -2) @ Jx)
+    h = ((Jx @ Vinv) * Jx).sum(-1)
+    o = None
+    if off is not None:
+        w = torch.stack((prep.m_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None],
+                         prep.m_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None]), 1)
+        o = (off * w).reshape(T, m)
+    out = (Jx, Vinv, r, h, o)
+    try:
+        fit._noise_projection = (lin, out)
+    except AttributeError:  # pragma: no cover - a fit type without attributes: recompute each time
+        pass
+    return out
+
+
 def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power: bool = False,
               whitening: str = "noise"):
-    """(a, b), each (T,), of IMU k at a fit (module docstring): a = ṽᵀPṽ in s⁻², b = ṽᵀr in s⁻¹
+    """(a, b), each (T,), of IMU k at a fit (module docstring): a = ṽᵀPṽ in s⁻², b = ṽᵀP y in s⁻¹
     (restricted to IMU k's rows, exact per sample: Var b = a under the null).
     ``sensor`` "acc" or "gyro" restricts them to that triad's three channels (``timing_wander``);
     None uses all six (``sampling_jitter``).  ``with_residual_power`` (with a sensor): also
-    Σ r̃ᵀr̃ and the number of observed channels of the triad.  ``whitening``: "noise" (default:
-    the model's noise σ·factor, the random effects' own variance taken back out — what a random
-    effect is fitted on) or "model" (the fit's full weights, random effects included — what the
-    fit leaves, as the characteriser describes it)."""
+    Σ r̃ᵀr̃ (leverage-corrected) and the number of observed channels of the triad.  ``whitening``:
+    "noise" (default: the model's noise σ·factor, the residuals projected in that whitening
+    (:func:`_noise_projection`) — the restricted likelihood a random effect is fitted on, whatever
+    weights the fit's mean used) or "model" (the fit's weights, random effects' predicted variance
+    included — what the fit leaves, as the characteriser describes it)."""
     if whitening not in ("noise", "model"):
         raise ValueError(f"whitening: expected 'noise' or 'model', got {whitening!r}")
-    lin = fit.linear()
     K = prep.K
     rows = _rows(K, k)
-    # the fit's weights: noise (σ·factor) and, where random effects were in the refit, their
-    # predicted variance (IRLS); lin is whitened by them.  back = (model weight → noise weight)
-    model = getattr(fit.lm, "model", None)
-    vr = getattr(model, "var_ratio", None)
-    back = torch.ones(prep.T, 6, dtype=torch.float64) if vr is None or whitening == "model" else \
-        torch.sqrt(torch.cat((vr[:, 0, k], vr[:, 1, k]), -1))
+    if whitening == "model":
+        lin = fit.linear()
+        model = getattr(fit.lm, "model", None)
+        Jx_all, Vinv, r_all, h_all = lin.Jx, lin.Vinv, lin.r, lin.h
+        vr = getattr(model, "var_ratio", None)
+        back = torch.ones(prep.T, 6, dtype=torch.float64) if vr is None else \
+            torch.sqrt(torch.cat((vr[:, 0, k], vr[:, 1, k]), -1))
+    else:
+        Jx_all, Vinv, r_all, h_all, o_all = _noise_projection(prep, fit)
+        back = torch.ones(prep.T, 6, dtype=torch.float64)
+        if o_all is not None:
+            # the other IMUs' wanders are the model's (their conditional means off, as the mean fit
+            # took them off); IMU k's own stays in: its effect is what is being fitted or tested.
+            # Without this the projection spreads a wandering triad's error into every other IMU
+            keep = torch.ones(o_all.shape[1], dtype=o_all.dtype)
+            keep[rows] = 0.0
+            r_all = r_all - o_all * keep
     wa = prep.m_acc[:, k] / (prep.sigma_acc[k] * fit.acc_factor[k])
     wg = prep.m_gyro[:, k] / (prep.sigma_gyro[k] * fit.gyro_factor[k])
-    v = torch.cat((prep.acc_rate[:, k] * wa, prep.gyro_rate[:, k] * wg), -1) / back  # (T, 6), model whitening
+    v = torch.cat((prep.acc_rate[:, k] * wa, prep.gyro_rate[:, k] * wg), -1) / back  # (T, 6), in the whitening
     sl = slice(0, 6) if sensor is None else slice(0, 3) if sensor == "acc" else slice(3, 6)
     if sensor is not None:  # a one-triad timing error moves only that triad's outputs
         keep = torch.zeros(6, dtype=v.dtype)
         keep[sl] = 1.0
         v = v * keep
-    Jx = lin.Jx[:, rows]  # (T, 6, 9)
-    # u = P_kk v: the direction left in the residuals after the (weighted) motion states took their share
-    u = v - (Jx @ (lin.Vinv @ (Jx.transpose(-1, -2) @ v.unsqueeze(-1)))).squeeze(-1)
-    # noise whitening: v, u and r back from the model's weights (exact when there are none)
-    vk, uk, rk = (v * back)[:, sl], (u * back)[:, sl], (lin.r[:, rows] * back)[:, sl]
+    Jx = Jx_all[:, rows]  # (T, 6, 9)
+    # u = P_kk v: the direction left in the residuals after the motion states took their share
+    u = v - (Jx @ (Vinv @ (Jx.transpose(-1, -2) @ v.unsqueeze(-1)))).squeeze(-1)
+    # P y on IMU k's rows (the whole sample's residual projected: exact whatever x the fit has)
+    r = r_all[:, rows] - (Jx @ (Vinv @ (Jx_all.transpose(-1, -2) @ r_all.unsqueeze(-1)))).squeeze(-1)
+    # back to the noise whitening (identity unless "model")
+    vk, uk, rk = (v * back)[:, sl], (u * back)[:, sl], (r * back)[:, sl]
     a, b = (vk * uk).sum(-1), (vk * rk).sum(-1)
     if sensor is not None and with_residual_power:
-        h = lin.h[:, rows][:, sl]
+        h = h_all[:, rows][:, sl]
         m = (prep.m_acc if sensor == "acc" else prep.m_gyro)[:, k]
         rt2 = rk * rk / (1 - h).clamp_min(1e-3)  # leverage-corrected residual power
         return a, b, float((rt2 * m).sum()), int(m.sum())
@@ -197,6 +258,14 @@ def fit_random_effects(prep, fit) -> None:
     if not rand:
         return
     w_max = _max_width(prep)
+    # the Gaussian part on the per-sample restricted residuals P y (noise whitening), as the gains
+    # are: then log L = log N(P y; 0, I) + gains is the restricted likelihood whatever mean the
+    # fit used (re-weighted or GLS), and a mean effect's evidence beside a random effect compares
+    # like with like (with the fit's raw residuals a constant delay on a wandering triad was
+    # credited with the wander's own mean: evidence ≈ 200 where ≈ 1 was due)
+    Jx, Vinv, r_all, _, _ = _noise_projection(prep, fit)
+    rp = r_all - (Jx @ (Vinv @ (Jx.transpose(-1, -2) @ r_all.unsqueeze(-1)))).squeeze(-1)
+    fit.loglik_t = fit.loglik_t + 0.5 * ((r_all * r_all).sum(-1) - (rp * rp).sum(-1))
     for e in rand:
         if e.name == "timing_wander":
             # the AR(1) gain is not a sum over samples: spread evenly over them (only the total
@@ -224,6 +293,54 @@ def fit_random_effects(prep, fit) -> None:
     za = fit.res_acc / (prep.sigma_acc * fit.acc_factor)[None, :, None] * prep.m_acc
     zg = fit.res_gyro / (prep.sigma_gyro * fit.gyro_factor)[None, :, None] * prep.m_gyro
     fit.chi2 = float((za ** 2 / ratio[:, 0]).sum() + (zg ** 2 / ratio[:, 1]).sum())
+
+
+def random_offsets(prep, fit, effects=None):
+    """(T, 2, K, 3) sensor units, or None: the conditional mean of the ``timing_wander`` effects
+    (``effects``, default those in ``fit``) given the fit's residuals, E[δ_t | r]·rate_t on each
+    wander's triad (:func:`accel_bayes.mismatch.wander.ar1_conditional_mean` with the restricted
+    a, b of :func:`jitter_ab`, the effect's width, correlation and white-noise factor).  The
+    refit takes it off the outputs (:class:`~accel_bayes.mismatch.model._Model` ``offset``), so
+    the motion is fitted as by GLS under the wander's covariance instead of being pulled by the
+    wandering triad — which, fitted by re-weighting alone, leaked into the other IMUs' residuals
+    and was named there as timing errors of their own (``experiments/characterise_proof.md``)."""
+    from .wander import ar1_conditional_mean, sample_steps
+
+    effects = fit.effects if effects is None else effects
+    wand = [e for e in effects if e.name == "timing_wander" and float(e.params["width"]) > 0]
+    if not wand:
+        return None
+    off = torch.zeros(prep.T, 2, prep.K, 3, dtype=torch.float64)
+    steps = sample_steps(prep.time)
+    for e in wand:
+        k = int(e.imu)
+        a, b = jitter_ab(prep, fit, k, e.which)
+        sig = float((prep.sigma_acc[k] * fit.acc_factor[k]) if e.which == "acc" else
+                    (prep.sigma_gyro[k] * fit.gyro_factor[k]))
+        c = math.sqrt(1.0 + float(e.params["excess_noise_var"]) / sig ** 2)
+        d = ar1_conditional_mean(a.numpy(), b.numpy(), steps, float(e.params["width"]) / math.sqrt(12.0),
+                                 float(e.params["correlation"]), c)
+        # what the instants do on average: a filter's group delay shows as a mean far from 0
+        e.stats["instant_mean_s"] = float(d.mean())
+        e.stats["instant_rms_s"] = float(math.sqrt((d * d).mean()))
+        j = 0 if e.which == "acc" else 1
+        rate = prep.acc_rate if e.which == "acc" else prep.gyro_rate
+        off[:, j, k] += torch.as_tensor(d, dtype=torch.float64)[:, None] * rate[:, k]
+    return off
+
+
+def weight_effects(effects) -> list:
+    """The random effects as the mean fit's weights see them: a ``timing_wander`` whose conditional
+    mean is taken off the outputs (:func:`random_offsets`) keeps only its white part
+    (``excess_noise_var``) in the weights; the others (``sampling_jitter``) their whole predicted
+    variance (IRLS, diagonal)."""
+    out = []
+    for e in effects:
+        if e.name == "timing_wander":
+            e = e.copy()
+            e.set_params({"width": 0.0})
+        out.append(e)
+    return out
 
 
 def random_variance(prep, fit=None, effects=None) -> tuple[torch.Tensor, torch.Tensor]:

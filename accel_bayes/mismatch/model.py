@@ -211,6 +211,7 @@ class ModelFit:
 
     def drop_linear(self) -> None:
         self._linear = None
+        self.__dict__.pop("_noise_projection", None)  # accel_bayes.mismatch.jitter's cache
 
     def summary(self) -> dict:
         return {"effects": [e.label() for e in self.effects], "loglik": self.loglik,
@@ -250,8 +251,16 @@ class _Model:
     docstring).  Globals: θ (F, 3) positions of the free IMUs, η (p,) effect parameters;
     locals x (T, 9)."""
 
-    def __init__(self, prep: Prepared, effects, acc_factor, gyro_factor, base_positions, prior_std, var_ratio=None):
+    def __init__(self, prep: Prepared, effects, acc_factor, gyro_factor, base_positions, prior_std, var_ratio=None,
+                 offset=None):
         self.prep = prep
+        # ``offset`` (T, 2, K, 3), sensor units: the random effects' conditional mean given the data
+        # (timing_wander: E[δ_t | r]·rate), taken off the outputs so that the mean fit is the
+        # GLS one (accel_bayes.mismatch.jitter.random_offsets); the residuals of the fit
+        # (ModelFit.res_acc/res_gyro, the evidence) stay those of the recorded outputs
+        self.offset = offset
+        self.y_acc = prep.y_acc if offset is None else prep.y_acc - offset[:, 0] * prep.m_acc
+        self.y_gyro = prep.y_gyro if offset is None else prep.y_gyro - offset[:, 1] * prep.m_gyro
         self.effects = _mean_effects(effects)
         # effects act on few IMUs: evaluate them on the sub-context of the IMUs they touch
         # (IMU-separability), with their IMU labels re-indexed into it
@@ -318,7 +327,7 @@ class _Model:
     def residual(self, theta, eta, x) -> torch.Tensor:
         """Whitened residuals (T, 2, K, 3)."""
         acc, gyro, _ = self.outputs(theta, eta, x)
-        return torch.stack(((self.prep.y_acc - acc) * self.wa, (self.prep.y_gyro - gyro) * self.wg), 1)
+        return torch.stack(((self.y_acc - acc) * self.wa, (self.y_gyro - gyro) * self.wg), 1)
 
     def prior_cost(self, theta, eta) -> float:
         c = 0.5 * float((((theta - self.mu) / self.prior_std) ** 2).sum()) if self.F else 0.0
@@ -394,7 +403,7 @@ class _Model:
             JrG = JrG.index_add(1, t, cols[:, 1, ..., p + 9:])
         # whitened, with the residual's minus sign folded into the weights (exact)
         wa, wg = -self.wa.unsqueeze(-1), -self.wg.unsqueeze(-1)
-        r = torch.cat(((prep.y_acc - acc) * self.wa, (prep.y_gyro - gyro) * self.wg), 2)
+        r = torch.cat(((self.y_acc - acc) * self.wa, (self.y_gyro - gyro) * self.wg), 2)
         Jx = torch.cat((wa * JxA, wg * JxG), 2)
         Jr = torch.cat((wa * JrA, wg * JrG), 2)
         Je = torch.cat((wa * Je[:, 0], wg * Je[:, 1]), 2) if self.p else x.new_zeros(T, K, 6, 0)

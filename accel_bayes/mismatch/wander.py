@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-__all__ = ["ar1_precision_bands", "ar1_gain", "fit_wander", "sample_steps"]
+__all__ = ["ar1_precision_bands", "ar1_gain", "ar1_conditional_mean", "fit_wander", "sample_steps"]
 
 
 def _phis(steps: np.ndarray, rho: float) -> np.ndarray:
@@ -84,6 +84,24 @@ def ar1_gain(a: np.ndarray, b: np.ndarray, steps: np.ndarray, sigma: float, rho:
             raise ValueError("ar1_gain: c != 1 needs rr and n")
         gain += -0.5 * rr / c2 + 0.5 * rr - 0.5 * n * math.log(c2)
     return gain
+
+
+def ar1_conditional_mean(a, b, steps, sigma: float, rho: float, c: float = 1.0) -> np.ndarray:
+    """E[δ | r] (T,) in s: the conditional mean (BLUP) of the AR(1) timing error given the
+    residuals, (Q + diag(a)/c²)⁻¹ b/c² (module docstring; same arguments as :func:`ar1_gain`).
+    With the restricted a, b of :func:`accel_bayes.mismatch.jitter.jitter_ab` it is the GLS
+    estimate of δ with the per-sample motion states profiled out, so y − E[δ]·rate refitted by
+    least squares gives the GLS mean of the motion (Henderson's mixed-model equations)."""
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    if sigma <= 0:
+        return np.zeros(len(a))
+    c2 = float(c) ** 2
+    P, _ = ar1_precision_bands(len(a), steps, sigma, rho)
+    P[1] += a / c2
+    return cho_solve_banded((cholesky_banded(P, lower=False), False), b / c2)
 
 
 def _noise_only_gain(rr: float, n: int) -> tuple[float, float]:

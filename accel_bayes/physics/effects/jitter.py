@@ -209,6 +209,12 @@ class TimingWander(SamplingJitter):
         p = self._p(params)
         sd = float(p["width"]) / math.sqrt(12.0)
         what = "accelerometer" if self.which == "acc" else "gyroscope"
-        return (f"IMU {self.imu}'s {what} samples at instants that wander around their time stamps (std "
+        text = (f"IMU {self.imu}'s {what} samples at instants that wander around their time stamps (std "
                 f"{sd * 1e3:.3g} ms, correlation {float(p['correlation']):.2f} between consecutive samples), as a sensor "
                 f"on its own free-running clock would: its readings lag or lead the motion by a slowly changing amount.")
+        m, rms = self.stats.get("instant_mean_s"), self.stats.get("instant_rms_s")
+        if m is not None and rms and abs(m) > 0.5 * rms:
+            # the conditional mean of the instants (accel_bayes.mismatch.jitter.random_offsets)
+            text += (f" Their estimated instants average {m * 1e3:+.3g} ms (rms {rms * 1e3:.3g} ms): mostly a constant "
+                     f"{'lag' if m < 0 else 'lead'} of this sensor, as a filter's group delay would give.")
+        return text
