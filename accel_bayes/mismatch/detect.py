@@ -62,7 +62,11 @@ Procedure
      divided by max(1, P), P the mean leverage-corrected z² left in its IMU/sensor group after
      the refit — exceeds the threshold.  This F-test-like guard keeps noise larger than stated
      (which inflates every mean candidate's likelihood ratio on that IMU by the same factor)
-     from being named as a bias or scale error; for a correctly named effect P ≈ 1;
+     from being named as a bias or scale error; for a correctly named effect P ≈ 1.  It must
+     also be *constant*: its score test across :data:`STATIONARITY_SEGMENTS` time segments
+     (:func:`stationarity`, also over max(1, P)) must stay below the χ²_{(S−1)d} quantile at
+     1 − α/m; a drifting bias that least squares projects onto a constant bias or a
+     misalignment is refused there and left to the ``unexplained`` characterisation;
    * ``noise_level`` and the random effects (``sampling_jitter``) are considered only in a round
      where no mean/clip effect is acceptable: any unmodelled mean structure also raises the
      residual power, so the variance explanations come last.  They compete on equal terms
@@ -328,6 +332,43 @@ def _log10_p(stat: float, effect) -> float:
     w = 0) the 50:50 mixture ½χ²₀ + ½χ²₁."""
     lp = _log10_sf(stat, effect.df)
     return lp + math.log10(0.5) if effect.kind == "random" and stat > 0 else lp
+
+
+#: time segments of the stationarity test of a mean effect (consecutive, equal sample counts)
+STATIONARITY_SEGMENTS = 5
+
+
+def stationarity(prep, fit: ModelFit, effect, n_seg: int = STATIONARITY_SEGMENTS) -> tuple[float, int]:
+    """(Q, df): does a fitted mean effect's parameter stay the same through the recording?
+
+    ``effect`` is the last effect of ``fit`` (a refit).  Per sample t, its Jacobian columns E_t
+    (whitened) are projected off the motion states, Ẽ_t = E_t − Jx_t (Jx_tᵀJx_t)⁻¹ Jx_tᵀ E_t, and
+    the score g_s = Σ_{t∈s} Ẽ_tᵀ r_t and information I_s = Σ_{t∈s} Ẽ_tᵀẼ_t summed over ``n_seg``
+    consecutive time segments s.  At the fit Σ_s g_s ≈ 0, and
+
+        Q = Σ_s g_sᵀ I_s⁻¹ g_s  ~  χ²_{(n_seg − 1)·d}
+
+    if the parameter is constant (the score test of one parameter vector per segment against a
+    common one; d = ``effect.df``).  A constant-parameter effect (bias, scale, misalignment,
+    displacement, rotation, offset) that the data want different in different parts of the
+    recording is not that physics: e.g. a drifting bias, partly projected onto a misalignment
+    or a constant bias by least squares (``experiments/characterise_proof.md``)."""
+    lin = fit.linear()
+    T, m = lin.r.shape
+    d = int(effect.df)
+    E = lin.Je.reshape(T, m, -1)[..., -d:]  # (T, m, d), rows in lin.r's order
+    Jx = lin.Jx
+    Et = E - Jx @ (lin.Vinv @ (Jx.transpose(-1, -2) @ E))
+    g_t = (Et * lin.r.unsqueeze(-1)).sum(1)  # (T, d)
+    I_t = Et.transpose(-1, -2) @ Et  # (T, d, d)
+    q = 0.0
+    for idx in torch.arange(T).chunk(n_seg):
+        g, info = g_t[idx].sum(0), I_t[idx].sum(0)
+        try:
+            q += float(g @ torch.linalg.solve(info, g))
+        except RuntimeError:  # a segment that does not see the effect: nothing to compare
+            continue
+    return q, (n_seg - 1) * d
 
 
 def _jitter_screen(prep, fit, cands) -> list[Screen]:
@@ -665,12 +706,26 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
             power = 1.0 if cand.kind in ("noise", "random") else group_power(prep, f, cand, h_cur)
             ev_r = ev / max(power, 1.0)
             lp = _log10_p(ev_r, cand)
-            info["refits"].append({"candidate": cand.label(), "evidence": ev, "evidence_robust": ev_r,
-                                   "group_power_after": power, "df": cand.df, "log10_p": lp,
-                                   "screen_statistic": sc.statistic, "seconds": f.seconds})
+            row = {"candidate": cand.label(), "evidence": ev, "evidence_robust": ev_r,
+                   "group_power_after": power, "df": cand.df, "log10_p": lp,
+                   "screen_statistic": sc.statistic, "seconds": f.seconds}
+            unsteady = None
+            if cand.kind == "mean" and ev_r > threshold:
+                # a constant parameter must be constant: the score test across time segments
+                # (noise-robust like the evidence), at the same family-wise level
+                q, q_df = stationarity(prep, f, f.effects[-1])
+                q_r = q / max(power, 1.0)
+                from scipy.stats import chi2 as _chi2
+
+                q_thr = float(_chi2.isf(alpha / max(m, 1), q_df))
+                row.update({"stationarity": q_r, "stationarity_df": q_df, "stationarity_threshold": q_thr})
+                if q_r > q_thr:
+                    unsteady = (f"its parameter is not constant through the recording: stationarity score "
+                                f"{q_r:.4g} > {q_thr:.4g} (χ²_{q_df}, {STATIONARITY_SEGMENTS} time segments)")
+            info["refits"].append(row)
             f.drop_linear()
             results.append({"effect": f.effects[-1], "fit": f, "evidence": ev, "evidence_robust": ev_r,
-                            "log10_p": lp, "screen": sc, "without": current})
+                            "log10_p": lp, "screen": sc, "without": current, "unsteady": unsteady})
 
         for sc in chosen:
             if sc.effect.kind != "noise":
@@ -679,6 +734,9 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         # (below), so its refits are only done then: each one is up to ``noise_rounds`` + 1
         # LM solves, and on a badly fitting recording (real MIMU data, χ²/dof ~ 3000) they were
         # 3/4 of the detector's time while their result could not change the verdict.
+        for r in [r for r in results if r.get("unsteady")]:
+            info.setdefault("refused", []).append({"candidate": r["effect"].label(), "why": r["unsteady"]})
+        results = [r for r in results if not r.get("unsteady")]
         mean_ok = any(r["effect"].kind not in ("noise", "random") and r["evidence_robust"] > threshold for r in results)
         for sc in chosen:
             if sc.effect.kind == "noise":
