@@ -50,6 +50,8 @@ experiments/mimu_mismatch.md (the six real recordings).
 """
 from __future__ import annotations
 
+import math
+
 import dataclasses
 import time as _time
 from types import SimpleNamespace
@@ -92,22 +94,24 @@ class GyroLinearStage:
 MIN_SPREAD_SHARE = 0.7
 
 
-def _spread_share(prep: Prepared, g_hat: torch.Tensor, rel: dict, imus) -> float:
+def _spread_share(prep: Prepared, g_hat: torch.Tensor, rel: dict, imus) -> tuple[float, float]:
     """How much of the relative errors is *not* one gyro's error seen through the mean rate: with
     D_k(t) = R_kᵀ((A_k − I) ĝ_kt + b_k) (array frame) and top the IMU with the largest statistic,
-    Σ_{k≠top} Σ_t |D_k − D̄|²/σ_k² over Σ_{k≠top} Σ_t |D_k|²/σ_k², D̄ the mean over k ≠ top."""
+    (share, statistic): the statistic Σ_{k≠top} Σ_t |D_k − D̄|²/σ_k² (≈ χ²_{12(n−2)} when the
+    others carry only the common leak and noise) and its share of Σ_{k≠top} Σ_t |D_k|²/σ_k², D̄
+    the mean over k ≠ top."""
     R = quat_to_matrix(prep.q)
     I3 = torch.eye(3, dtype=torch.float64)
     top = max(imus, key=lambda k: float(rel["stat"][k]))
     others = [k for k in imus if k != top]
     if len(others) < 2:
-        return 1.0
+        return 1.0, math.inf
     D = torch.stack([(g_hat[:, k] @ (rel["A"][k] - I3).T + rel["b"][k]) @ R[k] for k in others], 1)  # (T, n-1, 3)
     w = torch.stack([prep.m_gyro[:, k].min(-1).values / float(prep.sigma_gyro[k]) ** 2 for k in others], 1)
     dev = D - D.mean(1, keepdim=True)
     num = float(((dev ** 2).sum(-1) * w).sum())
     den = float(((D ** 2).sum(-1) * w).sum())
-    return num / den if den > 0 else 1.0
+    return (num / den if den > 0 else 1.0), num
 
 
 def _rows(prep: Prepared, k: int) -> torch.Tensor:
@@ -202,11 +206,18 @@ def gyro_linear_stage(prep: Prepared, base: ModelFit, *, m: int, alpha: float, p
                  "gyro_power_left": p_left})
     if g_stat <= thr_group:
         return done("group below its threshold: no gyro linear errors")
-    spread = _spread_share(prep, base.ctx.gyro, rel, imus)
-    info["spread_share"] = spread
+    spread, spread_stat = _spread_share(prep, base.ctx.gyro, rel, imus)
+    spread_stat /= max(p_left, 1.0)
+    thr_spread = float(chi2.isf(alpha / m, 12 * max(n - 2, 1)))
+    info.update({"spread_share": spread, "spread_statistic_robust": spread_stat, "spread_threshold": thr_spread})
     if spread < MIN_SPREAD_SHARE:
         return done(f"the errors sit on one gyro (the others differ by a common leak only: spread share "
                     f"{spread:.3f} < {MIN_SPREAD_SHARE}): left to the rounds, term by term")
+    if spread_stat <= thr_spread:
+        # the others' blocks are noise: a share near 1 then says nothing (one gyro's error that is
+        # not linear in the rate, e.g. a g-sensitivity, leaks no common pattern to compare with)
+        return done(f"the errors sit on one gyro (the others' relative blocks are noise: spread statistic "
+                    f"{spread_stat:.4g} <= {thr_spread:.4g}, χ²_{12 * max(n - 2, 1)}): left to the rounds, term by term")
     # 1: relative blocks, alternating with the motion
     fit = base
     for _ in range(int(passes)):
