@@ -9,7 +9,7 @@ vocabulary tried, at most two findings):
 * concealed ``noise_level`` (accelerometer noise × 1.2–2);
 * ``noise_level`` on one *gyroscope* (× 1.5), from the package simulator — the sensor that the
   jitter shows on most, so the harder confusion;
-* with ``--real``: MIMU4444 experiment 1 (last 2000 dynamic samples), the round-1 evidences of
+* with ``--real``: MIMU4444 experiment 1 (whole, as ``detect`` prepares it), the round-1 evidences of
   the per-IMU jitter and noise candidates (no truth: what the data say).
 
 Writes ``experiments/jitter_confusion.md``::
@@ -97,12 +97,12 @@ def main(argv=None):
     lines += note
     if a.real:
         sys.path.insert(0, str(HERE))
-        from mimu_mismatch import load_dynamic
+        from mimu_mismatch import load_recording
         from _data import data_dir
 
-        rec, _ = load_dynamic(1, data_dir(), max_samples=2000)
+        rec, _ = load_recording(1, data_dir())  # whole: detect prepares it (intrinsics, selection)
         rep = detect(rec, **{**OPTS, "max_findings": 3})
-        lines += ["", "## Real data: MIMU4444 experiment 1, last 2000 dynamic samples", "",
+        lines += ["", "## Real data: MIMU4444 experiment 1, whole (every sample the selection keeps)", "",
                   f"Baseline χ²/dof {rep.baseline_fit.chi2_per_dof:.4g}.  Findings: "
                   + ", ".join(f"{f.model.label()} ({f.evidence:.4g})" for f in rep.findings) + ".", "",
                   "Refitted variance candidates per round (evidence = likelihood ratio):", "",
