@@ -507,7 +507,7 @@ def print_report(sc: dict, out=None) -> dict:
 _SHORT = {"acc_bias": "a.bias", "acc_scale": "a.scale", "acc_misalignment": "a.misal", "acc_nonlinearity": "a.nonlin",
           "axis_displacement": "displ", "triad_orientation": "orient", "gyro_bias": "g.bias", "gyro_scale": "g.scale",
           "gyro_g_sensitivity": "g.gsens", "time_offset": "t.offset", "saturation": "satur", "noise_level": "noise",
-          "gyro_nonlinearity": "g.nonlin", "none": "none", "unexplained": "unexpl", "error": "error"}
+          "gyro_nonlinearity": "g.nonlin", "sampling_jitter": "s.jitter", "none": "none", "unexplained": "unexpl", "error": "error"}
 
 
 def _scatter_by_limit(ax, x, y, above, color) -> None:
