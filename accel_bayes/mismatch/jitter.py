@@ -296,9 +296,10 @@ def fit_random_effects(prep, fit) -> None:
 
 
 def random_offsets(prep, fit, effects=None):
-    """(T, 2, K, 3) sensor units, or None: the conditional mean of the ``timing_wander`` effects
+    """(T, 2, K, 3) sensor units, or None: the conditional mean of the random timing effects
     (``effects``, default those in ``fit``) given the fit's residuals, E[δ_t | r]·rate_t on each
-    wander's triad (:func:`accel_bayes.mismatch.wander.ar1_conditional_mean` with the restricted
+    wander's triad (``sampling_jitter``: on both triads of its IMU, δ Gaussian with the uniform's
+    variance, independent per sample) (:func:`accel_bayes.mismatch.wander.ar1_conditional_mean` with the restricted
     a, b of :func:`jitter_ab`, the effect's width, correlation and white-noise factor).  The
     refit takes it off the outputs (:class:`~accel_bayes.mismatch.model._Model` ``offset``), so
     the motion is fitted as by GLS under the wander's covariance instead of being pulled by the
@@ -307,36 +308,42 @@ def random_offsets(prep, fit, effects=None):
     from .wander import ar1_conditional_mean, sample_steps
 
     effects = fit.effects if effects is None else effects
-    wand = [e for e in effects if e.name == "timing_wander" and float(e.params["width"]) > 0]
-    if not wand:
+    rand = [e for e in effects if e.name in ("timing_wander", "sampling_jitter") and float(e.params["width"]) > 0]
+    if not rand:
         return None
     off = torch.zeros(prep.T, 2, prep.K, 3, dtype=torch.float64)
     steps = sample_steps(prep.time)
-    for e in wand:
+    for e in rand:
         k = int(e.imu)
-        a, b = jitter_ab(prep, fit, k, e.which)
-        sig = float((prep.sigma_acc[k] * fit.acc_factor[k]) if e.which == "acc" else
-                    (prep.sigma_gyro[k] * fit.gyro_factor[k]))
-        c = math.sqrt(1.0 + float(e.params["excess_noise_var"]) / sig ** 2)
+        wander = e.name == "timing_wander"
+        sensor = e.which if wander else None  # sampling_jitter: one instant for both triads
+        a, b = jitter_ab(prep, fit, k, sensor)
+        c = 1.0
+        if wander:
+            sig = float((prep.sigma_acc[k] * fit.acc_factor[k]) if e.which == "acc" else
+                        (prep.sigma_gyro[k] * fit.gyro_factor[k]))
+            c = math.sqrt(1.0 + float(e.params["excess_noise_var"]) / sig ** 2)
+        # sampling_jitter: the Gaussian of the same variance (w²/12), independent per sample (ρ = 0)
         d = ar1_conditional_mean(a.numpy(), b.numpy(), steps, float(e.params["width"]) / math.sqrt(12.0),
-                                 float(e.params["correlation"]), c)
+                                 float(e.params["correlation"]) if wander else 0.0, c)
         # what the instants do on average: a filter's group delay shows as a mean far from 0
         e.stats["instant_mean_s"] = float(d.mean())
         e.stats["instant_rms_s"] = float(math.sqrt((d * d).mean()))
-        j = 0 if e.which == "acc" else 1
-        rate = prep.acc_rate if e.which == "acc" else prep.gyro_rate
-        off[:, j, k] += torch.as_tensor(d, dtype=torch.float64)[:, None] * rate[:, k]
+        dt = torch.as_tensor(d, dtype=torch.float64)[:, None]
+        if sensor in (None, "acc"):
+            off[:, 0, k] += dt * prep.acc_rate[:, k]
+        if sensor in (None, "gyro"):
+            off[:, 1, k] += dt * prep.gyro_rate[:, k]
     return off
 
 
 def weight_effects(effects) -> list:
-    """The random effects as the mean fit's weights see them: a ``timing_wander`` whose conditional
-    mean is taken off the outputs (:func:`random_offsets`) keeps only its white part
-    (``excess_noise_var``) in the weights; the others (``sampling_jitter``) their whole predicted
-    variance (IRLS, diagonal)."""
+    """The random effects as the mean fit's weights see them once their conditional means are
+    taken off the outputs (:func:`random_offsets`): a ``timing_wander`` keeps only its white part
+    (``excess_noise_var``) in the weights, a ``sampling_jitter`` nothing."""
     out = []
     for e in effects:
-        if e.name == "timing_wander":
+        if e.name in ("timing_wander", "sampling_jitter"):
             e = e.copy()
             e.set_params({"width": 0.0})
         out.append(e)
