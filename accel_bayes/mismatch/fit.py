@@ -15,9 +15,9 @@ Random effects (``sampling_jitter``, ``timing_wander``) are not in the least-squ
 either: after the fit their parameters are profiled on the exact marginal likelihood at the
 fitted mean and their gains added to the log-likelihood (:mod:`accel_bayes.mismatch.jitter`), and
 the mean is refitted, ≤ ``random_rounds`` times until the parameters and the offsets settle:
-``sampling_jitter`` with per-sample weights 1/(noise variance + predicted random variance)
-(IRLS-style, diagonal: the moment-matched variance's diagonal); ``timing_wander`` with its
-conditional mean taken off the outputs (GLS; the model's ``offset``), its white part alone in the
+first with per-sample weights 1/(noise variance + predicted random variance) (IRLS-style,
+diagonal: the moment-matched variance's diagonal), then with each random effect's conditional
+mean taken off the outputs (GLS; the model's ``offset``), a wander's white part alone in the
 weights.
 With noise factors in the same model, z² is taken in those weights, so the factors measure
 noise beyond the random effects' prediction.

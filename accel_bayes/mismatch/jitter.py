@@ -30,16 +30,19 @@ profile-likelihood 95 % interval {w : 2(ℓ(ŵ) − ℓ(w)) ≤ χ²₁,0.95}, a
 The mean is refitted with the random effects in the model (:func:`~accel_bayes.mismatch.fit.fit_model`),
 alternating with their parameters until they settle:
 
-* ``sampling_jitter`` re-weights (IRLS-style): each channel gets 1/(σ² + predicted random
-  variance), the diagonal of the moment-matched covariance D + (w²/12) v vᵀ;
-* ``timing_wander`` is taken off the outputs (GLS): its conditional mean E[δ_t | r]·rate
-  (:func:`random_offsets`, the banded solve of :func:`accel_bayes.mismatch.wander.ar1_conditional_mean`)
-  is subtracted and the motion refitted; only its white part stays in the weights.  With the
+* the first refit re-weights (IRLS-style): each channel gets 1/(σ² + predicted random variance),
+  the diagonal of the moment-matched covariance D + (w²/12) v vᵀ;
+* then each random timing effect is taken off the outputs (GLS): its conditional mean
+  E[δ_t | r]·rate (:func:`random_offsets`, the banded solve of
+  :func:`accel_bayes.mismatch.wander.ar1_conditional_mean`; ``sampling_jitter`` as the Gaussian of
+  the uniform's variance, independent per sample, on both triads) is subtracted and the motion
+  refitted; only a wander's white part stays in the weights.  With the
   restricted b = ṽᵀP y this is Henderson's mixed-model solution in one step (per-sample motion
   states; a few rounds for the positions).  Re-weighting alone left the wandering triad's mean
   in the motion fit: a first-order low-pass on one accelerometer (a nearly constant timing error)
   then leaked into the other IMUs' residuals and was named there (timing evidences up to 500 on
-  IMUs without any effect; ``tests/test_wander.py``).
+  IMUs without any effect; ``tests/test_wander.py``), and a jittered IMU gave spurious jitter
+  findings on two other IMUs in every concealed multi-effect jitter case.
 
 The exact marginal is then evaluated at that mean, on the residuals of the recorded outputs
 projected in the noise whitening D (:func:`_noise_projection`; the fit's diagnostic system, see
