@@ -119,8 +119,10 @@ Budget: one baseline fit, one screen per round (vectorised algebra, a few ms per
 at most ``n_refit`` LM refits per round (``noise_level`` ones only in a round that needs them);
 every sample the prepared selection keeps is used.  ``experiments/bench_detect.py`` (one thread):
 the whole real MIMU exp_1 (5885 samples kept, 8 IMUs; gyro linear stage, blocks on all eight gyros,
-three rounds) in 37 s and a 32-IMU, T = 3000 recording in 26 s, at load ≈ 1.5–2 on the shared 2-core
-machine (``experiments/bench_detect.md``; 7adf109: 127 s and 30 s).
+three rounds, each random effect refitted by GLS) in 64 s and a 32-IMU, T = 3000 recording in 27 s,
+at load ≈ 1 on the shared 2-core machine (``experiments/bench_detect.md``; 7adf109: 123 s and 27 s).
+The GLS refits of the random effects (a few more LM solves each) doubled the time on exp_1 (37 s
+before them).
 """
 from __future__ import annotations
 
