@@ -278,7 +278,7 @@ def test_wander_mean_is_taken_off_so_it_does_not_leak_into_other_imus():
     outputs (GLS mean), so the other IMUs' accelerometers show no timing error of their own —
     their evidences fall to what the true first-order model (time_offset + gyro_delay, an
     accelerometer-only delay) leaves (measured ≤ 5).  With re-weighting alone (the fit until
-    2026-11-26) IMU 7 kept an evidence of 212, far above the detector's threshold (≈ 24).  The
+    2026-11-26) the detector named a timing_wander on IMU 7 with evidence 278, far above its threshold (≈ 24).  The
     estimated instants average −τ (measured −0.887 ms)."""
     import sys
     from pathlib import Path
