@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..physics.effects import model_outputs
-from .model import ModelFit
+from .model import ModelFit, project_off_states
 
 __all__ = ["elpd_loo", "compare_fits", "corrected_recording", "posterior_comparison"]
 
@@ -49,7 +49,7 @@ def _elpd_loo(fit: ModelFit, *, draws: int = 200, seed: int = 0):
         eps = torch.randn(draws, n, generator=g, dtype=torch.float64)
         dg = eps @ L.T  # (S, n)
         T = lin.r.shape[0]
-        Pr = lin.r - (lin.Jx @ (lin.Vinv @ (lin.Jx.transpose(-1, -2) @ lin.r.unsqueeze(-1)))).squeeze(-1)
+        Pr = project_off_states(lin.Jx, lin.Vinv, lin.r)
         a = lin.jg_tmul(Pr.unsqueeze(0), per_sample=True)[0]  # (T, n) = J_tᵀ P_t r_t
         ll = base_t[None] - 0.5 * (_projected_quad(lin, dg) - 2 * dg @ a.T)
     else:

@@ -147,7 +147,7 @@ from .compare import compare_fits
 from .fit import _effect_std, baseline_fit, fit_model
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
 from .jitter import jitter_evidence
-from .model import ModelFit
+from .model import ModelFit, project_off_states
 from .prepared import Prepared, prepare
 from .report import Finding, MismatchReport
 
@@ -359,8 +359,7 @@ def stationarity(prep, fit: ModelFit, effect, n_seg: int = STATIONARITY_SEGMENTS
     T, m = lin.r.shape
     d = int(effect.df)
     E = lin.Je.reshape(T, m, -1)[..., -d:]  # (T, m, d), rows in lin.r's order
-    Jx = lin.Jx
-    Et = E - Jx @ (lin.Vinv @ (Jx.transpose(-1, -2) @ E))
+    Et = project_off_states(lin.Jx, lin.Vinv, E)
     g_t = (Et * lin.r.unsqueeze(-1)).sum(1)  # (T, d)
     I_t = Et.transpose(-1, -2) @ Et  # (T, d, d)
     q = 0.0

@@ -176,10 +176,9 @@ def fit_model(prep: Prepared, effects=(), *, init: "ModelFit | None" = None, ini
     if noise_eff and rounds > 1:
         lm, model, pos0, x0, eta0 = solve(pos0, x0, eta0, fa, fg)
     fit = _evaluate(prep, effects, mean_eff, lm, model, pos0, x0, eta0, fa, fg, t0)
-    # random effects: widths profiled at the mean, the mean re-weighted by noise + predicted
-    # random variance (IRLS), until the widths settle (accel_bayes.mismatch.jitter)
-    # A timing_wander's conditional mean is taken off the outputs (GLS mean, random_offsets):
-    # the rounds also go on until that offset settles (≤ 1 % of the noise std anywhere)
+    # random effects: parameters profiled at the mean, then the mean refitted with their
+    # conditional means taken off the outputs (GLS, jitter.random_offsets), until the parameters
+    # and the offsets settle (offsets within 1 % of the noise std anywhere)
     sig = torch.stack((prep.sigma_acc * fa, prep.sigma_gyro * fg))[None, :, :, None]  # (1, 2, K, 1)
     for _ in range(random_rounds if rand_eff else 0):
         w_old = [float(e.params["width"]) for e in rand_eff]

@@ -58,6 +58,7 @@ import numpy as np
 import torch
 
 from ..physics.effects.jitter import log_marginal_gain
+from .model import project_off_states
 
 __all__ = ["jitter_ab", "profile_width", "jitter_evidence", "random_variance", "variance_ratio", "fit_random_effects",
            "triad_wander", "wander_table", "random_offsets", "weight_effects",
@@ -148,9 +149,9 @@ def jitter_ab(prep, fit, k: int, sensor: str | None = None, with_residual_power:
         v = v * keep
     Jx = Jx_all[:, rows]  # (T, 6, 9)
     # u = P_kk v: the direction left in the residuals after the motion states took their share
-    u = v - (Jx @ (Vinv @ (Jx.transpose(-1, -2) @ v.unsqueeze(-1)))).squeeze(-1)
+    u = project_off_states(Jx, Vinv, v)
     # P y on IMU k's rows (the whole sample's residual projected: exact whatever x the fit has)
-    r = r_all[:, rows] - (Jx @ (Vinv @ (Jx_all.transpose(-1, -2) @ r_all.unsqueeze(-1)))).squeeze(-1)
+    r = project_off_states(Jx_all, Vinv, r_all)[:, rows]
     # back to the noise whitening (identity unless "model")
     vk, uk, rk = (v * back)[:, sl], (u * back)[:, sl], (r * back)[:, sl]
     a, b = (vk * uk).sum(-1), (vk * rk).sum(-1)
@@ -267,7 +268,7 @@ def fit_random_effects(prep, fit) -> None:
     # like with like (with the fit's raw residuals a constant delay on a wandering triad was
     # credited with the wander's own mean: evidence ≈ 200 where ≈ 1 was due)
     Jx, Vinv, r_all, _, _ = _noise_projection(prep, fit)
-    rp = r_all - (Jx @ (Vinv @ (Jx.transpose(-1, -2) @ r_all.unsqueeze(-1)))).squeeze(-1)
+    rp = project_off_states(Jx, Vinv, r_all)
     fit.loglik_t = fit.loglik_t + 0.5 * ((r_all * r_all).sum(-1) - (rp * rp).sum(-1))
     for e in rand:
         if e.name == "timing_wander":

@@ -255,10 +255,9 @@ class _Model:
                  offset=None):
         self.prep = prep
         # ``offset`` (T, 2, K, 3), sensor units: the random effects' conditional mean given the data
-        # (timing_wander: E[δ_t | r]·rate), taken off the outputs so that the mean fit is the
-        # GLS one (accel_bayes.mismatch.jitter.random_offsets); the residuals of the fit
+        # (E[δ_t | r]·rate), taken off the outputs so that the mean fit is the GLS one
+        # (accel_bayes.mismatch.jitter.random_offsets); the residuals of the fit
         # (ModelFit.res_acc/res_gyro, the evidence) stay those of the recorded outputs
-        self.offset = offset
         self.y_acc = prep.y_acc if offset is None else prep.y_acc - offset[:, 0] * prep.m_acc
         self.y_gyro = prep.y_gyro if offset is None else prep.y_gyro - offset[:, 1] * prep.m_gyro
         self.effects = _mean_effects(effects)
@@ -507,6 +506,17 @@ def _detach_ctx(ctx: SignalContext) -> SignalContext:
     d = lambda t: None if t is None else t.detach()  # noqa: E731
     return SignalContext(d(ctx.time), d(ctx.omega), d(ctx.omega_dot), d(ctx.s), d(ctx.positions),
                          d(ctx.orientations), d(ctx.acc), d(ctx.gyro), d(ctx.acc_rate), d(ctx.gyro_rate))
+
+
+def project_off_states(Jx: torch.Tensor, Vinv: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """P_t X_t = X_t − Jx_t (Jx_tᵀJx_t)⁻¹ Jx_tᵀ X_t per sample: what the per-sample motion states
+    leave of X (T, m) or (T, m, d), with Jx (T, m, 9) and Vinv = (JxᵀJx)⁻¹ (T, 9, 9) of the same
+    whitening (the fit's :class:`LinearSystem`, or its noise-whitened twin in
+    :mod:`accel_bayes.mismatch.jitter`)."""
+    vec = X.dim() == 2
+    Y = X.unsqueeze(-1) if vec else X
+    out = Y - Jx @ (Vinv @ (Jx.transpose(-1, -2) @ Y))
+    return out.squeeze(-1) if vec else out
 
 
 def _local_leverage(Jx: torch.Tensor) -> torch.Tensor:

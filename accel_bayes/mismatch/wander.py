@@ -59,6 +59,20 @@ def ar1_precision_bands(T: int, steps: np.ndarray, sigma: float, rho: float):
     return ab, logdet
 
 
+def _posterior(a, b, steps, sigma: float, rho: float, c2: float):
+    """The posterior of δ given (a, b): P = Q + diag(a)/c², banded Cholesky; returns
+    (P⁻¹ b/c² (T,), log|P|, log|Q|) — the conditional mean and the two determinants of the
+    marginal (module docstring)."""
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    P, logdet_q = ar1_precision_bands(len(a), steps, sigma, rho)
+    P[1] += a / c2
+    cP = cholesky_banded(P, lower=False)
+    return cho_solve_banded((cP, False), b / c2), 2.0 * float(np.log(cP[1]).sum()), logdet_q
+
+
 def ar1_gain(a: np.ndarray, b: np.ndarray, steps: np.ndarray, sigma: float, rho: float, c: float = 1.0,
              rr: float | None = None, n: int | None = None) -> float:
     """Marginal log-likelihood gain (nats) of the AR(1) timing error, with white noise of
@@ -66,18 +80,9 @@ def ar1_gain(a: np.ndarray, b: np.ndarray, steps: np.ndarray, sigma: float, rho:
     noise).  a (T,) s⁻², b (T,) s⁻¹ per sample; steps (T−1,) the time steps in units of the
     median step; sigma (s) > 0; 0 ≤ rho < 1; for c ≠ 1 also rr = Σ r̃ᵀr̃ and n = the number of
     residuals (3T for a complete triad)."""
-    from scipy.linalg import cho_solve_banded, cholesky_banded
-
-    a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
-    T = len(a)
     c2 = float(c) ** 2
-    Q, logdet_q = ar1_precision_bands(T, steps, sigma, rho)
-    P = Q.copy()
-    P[1] += a / c2
-    cP = cholesky_banded(P, lower=False)
-    logdet_p = 2.0 * float(np.log(cP[1]).sum())
-    x = cho_solve_banded((cP, False), b / c2)
+    x, logdet_p, logdet_q = _posterior(a, b, steps, sigma, rho, c2)
     gain = 0.5 * float((b / c2) @ x) - 0.5 * logdet_p + 0.5 * logdet_q
     if c2 != 1.0:
         if rr is None or n is None:
@@ -92,16 +97,9 @@ def ar1_conditional_mean(a, b, steps, sigma: float, rho: float, c: float = 1.0) 
     With the restricted a, b of :func:`accel_bayes.mismatch.jitter.jitter_ab` it is the GLS
     estimate of δ with the per-sample motion states profiled out, so y − E[δ]·rate refitted by
     least squares gives the GLS mean of the motion (Henderson's mixed-model equations)."""
-    from scipy.linalg import cho_solve_banded, cholesky_banded
-
-    a = np.asarray(a, dtype=float)
-    b = np.asarray(b, dtype=float)
     if sigma <= 0:
         return np.zeros(len(a))
-    c2 = float(c) ** 2
-    P, _ = ar1_precision_bands(len(a), steps, sigma, rho)
-    P[1] += a / c2
-    return cho_solve_banded((cholesky_banded(P, lower=False), False), b / c2)
+    return _posterior(a, b, steps, sigma, rho, float(c) ** 2)[0]
 
 
 def _noise_only_gain(rr: float, n: int) -> tuple[float, float]:
