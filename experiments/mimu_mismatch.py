@@ -227,7 +227,13 @@ def stage_heldout(args, exps):
             # the white noise left for the physics model: the residual variance less what its
             # random effects predict (a wander's marginal variance and its excess white noise)
             extra = random_variance(prep, effects=effs)
-            models[i] = {"effects": effs, "physics_noise": noise_variances(prep, refined, extra=extra),
+            # the accelerometers' aliased-jerk coupling (accel_bayes.mismatch.vibration), fitted on i's
+            # refined fit: jerk scale and white variance per |ω| band; the instants come from each
+            # target's own gyros
+            from accel_bayes.mismatch.vibration import fit_aliased_jerk
+
+            models[i] = {"effects": effs, "aliased_jerk": fit_aliased_jerk(prep, refined, n_permutations=0),
+                         "physics_noise": noise_variances(prep, refined, extra=extra),
                          "physics_noise_banded": noise_variances(prep, refined, omega_edges=edges, extra=extra),
                          "baseline_noise": noise_variances(prep, base, omega_edges=edges), "edges": edges}
         return models[i]
@@ -256,7 +262,19 @@ def stage_heldout(args, exps):
             # effect as an independent variance here, a wander's marginal one included: physics_noise_banded
             # had it taken out)
             extra_all = random_variance(prep, effects=m["effects"])
-            ll_phys_b = predictive_loglik(prep, f, m["physics_noise_banded"], extra=extra_all)
+            pp_b = predictive_loglik(prep, f, m["physics_noise_banded"], extra=extra_all, per_sensor=True)
+            ll_phys_b = pp_b["acc"] + pp_b["gyro"]
+            # the accelerometers with the aliased-jerk coupling held at i's parameters (its white part banded
+            # like the baseline's), the instant errors from j's own gyros; the same with those instants
+            # permuted across samples (breaks only the pairing); the gyros as in the physics model above
+            aj = m["aliased_jerk"]
+            if aj is not None:
+                c_acc, w_acc = aj.loglik_on(prep, f)
+                c_shuf, _ = aj.loglik_on(prep, f, shuffle_seed=0)
+                h.update(gain_coupled_per_sample=(c_acc + pp["gyro"] - ll_free) / prep.T,
+                         gain_coupled_per_sample_acc=(c_acc - pf["acc"]) / prep.T,
+                         gain_coupled_over_white_acc=(c_acc - w_acc) / prep.T,
+                         gain_shuffled_per_sample_acc=(c_shuf - pf["acc"]) / prep.T)
             h.update(source=i, target=j, T=prep.T, effects=[e.label() for e in m["effects"]],
                      predictive_physics=ll_phys, predictive_baseline=ll_free, predictive_physics_banded=ll_phys_b,
                      gain_per_sample=(ll_phys - ll_free) / prep.T,
@@ -397,7 +415,29 @@ def _char_row(experiment, sensor: str, c: dict) -> str:
     wan = "" if not w else (f"{w['sigma_ms_range'][0]:.2f}–{w['sigma_ms_range'][1]:.2f} ms, ρ {w['rho_range'][0]:.2f}–"
                             f"{w['rho_range'][1]:.2f}, share {w['share_range'][0]:.2f}–{w['share_range'][1]:.2f}, "
                             f"LR {w['evidence_range'][0]:.3g}–{w['evidence_range'][1]:.3g}")
-    return f"| {experiment} | {sensor} | {c['excess']:.4g} | {top_s} | {pw} | {lag} | {ani} | {wan} |"
+    aj = c.get("aliased_jerk")
+    ajs = "" if not aj else (f"{aj['share']:.2f} ({min(aj['share_by_band']):.2f}–{max(aj['share_by_band']):.2f}); "
+                             + "/".join(f"{x / 1e3:.1f}" for x in aj["jerk_rms"]) + f"; {aj['evidence']:.3g}"
+                             + (f"; permutation statistic {aj['permutation']['statistic']:.3g} (largest permuted "
+                                f"{aj['permutation']['statistic_max']:.3g})" if aj.get("permutation") else ""))
+    rem = (aj or {}).get("remainder_along_jerk")
+    if rem:
+        ajs += f"; left along ĵ {rem['fraction']:.2f} (null {rem['null']:.2f}), own instant {1e3 * rem['acc_own_instant_rms_s']:.2f} ms"
+    return f"| {experiment} | {sensor} | {c['excess']:.4g} | {top_s} | {pw} | {lag} | {ani} | {wan} | {ajs} |"
+
+
+def _gain_rows(held: dict, ex: list, key: str, in_sample: bool = False) -> list:
+    """The rows of a held-out table: experiment i → j's ``key`` (nats per sample), blank where
+    missing, the diagonal marked "(in-sample)" with ``in_sample``."""
+    rows = []
+    for i in ex:
+        cells = []
+        for j in ex:
+            v = held.get(f"{i}->{j}")
+            cells.append("" if v is None or key not in v else
+                         f"{v[key]:+.3f}" + (" (in-sample)" if in_sample and i == j else ""))
+        rows.append(f"| exp {i} | " + " | ".join(cells) + " |")
+    return rows
 
 
 def summary_markdown(s: dict) -> str:
@@ -453,8 +493,11 @@ def summary_markdown(s: dict) -> str:
     if any(r["characterisation"] for r in s["experiments"]):
         L += ["\n### What is left, characterised (final model of each experiment)\n",
               "| exp | sensor | excess (mean z² − 1) | top covariate (η²) | power law | lag-1 autocorr. (IMU range) | "
-              "anisotropy (median, range) | AR(1) timing wander over the IMUs: σ, ρ, share of the excess, LR |",
-              "|---|---|---|---|---|---|---|---|"]
+              "anisotropy (median, range) | AR(1) timing wander over the IMUs: σ, ρ, share of the excess, LR | "
+              "aliased jerk across the IMUs: share of the excess (by \|ω\| band), jerk rms by \|ω\| band (km/s³), "
+              "LR; the permutation test's statistic (variances held) and the largest of its 19 permutations; share of the remainder along the fitted jerk ĵ (permuted ĵ) and the "
+              "accelerometer's own instant error rms it implies |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for r in s["experiments"]:
             for sensor, c in (r["characterisation"] or {}).items():
                 L.append(_char_row(r["experiment"], sensor, c))
@@ -464,13 +507,7 @@ def summary_markdown(s: dict) -> str:
         L += ["\n### Held-out: gain of the physics model over the physics-free baseline (nats per sample) on the "
               "column's experiment, both models from the row's experiment\n",
               "| from \\ on | " + " | ".join(f"exp {j}" for j in ex) + " |", "|---|" + "---|" * len(ex)]
-        for i in ex:
-            cells = []
-            for j in ex:
-                v = held.get(f"{i}->{j}")
-                cells.append("" if v is None or "gain_per_sample" not in v else
-                             f"{v['gain_per_sample']:+.3f}" + (" (in-sample)" if i == j else ""))
-            L.append(f"| exp {i} | " + " | ".join(cells) + " |")
+        L += _gain_rows(held, ex, "gain_per_sample", in_sample=True)
         off = [v for v in held.values() if v["source"] != v["target"] and "gain_per_sample" in v]
         L.append(f"\nOff-diagonal pairs: {len(off)}; the physics model predicts better than the physics-free "
                  f"baseline on **{sum(v['gain_per_sample'] > 0 for v in off)}/{len(off)}**.")
@@ -479,14 +516,27 @@ def summary_markdown(s: dict) -> str:
                 g = [v[f"gain_per_sample_{sn}"] for v in off]
                 L.append(f"- {sn} channels alone: gain {min(g):+.3f} to {max(g):+.3f} nats per sample, better on "
                          f"{sum(x > 0 for x in g)}/{len(g)} pairs.")
+        offc = [v for v in off if "gain_coupled_per_sample" in v]
+        if offc:
+            L += ["\nThe physics model **with the accelerometers' aliased-jerk coupling** (`accel_bayes.mismatch.vibration`: "
+                  "its jerk scale and white variance per IMU and |ω| band from the row's experiment, the instants from the "
+                  "column's own gyros; the gyros as above), gain over the physics-free baseline, nats per sample:\n",
+                  "| from \\ on | " + " | ".join(f"exp {j}" for j in ex) + " |", "|---|" + "---|" * len(ex)]
+            L += _gain_rows(held, ex, "gain_coupled_per_sample", in_sample=True)
+            L.append(f"\nOff-diagonal pairs won: **{sum(v['gain_coupled_per_sample'] > 0 for v in offc)}/{len(offc)}**.")
+            for key, what in (("gain_coupled_per_sample_acc", "acc channels alone, against the baseline's banded variance"),
+                              ("gain_coupled_over_white_acc", "acc, against the coupling's own white part alone (what the "
+                                                              "pattern across the IMUs adds)"),
+                              ("gain_shuffled_per_sample_acc", "acc with the column's instants permuted across samples, "
+                                                               "against the baseline")):
+                g = [v[key] for v in offc]
+                L.append(f"- {what}: {min(g):+.3f} to {max(g):+.3f} nats per sample, better on "
+                         f"{sum(x > 0 for x in g)}/{len(g)} pairs.")
         L += ["\nThe same with the physics model's noise also banded by |ω| and its random effects as independent "
               "variances (the same variance model on both sides: what the findings' mean part and predicted variance "
               "add), nats per sample:\n",
               "| from \\ on | " + " | ".join(f"exp {j}" for j in ex) + " |", "|---|" + "---|" * len(ex)]
-        for i in ex:
-            L.append(f"| exp {i} | " + " | ".join(
-                "" if held.get(f"{i}->{j}") is None or "gain_banded_per_sample" not in held[f"{i}->{j}"]
-                else f"{held[f'{i}->{j}']['gain_banded_per_sample']:+.3f}" for j in ex) + " |")
+        L += _gain_rows(held, ex, "gain_banded_per_sample")
         offb = [v for v in off if "gain_banded_per_sample" in v]
         L.append(f"\nOff-diagonal pairs where the findings help on top of the banded variance: "
                  f"**{sum(v['gain_banded_per_sample'] > 0 for v in offb)}/{len(offb)}**.")
@@ -526,12 +576,19 @@ def figures(s, out: Path):
                 for reg in regs:
                     b = next(x for x in r["budget"] if x["sensor"] == sensor and x["regime"] == reg)
                     v.append(b["excess_var_explained"] / b["excess_var_observed"] if b["excess_var_observed"] > 0 else np.nan)
-                ax.plot(xs, v, marker="o", label=f"exp {r['experiment']}")
+                line, = ax.plot(xs, v, marker="o", label=f"exp {r['experiment']}")
                 top = max(top, 1.05 * np.nanmax(v))
+                aj = ((r.get("characterisation") or {}).get("acc") or {}).get("aliased_jerk") if sensor == "acc" else None
+                if aj:
+                    # the coupling's share on top of the findings', at "all" and the |ω| bands
+                    pos = [0] + [k for k, g in enumerate(regs) if g.startswith("|omega| ")]
+                    add = [aj["share"]] + list(aj["share_by_band"])
+                    ax.plot(pos, [v[p_] + a_ for p_, a_ in zip(pos, add)], ls="--", marker="x", color=line.get_color(),
+                            label=f"exp {r['experiment']} + aliased jerk" if r is ex[0] else None)
             ax.axhline(0.9, color="grey", ls="--", lw=1, label="aim 0.9")
             ax.set_xticks(xs, [g.replace("|omega_dot|", "|dω/dt|").replace("|omega|", "|ω|") for g in regs], rotation=60,
                           ha="right", fontsize=8)
-            ax.set_title({"acc": "accelerometers", "gyro": "gyroscopes"}[sensor])
+            ax.set_title({"acc": "accelerometers (dashed: + aliased-jerk coupling)", "gyro": "gyroscopes"}[sensor])
             ax.set_ylabel("explained share b/a of the excess variance")
         for ax in axes:
             ax.set_ylim(-0.05, top)
@@ -542,27 +599,35 @@ def figures(s, out: Path):
     held = s.get("heldout") or {}
     if held:
         exn = sorted({v["source"] for v in held.values()} | {v["target"] for v in held.values()})
-        M = np.full((len(exn), len(exn)), np.nan)
-        for a, i in enumerate(exn):
-            for b, j in enumerate(exn):
-                v = held.get(f"{i}->{j}")
-                if v is not None and "gain_per_sample" in v:
-                    M[a, b] = v["gain_per_sample"]
-        lim = np.nanmax(np.abs(M)) if np.isfinite(M).any() else 1.0
-        fig, ax = plt.subplots(figsize=(5.5, 4.5))
-        im = ax.imshow(M, cmap="RdBu", vmin=-lim, vmax=lim)
-        ax.set_xticks(range(len(exn)), [f"exp {j}" for j in exn])
-        ax.set_yticks(range(len(exn)), [f"exp {i}" for i in exn])
-        ax.set_xlabel("applied to")
-        ax.set_ylabel("estimated on")
-        for a in range(len(exn)):
-            for b in range(len(exn)):
-                if np.isfinite(M[a, b]):
-                    ax.text(b, a, f"{M[a, b]:+.2f}", ha="center", va="center", fontsize=8,
-                            color="white" if abs(M[a, b]) > 0.5 * lim else "black")
-        fig.colorbar(im, label="physics − physics-free (nats per sample)")
-        fig.tight_layout()
-        fig.savefig(out / "heldout_gain.png", dpi=100)
+        keys = [("gain_per_sample", "findings")]
+        if any("gain_coupled_per_sample" in v for v in held.values()):
+            keys.append(("gain_coupled_per_sample", "findings + aliased-jerk coupling"))
+        Ms = []
+        for key, _ in keys:
+            M = np.full((len(exn), len(exn)), np.nan)
+            for a, i in enumerate(exn):
+                for b, j in enumerate(exn):
+                    v = held.get(f"{i}->{j}")
+                    if v is not None and key in v:
+                        M[a, b] = v[key]
+            Ms.append(M)
+        lim = max(np.nanmax(np.abs(M)) if np.isfinite(M).any() else 1.0 for M in Ms)
+        fig, axes = plt.subplots(1, len(keys), figsize=(5.2 * len(keys) + 1.0, 4.5), squeeze=False)
+        for ax, M, (_, title) in zip(axes[0], Ms, keys):
+            im = ax.imshow(M, cmap="RdBu", vmin=-lim, vmax=lim)
+            ax.set_xticks(range(len(exn)), [f"exp {j}" for j in exn])
+            ax.set_yticks(range(len(exn)), [f"exp {i}" for i in exn])
+            ax.set_xlabel("applied to")
+            if ax is axes[0][0]:
+                ax.set_ylabel("estimated on")
+            ax.set_title(title, fontsize=10)
+            for a in range(len(exn)):
+                for b in range(len(exn)):
+                    if np.isfinite(M[a, b]):
+                        ax.text(b, a, f"{M[a, b]:+.2f}", ha="center", va="center", fontsize=8,
+                                color="white" if abs(M[a, b]) > 0.5 * lim else "black")
+        fig.colorbar(im, ax=list(axes[0]), label="physics − physics-free (nats per sample)")
+        fig.savefig(out / "heldout_gain.png", dpi=100, bbox_inches="tight")
         plt.close(fig)
 
 

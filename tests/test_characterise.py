@@ -125,6 +125,18 @@ def test_characterise_clean_recording_has_no_excess(lowpass_fit):
         assert isinstance(c[sensor]["summary"], str) and c[sensor]["summary"]
 
 
+def test_characterise_coupling_on_a_clean_recording(lowpass_fit):
+    """``coupling=True`` adds the accelerometers' aliased-jerk fit; on a clean recording its
+    permutation test does not call it significant, and the sentence says so or leaves it out."""
+    _, _, _, prep0, base0 = lowpass_fit
+    c = characterise(prep0, base0, coupling=True)
+    aj = c["acc"]["aliased_jerk"]
+    assert aj is not None and aj["permutation"]["n"] == 19
+    assert aj["permutation"]["p_value"] > 0.05
+    assert "aliased" not in c["acc"]["summary"] or "not significant" in c["acc"]["summary"]
+    assert "aliased_jerk" not in characterise(prep0, base0)["acc"]
+
+
 def test_gyro_delay_is_a_first_order_lowpass():
     """The extension gyro_delay (−delay·dω/dt on one IMU's gyro) against the independent
     generator's exact first-order low-pass filter (τ ẏ = ω − y solved on the continuous

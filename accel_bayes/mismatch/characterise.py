@@ -27,7 +27,12 @@ standardized residuals z = r / (σ c √(1 − h)) of :func:`accel_bayes.mismatc
 * **timing wander** — the AR(1) sampling-instant error of :mod:`accel_bayes.mismatch.wander`
   fitted per triad together with a white-noise factor: its std σ_δ (ms), lag-one correlation ρ,
   the likelihood ratio against the best noise-only model (``evidence``) and the share of the
-  triad's excess power it accounts for.
+  triad's excess power it accounts for;
+* **aliased jerk** (accelerometers, across the IMUs; ``coupling=True``) — the coupling of
+  :mod:`accel_bayes.mismatch.vibration`: every IMU's accelerometer read at the instant its gyro
+  reveals, times a per-sample jerk the outputs do not resolve.  Its jerk scale per |ω| band, the
+  likelihood ratio against a white variance per IMU and band (``evidence``) and the share of the
+  accelerometer excess its conditional mean explains.
 
 The covariates, the autocorrelation and the anisotropy are computed per IMU and sensor and pooled
 over the IMUs; :func:`characterise` returns both, and :func:`describe` turns one IMU/sensor (or a
@@ -179,9 +184,12 @@ def _one(e_imu: np.ndarray, covs: dict) -> tuple[list, str | None]:
     return rows, (rows[0]["name"] if rows else None)
 
 
-def characterise(prep: Prepared, fit: ModelFit) -> dict:
+def characterise(prep: Prepared, fit: ModelFit, *, coupling: bool = False) -> dict:
     """What the residual excess of ``fit`` scales with, where it sits and how it is structured
-    (module docstring).  Returns a JSON-ready dict ``{"acc": {...}, "gyro": {...}}``; per sensor:
+    (module docstring).  ``coupling``: also fit the aliased-jerk coupling of the accelerometers
+    (:func:`accel_bayes.mismatch.vibration.fit_aliased_jerk`, about a second on 6000 samples of 8
+    IMUs), reported as the accelerometers' ``aliased_jerk`` (its ``to_dict``; None where fewer than
+    three IMUs have both triads).  Returns a JSON-ready dict ``{"acc": {...}, "gyro": {...}}``; per sensor:
     ``excess`` (mean z² − 1 per channel-sample), ``imus`` (per IMU: excess, share of the sensor's
     total excess, per-axis excess, ranked ``covariates``, ``top_covariate``, ``autocorrelation``,
     ``anisotropy``), the pooled ``covariates`` / ``top_covariate`` / ``autocorrelation`` /
@@ -245,6 +253,14 @@ def characterise(prep: Prepared, fit: ModelFit) -> dict:
                                  "lag1_range": [float(min(lag1)), float(max(lag1))] if lag1 else None},
              "anisotropy": {"median": float(np.median(an)) if an else None,
                             "range": [float(min(an)), float(max(an))] if an else None}}
+        if sensor == "acc" and coupling:
+            from .vibration import fit_aliased_jerk
+
+            try:
+                aj = fit_aliased_jerk(prep, fit)
+            except Exception:  # a diagnostic: never let it stop a report
+                aj = None
+            d["aliased_jerk"] = None if aj is None else aj.to_dict()
         d["summary"] = describe(d, sensor)
         out[sensor] = d
     return out
@@ -284,6 +300,18 @@ def describe(d: dict, sensor: str, imu: int | None = None) -> str:
         big = sorted(d["imus"], key=lambda r: -(r["share"] or 0))[:2]
         where = ", ".join(f"IMU {r['imu']} {100 * (r['share'] or 0):.0f} %" for r in big)
         head = f"The {what} excess (mean z² − 1 = {d['excess']:.3g}; largest shares {where})"
+    aj = d.get("aliased_jerk") if imu is None else None
+    perm = (aj or {}).get("permutation") or {}
+    if aj and aj["evidence"] > 0 and perm and aj["share"] == aj["share"]:
+        sig = perm["p_value"] <= 0.05
+        wander += (f" Read at the instants the gyros reveal, times a per-sample jerk the outputs do not resolve "
+                   f"(aliased vibration; {', '.join(f'{x:.3g}' for x in aj['jerk_rms'])} m/s³ rms by |ω| band), "
+                   f"the accelerometers' pattern across the IMUs accounts for {100 * aj['share']:.0f} % of it "
+                   f"(likelihood ratio {aj['evidence']:.3g} against a white variance per IMU and |ω| band; "
+                   f"permutation test: {perm['statistic']:.3g} with the variances held, at most "
+                   f"{perm['statistic_max']:.3g} in {perm['n']} permutations of the instants"
+                   + (")." if sig else f": not significant, p = {perm['p_value']:.2g}")
+                   + ("" if sig else ")."))
     if not rows:
         return head + "." + wander
     top = rows[0]

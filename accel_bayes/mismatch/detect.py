@@ -859,7 +859,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     # what the final model leaves, described (item 2 of issue #11): what it scales with, white or
     # correlated in time, along the output's rate (timing-like) or isotropic
     t_c = _time.perf_counter()
-    characterisation = characterise(prep, current)
+    characterisation = characterise(prep, current, coupling=True)
     timings["characterise_s"] = _time.perf_counter() - t_c
     unexplained = None
     if tests:
