@@ -199,7 +199,7 @@ def stage_shares(args, exps):
 
 
 def stage_heldout(args, exps):
-    from accel_bayes.mismatch.budget import BANDS
+    from accel_bayes.mismatch.budget import band_edges
     from accel_bayes.mismatch.jitter import random_variance
     from accel_bayes.mismatch.transfer import heldout_fit, noise_variances, predictive_loglik
 
@@ -219,8 +219,7 @@ def stage_heldout(args, exps):
             from accel_bayes.mismatch.fit import fit_model
 
             prep, base = _prepared(i, args, cache)
-            w = np.linalg.norm(base.x[:, 0:3].numpy(), axis=1)
-            edges = np.quantile(w, [b[0] / 100 for b in BANDS[1:]]).tolist()
+            edges = band_edges(np.linalg.norm(base.x[:, 0:3].numpy(), axis=1))
             effs = _effects_from_report(reports[i])
             mean_effs = [e for e in effs if e.kind in ("mean", "clip")]
             refined = fit_model(prep, [e.copy() for e in mean_effs], init=base, laplace=False) if mean_effs else base
@@ -494,7 +493,7 @@ def summary_markdown(s: dict) -> str:
         L += ["\n### What is left, characterised (final model of each experiment)\n",
               "| exp | sensor | excess (mean z² − 1) | top covariate (η²) | power law | lag-1 autocorr. (IMU range) | "
               "anisotropy (median, range) | AR(1) timing wander over the IMUs: σ, ρ, share of the excess, LR | "
-              "aliased jerk across the IMUs: share of the excess (by \|ω\| band), jerk rms by \|ω\| band (km/s³), "
+              "aliased jerk across the IMUs: share of the excess (by \\|ω\\| band), jerk rms by \\|ω\\| band (km/s³), "
               "LR; the permutation test's statistic (variances held) and the largest of its 19 permutations; share of the remainder along the fitted jerk ĵ (permuted ĵ) and the "
               "accelerometer's own instant error rms it implies |",
               "|---|---|---|---|---|---|---|---|---|"]

@@ -41,9 +41,15 @@ import torch
 from .model import ModelFit
 from .prepared import Prepared
 
-__all__ = ["BANDS", "budget_regimes", "leverage_corrected_sq", "predicted_extra_variance", "residual_budget", "group_power"]
+__all__ = ["BANDS", "band_edges", "budget_regimes", "leverage_corrected_sq", "predicted_extra_variance", "residual_budget", "group_power"]
 
 BANDS = ((0, 25), (25, 50), (50, 75), (75, 90), (90, 100))  # quantile bands, %
+
+
+def band_edges(values) -> list[float]:
+    """The inner edges of the :data:`BANDS` of ``values`` (any units): their 25, 50, 75 and 90 %
+    quantiles, for ``np.digitize``."""
+    return np.quantile(np.asarray(values, dtype=float), [b[0] / 100 for b in BANDS[1:]]).tolist()
 
 
 def budget_regimes(fit: ModelFit) -> list[tuple[str, np.ndarray]]:
@@ -54,7 +60,7 @@ def budget_regimes(fit: ModelFit) -> list[tuple[str, np.ndarray]]:
     T = x.shape[0]
     out = [("all", np.ones(T, bool))]
     for name, v in (("|omega|", np.linalg.norm(x[:, 0:3], axis=1)), ("|omega_dot|", np.linalg.norm(x[:, 3:6], axis=1))):
-        edges = np.quantile(v, [b[0] / 100 for b in BANDS[1:]])  # inner edges 25, 50, 75, 90 %
+        edges = band_edges(v)
         lab = np.digitize(v, edges, right=False)
         for j, (lo, hi) in enumerate(BANDS):
             out.append((f"{name} {lo}-{hi}%", lab == j))

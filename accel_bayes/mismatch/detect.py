@@ -716,9 +716,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
                 # (noise-robust like the evidence), at the same family-wise level
                 q, q_df = stationarity(prep, f, f.effects[-1])
                 q_r = q / max(power, 1.0)
-                from scipy.stats import chi2 as _chi2
-
-                q_thr = float(_chi2.isf(alpha / max(m, 1), q_df))
+                q_thr = threshold_rule(m, q_df, alpha)
                 row.update({"stationarity": q_r, "stationarity_df": q_df, "stationarity_threshold": q_thr})
                 if q_r > q_thr:
                     unsteady = (f"its parameter is not constant through the recording: stationarity score "

@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .budget import BANDS
+from .budget import band_edges
 from .model import ModelFit
 from .prepared import Prepared
 
@@ -67,9 +67,8 @@ _FLOOR_RATE2 = 1e-9  # (rad/s²)²: below it a gyro's rate gives no instant (δ 
 
 
 def omega_edges(fit: ModelFit) -> list[float]:
-    """Inner |ω| band edges (rad/s) of ``fit``'s motion: the 25/50/75/90 % quantiles (:data:`BANDS`)."""
-    w = np.linalg.norm(fit.x[:, 0:3].detach().cpu().numpy(), axis=1)
-    return np.quantile(w, [b[0] / 100 for b in BANDS[1:]]).tolist()
+    """Inner |ω| band edges (rad/s) of ``fit``'s motion (:func:`accel_bayes.mismatch.budget.band_edges`)."""
+    return band_edges(np.linalg.norm(fit.x[:, 0:3].detach().cpu().numpy(), axis=1))
 
 
 def _bands(fit: ModelFit, edges) -> torch.Tensor:
@@ -149,6 +148,13 @@ def _centred(delta: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return (delta - (delta * w).sum(1, keepdim=True) / n) * w
 
 
+def _pattern(delta: torch.Tensor, ok_g: torch.Tensor, ok_a: torch.Tensor) -> torch.Tensor:
+    """d (T, K): the instant errors centred over the IMUs whose both triads enter the sample, 0
+    elsewhere (an IMU without a gyro instant enters the white part only)."""
+    w = (ok_a & ok_g).to(delta.dtype)
+    return _centred(delta * w, w)
+
+
 @dataclass
 class AliasedJerk:
     """The fitted coupling (module docstring).  ``edges`` inner |ω| band edges (rad/s, B − 1);
@@ -203,7 +209,7 @@ class AliasedJerk:
             perm = torch.randperm(prep.T, generator=g)
             delta, ok_g = delta[perm], ok_g[perm]
         w = ok_a.to(a.dtype)
-        d = _centred(delta * ok_g, w * ok_g)
+        d = _pattern(delta, ok_g, ok_a)
         lab = _bands(fit, self.edges)
         v = torch.as_tensor(self.v, dtype=a.dtype)[:, lab].T
         v0 = torch.as_tensor(self.v_null, dtype=a.dtype)[:, lab].T
@@ -346,13 +352,12 @@ def fit_aliased_jerk(prep: Prepared, fit: ModelFit, *, edges=None, max_iter: int
     both triads observed (no pattern across IMUs to fit)."""
     a, ok_a = array_residuals(prep, fit)
     delta, ok_g = instant_errors(prep, fit)
-    w = (ok_a & ok_g).to(a.dtype)
-    if int((w.sum(0) > 0).sum()) < 3:
+    if int((ok_a & ok_g).any(0).sum()) < 3:
         return None
     # an IMU without a gyro instant still has an accelerometer residual: it enters the white part
     # only (d = 0), so the null and the coupled model see the same data
     w_all = ok_a.to(a.dtype)
-    d = _centred(delta * w, w)
+    d = _pattern(delta, ok_g, ok_a)
     edges = omega_edges(fit) if edges is None else [float(e) for e in edges]
     lab = _bands(fit, edges)
     B, K = len(edges) + 1, prep.K
@@ -392,8 +397,7 @@ def fit_aliased_jerk(prep: Prepared, fit: ModelFit, *, edges=None, max_iter: int
             for b in range(B):
                 sel = torch.nonzero(lab == b).flatten()
                 idx[sel] = sel[torch.randperm(len(sel), generator=g)]
-            wp = w_all * ok_g[idx].to(a.dtype)
-            evs.append(_profile_lr(a, _centred(delta[idx] * wp, wp), w_all, v0t, lab, B))
+            evs.append(_profile_lr(a, _pattern(delta[idx], ok_g[idx], ok_a), w_all, v0t, lab, B))
         evs = np.asarray(evs)
         perm = {"n": int(n_permutations), "statistic": stat, "statistic_max": float(evs.max()),
                 "statistic_median": float(np.median(evs)), "p_value": float((1 + (evs >= stat).sum()) / (1 + len(evs)))}
