@@ -439,7 +439,9 @@ def test_cli_selfcal_divergence_exits_3(tmp_path, capsys):
 def test_chunked_linearisation_gives_the_same_solution(monkeypatch):
     """Long records are linearised in chunks of samples (cache-resident intermediates); the
     result must not depend on the chunk size: 600 samples in chunks of 250 (three chunks, one
-    partial) against one block, same iterates to round-off."""
+    partial) against one block, same iterates to round-off.  Round-off depends on the processor's
+    vector kernels (and on the thread count), so the iterates agree to 1e-10 m, not to the bit,
+    and the stopping rule may take one more (rejected or negligible) step on either side."""
     import accel_bayes.inference.selfcal as sc
 
     gen = torch.Generator().manual_seed(31)
@@ -454,9 +456,11 @@ def test_chunked_linearisation_gives_the_same_solution(monkeypatch):
                                     acc_noise_std=1e-3)
     a, b = out[None], out[250]
     assert a.status == b.status == "ok"
-    assert len(a.cost_log) == len(b.cost_log)
-    assert (a.positions - b.positions).abs().max() < 1e-12
-    assert (a.states - b.states).abs().max() < 1e-9
+    assert abs(len(a.cost_log) - len(b.cost_log)) <= 1
+    for u, v in zip(a.cost_log, b.cost_log):
+        assert abs(u["F"] - v["F"]) <= 1e-9 * u["F"]
+    assert (a.positions - b.positions).abs().max() < 1e-10
+    assert (a.states - b.states).abs().max() < 1e-8
     assert abs(a.cost - b.cost) <= 1e-10 * a.cost
 
 
@@ -694,7 +698,8 @@ def test_marginal_scale_score_is_the_derivative_of_the_laplace_marginal():
 
 def test_paper_process_variances_stay_reproducible():
     """process_noise='s16' is the [S16] eq. 8 model bit for bit: positions, cost and std of a
-    fixed case as computed by the code before the estimated process noise existed."""
+    fixed case as computed by the code before the estimated process noise existed (to round-off:
+    the std, from an inverse Hessian, moves by ~3e-12 of 5e-4 between AVX2 and AVX-512 kernels)."""
     g = torch.Generator().manual_seed(77)
     x = simulate_process_motion(250, 1 / 125.0, seed=9, segment_length=30, omega_dot_std=6.0)
     arr = s16_plate()
@@ -708,7 +713,7 @@ def test_paper_process_variances_stay_reproducible():
                         [-0.14568349655704133, 0.00285427523918835, 0.02271115374680235]], dtype=F64)
     assert torch.allclose(res.positions[1:], ref, rtol=0, atol=1e-12)
     assert abs(res.cost - 33473.35187315968) < 1e-6
-    assert abs(float(res.position_std[1, 1]) - 0.00050216629587036) < 1e-12
+    assert abs(float(res.position_std[1, 1]) - 0.00050216629587036) < 2e-8 * 0.00050216629587036
     assert res.process_noise["mode"] == "s16" and res.process_noise["variances"] == models.S16_PROCESS_VARIANCES
     with pytest.raises(ValueError, match="process_noise"):
         self_calibrate(z, 1 / 125.0, nominal_positions=p0, fixed=0, process_noise="fixed")
