@@ -10,7 +10,8 @@ Every ArviZ call of the package lives in this module, so a move to ArviZ 1.x is 
   "converged": every coordinate with R̂ < 1.01 and bulk and tail ESS ≥ 400, thresholds
   adjustable; used by ``calibrate`` to decide when to stop and for its exit status),
   :func:`convergence_warnings` (the older max-R̂ / min-bulk-ESS form), :func:`format_stat`.
-* Plots (Agg backend, each returns a ``matplotlib.figure.Figure``): :func:`plot_trace`,
+* Plots (each returns a ``matplotlib.figure.Figure`` made without pyplot, so that neither importing
+  this module nor plotting switches the caller's matplotlib backend; saved with Agg): :func:`plot_trace`,
   :func:`plot_rank`, :func:`plot_autocorr`, :func:`plot_ellipses` ([C21] Fig. 5) and
   :func:`save_plots`.
 * Model mismatch (last section): :func:`psis_loo`, :func:`compare_loo` and the mismatch
@@ -33,14 +34,11 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", FutureWarning)  # arviz 0.23 announces its 1.0 refactor
     import arviz as az
 
-import matplotlib
+from matplotlib.figure import Figure
+from matplotlib.patches import Ellipse, Rectangle
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
-
-from .errors import UserError  # noqa: E402
-from .data.outputs import save_figure  # noqa: E402
+from .errors import UserError
+from .data.outputs import save_figure
 
 __all__ = [
     "truth_check",
@@ -438,6 +436,27 @@ def load(path):
 
 # ---------------------------------------------------------------------------- plots
 
+def _subplots(nrows=1, ncols=1, *, figsize, squeeze=True, **kw):
+    """``plt.subplots`` without pyplot: the figure belongs to no backend and no pyplot registry
+    (nothing to close), and :func:`~accel_bayes.data.outputs.save_figure` renders it with Agg."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(nrows, ncols, squeeze=squeeze, **kw)
+
+
+def _arviz_axes(idata, max_imus, ncols: int, row_height: float, *, trace: bool = False):
+    """The coordinates to plot and a grid of axes for them (ArviZ would otherwise make its figure
+    with pyplot): one axes per coordinate of r, ``ncols`` per row, or for a trace plot one row of
+    (density, trace) per coordinate.  Width 11 in; ``row_height`` in inches."""
+    coords = _coords_subset(idata, max_imus)
+    n_imu = len(coords["imu"]) if coords else idata.posterior[VAR].sizes["imu"]
+    n = n_imu * idata.posterior[VAR].sizes["axis"]
+    rows, cols = (n, 2) if trace else (-(-n // ncols), ncols)
+    _, axes = _subplots(rows, cols, figsize=(11.0, row_height * rows + 0.8), squeeze=False)
+    for a in axes.ravel()[n if not trace else axes.size:]:
+        a.set_visible(False)
+    return coords, axes
+
+
 def _coords_subset(idata, max_imus):
     labels = [int(k) for k in idata.posterior[VAR].coords["imu"].values]
     if max_imus is None or len(labels) <= max_imus:
@@ -456,8 +475,9 @@ def plot_trace(idata, max_imus: int | None = 2, **kwargs):
     ``max_imus`` free IMUs only (None: all)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        axes = az.plot_trace(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
-                             compact=False, show=False, **kwargs)
+        coords, axes = _arviz_axes(idata, max_imus, 2, 1.9, trace=True)
+        axes = az.plot_trace(_mm(idata), var_names=[VAR], coords=coords, compact=False, show=False, axes=axes,
+                             **kwargs)
     fig = np.ravel(axes)[0].figure
     fig.suptitle("PmMH trace, r relative to the reference triad [mm]")
     return fig
@@ -467,8 +487,8 @@ def plot_rank(idata, max_imus: int | None = 2, **kwargs):
     """Rank plots per coordinate (``az.plot_rank``): uniform bars when chains agree."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        axes = az.plot_rank(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
-                            show=False, **kwargs)
+        coords, axes = _arviz_axes(idata, max_imus, 3, 2.6)
+        axes = az.plot_rank(_mm(idata), var_names=[VAR], coords=coords, show=False, ax=axes, **kwargs)
     fig = np.ravel(axes)[0].figure
     return fig
 
@@ -477,8 +497,9 @@ def plot_autocorr(idata, max_imus: int | None = 2, **kwargs):
     """Autocorrelation per coordinate, chains combined (``az.plot_autocorr``), [C21] Fig. 3b."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        axes = az.plot_autocorr(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
-                                combined=True, show=False, **kwargs)
+        coords, axes = _arviz_axes(idata, max_imus, 3, 2.4)
+        axes = az.plot_autocorr(_mm(idata), var_names=[VAR], coords=coords, combined=True, show=False, ax=axes,
+                                **kwargs)
     fig = np.ravel(axes)[0].figure
     return fig
 
@@ -547,7 +568,7 @@ def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, l
     sides = [("top side", top), ("bottom side", ~top)]
     sides = [(nm, m) for nm, m in sides if m.any()]
     if ax is None:
-        fig, axes = plt.subplots(1, len(sides), figsize=(5.5 * len(sides), 5.5), squeeze=False)
+        fig, axes = _subplots(1, len(sides), figsize=(5.5 * len(sides), 5.5), squeeze=False)
         axes = list(axes[0])
     else:
         fig = ax.figure
@@ -656,11 +677,7 @@ def save_plots(idata, array, outdir, prior_std=None, max_imus: int | None = 2, d
                      ("ellipses", lambda: plot_ellipses(idata, array, level=(0.5, 0.95),
                                                         prior_std=prior_std if k_ex == 1.0 else None,
                                                         exaggerate=k_ex))):
-        fig = fn()
-        try:
-            paths.append(save_figure(fig, out / f"{name}.png", dpi=dpi))
-        finally:
-            plt.close(fig)
+        paths.append(save_figure(fn(), out / f"{name}.png", dpi=dpi))
     return paths
 
 
@@ -717,7 +734,7 @@ def plot_residual_heatmap(location, location_after=None, *, channels, K: int | N
     when given, refined.  ``location``: a :class:`accel_bayes.mismatch.locate.Location`."""
     K = location.heat.shape[0] if K is None else int(K)
     panels = _mismatch_panels(location, location_after)
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels) + 1, 0.35 * K + 2), squeeze=False)
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels) + 1, 0.35 * K + 2), squeeze=False)
     vmax = max(3.0, float(np.nanmax(np.abs(location.heat))))
     for ax, (title, loc) in zip(axes[0], panels):
         im = ax.imshow(loc.heat, cmap="RdBu_r", vmin=-vmax, vmax=vmax, aspect="auto")
@@ -733,7 +750,7 @@ def plot_residual_regimes(location, location_after=None):
     """χ²/n (all IMUs) per motion-regime bin, one panel per regime scheme (time last)."""
     panels = _mismatch_panels(location, location_after)
     schemes = [s for s in location.regimes if s != "time"] + ["time"]
-    fig, axes = plt.subplots(1, len(schemes), figsize=(3.3 * len(schemes), 3.4), squeeze=False)
+    fig, axes = _subplots(1, len(schemes), figsize=(3.3 * len(schemes), 3.4), squeeze=False)
     for ax, sch in zip(axes[0], schemes):
         for i, (title, loc) in enumerate(panels):
             rows = loc.regimes.get(sch, [])
@@ -755,7 +772,7 @@ def plot_before_after(location, location_after, positions_baseline, positions_re
     panels = _mismatch_panels(location, location_after)
     pb = np.asarray(positions_baseline, dtype=np.float64)
     K = pb.shape[0]
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, (a1, a2) = _subplots(1, 2, figsize=(10, 3.6))
     for i, (title, loc) in enumerate(panels):
         rows = [r for r in loc.imus]
         lab = [f"{r['imu']}{r['sensor'][0]}" for r in rows]
@@ -789,12 +806,8 @@ def save_mismatch_figures(out, location, location_after=None, *, channels, K: in
                      lambda: plot_before_after(location, location_after, positions_baseline, positions_refined)))
     paths = {}
     for key, name, fn in jobs:
-        fig = fn()
         p = out / name
-        try:
-            save_figure(fig, p, dpi=dpi, bbox_inches="tight")
-        finally:
-            plt.close(fig)
+        save_figure(fn(), p, dpi=dpi, bbox_inches="tight")
         paths[key] = p
     return paths
 
@@ -812,7 +825,7 @@ def plot_convergence(cost_log: list, n_constraints: dict, path, title: str = "")
     tot = np.array([e["F"] for e in cost_log]) / n_all
     tri = np.array([e["F_triad"] for e in cost_log]) / n_constraints["triad"]
     pro = np.array([e["F_process"] for e in cost_log]) / max(n_constraints["process"], 1)
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig, ax = _subplots(figsize=(6.4, 4.0))
     pos = lambda v: np.where(v > 0, v, np.nan)  # noqa: E731  (zero process cost at a zero-motion start)
     ax.semilogy(x, pos(tot), "k-", lw=2, label="F / all constraints")
     ax.semilogy(x, pos(tri), "C0--", label="triad part / triad constraints")
@@ -831,7 +844,4 @@ def plot_convergence(cost_log: list, n_constraints: dict, path, title: str = "")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    try:
-        return save_figure(fig, path, dpi=120)
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, dpi=120)

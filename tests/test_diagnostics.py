@@ -107,7 +107,6 @@ def test_ellipse_geometry_matches_chi2():
     mom = {"imu": [1], "mean": np.array([[0.0, 0.0, -2e-3]]),
            "cov": np.array([[[4e-8, 0, 0], [0, 1e-8, 0], [0, 0, 1e-8]]])}
     fig = dg.plot_ellipses(mom, arr, level=(0.5, 0.95))
-    assert matplotlib.get_backend().lower() == "agg"
     ells = [p for ax in fig.axes for p in ax.patches if isinstance(p, matplotlib.patches.Ellipse)]
     assert len(ells) == 2
     widths = sorted(e.width for e in ells)
@@ -127,10 +126,8 @@ def test_plots_return_figures_and_files(tmp_path):
     for fn in (dg.plot_trace, dg.plot_rank, dg.plot_autocorr):
         fig = fn(idata, max_imus=1)
         assert isinstance(fig, matplotlib.figure.Figure)
-        matplotlib.pyplot.close(fig)
     fig = dg.plot_ellipses(idata, arr, prior_std=3e-3, exaggerate=5)
     assert "×5" in fig.axes[0].get_title()
-    matplotlib.pyplot.close(fig)
     # 95 % semi-axis of a 0.1 mm posterior ≈ 0.245 mm; a quarter of a 4 mm package wants ×4.1 → 2
     assert dg.auto_exaggeration(idata, arr) == 2.0
     tiny = {"imu": [1], "mean": np.zeros((1, 3)), "cov": np.eye(3)[None] * 1e-10}  # 10 µm: ×40.8 → 20
@@ -231,3 +228,22 @@ def test_truth_check_against_the_closed_form():
             assert tc["inside99"] and abs(tc["radial_z"]) < 3
         if offset is not e and offset is not calibrated:
             assert not tc["inside99"] and tc["chi2"] < 0.01 and abs(tc["radial_z"]) < 0.1
+
+
+def test_importing_and_plotting_leave_the_matplotlib_backend_alone(tmp_path):
+    """Issue #26: diagnostics switched every importer (a notebook) to Agg at import.  Under a
+    backend of the caller's choosing (here pdf), importing the module, drawing and saving a PNG
+    leave that backend in place."""
+    import subprocess
+    import sys
+
+    code = ("import matplotlib, numpy as np; from accel_bayes import diagnostics as dg; "
+            "from accel_bayes.physics.arrays import mimu4444_8; "
+            "b = matplotlib.get_backend(); "
+            "mom = {'imu': [1], 'mean': np.zeros((1, 3)), 'cov': np.eye(3)[None] * 1e-8}; "
+            f"dg.save_figure(dg.plot_ellipses(mom, mimu4444_8()), r'{tmp_path / 'e.png'}'); "
+            "print(b, matplotlib.get_backend())")
+    env = {**__import__("os").environ, "MPLBACKEND": "pdf"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split() == ["pdf", "pdf"], out.stdout + out.stderr
+    assert (tmp_path / "e.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
