@@ -37,6 +37,7 @@ with warnings.catch_warnings():
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse, Rectangle
 
+from .constants import RHAT_MAX
 from .errors import UserError
 from .data.outputs import save_figure
 
@@ -242,9 +243,8 @@ def convergence_warnings(rhat: float | None, ess_bulk: float | None, chains: int
     return out
 
 
-# Defaults of :func:`convergence_check` (Vehtari et al. 2021 §4: R̂ < 1.01, and bulk and tail ESS
-# > 100 per chain, i.e. 400 for the 4 default chains of ``calibrate``).
-RHAT_MAX = 1.01
+# Defaults of :func:`convergence_check` (Vehtari et al. 2021 §4: R̂ < 1.01 — RHAT_MAX, in
+# constants — and bulk and tail ESS > 100 per chain, i.e. 400 for the 4 default chains of ``calibrate``).
 ESS_MIN = 400.0
 
 
