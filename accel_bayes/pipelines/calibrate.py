@@ -1004,10 +1004,11 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
                                              covs=covs, diagnostics=diagnostics, provenance=provenance)
 
 
-def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True) -> dict:
+def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True, truth=None) -> dict:
     """Write ``posterior.nc``, ``summary.csv``, ``positions.json`` and (``plots``) trace.png,
     rank.png, autocorr.png, ellipses.png into ``out_dir``, each file atomically; returns
-    {name: path}.  The CLI passes the staging directory of an
+    {name: path}.  ``truth``: (K, 3) true positions relative to the reference, m, drawn in
+    ellipses.png where known (a simulation's).  The CLI passes the staging directory of an
     :class:`accel_bayes.data.outputs.OutputDir`, so that the files appear in ``--out`` as one set."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -1018,6 +1019,7 @@ def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True) -> 
     paths["summary"] = write_text(out / "summary.csv", result.summary.to_csv())
     paths["positions"] = _positions_mod.write_positions(result.positions, out / "positions.json")
     if plots and result.array is not None:
-        for q in dg.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std")):
+        for q in dg.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std"),
+                               truth=truth):
             paths[q.stem] = q
     return paths
