@@ -640,6 +640,7 @@ def plot_offsets(idata_or_moments, array, truth=None, level=(0.5, 0.95), prior_s
     if hasattr(array, "sensor_array") and not hasattr(array, "package_size"):
         array = array.sensor_array()
     from matplotlib.lines import Line2D
+    from matplotlib.ticker import MaxNLocator
 
     mom = _moments(idata_or_moments)
     levels = [float(level)] if np.isscalar(level) else [float(v) for v in level]
@@ -664,7 +665,7 @@ def plot_offsets(idata_or_moments, array, truth=None, level=(0.5, 0.95), prior_s
     n = len(rows)
     ncols = n if n <= 4 else 4 if n <= 8 else 6 if n <= 18 else 8
     nrows = -(-n // ncols)
-    fig, axes = _subplots(nrows, ncols, figsize=(2.7 * ncols + 0.4, 2.7 * nrows + 1.3), squeeze=False,
+    fig, axes = _subplots(nrows, ncols, figsize=(3.0 * ncols + 0.5, 3.2 * nrows + 1.4), squeeze=False,
                           sharex=True, sharey=True)
     styles = ["-", "--", ":", "-."]
     for a, (_, lab) in zip(axes.ravel(), rows):
@@ -675,17 +676,19 @@ def plot_offsets(idata_or_moments, array, truth=None, level=(0.5, 0.95), prior_s
         for lv, st in zip(levels, styles):
             _ellipse(a, m[:2], c[:2, :2], lv, color="C0", ls=st, lw=1.2)
         a.plot([m[0]], [m[1]], marker="o", ms=4, color="C0", ls="none")
-        title = f"IMU {lab}: Δz {m[2]:+.3f} ± {math.sqrt(max(c[2, 2], 0)):.3f}"
+        title = f"IMU {lab}\nΔz {m[2]:+.3f} ± {math.sqrt(max(c[2, 2], 0)):.3f}"
         if lab in t_off:
             t = t_off[lab]
             a.plot([t[0]], [t[1]], marker="x", ms=7, mew=1.8, color="C3", ls="none")
             title += f" (true {t[2]:+.3f})"
-        a.set_title(title, fontsize=8.5)
+        a.set_title(title, fontsize=9)
         a.set_xlim(-half, half)
         a.set_ylim(-half, half)
         a.set_aspect("equal")
         a.grid(True, lw=0.3)
         a.tick_params(labelsize=8)
+        for axis in (a.xaxis, a.yaxis):  # few ticks: the labels of narrow panels must not run together
+            axis.set_major_locator(MaxNLocator(nbins=4, symmetric=True))
     for a in axes.ravel()[n:]:
         a.set_visible(False)
     for a in axes[:, 0]:

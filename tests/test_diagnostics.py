@@ -276,7 +276,7 @@ def test_offsets_plot_is_readable_at_a_glance():
     fig = dg.plot_offsets(mom, arr, truth=truth, prior_std=3e-3)
     assert not _ink_on_the_border(fig)
     panels = [a for a in fig.axes if a.get_visible()]
-    assert len(panels) == 7 and [a.get_title().split(":")[0] for a in panels] == [f"IMU {k}" for k in range(1, 8)]
+    assert len(panels) == 7 and [a.get_title().split("\n")[0] for a in panels] == [f"IMU {k}" for k in range(1, 8)]
     assert "Δz +0.050 ± 0.010" in panels[0].get_title() and "(true +0.080)" in panels[0].get_title()
     ells = [p for p in panels[0].patches if isinstance(p, matplotlib.patches.Ellipse)]
     assert len(ells) == 2 and ells[0].center == pytest.approx((0.1, -0.2))  # offset from nominal, mm
