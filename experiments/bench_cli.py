@@ -21,7 +21,12 @@ checked (0 for help/version, 2 for the refusals) in both trees.  One line per ca
 
     RESULT cli_<case>: ours <x> s, 00ae2ff <y> s, speedup <r>x
 
+With ``--structure W1,W2``, it then runs ``bench_structure.py`` on those workloads against the same
+00ae2ff checkout (``--structure-reps`` runs each), to show the computing commands are not slower,
+and puts its output in the Markdown file too.
+
     python experiments/bench_cli.py [--reps 10] [--base DIR] [--md experiments/bench_cli.md]
+                                    [--structure lm_selfcal,map,likelihood --structure-reps 5]
 """
 from __future__ import annotations
 
@@ -102,6 +107,9 @@ def main(argv=None) -> int:
     ap.add_argument("--base", type=Path, default=None, help=f"a checkout of {BASE_COMMIT} (default: a git worktree "
                                                             f"{tempfile.gettempdir()}/accel_bayes_{BASE_COMMIT})")
     ap.add_argument("--md", type=Path, default=None, help="also write the results as Markdown to this file")
+    ap.add_argument("--structure", default="", metavar="W1,W2",
+                    help="also run bench_structure.py on these workloads against the same baseline (default: none)")
+    ap.add_argument("--structure-reps", type=int, default=5, help="bench_structure.py --reps (default 5)")
     args = ap.parse_args(argv)
     base = ensure_base(args.base)
     load0 = os.getloadavg()
@@ -127,13 +135,19 @@ def main(argv=None) -> int:
                   f"{', '.join(f'{t:.3f}' for t in t_base)} s (imports {', '.join(h_base) or 'none'})", flush=True)
     load1 = os.getloadavg()
     for name, _, mo, mb, *_ in rows:
-        print(f"RESULT cli_{name}: ours {mo:.3f} s, {BASE_COMMIT} {mb:.3f} s, speedup {mb / mo:.1f}x")
+        print(f"RESULT cli_{name}: ours {mo:.3f} s, {BASE_COMMIT} {mb:.3f} s, speedup {mb / mo:.1f}x", flush=True)
+    structure = None
+    if args.structure:
+        cmd = [sys.executable, str(REPO / "experiments" / "bench_structure.py"), "--base", str(base), "--base-commit",
+               BASE_COMMIT, "--only", args.structure, "--reps", str(args.structure_reps)]
+        structure = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, check=True).stdout
+        print(structure, end="", flush=True)
     if args.md is not None:
-        _write_md(args.md, rows, args.reps, base, started, load0, load1)
+        _write_md(args.md, rows, args.reps, base, started, load0, load1, structure, args)
     return 0
 
 
-def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1) -> None:
+def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, structure, args) -> None:
     sys.path.insert(0, str(REPO))
     from accel_bayes.data.outputs import write_text
 
@@ -142,7 +156,8 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1) ->
         "",
         "Regenerate (about a minute; run it when the machine is quiet):",
         "",
-        "    python experiments/bench_cli.py --md experiments/bench_cli.md",
+        "    python experiments/bench_cli.py --md experiments/bench_cli.md"
+        + (f" --structure {args.structure} --structure-reps {args.structure_reps}" if structure else ""),
         "",
         f"Measured {started:%Y-%m-%d %H:%M} UTC on `{platform.node()}` ({os.cpu_count()} cores, "
         f"Python {platform.python_version()}), shared with other developers' jobs: load average (1/5/15 min) "
@@ -172,6 +187,19 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1) ->
         "```",
         "",
     ]
+    if structure:
+        lines += [
+            "## The computing commands are not slower",
+            "",
+            f"`bench_structure.py` (workloads {args.structure}; median of {args.structure_reps} fresh processes per tree, "
+            "alternating, one thread; `speedup` = 00ae2ff / ours, the bar of issue #10 ≥ 0.95; `result max |diff|`: "
+            "the same work in both trees), run right after the table above:",
+            "",
+            "```",
+            *structure.strip().splitlines(),
+            "```",
+            "",
+        ]
     write_text(path, "\n".join(lines))
     print(f"wrote {path}")
 
