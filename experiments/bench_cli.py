@@ -154,7 +154,7 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, st
     lines = [
         "# Start-up of the command line, now against 00ae2ff (issue #26 item 5)",
         "",
-        "Regenerate (about a minute; run it when the machine is quiet):",
+        f"Regenerate ({(time.time() - started.timestamp()) / 60:.0f} min here; run it when the machine is quiet):",
         "",
         "    python experiments/bench_cli.py --md experiments/bench_cli.md"
         + (f" --structure {args.structure} --structure-reps {args.structure_reps}" if structure else ""),
@@ -193,7 +193,9 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, st
             "",
             f"`bench_structure.py` (workloads {args.structure}; median of {args.structure_reps} fresh processes per tree, "
             "alternating, one thread; `speedup` = 00ae2ff / ours, the bar of issue #10 ≥ 0.95; `result max |diff|`: "
-            "the same work in both trees), run right after the table above:",
+            "the same work in both trees), run right after the table above. On this shared machine the wall time of "
+            "the same work varies by tens of percent from run to run; the CPU-time ratio of each INFO line (process "
+            "time, less disturbed by other jobs) is the steadier comparison:",
             "",
             "```",
             *structure.strip().splitlines(),
