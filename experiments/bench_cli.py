@@ -147,6 +147,17 @@ def main(argv=None) -> int:
     return 0
 
 
+# the modules bench_structure's workloads time (the pipelines' plotting and I/O are not timed there)
+TIMED_CODE = ("accel_bayes/likelihood.py", "accel_bayes/inference", "accel_bayes/physics", "accel_bayes/simulate.py",
+              "accel_bayes/prep", "accel_bayes/threads.py")
+
+
+def _diffstat() -> list[str]:
+    out = subprocess.run(["git", "diff", "--stat", BASE_COMMIT, "--", *TIMED_CODE], cwd=REPO, capture_output=True,
+                         text=True, check=True).stdout
+    return [ln.rstrip() for ln in out.splitlines() if ln.strip()]
+
+
 def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, structure, args) -> None:
     sys.path.insert(0, str(REPO))
     from accel_bayes.data.outputs import write_text
@@ -195,7 +206,12 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, st
             "alternating, one thread; `speedup` = 00ae2ff / ours, the bar of issue #10 ≥ 0.95; `result max |diff|`: "
             "the same work in both trees), run right after the table above. On this shared machine the wall time of "
             "the same work varies by tens of percent from run to run; the CPU-time ratio of each INFO line (process "
-            "time, less disturbed by other jobs) is the steadier comparison:",
+            "time, less disturbed by other jobs) is the steadier comparison. What changed since 00ae2ff in the "
+            "modules these workloads run (`git diff --stat 00ae2ff -- " + " ".join(TIMED_CODE) + "`):",
+            "",
+            "```",
+            *(_diffstat() or ["(nothing)"]),
+            "```",
             "",
             "```",
             *structure.strip().splitlines(),
