@@ -6,59 +6,34 @@ exporters, output files), ``prep`` (intrinsics, sample selection, noise), ``simu
 ``likelihood``, ``inference`` (LM, MAP, CRB, self-calibration, PmMH), ``mismatch``,
 ``diagnostics``, ``pipelines`` (calibrate, map, selfcal, motion,
 intrinsics, demo: library functions) and ``cli`` (parsing and printing only).  DESIGN notes live in ``../shared/DESIGN.md``.
+
+Importing the package imports no numerical library: the public names below that need torch are
+loaded on first use (PEP 562), so that ``accel-bayes --help`` and every refusal of a bad argument
+answer without paying for torch (issue #26).
 """
-__version__ = "0.1.0"
+from .errors import RecordingError, UserError
 
-import importlib
-import importlib.abc
-import importlib.util
-import sys
-import warnings
+__version__ = "0.2.0"
 
-# Modules that moved into the sub-packages in 0.1 (issue #10).  Their old import paths keep
-# working for one release: ``import accel_bayes.io`` gives the very module object
-# ``accel_bayes.data.io`` (so monkeypatching, pickles and private names behave as before), with a
-# DeprecationWarning naming the new path.
-MOVED_MODULES = {
-    "geometry": "physics.geometry", "arrays": "physics.arrays", "motion": "physics.motion",
-    "models": "physics.models",
-    "recording": "data.recording", "io": "data.io", "validation": "data.validation", "mimu": "data.mimu",
-    "segments": "data.segments", "positions": "data.positions", "csv_import": "data.csv_import",
-    "export": "data.export", "outputs": "data.outputs",
-    "intrinsics": "prep.intrinsics", "preprocess": "prep.preprocess", "noise": "prep.noise",
-    "inference.pmmh": "inference.mcmc", "inference.priors": "inference.mcmc.priors",
-    "inference.damping": "inference.lm.damping", "inference.linear": "inference.lm.linear",
-    "inference.robust": "inference.lm.robust",
-    "calibrate": "pipelines.calibrate", "demo": "pipelines.demo", "motion_estimation": "inference.motion",
+# public name -> the module that defines it, imported on first access
+_LAZY = {
+    "Recording": "data.recording",
+    "SensorArray": "physics.arrays", "mimu4444_8": "physics.arrays", "mimu4444_32": "physics.arrays",
+    "preset": "physics.arrays", "s16_plate": "physics.arrays",
 }
 
-
-class _MovedModule(importlib.abc.MetaPathFinder, importlib.abc.Loader):
-    """Finds ``accel_bayes.<old>`` and returns the module at its new path."""
-
-    def find_spec(self, fullname, path=None, target=None):
-        head, _, old = fullname.partition(".")
-        if head != __name__ or old not in MOVED_MODULES:
-            return None
-        return importlib.util.spec_from_loader(fullname, self)
-
-    def create_module(self, spec):
-        old = spec.name.partition(".")[2]
-        new = f"{__name__}.{MOVED_MODULES[old]}"
-        warnings.warn(f"{spec.name} moved to {new}; the old path works for one release", DeprecationWarning,
-                      stacklevel=3)
-        module = importlib.import_module(new)
-        self._specs[new] = module.__spec__  # the import machinery stamps the alias spec on it next
-        return module
-
-    def exec_module(self, module):  # already executed under its new name: give it its own spec back
-        module.__spec__ = self._specs[module.__name__]
-
-    _specs: dict = {}
+__all__ = ["__version__", "RecordingError", "UserError", *_LAZY]
 
 
-sys.meta_path.append(_MovedModule())
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
 
-from .data.recording import Recording  # noqa: E402,F401
-from .errors import RecordingError, UserError  # noqa: E402,F401
-from .physics.arrays import SensorArray, mimu4444_8, mimu4444_32, preset, s16_plate  # noqa: E402,F401
+    value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

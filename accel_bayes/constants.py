@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["G0", "DEG_TO_RAD", "RAD_TO_DEG", "DEFAULT_PRIOR_STD"]
+__all__ = ["G0", "DEG_TO_RAD", "RAD_TO_DEG", "DEFAULT_PRIOR_STD", "DEFAULT_MIN_ROTATION", "DEFAULT_RATE_BINS",
+           "DEFAULT_THREADS", "RHAT_MAX"]
 
 G0 = 9.80665
 """Standard gravity, m/s² (also the MPU-9150 scale of the MIMU importer)."""
@@ -21,3 +22,22 @@ RAD_TO_DEG = 180.0 / math.pi
 DEFAULT_PRIOR_STD = 3e-3
 """m — the [C21] §IV-A Gaussian prior std of the positions, deliberately wider than the
 4 mm × 4 mm × 1 mm package (MAP, PmMH, mismatch refits)."""
+
+# The defaults below are the command line's too: kept here, with no numerical import, so that
+# ``accel-bayes calibrate --help`` shows them without importing torch (issue #26).  Their modules
+# (prep.selection, prep.noise, threads, diagnostics) re-export them.
+
+DEFAULT_MIN_ROTATION = 0.5
+"""rad/s (≈ 29 °/s) — |ω̄_t| below this marks a sample "without rotation": at 20 mm the centripetal
+term ω×(ω×r) is then < 0.25 % of g ([C21] §IV-C)."""
+
+DEFAULT_RATE_BINS = 1
+"""Gyro-rate bins of the estimated accelerometer noise model (1: one level per IMU)."""
+
+DEFAULT_THREADS = 1
+"""torch CPU threads of a fit: the tensors are small, and extra threads cost more than they give
+on a shared machine."""
+
+RHAT_MAX = 1.01
+"""R̂ threshold of :func:`accel_bayes.diagnostics.convergence_check` (Vehtari, Gelman, Simpson,
+Carpenter & Bürkner 2021, §4: R̂ < 1.01)."""

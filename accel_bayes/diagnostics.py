@@ -10,9 +10,10 @@ Every ArviZ call of the package lives in this module, so a move to ArviZ 1.x is 
   "converged": every coordinate with R̂ < 1.01 and bulk and tail ESS ≥ 400, thresholds
   adjustable; used by ``calibrate`` to decide when to stop and for its exit status),
   :func:`convergence_warnings` (the older max-R̂ / min-bulk-ESS form), :func:`format_stat`.
-* Plots (Agg backend, each returns a ``matplotlib.figure.Figure``): :func:`plot_trace`,
-  :func:`plot_rank`, :func:`plot_autocorr`, :func:`plot_ellipses` ([C21] Fig. 5) and
-  :func:`save_plots`.
+* Plots (each returns a ``matplotlib.figure.Figure`` made without pyplot, so that neither importing
+  this module nor plotting switches the caller's matplotlib backend; saved with Agg): :func:`plot_trace`,
+  :func:`plot_rank`, :func:`plot_autocorr`, :func:`plot_ellipses` ([C21] Fig. 5: the board),
+  :func:`plot_offsets` (each triad's offset from its nominal position) and :func:`save_plots`.
 * Model mismatch (last section): :func:`psis_loo`, :func:`compare_loo` and the mismatch
   report's figures (:func:`save_mismatch_figures`).
 
@@ -33,14 +34,12 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", FutureWarning)  # arviz 0.23 announces its 1.0 refactor
     import arviz as az
 
-import matplotlib
+from matplotlib.figure import Figure
+from matplotlib.patches import Ellipse, Rectangle
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
-
-from .errors import UserError  # noqa: E402
-from .data.outputs import save_figure  # noqa: E402
+from .constants import RHAT_MAX
+from .errors import UserError
+from .data.outputs import save_figure
 
 __all__ = [
     "truth_check",
@@ -61,6 +60,7 @@ __all__ = [
     "plot_rank",
     "plot_autocorr",
     "plot_ellipses",
+    "plot_offsets",
     "save_plots",
     "auto_exaggeration",
     "AXES",
@@ -244,9 +244,8 @@ def convergence_warnings(rhat: float | None, ess_bulk: float | None, chains: int
     return out
 
 
-# Defaults of :func:`convergence_check` (Vehtari et al. 2021 §4: R̂ < 1.01, and bulk and tail ESS
-# > 100 per chain, i.e. 400 for the 4 default chains of ``calibrate``).
-RHAT_MAX = 1.01
+# Defaults of :func:`convergence_check` (Vehtari et al. 2021 §4: R̂ < 1.01 — RHAT_MAX, in
+# constants — and bulk and tail ESS > 100 per chain, i.e. 400 for the 4 default chains of ``calibrate``).
 ESS_MIN = 400.0
 
 
@@ -438,6 +437,30 @@ def load(path):
 
 # ---------------------------------------------------------------------------- plots
 
+def _subplots(nrows=1, ncols=1, *, figsize, squeeze=True, layout="constrained", **kw):
+    """``plt.subplots`` without pyplot: the figure belongs to no backend and no pyplot registry
+    (nothing to close), and :func:`~accel_bayes.data.outputs.save_figure` renders it with Agg.
+    Constrained layout by default, so that no title or label is clipped or overlaps."""
+    fig = Figure(figsize=figsize, layout=layout)
+    return fig, fig.subplots(nrows, ncols, squeeze=squeeze, **kw)
+
+
+def _arviz_axes(idata, max_imus, ncols: int, row_height: float, *, trace: bool = False, **kw):
+    """The coordinates to plot, a grid of axes for them and its figure size (ArviZ would otherwise
+    make its figure with pyplot; it scales its fonts to the size): one axes per coordinate of r,
+    ``ncols`` per row, or for a trace plot one row of (density, trace) per coordinate.  Width
+    11 in; ``row_height`` in inches; ``kw`` to ``Figure.subplots`` (e.g. shared axes)."""
+    coords = _coords_subset(idata, max_imus)
+    n_imu = len(coords["imu"]) if coords else idata.posterior[VAR].sizes["imu"]
+    n = n_imu * idata.posterior[VAR].sizes["axis"]
+    rows, cols = (n, 2) if trace else (-(-n // ncols), ncols)
+    figsize = (11.0, row_height * rows + 0.8)
+    _, axes = _subplots(rows, cols, figsize=figsize, squeeze=False, **kw)
+    for a in axes.ravel()[n if not trace else axes.size:]:
+        a.set_visible(False)
+    return coords, axes, figsize
+
+
 def _coords_subset(idata, max_imus):
     labels = [int(k) for k in idata.posterior[VAR].coords["imu"].values]
     if max_imus is None or len(labels) <= max_imus:
@@ -456,8 +479,9 @@ def plot_trace(idata, max_imus: int | None = 2, **kwargs):
     ``max_imus`` free IMUs only (None: all)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        axes = az.plot_trace(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
-                             compact=False, show=False, **kwargs)
+        coords, axes, size = _arviz_axes(idata, max_imus, 2, 1.9, trace=True)
+        axes = az.plot_trace(_mm(idata), var_names=[VAR], coords=coords, compact=False, show=False, axes=axes,
+                             figsize=size, **kwargs)
     fig = np.ravel(axes)[0].figure
     fig.suptitle("PmMH trace, r relative to the reference triad [mm]")
     return fig
@@ -467,8 +491,8 @@ def plot_rank(idata, max_imus: int | None = 2, **kwargs):
     """Rank plots per coordinate (``az.plot_rank``): uniform bars when chains agree."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        axes = az.plot_rank(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
-                            show=False, **kwargs)
+        coords, axes, size = _arviz_axes(idata, max_imus, 3, 2.6)
+        axes = az.plot_rank(_mm(idata), var_names=[VAR], coords=coords, show=False, ax=axes, figsize=size, **kwargs)
     fig = np.ravel(axes)[0].figure
     return fig
 
@@ -477,8 +501,9 @@ def plot_autocorr(idata, max_imus: int | None = 2, **kwargs):
     """Autocorrelation per coordinate, chains combined (``az.plot_autocorr``), [C21] Fig. 3b."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        axes = az.plot_autocorr(_mm(idata), var_names=[VAR], coords=_coords_subset(idata, max_imus),
-                                combined=True, show=False, **kwargs)
+        coords, axes, size = _arviz_axes(idata, max_imus, 3, 2.4, sharex=True, sharey=True)  # as ArviZ shares them
+        axes = az.plot_autocorr(_mm(idata), var_names=[VAR], coords=coords, combined=True, show=False, ax=axes,
+                                figsize=size, **kwargs)
     fig = np.ravel(axes)[0].figure
     return fig
 
@@ -547,7 +572,7 @@ def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, l
     sides = [("top side", top), ("bottom side", ~top)]
     sides = [(nm, m) for nm, m in sides if m.any()]
     if ax is None:
-        fig, axes = plt.subplots(1, len(sides), figsize=(5.5 * len(sides), 5.5), squeeze=False)
+        fig, axes = _subplots(1, len(sides), figsize=(5.5 * len(sides), 5.5), squeeze=False)
         axes = list(axes[0])
     else:
         fig = ax.figure
@@ -577,7 +602,7 @@ def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, l
             a.plot([m[0]], [m[1]], marker=".", color=color, ls="none")
             for lv, st in zip(levels, styles):
                 _ellipse(a, m, cv, lv, color=color, ls=st, lw=1.0)
-        a.set_aspect("equal")
+        a.set_aspect("equal", adjustable="datalim")  # the panel fills its place: no title pushed off the figure
         scale = _board_scale(array)
         if scale:  # the board, not the (much wider) prior, sets the view
             sel = nominal[mask]
@@ -592,7 +617,98 @@ def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, l
                     + " ellipses" + (f" ({label})" if label else "")
                     + (f"\noffsets from nominal and ellipses ×{k_ex:g}" if k_ex != 1.0 else ""))
         a.grid(True, lw=0.3)
-    fig.tight_layout()
+    if ax is not None:  # the caller's figure; ours are laid out by constrained layout
+        fig.tight_layout()
+    return fig
+
+
+def plot_offsets(idata_or_moments, array, truth=None, level=(0.5, 0.95), prior_std=None):
+    """Each free triad's position as its offset from its nominal (design) position: one panel per
+    IMU, x–y in mm on axes shared by all panels (so ellipses compare at a glance), with the
+    posterior mean, its Gaussian ellipses at ``level`` and, where known, the truth; the z offset
+    (mean ± std, mm) in the panel's title; a legend; laid out so that nothing is clipped.
+
+    idata_or_moments, array : as :func:`plot_ellipses` (positions relative to the reference triad,
+        m; nominal positions from ``array``).
+    truth : (K, 3) true positions relative to the reference triad, m, one row per IMU label (a
+        simulation's), or None.
+    level : probability of the ellipses, a float or a sequence (solid, dashed, dotted, …).
+    prior_std : m — the prior's std, named in the title (its circles, millimetres wide, would
+        dwarf the panels).
+    Returns the Figure.
+    """
+    if hasattr(array, "sensor_array") and not hasattr(array, "package_size"):
+        array = array.sensor_array()
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import MaxNLocator
+
+    mom = _moments(idata_or_moments)
+    levels = [float(level)] if np.isscalar(level) else [float(v) for v in level]
+    for lv in levels:
+        if not 0.0 < lv < 1.0:
+            raise UserError(f"level: expected probabilities in (0, 1), got {lv}")
+    nominal = np.asarray(_np(array.positions), dtype=float)
+    ref = int(array.reference_imu)
+    rows = [(i, lab) for i, lab in enumerate(mom["imu"]) if lab < len(nominal) and lab != ref]
+    if not rows:
+        raise UserError("idata_or_moments: no free IMU of the array to plot")
+    tru = None if truth is None else np.asarray(_np(truth), dtype=float)
+    nom_rel = (nominal - nominal[ref]) * 1e3  # mm, relative to the reference like the posterior
+    off = {lab: mom["mean"][i] * 1e3 - nom_rel[lab] for i, lab in rows}
+    cov = {lab: mom["cov"][i] * 1e6 for i, lab in rows}
+    t_off = {lab: tru[lab] * 1e3 - nom_rel[lab] for _, lab in rows} if tru is not None else {}
+    k_out = math.sqrt(_chi2_2_quantile(max(levels)))
+    half = max(max(np.abs(off[lab][:2]).max() + k_out * math.sqrt(max(np.linalg.eigvalsh(cov[lab][:2, :2])[-1], 0))
+                   for _, lab in rows),
+               max((np.abs(t[:2]).max() for t in t_off.values()), default=0.0))
+    half = 1.15 * half if half > 0 else 1.0
+    n = len(rows)
+    ncols = n if n <= 4 else 4 if n <= 8 else 6 if n <= 18 else 8
+    nrows = -(-n // ncols)
+    fig, axes = _subplots(nrows, ncols, figsize=(3.0 * ncols + 0.5, 3.2 * nrows + 1.4), squeeze=False,
+                          sharex=True, sharey=True)
+    styles = ["-", "--", ":", "-."]
+    for a, (_, lab) in zip(axes.ravel(), rows):
+        m, c = off[lab], cov[lab]
+        a.axhline(0.0, color="0.8", lw=0.6)
+        a.axvline(0.0, color="0.8", lw=0.6)
+        a.plot([0.0], [0.0], marker="+", ms=9, color="k", ls="none")
+        for lv, st in zip(levels, styles):
+            _ellipse(a, m[:2], c[:2, :2], lv, color="C0", ls=st, lw=1.2)
+        a.plot([m[0]], [m[1]], marker="o", ms=4, color="C0", ls="none")
+        title = f"IMU {lab}\nΔz {m[2]:+.3f} ± {math.sqrt(max(c[2, 2], 0)):.3f}"
+        if lab in t_off:
+            t = t_off[lab]
+            a.plot([t[0]], [t[1]], marker="x", ms=7, mew=1.8, color="C3", ls="none")
+            title += f" (true {t[2]:+.3f})"
+        a.set_title(title, fontsize=9)
+        a.set_xlim(-half, half)
+        a.set_ylim(-half, half)
+        a.set_aspect("equal")
+        a.grid(True, lw=0.3)
+        a.tick_params(labelsize=8)
+        for axis in (a.xaxis, a.yaxis):  # few ticks: the labels of narrow panels must not run together
+            axis.set_major_locator(MaxNLocator(nbins=4, symmetric=True))
+    for a in axes.ravel()[n:]:
+        a.set_visible(False)
+    for a in axes[:, 0]:
+        a.set_ylabel("Δy [mm]")
+    for j in range(ncols):  # the lowest visible panel of each column carries the x label
+        col = [a for a in axes[:, j] if a.get_visible()]
+        if col:
+            col[-1].set_xlabel("Δx [mm]")
+            col[-1].xaxis.set_tick_params(labelbottom=True)
+    handles = [Line2D([], [], marker="+", ms=9, color="k", ls="none", label="nominal (design) position"),
+               Line2D([], [], marker="o", ms=4, color="C0", ls="none", label="posterior mean")]
+    handles += [Line2D([], [], color="C0", ls=st, lw=1.2, label=f"{int(round(lv * 100))} % ellipse")
+                for lv, st in zip(levels, styles)]
+    if t_off:
+        handles.append(Line2D([], [], marker="x", ms=7, mew=1.8, color="C3", ls="none", label="truth"))
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8.5, frameon=False)
+    sup = f"Triad positions relative to reference IMU {ref}: offset from the nominal position, mm (Δz in each title)"
+    if prior_std is not None:
+        sup += f"\nprior: Gaussian around the nominal position, std {float(prior_std) * 1e3:g} mm per axis"
+    fig.suptitle(sup, fontsize=10)
     return fig
 
 
@@ -642,25 +758,21 @@ def auto_exaggeration(idata_or_moments, array, fraction: float = 0.25) -> float:
     return float(max(s for s in steps if s <= want))
 
 
-def save_plots(idata, array, outdir, prior_std=None, max_imus: int | None = 2, dpi: int = 110) -> list[Path]:
-    """Write trace.png, rank.png, autocorr.png and ellipses.png (50 % and 95 %, offsets
-    exaggerated by :func:`auto_exaggeration`) to ``outdir``; returns their paths."""
+def save_plots(idata, array, outdir, prior_std=None, max_imus: int | None = 2, dpi: int = 110,
+               truth=None) -> list[Path]:
+    """Write trace.png, rank.png, autocorr.png and ellipses.png (:func:`plot_offsets`: each
+    triad's offset from its nominal position with its 50 % and 95 % ellipses, and ``truth`` —
+    (K, 3) m relative to the reference, a simulation's — where given) to ``outdir``; returns their
+    paths."""
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    k_ex = auto_exaggeration(idata, array)
     for name, fn in (("trace", lambda: plot_trace(idata, max_imus=max_imus)),
                      ("rank", lambda: plot_rank(idata, max_imus=max_imus)),
                      ("autocorr", lambda: plot_autocorr(idata, max_imus=max_imus)),
-                     # the prior is drawn only at true scale: exaggerated, it would cover the board
-                     ("ellipses", lambda: plot_ellipses(idata, array, level=(0.5, 0.95),
-                                                        prior_std=prior_std if k_ex == 1.0 else None,
-                                                        exaggerate=k_ex))):
-        fig = fn()
-        try:
-            paths.append(save_figure(fig, out / f"{name}.png", dpi=dpi))
-        finally:
-            plt.close(fig)
+                     ("ellipses", lambda: plot_offsets(idata, array, truth=truth, level=(0.5, 0.95),
+                                                       prior_std=prior_std))):
+        paths.append(save_figure(fn(), out / f"{name}.png", dpi=dpi))
     return paths
 
 
@@ -717,7 +829,7 @@ def plot_residual_heatmap(location, location_after=None, *, channels, K: int | N
     when given, refined.  ``location``: a :class:`accel_bayes.mismatch.locate.Location`."""
     K = location.heat.shape[0] if K is None else int(K)
     panels = _mismatch_panels(location, location_after)
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels) + 1, 0.35 * K + 2), squeeze=False)
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels) + 1, 0.35 * K + 2), squeeze=False)
     vmax = max(3.0, float(np.nanmax(np.abs(location.heat))))
     for ax, (title, loc) in zip(axes[0], panels):
         im = ax.imshow(loc.heat, cmap="RdBu_r", vmin=-vmax, vmax=vmax, aspect="auto")
@@ -733,7 +845,7 @@ def plot_residual_regimes(location, location_after=None):
     """χ²/n (all IMUs) per motion-regime bin, one panel per regime scheme (time last)."""
     panels = _mismatch_panels(location, location_after)
     schemes = [s for s in location.regimes if s != "time"] + ["time"]
-    fig, axes = plt.subplots(1, len(schemes), figsize=(3.3 * len(schemes), 3.4), squeeze=False)
+    fig, axes = _subplots(1, len(schemes), figsize=(3.3 * len(schemes), 3.4), squeeze=False)
     for ax, sch in zip(axes[0], schemes):
         for i, (title, loc) in enumerate(panels):
             rows = loc.regimes.get(sch, [])
@@ -745,7 +857,6 @@ def plot_residual_regimes(location, location_after=None):
         ax.set_title(sch, fontsize=9)
     axes[0][0].set_ylabel("χ²/n (all IMUs)")
     axes[0][-1].legend(fontsize=7)
-    fig.tight_layout()
     return fig
 
 
@@ -755,7 +866,7 @@ def plot_before_after(location, location_after, positions_baseline, positions_re
     panels = _mismatch_panels(location, location_after)
     pb = np.asarray(positions_baseline, dtype=np.float64)
     K = pb.shape[0]
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, (a1, a2) = _subplots(1, 2, figsize=(10, 3.6))
     for i, (title, loc) in enumerate(panels):
         rows = [r for r in loc.imus]
         lab = [f"{r['imu']}{r['sensor'][0]}" for r in rows]
@@ -771,7 +882,6 @@ def plot_before_after(location, location_after, positions_baseline, positions_re
     a2.set_xlabel("IMU")
     a2.set_ylabel("position change refined − baseline (µm)")
     a2.legend(fontsize=8)
-    fig.tight_layout()
     return fig
 
 
@@ -789,12 +899,8 @@ def save_mismatch_figures(out, location, location_after=None, *, channels, K: in
                      lambda: plot_before_after(location, location_after, positions_baseline, positions_refined)))
     paths = {}
     for key, name, fn in jobs:
-        fig = fn()
         p = out / name
-        try:
-            save_figure(fig, p, dpi=dpi, bbox_inches="tight")
-        finally:
-            plt.close(fig)
+        save_figure(fn(), p, dpi=dpi, bbox_inches="tight")
         paths[key] = p
     return paths
 
@@ -812,7 +918,7 @@ def plot_convergence(cost_log: list, n_constraints: dict, path, title: str = "")
     tot = np.array([e["F"] for e in cost_log]) / n_all
     tri = np.array([e["F_triad"] for e in cost_log]) / n_constraints["triad"]
     pro = np.array([e["F_process"] for e in cost_log]) / max(n_constraints["process"], 1)
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig, ax = _subplots(figsize=(6.4, 4.0))
     pos = lambda v: np.where(v > 0, v, np.nan)  # noqa: E731  (zero process cost at a zero-motion start)
     ax.semilogy(x, pos(tot), "k-", lw=2, label="F / all constraints")
     ax.semilogy(x, pos(tri), "C0--", label="triad part / triad constraints")
@@ -830,8 +936,4 @@ def plot_convergence(cost_log: list, n_constraints: dict, path, title: str = "")
     ax.set_title(title or "self-calibration convergence ([S16] Fig. 5)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    try:
-        return save_figure(fig, path, dpi=120)
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, dpi=120)

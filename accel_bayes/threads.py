@@ -13,11 +13,10 @@ import contextlib
 
 import torch
 
+from .constants import DEFAULT_THREADS
 from .errors import UserError
 
 __all__ = ["torch_threads", "DEFAULT_THREADS"]
-
-DEFAULT_THREADS = 1
 
 
 @contextlib.contextmanager

@@ -48,8 +48,8 @@ REPO = HERE.parent
 sys.path.insert(0, str(HERE))
 from bench_structure import BASE_COMMIT, ensure_base  # noqa: E402  (the one baseline worktree helper)
 
-# Runs in a fresh process with the tree under test first on PYTHONPATH; only names that exist at
-# 7adf109 and now (accel_bayes.calibrate is the old path, kept as an alias for one release).
+# Runs in a fresh process with the tree under test first on PYTHONPATH: calibrate from its 0.1 home,
+# or from its 7adf109 path where the tree predates it (the alias went in 0.2.0).
 WORKER = textwrap.dedent('''
     import json, sys, time, warnings
     warnings.simplefilter("ignore")
@@ -57,7 +57,10 @@ WORKER = textwrap.dedent('''
                         and "Editable" not in getattr(f, "__name__", "")]
     import numpy as np
     import arviz as az
-    from accel_bayes.calibrate import calibrate
+    try:
+        from accel_bayes.pipelines.calibrate import calibrate
+    except ImportError:  # 7adf109
+        from accel_bayes.calibrate import calibrate
     path, device = sys.argv[1], (sys.argv[2] if len(sys.argv) > 2 else None)
     t0 = time.perf_counter()
     res = calibrate(path, seed=0, progress=False, **({"device": device} if device else {}))

@@ -5,7 +5,7 @@ Figure of merit: bulk ESS per second of the *slowest* geometry coordinate (min o
 coordinates of θ of ArviZ's bulk ESS, divided by the wall time of the whole run: warm-up,
 adaptation and, for ours, the MAP and the choice of N — what a user waits for).
 
-* **ours** — :func:`accel_bayes.calibrate.calibrate` with the settings a user gets by default
+* **ours** — :func:`accel_bayes.pipelines.calibrate.calibrate` with the settings a user gets by default
   (4 chains × (1000 warm-up + 1000 draws), MAP-initialised mixture proposal, N chosen
   automatically), gyro posterior "calibrated" (the simulated gyros are).
 * **pyro_nuts** — what a Pyro user writes first: the full joint model with θ, ω_t, ω̇_t and s_t
@@ -86,7 +86,7 @@ def _ess_min(draws):
 def run_ours(rec, chains=4, draws=1000, warmup=1000, seed=0, **options):
     """calibrate() with its defaults (``options`` override them: the MAP ablation passes
     ``use_map=False, proposal="rw", init="prior"``)."""
-    from accel_bayes.calibrate import calibrate
+    from accel_bayes.pipelines.calibrate import calibrate
 
     t0 = time.perf_counter()
     res = calibrate(rec, chains=chains, draws=draws, warmup=warmup, seed=seed, gyro_method="calibrated",
@@ -201,7 +201,7 @@ def time_to_ess(rec, target=400.0, chains=4, warmup=1000, draws=4000, seed=0):
     ESS reaches the target, t_iter the measured time per PmMH iteration and setup the rest of the
     run (MAP, N choice, summaries).  Returns a dict (d* = None if ``draws`` was not enough).
     """
-    from accel_bayes.calibrate import calibrate
+    from accel_bayes.pipelines.calibrate import calibrate
 
     t0 = time.perf_counter()
     res = calibrate(rec, chains=chains, draws=draws, warmup=warmup, seed=seed, gyro_method="calibrated",

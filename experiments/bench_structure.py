@@ -29,7 +29,7 @@ Prints the median wall time over ``--reps`` runs (default 5) for each, the proce
 (positions, cost, log p̂) are compared too: the same inputs must give the same numbers to the
 solver tolerance, or the timing compares different work.
 
-    python experiments/bench_structure.py [--reps 5] [--base DIR] [--only lm_selfcal,map,...]
+    python experiments/bench_structure.py [--reps 5] [--base DIR] [--base-commit C] [--only lm_selfcal,map,...]
 """
 from __future__ import annotations
 
@@ -46,10 +46,11 @@ REPO = Path(__file__).resolve().parents[1]
 BASE_COMMIT = "7adf109"
 
 # Each workload prints one JSON line {"seconds": s, "value": [...]} and uses only names that exist
-# at 7adf109 and now (the old module paths stay importable for one release).
+# at 7adf109 and now, from their 0.1 homes or, in a tree that predates them, their 7adf109 paths
+# (_home; the aliases of the old paths went in 0.2.0).
 WORKLOADS = {
     "lm_selfcal": """
-        from accel_bayes.arrays import preset
+        preset = _home("physics.arrays", "arrays").preset
         from accel_bayes.simulate import simulate
         from accel_bayes.inference.selfcal import self_calibrate
         sim = simulate(preset("s16plate"), "table", T=675, rate=125.0, seed=3, acc_noise_std=0.02,
@@ -63,7 +64,7 @@ WORKLOADS = {
         value = res.positions.reshape(-1).tolist()
     """,
     "map": """
-        from accel_bayes.arrays import preset
+        preset = _home("physics.arrays", "arrays").preset
         from accel_bayes.simulate import simulate
         from accel_bayes.inference.map import fit_map_recording
         sim = simulate(preset("mimu8"), "smooth", T=600, seed=1)
@@ -76,7 +77,7 @@ WORKLOADS = {
     """,
     "likelihood": """
         import statistics
-        from accel_bayes.arrays import mimu4444_32
+        mimu4444_32 = _home("physics.arrays", "arrays").mimu4444_32
         from accel_bayes.simulate import simulate
         from accel_bayes.likelihood import RaoBlackwellLikelihood
         sim = simulate(mimu4444_32(), "iid", T=500, seed=0, position_error_std=0.0, acc_noise_std=0.04, clip=False)
@@ -95,9 +96,9 @@ WORKLOADS = {
         value = [float(lik.log_phat(pos, z=z))]
     """,
     "posterior": """
-        from accel_bayes.arrays import preset
+        preset = _home("physics.arrays", "arrays").preset
         from accel_bayes.simulate import simulate
-        from accel_bayes.calibrate import calibrate
+        calibrate = _home("pipelines.calibrate", "calibrate").calibrate
         sim = simulate(preset("mimu8"), "smooth", T=600, seed=1)
         kw = {"phi_prior": "flat"} if "phi_prior" in inspect.signature(calibrate).parameters else {}
         tic()
@@ -114,8 +115,14 @@ import json, sys, time, warnings
 warnings.simplefilter("ignore")
 # an editable install's finder would serve modules missing from the tree under test
 sys.meta_path[:] = [f for f in sys.meta_path if "Editable" not in type(f).__name__ and "Editable" not in getattr(f, "__name__", "")]
+import importlib
 import torch
 torch.set_num_threads(1)
+def _home(new, old):
+    try:
+        return importlib.import_module("accel_bayes." + new)
+    except ImportError:  # a tree before the 0.1 layout
+        return importlib.import_module("accel_bayes." + old)
 _clock = {}
 def tic():
     _clock["wall"], _clock["cpu"] = time.perf_counter(), time.process_time()
@@ -124,13 +131,13 @@ def toc():
 """
 
 
-def ensure_base(path: Path | None) -> Path:
+def ensure_base(path: Path | None, commit: str = BASE_COMMIT) -> Path:
     if path is not None:
         return path
-    path = REPO / "experiments" / "out" / f"base_{BASE_COMMIT}"
+    path = REPO / "experiments" / "out" / f"base_{commit}"
     if not (path / "accel_bayes").is_dir():
         path.parent.mkdir(parents=True, exist_ok=True)
-        subprocess.run(["git", "worktree", "add", "--detach", str(path), BASE_COMMIT], cwd=REPO, check=True,
+        subprocess.run(["git", "worktree", "add", "--detach", str(path), commit], cwd=REPO, check=True,
                        stdout=subprocess.DEVNULL)
     return path
 
@@ -150,13 +157,17 @@ def main(argv=None) -> int:
     ap.add_argument("--base", type=Path, default=None, help=f"a checkout of {BASE_COMMIT} (default: a git worktree "
                                                             "under experiments/out/)")
     ap.add_argument("--only", default=",".join(WORKLOADS), help="comma-separated workloads (default all)")
+    ap.add_argument("--base-commit", default=BASE_COMMIT,
+                    help=f"the baseline's commit, named in the output (default {BASE_COMMIT}; with --base, the commit "
+                         "that checkout holds)")
     args = ap.parse_args(argv)
-    base = ensure_base(args.base)
+    base = ensure_base(args.base, args.base_commit)
+    peer = args.base_commit
     names = [w for w in args.only.split(",") if w]
     for w in names:
         if w not in WORKLOADS:
             raise SystemExit(f"--only: unknown workload {w!r}; expected some of {', '.join(WORKLOADS)}")
-    print(f"ours: {REPO}   baseline: {base} ({BASE_COMMIT})   reps: {args.reps}   load: {os.getloadavg()[0]:.2f}")
+    print(f"ours: {REPO}   baseline: {base} ({peer})   reps: {args.reps}   load: {os.getloadavg()[0]:.2f}")
     for w in names:
         t_ours, t_base, c_ours, c_base, v_ours, v_base = [], [], [], [], None, None
         for _ in range(args.reps):
@@ -172,10 +183,10 @@ def main(argv=None) -> int:
         scale = max(abs(b) for b in v_base) if v_base else 1.0
         mo, mb = statistics.median(t_ours), statistics.median(t_base)
         print(f"INFO structure_{w}: ours {', '.join(f'{t:.3f}' for t in t_ours)} s; "
-              f"{BASE_COMMIT} {', '.join(f'{t:.3f}' for t in t_base)} s; result max |diff| {diff:.2e} "
+              f"{peer} {', '.join(f'{t:.3f}' for t in t_base)} s; result max |diff| {diff:.2e} "
               f"(relative {diff / scale:.1e}); CPU time medians: ours {statistics.median(c_ours):.4f} s, "
-              f"{BASE_COMMIT} {statistics.median(c_base):.4f} s, ratio {statistics.median(c_base) / statistics.median(c_ours):.3f}")
-        print(f"RESULT structure_{w}: ours {mo:.4f} s, {BASE_COMMIT} {mb:.4f} s, speedup {mb / mo:.3f}x")
+              f"{peer} {statistics.median(c_base):.4f} s, ratio {statistics.median(c_base) / statistics.median(c_ours):.3f}")
+        print(f"RESULT structure_{w}: ours {mo:.4f} s, {peer} {mb:.4f} s, speedup {mb / mo:.3f}x")
     return 0
 
 

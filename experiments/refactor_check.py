@@ -20,9 +20,10 @@ Outputs (each a small problem, seconds each):
 * ``conceal.*`` — the same on a recording of the independent generator
   (``experiments/_conceal.py``) hiding one ``time_offset``.
 
-Only public names that exist at 7adf109 and later are imported, by their 7adf109 paths (the
-later layout keeps them importable as aliases), so the same file runs against both.  Keep it so:
-a rewrite to the new paths would silently run today's modules in the baseline too.  For the
+Only public names that exist at 7adf109 and later are imported, by their 7adf109 paths, so the
+same file runs against both: 0.1 kept those paths as aliases, and in a tree that has dropped them
+(0.2.0) :func:`_bind_old_paths` binds each to its new home.  Keep it so: a rewrite to the new
+paths would silently run today's modules in the baseline too.  For the
 baseline, hide an editable install of today's checkout, whose import finder would otherwise
 serve modules missing from the old tree::
 
@@ -46,6 +47,22 @@ import numpy as np
 import torch
 
 DEG = math.pi / 180
+
+# the 7adf109 paths this file imports -> their homes since 0.1
+OLD_PATHS = {"arrays": "physics.arrays", "models": "physics.models", "motion": "physics.motion",
+             "geometry": "physics.geometry", "recording": "data.recording", "intrinsics": "prep.intrinsics",
+             "motion_estimation": "inference.motion"}
+
+
+def _bind_old_paths() -> None:
+    """In a tree without the 0.1 aliases, put each old path in ``sys.modules`` as its new module
+    (the tree's own module or alias wins wherever one exists)."""
+    import importlib
+    import importlib.util
+
+    for old, new in OLD_PATHS.items():
+        if importlib.util.find_spec(f"accel_bayes.{old}") is None:
+            sys.modules[f"accel_bayes.{old}"] = importlib.import_module(f"accel_bayes.{new}")
 
 
 def _np(x):
@@ -276,6 +293,7 @@ def main(argv=None) -> int:
     if not args.out:
         ap.error("give --out or --compare")
     torch.set_num_threads(1)
+    _bind_old_paths()
     out: dict = {}
     for name in args.only.split(","):
         t0 = time.perf_counter()

@@ -28,3 +28,10 @@ def test_demo_quick_runs_all_stages(tmp_path, capsys):
     rep = json.loads((out / "mismatch" / "report.json").read_text())
     assert rep["schema"] == "accel_bayes.mismatch/1"
     assert rep["mismatch_detected"] is False  # the demo data follow the model
+    # issue #26: the report's sentences are true of what the demo ran.  It used to blame a negative
+    # scale error on "the flat φ prior" although the posterior ran with the empirical one
+    phi = doc["provenance"]["settings"]["phi_prior"]["source"]
+    report = (out / "report.md").read_text(encoding="utf-8")
+    assert phi == "empirical_bayes" and "default empirical one" in report
+    assert "as the flat φ prior pulls it" not in report
+    assert "![ellipses](posterior/ellipses.png)" in report

@@ -107,7 +107,6 @@ def test_ellipse_geometry_matches_chi2():
     mom = {"imu": [1], "mean": np.array([[0.0, 0.0, -2e-3]]),
            "cov": np.array([[[4e-8, 0, 0], [0, 1e-8, 0], [0, 0, 1e-8]]])}
     fig = dg.plot_ellipses(mom, arr, level=(0.5, 0.95))
-    assert matplotlib.get_backend().lower() == "agg"
     ells = [p for ax in fig.axes for p in ax.patches if isinstance(p, matplotlib.patches.Ellipse)]
     assert len(ells) == 2
     widths = sorted(e.width for e in ells)
@@ -127,10 +126,8 @@ def test_plots_return_figures_and_files(tmp_path):
     for fn in (dg.plot_trace, dg.plot_rank, dg.plot_autocorr):
         fig = fn(idata, max_imus=1)
         assert isinstance(fig, matplotlib.figure.Figure)
-        matplotlib.pyplot.close(fig)
     fig = dg.plot_ellipses(idata, arr, prior_std=3e-3, exaggerate=5)
     assert "×5" in fig.axes[0].get_title()
-    matplotlib.pyplot.close(fig)
     # 95 % semi-axis of a 0.1 mm posterior ≈ 0.245 mm; a quarter of a 4 mm package wants ×4.1 → 2
     assert dg.auto_exaggeration(idata, arr) == 2.0
     tiny = {"imu": [1], "mean": np.zeros((1, 3)), "cov": np.eye(3)[None] * 1e-10}  # 10 µm: ×40.8 → 20
@@ -231,3 +228,67 @@ def test_truth_check_against_the_closed_form():
             assert tc["inside99"] and abs(tc["radial_z"]) < 3
         if offset is not e and offset is not calibrated:
             assert not tc["inside99"] and tc["chi2"] < 0.01 and abs(tc["radial_z"]) < 0.1
+
+
+def test_importing_and_plotting_leave_the_matplotlib_backend_alone(tmp_path):
+    """Issue #26: diagnostics switched every importer (a notebook) to Agg at import.  Under a
+    backend of the caller's choosing (here pdf), importing the module, drawing and saving a PNG
+    leave that backend in place."""
+    import subprocess
+    import sys
+
+    code = ("import matplotlib, numpy as np; from accel_bayes import diagnostics as dg; "
+            "from accel_bayes.physics.arrays import mimu4444_8; "
+            "b = matplotlib.get_backend(); "
+            "mom = {'imu': [1], 'mean': np.zeros((1, 3)), 'cov': np.eye(3)[None] * 1e-8}; "
+            f"dg.save_figure(dg.plot_ellipses(mom, mimu4444_8()), r'{tmp_path / 'e.png'}'); "
+            "print(b, matplotlib.get_backend())")
+    env = {**__import__("os").environ, "MPLBACKEND": "pdf"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split() == ["pdf", "pdf"], out.stdout + out.stderr
+    assert (tmp_path / "e.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _ink_on_the_border(fig) -> bool:
+    """Whether anything is drawn in the outermost 2 pixels of ``fig`` rendered: a title or a label
+    cut by the figure's edge leaves ink there; a figure laid out with margins does not."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    img = np.asarray(canvas.buffer_rgba())[..., :3]
+    border = np.concatenate([img[:2].reshape(-1, 3), img[-2:].reshape(-1, 3), img[:, :2].reshape(-1, 3),
+                             img[:, -2:].reshape(-1, 3)])
+    return bool((border < 250).any())
+
+
+def test_offsets_plot_is_readable_at_a_glance():
+    """Issue #26 item 6: the demo's ellipse figure had a clipped title, no legend and ellipses too
+    small to see against the board.  Now: one panel per free IMU, the offset from the nominal
+    position in mm (ellipses at their true size), the truth, a legend, no text outside the figure."""
+    arr = mimu4444_8()
+    nominal = arr.positions.numpy() - arr.positions.numpy()[0]
+    off = np.array([[1e-4, -2e-4, 5e-5]] * 7)  # m, each triad 0.1 mm in x, -0.2 mm in y from nominal
+    mom = {"imu": list(range(1, 8)), "mean": nominal[1:] + off,
+           "cov": np.array([np.diag([4e-10, 1e-10, 1e-10])] * 7)}  # std 20 µm in x, 10 µm in y, z
+    truth = nominal.copy()
+    truth[1:] += off + 3e-5
+    fig = dg.plot_offsets(mom, arr, truth=truth, prior_std=3e-3)
+    assert not _ink_on_the_border(fig)
+    panels = [a for a in fig.axes if a.get_visible()]
+    assert len(panels) == 7 and [a.get_title().split("\n")[0] for a in panels] == [f"IMU {k}" for k in range(1, 8)]
+    assert "Δz +0.050 ± 0.010" in panels[0].get_title() and "(true +0.080)" in panels[0].get_title()
+    ells = [p for p in panels[0].patches if isinstance(p, matplotlib.patches.Ellipse)]
+    assert len(ells) == 2 and ells[0].center == pytest.approx((0.1, -0.2))  # offset from nominal, mm
+    assert sorted(e.width for e in ells)[0] == pytest.approx(2 * math.sqrt(scipy.stats.chi2.ppf(0.5, 2)) * 0.02)
+    assert panels[0].get_xlim()[1] < 0.5  # the axes fit the offsets, not the 40 mm board
+    legend = [t.get_text() for lg in fig.legends for t in lg.get_texts()]
+    assert legend == ["nominal (design) position", "posterior mean", "50 % ellipse", "95 % ellipse", "truth"]
+    assert "3 mm" in fig.get_suptitle()
+
+
+def test_the_board_view_with_a_title_is_clipped_no_more():
+    """The board view ([C21] Fig. 5, kept for studies) under constrained layout: its two-line titles fit."""
+    arr = mimu4444_8()
+    mom = {"imu": [1], "mean": np.array([[0.0, 0.0, -2e-3]]), "cov": np.eye(3)[None] * 1e-8}
+    assert not _ink_on_the_border(dg.plot_ellipses(mom, arr, exaggerate=5))

@@ -1,9 +1,6 @@
 """The pieces of the PmMH package (accel_bayes.inference.mcmc), each alone: the step-size and
-covariance adapters, the proposals and their mixture, the kernel's checkpoint state (format 1),
-and the old import paths."""
-import importlib
+covariance adapters, the proposals and their mixture, the kernel's checkpoint state (format 1)."""
 import math
-import sys
 
 import pytest
 import torch
@@ -102,15 +99,3 @@ def test_kernel_state_keys_are_those_of_checkpoint_format_1():
     k = _kernels()["adapted"]()
     k.setup(200)
     assert set(k.state_dict()) == set(old["kernel"])
-
-
-@pytest.mark.parametrize("old,new", [("inference.pmmh", "inference.mcmc"),
-                                     ("inference.priors", "inference.mcmc.priors"),
-                                     ("inference.damping", "inference.lm.damping"),
-                                     ("inference.linear", "inference.lm.linear"),
-                                     ("inference.robust", "inference.lm.robust")])
-def test_old_inference_paths_are_aliases(old, new, monkeypatch):
-    monkeypatch.delitem(sys.modules, f"accel_bayes.{old}", raising=False)  # warn even if imported before
-    with pytest.warns(DeprecationWarning, match=f"accel_bayes.{new}"):
-        mod = importlib.import_module(f"accel_bayes.{old}")
-    assert mod is importlib.import_module(f"accel_bayes.{new}")

@@ -424,22 +424,6 @@ def test_mismatch_prepares_a_recording_with_rests_as_calibrate_does():
     np.testing.assert_array_equal(p.time.numpy(), rec.time[pre.keep])
 
 
-def test_refine_is_a_deprecated_reexport():
-    import importlib
-    import sys
-
-    import accel_bayes.mismatch as mm
-
-    sys.modules.pop("accel_bayes.mismatch.refine", None)
-    with pytest.warns(DeprecationWarning, match="refine is deprecated"):
-        old = importlib.import_module("accel_bayes.mismatch.refine")
-    from accel_bayes.mismatch.compare import elpd_loo
-    from accel_bayes.mismatch.transfer import heldout_fit
-
-    assert old.prepare is mm.prepare and old.fit_model is mm.fit_model and old.ModelFit is mm.ModelFit
-    assert old.heldout_fit is heldout_fit and old.elpd_loo is elpd_loo
-
-
 def test_corrected_recording_of_the_whole_prepared_recording(disp_report):
     """posterior=True reruns calibrate on the whole prepared recording (rests included, so the
     calibration keeps its protocol): only the fitted samples are corrected."""

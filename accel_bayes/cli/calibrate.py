@@ -32,9 +32,12 @@ import sys
 from . import _options as opt
 from ._status import EXIT_OK, untrusted
 
+# prep.preprocess.INTRINSICS_MODES, written out so that parsing imports no torch (a test keeps them equal)
+INTRINSICS_MODES = ("auto", "estimate", "none")
+
 
 def register(sub) -> None:
-    from ..pipelines.calibrate import DEFAULTS
+    from ..pipelines.calibrate_defaults import DEFAULTS
     from ..data.outputs import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
@@ -164,12 +167,20 @@ def _correlation(s: str):
 
 
 def _run(args) -> int:
-    from ..pipelines.calibrate import calibrate, write_outputs
     from ..data.outputs import OutputDir
+    from ..data.paths import require_file
 
+    # inputs and output target before the pipeline (and torch) is imported: refusals answer at once
+    require_file(args.recording, "recording file")
+    if args.intrinsics not in INTRINSICS_MODES:
+        require_file(args.intrinsics, "intrinsics file (JSON)", flag="--intrinsics")
+    if args.model is not None:
+        require_file(args.model, "mismatch report (JSON)", flag="--model")
     # the checkpoint lives in DIR itself (a killed run keeps it) and joins the committed set
     out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",),
                     inputs=(args.recording, args.intrinsics, args.model)).open()
+    from ..pipelines.calibrate import calibrate, write_outputs
+
     ckpt = None
     if args.checkpoint_every or args.resume:
         ckpt = out.ensure_target() / "checkpoint.pt"

@@ -27,8 +27,11 @@ def _run(args) -> int:
     import json
     from pathlib import Path
 
-    from ..pipelines.demo import run_demo
+    from ..data.outputs import OutputDir
     from ._status import EXIT_OK, untrusted
+
+    OutputDir(args.out, overwrite=args.overwrite).check()  # refused before torch is imported; run_demo opens it
+    from ..pipelines.demo import run_demo
 
     report = run_demo(args.out, quick=args.quick, progress=not args.no_progress, seed=args.seed,
                       overwrite=args.overwrite)

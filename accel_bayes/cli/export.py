@@ -38,15 +38,16 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..data.export import export_imu_chain
     from ..data.outputs import OutputFile
+    from ..data.paths import require_file
 
     out = Path(args.output)
     for flag, path in (("REC", args.recording), ("--positions", args.positions), ("--intrinsics", args.intrinsics),
                        ("--mismatch", args.mismatch)):
-        if path is not None and not Path(path).is_file():
-            raise FileNotFoundError(f"{flag}: {path}: no such file")
+        if path is not None:
+            require_file(path, "file", flag=flag)
     target = OutputFile(out, overwrite=args.overwrite).open()
+    from ..data.export import export_imu_chain  # torch: after every refusal the file system decides
     export_imu_chain(args.recording, args.positions, out, intrinsics=args.intrinsics, report=args.mismatch,
                      fmt=args.format, overwrite=args.overwrite)
     target.commit()

@@ -46,16 +46,17 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..data.csv_import import import_csv, write_imported
     from ..data.outputs import OutputFile
+    from ..data.paths import require_file
 
-    src, arr, out = Path(args.source), Path(args.array), Path(args.output)
-    # The inputs first: a wrong input path is the likelier mistake than an existing output.
-    if not src.exists():
-        raise FileNotFoundError(f"{src}: no such CSV file or ASL folder")
-    if not arr.is_file():
-        raise FileNotFoundError(f"--array: {arr}: no such array description file (TOML)")
+    # The inputs first: a wrong input path is the likelier mistake than an existing output; all
+    # before torch is imported.
+    src = require_file(args.source, "CSV file or ASL folder", directory_ok=True)
+    arr = require_file(args.array, "array description file (TOML)", flag="--array")
+    out = Path(args.output)
     target = OutputFile(out, overwrite=args.overwrite).open()
+    from ..data.csv_import import import_csv, write_imported
+
     result = import_csv(src, arr, time_tolerance=args.time_tolerance, noise=args.noise, tol_deg=args.tol_deg,
                         min_duration_s=args.min_static_s)
     write_imported(result, out, overwrite=args.overwrite)  # validates (DESIGN §7.1) before writing

@@ -36,17 +36,16 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from ..data.outputs import OutputFile
+    from ..data.paths import require_file
+
+    # The input first: a wrong input path is the likelier mistake than an existing output; both
+    # before torch is imported.
+    src, out = require_file(args.data, "MIMU stream file (.bin or .bin.gz)"), Path(args.output)
+    target = OutputFile(out, overwrite=args.overwrite).open()
     from ..data.io import write_recording
     from ..data.mimu import import_mimu
-    from ..data.outputs import OutputFile
 
-    src, out = Path(args.data), Path(args.output)
-    # The input first: a wrong input path is the likelier mistake than an existing output.
-    if src.is_dir():
-        raise IsADirectoryError(f"{src}: is a directory; expected a MIMU stream file (.bin or .bin.gz)")
-    if not src.exists():
-        raise FileNotFoundError(f"{src}: no such MIMU stream file")
-    target = OutputFile(out, overwrite=args.overwrite).open()
     rec, report, _ = import_mimu(
         src, max_fail_fraction=args.max_fail_fraction, tol_deg=args.tol_deg,
         min_duration_s=args.min_static_s, return_report=True,

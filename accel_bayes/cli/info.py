@@ -30,6 +30,9 @@ def _us(x: float) -> str:
 
 
 def _run(args) -> int:
+    from ..data.paths import require_file
+
+    require_file(args.recording, "recording file")  # before torch is imported
     from ..data.io import load_recording
     from ..data.summary import gyro_range_deg_s, std_text, summarize
 

@@ -35,12 +35,15 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from ..data.outputs import OutputFile
-    from ..pipelines.intrinsics import intrinsics, write_outputs
+    from ..data.paths import require_file
 
-    src, out = Path(args.recording), Path(args.output)
+    # the input, then the targets, before torch is imported
+    src, out = require_file(args.recording, "recording file"), Path(args.output)
     targets = [OutputFile(out, overwrite=args.overwrite).open()]
     if args.apply_to:
         targets.append(OutputFile(args.apply_to, overwrite=args.overwrite, flag="--apply-to").open())
+    from ..pipelines.intrinsics import intrinsics, write_outputs
+
     run = intrinsics(src, g=args.g)
     write_outputs(run, out, apply_to=args.apply_to, overwrite=args.overwrite)
     intr = run.intrinsics

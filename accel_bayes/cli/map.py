@@ -44,13 +44,17 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from ..data.io import load_recording
     from ..data.outputs import OutputDir
-    from ..pipelines.map import map_positions, write_outputs
+    from ..data.paths import require_file
     from ._status import EXIT_OK, untrusted
 
-    rec = load_recording(args.recording)  # the input first: a wrong path is the likelier mistake
+    # the input first (a wrong path is the likelier mistake), then the target, then torch
+    require_file(args.recording, "recording file")
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
+    from ..data.io import load_recording
+    from ..pipelines.map import map_positions, write_outputs
+
+    rec = load_recording(args.recording)
     run = map_positions(rec, gyro_method=args.gyro_method, prior_std=args.prior_std, select=args.select,
                         drop_clipped=not args.keep_clipped, max_iter=args.max_iter, progress=not args.no_progress,
                         phi_prior=args.phi_prior)

@@ -17,15 +17,14 @@ from . import _options as opt
 
 def register(subparsers) -> None:
     from ..data.outputs import OVERWRITE_DIR_HELP
-    from ..physics.effects import VOCABULARY
 
     p = subparsers.add_parser(
         "mismatch",
         help="find where the model and a recording disagree, name the missing physics, refit",
         description="Fit the nominal array model, locate residual excess (IMU, axis, motion regime), test every "
-        "candidate effect of the vocabulary (" + ", ".join(v for v in VOCABULARY if v != "unexplained")
-        + ") by its likelihood-ratio evidence against a Bonferroni threshold, add the supported ones, refit and "
-        "compare. Writes DIR/report.json (accel_bayes.mismatch/1) and DIR/report.md with figures.",
+        "candidate effect of vocabulary v1.1 (DESIGN §7.2; --effects names a subset, an unknown name is refused with the list) by "
+        "its likelihood-ratio evidence against a Bonferroni threshold, add the supported ones, refit and compare. Writes DIR/report.json "
+        "(accel_bayes.mismatch/1) and DIR/report.md with figures.",
     )
     p.add_argument("recording", metavar="REC", help="recording file (NetCDF format v1, with gyroscope data)")
     p.add_argument("--out", required=True, metavar="DIR",
@@ -52,10 +51,13 @@ def run(args) -> int:
         effects = [e.strip() for e in args.effects.split(",") if e.strip()]
         if not effects:
             raise UserError("--effects: expected a comma-separated list of effect names")
-    from ..mismatch import detect
     from ..data.outputs import OutputDir
+    from ..data.paths import require_file
 
+    require_file(args.recording, "recording file")  # input and target before torch is imported
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
+    from ..mismatch import detect
+
     report = detect(args.recording, effects=effects, alpha=args.alpha, max_findings=args.max_findings,
                     refine=not args.no_refine, posterior=args.posterior, seed=args.seed, progress=args.progress,
                     n_twins=args.twins)

@@ -43,13 +43,17 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from ..data.outputs import OutputFile
-    from ..pipelines.motion import motion, write_outputs
+    from ..data.paths import require_file
 
+    # the inputs, then the target, before torch is imported
+    require_file(args.recording, "recording file")
+    cal = require_file(args.calibration, "calibration file", flag="--calibration")
+    if args.intrinsics is not None:
+        require_file(args.intrinsics, "intrinsics file (JSON)", flag="--intrinsics")
     out = Path(args.output)
     target = OutputFile(out, overwrite=args.overwrite).open()
-    cal = Path(args.calibration)
-    if not cal.exists():
-        raise FileNotFoundError(f"{cal}: no such calibration file")
+    from ..pipelines.motion import motion, write_outputs
+
     run = motion(Path(args.recording), cal, intrinsics=args.intrinsics, draws=args.draws, seed=args.seed,
                  geometry=args.geometry, acc_noise_std=args.acc_noise_std, gyro_noise_std=args.gyro_noise_std)
     write_outputs(run, out, overwrite=args.overwrite)

@@ -75,13 +75,19 @@ def _fail(msg: str) -> int:
 
 
 def _run(args) -> int:
-    from ..data.io import load_recording
     from ..data.outputs import OutputDir
+    from ..data.paths import require_file
+
+    # what the file system decides, before torch is imported: the input is there, the target usable
+    require_file(args.recording, "recording file")
+    target = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,))
+    target.check()
+    from ..data.io import load_recording
     from ..pipelines.selfcal import prepare, selfcal, write_outputs
 
     loaded = load_recording(args.recording)
     inp = prepare(loaded, fixed=args.fixed, drop_clipped=args.drop_clipped)  # bad input is refused before the output is touched
-    out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
+    out = target.open()
     run = selfcal(inp, max_iter=args.max_iter, rerun=not args.no_rerun, seed=args.seed, progress=not args.no_progress,
                   process_noise=args.process_noise)
     res = run.result

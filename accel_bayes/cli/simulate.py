@@ -58,9 +58,8 @@ def _physical_memory() -> int | None:
 
 
 def _check(args) -> None:
-    """Checks that involve more than one option (single values are checked by their type=)."""
-    if args.omega_rms is not None and args.motion != "smooth":
-        raise UserError(f"--omega-rms: applies to --motion smooth only, got --motion {args.motion}")
+    """The memory check of -T against the preset's size (single values are checked by their type=;
+    this one needs the preset, so it runs after the output check)."""
     from ..physics.arrays import preset
     from ..simulate import BYTES_PER_IMU_SAMPLE, memory_estimate
 
@@ -75,13 +74,16 @@ def _check(args) -> None:
 
 
 def run(args) -> int:
+    from ..data.outputs import OutputFile
+    from ..data.paths import truth_path
+
+    # what the arguments and the file system decide comes before torch is imported
+    if args.omega_rms is not None and args.motion != "smooth":
+        raise UserError(f"--omega-rms: applies to --motion smooth only, got --motion {args.motion}")
+    out = Path(args.output)
+    target = OutputFile(out, overwrite=args.overwrite, also=(truth_path(out),)).open()
     _check(args)
     from ..data import io
-    from ..data.outputs import OutputFile
-
-    out = Path(args.output)
-    target = OutputFile(out, overwrite=args.overwrite, also=(io.truth_path(out),)).open()
-
     from ..physics.arrays import preset
     from ..simulate import motion_rms, simulate
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from . import outputs
 from .outputs import to_jsonable
+from .paths import require_file, truth_path
 from ..constants import DEG_TO_RAD
 from ..errors import RecordingError, UserError
 from .recording import Recording
@@ -307,11 +308,7 @@ def read_recording(path, *, require_gyro: bool = False, check_gyro_units: bool =
     """
     import xarray as xr
 
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such recording file")
-    if path.is_dir():
-        raise IsADirectoryError(f"{path}: is a directory; expected a recording file (.nc)")
+    path = require_file(path, "recording file")
     try:
         ds = xr.open_dataset(path, engine=ENGINE, decode_times=False, decode_timedelta=False)
     except Exception as exc:  # h5py/h5netcdf raise OSError, ValueError, KeyError… for foreign bytes
@@ -368,11 +365,7 @@ def load_recording(source, *, require_gyro: bool = False, streams: bool = False)
     if not isinstance(source, (str, bytes)) and not hasattr(source, "__fspath__"):
         raise UserError(f"recording: expected a Recording or a file path, got {type(source).__name__}")
     if streams:
-        path = Path(source)
-        if path.is_dir():
-            raise IsADirectoryError(f"{path}: is a directory; expected a recording file")
-        if not path.exists():
-            raise FileNotFoundError(f"{path}: no such recording file")
+        path = require_file(source, "recording file")
         with open(path, "rb") as f:
             head = f.read(8)
         if not (head.startswith(b"\x89HDF") or path.suffix == ".nc"):
@@ -380,11 +373,6 @@ def load_recording(source, *, require_gyro: bool = False, streams: bool = False)
 
             return LoadedRecording(import_mimu(path), source)
     return LoadedRecording(read_recording(source, require_gyro=require_gyro), source)
-
-
-def truth_path(rec_path) -> Path:
-    """The ground-truth sidecar of a recording: ``rec.nc`` → ``rec.truth.json``."""
-    return Path(rec_path).with_suffix(".truth.json")
 
 
 def write_truth(rec_path, truth: dict, *, overwrite: bool = True) -> Path:

@@ -1,7 +1,8 @@
 """Model-mismatch discovery (DESIGN §1, §2 "mismatch", §7.2): find where a recording disagrees
 with the nominal array model, name the physics the model left out, add it, refit, compare.
 
-* :mod:`.effects` — the effects library (one class per physical effect, vocabulary v1.1);
+* :mod:`accel_bayes.physics.effects` — the effects library (one class per physical effect,
+  vocabulary v1.1), re-exported here;
 * :mod:`.locate` — standardized residuals, excess per IMU/axis/regime, posterior predictive check;
 * :mod:`.detect` — :func:`detect`, the public entry point (screen → refit → rank → threshold);
 * :mod:`.prepared` — the recording prepared as the calibration prepares it (intrinsics, THE
@@ -9,7 +10,6 @@ with the nominal array model, name the physics the model left out, add it, refit
 * :mod:`.model` — the augmented model and its linear algebra; :mod:`.fit` — fitting it jointly
   with geometry and motion; :mod:`.compare` — before/after comparison (χ²/dof, log-likelihood,
   ELPD by PSIS-LOO); :mod:`.transfer` — held-out transfer of effects to another recording;
-  (:mod:`.refine` — deprecated re-export of those);
 * :mod:`.budget` — the residual budget (excess variance per sensor and motion regime, observed
   and explained; vocabulary 1.1);
 * :mod:`.jitter` — random effects (``sampling_jitter``): the exact marginal likelihood at a

@@ -48,63 +48,21 @@ from ..data import positions as _positions_mod
 from ..errors import UserError
 from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh, \
     run_pmmh_until
-from ..inference.mcmc.priors import DEFAULT_PRIOR_STD, BoxPrior, GaussianPrior
-from ..likelihood import DEFAULT_MIN_ROTATION, GyroPosterior, RaoBlackwellLikelihood, choose_correlation, \
+from ..inference.mcmc.priors import BoxPrior, GaussianPrior
+from ..likelihood import GyroPosterior, RaoBlackwellLikelihood, choose_correlation, \
     choose_num_draws, \
     positions_from_theta
-from ..prep.noise import DEFAULT_RATE_BINS, NOISE_MODES
+from ..prep.noise import NOISE_MODES
 from ..prep.phi_prior import PHI_PRIOR_CHOICES, PhiPrior, empirical_phi_prior
-from ..threads import DEFAULT_THREADS, torch_threads
+from ..threads import torch_threads
+from .calibrate_defaults import DEFAULTS
 from ..data.outputs import to_jsonable, write_text
 from ..prep.preprocess import preprocess
 from ..data.io import load_recording
 
 __all__ = ["calibrate", "CalibrationResult", "write_outputs", "positions_document", "DEFAULTS"]
 
-# Defaults.  Measured on the shared 2-core machine under heavy load (load average ≈ 15): a 32-IMU,
-# T = 3000 simulated recording took 570 s in all (MAP, N choice, 4 × 2000 iterations, outputs);
-# 8 IMUs at T = 1000 and 32 IMUs at T = 500 took 2.5–7 min.  With MAP-centred independence moves
-# (independence_prob 0.8) 4 × 1000 draws gave R̂ ≤ 1.02 and bulk ESS ≥ 340 on those cases, where
-# the random walk alone gave R̂ > 1.8 (21 and 93 coordinates: O(d) steps per independent draw).
-# Real MIMU4444 recording (exp_1, T ≈ 5900 selected samples, estimated noise, N = 1): the whole
-# pipeline took 3.5–4 min wall (≈ 2 min CPU) with R̂ ≤ 1.004 and bulk ESS ≥ 1600.
-#
-# Length of the chains (issue #15): ``draws`` None runs until converged — every coordinate with
-# R̂ < rhat_max and bulk and tail ESS ≥ ess_min (Vehtari et al. 2021: 1.01, and 100 per chain, i.e.
-# 400 for the 4 chains), checked every ``check_every`` kept draws per chain (a fixed count, never wall
-# time, so where a run stops does not depend on the machine), up to ``max_draws`` per chain
-# (20 000: 20× the 1000 that sufficed in the cases above; 4 × 21 000 iterations at the ≈ 30 ms per
-# iteration measured for 8 IMUs, T = 600 on the loaded 2-core machine is ≈ 40 min) and
-# ``max_seconds`` of sampling (3600 s, a safety stop above that; a run that hits it has a
-# machine-dependent length and is reported as such).  An int ``draws`` runs exactly that many, as
-# before.  The demo board (mimu4444_8, smooth, T = 600, seed 1) converged at the first check, 500
-# draws per chain.
-DEFAULTS = {
-    "chains": 4,
-    "draws": None,
-    "warmup": 1000,
-    "max_draws": 20_000,
-    "check_every": 500,
-    "rhat_max": dg.RHAT_MAX,
-    "ess_min": None,  # None: 100 per chain (dg.ESS_PER_CHAIN), 400 for the 4 chains
-    "max_seconds": 3600.0,
-    "prior": "gaussian",
-    "prior_std": DEFAULT_PRIOR_STD,
-    "gyro_method": "auto",
-    "target_accept_prob": 0.15,
-    "independence_prob": 0.8,
-    "correlation": "auto",
-    "start_overdispersion": 1.5,
-    "drop_clipped": True,
-    "intrinsics": "auto",
-    "drop_static": True,
-    "min_rotation": DEFAULT_MIN_ROTATION,
-    "noise": "auto",
-    "noise_bins": DEFAULT_RATE_BINS,
-    "noise_inflation": None,  # None: True without a model, False with one
-    "phi_prior": "empirical",
-    "threads": DEFAULT_THREADS,
-}
+# Defaults: pipelines/calibrate_defaults.py (torch-free: the command line's --help shows them).
 
 # Upper bound on N·T when N is chosen automatically: one estimate then costs at most ~0.1 s here.
 # Far from the posterior (e.g. at the prior mean of a long recording) Var[log p̂] can need a huge
@@ -1046,10 +1004,11 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
                                              covs=covs, diagnostics=diagnostics, provenance=provenance)
 
 
-def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True) -> dict:
+def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True, truth=None) -> dict:
     """Write ``posterior.nc``, ``summary.csv``, ``positions.json`` and (``plots``) trace.png,
     rank.png, autocorr.png, ellipses.png into ``out_dir``, each file atomically; returns
-    {name: path}.  The CLI passes the staging directory of an
+    {name: path}.  ``truth``: (K, 3) true positions relative to the reference, m, drawn in
+    ellipses.png where known (a simulation's).  The CLI passes the staging directory of an
     :class:`accel_bayes.data.outputs.OutputDir`, so that the files appear in ``--out`` as one set."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -1060,6 +1019,7 @@ def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True) -> 
     paths["summary"] = write_text(out / "summary.csv", result.summary.to_csv())
     paths["positions"] = _positions_mod.write_positions(result.positions, out / "positions.json")
     if plots and result.array is not None:
-        for q in dg.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std")):
+        for q in dg.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std"),
+                               truth=truth):
             paths[q.stem] = q
     return paths

@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..constants import DEFAULT_PRIOR_STD
+from ..constants import DEFAULT_PRIOR_STD, DEFAULT_RATE_BINS
 from ..data.outputs import to_jsonable
 from ..errors import UserError
 from ..likelihood import RaoBlackwellLikelihood, positions_from_theta
@@ -81,7 +81,6 @@ __all__ = ["NoiseModel", "residual_statistics", "update_noise", "scale_samples",
            "DEFAULT_RATE_BINS"]
 
 NOISE_MODES = ("auto", "stated", "estimate")
-DEFAULT_RATE_BINS = 1
 
 
 @dataclass

@@ -25,14 +25,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..constants import DEFAULT_MIN_ROTATION  # noqa: F401  (re-exported; likelihood re-exports it too)
 from ..errors import UserError, nonnegative
 
 __all__ = ["Selection", "select_samples", "rotation_rate", "clipped_mask", "check_min_rotation", "REASONS",
            "DEFAULT_MIN_ROTATION"]
 
-# |ω̄_t| below this (rad/s ≈ 29 °/s) marks a sample "without rotation": at 20 mm the centripetal
-# term ω×(ω×r) is then < 0.25 % of g ([C21] §IV-C).  The one default; likelihood re-exports it.
-DEFAULT_MIN_ROTATION = 0.5
 
 REASONS = ("static", "clipped", "non_finite", "slow", "user")
 

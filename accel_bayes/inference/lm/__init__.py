@@ -35,9 +35,6 @@ models live: the [C21] MAP in :mod:`accel_bayes.inference.map`, the [S16] self-c
 :mod:`accel_bayes.inference.selfcal`, the conventional calibration in
 :mod:`accel_bayes.inference.conventional`.
 
-``accel_bayes.inference.damping``, ``.linear`` and ``.robust`` are aliases of the modules of this
-package for one release.
-
 Variables
 ---------
 Globals are named blocks. A Euclidean block is any tensor; its tangent is itself.  A quaternion

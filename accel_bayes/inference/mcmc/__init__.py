@@ -4,8 +4,7 @@ The package is split by concern: :mod:`.kernel` (:class:`PMMHKernel`, the state 
 :mod:`.proposals` (random walk, independence, their mixture), :mod:`.adaptation` (warm-up step
 size and covariance windows), :mod:`.runner` (:func:`run_pmmh`, fixed length;
 :func:`run_pmmh_until`, extended block by block until a convergence check passes),
-:mod:`.checkpoint` (format, loading, fingerprints) and :mod:`.priors` (p(θ)).  ``accel_bayes.inference.pmmh`` and
-``accel_bayes.inference.priors`` are aliases of this package and of :mod:`.priors` for one release.
+:mod:`.checkpoint` (format, loading, fingerprints) and :mod:`.priors` (p(θ)).
 
 :class:`PMMHKernel` is a :class:`pyro.infer.mcmc.mcmc_kernel.MCMCKernel`, so
 ``pyro.infer.MCMC(kernel, num_samples, warmup_steps, num_chains, initial_params=...)`` runs it
