@@ -51,11 +51,13 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from .. import interrupts
 from ..errors import UserError
 
 __all__ = [
     "to_jsonable",
     "check_file_target",
+    "check_not_inputs",
     "atomic_path",
     "write_bytes",
     "write_text",
@@ -200,6 +202,7 @@ def _temp_sibling(path: Path) -> Path:
 def _commit_file(tmp: Path, path: Path) -> None:
     with open(tmp, "rb+") as f:  # data on disk before the rename makes it visible
         os.fsync(f.fileno())
+    interrupts.check()  # the last moment a SIGINT/SIGTERM can still keep the old file
     os.replace(tmp, path)
     _fsync_dir(path.parent)
 
@@ -287,6 +290,26 @@ def _local_write_lock():
     except ImportError:
         return contextlib.nullcontext()
     return dask.config.set(scheduler="synchronous")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)  # one inode: hard links, symbolic links, ./x and x
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_not_inputs(targets: dict, inputs: dict) -> None:
+    """Refuse (:class:`UserError`, one line) an output file that is one of the command's inputs,
+    or two outputs that are one file: ``--overwrite`` would otherwise replace the input (a raw
+    stream lost) before or while it is read.  ``targets`` and ``inputs`` map the option that
+    names each file (``-o``, ``REC``) to its path; None values are skipped."""
+    outs = [(f, Path(p)) for f, p in targets.items() if p is not None]
+    for i, (flag, out) in enumerate(outs):
+        for what, path in [*((k, v) for k, v in inputs.items() if v is not None), *outs[:i]]:
+            if _same_file(out, Path(path)):
+                raise UserError(f"{flag}: {out} is also the input {what} ({path}); an output never replaces an "
+                                "input: choose another file")
 
 
 # ---------------------------------------------------------------- locks
@@ -434,9 +457,8 @@ class OutputFile(_Target):
             self.abort()
             raise
         for p in (self.path, *self.also):  # temporary files of killed writers of these targets
-            for tmp in p.parent.glob(f".{p.name}.*-*.tmp"):
-                pid = _pid_of(tmp.name[: -len(".tmp")])
-                if pid is not None and pid != os.getpid() and not _pid_alive(pid):
+            for tmp, pid in _siblings(p, ("",), ".tmp"):
+                if pid != os.getpid() and not _pid_alive(pid) and not tmp.is_dir():
                     tmp.unlink(missing_ok=True)
         return self
 
@@ -471,14 +493,6 @@ def _signals_held():
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def _remove(p: Path) -> None:
-    # A DIR given as a symlink is moved aside as the link itself: remove the link, not its target.
-    if p.is_symlink() or p.is_file():
-        p.unlink(missing_ok=True)
-    else:
-        shutil.rmtree(p, ignore_errors=True)
-
-
 def _nearest_existing(p: Path) -> Path:
     for a in (p, *p.parents):
         if a.exists():
@@ -486,10 +500,69 @@ def _nearest_existing(p: Path) -> Path:
     return Path(".")
 
 
-def _pid_of(name: str) -> int | None:
-    """The writer's pid in a staging / temporary name (``…-<pid>-<hex8>`` or ``….<pid>-<hex8>``)."""
-    m = re.search(r"[.-](\d+)-[0-9a-f]{8}$", name)
-    return int(m.group(1)) if m else None
+def _siblings(target: Path, kinds, suffix: str = ""):
+    """(path, pid) of the hidden siblings this package's writers make for ``target``:
+    ``.NAME.<kind><pid>-<hex8><suffix>`` for each kind in ``kinds`` (e.g. "partial-", "old-", or ""
+    for the temporary files of :func:`atomic_path`).  The directory is listed and each name parsed
+    exactly (NAME escaped), never globbed: a NAME holding ``*`` or ``[`` matches only itself, and a
+    name without a pid is never taken for ours."""
+    alts = "|".join(re.escape(k) for k in kinds)
+    pat = re.compile(rf"\.{re.escape(target.name)}\.(?:{alts})([0-9]+)-[0-9a-f]{{8}}{re.escape(suffix)}")
+    try:
+        names = os.listdir(target.parent)
+    except OSError:
+        return []
+    return [(target.parent / n, int(m.group(1))) for n in names if (m := pat.fullmatch(n))]
+
+
+def _set_files(d: Path) -> set[str]:
+    """The files the marker of the output set in ``d`` lists (relative POSIX paths); empty when
+    ``d`` holds no valid marker."""
+    try:
+        doc = json.loads((d / SET_MARKER).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return set()
+    files = doc.get("files") if isinstance(doc, dict) and doc.get("schema") == SET_SCHEMA else None
+    return {f for f in files if isinstance(f, str)} if isinstance(files, list) else set()
+
+
+def _ours(d: Path, keep) -> tuple[set[str], list[str]]:
+    """Split the content of directory ``d`` into what this package may remove — the files its set
+    marker lists, the marker, the ``keep`` files and the temporary files of their killed writers —
+    and the rest (sorted relative paths; an empty folder the set does not need ends in "/").
+    Symbolic links are entries, never followed."""
+    listed = _set_files(d) | set(keep) | {SET_MARKER}
+    ours, other = set(), []
+    for root, dirs, files in os.walk(d):
+        rel = Path(os.path.relpath(root, d))
+        links = [x for x in dirs if os.path.islink(os.path.join(root, x))]
+        for name in files + links:
+            r = (rel / name).as_posix()
+            tmp = re.fullmatch(r"\.(.+)\.[0-9]+-[0-9a-f]{8}\.tmp", name)
+            if r in listed or (tmp and (rel / tmp.group(1)).as_posix() in listed):
+                ours.add(r)
+            else:
+                other.append(r)
+        if not files and not dirs and rel != Path("."):
+            r = rel.as_posix()
+            if not any(f.startswith(r + "/") for f in listed):
+                other.append(r + "/")
+    return ours, sorted(other)
+
+
+def _remove_set(d: Path, keep=()) -> list[str]:
+    """Remove from ``d`` what :func:`_ours` says is ours, then the folders that became empty and
+    ``d`` itself if empty; returns what was left (files this package did not write)."""
+    if d.is_symlink():  # a DIR given as a link was moved aside as the link: its target is not ours
+        d.unlink(missing_ok=True)
+        return []
+    ours, other = _ours(d, keep)
+    for r in ours:
+        (d / r).unlink(missing_ok=True)
+    for root, _, _ in sorted(os.walk(d, topdown=False), key=lambda w: -len(w[0])):
+        with contextlib.suppress(OSError):
+            os.rmdir(root)  # only empty ones go
+    return other
 
 
 class OutputDir(_Target):
@@ -504,6 +577,10 @@ class OutputDir(_Target):
     def __init__(self, path, *, overwrite: bool = False, resume: bool = False, keep=(), inputs=(),
                  flag: str = "--out"):
         self.target = Path(path)
+        if self.target.name in ("", ".", ".."):
+            # "--out ." names the directory by its own name in its parent, where the lock and the
+            # staging folder go (inside it they would make it "not empty" and be swapped with it)
+            self.target = Path(os.path.abspath(self.target))
         self.overwrite = bool(overwrite)
         self.resume = bool(resume)
         self.keep = tuple(keep)
@@ -547,9 +624,22 @@ class OutputDir(_Target):
             if inside:
                 raise UserError(f"{f}: {t} contains the input {inside[0]}, which replacing the results would "
                                 "delete; choose another directory")
-            if not (resuming or is_output_set(t) or names <= set(self.keep)):
-                raise UserError(f"{f}: {t} holds files that accel-bayes did not write (no {SET_MARKER}); "
-                                "--overwrite replaces only an earlier output set: choose another directory")
+            self._refuse_foreign()
+
+    def _refuse_foreign(self) -> None:
+        # The set's own list is the only list of what may go; anything else stops the run here,
+        # before any computation (and again just before the swap, for a file added meanwhile).
+        t, f = self.target, self.flag
+        _, other = _ours(t, self.keep)
+        if not other:
+            return
+        more = f" and {len(other) - 1} more" if len(other) > 1 else ""
+        if not is_output_set(t):
+            raise UserError(f"{f}: {t} holds files that accel-bayes did not write ({other[0]}{more}; no "
+                            f"{SET_MARKER}); --overwrite replaces only an earlier output set: choose another "
+                            "directory")
+        raise UserError(f"{f}: {t} holds {other[0]}{more}, which its output set does not list; accel-bayes "
+                        "removes only the files of its own set: move it out or choose another directory")
 
     def open(self) -> "OutputDir":
         """Check the target, lock it and create the staging directory, before any computation."""
@@ -581,13 +671,17 @@ class OutputDir(_Target):
         return self.target
 
     def _remove_leftovers(self) -> None:
-        # Hidden siblings of killed runs into this target; we hold the lock, so their writers
-        # are gone unless their pid is still alive (then leave them alone).
-        for kind in ("partial", "old"):
-            for p in self.target.parent.glob(f".{self.target.name}.{kind}-*"):
-                pid = _pid_of(p.name)
-                if pid is None or pid == os.getpid() or not _pid_alive(pid):
-                    _remove(p)
+        # Hidden siblings of killed runs into this target (exact names with the writer's pid); we
+        # hold the lock, so their writers are gone unless the pid is alive (then left alone).  A
+        # staging folder holds only what its run wrote; an old set loses only the files its marker
+        # lists, so a file someone put there survives.
+        for p, pid in _siblings(self.target, ("partial-", "old-")):
+            if pid == os.getpid() or _pid_alive(pid):
+                continue
+            if p.name.startswith(f".{self.target.name}.partial-") and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                _remove_set(p, self.keep)
 
     def commit(self) -> None:
         """Move the staged set into place (old set or nothing at every instant) and unlock."""
@@ -607,6 +701,9 @@ class OutputDir(_Target):
         write_json(s / SET_MARKER, {"schema": SET_SCHEMA, "written_by": f"accel-bayes {__version__}",
                                     "pid": os.getpid(), "time": time.time(), "files": files})
         _fsync_dir(s)
+        if t.is_dir():
+            self._refuse_foreign()
+        interrupts.check()  # the last moment a SIGINT/SIGTERM can still keep the old set
         old = None
         with _signals_held():
             if t.exists():
@@ -621,7 +718,7 @@ class OutputDir(_Target):
             self._staged = False
         _fsync_dir(t.parent)
         if old is not None:
-            _remove(old)
+            _remove_set(old, self.keep)  # what is left (added during the swap) stays in .NAME.old-*
         self._release()
 
     def abort(self) -> None:
