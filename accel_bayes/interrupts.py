@@ -16,10 +16,11 @@ from __future__ import annotations
 import contextlib
 import signal
 
-__all__ = ["Interrupted", "handle_signals", "check", "requested", "hold_until_exit"]
+__all__ = ["Interrupted", "install", "handle_signals", "check", "requested", "hold_until_exit"]
 
 _received: list[int] = []  # signal numbers recorded by the handler since handle_signals began
 _exiting = [False]  # hold_until_exit was called: the handlers are not restored
+_process = [False]  # install() was called: the whole process is one command
 
 
 class Interrupted(KeyboardInterrupt):
@@ -41,11 +42,24 @@ def check() -> None:
         raise Interrupted(signal.Signals(_received[0]).name)
 
 
+def install() -> None:
+    """For a process that *is* one command (``accel-bayes``, ``python -m accel_bayes``): record
+    SIGINT/SIGTERM from now on, before the package's heavy imports (seconds, during which a
+    SIGTERM would otherwise kill the process with another status and SIGINT print a traceback).
+    :func:`handle_signals` then keeps these handlers and what they recorded."""
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _record)
+    _process[0] = True
+
+
 @contextlib.contextmanager
 def handle_signals():
     """Within the block, SIGINT and SIGTERM only set the flag that :func:`check` reads; the
     previous handlers come back after it.  Outside the main thread (where Python cannot set
     handlers) the block runs with the handlers as they are."""
+    if _process[0]:  # installed for the whole process already; a signal recorded so far counts
+        yield
+        return
     old = {}
     _received.clear()  # before the handlers go in: a signal arriving right after must count
     try:

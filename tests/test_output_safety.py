@@ -179,10 +179,12 @@ def test_a_signal_during_garbage_collection_is_not_lost(sig, inputs, tmp_path):
 
 
 def test_signal_study_small(tmp_path):
-    """Ten seeded deliveries of the study in experiments/output_safety.py (the full one: ≥ 300)."""
+    """Ten seeded deliveries of the study in experiments/output_safety.py into two quick commands,
+    forked processes only, one worker (the full study: 300 into five commands, real processes too)."""
     res = tmp_path / "study.json"
     proc = subprocess.run([sys.executable, str(REPO / "experiments" / "output_safety.py"), "--signals", "10",
-                           "--workers", "2", "--only", "signals", "--json", str(res), "--work", str(tmp_path / "w")],
+                           "--workers", "1", "--only", "signals", "--kinds", "time,gc,fs", "--commands",
+                           "simulate,selfcal", "--json", str(res), "--work", str(tmp_path / "w")],
                           capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     doc = json.loads(res.read_text())["signals"]
@@ -255,3 +257,27 @@ def test_map_divergence_is_status_3_in_one_line(tmp_path, capsys):
     line = one_line(capsys.readouterr().err)
     assert rc == 3 and "diverged" in line, line
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("what, cmd", [("acc_noise_std", "map"), ("gyro_noise_std", "mismatch"), ("gyro", "motion")])
+def test_a_1e300_in_a_recording_is_refused_in_one_line(what, cmd, inputs, tmp_path, capsys):
+    import xarray as xr
+
+    ds = xr.load_dataset(inputs["rec"], engine="h5netcdf")
+    if what == "gyro":
+        g = ds["gyro"].values.copy()
+        g.flat[7] = 1e300
+        ds["gyro"].values = g
+    else:
+        ds.attrs[what] = 1e300  # before: a Cholesky/eigh traceback in the fit
+    rec = tmp_path / "huge.nc"
+    ds.to_netcdf(rec, engine="h5netcdf")
+    rc = main(argv(cmd, dict(inputs, rec=rec), tmp_path / "out"))
+    line = one_line(capsys.readouterr().err)
+    assert rc == 2 and what in line, line
+
+
+def test_a_1e300_time_tolerance_is_refused_in_one_line(inputs, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:  # argparse's own refusal: status 2 (before: OverflowError traceback)
+        main(argv("import-csv", inputs, tmp_path / "c.nc", "--time-tolerance", "1e300"))
+    assert e.value.code == 2 and "--time-tolerance" in one_line(capsys.readouterr().err)

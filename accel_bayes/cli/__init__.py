@@ -61,6 +61,9 @@ def _run_command(args) -> int:
     a screen of "overflow encountered" lines first; after a success they are shown, once each."""
     import warnings
 
+    from ..interrupts import check
+
+    check()  # a signal during the imports and the parsing: nothing has been touched yet
     with warnings.catch_warnings(record=True) as caught:
         rc = int(args.func(args) or 0)
     seen = set()
@@ -90,6 +93,10 @@ def _check_not_inputs(args) -> None:
         check_not_inputs(outs, ins)
 
 
+def _who(args) -> str:
+    return f"accel-bayes {args.command}" if args is not None else "accel-bayes"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``accel-bayes`` with ``argv`` (default: ``sys.argv[1:]``); returns the exit status
     (DESIGN §7.5).  SIGINT/SIGTERM only set a flag (:mod:`accel_bayes.interrupts`) that the long
@@ -105,24 +112,25 @@ def main(argv: list[str] | None = None) -> int:
             _check_not_inputs(args)
             rc = _run_command(args)
         except (UserError, OSError) as exc:
-            print(f"accel-bayes {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+            print(f"{_who(args)}: error: {_one_line(exc)}", file=sys.stderr)
             rc = 2
         except DivergenceError as exc:  # DESIGN §7.5: an optimisation that diverged is status 3
-            print(f"accel-bayes {args.command}: diverged: {_one_line(exc)}", file=sys.stderr)
+            print(f"{_who(args)}: diverged: {_one_line(exc)}", file=sys.stderr)
             rc = 3
         except KeyboardInterrupt:  # Interrupted from a safe point, or Ctrl-C outside handle_signals
             rc = 130
-        except SystemExit as exc:  # argparse: --help, --version, a usage error
+        except SystemExit:  # argparse: --help, --version, a usage error
             if not requested():
                 raise
             rc = 130
         finally:
             abort_open()  # anything not committed by the command: staged files removed, locks released
-        if argv is None and hold_until_exit():  # the process ends next: a signal until then still counts
+        # Called as the command (no argv), the process ends next: a signal until then still counts,
+        # one after it is ignored (accel_bayes.interrupts.hold_until_exit)
+        if argv is None and hold_until_exit():
             rc = 130
         if rc == 130 or requested():
-            who = f"accel-bayes {args.command}" if args is not None else "accel-bayes"
-            print(f"{who}: interrupted", file=sys.stderr)
+            print(f"{_who(args)}: interrupted", file=sys.stderr)
             rc = 130
     return rc
 

@@ -202,8 +202,13 @@ def _temp_sibling(path: Path) -> Path:
 def _commit_file(tmp: Path, path: Path) -> None:
     with open(tmp, "rb+") as f:  # data on disk before the rename makes it visible
         os.fsync(f.fileno())
-    interrupts.check()  # the last moment a SIGINT/SIGTERM can still keep the old file
+    started = [t for t in _OPEN if isinstance(t, OutputFile) and t.started]
+    if not started:  # once one file of a command is replaced, its others follow (no mix of two runs)
+        interrupts.check()  # the last moment a SIGINT/SIGTERM can still keep the old file
     os.replace(tmp, path)
+    for t in _OPEN:
+        if isinstance(t, OutputFile) and t.owns(path):
+            t.started = True
     _fsync_dir(path.parent)
 
 
@@ -444,6 +449,12 @@ class OutputFile(_Target):
         self.overwrite = bool(overwrite)
         self.flag = flag
         self._lock = None
+        self.started = False  # one of its files has been replaced
+
+    def owns(self, p) -> bool:
+        """Whether ``p`` is FILE or one of its sidecars."""
+        p = os.path.abspath(p)
+        return any(p == os.path.abspath(q) for q in (self.path, *self.also))
 
     def open(self) -> "OutputFile":
         for p in (self.path, *self.also):
