@@ -76,6 +76,7 @@ def handle_signals():
         if not _exiting[0]:
             for s, h in old.items():
                 signal.signal(s, h)
+            _received.clear()  # the flag belonged to this block: library code after it runs on
 
 
 def hold_until_exit() -> bool:

@@ -124,14 +124,15 @@ WORKER = textwrap.dedent(r"""
                 json.dump({"counts": counts, "decided": decided[0]}, f)
             os._exit(rc)
         sent = None
+        done, status = 0, 0
         if job.get("delay") is not None:
             time.sleep(max(0.0, t_fork + job["delay"] - time.monotonic()))
-            done, _ = os.waitpid(pid, os.WNOHANG)
-            if done == 0:
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done == 0:  # still running (not yet reaped: the pid is its own)
                 sent = time.monotonic()
                 os.kill(pid, getattr(signal, job["signal"]))
         deadline = t_fork + (job.get("timeout") or 1e9)
-        while True:  # a hang is killed and reported (-9)
+        while not done:  # a hang is killed and reported (-9)
             done, status = os.waitpid(pid, os.WNOHANG)
             if done:
                 break

@@ -12,21 +12,41 @@ Files
 
 ``-o FILE`` targets (:class:`OutputFile`)
     Checked before any computation: FILE is not a directory, its parent is an existing,
-    writable directory, and an existing FILE is refused without ``--overwrite``.
+    writable directory, and an existing FILE is refused without ``--overwrite``.  An output that
+    is one of the command's inputs (same path or same inode: a hard or symbolic link) is refused,
+    also with ``--overwrite`` (:func:`check_not_inputs`, called by the CLI for every command).
+    Once one file of an open target (FILE or a sidecar) has been replaced, the others are written
+    even after a SIGINT/SIGTERM, so a recording and its truth file never come from two runs.
 
 ``--out DIR`` targets (:class:`OutputDir`): one consistent set
     Checked before any computation (not a file, no file on the way, writable parent; a non-empty
-    DIR is refused without ``--overwrite``, except ``--resume`` of the run in it).  ``--overwrite``
-    replaces only an earlier output set (a DIR holding the marker :data:`SET_MARKER`, or only the
-    files named in ``keep``), never a directory of other files, nor one that holds an input of
-    the run.  The results are written into a staging directory beside DIR
-    (``.DIR.partial-<pid>-<hex>``), the marker is added last, and the set is moved into place only
-    when complete: DIR (if any) is renamed aside, the staging directory renamed to DIR, the old
-    set deleted (SIGINT/SIGTERM are held back during the renames).  A run killed at any moment
-    therefore leaves either the previous set, or no DIR at all, plus possibly a hidden
-    ``.DIR.partial-*`` / ``.DIR.old-*`` sibling, which the next run into DIR removes once its
-    process is gone.  Files that must survive a killed
+    DIR is refused without ``--overwrite``, except ``--resume`` of the run in it).  What a run may
+    remove from DIR is exactly: the files listed in the ``files`` of its marker
+    :data:`SET_MARKER`, the marker, the ``keep`` files (``checkpoint.pt``) and the temporary files
+    of their killed writers.  **Anything else in DIR — a user's file, hidden file, folder or link —
+    makes the run refuse** (with or without ``--overwrite``, also with ``--resume``), in one line
+    naming it, before any computation and again just before the swap; nothing is kept aside.  A
+    DIR that contains an input of the run is refused too.  ``--out .`` (or ``..``) is taken as the
+    directory's absolute path, so its lock and staging folder lie beside it, not in it.
+    The results are written into a staging directory beside DIR (``.DIR.partial-<pid>-<hex8>``),
+    the marker is added last, and the set is moved into place only when complete: DIR (if any) is
+    renamed aside (``.DIR.old-<pid>-<hex8>``), the staging directory renamed to DIR, and the listed
+    files of the old set deleted.  A run killed at any moment therefore leaves either the previous
+    set, or no DIR at all, plus possibly those hidden siblings.  Files that must survive a killed
     run (calibrate's ``checkpoint.pt``) live in DIR itself and are carried into the new set.
+
+Leftovers
+    The next run into a target removes the hidden siblings of dead runs into *that* target only:
+    the parent folder is listed and each name parsed against the exact schemes above
+    (``.NAME.partial-<pid>-<hex8>``, ``.NAME.old-<pid>-<hex8>``, ``.NAME.<pid>-<hex8>.tmp``, NAME
+    escaped) — never a glob built from NAME — and only when that pid no longer runs.  A hidden
+    folder without a pid is never ours.  A staging folder is removed whole (only its run wrote
+    into it); an old set loses only what its marker lists, so a file put there survives.
+
+Signals
+    SIGINT/SIGTERM only set a flag (:mod:`accel_bayes.interrupts`); every writer checks it just
+    before making a file (:func:`atomic_path`) or a set (:meth:`OutputDir.commit`) visible and
+    then discards what it staged, leaving the earlier output as it was.
 
 Locks
     A target being written is locked by a sibling file ``.NAME.lock`` created with ``O_EXCL``
