@@ -9,7 +9,10 @@ at safe points: every iteration of the LM solvers and of the PmMH chains, and ev
 before it makes a file or an output set visible (:mod:`accel_bayes.data.outputs`).  A writer that
 sees the flag discards what it staged, so an interrupted command leaves its earlier outputs as
 they were.  Without :func:`handle_signals` (plain library use) nothing is recorded and
-:func:`check` never raises: Ctrl-C then behaves as Python's default.
+:func:`check` never raises: Ctrl-C then behaves as Python's default.  The ``accel-bayes``
+process records from its first line (:func:`install`, before the seconds of imports) and, once
+the command has decided its exit status, ignores later signals (:func:`hold_until_exit`), so a
+signal at any moment gives status 130 or, after that decision, none at all.
 """
 from __future__ import annotations
 

@@ -406,7 +406,16 @@ def write_md(path: Path, res: dict, command: str, when: str) -> None:
               f"{s['new_complete']} (signal after the swap; the run still exits 130), a mix of two runs: "
               f"{s['delivered'] - s['earlier_intact'] - s['new_complete']}",
               f"- late (reached the process after it had decided its exit status, ignored): {s['late']}; "
-              f"not delivered (the command had exited first): {s['not_delivered']}", "",
+              f"not delivered (the command had exited first): {s['not_delivered']}",
+              f"- real processes (`python -m accel_bayes`) signalled before `accel_bayes.__main__` installed the "
+              f"handlers, i.e. while `accel_bayes/__init__.py` imports torch, xarray and the package (seconds): "
+              f"**{s['startup']}**, exit {s['startup_rc']} (SIGTERM's default action, or Python's "
+              "KeyboardInterrupt), nothing touched in any of them (checked). Not counted as delivered: the "
+              "package's code was not running yet. This window shrinks to the interpreter's start once the "
+              "package imports lazily (issue #29's other part); until then it is where a signal is not 130.",
+              f"- forked runs signalled before the child ran Python (CPython resets the signals a forked child "
+              f"caught before its at-fork reset: a property of the harness, not of the command): "
+              f"{s.get('fork_window', 0)}; each left the earlier or the complete new output (checked)", "",
               "| group | delivered | exit 130 | earlier intact | new complete |", "|---|---:|---:|---:|---:|"]
         for k, v in s["by"].items():
             L.append(f"| {k} | {v['delivered']} | {v['exit_130']} | {v['earlier_intact']} | {v['new_complete']} |")
@@ -419,9 +428,15 @@ def write_md(path: Path, res: dict, command: str, when: str) -> None:
         L.append("")
     p = res.get("probes")
     if p:
-        L += ["## Red-team probes (items 1 and 4)", "", "| probe | rule | tried | passed |", "|---|---|---:|---:|"]
+        L += ["## Red-team probes (items 1 and 4)", "",
+              "Each case runs the real command in a fresh forked process; the rule is the pass criterion.", "",
+              "| probe | rule | tried | passed | exit statuses |", "|---|---|---:|---:|---|"]
         for k, v in p.items():
-            L.append(f"| {k} | {v['rule']} | {v['tried']} | {v['passed']} |")
+            rcs = {}
+            for c in v["cases"]:
+                rcs[c["rc"]] = rcs.get(c["rc"], 0) + 1
+            L.append(f"| {k} | {v['rule']} | {v['tried']} | {v['passed']} | "
+                     + ", ".join(f"{n}× {rc}" for rc, n in sorted(rcs.items())) + " |")
         L.append("")
         for k, v in p.items():
             bad = [c for c in v["cases"] if not c["ok"]]

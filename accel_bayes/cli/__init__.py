@@ -4,10 +4,15 @@ Each sub-command lives in its own module of this package and exposes ``register(
 which adds its parser and sets ``func`` (called with the parsed namespace, returns an exit code).
 User errors (:class:`accel_bayes.errors.UserError`, missing files) and I/O errors (an
 ``OSError`` from a read or write: a full disk, a read-only or vanished directory) exit with
-status 2 and one line on stderr naming the path, never a traceback.  SIGINT and SIGTERM exit
-with status 130 (a checkpoint already written stays usable for ``--resume``).  Whatever way a
-command ends short of success, the output targets it opened (:mod:`accel_bayes.data.outputs`) are
-aborted: staged files deleted, locks released, earlier results left as they were.
+status 2 and one line on stderr naming the path, never a traceback; the numpy/torch warnings
+raised on the way are held back (shown after a success only), so that line comes alone.  An
+output file that is also an input is refused the same way.  A diverged optimisation
+(:class:`accel_bayes.errors.DivergenceError`) exits with status 3 and one line.  SIGINT and
+SIGTERM only set a flag (:mod:`accel_bayes.interrupts`) that the long loops and the writers check:
+status 130 and one line (a checkpoint already written stays usable for ``--resume``).  Whatever
+way a command ends short of success, the output targets it opened
+(:mod:`accel_bayes.data.outputs`) are aborted: staged files deleted, locks released, earlier
+results left as they were.
 """
 from __future__ import annotations
 
