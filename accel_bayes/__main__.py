@@ -1,6 +1,18 @@
-"""``python -m accel_bayes`` is the ``accel-bayes`` command."""
+"""``python -m accel_bayes`` and the ``accel-bayes`` script: the command line of
+:mod:`accel_bayes.cli`, with SIGINT/SIGTERM recorded from the first line on (the command's imports
+take seconds; :func:`accel_bayes.interrupts.install`)."""
 import sys
 
-from .cli import main
+from .interrupts import install
 
-sys.exit(main())
+
+def main() -> int:
+    """Run ``accel-bayes`` with ``sys.argv``; returns the exit status (DESIGN §7.5)."""
+    install()
+    from .cli import main as cli_main
+
+    return cli_main()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -2,12 +2,13 @@
 
 :class:`UserError` (a ``ValueError``) marks problems a user can fix: a malformed recording, an
 option out of range.  The CLI turns it into one line on stderr and exit status 2; library callers
-can catch it as ``ValueError``.
+can catch it as ``ValueError``.  :class:`DivergenceError` (a ``RuntimeError``) is a fit that
+diverged: one line and exit status 3.
 """
 
 import math
 
-__all__ = ["UserError", "RecordingError", "nonnegative"]
+__all__ = ["UserError", "RecordingError", "DivergenceError", "nonnegative"]
 
 
 class UserError(ValueError):
@@ -16,6 +17,11 @@ class UserError(ValueError):
 
 class RecordingError(UserError):
     """A recording (file or in-memory) that breaks format v1 (DESIGN §7.1)."""
+
+
+class DivergenceError(RuntimeError):
+    """An optimisation left the region where its model makes sense (a MAP far outside the prior,
+    non-finite values).  The CLI turns it into one line and exit status 3 (DESIGN §7.5)."""
 
 
 def nonnegative(value, name: str, unit: str = "") -> float:

@@ -108,7 +108,8 @@ def earlier_set(target: Path) -> None:
     target.mkdir()
     (target / "stale_from_an_earlier_run.txt").write_text("old")
     (target / "positions.json").write_text('{"old": true}')
-    (target / outputs.SET_MARKER).write_text(json.dumps({"schema": outputs.SET_SCHEMA}))
+    (target / outputs.SET_MARKER).write_text(json.dumps({"schema": outputs.SET_SCHEMA, "files": [
+        "stale_from_an_earlier_run.txt", "positions.json"]}))  # the set's own list: what --overwrite may remove
 
 
 def one_line(err: str) -> str:

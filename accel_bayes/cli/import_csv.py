@@ -31,7 +31,7 @@ def register(subparsers) -> None:
                    help="array description: IMU labels, positions (m), orientations, sensors, noise, ranges")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="recording file to write (.nc)")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
-    p.add_argument("--time-tolerance", type=opt.nonnegative("s"), default=None, metavar="SECONDS",
+    p.add_argument("--time-tolerance", type=opt.real(0.0, 3600.0, unit="s"), default=None, metavar="SECONDS",
                    help="largest |IMU stamp - reference stamp| accepted when matching samples, s "
                         "(default a quarter of the reference IMU's median sample period)")
     p.add_argument("--noise", choices=("rests", "stated"), default="rests",

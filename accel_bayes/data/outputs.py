@@ -12,21 +12,41 @@ Files
 
 ``-o FILE`` targets (:class:`OutputFile`)
     Checked before any computation: FILE is not a directory, its parent is an existing,
-    writable directory, and an existing FILE is refused without ``--overwrite``.
+    writable directory, and an existing FILE is refused without ``--overwrite``.  An output that
+    is one of the command's inputs (same path or same inode: a hard or symbolic link) is refused,
+    also with ``--overwrite`` (:func:`check_not_inputs`, called by the CLI for every command).
+    Once one file of an open target (FILE or a sidecar) has been replaced, the others are written
+    even after a SIGINT/SIGTERM, so a recording and its truth file never come from two runs.
 
 ``--out DIR`` targets (:class:`OutputDir`): one consistent set
     Checked before any computation (not a file, no file on the way, writable parent; a non-empty
-    DIR is refused without ``--overwrite``, except ``--resume`` of the run in it).  ``--overwrite``
-    replaces only an earlier output set (a DIR holding the marker :data:`SET_MARKER`, or only the
-    files named in ``keep``), never a directory of other files, nor one that holds an input of
-    the run.  The results are written into a staging directory beside DIR
-    (``.DIR.partial-<pid>-<hex>``), the marker is added last, and the set is moved into place only
-    when complete: DIR (if any) is renamed aside, the staging directory renamed to DIR, the old
-    set deleted (SIGINT/SIGTERM are held back during the renames).  A run killed at any moment
-    therefore leaves either the previous set, or no DIR at all, plus possibly a hidden
-    ``.DIR.partial-*`` / ``.DIR.old-*`` sibling, which the next run into DIR removes once its
-    process is gone.  Files that must survive a killed
+    DIR is refused without ``--overwrite``, except ``--resume`` of the run in it).  What a run may
+    remove from DIR is exactly: the files listed in the ``files`` of its marker
+    :data:`SET_MARKER`, the marker, the ``keep`` files (``checkpoint.pt``) and the temporary files
+    of their killed writers.  **Anything else in DIR — a user's file, hidden file, folder or link —
+    makes the run refuse** (with or without ``--overwrite``, also with ``--resume``), in one line
+    naming it, before any computation and again just before the swap; nothing is kept aside.  A
+    DIR that contains an input of the run is refused too.  ``--out .`` (or ``..``) is taken as the
+    directory's absolute path, so its lock and staging folder lie beside it, not in it.
+    The results are written into a staging directory beside DIR (``.DIR.partial-<pid>-<hex8>``),
+    the marker is added last, and the set is moved into place only when complete: DIR (if any) is
+    renamed aside (``.DIR.old-<pid>-<hex8>``), the staging directory renamed to DIR, and the listed
+    files of the old set deleted.  A run killed at any moment therefore leaves either the previous
+    set, or no DIR at all, plus possibly those hidden siblings.  Files that must survive a killed
     run (calibrate's ``checkpoint.pt``) live in DIR itself and are carried into the new set.
+
+Leftovers
+    The next run into a target removes the hidden siblings of dead runs into *that* target only:
+    the parent folder is listed and each name parsed against the exact schemes above
+    (``.NAME.partial-<pid>-<hex8>``, ``.NAME.old-<pid>-<hex8>``, ``.NAME.<pid>-<hex8>.tmp``, NAME
+    escaped) — never a glob built from NAME — and only when that pid no longer runs.  A hidden
+    folder without a pid is never ours.  A staging folder is removed whole (only its run wrote
+    into it); an old set loses only what its marker lists, so a file put there survives.
+
+Signals
+    SIGINT/SIGTERM only set a flag (:mod:`accel_bayes.interrupts`); every writer checks it just
+    before making a file (:func:`atomic_path`) or a set (:meth:`OutputDir.commit`) visible and
+    then discards what it staged, leaving the earlier output as it was.
 
 Locks
     A target being written is locked by a sibling file ``.NAME.lock`` created with ``O_EXCL``
@@ -51,11 +71,13 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from .. import interrupts
 from ..errors import UserError
 
 __all__ = [
     "to_jsonable",
     "check_file_target",
+    "check_not_inputs",
     "atomic_path",
     "write_bytes",
     "write_text",
@@ -200,7 +222,13 @@ def _temp_sibling(path: Path) -> Path:
 def _commit_file(tmp: Path, path: Path) -> None:
     with open(tmp, "rb+") as f:  # data on disk before the rename makes it visible
         os.fsync(f.fileno())
+    started = [t for t in _OPEN if isinstance(t, OutputFile) and t.started]
+    if not started:  # once one file of a command is replaced, its others follow (no mix of two runs)
+        interrupts.check()  # the last moment a SIGINT/SIGTERM can still keep the old file
     os.replace(tmp, path)
+    for t in _OPEN:
+        if isinstance(t, OutputFile) and t.owns(path):
+            t.started = True
     _fsync_dir(path.parent)
 
 
@@ -287,6 +315,26 @@ def _local_write_lock():
     except ImportError:
         return contextlib.nullcontext()
     return dask.config.set(scheduler="synchronous")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)  # one inode: hard links, symbolic links, ./x and x
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_not_inputs(targets: dict, inputs: dict) -> None:
+    """Refuse (:class:`UserError`, one line) an output file that is one of the command's inputs,
+    or two outputs that are one file: ``--overwrite`` would otherwise replace the input (a raw
+    stream lost) before or while it is read.  ``targets`` and ``inputs`` map the option that
+    names each file (``-o``, ``REC``) to its path; None values are skipped."""
+    outs = [(f, Path(p)) for f, p in targets.items() if p is not None]
+    for i, (flag, out) in enumerate(outs):
+        for what, path in [*((k, v) for k, v in inputs.items() if v is not None), *outs[:i]]:
+            if _same_file(out, Path(path)):
+                raise UserError(f"{flag}: {out} is also the input {what} ({path}); an output never replaces an "
+                                "input: choose another file")
 
 
 # ---------------------------------------------------------------- locks
@@ -421,6 +469,12 @@ class OutputFile(_Target):
         self.overwrite = bool(overwrite)
         self.flag = flag
         self._lock = None
+        self.started = False  # one of its files has been replaced
+
+    def owns(self, p) -> bool:
+        """Whether ``p`` is FILE or one of its sidecars."""
+        p = os.path.abspath(p)
+        return any(p == os.path.abspath(q) for q in (self.path, *self.also))
 
     def open(self) -> "OutputFile":
         for p in (self.path, *self.also):
@@ -434,9 +488,8 @@ class OutputFile(_Target):
             self.abort()
             raise
         for p in (self.path, *self.also):  # temporary files of killed writers of these targets
-            for tmp in p.parent.glob(f".{p.name}.*-*.tmp"):
-                pid = _pid_of(tmp.name[: -len(".tmp")])
-                if pid is not None and pid != os.getpid() and not _pid_alive(pid):
+            for tmp, pid in _siblings(p, ("",), ".tmp"):
+                if pid != os.getpid() and not _pid_alive(pid) and not tmp.is_dir():
                     tmp.unlink(missing_ok=True)
         return self
 
@@ -471,14 +524,6 @@ def _signals_held():
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def _remove(p: Path) -> None:
-    # A DIR given as a symlink is moved aside as the link itself: remove the link, not its target.
-    if p.is_symlink() or p.is_file():
-        p.unlink(missing_ok=True)
-    else:
-        shutil.rmtree(p, ignore_errors=True)
-
-
 def _nearest_existing(p: Path) -> Path:
     for a in (p, *p.parents):
         if a.exists():
@@ -486,10 +531,69 @@ def _nearest_existing(p: Path) -> Path:
     return Path(".")
 
 
-def _pid_of(name: str) -> int | None:
-    """The writer's pid in a staging / temporary name (``…-<pid>-<hex8>`` or ``….<pid>-<hex8>``)."""
-    m = re.search(r"[.-](\d+)-[0-9a-f]{8}$", name)
-    return int(m.group(1)) if m else None
+def _siblings(target: Path, kinds, suffix: str = ""):
+    """(path, pid) of the hidden siblings this package's writers make for ``target``:
+    ``.NAME.<kind><pid>-<hex8><suffix>`` for each kind in ``kinds`` (e.g. "partial-", "old-", or ""
+    for the temporary files of :func:`atomic_path`).  The directory is listed and each name parsed
+    exactly (NAME escaped), never globbed: a NAME holding ``*`` or ``[`` matches only itself, and a
+    name without a pid is never taken for ours."""
+    alts = "|".join(re.escape(k) for k in kinds)
+    pat = re.compile(rf"\.{re.escape(target.name)}\.(?:{alts})([0-9]+)-[0-9a-f]{{8}}{re.escape(suffix)}")
+    try:
+        names = os.listdir(target.parent)
+    except OSError:
+        return []
+    return [(target.parent / n, int(m.group(1))) for n in names if (m := pat.fullmatch(n))]
+
+
+def _set_files(d: Path) -> set[str]:
+    """The files the marker of the output set in ``d`` lists (relative POSIX paths); empty when
+    ``d`` holds no valid marker."""
+    try:
+        doc = json.loads((d / SET_MARKER).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return set()
+    files = doc.get("files") if isinstance(doc, dict) and doc.get("schema") == SET_SCHEMA else None
+    return {f for f in files if isinstance(f, str)} if isinstance(files, list) else set()
+
+
+def _ours(d: Path, keep) -> tuple[set[str], list[str]]:
+    """Split the content of directory ``d`` into what this package may remove — the files its set
+    marker lists, the marker, the ``keep`` files and the temporary files of their killed writers —
+    and the rest (sorted relative paths; an empty folder the set does not need ends in "/").
+    Symbolic links are entries, never followed."""
+    listed = _set_files(d) | set(keep) | {SET_MARKER}
+    ours, other = set(), []
+    for root, dirs, files in os.walk(d):
+        rel = Path(os.path.relpath(root, d))
+        links = [x for x in dirs if os.path.islink(os.path.join(root, x))]
+        for name in files + links:
+            r = (rel / name).as_posix()
+            tmp = re.fullmatch(r"\.(.+)\.[0-9]+-[0-9a-f]{8}\.tmp", name)
+            if r in listed or (tmp and (rel / tmp.group(1)).as_posix() in listed):
+                ours.add(r)
+            else:
+                other.append(r)
+        if not files and not dirs and rel != Path("."):
+            r = rel.as_posix()
+            if not any(f.startswith(r + "/") for f in listed):
+                other.append(r + "/")
+    return ours, sorted(other)
+
+
+def _remove_set(d: Path, keep=()) -> list[str]:
+    """Remove from ``d`` what :func:`_ours` says is ours, then the folders that became empty and
+    ``d`` itself if empty; returns what was left (files this package did not write)."""
+    if d.is_symlink():  # a DIR given as a link was moved aside as the link: its target is not ours
+        d.unlink(missing_ok=True)
+        return []
+    ours, other = _ours(d, keep)
+    for r in ours:
+        (d / r).unlink(missing_ok=True)
+    for root, _, _ in sorted(os.walk(d, topdown=False), key=lambda w: -len(w[0])):
+        with contextlib.suppress(OSError):
+            os.rmdir(root)  # only empty ones go
+    return other
 
 
 class OutputDir(_Target):
@@ -504,6 +608,10 @@ class OutputDir(_Target):
     def __init__(self, path, *, overwrite: bool = False, resume: bool = False, keep=(), inputs=(),
                  flag: str = "--out"):
         self.target = Path(path)
+        if self.target.name in ("", ".", ".."):
+            # "--out ." names the directory by its own name in its parent, where the lock and the
+            # staging folder go (inside it they would make it "not empty" and be swapped with it)
+            self.target = Path(os.path.abspath(self.target))
         self.overwrite = bool(overwrite)
         self.resume = bool(resume)
         self.keep = tuple(keep)
@@ -547,9 +655,22 @@ class OutputDir(_Target):
             if inside:
                 raise UserError(f"{f}: {t} contains the input {inside[0]}, which replacing the results would "
                                 "delete; choose another directory")
-            if not (resuming or is_output_set(t) or names <= set(self.keep)):
-                raise UserError(f"{f}: {t} holds files that accel-bayes did not write (no {SET_MARKER}); "
-                                "--overwrite replaces only an earlier output set: choose another directory")
+            self._refuse_foreign()
+
+    def _refuse_foreign(self) -> None:
+        # The set's own list is the only list of what may go; anything else stops the run here,
+        # before any computation (and again just before the swap, for a file added meanwhile).
+        t, f = self.target, self.flag
+        _, other = _ours(t, self.keep)
+        if not other:
+            return
+        more = f" and {len(other) - 1} more" if len(other) > 1 else ""
+        if not is_output_set(t):
+            raise UserError(f"{f}: {t} holds files that accel-bayes did not write ({other[0]}{more}; no "
+                            f"{SET_MARKER}); --overwrite replaces only an earlier output set: choose another "
+                            "directory")
+        raise UserError(f"{f}: {t} holds {other[0]}{more}, which its output set does not list; accel-bayes "
+                        "removes only the files of its own set: move it out or choose another directory")
 
     def open(self) -> "OutputDir":
         """Check the target, lock it and create the staging directory, before any computation."""
@@ -581,13 +702,17 @@ class OutputDir(_Target):
         return self.target
 
     def _remove_leftovers(self) -> None:
-        # Hidden siblings of killed runs into this target; we hold the lock, so their writers
-        # are gone unless their pid is still alive (then leave them alone).
-        for kind in ("partial", "old"):
-            for p in self.target.parent.glob(f".{self.target.name}.{kind}-*"):
-                pid = _pid_of(p.name)
-                if pid is None or pid == os.getpid() or not _pid_alive(pid):
-                    _remove(p)
+        # Hidden siblings of killed runs into this target (exact names with the writer's pid); we
+        # hold the lock, so their writers are gone unless the pid is alive (then left alone).  A
+        # staging folder holds only what its run wrote; an old set loses only the files its marker
+        # lists, so a file someone put there survives.
+        for p, pid in _siblings(self.target, ("partial-", "old-")):
+            if pid == os.getpid() or _pid_alive(pid):
+                continue
+            if p.name.startswith(f".{self.target.name}.partial-") and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                _remove_set(p, self.keep)
 
     def commit(self) -> None:
         """Move the staged set into place (old set or nothing at every instant) and unlock."""
@@ -607,6 +732,9 @@ class OutputDir(_Target):
         write_json(s / SET_MARKER, {"schema": SET_SCHEMA, "written_by": f"accel-bayes {__version__}",
                                     "pid": os.getpid(), "time": time.time(), "files": files})
         _fsync_dir(s)
+        if t.is_dir():
+            self._refuse_foreign()
+        interrupts.check()  # the last moment a SIGINT/SIGTERM can still keep the old set
         old = None
         with _signals_held():
             if t.exists():
@@ -621,7 +749,7 @@ class OutputDir(_Target):
             self._staged = False
         _fsync_dir(t.parent)
         if old is not None:
-            _remove(old)
+            _remove_set(old, self.keep)  # what is left (added during the swap) stays in .NAME.old-*
         self._release()
 
     def abort(self) -> None:

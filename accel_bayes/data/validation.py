@@ -368,6 +368,34 @@ def _first_bad(x: np.ndarray, ok: np.ndarray, time: np.ndarray, name: str, label
         "(mark missing IMUs with NaN in every sample, not a few)")
 
 
+def _full_scale(rec, sensor: str) -> tuple[float, str]:
+    """The largest value ``sensor`` ("acc" or "gyro") can read: its stated range, else the
+    default bound; and how to name it in a message."""
+    rng = getattr(rec, f"{sensor}_range")
+    unit = "m s-2" if sensor == "acc" else "rad s-1"
+    if rng is not None:
+        return float(rng), f"{sensor}_range = {float(rng):.4g} {unit}"
+    b = DEFAULT_ACC_BOUND if sensor == "acc" else DEFAULT_GYRO_BOUND
+    return b, f"{b:g} {unit} (no {sensor}_range given)"
+
+
+def _check_gyro_bound(rec, time) -> None:
+    """Refuse a gyroscope value no gyroscope reads: above 10 × :data:`DEFAULT_GYRO_BOUND`
+    (1500 rad/s ≈ 86 000 °/s, whatever the stated range: unclipped simulations legitimately go
+    past it).  A single 1e300 passed the unit check's percentile rule and made the fits fail
+    with a traceback."""
+    if rec.gyro is None:
+        return
+    bound = 10 * DEFAULT_GYRO_BOUND
+    g = np.abs(np.asarray(rec.gyro, dtype=float))
+    over = np.nan_to_num(g, nan=0.0).max(axis=2) > bound
+    if over.any():
+        t_idx, k_idx = np.argwhere(over)[0]
+        raise RecordingError(f"gyro: {float(np.nanmax(g[t_idx, k_idx])):.4g} rad s-1 at time index {int(t_idx)} "
+                             f"(t = {float(time[t_idx]):.6g} s), IMU {int(k_idx)} ({int(over.sum())} such samples); "
+                             f"expected |gyro| <= {bound:g} rad s-1 (no gyroscope reads beyond it)")
+
+
 def _check_acc_bound(rec, time) -> None:
     """Refuse accelerometer values beyond what the sensor can read (:data:`ACC_RANGE_FACTOR`)."""
     if rec.acc_range is not None:
@@ -476,6 +504,14 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     for name, has, unit in (("acc_noise_std", has_acc, "m s-2"), ("gyro_noise_std", has_gyro, "rad s-1")):
         s = np.asarray(getattr(rec, name), dtype=float)
         bad = has & ~(np.isfinite(s) & (s > 0))
+        if not bad.any():
+            # a noise std beyond the sensor's full scale is not a noise level (1e300 made the fits'
+            # Cholesky factorisations fail with a traceback)
+            top, top_txt = _full_scale(rec, name[:-len("_noise_std")])
+            big = has & (s > top)
+            if big.any():
+                k = int(np.flatnonzero(big)[0])
+                raise RecordingError(f"{name}: IMU {k} has {float(s[k])!r}; expected a noise std <= {top_txt}")
         if bad.any():
             k = int(np.flatnonzero(bad)[0])
             raise RecordingError(f"{name}: IMU {k} has {float(s[k])!r}; expected a finite value > 0 {unit} for every "
@@ -528,6 +564,7 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
 
     if check_gyro_units and has_gyro.any():
         _raise_on_gyro_units(rec, gyro_units)
+    _check_gyro_bound(rec, time)  # after the unit check: data in the other unit get its message
 
 
 # ---------------------------------------------------------------- gyro unit plausibility

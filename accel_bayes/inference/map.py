@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from ..constants import DEFAULT_PRIOR_STD
-from ..errors import UserError
+from ..errors import DivergenceError, UserError
 from ..physics.geometry import skew
 from ..likelihood import as_acc_tensor, positions_from_theta, theta_from_positions
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
@@ -49,7 +49,7 @@ from .lm.linear import NotPositiveDefinite, SchurComplementSolver, cholesky
 __all__ = ["MAPResult", "MAPDivergence", "fit_map", "fit_map_recording", "build_map_problem"]
 
 
-class MAPDivergence(RuntimeError):
+class MAPDivergence(DivergenceError):
     """The MAP left the region where the model makes sense (DESIGN §6, [S16] §VI): positions far
     outside the prior, collapsed/degenerate geometry or non-finite values."""
 

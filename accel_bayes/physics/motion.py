@@ -593,8 +593,9 @@ def smooth_motion(
             angle_factor *= ratio
             if abs(ratio - 1) < 1e-12:
                 break
-        else:  # pragma: no cover - the map is close to linear; report rather than return garbage
-            raise RuntimeError("smooth_motion: could not match omega_rms; try other freq_range or seed")
+        else:  # the map is close to linear, so only an absurd target (1e300 rad/s) ends here
+            raise UserError(f"omega_rms: could not reach {omega_rms!r} rad/s RMS with this motion (reached "
+                            f"{w_now:.3g}); expected a physically possible rate, e.g. below 100 rad/s")
     traj = traj.scaled(angle_factor, accel_factor)
     tr = traj.trace(time.to(dtype=dtype, device=device))
     return tr

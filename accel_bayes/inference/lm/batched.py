@@ -8,6 +8,8 @@ from typing import Callable
 
 import torch
 
+from ... import interrupts
+
 from .damping import DampingStrategy, get_damping
 from .linear import damped_step
 from .stopping import StoppingRule
@@ -88,6 +90,7 @@ class BatchedLevenbergMarquardt:
         reason = torch.zeros(F.shape, dtype=torch.long, device=x.device)
         n_iter = 0
         while True:
+            interrupts.check()  # SIGINT/SIGTERM: stop between iterations (accel_bayes.interrupts)
             active = reason == 0
             code = stop.batched_at_linearization(b.abs().amax(-1) if n else torch.zeros_like(F))
             reason = torch.where(active & (code > 0), code, reason)

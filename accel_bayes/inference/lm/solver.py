@@ -8,6 +8,8 @@ from typing import Callable
 
 import torch
 
+from ... import interrupts
+
 from .damping import DampingStrategy, get_damping
 from .linear import NotPositiveDefinite, SchurComplementSolver, cholesky
 from .problem import Problem
@@ -132,6 +134,7 @@ class LevenbergMarquardt:
         n = problem.n_free
         try:
             while True:
+                interrupts.check()  # SIGINT/SIGTERM: stop between iterations (accel_bayes.interrupts)
                 reason = stop.at_linearization(lin.grad_inf, n_iter)
                 if reason is not None:
                     break

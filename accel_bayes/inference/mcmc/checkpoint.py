@@ -10,6 +10,7 @@ gate: a file of another version is refused with one line.
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import torch
@@ -51,7 +52,11 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         raise UserError(f"checkpoint: {p} is empty (a run killed while creating it?); delete it or rerun without "
                         "--resume")
     try:
-        saved = torch.load(p, map_location="cpu", weights_only=True)
+        # torch warns about a foreign pickle protocol before refusing it: the refusal below is
+        # the one line the user gets
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            saved = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError, ... by damage
         raise UserError(f"checkpoint: {p} is not a readable PmMH checkpoint (corrupt, truncated or not a torch "
                         f"file: {type(exc).__name__}); delete it or rerun without --resume") from None

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ... import interrupts
 from ...errors import UserError
 from .checkpoint import CHECKPOINT_FORMAT, fingerprint_mismatch, read_checkpoint, write_checkpoint
 from .kernel import PMMHKernel
@@ -95,6 +96,7 @@ def _iterate(kernel, st, c, start, stop, W, bar, callback, checkpoint_every, sav
     iteration): one kernel transition each, the kept ones (i ≥ W) stored at draw i − W;
     ``save_at(i + 1)`` every ``checkpoint_every`` iterations except at ``stop``."""
     for i in range(start, stop):
+        interrupts.check()  # SIGINT/SIGTERM: stop between transitions (accel_bayes.interrupts)
         kernel.sample({})
         if i >= W:
             j, tr = i - W, kernel.last
