@@ -70,6 +70,8 @@ VARIABLES = {
     "nominal_orientation": (("imu", "quat"), False, "array → sensor quaternions (w, x, y, z)"),
     "acc_clipped": (("time", "imu"), False, "bool mask of accelerometer samples at the range"),
     "gyro_clipped": (("time", "imu"), False, "bool mask of gyroscope samples at the range"),
+    "acc_flagged": (("time", "imu"), False, "bool mask of accelerometer samples an importer distrusts"),
+    "gyro_flagged": (("time", "imu"), False, "bool mask of gyroscope samples an importer distrusts"),
     "segment": (("time",), False, '"static"/"dynamic" labels'),
     "imu_time_offset": (("time", "imu"), False, "an IMU's own time stamp minus time, s"),
     "acc_noise_std": (("imu",), False, "per-IMU accelerometer noise std, m s-2"),
@@ -325,6 +327,8 @@ def validate_dataset(ds) -> None:
             raise RecordingError(f"{name}: expected numbers, got dtype {ds[name].dtype}")
     _check_bool_like(ds, "acc_clipped")
     _check_bool_like(ds, "gyro_clipped")
+    _check_bool_like(ds, "acc_flagged")
+    _check_bool_like(ds, "gyro_flagged")
     if "segment" in ds.variables and np.asarray(ds["segment"].values).dtype.kind not in "USO":
         raise RecordingError(f'segment: expected string labels "static"/"dynamic", got dtype {ds["segment"].dtype}')
 
@@ -431,6 +435,8 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     _shape_check("gyro_noise_std", rec.gyro_noise_std, (K,))
     _shape_check("acc_clipped", rec.acc_clipped, (T, K))
     _shape_check("gyro_clipped", rec.gyro_clipped, (T, K))
+    _shape_check("acc_flagged", rec.acc_flagged, (T, K))
+    _shape_check("gyro_flagged", rec.gyro_flagged, (T, K))
     _shape_check("segment", rec.segment, (T,))
     _shape_check("imu_time_offset", rec.imu_time_offset, (T, K))
     for name in ("time", "acc", "gyro", "nominal_position", "nominal_orientation", "acc_noise_std", "gyro_noise_std",
@@ -438,12 +444,13 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
         x = getattr(rec, name)
         if x is not None and np.asarray(x).dtype.kind not in "iuf":
             raise RecordingError(f"{name}: expected a float array, got dtype {np.asarray(x).dtype}")
-    for name in ("acc_clipped", "gyro_clipped"):
+    for name in ("acc_clipped", "gyro_clipped", "acc_flagged", "gyro_flagged"):
         x = getattr(rec, name)
         if x is not None and np.asarray(x).dtype != bool:
             raise RecordingError(f"{name}: expected a bool array, got dtype {np.asarray(x).dtype}")
-    if rec.gyro is None and rec.gyro_clipped is not None:
-        raise RecordingError("gyro_clipped: given but the recording has no gyro")
+    for name in ("gyro_clipped", "gyro_flagged"):
+        if rec.gyro is None and getattr(rec, name) is not None:
+            raise RecordingError(f"{name}: given but the recording has no gyro")
 
     # Time.
     if not np.all(np.isfinite(time)):
