@@ -61,14 +61,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _data import data_dir  # noqa: E402
 from accel_bayes.errors import RecordingError
+from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.data.mimu import (  # noqa: I001 - _stamp_deviation: the importer's own rule, measured
+    ACC_SCALE,
     FIRST_PACKET_LEAD_TICKS,
+    GYRO_SCALE,
+    JUMP_MOTION,
     MIMU_ACK,
     NEAR_LIMIT_LSB,
     NOMINAL_PERIOD_TICKS,
     PLAUSIBILITY_FLOOR_LSB,
     SATURATED_LSB,
-    SKEW_FRACTION,
+    SPREAD_FACTOR,
     TIME_TOL_TICKS,
     _stamp_deviation,
     decode_mimu_bytes,
@@ -102,11 +106,18 @@ def board_stream(n: int, rng: np.random.Generator, first_lead: bool = True):
             omega[:, ax] += rng.uniform(0, 4000) * np.sin(2 * np.pi * f * t + ph)
             force[:, ax] += rng.uniform(0, 2000) * np.sin(2 * np.pi * f * t + ph)
     force[:, 2] += 2048  # 1 g
+    # The rigid body: each IMU's specific force adds α×r + ω×(ω×r) at its nominal position
+    # (≈ 3 m/s², 300 LSB, between opposite corners at 700 °/s).
+    w = omega * GYRO_SCALE
+    alpha = np.gradient(w, t, axis=0)
+    r = mimu4444_8().positions.double().numpy()
+    r = r - r.mean(0)
     raw = np.empty((n, 8, 6))
     for k in range(8):
         scale = 1 + rng.uniform(-0.02, 0.02, 6)
         bias = np.concatenate((rng.uniform(-60, 60, 3), rng.uniform(-40, 40, 3)))
-        f_s, w_s = (force, omega) if k % 2 == 0 else (force @ C.T, omega @ C.T)
+        f_k = force + (np.cross(alpha, r[k]) + np.cross(w, np.cross(w, r[k]))) / ACC_SCALE
+        f_s, w_s = (f_k, omega) if k % 2 == 0 else (f_k @ C.T, omega @ C.T)
         raw[:, k] = np.concatenate((f_s, w_s), 1) * scale + bias
         raw[:, k, :3] += rng.normal(0, 8, (n, 3))
         raw[:, k, 3:] += rng.normal(0, 4, (n, 3))
@@ -268,23 +279,34 @@ def array_frame(raw: np.ndarray) -> np.ndarray:
 
 
 def blind_envelope(raw: np.ndarray) -> np.ndarray:
-    """(n, 6) per array-frame channel: the largest single-IMU error the plausibility rules can
-    miss on this TRUE stream, 2·(floor + A) + 4·D₁ (A the board's one-sample change, D₁ the
-    largest genuine |IMU − median|): a corrupted IMU's D₁ − 3·D₂ stays below the bound only if its
-    error is below bound + 4·D₁ (its own genuine part, the median's shift, and three times the
-    genuine D₂ ≤ D₁); doubled for the skew term's other side.  Computed from the truth only."""
+    """(n, 6) per array-frame channel: the largest single-IMU error the jump rule can miss on this
+    TRUE stream, 2·(floor + JUMP_MOTION·A₂ + SPREAD_FACTOR·S_j): A₂ the board's largest |second
+    difference| within two samples (a neighbour may be missing in the damaged stream), S_j the
+    eight IMUs' median of their smaller one-sample step off the median.  A corrupted IMU's step is
+    its error plus its honest step (≤ the bound); doubled for that and the medians' shift.
+    Computed from the truth only, with the study's own frame (no rigid-body correction: the
+    honest steps then include it, which only widens the envelope)."""
     x = array_frame(raw)
     med = np.median(x, axis=1)  # (n, 6)
-    d1 = np.abs(x - med[:, None]).max(1)
-    step = np.abs(np.diff(med, axis=0))
-    act = np.zeros_like(med)
+    n = med.shape[0]
+    d2 = np.zeros_like(med)
+    if n >= 3:
+        d2[1:-1] = np.abs(med[2:] - 2 * med[1:-1] + med[:-2])
+    a2 = np.zeros_like(med)
     for sl in (slice(0, 3), slice(3, 6)):
-        st = step[:, sl].max(1)
-        a = np.maximum(np.concatenate(([0.0], st)), np.concatenate((st, [0.0])))
-        # neighbours may be missing in the damaged stream: allow the change over two samples
-        a2 = np.maximum(np.concatenate(([0.0], a[:-1])), np.concatenate((a[1:], [0.0])))
-        act[:, sl] = (a + a2)[:, None]
-    return 2 * (PLAUSIBILITY_FLOOR_LSB + SKEW_FRACTION * act) + 4 * d1
+        a2[:, sl] = d2[:, sl].max(1, keepdims=True)
+    wide = a2.copy()
+    for s in (1, 2):
+        wide[s:] = np.maximum(wide[s:], a2[:-s])
+        wide[:-s] = np.maximum(wide[:-s], a2[s:])
+    dev = x - med[:, None]
+    step = np.abs(np.diff(dev, axis=0))
+    j = np.full(dev.shape, np.inf)
+    j[1:] = step
+    j[:-1] = np.minimum(j[:-1], step)
+    sj = np.median(j, axis=1)
+    motion = np.array([JUMP_MOTION["acc"]] * 3 + [JUMP_MOTION["gyro"]] * 3)
+    return 2 * (PLAUSIBILITY_FLOOR_LSB + motion * wide + SPREAD_FACTOR * sj)
 
 
 def explain_residue(kept_raw, true_raw, stamp_err, packet_bytes: bytes, envelope, first_lead=None) -> str | None:

@@ -127,7 +127,9 @@ __all__ = [
     "TIME_TOL_TICKS",
     "FIRST_PACKET_LEAD_TICKS",
     "PLAUSIBILITY_FLOOR_LSB",
-    "SKEW_FRACTION",
+    "SPREAD_FACTOR",
+    "RANGE_MOTION",
+    "JUMP_MOTION",
     "NEAR_LIMIT_LSB",
     "SATURATED_LSB",
     "DROP_REASONS",
@@ -161,9 +163,17 @@ JITTER_TICKS = 8  # README: ±8 ticks per 16 ms interval
 _TIME_NEIGHBOURS = 3  # packets each side whose median predicts a packet's stamp
 TIME_TOL_TICKS = JITTER_TICKS * _TIME_NEIGHBOURS  # 24 ticks, the tolerance where no packet is missing
 FIRST_PACKET_LEAD_TICKS = 32_000  # 0.5 ms: how late the first packet of a stream may be stamped
-LONE_FACTOR = 3.0  # D₁ − LONE_FACTOR·D₂: one IMU alone off the board's consensus
-PLAUSIBILITY_FLOOR_LSB = 1024.0  # 0.5 g, 62 °/s: twice the datasheet offset + sensitivity spread
-SKEW_FRACTION = 1.0  # free-running IMU sample clocks: a reading up to one period older than another's
+PLAUSIBILITY_FLOOR_LSB = 256.0  # 0.125 g, 15.6 °/s: what the rigid board allows at rest beyond its spread
+SPREAD_FACTOR = 8.0  # × the eight IMUs' median deviation: honest spread (scale errors, biases, vibration)
+# × the board's change: sampling skew (free-running IMU clocks) makes honest IMUs differ by up to
+# about one sample's change of the motion; the accelerometers also see the jerk of impacts.  Set
+# from the six shared recordings with a margin ≥ 2 (experiments/mimu_fuzz.md).
+RANGE_MOTION = {"acc": 3.0, "gyro": 1.0}  # × one-sample change
+JUMP_MOTION = {"acc": 2.0, "gyro": 0.5}  # × second difference
+
+# Nominal lever arms from the board's centre (m, array frame), for the rigid-body specific force.
+_LEVER_ARMS = mimu4444_8().positions.detach().double().numpy()
+_LEVER_ARMS = _LEVER_ARMS - _LEVER_ARMS.mean(0)
 
 _ISOLATED_STEP = 4096  # packets (65 s): a number step this large next to a normal one is an outlier
 
@@ -230,6 +240,9 @@ class ImportReport:
     conflicting_packets: int = 0  # copies of one packet number with different bytes (all dropped)
     range_failures: int = 0  # one IMU alone off the board's consensus
     jump_failures: int = 0  # one IMU alone jumping in one sample
+    # [packet number, byte offset, IMU, "acc"/"gyro", "range"/"jump", |deviation| / bound] of every
+    # IMU sensor the rigid-board check rejected (its packet is dropped)
+    implausible: list = field(default_factory=list)
     reordered_packets: int = 0  # arrived after a higher packet number; put back in place and kept
     dropped: list = field(default_factory=list)  # [reason, packet number, byte offset] of every drop
     reordered: list = field(default_factory=list)  # [packet number, byte offset] of every reordered packet
@@ -294,6 +307,9 @@ class ImportReport:
         if counts:
             out.append("dropped packets by reason: " + ", ".join(f"{k} {v}" for k, v in counts.items())
                        + f"; [reason, number, byte offset] {_capped(self.dropped)}")
+        if self.implausible:
+            out.append(f"implausible values (rigid-board check; packets dropped): {len(self.implausible)} "
+                       f"[number, byte offset, IMU, sensor, test, deviation/bound] {_capped(self.implausible)}")
         out.append(
             f"duration: {self.duration_s:.2f} s at {self.sample_rate_hz:.3f} Hz "
             f"(period {self.period_median_ticks / TICK_HZ * 1e3:.4f} ms, jitter std {self.jitter_std_ticks:.2f} ticks, "
@@ -467,27 +483,70 @@ def _median_last(y: np.ndarray) -> np.ndarray:
     return 0.5 * (ys[..., k - 1 : k] + ys[..., k : k + 1])
 
 
-def _lone(y: np.ndarray, med: np.ndarray | None = None) -> np.ndarray:
-    """D₁ − LONE_FACTOR·D₂ over the last (IMU) axis of y (median ``med`` if already known), at the
-    IMU giving D₁, −inf elsewhere."""
-    dev = np.abs(y - (_median_last(y) if med is None else med))
-    top = np.sort(dev, axis=-1)
-    out = np.full(y.shape, -np.inf)
-    np.put_along_axis(out, dev.argmax(-1)[..., None], (top[..., -1] - LONE_FACTOR * top[..., -2])[..., None], axis=-1)
+def _others_median(x: np.ndarray) -> np.ndarray:
+    """For each entry of the last (IMU, 8 long) axis, the median of the OTHER seven: the fourth
+    smallest of them, i.e. the 5th smallest of all eight where the IMU itself ranks in the lower
+    half, else the 4th.  A value is judged against a consensus it does not take part in."""
+    order = np.argsort(x, axis=-1, kind="stable")
+    ys = np.take_along_axis(x, order, -1)
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.broadcast_to(np.arange(x.shape[-1]), x.shape), -1)
+    k = x.shape[-1] // 2
+    return np.where(rank < k, ys[..., k : k + 1], ys[..., k - 1 : k])
+
+
+def _corroborated_limit(mag: np.ndarray) -> np.ndarray:
+    """(N, 6) bool: channel-samples where a reading at the end of the scale is corroborated —
+    two IMUs within 1/16 of full scale (``NEAR_LIMIT_LSB``), or one saturated
+    (``SATURATED_LSB``) whose own previous or next sample is near full scale too.  A lone
+    saturated code that neither another IMU nor its own neighbours share is not clipping.
+    mag : (N, 8, 6) |counts|, array-frame channel order."""
+    near = mag >= NEAR_LIMIT_LSB
+    sat = mag >= SATURATED_LSB
+    own = np.zeros_like(near)
+    own[1:] |= near[:-1]
+    own[:-1] |= near[1:]
+    return (near.sum(1) >= 2) | (sat & own).any(1)
+
+
+def _board_change(med: np.ndarray, order: int) -> np.ndarray:
+    """(N, 6) the board's largest |order-th difference| (median of the IMUs; 1: one-sample change,
+    2: second difference) over the sensor's three axes and the differences touching the sample,
+    LSB.  Zero where the stream is too short to difference."""
+    n = med.shape[0]
+    out = np.zeros((n, 6))
+    if n <= order:
+        return out
+    d = np.abs(np.diff(med, n=order, axis=0))  # (N − order, 6); row i spans samples i..i+order
+    d = np.concatenate((d[:, :3].max(1, keepdims=True).repeat(3, 1), d[:, 3:].max(1, keepdims=True).repeat(3, 1)), 1)
+    for s in range(order + 1):  # every difference that touches sample i
+        out[s : s + d.shape[0]] = np.maximum(out[s : s + d.shape[0]], d)
     return out
 
 
 def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
-    """The range and jump tests of the module docstring, as ratios to their bounds.
+    """The rigid-board range and jump tests of the module docstring, as ratios to their bounds.
 
     raw : (N, 8, 6) int16 counts (packet IMU order, sensor frame); seq : (N,) increasing packet
-    numbers (unwrapped; default 0..N−1) — the jump test interpolates neighbours by number.
-    Returns ``(range_ratio, jump_ratio)``, each (N, 8, 6) float64: (D₁ − 3·D₂) / bound at the IMU
-    that gives D₁ (a packet fails where a ratio exceeds 1), −inf at the other IMUs and where a
-    channel is exempt (an IMU saturated, |code| ≥ ``SATURATED_LSB``, or two within 1/16 of full
-    scale, |code| ≥ ``NEAR_LIMIT_LSB``; the first and last packet for the jump).
-    bound = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` × the board's largest one-sample change
-    (median of the 8 IMUs, any axis of that sensor, either side of the sample), LSB.
+    numbers (unwrapped; default 0..N−1): neighbours in time, and the time step of the angular
+    acceleration.  Returns ``(range_ratio, jump_ratio)``, each (N, 8, 6) float64 in the packet's
+    IMU order and sensor axes: |deviation| / bound (a sample fails where a ratio exceeds 1), −inf
+    where the channel is exempt (a corroborated reading at full scale; for the accelerometers also
+    where the gyros are, since ω then is not known).
+
+    * deviation r: the IMU's array-frame value minus the median of the other seven (LSB), the
+      accelerometers first corrected by the rigid-body term α×r_k + ω×(ω×r_k) of the nominal
+      positions (ω the gyros' median, α its time derivative);
+    * range: |r| ≤ ``PLAUSIBILITY_FLOOR_LSB`` + ``RANGE_MOTION[sensor]`` · A1 + ``SPREAD_FACTOR`` · S,
+      A1 the board's one-sample change (median of the 8, any axis of the sensor, either side),
+      S the median over the eight IMUs of |r| on that channel (the honest spread: scale errors,
+      vibration);
+    * jump: the smaller of |r(t) − r(t−1)| and |r(t) − r(t+1)| (each per packet step when packets
+      are missing; the only neighbour at an end) ≤ ``PLAUSIBILITY_FLOOR_LSB`` +
+      ``JUMP_MOTION[sensor]`` · A2 + ``SPREAD_FACTOR`` · S_j, A2 the board's largest second
+      difference touching the sample, S_j the eight IMUs' median jump.  Sampling skew makes r
+      follow the board's rate of change, so its own step follows the board's second difference; a
+      wrong value steps away from both neighbours.
     """
     n = raw.shape[0]
     seq = np.arange(n, dtype=np.int64) if seq is None else np.asarray(seq, dtype=np.int64)
@@ -496,40 +555,59 @@ def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
     # (N, 6, 8): the IMU axis last, so medians and sorts run over contiguous memory.
     x = np.ascontiguousarray((raw[:, imu, chan].astype(np.float64) * sign).transpose(0, 2, 1))
     mag = np.abs(raw.astype(np.int32))[:, imu, chan]  # (N, 8, 6)
-    near = ((mag >= NEAR_LIMIT_LSB).sum(1) >= 2) | (mag >= SATURATED_LSB).any(1)  # (N, 6)
-    med = _median_last(x)
-    activity = np.zeros((n, 6))
-    if n > 1:
-        step = np.abs(np.diff(med[..., 0], axis=0))  # (N−1, 6) the board's change per sample
-        step = np.stack((step[:, :3].max(1), step[:, 3:].max(1)), 1)  # (N−1, 2): acc, gyro
-        pad = np.zeros((1, 2))
-        activity = np.repeat(np.maximum(np.concatenate((pad, step)), np.concatenate((step, pad))), 3, axis=1)
-    bound = (PLAUSIBILITY_FLOOR_LSB + SKEW_FRACTION * activity)[..., None]  # (N, 6, 1)
-    rng = _lone(x, med) / bound
-    rng[near] = -np.inf
+    exempt = _corroborated_limit(mag)  # (N, 6)
+    gyro_limit = exempt[:, 3:].any(1)
+    if n > 1:  # ω's derivative uses the neighbours: their gyros must be known as well
+        gyro_limit = gyro_limit | np.concatenate(([False], gyro_limit[:-1])) | np.concatenate((gyro_limit[1:], [False]))
+    exempt[:, :3] |= gyro_limit[:, None]
+    w = _median_last(x[:, 3:])[..., 0] * GYRO_SCALE  # (N, 3) rad/s
+    t = seq.astype(np.float64) * (NOMINAL_PERIOD_TICKS / TICK_HZ)
+    alpha = np.gradient(w, t, axis=0) if n > 1 else np.zeros_like(w)
+    r_k = _LEVER_ARMS
+    lever = np.cross(alpha[:, None], r_k[None]) + np.cross(w[:, None], np.cross(w[:, None], r_k[None]))  # (N, 8, 3) m/s²
+    x[:, :3] -= lever.transpose(0, 2, 1) / ACC_SCALE
+    dev = x - _others_median(x)  # (N, 6, 8)
+    med = _median_last(x)[..., 0]  # (N, 6)
+    motion = np.array([RANGE_MOTION["acc"]] * 3 + [RANGE_MOTION["gyro"]] * 3)
+    bound = PLAUSIBILITY_FLOOR_LSB + motion * _board_change(med, 1) + SPREAD_FACTOR * _median_last(np.abs(dev))[..., 0]
+    rng = np.abs(dev) / bound[..., None]
+    rng[exempt] = -np.inf
     jmp = np.full(x.shape, -np.inf)
-    if n >= 3:
-        s = seq.astype(np.float64)
-        w = ((s[1:-1] - s[:-2]) / (s[2:] - s[:-2]))[:, None, None]
-        inner = _lone(x[1:-1] - ((1 - w) * x[:-2] + w * x[2:])) / bound[1:-1]
-        inner[near[:-2] | near[1:-1] | near[2:]] = -np.inf
-        jmp[1:-1] = inner
-    return rng.transpose(0, 2, 1), jmp.transpose(0, 2, 1)
+    if n >= 2:
+        gap = np.diff(seq).astype(np.float64)[:, None, None]
+        step = np.abs(np.diff(dev, axis=0)) / gap  # (N−1, 6, 8): per packet step
+        j = np.full(x.shape, np.inf)
+        j[1:] = step
+        j[:-1] = np.minimum(j[:-1], step)
+        motion = np.array([JUMP_MOTION["acc"]] * 3 + [JUMP_MOTION["gyro"]] * 3)
+        bound = PLAUSIBILITY_FLOOR_LSB + motion * _board_change(med, 2) + SPREAD_FACTOR * _median_last(j)[..., 0]
+        jmp = j / bound[..., None]
+        ex = exempt.copy()
+        ex[1:] |= exempt[:-1]
+        ex[:-1] |= exempt[1:]
+        jmp[ex] = -np.inf
+    # back to packet order and sensor axes: array channel c of IMU k is packet channel chan[k, c]
+    out = []
+    for a in (rng, jmp):
+        a = a.transpose(0, 2, 1)  # (N, 8, 6) array channels
+        b = np.empty_like(a)
+        np.put_along_axis(b, np.broadcast_to(chan, a.shape), a, -1)
+        out.append(b)
+    return out[0], out[1]
 
 
-def _implausible(raw: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) bool packets failing the range test, and those failing the jump test."""
+def _implausible(raw: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
+    """(N,) bool packets failing the range test, those failing the jump test (and not the range
+    test), and [row, imu, sensor, test, ratio] of every failing IMU sensor."""
     rng, jmp = plausibility_statistics(raw, seq)
+    rows = []
+    for test, ratio in (("range", rng), ("jump", jmp)):
+        worst = np.stack((ratio[..., :3].max(-1), ratio[..., 3:].max(-1)), -1)  # (N, 8, 2)
+        for i, k, s in zip(*np.nonzero(worst > 1)):
+            rows.append([int(i), int(k), ("acc", "gyro")[s], test, round(float(worst[i, k, s]), 3)])
     bad_r = (rng > 1).any((1, 2))
-    if bad_r.any() and (~bad_r).sum() >= 3:
-        # A packet out of range must not serve as a neighbour in its neighbours' jump test.
-        jmp = np.full(jmp.shape, -np.inf)
-        jmp[~bad_r] = plausibility_statistics(raw[~bad_r], seq[~bad_r])[1]
-    # Only the local maximum in time: a spike's neighbours see half of it in their own differences.
-    prev = np.concatenate((np.full((1,) + jmp.shape[1:], -np.inf), jmp[:-1]))
-    nxt = np.concatenate((jmp[1:], np.full((1,) + jmp.shape[1:], -np.inf)))
-    bad_j = ((jmp > 1) & (jmp >= prev) & (jmp >= nxt)).any((1, 2))
-    return bad_r, bad_j
+    bad_j = (jmp > 1).any((1, 2)) & ~bad_r
+    return bad_r, bad_j, rows
 
 
 def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = False,
@@ -616,9 +694,10 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
     keep[o2[dup | conflict]] = False
 
     o3 = order[keep[order]]
-    bad_r, bad_j = _implausible(pk["data"][o3].astype(np.int16), seq[o3])
-    bad_j &= ~bad_r
+    bad_r, bad_j, rows = _implausible(pk["data"][o3].astype(np.int16), seq[o3])
     keep[o3[bad_r | bad_j]] = False
+    rep.implausible = sorted([int(number[o3[i]]), int(off[o3[i]]), k, sensor, test, ratio]
+                             for i, k, sensor, test, ratio in rows)
 
     reason = np.full(off.size, "", dtype=object)
     reason[order[bad_t]] = "timestamp"
