@@ -111,7 +111,7 @@ import numpy as np
 from ..constants import DEG_TO_RAD, G0
 from ..errors import RecordingError
 from ..physics.arrays import SensorArray, mimu4444_8
-from ..physics.geometry import quat_to_matrix
+from .plausibility import JUMP_MOTION, NEAR_LIMIT_FRACTION, RANGE_MOTION, SATURATED_FRACTION, SPREAD_FACTOR, rigid_board_check
 from .recording import Recording
 from .segments import StaticAnalysis, analyse_static, difference_noise_std, segment_labels
 
@@ -127,9 +127,6 @@ __all__ = [
     "TIME_TOL_TICKS",
     "FIRST_PACKET_LEAD_TICKS",
     "PLAUSIBILITY_FLOOR_LSB",
-    "SPREAD_FACTOR",
-    "RANGE_MOTION",
-    "JUMP_MOTION",
     "NEAR_LIMIT_LSB",
     "SATURATED_LSB",
     "DROP_REASONS",
@@ -154,8 +151,8 @@ NOMINAL_PERIOD_TICKS = 1_024_000  # 16 ms at 64 MHz
 ACC_SCALE = G0 / 2048.0  # m/s² per LSB at ±16 g
 GYRO_SCALE = (1.0 / 16.4) * DEG_TO_RAD  # rad/s per LSB at ±2000 °/s
 INT16_LIMITS = (-32768, 32767)
-NEAR_LIMIT_LSB = 30720  # 15/16 of full scale: IMUs saturate ±3 % apart (sensitivity tolerance)
-SATURATED_LSB = 32704  # the top 64 codes (0.2 % of full scale): this IMU is at its limit
+NEAR_LIMIT_LSB = round(NEAR_LIMIT_FRACTION * 32768)  # 30720: IMUs saturate ±3 % apart (sensitivity tolerance)
+SATURATED_LSB = round(SATURATED_FRACTION * 32768)  # 32704, the top 64 codes: this IMU is at its limit
 ACC_RANGE = 16 * G0
 GYRO_RANGE = 2000.0 * DEG_TO_RAD
 
@@ -163,17 +160,10 @@ JITTER_TICKS = 8  # README: ±8 ticks per 16 ms interval
 _TIME_NEIGHBOURS = 3  # packets each side whose median predicts a packet's stamp
 TIME_TOL_TICKS = JITTER_TICKS * _TIME_NEIGHBOURS  # 24 ticks, the tolerance where no packet is missing
 FIRST_PACKET_LEAD_TICKS = 32_000  # 0.5 ms: how late the first packet of a stream may be stamped
-PLAUSIBILITY_FLOOR_LSB = 256.0  # 0.125 g, 15.6 °/s: what the rigid board allows at rest beyond its spread
-SPREAD_FACTOR = 8.0  # × the eight IMUs' median deviation: honest spread (scale errors, biases, vibration)
-# × the board's change: sampling skew (free-running IMU clocks) makes honest IMUs differ by up to
-# about one sample's change of the motion; the accelerometers also see the jerk of impacts.  Set
-# from the six shared recordings with a margin ≥ 2 (experiments/mimu_fuzz.md).
-RANGE_MOTION = {"acc": 3.0, "gyro": 1.0}  # × one-sample change
-JUMP_MOTION = {"acc": 2.0, "gyro": 0.5}  # × second difference
+PLAUSIBILITY_FLOOR_LSB = 256.0  # 0.125 g, 15.6 °/s: 1/128 of full scale, the bounds' floor at rest
 
-# Nominal lever arms from the board's centre (m, array frame), for the rigid-body specific force.
-_LEVER_ARMS = mimu4444_8().positions.detach().double().numpy()
-_LEVER_ARMS = _LEVER_ARMS - _LEVER_ARMS.mean(0)
+_NOMINAL_POS = mimu4444_8().positions.detach().double().numpy()
+_NOMINAL_QUAT = mimu4444_8().orientations.detach().double().numpy()
 
 _ISOLATED_STEP = 4096  # packets (65 s): a number step this large next to a normal one is an outlier
 
@@ -464,147 +454,35 @@ def _stamp_deviation(res: np.ndarray, seq: np.ndarray, ref_ok: np.ndarray | None
     return res - med, JITTER_TICKS * np.maximum(far, k)
 
 
-def _array_frame_index() -> tuple[np.ndarray, np.ndarray]:
-    """(8, 6) packet channel and sign giving each IMU's array-frame [fx, fy, fz, ωx, ωy, ωz]: the
-    MIMU4444 corner IMUs are rotated by signed axis permutations (top identity, bottom the README's
-    C), so the rotation is an exact integer gather."""
-    q = mimu4444_8().orientations.detach().double()
-    rot = np.rint(quat_to_matrix(q).transpose(-1, -2).numpy()).astype(np.int64)  # sensor → array
-    axis = np.abs(rot).argmax(-1)  # (8, 3): array axis i reads sensor axis axis[k, i]
-    sign = np.take_along_axis(rot, axis[..., None], -1)[..., 0]
-    return np.concatenate((axis, axis + 3), 1), np.concatenate((sign, sign), 1)
-
-
-def _median_last(y: np.ndarray) -> np.ndarray:
-    """Median over the last axis of an even-length (IMU) axis, keepdims: sorting 8 values is
-    cheaper than numpy's partition-based median."""
-    ys = np.sort(y, axis=-1)
-    k = y.shape[-1] // 2
-    return 0.5 * (ys[..., k - 1 : k] + ys[..., k : k + 1])
-
-
-def _others_median(x: np.ndarray) -> np.ndarray:
-    """For each entry of the last (IMU, 8 long) axis, the median of the OTHER seven: the fourth
-    smallest of them, i.e. the 5th smallest of all eight where the IMU itself ranks in the lower
-    half, else the 4th.  A value is judged against a consensus it does not take part in."""
-    order = np.argsort(x, axis=-1, kind="stable")
-    ys = np.take_along_axis(x, order, -1)
-    rank = np.empty_like(order)
-    np.put_along_axis(rank, order, np.broadcast_to(np.arange(x.shape[-1]), x.shape), -1)
-    k = x.shape[-1] // 2
-    return np.where(rank < k, ys[..., k : k + 1], ys[..., k - 1 : k])
-
-
-def _corroborated_limit(mag: np.ndarray) -> np.ndarray:
-    """(N, 6) bool: channel-samples where a reading at the end of the scale is corroborated —
-    two IMUs within 1/16 of full scale (``NEAR_LIMIT_LSB``), or one saturated
-    (``SATURATED_LSB``) whose own previous or next sample is near full scale too.  A lone
-    saturated code that neither another IMU nor its own neighbours share is not clipping.
-    mag : (N, 8, 6) |counts|, array-frame channel order."""
-    near = mag >= NEAR_LIMIT_LSB
-    sat = mag >= SATURATED_LSB
-    own = np.zeros_like(near)
-    own[1:] |= near[:-1]
-    own[:-1] |= near[1:]
-    return (near.sum(1) >= 2) | (sat & own).any(1)
-
-
-def _board_change(med: np.ndarray, order: int) -> np.ndarray:
-    """(N, 6) the board's largest |order-th difference| (median of the IMUs; 1: one-sample change,
-    2: second difference) over the sensor's three axes and the differences touching the sample,
-    LSB.  Zero where the stream is too short to difference."""
-    n = med.shape[0]
-    out = np.zeros((n, 6))
-    if n <= order:
-        return out
-    d = np.abs(np.diff(med, n=order, axis=0))  # (N − order, 6); row i spans samples i..i+order
-    d = np.concatenate((d[:, :3].max(1, keepdims=True).repeat(3, 1), d[:, 3:].max(1, keepdims=True).repeat(3, 1)), 1)
-    for s in range(order + 1):  # every difference that touches sample i
-        out[s : s + d.shape[0]] = np.maximum(out[s : s + d.shape[0]], d)
-    return out
-
-
 def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
-    """The rigid-board range and jump tests of the module docstring, as ratios to their bounds.
+    """The rigid-board range and jump tests (:mod:`accel_bayes.data.plausibility`) on a stream's
+    counts, as ratios to their bounds.
 
     raw : (N, 8, 6) int16 counts (packet IMU order, sensor frame); seq : (N,) increasing packet
-    numbers (unwrapped; default 0..N−1): neighbours in time, and the time step of the angular
-    acceleration.  Returns ``(range_ratio, jump_ratio)``, each (N, 8, 6) float64 in the packet's
-    IMU order and sensor axes: |deviation| / bound (a sample fails where a ratio exceeds 1), −inf
-    where the channel is exempt (a corroborated reading at full scale; for the accelerometers also
-    where the gyros are, since ω then is not known).
-
-    * deviation r: the IMU's array-frame value minus the median of the other seven (LSB), the
-      accelerometers first corrected by the rigid-body term α×r_k + ω×(ω×r_k) of the nominal
-      positions (ω the gyros' median, α its time derivative);
-    * range: |r| ≤ ``PLAUSIBILITY_FLOOR_LSB`` + ``RANGE_MOTION[sensor]`` · A1 + ``SPREAD_FACTOR`` · S,
-      A1 the board's one-sample change (median of the 8, any axis of the sensor, either side),
-      S the median over the eight IMUs of |r| on that channel (the honest spread: scale errors,
-      vibration);
-    * jump: the smaller of |r(t) − r(t−1)| and |r(t) − r(t+1)| (each per packet step when packets
-      are missing; the only neighbour at an end) ≤ ``PLAUSIBILITY_FLOOR_LSB`` +
-      ``JUMP_MOTION[sensor]`` · A2 + ``SPREAD_FACTOR`` · S_j, A2 the board's largest second
-      difference touching the sample, S_j the eight IMUs' median jump.  Sampling skew makes r
-      follow the board's rate of change, so its own step follows the board's second difference; a
-      wrong value steps away from both neighbours.
+    numbers (unwrapped; default 0..N−1): the neighbours in time and the 16 ms steps between them.
+    Returns ``(range_ratio, jump_ratio)``, each (N, 8, 2) float64, [acc, gyro] of each IMU: the
+    largest |statistic| / bound over the array-frame axes (a sample fails above 1), −inf where
+    exempt.  Floors ``PLAUSIBILITY_FLOOR_LSB``; full scale the int16 range.
     """
     n = raw.shape[0]
     seq = np.arange(n, dtype=np.int64) if seq is None else np.asarray(seq, dtype=np.int64)
-    chan, sign = _array_frame_index()
-    imu = np.arange(N_IMU)[:, None]
-    # (N, 6, 8): the IMU axis last, so medians and sorts run over contiguous memory.
-    x = np.ascontiguousarray((raw[:, imu, chan].astype(np.float64) * sign).transpose(0, 2, 1))
-    mag = np.abs(raw.astype(np.int32))[:, imu, chan]  # (N, 8, 6)
-    exempt = _corroborated_limit(mag)  # (N, 6)
-    gyro_limit = exempt[:, 3:].any(1)
-    if n > 1:  # ω's derivative uses the neighbours: their gyros must be known as well
-        gyro_limit = gyro_limit | np.concatenate(([False], gyro_limit[:-1])) | np.concatenate((gyro_limit[1:], [False]))
-    exempt[:, :3] |= gyro_limit[:, None]
-    w = _median_last(x[:, 3:])[..., 0] * GYRO_SCALE  # (N, 3) rad/s
-    t = seq.astype(np.float64) * (NOMINAL_PERIOD_TICKS / TICK_HZ)
-    alpha = np.gradient(w, t, axis=0) if n > 1 else np.zeros_like(w)
-    r_k = _LEVER_ARMS
-    lever = np.cross(alpha[:, None], r_k[None]) + np.cross(w[:, None], np.cross(w[:, None], r_k[None]))  # (N, 8, 3) m/s²
-    x[:, :3] -= lever.transpose(0, 2, 1) / ACC_SCALE
-    dev = x - _others_median(x)  # (N, 6, 8)
-    med = _median_last(x)[..., 0]  # (N, 6)
-    motion = np.array([RANGE_MOTION["acc"]] * 3 + [RANGE_MOTION["gyro"]] * 3)
-    bound = PLAUSIBILITY_FLOOR_LSB + motion * _board_change(med, 1) + SPREAD_FACTOR * _median_last(np.abs(dev))[..., 0]
-    rng = np.abs(dev) / bound[..., None]
-    rng[exempt] = -np.inf
-    jmp = np.full(x.shape, -np.inf)
-    if n >= 2:
-        gap = np.diff(seq).astype(np.float64)[:, None, None]
-        step = np.abs(np.diff(dev, axis=0)) / gap  # (N−1, 6, 8): per packet step
-        j = np.full(x.shape, np.inf)
-        j[1:] = step
-        j[:-1] = np.minimum(j[:-1], step)
-        motion = np.array([JUMP_MOTION["acc"]] * 3 + [JUMP_MOTION["gyro"]] * 3)
-        bound = PLAUSIBILITY_FLOOR_LSB + motion * _board_change(med, 2) + SPREAD_FACTOR * _median_last(j)[..., 0]
-        jmp = j / bound[..., None]
-        ex = exempt.copy()
-        ex[1:] |= exempt[:-1]
-        ex[:-1] |= exempt[1:]
-        jmp[ex] = -np.inf
-    # back to packet order and sensor axes: array channel c of IMU k is packet channel chan[k, c]
-    out = []
-    for a in (rng, jmp):
-        a = a.transpose(0, 2, 1)  # (N, 8, 6) array channels
-        b = np.empty_like(a)
-        np.put_along_axis(b, np.broadcast_to(chan, a.shape), a, -1)
-        out.append(b)
-    return out[0], out[1]
+    x = raw.astype(np.float64)
+    period = NOMINAL_PERIOD_TICKS / TICK_HZ
+    p = rigid_board_check(x[..., :3] * ACC_SCALE, x[..., 3:] * GYRO_SCALE, (seq - seq[0]) * period if n else seq,
+                          _NOMINAL_POS, _NOMINAL_QUAT, floor_acc=PLAUSIBILITY_FLOOR_LSB * ACC_SCALE,
+                          floor_gyro=PLAUSIBILITY_FLOOR_LSB * GYRO_SCALE, acc_range=32768 * ACC_SCALE,
+                          gyro_range=32768 * GYRO_SCALE, period=period)
+    return p.range_ratio, p.jump_ratio
 
 
 def _implausible(raw: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
-    """(N,) bool packets failing the range test, those failing the jump test (and not the range
-    test), and [row, imu, sensor, test, ratio] of every failing IMU sensor."""
+    """(N,) bool packets failing the range test, those failing only the jump test, and
+    [row, IMU, sensor, test, ratio] of every failing IMU sensor."""
     rng, jmp = plausibility_statistics(raw, seq)
     rows = []
     for test, ratio in (("range", rng), ("jump", jmp)):
-        worst = np.stack((ratio[..., :3].max(-1), ratio[..., 3:].max(-1)), -1)  # (N, 8, 2)
-        for i, k, s in zip(*np.nonzero(worst > 1)):
-            rows.append([int(i), int(k), ("acc", "gyro")[s], test, round(float(worst[i, k, s]), 3)])
+        for i, k, s in zip(*np.nonzero(ratio > 1)):
+            rows.append([int(i), int(k), ("acc", "gyro")[s], test, round(float(ratio[i, k, s]), 3)])
     bad_r = (rng > 1).any((1, 2))
     bad_j = (jmp > 1).any((1, 2)) & ~bad_r
     return bad_r, bad_j, rows
