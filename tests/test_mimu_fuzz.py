@@ -148,11 +148,14 @@ def test_moving_board_is_not_questioned():
 def test_corroborated_saturation_is_exempt_but_a_lone_full_scale_value_is_not():
     numbers, stamps, raw = _rest()
     raw[59:62, 0, 3] = 32767  # one IMU saturated for three samples: its own neighbours corroborate
-    raw[90, 2, 4] = raw[90, 4, 4] = 31000  # two IMUs near full scale on one channel: exempt
+    raw[90, :, 4] = 31000  # the whole board near full scale on one channel: exempt
+    raw[90, 1::2, 3] = -31000  # (array y is sensor −x on the bottom IMUs)
+    raw[90, 1::2, 4] = raw[90, 1, 5]
     raw[120, 6, 5] = 31000  # one IMU alone near full scale, the board at rest: out of range
     raw[180, 3, 3] = 32767  # one IMU saturated for one sample, nobody agrees: not clipping
+    raw[240, 2, 5] = raw[240, 4, 5] = 32000  # two IMUs at full scale by one corruption (fuzz seed 13, #3628)
     s, rep = decode_mimu_bytes(MIMU_ACK + encode_mimu_packets(numbers, stamps, raw, ack=False))
-    assert [d[:2] for d in rep.dropped] == [["range", int(numbers[120])], ["range", int(numbers[180])]]
+    assert [d[:2] for d in rep.dropped] == [["range", int(numbers[t])] for t in (120, 180, 240)]
     assert s.raw[60, 0, 3] == 32767 and s.raw[90, 2, 4] == 31000
 
 
@@ -168,6 +171,20 @@ def test_lone_full_scale_gyro_on_a_still_board_is_dropped():
     assert [d[:2] for d in rep.dropped] == [["range", int(numbers[150])]]
     assert rep.implausible[0][:4] == [int(numbers[150]), 4 + 150 * 106, 3, "gyro"]
     assert (s.raw[..., 3:] == -4).all()
+
+
+def test_an_error_next_to_missing_packets_is_dropped():
+    # Fuzz seed 13, variant 591: packets missing just before a sample made the board's second
+    # difference (taken across the gap) large, and a 1024-LSB gyro error passed the jump bound.
+    numbers, stamps, raw = mf.board_stream(400, np.random.default_rng(11))
+    x = mf.array_frame(raw)
+    step = np.abs(np.diff(np.median(x, axis=1), axis=0))[:, 3:].max(1)
+    t = 10 + int(np.argmax(step[10:-10]))  # the fastest change of ω
+    bad = raw.copy()
+    bad[t, 1, 3] += 1024
+    keep = np.setdiff1d(np.arange(400), [t - 4, t - 3, t - 2])
+    s, rep = decode_mimu_bytes(encode_mimu_packets(numbers[keep], stamps[keep], bad[keep]))
+    assert [int(d[1]) for d in rep.dropped] == [int(numbers[t])]
 
 
 def test_errors_above_1024_lsb_hidden_by_motion_are_dropped():

@@ -10,13 +10,15 @@ nominal position r_k.  Per sample, IMU and array-frame axis:
   body term, with ω the gyros' median and α its time derivative): a value is judged against a
   consensus it does not take part in;
 * **range**: |d| ≤ floor + ``RANGE_MOTION[sensor]`` · A₁ + ``SPREAD_FACTOR`` · S, with A₁ the
-  board's largest one-sample change (median of the IMUs, any axis of that sensor, either side of
-  the sample) and S the median over the IMUs of |d| on that axis (the honest spread of the board
+  board's largest change per sample period (median of the IMUs, any axis of that sensor, either
+  side of the sample) and S the median over the IMUs of |d| on that axis (the honest spread of the board
   at that instant: scale errors, biases, vibration);
 * **jump**: the smaller of the deviation's two one-sample steps, |d(t) − d(t−1)| and
-  |d(t) − d(t+1)| (per nominal sample period across gaps; the only step at an end),
-  ≤ floor + ``JUMP_MOTION[sensor]`` · A₂ + ``SPREAD_FACTOR`` · S_j, with A₂ the board's largest
-  |second difference| touching the sample and S_j the IMUs' median step.  Sampling skew makes an
+  |d(t) − d(t+1)| (the only step at an end), each against
+  floor + ``JUMP_MOTION[sensor]`` · g · A₂ + ``SPREAD_FACTOR`` · S_j (g the step's length in
+  nominal sample periods, 1 without gaps: an honest deviation changes more across a gap, a wrong
+  value does not grow), with A₂ the board's largest
+  change of slope per period touching the sample and S_j the IMUs' median step.  Sampling skew makes an
   honest deviation follow the board's rate of change, so its step follows the second
   difference; a wrong value steps away from both of its neighbours.
 
@@ -26,10 +28,11 @@ rotation reach the ±2000 °/s range and ±16 g impacts: honest accelerometers t
 gyros by up to ~0.5 ×.  Their largest ratios and the margins are in ``experiments/mimu_fuzz.md``.
 
 **Full scale.**  Near its range an IMU saturates up to ±3 % before or after another (sensitivity
-tolerance), so an axis is exempt at a sample where the end of the scale is *corroborated*: two
-IMUs within 1/16 of full scale, or one saturated (top 0.2 % of the scale) whose own previous or
-next sample is within 1/16 too.  A lone full-scale value that no other IMU and neither of its own
-neighbours shares is not clipping and is judged like any other.  Where a gyro axis is exempt the
+tolerance), so an axis is exempt at a sample where the end of the scale is *corroborated*: the
+board's median is within 1/16 of full scale, or an IMU is saturated (top 0.2 % of the scale) and
+its own previous or next sample is within 1/16 too.  A full-scale value that the board and its
+own neighbours do not share — in one IMU, or in two hit by one corruption — is not clipping and
+is judged like any other.  Where a gyro axis is exempt the
 accelerometers of that sample and its neighbours are too (ω, hence the rigid-body term, is not
 known there).
 
@@ -102,19 +105,30 @@ def _others_median(x: np.ndarray) -> np.ndarray:
 
 def _median(x: np.ndarray) -> np.ndarray:
     """Median over the last (IMU) axis, ignoring NaN (an absent sensor)."""
+    if not np.isnan(x).any():
+        # sorting a handful of IMUs is cheaper than numpy's partition-based (nan)median
+        ys = np.sort(x, axis=-1)
+        K = x.shape[-1]
+        return 0.5 * (ys[..., (K - 1) // 2] + ys[..., K // 2])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return np.nanmedian(x, axis=-1)
 
 
-def _board_change(med: np.ndarray, order: int) -> np.ndarray:
-    """(T, 3) the board's largest |order-th difference| over the three axes (median of the IMUs)
-    among the differences touching each sample; zero where the stream is too short."""
+def _board_change(med: np.ndarray, order: int, gap: np.ndarray) -> np.ndarray:
+    """(T, 3) the board's largest |change| per nominal sample period over the three axes (median
+    of the IMUs) among the differences touching each sample: order 1 the slope, order 2 the
+    change of slope from one step to the next.  ``gap`` (T−1,) step lengths in periods: across a
+    gap the board's change is taken per period, so a missing packet does not inflate the bound.
+    Zero where the stream is too short."""
     n = med.shape[0]
     out = np.zeros_like(med)
     if n <= order:
         return out
-    d = np.nan_to_num(np.abs(np.diff(med, n=order, axis=0)), nan=0.0).max(1, keepdims=True)  # (n − order, 1)
+    d = np.diff(med, axis=0) / gap[:, None]  # slopes per period
+    if order == 2:
+        d = np.diff(d, axis=0)
+    d = np.nan_to_num(np.abs(d), nan=0.0).max(1, keepdims=True)  # (n − order, 1)
     for s in range(order + 1):
         out[s : s + d.shape[0]] = np.maximum(out[s : s + d.shape[0]], d)
     return out
@@ -123,13 +137,13 @@ def _board_change(med: np.ndarray, order: int) -> np.ndarray:
 def _corroborated_limit(x: np.ndarray, limit: np.ndarray) -> np.ndarray:
     """(T, 3) bool: axes where the end of the scale is corroborated (module docstring).
     x : (T, 3, K) array-frame values; limit : (K,) full scale (inf: unknown, never exempt)."""
-    mag = np.abs(np.nan_to_num(x, nan=0.0))
-    near = mag >= NEAR_LIMIT_FRACTION * limit
-    sat = mag >= SATURATED_FRACTION * limit
+    frac = np.abs(x) / limit  # NaN for an absent sensor
+    near = np.nan_to_num(frac, nan=0.0) >= NEAR_LIMIT_FRACTION
+    sat = np.nan_to_num(frac, nan=0.0) >= SATURATED_FRACTION
     own = np.zeros_like(near)
     own[1:] |= near[:-1]
     own[:-1] |= near[1:]
-    return (near.sum(-1) >= 2) | (sat & own).any(-1)
+    return (_median(frac) >= NEAR_LIMIT_FRACTION) | (sat & own).any(-1)
 
 
 def _sensor_frame_to_array(x: np.ndarray, rot: np.ndarray) -> np.ndarray:
@@ -201,17 +215,24 @@ def rigid_board_check(acc, gyro, time, positions, orientations, *, floor_acc: fl
         x = np.where(has[s][None, None, :], xs[s], np.nan)
         dev = x - _others_median(x)  # (T, 3, K)
         med = _median(x)
-        bound = floors[s] + RANGE_MOTION[s] * _board_change(med, 1) + SPREAD_FACTOR * _median(np.abs(dev))
+        bound = floors[s] + RANGE_MOTION[s] * _board_change(med, 1, gap) + SPREAD_FACTOR * _median(np.abs(dev))
         ratio = np.abs(dev) / bound[..., None]
         ratio[exempt[s]] = -np.inf
         rng[..., si] = np.nan_to_num(ratio, nan=-np.inf).max(1)
         if T >= 2:
-            step = np.abs(np.diff(dev, axis=0)) / gap[:, None, None]
+            step = np.abs(np.diff(dev, axis=0))  # (T−1, 3, K)
             j = np.full(dev.shape, np.inf)
             j[1:] = step
             j[:-1] = np.minimum(j[:-1], step)
-            bound = floors[s] + JUMP_MOTION[s] * _board_change(med, 2) + SPREAD_FACTOR * _median(j)
-            ratio = j / bound[..., None]
+            spread = SPREAD_FACTOR * _median(j)  # (T, 3)
+            a2 = JUMP_MOTION[s] * _board_change(med, 2, gap)
+            g = gap[:, None]
+            # each side against its own bound (its gap), the smaller ratio counts
+            left = step / (floors[s] + a2[1:] * g + spread[1:])[..., None]
+            right = step / (floors[s] + a2[:-1] * g + spread[:-1])[..., None]
+            ratio = np.full(dev.shape, np.inf)
+            ratio[1:] = left
+            ratio[:-1] = np.minimum(ratio[:-1], right)
             ex = exempt[s].copy()
             ex[1:] |= exempt[s][:-1]
             ex[:-1] |= exempt[s][1:]
