@@ -52,37 +52,36 @@ lists every packet each rule touched, by reason, packet number and byte offset):
   stream — the lowest number whose stamp is on the grid or at most that lead after it — is
   stamped up to ``FIRST_PACKET_LEAD_TICKS`` (0.5 ms) after the grid of the others (every shared
   recording: ~0.35 ms, the README's short first interval); it never serves as a reference.
-* **Plausibility beyond the checksum.**  The byte sum misses byte swaps and compensating ± edits,
-  so the values of a checksum-valid packet are checked against the rigid board.  The eight IMUs
-  sit within 27 mm on one PCB and, rotated into the array frame (bottom IMUs by the README's C,
-  an exact signed permutation), read the same ω and nearly the same specific force.
-  *Range*: at ±16 g and ±2000 °/s every int16 code is a possible output (the recordings use
-  both −32768 and 32767), so no code is out of range by itself; the range that applies is the
-  board's.  Per channel and sample let D₁ ≥ D₂ be the two largest |IMU − median of the 8| (LSB);
-  the IMU giving D₁ is out of range when D₁ − 3·D₂ exceeds the bound
-  B = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` · A, where A is the board's largest one-sample
-  change (median of the 8 IMUs, any axis of that sensor, either side of the sample).  The floor,
-  1024 LSB (0.5 g, 62 °/s), is twice what uncalibrated MPU-9150s may differ by at rest (zero-g
-  offset up to ±150 mg and 3 % sensitivity of 1 g; zero-rate offset ±20 °/s).  The A term is
-  sampling skew: each IMU samples on its own clock, so a reading may be up to one period older
-  than another's and differ from it by up to one sample's change of the motion (SKEW_FRACTION 1).
-  D₂ is subtracted because genuine differences (local vibration, near-saturation) move several
-  IMUs at once; one corrupted value moves one.
-  *Jump*: the same statistic and bound on the second difference x[t] − (linear interpolation of
-  its two neighbours in packet number): one IMU's channel jumping in one sample while the seven
-  others on the same rigid board do not.  Flagged only at the local maximum in time, so a spike
-  does not also condemn its neighbours.
-  Across the six shared recordings the largest (D₁ − 3·D₂)/B is range acc 0.49 / gyro 0.25 and
-  jump acc 0.47 / gyro 0.16: margins 2.0 / 4.0 / 2.1 / 6.1 (``experiments/mimu_fuzz.md``).  A
-  channel is exempt at a sample where one IMU of it is saturated (|code| ≥ ``SATURATED_LSB`` =
-  32704, the top 0.2 % of the scale) or two read within 1/16 of full scale (|code| ≥
-  ``NEAR_LIMIT_LSB`` = 30720): IMUs saturate ±3 % apart (sensitivity tolerance), so near full
-  scale they need not agree.  What these rules provably cannot see — a change smaller than
-  B + 3·D₂, the same channel corrupted in two IMUs of one packet, values near full scale — is
-  measured per operator in the fuzz study.
-* **Drop, never flag-and-keep, for values.**  A packet failing any check above is dropped
-  (one of ~37 000 costs nothing; a wrong value biases a calibration).  Reordered packets are
-  kept and listed: their number and stamp agree, only their arrival was late.
+* **Plausibility beyond the checksum.**  The byte sum misses byte swaps, compensating ± edits
+  and many double bit flips, so the values of a checksum-valid packet are judged against the
+  rigid board (:mod:`accel_bayes.data.plausibility`, the same check the CSV importer runs).  The
+  eight IMUs sit within 27 mm on one PCB; rotated into the array frame (bottom IMUs by the
+  README's C) every gyro reads the same ω and every accelerometer the same specific force plus
+  the rigid-body term of its nominal position.  At ±16 g and ±2000 °/s every int16 code is a
+  possible output (the recordings use both −32768 and 32767), so no code is out of range by
+  itself; the range that applies is the board's.  Per IMU, sensor and sample: the *range* test
+  bounds the deviation from the other seven's median by ``PLAUSIBILITY_FLOOR_LSB`` (256 LSB:
+  0.125 g, 15.6 °/s) + a multiple of the board's change per sample (sampling skew of the
+  free-running IMU clocks) + 8 × the board's median deviation (honest spread); the *jump* test
+  bounds the smaller of the deviation's two one-sample steps by the floor + a multiple of the
+  board's change of slope + 8 × the median step: a wrong value steps away from both neighbours,
+  an honest deviation follows the motion.  Across the six shared recordings (vigorous hand
+  rotation up to the ±2000 °/s range included) the largest ratio to the bound is 0.60 (range,
+  accelerometer, exp_5): margin 1.7; every other margin ≥ 2.1 (``experiments/mimu_fuzz.md``).
+  A channel is exempt where full scale is corroborated: the board's median within 1/16 of full
+  scale (``NEAR_LIMIT_LSB``), or an IMU saturated (``SATURATED_LSB`` = 32704, the top 0.2 %)
+  whose own previous or next sample is within 1/16 too — IMUs saturate ±3 % apart.  A lone
+  full-scale code that neither the board nor its own neighbours share (issue #29: one gyro at
+  +1998 °/s while seven read −0.24) is a wrong value, not clipping.  What the rules cannot see —
+  a change below the bound, values where full scale is corroborated — is measured per operator
+  and magnitude in the fuzz study.
+* **Drop, never flag-and-keep, for values.**  A packet with any IMU failing the rigid-board check
+  is dropped whole, and the report lists every rejected IMU sensor (``implausible``: packet
+  number, byte offset, IMU, sensor, test, ratio): the damage is an edit the checksum could not
+  see, and a byte swap or ± edit moves two values, one of which may sit below the bound; one
+  packet of ~37 000 costs nothing, a wrong value biases a calibration.  (A CSV row holds one
+  IMU, so the CSV importer marks ``acc_flagged``/``gyro_flagged`` instead.)  Reordered packets
+  are kept and listed: their number and stamp agree, only their arrival was late.
 * **Refusal.**  More than ``max_fail_fraction`` (1 %) of the stream damaged — dropped packets
   other than duplicates, plus skipped bytes counted in 106-byte packets — or no valid packet at
   all means the file is not a (usable) MIMU stream: :class:`RecordingError`.
