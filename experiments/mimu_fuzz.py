@@ -81,6 +81,7 @@ from accel_bayes.data.mimu import (  # noqa: I001 - _stamp_deviation: the import
     read_mimu_bytes,
 )
 
+CHECKSUM_BLIND = ("bitflip2", "byteswap", "pm_edit")  # operators that can leave the byte sum unchanged
 OPERATORS = ("bitflip1", "bitflip2", "byteswap", "pm_edit", "lost", "inserted", "truncated",
              "swap", "repeat_near", "repeat_far", "dropped", "garbage")
 ACK_OWNER = -1
@@ -358,6 +359,7 @@ class Verdict:
     kept: int = 0
     wrong: list = field(default_factory=list)  # (operators, reason or None, max |value err|, time err)
     events: list = field(default_factory=list)
+    intact_lost: list = field(default_factory=list)  # why each lost intact packet went: the importer's drop reasons
 
 
 def judge(numbers, stamps, raw, d: Damaged, *, default_threshold: bool = True) -> Verdict:
@@ -417,6 +419,9 @@ def judge(numbers, stamps, raw, d: Damaged, *, default_threshold: bool = True) -
         v.wrong.append((ops, why, float(np.abs(s.raw[i].astype(np.int64) - raw[ti]).max()), float(e)))
     kept_true = set(true_idx[good].tolist())
     v.intact_kept = len(kept_true & set(intact.values()))
+    for k in sorted(set(intact.values()) - kept_true):
+        why = sorted({d[0] for d in rep.dropped if d[1] == int(numbers[k]) % 65536}) or ["not dropped: kept wrong or absent"]
+        v.intact_lost.append("/".join(why))
     return v
 
 
@@ -460,7 +465,11 @@ def summarise(verdicts: list[Verdict]) -> dict:
                 c["max_time_err_ticks"] = max(c["max_time_err_ticks"], abs(terr))
     intact = sum(v.intact for v in verdicts)
     kept = sum(v.intact_kept for v in verdicts)
+    big = [(v, w) for v in verdicts for w in v.wrong if w[2] >= 1024]
     return {
+        "streams_checksum_blind": sum(bool(set(v.events) & set(CHECKSUM_BLIND)) for v in verdicts),
+        "wrong_kept_ge_1024_lsb": len(big),
+        "streams_wrong_kept_ge_1024_lsb": len({id(v) for v, _ in big}),
         "variants": len(verdicts),
         "crashes": sum(v.crashed is not None for v in verdicts),
         "refused_any_threshold": sum(v.refused is not None for v in verdicts),
@@ -470,6 +479,8 @@ def summarise(verdicts: list[Verdict]) -> dict:
         "intact_packets": intact,
         "intact_kept": kept,
         "intact_kept_fraction": kept / intact if intact else float("nan"),
+        "intact_lost_by_reason": dict(Counter(r for v in verdicts for r in v.intact_lost)),
+        "intact_lost_variants": [[i, v.events, v.intact_lost] for i, v in enumerate(verdicts) if v.intact_lost],
         "wrong_kept": sum(len(v.wrong) for v in verdicts),
         "wrong_kept_unexplained": sum(why is None for v in verdicts for _, why, *_ in v.wrong),
         "per_operator": {op: dict(c) for op, c in per.items()},
@@ -490,9 +501,10 @@ def real_margins(data_dir: Path) -> list[dict]:
         dev, tol = _stamp_deviation(res, seq, ref_ok=seq > 0)  # as the importer: the first is no reference
         rows.append({
             "experiment": exp.parent.name, "packets_kept": rep.packets_kept, "dropped": len(rep.dropped),
+            "implausible": len(rep.implausible), "dropped_rate": len(rep.dropped) / rep.packets_read,
             "bytes_skipped": rep.bytes_skipped, "reordered": rep.reordered_packets, "partial_bytes": rep.partial_bytes,
-            "range_acc": float(rng[..., :3].max()), "range_gyro": float(rng[..., 3:].max()),
-            "jump_acc": float(jmp[..., :3].max()), "jump_gyro": float(jmp[..., 3:].max()),
+            "range_acc": float(rng[..., 0].max()), "range_gyro": float(rng[..., 1].max()),
+            "jump_acc": float(jmp[..., 0].max()), "jump_gyro": float(jmp[..., 1].max()),
             "stamp_dev_max_ticks": float(np.abs(dev[1:]).max()), "stamp_tol_ticks": float(tol[1:].min()),
             "first_lead_ticks": rep.first_packet_lead_ticks,
         })

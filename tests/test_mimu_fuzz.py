@@ -25,6 +25,9 @@ def _check(verdicts, min_applied):
     assert summ["max_seconds"] < 1.0  # no hang (a 250–400-packet stream decodes in ~10 ms)
     unexplained = [(v.events, w) for v in verdicts for w in v.wrong if w[1] is None]
     assert unexplained == []
+    # issue #29: no kept value is wrong by 1024 LSB (0.5 g, 62 °/s) or more
+    assert summ["wrong_kept_ge_1024_lsb"] == 0, [(v.events, w) for v in verdicts for w in v.wrong if w[2] >= 1024]
+    assert summ["streams_checksum_blind"] >= 0.3 * len(verdicts)
     assert summ["intact_kept_fraction"] >= 0.999, summ["intact_kept_fraction"]
     for op, c in summ["per_operator"].items():
         if op in mf.OPERATORS:
