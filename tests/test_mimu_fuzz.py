@@ -212,3 +212,14 @@ def test_errors_above_1024_lsb_hidden_by_motion_are_dropped():
     assert gone == sorted(int(numbers[t]) for t in {t_acc, t2, t2 + 20}), (gone, t_acc, t2)
     flagged = {(r[0], r[2], r[3]) for r in rep.implausible}
     assert {(int(numbers[t2 + 20]), 0, "gyro"), (int(numbers[t2 + 20]), 4, "gyro")} <= flagged
+
+
+def test_a_wrong_second_packet_does_not_condemn_the_first():
+    # Fuzz seed 13, variants 2105/8034/8079: the first (last) packet has one step only, to the
+    # wrong second (second-last) one, and was dropped with it.
+    numbers, stamps, raw = _rest()
+    raw[1, 3, 4] += 3000
+    raw[-2, 6, 1] -= 2500
+    s, rep = decode_mimu_bytes(encode_mimu_packets(numbers, stamps, raw))
+    assert [int(d[1]) for d in rep.dropped] == [int(numbers[1]), int(numbers[-2])]
+    assert s.number[0] == numbers[0] and s.number[-1] == numbers[-1] % 65536

@@ -14,7 +14,8 @@ nominal position r_k.  Per sample, IMU and array-frame axis:
   side of the sample) and S the median over the IMUs of |d| on that axis (the honest spread of the board
   at that instant: scale errors, biases, vibration);
 * **jump**: the smaller of the deviation's two one-sample steps, |d(t) − d(t−1)| and
-  |d(t) − d(t+1)| (the only step at an end), each against
+  |d(t) − d(t+1)| (the only step at an end, not counted where the neighbour is itself out of
+  range or steps away from its other neighbour), each against
   floor + ``JUMP_MOTION[sensor]`` · g · A₂ + ``SPREAD_FACTOR`` · S_j (g the step's length in
   nominal sample periods, 1 without gaps: an honest deviation changes more across a gap, a wrong
   value does not grow), with A₂ the board's largest
@@ -216,9 +217,9 @@ def rigid_board_check(acc, gyro, time, positions, orientations, *, floor_acc: fl
         dev = x - _others_median(x)  # (T, 3, K)
         med = _median(x)
         bound = floors[s] + RANGE_MOTION[s] * _board_change(med, 1, gap) + SPREAD_FACTOR * _median(np.abs(dev))
-        ratio = np.abs(dev) / bound[..., None]
-        ratio[exempt[s]] = -np.inf
-        rng[..., si] = np.nan_to_num(ratio, nan=-np.inf).max(1)
+        out_of_range = np.abs(dev) / bound[..., None]
+        out_of_range[exempt[s]] = -np.inf
+        rng[..., si] = np.nan_to_num(out_of_range, nan=-np.inf).max(1)
         if T >= 2:
             step = np.abs(np.diff(dev, axis=0))  # (T−1, 3, K)
             j = np.full(dev.shape, np.inf)
@@ -233,6 +234,11 @@ def rigid_board_check(acc, gyro, time, positions, orientations, *, floor_acc: fl
             ratio = np.full(dev.shape, np.inf)
             ratio[1:] = left
             ratio[:-1] = np.minimum(ratio[:-1], right)
+            if T >= 3:
+                # An end sample has one step only, to its neighbour: no evidence against it where
+                # that neighbour is itself out of range or steps away from its other neighbour.
+                ratio[0][(out_of_range[1] > 1) | (right[1] > 1)] = -np.inf
+                ratio[-1][(out_of_range[-2] > 1) | (left[-2] > 1)] = -np.inf
             ex = exempt[s].copy()
             ex[1:] |= exempt[s][:-1]
             ex[:-1] |= exempt[s][1:]
