@@ -61,18 +61,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _data import data_dir  # noqa: E402
 from accel_bayes.errors import RecordingError
+from accel_bayes.data.plausibility import JUMP_MOTION, SPREAD_FACTOR
 from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.data.mimu import (  # noqa: I001 - _stamp_deviation: the importer's own rule, measured
     ACC_SCALE,
     FIRST_PACKET_LEAD_TICKS,
     GYRO_SCALE,
-    JUMP_MOTION,
     MIMU_ACK,
     NEAR_LIMIT_LSB,
     NOMINAL_PERIOD_TICKS,
     PLAUSIBILITY_FLOOR_LSB,
     SATURATED_LSB,
-    SPREAD_FACTOR,
     TIME_TOL_TICKS,
     _stamp_deviation,
     decode_mimu_bytes,

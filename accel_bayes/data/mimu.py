@@ -110,7 +110,7 @@ import numpy as np
 from ..constants import DEG_TO_RAD, G0
 from ..errors import RecordingError
 from ..physics.arrays import SensorArray, mimu4444_8
-from .plausibility import JUMP_MOTION, NEAR_LIMIT_FRACTION, RANGE_MOTION, SATURATED_FRACTION, SPREAD_FACTOR, rigid_board_check
+from .plausibility import NEAR_LIMIT_FRACTION, SATURATED_FRACTION, rigid_board_check
 from .recording import Recording
 from .segments import StaticAnalysis, analyse_static, difference_noise_std, segment_labels
 
