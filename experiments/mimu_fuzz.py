@@ -61,14 +61,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _data import data_dir  # noqa: E402
 from accel_bayes.errors import RecordingError
+from accel_bayes.data.plausibility import JUMP_MOTION, SPREAD_FACTOR
+from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.data.mimu import (  # noqa: I001 - _stamp_deviation: the importer's own rule, measured
+    ACC_SCALE,
     FIRST_PACKET_LEAD_TICKS,
+    GYRO_SCALE,
     MIMU_ACK,
     NEAR_LIMIT_LSB,
     NOMINAL_PERIOD_TICKS,
     PLAUSIBILITY_FLOOR_LSB,
     SATURATED_LSB,
-    SKEW_FRACTION,
     TIME_TOL_TICKS,
     _stamp_deviation,
     decode_mimu_bytes,
@@ -77,6 +80,7 @@ from accel_bayes.data.mimu import (  # noqa: I001 - _stamp_deviation: the import
     read_mimu_bytes,
 )
 
+CHECKSUM_BLIND = ("bitflip2", "byteswap", "pm_edit")  # operators that can leave the byte sum unchanged
 OPERATORS = ("bitflip1", "bitflip2", "byteswap", "pm_edit", "lost", "inserted", "truncated",
              "swap", "repeat_near", "repeat_far", "dropped", "garbage")
 ACK_OWNER = -1
@@ -102,11 +106,18 @@ def board_stream(n: int, rng: np.random.Generator, first_lead: bool = True):
             omega[:, ax] += rng.uniform(0, 4000) * np.sin(2 * np.pi * f * t + ph)
             force[:, ax] += rng.uniform(0, 2000) * np.sin(2 * np.pi * f * t + ph)
     force[:, 2] += 2048  # 1 g
+    # The rigid body: each IMU's specific force adds α×r + ω×(ω×r) at its nominal position
+    # (≈ 3 m/s², 300 LSB, between opposite corners at 700 °/s).
+    w = omega * GYRO_SCALE
+    alpha = np.gradient(w, t, axis=0)
+    r = mimu4444_8().positions.double().numpy()
+    r = r - r.mean(0)
     raw = np.empty((n, 8, 6))
     for k in range(8):
         scale = 1 + rng.uniform(-0.02, 0.02, 6)
         bias = np.concatenate((rng.uniform(-60, 60, 3), rng.uniform(-40, 40, 3)))
-        f_s, w_s = (force, omega) if k % 2 == 0 else (force @ C.T, omega @ C.T)
+        f_k = force + (np.cross(alpha, r[k]) + np.cross(w, np.cross(w, r[k]))) / ACC_SCALE
+        f_s, w_s = (f_k, omega) if k % 2 == 0 else (f_k @ C.T, omega @ C.T)
         raw[:, k] = np.concatenate((f_s, w_s), 1) * scale + bias
         raw[:, k, :3] += rng.normal(0, 8, (n, 3))
         raw[:, k, 3:] += rng.normal(0, 4, (n, 3))
@@ -268,23 +279,34 @@ def array_frame(raw: np.ndarray) -> np.ndarray:
 
 
 def blind_envelope(raw: np.ndarray) -> np.ndarray:
-    """(n, 6) per array-frame channel: the largest single-IMU error the plausibility rules can
-    miss on this TRUE stream, 2·(floor + A) + 4·D₁ (A the board's one-sample change, D₁ the
-    largest genuine |IMU − median|): a corrupted IMU's D₁ − 3·D₂ stays below the bound only if its
-    error is below bound + 4·D₁ (its own genuine part, the median's shift, and three times the
-    genuine D₂ ≤ D₁); doubled for the skew term's other side.  Computed from the truth only."""
+    """(n, 6) per array-frame channel: the largest single-IMU error the jump rule can miss on this
+    TRUE stream, 2·(floor + JUMP_MOTION·A₂ + SPREAD_FACTOR·S_j): A₂ the board's largest |second
+    difference| within two samples (a neighbour may be missing in the damaged stream), S_j the
+    eight IMUs' median of their smaller one-sample step off the median.  A corrupted IMU's step is
+    its error plus its honest step (≤ the bound); doubled for that and the medians' shift.
+    Computed from the truth only, with the study's own frame (no rigid-body correction: the
+    honest steps then include it, which only widens the envelope)."""
     x = array_frame(raw)
     med = np.median(x, axis=1)  # (n, 6)
-    d1 = np.abs(x - med[:, None]).max(1)
-    step = np.abs(np.diff(med, axis=0))
-    act = np.zeros_like(med)
+    n = med.shape[0]
+    d2 = np.zeros_like(med)
+    if n >= 3:
+        d2[1:-1] = np.abs(med[2:] - 2 * med[1:-1] + med[:-2])
+    a2 = np.zeros_like(med)
     for sl in (slice(0, 3), slice(3, 6)):
-        st = step[:, sl].max(1)
-        a = np.maximum(np.concatenate(([0.0], st)), np.concatenate((st, [0.0])))
-        # neighbours may be missing in the damaged stream: allow the change over two samples
-        a2 = np.maximum(np.concatenate(([0.0], a[:-1])), np.concatenate((a[1:], [0.0])))
-        act[:, sl] = (a + a2)[:, None]
-    return 2 * (PLAUSIBILITY_FLOOR_LSB + SKEW_FRACTION * act) + 4 * d1
+        a2[:, sl] = d2[:, sl].max(1, keepdims=True)
+    wide = a2.copy()
+    for s in (1, 2):
+        wide[s:] = np.maximum(wide[s:], a2[:-s])
+        wide[:-s] = np.maximum(wide[:-s], a2[s:])
+    dev = x - med[:, None]
+    step = np.abs(np.diff(dev, axis=0))
+    j = np.full(dev.shape, np.inf)
+    j[1:] = step
+    j[:-1] = np.minimum(j[:-1], step)
+    sj = np.median(j, axis=1)
+    motion = np.array([JUMP_MOTION["acc"]] * 3 + [JUMP_MOTION["gyro"]] * 3)
+    return 2 * (PLAUSIBILITY_FLOOR_LSB + motion * wide + SPREAD_FACTOR * sj)
 
 
 def explain_residue(kept_raw, true_raw, stamp_err, packet_bytes: bytes, envelope, first_lead=None) -> str | None:
@@ -296,12 +318,11 @@ def explain_residue(kept_raw, true_raw, stamp_err, packet_bytes: bytes, envelope
     * ``first packet lead``: the first kept packet may sit up to ``FIRST_PACKET_LEAD_TICKS`` after
       the grid of the others (the stated exemption); ``first_lead`` is its lead as kept, in ticks,
       measured by the caller against the TRUE stamp of the next packet (None: not the first);
-    * ``near limit``: a wrong or true value saturated, or two IMUs of one channel within 1/16 of
-      full scale (the stated exemption);
+    * ``near limit``: the true board's median within 1/16 of full scale on a wrong channel, or a
+      wrong IMU's true value saturated (the stated exemption: full scale corroborated by the
+      board, or by the IMU's own neighbour, which a truly saturated value may have);
     * ``below bound``: every wrong array-frame channel is off by less than
-      :func:`blind_envelope` of the true stream;
-    * ``same channel in two IMUs``: each larger error shares its array-frame channel with another
-      wrong IMU of the packet (D₂ grows with D₁: the lone-outlier rule's stated blind spot).
+      :func:`blind_envelope` of the true stream.
     """
     body = np.frombuffer(packet_bytes, dtype=np.uint8)
     if len(body) != P or int(body[:104].sum()) % 65536 != (int(body[104]) << 8 | int(body[105])):
@@ -312,16 +333,14 @@ def explain_residue(kept_raw, true_raw, stamp_err, packet_bytes: bytes, envelope
     err = np.abs(array_frame(kept_raw[None])[0] - array_frame(true_raw[None])[0])  # (8, 6)
     if not err.any():
         return "time within jitter" if abs(stamp_err) <= TIME_TOL_TICKS else "first packet lead"
-    kept_mag = np.abs(array_frame(kept_raw[None])[0])
-    true_mag = np.abs(array_frame(true_raw[None])[0])
-    if ((kept_mag >= SATURATED_LSB) | (true_mag >= SATURATED_LSB)).any() or \
-            ((kept_mag >= NEAR_LIMIT_LSB).sum(0) >= 2).any() or ((true_mag >= NEAR_LIMIT_LSB).sum(0) >= 2).any():
+    true_af = array_frame(true_raw[None])[0]
+    wrong_ch = (err > 0).any(0)
+    board = np.abs(np.median(true_af, axis=0))  # the true board's consensus per channel
+    if ((board >= NEAR_LIMIT_LSB) & wrong_ch).any() or ((np.abs(true_af) >= SATURATED_LSB) & (err > 0)).any():
         return "near limit"
     big = err > envelope[None]
     if not big.any():
         return "below bound"
-    if all((err[:, c] > 0).sum() >= 2 for c in np.flatnonzero(big.any(0))):
-        return "same channel in two IMUs"
     return None
 
 
@@ -336,6 +355,7 @@ class Verdict:
     kept: int = 0
     wrong: list = field(default_factory=list)  # (operators, reason or None, max |value err|, time err)
     events: list = field(default_factory=list)
+    intact_lost: list = field(default_factory=list)  # why each lost intact packet went: the importer's drop reasons
 
 
 def judge(numbers, stamps, raw, d: Damaged, *, default_threshold: bool = True) -> Verdict:
@@ -395,6 +415,9 @@ def judge(numbers, stamps, raw, d: Damaged, *, default_threshold: bool = True) -
         v.wrong.append((ops, why, float(np.abs(s.raw[i].astype(np.int64) - raw[ti]).max()), float(e)))
     kept_true = set(true_idx[good].tolist())
     v.intact_kept = len(kept_true & set(intact.values()))
+    for k in sorted(set(intact.values()) - kept_true):
+        why = sorted({d[0] for d in rep.dropped if d[1] == int(numbers[k]) % 65536}) or ["not dropped: kept wrong or absent"]
+        v.intact_lost.append("/".join(why))
     return v
 
 
@@ -438,7 +461,11 @@ def summarise(verdicts: list[Verdict]) -> dict:
                 c["max_time_err_ticks"] = max(c["max_time_err_ticks"], abs(terr))
     intact = sum(v.intact for v in verdicts)
     kept = sum(v.intact_kept for v in verdicts)
+    big = [(v, w) for v in verdicts for w in v.wrong if w[2] >= 1024]
     return {
+        "streams_checksum_blind": sum(bool(set(v.events) & set(CHECKSUM_BLIND)) for v in verdicts),
+        "wrong_kept_ge_1024_lsb": len(big),
+        "streams_wrong_kept_ge_1024_lsb": len({id(v) for v, _ in big}),
         "variants": len(verdicts),
         "crashes": sum(v.crashed is not None for v in verdicts),
         "refused_any_threshold": sum(v.refused is not None for v in verdicts),
@@ -448,6 +475,8 @@ def summarise(verdicts: list[Verdict]) -> dict:
         "intact_packets": intact,
         "intact_kept": kept,
         "intact_kept_fraction": kept / intact if intact else float("nan"),
+        "intact_lost_by_reason": dict(Counter(r for v in verdicts for r in v.intact_lost)),
+        "intact_lost_variants": [[i, v.events, v.intact_lost] for i, v in enumerate(verdicts) if v.intact_lost],
         "wrong_kept": sum(len(v.wrong) for v in verdicts),
         "wrong_kept_unexplained": sum(why is None for v in verdicts for _, why, *_ in v.wrong),
         "per_operator": {op: dict(c) for op, c in per.items()},
@@ -468,9 +497,10 @@ def real_margins(data_dir: Path) -> list[dict]:
         dev, tol = _stamp_deviation(res, seq, ref_ok=seq > 0)  # as the importer: the first is no reference
         rows.append({
             "experiment": exp.parent.name, "packets_kept": rep.packets_kept, "dropped": len(rep.dropped),
+            "implausible": len(rep.implausible), "dropped_rate": len(rep.dropped) / rep.packets_read,
             "bytes_skipped": rep.bytes_skipped, "reordered": rep.reordered_packets, "partial_bytes": rep.partial_bytes,
-            "range_acc": float(rng[..., :3].max()), "range_gyro": float(rng[..., 3:].max()),
-            "jump_acc": float(jmp[..., :3].max()), "jump_gyro": float(jmp[..., 3:].max()),
+            "range_acc": float(rng[..., 0].max()), "range_gyro": float(rng[..., 1].max()),
+            "jump_acc": float(jmp[..., 0].max()), "jump_gyro": float(jmp[..., 1].max()),
             "stamp_dev_max_ticks": float(np.abs(dev[1:]).max()), "stamp_tol_ticks": float(tol[1:].min()),
             "first_lead_ticks": rep.first_packet_lead_ticks,
         })

@@ -403,3 +403,45 @@ def test_header_and_description_units_must_agree(tmp_path, capsys):
     assert "array.toml: csv.units.acc: expected one of ['g', 'm s-2'], got 'furlong'" in err
     assert main(["import-csv", str(f), "--array", str(tmp_path / "nope.toml"), "-o", str(tmp_path / "o.nc")]) == 2
     assert "--array" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ issue #29: paths, units, plausibility
+def test_dot_labels_and_folders_outside_the_source_are_refused(tmp_path, capsys):
+    # An IMU labelled '..' used to read SOURCE/../data.csv and import with exit 0.
+    src, toml = _small_asl(tmp_path)
+    (src / "c" / "data.csv").rename(tmp_path / "data.csv")  # beside the source, not in it
+    (src / "c").rmdir()
+    toml.write_text(TOML2.replace('label = "c"', 'label = ".."'))
+    err = _refused(capsys, tmp_path, src, toml)
+    assert "imu[2].label: expected a name of letters, digits, '_', '.', '-' other than '.' or '..', got '..'" in err
+    toml.write_text(TOML2.replace('label = "c"', 'label = "."'))
+    assert "got '.'" in _refused(capsys, tmp_path, src, toml)
+    # A folder that resolves outside the source (a link) is refused as well.
+    outside = tmp_path / "elsewhere" / "c"
+    outside.mkdir(parents=True)
+    (tmp_path / "data.csv").rename(outside / "data.csv")
+    (src / "c").symlink_to(outside, target_is_directory=True)
+    toml.write_text(TOML2)
+    err = _refused(capsys, tmp_path, src, toml)
+    assert "outside the source folder" in err and "IMU 'c'" in err
+
+
+def test_csv_rigid_board_check_marks_a_lone_wrong_value(sim, tmp_path, capsys):
+    rec = sim.copy()
+    write_asl(rec, tmp_path / "clean")
+    toml = write_toml(rec, tmp_path / "array.toml")
+    clean = import_csv(tmp_path / "clean", toml, noise="stated").recording
+    assert clean.acc_flagged is not None and not clean.acc_flagged.any() and not clean.gyro_flagged.any()
+    rec.gyro[150, 5, 1] += 1.5  # 86 °/s on one gyro axis, one sample
+    rec.acc[200, 2, 0] += 6.0  # 0.6 g on one accelerometer axis, one sample
+    write_asl(rec, tmp_path / "bad")
+    res = import_csv(tmp_path / "bad", toml, noise="stated")
+    got = res.recording
+    assert np.argwhere(got.gyro_flagged).tolist() == [[150, 5]]
+    assert np.argwhere(got.acc_flagged).tolist() == [[200, 2]]
+    assert any("1 samples marked gyro_flagged" in line for line in res.lines)
+    np.testing.assert_array_equal(got.gyro, rec.gyro)  # marked, not changed or removed
+    out = tmp_path / "bad.nc"
+    write_imported(res, out)
+    back = read_recording(out)
+    np.testing.assert_array_equal(back.gyro_flagged, got.gyro_flagged)

@@ -352,3 +352,23 @@ def test_extra_variables_are_reported_not_silently_dropped(tmp_path):
     with pytest.warns(UserWarning, match=r"extra\.nc: variables \['temperature'\] are not part of format v1"):
         back = read_recording(p)
     np.testing.assert_array_equal(back.acc, rec.acc)
+
+
+def test_plausibility_marks_round_trip_and_info_counts_them(tmp_path, capsys, cli_main):
+    rec = make_recording()
+    rec.acc_flagged = np.zeros((rec.T, rec.K), bool)
+    rec.gyro_flagged = np.zeros((rec.T, rec.K), bool)
+    rec.acc_flagged[250, 3] = True
+    rec.gyro_flagged[[260, 261], 5] = True
+    p = write_recording(rec, tmp_path / "f.nc")
+    back = read_recording(p)
+    assert_same_recording(rec, back)
+    assert back.gyro_flagged[260, 5] and not back.gyro_flagged[260, 4]
+    assert cli_main(["info", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert "acc flagged:     1 samples marked implausible" in out
+    assert "gyro flagged:    2 samples marked implausible" in out
+    # a mark of the wrong shape is refused, naming the field
+    rec.gyro_flagged = np.zeros((rec.T, rec.K - 1), bool)
+    with pytest.raises(RecordingError, match="gyro_flagged"):
+        write_recording(rec, tmp_path / "g.nc")

@@ -49,9 +49,10 @@ def _packet(number: int, stamp: int, raw48) -> bytes:
 
 
 def _stream(n=60, first_number=100, first_stamp=1_000_000, seed=0, ack=True, jitter=True, numbers=None, stamps=None,
-            span=3000):
-    # span 3000: independent values per IMU, a board no rigid body makes (fine for short streams);
-    # a small span is a board at rest, which the plausibility checks never question.
+            span=30):
+    # span 30: independent ±30-LSB values per IMU, a board at rest, which the rigid-board check
+    # never questions (issue #29: values no rigid body makes are dropped, so a wide span would
+    # lose packets to that check in tests of the framing).
     rng = np.random.default_rng(seed)
     raw = rng.integers(-span, span, size=(n, 48))
     if numbers is None:
@@ -196,10 +197,10 @@ def test_gzip_and_plain_files_agree(tmp_path):
 def test_scaling_clipping_and_frames(tmp_path):
     n = 50
     rng = np.random.default_rng(5)
-    raw = rng.integers(-2000, 2000, size=(n, 8, 6))
-    raw[3, 2, 4] = 32767  # gyro of packet-order IMU 3 at the limit
-    raw[4, 5, 0] = -32768  # acc of IMU 6 at the limit
-    raw[6, 1, 3] = 32766  # one code inside: not clipped
+    raw = rng.integers(-30, 30, size=(n, 8, 6))  # a board at rest
+    raw[2:5, 2, 4] = 32767  # gyro of packet-order IMU 3 at the limit for three samples
+    raw[3:5, 5, 0] = -32768  # acc of IMU 6 at the limit for two samples
+    raw[6:8, 1, 3] = 32766  # one code inside: not clipped
     numbers = np.arange(n)
     data = encode_mimu_packets(numbers, 5 + numbers * PERIOD, raw)
     f = tmp_path / "s.bin"
@@ -207,8 +208,9 @@ def test_scaling_clipping_and_frames(tmp_path):
     rec, rep, st = import_mimu(f, return_report=True)
     assert np.allclose(rec.acc, raw[..., :3] * 9.80665 / 2048, rtol=1e-15)
     assert np.allclose(rec.gyro, np.deg2rad(raw[..., 3:] / 16.4), rtol=1e-14)
-    assert rec.acc_clipped.sum() == 1 and rec.acc_clipped[4, 5]
-    assert rec.gyro_clipped.sum() == 1 and rec.gyro_clipped[3, 2]
+    assert rep.dropped == []  # every full-scale value is corroborated by its own neighbour
+    assert rec.acc_clipped.sum() == 2 and rec.acc_clipped[3:5, 5].all()
+    assert rec.gyro_clipped.sum() == 3 and rec.gyro_clipped[2:5, 2].all()
     assert rec.acc_range == pytest.approx(16 * 9.80665) and rec.gyro_range == pytest.approx(math.radians(2000))
     # 0.8 s cannot hold a 3 s rest: noise falls back to the preset's and the source says so.
     assert st.n_segments == 0 and "not estimated" in rec.source
@@ -436,6 +438,7 @@ def test_real_nothing_flagged_but_the_exp1_tail(real):
     for e, (rec, rep, st, _) in real.items():
         assert rep.dropped == [] and rep.skipped == [] and rep.reordered == [], e
         assert rep.bytes_skipped == rep.range_failures == rep.jump_failures == rep.timestamp_failures == 0, e
+        assert rep.implausible == [], e  # the rigid-board bound never fires on the vigorous real motion
         assert rep.partial_bytes == (83 if e == "exp_1" else 0), e
         # the short first interval is the first packet stamped ~0.35 ms late, and is exempt
         assert 20_000 < rep.first_packet_lead_ticks < 23_000, e

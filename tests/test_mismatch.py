@@ -98,7 +98,7 @@ def test_report_contract_and_files(clean_report, disp_report, tmp_path):
         assert prep["intrinsics"]["applied"] is False and "no static segments" in prep["intrinsics"]["why"]
         sel = prep["selection"]
         assert sel["kept"] == doc["details"]["recording"]["T"] == sel["recording"] - sum(sel["dropped"].values())
-        assert sel["min_rotation"] == 0.5 and set(sel["dropped"]) == {"static", "clipped", "non_finite", "slow", "user"}
+        assert sel["min_rotation"] == 0.5 and set(sel["dropped"]) == {"static", "clipped", "flagged", "non_finite", "slow", "user"}
         md = (tmp_path / name / "report.md").read_text().splitlines()
         assert sum(line.startswith("Preparation (as `calibrate`): intrinsics not applied") for line in md) == 1
     assert paths["heatmap"].exists() and paths["regimes"].exists() and paths["before_after"].exists()

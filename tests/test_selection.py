@@ -62,7 +62,7 @@ def test_mask_runs_gaps_and_reasons_on_a_hand_made_case():
     expect = np.ones(T, dtype=bool)
     expect[[0, 1, 2, 3, 5, 8, 9, 12, 17]] = False
     np.testing.assert_array_equal(sel.keep, expect)
-    assert sel.dropped == {"static": 4, "clipped": 1, "non_finite": 1, "slow": 2, "user": 1}
+    assert sel.dropped == {"static": 4, "clipped": 1, "flagged": 0, "non_finite": 1, "slow": 2, "user": 1}
     assert tuple(sel.dropped) == REASONS
     np.testing.assert_array_equal(sel.index, np.flatnonzero(expect))
     np.testing.assert_array_equal(sel.runs, [[4, 5], [6, 8], [10, 12], [13, 17], [18, 20]])
@@ -131,3 +131,20 @@ def test_every_fit_takes_the_same_selection():
     np.testing.assert_array_equal(res.sample_index, pre.selection.index)
     with pytest.raises(UserError, match="selection"):
         RaoBlackwellLikelihood.from_recording(rec, selection=pre.selection, select="rotation")
+
+
+def test_flagged_samples_are_left_out_with_their_own_reason():
+    T = 20
+    rec = _rec(T)
+    rec.acc_clipped = np.zeros((T, rec.K), dtype=bool)
+    rec.acc_clipped[6, 0] = True
+    rec.acc_flagged = np.zeros((T, rec.K), dtype=bool)
+    rec.gyro_flagged = np.zeros((T, rec.K), dtype=bool)
+    rec.acc_flagged[[6, 10], 2] = True   # 6 is also clipped: counted as clipped only
+    rec.gyro_flagged[14, 3] = True
+    sel = select_samples(rec, min_rotation=0.5)
+    assert sel.dropped["clipped"] == 1 and sel.dropped["flagged"] == 2
+    assert not sel.keep[[6, 10, 14]].any() and sel.n_kept == T - 3
+    # only the IMUs used count, and the switch turns the reason off
+    assert select_samples(rec, min_rotation=0.5, acc_imus=[0, 1], gyro_imus=[0, 1]).dropped["flagged"] == 0
+    assert select_samples(rec, min_rotation=0.5, drop_flagged=False).dropped["flagged"] == 0

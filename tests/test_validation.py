@@ -301,3 +301,43 @@ def test_gyro_unit_rule_on_the_real_mimu_recording(mimu_dir):
     deg = real.copy()
     deg.gyro = deg.gyro / DEG
     refused(deg, r"values look like deg/s.*c ≈ 0\.017")
+
+
+# ---------------------------------------------------------------- accelerometer units (issue #29)
+
+def test_acc_in_g_declared_as_m_s2_is_refused(rec, tmp_path):
+    # Formerly imported silently: |a| at rest ≈ 1 where 9.81 is expected.
+    bad = rec.copy()
+    bad.acc = bad.acc / 9.80665
+    refused(bad, [r"acc: values look like g, not the declared m s-2: \|acc\| at rest = 1 ",
+                  r"static segments", r"convert acc to m/s²"])
+    twice = rec.copy()
+    twice.acc = twice.acc * 9.80665
+    refused(twice, r"acc: values look like m/s² declared as g \(converted twice\): \|acc\| at rest = 96\.")
+    # Without rest labels the still samples (gyros below 0.1 rad/s) serve.
+    bad.segment = None
+    refused(bad, r"\|acc\| at rest = 1 \(median over 200 rest samples, samples with \|ω\| < 0\.1 rad/s\)")
+    with pytest.raises(RecordingError, match=r"acc: values look like g"):
+        write_recording(bad, tmp_path / "g.nc")
+    assert not (tmp_path / "g.nc").exists()
+    validate_recording(rec)  # m/s² passes
+    nograv = rec.copy()  # no gravity at rest (a simulation): not a unit question
+    nograv.acc = nograv.acc - np.array([0.0, 0.0, 9.80665])
+    validate_recording(nograv, check_gyro_units=False)
+
+
+def test_csv_acc_in_g_declared_as_m_s2_is_refused(tmp_path, capsys):
+    # import-csv of a still board whose accelerometers wrote g under an [m s^-2] header: one line,
+    # exit 2, no file (formerly imported silently).
+    try:
+        from test_csv_import import _refused, _small_asl
+    except ImportError:
+        from .test_csv_import import _refused, _small_asl
+
+    rows = [f"{(i + 1) * 1_000_000},0.0,0.0,0.0,0.01,-0.02,{g}" for i in range(30) for g in ["1.0"]]
+    src, toml = _small_asl(tmp_path, bad_b=rows)
+    for lab in "ac":
+        f = src / lab / "data.csv"
+        f.write_text("\n".join([f.read_text().splitlines()[0]] + rows) + "\n")
+    err = _refused(capsys, tmp_path, src, toml)
+    assert "acc: values look like g, not the declared m s-2: |acc| at rest = 1 (median over 30 rest samples" in err

@@ -70,6 +70,9 @@ def _run(args) -> int:
         else:
             lines.append(f"{label:<17}{100 * c['overall']:.3g} % of samples (worst IMU {c['worst_imu']}: "
                          f"{100 * c['worst']:.3g} %)")
+    for name in ("acc_flagged", "gyro_flagged"):
+        if s[name] is not None:
+            lines.append(f"{name.replace('_', ' ') + ':':<17}{s[name]} samples marked implausible by the importer")
     seg = s["segments"]
     if seg is None:
         lines.append("segments:        no segment labels")

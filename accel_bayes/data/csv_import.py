@@ -242,8 +242,10 @@ def _parse_description(doc: dict, path: Path) -> ArraySpec:
         if bad:
             raise UserError(f"{w}.{bad[0]}: unknown key; expected one of {sorted(_IMU_KEYS)}")
         label = e.get("label")
-        if not isinstance(label, str) or not re.fullmatch(r"[A-Za-z0-9_.-]+", label):
-            raise UserError(f"{w}.label: expected a name of letters, digits, '_', '.', '-', got {label!r}")
+        if not isinstance(label, str) or not re.fullmatch(r"[A-Za-z0-9_.-]+", label) or set(label) == {"."}:
+            # '.' and '..' would name the source folder or its parent as an IMU's folder
+            raise UserError(f"{w}.label: expected a name of letters, digits, '_', '.', '-' other than '.' or '..', "
+                            f"got {label!r}")
         if label in seen:
             raise UserError(f"{w}.label: {label!r} is used twice; expected one entry per IMU")
         seen.add(label)
@@ -614,7 +616,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         if extra:
             raise UserError(f"{source / extra[0] / 'data.csv'}: IMU {extra[0]!r} is not in {spec.path.name}; expected "
                             f"one [[imu]] entry per IMU folder (labels {spec.labels})")
-        streams = [read_asl_imu(source / s.label, s, spec.units) for s in spec.imus]
+        streams = [read_asl_imu(_imu_folder(source, s.label), s, spec.units) for s in spec.imus]
     else:
         layout = "wide CSV"
         streams = read_wide_csv(source, spec)
@@ -650,6 +652,8 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     acc_r, gyro_r = ranges("acc"), ranges("gyro")
     acc_clipped = None if np.isnan(acc_r).all() else (np.abs(acc) >= acc_r[None, :, None]).any(-1)
     gyro_clipped = None if gyro is None or np.isnan(gyro_r).all() else (np.abs(gyro) >= gyro_r[None, :, None]).any(-1)
+
+    acc_flagged, gyro_flagged, mark_lines = _plausibility_marks(spec, acc, gyro, time, acc_r, gyro_r)
 
     def common(r, present):
         r = r[present]
@@ -720,7 +724,8 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         time=time, acc=acc, gyro=gyro,
         nominal_position=np.stack([s.position for s in spec.imus]), nominal_orientation=quat,
         acc_noise_std=final["acc"], gyro_noise_std=final["gyro"],
-        acc_clipped=acc_clipped, gyro_clipped=gyro_clipped, segment=segment, imu_time_offset=offsets,
+        acc_clipped=acc_clipped, gyro_clipped=gyro_clipped, acc_flagged=acc_flagged, gyro_flagged=gyro_flagged,
+        segment=segment, imu_time_offset=offsets,
         reference_imu=ref,
         acc_range=common(acc_r, has_acc), gyro_range=common(gyro_r, has_gyro) if any_gyro else None,
         description=spec.description or f"CSV import of {source.name}", source=source_text, attrs=attrs,
@@ -738,7 +743,59 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     for kind, m in (("acc", acc_clipped), ("gyro", gyro_clipped)):
         lines.append(f"{kind} clipped: {100 * float(m.mean()):.3g} % of samples" if m is not None
                      else f"{kind} clipped: no range stated, not flagged")
+    lines.extend(mark_lines)
     return CsvImport(rec, lines)
+
+
+def _imu_folder(source: Path, label: str) -> Path:
+    """``source/label`` resolved (links followed), refused unless it lies inside ``source``: an
+    IMU's files are read from the recording's own folder, never from outside it."""
+    root = source.resolve()
+    folder = (source / label).resolve()
+    if folder.parent != root:
+        raise UserError(f"{source / label}: IMU {label!r} resolves to {folder}, outside the source folder {root}; "
+                        "expected its folder inside the source folder")
+    f = folder / "data.csv"
+    if f.exists() and not f.resolve().is_relative_to(root):
+        raise UserError(f"{f}: resolves to {f.resolve()}, outside the source folder {root}; expected the IMU's own file")
+    return folder
+
+
+# Floors of the rigid-board check: 1/128 of full scale (256 LSB of an int16 sensor), or, with no
+# range stated, that fraction of the MIMU4444's ±16 g / ±2000 °/s.
+_FLOOR_FRACTION = 1 / 128
+_DEFAULT_RANGE = {"acc": 16 * G0, "gyro": 2000 * DEG_TO_RAD}
+
+
+def _plausibility_marks(spec: ArraySpec, acc, gyro, time, acc_r, gyro_r):
+    """The rigid-board check (:mod:`accel_bayes.data.plausibility`) with the description's nominal
+    geometry: ``(acc_flagged, gyro_flagged, report lines)``.  Samples are marked, not removed (a
+    CSV row holds one IMU only, so there is no packet to drop); a mark is None for a sensor with
+    fewer than three IMUs (nothing to judge by)."""
+    from .plausibility import rigid_board_check
+
+    floor = {}
+    for kind, r in (("acc", acc_r), ("gyro", gyro_r)):
+        r = r[np.isfinite(r)]
+        floor[kind] = _FLOOR_FRACTION * (float(np.median(r)) if r.size else _DEFAULT_RANGE[kind])
+    p = rigid_board_check(acc, gyro, time, np.stack([s.position for s in spec.imus]),
+                          np.stack([s.orientation for s in spec.imus]), floor_acc=floor["acc"],
+                          floor_gyro=floor["gyro"], acc_range=np.where(np.isfinite(acc_r), acc_r, np.inf),
+                          gyro_range=np.where(np.isfinite(gyro_r), gyro_r, np.inf))
+    marks = {"acc": p.acc_flagged if p.checked["acc"] else None,
+             "gyro": p.gyro_flagged if p.checked["gyro"] and gyro is not None else None}
+    lines = []
+    for kind in SENSORS:
+        m = marks[kind]
+        if m is None:
+            lines.append(f"{kind} plausibility: fewer than 3 IMUs with it, not checked")
+        else:
+            rows = [r for r in p.rows() if r[2] == kind]
+            lines.append(f"{kind} plausibility (rigid board, floor {floor[kind]:.3g} {'m/s²' if kind == 'acc' else 'rad/s'}): "
+                         f"{int(m.sum())} samples marked {kind}_flagged"
+                         + (f" [sample, IMU {spec.labels[0]!r}=0…, sensor, test, ratio] {rows[:10]}"
+                            + (f" … {len(rows) - 10} more" if len(rows) > 10 else "") if rows else ""))
+    return marks["acc"], marks["gyro"], lines
 
 
 def _fmt(x) -> str:

@@ -131,6 +131,10 @@ def recording_to_dataset(rec: Recording):
         if x is not None:
             dv[name] = (("time", "imu"), np.asarray(x, dtype=bool),
                         {"long_name": "sample known to be at the sensor range"})
+    for name, x in (("acc_flagged", rec.acc_flagged), ("gyro_flagged", rec.gyro_flagged)):
+        if x is not None:
+            dv[name] = (("time", "imu"), np.asarray(x, dtype=bool),
+                        {"long_name": "sample an importer's plausibility check distrusts; fits leave it out"})
     if rec.segment is not None:
         dv["segment"] = (("time",), np.asarray(rec.segment).astype(str), {"long_name": "static / dynamic label"})
     if rec.imu_time_offset is not None:
@@ -198,7 +202,7 @@ def recording_from_dataset(ds, *, require_gyro: bool = False, check_gyro_units: 
     if gyro is not None and gyro_units == "deg s-1":
         gyro = gyro * DEG_TO_RAD
     masks = {}
-    for name in ("acc_clipped", "gyro_clipped"):
+    for name in ("acc_clipped", "gyro_clipped", "acc_flagged", "gyro_flagged"):
         masks[name] = None if name not in ds.variables else np.asarray(ds[name].values).astype(bool)
     segment = None
     if "segment" in ds.variables:
@@ -253,6 +257,8 @@ def recording_from_dataset(ds, *, require_gyro: bool = False, check_gyro_units: 
         nominal_orientation=arr("nominal_orientation"),
         acc_clipped=masks["acc_clipped"],
         gyro_clipped=masks["gyro_clipped"],
+        acc_flagged=masks["acc_flagged"],
+        gyro_flagged=masks["gyro_flagged"],
         segment=segment,
         imu_time_offset=arr("imu_time_offset"),
         reference_imu=int(round(float(np.asarray(a.get("reference_imu", 0)).reshape(())))),
@@ -290,7 +296,7 @@ def write_recording(rec: Recording, path, overwrite: bool = False, *, validate: 
         e = {}
         if var.dtype.kind == "f":
             e["_FillValue"] = None  # NaN is stored as NaN: bit-exact round trips, no masking
-        if name in ("acc", "gyro", "acc_clipped", "gyro_clipped") and var.size > 0:
+        if name in ("acc", "gyro", "acc_clipped", "gyro_clipped", "acc_flagged", "gyro_flagged") and var.size > 0:
             e.update(zlib=True, complevel=4, shuffle=True)
         if e:
             enc[name] = e

@@ -52,37 +52,36 @@ lists every packet each rule touched, by reason, packet number and byte offset):
   stream — the lowest number whose stamp is on the grid or at most that lead after it — is
   stamped up to ``FIRST_PACKET_LEAD_TICKS`` (0.5 ms) after the grid of the others (every shared
   recording: ~0.35 ms, the README's short first interval); it never serves as a reference.
-* **Plausibility beyond the checksum.**  The byte sum misses byte swaps and compensating ± edits,
-  so the values of a checksum-valid packet are checked against the rigid board.  The eight IMUs
-  sit within 27 mm on one PCB and, rotated into the array frame (bottom IMUs by the README's C,
-  an exact signed permutation), read the same ω and nearly the same specific force.
-  *Range*: at ±16 g and ±2000 °/s every int16 code is a possible output (the recordings use
-  both −32768 and 32767), so no code is out of range by itself; the range that applies is the
-  board's.  Per channel and sample let D₁ ≥ D₂ be the two largest |IMU − median of the 8| (LSB);
-  the IMU giving D₁ is out of range when D₁ − 3·D₂ exceeds the bound
-  B = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` · A, where A is the board's largest one-sample
-  change (median of the 8 IMUs, any axis of that sensor, either side of the sample).  The floor,
-  1024 LSB (0.5 g, 62 °/s), is twice what uncalibrated MPU-9150s may differ by at rest (zero-g
-  offset up to ±150 mg and 3 % sensitivity of 1 g; zero-rate offset ±20 °/s).  The A term is
-  sampling skew: each IMU samples on its own clock, so a reading may be up to one period older
-  than another's and differ from it by up to one sample's change of the motion (SKEW_FRACTION 1).
-  D₂ is subtracted because genuine differences (local vibration, near-saturation) move several
-  IMUs at once; one corrupted value moves one.
-  *Jump*: the same statistic and bound on the second difference x[t] − (linear interpolation of
-  its two neighbours in packet number): one IMU's channel jumping in one sample while the seven
-  others on the same rigid board do not.  Flagged only at the local maximum in time, so a spike
-  does not also condemn its neighbours.
-  Across the six shared recordings the largest (D₁ − 3·D₂)/B is range acc 0.49 / gyro 0.25 and
-  jump acc 0.47 / gyro 0.16: margins 2.0 / 4.0 / 2.1 / 6.1 (``experiments/mimu_fuzz.md``).  A
-  channel is exempt at a sample where one IMU of it is saturated (|code| ≥ ``SATURATED_LSB`` =
-  32704, the top 0.2 % of the scale) or two read within 1/16 of full scale (|code| ≥
-  ``NEAR_LIMIT_LSB`` = 30720): IMUs saturate ±3 % apart (sensitivity tolerance), so near full
-  scale they need not agree.  What these rules provably cannot see — a change smaller than
-  B + 3·D₂, the same channel corrupted in two IMUs of one packet, values near full scale — is
-  measured per operator in the fuzz study.
-* **Drop, never flag-and-keep, for values.**  A packet failing any check above is dropped
-  (one of ~37 000 costs nothing; a wrong value biases a calibration).  Reordered packets are
-  kept and listed: their number and stamp agree, only their arrival was late.
+* **Plausibility beyond the checksum.**  The byte sum misses byte swaps, compensating ± edits
+  and many double bit flips, so the values of a checksum-valid packet are judged against the
+  rigid board (:mod:`accel_bayes.data.plausibility`, the same check the CSV importer runs).  The
+  eight IMUs sit within 27 mm on one PCB; rotated into the array frame (bottom IMUs by the
+  README's C) every gyro reads the same ω and every accelerometer the same specific force plus
+  the rigid-body term of its nominal position.  At ±16 g and ±2000 °/s every int16 code is a
+  possible output (the recordings use both −32768 and 32767), so no code is out of range by
+  itself; the range that applies is the board's.  Per IMU, sensor and sample: the *range* test
+  bounds the deviation from the other seven's median by ``PLAUSIBILITY_FLOOR_LSB`` (256 LSB:
+  0.125 g, 15.6 °/s) + a multiple of the board's change per sample (sampling skew of the
+  free-running IMU clocks) + 8 × the board's median deviation (honest spread); the *jump* test
+  bounds the smaller of the deviation's two one-sample steps by the floor + a multiple of the
+  board's change of slope + 8 × the median step: a wrong value steps away from both neighbours,
+  an honest deviation follows the motion.  Across the six shared recordings (vigorous hand
+  rotation up to the ±2000 °/s range included) the largest ratio to the bound is 0.60 (range,
+  accelerometer, exp_5): margin 1.7; every other margin ≥ 2.1 (``experiments/mimu_fuzz.md``).
+  A channel is exempt where full scale is corroborated: the board's median within 1/16 of full
+  scale (``NEAR_LIMIT_LSB``), or an IMU saturated (``SATURATED_LSB`` = 32704, the top 0.2 %)
+  whose own previous or next sample is within 1/16 too — IMUs saturate ±3 % apart.  A lone
+  full-scale code that neither the board nor its own neighbours share (issue #29: one gyro at
+  +1998 °/s while seven read −0.24) is a wrong value, not clipping.  What the rules cannot see —
+  a change below the bound, values where full scale is corroborated — is measured per operator
+  and magnitude in the fuzz study.
+* **Drop, never flag-and-keep, for values.**  A packet with any IMU failing the rigid-board check
+  is dropped whole, and the report lists every rejected IMU sensor (``implausible``: packet
+  number, byte offset, IMU, sensor, test, ratio): the damage is an edit the checksum could not
+  see, and a byte swap or ± edit moves two values, one of which may sit below the bound; one
+  packet of ~37 000 costs nothing, a wrong value biases a calibration.  (A CSV row holds one
+  IMU, so the CSV importer marks ``acc_flagged``/``gyro_flagged`` instead.)  Reordered packets
+  are kept and listed: their number and stamp agree, only their arrival was late.
 * **Refusal.**  More than ``max_fail_fraction`` (1 %) of the stream damaged — dropped packets
   other than duplicates, plus skipped bytes counted in 106-byte packets — or no valid packet at
   all means the file is not a (usable) MIMU stream: :class:`RecordingError`.
@@ -111,7 +110,7 @@ import numpy as np
 from ..constants import DEG_TO_RAD, G0
 from ..errors import RecordingError
 from ..physics.arrays import SensorArray, mimu4444_8
-from ..physics.geometry import quat_to_matrix
+from .plausibility import NEAR_LIMIT_FRACTION, SATURATED_FRACTION, rigid_board_check
 from .recording import Recording
 from .segments import StaticAnalysis, analyse_static, difference_noise_std, segment_labels
 
@@ -127,7 +126,6 @@ __all__ = [
     "TIME_TOL_TICKS",
     "FIRST_PACKET_LEAD_TICKS",
     "PLAUSIBILITY_FLOOR_LSB",
-    "SKEW_FRACTION",
     "NEAR_LIMIT_LSB",
     "SATURATED_LSB",
     "DROP_REASONS",
@@ -152,8 +150,8 @@ NOMINAL_PERIOD_TICKS = 1_024_000  # 16 ms at 64 MHz
 ACC_SCALE = G0 / 2048.0  # m/s² per LSB at ±16 g
 GYRO_SCALE = (1.0 / 16.4) * DEG_TO_RAD  # rad/s per LSB at ±2000 °/s
 INT16_LIMITS = (-32768, 32767)
-NEAR_LIMIT_LSB = 30720  # 15/16 of full scale: IMUs saturate ±3 % apart (sensitivity tolerance)
-SATURATED_LSB = 32704  # the top 64 codes (0.2 % of full scale): this IMU is at its limit
+NEAR_LIMIT_LSB = round(NEAR_LIMIT_FRACTION * 32768)  # 30720: IMUs saturate ±3 % apart (sensitivity tolerance)
+SATURATED_LSB = round(SATURATED_FRACTION * 32768)  # 32704, the top 64 codes: this IMU is at its limit
 ACC_RANGE = 16 * G0
 GYRO_RANGE = 2000.0 * DEG_TO_RAD
 
@@ -161,9 +159,10 @@ JITTER_TICKS = 8  # README: ±8 ticks per 16 ms interval
 _TIME_NEIGHBOURS = 3  # packets each side whose median predicts a packet's stamp
 TIME_TOL_TICKS = JITTER_TICKS * _TIME_NEIGHBOURS  # 24 ticks, the tolerance where no packet is missing
 FIRST_PACKET_LEAD_TICKS = 32_000  # 0.5 ms: how late the first packet of a stream may be stamped
-LONE_FACTOR = 3.0  # D₁ − LONE_FACTOR·D₂: one IMU alone off the board's consensus
-PLAUSIBILITY_FLOOR_LSB = 1024.0  # 0.5 g, 62 °/s: twice the datasheet offset + sensitivity spread
-SKEW_FRACTION = 1.0  # free-running IMU sample clocks: a reading up to one period older than another's
+PLAUSIBILITY_FLOOR_LSB = 256.0  # 0.125 g, 15.6 °/s: 1/128 of full scale, the bounds' floor at rest
+
+_NOMINAL_POS = mimu4444_8().positions.detach().double().numpy()
+_NOMINAL_QUAT = mimu4444_8().orientations.detach().double().numpy()
 
 _ISOLATED_STEP = 4096  # packets (65 s): a number step this large next to a normal one is an outlier
 
@@ -230,6 +229,9 @@ class ImportReport:
     conflicting_packets: int = 0  # copies of one packet number with different bytes (all dropped)
     range_failures: int = 0  # one IMU alone off the board's consensus
     jump_failures: int = 0  # one IMU alone jumping in one sample
+    # [packet number, byte offset, IMU, "acc"/"gyro", "range"/"jump", |deviation| / bound] of every
+    # IMU sensor the rigid-board check rejected (its packet is dropped)
+    implausible: list = field(default_factory=list)
     reordered_packets: int = 0  # arrived after a higher packet number; put back in place and kept
     dropped: list = field(default_factory=list)  # [reason, packet number, byte offset] of every drop
     reordered: list = field(default_factory=list)  # [packet number, byte offset] of every reordered packet
@@ -294,6 +296,9 @@ class ImportReport:
         if counts:
             out.append("dropped packets by reason: " + ", ".join(f"{k} {v}" for k, v in counts.items())
                        + f"; [reason, number, byte offset] {_capped(self.dropped)}")
+        if self.implausible:
+            out.append(f"implausible values (rigid-board check; packets dropped): {len(self.implausible)} "
+                       f"[number, byte offset, IMU, sensor, test, deviation/bound] {_capped(self.implausible)}")
         out.append(
             f"duration: {self.duration_s:.2f} s at {self.sample_rate_hz:.3f} Hz "
             f"(period {self.period_median_ticks / TICK_HZ * 1e3:.4f} ms, jitter std {self.jitter_std_ticks:.2f} ticks, "
@@ -448,88 +453,38 @@ def _stamp_deviation(res: np.ndarray, seq: np.ndarray, ref_ok: np.ndarray | None
     return res - med, JITTER_TICKS * np.maximum(far, k)
 
 
-def _array_frame_index() -> tuple[np.ndarray, np.ndarray]:
-    """(8, 6) packet channel and sign giving each IMU's array-frame [fx, fy, fz, ωx, ωy, ωz]: the
-    MIMU4444 corner IMUs are rotated by signed axis permutations (top identity, bottom the README's
-    C), so the rotation is an exact integer gather."""
-    q = mimu4444_8().orientations.detach().double()
-    rot = np.rint(quat_to_matrix(q).transpose(-1, -2).numpy()).astype(np.int64)  # sensor → array
-    axis = np.abs(rot).argmax(-1)  # (8, 3): array axis i reads sensor axis axis[k, i]
-    sign = np.take_along_axis(rot, axis[..., None], -1)[..., 0]
-    return np.concatenate((axis, axis + 3), 1), np.concatenate((sign, sign), 1)
-
-
-def _median_last(y: np.ndarray) -> np.ndarray:
-    """Median over the last axis of an even-length (IMU) axis, keepdims: sorting 8 values is
-    cheaper than numpy's partition-based median."""
-    ys = np.sort(y, axis=-1)
-    k = y.shape[-1] // 2
-    return 0.5 * (ys[..., k - 1 : k] + ys[..., k : k + 1])
-
-
-def _lone(y: np.ndarray, med: np.ndarray | None = None) -> np.ndarray:
-    """D₁ − LONE_FACTOR·D₂ over the last (IMU) axis of y (median ``med`` if already known), at the
-    IMU giving D₁, −inf elsewhere."""
-    dev = np.abs(y - (_median_last(y) if med is None else med))
-    top = np.sort(dev, axis=-1)
-    out = np.full(y.shape, -np.inf)
-    np.put_along_axis(out, dev.argmax(-1)[..., None], (top[..., -1] - LONE_FACTOR * top[..., -2])[..., None], axis=-1)
-    return out
-
-
 def plausibility_statistics(raw: np.ndarray, seq: np.ndarray | None = None):
-    """The range and jump tests of the module docstring, as ratios to their bounds.
+    """The rigid-board range and jump tests (:mod:`accel_bayes.data.plausibility`) on a stream's
+    counts, as ratios to their bounds.
 
     raw : (N, 8, 6) int16 counts (packet IMU order, sensor frame); seq : (N,) increasing packet
-    numbers (unwrapped; default 0..N−1) — the jump test interpolates neighbours by number.
-    Returns ``(range_ratio, jump_ratio)``, each (N, 8, 6) float64: (D₁ − 3·D₂) / bound at the IMU
-    that gives D₁ (a packet fails where a ratio exceeds 1), −inf at the other IMUs and where a
-    channel is exempt (an IMU saturated, |code| ≥ ``SATURATED_LSB``, or two within 1/16 of full
-    scale, |code| ≥ ``NEAR_LIMIT_LSB``; the first and last packet for the jump).
-    bound = ``PLAUSIBILITY_FLOOR_LSB`` + ``SKEW_FRACTION`` × the board's largest one-sample change
-    (median of the 8 IMUs, any axis of that sensor, either side of the sample), LSB.
+    numbers (unwrapped; default 0..N−1): the neighbours in time and the 16 ms steps between them.
+    Returns ``(range_ratio, jump_ratio)``, each (N, 8, 2) float64, [acc, gyro] of each IMU: the
+    largest |statistic| / bound over the array-frame axes (a sample fails above 1), −inf where
+    exempt.  Floors ``PLAUSIBILITY_FLOOR_LSB``; full scale the int16 range.
     """
     n = raw.shape[0]
     seq = np.arange(n, dtype=np.int64) if seq is None else np.asarray(seq, dtype=np.int64)
-    chan, sign = _array_frame_index()
-    imu = np.arange(N_IMU)[:, None]
-    # (N, 6, 8): the IMU axis last, so medians and sorts run over contiguous memory.
-    x = np.ascontiguousarray((raw[:, imu, chan].astype(np.float64) * sign).transpose(0, 2, 1))
-    mag = np.abs(raw.astype(np.int32))[:, imu, chan]  # (N, 8, 6)
-    near = ((mag >= NEAR_LIMIT_LSB).sum(1) >= 2) | (mag >= SATURATED_LSB).any(1)  # (N, 6)
-    med = _median_last(x)
-    activity = np.zeros((n, 6))
-    if n > 1:
-        step = np.abs(np.diff(med[..., 0], axis=0))  # (N−1, 6) the board's change per sample
-        step = np.stack((step[:, :3].max(1), step[:, 3:].max(1)), 1)  # (N−1, 2): acc, gyro
-        pad = np.zeros((1, 2))
-        activity = np.repeat(np.maximum(np.concatenate((pad, step)), np.concatenate((step, pad))), 3, axis=1)
-    bound = (PLAUSIBILITY_FLOOR_LSB + SKEW_FRACTION * activity)[..., None]  # (N, 6, 1)
-    rng = _lone(x, med) / bound
-    rng[near] = -np.inf
-    jmp = np.full(x.shape, -np.inf)
-    if n >= 3:
-        s = seq.astype(np.float64)
-        w = ((s[1:-1] - s[:-2]) / (s[2:] - s[:-2]))[:, None, None]
-        inner = _lone(x[1:-1] - ((1 - w) * x[:-2] + w * x[2:])) / bound[1:-1]
-        inner[near[:-2] | near[1:-1] | near[2:]] = -np.inf
-        jmp[1:-1] = inner
-    return rng.transpose(0, 2, 1), jmp.transpose(0, 2, 1)
+    x = raw.astype(np.float64)
+    period = NOMINAL_PERIOD_TICKS / TICK_HZ
+    p = rigid_board_check(x[..., :3] * ACC_SCALE, x[..., 3:] * GYRO_SCALE, (seq - seq[0]) * period if n else seq,
+                          _NOMINAL_POS, _NOMINAL_QUAT, floor_acc=PLAUSIBILITY_FLOOR_LSB * ACC_SCALE,
+                          floor_gyro=PLAUSIBILITY_FLOOR_LSB * GYRO_SCALE, acc_range=32768 * ACC_SCALE,
+                          gyro_range=32768 * GYRO_SCALE, period=period)
+    return p.range_ratio, p.jump_ratio
 
 
-def _implausible(raw: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) bool packets failing the range test, and those failing the jump test."""
+def _implausible(raw: np.ndarray, seq: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
+    """(N,) bool packets failing the range test, those failing only the jump test, and
+    [row, IMU, sensor, test, ratio] of every failing IMU sensor."""
     rng, jmp = plausibility_statistics(raw, seq)
+    rows = []
+    for test, ratio in (("range", rng), ("jump", jmp)):
+        for i, k, s in zip(*np.nonzero(ratio > 1)):
+            rows.append([int(i), int(k), ("acc", "gyro")[s], test, round(float(ratio[i, k, s]), 3)])
     bad_r = (rng > 1).any((1, 2))
-    if bad_r.any() and (~bad_r).sum() >= 3:
-        # A packet out of range must not serve as a neighbour in its neighbours' jump test.
-        jmp = np.full(jmp.shape, -np.inf)
-        jmp[~bad_r] = plausibility_statistics(raw[~bad_r], seq[~bad_r])[1]
-    # Only the local maximum in time: a spike's neighbours see half of it in their own differences.
-    prev = np.concatenate((np.full((1,) + jmp.shape[1:], -np.inf), jmp[:-1]))
-    nxt = np.concatenate((jmp[1:], np.full((1,) + jmp.shape[1:], -np.inf)))
-    bad_j = ((jmp > 1) & (jmp >= prev) & (jmp >= nxt)).any((1, 2))
-    return bad_r, bad_j
+    bad_j = (jmp > 1).any((1, 2)) & ~bad_r
+    return bad_r, bad_j, rows
 
 
 def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = False,
@@ -616,9 +571,10 @@ def decode_mimu_bytes(data: bytes, *, name: str = "<bytes>", gzipped: bool = Fal
     keep[o2[dup | conflict]] = False
 
     o3 = order[keep[order]]
-    bad_r, bad_j = _implausible(pk["data"][o3].astype(np.int16), seq[o3])
-    bad_j &= ~bad_r
+    bad_r, bad_j, rows = _implausible(pk["data"][o3].astype(np.int16), seq[o3])
     keep[o3[bad_r | bad_j]] = False
+    rep.implausible = sorted([int(number[o3[i]]), int(off[o3[i]]), k, sensor, test, ratio]
+                             for i, k, sensor, test, ratio in rows)
 
     reason = np.full(off.size, "", dtype=object)
     reason[order[bad_t]] = "timestamp"

@@ -30,6 +30,8 @@ class Recording:
     nominal_orientation : (K, 4) float64 — array → sensor quaternions (w, x, y, z), §7.0.
     acc_noise_std : (K,) float64, m/s²;  gyro_noise_std : (K,) float64, rad/s.
     acc_clipped, gyro_clipped : (T, K) bool or None — samples known to be at the sensor range.
+    acc_flagged, gyro_flagged : (T, K) bool or None — samples an importer's plausibility check
+        distrusts (a value the rigid board contradicts); fits leave them out like clipped ones.
     segment : (T,) str array ("static"/"dynamic") or None.
     imu_time_offset : (T, K) float64 or None, s — an IMU's own time stamp minus ``time``, where
         the IMUs were stamped separately and an importer put them on one time base.
@@ -48,6 +50,8 @@ class Recording:
     nominal_orientation: np.ndarray | None = None
     acc_clipped: np.ndarray | None = None
     gyro_clipped: np.ndarray | None = None
+    acc_flagged: np.ndarray | None = None
+    gyro_flagged: np.ndarray | None = None
     segment: np.ndarray | None = None
     imu_time_offset: np.ndarray | None = None
     reference_imu: int = 0
@@ -137,6 +141,7 @@ class Recording:
         take = lambda x: None if x is None else np.asarray(x)[idx]  # noqa: E731
         return replace(self, time=take(self.time), acc=take(self.acc), gyro=take(self.gyro),
                        acc_clipped=take(self.acc_clipped), gyro_clipped=take(self.gyro_clipped),
+                       acc_flagged=take(self.acc_flagged), gyro_flagged=take(self.gyro_flagged),
                        segment=take(self.segment), imu_time_offset=take(self.imu_time_offset),
                        attrs=dict(self.attrs))
 
@@ -147,5 +152,6 @@ class Recording:
                        nominal_position=c(self.nominal_position), nominal_orientation=c(self.nominal_orientation),
                        acc_noise_std=c(self.acc_noise_std), gyro_noise_std=c(self.gyro_noise_std),
                        acc_clipped=c(self.acc_clipped), gyro_clipped=c(self.gyro_clipped),
+                       acc_flagged=c(self.acc_flagged), gyro_flagged=c(self.gyro_flagged),
                        segment=c(self.segment), imu_time_offset=c(self.imu_time_offset),
                        attrs=dict(self.attrs))

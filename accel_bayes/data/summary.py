@@ -51,6 +51,9 @@ def summarize(rec, path=None) -> dict:
     out["gyro_range"] = rec.gyro_range
     out["acc_clipped"] = _clip_stats(rec.acc_clipped, has_a)
     out["gyro_clipped"] = _clip_stats(rec.gyro_clipped, has_g)
+    for name, m in (("acc_flagged", rec.acc_flagged), ("gyro_flagged", rec.gyro_flagged)):
+        # a count, not a fraction: marks are rare (a few per 10⁵) and each is worth seeing
+        out[name] = None if m is None else int(np.asarray(m, bool).sum())
     if rec.segment is not None:
         seg = np.asarray(rec.segment).astype(str)
         st = seg == "static"

@@ -28,7 +28,7 @@ import torch
 from ..physics.arrays import check_triad_geometry
 from ..errors import RecordingError
 from ..physics.geometry import quat_to_matrix
-from ..constants import DEG_TO_RAD, RAD_TO_DEG
+from ..constants import DEG_TO_RAD, G0, RAD_TO_DEG
 
 __all__ = [
     "FORMAT",
@@ -70,6 +70,8 @@ VARIABLES = {
     "nominal_orientation": (("imu", "quat"), False, "array → sensor quaternions (w, x, y, z)"),
     "acc_clipped": (("time", "imu"), False, "bool mask of accelerometer samples at the range"),
     "gyro_clipped": (("time", "imu"), False, "bool mask of gyroscope samples at the range"),
+    "acc_flagged": (("time", "imu"), False, "bool mask of accelerometer samples an importer distrusts"),
+    "gyro_flagged": (("time", "imu"), False, "bool mask of gyroscope samples an importer distrusts"),
     "segment": (("time",), False, '"static"/"dynamic" labels'),
     "imu_time_offset": (("time", "imu"), False, "an IMU's own time stamp minus time, s"),
     "acc_noise_std": (("imu",), False, "per-IMU accelerometer noise std, m s-2"),
@@ -325,6 +327,8 @@ def validate_dataset(ds) -> None:
             raise RecordingError(f"{name}: expected numbers, got dtype {ds[name].dtype}")
     _check_bool_like(ds, "acc_clipped")
     _check_bool_like(ds, "gyro_clipped")
+    _check_bool_like(ds, "acc_flagged")
+    _check_bool_like(ds, "gyro_flagged")
     if "segment" in ds.variables and np.asarray(ds["segment"].values).dtype.kind not in "USO":
         raise RecordingError(f'segment: expected string labels "static"/"dynamic", got dtype {ds["segment"].dtype}')
 
@@ -414,7 +418,8 @@ def _check_acc_bound(rec, time) -> None:
 
 
 def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | None = None,
-                       gyro_units: str = "rad s-1", check_gyro_units: bool = True) -> None:
+                       gyro_units: str = "rad s-1", check_gyro_units: bool = True,
+                       check_acc_units: bool = True) -> None:
     """Check an in-memory :class:`Recording` against format v1 (DESIGN §7.1).
 
     Raises :class:`RecordingError` naming the field and what was expected when:
@@ -434,7 +439,9 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     * an accelerometer value exceeds :data:`ACC_RANGE_FACTOR` × acc_range (or
       :data:`DEFAULT_ACC_BOUND` without acc_range): not a reading, so not flagged as clipped either;
     * ``require_gyro`` and the recording has no gyroscope data;
-    * ``check_gyro_units`` and the gyro values do not look like rad/s (:func:`gyro_unit_diagnostics`).
+    * ``check_gyro_units`` and the gyro values do not look like rad/s (:func:`gyro_unit_diagnostics`);
+    * ``check_acc_units`` and |acc| at rest is far from g, as accelerometer data in g, or in m/s²
+      converted once more, would be (:func:`acc_unit_diagnostics`).
 
     ``gyro_units`` is the unit the values were *declared* in before they were converted to rad/s
     ("rad s-1" for in-memory recordings; :func:`read_recording` passes "deg s-1" for a file that
@@ -459,6 +466,8 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     _shape_check("gyro_noise_std", rec.gyro_noise_std, (K,))
     _shape_check("acc_clipped", rec.acc_clipped, (T, K))
     _shape_check("gyro_clipped", rec.gyro_clipped, (T, K))
+    _shape_check("acc_flagged", rec.acc_flagged, (T, K))
+    _shape_check("gyro_flagged", rec.gyro_flagged, (T, K))
     _shape_check("segment", rec.segment, (T,))
     _shape_check("imu_time_offset", rec.imu_time_offset, (T, K))
     for name in ("time", "acc", "gyro", "nominal_position", "nominal_orientation", "acc_noise_std", "gyro_noise_std",
@@ -466,12 +475,13 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
         x = getattr(rec, name)
         if x is not None and np.asarray(x).dtype.kind not in "iuf":
             raise RecordingError(f"{name}: expected a float array, got dtype {np.asarray(x).dtype}")
-    for name in ("acc_clipped", "gyro_clipped"):
+    for name in ("acc_clipped", "gyro_clipped", "acc_flagged", "gyro_flagged"):
         x = getattr(rec, name)
         if x is not None and np.asarray(x).dtype != bool:
             raise RecordingError(f"{name}: expected a bool array, got dtype {np.asarray(x).dtype}")
-    if rec.gyro is None and rec.gyro_clipped is not None:
-        raise RecordingError("gyro_clipped: given but the recording has no gyro")
+    for name in ("gyro_clipped", "gyro_flagged"):
+        if rec.gyro is None and getattr(rec, name) is not None:
+            raise RecordingError(f"{name}: given but the recording has no gyro")
 
     # Time.
     if not np.all(np.isfinite(time)):
@@ -565,6 +575,62 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     if check_gyro_units and has_gyro.any():
         _raise_on_gyro_units(rec, gyro_units)
     _check_gyro_bound(rec, time)  # after the unit check: data in the other unit get its message
+    if check_acc_units:
+        flag = acc_unit_diagnostics(rec)["flag"]
+        if flag:
+            raise RecordingError(flag)
+
+
+# ---------------------------------------------------------------- accelerometer unit plausibility
+
+# At rest an accelerometer reads g = 9.81 m/s² whatever its bias or scale error (a few % at most).
+# Data in g declared as m/s² reads ≈ 1, and m/s² declared as g (converted once more) ≈ 96: a factor
+# of two either way of those leaves room for any sensor error and still cannot be a real rest.
+ACC_REST_BAND = 2.0
+REST_RATE = 0.1  # rad/s (5.7 °/s): without rest labels, samples whose gyros turn slower are "still"
+MIN_REST_SAMPLES = 20
+
+
+def acc_unit_diagnostics(rec) -> dict:
+    """Evidence on whether ``rec.acc`` is in m/s²: the median ‖acc‖ (m/s², over the IMUs with an
+    accelerometer) at rest.
+
+    Rest samples: ``segment == "static"`` where there are at least 20, else, with gyros, the
+    samples whose gyros' median ‖ω‖ is below ``REST_RATE``; fewer than 20 of either leaves the
+    test inconclusive (``rest_norm`` NaN).  Clipped samples are left out.  The unit is flagged
+    when the rest norm lies within a factor ``ACC_REST_BAND`` of 1 (values in g) or of g²
+    (m/s² values declared as g, converted again); a recording without gravity (|a| ≈ 0 at rest,
+    a simulation) is not flagged.  Returns ``rest_norm``, ``n_rest``, ``rest_from`` and ``flag``
+    (the one-line message to raise, or None).
+    """
+    acc = np.asarray(rec.acc, dtype=float)
+    has_a = ~np.all(np.isnan(acc), axis=(0, 2))
+    T = acc.shape[0]
+    rest, rest_from = np.zeros(T, bool), "none"
+    if rec.segment is not None:
+        rest = np.asarray(rec.segment).astype(str) == "static"
+        rest_from = "static segments"
+    if rest.sum() < MIN_REST_SAMPLES and rec.gyro is not None:
+        g = np.asarray(rec.gyro, dtype=float)
+        has_g = ~np.all(np.isnan(g), axis=(0, 2))
+        if has_g.any():
+            rate = np.median(np.linalg.norm(g[:, has_g], axis=-1), axis=1)
+            rest, rest_from = rate < REST_RATE, f"samples with |ω| < {REST_RATE:g} rad/s"
+    if rec.acc_clipped is not None:
+        rest &= ~np.asarray(rec.acc_clipped)[:, has_a].any(1)
+    out = {"rest_norm": float("nan"), "n_rest": int(rest.sum()), "rest_from": rest_from, "flag": None}
+    if rest.sum() < MIN_REST_SAMPLES or not has_a.any():
+        return out
+    norm = float(np.median(np.linalg.norm(acc[rest][:, has_a], axis=-1)))
+    out["rest_norm"] = norm
+    where = f"(median over {int(rest.sum())} rest samples, {rest_from}) where g = {G0:.4g} is expected"
+    if 1 / ACC_REST_BAND <= norm <= ACC_REST_BAND:
+        out["flag"] = (f"acc: values look like g, not the declared m s-2: |acc| at rest = {norm:.3g} {where}; "
+                       "convert acc to m/s² (× 9.80665) or declare its unit as g")
+    elif G0**2 / ACC_REST_BAND <= norm <= G0**2 * ACC_REST_BAND:
+        out["flag"] = (f"acc: values look like m/s² declared as g (converted twice): |acc| at rest = {norm:.4g} m/s² "
+                       f"{where}; declare the unit as m s-2")
+    return out
 
 
 # ---------------------------------------------------------------- gyro unit plausibility

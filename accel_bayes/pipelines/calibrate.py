@@ -223,7 +223,7 @@ def _recording_hash(rec) -> str:
     """SHA-256 of an in-memory recording's data (a file's is :func:`accel_bayes.data.io.recording_sha256`)."""
     h = hashlib.sha256()
     for x in (rec.time, rec.acc, rec.gyro, rec.nominal_position, rec.nominal_orientation, rec.acc_noise_std,
-              rec.gyro_noise_std, rec.acc_clipped, rec.gyro_clipped):
+              rec.gyro_noise_std, rec.acc_clipped, rec.gyro_clipped, rec.acc_flagged, rec.gyro_flagged):
         if x is not None:
             h.update(np.ascontiguousarray(np.asarray(x)).tobytes())
     return h.hexdigest()

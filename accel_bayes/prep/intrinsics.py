@@ -453,7 +453,8 @@ def estimate_intrinsics(recording: Recording, segments=None, g: float = G0, *,
     min_orientations : refuse fewer distinct rest orientations (9 unknowns per IMU).
     orientation_tol_deg : rests within this angle count as one orientation (for that check).
 
-    Saturated samples (``acc_clipped`` / ``gyro_clipped``) are excluded from the rest means;
+    Saturated samples (``acc_clipped`` / ``gyro_clipped``) and samples an importer marked
+    implausible (``acc_flagged`` / ``gyro_flagged``) are excluded from the rest means;
     a rest keeps an IMU only with at least 10 valid samples.  Returns :class:`Intrinsics`.
     """
     if not isinstance(recording, Recording):
@@ -470,7 +471,7 @@ def estimate_intrinsics(recording: Recording, segments=None, g: float = G0, *,
         raise UserError("segments: no static segment found; intrinsic calibration needs rests in "
                         f"at least {min_orientations} orientations")
     acc = np.asarray(recording.acc, dtype=np.float64)
-    valid_a = np.ones((recording.T, K), dtype=bool) if recording.acc_clipped is None else ~np.asarray(recording.acc_clipped, bool)
+    valid_a = _valid(recording, "acc")
     means, counts = masked_segment_means(acc, segs, valid_a)  # (S, K, 3), (S, K)
     use = (counts >= _MIN_REST_SAMPLES) & np.isfinite(means).all(-1)  # (S, K)
     has = recording.has_acc & use.any(0)
@@ -526,7 +527,7 @@ def estimate_intrinsics(recording: Recording, segments=None, g: float = G0, *,
     gyro_bias = np.full((K, 3), np.nan)
     gyro_cov = np.full((K, 3, 3), np.nan)
     if recording.gyro is not None:
-        valid_g = np.ones((recording.T, K), dtype=bool) if recording.gyro_clipped is None else ~np.asarray(recording.gyro_clipped, bool)
+        valid_g = _valid(recording, "gyro")
         gm, gc = masked_segment_means(recording.gyro, segs, valid_g)
         guse = (gc >= _MIN_REST_SAMPLES) & np.isfinite(gm).all(-1)
         for k in np.flatnonzero(recording.has_gyro & guse.any(0)):  # K iterations over IMUs
@@ -546,10 +547,18 @@ def estimate_intrinsics(recording: Recording, segments=None, g: float = G0, *,
                       extra={"segments": len(segs), "converged": bool(converged)})
 
 
+def _valid(recording: Recording, sensor: str) -> np.ndarray:
+    """(T, K) bool: samples of ``sensor`` ("acc"/"gyro") neither clipped nor marked implausible."""
+    ok = np.ones((recording.T, recording.K), dtype=bool)
+    for m in (getattr(recording, f"{sensor}_clipped"), getattr(recording, f"{sensor}_flagged")):
+        if m is not None:
+            ok &= ~np.asarray(m, bool)
+    return ok
+
+
 def static_acc_errors(recording: Recording, g: float = G0, segments=None) -> np.ndarray:
     """(S, K) |mean acc| − g per static segment and IMU, m/s² (unclipped samples; NaN where an
     IMU has no valid sample in a segment).  Segments as in :func:`estimate_intrinsics`."""
     segs = rest_segments(recording, segments)
-    valid = None if recording.acc_clipped is None else ~np.asarray(recording.acc_clipped, bool)
-    means, _ = masked_segment_means(recording.acc, segs, valid)
+    means, _ = masked_segment_means(recording.acc, segs, _valid(recording, "acc"))
     return np.linalg.norm(means, axis=-1) - float(g)

@@ -102,7 +102,7 @@ class Preprocessed:
         else:
             out.append(f"intrinsics: not applied ({it['why']})")
         out.append(f"samples: {s['recording']} in the recording; dropped {s['static']} static, {s['clipped']} clipped "
-                   f"(acc or gyro at range), {s.get('non_finite', 0)} without a finite gyro, {s['slow']} with |w| < {s['min_rotation']:g} rad/s; kept {s['kept']}")
+                   f"(acc or gyro at range), {s.get('flagged', 0)} flagged implausible by the importer, {s.get('non_finite', 0)} without a finite gyro, {s['slow']} with |w| < {s['min_rotation']:g} rad/s; kept {s['kept']}")
         out.extend(f"note: {n}" for n in self.notes)
         return out
 
@@ -241,7 +241,7 @@ def preprocess(recording: Recording, *, intrinsics="auto", g: float = G0, drop_s
     clip = clipped_mask(rec)
     w = sel.rotation_rate if sel.rotation_rate is not None else np.full(T, np.inf)
     d = sel.dropped
-    samples = {"recording": int(T), "static": d["static"], "clipped": d["clipped"], "non_finite": d["non_finite"],
+    samples = {"recording": int(T), "static": d["static"], "clipped": d["clipped"], "flagged": d["flagged"], "non_finite": d["non_finite"],
                "slow": d["slow"], "kept": sel.n_kept, "clipped_kept": int((keep & clip).sum()),
                "drop_static": bool(drop_static), "drop_clipped": bool(drop_clipped), "min_rotation": min_rotation,
                "rests": len(segs), "kept_runs": sel.kept_runs,

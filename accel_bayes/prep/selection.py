@@ -9,6 +9,9 @@ this order (a sample dropped for an earlier reason is not counted again):
   rests serve the intrinsic calibration instead);
 * ``clipped`` — some accelerometer or gyroscope (of the IMUs used) is flagged at its range
   (``acc_clipped``/``gyro_clipped``, DESIGN §7.1): the output is censored, not a measurement;
+* ``flagged`` — some accelerometer or gyroscope (of the IMUs used) is distrusted by its importer's
+  plausibility check (``acc_flagged``/``gyro_flagged``, DESIGN §7.1): the rigid board contradicts
+  the value, so it is likely a corrupted reading, not a measurement;
 * ``non_finite`` — no used gyroscope has a finite reading, so the rotation rate (and the
   motion state of the sample) is undefined;
 * ``slow`` — the rotation rate |ω̄_t| (:func:`rotation_rate`) is below ``min_rotation`` rad/s:
@@ -28,11 +31,12 @@ import numpy as np
 from ..constants import DEFAULT_MIN_ROTATION  # noqa: F401  (re-exported; likelihood re-exports it too)
 from ..errors import UserError, nonnegative
 
-__all__ = ["Selection", "select_samples", "rotation_rate", "clipped_mask", "check_min_rotation", "REASONS",
+__all__ = ["Selection", "select_samples", "rotation_rate", "clipped_mask", "flagged_mask", "check_min_rotation",
+           "REASONS",
            "DEFAULT_MIN_ROTATION"]
 
 
-REASONS = ("static", "clipped", "non_finite", "slow", "user")
+REASONS = ("static", "clipped", "flagged", "non_finite", "slow", "user")
 
 
 def _labels(present, imus) -> np.ndarray:
@@ -73,17 +77,24 @@ def rotation_rate(recording, gyro_imus=None) -> np.ndarray:
     return rate
 
 
-def clipped_mask(recording, acc_imus=None, gyro_imus=None) -> np.ndarray:
+def clipped_mask(recording, acc_imus=None, gyro_imus=None, *, kind: str = "clipped") -> np.ndarray:
     """(T,) bool: samples where any accelerometer or gyroscope (of an IMU that has that sensor,
     restricted to ``acc_imus``/``gyro_imus`` when given) is flagged at its range
-    (``acc_clipped``/``gyro_clipped``, DESIGN §7.1); all False without flags."""
+    (``acc_clipped``/``gyro_clipped``, DESIGN §7.1; ``kind="flagged"``: the importer's
+    plausibility marks ``acc_flagged``/``gyro_flagged`` instead); all False without flags."""
     clip = np.zeros(recording.T, dtype=bool)
-    for nm, present, imus in (("acc_clipped", recording.has_acc, acc_imus),
-                              ("gyro_clipped", recording.has_gyro, gyro_imus)):
+    for nm, present, imus in ((f"acc_{kind}", recording.has_acc, acc_imus),
+                              (f"gyro_{kind}", recording.has_gyro, gyro_imus)):
         flags = getattr(recording, nm)
         if flags is not None:
             clip |= np.asarray(flags, dtype=bool)[:, _labels(present, imus)].any(-1)
     return clip
+
+
+def flagged_mask(recording, acc_imus=None, gyro_imus=None) -> np.ndarray:
+    """(T,) bool: samples where any used accelerometer or gyroscope is marked implausible by its
+    importer (``acc_flagged``/``gyro_flagged``, DESIGN §7.1); all False without marks."""
+    return clipped_mask(recording, acc_imus, gyro_imus, kind="flagged")
 
 
 def _runs(mask: np.ndarray) -> np.ndarray:
@@ -104,7 +115,7 @@ class Selection:
     gaps : (R−1, 2) int — the dropped stretches [start, stop) between consecutive runs (where the
         time series is broken; dropped samples before the first or after the last run are not gaps).
     min_rotation : the threshold used, rad/s (0: no rotation test).
-    settings : the switches used (drop_static, drop_clipped, user given).
+    settings : the switches used (drop_static, drop_clipped, drop_flagged, user given).
     rotation_rate : (T,) |ω̄_t| rad/s (:func:`rotation_rate`), or None without gyroscope data.
     """
 
@@ -163,14 +174,14 @@ def _user_mask(user, T: int) -> np.ndarray:
 
 
 def select_samples(recording, *, static=None, drop_static: bool = True, drop_clipped: bool = True,
-                   min_rotation: float | None = DEFAULT_MIN_ROTATION, user=None, acc_imus=None,
+                   drop_flagged: bool = True, min_rotation: float | None = DEFAULT_MIN_ROTATION, user=None, acc_imus=None,
                    gyro_imus=None, use_gyro: bool = True) -> Selection:
     """Select the samples of ``recording`` a fit uses (module docstring: reasons and order).
 
     recording : a :class:`~accel_bayes.data.recording.Recording` (the rotation test reads its
         gyroscopes, so pass the recording with the intrinsics applied when they are).
     static : (T,) bool mask of the rests, or None (no rests).
-    drop_static, drop_clipped : switches for those two reasons.
+    drop_static, drop_clipped, drop_flagged : switches for those three reasons.
     min_rotation : rad/s; samples with |ω̄_t| < this are dropped (None or 0: no rotation test).
     user : None, a (T,) bool mask or integer sample indices: further samples to keep (ANDed).
     acc_imus, gyro_imus : IMU labels whose flags (and, for gyros, readings) count; None = every
@@ -196,6 +207,8 @@ def select_samples(recording, *, static=None, drop_static: bool = True, drop_cli
         tests.append(("static", st))
     if drop_clipped:
         tests.append(("clipped", clipped_mask(recording, acc_imus, gyro_imus)))
+    if drop_flagged:
+        tests.append(("flagged", flagged_mask(recording, acc_imus, gyro_imus)))
     if w is not None:
         tests.append(("non_finite", ~np.isfinite(w)))
         if min_rotation > 0:
@@ -217,7 +230,8 @@ def select_samples(recording, *, static=None, drop_static: bool = True, drop_cli
     index.setflags(write=False)
     if w is not None:
         w.setflags(write=False)
-    settings = {"drop_static": bool(drop_static), "drop_clipped": bool(drop_clipped), "user": user is not None,
+    settings = {"drop_static": bool(drop_static), "drop_clipped": bool(drop_clipped),
+                "drop_flagged": bool(drop_flagged), "user": user is not None,
                 "use_gyro": bool(use_gyro)}
     return Selection(keep=keep, dropped=dropped, index=index, runs=runs, gaps=gaps, min_rotation=min_rotation,
                      settings=settings, rotation_rate=w)
