@@ -9,9 +9,12 @@ For a static sensor the Allan variance of cluster means of length τ is
 
 (IEEE Std 952-1997, Annex C).  The white part falls with τ, the random walk grows with it; they
 cross at τ_c = √3 N / K.  K is only seen where τ well above τ_c still leaves several
-independent clusters inside a static stretch: a stretch must be many τ_c long.  For a MEMS gyro
-(N ≈ 2e-4 rad/s/√Hz, K ≈ 2e-5 rad/s²/√Hz, τ_c ≈ 17 s) that is of the order of an hour of rest,
-which a calibration recording with rests of seconds to minutes does not have.
+independent clusters inside the static stretches: they must be many τ_c long in all.  Measured
+with :func:`static_time_needed` (one stretch, doubling from 60 s): EuRoC's stated ADIS16448
+gyro (N = 1.7e-4 rad/s/√Hz, K = 1.9e-5 rad/s²/√Hz, τ_c ≈ 15 s) needs 240 s; a MEMS gyro with
+N = 5.8e-5 (0.2 °/√h) and K = 2e-6 (τ_c ≈ 50 s) 960 s; every halving of K doubles τ_c, so
+better sensors need of the order of an hour.  Rests of seconds to a minute, as a calibration
+recording has, give no random walk (two stretches of ≈ 10 τ_c in all just pass).
 
 Estimator.  Within every static stretch (runs of the recording's ``segment == "static"``
 samples; differences are never taken across two stretches, so orientation changes between
