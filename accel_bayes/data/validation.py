@@ -526,7 +526,8 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
             raise RecordingError(f'segment: expected labels "static" or "dynamic", got {str(seg[i])!r} at time index {i} '
                                  f"({int((~ok).sum())} such samples)")
 
-    if check_gyro_units and has_gyro.any():
+    # An importer's explicit override (csv_import --skip-gyro-unit-check) holds for every later read.
+    if check_gyro_units and has_gyro.any() and (getattr(rec, "attrs", None) or {}).get("gyro_unit_check") != "skipped":
         _raise_on_gyro_units(rec, gyro_units)
 
 
