@@ -307,3 +307,18 @@ def test_kalibr_imu_needs_out_dir(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "--out DIR" in err and not (tmp_path / "x.yaml").exists()
     assert _run(rp, "--positions", pp, "--out", tmp_path / "d") == 2
     assert "expected -o FILE" in capsys.readouterr().err
+
+
+def test_positions_draw_counts_are_ints(tmp_path):
+    """positions.json stored draw counts as floats (1000.0): counts now stay JSON integers."""
+    import json
+
+    doc = positions_document(method="pmmh", reference_imu=0, means=np.zeros((3, 3)), covs=np.zeros((3, 3, 3)),
+                             diagnostics={"seconds": 1.5, "rhat_max": 1.001, "ess_bulk_min": 812.4,
+                                          "draws_per_chain": np.int64(1000), "checks": 2, "num_draws": 1,
+                                          "converged": True})
+    text = write_positions(doc, tmp_path / "p.json").read_text()
+    d = json.loads(text)["diagnostics"]
+    assert '"draws_per_chain": 1000,' in text and type(d["draws_per_chain"]) is int
+    assert type(d["checks"]) is int and type(d["num_draws"]) is int and d["converged"] is True
+    assert type(d["seconds"]) is float and d["ess_bulk_min"] == 812.4
