@@ -727,6 +727,12 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     if not source.exists():
         raise FileNotFoundError(f"{source}: no such CSV file or ASL folder")
     K, ref = len(spec.imus), spec.reference_imu
+    n_acc = sum(s.has_acc for s in spec.imus)
+    if n_acc < 3:
+        # Said here, in the description's terms, rather than by the recording's validation
+        # ("nominal_position: accelerometer triads …"), which names an internal field.
+        raise UserError(f"{spec.path}: [[imu]]: {n_acc} IMU{'s' if n_acc != 1 else ''} with an accelerometer; "
+                        "expected at least 3, not on one line (rigs of two IMUs are not yet supported)")
     if source.is_dir():
         layout = "ASL"
         found = sorted(p.name for p in source.iterdir() if (p / "data.csv").is_file())
