@@ -83,7 +83,7 @@ def main():
               "rests, about 10 tau_c in all) about half the estimates pass, and those that pass lean high (mean",
               "z +0.8): an estimate that comes out large has a smaller relative error and passes more easily.",
               "The exported `*_random_walk_std` is that standard error. The needed time scales with tau_c:",
-              "about 16 tau_c of rest for the EuRoC and MEMS gyro rows, so a sensor whose K is ten times",
+              "16-19 tau_c of rest for the EuRoC and MEMS gyro rows (doubling search), so a sensor whose K is ten times",
               "smaller needs ten times longer; rests of seconds, as calibration recordings have, give none.",
               "", f"({time.time() - t0:.0f} s in all.)", ""]
     (HERE / "allan_criterion.md").write_text("\n".join(lines))

@@ -248,7 +248,7 @@ def random_walks(recording: Recording, rate: float, imus=None, required=None) ->
             why = ("the recording has no rests" if not runs else
                    f"its rests ({sum(b - a for a, b in runs) / rate:.0f} s static, longest "
                    f"{max(b - a for a, b in runs) / rate:.0f} s) do not give it to ±{RELATIVE_SE_MAX:.0%} "
-                   "(an Allan-deviation estimate needs ≳ 10 crossover times √3·N/K of rest, minutes to an hour)")
+                   "(an Allan-deviation estimate needs 10–20 crossover times √3·N/K of rest, minutes to an hour)")
             raise UserError(f"imu[{k}].{kind}_random_walk: IMU {name}'s {_RW_KEYS[kind][0]} is unknown — {why}; "
                             f"expected {kind}_random_walk ({_RW_KEYS[kind][1]}) in its [[imu]] table of the array "
                             "description (or sensor.yaml), given at import; Kalibr and OpenVINS refuse a file "
