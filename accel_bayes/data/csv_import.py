@@ -9,10 +9,14 @@ Two layouts, one array description:
 
   (``w_RS_S`` and ``a_RS_S`` are the angular rate and specific force of the sensor frame S,
   expressed in S: the sensor-frame outputs of §7.1).  A ``sensor.yaml`` beside a ``data.csv``
-  (EuRoC's, with or without its ``%YAML:1.0`` line) is read where present: ``rate_hz``,
-  ``accelerometer_noise_density`` / ``gyroscope_noise_density`` (σ = density·√rate, used where
-  the noise is stated rather than estimated) and the two ``*_random_walk`` values (kept in the
-  recording's attributes for :mod:`accel_bayes.data.export`).
+  (EuRoC's, with or without its ``%YAML:1.0`` line, OpenCV's ``!!opencv-matrix`` tags, fields
+  it does not use ignored) is read where present: ``rate_hz`` (kept as the ``rate_hz``
+  attribute, the stated rate of the export's densities), ``accelerometer_noise_density`` /
+  ``gyroscope_noise_density`` (σ = density·√rate, used where the noise is stated rather than
+  estimated), the two ``*_random_walk`` values (kept in the recording's attributes for
+  :mod:`accel_bayes.data.export`) and ``T_BS``, the IMU's pose in the body frame B, taken as the
+  array frame: the nominal pose where the description gives none, compared with it otherwise
+  (:func:`_apply_t_bs`).  A UTF-8 byte-order mark and CRLF line ends are read as such.
 * **Wide CSV**: one file, a time column and three columns per IMU and sensor.  Columns are named
   by the description's column map, by default ``<label>_acc_x`` … ``<label>_gyro_z`` and
   ``time``.
@@ -46,6 +50,14 @@ What the importer does, and why:
   density·√rate, is used, and a missing one is refused.  ``source`` says which.
 * **Clipping**: a sample is flagged where any axis has |value| ≥ the stated range (per IMU, else
   the array's); no range, no flags.
+* **Gyro units**: the recording's rad/s plausibility check
+  (:func:`accel_bayes.data.validation.gyro_unit_diagnostics`) runs before writing; a failure is
+  refused with its likely causes in an import (identical files, triads without a lever arm,
+  wrong positions, °/s under a rad/s header), and ``check_gyro_units=False``
+  (``--skip-gyro-unit-check``) overrides it, recorded as ``gyro_unit_check = "skipped"`` so that
+  later reads skip it too.
+* Fewer than three IMUs with an accelerometer are refused naming ``[[imu]]`` (two-IMU rigs are
+  not yet supported).
 * Refusals raise :class:`~accel_bayes.errors.UserError` whose message names the file, the line
   and the column, and what was expected.
 """

@@ -406,7 +406,9 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     * an accelerometer value exceeds :data:`ACC_RANGE_FACTOR` × acc_range (or
       :data:`DEFAULT_ACC_BOUND` without acc_range): not a reading, so not flagged as clipped either;
     * ``require_gyro`` and the recording has no gyroscope data;
-    * ``check_gyro_units`` and the gyro values do not look like rad/s (:func:`gyro_unit_diagnostics`).
+    * ``check_gyro_units`` and the gyro values do not look like rad/s (:func:`gyro_unit_diagnostics`);
+      not checked where ``rec.attrs["gyro_unit_check"] == "skipped"`` (an importer's recorded
+      override, ``import-csv --skip-gyro-unit-check``).
 
     ``gyro_units`` is the unit the values were *declared* in before they were converted to rad/s
     ("rad s-1" for in-memory recordings; :func:`read_recording` passes "deg s-1" for a file that
