@@ -116,6 +116,8 @@ def test_euroc_folders_import_and_export_stated_figures(tmp_path, rig, variant, 
     out = capsys.readouterr()
     assert "gyro [0.0024, 0.0024, 0.0024] rad/s" in out.out  # rad/s, as `info` prints it
     assert out.err == ""  # T_BS agrees with the description: no warning
+    assert main(["info", str(tmp_path / "rec.nc")]) == 0
+    assert "gyro noise std:  0.0024 rad/s (all)" in capsys.readouterr().out  # the same unit and figure
     rec = read_recording(tmp_path / "rec.nc")
     np.testing.assert_array_equal(rec.acc, rig.acc)
     np.testing.assert_array_equal(rec.gyro, rig.gyro)
@@ -192,3 +194,17 @@ def test_identical_files_refusal_names_causes_and_override(tmp_path, rig, capsys
     # The check is not silenced for everything: the rig's own (different) files pass it untouched.
     assert _import(tmp_path, write_euroc(rig, tmp_path / "good", T_BS=RIG_T_BS), toml, out="good.nc") == 0
     assert "gyro_unit_check" not in read_recording(tmp_path / "good.nc").attrs
+
+
+def test_mimu_importer_prints_gyro_noise_in_rad_s(tmp_path, capsys):
+    """import-mimu printed the gyro noise in °/s while `info` prints rad/s."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_mimu import _stream
+
+    (tmp_path / "s.bin").write_bytes(_stream(n=40)[0])
+    assert main(["import-mimu", str(tmp_path / "s.bin"), "-o", str(tmp_path / "m.nc")]) == 0
+    line = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("noise std")][0]
+    assert line.endswith("rad/s") and "°/s" not in line
