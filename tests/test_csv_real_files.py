@@ -86,10 +86,10 @@ def write_euroc(rec, folder, variant="euroc", labels=("imu0", "imu1", "imu2"), T
     return folder
 
 
-def write_toml(path, positions=True, extra=""):
+def write_toml(path, positions=True, extra="", topics=False):
     lines = ['reference_imu = "imu0"']
     for k in range(3):
-        lines += ["[[imu]]", f'label = "imu{k}"']
+        lines += ["[[imu]]", f'label = "imu{k}"'] + ([f'rostopic = "/vi_sensor/imu{k}"'] if topics else [])
         if positions:
             lines.append(f"position = {POS[k].tolist()!r}")
         lines.append(extra)
@@ -112,7 +112,7 @@ def test_euroc_folders_import_and_export_stated_figures(tmp_path, rig, variant, 
     "not valid YAML"), reproduces the samples, and the export gives back sensor.yaml's figures:
     densities from rate_hz = 200, not the 200.00256 Hz median stamp rate (old: 0.0019999872)."""
     src = write_euroc(rig, tmp_path / "mav0", variant, T_BS=RIG_T_BS)
-    assert _import(tmp_path, src, write_toml(tmp_path / "array.toml")) == 0
+    assert _import(tmp_path, src, write_toml(tmp_path / "array.toml", topics=variant == "opencv")) == 0
     out = capsys.readouterr()
     assert "gyro [0.0024, 0.0024, 0.0024] rad/s" in out.out  # rad/s, as `info` prints it
     assert out.err == ""  # T_BS agrees with the description: no warning
@@ -132,6 +132,7 @@ def test_euroc_folders_import_and_export_stated_figures(tmp_path, rig, variant, 
                  "--out", str(tmp_path / "kalibr")]) == 0
     d = yaml.safe_load((tmp_path / "kalibr" / "imu1.yaml").read_text())
     assert d["update_rate"] == 200.0
+    assert d["rostopic"] == ("/vi_sensor/imu1" if variant == "opencv" else "/imu1")  # the TOML's, else /imu<j>
     assert d["gyroscope_noise_density"] == pytest.approx(1.6968e-04, rel=1e-14)
     assert d["accelerometer_noise_density"] == pytest.approx(2.0e-3, rel=1e-14)
     assert d["gyroscope_random_walk"] == 1.9393e-05 and d["accelerometer_random_walk"] == 3.0e-3
