@@ -28,6 +28,11 @@ The readers below re-implement, read by read, the code of the tools that load th
   (``print_and_load_state``, "IMU intrinsics"): ``Tw``, ``Ta``, ``R_IMUtoACC``,
   ``R_IMUtoGYRO``, ``Tg`` of ``imu0``, required, and ``model``; only ``imu0`` is read.
   ``cv2.FileStorage`` is the same OpenCV parser.
+
+Line numbers as issue #28 cites them (versions differ; the functions above are what is
+re-implemented): ConfigReader.py:467-472 (random walks read and checked), IccSensors.py:775-777
+(the first IMU is the reference), VioManagerOptions.h:159-162 (only imu0 read),
+opencv_yaml_parse.h:360-365 (a missing required node fails the parse).
 """
 import math
 
