@@ -13,7 +13,7 @@ VioManagerOptions.h).  The file's comments map every ``imu<j>`` to the recording
 Files a consumer would refuse are not written: Kalibr's ConfigReader needs both noise densities
 and both random walks > 0 for every IMU, OpenVINS those of ``imu0`` (a missing node exits).
 Random walks come from the rests (:mod:`accel_bayes.prep.allan`, when the static stretches give
-them to ±25 %), else from the recording (the array description's ``acc_random_walk`` /
+them to ±25 % from a rest of at least 20 crossover times), else from the recording (the array description's ``acc_random_walk`` /
 ``gyro_random_walk`` or sensor.yaml's, stored at import); else the export is refused naming the
 key.  Noise densities use the stated rate (:func:`nominal_rate`).
 
@@ -248,7 +248,7 @@ def random_walks(recording: Recording, rate: float, imus=None, required=None) ->
             why = ("the recording has no rests" if not runs else
                    f"its rests ({sum(b - a for a, b in runs) / rate:.0f} s static, longest "
                    f"{max(b - a for a, b in runs) / rate:.0f} s) do not give it to ±{RELATIVE_SE_MAX:.0%} "
-                   "(an Allan-deviation estimate needs 10–20 crossover times √3·N/K of rest, minutes to an hour)")
+                   "(an Allan-deviation estimate needs one rest of at least 20 crossover times √3·N/K, minutes to an hour)")
             raise UserError(f"imu[{k}].{kind}_random_walk: IMU {name}'s {_RW_KEYS[kind][0]} is unknown — {why}; "
                             f"expected {kind}_random_walk ({_RW_KEYS[kind][1]}) in its [[imu]] table of the array "
                             "description (or sensor.yaml), given at import; Kalibr and OpenVINS refuse a file "

@@ -9,12 +9,12 @@ For a static sensor the Allan variance of cluster means of length τ is
 
 (IEEE Std 952-1997, Annex C).  The white part falls with τ, the random walk grows with it; they
 cross at τ_c = √3 N / K.  K is only seen where τ well above τ_c still leaves several
-independent clusters inside the static stretches: they must be many τ_c long in all.  Measured
-with :func:`static_time_needed` (one stretch, doubling from 60 s): EuRoC's stated ADIS16448
-gyro (N = 1.7e-4 rad/s/√Hz, K = 1.9e-5 rad/s²/√Hz, τ_c ≈ 15 s) needs 240 s; a MEMS gyro with
-N = 5.8e-5 (0.2 °/√h) and K = 2e-6 (τ_c ≈ 50 s) 960 s; every halving of K doubles τ_c, so
-better sensors need of the order of an hour.  Rests of seconds to a minute, as a calibration
-recording has, give no random walk (two stretches of ≈ 10 τ_c in all just pass).
+independent clusters inside one static stretch: it must be many τ_c long (criterion below).
+How long, for a given sensor, :func:`static_time_needed` measures (``experiments/allan_criterion.md``):
+EuRoC's stated ADIS16448 gyro (N = 1.7e-4 rad/s/√Hz, K = 1.9e-5 rad/s²/√Hz, τ_c ≈ 15 s) needs
+minutes; a MEMS gyro with N = 5.8e-5 (0.2 °/√h) and K = 2e-6 (τ_c ≈ 50 s) about a quarter of an
+hour; τ_c grows as 1/K, so better sensors need an hour and more.  Rests of seconds to half a
+minute, as a calibration recording has, give no random walk.
 
 Estimator.  Within every static stretch (runs of the recording's ``segment == "static"``
 samples; differences are never taken across two stretches, so orientation changes between
@@ -27,10 +27,17 @@ standard error of K̂ is a parametric bootstrap: the fit repeated on series simu
 (N̂, K̂) with the recording's stretch lengths (the AVARs at neighbouring τ share data, so the
 WLS standard error alone is ≈ 1.5× too small).
 
-Criterion (:data:`RELATIVE_SE_MAX`).  The estimate is used when its standard error is at most
-25 % of K̂ (50 % of K̂²).  That is the static-time criterion stated in terms the data decide:
-how long the rests must be follows from N, K and the rate, and :func:`static_time_needed`
-gives it; it is checked on simulated series with a known K in ``tests/test_allan.py`` and
+Criterion (:data:`RELATIVE_SE_MAX`, :data:`MIN_STRETCH_TAU_C`).  The estimate is used when its
+standard error is at most 25 % of K̂ (50 % of K̂²) and the longest stretch is at least 20 τ̂_c
+long (τ̂_c = √3 N̂/K̂).  The second condition puts the estimate on cluster lengths where the
+random walk dominates: three clusters of a 20 τ_c stretch are 6.7 τ_c long, where K²τ/3 is 44×
+N²/τ.  Many short rests meet the first condition alone through the small rise of the Allan
+variance near τ_c, where any slow disturbance of a hand-placed rest (residual motion, tilt,
+temperature) reads as a random walk: on MIMU4444 experiment 1 (20 rests, 460 s, the longest
+28 s) the first condition alone accepts apparent random walks of ≈ 1e-3 m/s³/√Hz
+(accelerometers) and 1e-4–2e-4 rad/s²/√Hz (two gyros) with τ̂_c of 2.5–11 s; the second
+refuses them all (at 10 τ̂_c one gyro's would still pass).  The criterion is checked on
+simulated series with a known K in ``tests/test_allan.py`` and
 ``experiments/allan_criterion.md`` (RMS z 1.1–1.25 where the rests are long enough).
 """
 from __future__ import annotations
@@ -40,10 +47,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RELATIVE_SE_MAX", "AllanRandomWalk", "static_runs", "allan_random_walk", "static_time_needed"]
+__all__ = ["RELATIVE_SE_MAX", "MIN_STRETCH_TAU_C", "AllanRandomWalk", "static_runs", "allan_random_walk", "static_time_needed"]
 
 # se(K̂)/K̂ at most this; se(K̂²)/K̂² = 2× it (first order).
 RELATIVE_SE_MAX = 0.25
+# And the longest stretch at least this many crossover times τ̂_c = √3 N̂/K̂ (see the module docstring).
+MIN_STRETCH_TAU_C = 20.0
 
 
 @dataclass
@@ -54,7 +63,7 @@ class AllanRandomWalk:
     k_se : its standard error (first order: se(K̂²) / 2K̂).
     n_density : N̂, units·√s (m s-2/√Hz or rad s-1/√Hz).
     static_s : total static time used, s; longest_s : the longest stretch, s.
-    accepted : k_se ≤ RELATIVE_SE_MAX · k.
+    accepted : k_se ≤ RELATIVE_SE_MAX · k and longest_s ≥ MIN_STRETCH_TAU_C · √3 n_density / k.
     """
 
     k: float
@@ -158,8 +167,9 @@ def allan_random_walk(x, runs, rate: float, *, replicates: int = 30, seed: int =
                                longest_s=float(secs.max()), accepted=False)
     k = math.sqrt(k2)
     wls_se = 3.0 * math.sqrt(max(cov[1, 1], 0.0)) / (2.0 * k)
-    if wls_se > RELATIVE_SE_MAX * k:
-        # The bootstrap se is larger still (≈ 1.5×): refused without spending it.
+    tau_c = math.sqrt(3.0) * n_hat / k
+    if wls_se > RELATIVE_SE_MAX * k or secs.max() < MIN_STRETCH_TAU_C * tau_c:
+        # Refused without the bootstrap (whose se is larger still, ≈ 1.5× the WLS one).
         return AllanRandomWalk(k=k, k_se=wls_se, n_density=n_hat, static_s=float(secs.sum()),
                                longest_s=float(secs.max()), accepted=False)
     rng = np.random.default_rng(seed)
@@ -172,7 +182,7 @@ def allan_random_walk(x, runs, rate: float, *, replicates: int = 30, seed: int =
         boot.append(3.0 * _fit(_simulate(n_hat, k, lengths, rate, rng), sim_runs, rate)[0][1])
     k_se = float(np.std(boot, ddof=1)) / (2.0 * k)  # se(K̂²) → se(K̂), first order
     return AllanRandomWalk(k=k, k_se=k_se, n_density=n_hat, static_s=float(secs.sum()), longest_s=float(secs.max()),
-                           accepted=bool(k_se <= RELATIVE_SE_MAX * k))
+                           accepted=bool(k_se <= RELATIVE_SE_MAX * k and secs.max() >= MIN_STRETCH_TAU_C * tau_c))
 
 
 def static_time_needed(n_density: float, k: float, rate: float, *, seed: int = 0, max_s: float = 4 * 3600.0) -> float:
