@@ -275,7 +275,7 @@ def test_random_walk_from_long_rests(tmp_path):
     rec = Recording(time=np.arange(T) / rate, acc=acc, gyro=gyro, nominal_position=POS[:3] + [[0, 0, 0.001]] * 3,
                     acc_noise_std=np.full(K, N_A * math.sqrt(rate)), gyro_noise_std=np.full(K, N_G * math.sqrt(rate)),
                     segment=np.full(T, "static"), attrs={"rate_hz": rate})
-    rp = write_recording(rec, tmp_path / "rest.nc", validate=False)
+    rp = write_recording(rec, tmp_path / "rest.nc")
     doc = positions_document(method="map", reference_imu=0, means=POS[:3], covs=np.zeros((3, 3, 3)),
                              diagnostics={"seconds": 1.0})
     pp = write_positions(doc, tmp_path / "p.json")
