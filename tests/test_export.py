@@ -28,6 +28,7 @@ YAW90 = [H, 0.0, 0.0, -H]  # DESIGN §7.0 worked example: sensor x along the arr
 FLIP_X = [0.0, 1.0, 0.0, 0.0]  # 180° about x: R = diag(1, −1, −1)
 RATE = 200.0
 SIG_A, SIG_G = 0.02, 0.003
+RW_A, RW_G = 3e-3, 2e-5  # as stated at import (array description), m/s^3/√Hz, rad/s^2/√Hz
 
 
 def _board(tmp_path):
@@ -38,7 +39,8 @@ def _board(tmp_path):
     quat = np.array([YAW90, [1.0, 0.0, 0.0, 0.0], FLIP_X, YAW90])
     rec = Recording(time=np.arange(T) / RATE, acc=rng.normal(0, 1, (T, K, 3)), gyro=rng.normal(0, 0.1, (T, K, 3)),
                     nominal_position=pos, nominal_orientation=quat, acc_noise_std=np.full(K, SIG_A),
-                    gyro_noise_std=np.full(K, SIG_G))
+                    gyro_noise_std=np.full(K, SIG_G),
+                    attrs={"acc_random_walk": [RW_A] * K, "gyro_random_walk": [RW_G] * K})
     path = write_recording(rec, tmp_path / "rec.nc")
     return rec, path
 
@@ -90,10 +92,11 @@ def test_kalibr_chain_hand_written_t_i_b(tmp_path):
     assert e["gyroscope_noise_density"] == pytest.approx(SIG_G / math.sqrt(RATE), rel=1e-12)
     assert e["update_rate"] == pytest.approx(RATE, rel=1e-12) and e["rostopic"] == "/imu1"
     assert e["model"] == "calibrated"
-    # Not estimated / not known: left out, and the file says so.
-    assert "time_offset" not in e and "accelerometer_random_walk" not in e
+    # Random walks as stated at import (no rests in this recording); no time offset estimated.
+    assert e["accelerometer_random_walk"] == RW_A and e["gyroscope_random_walk"] == RW_G
+    assert "time_offset" not in e
     text = out.read_text()
-    assert "# time_offset: not estimated" in text and "random_walk: not known" in text
+    assert "# time_offset: not estimated" in text and "stated (array description" in text
     assert "p_i = T_i_b p_b" in text
     # The output is not replaced without --overwrite.
     assert main(["export", str(rp), "--positions", str(tmp_path / "positions.json"), "-o", str(out)]) == 2

@@ -76,6 +76,8 @@ def inputs(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("inputs")
     sim = simulate(preset("mimu8"), "iid", 60, seed=3, clip=False)
+    K = sim.recording.K  # random walks as an import from a description stores them: export needs them
+    sim.recording.attrs.update({"acc_random_walk": [3e-3] * K, "gyro_random_walk": [2e-5] * K})
     write_recording(sim.recording, d / "rec.nc")
     rel = (sim.true_positions - sim.true_positions[0]).numpy()
     (d / "cal.json").write_text(json.dumps(_positions_doc(rel)))

@@ -7,6 +7,7 @@ the noise from them and writes a format-v1 recording (DESIGN §7.1); see
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from . import _options as opt
@@ -42,6 +43,10 @@ def register(subparsers) -> None:
                    help="rests whose gravity directions agree within this angle are one orientation (default 2)")
     p.add_argument("--min-static-s", type=opt.positive("s"), default=3.0,
                    help="shortest static segment kept, seconds (default 3)")
+    p.add_argument("--skip-gyro-unit-check", action="store_true",
+                   help="import even when the gyro values do not look like rad/s against the accelerometer array "
+                        "(e.g. IMUs without a lever arm between them); recorded in the file, so later commands "
+                        "skip the check too")
     p.set_defaults(func=run)
 
 
@@ -58,10 +63,12 @@ def run(args) -> int:
     from ..data.csv_import import import_csv, write_imported
 
     result = import_csv(src, arr, time_tolerance=args.time_tolerance, noise=args.noise, tol_deg=args.tol_deg,
-                        min_duration_s=args.min_static_s)
+                        min_duration_s=args.min_static_s, check_gyro_units=not args.skip_gyro_unit_check)
     write_imported(result, out, overwrite=args.overwrite)  # validates (DESIGN §7.1) before writing
     target.commit()
     for line in result.lines:
         print(line)
+    for w in result.warnings:
+        print(f"accel-bayes import-csv: warning: {w}", file=sys.stderr)
     print(f"wrote {out}")
     return 0

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..constants import RAD_TO_DEG
 from . import _options as opt
 
 
@@ -55,7 +54,7 @@ def run(args) -> int:
     for line in report.lines():
         print(line)
     print(f"noise std (pooled over static segments): acc {_fmt(rec.acc_noise_std)} m/s², "
-          f"gyro {_fmt(rec.gyro_noise_std * RAD_TO_DEG)} °/s")
+          f"gyro {_fmt(rec.gyro_noise_std)} rad/s")  # rad/s, as `info` prints it
     print(f"wrote {out}")
     return 0
 

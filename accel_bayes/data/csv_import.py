@@ -9,10 +9,14 @@ Two layouts, one array description:
 
   (``w_RS_S`` and ``a_RS_S`` are the angular rate and specific force of the sensor frame S,
   expressed in S: the sensor-frame outputs of §7.1).  A ``sensor.yaml`` beside a ``data.csv``
-  (EuRoC's, with or without its ``%YAML:1.0`` line) is read where present: ``rate_hz``,
-  ``accelerometer_noise_density`` / ``gyroscope_noise_density`` (σ = density·√rate, used where
-  the noise is stated rather than estimated) and the two ``*_random_walk`` values (kept in the
-  recording's attributes for :mod:`accel_bayes.data.export`).
+  (EuRoC's, with or without its ``%YAML:1.0`` line, OpenCV's ``!!opencv-matrix`` tags, fields
+  it does not use ignored) is read where present: ``rate_hz`` (kept as the ``rate_hz``
+  attribute, the stated rate of the export's densities), ``accelerometer_noise_density`` /
+  ``gyroscope_noise_density`` (σ = density·√rate, used where the noise is stated rather than
+  estimated), the two ``*_random_walk`` values (kept in the recording's attributes for
+  :mod:`accel_bayes.data.export`) and ``T_BS``, the IMU's pose in the body frame B, taken as the
+  array frame: the nominal pose where the description gives none, compared with it otherwise
+  (:func:`_apply_t_bs`).  A UTF-8 byte-order mark and CRLF line ends are read as such.
 * **Wide CSV**: one file, a time column and three columns per IMU and sensor.  Columns are named
   by the description's column map, by default ``<label>_acc_x`` … ``<label>_gyro_z`` and
   ``time``.
@@ -46,11 +50,20 @@ What the importer does, and why:
   density·√rate, is used, and a missing one is refused.  ``source`` says which.
 * **Clipping**: a sample is flagged where any axis has |value| ≥ the stated range (per IMU, else
   the array's); no range, no flags.
+* **Gyro units**: the recording's rad/s plausibility check
+  (:func:`accel_bayes.data.validation.gyro_unit_diagnostics`) runs before writing; a failure is
+  refused with its likely causes in an import (identical files, triads without a lever arm,
+  wrong positions, °/s under a rad/s header), and ``check_gyro_units=False``
+  (``--skip-gyro-unit-check``) overrides it, recorded as ``gyro_unit_check = "skipped"`` so that
+  later reads skip it too.
+* Fewer than three IMUs with an accelerometer are refused naming ``[[imu]]`` (two-IMU rigs are
+  not yet supported).
 * Refusals raise :class:`~accel_bayes.errors.UserError` whose message names the file, the line
   and the column, and what was expected.
 """
 from __future__ import annotations
 
+import copy
 import csv
 import math
 import re
@@ -62,7 +75,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..constants import DEG_TO_RAD, G0, RAD_TO_DEG
+from ..constants import DEG_TO_RAD, G0
 from ..errors import UserError
 from ..physics.geometry import matrix_to_quat
 from .outputs import to_jsonable
@@ -124,6 +137,9 @@ class ImuSpec:
     acc_random_walk: float = math.nan  # m s-3 / √Hz
     gyro_random_walk: float = math.nan  # rad s-2 / √Hz
     columns: dict = field(default_factory=dict)  # wide layout: {"time": name, "acc": [x, y, z], "gyro": [...]}
+    rostopic: str = ""  # for the Kalibr export; "" = /imu<j>
+    position_given: bool = True  # False: from sensor.yaml's T_BS (ASL layout) or refused
+    orientation_given: bool = True  # False: from sensor.yaml's T_BS where present, else identity
 
 
 @dataclass
@@ -182,7 +198,7 @@ def _orientation(e: dict, where: str) -> np.ndarray:
 
 
 _IMU_KEYS = {"label", "position", "orientation", "orientation_matrix", "sensors", "acc_noise_std",
-             "gyro_noise_std", "acc_range", "gyro_range", "acc_random_walk", "gyro_random_walk", "columns"}
+             "gyro_noise_std", "acc_range", "gyro_range", "acc_random_walk", "gyro_random_walk", "columns", "rostopic"}
 _TOP_KEYS = {"description", "reference_imu", "acc_range", "gyro_range", "csv", "imu"}
 
 
@@ -201,8 +217,10 @@ def read_array_description(path) -> ArraySpec:
 
         [[imu]]                                # one per IMU; file order = labels 0..K-1
         label = "imu0"                         # ASL folder name / wide column prefix
-        position = [0.0, 0.0, 0.0]             # m, array frame
-        orientation = [1.0, 0.0, 0.0, 0.0]     # (w, x, y, z), v_sensor = R(q) v_array (§7.0)
+        position = [0.0, 0.0, 0.0]             # m, array frame (ASL: may be left out when the
+                                               #   IMU's sensor.yaml has T_BS, array frame = B)
+        orientation = [1.0, 0.0, 0.0, 0.0]     # (w, x, y, z), v_sensor = R(q) v_array (§7.0);
+                                               #   default T_BS's, else identity
         # orientation_matrix = [[1,0,0],[0,1,0],[0,0,1]]   # or R itself
         sensors = ["acc", "gyro"]              # default both
         acc_noise_std = 0.01                   # optional, m s-2 (white noise std per axis)
@@ -212,6 +230,7 @@ def read_array_description(path) -> ArraySpec:
         acc_random_walk = 3e-3                 # optional, m s-3/√Hz (kept for export)
         gyro_random_walk = 2e-5                # optional, rad s-2/√Hz
         columns = {time = "t", acc = ["ax", "ay", "az"], gyro = ["gx", "gy", "gz"]}  # wide layout
+        rostopic = "/imu0"                     # optional: the topic written by the Kalibr export
 
     Raises :class:`UserError` naming the file and key (``array.toml: imu[2].position: …``).
     """
@@ -249,13 +268,19 @@ def _parse_description(doc: dict, path: Path) -> ArraySpec:
         if label in seen:
             raise UserError(f"{w}.label: {label!r} is used twice; expected one entry per IMU")
         seen.add(label)
-        if "position" not in e:
-            raise UserError(f"{w}.position: missing; expected [x, y, z] in m (array frame)")
         sensors = e.get("sensors", ["acc", "gyro"])
         if not isinstance(sensors, list) or not sensors or any(s not in SENSORS for s in sensors):
             raise UserError(f"{w}.sensors: expected a non-empty list of 'acc', 'gyro', got {sensors!r}")
-        spec = ImuSpec(label=label, position=_vec(e["position"], 3, f"{w}.position", "[x, y, z] in m (array frame)"),
-                       orientation=_orientation(e, w), has_acc="acc" in sensors, has_gyro="gyro" in sensors)
+        # A missing position is refused at import unless the IMU's sensor.yaml has T_BS (_apply_t_bs).
+        pos = (_vec(e["position"], 3, f"{w}.position", "[x, y, z] in m (array frame)") if "position" in e
+               else np.full(3, np.nan))
+        spec = ImuSpec(label=label, position=pos, orientation=_orientation(e, w), has_acc="acc" in sensors,
+                       has_gyro="gyro" in sensors, position_given="position" in e,
+                       orientation_given="orientation" in e or "orientation_matrix" in e)
+        if "rostopic" in e:
+            if not isinstance(e["rostopic"], str) or not e["rostopic"].strip():
+                raise UserError(f"{w}.rostopic: expected a topic name such as '/imu0', got {e['rostopic']!r}")
+            spec.rostopic = e["rostopic"]
         for key, unit in (("acc_noise_std", "m s-2"), ("gyro_noise_std", "rad s-1"), ("acc_range", "m s-2"),
                           ("gyro_range", "rad s-1"), ("acc_random_walk", "m s-3 Hz^-1/2"),
                           ("gyro_random_walk", "rad s-2 Hz^-1/2")):
@@ -314,7 +339,9 @@ class _Table:
 
     def __init__(self, path: Path):
         self.path = path
-        with open(path, newline="", encoding="utf-8") as f:
+        # utf-8-sig: a byte-order mark (Windows editors) is not part of the first column's name;
+        # newline="" lets csv take CRLF line ends as ends, not as data.
+        with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
             try:
                 header = next(reader)
@@ -445,18 +472,59 @@ def _triad(table: _Table, names, kind: str, declared: str | None) -> np.ndarray:
     return np.stack([table.floats(c) for c in cols], -1) * _FACTORS[kind][units[0]]
 
 
+def _yaml_loader():
+    """PyYAML's safe loader that also reads OpenCV's ``!!opencv-matrix`` (rows, cols, data → an
+    array) and skips any other unknown tag (None): fields this importer does not use must not
+    fail the import."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    def opencv_matrix(loader, node):
+        m = loader.construct_mapping(node, deep=True)
+        try:
+            return np.asarray(m["data"], dtype=np.float64).reshape(int(m["rows"]), int(m["cols"]))
+        except (KeyError, TypeError, ValueError):
+            return None  # malformed: treated as absent, and refused only if it is a field we use
+
+    Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", opencv_matrix)
+    Loader.add_multi_constructor("", lambda loader, suffix, node: None)
+    return Loader
+
+
+def _t_bs(v, path: Path) -> np.ndarray:
+    """sensor.yaml's ``T_BS`` (EuRoC: {cols, rows, data}; OpenCV: !!opencv-matrix) as a checked 4×4."""
+    if isinstance(v, dict):
+        try:
+            v = np.asarray(v["data"], dtype=np.float64).reshape(int(v["rows"]), int(v["cols"]))
+        except (KeyError, TypeError, ValueError):
+            v = None
+    T = None if v is None else np.asarray(v, dtype=np.float64)
+    what = "a 4x4 rigid transform (rows, cols, data) with a rotation block and last row [0, 0, 0, 1]"
+    if T is None or T.shape != (4, 4) or not np.isfinite(T).all():
+        raise UserError(f"{path}: T_BS: expected {what}")
+    R = T[:3, :3]
+    if (np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0
+            or np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-12):
+        raise UserError(f"{path}: T_BS: expected {what} (R Rᵀ = I within 1e-6)")
+    return T
+
+
 def read_sensor_yaml(path) -> dict:
     """The fields of an ASL/EuRoC ``sensor.yaml`` this importer uses, in SI units: ``rate_hz``,
     ``accelerometer_noise_density`` (m s-2/√Hz), ``gyroscope_noise_density`` (rad s-1/√Hz),
-    ``accelerometer_random_walk``, ``gyroscope_random_walk`` — those present.  EuRoC's OpenCV
-    ``%YAML:1.0`` first line is accepted."""
+    ``accelerometer_random_walk``, ``gyroscope_random_walk`` and ``T_BS`` (4×4: p_B = T_BS p_S,
+    the sensor's pose in the body frame) — those present.  OpenCV's ``%YAML:1.0`` first line, a
+    byte-order mark, CRLF line ends, ``!!opencv-matrix`` tags and fields it does not use are
+    accepted."""
     import yaml
 
     path = Path(path)
-    text = path.read_text(encoding="utf-8")
+    text = path.read_text(encoding="utf-8-sig")
     text = re.sub(r"\A%YAML:1\.0[^\n]*\n", "", text)  # OpenCV's header, which PyYAML does not read
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=_yaml_loader())
     except yaml.YAMLError as exc:
         raise UserError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(doc, dict):
@@ -472,7 +540,65 @@ def read_sensor_yaml(path) -> dict:
                 except ValueError:
                     pass
             out[key] = _num(v, f"{path}: {key}", "a positive number", positive=True)
+    if "T_BS" in doc:
+        out["T_BS"] = _t_bs(doc["T_BS"], path)
     return out
+
+
+# A sensor.yaml T_BS and a description's pose further apart than this give a warning.
+T_BS_TOLERANCE_M, T_BS_TOLERANCE_DEG = 1e-3, 0.5
+
+
+def _apply_t_bs(spec: ArraySpec, streams) -> list[str]:
+    """Nominal poses from sensor.yaml's T_BS where the description has none (array frame = B:
+    position = T_BS translation, R(q) = R_BSᵀ since v_S = R_BSᵀ v_B); where it has one, compare
+    and return a one-line warning per IMU beyond :data:`T_BS_TOLERANCE_M` / ``_DEG`` (the
+    description wins: it is what was written for this rig).  Refuses a missing position that
+    no T_BS supplies."""
+    warnings = []
+    for i, (s, st) in enumerate(zip(spec.imus, streams)):
+        T = st.sensor_yaml.get("T_BS")
+        if T is None:
+            if not s.position_given:
+                raise UserError(f"{spec.path}: imu[{i}].position: missing, and IMU {s.label!r} has no sensor.yaml "
+                                "with T_BS; expected [x, y, z] in m (array frame)")
+            continue
+        q_bs = matrix_to_quat(torch.as_tensor(T[:3, :3].T.copy(), dtype=torch.float64)).numpy()
+        if not s.position_given:
+            s.position = T[:3, 3].copy()
+        if not s.orientation_given:
+            s.orientation = q_bs
+        dp = float(np.linalg.norm(s.position - T[:3, 3]))
+        dang = math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(s.orientation, q_bs))))))
+        if dp > T_BS_TOLERANCE_M or dang > T_BS_TOLERANCE_DEG:
+            warnings.append(f"imu[{i}] ({s.label!r}): {st.file.parent / 'sensor.yaml'} T_BS differs from the array "
+                            f"description by {dp * 1e3:.3g} mm and {dang:.3g}° (tolerance {T_BS_TOLERANCE_M * 1e3:g} mm, "
+                            f"{T_BS_TOLERANCE_DEG:g}°); the description's pose is used")
+    return warnings
+
+
+def _gyro_unit_refusal(flag: str, acc, gyro, spec: ArraySpec) -> str:
+    """The gyro-unit check's refusal, with the likely causes of a failed check in an import."""
+    K = len(spec.imus)
+    causes = []
+    same = [(a, b) for a in range(K) for b in range(a + 1, K)
+            if np.array_equal(acc[:, a], acc[:, b], equal_nan=True)
+            and (gyro is None or np.array_equal(gyro[:, a], gyro[:, b], equal_nan=True))]
+    if same:
+        a, b = same[0]
+        causes.append(f"IMUs {spec.labels[a]!r} and {spec.labels[b]!r} have identical samples (the same data "
+                      "file twice? identical files have no lever arm between them)")
+    pos = np.stack([s.position for s in spec.imus if s.has_acc])
+    spread = float(np.linalg.norm(pos - pos.mean(0), axis=1).max()) if len(pos) else 0.0
+    if spread < 5e-3:
+        causes.append(f"the triads lie within {spread * 1e3:.2g} mm of their centre (too small a lever arm to "
+                      "check the gyro against)")
+    causes.append("a lever arm in the description that the data do not have (IMUs on different bodies, wrong "
+                  "positions)")
+    causes.append("gyro columns in °/s under a [rad s^-1] header (then declare [deg s^-1])")
+    evidence = flag.split(";")[0]  # the measured evidence, without advice about file attributes
+    return (f"{evidence}; likely causes: {'; '.join(causes)}; if the gyro values are rad/s, import with "
+            "--skip-gyro-unit-check")
 
 
 def read_asl_imu(folder, spec: ImuSpec, units: dict | None = None) -> ImuStream:
@@ -583,6 +709,7 @@ class CsvImport:
 
     recording: Recording
     lines: list
+    warnings: list = field(default_factory=list)  # one line each (the CLI prints them on stderr)
 
     @property
     def imu_time_offset(self) -> np.ndarray | None:
@@ -591,7 +718,7 @@ class CsvImport:
 
 
 def import_csv(source, array, *, time_tolerance: float | None = None, noise: str = "rests",
-               tol_deg: float = 2.0, **static_kwargs) -> CsvImport:
+               tol_deg: float = 2.0, check_gyro_units: bool = True, **static_kwargs) -> CsvImport:
     """Import a CSV recording of an IMU array (module docstring).
 
     source : a folder (ASL layout, one sub-folder per IMU label) or a wide CSV file.
@@ -601,14 +728,25 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     noise : "rests" (estimated from the rests where found, stated otherwise) or "stated" (no
         rest detection, the description's / sensor.yaml's noise).
     tol_deg, static_kwargs : rest detection, as :func:`accel_bayes.data.mimu.import_mimu`.
+    check_gyro_units : the rad/s plausibility check
+        (:func:`accel_bayes.data.validation.gyro_unit_diagnostics`); a failure is refused naming
+        its likely causes.  False skips it here and, through the recording's
+        ``gyro_unit_check = "skipped"`` attribute, in every later read.
     """
     if noise not in ("rests", "stated"):
         raise UserError(f"noise: expected 'rests' or 'stated', got {noise!r}")
-    spec = array if isinstance(array, ArraySpec) else read_array_description(array)
+    # A copy: poses filled in from sensor.yaml must not leak into the caller's description.
+    spec = copy.deepcopy(array) if isinstance(array, ArraySpec) else read_array_description(array)
     source = Path(source)
     if not source.exists():
         raise FileNotFoundError(f"{source}: no such CSV file or ASL folder")
     K, ref = len(spec.imus), spec.reference_imu
+    n_acc = sum(s.has_acc for s in spec.imus)
+    if n_acc < 3:
+        # Said here, in the description's terms, rather than by the recording's validation
+        # ("nominal_position: accelerometer triads …"), which names an internal field.
+        raise UserError(f"{spec.path}: [[imu]]: {n_acc} IMU{'s' if n_acc != 1 else ''} with an accelerometer; "
+                        "expected at least 3, not on one line (rigs of two IMUs are not yet supported)")
     if source.is_dir():
         layout = "ASL"
         found = sorted(p.name for p in source.iterdir() if (p / "data.csv").is_file())
@@ -620,6 +758,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     else:
         layout = "wide CSV"
         streams = read_wide_csv(source, spec)
+    warns = _apply_t_bs(spec, streams)
 
     ref_period = np.median(np.diff(streams[ref].stamps_ns)) if streams[ref].stamps_ns.size > 1 else 0
     if time_tolerance is None:
@@ -707,6 +846,22 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         noise_phrase += f", from {' and '.join(srcs)}" if srcs else ""
 
     attrs = {"importer": "accel_bayes.data.csv_import", "imu_labels": spec.labels}
+    if any(s.rostopic for s in spec.imus):
+        attrs["imu_rostopics"] = [s.rostopic for s in spec.imus]
+    rate_hz = streams[ref].sensor_yaml.get("rate_hz")
+    if rate_hz is not None:
+        attrs["rate_hz"] = float(rate_hz)  # the stated rate, for densities in the export
+    if any_gyro and check_gyro_units:
+        from .validation import gyro_unit_diagnostics
+
+        probe = Recording(time=time, acc=acc, gyro=gyro, nominal_position=np.stack([s.position for s in spec.imus]),
+                          nominal_orientation=quat, acc_noise_std=final["acc"], gyro_noise_std=final["gyro"],
+                          acc_clipped=acc_clipped, gyro_clipped=gyro_clipped, segment=segment)
+        d = gyro_unit_diagnostics(probe)
+        if d["flag"]:
+            raise UserError(_gyro_unit_refusal(d["flag"], acc, gyro, spec))
+    elif any_gyro:
+        attrs["gyro_unit_check"] = "skipped"  # --skip-gyro-unit-check: later reads skip it too
     for kind, yk in (("acc", "accelerometer_random_walk"), ("gyro", "gyroscope_random_walk")):
         rw = [getattr(s, f"{kind}_random_walk") if math.isfinite(getattr(s, f"{kind}_random_walk"))
               else st_.sensor_yaml.get(yk) for s, st_ in zip(spec.imus, streams)]
@@ -738,13 +893,15 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         head.append(f"IMU {r['label']}: {r['samples']} samples read, {r['used']} used, worst stamp mismatch "
                     f"{r['worst_ns'] / 1e6:.6g} ms, median offset {r['median_ns'] / 1e6:.6g} ms")
     lines = head + lines
-    lines.append(f"noise std: acc {_fmt(final['acc'])} m/s², gyro {_fmt(final['gyro'] * RAD_TO_DEG)} °/s "
-                 f"({noise_phrase})")
+    lines.append(f"noise std: acc {_fmt(final['acc'])} m/s², gyro {_fmt(final['gyro'])} rad/s "
+                 f"({noise_phrase})")  # rad/s, as `info` prints it
     for kind, m in (("acc", acc_clipped), ("gyro", gyro_clipped)):
         lines.append(f"{kind} clipped: {100 * float(m.mean()):.3g} % of samples" if m is not None
                      else f"{kind} clipped: no range stated, not flagged")
     lines.extend(mark_lines)
-    return CsvImport(rec, lines)
+    if not check_gyro_units and any_gyro:
+        lines.append("gyro unit check: skipped (--skip-gyro-unit-check), recorded as gyro_unit_check = skipped")
+    return CsvImport(rec, lines, warns)
 
 
 def _imu_folder(source: Path, label: str) -> Path:

@@ -67,9 +67,10 @@ def positions_document(
         "method": method,
         "reference_imu": int(reference_imu),
         "imus": imus,
-        "diagnostics": {k: (to_jsonable(float(v), nonfinite="null")
-                            if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
-                            else v) for k, v in diagnostics.items()},  # flags such as ``converged`` stay bools
+        # Counts (draws_per_chain, checks, num_draws) stay ints, flags such as ``converged`` bools.
+        "diagnostics": {k: (int(v) if isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+                            else to_jsonable(float(v), nonfinite="null") if isinstance(v, (float, np.floating))
+                            else v) for k, v in diagnostics.items()},
         "provenance": provenance or {},
     }
 

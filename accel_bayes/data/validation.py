@@ -440,6 +440,8 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
       :data:`DEFAULT_ACC_BOUND` without acc_range): not a reading, so not flagged as clipped either;
     * ``require_gyro`` and the recording has no gyroscope data;
     * ``check_gyro_units`` and the gyro values do not look like rad/s (:func:`gyro_unit_diagnostics`);
+      not checked where ``rec.attrs["gyro_unit_check"] == "skipped"`` (an importer's recorded
+      override, ``import-csv --skip-gyro-unit-check``);
     * ``check_acc_units`` and |acc| at rest is far from g, as accelerometer data in g, or in m/s²
       converted once more, would be (:func:`acc_unit_diagnostics`).
 
@@ -572,7 +574,8 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
             raise RecordingError(f'segment: expected labels "static" or "dynamic", got {str(seg[i])!r} at time index {i} '
                                  f"({int((~ok).sum())} such samples)")
 
-    if check_gyro_units and has_gyro.any():
+    # An importer's explicit override (csv_import --skip-gyro-unit-check) holds for every later read.
+    if check_gyro_units and has_gyro.any() and (getattr(rec, "attrs", None) or {}).get("gyro_unit_check") != "skipped":
         _raise_on_gyro_units(rec, gyro_units)
     _check_gyro_bound(rec, time)  # after the unit check: data in the other unit get its message
     if check_acc_units:
