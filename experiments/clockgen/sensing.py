@@ -69,9 +69,9 @@ class Clock:
 class DLPF:
     """Datasheet digital low-pass run on the internal samples at the nominal internal rate.
 
-    Choice: a 2nd-order Butterworth IIR (bilinear, −3 dB at the datasheet bandwidth) in cascade
-    with a 2-tap fractional-delay FIR (plus whole-sample delays) that brings the DC group delay to
-    the datasheet delay exactly.  A 2-pole filter alone cannot have both: with 94 Hz bandwidth its
+    Choice: a 2nd-order Butterworth IIR (bilinear) in cascade with a 2-tap fractional-delay FIR
+    (plus whole-sample delays) that brings the DC group delay to the datasheet delay exactly; the
+    Butterworth's corner is set so that the cascade is −3 dB at the datasheet bandwidth.  A 2-pole filter alone cannot have both: with 94 Hz bandwidth its
     delay is ≈ 2.4 ms, and a 2-pole with a 3.0 ms delay has at most ≈ 75 Hz bandwidth.  The delay
     is in internal samples, so an IMU whose clock runs fast by ε delays by delay/(1+ε) in seconds.
     ``bandwidth=None`` is no filter (pass-through, zero delay).
@@ -83,14 +83,26 @@ class DLPF:
             self.b, self.a = np.array([1.0]), np.array([1.0])
             self.delay = 0.0
             return
-        b, a = signal.butter(2, bandwidth, fs=f_int)
-        extra = self.delay * f_int - self.dc_delay_samples(b, a)
+        # the 2-tap FIR droops a little at high frequency: the Butterworth's corner is solved so
+        # that the cascade's −3 dB point is the datasheet bandwidth
+        from scipy.optimize import brentq
+        fc = brentq(lambda fc: abs(self._design(fc)[2]) - 2**-0.5, bandwidth, min(1.3 * bandwidth, 0.49 * f_int),
+                    xtol=1e-9)
+        self.b, self.a, _ = self._design(fc)
+        self.corner = fc
+
+    def _design(self, fc):
+        """(b, a, response at the bandwidth) of Butterworth(fc) · fractional delay to ``self.delay``."""
+        b, a = signal.butter(2, fc, fs=self.f_int)
+        extra = self.delay * self.f_int - self.dc_delay_samples(b, a)
         if extra < 0:
-            raise ValueError(f"delay: {delay} s is below the Butterworth's own {self.dc_delay_samples(b, a) / f_int} s")
+            raise ValueError(f"delay: {self.delay} s is below the Butterworth's own "
+                             f"{self.dc_delay_samples(b, a) / self.f_int} s")
         n0, alpha = int(np.floor(extra)), extra - np.floor(extra)
         fir = np.zeros(n0 + 2)
         fir[n0], fir[n0 + 1] = 1 - alpha, alpha
-        self.b, self.a = np.convolve(b, fir), a
+        b = np.convolve(b, fir)
+        return b, a, signal.freqz(b, a, worN=[self.bandwidth], fs=self.f_int)[1][0]
 
     @staticmethod
     def dc_delay_samples(b, a):
@@ -113,6 +125,7 @@ class DLPF:
 
     def params(self):
         return {"type": "butterworth2+fractional_delay" if self.bandwidth else "none",
+                "butterworth_corner_hz": getattr(self, "corner", None),
                 "bandwidth_hz": self.bandwidth, "delay_s_nominal": self.delay, "f_int_nominal": self.f_int,
                 "b": self.b.tolist(), "a": self.a.tolist()}
 
