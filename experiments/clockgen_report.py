@@ -165,7 +165,7 @@ def main():
     L.append("# clockgen — an independent generator of clocked IMU arrays and rigs\n")
     L.append("Regenerate: `PYTHONPATH=. python3 experiments/clockgen_report.py` "
              f"({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
-             f"{platform.system()}, {time.perf_counter() - t_start:.0f} s). Tests: `tests/test_clockgen.py`.\n")
+             f"{platform.system()}, 2-core shared CPU, {time.perf_counter() - t_start:.0f} s). Tests: `tests/test_clockgen.py`.\n")
     L.append(DESCRIPTION)
     L.append("## Validation (measured by this script)\n")
     L.append("**Exact kinematics** (5 motions, 20 s, every moving instant of 2000 drawn; central "
@@ -241,8 +241,8 @@ write the recording; written without `accel_bayes.physics` / `accel_bayes.simula
 - **Clock** (`sensing.Clock`). Count θ(t) = c + f_int·(t(1+ε) + a·P/2π·(cos ψ − cos(2πt/P + ψ))),
   f_int = 1 kHz, ticks where θ is an integer (Newton, 1e-13 s). acc and gyro share every tick.
 - **Filter** (`sensing.DLPF`), run on the internal samples: MPU-6050/9150 DLPF setting 2 (acc 94 Hz /
-  3.0 ms, gyro 98 Hz / 2.8 ms). Choice: 2nd-order Butterworth (bilinear, −3 dB at the datasheet
-  bandwidth) in cascade with a 2-tap fractional-delay FIR so the DC group delay equals the
+  3.0 ms, gyro 98 Hz / 2.8 ms). Choice: 2nd-order Butterworth (bilinear; corner below)
+  in cascade with a 2-tap fractional-delay FIR so the DC group delay equals the
   datasheet delay exactly. A 2-pole filter alone cannot: at 94 Hz its delay is ≈ 2.4 ms, and a
   2-pole with 3.0 ms delay reaches at most ≈ 75 Hz. The Butterworth corner is solved so that the
   cascade is −3 dB at the datasheet bandwidth (the FIR droops slightly). Optional extra acc − gyro delay.

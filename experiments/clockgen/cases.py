@@ -104,7 +104,7 @@ def _linear_errors(rng, K, gyro_linear, clean):
 
 def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_linear=None,
               filtered=True, noise=True, quantised=True, vibration=True, errors=True, drift=None,
-              read_jitter=None, n_imu=None):
+              read_jitter=None, n_imu=None, rot_axes=(0, 1, 2)):
     """A seeded blind-test case: returns (Recording, truth dict).
 
     ``clock`` / ``twin`` / ``clean`` on ``board_name`` (default: by seed among 'mimu4444',
@@ -117,11 +117,13 @@ def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_l
     white noise acc 0.02–0.06 m/s², gyro 0.2–0.6 °/s at the register; int16 at ±16 g / ±2000 °/s.
     ``filtered``, ``noise``, ``quantised``, ``vibration``, ``errors`` (all linear errors) switch
     pieces off for validation; ``drift`` / ``read_jitter`` force the clock drift and the read
-    jitter on or off (None: by seed).  The exact motion is :func:`motion_of` (truth).
+    jitter on or off (None: by seed).  ``rot_axes`` (rigs): the array axes the rig rotates
+    about — (2,) gives an under-excited rig (rotation about z only).  The exact motion is :func:`motion_of` (truth).
     """
     if kind == "rig":
         from .rig import draw_rig
-        return draw_rig(seed, duration=duration, n_imu=n_imu, noise=noise, quantised=quantised)
+        return draw_rig(seed, duration=duration, n_imu=n_imu, noise=noise, quantised=quantised,
+                        rot_axes=rot_axes)
     if kind not in ("clock", "twin", "clean"):
         raise ValueError(f"kind: {kind!r} is not one of 'clock', 'twin', 'clean', 'rig'")
     rng = np.random.default_rng([seed, 27])
@@ -206,7 +208,8 @@ def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_l
 def motion_of(truth):
     """The exact :class:`~.motion.Motion` of a case from its truth (seed, duration, vibration)."""
     vib = bool(truth.get("vibration", True))
-    return draw_motion(np.random.default_rng([truth["seed"], 1]), truth["duration"], vibration=vib, impacts=vib)
+    return draw_motion(np.random.default_rng([truth["seed"], 1]), truth["duration"], vibration=vib, impacts=vib,
+                       rot_axes=tuple(truth.get("rot_axes", (0, 1, 2))))
 
 
 def write_case(rec, truth, path):

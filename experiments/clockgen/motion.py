@@ -197,11 +197,18 @@ class Motion:
         return e == 0.0
 
 
-def draw_motion(rng, duration, *, vibration=True, impacts=True, n_comp=6):
+def _masked(s, mask):
+    s.amp = s.amp * mask[:, None]
+    return s
+
+
+def draw_motion(rng, duration, *, vibration=True, impacts=True, n_comp=6, rot_axes=(0, 1, 2)):
     """A random hand-held session of ``duration`` s: first rest 2–3 s, then moves of 3–6 s
     separated by rests of 1.5–3 s (0.4 s ramps), hand motion 0.1–7 Hz, vibration 30–95 Hz
     (translational 0.3–2 m/s², rotational 0.05–0.3 rad/s amplitude), 1–3 impacts per move
-    (peak 3–15 m/s² and 1–5 rad/s at 40–90 Hz, decay 5–20 ms). Returns :class:`Motion`."""
+    (peak 3–15 m/s² and 1–5 rad/s at 40–90 Hz, decay 5–20 ms).  ``rot_axes``: the array axes the
+    board rotates about (e.g. (2,) for an under-excited rig: rotation about z only, since φ then
+    stays on that axis).  Returns :class:`Motion`."""
     rest_ends, move_ends, t = [], [], rng.uniform(2.0, 3.0)
     while t + 3.0 + 1.5 < duration:
         rest_ends.append(t)
@@ -238,7 +245,12 @@ def draw_motion(rng, duration, *, vibration=True, impacts=True, n_comp=6):
         d = rng.normal(size=(n, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         rot_imp = Bursts(on, d * (rng.uniform(1, 5, n) / w)[:, None], tauv, f)
-    return Motion(e, tau, hand(0.3, 1.5, 0.6, False), hand(0.3, 2.0, 0.25, True),
-                  rng.uniform(-1.2, 1.2, 3),
-                  vib(0.05, 0.3, False) if vibration else None, vib(0.3, 2.0, True) if vibration else None,
+    mask = np.isin(np.arange(3), rot_axes).astype(float)
+    rot_hand = hand(0.3, 1.5, 0.6, False)
+    rot_hand.amp = rot_hand.amp * mask[:, None]
+    if rot_imp is not None:
+        rot_imp.amp = rot_imp.amp * mask
+    return Motion(e, tau, rot_hand, hand(0.3, 2.0, 0.25, True), rng.uniform(-1.2, 1.2, 3) * mask,
+                  _masked(vib(0.05, 0.3, False), mask) if vibration else None,
+                  vib(0.3, 2.0, True) if vibration else None,
                   rot_imp, pos_imp, duration)

@@ -25,13 +25,14 @@ def _random_rotation(rng):
 
 
 def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jitter=True, bias_walk=True,
-             vibration=False):
+             vibration=False, rot_axes=(0, 1, 2)):
     """A seeded rig case → (Recording, truth).  Ranges: K ∈ {2, 3, 4}; rates from 100, 125, 200,
     250, 400 Hz (at least two distinct); o_k ~ U(±10 ms), d_k ~ U(±100 ppm); lever arms 1–20 cm in
     random directions; random orientations; nominal orientation given on half the IMUs, 1–5° off,
     else identity (missing); nominal positions off by N(0, 2 mm); stamp jitter N(0, 20–100 µs);
     acc/gyro white noise 0.02–0.06 m/s², 0.2–0.6 °/s; bias random walks 1e-4 m/s²/√s and
-    1e-5 rad/s/√s (effects the rig model lacks)."""
+    1e-5 rad/s/√s (effects the rig model lacks).  ``rot_axes=(2,)``: an under-excited rig that
+    rotates about the array (reference sensor) z axis only."""
     from .cases import ACC_RANGE, GYRO_RANGE, RIG_RATES, matrix_to_quat
     rng = np.random.default_rng([seed, 28])
     K = int(n_imu or rng.integers(2, 5))
@@ -57,7 +58,7 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
     nom_pos = pos + np.r_[[np.zeros(3)], rng.normal(0, 0.002, (K - 1, 3))]
     sj = rng.uniform(20e-6, 100e-6, K) * jitter
     from .cases import motion_of
-    motion = motion_of({"seed": seed, "duration": duration, "vibration": vibration})
+    motion = motion_of({"seed": seed, "duration": duration, "vibration": vibration, "rot_axes": rot_axes})
     t0 = 0.0
     stamps, true_t, acc, gyro, clip_a, clip_g, errs = [], [], [], [], [], [], []
     for k in range(K):
@@ -90,7 +91,7 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
                     gyro_range=GYRO_RANGE, description=f"clockgen rig, seed {seed}",
                     source="experiments/clockgen (independent first-principles generator)")
     truth = {"generator": "experiments/clockgen", "kind": "rig", "seed": int(seed), "n_imu": K,
-             "duration": duration, "vibration": vibration,
+             "duration": duration, "vibration": vibration, "rot_axes": list(rot_axes),
              "rate": rates.tolist(), "t0": t0, "time_offset": o, "clock_drift": d,
              "convention": "s - t0 = (t - t0 - o_k)(1 + d_k) (DESIGN 7.3)",
              "stamp_jitter_std": sj, "stamps": stamps, "true_time": true_t,
