@@ -1,0 +1,1 @@
+"""Experiment scripts and validation generators (importable as ``experiments.*`` from the repo root)."""
