@@ -433,7 +433,7 @@ def test_cli_selfcal_divergence_exits_3(tmp_path, capsys):
     assert code == 3 and len(err) == 1 and "diverged" in err[0]
     assert not (out / "positions.json").exists() and (out / "convergence.png").exists()
     with pytest.raises(UserError, match="--fixed"):  # the dispatcher turns this into exit status 2
-        _cli(["selfcal", str(rec), "--out", str(out), "--fixed", "9"])
+        _cli(["selfcal", str(rec), "--out", str(tmp_path / "out2"), "--fixed", "9"])
 
 
 def test_chunked_linearisation_gives_the_same_solution(monkeypatch):
