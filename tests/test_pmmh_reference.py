@@ -99,18 +99,25 @@ def test_chains_bit_identical_on_this_machine():
             assert np.array_equal(getattr(first[name], f).numpy(), getattr(second[name], f).numpy()), (name, f)
 
 
-def test_resume_from_own_checkpoint_is_bit_exact(tmp_path):
-    class _Stop(Exception):
-        pass
+class _Stop(Exception):
+    pass
 
+
+def _checkpoint_and_stop(path) -> None:
+    """Run the "adapted" chains with a checkpoint every 50 iterations and kill them at chain 0's
+    iteration 150, inside its warm-up windows (how the stored checkpoint was made)."""
     def stop(chain, i, kernel):
         if (chain, i) == (0, 150):
             raise _Stop
 
-    ck = tmp_path / "run.ckpt"
     with pytest.raises(_Stop):
-        run_pmmh(_kernels()["adapted"](), S, W, C, progress=False, checkpoint=ck, checkpoint_every=50,
+        run_pmmh(_kernels()["adapted"](), S, W, C, progress=False, checkpoint=path, checkpoint_every=50,
                  callback=stop)
+
+
+def test_resume_from_own_checkpoint_is_bit_exact(tmp_path):
+    ck = tmp_path / "run.ckpt"
+    _checkpoint_and_stop(ck)
     resumed = run_pmmh(_kernels()["adapted"](), S, W, C, progress=False, checkpoint=ck, resume=True)
     assert resumed.resumed
     whole = run_pmmh(_kernels()["adapted"](), S, W, C, progress=False)
@@ -147,19 +154,8 @@ def _generate():  # pragma: no cover - run by hand, see the module docstring
             out[f"{name}/{f}"] = getattr(run, f).numpy()
     np.savez_compressed(REFERENCE, **out)
 
-    class _Stop(Exception):
-        pass
-
-    def stop(chain, i, kernel):
-        if (chain, i) == (0, 150):
-            raise _Stop
-
     tmp = DATA / "_tmp.ckpt"
-    try:
-        run_pmmh(_kernels()["adapted"](), S, W, C, progress=False, checkpoint=tmp, checkpoint_every=50,
-                 callback=stop)
-    except _Stop:
-        pass
+    _checkpoint_and_stop(tmp)
     tmp.replace(CHECKPOINT)
 
 
