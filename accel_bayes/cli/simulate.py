@@ -29,7 +29,10 @@ def register(subparsers) -> None:
     p.add_argument("--motion", choices=MOTION_NAMES, default="smooth",
                    help="iid: [C21] i.i.d. hand twist; smooth: continuous motion with gravity; table: [S16]-like rotation table (default smooth)")
     p.add_argument("-T", dest="T", type=opt.count(1), default=500, help="number of samples (default 500)")
-    p.add_argument("--rate", type=opt.positive("Hz"), default=100.0, help="sample rate, Hz (default 100)")
+    # An IMU output rate above 100 kHz is no physical sensor; without the bound a typo such as
+    # 1e300 gave a file whose 1e-300 s steps every fit then fails on, far from the cause.
+    p.add_argument("--rate", type=opt.real(0.0, 1e5, lo_open=True, unit="Hz"), default=100.0,
+                   help="sample rate, Hz, in (0, 100000] (default 100)")
     p.add_argument("--seed", type=opt.seed, default=0, help="random seed; same seed, same files (default 0)")
     p.add_argument("--position-error", type=opt.nonnegative("m"), default=1e-4, metavar="M",
                    help="std of the true positions around the nominal ones, m per axis; the reference IMU stays exact (default 1e-4)")
