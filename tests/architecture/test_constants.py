@@ -5,6 +5,7 @@ from pathlib import Path
 
 import accel_bayes
 from accel_bayes import constants
+from tests.paths import STORED
 
 
 def test_values_and_directions():
@@ -55,9 +56,8 @@ def test_files_written_before_the_layout_move_still_load():
     from accel_bayes.data.io import read_recording
     from accel_bayes.data.positions import read_positions
 
-    data = Path(__file__).parent / "data"
-    rec = read_recording(data / "rec_7adf109.nc")
+    rec = read_recording(STORED / "rec_7adf109.nc")
     assert rec.acc.shape == (60, 8, 3) and np.isfinite(rec.acc).all()
-    doc = read_positions(data / "positions_7adf109.json")
+    doc = read_positions(STORED / "positions_7adf109.json")
     assert doc["schema"] == "accel_bayes.positions/1" and len(doc["imus"]) == 8
     assert doc["means"].shape == (8, 3) and np.isfinite(doc["means"]).all()

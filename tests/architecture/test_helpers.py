@@ -12,7 +12,7 @@ import torch
 from accel_bayes.data.outputs import to_jsonable
 from accel_bayes.errors import UserError
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.paths import REPO
 
 
 def test_to_jsonable_keeps_or_nulls_nonfinite():

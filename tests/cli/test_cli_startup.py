@@ -7,12 +7,12 @@ torch-free with its public names loaded on first use, and the 0.1 import aliases
 import importlib
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from tests.paths import REPO
 
 HEAVY = {"torch", "pyro", "arviz", "matplotlib"}
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO
 
 
 def _heavy_imports(args, cwd) -> tuple[set, subprocess.CompletedProcess]:

@@ -19,8 +19,9 @@ from accel_bayes.cli import main
 from accel_bayes.data.csv_import import read_array_description
 from accel_bayes.physics.arrays import SensorArray
 from accel_bayes.simulate import simulate
+from tests.paths import REPO
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = REPO / "README.md"
 HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
           "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
 

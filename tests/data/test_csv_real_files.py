@@ -199,11 +199,8 @@ def test_identical_files_refusal_names_causes_and_override(tmp_path, rig, capsys
 
 def test_mimu_importer_prints_gyro_noise_in_rad_s(tmp_path, capsys):
     """import-mimu printed the gyro noise in °/s while `info` prints rad/s."""
-    import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_mimu import _stream
+    from tests.data.test_mimu import _stream
 
     (tmp_path / "s.bin").write_bytes(_stream(n=40)[0])
     assert main(["import-mimu", str(tmp_path / "s.bin"), "-o", str(tmp_path / "m.nc")]) == 0

@@ -61,7 +61,7 @@ def make_recording(T=400, fs=100.0, preset="mimu8", seed=0, amp=3.0, static_frac
         acc_range=arr.acc_range,
         gyro_range=arr.gyro_range,
         description="test recording",
-        source="tests/test_io.py",
+        source="tests/data/test_io.py",
         attrs={"seed": seed},
     )
 

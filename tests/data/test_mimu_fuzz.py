@@ -5,17 +5,13 @@ knows from construction which packets are intact and what every packet number's 
 stamp were, independently of the importer.  Default suite: 300 seeded variants of 250-packet
 streams (a few seconds); the 10⁴ of the study behind ``slow``.
 """
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+from experiments import mimu_fuzz as mf
 
-import mimu_fuzz as mf  # noqa: E402
-
-from accel_bayes.data.mimu import MIMU_ACK, NOMINAL_PERIOD_TICKS, decode_mimu_bytes, encode_mimu_packets  # noqa: E402
+from accel_bayes.data.mimu import MIMU_ACK, NOMINAL_PERIOD_TICKS, decode_mimu_bytes, encode_mimu_packets
 
 
 def _check(verdicts, min_applied):

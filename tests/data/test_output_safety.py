@@ -1,7 +1,7 @@
 """Issue #29 items 1, 2 and 4 (output safety, signals, one-line refusals): one test per defect,
 each reproducing the failure of the code before the fix (see the commit message).
 
-Inputs and helpers come from tests/test_outputs.py (one small simulated rig, a stream, a static
+Inputs and helpers come from tests/data/test_outputs.py (one small simulated rig, a stream, a static
 recording); the signal deliveries run through experiments/output_safety.py (a small seeded
 version of its study)."""
 import json
@@ -13,11 +13,10 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_outputs import COMMANDS, REPO, argv, inputs, one_line, snapshot  # noqa: E402,F401  (inputs: fixture)
+from tests.data.test_outputs import COMMANDS, REPO, argv, inputs, one_line, snapshot  # noqa: F401  (inputs: fixture)
 
-from accel_bayes.cli import main  # noqa: E402
-from accel_bayes.data import outputs  # noqa: E402
+from accel_bayes.cli import main
+from accel_bayes.data import outputs
 
 
 def _committed_set(target: Path, files=("positions.json",)) -> None:

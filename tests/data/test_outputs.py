@@ -27,7 +27,7 @@ from accel_bayes.errors import UserError
 from accel_bayes.data.io import read_recording, read_truth, write_recording
 from accel_bayes.simulate import simulate
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.paths import REPO
 
 # command → ("file" | "dir", argv before the target, the target flag, argv after, exit status of
 # a good run, the files of its set).  Small and fast settings; inputs from the `inputs` fixture.
@@ -68,11 +68,10 @@ FILE_SUFFIX = {"intrinsics": ".json", "export": ".yaml"}
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_csv_import import write_asl, write_toml
-    from test_intrinsics import _static_recording
-    from test_mimu import _stream
-    from test_motion_estimation import _positions_doc
+    from tests.data.test_csv_import import write_asl, write_toml
+    from tests.prep.test_intrinsics import _static_recording
+    from tests.data.test_mimu import _stream
+    from tests.inference.test_motion_estimation import _positions_doc
 
     d = tmp_path_factory.mktemp("inputs")
     sim = simulate(preset("mimu8"), "iid", 60, seed=3, clip=False)
@@ -253,7 +252,7 @@ def test_overwrite_never_replaces_other_files_or_the_input(cmd, case, inputs, tm
     assert snapshot(tmp_path) == before
 
 
-@pytest.mark.parametrize("cmd", [c for c in COMMANDS if c != "demo"])  # demo: tests/test_demo.py
+@pytest.mark.parametrize("cmd", [c for c in COMMANDS if c != "demo"])  # demo: tests/pipelines/test_demo.py
 def test_overwrite_replaces_the_whole_set(cmd, inputs, tmp_path, capsys):
     kind, *_, rc_ok, files = COMMANDS[cmd]
     target = tmp_path / target_name(cmd)

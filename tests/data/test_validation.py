@@ -9,7 +9,7 @@ from accel_bayes.data.io import read_recording, recording_from_dataset, recordin
 from accel_bayes.data.validation import DEFAULT_GYRO_BOUND, gyro_unit_diagnostics, validate_recording
 
 try:
-    from test_io import make_recording
+    from tests.data.test_io import make_recording
 except ImportError:  # tests imported as a package
     from .test_io import make_recording
 
@@ -330,7 +330,7 @@ def test_csv_acc_in_g_declared_as_m_s2_is_refused(tmp_path, capsys):
     # import-csv of a still board whose accelerometers wrote g under an [m s^-2] header: one line,
     # exit 2, no file (formerly imported silently).
     try:
-        from test_csv_import import _refused, _small_asl
+        from tests.data.test_csv_import import _refused, _small_asl
     except ImportError:
         from .test_csv_import import _refused, _small_asl
 

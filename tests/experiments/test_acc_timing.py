@@ -7,15 +7,11 @@ null must fall to the share three free parameters per sample soak up, and the gy
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "experiments"))
 
-import acc_timing_check as A  # noqa: E402
+from experiments import acc_timing_check as A
 
 T, K = 2000, 8
 

@@ -5,16 +5,11 @@ and finite differences, never against the package's own signal model (one test a
 *compares* the two, to catch a frame-convention disagreement between them).
 """
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "experiments"))
-
-import _conceal as C  # noqa: E402
+from experiments import _conceal as C
 
 G0 = C.G0
 
@@ -285,7 +280,7 @@ def _fake_runner(calls):
 
 
 def test_proof_resumes_from_its_csv(tmp_path, monkeypatch, capsys):
-    import mismatch_proof as mp
+    from experiments import mismatch_proof as mp
 
     calls = []
     monkeypatch.setattr(mp, "run_case", _fake_runner(calls))
@@ -321,7 +316,7 @@ def test_proof_resumes_from_its_csv(tmp_path, monkeypatch, capsys):
 
 
 def test_proof_retries_crashed_cases_only_when_asked(tmp_path, monkeypatch):
-    import mismatch_proof as mp
+    from experiments import mismatch_proof as mp
 
     calls, every = [], []
     good = _fake_runner(calls)
@@ -353,7 +348,7 @@ def test_proof_store_gains_baseline_twins_and_a_figure(tmp_path, monkeypatch):
     new mode, and the summary figure is written."""
     import types
 
-    import mismatch_proof as mp
+    from experiments import mismatch_proof as mp
 
     calls = []
     monkeypatch.setattr(mp, "run_case", _fake_runner(calls))

@@ -4,15 +4,11 @@ The study itself (100 data sets, ≈ 0.5–1 min each on 2 cores) lives in
 ``experiments/c21_coverage.py`` and runs here only with ``-m slow``; the default run checks that
 its verdict logic accepts well-calibrated ranks and rejects a miscalibrated posterior.
 """
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-
-import c21_coverage as cov  # noqa: E402
+from experiments import c21_coverage as cov
 
 
 def _fake_reps(n, rng, width=1.0, coverage=0.9):

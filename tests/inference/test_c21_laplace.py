@@ -7,21 +7,17 @@ the calibrated 8-gyro posterior (std ≈ 4·10⁻⁴ rad/s against |ω| ≈ 30 r
 the covariance by far less than the 5 % tolerance, so a larger disagreement is a bug in one of
 the two.
 """
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "experiments"))
 
-from _laplace import laplace_from_recording, log_posterior  # noqa: E402
+from experiments._laplace import laplace_from_recording, log_posterior
 
-from accel_bayes.physics.arrays import mimu4444_8  # noqa: E402
-from accel_bayes.likelihood import RaoBlackwellLikelihood  # noqa: E402
-from accel_bayes.simulate import simulate  # noqa: E402
+from accel_bayes.physics.arrays import mimu4444_8
+from accel_bayes.likelihood import RaoBlackwellLikelihood
+from accel_bayes.simulate import simulate
 
 
 def _case(T=20, seed=3, acc_std=0.04):

@@ -5,8 +5,6 @@ a direct numpy recomputation from the fits' residuals, b ≈ a on a concealed me
 a ≈ 0 and b = 0 on a clean one, the noise/random-effect hook, and the JSON round trip."""
 import json
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,10 +12,8 @@ import pytest
 from accel_bayes.mismatch import detect, fit_model, make_effect, prepare, validate_report, baseline_fit
 from accel_bayes.mismatch.budget import BANDS, residual_budget
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "experiments"))
 
-import _conceal as C  # noqa: E402
+from experiments import _conceal as C
 
 FAST = dict(n_twins=20, loo_draws=40, n_refit=3, max_findings=2)
 T = 800

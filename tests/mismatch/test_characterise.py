@@ -8,15 +8,12 @@ described as growing with the gyro's own rate of change, correlated in time and 
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 
-from accel_bayes.mismatch.characterise import (COVARIATES, _anisotropy, _autocorrelation, _consecutive,  # noqa: E402
+from accel_bayes.mismatch.characterise import (COVARIATES, _anisotropy, _autocorrelation, _consecutive,
                                                _covariate_stats, characterise, describe)
 
 
@@ -87,7 +84,7 @@ def test_anisotropy_timing_vs_isotropic():
 def lowpass_fit():
     import torch
 
-    import _conceal as C
+    from experiments import _conceal as C
     from accel_bayes.mismatch import baseline_fit, prepare
 
     torch.set_num_threads(1)
@@ -143,7 +140,7 @@ def test_gyro_delay_is_a_first_order_lowpass():
     trajectory): with delay = τ they agree to the filter's second-order term."""
     import torch
 
-    import _conceal as C
+    from experiments import _conceal as C
     from accel_bayes.physics.effects import SignalContext, make_effect
 
     lp = C.make_case("mimu8", "gyro_lowpass", seed=4, T=1200)

@@ -4,8 +4,6 @@ Checked against independent computations: numpy for the block's algebra, and the
 generator ``experiments/_conceal.py`` (exact kinematics, its own linear gyro errors) for the
 stage — the recovered relative errors against the generator's truth.
 """
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,10 +15,8 @@ from accel_bayes.mismatch.report import validate_report
 from accel_bayes.physics.effects import GyroLinear, SignalContext, make_effect
 from accel_bayes.physics.geometry import quat_to_matrix
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "experiments"))
 
-import _conceal as C  # noqa: E402
+from experiments import _conceal as C
 
 
 def _ctx(T=50, K=4, seed=0):

@@ -10,8 +10,6 @@
     ``noise_level``), and (slow) the noise_level / sampling_jitter confusion on fixed seeds.
 """
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,9 +20,7 @@ from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.physics.effects import log_marginal_gain, make_effect
 from accel_bayes.simulate import simulate
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "experiments"))
-import _conceal as C  # noqa: E402
+from experiments import _conceal as C
 
 DEG = math.pi / 180
 

@@ -3,20 +3,17 @@ constant-parameter effect whose parameter the data want different in different p
 recording is refused.  Data from the independent generator ``experiments/_conceal.py``."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 from scipy.stats import chi2
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-import _conceal as C  # noqa: E402
+from experiments import _conceal as C
 
-from accel_bayes.mismatch.detect import STATIONARITY_SEGMENTS, detect, stationarity  # noqa: E402
-from accel_bayes.mismatch.fit import baseline_fit, fit_model  # noqa: E402
-from accel_bayes.mismatch.prepared import prepare  # noqa: E402
-from accel_bayes.physics.effects import make_effect  # noqa: E402
+from accel_bayes.mismatch.detect import STATIONARITY_SEGMENTS, detect, stationarity
+from accel_bayes.mismatch.fit import baseline_fit, fit_model
+from accel_bayes.mismatch.prepared import prepare
+from accel_bayes.physics.effects import make_effect
 
 
 def _fit(case, effect):

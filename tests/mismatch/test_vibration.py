@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -102,8 +100,7 @@ def _all_jitter(seed, width, T):
     """The independent simulator's recording with every IMU (acc and gyro together) sampled at
     t + δ_kt, δ ~ U(−w/2, w/2) i.i.d. (exact kinematics at the jittered instants), and its clean
     twin; no linear gyro errors."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-    import _conceal as C
+    from experiments import _conceal as C
 
     case = C.make_multi_case(seed, "none", T=T, gyro_linear=False)
     tr, rec = case.truth, case.recording

@@ -120,13 +120,9 @@ def test_timing_wander_named_on_a_concealed_recording():
     """experiments/_conceal.py (independent generator: exact kinematics at AR(1)-wandering
     instants of one IMU's gyro): the detector names timing_wander on the right IMU's gyro with
     width and correlation close to the truth, and nothing else of the vocabulary on that IMU."""
-    import sys
-    from pathlib import Path
-
     import torch
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-    import _conceal as C
+    from experiments import _conceal as C
     from accel_bayes.mismatch import detect
 
     torch.set_num_threads(1)
@@ -168,13 +164,9 @@ def _clean_fit():
     """A clean recording of the independent generator on the irregular6 board at 150 Hz (the
     clean set whose acc timing evidence was 28 under the leverage-corrected statistic) and its
     baseline fit."""
-    import sys
-    from pathlib import Path
-
     import torch
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-    import _conceal as C
+    from experiments import _conceal as C
     from accel_bayes.mismatch.fit import baseline_fit
     from accel_bayes.mismatch.prepared import prepare
 
@@ -280,13 +272,10 @@ def test_wander_mean_is_taken_off_so_it_does_not_leak_into_other_imus():
     accelerometer-only delay) leaves (measured ≤ 5).  With re-weighting alone (the fit until
     2026-11-26) the detector named a timing_wander on IMU 7 with evidence 278, far above its threshold (≈ 24).  The
     estimated instants average −τ (measured −0.887 ms)."""
-    import sys
-    from pathlib import Path
 
     import torch
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-    import _conceal as C
+    from experiments import _conceal as C
     from accel_bayes.mismatch.fit import baseline_fit, fit_model
     from accel_bayes.mismatch.jitter import jitter_evidence
     from accel_bayes.mismatch.prepared import prepare

@@ -18,7 +18,6 @@ from accel_bayes.simulate import simulate
 
 F64 = torch.float64
 DEG = math.pi / 180
-REPO = Path(__file__).resolve().parents[1]
 YAW90 = (math.sqrt(0.5), 0.0, 0.0, -math.sqrt(0.5))  # DESIGN §7.0: IMU yawed +90° on the board
 
 

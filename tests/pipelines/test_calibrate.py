@@ -1,7 +1,7 @@
 """`calibrate` (PmMH posterior of the geometry), its outputs (DESIGN §7.3) and the CLI.
 
 The default tests use a tiny simulated 8-IMU recording (60 samples, short chains).  The coverage
-study of the posterior itself is ``tests/test_coverage.py`` (``experiments/c21_coverage.py``); the
+study of the posterior itself is ``tests/experiments/test_coverage.py`` (``experiments/c21_coverage.py``); the
 slow real-data test here runs one MIMU experiment through the default pipeline.
 """
 import json

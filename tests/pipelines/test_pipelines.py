@@ -184,7 +184,7 @@ def test_motion_pipeline(rec_file, tmp_path):
 
 
 def test_intrinsics_pipeline(tmp_path):
-    from test_intrinsics import _static_recording
+    from tests.prep.test_intrinsics import _static_recording
 
     from accel_bayes.pipelines.intrinsics import intrinsics, write_outputs
 

@@ -226,7 +226,7 @@ def test_cli(tmp_path, capsys):
 # ------------------------------------------------------------------ the six real recordings
 @pytest.fixture(scope="module")
 def mimu_recordings():
-    from conftest import mimu_data_dir
+    from tests.conftest import mimu_data_dir
 
     d = mimu_data_dir()
     if not d.is_dir():

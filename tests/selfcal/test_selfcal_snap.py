@@ -8,8 +8,6 @@ from motion drawn from the model itself; the scale of a recording of the indepen
 simulator (experiments/_conceal.py) within 3 reported std.
 """
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,7 +19,6 @@ from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus
 
 F64 = torch.float64
-REPO = Path(__file__).resolve().parents[1]
 
 
 def _generator(dim: int):
@@ -160,7 +157,7 @@ def _x0():
 
 
 def test_marginal_scale_score_with_snap_states_is_the_derivative_of_the_laplace_marginal():
-    """As tests/test_selfcal.py for the jerk model: the score (volume 15T/2, ω̈ → ω̈/c along the
+    """As tests/selfcal/test_selfcal.py for the jerk model: the score (volume 15T/2, ω̈ → ω̈/c along the
     orbit) against a central difference of ½F(x̂_c) + ½ log det H_xx(x̂_c), fixed triad off the origin."""
     gen = torch.Generator().manual_seed(43)
     T, rate = 120, 250.0
@@ -216,8 +213,7 @@ def test_estimated_snap_intensities_recover_the_true_ones():
 
 
 def _handlike(i):
-    sys.path.insert(0, str(REPO / "experiments"))
-    import s16_handlike as H
+    from experiments import s16_handlike as H
 
     return H.recording(i)
 
@@ -256,8 +252,7 @@ def test_snap_model_scale_on_a_short_concealed_handlike_recording_at_62_5_hz():
     std 0.23 ‰), every coordinate within 4 std (max 1.2) and the fit check flags nothing; the jerk
     model ("estimate") gives −8.6 ‰ with std 2.8 ‰ here, 3.1 std: it would fail this test
     (experiments/s16_handlike_62hz.md)."""
-    sys.path.insert(0, str(REPO / "experiments"))
-    import s16_handlike_62hz as E
+    from experiments import s16_handlike_62hz as E
     from accel_bayes.pipelines.selfcal import selfcal
 
     case = E.case(12346, 3)
