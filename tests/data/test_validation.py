@@ -8,10 +8,7 @@ from accel_bayes.errors import RecordingError
 from accel_bayes.data.io import read_recording, recording_from_dataset, recording_to_dataset, write_recording
 from accel_bayes.data.validation import DEFAULT_GYRO_BOUND, gyro_unit_diagnostics, validate_recording
 
-try:
-    from tests.data.test_io import make_recording
-except ImportError:  # tests imported as a package
-    from .test_io import make_recording
+from tests.data.test_io import make_recording
 
 DEG = math.pi / 180
 
