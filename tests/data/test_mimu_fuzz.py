@@ -11,7 +11,7 @@ import pytest
 
 from experiments import mimu_fuzz as mf
 
-from accel_bayes.data.mimu import MIMU_ACK, NOMINAL_PERIOD_TICKS, decode_mimu_bytes, encode_mimu_packets
+from accel_bayes.data.mimu import MIMU_ACK, NOMINAL_PERIOD_TICKS, decode_mimu_bytes, encode_mimu_packets  # noqa: E402
 
 
 def _check(verdicts, min_applied):

@@ -15,8 +15,8 @@ import pytest
 
 from tests.data.test_outputs import COMMANDS, REPO, argv, inputs, one_line, snapshot  # noqa: F401  (inputs: fixture)
 
-from accel_bayes.cli import main
-from accel_bayes.data import outputs
+from accel_bayes.cli import main  # noqa: E402
+from accel_bayes.data import outputs  # noqa: E402
 
 
 def _committed_set(target: Path, files=("positions.json",)) -> None:

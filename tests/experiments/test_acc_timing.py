@@ -7,9 +7,7 @@ null must fall to the share three free parameters per sample soak up, and the gy
 """
 from __future__ import annotations
 
-
 import numpy as np
-
 
 from experiments import acc_timing_check as A
 

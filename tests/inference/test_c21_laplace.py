@@ -12,12 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-
 from experiments._laplace import laplace_from_recording, log_posterior
 
-from accel_bayes.physics.arrays import mimu4444_8
-from accel_bayes.likelihood import RaoBlackwellLikelihood
-from accel_bayes.simulate import simulate
+from accel_bayes.physics.arrays import mimu4444_8  # noqa: E402
+from accel_bayes.likelihood import RaoBlackwellLikelihood  # noqa: E402
+from accel_bayes.simulate import simulate  # noqa: E402
 
 
 def _case(T=20, seed=3, acc_std=0.04):

@@ -12,7 +12,6 @@ import pytest
 from accel_bayes.mismatch import detect, fit_model, make_effect, prepare, validate_report, baseline_fit
 from accel_bayes.mismatch.budget import BANDS, residual_budget
 
-
 from experiments import _conceal as C
 
 FAST = dict(n_twins=20, loo_draws=40, n_refit=3, max_findings=2)

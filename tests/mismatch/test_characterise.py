@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 
-from accel_bayes.mismatch.characterise import (COVARIATES, _anisotropy, _autocorrelation, _consecutive,
+from accel_bayes.mismatch.characterise import (COVARIATES, _anisotropy, _autocorrelation, _consecutive,  # noqa: E402
                                                _covariate_stats, characterise, describe)
 
 

@@ -15,7 +15,6 @@ from accel_bayes.mismatch.report import validate_report
 from accel_bayes.physics.effects import GyroLinear, SignalContext, make_effect
 from accel_bayes.physics.geometry import quat_to_matrix
 
-
 from experiments import _conceal as C
 
 

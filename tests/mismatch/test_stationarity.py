@@ -10,10 +10,10 @@ from scipy.stats import chi2
 
 from experiments import _conceal as C
 
-from accel_bayes.mismatch.detect import STATIONARITY_SEGMENTS, detect, stationarity
-from accel_bayes.mismatch.fit import baseline_fit, fit_model
-from accel_bayes.mismatch.prepared import prepare
-from accel_bayes.physics.effects import make_effect
+from accel_bayes.mismatch.detect import STATIONARITY_SEGMENTS, detect, stationarity  # noqa: E402
+from accel_bayes.mismatch.fit import baseline_fit, fit_model  # noqa: E402
+from accel_bayes.mismatch.prepared import prepare  # noqa: E402
+from accel_bayes.physics.effects import make_effect  # noqa: E402
 
 
 def _fit(case, effect):

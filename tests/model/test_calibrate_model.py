@@ -8,13 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-
 from experiments import _conceal as C
-from accel_bayes.errors import UserError
-from accel_bayes.likelihood import gyro_posterior
-from accel_bayes.physics.effects import make_effect
-from accel_bayes.pipelines.calibrate import calibrate
-from accel_bayes.prep.model_effects import fused_gyro_posterior, load_model
+from accel_bayes.errors import UserError  # noqa: E402
+from accel_bayes.likelihood import gyro_posterior  # noqa: E402
+from accel_bayes.physics.effects import make_effect  # noqa: E402
+from accel_bayes.pipelines.calibrate import calibrate  # noqa: E402
+from accel_bayes.prep.model_effects import fused_gyro_posterior, load_model  # noqa: E402
 
 SHORT = dict(chains=1, draws=20, warmup=20, seed=0, progress=False)
 
