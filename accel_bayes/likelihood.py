@@ -16,7 +16,7 @@ Integrating φ_t out with the prior N(f, βF) and letting β → ∞ ([C21] eq. 
 Gaussian normaliser |2π M_t|^(-1/2) of eq. 19 carries the square root, and eq. 21/23 only
 rescale what is under it.  The printed form adds (T/2)·log|M(θ)| to the log-likelihood, which
 pulls the geometry (larger arrays have larger |M|).  :meth:`RaoBlackwellLikelihood.log_lik_paper_eq25`
-keeps the printed form for comparison tests only; ``tests/test_likelihood.py`` checks ours
+keeps the printed form for comparison tests only; ``tests/model/test_likelihood.py`` checks ours
 against the brute-force β → ∞ limit of the exact Gaussian.
 
 The ω_t integral is done by Monte Carlo with draws from p(ω_t | y_t^g) ([C21] eq. 26)::

@@ -21,7 +21,10 @@ import math
 
 import numpy as np
 
-import _conceal as cc
+if __package__:  # imported as experiments._boards (tests, from the repository root)
+    from . import _conceal as cc
+else:  # imported by a script run as python3 experiments/X.py, with experiments/ on sys.path
+    import _conceal as cc
 
 SEED_BASE = 15_000  # issue #15; never change: the boards are the benchmark
 

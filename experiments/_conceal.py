@@ -25,7 +25,7 @@ and its gyroscope axis reads y_ki^g(t) = e_iᵀ R_k ω(t) with the body rate ω 
 Ω(ω) = R_wbᵀ Ṙ_wb.  Both Ṙ_wb and R̈_wb are differentiated *analytically* from the closed form
 of the attitude (below); no ω × (ω × r) formula is used anywhere.  :func:`check_point_acceleration`
 compares p̈ with an 8th-order central finite difference of the world position, with an error
-bound, and ``tests/test_conceal.py`` runs it.
+bound, and ``tests/experiments/test_conceal.py`` runs it.
 
 Trajectory (:class:`RotvecTrajectory`)
 --------------------------------------

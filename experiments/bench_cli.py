@@ -189,7 +189,7 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, st
         "",
         f"Slowest case now: {worst:.3f} s (the issue's bar: ≤ 0.5 s). \"imports\" lists which of torch, pyro, "
         "arviz and matplotlib the command imported (`-X importtime`, an untimed extra run); "
-        "`tests/test_cli_startup.py` checks the same for every command's `--help` and refusals, on modules, "
+        "`tests/cli/test_cli_startup.py` checks the same for every command's `--help` and refusals, on modules, "
         "not seconds.",
         "",
         "```",

@@ -36,7 +36,7 @@ ignored): the RESULT lines read ``RESULT <name>[DEV]: ours x ms (DEV), peer y ms
 Times on a GPU include a ``torch.cuda.synchronize()`` after every call (otherwise only the kernel
 launches would be timed), and log p̂ on the same z is compared between the devices before timing.
 The CPU stays the default; nothing else in the package needs a GPU.  That the hot path creates no
-tensor on the wrong device is tested without a GPU (tests/test_device.py).
+tensor on the wrong device is tested without a GPU (tests/mcmc/test_device.py).
 """
 from __future__ import annotations
 

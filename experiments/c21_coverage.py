@@ -22,13 +22,13 @@ it, and the data-generating φ ~ N(0, F) is not harmless: under it the exact pos
   design positions, as ``calibrate`` does).  Here the checks ask whether the default model is
   calibrated, F̂ from only T = 30 samples included;
 * ``matched`` — the simulation's own Gaussian prior on φ (``RaoBlackwellLikelihood(phi_prior=…)``,
-  M → M + F⁻¹, checked against a dense Gaussian in tests/test_likelihood.py), so the sampled
+  M → M + F⁻¹, checked against a dense Gaussian in tests/model/test_likelihood.py), so the sampled
   posterior is exact for the generating process: this validates the likelihood estimator, the
   pseudo-marginal kernel and its adaptation together;
 * ``flat`` — [C21] as published, on the same data: measures how much the flat prior shrinks the
   array when rotation is weak relative to the noise (a property of the model, not the sampler).
 
-Checks (printed as a verdict, and asserted by ``tests/test_coverage.py -m slow``):
+Checks (printed as a verdict, and asserted by ``tests/experiments/test_coverage.py -m slow``):
 
 1. every data set reaches R̂ < 1.01 (max over the 9 coordinates);
 2. the central 90 % interval of the pre-chosen coordinate x of IMU 1 (relative to IMU 0) covers the

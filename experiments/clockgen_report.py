@@ -188,7 +188,7 @@ def main():
     L.append("# clockgen — an independent generator of clocked IMU arrays and rigs\n")
     L.append("Regenerate: `PYTHONPATH=. python3 experiments/clockgen_report.py` "
              f"({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
-             f"{platform.system()}, 2-core shared CPU, {time.perf_counter() - t_start:.0f} s). Tests: `tests/test_clockgen.py`.\n")
+             f"{platform.system()}, 2-core shared CPU, {time.perf_counter() - t_start:.0f} s). Tests: `tests/experiments/test_clockgen.py`.\n")
     L.append(DESCRIPTION)
     L.append("## Validation (measured by this script)\n")
     L.append("**Exact kinematics** (5 motions, 20 s, every moving instant of 2000 drawn; central "

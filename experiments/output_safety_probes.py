@@ -51,8 +51,8 @@ class _Runner:
 def _inputs(work: Path, run) -> dict:
     """A simulated rig, its MAP positions, its ASL/TOML copy, a real MIMU stream's first 4000
     packets (exp_1) and a pickle-payload checkpoint."""
-    sys.path.insert(0, str(REPO / "tests"))
-    from test_csv_import import write_asl, write_toml  # the test suite's writers of the CSV format
+    sys.path.insert(0, str(REPO))  # the test suite is the package tests/ of the repository root
+    from tests.data.test_csv_import import write_asl, write_toml  # the test suite's writers of the CSV format
 
     from accel_bayes.data.io import read_recording
 

@@ -3,7 +3,7 @@
 Three more short recordings of the independent numpy simulator :mod:`_conceal` at 62.5 Hz: random
 3-D blocks 07, 03, 11 of :mod:`_boards`, hand-like sums of sinusoids (0.3–4 Hz, RMS |ω| 450 °/s,
 origin acceleration 8 m/s² RMS), T = 900, σ_a = 0.02 m/s², seeds 12345–12347 (the second is the
-recording of tests/test_selfcal_snap.py).  Each is fitted with ``pipelines.selfcal.selfcal``
+recording of tests/selfcal/test_selfcal_snap.py).  Each is fitted with ``pipelines.selfcal.selfcal``
 (max_iter 100) under the smooth motion model (``estimate-snap``, the default) and the jerk model
 (``estimate``); scale = fitted size / true size, z = error / reported std.
 

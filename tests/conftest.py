@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.paths import REPO
 
 
 def shared_dir() -> Path:

@@ -37,7 +37,7 @@ Uncertainty
   first-order propagation (``geometry="linear"``):
   dx/dr_k = −(JᵀWJ)⁻¹ Σ_{axes m of IMU k} w_m J_mᵀ ∂f_m/∂r_k with ∂f_k/∂r_k = R_k(Ω(ω)² + Ω(ω̇)),
   Cov = Σ_k (dx/dr_k) cov_k (dx/dr_k)ᵀ.  The two agree within the Monte Carlo error of the
-  draws (tests/test_motion_estimation.py); "linear" costs one solve instead of ``draws``.
+  draws (tests/inference/test_motion_estimation.py); "linear" costs one solve instead of ``draws``.
 * Total = noise part + geometry part (the two sources are independent).
 
 Output: :class:`xarray.Dataset` (see :func:`estimate_motion`); :func:`write_motion` stores it as

@@ -41,7 +41,7 @@ alternating with their parameters until they settle:
   states; a few rounds for the positions).  Re-weighting alone left the wandering triad's mean
   in the motion fit: a first-order low-pass on one accelerometer (a nearly constant timing error)
   then leaked into the other IMUs' residuals and was named there (timing evidences up to 500 on
-  IMUs without any effect; ``tests/test_wander.py``), and a jittered IMU gave spurious jitter
+  IMUs without any effect; ``tests/mismatch/test_wander.py``), and a jittered IMU gave spurious jitter
   findings on two other IMUs in every concealed multi-effect jitter case.
 
 The exact marginal is then evaluated at that mean, on the residuals of the recorded outputs

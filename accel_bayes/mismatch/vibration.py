@@ -32,7 +32,7 @@ likelihood ratio against the null is the ``evidence``.  It is *not* χ²-distrib
 the per-sample motion states make the residuals of a sample correlated (the leverage correction
 fixes each residual's variance, not their covariance, and inflates the variance across the IMUs
 by about K/(K − 1)), and a rank-one term soaks that up — 0–55 on clean twins of 2 500 samples
-(``tests/test_vibration.py``).  Its significance is therefore a **permutation test**.  The
+(``tests/mismatch/test_vibration.py``).  Its significance is therefore a **permutation test**.  The
 statistic is the likelihood ratio with the white variances held at the null's (each sample then
 enters through two numbers, so it costs O(T)).  Its null distribution is the same statistic with
 the instant-error rows permuted among the samples of each |ω| band, which keeps every

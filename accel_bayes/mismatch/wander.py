@@ -24,7 +24,7 @@ UᵀU = diag(a)):
 a_t = ũ_tᵀũ_t, b_t = ũ_tᵀr̃_t, Q = Σ⁻¹ the tridiagonal precision of the AR(1) process and
 P = Q + diag(a), also tridiagonal: O(T) with LAPACK's banded Cholesky (no loop over samples in
 Python).  :func:`ar1_gain` is that difference; :func:`fit_wander` maximises it over (σ_δ, ρ).
-``tests/test_wander.py`` checks it against the dense Gaussian computation and against simulated
+``tests/mismatch/test_wander.py`` checks it against the dense Gaussian computation and against simulated
 processes.
 """
 from __future__ import annotations

@@ -22,7 +22,7 @@ sensor axis m = (k, a) in the array frame,
     f_m = R_a·f(r_k) = α_m β_m − |ω|² p_m + C_m·φ,    α_m = R_a·ω,  β_m = r_k·ω,  p_m = R_a·r_k,
     ∂f_m/∂ω = α_m r_k + β_m R_a + γ_m ω,  γ_m = −2 p_m,   ∂f_m/∂φ = C_m = [r_k × R_a, R_a],
 
-φ = [ω̇; s].  ``tests/test_jacobians.py`` pins every function here against finite differences,
+φ = [ω̇; s].  ``tests/physics/test_jacobians.py`` pins every function here against finite differences,
 against autograd of :func:`~accel_bayes.physics.models.specific_force`, and the factored form against
 the plain one.
 

@@ -206,7 +206,7 @@ def _device_option(device, checkpoint):
     except Exception as exc:  # noqa: BLE001 — whatever torch raises, the device is not usable here
         raise UserError(f"device: {str(dev)!r} is not usable here ({str(exc).splitlines()[0]})") from None
     # an explicit "cpu" takes the device path too (its draws equal the default path's, bit for bit:
-    # tests/test_device.py), and keeps checkpoints
+    # tests/mcmc/test_device.py), and keeps checkpoints
     if checkpoint is not None and dev.type != "cpu":
         raise UserError(f"checkpoint: not supported with device={str(dev)!r} (checkpoints hold CPU chain states)")
     return dev
@@ -875,7 +875,7 @@ def _posterior_step(lik, pri, theta_c, lap, opts, *, proposal, independence_prob
         settings["start"] = "prior draws"
     dev = opts.get("device")
     lik_cpu = lik
-    if dev is not None:  # only the chains run on the device (tests/test_device.py: no stray CPU tensors)
+    if dev is not None:  # only the chains run on the device (tests/mcmc/test_device.py: no stray CPU tensors)
         lik, pri = lik.to(dev), pri.to(dev)
         theta_c, init_theta = theta_c.to(dev), init_theta.to(dev)
         lap = None if lap is None else lap.to(dev)

@@ -49,7 +49,7 @@ with r_t,k the residual of triad k (φ projected out) and d_t,k = 3 − h^φ_t,k
 residual degrees of freedom: h^φ the leverage of triad k's rows in the φ projection (6 per
 sample in all) and h^ω in the ω̂_t fit (≤ 3 per sample; ~0 when the gyros pin ω down).  With
 one level for all triads and ω known this is the exact REML estimate of a Gaussian linear model
-with 6 nuisance parameters per sample (tests/test_preprocess.py checks it against the
+with 6 nuisance parameters per sample (tests/model/test_preprocess.py checks it against the
 likelihood).  :func:`fit_map_with_noise` alternates the MAP with this update until the levels
 move by less than ``rtol``.  PmMH then samples with the noise fixed there (empirical Bayes):
 with ~10⁵ residual degrees of freedom the uncertainty of the levels themselves (< 1 %) is

@@ -25,7 +25,7 @@ BatchedLevenbergMarquardt`): :meth:`DampingStrategy.init` with ``batched=True`` 
 shape (B, n) and keeps one λ per problem, a (B,) tensor; :meth:`~DampingStrategy.update` then takes
 ρ and ``accepted`` as (B,) tensors and applies the same rule to each problem elementwise, and
 :attr:`~DampingStrategy.exhausted` is a (B,) mask.  Each rule is stated once per class, its scalar
-and elementwise forms side by side (``tests/test_lm.py`` checks that they agree).
+and elementwise forms side by side (``tests/inference/test_lm.py`` checks that they agree).
 """
 from __future__ import annotations
 

@@ -26,7 +26,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 def _device_of(x, device):
     """The device asked for, else the device of a tensor argument: a float std or bound must land
-    beside the GPU positions it goes with, not on torch's default device (tests/test_device.py)."""
+    beside the GPU positions it goes with, not on torch's default device (tests/mcmc/test_device.py)."""
     if device is not None:
         return device
     return x.device if isinstance(x, torch.Tensor) else None

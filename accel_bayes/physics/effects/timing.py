@@ -2,7 +2,7 @@
 ``offset`` δ in s, **positive = sampled late** — the sample stamped t holds the output at t + δ.
 :func:`sample_times` is that convention, used by the exact evaluation (the simulator evaluates
 the trajectory at those times) and stated by the linearised one (:class:`TimeOffset`,
-δ·d/dt of the nominal output); ``tests/test_effects.py`` compares the two (error O(δ²)).
+δ·d/dt of the nominal output); ``tests/physics/test_effects.py`` compares the two (error O(δ²)).
 """
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ class GyroDelay(Effect):
     the gyro's residuals as well as ``time_offset`` does but leaves the accelerometer alone, so
     the two are told apart by the accelerometer channels.  Linearised like ``time_offset`` (first
     Taylor term; for a first-order low-pass the neglected term is τ²·d²ω/dt², below 1 % of the
-    effect for τ ≤ 1 ms and motion under ~15 Hz, tests/test_characterise.py)."""
+    effect for τ ≤ 1 ms and motion under ~15 Hz, tests/mismatch/test_characterise.py)."""
 
     name = "gyro_delay"
     in_vocabulary = False

@@ -1,0 +1,221 @@
+"""``calibrate(..., model=report)`` (issue #11 item 5): a mismatch report's random gyro effects in
+the likelihood (:mod:`accel_bayes.prep.model_effects`)."""
+import copy
+import json
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from experiments import _conceal as C
+from accel_bayes.errors import UserError  # noqa: E402
+from accel_bayes.likelihood import gyro_posterior  # noqa: E402
+from accel_bayes.physics.effects import make_effect  # noqa: E402
+from accel_bayes.pipelines.calibrate import calibrate  # noqa: E402
+from accel_bayes.prep.model_effects import fused_gyro_posterior, load_model  # noqa: E402
+
+SHORT = dict(chains=1, draws=20, warmup=20, seed=0, progress=False)
+
+
+def _report(rec, findings):
+    """A minimal valid DESIGN §7.2 report of ``rec`` with ``findings`` (parameters as the detector writes them)."""
+    rows = [{"effect": name, "imu": imu, "axis": None, "evidence": 100.0, "parameters": dict(params),
+             "where": {"regime": "all", "time_s": None}, "explanation": "test finding"}
+            for name, imu, params in findings]
+    return {"schema": "accel_bayes.mismatch/1", "mismatch_detected": bool(rows), "threshold": 20.0,
+            "baseline": {"loglik": 0.0, "chi2_per_dof": 1.0, "dof": 1},
+            "refined": {"effects": [r["effect"] for r in rows], "loglik": 0.0, "chi2_per_dof": 1.0} if rows else None,
+            "findings": rows, "details": {"recording": {"K": int(rec.K), "T_given": int(rec.T), "T": int(rec.T)}}}
+
+
+@pytest.fixture(scope="module")
+def wander_case():
+    """mimu8 at 100 Hz with a concealed gyro timing wander (2 ms) on one IMU, plus white noise of
+    std 0.5 rad/s on that gyro (the ``excess_noise_var`` part of the real-data findings); accelerometer
+    noise 5 mm/s² so that the gyro error shared by every triad dominates the misspecification."""
+    case = C.make_case("mimu8", "timing_wander", seed=4, T=800, rate=100.0, magnitude=2e-3, sigma_a=0.005)
+    rec, k = case.recording, case.truth["imu"]
+    g = np.array(rec.gyro)
+    g[:, k] += np.random.default_rng(4).normal(0.0, 0.5, (rec.T, 3))
+    rec.gyro = g
+    p = case.truth["parameters"]
+    found = _report(rec, [("timing_wander", k, {"width": p["width"], "correlation": p["correlation"],
+                                                "excess_noise_var": 0.25, "sensor": "gyro"}),
+                          ("unexplained", 0, {"chi2_ratio": 5.0, "scales_with": "|omega_dot|"})])
+    return rec, found, _report(rec, [])
+
+
+def test_fused_posterior_is_generalized_least_squares():
+    """Against an independent per-sample GLS with numpy: stacked design [I; …; I], block-diagonal
+    weights C_k⁻¹ with C_k = σ_k² I + (w²/12) ω̇ω̇ᵀ + v I on the gyros with a finding."""
+    rng = np.random.default_rng(0)
+    T, G = 7, 4
+    t = np.arange(T) * 0.01
+    y = rng.normal(0, 3.0, (T, G, 3))
+    std = np.array([0.01, 0.02, 0.015, 0.03])
+    labels = [0, 2, 5, 6]
+    e1 = make_effect("timing_wander", imu=2, parameters={"width": 2e-3, "correlation": 0.8, "excess_noise_var": 0.04,
+                                                          "sensor": "gyro"})
+    e2 = make_effect("sampling_jitter", imu=6, parameters={"width": 5e-3})
+    post, wdot = fused_gyro_posterior(torch.as_tensor(y), std, labels, t, [(2, e1), (6, e2)])
+    w = std**-2
+    mean0 = (y * w[None, :, None]).sum(1) / w.sum()
+    wd = np.gradient(mean0, t, axis=0, edge_order=2)  # uniform steps, no gaps: one run
+    np.testing.assert_allclose(wdot.numpy(), wd, rtol=1e-12, atol=1e-9)
+    A = np.tile(np.eye(3), (G, 1))
+    for i in range(T):
+        blocks = [std[g] ** 2 * np.eye(3) for g in range(G)]
+        blocks[1] = blocks[1] + (2e-3) ** 2 / 12 * np.outer(wd[i], wd[i]) + 0.04 * np.eye(3)
+        blocks[3] = blocks[3] + (5e-3) ** 2 / 12 * np.outer(wd[i], wd[i])
+        W = np.zeros((3 * G, 3 * G))
+        for g, B in enumerate(blocks):
+            W[3 * g:3 * g + 3, 3 * g:3 * g + 3] = np.linalg.inv(B)
+        cov = np.linalg.inv(A.T @ W @ A)
+        mean = cov @ A.T @ W @ y[i].reshape(-1)
+        np.testing.assert_allclose(post.mean[i].numpy(), mean, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(post.cov[i].numpy(), cov, rtol=1e-10, atol=1e-16)
+
+
+def test_fused_posterior_without_findings_is_the_calibrated_one():
+    rng = np.random.default_rng(1)
+    y = torch.as_tensor(rng.normal(0, 2.0, (9, 3, 3)))
+    std = np.array([0.01, 0.02, 0.03])
+    post, _ = fused_gyro_posterior(y, std, [0, 1, 2], np.arange(9) * 0.02, [])
+    ref = gyro_posterior(y, torch.as_tensor(std), "calibrated")
+    np.testing.assert_allclose(post.mean.numpy(), ref.mean.numpy(), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(post.cov.numpy(), ref.cov.numpy(), rtol=1e-12)
+
+
+def test_model_brings_the_sandwich_ratio_to_one(wander_case):
+    """The same pipeline with a report without findings (the "calibrated" gyro posterior) and with
+    the wander: the sandwich-to-Laplace std ratio at the MAP drops from ≥ 2 to ≤ 1.3."""
+    rec, found, clean = wander_case
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r0 = calibrate(rec, model=clean, **SHORT)
+        r1 = calibrate(rec, model=found, **SHORT)
+    s0, s1 = r0.settings["model"]["sandwich"], r1.settings["model"]["sandwich"]
+    assert s0["std_ratio_max"] > 2.0 and s0["kappa"] > 3.0
+    assert s1["std_ratio_max"] < 1.3 and abs(s1["kappa"] - 1) < 0.2
+    m = r1.settings["model"]
+    assert [u["effect"] for u in m["used"]] == ["timing_wander"] and m["skipped"][0]["effect"] == "unexplained"
+    assert r1.settings["gyro_method"] == "model" and len(m["sha256"]) == 64
+    assert m["gyro_posterior"]["omega_shift_rms_rad_s"] > 0.05
+    assert len(s1["std_ratio"]) == len(s1["coordinates"]) == 3 * (rec.K - 1)
+    prov = r1.positions["provenance"]["settings"]["model"]
+    assert prov["sha256"] == m["sha256"] and prov["sandwich"]["std_ratio_max"] == s1["std_ratio_max"]
+
+
+def test_model_none_is_the_default_pipeline(wander_case):
+    """model=None: no model record, the request of the run unchanged, the same draws as the explicit
+    defaults (noise_inflation None resolves to True without a model)."""
+    rec, _, _ = wander_case
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = calibrate(rec, **SHORT)
+        b = calibrate(rec, model=None, noise_inflation=True, **SHORT)
+    assert "model" not in a.settings and a.settings["gyro_method"] == "sample_cov"
+    np.testing.assert_array_equal(a.run.theta, b.run.theta)
+
+
+def test_report_file_sha_and_bad_reports(wander_case, tmp_path):
+    rec, found, _ = wander_case
+    p = tmp_path / "report.json"
+    p.write_text(json.dumps(found))
+    import hashlib
+
+    m = load_model(p)
+    assert m.sha256 == hashlib.sha256(p.read_bytes()).hexdigest() and m.source == str(p)
+    m.check_recording(rec)
+    bad = copy.deepcopy(found)
+    bad["details"]["recording"]["K"] = rec.K + 1
+    with pytest.raises(UserError, match=r"details\.recording\.K"):
+        calibrate(rec, model=bad, **SHORT)
+    bad = copy.deepcopy(found)
+    bad["details"]["recording"]["T_given"] = rec.T - 1
+    with pytest.raises(UserError, match=r"details\.recording\.T_given"):
+        load_model(bad).check_recording(rec)
+    bad = copy.deepcopy(found)
+    bad["schema"] = "accel_bayes.mismatch/0"
+    with pytest.raises(UserError, match="schema"):
+        load_model(bad)
+    bad = copy.deepcopy(found)
+    bad["findings"][0]["effect"] = "gyro_wobble"
+    with pytest.raises(UserError, match="unknown effect"):
+        load_model(bad)
+    bad = copy.deepcopy(found)
+    bad["findings"][0]["parameters"]["correlation"] = 1.5
+    with pytest.raises(UserError, match=r"findings\[0\]"):
+        load_model(bad)
+    (tmp_path / "no.json").write_text("{not json")
+    with pytest.raises(UserError, match="not JSON"):
+        load_model(tmp_path / "no.json")
+    with pytest.raises(UserError, match="cannot read"):
+        load_model(tmp_path / "missing.json")
+    with pytest.raises(UserError, match="gyro_method"):
+        calibrate(rec, model=found, gyro_method="sample_cov", **SHORT)
+
+
+def test_cli_model_refuses_a_report_of_another_recording(wander_case, tmp_path, capsys):
+    from accel_bayes.cli import main
+    from accel_bayes.data.io import write_recording
+
+    rec, found, _ = wander_case
+    path = tmp_path / "rec.nc"
+    write_recording(rec, path)
+    bad = copy.deepcopy(found)
+    bad["details"]["recording"]["K"] = 3
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    rc = main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--model", str(tmp_path / "bad.json"),
+               "--quiet", "--no-plots", "--draws", "5", "--warmup", "5", "--chains", "1"])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "details.recording.K" in err[0]
+
+
+def test_noise_bins_on_a_given_covariate(wander_case):
+    """fit_map_with_noise(covariate=|ω̄|) is the default rate binning; a wrong shape is refused."""
+    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.prep.noise import fit_map_with_noise
+
+    rec, _, _ = wander_case
+    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method="calibrated")
+    nominal = torch.as_tensor(np.asarray(rec.nominal_position), dtype=torch.float64)
+    kw = dict(reference=lik.reference, prior_mean=nominal, bins=3, max_rounds=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a, na = fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, **kw)
+        b, nb = fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std,
+                                   covariate=lik.omega.mean.norm(dim=-1).numpy(), **kw)
+    np.testing.assert_array_equal(na.bin_scale, nb.bin_scale)
+    np.testing.assert_array_equal(np.asarray(a.theta), np.asarray(b.theta))
+    with pytest.raises(UserError, match="covariate"):
+        fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, covariate=np.ones(3), **kw)
+
+
+def test_sandwich_clusters_and_their_white_reference():
+    """On a correctly specified simulation (stated noise, no effect, flat φ prior) every clustering of
+    the sandwich, divided by its white-noise reference, is near 1; the per-sample reference is 1 by
+    construction (J̃ lies in the range of P⊥); "sample" is the default and unchanged."""
+    from accel_bayes.inference.map import fit_map
+    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.prep.noise import sandwich_inflation
+
+    rec = C.make_case("mimu8", "none", seed=2, T=1500, rate=100.0).recording
+    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method="calibrated")
+    nominal = torch.as_tensor(np.asarray(rec.nominal_position), dtype=torch.float64)
+    args = (lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = fit_map(*args, reference=lik.reference, prior_mean=nominal)
+    d = sandwich_inflation(*args, res, reference=lik.reference, prior_mean=nominal)
+    s = sandwich_inflation(*args, res, reference=lik.reference, prior_mean=nominal, cluster="sample")
+    np.testing.assert_array_equal(d["std_ratio"], s["std_ratio"])
+    np.testing.assert_allclose(s["std_ratio_white"], 1.0, atol=0.02)
+    for unit in ("channel", "triad", "sample"):
+        c = sandwich_inflation(*args, res, reference=lik.reference, prior_mean=nominal, cluster=unit, lags=0)
+        assert 0.8 < np.median(c["std_ratio_relative"]) < 1.2, unit
+        assert np.max(c["std_ratio_relative"]) < 1.4, unit
+    with pytest.raises(UserError, match="cluster"):
+        sandwich_inflation(*args, res, reference=lik.reference, prior_mean=nominal, cluster="imu")
