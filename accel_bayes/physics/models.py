@@ -10,8 +10,10 @@ One implementation serves simulation, likelihood, MAP and mismatch detection:
   structure h(ω, θ) = G(θ) u(ω): :func:`u_of_omega`, :func:`B_of_position`, :func:`G_matrix`,
   :func:`H_matrix`.  Measurements for it are array-frame (sensor readings rotated by R(q)ᵀ).
 * The [S16] triad model with pose and sensor parameters (eq. 4, 21–22): :func:`triad_output`.
-* The [S16] process model (eq. 7–8): :func:`process_model`, :func:`process_covariance`, and its
-  smoother continuous-time variants (extra state derivatives): :func:`process_transition`.
+* The [S16] process model's transition (eq. 7): :func:`process_model`, and that of its smoother
+  continuous-time variants (extra state derivatives): :func:`process_transition`.  The process
+  noise — the motion priors, eq. 8 and the continuous-time ones — is inference's
+  (:mod:`accel_bayes.inference.selfcal.motion_priors`): nothing below inference uses it.
 
 Shapes: motion tensors carry their batch (time, draws, chains …) first, e.g. ω (..., 3);
 positions are (A, 3) or batched (..., A, 3); outputs are (..., A, 3).
@@ -38,9 +40,7 @@ __all__ = [
     "sensitivity_matrix",
     "process_model",
     "process_transition",
-    "process_covariance",
     "MOTION_STATE_DIMS",
-    "S16_PROCESS_VARIANCES",
 ]
 
 
@@ -181,10 +181,6 @@ def triad_output(
     return z
 
 
-# [S16] §IV-B tuning, used "as given" (DESIGN §3.3): σ_a² = 10³, σ_int² = 10⁻⁷, σ_ω̇² = 10³.
-S16_PROCESS_VARIANCES = {"acc": 1e3, "int": 1e-7, "omega_dot": 1e3}
-
-
 # Motion-state layouts by width: the [S16] state [a_lin, ω, ω̇] (9), with ω̈ appended (12: white
 # noise on the snap ω⃛ drives the angular chain) and with ȧ_lin appended after ω̈ (15: white noise on
 # ä_lin drives the linear chain too).  The first 9 entries are always [a_lin, ω, ω̇]: the triad model
@@ -235,29 +231,6 @@ def process_transition(dt: torch.Tensor, dim: int = 9) -> torch.Tensor:
     if dim == 15:
         F[:, idx, 12 + idx] = dt.unsqueeze(-1)
     return F
-
-
-def process_variances(variances: dict | None = None) -> dict:
-    """The [S16] eq. 8 variances ``acc``, ``int``, ``omega_dot``: the paper's values
-    (:data:`S16_PROCESS_VARIANCES`) updated by ``variances``; unknown keys are refused."""
-    v = dict(S16_PROCESS_VARIANCES)
-    if variances:
-        unknown = set(variances) - set(v)
-        if unknown:
-            raise ValueError(f"variances: unknown keys {sorted(unknown)}; expected acc, int, omega_dot")
-        v.update(variances)
-    return v
-
-
-def process_covariance(dt: torch.Tensor | float, variances: dict | None = None, dtype=torch.float64, device=None) -> torch.Tensor:
-    """[S16] eq. 8: Cov(w_i) = Δt² diag(σ_a² I, σ_int² I, σ_ω̇² I), shape (..., 9, 9).
-
-    ``variances`` has keys ``acc``, ``int``, ``omega_dot`` (defaults: the paper's values).
-    """
-    v = process_variances(variances)
-    dt = torch.as_tensor(dt, dtype=dtype, device=device)
-    diag = torch.tensor([v["acc"]] * 3 + [v["int"]] * 3 + [v["omega_dot"]] * 3, dtype=dtype, device=device)
-    return torch.diag_embed(dt.unsqueeze(-1) ** 2 * diag)
 
 
 def per_axis(value, A: int, name: str, *, dtype=torch.float64, device=None) -> torch.Tensor:
