@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from accel_bayes.inference import selfcal as sc
+from accel_bayes.inference.selfcal.problem import _run_lm
 from accel_bayes.inference.lm.linear import dense_from_blocks
 from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus
@@ -176,7 +177,7 @@ def test_marginal_scale_score_with_snap_states_is_the_derivative_of_the_laplace_
     def nll(c, x_start):
         pc, xc = sc.scale_orbit(p_true, x_start, 0, c)
         prob = sc.build_problem(z, dt, pc, q_rot, xc, 0, inv_std, W, poses_fixed=True)
-        r, _ = sc._run_lm(prob, max_iter=50, ftol=1e-15, xtol=1e-15, gtol=1e-13, progress=False, desc="")
+        r, _ = _run_lm(prob, max_iter=50, ftol=1e-15, xtol=1e-15, gtol=1e-13, progress=False, desc="")
         Jx, _, _ = sc.triad_jacobians(r.locals, q_rot, pc, inv_std)
         Jx = torch.nn.functional.pad(Jx, (0, 6))
         D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
@@ -269,7 +270,7 @@ def test_snap_model_scale_on_a_short_concealed_handlike_recording_at_62_5_hz():
 
 
 def test_block_tridiagonal_logdet_matches_the_dense_one():
-    from accel_bayes.inference.selfcal import _block_tridiagonal_logdet
+    from accel_bayes.inference.lm.linear import block_tridiagonal_logdet as _block_tridiagonal_logdet
 
     gen = torch.Generator().manual_seed(8)
     T, n = 7, 5
