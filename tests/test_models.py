@@ -81,7 +81,7 @@ def test_process_model_and_covariance():
     from accel_bayes.inference.selfcal import motion_priors as mp
 
     x = torch.arange(9, dtype=F64)
-    nxt = m.process_model(x, 0.01)
+    nxt = mp.process_model(x, 0.01)
     assert torch.allclose(nxt[3:6], x[3:6] + 0.01 * x[6:9])
     assert torch.equal(nxt[[0, 1, 2, 6, 7, 8]], x[[0, 1, 2, 6, 7, 8]])
     C = mp.process_covariance(0.008)

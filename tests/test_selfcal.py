@@ -86,7 +86,7 @@ def test_process_residuals_whitening_and_jacobians():
     # eq. 8: e = L⁻¹ (x' − f(x)) with L Lᵀ = Cov(w)
     cov = motion_priors.process_covariance(dt, var)
     L = torch.linalg.cholesky(cov)
-    ref = torch.linalg.solve_triangular(L, (x[1:] - models.process_model(x[:-1], dt)).unsqueeze(-1), upper=False)
+    ref = torch.linalg.solve_triangular(L, (x[1:] - motion_priors.process_model(x[:-1], dt)).unsqueeze(-1), upper=False)
     e = process_residuals(x, dt, W)
     assert torch.allclose(e, ref.squeeze(-1), rtol=1e-12, atol=1e-12)
     # the integration row: (ω_{i+1} − ω_i − ω̇_i Δt) / (Δt σ_int)
@@ -96,7 +96,7 @@ def test_process_residuals_whitening_and_jacobians():
     h = 1e-6
 
     def pair(xp, xn):  # e_i(x_i, x_{i+1}) for all i at once
-        return (xn - models.process_model(xp, dt)) * W
+        return (xn - motion_priors.process_model(xp, dt)) * W
 
     xp, xn = x[:-1], x[1:]
     for k in range(9):
@@ -138,7 +138,7 @@ def test_tridiagonal_schur_solver_matches_dense_solve():
 def test_process_model_motion_integrates_exactly():
     x = simulate_process_motion(300, 1 / RATE, seed=3, segment_length=40, omega_dot_std=4.0)
     dt = torch.full((299,), 1 / RATE, dtype=F64)
-    e = x[1:] - models.process_model(x[:-1], dt)
+    e = x[1:] - motion_priors.process_model(x[:-1], dt)
     assert e[:, 3:6].abs().max() < 1e-12  # eq. 7 integration holds to rounding
     jumps = (e[:, 6:9].abs().sum(-1) > 0).sum()
     assert 0 < jumps <= 300 // 40  # ω̇ changes only at segment boundaries
@@ -635,7 +635,7 @@ def _wnoj_motion(T, dt, q, gen):
     x[0, 0:3] = torch.tensor([0.0, 0.0, 9.81], dtype=F64)
     x[0, 3:6] = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
     for i in range(T - 1):
-        x[i + 1] = models.process_model(x[i], dt) + w[i]
+        x[i + 1] = motion_priors.process_model(x[i], dt) + w[i]
     return x
 
 

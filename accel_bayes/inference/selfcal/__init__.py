@@ -7,8 +7,9 @@ order they build on each other:
 
 * :mod:`.factors` — the triad and process residuals, their analytic Jacobians, the motion's
   block-tridiagonal Gauss–Newton matrix and the selected blocks of its inverse;
-* :mod:`.motion_priors` — every motion prior: [S16] eq. 8 (fixed variances, bridged over
-  left-out samples) and the continuous-time models (white noise on the jerk or the snap);
+* :mod:`.motion_priors` — every motion prior: the state transition ([S16] eq. 7 and its smoother
+  variants), eq. 8 (fixed variances, bridged over left-out samples) and the continuous-time
+  models (white noise on the jerk or the snap);
 * :mod:`.problem` — the graph as an LM problem, one LM run with its cost log;
 * :mod:`.noise_em` — the process-noise intensities: start and type-II ML fixed point;
 * :mod:`.result` — :class:`SelfCalResult`, :class:`SelfCalDiverged`, the poses' covariance;
@@ -25,6 +26,7 @@ from .factors import process_jacobians, process_residuals, triad_jacobians, tria
 from .fitcheck import MISFIT_RMS, UNIDENTIFIED_SCALE_STD, FitCheck, check_divergence, fit_check
 from .motion_priors import (
     MOTION_MODEL_DIMS,
+    MOTION_STATE_DIMS,
     PROCESS_NOISE_MODES,
     S16_PROCESS_VARIANCES,
     bridged_process_whitening,
@@ -32,7 +34,9 @@ from .motion_priors import (
     continuous_process_whitening,
     integrated_wiener_covariance,
     process_covariance,
+    process_model,
     process_sqrt_information,
+    process_transition,
     process_variances,
     wnoj_process_covariance,
     wnoj_process_whitening,
@@ -55,6 +59,9 @@ __all__ = [
     "process_jacobians",
     "process_sqrt_information",
     "bridged_process_whitening",
+    "MOTION_STATE_DIMS",
+    "process_model",
+    "process_transition",
     "S16_PROCESS_VARIANCES",
     "process_variances",
     "process_covariance",

@@ -10,7 +10,7 @@
 * one **process residual** between consecutive states ([S16] eq. 14), whitened by a square root
   W of the inverse process covariance (:mod:`.motion_priors`):
 
-      e_i = W_i (x_{i+1} − f(x_i)),   f = :func:`accel_bayes.physics.models.process_model`.
+      e_i = W_i (x_{i+1} − f(x_i)),   f = :func:`.motion_priors.process_model`.
 
 Quaternions are updated on their manifold with the exponential-map box-plus q ⊞ δ = q ∘ exp(δ)
 (:func:`accel_bayes.physics.geometry.boxplus`; δ a rotation vector, so Laplace covariances in δ
@@ -30,6 +30,7 @@ from ...physics import jacobians as jac
 from ...physics import models
 from ...physics.geometry import quat_to_matrix, skew
 from ..lm.linear import block_tridiagonal_selected_inverse
+from .motion_priors import process_model, process_transition
 
 __all__ = ["triad_residuals", "triad_jacobians", "process_residuals", "process_jacobians", "motion_hessian",
            "motion_posterior"]
@@ -112,10 +113,10 @@ def process_residuals(states: torch.Tensor, dt: torch.Tensor, sqrt_info: torch.T
     states (T, 9); dt (T−1,) s; sqrt_info (T−1, 9) from :func:`process_sqrt_information`, or the
     full (T−1, 9, 9) whitening of :func:`bridged_process_whitening`.  Returns (T−1, 9).  For the
     continuous-time models: states (T, d) of a width in
-    :data:`accel_bayes.physics.models.MOTION_STATE_DIMS` and W (T−1, d, d) from
-    :func:`continuous_process_whitening` (the transition of :func:`models.process_model` of width d).
+    :data:`.motion_priors.MOTION_STATE_DIMS` and W (T−1, d, d) from
+    :func:`continuous_process_whitening` (the transition of :func:`.motion_priors.process_model` of width d).
     """
-    return _whiten(states[1:] - models.process_model(states[:-1], dt), sqrt_info)
+    return _whiten(states[1:] - process_model(states[:-1], dt), sqrt_info)
 
 
 def process_jacobians(dt: torch.Tensor, sqrt_info: torch.Tensor):
@@ -123,11 +124,11 @@ def process_jacobians(dt: torch.Tensor, sqrt_info: torch.Tensor):
 
     Returns ``(J_prev, J_next)`` (T−1, 9, 9): ∂e_i/∂x_i = −W F_i and ∂e_i/∂x_{i+1} = W with
     W = diag(sqrt_info_i) (or sqrt_info_i itself when it is a full (9, 9) whitening) and
-    F_i = [[I, 0, 0], [0, I, Δt_i I], [0, 0, I]] (width 9; :func:`models.process_transition` for
+    F_i = [[I, 0, 0], [0, I, Δt_i I], [0, 0, I]] (width 9; :func:`.motion_priors.process_transition` for
     the wider states of the continuous-time models, W then (T−1, d, d)).
     """
     W = torch.diag_embed(sqrt_info) if sqrt_info.dim() == 2 else sqrt_info
-    F = models.process_transition(dt, W.shape[-1])
+    F = process_transition(dt, W.shape[-1])
     return -(W @ F), W
 
 

@@ -1,6 +1,7 @@
-"""The motion priors of the [S16] self-calibration: the covariance of the process noise w in
-x_{i+1} = f(x_i) + w (transition f: :func:`accel_bayes.physics.models.process_model`) and the
-whitening W (W Cov Wᵀ = I) that turns it into the process factor of :mod:`.factors`.
+"""The motion priors of the [S16] self-calibration: x_{i+1} = f(x_i) + w, the transition f of the
+motion state (:func:`process_model`, linear: :func:`process_transition`; layouts
+:data:`MOTION_STATE_DIMS`), the covariance of the process noise w, and the whitening W
+(W Cov Wᵀ = I) that turns it into the process factor of :mod:`.factors`.
 
 Every motion-prior family of the package is here:
 
@@ -26,9 +27,11 @@ from dataclasses import dataclass
 
 import torch
 
-from ...physics import models
 
 __all__ = [
+    "MOTION_STATE_DIMS",
+    "process_model",
+    "process_transition",
     "S16_PROCESS_VARIANCES",
     "process_variances",
     "process_covariance",
@@ -44,6 +47,58 @@ __all__ = [
     "MotionPrior",
     "motion_prior",
 ]
+
+# Motion-state layouts by width: the [S16] state [a_lin, ω, ω̇] (9), with ω̈ appended (12: white
+# noise on the snap ω⃛ drives the angular chain) and with ȧ_lin appended after ω̈ (15: white noise on
+# ä_lin drives the linear chain too).  The first 9 entries are always [a_lin, ω, ω̇]: the triad model
+# reads only those, the extra derivatives enter the process model alone.
+MOTION_STATE_DIMS = (9, 12, 15)
+
+
+def process_model(state: torch.Tensor, dt: torch.Tensor | float) -> torch.Tensor:
+    """[S16] eq. 7: x_{i+1} = [a_lin,i ; ω_i + ω̇_i Δt ; ω̇_i] for states (..., 9).
+
+    For the smoother layouts of :data:`MOTION_STATE_DIMS` the exact transition of the chains of
+    integrators (Taylor polynomials, no truncation): states (..., 12) = [a_lin, ω, ω̇, ω̈] give
+    ω + ω̇Δt + ω̈Δt²/2, ω̇ + ω̈Δt, ω̈; states (..., 15) = [a_lin, ω, ω̇, ω̈, ȧ_lin] also
+    a_lin + ȧ_lin Δt, ȧ_lin.  Units: m/s², rad/s, rad/s², rad/s³, m/s³; Δt in s.
+    """
+    dt = torch.as_tensor(dt, dtype=state.dtype, device=state.device)
+    if dt.dim() > 0:
+        dt = dt.unsqueeze(-1)
+    a, w, wd = state[..., 0:3], state[..., 3:6], state[..., 6:9]
+    d = state.shape[-1]
+    if d == 9:
+        return torch.cat((a, w + wd * dt, wd), -1)
+    if d not in MOTION_STATE_DIMS:
+        raise ValueError(f"state: expected a last dimension in {MOTION_STATE_DIMS}, got {d}")
+    wdd = state[..., 9:12]
+    out = [a, w + wd * dt + wdd * (dt * dt / 2), wd + wdd * dt, wdd]
+    if d == 15:
+        ad = state[..., 12:15]
+        out[0] = a + ad * dt
+        out.append(ad)
+    return torch.cat(out, -1)
+
+
+def process_transition(dt: torch.Tensor, dim: int = 9) -> torch.Tensor:
+    """F_i (T−1, dim, dim) with :func:`process_model`(x, Δt_i) = F_i x (the model is linear).
+
+    dt (T−1,) s; dim one of :data:`MOTION_STATE_DIMS`.  Entries Δt^k/k! along each chain of
+    integrators ([S16] eq. 7 for dim 9)."""
+    if dim not in MOTION_STATE_DIMS:
+        raise ValueError(f"dim: expected one of {MOTION_STATE_DIMS}, got {dim}")
+    n = dt.shape[0]
+    F = torch.eye(dim, dtype=dt.dtype, device=dt.device).expand(n, dim, dim).clone()
+    idx = torch.arange(3, device=dt.device)
+    F[:, 3 + idx, 6 + idx] = dt.unsqueeze(-1)
+    if dim >= 12:
+        F[:, 3 + idx, 9 + idx] = (dt * dt / 2).unsqueeze(-1)
+        F[:, 6 + idx, 9 + idx] = dt.unsqueeze(-1)
+    if dim == 15:
+        F[:, idx, 12 + idx] = dt.unsqueeze(-1)
+    return F
+
 
 # [S16] §IV-B tuning, used "as given" (DESIGN §3.3): σ_a² = 10³, σ_int² = 10⁻⁷, σ_ω̇² = 10³.
 S16_PROCESS_VARIANCES = {"acc": 1e3, "int": 1e-7, "omega_dot": 1e3}
@@ -123,7 +178,7 @@ def bridged_process_whitening(dt: torch.Tensor, steps, variances: dict | None = 
 # continuous-time model below with its two intensities estimated from the recording.
 PROCESS_NOISE_MODES = ("s16", "estimate", "estimate-snap")
 
-# Width of the motion state of each continuous-time model (layouts: physics.models.MOTION_STATE_DIMS).
+# Width of the motion state of each continuous-time model (layouts: MOTION_STATE_DIMS).
 # "estimate": white noise on the jerk ω̈ and on ȧ_lin, x = [a_lin, ω, ω̇] (9);
 # "estimate-snap": white noise on the snap ω⃛ and on ä_lin, x = [a_lin, ω, ω̇, ω̈, ȧ_lin] (15) —
 # smooth ω̇ and a_lin, as hand motion has (issue #12; ω̇ is a Brownian path under the jerk model).
@@ -186,11 +241,11 @@ def continuous_process_covariance(dt: torch.Tensor, intensities: dict, dim: int 
 
     Per axis of the array frame, white noise of intensity q_a drives the chain (a_lin, ȧ_lin) at its
     top derivative and white noise of intensity q_ω the chain (ω, ω̇, ω̈); the orders follow the
-    state width ``dim`` (:data:`accel_bayes.physics.models.MOTION_STATE_DIMS`): 9 — ȧ_lin and the
+    state width ``dim`` (:data:`MOTION_STATE_DIMS`): 9 — ȧ_lin and the
     jerk ω̈ white (q_a (m/s³)²·s, q_ω (rad/s³)²·s; :func:`wnoj_process_covariance`); 12 — the snap
     ω⃛ white (q_ω (rad/s⁴)²·s); 15 — ä_lin white too (q_a (m/s⁴)²·s).  Each chain's block is
     q · :func:`integrated_wiener_covariance`, exact for any Δt; the chains are independent.  The
-    transition is :func:`accel_bayes.physics.models.process_model` of the same width.
+    transition is :func:`process_model` of the same width.
     """
     if dim == 9:
         return wnoj_process_covariance(dt, intensities)
@@ -250,7 +305,7 @@ class MotionPrior:
 
     mode : "s16" (eq. 8, fixed variances), "estimate" / "estimate-snap" (continuous-time, the
         intensities estimated) or "fixed" (continuous-time with given intensities).
-    dim : width of the motion state (:data:`accel_bayes.physics.models.MOTION_STATE_DIMS`).
+    dim : width of the motion state (:data:`MOTION_STATE_DIMS`).
     intensities : the given {"acc", "omega"} of mode "fixed", else None.
     variances : the eq. 8 overrides of mode "s16" (None: the paper's).
     """

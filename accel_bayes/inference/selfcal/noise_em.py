@@ -18,10 +18,17 @@ import torch
 
 from ...physics.geometry import quat_to_matrix
 from .factors import motion_posterior, process_residuals
-from .motion_priors import _CHAIN_ORDERS, _intensity_rows, continuous_process_whitening
+from .motion_priors import (
+    _CHAIN_ORDERS,
+    MotionPrior,
+    _intensity_rows,
+    bridged_process_whitening,
+    continuous_process_whitening,
+    process_sqrt_information,
+)
 
 __all__ = ["initial_process_intensities", "initial_smooth_process_intensities", "process_noise_statistics",
-           "update_process_intensities", "ProcessNoise", "estimate_intensities"]
+           "update_process_intensities", "ProcessNoise", "initial_process_noise", "estimate_intensities"]
 
 
 def initial_process_intensities(acc: torch.Tensor, dt: torch.Tensor, positions: torch.Tensor,
@@ -109,7 +116,7 @@ def process_noise_statistics(states, positions, orientations, dt, W, inv_std, S=
     tridiagonal), a group k of whitened residual rows with Jacobian J_k has leverage
     h_k = tr(J_k H⁻¹ J_kᵀ), computed from the diagonal and first off-diagonal blocks of H⁻¹.
     Returns {"acc": (rss, n, h), "omega": (rss, n, h)}.  States (T, d) of any width of
-    :data:`accel_bayes.physics.models.MOTION_STATE_DIMS` (W (T−1, d, d) of the same width).
+    :data:`.motion_priors.MOTION_STATE_DIMS` (W (T−1, d, d) of the same width).
     """
     Jp, Jn, Sig, C = motion_posterior(states, positions, orientations, dt, W, inv_std, S)
     M = (Jp @ Sig[:-1] @ Jp.transpose(-1, -2) + Jp @ C @ Jn.transpose(-1, -2)
@@ -150,6 +157,30 @@ class ProcessNoise:
     q: dict | None
     start: dict | None
     history: list = field(default_factory=list)
+
+
+def initial_process_noise(acc, dt, steps, positions, orientations, fixed: int, inv_std,
+                          prior: MotionPrior) -> ProcessNoise:
+    """The process noise of the first LM run: eq. 8 (bridged over left-out samples, ``steps`` (T−1,)
+    grid steps per fitted step, or None), or the continuous-time model of ``prior`` at its given
+    intensities or at the raw-output start made stiff (×_START_STIFFNESS on q_ω).  acc (T, A, 3)
+    m/s², dt (T−1,) s, start poses positions (A, 3) m / orientations (A, 4), inv_std (A, 3)."""
+    intensities = prior.intensities
+    if prior.mode == "s16":
+        if steps is None or bool((torch.as_tensor(steps) == 1).all()):
+            sqrt_info = process_sqrt_information(dt, prior.variances)
+        else:
+            sqrt_info = bridged_process_whitening(dt, steps, prior.variances)
+    else:
+        if intensities is None:
+            if prior.dim == 9:
+                intensities = initial_process_intensities(acc, dt, positions, orientations, fixed, inv_std)
+            else:
+                intensities = initial_smooth_process_intensities(acc, dt, positions, orientations, fixed, inv_std,
+                                                                 prior.dim)
+            intensities["omega"] *= _START_STIFFNESS
+        sqrt_info = continuous_process_whitening(dt, intensities, prior.dim)
+    return ProcessNoise(W=sqrt_info, q=intensities, start=intensities)
 
 
 def estimate_intensities(res, log: list, label: str, noise: ProcessNoise, refit: Callable, dt: torch.Tensor,

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import torch
 
-from ...physics import models
 from ..lm import ChainResidual, LevenbergMarquardt, Problem, SampleResidual, Variable
 from ..lm.damping import MarquardtDamping
 from ..lm.linear import SchurComplementSolver
 from .factors import _pad_state_columns, _whiten, process_jacobians, triad_jacobians, triad_residuals
+from .motion_priors import process_model
 
 __all__ = ["build_problem"]
 
@@ -63,7 +63,7 @@ def build_problem(
     J_prev, J_next = process_jacobians(dt, sqrt_info)
 
     def proc_fn(g, xp, xn, data):
-        return _whiten(xn - models.process_model(xp, dt), sqrt_info)
+        return _whiten(xn - process_model(xp, dt), sqrt_info)
 
     def proc_jac(g, xp, xn, data):
         return {}, J_prev, J_next

@@ -10,7 +10,7 @@ and a unit quaternion).
 
 It runs in steps, each returning a small record: the inputs checked (:func:`.inputs.solve_inputs`),
 the motion prior read from the options (:class:`SelfcalSolveOptions`, :func:`.motion_priors.motion_prior`),
-its start whitening (:func:`_initial_noise`), the LM runs — first, restart after a divergence,
+its start whitening (:func:`.noise_em.initial_process_noise`), the LM runs — first, restart after a divergence,
 re-run from the estimate — each a :class:`_Run` (:class:`_Solver`, :func:`_runs`), and the result
 with its covariance and scale correction (:func:`_result`).
 """
@@ -24,21 +24,9 @@ import torch
 from ...physics.geometry import quat_normalize
 from .fitcheck import _whitened_rms, check_divergence
 from .inputs import SolveInputs, solve_inputs
-from .motion_priors import (
-    MotionPrior,
-    bridged_process_whitening,
-    continuous_process_whitening,
-    motion_prior,
-    process_sqrt_information,
-    process_variances as s16_variances,
-)
-from .noise_em import (
-    _START_STIFFNESS,
-    ProcessNoise,
-    estimate_intensities,
-    initial_process_intensities,
-    initial_smooth_process_intensities,
-)
+from .motion_priors import MotionPrior, continuous_process_whitening, motion_prior
+from .motion_priors import process_variances as s16_variances
+from .noise_em import _START_STIFFNESS, ProcessNoise, estimate_intensities, initial_process_noise
 from .problem import _run_lm, build_problem
 from .result import SelfCalDiverged, SelfCalResult, pose_covariance
 from .scale import laplace_scale_correction, score_scale_correction
@@ -78,27 +66,6 @@ class SelfcalSolveOptions:
         object.__setattr__(self, "prior", motion_prior(self.process_noise, self.process_variances))
         if self.rerun_from_estimate not in (True, False, "auto"):
             raise ValueError(f"rerun_from_estimate: expected True, False or 'auto', got {self.rerun_from_estimate!r}")
-
-
-def _initial_noise(inp: SolveInputs, prior: MotionPrior) -> ProcessNoise:
-    """The process whitening of the first run: eq. 8 (bridged over left-out samples), or the
-    continuous-time model at its given intensities or at the raw-output start, made stiff."""
-    intensities = prior.intensities
-    if prior.mode == "s16":
-        if inp.steps is None or bool((torch.as_tensor(inp.steps) == 1).all()):
-            sqrt_info = process_sqrt_information(inp.dt, prior.variances)
-        else:
-            sqrt_info = bridged_process_whitening(inp.dt, inp.steps, prior.variances)
-    else:
-        if intensities is None:
-            if prior.dim == 9:
-                intensities = initial_process_intensities(inp.acc, inp.dt, inp.p0, inp.q0, inp.fixed, inp.inv_std)
-            else:
-                intensities = initial_smooth_process_intensities(inp.acc, inp.dt, inp.p0, inp.q0, inp.fixed,
-                                                                 inp.inv_std, prior.dim)
-            intensities["omega"] *= _START_STIFFNESS
-        sqrt_info = continuous_process_whitening(inp.dt, intensities, prior.dim)
-    return ProcessNoise(W=sqrt_info, q=intensities, start=intensities)
 
 
 def _initial_motion(init_motion, T: int, dim: int, dtype, device) -> torch.Tensor:
@@ -320,7 +287,7 @@ def self_calibrate(
     fixed : index of the triad held at its nominal pose.
     acc_noise_std : m/s², scalar, (A,) or (A, 3); default 0.02 ([S16] §IV-B: σ² = 4·10⁻⁴).
     process_variances : dict acc / int / omega_dot of eq. 8 (default
-        :data:`accel_bayes.physics.models.S16_PROCESS_VARIANCES`, the paper's 10³, 10⁻⁷, 10³).
+        :data:`.motion_priors.S16_PROCESS_VARIANCES`, the paper's 10³, 10⁻⁷, 10³).
         Only with ``process_noise="s16"``.
     process_noise : the motion model.  ``"s16"`` (default; the paper's experiments): eq. 8 with the
         fixed ``process_variances``.  ``"estimate"`` (issue #12): the continuous-time white-noise-on-jerk model (:func:`wnoj_process_covariance`; same
@@ -402,7 +369,7 @@ def self_calibrate(
         warm_start_motion=warm_start_motion, restart_on_divergence=restart_on_divergence, damping=damping)
     inp = solve_inputs(acc, time_or_dt, steps, nominal_positions, nominal_orientations, fixed, acc_noise_std,
                        sensor_params, dtype, device)
-    noise = _initial_noise(inp, opts.prior)
+    noise = initial_process_noise(inp.acc, inp.dt, inp.steps, inp.p0, inp.q0, inp.fixed, inp.inv_std, opts.prior)
     x0 = _initial_motion(init_motion, inp.T, opts.prior.dim, dtype, inp.acc.device)
     out = _result(_runs(_Solver(inp, opts, noise), x0), inp, opts, noise)
     out.seconds = _time.perf_counter() - t_start
