@@ -186,8 +186,8 @@ def initial_process_noise(acc, dt, steps, positions, orientations, fixed: int, i
 def estimate_intensities(res, log: list, label: str, noise: ProcessNoise, refit: Callable, dt: torch.Tensor,
                          inv_std: torch.Tensor, S, *, max_steps: int, rtol: float):
     """Type-II ML of the process intensities: alternate the fixed-point update with the joint LM
-    (``refit(positions, orientations, states, W, k)`` → (LM result, cost log), warm-started at the
-    previous estimate) until the intensities move < ``rtol`` (relative) or ``max_steps`` updates.
+    (``refit(positions, orientations, states, k)`` → (LM result, cost log) of update k at the
+    updated ``noise.W``, warm-started at the previous estimate) until the intensities move < ``rtol`` (relative) or ``max_steps`` updates.
     Updates ``noise`` and extends ``log``; returns the last LM result."""
     dim = noise.W.shape[-1]
     for k in range(max_steps):
@@ -202,7 +202,7 @@ def estimate_intensities(res, log: list, label: str, noise: ProcessNoise, refit:
             break
         noise.q = new
         noise.W = continuous_process_whitening(dt, new, dim)
-        res, log_k = refit(vals["position"], vals["rotation"], x, noise.W, k + 1)
+        res, log_k = refit(vals["position"], vals["rotation"], x, k + 1)
         off = log[-1]["iteration"]
         for e in log_k:
             e["stage"] = f"noise {k + 1}"

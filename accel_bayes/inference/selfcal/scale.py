@@ -136,7 +136,7 @@ def _scale_orbit_start(out: SelfCalResult, res, A: int, fixed: int):
 
 
 def laplace_scale_correction(out: SelfCalResult, res, A: int, fixed: int, acc, dt, W, inv_std, S, offset,
-                             max_iter: int, max_steps: int = 10) -> "ScaleCorrection | None":
+                             max_iter: int, max_steps: int = 10) -> ScaleCorrection | None:
     """Move the joint MAP along the scale orbit to the minimum of the Laplace marginal
     :func:`laplace_scale_nll` over c.  Start: c = 1, 1 ± sd (sd the Laplace std of the relative
     scale at the joint MAP); then parabolic steps through the three best points, each at most
@@ -189,7 +189,7 @@ def laplace_scale_correction(out: SelfCalResult, res, A: int, fixed: int, acc, d
 
 
 def score_scale_correction(out: SelfCalResult, res, A: int, fixed: int, dt, W, inv_std, S,
-                           max_steps: int = 6) -> "ScaleCorrection | None":
+                           max_steps: int = 6) -> ScaleCorrection | None:
     """Move the joint MAP along the scale orbit to the maximum of the Laplace marginal likelihood
     of the poses (motion integrated out): the root of d(−log p)/dc (:func:`marginal_scale_score`),
     bracketed from the joint MAP by Newton steps with Var(c), the Laplace variance of the scale along

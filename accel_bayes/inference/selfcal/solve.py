@@ -8,11 +8,12 @@ derivatives enter the process residuals only — local blocks, one per sample, c
 by the process residuals, and the poses of the free triads (global blocks: a Euclidean position
 and a unit quaternion).
 
-It runs in steps, each returning a small record: the inputs checked (:func:`.inputs.solve_inputs`),
-the motion prior read from the options (:class:`SelfcalSolveOptions`, :func:`.motion_priors.motion_prior`),
-its start whitening (:func:`.noise_em.initial_process_noise`), the LM runs — first, restart after a divergence,
-re-run from the estimate — each a :class:`_Run` (:class:`_Solver`, :func:`_runs`), and the result
-with its covariance and scale correction (:func:`_result`).
+It runs in steps, each returning a small record: the inputs checked
+(:func:`.inputs.solve_inputs`), the motion prior read from the options
+(:class:`SelfcalSolveOptions`, :func:`.motion_priors.motion_prior`), its start whitening
+(:func:`.noise_em.initial_process_noise`), the LM runs — first, restart after a divergence, re-run
+from the estimate — each a :class:`_Run` (:class:`_Solver`, :func:`_runs`), and the result with
+its covariance and scale correction (:func:`_result`).
 """
 from __future__ import annotations
 
@@ -139,7 +140,7 @@ class _Solver:
             e["iteration"] += offset_it
         log.extend(log1[1:] if log else log1)
         if o.prior.estimated:
-            def refit(p, q, x, W, k):
+            def refit(p, q, x, k):  # at the noise.W that estimate_intensities just set
                 return self._lm(self._problem(p, q, x), f"selfcal {label} (noise {k})", o.ftol)
 
             res = estimate_intensities(res, log, label, noise, refit, inp.dt, inp.inv_std, inp.S,
