@@ -84,3 +84,43 @@ def test_solve_options_are_frozen_and_carry_the_motion_prior():
         o.max_iter = 3
     with pytest.raises(ValueError, match="'dim'"):
         sc.SelfcalSolveOptions(process_noise={"acc": 2.0, "omega": 3.0, "dim": 10})
+
+
+def test_a_rerun_that_is_not_kept_leaves_the_kept_runs_process_noise(monkeypatch):
+    """With an estimated process noise, a re-run that is not kept must not lend its intensities
+    to the result, nor its whitening to the scale correction of the kept estimate.  Before the
+    fix both were the last run's (the re-run's).  The re-run is made "worse" by inflating its
+    reported cost after it ran, so that the first run is kept."""
+    from accel_bayes.physics.geometry import boxplus
+    from accel_bayes.physics.motion import simulate_process_motion
+
+    arr = s16_plate()
+    g = torch.Generator().manual_seed(8)
+    x = simulate_process_motion(160, 1 / 125.0, seed=8, segment_length=20, omega_dot_std=8.0, omega0_std=3.0)
+    q_true = boxplus(arr.orientations, 0.05 * torch.randn(arr.K, 3, generator=g, dtype=torch.float64))
+    p_true = arr.positions + 2e-3 * torch.randn(arr.K, 3, generator=g, dtype=torch.float64)
+    z = models.triad_output(x, q_true, p_true) + 0.01 * torch.randn(160, arr.K, 3, generator=g, dtype=torch.float64)
+
+    seen = {}
+    run = solve._Solver.run
+
+    def run_and_record(self, p, q, x0, label):
+        out = run(self, p, q, x0, label)
+        seen[label] = (dict(self.noise.q), self.noise.W.clone())
+        return dataclasses.replace(out, F=out.F * 10) if label == "rerun" else out
+
+    scale = solve.laplace_scale_correction
+
+    def scale_and_record(out, res, A, fixed, acc, dt, W, *a, **k):
+        seen["scale_W"] = W
+        return scale(out, res, A, fixed, acc, dt, W, *a, **k)
+
+    monkeypatch.setattr(solve._Solver, "run", run_and_record)
+    monkeypatch.setattr(solve, "laplace_scale_correction", scale_and_record)
+    res = sc.self_calibrate(z, 1 / 125.0, nominal_positions=arr.positions, nominal_orientations=arr.orientations,
+                            acc_noise_std=0.01, process_noise="estimate-snap", max_iter=60)
+    assert res.ok and [r["label"] for r in res.runs] == ["first", "rerun"] and res.runs[1]["kept"] is False
+    q_first, W_first = seen["first"]
+    assert seen["rerun"][0] != q_first  # the re-run did move the intensities: the check can fail
+    assert res.process_noise["intensities"] == q_first
+    assert torch.equal(seen["scale_W"], W_first)

@@ -85,13 +85,16 @@ def _initial_motion(init_motion, T: int, dim: int, dtype, device) -> torch.Tenso
 @dataclass(frozen=True)
 class _Run:
     """One LM run from a start: the LM result, its cost log, F (paper scaling), the divergence
-    reason (None: not diverged) and the summary that goes into ``SelfCalResult.runs``."""
+    reason (None: not diverged), the summary that goes into ``SelfCalResult.runs``, and the
+    process noise it ended with (intensities q or None, whitening W)."""
 
     res: object
     log: list
     F: float
     why: str | None
     summary: dict
+    q: dict | None
+    W: torch.Tensor
 
 
 class _Solver:
@@ -160,7 +163,7 @@ class _Solver:
                    "iterations": len(log) - 1, "lm_reason": reason,
                    "converged": bool(res.converged), "diverged": why,
                    "positions": p.detach(), "orientations": q.detach(), "states": x.detach()}
-        return _Run(res, log, F, why, summary)
+        return _Run(res, log, F, why, summary, noise.q, noise.W)
 
 
 @dataclass(frozen=True)
@@ -202,7 +205,8 @@ def _runs(solver: _Solver, x0: torch.Tensor) -> _Runs:
 
 def _result(runs: _Runs, inp: SolveInputs, opts: SelfcalSolveOptions, noise: ProcessNoise) -> SelfCalResult:
     """The result of the kept run, with the Laplace covariance of the poses and, with an
-    estimated process noise, the scale correction (both only when it did not diverge)."""
+    estimated process noise, the scale correction (both only when it did not diverge); the
+    intensities reported and used are the kept run's, the history that of all runs."""
     best, prior = runs.best, opts.prior
     res, why = best.res, best.why
     status = "ok" if why is None else "diverged"
@@ -213,7 +217,7 @@ def _result(runs: _Runs, inp: SolveInputs, opts: SelfcalSolveOptions, noise: Pro
         n_constraints={"triad": inp.T * inp.A, "process": inp.T - 1}, runs=runs.runs,
         converged=bool(res.converged), lm_reason=res.reason, n_iter=res.n_iter,
         process_noise={"mode": prior.mode, "state_dim": prior.dim,
-                       "intensities": None if noise.q is None else dict(noise.q),
+                       "intensities": None if best.q is None else dict(best.q),
                        "variances": s16_variances(prior.variances) if prior.mode == "s16" else None,
                        "history": noise.history},
     )
@@ -222,11 +226,12 @@ def _result(runs: _Runs, inp: SolveInputs, opts: SelfcalSolveOptions, noise: Pro
         if cov is not None:
             out.position_cov, out.rotation_cov, out.covariance = cov
     if status == "ok" and prior.mode != "s16" and opts.marginal_scale:
-        # noise.W is the last run's whitening (the re-run's even when it was not kept)
+        # the kept run's process noise, not the last run's: a re-run that was not kept ended at
+        # intensities of its own
         if opts.marginal_scale == "score":
-            corr = score_scale_correction(out, res, inp.A, inp.fixed, inp.dt, noise.W, inp.inv_std, inp.S)
+            corr = score_scale_correction(out, res, inp.A, inp.fixed, inp.dt, best.W, inp.inv_std, inp.S)
         else:
-            corr = laplace_scale_correction(out, res, inp.A, inp.fixed, inp.acc, inp.dt, noise.W, inp.inv_std, inp.S,
+            corr = laplace_scale_correction(out, res, inp.A, inp.fixed, inp.acc, inp.dt, best.W, inp.inv_std, inp.S,
                                             inp.offset, opts.max_iter)
         if corr is not None:
             out.raw_positions, out.states = corr.positions, corr.states
