@@ -110,6 +110,7 @@ def scipy_problem(z, dt, proto, x0, inv, W, S):
     """Residual function, start vector and sparsity pattern for scipy (same residuals)."""
     import scipy.sparse as sp
 
+    from accel_bayes.inference.selfcal.motion_priors import process_model
     from accel_bayes.physics import models
     from accel_bayes.physics.geometry import quat_exp, quat_mul
 
@@ -127,7 +128,7 @@ def scipy_problem(z, dt, proto, x0, inv, W, S):
     def fun(v):
         p, q, x = unpack(v)
         e1 = (z - models.triad_output(x, q, p, S, proto["offset"])) * inv
-        e2 = (x[1:] - models.process_model(x[:-1], dt)) * W
+        e2 = (x[1:] - process_model(x[:-1], dt)) * W
         return torch.cat((e1.reshape(-1), e2.reshape(-1))).numpy()
 
     v0 = np.concatenate((np.zeros(6 * nf), x0.reshape(-1).numpy()))

@@ -10,6 +10,10 @@ Outputs (each a small problem, seconds each):
 * ``map.*`` — [C21] MAP on a simulated mimu8 data set: positions and Laplace covariance;
 * ``selfcal.*`` — [S16] self-calibration (process-model motion, noisy plate): poses, states,
   Laplace covariance;
+* ``selfcal_modes.*`` — the same data through the other motion models and options of
+  ``self_calibrate``: "estimate-snap" (intensity fixed point, Laplace scale correction, fit check),
+  "estimate" with the "score" scale correction, and "s16" over left-out samples (bridged process
+  factors) with known sensor parameters, another fixed triad and ``rerun_from_estimate="auto"``;
 * ``conventional.*`` — [S16] eq. 19 conventional calibration: poses, sensor parameters, covariance;
 * ``intrinsics.*`` — intrinsics from a simulated recording with 24 rests;
 * ``crb`` — the Cramér–Rao bound of θ for the MAP data set;
@@ -103,8 +107,9 @@ def run_selfcal(out: dict):
     from accel_bayes import models
     from accel_bayes.arrays import s16_plate
     from accel_bayes.geometry import boxplus
-    from accel_bayes.inference.selfcal import self_calibrate, simulate_process_motion
+    from accel_bayes.inference.selfcal import self_calibrate
 
+    simulate_process_motion = _process_motion()
     f64 = torch.float64
     gen = torch.Generator().manual_seed(22)
     T, A = 200, 5
@@ -119,6 +124,72 @@ def run_selfcal(out: dict):
     out["selfcal.orientations"] = _np(res.orientations)
     out["selfcal.states"] = _np(res.states)
     out["selfcal.covariance"] = _np(res.covariance)
+
+
+def _process_motion():
+    """``simulate_process_motion`` from its 7adf109 home (``inference.selfcal``) or, in a tree where
+    the self-calibration became a package, from the motion generators (``physics.motion``)."""
+    try:
+        from accel_bayes.inference.selfcal import simulate_process_motion
+    except ImportError:
+        from accel_bayes.motion import simulate_process_motion
+    return simulate_process_motion
+
+
+def _selfcal_case(seed: int, T: int):
+    from accel_bayes import models
+    from accel_bayes.arrays import s16_plate
+    from accel_bayes.geometry import boxplus
+
+    f64 = torch.float64
+    gen = torch.Generator().manual_seed(seed)
+    x = _process_motion()(T, 1 / 125.0, seed=seed, segment_length=20, omega_dot_std=8.0, omega0_std=3.0)
+    arr = s16_plate()
+    A = arr.K
+    q_true = boxplus(arr.orientations, 0.05 * torch.randn(A, 3, generator=gen, dtype=f64))
+    p_true = arr.positions + 2e-3 * torch.randn(A, 3, generator=gen, dtype=f64)
+    z = models.triad_output(x, q_true, p_true) + 0.01 * torch.randn(T, A, 3, generator=gen, dtype=f64)
+    return arr, z
+
+
+def _selfcal_outputs(out: dict, key: str, res) -> None:
+    out[f"{key}.positions"] = _np(res.positions)
+    out[f"{key}.orientations"] = _np(res.orientations)
+    out[f"{key}.states"] = _np(res.states)
+    if res.covariance is not None:
+        out[f"{key}.covariance"] = _np(res.covariance)
+    out[f"{key}.cost"] = np.array([res.cost, res.n_iter, len(res.full_cost_log), len(res.runs)], dtype=np.float64)
+    pn = res.process_noise
+    if pn.get("intensities"):
+        out[f"{key}.intensities"] = np.array([pn["intensities"]["acc"], pn["intensities"]["omega"]])
+        out[f"{key}.history"] = np.array([[h["intensities"]["acc"], h["intensities"]["omega"], h["change"]]
+                                          for h in pn["history"]])
+    sc = pn.get("scale_correction")
+    if sc:
+        out[f"{key}.scale"] = np.array([sc["factor"]] + [v for s in sc["steps"] for v in s.values()])
+
+
+def run_selfcal_modes(out: dict):
+    from accel_bayes.inference.selfcal import fit_check, self_calibrate
+
+    arr, z = _selfcal_case(8, 160)
+    res = self_calibrate(z, 1 / 125.0, nominal_positions=arr.positions, nominal_orientations=arr.orientations,
+                         acc_noise_std=0.01, process_noise="estimate-snap", max_iter=60)
+    _selfcal_outputs(out, "selfcal_modes.snap", res)
+    chk = fit_check(res, arr.positions).to_dict()
+    out["selfcal_modes.snap.fit_check"] = np.array([float(v) for v in chk.values()])
+    res = self_calibrate(z, 1 / 125.0, nominal_positions=arr.positions, nominal_orientations=arr.orientations,
+                         acc_noise_std=0.01, process_noise="estimate", marginal_scale="score", max_iter=60,
+                         rerun_from_estimate=False)
+    _selfcal_outputs(out, "selfcal_modes.score", res)
+    keep = np.r_[0:40, 43:90, 92:160]  # two gaps: the process factors bridge 3 and 2 grid steps
+    t = np.arange(160) / 125.0
+    S = torch.eye(3, dtype=torch.float64).expand(arr.K, 3, 3) * 1.01
+    o = torch.full((arr.K, 3), 0.02, dtype=torch.float64)
+    res = self_calibrate(z[keep], t[keep], steps=np.diff(keep), nominal_positions=arr.positions,
+                         nominal_orientations=arr.orientations, fixed=2, acc_noise_std=0.01, process_noise="s16",
+                         sensor_params=(S, o), rerun_from_estimate="auto")
+    _selfcal_outputs(out, "selfcal_modes.bridged", res)
 
 
 def run_conventional(out: dict):
@@ -248,7 +319,7 @@ def run_conceal(out: dict):
     out["conceal.names"] = np.array([f"{f['effect']}:{f['imu']}:{f['axis']}" for f in rep["findings"]])
 
 
-STAGES = {"map": run_map, "selfcal": run_selfcal, "conventional": run_conventional, "intrinsics": run_intrinsics,
+STAGES = {"map": run_map, "selfcal": run_selfcal, "selfcal_modes": run_selfcal_modes, "conventional": run_conventional, "intrinsics": run_intrinsics,
           "motion": run_motion, "mismatch": run_mismatch, "conceal": run_conceal}
 
 

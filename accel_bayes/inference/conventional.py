@@ -27,7 +27,7 @@ import torch
 from ..physics import models
 from ..physics.geometry import quat_normalize, quat_to_matrix, skew
 from ..physics.jacobians import df_dr
-from .selfcal import _as_inv_std
+from .selfcal.factors import _as_inv_std
 
 __all__ = ["ConventionalResult", "conventional_residuals", "conventional_jacobians", "conventional_calibrate",
            "IDENTITY_SENSITIVITY"]

@@ -10,8 +10,10 @@ One implementation serves simulation, likelihood, MAP and mismatch detection:
   structure h(ω, θ) = G(θ) u(ω): :func:`u_of_omega`, :func:`B_of_position`, :func:`G_matrix`,
   :func:`H_matrix`.  Measurements for it are array-frame (sensor readings rotated by R(q)ᵀ).
 * The [S16] triad model with pose and sensor parameters (eq. 4, 21–22): :func:`triad_output`.
-* The [S16] process model (eq. 7–8): :func:`process_model`, :func:`process_covariance`, and its
-  smoother continuous-time variants (extra state derivatives): :func:`process_transition`.
+
+The [S16] process model (eq. 7–8) and its smoother continuous-time variants are motion priors,
+not signal models: they live with the other motion priors in
+:mod:`accel_bayes.inference.selfcal.motion_priors` (nothing below inference uses them).
 
 Shapes: motion tensors carry their batch (time, draws, chains …) first, e.g. ω (..., 3);
 positions are (A, 3) or batched (..., A, 3); outputs are (..., A, 3).
@@ -36,11 +38,6 @@ __all__ = [
     "array_model_mean",
     "triad_output",
     "sensitivity_matrix",
-    "process_model",
-    "process_transition",
-    "process_covariance",
-    "MOTION_STATE_DIMS",
-    "S16_PROCESS_VARIANCES",
 ]
 
 
@@ -179,85 +176,6 @@ def triad_output(
     if offset is not None:
         z = z + offset
     return z
-
-
-# [S16] §IV-B tuning, used "as given" (DESIGN §3.3): σ_a² = 10³, σ_int² = 10⁻⁷, σ_ω̇² = 10³.
-S16_PROCESS_VARIANCES = {"acc": 1e3, "int": 1e-7, "omega_dot": 1e3}
-
-
-# Motion-state layouts by width: the [S16] state [a_lin, ω, ω̇] (9), with ω̈ appended (12: white
-# noise on the snap ω⃛ drives the angular chain) and with ȧ_lin appended after ω̈ (15: white noise on
-# ä_lin drives the linear chain too).  The first 9 entries are always [a_lin, ω, ω̇]: the triad model
-# reads only those, the extra derivatives enter the process model alone.
-MOTION_STATE_DIMS = (9, 12, 15)
-
-
-def process_model(state: torch.Tensor, dt: torch.Tensor | float) -> torch.Tensor:
-    """[S16] eq. 7: x_{i+1} = [a_lin,i ; ω_i + ω̇_i Δt ; ω̇_i] for states (..., 9).
-
-    For the smoother layouts of :data:`MOTION_STATE_DIMS` the exact transition of the chains of
-    integrators (Taylor polynomials, no truncation): states (..., 12) = [a_lin, ω, ω̇, ω̈] give
-    ω + ω̇Δt + ω̈Δt²/2, ω̇ + ω̈Δt, ω̈; states (..., 15) = [a_lin, ω, ω̇, ω̈, ȧ_lin] also
-    a_lin + ȧ_lin Δt, ȧ_lin.  Units: m/s², rad/s, rad/s², rad/s³, m/s³; Δt in s.
-    """
-    dt = torch.as_tensor(dt, dtype=state.dtype, device=state.device)
-    if dt.dim() > 0:
-        dt = dt.unsqueeze(-1)
-    a, w, wd = state[..., 0:3], state[..., 3:6], state[..., 6:9]
-    d = state.shape[-1]
-    if d == 9:
-        return torch.cat((a, w + wd * dt, wd), -1)
-    if d not in MOTION_STATE_DIMS:
-        raise ValueError(f"state: expected a last dimension in {MOTION_STATE_DIMS}, got {d}")
-    wdd = state[..., 9:12]
-    out = [a, w + wd * dt + wdd * (dt * dt / 2), wd + wdd * dt, wdd]
-    if d == 15:
-        ad = state[..., 12:15]
-        out[0] = a + ad * dt
-        out.append(ad)
-    return torch.cat(out, -1)
-
-
-def process_transition(dt: torch.Tensor, dim: int = 9) -> torch.Tensor:
-    """F_i (T−1, dim, dim) with :func:`process_model`(x, Δt_i) = F_i x (the model is linear).
-
-    dt (T−1,) s; dim one of :data:`MOTION_STATE_DIMS`.  Entries Δt^k/k! along each chain of
-    integrators ([S16] eq. 7 for dim 9)."""
-    if dim not in MOTION_STATE_DIMS:
-        raise ValueError(f"dim: expected one of {MOTION_STATE_DIMS}, got {dim}")
-    n = dt.shape[0]
-    F = torch.eye(dim, dtype=dt.dtype, device=dt.device).expand(n, dim, dim).clone()
-    idx = torch.arange(3, device=dt.device)
-    F[:, 3 + idx, 6 + idx] = dt.unsqueeze(-1)
-    if dim >= 12:
-        F[:, 3 + idx, 9 + idx] = (dt * dt / 2).unsqueeze(-1)
-        F[:, 6 + idx, 9 + idx] = dt.unsqueeze(-1)
-    if dim == 15:
-        F[:, idx, 12 + idx] = dt.unsqueeze(-1)
-    return F
-
-
-def process_variances(variances: dict | None = None) -> dict:
-    """The [S16] eq. 8 variances ``acc``, ``int``, ``omega_dot``: the paper's values
-    (:data:`S16_PROCESS_VARIANCES`) updated by ``variances``; unknown keys are refused."""
-    v = dict(S16_PROCESS_VARIANCES)
-    if variances:
-        unknown = set(variances) - set(v)
-        if unknown:
-            raise ValueError(f"variances: unknown keys {sorted(unknown)}; expected acc, int, omega_dot")
-        v.update(variances)
-    return v
-
-
-def process_covariance(dt: torch.Tensor | float, variances: dict | None = None, dtype=torch.float64, device=None) -> torch.Tensor:
-    """[S16] eq. 8: Cov(w_i) = Δt² diag(σ_a² I, σ_int² I, σ_ω̇² I), shape (..., 9, 9).
-
-    ``variances`` has keys ``acc``, ``int``, ``omega_dot`` (defaults: the paper's values).
-    """
-    v = process_variances(variances)
-    dt = torch.as_tensor(dt, dtype=dtype, device=device)
-    diag = torch.tensor([v["acc"]] * 3 + [v["int"]] * 3 + [v["omega_dot"]] * 3, dtype=dtype, device=device)
-    return torch.diag_embed(dt.unsqueeze(-1) ** 2 * diag)
 
 
 def per_axis(value, A: int, name: str, *, dtype=torch.float64, device=None) -> torch.Tensor:

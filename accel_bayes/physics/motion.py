@@ -3,7 +3,7 @@
 A motion is what the signal model of :mod:`accel_bayes.physics.models` needs per sample: the angular
 velocity ω, the angular acceleration ω̇ (both array frame, rad/s and rad/s²) and the specific
 force s of the array origin (array frame, m/s²).  :class:`MotionTrace` holds them for a grid of
-sample times.  Three generators:
+sample times.  Three trajectory generators:
 
 * :func:`iid_motion` — the [C21] §IV-A "hand twist" model: ω, ω̇ and s drawn i.i.d. zero-mean
   normal per axis and sample (std 1000 °/s, 35000 °/s², 20 m/s²).  No attitude: gravity is not
@@ -15,6 +15,10 @@ sample times.  Three generators:
 * :func:`table_motion` — rotation-table-like motion in the spirit of [S16] §VI-B
   (:class:`TableTrajectory`): segments of sinusoidal rotation about one body axis at a time,
   rotating about a fixed centre, gravity consistent with the attitude.
+
+A fourth, :func:`simulate_process_motion`, returns no trajectory but motion *states*
+[a_lin, ω, ω̇] drawn from the [S16] process model itself (eq. 7, integrated exactly; a_lin is not
+gravity-consistent): data on which the self-calibration's process residuals vanish at the truth.
 
 Frames and conventions.  The attitude quaternion ``q_wb`` maps array → world,
 ``v_world = R(q_wb) v_array`` (``R`` is :func:`accel_bayes.physics.geometry.quat_to_matrix`; note that a
@@ -53,6 +57,7 @@ __all__ = [
     "TableTrajectory",
     "iid_motion",
     "smooth_motion",
+    "simulate_process_motion",
     "table_motion",
     "make_motion",
     "point_trajectory",
@@ -655,6 +660,60 @@ def table_motion(
         raise UserError(f"frequency: {frequency} Hz must be below half the sample rate ({rate / 2} Hz)")
     traj = TableTrajectory(q0, axes_seq, omega_amplitude, frequency, seg, rest_duration, center, t0=t0)
     return traj.trace(time.to(dtype=dtype, device=device))
+
+
+def simulate_process_motion(
+    T: int,
+    dt: float,
+    *,
+    segment_length: int = 25,
+    omega_dot_std: float = 8.0,
+    omega0_std: float = 1.0,
+    acc_std: float = 3.0,
+    acc_segment_length: int | None = None,
+    omega_max: float = 6.0,
+    gravity: float = G0,
+    generator: torch.Generator | None = None,
+    seed: int | None = None,
+    dtype=torch.float64,
+    device=None,
+) -> torch.Tensor:
+    """Motion states drawn from the [S16] process model itself (eq. 7), integrated exactly.
+
+    ω̇ is piecewise constant (a new N(0, omega_dot_std²) value every ``segment_length`` samples,
+    rad/s²); ω_{i+1} = ω_i + ω̇_i Δt holds to machine precision, so the integration residual of
+    eq. 14 is zero at the truth; a_lin is piecewise constant (gravity-sized, new values every
+    ``acc_segment_length`` samples, default 4 × segment_length).  Where |ω| would exceed
+    ``omega_max`` rad/s, the next ω̇ segment is drawn to point back towards zero (keeps the
+    accelerations within a triad's range).  Returns states (T, 9).
+    """
+    g = generator
+    if g is None:
+        g = torch.Generator(device="cpu")
+        g.manual_seed(0 if seed is None else int(seed))
+    acc_seg = acc_segment_length or 4 * segment_length
+    n_seg = (T + segment_length - 1) // segment_length
+    n_aseg = (T + acc_seg - 1) // acc_seg
+    wd_draws = torch.randn(n_seg, 3, generator=g, dtype=torch.float64) * omega_dot_std
+    w = torch.randn(3, generator=g, dtype=torch.float64) * omega0_std
+    a_dir = torch.randn(n_aseg, 3, generator=g, dtype=torch.float64)
+    a = gravity * a_dir / a_dir.norm(dim=-1, keepdim=True) + acc_std * torch.randn(n_aseg, 3, generator=g, dtype=torch.float64)
+    # The piecewise structure is a short loop over segments (not samples); the sample loop is a
+    # cumulative sum, exact in the sense of eq. 7 up to float64 rounding.
+    wd = torch.empty(T, 3, dtype=torch.float64)
+    w_seg = w.clone()
+    for k in range(n_seg):
+        lo, hi = k * segment_length, min(T, (k + 1) * segment_length)
+        d = wd_draws[k]
+        end = w_seg + d * dt * (hi - lo)
+        if end.norm() > omega_max:  # steer back: point ω̇ against ω, same magnitude
+            d = -d.norm() * w_seg / w_seg.norm().clamp_min(1e-12)
+            end = w_seg + d * dt * (hi - lo)
+        wd[lo:hi] = d
+        w_seg = end
+    omega = torch.cat((w.unsqueeze(0), w + torch.cumsum(wd[:-1] * dt, 0)), 0)
+    a_lin = a.repeat_interleave(acc_seg, 0)[:T]
+    return torch.cat((a_lin, omega, wd), -1).to(dtype=dtype, device=device)
 
 
 MOTIONS = {"iid": iid_motion, "smooth": smooth_motion, "table": table_motion}

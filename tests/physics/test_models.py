@@ -78,14 +78,16 @@ def test_triad_model_reduces_to_imu_outputs_and_applies_sensor_params():
 
 
 def test_process_model_and_covariance():
+    from accel_bayes.inference.selfcal import motion_priors as mp
+
     x = torch.arange(9, dtype=F64)
-    nxt = m.process_model(x, 0.01)
+    nxt = mp.process_model(x, 0.01)
     assert torch.allclose(nxt[3:6], x[3:6] + 0.01 * x[6:9])
     assert torch.equal(nxt[[0, 1, 2, 6, 7, 8]], x[[0, 1, 2, 6, 7, 8]])
-    C = m.process_covariance(0.008)
+    C = mp.process_covariance(0.008)
     assert torch.allclose(torch.diagonal(C), 0.008**2 * torch.tensor([1e3] * 3 + [1e-7] * 3 + [1e3] * 3, dtype=F64))
     with pytest.raises(ValueError, match="unknown keys"):
-        m.process_covariance(0.01, {"gyro": 1.0})
+        mp.process_covariance(0.01, {"gyro": 1.0})
 
 
 def test_presets_and_geometry_checks():

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from accel_bayes import s16_plate
+from accel_bayes.inference.selfcal import motion_priors
 from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus, quat_to_matrix, random_quaternion, rotation_angle
 from accel_bayes.inference.lm.linear import SchurComplementSolver, dense_from_blocks
@@ -21,10 +22,10 @@ from accel_bayes.inference.selfcal import (
     process_sqrt_information,
     bridged_process_whitening,
     self_calibrate,
-    simulate_process_motion,
     triad_jacobians,
     triad_residuals,
 )
+from accel_bayes.physics.motion import simulate_process_motion
 
 F64 = torch.float64
 RATE = 125.0
@@ -83,9 +84,9 @@ def test_process_residuals_whitening_and_jacobians():
     var = {"acc": 2e2, "int": 1e-6, "omega_dot": 5e2}
     W = process_sqrt_information(dt, var)
     # eq. 8: e = L⁻¹ (x' − f(x)) with L Lᵀ = Cov(w)
-    cov = models.process_covariance(dt, var)
+    cov = motion_priors.process_covariance(dt, var)
     L = torch.linalg.cholesky(cov)
-    ref = torch.linalg.solve_triangular(L, (x[1:] - models.process_model(x[:-1], dt)).unsqueeze(-1), upper=False)
+    ref = torch.linalg.solve_triangular(L, (x[1:] - motion_priors.process_model(x[:-1], dt)).unsqueeze(-1), upper=False)
     e = process_residuals(x, dt, W)
     assert torch.allclose(e, ref.squeeze(-1), rtol=1e-12, atol=1e-12)
     # the integration row: (ω_{i+1} − ω_i − ω̇_i Δt) / (Δt σ_int)
@@ -95,7 +96,7 @@ def test_process_residuals_whitening_and_jacobians():
     h = 1e-6
 
     def pair(xp, xn):  # e_i(x_i, x_{i+1}) for all i at once
-        return (xn - models.process_model(xp, dt)) * W
+        return (xn - motion_priors.process_model(xp, dt)) * W
 
     xp, xn = x[:-1], x[1:]
     for k in range(9):
@@ -137,7 +138,7 @@ def test_tridiagonal_schur_solver_matches_dense_solve():
 def test_process_model_motion_integrates_exactly():
     x = simulate_process_motion(300, 1 / RATE, seed=3, segment_length=40, omega_dot_std=4.0)
     dt = torch.full((299,), 1 / RATE, dtype=F64)
-    e = x[1:] - models.process_model(x[:-1], dt)
+    e = x[1:] - motion_priors.process_model(x[:-1], dt)
     assert e[:, 3:6].abs().max() < 1e-12  # eq. 7 integration holds to rounding
     jumps = (e[:, 6:9].abs().sum(-1) > 0).sum()
     assert 0 < jumps <= 300 // 40  # ω̇ changes only at segment boundaries
@@ -442,7 +443,7 @@ def test_chunked_linearisation_gives_the_same_solution(monkeypatch):
     partial) against one block, same iterates to round-off.  Round-off depends on the processor's
     vector kernels (and on the thread count), so the iterates agree to 1e-10 m, not to the bit,
     and the stopping rule may take one more (rejected or negligible) step on either side."""
-    import accel_bayes.inference.selfcal as sc
+    import accel_bayes.inference.selfcal.problem as sc
 
     gen = torch.Generator().manual_seed(31)
     x = simulate_process_motion(600, 1 / RATE, seed=7, segment_length=50, omega_dot_std=4.0,
@@ -468,7 +469,7 @@ def test_bridged_process_whitening_integrates_the_left_out_states_exactly():
     """The bridge over n grid steps against a brute-force composition of n single [S16] steps
     (written here independently: x_n = F^n x_0 + Σ F^(n-1-k) w_k, so Cov = Σ_j F^j Q F^jᵀ): the
     whitening W satisfies W Cov Wᵀ = I to 1e-9, and for n = 1 it is eq. 8's diagonal."""
-    from accel_bayes.physics.models import S16_PROCESS_VARIANCES as V
+    from accel_bayes.inference.selfcal.motion_priors import S16_PROCESS_VARIANCES as V
 
     delta = 0.01
     steps = torch.tensor([1.0, 2.0, 5.0, 17.0], dtype=torch.float64)
@@ -605,7 +606,7 @@ def test_wnoj_process_covariance_is_an_exact_discretisation():
 
 
 def test_selected_inverse_matches_the_dense_inverse():
-    from accel_bayes.inference.selfcal import _block_tridiagonal_selected_inverse
+    from accel_bayes.inference.lm.linear import block_tridiagonal_selected_inverse as _block_tridiagonal_selected_inverse
 
     gen = torch.Generator().manual_seed(5)
     T, n = 6, 4
@@ -634,7 +635,7 @@ def _wnoj_motion(T, dt, q, gen):
     x[0, 0:3] = torch.tensor([0.0, 0.0, 9.81], dtype=F64)
     x[0, 3:6] = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
     for i in range(T - 1):
-        x[i + 1] = models.process_model(x[i], dt) + w[i]
+        x[i + 1] = motion_priors.process_model(x[i], dt) + w[i]
     return x
 
 
@@ -665,6 +666,7 @@ def test_marginal_scale_score_is_the_derivative_of_the_laplace_marginal():
     """marginal_scale_score against a central difference of ½F(x̂_c) + ½ log det H_xx(x̂_c) along the
     scale orbit (x̂_c the motion-only MAP at the orbit's poses), fixed triad off the origin."""
     from accel_bayes.inference import selfcal as sc
+    from accel_bayes.inference.selfcal.problem import _run_lm
 
     gen = torch.Generator().manual_seed(41)
     T, rate = 120, 250.0
@@ -679,7 +681,7 @@ def test_marginal_scale_score_is_the_derivative_of_the_laplace_marginal():
     def nll(c, x_start):
         pc, xc = sc.scale_orbit(p_true, x_start, 0, c)
         prob = sc.build_problem(z, dt, pc, q_rot, xc, 0, inv_std, W, poses_fixed=True)
-        r, _ = sc._run_lm(prob, max_iter=50, ftol=1e-15, xtol=1e-15, gtol=1e-13, progress=False, desc="")
+        r, _ = _run_lm(prob, max_iter=50, ftol=1e-15, xtol=1e-15, gtol=1e-13, progress=False, desc="")
         Jx, _, _ = sc.triad_jacobians(r.locals, q_rot, pc, inv_std)
         D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
         Jp, Jn = sc.process_jacobians(dt, W)
@@ -714,7 +716,7 @@ def test_paper_process_variances_stay_reproducible():
     assert torch.allclose(res.positions[1:], ref, rtol=0, atol=1e-12)
     assert abs(res.cost - 33473.35187315968) < 1e-6
     assert abs(float(res.position_std[1, 1]) - 0.00050216629587036) < 2e-8 * 0.00050216629587036
-    assert res.process_noise["mode"] == "s16" and res.process_noise["variances"] == models.S16_PROCESS_VARIANCES
+    assert res.process_noise["mode"] == "s16" and res.process_noise["variances"] == motion_priors.S16_PROCESS_VARIANCES
     with pytest.raises(ValueError, match="process_noise"):
         self_calibrate(z, 1 / 125.0, nominal_positions=p0, fixed=0, process_noise="fixed")
     with pytest.raises(ValueError, match="process_variances"):

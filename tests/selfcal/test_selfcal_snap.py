@@ -14,6 +14,8 @@ import pytest
 import torch
 
 from accel_bayes.inference import selfcal as sc
+from accel_bayes.inference.selfcal import motion_priors
+from accel_bayes.inference.selfcal.problem import _run_lm
 from accel_bayes.inference.lm.linear import dense_from_blocks
 from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus
@@ -44,7 +46,7 @@ def _generator(dim: int):
 @pytest.mark.parametrize("dim", [9, 12, 15])
 def test_continuous_process_covariance_matches_van_loan_and_quadrature(dim):
     """Q(Δt) = ∫₀^Δt e^{Aτ} L Qc Lᵀ e^{Aᵀτ} dτ by Van Loan's block exponential (scipy expm) and by
-    adaptive quadrature of the same integral; the transition e^{AΔt} is models.process_transition."""
+    adaptive quadrature of the same integral; the transition e^{AΔt} is motion_priors.process_transition."""
     from scipy.integrate import quad_vec
     from scipy.linalg import expm
 
@@ -65,7 +67,7 @@ def test_continuous_process_covariance_matches_van_loan_and_quadrature(dim):
         assert np.abs((Q - Q_vl) / scale).max() < 1e-9, h
         Q_quad, _ = quad_vec(lambda t: expm(A * t) @ L @ Qc @ L.T @ expm(A * t).T, 0.0, h, epsabs=0, epsrel=1e-12)
         assert np.abs((Q - Q_quad) / scale).max() < 1e-9, h
-        F = models.process_transition(dt, dim)[0].numpy()
+        F = motion_priors.process_transition(dt, dim)[0].numpy()
         assert np.abs(F - expm(A * h)).max() < 1e-12
         W = sc.continuous_process_whitening(dt, q, dim)[0].numpy()
         assert np.abs(W @ Q @ W.T - np.eye(dim)).max() < 1e-8
@@ -133,7 +135,7 @@ def _snap_motion(T, dt, q, gen, x0):
     """States of width 15 drawn from the snap model itself (exact discretisation)."""
     L = torch.linalg.cholesky(sc.continuous_process_covariance(torch.full((T - 1,), dt, dtype=F64), q, 15))
     w = (L @ torch.randn(T - 1, 15, 1, generator=gen, dtype=F64)).squeeze(-1)
-    F = models.process_transition(torch.tensor([dt], dtype=F64), 15)[0]
+    F = motion_priors.process_transition(torch.tensor([dt], dtype=F64), 15)[0]
     x = torch.zeros(T, 15, dtype=F64)
     x[0] = x0
     for i in range(T - 1):  # a short test loop over samples: the simulation, not a hot path
@@ -173,7 +175,7 @@ def test_marginal_scale_score_with_snap_states_is_the_derivative_of_the_laplace_
     def nll(c, x_start):
         pc, xc = sc.scale_orbit(p_true, x_start, 0, c)
         prob = sc.build_problem(z, dt, pc, q_rot, xc, 0, inv_std, W, poses_fixed=True)
-        r, _ = sc._run_lm(prob, max_iter=50, ftol=1e-15, xtol=1e-15, gtol=1e-13, progress=False, desc="")
+        r, _ = _run_lm(prob, max_iter=50, ftol=1e-15, xtol=1e-15, gtol=1e-13, progress=False, desc="")
         Jx, _, _ = sc.triad_jacobians(r.locals, q_rot, pc, inv_std)
         Jx = torch.nn.functional.pad(Jx, (0, 6))
         D = torch.einsum("tajk,tajl->tkl", Jx, Jx)
@@ -264,7 +266,7 @@ def test_snap_model_scale_on_a_short_concealed_handlike_recording_at_62_5_hz():
 
 
 def test_block_tridiagonal_logdet_matches_the_dense_one():
-    from accel_bayes.inference.selfcal import _block_tridiagonal_logdet
+    from accel_bayes.inference.lm.linear import block_tridiagonal_logdet as _block_tridiagonal_logdet
 
     gen = torch.Generator().manual_seed(8)
     T, n = 7, 5

@@ -27,6 +27,11 @@ only half of the triangular solves are needed: Y = L⁻¹ [Wᵀ | b_x] = [Y_w | 
   band storage of V (:class:`BlockTridiagonalCholesky`, O(T (d³ + d² n)), no Python loop over
   samples).  This is the package's only block-tridiagonal solver.
 
+Two more block-tridiagonal operations serve the Laplace approximations of the motion (the [S16]
+self-calibration's noise estimation and scale corrections): the diagonal and first off-diagonal
+blocks of V⁻¹ (:func:`block_tridiagonal_selected_inverse`) and log det V
+(:func:`block_tridiagonal_logdet`), both by block forward elimination (a numpy loop over T).
+
 Batch dimensions: every function takes optional leading batch dimensions ``...`` (independent
 problems solved together).  Failures of positive definiteness raise :class:`NotPositiveDefinite`
 (the LM loop answers by raising the damping).
@@ -46,6 +51,8 @@ __all__ = [
     "band_storage",
     "block_tridiagonal_factor",
     "block_tridiagonal_solve",
+    "block_tridiagonal_selected_inverse",
+    "block_tridiagonal_logdet",
     "SchurComplementSolver",
     "damped_step",
     "dense_from_blocks",
@@ -274,6 +281,47 @@ def block_tridiagonal_solve(D: torch.Tensor, E: torch.Tensor | None, B: torch.Te
     """V⁻¹ B for the SPD block-tridiagonal V (D (..., T, d, d), E (..., T − 1, d, d));
     B (..., T, d, k) or (..., T, d)."""
     return BlockTridiagonalCholesky(D, E).solve(B)
+
+
+def block_tridiagonal_selected_inverse(D: torch.Tensor, B: torch.Tensor):
+    """Diagonal blocks Σ_i (T, n, n) and first off-diagonal blocks Σ_{i,i+1} (T−1, n, n) of H⁻¹ for a
+    symmetric positive definite block-tridiagonal H with diagonal blocks D (T, n, n) and
+    H_{i,i+1} = B_i (T−1, n, n) (forward elimination, then the backward recursion
+    Σ_i = S_i⁻¹ + G_i Σ_{i+1} G_iᵀ, Σ_{i,i+1} = −G_i Σ_{i+1}, G_i = S_i⁻¹ B_i; numpy loop over T)."""
+    Dn, Bn = D.detach().cpu().numpy(), B.detach().cpu().numpy()
+    T = Dn.shape[0]
+    Sinv = np.empty_like(Dn)
+    S = Dn[0]
+    for i in range(T - 1):
+        Si = np.linalg.inv(S)
+        Sinv[i] = Si
+        S = Dn[i + 1] - Bn[i].T @ Si @ Bn[i]
+    Sinv[T - 1] = np.linalg.inv(S)
+    Sig = np.empty_like(Dn)
+    C = np.empty_like(Bn)
+    Sig[T - 1] = Sinv[T - 1]
+    for i in range(T - 2, -1, -1):
+        G = Sinv[i] @ Bn[i]
+        C[i] = -G @ Sig[i + 1]
+        Sig[i] = Sinv[i] - C[i] @ G.T
+    Sig = 0.5 * (Sig + Sig.transpose(0, 2, 1))
+    return torch.as_tensor(Sig, dtype=D.dtype, device=D.device), torch.as_tensor(C, dtype=D.dtype, device=D.device)
+
+
+def block_tridiagonal_logdet(D: torch.Tensor, B: torch.Tensor) -> float:
+    """log det of the symmetric positive definite block-tridiagonal matrix with diagonal blocks D
+    (T, n, n) and upper blocks B (T−1, n, n): Σ log det of the Schur complements
+    S_{i+1} = D_{i+1} − B_iᵀ S_i⁻¹ B_i (forward elimination, Cholesky per block; numpy loop over T)."""
+    Dn, Bn = D.detach().cpu().numpy(), B.detach().cpu().numpy()
+    S = Dn[0]
+    total = 0.0
+    for i in range(Dn.shape[0]):
+        L = np.linalg.cholesky(S)
+        total += 2.0 * float(np.log(np.diag(L)).sum())
+        if i + 1 < Dn.shape[0]:
+            Y = np.linalg.solve(L, Bn[i])  # L⁻¹ B_i
+            S = Dn[i + 1] - Y.T @ Y
+    return total
 
 
 # ---------------------------------------------------------------- Schur complement
