@@ -25,7 +25,7 @@ DEFAULT_PRIOR_STD = 3e-3
 
 # The defaults below are the command line's too: kept here, with no numerical import, so that
 # ``accel-bayes calibrate --help`` shows them without importing torch (issue #26).  Their modules
-# (prep.selection, prep.noise, threads, diagnostics) re-export them.
+# (prep.selection, model.noise, threads, diagnostics) re-export them.
 
 DEFAULT_MIN_ROTATION = 0.5
 """rad/s (≈ 29 °/s) — |ω̄_t| below this marks a sample "without rotation": at 20 mm the centripetal

@@ -79,7 +79,7 @@ WORKLOADS = {
         import statistics
         mimu4444_32 = _home("physics.arrays", "arrays").mimu4444_32
         from accel_bayes.simulate import simulate
-        from accel_bayes.likelihood import RaoBlackwellLikelihood
+        RaoBlackwellLikelihood = _home("model.likelihood", "likelihood").RaoBlackwellLikelihood
         sim = simulate(mimu4444_32(), "iid", T=500, seed=0, position_error_std=0.0, acc_noise_std=0.04, clip=False)
         lik = RaoBlackwellLikelihood.from_recording(sim.recording, num_draws=1000, gyro_method="calibrated")
         pos = sim.true_positions[list(lik.imu_labels)]

@@ -20,7 +20,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 from _laplace import laplace_from_recording, log_posterior  # noqa: E402
 
 from accel_bayes.physics.arrays import mimu4444_8  # noqa: E402
-from accel_bayes.likelihood import RaoBlackwellLikelihood  # noqa: E402
+from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.simulate import simulate  # noqa: E402
 
 

@@ -147,7 +147,7 @@ def test_stage_stops_at_its_group_test_without_gyro_errors():
 def test_calibrate_model_inverts_a_reports_gyro_blocks():
     # calibrate --model: a gyro_linear block (gyro_scale with a 3 × 3 scale) corrects that gyro's
     # outputs, checked against numpy on the array-frame data
-    from accel_bayes.prep.model_effects import corrected_gyro_array, load_model
+    from accel_bayes.model.report_terms import corrected_gyro_array, load_model
 
     rng = np.random.default_rng(5)
     T, G = 40, 3

@@ -1,4 +1,4 @@
-"""Tests of the Rao-Blackwellized likelihood (accel_bayes.likelihood, DESIGN §4).
+"""Tests of the Rao-Blackwellized likelihood (accel_bayes.model.likelihood, DESIGN §4).
 
 Every reference here is computed independently of the estimator's code path: dense Gaussians
 with a finite prior scale β ([C21] eq. 18–19), a dense projector built with torch.linalg.lstsq
@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from accel_bayes.errors import UserError
-from accel_bayes.likelihood import (
+from accel_bayes.model.likelihood import (
     GyroPosterior,
     RaoBlackwellLikelihood,
     choose_num_draws,
@@ -572,7 +572,7 @@ def test_every_draw_path_equals_dense_form(small, N):
 def test_direct_path_far_off_theta_and_chunks(small, monkeypatch):
     """Direct path: a θ far from the data (every exp(−½q) underflows without the floor) and
     several t-chunks give the dense value."""
-    import accel_bayes.likelihood as likmod
+    import accel_bayes.model.likelihood as likmod
 
     pos, lik, _ = small
     z = lik.sample_z(num_draws=5, generator=_gen(111))

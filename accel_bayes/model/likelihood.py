@@ -69,10 +69,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .errors import UserError
-from .physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
-from .prep.phi_prior import PhiPrior
-from .prep.selection import DEFAULT_MIN_ROTATION, Selection, select_samples
+from ..errors import UserError
+from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
+from .phi_prior import PhiPrior
+from ..prep.selection import DEFAULT_MIN_ROTATION, Selection, select_samples
 
 __all__ = [
     "positions_from_theta",
@@ -239,8 +239,8 @@ class RaoBlackwellLikelihood:
     reference : int — row of the reference triad (origin, r_ref ≡ 0).
     dtype, device — float64 CPU by default.
     phi_prior : None (the flat prior on φ_t = [ω̇_t; s_t] of [C21] and DESIGN §4) or a proper
-        zero-mean Gaussian prior N(0, F) on φ_t: a :class:`~accel_bayes.prep.phi_prior.PhiPrior`
-        (e.g. :func:`~accel_bayes.prep.phi_prior.empirical_phi_prior`, what ``calibrate`` uses by
+        zero-mean Gaussian prior N(0, F) on φ_t: a :class:`~accel_bayes.model.phi_prior.PhiPrior`
+        (e.g. :func:`~accel_bayes.model.phi_prior.empirical_phi_prior`, what ``calibrate`` uses by
         default), a pair (σ_ω̇ rad/s², σ_s m/s²), six standard deviations or a (6, 6) F.  Then M(θ) becomes M + F⁻¹ in S and in the determinant (Woodbury:
         (Σ + HFHᵀ)⁻¹ = Λ − ΛH(M + F⁻¹)⁻¹HᵀΛ and |Σ + HFHᵀ| = |Σ||F||M + F⁻¹|), which is [C21]
         eq. 19–21 at finite β with f = 0.  The flat prior is the β → ∞ limit.  A proper prior
@@ -248,7 +248,7 @@ class RaoBlackwellLikelihood:
         arrays (|M| grows like the squared size), while under a proper prior the φ̂ᵀF⁻¹φ̂ term
         (ω̇̂ grows as the array shrinks) pulls the other way; with weak rotation or noisy data
         the flat-prior posterior is visibly shrunk (experiments/c21_coverage.py and
-        experiments/phi_prior_probe.py measure it; :mod:`accel_bayes.prep.phi_prior` says why
+        experiments/phi_prior_probe.py measure it; :mod:`accel_bayes.model.phi_prior` says why
         F = E[φφᵀ] makes the estimate consistent).
 
     Positions passed to the methods are (..., A, 3) metres, array frame, any leading batch

@@ -71,7 +71,7 @@ import torch
 from ..constants import DEFAULT_PRIOR_STD, DEFAULT_RATE_BINS
 from ..data.outputs import to_jsonable
 from ..errors import UserError
-from ..likelihood import RaoBlackwellLikelihood, positions_from_theta
+from .likelihood import RaoBlackwellLikelihood, positions_from_theta
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
 from .phi_prior import PhiPrior
 from ..physics.jacobians import du_domega
@@ -394,7 +394,7 @@ def _sqrt_lam_rows(acc_noise_std, A: int) -> torch.Tensor:
 class TemperedLikelihood(RaoBlackwellLikelihood):
     """The [C21] likelihood raised to the power 1/κ (a coarsened / generalised-Bayes posterior).
 
-    Constructed like :class:`~accel_bayes.likelihood.RaoBlackwellLikelihood` with the noise
+    Constructed like :class:`~accel_bayes.model.likelihood.RaoBlackwellLikelihood` with the noise
     std ALREADY scaled by √κ: that tempers the Gaussian exponent (and integrates ω under the
     correspondingly wider likelihood).  The Occam factor −(T/2) log|M(θ)| of the φ integral does
     not scale with σ (only shifts by a constant), so :meth:`log_phat` re-weights it to
