@@ -14,7 +14,7 @@ thread:
   solver with its motion-only warm start and re-run remedy, time to solution;
 * ``map`` — the [C21] MAP (``inference.map.fit_map_recording``) of the 8-IMU corner board,
   T = 600 smooth motion (the demo configuration), time to solution;
-* ``likelihood`` — one Rao-Blackwellized log p̂ (``likelihood.RaoBlackwellLikelihood.log_phat``),
+* ``likelihood`` — one Rao-Blackwellized log p̂ (``model.likelihood.RaoBlackwellLikelihood.log_phat``),
   32 IMUs, T = 500, N = 1000, [C21] §IV-A motion: median of 9 evaluations inside the process;
 * ``posterior`` — ``calibrate`` with its defaults (MAP, choice of N, 4 chains × (1000 + 1000) PmMH
   iterations) on the demo configuration; wall time of the whole call.

@@ -135,7 +135,8 @@ def posterior_task(T, acc_std, rep, seed, omega_std_dps, chains, draws, warmup, 
     import torch
     from accel_bayes import diagnostics as dg
     from accel_bayes.pipelines.calibrate import calibrate
-    from accel_bayes.model.likelihood import RaoBlackwellLikelihood, choose_num_draws
+    from accel_bayes.model.draw_tuning import choose_num_draws
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
     from _laplace import laplace_from_recording
 
     t0 = time.perf_counter()

@@ -318,7 +318,7 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
     acc : (T, A, 3) m/s² — accelerometer triad outputs, **array frame** (rotate sensor-frame data
         with R(q)ᵀ of the orientations first, e.g. ``Recording.acc_tensor("array")``).
     omega_mean : (T, 3) rad/s, omega_cov : (T, 3, 3) or (3, 3) (rad/s)² — the gyroscope posterior
-        N(ω̄_t, P_t) ([C21] eq. 15/30; :func:`accel_bayes.model.likelihood.gyro_posterior`).
+        N(ω̄_t, P_t) ([C21] eq. 15/30; :func:`accel_bayes.model.gyro_posterior.gyro_posterior`).
     acc_noise_std : scalar, (A,) or (A, 3) m/s² — white-noise std per triad/axis (Λ = diag σ⁻²).
     reference : row of the reference triad (origin, r_ref ≡ 0).
     prior_mean : (A, 3) m positions (taken relative to the reference); prior_std : scalar, (A,)

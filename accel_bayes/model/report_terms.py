@@ -21,14 +21,14 @@ precision-weighted fusion, the generalised least-squares estimate)
 
     P_t = (Σ_k C_t,k⁻¹)⁻¹,      ω̄_t = P_t Σ_k C_t,k⁻¹ y_t,k,
 
-replaces :func:`~accel_bayes.model.likelihood.gyro_posterior`'s "calibrated" one (which it equals when
+replaces :func:`~accel_bayes.model.gyro_posterior.gyro_posterior`'s "calibrated" one (which it equals when
 the report has no such finding): a wandering gyro counts less where ω̇ is large, and ω's
 posterior covariance grows there.
 
 What a per-sample covariance cannot carry: the AR(1) correlation of the instant error from one
 sample to the next (``correlation`` ≈ 0.7–0.87 on the MIMU data).  The likelihood treats the
 samples as independent given θ; what that leaves is what the sandwich covariance measures
-(:func:`accel_bayes.model.noise.sandwich_inflation`, Newey–West lags), and ``calibrate`` records it.
+(:func:`accel_bayes.inference.noise_fit.sandwich_inflation`, Newey–West lags), and ``calibrate`` records it.
 
 Gyro linear blocks → the gyro outputs corrected
 -----------------------------------------------
@@ -60,6 +60,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from .gyro_posterior import GyroPosterior
 
 __all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array"]
 
@@ -229,9 +230,8 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects):
     gyro_labels : the G IMU labels of the gyros.  time : (T,) s of those samples (gaps allowed).
     effects : [(IMU label, effect)] with ``params`` width (s) and, for ``timing_wander``,
     excess_noise_var ((rad/s)²).
-    Returns (:class:`~accel_bayes.model.likelihood.GyroPosterior` with method "model", ω̇ (T, 3) rad/s²).
+    Returns (:class:`~accel_bayes.model.gyro_posterior.GyroPosterior` with method "model", ω̇ (T, 3) rad/s²).
     """
-    from .likelihood import GyroPosterior
     from ..physics.effects import output_rates
 
     y = torch.as_tensor(gyro, dtype=torch.float64)

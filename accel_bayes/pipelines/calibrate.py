@@ -49,11 +49,13 @@ from ..errors import UserError
 from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh, \
     run_pmmh_until
 from ..inference.mcmc.priors import BoxPrior, GaussianPrior
-from ..model.likelihood import GyroPosterior, RaoBlackwellLikelihood, choose_correlation, \
-    choose_num_draws, \
-    positions_from_theta
-from ..model.noise import NOISE_MODES
+from ..inference.noise_fit import fit_map_tempered, fit_map_with_noise, sandwich_inflation
+from ..model.draw_tuning import choose_correlation, choose_num_draws
+from ..model.gyro_posterior import GyroPosterior
+from ..model.likelihood import RaoBlackwellLikelihood, positions_from_theta
+from ..model.noise import NOISE_MODES, scale_samples
 from ..model.phi_prior import PHI_PRIOR_CHOICES, PhiPrior, empirical_phi_prior
+from ..model.tempering import TemperedLikelihood
 from ..threads import torch_threads
 from .calibrate_defaults import DEFAULTS
 from ..data.outputs import to_jsonable, write_text
@@ -312,15 +314,13 @@ def _usable_map(res, settings):
 def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings, phi_prior="flat"):
     """Fit the MAP with the data-estimated noise model (:mod:`accel_bayes.model.noise`); with
     ``inflate`` temper the likelihood by the sandwich factor κ.  Returns the likelihood the
-    chains use (:class:`~accel_bayes.model.noise.TemperedLikelihood` of the scaled samples), the MAP
+    chains use (:class:`~accel_bayes.model.tempering.TemperedLikelihood` of the scaled samples), the MAP
     of exactly that target (or None if unusable) and the :class:`~accel_bayes.model.noise.NoiseModel`.
 
     ``phi_prior``: "flat", "empirical" or a given prior.  The noise levels are fitted with φ free
     (the REML update of :mod:`accel_bayes.model.noise`); an empirical prior is then estimated with
     those levels (its M⁻¹ correction depends on them), the MAP refitted under it (warm start),
     and the sandwich, the tempered MAP and the chains' likelihood all carry it."""
-    from ..model.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         res, nm = fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std,
@@ -443,7 +443,7 @@ def calibrate(
         moved with each proposal by z' = ρ z + √(1 − ρ²) ε, exact for the same posterior.  "auto":
         when ``num_draws`` is None and fresh draws would need N > 1, N = 1 and ρ such that
         Var[log p̂(θ, z') − log p̂(θ, z)] ≈ 1 at the central θ
-        (:func:`~accel_bayes.model.likelihood.choose_correlation`, seeded); otherwise 0.  0: fresh draws
+        (:func:`~accel_bayes.model.draw_tuning.choose_correlation`, seeded); otherwise 0.  0: fresh draws
         every iteration ([C21] Alg. 1, the chains of earlier versions).  A number: that ρ with N
         as given or chosen by the fresh-draw rule.  Recorded in ``settings["correlation"]``,
         ``settings["correlation_table"]`` and ``settings["correlation_rule"]``.
@@ -458,7 +458,7 @@ def calibrate(
     init : chain starts — "map" (Laplace draws around the MAP, over-dispersed ×1.5), "prior"
         (prior draws, e.g. to check convergence from far away while the proposals still use the
         MAP), "auto" ("map" when a MAP is used, else "prior").
-    gyro_method : gyro posterior, see :func:`accel_bayes.model.likelihood.gyro_posterior`.  "auto"
+    gyro_method : gyro posterior, see :func:`accel_bayes.model.gyro_posterior.gyro_posterior`.  "auto"
         (default): "calibrated" when the noise is estimated (the estimated accelerometer noise
         then absorbs the gyro errors that [C21] eq. 30's sample covariance is meant to cover;
         on the MIMU data both give the same MAP and Laplace std to a few %, but eq. 30 needs
@@ -711,10 +711,8 @@ def _model_gyro_step(lik, rec, cmodel):
 
 def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
     """The sandwich covariance at the MAP of the chains' likelihood against its Laplace covariance
-    (:func:`accel_bayes.model.noise.sandwich_inflation`): per free coordinate the Laplace std, the
+    (:func:`accel_bayes.inference.noise_fit.sandwich_inflation`): per free coordinate the Laplace std, the
     sandwich std and their ratio (m, m, 1), κ and the lags — what the model still misses."""
-    from ..model.noise import sandwich_inflation
-
     if map_res is None:
         return {"kappa": None, "why": "no usable MAP"}
     kappa = float(getattr(lik, "kappa", 1.0))
@@ -827,7 +825,7 @@ def _central_step(lik, pri, map_res, opts, proposal, settings):
 def _correlation_step(lik, theta_c, opts, table, N, settings):
     """ρ of the correlated pseudo-marginal kernel and its measurement table.  "auto": when N was
     chosen automatically and came out above 1 (a noisy estimator), ρ from
-    :func:`~accel_bayes.model.likelihood.choose_correlation` at the central θ with N = CPM_NUM_DRAWS
+    :func:`~accel_bayes.model.draw_tuning.choose_correlation` at the central θ with N = CPM_NUM_DRAWS
     (the caller then uses that N); otherwise 0 — fresh draws, the chains of earlier versions.
     A number: that ρ with the N chosen as before."""
     c = opts["correlation"]
