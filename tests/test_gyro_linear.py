@@ -13,7 +13,7 @@ import torch
 
 from accel_bayes.mismatch import detect
 from accel_bayes.mismatch.gyro_linear import corrected_gyro, relative_blocks
-from accel_bayes.mismatch.report import validate_report
+from accel_bayes.data.mismatch_report import validate_report
 from accel_bayes.physics.effects import GyroLinear, SignalContext, make_effect
 from accel_bayes.physics.geometry import quat_to_matrix
 

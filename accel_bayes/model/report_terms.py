@@ -49,16 +49,14 @@ Everything else → recorded as skipped, with the reason
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..data.mismatch_report import read_report
 from ..errors import UserError
 from .gyro_posterior import GyroPosterior
 
@@ -115,36 +113,13 @@ class CalibrationModel:
                                    "AR(1) correlation not carried (left to the sandwich)"}
 
 
-def _read(model):
-    """(dict, source path or None, sha256) of a report given as a path, a dict or a report object."""
-    if hasattr(model, "to_dict") and not isinstance(model, dict):
-        model = model.to_dict()
-    if isinstance(model, dict):
-        blob = json.dumps(model, sort_keys=True, default=str).encode()
-        return model, None, hashlib.sha256(blob).hexdigest()
-    if not isinstance(model, (str, Path)):
-        raise UserError(f"model: expected a report.json path, a report dict or None, got {type(model).__name__}")
-    p = Path(model)
-    try:
-        blob = p.read_bytes()
-    except OSError as exc:
-        raise UserError(f"model: cannot read {p}: {exc.strerror or exc}") from None
-    try:
-        doc = json.loads(blob)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise UserError(f"model: {p} is not JSON ({exc})") from None
-    return doc, str(p), hashlib.sha256(blob).hexdigest()
-
-
 def load_model(model) -> CalibrationModel:
     """Read and check a mismatch report (path, dict or :class:`~accel_bayes.mismatch.report.MismatchReport`)
     and sort its findings into used and skipped (module docstring).  Bad input → one-line
     :class:`UserError` naming the field."""
-    from ..mismatch.report import validate_report
     from ..physics.effects import make_effect
 
-    doc, source, sha = _read(model)
-    validate_report(doc)  # schema (format version) and vocabulary of every finding
+    doc, source, sha = read_report(model, "model")
     details = doc.get("details") or {}
     if not isinstance(details, dict):
         raise UserError("model: details: expected an object")
