@@ -122,7 +122,7 @@ def corrected_recording(rec, fit: ModelFit, index=None):
     """A copy of ``rec`` with the fitted mean effects subtracted (outputs − (model with effects −
     nominal model)), samples the fitted saturation clips removed from the noise accounting by
     flagging them in ``acc_clipped``/``gyro_clipped``, and the stated noise multiplied by the
-    fitted noise factors.  What the posterior calibration is rerun on (``posterior=True``).
+    fitted noise factors.  What the posterior calibration is rerun on (``detect(posterior=calibrate)``).
 
     index : None — ``rec`` holds exactly the fitted samples (``Prepared.rec``); else the fitted
         samples' indices into ``rec`` (``Prepared.selection.index``, ``rec`` = ``Prepared.source``):
