@@ -52,7 +52,8 @@ import torch
 
 from ..errors import UserError
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
-from ..prep.selection import DEFAULT_MIN_ROTATION, Selection, select_samples
+from ..prep.prepared import prepare_recording
+from ..prep.selection import DEFAULT_MIN_ROTATION, Selection
 from .draw_sums import DIRECT_MAX_DRAWS, DrawSums
 from .gyro_posterior import GyroPosterior, gyro_posterior
 from .phi_prior import PhiPrior
@@ -218,6 +219,7 @@ class RaoBlackwellLikelihood(DrawSums):
         row is the recording's ``reference_imu``.  ``self.nominal_positions`` (A, 3) holds the
         design positions of the rows (a natural central θ), ``self.gyro_labels`` the gyros used.
 
+        The IMUs, the samples and their checks are :func:`accel_bayes.prep.prepared.prepare_recording`'s.
         Sample selection (explicit, never hidden; ``self.sample_index`` records what was kept and
         ``self.selection`` the :class:`~accel_bayes.prep.selection.Selection` it came from):
 
@@ -235,56 +237,17 @@ class RaoBlackwellLikelihood(DrawSums):
           any used IMU.  By default clipped samples are **kept** (the recording says they are at
           the range; the caller decides).
         """
-        has_acc = np.asarray(rec.has_acc)
-        labels = np.flatnonzero(has_acc) if acc_imus is None else np.asarray(sorted(int(k) for k in acc_imus))
-        if len(labels) < 3:
-            raise UserError(f"acc_imus: at least 3 IMUs with accelerometer data are needed, got {labels.tolist()}")
-        if not has_acc[labels].all():
-            raise UserError(f"acc_imus: IMUs {labels[~has_acc[labels]].tolist()} have no accelerometer data")
-        ref_label = int(rec.reference_imu)
-        if ref_label not in labels:
-            raise UserError(f"reference_imu: IMU {ref_label} is not among the accelerometer IMUs used "
-                            f"{labels.tolist()}")
-        if rec.gyro is None:
-            raise UserError("gyro: the Rao-Blackwellized likelihood needs gyroscope data ([C21] eq. 26b)")
-        has_gyro = np.asarray(rec.has_gyro)
-        glabels = np.flatnonzero(has_gyro) if gyro_imus is None else np.asarray(sorted(int(k) for k in gyro_imus))
-        if len(glabels) == 0 or not has_gyro[glabels].all():
-            raise UserError(f"gyro_imus: expected IMUs with gyroscope data, got {glabels.tolist()}")
-
-        T = rec.T
-        if selection is not None:
-            if not isinstance(selection, Selection) or selection.T != T:
-                raise UserError(f"selection: expected a Selection of the recording's {T} samples")
-            if select is not None or min_rotation is not None or drop_clipped:
-                raise UserError("selection: given together with select/min_rotation/drop_clipped; pass one or the other")
-        else:
-            if isinstance(select, str) and select != "rotation":
-                raise UserError(f"select: expected None, a mask, indices or 'rotation', got {select!r}")
-            rot = isinstance(select, str)
-            thr = (DEFAULT_MIN_ROTATION if min_rotation is None else float(min_rotation)) if rot else 0.0
-            selection = select_samples(rec, drop_static=False, drop_clipped=bool(drop_clipped), min_rotation=thr,
-                                       user=None if (select is None or rot) else select, acc_imus=labels,
-                                       gyro_imus=glabels)
-        idx = np.array(selection.index)
-        if len(idx) == 0:
-            raise UserError("select: no samples left after selection")
-
-        acc_all = rec.acc_tensor("array", dtype=dtype, device=device)
-        gyro_all = rec.gyro_tensor("array", dtype=dtype, device=device)
-        gstd = torch.as_tensor(np.asarray(rec.gyro_noise_std)[glabels], dtype=dtype, device=device)
-        gyro = gyro_all[torch.as_tensor(idx, device=gyro_all.device)][:, torch.as_tensor(glabels)]
-        acc = acc_all[torch.as_tensor(idx, device=acc_all.device)][:, torch.as_tensor(labels)]
-        omega = gyro_posterior(gyro, gstd, gyro_method)
-        astd = np.asarray(rec.acc_noise_std)[labels]
-        lik = cls(acc, omega, astd, num_draws, reference=int(np.flatnonzero(labels == ref_label)[0]),
-                  dtype=dtype, device=device, phi_prior=phi_prior)
-        lik.imu_labels = tuple(int(k) for k in labels)
-        lik.gyro_labels = tuple(int(k) for k in glabels)
-        lik.sample_index = idx
-        lik.selection = selection
-        lik.nominal_positions = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=dtype,
-                                                device=lik.device)
+        prep = prepare_recording(rec, selection=selection, select=select, min_rotation=min_rotation,
+                                 drop_clipped=drop_clipped, acc_imus=acc_imus, gyro_imus=gyro_imus, dtype=dtype,
+                                 device=device)
+        omega = gyro_posterior(prep.gyro, prep.gyro_noise_std, gyro_method)
+        lik = cls(prep.acc, omega, prep.acc_noise_std, num_draws, reference=prep.reference, dtype=dtype, device=device,
+                  phi_prior=phi_prior)
+        lik.imu_labels = prep.imu_labels
+        lik.gyro_labels = prep.gyro_labels
+        lik.sample_index = prep.sample_index
+        lik.selection = prep.selection
+        lik.nominal_positions = prep.nominal_positions
         return lik
 
     def with_phi_prior(self, phi_prior) -> "RaoBlackwellLikelihood":
