@@ -6,7 +6,7 @@ needs the likelihood's data: the gyro posterior's Cholesky factors and means, T,
 Cost and numerics
 -----------------
 Everything that touches the 3A-dimensional data is computed once per (θ, t), O(T·A) per θ
-(:meth:`RaoBlackwellLikelihood.projection`).  S is never formed: S r = Λ(r − Hφ̂) with
+(:meth:`~.likelihood.RaoBlackwellLikelihood.projection`).  S is never formed: S r = Λ(r − Hφ̂) with
 φ̂ = M⁻¹HᵀΛr the least-squares [ω̇; s], so with r_t = y_t − G u(ω̄_t) (centred at the gyro
 posterior mean) and d = u(ω) − u(ω̄_t),
 
