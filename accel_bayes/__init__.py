@@ -1,11 +1,14 @@
 """accel_bayes — Bayesian self-calibration of inertial sensor arrays.
 
-The sub-packages follow the pipeline (README "Layout"): ``physics`` (geometry, arrays, motion,
-the signal model, its Jacobians, the effects library), ``data`` (recordings, format v1, importers,
-exporters, output files), ``prep`` (intrinsics, sample selection, noise), ``simulate``,
-``likelihood``, ``inference`` (LM, MAP, CRB, self-calibration, PmMH), ``mismatch``,
-``diagnostics``, ``pipelines`` (calibrate, map, selfcal, motion,
-intrinsics, demo: library functions) and ``cli`` (parsing and printing only).  DESIGN notes live in ``../shared/DESIGN.md``.
+The sub-packages follow the pipeline (README "Layout"; the order is ``LAYERS`` in
+``tests/test_layering.py``: each imports only from those before it): ``physics`` (geometry,
+arrays, motion, the signal model, its Jacobians, the effects library), ``data`` (recordings,
+format v1, importers, exporters, output files, the mismatch report schema), ``prep`` (intrinsics,
+sample selection), ``model`` (the likelihood, gyro posterior, φ prior, noise and tempering, a
+mismatch report read into likelihood terms), ``simulate``, ``inference`` (LM, MAP, CRB,
+self-calibration, PmMH), ``diagnostics``, ``mismatch``, ``pipelines`` (calibrate, map, selfcal,
+motion, intrinsics, demo: library functions) and ``cli`` (parsing and printing only).
+DESIGN notes live in ``../shared/DESIGN.md``.
 
 Importing the package imports no numerical library: the public names below that need torch are
 loaded on first use (PEP 562), so that ``accel-bayes --help`` and every refusal of a bad argument

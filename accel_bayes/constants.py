@@ -19,13 +19,20 @@ DEG_TO_RAD = math.pi / 180.0
 RAD_TO_DEG = 180.0 / math.pi
 """degrees per rad."""
 
+ACC_PARAMS = ("b_x", "b_y", "b_z", "t_xx", "t_yy", "t_zz", "t_yx", "t_zx", "t_zy")
+"""The 9 accelerometer intrinsic parameters per IMU, in the order of ``intrinsics.json``'s
+``acc_params`` and of the rows of its ``acc_cov`` (bias, m/s²; then the lower-triangular T)."""
+
+ACC_T_INDEX = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
+"""(row, column) in the 3×3 T of each of the six entries ``ACC_PARAMS[3:]``."""
+
 DEFAULT_PRIOR_STD = 3e-3
 """m — the [C21] §IV-A Gaussian prior std of the positions, deliberately wider than the
 4 mm × 4 mm × 1 mm package (MAP, PmMH, mismatch refits)."""
 
 # The defaults below are the command line's too: kept here, with no numerical import, so that
 # ``accel-bayes calibrate --help`` shows them without importing torch (issue #26).  Their modules
-# (prep.selection, prep.noise, threads, diagnostics) re-export them.
+# (prep.selection, model.noise, threads, diagnostics) re-export them.
 
 DEFAULT_MIN_ROTATION = 0.5
 """rad/s (≈ 29 °/s) — |ω̄_t| below this marks a sample "without rotation": at 20 mm the centripetal

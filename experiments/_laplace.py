@@ -1,6 +1,6 @@
 """An independent Laplace approximation of the [C21] geometry posterior (a cross-check only).
 
-Written from scratch, deliberately sharing no numerical code with :mod:`accel_bayes.likelihood`
+Written from scratch, deliberately sharing no numerical code with :mod:`accel_bayes.model.likelihood`
 or :mod:`accel_bayes.inference` (the kinematics, the frames and the φ projection are re-derived
 here), so that the PmMH posterior and the MAP helper's Laplace covariance can be checked against
 something that would not repeat their mistakes.

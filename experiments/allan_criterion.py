@@ -1,6 +1,6 @@
 """The static-time criterion of the exported random walks (issue #28, item 2).
 
-accel_bayes.prep.allan estimates a bias random walk K from static stretches (Allan variance, WLS
+accel_bayes.data.allan estimates a bias random walk K from static stretches (Allan variance, WLS
 on octave cluster lengths, parametric-bootstrap standard error) and the export uses it only
 when se(K̂) ≤ 25 % of K̂.  This script measures, on simulated series with a known N and K
 (white noise + random walk, three axes, seeded):
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from accel_bayes.prep.allan import (MIN_STRETCH_TAU_C, RELATIVE_SE_MAX, allan_random_walk, static_runs,
+from accel_bayes.data.allan import (MIN_STRETCH_TAU_C, RELATIVE_SE_MAX, allan_random_walk, static_runs,
                                     static_time_needed)
 
 HERE = Path(__file__).resolve().parent
@@ -72,7 +72,7 @@ def main():
              f"{datetime.date.today().isoformat()} ({platform.machine()}, {platform.python_version()}); "
              "simulated series, seeded.", "",
              f"An estimate is used by `accel-bayes export` when se(K) <= {RELATIVE_SE_MAX:.0%} of K and the "
-             f"longest rest is >= {MIN_STRETCH_TAU_C:g} tau_c = sqrt(3) N/K (accel_bayes/prep/allan.py).", "",
+             f"longest rest is >= {MIN_STRETCH_TAU_C:g} tau_c = sqrt(3) N/K (accel_bayes/data/allan.py).", "",
              f"## Stated uncertainty against the truth ({SEEDS} seeds per row; z over the accepted estimates)", "",
              "| configuration | accepted | RMS z | mean z | max abs z |", "|---|---|---|---|---|"]
     for name, rate, N, K, L, runs in CONFIGS:

@@ -148,7 +148,7 @@ def main(argv=None) -> int:
 
 
 # the modules bench_structure's workloads time (the pipelines' plotting and I/O are not timed there)
-TIMED_CODE = ("accel_bayes/likelihood.py", "accel_bayes/inference", "accel_bayes/physics", "accel_bayes/simulate.py",
+TIMED_CODE = ("accel_bayes/model/likelihood.py", "accel_bayes/inference", "accel_bayes/physics", "accel_bayes/simulate.py",
               "accel_bayes/prep", "accel_bayes/threads.py")
 
 

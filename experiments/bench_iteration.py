@@ -58,7 +58,7 @@ NOEDITABLE = "/tmp/noeditable"  # hides an editable install of another checkout,
 
 def _build(name, device="cpu"):
     import torch
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
     from accel_bayes.physics import arrays
     from accel_bayes.simulate import simulate
 
@@ -94,7 +94,7 @@ def _kernel(lik, pos):
     import torch
     from accel_bayes.inference.mcmc import PMMHKernel
     from accel_bayes.inference.mcmc.priors import GaussianPrior
-    from accel_bayes.likelihood import theta_from_positions
+    from accel_bayes.model.likelihood import theta_from_positions
 
     th = theta_from_positions(pos, lik.reference)
     d = th.numel()

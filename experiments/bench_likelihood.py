@@ -25,7 +25,7 @@ import time
 import torch
 
 from accel_bayes.physics.arrays import mimu4444_32
-from accel_bayes.likelihood import RaoBlackwellLikelihood
+from accel_bayes.model.likelihood import RaoBlackwellLikelihood
 from accel_bayes.physics.models import G_matrix, H_matrix, u_of_omega
 from accel_bayes.simulate import simulate
 

@@ -14,7 +14,7 @@ thread:
   solver with its motion-only warm start and re-run remedy, time to solution;
 * ``map`` — the [C21] MAP (``inference.map.fit_map_recording``) of the 8-IMU corner board,
   T = 600 smooth motion (the demo configuration), time to solution;
-* ``likelihood`` — one Rao-Blackwellized log p̂ (``likelihood.RaoBlackwellLikelihood.log_phat``),
+* ``likelihood`` — one Rao-Blackwellized log p̂ (``model.likelihood.RaoBlackwellLikelihood.log_phat``),
   32 IMUs, T = 500, N = 1000, [C21] §IV-A motion: median of 9 evaluations inside the process;
 * ``posterior`` — ``calibrate`` with its defaults (MAP, choice of N, 4 chains × (1000 + 1000) PmMH
   iterations) on the demo configuration; wall time of the whole call.
@@ -79,7 +79,7 @@ WORKLOADS = {
         import statistics
         mimu4444_32 = _home("physics.arrays", "arrays").mimu4444_32
         from accel_bayes.simulate import simulate
-        from accel_bayes.likelihood import RaoBlackwellLikelihood
+        RaoBlackwellLikelihood = _home("model.likelihood", "likelihood").RaoBlackwellLikelihood
         sim = simulate(mimu4444_32(), "iid", T=500, seed=0, position_error_std=0.0, acc_noise_std=0.04, clip=False)
         lik = RaoBlackwellLikelihood.from_recording(sim.recording, num_draws=1000, gyro_method="calibrated")
         pos = sim.true_positions[list(lik.imu_labels)]

@@ -18,7 +18,7 @@ it, and the data-generating φ ~ N(0, F) is not harmless: under it the exact pos
 (|M| grows like the squared array size).  ``--phi-model``:
 
 * ``empirical`` (default) — the package default: a Gaussian prior on φ whose 6×6 covariance is
-  estimated from each data set (:func:`accel_bayes.prep.phi_prior.empirical_phi_prior`, at the
+  estimated from each data set (:func:`accel_bayes.model.phi_prior.empirical_phi_prior`, at the
   design positions, as ``calibrate`` does).  Here the checks ask whether the default model is
   calibrated, F̂ from only T = 30 samples included;
 * ``matched`` — the simulation's own Gaussian prior on φ (``RaoBlackwellLikelihood(phi_prior=…)``,
@@ -105,7 +105,7 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
 
     The sampler is the package's PmMH kernel set up as :func:`accel_bayes.pipelines.calibrate.calibrate` sets it up:
     random walk shaped by the Laplace covariance at the mode, mixed 80 % with independence moves
-    from that Laplace approximation; N chosen by :func:`accel_bayes.likelihood.choose_num_draws`.
+    from that Laplace approximation; N chosen by :func:`accel_bayes.model.draw_tuning.choose_num_draws`.
     The mode is the package MAP of the same target (``fit_map(phi_prior=…)``).
     """
     import torch
@@ -114,8 +114,9 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
     from accel_bayes.inference.map import fit_map
     from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh
     from accel_bayes.inference.mcmc.priors import GaussianPrior
-    from accel_bayes.likelihood import RaoBlackwellLikelihood, choose_num_draws
-    from accel_bayes.prep.phi_prior import empirical_phi_prior
+    from accel_bayes.model.draw_tuning import choose_num_draws
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.phi_prior import empirical_phi_prior
     from accel_bayes.simulate import simulate
 
     if phi_model not in PHI_MODELS:

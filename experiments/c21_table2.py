@@ -135,7 +135,8 @@ def posterior_task(T, acc_std, rep, seed, omega_std_dps, chains, draws, warmup, 
     import torch
     from accel_bayes import diagnostics as dg
     from accel_bayes.pipelines.calibrate import calibrate
-    from accel_bayes.likelihood import RaoBlackwellLikelihood, choose_num_draws
+    from accel_bayes.model.draw_tuning import choose_num_draws
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
     from _laplace import laplace_from_recording
 
     t0 = time.perf_counter()
@@ -195,7 +196,7 @@ def posterior_task(T, acc_std, rep, seed, omega_std_dps, chains, draws, warmup, 
 
 def var_task(T, acc_std, seed, N_list, realisations, gyro_method):
     """Fig. 2: Var[log p̂] at the prior mean for each N (one data set)."""
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
 
     sim = _simulate(T, acc_std, seed)
     lik = RaoBlackwellLikelihood.from_recording(sim.recording, num_draws=1, gyro_method=gyro_method)

@@ -7,7 +7,7 @@ after 1000 warm-up, seed 0, as ``experiments/mimu_repeatability.py``):
   ML, then the likelihood tempered by the sandwich factor κ;
 * **with** — ``calibrate(rec, model=report.json)``, the experiment's own mismatch report
   (``experiments/mimu_mismatch.py``: timing_wander on three gyros): the findings as per-sample
-  gyro covariances (:mod:`accel_bayes.prep.model_effects`), the noise levels at their type-II ML
+  gyro covariances (:mod:`accel_bayes.model.report_terms`), the noise levels at their type-II ML
   again, NO tempering; the sandwich at the MAP measured and recorded.
 
 Per experiment and coordinate: posterior mean and std, the sandwich std and its ratio to the
@@ -89,18 +89,19 @@ HETERO = (("1 level per triad", None, 1), ("× 8 bins of |ω̄|", "omega", 8), (
 def heteroscedastic(exp: int, data: Path, reports: Path) -> dict:
     """MAP-level diagnostic: with the model's gyro posterior, the sandwich/Laplace std ratio when the
     accelerometer noise also gets a factor per quantile bin of a motion covariate (type-II ML,
-    :func:`accel_bayes.prep.noise.fit_map_with_noise` with ``covariate``; φ prior flat, as the
+    :func:`accel_bayes.inference.noise_fit.fit_map_with_noise` with ``covariate``; φ prior flat, as the
     rate-bin rescaling needs): |ω̄| (the existing option), |ω̇| (what the ``unexplained`` finding
     says the excess grows with) and the jerk (the detector's top accelerometer covariate: the
     mean over triads of |d acc/dt|).  Does modelling the heteroscedasticity reach the aim?"""
     import torch
 
     from accel_bayes.data.mimu import import_mimu
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
     from accel_bayes.physics.effects import output_rates
     from accel_bayes.pipelines.calibrate import _model_gyro_step
-    from accel_bayes.prep.model_effects import load_model
-    from accel_bayes.prep.noise import fit_map_with_noise, sandwich_inflation, scale_samples
+    from accel_bayes.model.report_terms import load_model
+    from accel_bayes.inference.noise_fit import fit_map_with_noise, sandwich_inflation
+    from accel_bayes.model.noise import scale_samples
     from accel_bayes.prep.preprocess import preprocess
 
     raw = import_mimu(Path(data) / f"exp_{exp}" / "data.bin.gz")

@@ -103,9 +103,9 @@ def intrinsics_sensitivity(exp: int, data: str, n_draws: int, seed: int) -> dict
     import torch
 
     from accel_bayes.pipelines.calibrate import calibrate
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
     from accel_bayes.data.mimu import import_mimu
-    from accel_bayes.prep.noise import fit_map_tempered
+    from accel_bayes.inference.noise_fit import fit_map_tempered
     from accel_bayes.prep.preprocess import draw_intrinsics, preprocess
 
     raw = import_mimu(Path(data) / f"exp_{exp}" / "data.bin.gz")

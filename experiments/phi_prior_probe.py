@@ -8,7 +8,7 @@ deterministic), with the same Gaussian position prior (3 mm) in all three:
 * **flat**: flat φ ([C21], DESIGN §4; ``phi_prior="flat"``);
 * **empirical**: the package default, a proper N(0, F) prior on φ_t with the 6×6 F estimated from
   the recording by type-II maximum likelihood at the nominal positions
-  (:func:`accel_bayes.prep.phi_prior.empirical_phi_prior`);
+  (:func:`accel_bayes.model.phi_prior.empirical_phi_prior`);
 * **empirical, diagonal**: the same with F's off-diagonal terms dropped (does the full matrix matter?);
 * **no log|M|**: the weighted residual alone, the issue's independent reference for "unbiased".
   Its expected value is minimised at the true θ.
@@ -39,7 +39,7 @@ def scale_of_fit(rec, true_pos, phi_prior_std, drop_logdet: bool) -> tuple[float
     import scipy.optimize as so
 
     from accel_bayes.constants import DEFAULT_PRIOR_STD
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
 
     lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, phi_prior=phi_prior_std)
     w = lik.omega.mean
@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     rows = []
-    from accel_bayes.prep.phi_prior import empirical_phi_prior
+    from accel_bayes.model.phi_prior import empirical_phi_prior
 
     for seed in range(1, args.seeds + 1):
         sim = simulate(mimu4444_8(), "smooth", T=600, seed=seed)

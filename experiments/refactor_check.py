@@ -22,7 +22,10 @@ Outputs (each a small problem, seconds each):
   ``axis_displacement`` (the package's simulator): evidence and parameters of the findings,
   refined log-likelihood;
 * ``conceal.*`` — the same on a recording of the independent generator
-  (``experiments/_conceal.py``) hiding one ``time_offset``.
+  (``experiments/_conceal.py``) hiding one ``time_offset``;
+* ``noise.*`` — the modelling layer on the MAP data set (added with issue #26, which moved it
+  into ``model/``): log p̂ of the [C21] likelihood and of the tempered one with fixed draws, the
+  empirical φ prior, the MAP with the noise levels estimated, the sandwich κ and the tempered MAP.
 
 Only public names that exist at 7adf109 and later are imported, by their 7adf109 paths, so the
 same file runs against both: 0.1 kept those paths as aliases, and in a tree that has dropped them
@@ -69,16 +72,32 @@ def _bind_old_paths() -> None:
             sys.modules[f"accel_bayes.{old}"] = importlib.import_module(f"accel_bayes.{new}")
 
 
+def _name(name: str, *modules: str):
+    """``name`` from the first of ``modules`` (paths under accel_bayes, oldest first) that has it:
+    the ``noise`` stage's names moved in issue #26 (likelihood → model.likelihood, prep.noise →
+    model.noise / model.tempering / inference.noise_fit …) with no alias left behind, so the old
+    path is tried first and a baseline tree always runs its own code."""
+    import importlib
+
+    for mod in modules:
+        try:
+            m = importlib.import_module(f"accel_bayes.{mod}")
+        except ModuleNotFoundError:
+            continue
+        if hasattr(m, name):
+            return getattr(m, name)
+    raise ImportError(f"{name} not found in any of {modules}")
+
+
 def _np(x):
     if torch.is_tensor(x):
         return x.detach().cpu().numpy()
     return np.asarray(x, dtype=np.float64)
 
 
-def run_map(out: dict):
+def _map_data():
+    """The simulated mimu8 data set of the ``map`` and ``noise`` stages (array frame)."""
     from accel_bayes.arrays import mimu4444_8
-    from accel_bayes.inference.crb import crb_theta
-    from accel_bayes.inference.map import fit_map
     from accel_bayes.models import imu_outputs, to_array_frame
     from accel_bayes.motion import iid_motion
 
@@ -96,6 +115,15 @@ def run_map(out: dict):
     acc_a = to_array_frame(acc, arr.orientations)
     wbar = to_array_frame(gyro, arr.orientations).mean(1)
     P = torch.eye(3, dtype=dt) * sg**2 / K
+    return arr, true, m, sa, sg, acc_a, wbar, P
+
+
+def run_map(out: dict):
+    from accel_bayes.inference.crb import crb_theta
+    from accel_bayes.inference.map import fit_map
+
+    arr, true, m, sa, sg, acc_a, wbar, P = _map_data()
+    K = arr.K
     res = fit_map(acc_a, wbar, P, sa, prior_mean=arr.positions, prior_std=3e-3)
     out["map.positions"] = _np(res.positions)
     out["map.laplace_cov"] = _np(res.laplace_cov)
@@ -319,8 +347,44 @@ def run_conceal(out: dict):
     out["conceal.names"] = np.array([f"{f['effect']}:{f['imu']}:{f['axis']}" for f in rep["findings"]])
 
 
-STAGES = {"map": run_map, "selfcal": run_selfcal, "selfcal_modes": run_selfcal_modes, "conventional": run_conventional, "intrinsics": run_intrinsics,
-          "motion": run_motion, "mismatch": run_mismatch, "conceal": run_conceal}
+def run_noise(out: dict):
+    lik_mods = ("likelihood", "model.likelihood", "model.gyro_posterior")
+    noise_mods = ("prep.noise", "model.noise", "model.tempering", "inference.noise_fit")
+    GyroPosterior = _name("GyroPosterior", *lik_mods)
+    RaoBlackwellLikelihood = _name("RaoBlackwellLikelihood", *lik_mods)
+    TemperedLikelihood = _name("TemperedLikelihood", *noise_mods)
+    empirical_phi_prior = _name("empirical_phi_prior", "prep.phi_prior", "model.phi_prior")
+    fit_map_with_noise = _name("fit_map_with_noise", *noise_mods)
+    sandwich_inflation = _name("sandwich_inflation", *noise_mods)
+    fit_map_tempered = _name("fit_map_tempered", *noise_mods)
+
+    arr, true, m, sa, sg, acc_a, wbar, P = _map_data()
+    T = acc_a.shape[0]
+    post = GyroPosterior(wbar, P.expand(T, 3, 3).clone(), "calibrated")
+    batch = torch.stack((arr.positions, true))
+    lik = RaoBlackwellLikelihood(acc_a, post, sa, num_draws=8)
+    out["noise.log_phat"] = _np(lik.log_phat(batch, generator=torch.Generator().manual_seed(5)))
+    phi = empirical_phi_prior(acc_a, wbar, sa, arr.positions)
+    out["noise.phi_prior_cov"] = _np(phi.cov)
+    tl = TemperedLikelihood(acc_a, post, sa * 2.0**0.5, 8, kappa=2.0, phi_prior=phi)
+    out["noise.tempered_log_phat"] = _np(tl.log_phat(batch, generator=torch.Generator().manual_seed(5)))
+    res, model = fit_map_with_noise(acc_a, wbar, P, sa, prior_mean=arr.positions, prior_std=3e-3, bins=2)
+    out["noise.map_positions"] = _np(res.positions)
+    out["noise.std"] = _np(model.std)
+    out["noise.bin_scale"] = _np(model.bin_scale)
+    sw = sandwich_inflation(acc_a, wbar, P, model.std, res, prior_mean=arr.positions, prior_std=3e-3)
+    out["noise.kappa"] = np.array([sw["kappa"]])
+    out["noise.std_ratio"] = _np(sw["std_ratio"])
+    kappa = max(sw["kappa"], 1.0)
+    tm = fit_map_tempered(acc_a, wbar, P, model.std * kappa**0.5, kappa, prior_mean=arr.positions, prior_std=3e-3,
+                          phi_prior=phi)
+    out["noise.tempered_positions"] = _np(tm.positions)
+    out["noise.tempered_cov"] = _np(tm.laplace_cov)
+
+
+STAGES = {"map": run_map, "selfcal": run_selfcal, "selfcal_modes": run_selfcal_modes, "conventional": run_conventional,
+          "intrinsics": run_intrinsics, "motion": run_motion, "mismatch": run_mismatch, "conceal": run_conceal,
+          "noise": run_noise}
 
 
 def compare(a_path: str, b_path: str, tol: float) -> int:

@@ -98,7 +98,7 @@ def count(lo: int = 1) -> Callable[[str], int]:
     return integer(lo)
 
 
-# The package derives child seeds as seed·10⁶ + n (likelihood.py) and seed·7919 + 17 (calibrate.py);
+# The package derives child seeds as seed·10⁶ + n (model/likelihood.py) and seed·7919 + 17 (calibrate.py);
 # below 2³² these stay inside torch.Generator.manual_seed's 64-bit range.
 seed = integer(0, 2 ** 32 - 1)
 """Random seed: an integer in [0, 2³² − 1]."""

@@ -63,7 +63,7 @@ def run(args) -> int:
     if several:
         target = OutputDir(args.out, overwrite=args.overwrite,
                            inputs=(args.recording, args.positions, args.intrinsics, args.mismatch)).open()
-        from ..data.export import export_imu_chain  # torch: after every refusal the file system decides
+        from ..pipelines.export import export_imu_chain  # torch: after every refusal the file system decides
         written = export_imu_chain(args.recording, args.positions, target.staging, intrinsics=args.intrinsics,
                                    report=args.mismatch, fmt=args.format, overwrite=True)
         target.commit()
@@ -71,7 +71,7 @@ def run(args) -> int:
         return 0
     out = Path(args.output)
     target = OutputFile(out, overwrite=args.overwrite).open()
-    from ..data.export import export_imu_chain  # torch: after every refusal the file system decides
+    from ..pipelines.export import export_imu_chain  # torch: after every refusal the file system decides
     export_imu_chain(args.recording, args.positions, out, intrinsics=args.intrinsics, report=args.mismatch,
                      fmt=args.format, overwrite=args.overwrite)
     target.commit()

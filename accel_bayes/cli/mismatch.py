@@ -57,9 +57,10 @@ def run(args) -> int:
     require_file(args.recording, "recording file")  # input and target before torch is imported
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     from ..mismatch import detect
+    from ..pipelines.calibrate import calibrate
 
     report = detect(args.recording, effects=effects, alpha=args.alpha, max_findings=args.max_findings,
-                    refine=not args.no_refine, posterior=args.posterior, seed=args.seed, progress=args.progress,
+                    refine=not args.no_refine, posterior=calibrate if args.posterior else False, seed=args.seed, progress=args.progress,
                     n_twins=args.twins)
     paths = report.write(out.staging, figures=not args.no_figures)
     out.commit()

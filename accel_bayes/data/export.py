@@ -12,7 +12,7 @@ VioManagerOptions.h).  The file's comments map every ``imu<j>`` to the recording
 
 Files a consumer would refuse are not written: Kalibr's ConfigReader needs both noise densities
 and both random walks > 0 for every IMU, OpenVINS those of ``imu0`` (a missing node exits).
-Random walks come from the rests (:mod:`accel_bayes.prep.allan`, when the static stretches give
+Random walks come from the rests (:mod:`accel_bayes.data.allan`, when the static stretches give
 them to ±25 % from a rest of at least 20 crossover times), else from the recording (the array description's ``acc_random_walk`` /
 ``gyro_random_walk`` or sensor.yaml's, stored at import); else the export is refused naming the
 key.  Noise densities use the stated rate (:func:`nominal_rate`).
@@ -57,7 +57,7 @@ Frames and conventions (also written into the file's comments)
 * **Uncertainty** (extra keys, ignored by Kalibr and OpenVINS): ``T_i_b_translation_cov``
   (3×3, m², IMU i's frame: R_i Σ_i R_iᵀ of the positions.json covariance), ``T_i_b_rotation_cov``
   (3×3 rad², positions.json ``orientation_cov`` / ``orientation_std`` where estimated), ``accelerometer_intrinsics_cov`` (9×9, the package's parameters in the order of
-  :data:`accel_bayes.prep.intrinsics.ACC_PARAMS`), ``Ta_cov`` (6×6, Ta's lower-triangular entries
+  :data:`accel_bayes.constants.ACC_PARAMS`), ``Ta_cov`` (6×6, Ta's lower-triangular entries
   column by column — Ta00, Ta10, Ta20, Ta11, Ta21, Ta22 — linearised: dTa = −Ta dT Ta),
   ``gyroscope_bias`` / ``gyroscope_bias_cov``.
 
@@ -70,19 +70,20 @@ walks, ``time_offset`` where estimated.
 """
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..constants import ACC_T_INDEX
 from ..errors import UserError
 from ..physics.geometry import quat_to_matrix
+from .allan import RELATIVE_SE_MAX, allan_random_walk, static_runs
+from .mismatch_report import validate_report
 from .recording import Recording
 
 __all__ = ["FORMATS", "imu_chain", "kalibr_imu_files", "t_i_b", "openvins_acc_intrinsics",
-           "gyro_intrinsics_from_report", "export_order", "nominal_rate", "random_walks", "export_imu_chain"]
+           "gyro_intrinsics_from_report", "export_order", "nominal_rate", "random_walks"]
 
 FORMATS = ("kalibr", "openvins", "kalibr-imu")
 AXES = ("x", "y", "z")
@@ -108,8 +109,6 @@ def openvins_acc_intrinsics(T: np.ndarray, acc_cov: np.ndarray | None = None):
 
     Ta = T⁻¹ (lower-triangular), R_IMUtoACC = I; Ta_cov (6×6) over Ta's lower-triangular entries
     column by column, from the 9×9 ``acc_cov`` of ``ACC_PARAMS`` (None if not given)."""
-    from ..prep.intrinsics import _T_INDEX
-
     T = np.asarray(T, dtype=np.float64)
     Ta = np.linalg.inv(T)
     Ta = np.tril(Ta)  # exactly zero above the diagonal (the inverse is lower-triangular)
@@ -117,7 +116,7 @@ def openvins_acc_intrinsics(T: np.ndarray, acc_cov: np.ndarray | None = None):
     if acc_cov is not None and np.isfinite(acc_cov).all():
         order = [(0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)]
         J = np.zeros((6, 6))
-        for j, (a, b) in enumerate(_T_INDEX):
+        for j, (a, b) in enumerate(ACC_T_INDEX):
             E = np.zeros((3, 3))
             E[a, b] = 1.0
             dTa = -Ta @ E @ Ta
@@ -142,8 +141,6 @@ def gyro_intrinsics_from_report(report: dict, K: int):
     it; a block finding with axis null and a 3 × 3 ``scale``, the detector's gyro linear stage, adds
     the whole matrix), ``gyro_g_sensitivity`` the diagonal of Tg (rad s-1 per m s-2), ``time_offset`` the
     offset (s, positive = late).  Tw · R_IMUtoGYRO = I + M, Tw lower-triangular."""
-    from ..mismatch.report import validate_report
-
     validate_report(report)
     M = np.zeros((K, 3, 3))
     Tg = np.zeros((K, 3, 3))
@@ -207,14 +204,12 @@ _RW_KEYS = {"acc": ("accelerometer_random_walk", "m/s^3/sqrt(Hz)"), "gyro": ("gy
 def random_walks(recording: Recording, rate: float, imus=None, required=None) -> dict:
     """Bias random walk per IMU and sensor: ``{(k, "acc"|"gyro"): (K, std or None, source)}``.
 
-    From the rests (:func:`accel_bayes.prep.allan.allan_random_walk`) where the recording's
-    static stretches give K̂ to within :data:`~accel_bayes.prep.allan.RELATIVE_SE_MAX`; else from
+    From the rests (:func:`accel_bayes.data.allan.allan_random_walk`) where the recording's
+    static stretches give K̂ to within :data:`~accel_bayes.data.allan.RELATIVE_SE_MAX`; else from
     the recording's ``acc_random_walk`` / ``gyro_random_walk`` attributes (stored at import from
     the array description or sensor.yaml); else :class:`UserError` naming the key.  ``imus``:
     the recording indices to resolve (default all with that sensor); ``required``: those whose
     unknown random walk is refused (default all of ``imus``; the others are left out)."""
-    from ..prep.allan import RELATIVE_SE_MAX, allan_random_walk, static_runs
-
     K = recording.K
     imus = list(range(K) if imus is None else imus)
     required = set(imus if required is None else required)
@@ -529,47 +524,3 @@ def kalibr_imu_files(recording: Recording, positions: dict, report: dict | None 
         lines += [ln[2:] for ln in _imu_lines(recording, P, j, with_pose=False)]
         files[f"imu{j}.yaml"] = "\n".join(lines) + "\n"
     return files
-
-
-def export_imu_chain(recording, positions, output, *, intrinsics=None, report=None, fmt: str = "kalibr",
-                     overwrite: bool = False) -> list[Path]:
-    """Read the inputs (paths or objects), build the ``fmt`` text and write it atomically.
-
-    ``output``: the YAML file for "kalibr" / "openvins"; for "kalibr-imu" an existing directory
-    that receives ``imu0.yaml`` … (reference first).  ``recording``: a path (read with
-    :func:`accel_bayes.data.io.load_recording`) or a :class:`Recording`; ``positions``: path or
-    document; ``intrinsics``: path, :class:`~accel_bayes.prep.intrinsics.Intrinsics` or None
-    (not used by "kalibr-imu"); ``report``: path, dict or None.  Returns the written paths."""
-    from ..prep.intrinsics import Intrinsics
-    from .io import load_recording
-    from .outputs import write_text
-    from .positions import read_positions
-
-    names = {}
-    loaded = load_recording(recording)
-    if loaded.path is not None:
-        names["recording"] = Path(loaded.path).name
-    recording = loaded.recording
-    if not isinstance(positions, dict):
-        names["positions"] = Path(positions).name
-    positions = read_positions(positions)
-    if intrinsics is not None and not isinstance(intrinsics, Intrinsics):
-        names["intrinsics"] = Path(intrinsics).name
-        intrinsics = Intrinsics.from_json(intrinsics)
-    if report is not None and not isinstance(report, dict):
-        p = Path(report)
-        if not p.is_file():
-            raise FileNotFoundError(f"{p}: no such mismatch report")
-        names["report"] = p.name
-        try:
-            report = json.loads(p.read_text(encoding="utf-8"))
-        except ValueError as exc:
-            raise UserError(f"{p}: not valid JSON ({exc})") from None
-    if fmt == "kalibr-imu":
-        if intrinsics is not None:
-            raise UserError("--intrinsics: Kalibr's IMU input files hold no intrinsics; expected it only with "
-                            "--format kalibr or openvins")
-        files = kalibr_imu_files(recording, positions, report, input_names=names)
-        return [write_text(Path(output) / n, t, overwrite=overwrite) for n, t in files.items()]
-    text = imu_chain(recording, positions, intrinsics, report, fmt=fmt, input_names=names)
-    return [write_text(output, text, overwrite=overwrite)]

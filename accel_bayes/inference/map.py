@@ -27,7 +27,7 @@ S_θ = H_θθ − Σ_t H_θω_t H_ω_tω_t⁻¹ H_ω_tθ, covariance S_θ⁻¹. 
 Gauss–Newton variant (what the Cramér–Rao bound is the expectation of).
 
 Constants: ``log_posterior`` is −(the cost above) — the Gaussian normalisers (which do not depend
-on θ or ω) are dropped, as in :mod:`accel_bayes.likelihood`.
+on θ or ω) are dropped, as in :mod:`accel_bayes.model.likelihood`.
 """
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ import torch
 from ..constants import DEFAULT_PRIOR_STD
 from ..errors import DivergenceError, UserError
 from ..physics.geometry import skew
-from ..likelihood import as_acc_tensor, positions_from_theta, theta_from_positions
+from ..model.likelihood import as_acc_tensor, positions_from_theta, theta_from_positions
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, per_axis, u_of_omega
 from ..physics.jacobians import d2u_domega2, df_dr, du_domega
 from .lm import ExtraCost, GlobalResidual, LevenbergMarquardt, LMResult, Problem, SampleResidual, Variable
@@ -69,7 +69,7 @@ class MAPResult:
     reference : int; imu_labels : tuple of the IMU labels of the rows (fit_map_recording) or None.
     selection, sample_index : (fit_map_recording) the :class:`~accel_bayes.prep.selection.Selection`
         of the samples fitted and its kept indices into the recording; None otherwise.
-    phi_prior : the :class:`~accel_bayes.prep.phi_prior.PhiPrior` of the target, None for flat φ.
+    phi_prior : the :class:`~accel_bayes.model.phi_prior.PhiPrior` of the target, None for flat φ.
     lm : the :class:`~accel_bayes.inference.lm.LMResult` (problem included) for further use.
     """
 
@@ -127,11 +127,11 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
       ∂M/∂r_k,a = E_aᵀΛ_kH_k + H_kᵀΛ_kE_a, E_a = [−Ω(e_a) 0], and ∂²M within one triad only.
 
     phi_prior : None (flat φ, [C21]) or a proper prior N(0, F) on φ_t (anything
-    :meth:`~accel_bayes.prep.phi_prior.PhiPrior.coerce` takes).  It enters as six pseudo-
+    :meth:`~accel_bayes.model.phi_prior.PhiPrior.coerce` takes).  It enters as six pseudo-
     observations 0 = W φ_t + v_t per sample (WᵀW = F⁻¹, v_t ~ N(0, I)): the stacked design
     H' = [Hw; W] (θ-free extra rows), z' = [z; 0], G' = [Gw; 0], so M becomes M + F⁻¹ everywhere
     and the "acc" residual gets 6 more columns, r' = [z − Hwφ̂; −Wφ̂] with ‖r'‖² = ‖y − Gu‖²_{S_F}
-    (:class:`~accel_bayes.likelihood.RaoBlackwellLikelihood` with ``phi_prior``).  The closed forms
+    (:class:`~accel_bayes.model.likelihood.RaoBlackwellLikelihood` with ``phi_prior``).  The closed forms
     above carry over with H' for H and zeros in the extra rows of Q and K: the extra rows have no
     θ- or ω-dependence of their own.
     """
@@ -169,7 +169,7 @@ def build_map_problem(acc, omega_mean, omega_cov, acc_noise_std, *, reference=0,
     omega0 = wbar.clone() if init_omega is None else torch.as_tensor(init_omega, dtype=dtype, device=acc.device)
 
     y = acc.reshape(T, 3 * A)
-    from ..prep.phi_prior import PhiPrior
+    from ..model.phi_prior import PhiPrior
 
     phi_prior = PhiPrior.coerce(phi_prior, dtype=dtype, device=acc.device)
     # F⁻¹ (6, 6) and W with WᵀW = F⁻¹ (the pseudo-observation rows); zeros for the flat prior
@@ -318,7 +318,7 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
     acc : (T, A, 3) m/s² — accelerometer triad outputs, **array frame** (rotate sensor-frame data
         with R(q)ᵀ of the orientations first, e.g. ``Recording.acc_tensor("array")``).
     omega_mean : (T, 3) rad/s, omega_cov : (T, 3, 3) or (3, 3) (rad/s)² — the gyroscope posterior
-        N(ω̄_t, P_t) ([C21] eq. 15/30; :func:`accel_bayes.likelihood.gyro_posterior`).
+        N(ω̄_t, P_t) ([C21] eq. 15/30; :func:`accel_bayes.model.gyro_posterior.gyro_posterior`).
     acc_noise_std : scalar, (A,) or (A, 3) m/s² — white-noise std per triad/axis (Λ = diag σ⁻²).
     reference : row of the reference triad (origin, r_ref ≡ 0).
     prior_mean : (A, 3) m positions (taken relative to the reference); prior_std : scalar, (A,)
@@ -329,8 +329,8 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
     analytic, local_newton : derivative options of :func:`build_map_problem` (defaults: closed
         forms, Newton model in the ω blocks).
     phi_prior : None (flat φ, [C21]) or a proper prior N(0, F) on φ_t = [ω̇_t; s_t] (a
-        :class:`~accel_bayes.prep.phi_prior.PhiPrior` or what it coerces); the same target as
-        :class:`~accel_bayes.likelihood.RaoBlackwellLikelihood` with that ``phi_prior``.
+        :class:`~accel_bayes.model.phi_prior.PhiPrior` or what it coerces); the same target as
+        :class:`~accel_bayes.model.likelihood.RaoBlackwellLikelihood` with that ``phi_prior``.
     on_divergence : "raise" (default, :class:`MAPDivergence`), "warn" or "ignore" — what to do
         when the solution is detectably diverged (DESIGN §6); with "warn"/"ignore" the result has
         ``converged=False`` and ``reason`` starting with "diverged".
@@ -378,7 +378,7 @@ def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_
                       prior_mean=None, phi_prior="empirical", dtype=torch.float64, device=None, **kw) -> MAPResult:
     """:func:`fit_map` on a :class:`~accel_bayes.data.recording.Recording`.
 
-    Data preparation is the likelihood's (:meth:`accel_bayes.likelihood.RaoBlackwellLikelihood.from_recording`):
+    Data preparation is the likelihood's (:meth:`accel_bayes.model.likelihood.RaoBlackwellLikelihood.from_recording`):
     outputs rotated into the array frame with the nominal orientations, the gyroscope posterior
     of ``gyro_method`` ("sample_cov" = [C21] eq. 30 as printed, "sample_cov_mean", "calibrated"),
     explicit sample selection (``select``/``min_rotation``/``drop_clipped``, or a ready
@@ -386,11 +386,11 @@ def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_
     prior mean is the nominal design of the used IMUs (relative to ``rec.reference_imu``) unless
     given.  Rows of the result follow ``result.imu_labels``; ``result.selection`` is the Selection
     used and ``result.sample_index`` its kept indices.  ``phi_prior``: None or "flat" (flat φ,
-    [C21]), "empirical" (:func:`accel_bayes.prep.phi_prior.empirical_phi_prior` at the prior mean,
+    [C21]), "empirical" (:func:`accel_bayes.model.phi_prior.empirical_phi_prior` at the prior mean,
     with the recording's stated noise; as ``calibrate`` does) or a given prior; the one used is
     ``result.phi_prior``.  Other keywords go to :func:`fit_map`.
     """
-    from ..likelihood import RaoBlackwellLikelihood
+    from ..model.likelihood import RaoBlackwellLikelihood
 
     lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gyro_method, select=select,
                                                 min_rotation=min_rotation, drop_clipped=drop_clipped,
@@ -400,7 +400,7 @@ def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_
     if prior_mean is None:
         prior_mean = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=dtype, device=device)
     if isinstance(phi_prior, str):
-        from ..prep.phi_prior import PHI_PRIOR_CHOICES, empirical_phi_prior
+        from ..model.phi_prior import PHI_PRIOR_CHOICES, empirical_phi_prior
 
         if phi_prior not in PHI_PRIOR_CHOICES:
             raise UserError(f"phi_prior: expected one of {PHI_PRIOR_CHOICES} or a prior covariance, got {phi_prior!r}")

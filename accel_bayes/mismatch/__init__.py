@@ -15,7 +15,8 @@ with the nominal array model, name the physics the model left out, add it, refit
 * :mod:`.jitter` — random effects (``sampling_jitter``): the exact marginal likelihood at a
   mean fit, the profiled width, :func:`random_variance` (predicted extra variance per sample
   and channel, for variance budgets);
-* :mod:`.report` — :class:`MismatchReport`, the §7.2 ``report.json`` and the human report.
+* :mod:`.report` — :class:`MismatchReport` and the human report; the §7.2 ``report.json`` format
+  (schema, check, reading, writing) is :mod:`accel_bayes.data.mismatch_report`.
 
 >>> from accel_bayes.mismatch import detect          # doctest: +SKIP
 >>> report = detect("rec.nc"); report.write("out")   # doctest: +SKIP
@@ -28,7 +29,8 @@ from .fit import baseline_fit, fit_model
 from .jitter import jitter_evidence, random_variance
 from .model import ModelFit
 from .prepared import Prepared, prepare
-from .report import SCHEMA, Finding, MismatchReport, validate_report
+from ..data.mismatch_report import SCHEMA, validate_report
+from .report import Finding, MismatchReport
 
 __all__ = [
     "detect", "MismatchReport", "Finding", "SCHEMA", "validate_report",

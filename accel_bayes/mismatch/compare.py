@@ -122,7 +122,7 @@ def corrected_recording(rec, fit: ModelFit, index=None):
     """A copy of ``rec`` with the fitted mean effects subtracted (outputs − (model with effects −
     nominal model)), samples the fitted saturation clips removed from the noise accounting by
     flagging them in ``acc_clipped``/``gyro_clipped``, and the stated noise multiplied by the
-    fitted noise factors.  What the posterior calibration is rerun on (``posterior=True``).
+    fitted noise factors.  What the posterior calibration is rerun on (``detect(posterior=calibrate)``).
 
     index : None — ``rec`` holds exactly the fitted samples (``Prepared.rec``); else the fitted
         samples' indices into ``rec`` (``Prepared.selection.index``, ``rec`` = ``Prepared.source``):
@@ -159,9 +159,10 @@ def corrected_recording(rec, fit: ModelFit, index=None):
     return out
 
 
-def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, draws: int = 400,
+def posterior_comparison(rec, fit: ModelFit, calibrate, *, seed: int = 0, chains: int = 2, draws: int = 400,
                          warmup: int = 400, progress: bool = False, index=None, corrected_base=None) -> dict:
-    """PmMH posterior of the positions (:func:`accel_bayes.pipelines.calibrate.calibrate`, short chains)
+    """PmMH posterior of the positions (``calibrate``: :func:`accel_bayes.pipelines.calibrate.calibrate`,
+    passed in by the caller because the pipelines stand above ``mismatch``; short chains)
     on the recording as given and on :func:`corrected_recording` (``index`` as there) — an
     adapter over the calibration pipeline, which itself knows no effects.  Given the whole
     prepared recording (``Prepared.source``, rests included) the calibration keeps its own
@@ -170,10 +171,6 @@ def posterior_comparison(rec, fit: ModelFit, *, seed: int = 0, chains: int = 2, 
     corrects the gyros first), the "after" run corrects it.  Returns both
     ``positions.json``-style documents' per-IMU means/stds and their R̂/ESS diagnostics, or an
     error note."""
-    try:
-        from ..pipelines.calibrate import calibrate
-    except ImportError as exc:  # pragma: no cover
-        return {"error": f"accel_bayes.pipelines.calibrate unavailable: {exc}"}
     out = {"settings": {"chains": chains, "draws": draws, "warmup": warmup, "seed": int(seed)}}
     after = corrected_recording(rec if corrected_base is None else corrected_base, fit, index=index)
     for tag, r in (("before", rec), ("after", after)):

@@ -143,7 +143,7 @@ from .characterise import characterise, describe
 from ..threads import DEFAULT_THREADS, torch_threads
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
 from .budget import group_power, residual_budget
-from .compare import compare_fits
+from .compare import compare_fits, posterior_comparison
 from .fit import _effect_std, baseline_fit, fit_model
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
 from .jitter import jitter_evidence
@@ -606,7 +606,7 @@ def _pinned_threads(fn):
 
 @_pinned_threads
 def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 3, refine: bool = True,
-           posterior: bool = False, seed: int = 0, progress: bool = False, n_twins: int = 100,
+           posterior=False, seed: int = 0, progress: bool = False, n_twins: int = 100,
            n_refit: int = 6, use_map: bool = True, loo_draws: int = 200) -> MismatchReport:
     """Find, name and fix model mismatch in one recording (module docstring).
 
@@ -621,8 +621,9 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     max_findings : most effects added to the model (default 3).
     refine : fill ``report.refined`` (the model with the findings, χ²/dof, log-likelihood, ELPD
         by PSIS-LOO, geometry before/after); False leaves it null.
-    posterior : also run the PmMH calibration (:func:`accel_bayes.pipelines.calibrate.calibrate`, short
-        chains) before and after correcting the recording for the findings (slow).
+    posterior : False, or the calibration function (:func:`accel_bayes.pipelines.calibrate.calibrate`,
+        which ``mismatch`` cannot import: the pipelines stand above it) to run with short PmMH
+        chains before and after correcting the recording for the findings (slow).
     seed : seeds the PPC twins, the Laplace draws and the posterior runs.
     progress : print stage messages (and LM progress bars).
     threads : torch CPU threads for the call (default 1, restored afterwards; None leaves torch's
@@ -634,6 +635,9 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     """
     t_start = _time.perf_counter()
     alpha, names = _check_options(effects, alpha, max_findings, seed)
+    if posterior is not False and posterior is not None and not callable(posterior):
+        raise UserError(f"posterior: expected False or the calibration function "
+                        f"(accel_bayes.pipelines.calibrate.calibrate), got {posterior!r}")
     loaded = load_recording(recording, require_gyro=True)
     rec, source = loaded.recording, None if loaded.path is None else str(loaded.path)
     _check_recording(rec)
@@ -902,10 +906,8 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         comparison = compare_fits(base, refined, draws=loo_draws, seed=seed)
         say(f"refined: χ²/dof {base.chi2_per_dof:.4g} → {refined.chi2_per_dof:.4g}")
         if posterior:
-            from .compare import posterior_comparison
-
             fixed_src = None if stage is None else block_corrected_recording(prep.source, stage.blocks)
-            post = posterior_comparison(prep.source, refined, seed=seed, progress=progress, corrected_base=fixed_src,
+            post = posterior_comparison(prep.source, refined, posterior, seed=seed, progress=progress, corrected_base=fixed_src,
                                         index=prep.selection.index)
     timings["refine_s"] = _time.perf_counter() - t0
     # residual budget (vocabulary 1.1): against the model with the findings, also with

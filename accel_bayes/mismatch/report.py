@@ -8,7 +8,8 @@ of §7.2 are exactly those of :meth:`MismatchReport.to_dict`'s top level (``sche
 kept under its earlier name ``chi2_per_dof_stated_noise``); everything else
 (located-excess tables, per-regime statistics, PPC, screening and refit logs, geometry before
 and after, ELPD, timings) lives under the added key ``details`` or as added keys inside the
-contract blocks, which §7.2 allows.  :func:`validate_report` checks a dict against the contract.
+contract blocks, which §7.2 allows.  :func:`accel_bayes.data.mismatch_report.validate_report` checks a dict against the contract
+(the schema, reading and writing of ``report.json`` live in :mod:`accel_bayes.data.mismatch_report`).
 
 Attribute access mirrors the JSON: ``report.baseline`` and ``report.refined`` are the contract
 blocks (dicts; ``refined`` is None on clean data or with ``refine=False``), ``report.findings``
@@ -24,12 +25,11 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import UserError
+from ..data.mismatch_report import SCHEMA, report_json, write_report_json
 from ..data.outputs import to_jsonable, write_text
+from ..errors import UserError
 
-__all__ = ["SCHEMA", "Finding", "MismatchReport", "validate_report"]
-
-SCHEMA = "accel_bayes.mismatch/1"
+__all__ = ["Finding", "MismatchReport"]
 
 
 
@@ -206,7 +206,7 @@ class MismatchReport:
 
     # ---------------------------------------------------------------- output
     def to_json(self, indent: int = 1) -> str:
-        return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        return report_json(self.to_dict(), indent)
 
     def write(self, out_dir, *, figures: bool = True) -> dict:
         """Write ``report.json`` (v1 contract), ``report.md`` and the figures into ``out_dir``.
@@ -216,7 +216,7 @@ class MismatchReport:
             raise UserError(f"--out: {out} exists and is not a directory")
         out.mkdir(parents=True, exist_ok=True)
         paths = {}
-        paths["json"] = write_text(out / "report.json", self.to_json() + "\n")
+        paths["json"] = write_report_json(out / "report.json", self.to_dict())
         figs = {}
         if figures:
             try:
@@ -398,52 +398,3 @@ def _short(v):
 
 def _vec(v, nd: int = 3):
     return "(" + ", ".join(f"{x:.{nd}f}" for x in v) + ")"
-
-
-# ------------------------------------------------------------------------------ validation
-
-def validate_report(doc: dict) -> None:
-    """Raise :class:`~accel_bayes.errors.UserError` if ``doc`` breaks the DESIGN §7.2 contract."""
-    from ..physics.effects import EXTENSIONS, VOCABULARY
-
-    def need(cond, msg):
-        if not cond:
-            raise UserError(f"mismatch report: {msg}")
-
-    need(isinstance(doc, dict), "expected a JSON object")
-    for k in ("schema", "mismatch_detected", "threshold", "baseline", "findings", "refined"):
-        need(k in doc, f"missing key {k!r}")
-    need(doc["schema"] == SCHEMA, f"schema is {doc['schema']!r}, expected {SCHEMA!r}")
-    need(isinstance(doc["mismatch_detected"], bool), "mismatch_detected must be a bool")
-    need(isinstance(doc["threshold"], (int, float)) and doc["threshold"] > 0, "threshold must be a positive number")
-    b = doc["baseline"]
-    need(isinstance(b, dict) and all(k in b for k in ("loglik", "chi2_per_dof", "dof")), "baseline needs loglik, chi2_per_dof, dof")
-    need(isinstance(doc["findings"], list), "findings must be a list")
-    need(doc["mismatch_detected"] == (len(doc["findings"]) > 0), "mismatch_detected must equal (findings non-empty)")
-    for f in doc["findings"]:
-        for k in ("effect", "imu", "axis", "evidence", "parameters", "where", "explanation"):
-            need(k in f, f"finding missing key {k!r}")
-        need(f["effect"] in VOCABULARY + EXTENSIONS,
-             f"unknown effect {f['effect']!r}; expected one of {VOCABULARY + EXTENSIONS}")
-        need(f["imu"] is None or isinstance(f["imu"], int), "finding imu must be an int label or null")
-        need(f["axis"] in (None, "x", "y", "z"), "finding axis must be x, y, z or null")
-        need(isinstance(f["where"], dict) and "regime" in f["where"] and "time_s" in f["where"],
-             "finding where needs regime and time_s")
-        need(isinstance(f["explanation"], str) and f["explanation"], "finding explanation must be a sentence")
-        need(isinstance(f["parameters"], dict), "finding parameters must be an object")
-    ev = [f["evidence"] for f in doc["findings"]]
-    if doc["refined"] is None:
-        need(True, "")
-    else:
-        r = doc["refined"]
-        need(all(k in r for k in ("effects", "loglik", "chi2_per_dof")), "refined needs effects, loglik, chi2_per_dof")
-    if not doc["mismatch_detected"]:
-        need(doc["refined"] is None, "a clean report has refined = null")
-    if "budget" in doc:  # vocabulary 1.1
-        need(isinstance(doc["budget"], list), "budget must be a list")
-        for r in doc["budget"]:
-            need(isinstance(r, dict) and r.get("sensor") in ("acc", "gyro") and isinstance(r.get("regime"), str)
-                 and isinstance(r.get("samples"), int) and all(k in r for k in ("excess_var_observed",
-                                                                                  "excess_var_explained")),
-                 "budget rows need sensor (acc|gyro), regime, samples, excess_var_observed, excess_var_explained")
-    _ = ev

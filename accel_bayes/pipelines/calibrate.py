@@ -4,11 +4,11 @@
 
 0. real-data preprocessing (:mod:`accel_bayes.prep.preprocess`): intrinsic calibration from the
    recording's own rests, then dropping static, clipped and non-rotating samples; and, for such
-   recordings, the accelerometer noise model estimated from the data (:mod:`accel_bayes.prep.noise`:
+   recordings, the accelerometer noise model estimated from the data (:mod:`accel_bayes.model.noise`:
    a level per triad × a factor per gyro-rate bin, type-II ML at the MAP, and the sandwich
    inflation for what the model still misses).  On a recording without rests (e.g. simulated
    twisting) the intrinsics are skipped with a note and the stated noise is used;
-1. the Rao-Blackwellized likelihood (:class:`~accel_bayes.likelihood.RaoBlackwellLikelihood`,
+1. the Rao-Blackwellized likelihood (:class:`~accel_bayes.model.likelihood.RaoBlackwellLikelihood`,
    [C21] eq. 26 with the −½ power of DESIGN §4) with the chosen gyro posterior and sample
    selection;
 2. the prior on θ (Gaussian, σ_r = 3 mm by default, [C21] §IV-A; or a box of the same std);
@@ -49,11 +49,13 @@ from ..errors import UserError
 from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh, \
     run_pmmh_until
 from ..inference.mcmc.priors import BoxPrior, GaussianPrior
-from ..likelihood import GyroPosterior, RaoBlackwellLikelihood, choose_correlation, \
-    choose_num_draws, \
-    positions_from_theta
-from ..prep.noise import NOISE_MODES
-from ..prep.phi_prior import PHI_PRIOR_CHOICES, PhiPrior, empirical_phi_prior
+from ..inference.noise_fit import fit_map_tempered, fit_map_with_noise, sandwich_inflation
+from ..model.draw_tuning import choose_correlation, choose_num_draws
+from ..model.gyro_posterior import GyroPosterior
+from ..model.likelihood import RaoBlackwellLikelihood, positions_from_theta
+from ..model.noise import NOISE_MODES, scale_samples
+from ..model.phi_prior import PHI_PRIOR_CHOICES, PhiPrior, empirical_phi_prior
+from ..model.tempering import TemperedLikelihood
 from ..threads import torch_threads
 from .calibrate_defaults import DEFAULTS
 from ..data.outputs import to_jsonable, write_text
@@ -310,17 +312,15 @@ def _usable_map(res, settings):
 
 
 def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, settings, phi_prior="flat"):
-    """Fit the MAP with the data-estimated noise model (:mod:`accel_bayes.prep.noise`); with
+    """Fit the MAP with the data-estimated noise model (:mod:`accel_bayes.model.noise`); with
     ``inflate`` temper the likelihood by the sandwich factor κ.  Returns the likelihood the
-    chains use (:class:`~accel_bayes.prep.noise.TemperedLikelihood` of the scaled samples), the MAP
-    of exactly that target (or None if unusable) and the :class:`~accel_bayes.prep.noise.NoiseModel`.
+    chains use (:class:`~accel_bayes.model.tempering.TemperedLikelihood` of the scaled samples), the MAP
+    of exactly that target (or None if unusable) and the :class:`~accel_bayes.model.noise.NoiseModel`.
 
     ``phi_prior``: "flat", "empirical" or a given prior.  The noise levels are fitted with φ free
-    (the REML update of :mod:`accel_bayes.prep.noise`); an empirical prior is then estimated with
+    (the REML update of :mod:`accel_bayes.model.noise`); an empirical prior is then estimated with
     those levels (its M⁻¹ correction depends on them), the MAP refitted under it (warm start),
     and the sandwich, the tempered MAP and the chains' likelihood all carry it."""
-    from ..prep.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         res, nm = fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std,
@@ -443,7 +443,7 @@ def calibrate(
         moved with each proposal by z' = ρ z + √(1 − ρ²) ε, exact for the same posterior.  "auto":
         when ``num_draws`` is None and fresh draws would need N > 1, N = 1 and ρ such that
         Var[log p̂(θ, z') − log p̂(θ, z)] ≈ 1 at the central θ
-        (:func:`~accel_bayes.likelihood.choose_correlation`, seeded); otherwise 0.  0: fresh draws
+        (:func:`~accel_bayes.model.draw_tuning.choose_correlation`, seeded); otherwise 0.  0: fresh draws
         every iteration ([C21] Alg. 1, the chains of earlier versions).  A number: that ρ with N
         as given or chosen by the fresh-draw rule.  Recorded in ``settings["correlation"]``,
         ``settings["correlation_table"]`` and ``settings["correlation_rule"]``.
@@ -458,7 +458,7 @@ def calibrate(
     init : chain starts — "map" (Laplace draws around the MAP, over-dispersed ×1.5), "prior"
         (prior draws, e.g. to check convergence from far away while the proposals still use the
         MAP), "auto" ("map" when a MAP is used, else "prior").
-    gyro_method : gyro posterior, see :func:`accel_bayes.likelihood.gyro_posterior`.  "auto"
+    gyro_method : gyro posterior, see :func:`accel_bayes.model.gyro_posterior.gyro_posterior`.  "auto"
         (default): "calibrated" when the noise is estimated (the estimated accelerometer noise
         then absorbs the gyro errors that [C21] eq. 30's sample covariance is meant to cover;
         on the MIMU data both give the same MAP and Laplace std to a few %, but eq. 30 needs
@@ -477,7 +477,7 @@ def calibrate(
         ("rotation" is accepted for compatibility: the ``min_rotation`` threshold, default 0.5
         rad/s even if ``min_rotation`` is 0).  Every count is in ``settings["preprocess"]``.
     noise : "stated" — the recording's ``acc_noise_std``; "estimate" — a level per triad fitted
-        with the MAP (type-II ML, :mod:`accel_bayes.prep.noise`), then, with ``noise_inflation``,
+        with the MAP (type-II ML, :mod:`accel_bayes.model.noise`), then, with ``noise_inflation``,
         the likelihood tempered by κ, the average variance inflation of the sandwich covariance
         at the MAP (what the fitted white-noise model still misses: heteroscedasticity, errors
         shared by the triads of a sample); "auto" (default) — "estimate" for a recording with
@@ -485,7 +485,7 @@ def calibrate(
         model error during motion), "stated" otherwise (simulations whose stated σ is the
         truth).  What was estimated is in ``settings["noise_model"]``.
     noise_bins : quantile bins of |ω̄| for a rate-dependent noise factor (default 1 = one level
-        per triad; see :mod:`accel_bayes.prep.noise` for why more bins are not the default).
+        per triad; see :mod:`accel_bayes.model.noise` for why more bins are not the default).
     noise_inflation : temper by the sandwich factor κ ≥ 1 (estimated noise only).  None (default):
         True without ``model``, False with one (the model's variances at their type-II ML values,
         untempered; the sandwich is then measured and recorded, not applied).
@@ -493,19 +493,19 @@ def calibrate(
         ``report.json`` path, dict or :class:`~accel_bayes.mismatch.report.MismatchReport`) of this
         recording: its random gyroscope effects (``timing_wander``, ``sampling_jitter``) become
         per-sample gyro covariances and the gyro posterior of ω_t their precision-weighted fusion
-        (:mod:`accel_bayes.prep.model_effects`; ``gyro_method`` must be "auto" or "calibrated");
+        (:mod:`accel_bayes.model.report_terms`; ``gyro_method`` must be "auto" or "calibrated");
         what it cannot carry is skipped with the reason.  The report is checked against the
         recording (IMU count, number of samples: refused otherwise).  The sandwich-to-Laplace std
         ratio per coordinate at the MAP is recorded in ``settings["model"]["sandwich"]``, with the
         report's SHA-256 and the findings used and skipped.
     phi_prior : the prior on φ_t = [ω̇_t; s_t] (angular acceleration, specific force) that the
-        likelihood integrates out (:mod:`accel_bayes.prep.phi_prior`).  "empirical" (default) — a
+        likelihood integrates out (:mod:`accel_bayes.model.phi_prior`).  "empirical" (default) — a
         zero-mean Gaussian whose 6×6 covariance is the type-II ML estimate from the recording
         (with the noise the chains use); it removes the inward pull of the flat prior's
         −(T/2)·log|M(θ)| (demo configuration: array scale 0.99812 ± 0.00034 flat, 0.99978 ±
         0.00032 empirical, 0.99990 ± 0.00031 for the log|M|-free reference;
         experiments/phi_prior_probe.md).  "flat" — [C21] as published (DESIGN §4; what the paper
-        reproductions use).  A :class:`~accel_bayes.prep.phi_prior.PhiPrior`, (σ_ω̇ rad/s²,
+        reproductions use).  A :class:`~accel_bayes.model.phi_prior.PhiPrior`, (σ_ω̇ rad/s²,
         σ_s m/s²), six stds or a (6, 6) covariance — that prior.  What was used is in
         ``settings["phi_prior"]``.
     proposal : "rw" (Gaussian random walk only, [C21] eq. 27 with a shaped covariance),
@@ -561,7 +561,7 @@ def calibrate(
         noise_mode = ("estimate" if pre.has_rests else "stated") if noise == "auto" else noise
         gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if gyro_method == "auto" else gyro_method
         if cmodel is not None:
-            gm = "calibrated"  # the model's fused posterior generalises it (prep.model_effects)
+            gm = "calibrated"  # the model's fused posterior generalises it (model.report_terms)
         lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gm, selection=pre.selection)
         gyro_info = None
         if cmodel is not None:
@@ -668,7 +668,7 @@ def _check_resume(raw, sha, opts, *, checkpoint, resume, prior, prior_std, use_m
 
 
 def _model_option(model, gyro_method):
-    """The mismatch report of ``model`` read and checked (:func:`accel_bayes.prep.model_effects.load_model`),
+    """The mismatch report of ``model`` read and checked (:func:`accel_bayes.model.report_terms.load_model`),
     or None.  Its fused gyro posterior replaces the "calibrated" one, so ``gyro_method`` must be
     "auto" or "calibrated"."""
     if model is None:
@@ -676,16 +676,16 @@ def _model_option(model, gyro_method):
     if gyro_method not in ("auto", "calibrated"):
         raise UserError(f"gyro_method: a model's gyro posterior replaces 'calibrated'; expected 'auto' or "
                         f"'calibrated' with model, got {gyro_method!r}")
-    from ..prep.model_effects import load_model
+    from ..model.report_terms import load_model
 
     return load_model(model)
 
 
 def _model_gyro_step(lik, rec, cmodel):
-    """The likelihood with the model's gyro posterior (:func:`accel_bayes.prep.model_effects.fused_gyro_posterior`)
+    """The likelihood with the model's gyro posterior (:func:`accel_bayes.model.report_terms.fused_gyro_posterior`)
     on the same samples, and a summary of what it changed: the median posterior std of ω per
     axis before and after, and the median share of the precision the gyros with a finding keep."""
-    from ..prep.model_effects import corrected_gyro_array, fused_gyro_posterior
+    from ..model.report_terms import corrected_gyro_array, fused_gyro_posterior
 
     idx = np.asarray(lik.sample_index)
     glabels = list(lik.gyro_labels)
@@ -711,10 +711,8 @@ def _model_gyro_step(lik, rec, cmodel):
 
 def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
     """The sandwich covariance at the MAP of the chains' likelihood against its Laplace covariance
-    (:func:`accel_bayes.prep.noise.sandwich_inflation`): per free coordinate the Laplace std, the
+    (:func:`accel_bayes.inference.noise_fit.sandwich_inflation`): per free coordinate the Laplace std, the
     sandwich std and their ratio (m, m, 1), κ and the lags — what the model still misses."""
-    from ..prep.noise import sandwich_inflation
-
     if map_res is None:
         return {"kappa": None, "why": "no usable MAP"}
     kappa = float(getattr(lik, "kappa", 1.0))
@@ -758,7 +756,7 @@ def _noise_step(lik, nominal_acc, ps, noise_mode, noise_bins, noise_inflation, s
 
 
 def _phi_prior_step(acc, omega_mean, acc_noise_std, nominal_acc, phi_prior, settings):
-    """The prior on φ_t = [ω̇_t; s_t] the chains use (:mod:`accel_bayes.prep.phi_prior`): None for
+    """The prior on φ_t = [ω̇_t; s_t] the chains use (:mod:`accel_bayes.model.phi_prior`): None for
     "flat" ([C21]), the type-II ML estimate at the nominal design for "empirical" (default), or
     the given one.  Recorded in ``settings["phi_prior"]`` (positions.json provenance)."""
     if isinstance(phi_prior, str) and phi_prior == "flat":
@@ -827,7 +825,7 @@ def _central_step(lik, pri, map_res, opts, proposal, settings):
 def _correlation_step(lik, theta_c, opts, table, N, settings):
     """ρ of the correlated pseudo-marginal kernel and its measurement table.  "auto": when N was
     chosen automatically and came out above 1 (a noisy estimator), ρ from
-    :func:`~accel_bayes.likelihood.choose_correlation` at the central θ with N = CPM_NUM_DRAWS
+    :func:`~accel_bayes.model.draw_tuning.choose_correlation` at the central θ with N = CPM_NUM_DRAWS
     (the caller then uses that N); otherwise 0 — fresh draws, the chains of earlier versions.
     A number: that ρ with the N chosen as before."""
     c = opts["correlation"]

@@ -66,7 +66,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..constants import G0
+from ..constants import ACC_PARAMS, ACC_T_INDEX, G0
 from ..errors import UserError
 from ..inference.lm.damping import NielsenDamping
 from ..inference.lm import BatchedLevenbergMarquardt, StoppingRule
@@ -85,9 +85,6 @@ __all__ = [
 ]
 
 SCHEMA = "accel_bayes.intrinsics/1"
-ACC_PARAMS = ("b_x", "b_y", "b_z", "t_xx", "t_yy", "t_zz", "t_yx", "t_zx", "t_zy")
-# Positions of the six T entries of ACC_PARAMS[3:] in the 3×3 matrix.
-_T_INDEX = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
 _MIN_REST_SAMPLES = 10
 
 
@@ -229,7 +226,7 @@ class Intrinsics:
     def acc_params(self) -> np.ndarray:
         """(K, 9) the parameter vectors in ``ACC_PARAMS`` order."""
         T = np.asarray(self.acc_matrix)
-        t = np.stack([T[:, i, j] for i, j in _T_INDEX], -1)
+        t = np.stack([T[:, i, j] for i, j in ACC_T_INDEX], -1)
         return np.concatenate((np.asarray(self.acc_bias), t), -1)
 
     # ------------------------------------------------------------ use
@@ -418,7 +415,7 @@ def _residuals(p, m, g):
     u = v / nv[..., None]
     r = nv - g
     Jb = -torch.einsum("ksi,kij->ksj", u, T)
-    Jt = torch.stack([u[..., i] * d[..., j] for i, j in _T_INDEX], -1)
+    Jt = torch.stack([u[..., i] * d[..., j] for i, j in ACC_T_INDEX], -1)
     return r, torch.cat((Jb, Jt), -1)
 
 

@@ -32,7 +32,7 @@ def test_file_format_strings_are_the_contracts_not_module_paths():
     from accel_bayes.data.positions import POSITIONS_SCHEMA
     from accel_bayes.data.validation import FORMAT
     from accel_bayes.data.io import TRUTH_SCHEMA
-    from accel_bayes.mismatch.report import SCHEMA as MISMATCH_SCHEMA
+    from accel_bayes.data.mismatch_report import SCHEMA as MISMATCH_SCHEMA
     from accel_bayes.prep.intrinsics import SCHEMA as INTRINSICS_SCHEMA
     from accel_bayes.inference.mcmc.checkpoint import CHECKPOINT_FORMAT
     import accel_bayes.inference.motion as me

@@ -61,7 +61,7 @@ COMPUTE = {
     "mismatch": ("accel_bayes.mismatch", "detect"),
     "demo": ("accel_bayes.simulate", "simulate"),
     "import-csv": ("accel_bayes.data.csv_import", "import_csv"),
-    "export": ("accel_bayes.data.export", "export_imu_chain"),
+    "export": ("accel_bayes.pipelines.export", "export_imu_chain"),
 }
 FILE_SUFFIX = {"intrinsics": ".json", "export": ".yaml"}
 

@@ -15,7 +15,7 @@ import torch
 from experiments._laplace import laplace_from_recording, log_posterior
 
 from accel_bayes.physics.arrays import mimu4444_8  # noqa: E402
-from accel_bayes.likelihood import RaoBlackwellLikelihood  # noqa: E402
+from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.simulate import simulate  # noqa: E402
 
 

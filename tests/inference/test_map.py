@@ -1,7 +1,7 @@
 """Tests of the [C21] MAP and its Laplace covariance (accel_bayes.inference.map).
 
 Independent references: the true geometry (noise-free data), a dense autograd Hessian of the
-negative log posterior written with the likelihood helper (accel_bayes.likelihood), and the
+negative log posterior written with the likelihood helper (accel_bayes.model.likelihood), and the
 Cramér–Rao bound (slow statistical study).
 """
 import math
@@ -106,7 +106,7 @@ def _small_problem(seed=3, T=10):
 
 @pytest.mark.parametrize("phi_prior", PHI_PRIORS)
 def test_laplace_covariance_matches_dense_autograd_hessian(phi_prior):
-    likelihood = pytest.importorskip("accel_bayes.likelihood")
+    likelihood = pytest.importorskip("accel_bayes.model.likelihood")
     d = _small_problem()
     A, T = 4, d["acc"].shape[0]
     sa = 0.34
@@ -142,7 +142,7 @@ def test_laplace_covariance_matches_dense_autograd_hessian(phi_prior):
 
 @pytest.mark.parametrize("phi_prior", PHI_PRIORS)
 def test_map_objective_theta_part_is_the_likelihood_helper(phi_prior):
-    likelihood = pytest.importorskip("accel_bayes.likelihood")
+    likelihood = pytest.importorskip("accel_bayes.model.likelihood")
     d = make_data(T=50, seed=4)
     T = 50
     prob = build_map_problem(d["acc"], d["wbar"], d["P"], SA, prior_mean=d["arr"].positions, phi_prior=_phi(phi_prior))

@@ -22,7 +22,7 @@ import torch
 from accel_bayes.errors import UserError
 from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh, run_pmmh_until
 from accel_bayes.inference.mcmc.priors import GaussianPrior
-from accel_bayes.likelihood import choose_correlation
+from accel_bayes.model.draw_tuning import choose_correlation
 
 T, S_RE, SIG = 60, 0.3e-3, 1.0e-3  # samples; random-effect and noise std (m)
 SIG_PRIOR = 3e-3

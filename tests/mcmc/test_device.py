@@ -24,9 +24,9 @@ from types import SimpleNamespace
 
 from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh, run_pmmh_until
 from accel_bayes.inference.mcmc.priors import BoxPrior, GaussianPrior
-from accel_bayes.likelihood import RaoBlackwellLikelihood, theta_from_positions
+from accel_bayes.model.likelihood import RaoBlackwellLikelihood, theta_from_positions
 from accel_bayes.physics import arrays
-from accel_bayes.prep.noise import TemperedLikelihood
+from accel_bayes.model.tempering import TemperedLikelihood
 from accel_bayes.simulate import simulate
 
 CPU = torch.device("cpu")

@@ -11,7 +11,7 @@ import torch
 
 from accel_bayes.mismatch import detect
 from accel_bayes.mismatch.gyro_linear import corrected_gyro, relative_blocks
-from accel_bayes.mismatch.report import validate_report
+from accel_bayes.data.mismatch_report import validate_report
 from accel_bayes.physics.effects import GyroLinear, SignalContext, make_effect
 from accel_bayes.physics.geometry import quat_to_matrix
 
@@ -142,7 +142,7 @@ def test_stage_stops_at_its_group_test_without_gyro_errors():
 def test_calibrate_model_inverts_a_reports_gyro_blocks():
     # calibrate --model: a gyro_linear block (gyro_scale with a 3 × 3 scale) corrects that gyro's
     # outputs, checked against numpy on the array-frame data
-    from accel_bayes.prep.model_effects import corrected_gyro_array, load_model
+    from accel_bayes.model.report_terms import corrected_gyro_array, load_model
 
     rng = np.random.default_rng(5)
     T, G = 40, 3

@@ -1,5 +1,5 @@
 """``calibrate(..., model=report)`` (issue #11 item 5): a mismatch report's random gyro effects in
-the likelihood (:mod:`accel_bayes.prep.model_effects`)."""
+the likelihood (:mod:`accel_bayes.model.report_terms`)."""
 import copy
 import json
 import warnings
@@ -10,10 +10,10 @@ import torch
 
 from experiments import _conceal as C
 from accel_bayes.errors import UserError  # noqa: E402
-from accel_bayes.likelihood import gyro_posterior  # noqa: E402
+from accel_bayes.model.gyro_posterior import gyro_posterior  # noqa: E402
 from accel_bayes.physics.effects import make_effect  # noqa: E402
 from accel_bayes.pipelines.calibrate import calibrate  # noqa: E402
-from accel_bayes.prep.model_effects import fused_gyro_posterior, load_model  # noqa: E402
+from accel_bayes.model.report_terms import fused_gyro_posterior, load_model  # noqa: E402
 
 SHORT = dict(chains=1, draws=20, warmup=20, seed=0, progress=False)
 
@@ -176,8 +176,8 @@ def test_cli_model_refuses_a_report_of_another_recording(wander_case, tmp_path, 
 
 def test_noise_bins_on_a_given_covariate(wander_case):
     """fit_map_with_noise(covariate=|ω̄|) is the default rate binning; a wrong shape is refused."""
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
-    from accel_bayes.prep.noise import fit_map_with_noise
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.inference.noise_fit import fit_map_with_noise
 
     rec, _, _ = wander_case
     lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method="calibrated")
@@ -199,8 +199,8 @@ def test_sandwich_clusters_and_their_white_reference():
     the sandwich, divided by its white-noise reference, is near 1; the per-sample reference is 1 by
     construction (J̃ lies in the range of P⊥); "sample" is the default and unchanged."""
     from accel_bayes.inference.map import fit_map
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
-    from accel_bayes.prep.noise import sandwich_inflation
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.inference.noise_fit import sandwich_inflation
 
     rec = C.make_case("mimu8", "none", seed=2, T=1500, rate=100.0).recording
     lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method="calibrated")

@@ -1,4 +1,4 @@
-"""Tests of the Rao-Blackwellized likelihood (accel_bayes.likelihood, DESIGN §4).
+"""Tests of the Rao-Blackwellized likelihood (accel_bayes.model.likelihood, DESIGN §4).
 
 Every reference here is computed independently of the estimator's code path: dense Gaussians
 with a finite prior scale β ([C21] eq. 18–19), a dense projector built with torch.linalg.lstsq
@@ -11,14 +11,9 @@ import pytest
 import torch
 
 from accel_bayes.errors import UserError
-from accel_bayes.likelihood import (
-    GyroPosterior,
-    RaoBlackwellLikelihood,
-    choose_num_draws,
-    gyro_posterior,
-    positions_from_theta,
-    theta_from_positions,
-)
+from accel_bayes.model.draw_tuning import choose_num_draws
+from accel_bayes.model.gyro_posterior import GyroPosterior, gyro_posterior
+from accel_bayes.model.likelihood import RaoBlackwellLikelihood, positions_from_theta, theta_from_positions
 from accel_bayes.physics.models import G_matrix, H_matrix, imu_outputs, specific_force, u_of_omega
 from accel_bayes.data.recording import Recording
 
@@ -572,14 +567,14 @@ def test_every_draw_path_equals_dense_form(small, N):
 def test_direct_path_far_off_theta_and_chunks(small, monkeypatch):
     """Direct path: a θ far from the data (every exp(−½q) underflows without the floor) and
     several t-chunks give the dense value."""
-    import accel_bayes.likelihood as likmod
+    import accel_bayes.model.draw_sums as draw_sums
 
     pos, lik, _ = small
     z = lik.sample_z(num_draws=5, generator=_gen(111))
     bad = pos * 3.0 + 0.05
     want = float(_dense_log_phat(lik, bad, z))
     assert abs(float(lik.log_phat(bad, z=z)) - want) < 1e-9 * abs(want)
-    monkeypatch.setattr(likmod, "_DIRECT_CHUNK_ELEMS", 5 * 16 * 2)  # 2 samples per chunk
+    monkeypatch.setattr(draw_sums, "_DIRECT_CHUNK_ELEMS", 5 * 16 * 2)  # 2 samples per chunk
     assert abs(float(lik.log_phat(bad, z=z)) - want) < 1e-9 * abs(want)
     P = pos + 0.002 * torch.randn(2, 5, 3, generator=_gen(112), dtype=DT)
     got = lik.log_phat(P, z=z)

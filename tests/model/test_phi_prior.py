@@ -1,4 +1,4 @@
-"""The empirical-Bayes prior on φ = [ω̇; s] (accel_bayes.prep.phi_prior) and its use by calibrate.
+"""The empirical-Bayes prior on φ = [ω̇; s] (accel_bayes.model.phi_prior) and its use by calibrate.
 
 Independent references: the dense Gaussian marginal Σ_t log N(y_t; G u(ω_t), Q + H F Hᵀ)
 (torch.distributions, autograd in F) for the type-II ML property; data drawn with a known F for
@@ -12,7 +12,7 @@ import torch
 
 from accel_bayes.errors import UserError
 from accel_bayes.physics.models import G_matrix, H_matrix, u_of_omega
-from accel_bayes.prep.phi_prior import PhiPrior, empirical_phi_prior
+from accel_bayes.model.phi_prior import PhiPrior, empirical_phi_prior
 
 DT = torch.float64
 POS = torch.tensor([[0.0, 0.0, 0.0], [0.06, 0.0, 0.0], [0.0, 0.05, 0.0], [0.05, 0.05, 0.01], [0.02, 0.01, 0.04]],
@@ -102,7 +102,7 @@ def test_coerce_forms_and_refusals():
 
 def _scale_of_map(rec, phi_prior):
     from accel_bayes.inference.map import fit_map
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
 
     lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1)
     nominal = torch.as_tensor(np.asarray(rec.nominal_position), dtype=DT)

@@ -1,5 +1,5 @@
 """Real-data preprocessing (:mod:`accel_bayes.prep.preprocess`) and the estimated noise model
-(:mod:`accel_bayes.prep.noise`).
+(:mod:`accel_bayes.model.noise`).
 
 Fast tests on small simulated recordings (exact sample counts, noise recovery, exactness of the
 sample-scaling and tempering identities against the likelihood class), and one test on the real
@@ -14,9 +14,11 @@ import torch
 from accel_bayes.physics.arrays import preset
 from accel_bayes.errors import UserError
 from accel_bayes.prep.intrinsics import Intrinsics
-from accel_bayes.likelihood import GyroPosterior, RaoBlackwellLikelihood
-from accel_bayes.prep.noise import (TemperedLikelihood, fit_map_with_noise, residual_statistics, sandwich_inflation,
-                               scale_samples)
+from accel_bayes.model.gyro_posterior import GyroPosterior
+from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+from accel_bayes.inference.noise_fit import fit_map_with_noise, sandwich_inflation
+from accel_bayes.model.noise import residual_statistics, scale_samples
+from accel_bayes.model.tempering import TemperedLikelihood
 from accel_bayes.prep.preprocess import draw_intrinsics, preprocess
 from accel_bayes.prep.selection import rotation_rate
 from accel_bayes.simulate import simulate

@@ -112,7 +112,7 @@ def test_imu_subsets_restrict_the_clip_flags_and_the_rotation_test():
 def test_every_fit_takes_the_same_selection():
     """preprocess, the likelihood and the MAP use one Selection object."""
     from accel_bayes.inference.map import fit_map_recording
-    from accel_bayes.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
     from accel_bayes.physics.arrays import mimu4444_8
     from accel_bayes.prep.preprocess import preprocess
     from accel_bayes.simulate import simulate

@@ -16,7 +16,7 @@ and bit-exact resumption.
 Exactness
 ---------
 The accepted state's estimate log p̂(y | θ) is cached and **never re-estimated**: p̂ is an
-unbiased estimator of p(y | θ) (:mod:`accel_bayes.likelihood`), and only then is the chain's
+unbiased estimator of p(y | θ) (:mod:`accel_bayes.model.likelihood`), and only then is the chain's
 θ-marginal the exact posterior ([C21] §III-A, eq. 8).  Every tuning that looks at the chain
 (step size, proposal covariance, independence proposal) happens during warm-up only and is
 frozen afterwards, so the kept draws come from one fixed, exact kernel.

@@ -19,7 +19,7 @@ import torch
 from pyro.infer.mcmc.mcmc_kernel import MCMCKernel
 
 from ...errors import UserError
-from ...likelihood import positions_from_theta
+from ...model.likelihood import positions_from_theta
 from .adaptation import CovarianceAdapter, StepSizeAdapter, WarmupAdaptation
 from .proposals import (MOVE_IND, MOVE_RW, IndependenceProposal, ProposalMixture, RandomWalkProposal,
                         cholesky_factor)
@@ -104,7 +104,7 @@ class PMMHKernel(MCMCKernel):
     :param likelihood: object with ``A``, ``reference`` and
         ``log_phat(positions (..., A, 3), generator=...) -> (...)``, an unbiased estimator of
         the likelihood on the log scale, e.g.
-        :class:`~accel_bayes.likelihood.RaoBlackwellLikelihood`.
+        :class:`~accel_bayes.model.likelihood.RaoBlackwellLikelihood`.
     :param prior: object with ``log_prob(theta (..., A−1, 3))``, ``sample(shape, generator)``
         and ``covariance()`` (:mod:`accel_bayes.inference.mcmc.priors`).
     :param int seed: base seed; chain c uses a generator derived from (seed, c, start point).

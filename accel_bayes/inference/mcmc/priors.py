@@ -16,7 +16,7 @@ import torch
 
 from ...errors import UserError
 from ...constants import DEFAULT_PRIOR_STD
-from ...likelihood import theta_from_positions
+from ...model.likelihood import theta_from_positions
 
 __all__ = ["GaussianPrior", "BoxPrior", "DEFAULT_PRIOR_STD"]
 

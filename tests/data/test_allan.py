@@ -1,4 +1,4 @@
-"""Bias random walk from the rests (accel_bayes.prep.allan), on simulated series with a known K.
+"""Bias random walk from the rests (accel_bayes.data.allan), on simulated series with a known K.
 
 The criterion the export relies on: an accepted estimate lies within its stated uncertainty of
 the truth (z = (K̂ − K)/se, RMS near 1 over seeds), and stretches too short for it are refused.
@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from accel_bayes.prep.allan import RELATIVE_SE_MAX, allan_random_walk, static_runs, static_time_needed
+from accel_bayes.data.allan import RELATIVE_SE_MAX, allan_random_walk, static_runs, static_time_needed
 
 RATE, N, K = 100.0, 1e-3, 1e-3  # crossover τ_c = √3 N/K ≈ 1.7 s
 

@@ -21,14 +21,14 @@ precision-weighted fusion, the generalised least-squares estimate)
 
     P_t = (Σ_k C_t,k⁻¹)⁻¹,      ω̄_t = P_t Σ_k C_t,k⁻¹ y_t,k,
 
-replaces :func:`~accel_bayes.likelihood.gyro_posterior`'s "calibrated" one (which it equals when
+replaces :func:`~accel_bayes.model.gyro_posterior.gyro_posterior`'s "calibrated" one (which it equals when
 the report has no such finding): a wandering gyro counts less where ω̇ is large, and ω's
 posterior covariance grows there.
 
 What a per-sample covariance cannot carry: the AR(1) correlation of the instant error from one
 sample to the next (``correlation`` ≈ 0.7–0.87 on the MIMU data).  The likelihood treats the
 samples as independent given θ; what that leaves is what the sandwich covariance measures
-(:func:`accel_bayes.prep.noise.sandwich_inflation`, Newey–West lags), and ``calibrate`` records it.
+(:func:`accel_bayes.inference.noise_fit.sandwich_inflation`, Newey–West lags), and ``calibrate`` records it.
 
 Gyro linear blocks → the gyro outputs corrected
 -----------------------------------------------
@@ -43,23 +43,22 @@ Everything else → recorded as skipped, with the reason
 * ``unexplained``: carries no model;
 * random effects on accelerometers (``timing_wander`` with sensor ``acc``, the acc half of
   ``sampling_jitter``): the likelihood has one noise level per triad, constant over the samples
-  (a per-sample scale must be common to all triads, :func:`accel_bayes.prep.noise.scale_samples`),
+  (a per-sample scale must be common to all triads, :func:`accel_bayes.model.noise.scale_samples`),
   so a per-triad, per-sample variance has no place in it; the type-II ML level absorbs it;
 * other mean, clip and noise-level effects: not applied by this version; a warning says so.
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..data.mismatch_report import read_report
 from ..errors import UserError
+from .gyro_posterior import GyroPosterior
 
 __all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array"]
 
@@ -114,36 +113,13 @@ class CalibrationModel:
                                    "AR(1) correlation not carried (left to the sandwich)"}
 
 
-def _read(model):
-    """(dict, source path or None, sha256) of a report given as a path, a dict or a report object."""
-    if hasattr(model, "to_dict") and not isinstance(model, dict):
-        model = model.to_dict()
-    if isinstance(model, dict):
-        blob = json.dumps(model, sort_keys=True, default=str).encode()
-        return model, None, hashlib.sha256(blob).hexdigest()
-    if not isinstance(model, (str, Path)):
-        raise UserError(f"model: expected a report.json path, a report dict or None, got {type(model).__name__}")
-    p = Path(model)
-    try:
-        blob = p.read_bytes()
-    except OSError as exc:
-        raise UserError(f"model: cannot read {p}: {exc.strerror or exc}") from None
-    try:
-        doc = json.loads(blob)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise UserError(f"model: {p} is not JSON ({exc})") from None
-    return doc, str(p), hashlib.sha256(blob).hexdigest()
-
-
 def load_model(model) -> CalibrationModel:
     """Read and check a mismatch report (path, dict or :class:`~accel_bayes.mismatch.report.MismatchReport`)
     and sort its findings into used and skipped (module docstring).  Bad input → one-line
     :class:`UserError` naming the field."""
-    from ..mismatch.report import validate_report
     from ..physics.effects import make_effect
 
-    doc, source, sha = _read(model)
-    validate_report(doc)  # schema (format version) and vocabulary of every finding
+    doc, source, sha = read_report(model, "model")
     details = doc.get("details") or {}
     if not isinstance(details, dict):
         raise UserError("model: details: expected an object")
@@ -229,9 +205,8 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects):
     gyro_labels : the G IMU labels of the gyros.  time : (T,) s of those samples (gaps allowed).
     effects : [(IMU label, effect)] with ``params`` width (s) and, for ``timing_wander``,
     excess_noise_var ((rad/s)²).
-    Returns (:class:`~accel_bayes.likelihood.GyroPosterior` with method "model", ω̇ (T, 3) rad/s²).
+    Returns (:class:`~accel_bayes.model.gyro_posterior.GyroPosterior` with method "model", ω̇ (T, 3) rad/s²).
     """
-    from ..likelihood import GyroPosterior
     from ..physics.effects import output_rates
 
     y = torch.as_tensor(gyro, dtype=torch.float64)

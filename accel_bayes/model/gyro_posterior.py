@@ -1,0 +1,101 @@
+"""The Gaussian posterior of the angular rate ω_t from the gyroscopes ([C21] eq. 15, 26b, 30):
+the ω part of the model that the likelihood integrates over (:mod:`.likelihood`).  The fusion
+with a mismatch report's random gyro effects is :func:`.report_terms.fused_gyro_posterior`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+
+__all__ = ["GyroPosterior", "gyro_posterior"]
+
+
+@dataclass
+class GyroPosterior:
+    """Gaussian p(ω_t | y_t^g) per sample ([C21] eq. 15, 26b, 30).
+
+    mean : (T, 3) rad/s, array frame;  cov : (T, 3, 3) (rad/s)²;  method : how it was built.
+    """
+
+    mean: torch.Tensor
+    cov: torch.Tensor
+    method: str
+
+    @property
+    def T(self) -> int:
+        return int(self.mean.shape[0])
+
+    def select(self, index) -> "GyroPosterior":
+        """The posterior of the samples ``index`` (bool mask or integer indices)."""
+        idx = torch.as_tensor(np.asarray(index), device=self.mean.device)
+        return GyroPosterior(self.mean[idx], self.cov[idx], self.method)
+
+    def to(self, dtype=None, device=None) -> "GyroPosterior":
+        return GyroPosterior(self.mean.to(dtype=dtype, device=device), self.cov.to(dtype=dtype, device=device),
+                             self.method)
+
+
+_GYRO_METHODS = ("sample_cov", "sample_cov_mean", "calibrated")
+
+
+def gyro_posterior(gyro_array: torch.Tensor, gyro_noise_std, method: str = "sample_cov") -> GyroPosterior:
+    """Gaussian posterior of ω_t from the G gyroscope triads of one sample (flat prior on ω_t).
+
+    gyro_array : (T, G, 3) rad/s, already rotated into the array frame.
+    gyro_noise_std : (G,) rad/s (or a scalar), white noise std per axis.
+    method :
+      * ``"calibrated"`` — gyros with known, calibrated noise: the inverse-variance weighted mean,
+        covariance (Σ_k σ_k⁻²)⁻¹ I (= Q_g/G for equal noise).
+      * ``"sample_cov"`` (default) — [C21] eq. 30 **as printed**: mean ȳ_t = plain average of the
+        G gyros (eq. 30a); covariance Q̄_t = per-sample sample covariance across the gyros with
+        1/(G−1) (eq. 30b), **not divided by G**.  That is the spread of a single gyro, not the
+        uncertainty of the mean, so it is deliberately wide (the paper uses it to absorb
+        uncalibrated gyro scale/misalignment errors that grow with |ω|, [C21] §IV-B).
+      * ``"sample_cov_mean"`` — the same divided by G (the standard error of the mean).
+
+    Floor (sample-covariance methods): with few gyros Q̄_t is rank-deficient (rank ≤ G−1) or
+    tiny by chance, so its eigenvalues are raised to at least the calibrated variance
+    (Σ_k σ_k⁻²)⁻¹: Q̄_t ← V diag(max(λ_i, σ²_cal)) Vᵀ.  The result is never singular and never
+    narrower than what the stated gyro noise alone allows.  Needs G ≥ 2.
+    """
+    if gyro_array.dim() != 3 or gyro_array.shape[-1] != 3:
+        raise UserError(f"gyro_array: expected shape (T, G, 3), got {tuple(gyro_array.shape)}")
+    T, G, _ = gyro_array.shape
+    dtype, device = gyro_array.dtype, gyro_array.device
+    std = torch.as_tensor(gyro_noise_std, dtype=dtype, device=device)
+    std = std.expand(G) if std.dim() == 0 else std
+    if std.shape != (G,):
+        raise UserError(f"gyro_noise_std: expected shape ({G},) for G={G} gyros, got {tuple(std.shape)}")
+    if bool((std <= 0).any()):
+        raise UserError("gyro_noise_std: expected > 0 for every gyro")
+    if G < 1:
+        raise UserError("gyro_array: no gyroscope triad (G = 0); the likelihood needs at least one")
+    if bool(torch.isnan(gyro_array).any()):
+        raise UserError("gyro_array: contains NaN; select samples/IMUs with gyro data first")
+    w = std.pow(-2)
+    var_cal = 1.0 / w.sum()
+    eye = torch.eye(3, dtype=dtype, device=device)
+    if method == "calibrated":
+        mean = (gyro_array * w[:, None]).sum(-2) / w.sum()
+        cov = (var_cal * eye).expand(T, 3, 3).clone()
+        return GyroPosterior(mean, cov, method)
+    if method not in _GYRO_METHODS:
+        raise UserError(f"method: expected one of {_GYRO_METHODS}, got {method!r}")
+    if G < 2:
+        raise UserError(f"method={method!r}: the sample covariance needs at least 2 gyros, got G={G}; "
+                        "use method='calibrated'")
+    mean = gyro_array.mean(-2)
+    dev = gyro_array - mean.unsqueeze(-2)
+    cov = dev.transpose(-1, -2) @ dev / (G - 1)
+    if method == "sample_cov_mean":
+        cov = cov / G
+    lam, V = torch.linalg.eigh(cov)
+    lam = lam.clamp_min(var_cal)
+    cov = (V * lam.unsqueeze(-2)) @ V.transpose(-1, -2)
+    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    return GyroPosterior(mean, cov, method)
+
