@@ -18,7 +18,13 @@ Outputs (each a small problem, seconds each):
   ``axis_displacement`` (the package's simulator): evidence and parameters of the findings,
   refined log-likelihood;
 * ``conceal.*`` — the same on a recording of the independent generator
-  (``experiments/_conceal.py``) hiding one ``time_offset``.
+  (``experiments/_conceal.py``) hiding one ``time_offset``;
+* ``pipelines.*`` — the ``calibrate`` (four option sets: run until converged, estimated and
+  tempered noise, no MAP with a box prior and flat φ prior, fixed N with a given correlation),
+  ``map`` and ``selfcal`` commands on one simulated recording, run through the command line as a
+  user runs them: each ``positions.json`` whole (provenance settings included) as canonical JSON
+  text, compared for equality, with only the wall-clock ``seconds`` left out (issue #26 item 3:
+  the options records must not change a setting or a draw).
 
 Only public names that exist at 7adf109 and later are imported, by their 7adf109 paths, so the
 same file runs against both: 0.1 kept those paths as aliases, and in a tree that has dropped them
@@ -248,8 +254,69 @@ def run_conceal(out: dict):
     out["conceal.names"] = np.array([f"{f['effect']}:{f['imu']}:{f['axis']}" for f in rep["findings"]])
 
 
+# (name, calibrate options): small runs, a few seconds each, that between them pass through every step
+# of the pipeline (run until converged, noise estimated and tempered, no MAP, a given N and ρ)
+CALIBRATE_RUNS = (
+    ("auto", ["--chains", "2", "--warmup", "30", "--check-every", "30", "--max-draws", "60"]),
+    ("estimate", ["--chains", "2", "--warmup", "30", "--draws", "40", "--noise", "estimate"]),
+    ("nomap", ["--chains", "2", "--warmup", "30", "--draws", "40", "--no-map", "--prior", "box", "--phi-prior",
+               "flat", "--seed", "4"]),
+    ("rho", ["--chains", "2", "--warmup", "20", "--draws", "30", "--num-draws", "4", "--correlation", "0.5",
+             "--proposal", "rw", "--gyro-method", "sample_cov_mean"]),
+)
+
+
+def _without_seconds(x):
+    """A JSON document without its wall-clock entries (every key named ``seconds``)."""
+    if isinstance(x, dict):
+        return {k: _without_seconds(v) for k, v in x.items() if k != "seconds"}
+    if isinstance(x, list):
+        return [_without_seconds(v) for v in x]
+    return x
+
+
+def run_pipelines(out: dict):
+    """The commands as a user runs them, in a scratch folder with fixed relative names (the
+    provenance records the recording's path as given)."""
+    import contextlib
+    import io
+    import json
+    import os
+    import tempfile
+
+    from accel_bayes.cli import main
+
+    def cli(*args):
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as err:
+            rc = main(list(args))
+        if rc not in (0, 4):  # 4: finished, chains not converged (short runs): the outputs are written
+            raise RuntimeError(f"accel-bayes {' '.join(args)}: exit {rc}: {err.getvalue()[-400:]}")
+
+    def keep(name, path):
+        doc = json.loads(open(path, encoding="utf-8").read())
+        out[f"pipelines.{name}.document"] = np.array(json.dumps(_without_seconds(doc), sort_keys=False))
+        imus = [i for i in doc["imus"] if i.get("mean") is not None]
+        out[f"pipelines.{name}.means"] = np.array([i["mean"] for i in imus], dtype=np.float64)
+
+    here = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            cli("simulate", "--preset", "mimu8", "-T", "200", "--seed", "3", "-o", "rec.nc")
+            for name, opts in CALIBRATE_RUNS:
+                cli("calibrate", "rec.nc", "--out", f"cal_{name}", "--quiet", "--no-plots", *opts)
+                keep(f"calibrate_{name}", f"cal_{name}/positions.json")
+            cli("map", "rec.nc", "--out", "map")
+            keep("map", "map/positions.json")
+            cli("selfcal", "rec.nc", "--out", "selfcal", "--max-iter", "50", "--no-progress")
+            keep("selfcal", "selfcal/positions.json")
+        finally:
+            os.chdir(here)
+
+
 STAGES = {"map": run_map, "selfcal": run_selfcal, "conventional": run_conventional, "intrinsics": run_intrinsics,
-          "motion": run_motion, "mismatch": run_mismatch, "conceal": run_conceal}
+          "motion": run_motion, "mismatch": run_mismatch, "conceal": run_conceal,
+          "pipelines": run_pipelines}
 
 
 def compare(a_path: str, b_path: str, tol: float) -> int:
