@@ -27,7 +27,11 @@ Outputs (each a small problem, seconds each):
   accelerometer axis displaced by 3 mm) makes the sandwich temper the likelihood (κ ≈ 1.5): each
   ``positions.json`` document whole (provenance settings included) as JSON text, compared for
   equality, with only the wall-clock ``seconds`` left out (issue #26 item 3: the options records
-  must not change a setting, their order or a draw).
+  must not change a setting, their order or a draw);
+* ``demo.*`` — ``accel-bayes demo`` (seed 1, the full run; minutes): its posterior
+  ``positions.json`` and the mismatch ``report.json`` (layout compared for equality, numbers to
+  the tolerance), ``summary.csv`` and the demo's ``report.md`` (text), wall-clock times left
+  out.  Not in the default stages (``--only demo``).
 
 Only public names that exist at 7adf109 and later are imported, by their 7adf109 paths, so the
 same file runs against both: 0.1 kept those paths as aliases, and in a tree that has dropped them
@@ -278,6 +282,30 @@ def _without_seconds(x):
     return x
 
 
+def _split(doc, name: str) -> dict:
+    """A JSON document as ``{name}.layout`` (every path in order, with its value unless a number)
+    and ``{name}.numbers`` (the numbers in that order), so that --compare checks the layout for
+    equality and the numbers to the tolerance.  Wall-clock times (keys ``*_s``, ``*_seconds``) are left out."""
+    paths, numbers = [], []
+
+    def walk(x, where):
+        if isinstance(x, dict):
+            for k, v in x.items():
+                if not k.endswith(("_s", "_seconds")):
+                    walk(v, f"{where}.{k}")
+        elif isinstance(x, list):
+            for i, v in enumerate(x):
+                walk(v, f"{where}[{i}]")
+        elif isinstance(x, (int, float)) and not isinstance(x, bool):
+            paths.append(f"{where}: number")
+            numbers.append(float(x))
+        else:
+            paths.append(f"{where}: {x!r}")
+
+    walk(doc, "")
+    return {f"{name}.layout": np.array(paths), f"{name}.numbers": np.array(numbers, dtype=np.float64)}
+
+
 def run_pipelines(out: dict):
     """The commands as a user runs them, in a scratch folder with fixed relative names (the
     provenance records the recording's path as given)."""
@@ -341,9 +369,40 @@ def _tempered_run() -> dict:
     return res.positions
 
 
+def run_demo(out: dict):
+    """``accel-bayes demo`` in a scratch folder; its text outputs without wall-clock times."""
+    import contextlib
+    import io
+    import json
+    import os
+    import re
+    import tempfile
+
+    from accel_bayes.cli import main
+
+    here = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                rc = main(["demo", "--out", "demo", "--no-progress"])
+            if rc not in (0, 4):
+                raise RuntimeError(f"accel-bayes demo: exit {rc}")
+            for name, path in (("positions", "demo/posterior/positions.json"), ("mismatch", "demo/mismatch/report.json")):
+                doc = _without_seconds(json.loads(open(path, encoding="utf-8").read()))
+                for key, value in _split(doc, name).items():
+                    out[f"demo.{key}"] = value
+            out["demo.summary"] = np.array(open("demo/posterior/summary.csv", encoding="utf-8").read())
+            text = open("demo/report.md", encoding="utf-8").read()
+            out["demo.report"] = np.array(re.sub(r"\d+(\.\d+)? s\b", "<seconds> s", text))
+        finally:
+            os.chdir(here)
+
+
 STAGES = {"map": run_map, "selfcal": run_selfcal, "conventional": run_conventional, "intrinsics": run_intrinsics,
           "motion": run_motion, "mismatch": run_mismatch, "conceal": run_conceal,
-          "pipelines": run_pipelines}
+          "pipelines": run_pipelines, "demo": run_demo}
+DEFAULT_STAGES = [s for s in STAGES if s != "demo"]
 
 
 def compare(a_path: str, b_path: str, tol: float) -> int:
@@ -380,7 +439,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="write the outputs to this .npz")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two .npz files")
     ap.add_argument("--tol", type=float, default=1e-6, help="max relative difference per output (default 1e-6)")
-    ap.add_argument("--only", default=",".join(STAGES), help="comma-separated stages to run")
+    ap.add_argument("--only", default=",".join(DEFAULT_STAGES),
+                    help=f"comma-separated stages to run (default {','.join(DEFAULT_STAGES)}; also: demo)")
     args = ap.parse_args(argv)
     if args.compare:
         return compare(*args.compare, args.tol)

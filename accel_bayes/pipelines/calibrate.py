@@ -52,6 +52,7 @@ from ..inference.mcmc.priors import BoxPrior, GaussianPrior
 from ..likelihood import GyroPosterior, RaoBlackwellLikelihood, choose_correlation, \
     choose_num_draws, \
     positions_from_theta
+from ..prep.noise import TemperedLikelihood, fit_map_tempered, fit_map_with_noise, sandwich_inflation, scale_samples
 from ..prep.phi_prior import PhiPrior, empirical_phi_prior
 from ..threads import torch_threads
 from .calibrate_defaults import DEFAULTS
@@ -323,8 +324,6 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, phi_prior="flat"
     (the REML update of :mod:`accel_bayes.prep.noise`); an empirical prior is then estimated with
     those levels (its M⁻¹ correction depends on them), the MAP refitted under it (warm start),
     and the sandwich, the tempered MAP and the chains' likelihood all carry it."""
-    from ..prep.noise import TemperedLikelihood, fit_map_with_noise, scale_samples
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         res, nm = fit_map_with_noise(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std,
@@ -354,8 +353,6 @@ def _temper_step(acc_s, w_s, P_s, std, res, reference, nominal_acc, prior_std, p
     """With ``inflate``: κ, the average variance inflation of the sandwich covariance at the MAP
     ``res`` (never below 1: never narrower than the fitted model says), and the MAP refitted
     under the likelihood tempered by 1/κ; without, κ = 1 and ``res`` as it is."""
-    from ..prep.noise import fit_map_tempered, sandwich_inflation
-
     kappa, record = 1.0, {}
     lap_ok = bool(torch.isfinite(torch.as_tensor(res.laplace_cov)).all())
     if inflate and lap_ok:
@@ -574,9 +571,8 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         settings.update(mstep.settings())
         map_res = mstep.result
         if cmodel is not None:
-            settings["model"] = cmodel.describe()
-            settings["model"]["gyro_posterior"] = gyro_info
-            settings["model"]["sandwich"] = _sandwich_record(lik, map_res, nominal_acc, ps, free_labels)
+            settings["model"] = {**cmodel.describe(), "gyro_posterior": gyro_info,
+                                 "sandwich": _sandwich_record(lik, map_res, nominal_acc, ps, free_labels)}
         draws = _central_step(lik, pri, map_res, opts)
         lik.num_draws = int(draws.num_draws)
         settings.update(draws.settings())
@@ -672,8 +668,6 @@ def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
     """The sandwich covariance at the MAP of the chains' likelihood against its Laplace covariance
     (:func:`accel_bayes.prep.noise.sandwich_inflation`): per free coordinate the Laplace std, the
     sandwich std and their ratio (m, m, 1), κ and the lags — what the model still misses."""
-    from ..prep.noise import sandwich_inflation
-
     if map_res is None:
         return {"kappa": None, "why": "no usable MAP"}
     kappa = float(getattr(lik, "kappa", 1.0))
