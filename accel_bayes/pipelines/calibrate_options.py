@@ -76,35 +76,127 @@ def _intrinsics_key(intrinsics) -> str:
 
 @dataclass(frozen=True)
 class CalibrateOptions:
-    """Every option of one PmMH calibration; the meaning of each in detail is in
-    :func:`accel_bayes.pipelines.calibrate.calibrate`'s docstring.  Defaults: :data:`DEFAULTS`.
+    """Every option of one PmMH calibration (:func:`accel_bayes.pipelines.calibrate.calibrate`);
+    defaults in :data:`~accel_bayes.pipelines.calibrate_defaults.DEFAULTS`.  Frozen: a changed
+    option is a new record (``dataclasses.replace``, checked again).
 
-    Chains: ``chains`` (C), ``warmup`` (adaptation iterations per chain), ``draws`` (kept draws
-    per chain; None: run until every coordinate has R̂ < ``rhat_max`` and bulk and tail ESS ≥
-    ``ess_min`` — effective draws over all chains, None: 100 per chain — checked every
-    ``check_every`` draws per chain, up to ``max_draws`` draws per chain or ``max_seconds`` s of
-    sampling, None: no limit), ``seed`` (one seed for everything random).
-    Estimator: ``num_draws`` (N, Monte Carlo draws per likelihood estimate; None: chosen so that
-    Var[log p̂] ≈ 1), ``correlation`` ("auto" or ρ in [0, 1) of the correlated pseudo-marginal
-    kernel).
-    Prior and start: ``prior`` ("gaussian" or "box"), ``prior_std`` (m, > 0), ``use_map`` (fit
-    the MAP first), ``init`` ("auto", "map", "prior").
-    Proposal: ``proposal`` ("auto", "rw", "mixture"), ``independence_prob`` (probability of an
-    independence move in [0, 1); None: 0.8), ``target_accept_prob`` (random-walk acceptance
-    targeted in warm-up).
-    Data: ``intrinsics`` ("auto", "estimate", "none", an intrinsics JSON path or an
-    :class:`~accel_bayes.prep.intrinsics.Intrinsics`), ``drop_static``, ``drop_clipped``,
-    ``min_rotation`` (rad/s; None or 0 keeps all), ``select`` (None, "rotation", a (T,) mask or
-    sample indices), ``gyro_method`` (gyro posterior), ``noise`` ("auto", "stated", "estimate"),
-    ``noise_bins`` (gyro-rate bins of the estimated noise), ``noise_inflation`` (temper by the
-    sandwich factor; None: yes without ``model``), ``phi_prior`` ("empirical", "flat", or a
-    prior: (σ_ω̇ rad/s², σ_s m/s²), six stds, a (6, 6) covariance), ``model`` (a mismatch report:
-    path, dict or report object).
-    Running: ``checkpoint`` (file of the sampler state), ``checkpoint_every`` (iterations between
-    saves, 0: none), ``resume`` (continue from ``checkpoint``), ``threads`` (torch CPU threads,
-    None: torch's setting), ``device`` (where the chains run, None: the CPU).
-
-    Frozen: a changed option is a new record (``dataclasses.replace``, checked again).
+    chains, warmup : C chains, W warm-up (adaptation) iterations each (default 4 and 1000); the
+        adaptation happens in warm-up only, the kept draws come from a fixed exact kernel.
+    draws : kept draws per chain.  None (default): run until converged — the chains are continued
+        (each from its current state, so the same seed gives the draws of one long run) until
+        every coordinate has R̂ < ``rhat_max`` and bulk and tail ESS ≥ ``ess_min``, checked every
+        ``check_every`` draws per chain, up to ``max_draws`` draws per chain or ``max_seconds``
+        of sampling.  An int: exactly that many draws (the chains of earlier versions, bit for
+        bit where the sampler is unchanged — ``correlation`` 0 or an automatic N of 1); the same
+        criteria then only decide ``diagnostics.converged``.
+    max_draws : most kept draws per chain in the run-until-converged mode (default 20 000).
+    check_every : kept draws per chain between two convergence checks (default 500).  The checks
+        happen at fixed draw counts (500, 1000, …), never at wall-clock times, so where a run
+        stops does not depend on the machine's speed.
+    rhat_max : R̂ threshold, a coordinate passes when its rank-normalised split R̂ < rhat_max
+        (default 1.01).
+    ess_min : bulk and tail ESS threshold, effective draws of all chains together; None (default):
+        100 per chain, i.e. 400 for the default 4 chains (Vehtari et al. 2021).
+    max_seconds : wall-clock budget of the sampling in seconds (warm-up included, the steps
+        before it not), tested after each check (default 3600; None: no limit).  A safety stop:
+        a run that hits it has a machine-dependent number of draws, is reported as not converged
+        and says so (``settings["convergence"]["stopped"] == "max_seconds"``).
+        What a run did — the criteria, the draws it took, every check and why it stopped — is in
+        ``settings["convergence"]`` and the ``diagnostics`` block of ``positions.json``.
+    num_draws : N, Monte Carlo draws per likelihood estimate; None chooses it so that
+        Var[log p̂] ≈ 1 at the central θ (the MAP, or the prior mean) ([C21] §III-C) — or 1
+        with the correlated kernel, see ``correlation``.
+    correlation : "auto" (default) or ρ in [0, 1).  ρ > 0: the correlated pseudo-marginal
+        kernel (Deligiannidis, Doucet & Pitt 2018; :class:`~accel_bayes.inference.mcmc.PMMHKernel`):
+        the standard normals z (T, N, 3) of the estimate are part of each chain's state and are
+        moved with each proposal by z' = ρ z + √(1 − ρ²) ε, exact for the same posterior.  "auto":
+        when ``num_draws`` is None and fresh draws would need N > 1, N = 1 and ρ such that
+        Var[log p̂(θ, z') − log p̂(θ, z)] ≈ 1 at the central θ
+        (:func:`~accel_bayes.likelihood.choose_correlation`, seeded); otherwise 0.  0: fresh draws
+        every iteration ([C21] Alg. 1, the chains of earlier versions).  A number: that ρ with N
+        as given or chosen by the fresh-draw rule.  Recorded in ``settings["correlation"]``,
+        ``settings["correlation_table"]`` and ``settings["correlation_rule"]``.
+    seed : one seed for everything random (N choice, chain starts, chains); same seed → same
+        draws, bit for bit.
+    prior, prior_std : "gaussian" — N(design position, σ²) per coordinate ([C21] §IV-A, σ = 3 mm);
+        "box" — uniform with the same std (half-width √3·σ).  Metres.
+    use_map : fit the MAP first (if :mod:`accel_bayes.inference.map` is installed) and use it for
+        the central θ, the chain starts (Laplace draws over-dispersed ×1.5), the random-walk shape
+        and the independence proposal.  False: chains start from prior draws, the random walk is
+        shaped by the prior and re-shaped from warm-up draws.
+    init : chain starts — "map" (Laplace draws around the MAP, over-dispersed ×1.5), "prior"
+        (prior draws, e.g. to check convergence from far away while the proposals still use the
+        MAP), "auto" ("map" when a MAP is used, else "prior").
+    gyro_method : gyro posterior, see :func:`accel_bayes.likelihood.gyro_posterior`.  "auto"
+        (default): "calibrated" when the noise is estimated (the estimated accelerometer noise
+        then absorbs the gyro errors that [C21] eq. 30's sample covariance is meant to cover;
+        on the MIMU data both give the same MAP and Laplace std to a few %, but eq. 30 needs
+        Var[log p̂] ≈ 300 at N = 64 on ~6000 samples, out of reach), else "sample_cov" ([C21]
+        eq. 30 as printed).
+    intrinsics : "auto" (default), "estimate", "none", an
+        :class:`~accel_bayes.prep.intrinsics.Intrinsics` or an intrinsics JSON path — the intrinsic
+        calibration step of :func:`accel_bayes.prep.preprocess.preprocess` ("auto": from the
+        recording's own rests, skipped with a note when it has none).
+    drop_static : drop the samples of the rests (default True).
+    drop_clipped : drop samples where any accelerometer or gyroscope is flagged as clipped (at
+        its range): the model cannot explain them, and a handful of them makes Var[log p̂]
+        explode.  Default True.
+    min_rotation : drop samples with |ω̄_t| below this, rad/s (default 0.5; None/0 keeps all).
+    select : further selection ANDed with the above: a (T,) bool mask or sample indices
+        ("rotation" is accepted for compatibility: the ``min_rotation`` threshold, default 0.5
+        rad/s even if ``min_rotation`` is 0).  Every count is in ``settings["preprocess"]``.
+    noise : "stated" — the recording's ``acc_noise_std``; "estimate" — a level per triad fitted
+        with the MAP (type-II ML, :mod:`accel_bayes.prep.noise`), then, with ``noise_inflation``,
+        the likelihood tempered by κ, the average variance inflation of the sandwich covariance
+        at the MAP (what the fitted white-noise model still misses: heteroscedasticity, errors
+        shared by the triads of a sample); "auto" (default) — "estimate" for a recording with
+        rests (the real-data protocol: its stated σ is the rest noise, which does not cover
+        model error during motion), "stated" otherwise (simulations whose stated σ is the
+        truth).  What was estimated is in ``settings["noise_model"]``.
+    noise_bins : quantile bins of |ω̄| for a rate-dependent noise factor (default 1 = one level
+        per triad; see :mod:`accel_bayes.prep.noise` for why more bins are not the default).
+    noise_inflation : temper by the sandwich factor κ ≥ 1 (estimated noise only).  None (default):
+        True without ``model``, False with one (the model's variances at their type-II ML values,
+        untempered; the sandwich is then measured and recorded, not applied).
+    model : None (default: the likelihood as before, bit for bit) or a mismatch report (DESIGN §7.2
+        ``report.json`` path, dict or :class:`~accel_bayes.mismatch.report.MismatchReport`) of this
+        recording: its random gyroscope effects (``timing_wander``, ``sampling_jitter``) become
+        per-sample gyro covariances and the gyro posterior of ω_t their precision-weighted fusion
+        (:mod:`accel_bayes.prep.model_effects`; ``gyro_method`` must be "auto" or "calibrated");
+        what it cannot carry is skipped with the reason.  The report is checked against the
+        recording (IMU count, number of samples: refused otherwise).  The sandwich-to-Laplace std
+        ratio per coordinate at the MAP is recorded in ``settings["model"]["sandwich"]``, with the
+        report's SHA-256 and the findings used and skipped.
+    phi_prior : the prior on φ_t = [ω̇_t; s_t] (angular acceleration, specific force) that the
+        likelihood integrates out (:mod:`accel_bayes.prep.phi_prior`).  "empirical" (default) — a
+        zero-mean Gaussian whose 6×6 covariance is the type-II ML estimate from the recording
+        (with the noise the chains use); it removes the inward pull of the flat prior's
+        −(T/2)·log|M(θ)| (demo configuration: array scale 0.99812 ± 0.00034 flat, 0.99978 ±
+        0.00032 empirical, 0.99990 ± 0.00031 for the log|M|-free reference;
+        experiments/phi_prior_probe.md).  "flat" — [C21] as published (DESIGN §4; what the paper
+        reproductions use).  A :class:`~accel_bayes.prep.phi_prior.PhiPrior`, (σ_ω̇ rad/s²,
+        σ_s m/s²), six stds or a (6, 6) covariance — that prior.  What was used is in
+        ``settings["phi_prior"]``.
+    proposal : "rw" (Gaussian random walk only, [C21] eq. 27 with a shaped covariance),
+        "mixture" (random walk mixed with independence moves from the Laplace approximation or
+        the warm-up moments), "auto" (mixture when a MAP is used, else rw).
+    independence_prob : probability of an independence move in "mixture" (default 0.8; warm-up
+        uses at most 0.5 so the random walk's step size adapts).
+    target_accept_prob : random-walk acceptance targeted in warm-up (default 0.15).
+    checkpoint, checkpoint_every, resume : see :func:`accel_bayes.inference.mcmc.run_pmmh` and
+        :func:`~accel_bayes.inference.mcmc.run_pmmh_until` (a resume continues bit-exactly, also
+        in the middle of a block; a run stopped by ``max_draws``/``max_seconds`` can be resumed with
+        larger ones, which are not part of the settings a resume must match).
+    device : where the chains run — None or "cpu" (default), or a torch device such as "cuda".
+        Only step 6 (the PmMH chains: likelihood estimates, prior, proposals, the chains'
+        generators) moves there; loading, preparation, noise, MAP and summary stay on the CPU, and
+        the draws come back to the CPU.  On another device the generators differ, so the same
+        seed gives other (equally valid) draws than on the CPU.  Not with ``checkpoint``.
+        Recorded in ``settings["device"]``.
+    threads : torch CPU threads for the whole call (default 1, restored afterwards; None leaves
+        torch's setting): the tensors are small, and on a shared 2-core machine two threads made
+        one likelihood estimate 100× slower (:mod:`accel_bayes.threads`).  Results do not depend
+        on it beyond floating-point reduction order.
     """
 
     chains: int = DEFAULTS["chains"]
