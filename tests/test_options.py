@@ -36,6 +36,7 @@ CALIBRATE_RUNS = {
     "estimate": dict(chains=2, draws=20, warmup=20, noise="estimate", seed=3),
     "given": dict(chains=1, draws=20, warmup=10, phi_prior=(40.0, 7.0), min_rotation=0.0, prior="box", seed=1,
                   select="every other sample"),  # (the mask is made from the recording)
+    "model": dict(chains=1, draws=20, warmup=20, seed=0, model="a sampling_jitter finding"),
 }
 RESUME = dict(chains=2, draws=30, warmup=30, seed=4)  # with the MAP: its settings are in the fingerprint
 KILL_AT = (1, 23)  # (chain, iteration) where the interrupted run stops; its checkpoint holds iteration 20
@@ -60,6 +61,15 @@ def _keywords(name, rec) -> dict:
     kw = dict(CALIBRATE_RUNS[name], progress=False)
     if kw.get("select") == "every other sample":
         kw["select"] = np.arange(len(rec.time)) % 2 == 0
+    if kw.get("model") == "a sampling_jitter finding":  # a minimal DESIGN §7.2 report of rec (tests/test_calibrate_model.py)
+        kw["model"] = {
+            "schema": "accel_bayes.mismatch/1", "mismatch_detected": True, "threshold": 20.0,
+            "baseline": {"loglik": 0.0, "chi2_per_dof": 1.0, "dof": 1},
+            "refined": {"effects": ["sampling_jitter"], "loglik": 0.0, "chi2_per_dof": 1.0},
+            "findings": [{"effect": "sampling_jitter", "imu": 2, "axis": None, "evidence": 100.0,
+                          "parameters": {"width": 5e-3}, "where": {"regime": "all", "time_s": None},
+                          "explanation": "test finding"}],
+            "details": {"recording": {"K": int(rec.K), "T_given": int(rec.T), "T": int(rec.T)}}}
     return kw
 
 
