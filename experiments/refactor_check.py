@@ -43,6 +43,16 @@ serve modules missing from the old tree::
     mkdir -p /tmp/noeditable && printf 'import sys\nsys.meta_path[:] = [f for f in sys.meta_path if "Editable" not in type(f).__name__ and "Editable" not in getattr(f, "__name__", "")]\n' > /tmp/noeditable/sitecustomize.py
     cd /tmp && PYTHONPATH=/work/base7adf:/tmp/noeditable python3 /path/to/experiments/refactor_check.py --out base.npz
 
+The options records (issue #26 item 3) were checked against 9279a3c with the ``pipelines`` and
+``demo`` stages (2026-11-27, the shared 2-core development machine; every output equal, the
+demo's mismatch numbers within 3e-16 relative)::
+
+    git -C /work/main archive 9279a3c | tar -x -C /tmp/opt_base
+    cd /tmp && PYTHONPATH=/tmp/opt_base:/tmp/noeditable python3 /path/to/experiments/refactor_check.py \
+        --only pipelines,demo --out base.npz
+    cd /tmp && PYTHONPATH=/path/to/checkout python3 /path/to/experiments/refactor_check.py --only pipelines,demo --out after.npz
+    python3 experiments/refactor_check.py --compare /tmp/base.npz /tmp/after.npz
+
 ``--compare`` prints max |a − b| and max |a − b| / max |a| per output and flags every output
 whose relative difference exceeds ``--tol`` (default 1e-6: the LM solvers stop at relative cost
 changes of 1e-10–1e-12, i.e. parameter changes of ~1e-6–1e-5 relative in the worst-conditioned

@@ -25,8 +25,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REFERENCE = Path(__file__).resolve().parent / "data" / "options_9279a3c"
-ROOT = Path(__file__).resolve().parents[1]
+# the checkout's root, wherever under tests/ this file lives
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
+REFERENCE = ROOT / "tests" / "data" / "options_9279a3c"
 
 # (name, keywords of calibrate): between them every step that writes settings (MAP, noise estimated,
 # fixed and until-converged chains, a given φ prior, a user selection, no MAP)
