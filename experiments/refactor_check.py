@@ -45,7 +45,8 @@ serve modules missing from the old tree::
 
 The options records (issue #26 item 3) were checked against 9279a3c with the ``pipelines`` and
 ``demo`` stages (2026-11-27, the shared 2-core development machine; every output equal, the
-demo's mismatch numbers within 3e-16 relative)::
+demo's mismatch report, which these records do not touch, with max |a − b| 2.6e-11 over numbers up
+to 1.1e5, e.g. its gyro-linear group statistic 66.15036471200 vs 66.15036471199, 1e-13 relative)::
 
     git -C /work/main archive 9279a3c | tar -x -C /tmp/opt_base
     cd /tmp && PYTHONPATH=/tmp/opt_base:/tmp/noeditable python3 /path/to/experiments/refactor_check.py \
