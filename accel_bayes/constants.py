@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 
 __all__ = ["G0", "DEG_TO_RAD", "RAD_TO_DEG", "DEFAULT_PRIOR_STD", "DEFAULT_MIN_ROTATION", "DEFAULT_RATE_BINS",
-           "DEFAULT_THREADS", "RHAT_MAX"]
+           "DEFAULT_THREADS", "RHAT_MAX", "ESS_PER_CHAIN"]
 
 G0 = 9.80665
 """Standard gravity, m/s² (also the MPU-9150 scale of the MIMU importer)."""
@@ -48,3 +48,7 @@ on a shared machine."""
 RHAT_MAX = 1.01
 """R̂ threshold of :func:`accel_bayes.diagnostics.convergence_check` (Vehtari, Gelman, Simpson,
 Carpenter & Bürkner 2021, §4: R̂ < 1.01)."""
+
+ESS_PER_CHAIN = 100
+"""Bulk and tail ESS per chain before trusting posterior moments (Vehtari et al. 2021, §4): the
+default ``ess_min`` of a calibration is this times the number of chains."""

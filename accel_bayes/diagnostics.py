@@ -37,7 +37,7 @@ with warnings.catch_warnings():
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse, Rectangle
 
-from .constants import RHAT_MAX
+from .constants import ESS_PER_CHAIN, RHAT_MAX
 from .errors import UserError
 from .data.outputs import save_figure
 
@@ -219,7 +219,6 @@ def ess_bulk_min(idata, var_name: str = VAR) -> float:
 # Vehtari, Gelman, Simpson, Carpenter & Bürkner (2021), "Rank-normalization, folding, and
 # localization: an improved R̂", §4: R̂ < 1.01 and bulk ESS > 100 per chain before trusting moments.
 RHAT_LIMIT = 1.01
-ESS_PER_CHAIN = 100
 
 
 def convergence_warnings(rhat: float | None, ess_bulk: float | None, chains: int) -> list[str]:

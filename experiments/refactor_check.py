@@ -26,6 +26,19 @@ Outputs (each a small problem, seconds each):
 * ``noise.*`` — the modelling layer on the MAP data set (added with issue #26, which moved it
   into ``model/``): log p̂ of the [C21] likelihood and of the tempered one with fixed draws, the
   empirical φ prior, the MAP with the noise levels estimated, the sandwich κ and the tempered MAP.
+* ``pipelines.*`` — the ``calibrate`` (four option sets: run until converged, estimated noise,
+  no MAP with a box prior and flat φ prior, fixed N with a given correlation; and on a second
+  recording with noisy gyroscopes, the N rule and the automatic correlated kernel), ``map`` and
+  ``selfcal`` commands on one simulated recording, run through the command line as a user runs
+  them, and ``calibrate(rec, ...)`` called as a library on a recording whose misfit (one
+  accelerometer axis displaced by 3 mm) makes the sandwich temper the likelihood (κ ≈ 1.5): each
+  ``positions.json`` document whole (provenance settings included) as JSON text, compared for
+  equality, with only the wall-clock ``seconds`` left out (issue #26 item 3: the options records
+  must not change a setting, their order or a draw);
+* ``demo.*`` — ``accel-bayes demo`` (seed 1, the full run; minutes): its posterior
+  ``positions.json`` and the mismatch ``report.json`` (layout compared for equality, numbers to
+  the tolerance), ``summary.csv`` and the demo's ``report.md`` (text), wall-clock times left
+  out.  Not in the default stages (``--only demo``).
 
 Only public names that exist at 7adf109 and later are imported, by their 7adf109 paths, so the
 same file runs against both: 0.1 kept those paths as aliases, and in a tree that has dropped them
@@ -36,6 +49,17 @@ serve modules missing from the old tree::
 
     mkdir -p /tmp/noeditable && printf 'import sys\nsys.meta_path[:] = [f for f in sys.meta_path if "Editable" not in type(f).__name__ and "Editable" not in getattr(f, "__name__", "")]\n' > /tmp/noeditable/sitecustomize.py
     cd /tmp && PYTHONPATH=/work/base7adf:/tmp/noeditable python3 /path/to/experiments/refactor_check.py --out base.npz
+
+The options records (issue #26 item 3) were checked against 9279a3c with the ``pipelines`` and
+``demo`` stages (2026-11-27, the shared 2-core development machine; every output equal, the
+demo's mismatch report, which these records do not touch, with max |a − b| 2.6e-11 over numbers up
+to 1.1e5, e.g. its gyro-linear group statistic 66.15036471200 vs 66.15036471199, 1e-13 relative)::
+
+    git -C /work/main archive 9279a3c | tar -x -C /tmp/opt_base
+    cd /tmp && PYTHONPATH=/tmp/opt_base:/tmp/noeditable python3 /path/to/experiments/refactor_check.py \
+        --only pipelines,demo --out base.npz
+    cd /tmp && PYTHONPATH=/path/to/checkout python3 /path/to/experiments/refactor_check.py --only pipelines,demo --out after.npz
+    python3 experiments/refactor_check.py --compare /tmp/base.npz /tmp/after.npz
 
 ``--compare`` prints max |a − b| and max |a − b| / max |a| per output and flags every output
 whose relative difference exceeds ``--tol`` (default 1e-6: the LM solvers stop at relative cost
@@ -382,9 +406,148 @@ def run_noise(out: dict):
     out["noise.tempered_cov"] = _np(tm.laplace_cov)
 
 
+# (name, calibrate options): small runs, a few seconds each, that between them pass through every step
+# of the pipeline (run until converged, noise estimated and tempered, no MAP, a given N and ρ)
+CALIBRATE_RUNS = (
+    ("auto", ["--chains", "2", "--warmup", "30", "--check-every", "30", "--max-draws", "60"]),
+    ("estimate", ["--chains", "2", "--warmup", "30", "--draws", "40", "--noise", "estimate"]),
+    ("nomap", ["--chains", "2", "--warmup", "30", "--draws", "40", "--no-map", "--prior", "box", "--phi-prior",
+               "flat", "--seed", "4"]),
+    ("rho", ["--chains", "2", "--warmup", "20", "--draws", "30", "--num-draws", "4", "--correlation", "0.5",
+             "--proposal", "rw", "--gyro-method", "sample_cov_mean"]),
+)
+
+
+def _without_seconds(x):
+    """A JSON document without its wall-clock entries (every key named ``seconds``)."""
+    if isinstance(x, dict):
+        return {k: _without_seconds(v) for k, v in x.items() if k != "seconds"}
+    if isinstance(x, list):
+        return [_without_seconds(v) for v in x]
+    return x
+
+
+def _split(doc, name: str) -> dict:
+    """A JSON document as ``{name}.layout`` (every path in order, with its value unless a number)
+    and ``{name}.numbers`` (the numbers in that order), so that --compare checks the layout for
+    equality and the numbers to the tolerance.  Wall-clock times (keys ``*_s``, ``*_seconds``) are left out."""
+    paths, numbers = [], []
+
+    def walk(x, where):
+        if isinstance(x, dict):
+            for k, v in x.items():
+                if not k.endswith(("_s", "_seconds")):
+                    walk(v, f"{where}.{k}")
+        elif isinstance(x, list):
+            for i, v in enumerate(x):
+                walk(v, f"{where}[{i}]")
+        elif isinstance(x, (int, float)) and not isinstance(x, bool):
+            paths.append(f"{where}: number")
+            numbers.append(float(x))
+        else:
+            paths.append(f"{where}: {x!r}")
+
+    walk(doc, "")
+    return {f"{name}.layout": np.array(paths), f"{name}.numbers": np.array(numbers, dtype=np.float64)}
+
+
+def run_pipelines(out: dict):
+    """The commands as a user runs them, in a scratch folder with fixed relative names (the
+    provenance records the recording's path as given)."""
+    import contextlib
+    import io
+    import json
+    import os
+    import tempfile
+
+    from accel_bayes.cli import main
+
+    def cli(*args):
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as err:
+            rc = main(list(args))
+        if rc not in (0, 4):  # 4: finished, chains not converged (short runs): the outputs are written
+            raise RuntimeError(f"accel-bayes {' '.join(args)}: exit {rc}: {err.getvalue()[-400:]}")
+
+    def keep(name, path):
+        doc = json.loads(open(path, encoding="utf-8").read())
+        out[f"pipelines.{name}.document"] = np.array(json.dumps(_without_seconds(doc), sort_keys=False))
+        imus = [i for i in doc["imus"] if i.get("mean") is not None]
+        out[f"pipelines.{name}.means"] = np.array([i["mean"] for i in imus], dtype=np.float64)
+
+    here = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            cli("simulate", "--preset", "mimu8", "-T", "200", "--seed", "3", "-o", "rec.nc")
+            for name, opts in CALIBRATE_RUNS:
+                cli("calibrate", "rec.nc", "--out", f"cal_{name}", "--quiet", "--no-plots", *opts)
+                keep(f"calibrate_{name}", f"cal_{name}/positions.json")
+            cli("simulate", "--preset", "mimu8", "-T", "200", "--seed", "3", "--gyro-noise", "0.02", "--acc-noise",
+                "0.005", "-o", "noisy_gyro.nc")
+            cli("calibrate", "noisy_gyro.nc", "--out", "cal_cpm", "--quiet", "--no-plots", "--chains", "2", "--warmup",
+                "20", "--draws", "20", "--noise", "estimate")
+            keep("calibrate_cpm", "cal_cpm/positions.json")
+            cli("map", "rec.nc", "--out", "map")
+            keep("map", "map/positions.json")
+            cli("selfcal", "rec.nc", "--out", "selfcal", "--max-iter", "50", "--no-progress")
+            keep("selfcal", "selfcal/positions.json")
+        finally:
+            os.chdir(here)
+    out["pipelines.calibrate_tempered.document"] = np.array(json.dumps(_without_seconds(_tempered_run())))
+
+
+def _tempered_run() -> dict:
+    """``calibrate`` as a library call with keywords (the form every version accepts) on a
+    recording the model cannot fit (IMU 6's z axis displaced by 3 mm): its sandwich factor
+    κ ≈ 1.5 tempers the likelihood; returns the positions document."""
+    from accel_bayes.arrays import mimu4444_8
+    from accel_bayes.mismatch import make_effect
+    from accel_bayes.pipelines.calibrate import calibrate
+    from accel_bayes.simulate import simulate
+
+    eff = make_effect("axis_displacement", imu=6, axis="z", parameters={"displacement": [0.0, 7.5e-4, 3e-3]})
+    rec = simulate(mimu4444_8(), "smooth", seed=22, effects=[eff], T=300, rate=200.0, acc_noise_std=0.02,
+                   gyro_noise_std=0.1 * DEG).recording
+    res = calibrate(rec, chains=2, draws=20, warmup=20, noise="estimate", progress=False, seed=1)
+    if not res.settings["noise_model"]["sandwich"]["applied"] > 1.0:
+        raise RuntimeError("the tempered case no longer tempers: choose a larger displacement")
+    return res.positions
+
+
+def run_demo(out: dict):
+    """``accel-bayes demo`` in a scratch folder; its text outputs without wall-clock times."""
+    import contextlib
+    import io
+    import json
+    import os
+    import re
+    import tempfile
+
+    from accel_bayes.cli import main
+
+    here = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                rc = main(["demo", "--out", "demo", "--no-progress"])
+            if rc not in (0, 4):
+                raise RuntimeError(f"accel-bayes demo: exit {rc}")
+            for name, path in (("positions", "demo/posterior/positions.json"), ("mismatch", "demo/mismatch/report.json")):
+                doc = _without_seconds(json.loads(open(path, encoding="utf-8").read()))
+                for key, value in _split(doc, name).items():
+                    out[f"demo.{key}"] = value
+            out["demo.summary"] = np.array(open("demo/posterior/summary.csv", encoding="utf-8").read())
+            text = open("demo/report.md", encoding="utf-8").read()
+            out["demo.report"] = np.array(re.sub(r"\d+(\.\d+)? s\b", "<seconds> s", text))
+        finally:
+            os.chdir(here)
+
+
 STAGES = {"map": run_map, "selfcal": run_selfcal, "selfcal_modes": run_selfcal_modes, "conventional": run_conventional,
           "intrinsics": run_intrinsics, "motion": run_motion, "mismatch": run_mismatch, "conceal": run_conceal,
-          "noise": run_noise}
+          "noise": run_noise, "pipelines": run_pipelines, "demo": run_demo}
+DEFAULT_STAGES = [s for s in STAGES if s != "demo"]
 
 
 def compare(a_path: str, b_path: str, tol: float) -> int:
@@ -421,7 +584,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="write the outputs to this .npz")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two .npz files")
     ap.add_argument("--tol", type=float, default=1e-6, help="max relative difference per output (default 1e-6)")
-    ap.add_argument("--only", default=",".join(STAGES), help="comma-separated stages to run")
+    ap.add_argument("--only", default=",".join(DEFAULT_STAGES),
+                    help=f"comma-separated stages to run (default {','.join(DEFAULT_STAGES)}; also: demo)")
     args = ap.parse_args(argv)
     if args.compare:
         return compare(*args.compare, args.tol)

@@ -167,37 +167,30 @@ def _correlation(s: str):
 
 
 def _run(args) -> int:
+    from pathlib import Path
+
     from ..data.outputs import OutputDir
     from ..data.paths import require_file
+    from ..pipelines.calibrate_options import CalibrateOptions
 
-    # inputs and output target before the pipeline (and torch) is imported: refusals answer at once
+    # inputs, options and output target before the pipeline (and torch) is imported: refusals answer at once
     require_file(args.recording, "recording file")
     if args.intrinsics not in INTRINSICS_MODES:
         require_file(args.intrinsics, "intrinsics file (JSON)", flag="--intrinsics")
     if args.model is not None:
         require_file(args.model, "mismatch report (JSON)", flag="--model")
     # the checkpoint lives in DIR itself (a killed run keeps it) and joins the committed set
+    ckpt = Path(args.out) / "checkpoint.pt" if args.checkpoint_every or args.resume else None
+    options = CalibrateOptions.from_args(args, checkpoint=ckpt)
     out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",),
                     inputs=(args.recording, args.intrinsics, args.model)).open()
     from ..pipelines.calibrate import calibrate, write_outputs
 
-    ckpt = None
-    if args.checkpoint_every or args.resume:
-        ckpt = out.ensure_target() / "checkpoint.pt"
+    if ckpt is not None:
+        out.ensure_target()
         if args.resume and not ckpt.exists():
             print(f"accel-bayes calibrate: no checkpoint at {ckpt}; starting afresh", file=sys.stderr)
-    res = calibrate(
-        args.recording, chains=args.chains, draws=args.draws, warmup=args.warmup, num_draws=args.num_draws,
-        max_draws=args.max_draws, check_every=args.check_every, max_seconds=args.max_seconds,
-        rhat_max=args.rhat_max, ess_min=args.ess_min,
-        seed=args.seed, prior=args.prior, prior_std=args.prior_std, use_map=not args.no_map,
-        gyro_method=args.gyro_method, select=args.select, proposal=args.proposal, progress=not args.quiet,
-        checkpoint=ckpt, checkpoint_every=args.checkpoint_every, resume=args.resume,
-        intrinsics=args.intrinsics, drop_static=not args.keep_static, drop_clipped=not args.keep_clipped,
-        min_rotation=args.min_rotation, noise=args.noise, noise_bins=args.noise_bins,
-        noise_inflation=False if args.no_noise_inflation else None, phi_prior=args.phi_prior, threads=args.threads,
-        correlation=args.correlation, model=args.model, device=args.device,
-    )
+    res = calibrate(args.recording, options, progress=not args.quiet)
     n_kept = res.settings["preprocess"]["samples"].get("clipped_kept", 0)
     if n_kept:  # stderr: the table below goes to stdout, which is often redirected
         print(f"accel-bayes calibrate: warning: --keep-clipped: {n_kept} samples with an accelerometer or gyroscope at "

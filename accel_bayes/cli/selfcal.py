@@ -82,14 +82,16 @@ def _run(args) -> int:
     require_file(args.recording, "recording file")
     target = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,))
     target.check()
+    from ..pipelines.selfcal_options import SelfcalOptions
+
+    options = SelfcalOptions.from_args(args)
     from ..data.io import load_recording
     from ..pipelines.selfcal import prepare, selfcal, write_outputs
 
     loaded = load_recording(args.recording)
-    inp = prepare(loaded, fixed=args.fixed, drop_clipped=args.drop_clipped)  # bad input is refused before the output is touched
+    inp = prepare(loaded, options)  # bad input is refused before the output is touched
     out = target.open()
-    run = selfcal(inp, max_iter=args.max_iter, rerun=not args.no_rerun, seed=args.seed, progress=not args.no_progress,
-                  process_noise=args.process_noise)
+    run = selfcal(inp, options, progress=not args.no_progress)
     res = run.result
     write_outputs(run, out.staging, title=f"selfcal {Path(args.recording).name}: {res.status}")
     if not run.ok:

@@ -119,15 +119,15 @@ def _run_stages(od, cfg: dict, progress: bool) -> None:
 
     # 3–4. posterior + diagnostics ------------------------------------------------------------
     try:
-        from .calibrate import calibrate, write_outputs
+        from .calibrate import CalibrateOptions, calibrate, write_outputs
         from ..diagnostics import format_stat, truth_check
     except ImportError:
         _say("[3/5] posterior: not available in this version", log)
         report += ["## 3. Posterior", "Not available in this version.", ""]
     else:
         tp = time.perf_counter()
-        res = calibrate(rec, chains=cfg["chains"], draws=cfg["draws"], warmup=cfg["warmup"],
-                        seed=cfg["seed"], progress=progress)
+        res = calibrate(rec, CalibrateOptions(chains=cfg["chains"], draws=cfg["draws"], warmup=cfg["warmup"],
+                                              seed=cfg["seed"]), progress=progress)
         post_dir = out / "posterior"
         files = write_outputs(res, post_dir, truth=true_rel)
         pos = res.positions

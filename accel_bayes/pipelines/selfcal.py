@@ -12,7 +12,7 @@ the motion marginalised, orientations), the ``poses.csv`` rows and the ``motion.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +20,10 @@ import torch
 
 from ..data.io import load_recording
 from ..errors import UserError
+from .selfcal_options import SelfcalOptions
 
-__all__ = ["SelfcalInput", "SelfcalRun", "prepare", "selfcal", "write_outputs", "POSES_HEADER", "MOTION_HEADER"]
+__all__ = ["SelfcalInput", "SelfcalOptions", "SelfcalRun", "prepare", "selfcal", "write_outputs", "POSES_HEADER",
+           "MOTION_HEADER"]
 
 POSES_HEADER = ("imu,x_mm,y_mm,z_mm,std_x_um,std_y_um,std_z_um,rotvec_x_deg,rotvec_y_deg,rotvec_z_deg,"
                 "angle_vs_nominal_deg,angle_std_deg,fixed,has_acc")
@@ -97,11 +99,19 @@ class SelfcalRun:
         return np.array([np.linalg.norm(p) if np.isfinite(p).all() else np.nan for p in self.pstd])
 
 
-def prepare(recording, *, fixed: int | None = None, selection=None, drop_clipped: bool = False) -> SelfcalInput:
-    """Check a recording for the [S16] model and extract its inputs (one-line :class:`UserError`
-    naming the field otherwise).  ``fixed``: label of the IMU held at its nominal pose (default the
-    recording's reference IMU).
+def _options(options: SelfcalOptions | None, keywords: dict) -> SelfcalOptions:
+    """``options`` (None: the defaults) with the fields given as keywords replaced (checked again)."""
+    opts = options if options is not None else SelfcalOptions()
+    return replace(opts, **keywords) if keywords else opts
 
+
+def prepare(recording, options: SelfcalOptions | None = None, **keywords) -> SelfcalInput:
+    """Check a recording for the [S16] model and extract its inputs (one-line :class:`UserError`
+    naming the field otherwise), by the ``fixed``, ``selection`` and ``drop_clipped`` of
+    ``options`` (:class:`~accel_bayes.pipelines.selfcal_options.SelfcalOptions`; keywords, kept
+    for 0.2 only, replace its fields).
+
+    fixed : label of the IMU held at its nominal pose (default the recording's reference IMU).
     selection : None (every sample, the [S16] setting) or a
         :class:`~accel_bayes.prep.selection.Selection` of this recording (the package's one sample
         selection, e.g. ``select_samples(rec, min_rotation=None)`` to leave out clipped samples).
@@ -112,11 +122,11 @@ def prepare(recording, *, fixed: int | None = None, selection=None, drop_clipped
         flagged at its range (``select_samples(rec, drop_clipped=True, …)``, no other reason);
         default False: every sample, clipped ones fitted as they are ([S16]).
     """
+    opts = _options(options, keywords)
+    fixed, selection, drop_clipped = opts.fixed, opts.selection, opts.drop_clipped
     loaded = load_recording(recording)
     rec = loaded.recording
     K = rec.K
-    if selection is not None and drop_clipped:
-        raise UserError("drop_clipped: give either a selection or drop_clipped, not both")
     fixed_label = int(rec.reference_imu if fixed is None else fixed)
     if not 0 <= fixed_label < K:
         raise UserError(f"--fixed: expected an IMU label in 0..{K - 1}, got {fixed_label}")
@@ -164,31 +174,36 @@ def prepare(recording, *, fixed: int | None = None, selection=None, drop_clipped
                         has_acc=has_acc, clipped=clipped, time=time_s, selection=selection)
 
 
-def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: int = 200, rerun: bool = True,
-            seed=None, progress: bool = False, process_noise="estimate-snap", marginal_scale: bool | str = True) -> SelfcalRun:
+def selfcal(recording, options: SelfcalOptions | None = None, *, progress: bool = False, **keywords) -> SelfcalRun:
     """[S16] self-calibration: poses of every accelerometer triad relative to the fixed one, jointly
     with the motion, from the accelerometers alone.
 
-    recording : a path, a Recording, a LoadedRecording or the :class:`SelfcalInput` of :func:`prepare`.
-    selection : the samples to fit (:func:`prepare`; None: every sample).
-    max_iter : LM iteration limit per stage.  rerun : the [S16] §VI-A re-run from the estimate.
-    seed : recorded in the provenance only (the self-calibration draws no random numbers).
-    process_noise : "estimate-snap" (default: the continuous-time motion model with white noise on
-        the snap ω⃛ and on ä_lin — smooth ω̇ and a_lin, as in hand motion — its two intensities
-        estimated from the recording, issue #12; experiments/s16_handlike.md), "estimate" (white
-        noise on the jerk; its board comes out up to 1 % small on hand-like motion,
-        experiments/s16_handlike_jerk.md) or "s16" (the paper's fixed eq. 8 variances); see
-        :func:`~accel_bayes.inference.selfcal.self_calibrate`.
-    marginal_scale : with an estimated process noise, move the estimate along the scale orbit to
-        the maximum of the Laplace marginal likelihood (motion integrated out); "score": at the root
-        of its approximate derivative instead (the earlier method); False: keep the joint MAP.
+    recording : a path, a Recording, a LoadedRecording or the :class:`SelfcalInput` of :func:`prepare`
+        (then its fixed IMU and samples are the ones fitted).
+    options : a :class:`~accel_bayes.pipelines.selfcal_options.SelfcalOptions` (None: every
+        default): the fixed IMU and the samples (:func:`prepare`), ``max_iter`` (LM iteration limit
+        per stage), ``rerun`` (the [S16] §VI-A re-run from the estimate), ``seed`` (recorded in
+        the provenance only: the self-calibration draws no random numbers), ``process_noise``
+        ("estimate-snap", the default: the continuous-time motion model with white noise on the
+        snap ω⃛ and on ä_lin — smooth ω̇ and a_lin, as in hand motion — its two intensities
+        estimated from the recording, issue #12, experiments/s16_handlike.md; "estimate": white
+        noise on the jerk, its board comes out up to 1 % small on hand-like motion,
+        experiments/s16_handlike_jerk.md; "s16": the paper's fixed eq. 8 variances; see
+        :func:`~accel_bayes.inference.selfcal.self_calibrate`) and ``marginal_scale`` (with an
+        estimated process noise, move the estimate along the scale orbit to the maximum of the
+        Laplace marginal likelihood, motion integrated out; "score": at the root of its
+        approximate derivative instead, the earlier method; False: keep the joint MAP).
+    progress : tqdm bars of the LM stages.
+    keywords : (kept for 0.2 only; prefer ``options``) the options as keywords, e.g.
+        ``selfcal(rec, max_iter=50)``: ``options`` with these fields replaced.
     """
     from .. import __version__
     from ..data.positions import positions_document
     from ..inference.selfcal import fit_check, self_calibrate
     from ..physics.geometry import boxminus
 
-    inp = recording if isinstance(recording, SelfcalInput) else prepare(recording, fixed=fixed, selection=selection)
+    opts = _options(options, keywords)
+    inp = recording if isinstance(recording, SelfcalInput) else prepare(recording, opts)
     rec, labels, fixed_label, fixed = inp.recording, inp.labels, inp.fixed_label, inp.fixed
     K = rec.K
     p_nom, q_nom, noise = inp.p_nom, inp.q_nom, inp.noise
@@ -197,8 +212,8 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     steps = None if inp.selection is None else np.diff(np.asarray(inp.selection.index))
     res = self_calibrate(inp.acc, time_s, steps=steps, nominal_positions=p_nom[labels],
                          nominal_orientations=q_nom[labels], fixed=fixed, acc_noise_std=noise,
-                         max_iter=max_iter, progress=progress, rerun_from_estimate=rerun,
-                         process_noise=process_noise, marginal_scale=marginal_scale)
+                         max_iter=opts.max_iter, progress=progress, rerun_from_estimate=opts.rerun,
+                         process_noise=opts.process_noise, marginal_scale=opts.marginal_scale)
     run = SelfcalRun(input=inp, result=res, seconds=time.perf_counter() - t0)
     if not res.ok:
         return run
@@ -223,7 +238,7 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     covs = covs * check.inflation
     rcov = rcov * check.inflation
     runs = [{k: v for k, v in r.items() if k not in ("positions", "orientations", "states")} for r in res.runs]
-    settings = {"fixed": fixed_label, "max_iter": max_iter, "rerun_from_estimate": rerun,
+    settings = {**opts.to_settings(fixed_label=fixed_label),
                 "process_noise": _process_noise_setting(res.process_noise), "imus_used": labels,
                 "acc_noise_std": noise.tolist(), "warm_start_motion": True,
                 "samples": int(len(time_s)), "selection": None if inp.selection is None else inp.selection.summary()}
@@ -237,7 +252,7 @@ def selfcal(recording, *, fixed: int | None = None, selection=None, max_iter: in
     run.document = positions_document(method="selfcal", reference_imu=fixed_label, means=means, covs=covs,
                                       orientations=oris, diagnostics=diagnostics,
                                       provenance={"version": __version__, "input_sha256": inp.source.sha256(),
-                                                  "seed": seed, "settings": settings})
+                                                  "seed": opts.seed, "settings": settings})
 
     # ---- poses.csv
     dq = boxminus(torch.as_tensor(oris), torch.as_tensor(q_nom)).numpy()  # q = q_nom ∘ exp(δ)

@@ -16,7 +16,7 @@ import ast
 
 import pytest
 
-from test_import_graph import ROOT, graph
+from tests.architecture.test_import_graph import ROOT, graph
 
 # Bottom first.  A module belongs to the longest entry that is its dotted path or a prefix of it.
 LAYERS = (
@@ -41,7 +41,7 @@ ALLOWED_LARGE: dict = {}
 REASON_PHRASE = "over 600 lines"
 # Over MAX_LINES when issue #26's layering work ended, owned by other developers that session.
 OVERSIZE_TODAY = {
-    "inference/selfcal.py", "pipelines/calibrate.py", "data/csv_import.py", "diagnostics.py",
+    "pipelines/calibrate.py", "data/csv_import.py", "diagnostics.py",
     "mismatch/detect.py", "data/mimu.py", "data/validation.py", "data/outputs.py", "physics/motion.py",
 }
 

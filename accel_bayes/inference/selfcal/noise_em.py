@@ -134,7 +134,7 @@ def update_process_intensities(intensities: dict, stats: dict, max_factor: float
     The marginal likelihood of the intensities in the model linearised at the estimate (motion
     integrated out by Laplace) is stationary where each group's whitened residual sum of squares
     equals its residual degrees of freedom n_k − h_k (as for the accelerometer noise in
-    :mod:`accel_bayes.prep.noise`); the factor is clamped to [1/max_factor, max_factor]."""
+    :mod:`accel_bayes.model.noise`); the factor is clamped to [1/max_factor, max_factor]."""
     out = {}
     for k, q in intensities.items():
         rss, n, h = stats[k]
