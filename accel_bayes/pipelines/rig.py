@@ -1,0 +1,125 @@
+"""Rig calibration as a pipeline: recording → :func:`~accel_bayes.inference.rig.fit_rig` → the
+DESIGN §7.3 ``positions.json`` with orientation, time offset and clock drift (issue #28 item 1).
+
+``accel-bayes calibrate`` comes here, with no flag, when the recording is a rig: ≥ 2 IMUs that
+all have gyroscopes, and either fewer than 3 accelerometer triads (the [C21] projection needs 3)
+or IMUs stamped separately (multi-rate NaN-union ``time`` or ``imu_time_offset``, DESIGN §7.1).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..data import io
+from ..data.positions import positions_document, write_positions
+from ..data.validation import is_gyro_rig, is_multirate
+from ..errors import UserError
+from ..inference.rig import RigResult, RigSettings, fit_rig
+
+__all__ = ["is_rig", "RigRun", "calibrate_rig", "write_rig_outputs", "format_rig_table"]
+
+
+def is_rig(rec) -> bool:
+    """True when ``calibrate`` must use the rig model for ``rec`` (see the module docstring).
+
+    A multi-rate recording that is not a gyro rig is refused here: no other model reads it."""
+    acc = np.asarray(rec.acc, dtype=float)
+    has_acc = ~np.all(np.isnan(acc), axis=(0, 2))
+    has_gyro = (np.zeros(rec.K, bool) if rec.gyro is None
+                else ~np.all(np.isnan(np.asarray(rec.gyro, dtype=float)), axis=(0, 2)))
+    multi = is_multirate(rec)
+    own = rec.imu_time_offset is not None and np.isfinite(np.asarray(rec.imu_time_offset, dtype=float)).any()
+    if not is_gyro_rig(has_acc, has_gyro):
+        if multi:
+            raise UserError("gyro: a multi-rate recording is calibrated by the rig model, which needs a gyroscope "
+                            "on every IMU")
+        return False
+    return bool(has_acc.sum() < 3 or multi or own)
+
+
+@dataclass
+class RigRun:
+    """A finished rig calibration: the fit, the positions document, the input's hash."""
+
+    result: RigResult
+    positions: dict
+    input_sha256: str | None
+
+
+def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> dict:
+    K = rec.K
+    doc = positions_document(
+        method="map", reference_imu=res.reference_imu, means=res.position, covs=res.position_cov,
+        orientations=res.orientation,
+        diagnostics={"seconds": res.seconds, "converged": res.converged, "lm_reason": res.reason,
+                     "lm_iterations": int(res.n_iter), "chi2_per_dof": res.chi2_per_dof,
+                     "unidentified": [{"imu": int(k), "parameter": _NAMES[n]} for k, n in res.unidentified],
+                     "warnings": list(res.warnings)},
+        provenance={"version": __version__, "input_sha256": sha, "seed": None,
+                    "settings": {"model": "rig", "knot_spacing": settings.knot_spacing,
+                                 "orientation_prior_deg": settings.orientation_prior_deg}})
+    doc["model"] = "rig"
+    unid = {(int(k), n) for k, n in res.unidentified}
+    for k, e in enumerate(doc["imus"]):
+        if k == res.reference_imu:
+            e["orientation_cov"] = [[0.0] * 3] * 3
+            e["time_offset"] = {"mean": 0.0, "std": 0.0}
+            continue
+        e["orientation_cov"] = res.orientation_cov[k].tolist()
+        e["orientation_std"] = np.sqrt(np.clip(np.diag(res.orientation_cov[k]), 0, None)).tolist()
+        e["time_offset"] = {"mean": float(res.time_offset[k]), "std": float(res.time_offset_std[k])}
+        if res.own_stamps[k]:
+            e["clock_drift"] = {"mean": float(res.clock_drift[k]), "std": float(res.clock_drift_std[k])}
+        e["gyro_bias"] = res.gyro_bias[k].tolist()
+        e["acc_bias"] = res.acc_bias[k].tolist()
+        names = sorted(_NAMES[n] for kk, n in unid if kk == k)
+        if names:
+            e["unidentified"] = names
+    return doc
+
+
+_NAMES = {"q": "orientation", "r": "position", "o": "time_offset", "d": "clock_drift", "bg": "gyro_bias",
+          "ba": "acc_bias"}
+
+
+def calibrate_rig(recording, settings: RigSettings = RigSettings()) -> RigRun:
+    """Calibrate a rig from a recording path (format v1) or an in-memory Recording."""
+    sha = None
+    if isinstance(recording, (str, Path)):
+        sha = io.recording_sha256(recording)
+        rec = io.read_recording(recording)
+    else:
+        rec = recording
+    res = fit_rig(rec, settings)
+    return RigRun(result=res, positions=_document(res, rec, sha, settings), input_sha256=sha)
+
+
+def write_rig_outputs(run: RigRun, out_dir) -> dict:
+    """Write ``positions.json`` into ``out_dir`` (atomically); returns {"positions": path}."""
+    return {"positions": write_positions(run.positions, Path(out_dir) / "positions.json")}
+
+
+def format_rig_table(run: RigRun) -> str:
+    """Per IMU: lever arm (mm) ± std (µm), orientation std (°), time offset (ms) ± std (µs), drift (ppm)."""
+    res = run.result
+    lines = [f"rig model (Laplace at the MAP): {len(res.position)} IMUs, reference IMU {res.reference_imu}, "
+             f"LM {res.reason} after {res.n_iter} steps, {res.seconds:.1f} s",
+             f"{'IMU':>4} {'x mm':>9} {'y mm':>9} {'z mm':>9} {'s µm':>7} {'ori s °':>8} {'offset ms':>10} "
+             f"{'s µs':>7} {'drift ppm':>10}"]
+    for k in range(len(res.position)):
+        if k == res.reference_imu:
+            lines.append(f"{k:>4}  reference")
+            continue
+        m = res.position[k] * 1e3
+        s = math.sqrt(max(np.trace(res.position_cov[k]), 0.0) / 3) * 1e6
+        so = math.degrees(math.sqrt(max(np.trace(res.orientation_cov[k]), 0.0) / 3))
+        dr = f"{res.clock_drift[k] * 1e6:10.2f}" if res.own_stamps[k] else f"{'-':>10}"
+        lines.append(f"{k:>4} {m[0]:9.3f} {m[1]:9.3f} {m[2]:9.3f} {s:7.1f} {so:8.4f} {res.time_offset[k] * 1e3:10.4f} "
+                     f"{res.time_offset_std[k] * 1e6:7.1f} {dr}")
+    for k, n in res.unidentified:
+        lines.append(f"unidentified: IMU {k} {_NAMES[n]} (the motion does not excite it)")
+    return "\n".join(lines)
