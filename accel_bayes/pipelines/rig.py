@@ -58,7 +58,8 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
         diagnostics={"seconds": res.seconds, "converged": res.converged, "lm_reason": res.reason,
                      "lm_iterations": int(res.n_iter), "chi2_per_dof": res.chi2_per_dof,
                      "unidentified": [{"imu": int(k), "parameter": _NAMES[n]} for k, n in res.unidentified],
-                     "warnings": list(res.warnings)},
+                     "warnings": list(res.warnings) + [f"IMU {k}: {_NAMES[n]} unidentified (not excited by the motion)"
+                                                       for k, n in res.unidentified]},
         provenance={"version": __version__, "input_sha256": sha, "seed": None,
                     "settings": {"model": "rig", "knot_spacing": settings.knot_spacing,
                                  "orientation_prior_deg": settings.orientation_prior_deg}})
