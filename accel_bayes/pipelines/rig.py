@@ -55,7 +55,7 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
     doc = positions_document(
         method="map", reference_imu=res.reference_imu, means=res.position, covs=res.position_cov,
         orientations=res.orientation,
-        diagnostics={"seconds": res.seconds, "converged": res.converged, "lm_reason": res.reason,
+        diagnostics={"seconds": res.seconds, "converged": res.converged, "laplace_hessian": res.hessian, "lm_reason": res.reason,
                      "lm_iterations": int(res.n_iter), "chi2_per_dof": res.chi2_per_dof,
                      "unidentified": [{"imu": int(k), "parameter": _NAMES[n]} for k, n in res.unidentified],
                      "warnings": list(res.warnings) + [f"IMU {k}: {_NAMES[n]} unidentified (not excited by the motion)"
