@@ -90,3 +90,16 @@ def test_under_excited_rig_reports_the_lever_arm_along_the_axis_unidentified(tmp
     doc = json.loads((tmp_path / "cal" / "positions.json").read_text())
     assert "position" in doc["imus"][1]["unidentified"]
     assert {"imu": 1, "parameter": "position"} in doc["diagnostics"]["unidentified"]
+
+
+def test_dispatch_only_rigs(rig_file):
+    """Single-clock boards of >= 3 triads stay with the [C21] pipeline; a multi-rate recording
+    without a gyro on every IMU has no model to go to and is refused naming gyro."""
+    from accel_bayes.errors import UserError
+    board, _ = draw_case("clean", 0, board_name="plate4", duration=2.0)
+    assert not is_rig(board)
+    _, rec, _ = rig_file
+    bad = rec.copy()
+    bad.gyro[:, 1] = np.nan
+    with pytest.raises(UserError, match=r"^gyro: a multi-rate recording .* needs a gyroscope on every IMU"):
+        is_rig(bad)

@@ -38,6 +38,7 @@ __all__ = [
     "sample_present",
     "is_multirate",
     "is_gyro_rig",
+    "rig_model_applies",
     "gyro_unit_diagnostics",
     "gyro_declared_units",
     "units_kind",
@@ -379,6 +380,18 @@ def is_gyro_rig(has_acc: np.ndarray, has_gyro: np.ndarray) -> bool:
     return bool(has_acc.sum() >= 2 and np.all(has_gyro[has_acc]))
 
 
+def rig_model_applies(rec) -> bool:
+    """True for a rig the rig model calibrates (``accel-bayes calibrate`` dispatches there): ≥ 2 IMUs
+    with accelerometers, all with gyroscopes, and either < 3 triads or separately stamped IMUs
+    (multi-rate NaN-union ``time`` or a finite ``imu_time_offset``)."""
+    acc = np.asarray(rec.acc, dtype=float)
+    has_acc = ~np.all(np.isnan(acc), axis=(0, 2))
+    has_gyro = (np.zeros(acc.shape[1], bool) if rec.gyro is None
+                else ~np.all(np.isnan(np.asarray(rec.gyro, dtype=float)), axis=(0, 2)))
+    own = rec.imu_time_offset is not None and np.isfinite(np.asarray(rec.imu_time_offset, dtype=float)).any()
+    return is_gyro_rig(has_acc, has_gyro) and bool(has_acc.sum() < 3 or own or is_multirate(rec))
+
+
 def _shape_check(name, x, shape):
     if x is None:
         return
@@ -581,9 +594,10 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
         k = int(np.flatnonzero(bad)[0])
         raise RecordingError(f"nominal_orientation: IMU {k} has {q[k].tolist()} (norm {qn[k]:.6g}); expected a "
                              "unit quaternion (w, x, y, z)")
-    # a rig of >= 2 IMUs that all have gyros is calibrated by the rig model (its lever arms come
-    # from the gyros' ω, ω̇), so the [C21] need for three non-collinear triads does not apply
-    if not is_gyro_rig(has_acc, has_gyro):
+    # a rig of >= 2 IMUs that all have gyros, with < 3 triads or separately stamped IMUs, is
+    # calibrated by the rig model (lever arms from the gyros' ω, ω̇; pipelines.rig.is_rig), so the
+    # [C21] need for three non-collinear triads does not apply to it
+    if not rig_model_applies(rec):
         try:
             check_triad_geometry(torch.as_tensor(pos[has_acc]), labels=labels[has_acc].tolist())
         except ValueError as exc:

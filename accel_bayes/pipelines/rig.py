@@ -16,7 +16,7 @@ import numpy as np
 from .. import __version__
 from ..data import io
 from ..data.positions import positions_document, write_positions
-from ..data.validation import is_gyro_rig, is_multirate
+from ..data.validation import is_multirate, rig_model_applies
 from ..errors import UserError
 from ..inference.rig import RigResult, RigSettings, fit_rig
 
@@ -24,21 +24,15 @@ __all__ = ["is_rig", "RigRun", "calibrate_rig", "write_rig_outputs", "format_rig
 
 
 def is_rig(rec) -> bool:
-    """True when ``calibrate`` must use the rig model for ``rec`` (see the module docstring).
-
-    A multi-rate recording that is not a gyro rig is refused here: no other model reads it."""
-    acc = np.asarray(rec.acc, dtype=float)
-    has_acc = ~np.all(np.isnan(acc), axis=(0, 2))
-    has_gyro = (np.zeros(rec.K, bool) if rec.gyro is None
-                else ~np.all(np.isnan(np.asarray(rec.gyro, dtype=float)), axis=(0, 2)))
-    multi = is_multirate(rec)
-    own = rec.imu_time_offset is not None and np.isfinite(np.asarray(rec.imu_time_offset, dtype=float)).any()
-    if not is_gyro_rig(has_acc, has_gyro):
-        if multi:
-            raise UserError("gyro: a multi-rate recording is calibrated by the rig model, which needs a gyroscope "
-                            "on every IMU")
-        return False
-    return bool(has_acc.sum() < 3 or multi or own)
+    """True when ``calibrate`` must use the rig model for ``rec``
+    (:func:`~accel_bayes.data.validation.rig_model_applies`).  A multi-rate recording that is not a
+    gyro rig is refused here: no other model reads it."""
+    if rig_model_applies(rec):
+        return True
+    if is_multirate(rec):
+        raise UserError("gyro: a multi-rate recording is calibrated by the rig model, which needs a gyroscope "
+                        "on every IMU")
+    return False
 
 
 @dataclass
