@@ -88,28 +88,46 @@ def main(argv=None):
     ap.add_argument("--duration", type=float, default=20.0)
     ap.add_argument("--under", type=int, default=4)
     ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--first-under", type=int, default=0, help="index of the first under-excited rig")
+    ap.add_argument("--json", default=str(REPO / "experiments" / "rig_proof.json"),
+                    help="per-rig records (written as they finish)")
+    ap.add_argument("--from-json", nargs="+", default=None, metavar="JSON",
+                    help="write the document from these records (parts run in parallel) instead of running")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     t_all = time.time()
-    jpath = REPO / "experiments" / "rig_proof.json"
+    jpath = Path(args.json)
     cases, under = [], []
+    if args.from_json:
+        seen, seen_u = set(), set()
+        for f in args.from_json:
+            d = json.loads(Path(f).read_text())
+            cases += [c for c in d["cases"] if c["seed"] not in seen and not seen.add(c["seed"])]
+            under += [c for c in d["under"] if c["seed"] not in seen_u and not seen_u.add(c["seed"])]
+        cases.sort(key=lambda c: c["seed"])
+        under.sort(key=lambda c: c["seed"])
+        args.n, args.under = 0, 0
     for i in range(args.n):
         seed = args.first_seed + i
-        cases.append(run_case(seed, 2 + i % 3, args.duration))
+        cases.append(run_case(seed, 2 + seed % 3, args.duration))
         c = cases[-1]
         print(f"seed {seed} K={c['n_imu']} rates={c['rates']} {c['seconds']:.0f}s {c['reason']} "
               f"chi2/dof {c['chi2_per_dof']:.2f} unident {c['unidentified']}", flush=True)
         outputs.write_json(jpath, {"cases": cases, "under": under})
-    for i in range(args.under):
+    for i in range(args.first_under, args.first_under + args.under):
         seed = 1000 + i
         under.append(run_case(seed, 2 + i % 3, args.duration, rot_axes=(2,)))
         print(f"under-excited seed {seed}: unidentified {under[-1]['unidentified']}", flush=True)
         outputs.write_json(jpath, {"cases": cases, "under": under})
     rows, worst = summarise(cases)
     lines = ["# Rig posterior on concealed rigs (issue #28 item 1)", "",
-             f"Regenerate: `PYTHONPATH=. python3 experiments/rig_proof.py --n {args.n} --duration {args.duration:g} "
-             f"--under {args.under}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
-             f"{platform.machine()} {platform.system()}, 2-core shared CPU, {time.time() - t_all:.0f} s).", "",
+             f"Regenerate: `PYTHONPATH=. python3 experiments/rig_proof.py --n 30 --duration {args.duration:g} "
+             "--under 4` (one process), or in parts with `--first-seed/--n/--first-under/--under --json PART.json` "
+             "and then `--from-json PART.json ...` (what produced this file: "
+             f"{len(cases)} rigs, {len(under)} under-excited; "
+             f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
+             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs; fit time per rig in the "
+             "table).", "",
              f"{len(cases)} rigs from `experiments/clockgen` (`draw_case('rig', seed)`, {args.duration:g} s each), "
              "fitted by `accel_bayes.inference.rig.fit_rig` from the format-v1 NetCDF alone.", "",
              "| parameter | error/std RMS | max abs z | coordinates |", "|---|---|---|---|"]

@@ -12,6 +12,7 @@ import shlex
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 import yaml
 
@@ -100,3 +101,14 @@ def test_two_imu_description_imports_and_calibrates_as_a_rig(tmp_path, capsys):
     assert rc in (0, 4), err
     doc = json.loads((tmp_path / "cal" / "positions.json").read_text())
     assert doc["model"] == "rig" and "time_offset" in doc["imus"][1] and "orientation" in doc["imus"][1]
+    # the chain carries the rig's estimated orientation and time offset
+    assert main(["export", str(tmp_path / "rec.nc"), "--positions", str(tmp_path / "cal" / "positions.json"),
+                 "-o", str(tmp_path / "chain.yaml")]) == 0, capsys.readouterr().err
+    chain = yaml.safe_load((tmp_path / "chain.yaml").read_text().split("\n", 1)[1])
+    assert chain["imu1"]["time_offset"] == pytest.approx(doc["imus"][1]["time_offset"]["mean"], abs=1e-12)
+    assert np.allclose(chain["imu1"]["T_i_b_rotation_cov"], doc["imus"][1]["orientation_cov"], rtol=1e-9, atol=0)
+    R = np.asarray(chain["imu1"]["T_i_b"])[:3, :3]
+    q = np.asarray(doc["imus"][1]["orientation"])
+    from accel_bayes.physics.geometry import quat_to_matrix
+    R_doc = quat_to_matrix(torch.as_tensor(q)).numpy()
+    assert np.allclose(R, R_doc, atol=1e-9) or np.allclose(R, R_doc.T, atol=1e-9)

@@ -80,6 +80,7 @@ import torch
 from ..errors import UserError
 from ..physics.geometry import quat_to_matrix
 from .recording import Recording
+from .validation import is_multirate
 
 __all__ = ["FORMATS", "imu_chain", "kalibr_imu_files", "t_i_b", "openvins_acc_intrinsics",
            "gyro_intrinsics_from_report", "export_order", "nominal_rate", "random_walks", "export_imu_chain"]
@@ -330,6 +331,11 @@ def _prepare(recording: Recording, positions: dict, intrinsics, report, fmt: str
                 raise UserError(f"imu[{k}].sensors: IMU {k} has no {kind} data or noise std; {tool} "
                                 f"{'accelerometer' if kind == 'acc' else 'gyroscope'}_noise_density, expected both "
                                 "sensors with a stated or estimated noise")
+    if is_multirate(recording):
+        # one update_rate and density per IMU would be needed; a density from the union's stamp rate
+        # would be silently wrong for every IMU
+        raise UserError("recording.time: IMUs at different rates (multi-rate rig); the export writes one rate for "
+                        "all IMUs, expected a recording whose IMUs share their stamps")
     rate, rate_how = nominal_rate(recording)
     rw = random_walks(recording, rate, imus=[k for k in order if recording.has_gyro[k] or recording.has_acc[k]],
                       required=need)
