@@ -17,13 +17,17 @@ from accel_bayes.cli import main  # noqa: E402
 from accel_bayes.data import io  # noqa: E402
 from accel_bayes.data.validation import validate_recording  # noqa: E402
 from accel_bayes.errors import RecordingError  # noqa: E402
-from accel_bayes.physics.geometry import matrix_to_quat, quat_log, quat_to_matrix  # noqa: E402
+from accel_bayes.physics.geometry import matrix_to_quat, quat_exp, quat_log, quat_mul, quat_to_matrix  # noqa: E402
 from accel_bayes.pipelines.rig import is_rig  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def rig_file(tmp_path_factory):
     rec, truth = draw_case("rig", 7, n_imu=2, duration=10.0)
+    # a stated nominal orientation 30° from the truth: the data must win and say so
+    q = torch.as_tensor(np.asarray(truth["orientation"][1], float))
+    rec.nominal_orientation[1] = quat_mul(q, quat_exp(torch.tensor([np.radians(30.0), 0.0, 0.0],
+                                                                    dtype=torch.float64))).numpy()
     path = write_case(rec, truth, tmp_path_factory.mktemp("rig") / "rig.nc")
     return path, rec, truth
 
@@ -69,6 +73,8 @@ def test_calibrate_dispatches_to_rig_and_recovers_the_concealed_rig(rig_file, tm
     out, err = capsys.readouterr()
     assert rc == 0, err
     assert "rig model" in err
+    warn = [ln for ln in err.splitlines() if "nominal_orientation: IMU 1" in ln]
+    assert len(warn) == 1 and "contradict" in warn[0] and "30.0°" in warn[0], err
     doc = json.loads((tmp_path / "cal" / "positions.json").read_text())
     assert doc["schema"] == "accel_bayes.positions/1" and doc["model"] == "rig" and doc["method"] == "map"
     e = doc["imus"][1]
