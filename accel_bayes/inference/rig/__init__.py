@@ -19,7 +19,8 @@ biases (its biases are absorbed in ω and f).  Unknowns per IMU k ≠ reference:
 box-plus), r_k (3, m), o_k (s), d_k (only where the IMU carries its own stamps: a NaN-union
 recording or ``imu_time_offset``; else 0), b_g,k, b_a,k (constants).  A stated nominal orientation
 (not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit
-more than 3 prior std away draws a one-line warning.  The lever arm is identified from the ω̇ and
+more than 3 prior std away draws a one-line warning.  The lever arm has a 1 m std prior about
+the nominal position (proper, so LM cannot wander along an unexcited direction; flat for all else).  The lever arm is identified from the ω̇ and
 ω² terms, the orientation from ω (and f), the clock from the timing of ω's changes.
 
 Assumptions (what the model does not have): constant biases (random walks are not modelled), no

@@ -42,6 +42,7 @@ class RigSettings:
         Gauss–Newton JᵀJ evaluates ∂r/∂o = R ω̇ at the *estimated* motion, whose noise adds to its
         square (errors in variables): on concealed rigs it made the clock std 25–40 % too small;
         the exact Hessian's local–global cross terms remove that (about as long as the fit itself).
+    lever_prior_std : m, std of the (effectively flat) lever-arm prior about the nominal positions.
     prior_scale : multiplies the white-jerk intensities q_c estimated from the reference (> 1: weaker).
     ftol : LM's relative cost-change stop (1e-8 of a cost of order the number of residuals is far
         below the 0.5 that a 1-std move of one parameter makes).
@@ -54,6 +55,7 @@ class RigSettings:
     ftol: float = 1e-8
     prior_scale: float = 1.0
     hessian: str = "exact"
+    lever_prior_std: float = 1.0
 
 
 @dataclass
@@ -89,6 +91,7 @@ class RigResult:
     seconds: float
     info_eigs: np.ndarray = field(default=None, repr=False)
     hessian: str = "exact"
+    lever_prior_std: float = 1.0
 
 
 def rig_samples(rec, ref: int):
@@ -187,7 +190,13 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     stated = ~np.all(np.isclose(q_nom[1:], [1.0, 0, 0, 0]) | np.isclose(q_nom[1:], [-1.0, 0, 0, 0]), axis=1)
     sig_q = math.radians(settings.orientation_prior_deg)
     qn_t = tt(q_nom[1:])
-    priors = []
+    # a proper but effectively flat lever-arm prior (1 m std about the nominal): it changes nothing
+    # the data identify (stds of tens of µm) and keeps LM from wandering along an unexcited
+    # direction (the lever arm along the only rotation axis) to metres
+    r_nom = tt(nom_pos[1:] - nom_pos[0])
+    priors = [GlobalResidual(lambda g: ((g["r"] - r_nom) / settings.lever_prior_std).reshape(-1),
+                             jac=lambda g: {"r": torch.eye(3 * (K - 1), dtype=torch.float64) / settings.lever_prior_std},
+                             name="lever_arm_prior")]
     if stated.any():
         sel = torch.as_tensor(stated)
         priors.append(GlobalResidual(lambda g: (boxminus(g["q"][sel], qn_t[sel]) / sig_q).reshape(-1),
