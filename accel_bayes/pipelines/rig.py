@@ -15,6 +15,7 @@ import numpy as np
 
 from .. import __version__
 from ..data import io
+from ..data.outputs import to_jsonable
 from ..data.positions import positions_document, write_positions
 from ..data.validation import is_multirate, rig_model_applies
 from ..errors import UserError
@@ -61,16 +62,18 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
     unid = {(int(k), n) for k, n in res.unidentified}
     for k, e in enumerate(doc["imus"]):
         if k == res.reference_imu:
-            e["orientation_cov"] = [[0.0] * 3] * 3
+            e["orientation_cov"] = [[0.0] * 3 for _ in range(3)]
             e["time_offset"] = {"mean": 0.0, "std": 0.0}
             continue
-        e["orientation_cov"] = res.orientation_cov[k].tolist()
-        e["orientation_std"] = np.sqrt(np.clip(np.diag(res.orientation_cov[k]), 0, None)).tolist()
-        e["time_offset"] = {"mean": float(res.time_offset[k]), "std": float(res.time_offset_std[k])}
+        # strict JSON: an unidentified coordinate has no std (NaN → null)
+        js = lambda v: to_jsonable(np.asarray(v, dtype=float), nonfinite="null")  # noqa: E731
+        e["orientation_cov"] = js(res.orientation_cov[k])
+        e["orientation_std"] = js(np.sqrt(np.clip(np.diag(res.orientation_cov[k]), 0, None)))
+        e["time_offset"] = {"mean": js(res.time_offset[k]), "std": js(res.time_offset_std[k])}
         if res.own_stamps[k]:
-            e["clock_drift"] = {"mean": float(res.clock_drift[k]), "std": float(res.clock_drift_std[k])}
-        e["gyro_bias"] = res.gyro_bias[k].tolist()
-        e["acc_bias"] = res.acc_bias[k].tolist()
+            e["clock_drift"] = {"mean": js(res.clock_drift[k]), "std": js(res.clock_drift_std[k])}
+        e["gyro_bias"] = js(res.gyro_bias[k])
+        e["acc_bias"] = js(res.acc_bias[k])
         names = sorted(_NAMES[n] for kk, n in unid if kk == k)
         if names:
             e["unidentified"] = names

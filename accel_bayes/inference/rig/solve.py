@@ -19,7 +19,7 @@ from .initial import align_gyros, interp_rows
 from .model import (D_LOCAL, _process_matrices, bucket_samples, measurement_jacobian, measurement_residual,
                     process_jacobian, process_residual)
 
-__all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples"]
+__all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes"]
 
 #: per-parameter scales of "a confident number": a direction of the Laplace posterior whose std
 #: exceeds its scale (scaled Fisher information eigenvalue < 1) is reported unidentified
@@ -146,6 +146,29 @@ def _initial_knots(smp0, R0, tau):
     return np.concatenate((ws, wd, fs, fd), 1), qc_w, qc_f
 
 
+def unexcited_axes(smp0, R0, sigma_g: float, width_s: float = 0.02, factor: float = 100.0) -> list:
+    """Array-frame axes (unit 3-vectors) the rig never turns about: eigen-directions of the mean
+    ω ωᵀ of the reference gyro (Gaussian-smoothed over ``width_s``) below ``factor`` × the smoothed
+    noise variance σ_g²/(2√π·n), n the smoothing width in samples."""
+    dt = float(np.median(np.diff(smp0["ds"])))
+    n = max(width_s / dt, 1.0)
+    w = gaussian_filter1d(smp0["yg"] @ R0, n, axis=0)
+    lam, V = np.linalg.eigh(w.T @ w / len(w))
+    floor = sigma_g ** 2 / (2 * math.sqrt(math.pi) * n)
+    return [V[:, i] for i in range(3) if lam[i] < factor * floor]
+
+
+def blind_lever_axes(unexcited: list) -> list:
+    """Lever-arm directions no acc sees: with rotation about one axis only (two unexcited axes) the
+    lever arm along that axis; with no rotation, every direction; else none (ω in a plane still
+    sees r ⊥ the plane through −|ω|² r)."""
+    if len(unexcited) == 3:
+        return [np.eye(3)[i] for i in range(3)]
+    if len(unexcited) == 2:
+        return [np.cross(unexcited[0], unexcited[1])]
+    return []
+
+
 def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     """MAP and Laplace posterior of a rig's orientations, lever arms, clock offsets and drifts.
 
@@ -228,24 +251,44 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         log_all += res.log
 
     # Laplace posterior of the free globals (knots marginalised by the Schur complement)
-    try:
-        S = res.information(settings.hessian).numpy()
-    except NotPositiveDefinite:  # an indefinite exact block (e.g. an unexcited direction): fall back, and say so
-        S = res.information("gauss_newton").numpy()
-        hess_used = "gauss_newton (exact Hessian not positive definite)"
-    else:
-        hess_used = settings.hessian
     labels = res.free_labels()
     scale = np.array([IDENT_SCALE[name] for name, _ in labels])
+    hess_used = settings.hessian
+    try:
+        S = res.information(settings.hessian).numpy()
+        indefinite = np.linalg.eigvalsh(S * scale[:, None] * scale[None, :]).min() < 0
+    except NotPositiveDefinite:
+        indefinite = True
+    if indefinite:
+        # not at a minimum (LM stopped on a ridge along an unexcited direction): the PSD
+        # Gauss–Newton information; its errors-in-variables optimism is why the excitation rule
+        # below checks the lever arm independently
+        S = res.information("gauss_newton").numpy()
+        hess_used = "gauss_newton (exact Hessian indefinite)"
+    # Directions whose std would exceed IDENT_SCALE (scaled eigenvalue < 1, negative included: at
+    # an unexcited direction LM stops on a ridge, not at a minimum) are unidentified.  The
+    # covariance is the inverse on the identified subspace (conditional on the unidentified
+    # directions), and the parameters that load on an unidentified direction get NaN (no number).
     Ss = S * scale[:, None] * scale[None, :]
-    lam, V = np.linalg.eigh(Ss)
-    lam_f = np.maximum(lam, 1e-12 * max(lam.max(), 1e-300))
-    cov = (V / lam_f) @ V.T * scale[:, None] * scale[None, :]
+    lam, V = np.linalg.eigh(0.5 * (Ss + Ss.T))
+    ok = lam >= 1.0
+    cov = (V[:, ok] / lam[ok]) @ V[:, ok].T * scale[:, None] * scale[None, :]
     unident = set()
-    for i in np.flatnonzero(lam < 1.0):
+    flagged = np.zeros(len(labels), bool)
+    for i in np.flatnonzero(~ok):
         for j in np.flatnonzero(np.abs(V[:, i]) > 0.3):
+            flagged[j] = True
             name, idx = labels[j]
             unident.add((order[idx[0] + 1], name))
+    # the lever arm along an axis the board never turns about is seen by nothing (ω̇×r and
+    # ω×(ω×r) vanish for r ∥ ω), whatever a noise-fitted motion suggests to the information matrix
+    for axis in blind_lever_axes(unexcited_axes(smp[0], R0, float(np.asarray(rec.gyro_noise_std)[ref]))):
+        for j, (name, idx) in enumerate(labels):
+            if name == "r" and abs(axis[idx[1]]) > 0.3:
+                flagged[j] = True
+                unident.add((order[idx[0] + 1], "r"))
+    cov[flagged, :] = np.nan
+    cov[:, flagged] = np.nan
 
     n_res = int((data.wg > 0).sum() * 3 + (data.wa > 0).sum() * 3)
     r_meas = measurement_residual(values, x[:-1], x[1:], data, R0t)
