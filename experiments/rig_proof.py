@@ -13,8 +13,12 @@ coordinate unidentified.  Per-rig records go to ``experiments/rig_proof.json`` a
 """
 from __future__ import annotations
 
-import argparse
-import datetime
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # before numpy/torch load their thread pools: ours and the peer alike
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
 import json
 import math
 import platform
@@ -107,6 +111,7 @@ def main(argv=None):
         cases.sort(key=lambda c: c["seed"])
         under.sort(key=lambda c: c["seed"])
         args.n, args.under = 0, 0
+        outputs.write_json(jpath, {"cases": cases, "under": under})
     for i in range(args.n):
         seed = args.first_seed + i
         cases.append(run_case(seed, 2 + seed % 3, args.duration))

@@ -3,7 +3,7 @@ import numpy as np
 import torch
 
 from accel_bayes.inference.rig.model import (bucket_samples, measurement_jacobian, measurement_residual,
-                                             process_jacobian, process_residual, _process_matrices)
+                                             process_jacobian, process_residual, process_matrices)
 from accel_bayes.physics.geometry import boxplus, quat_normalize
 
 
@@ -62,7 +62,7 @@ def test_measurement_jacobian_matches_finite_differences():
 def test_process_prior_is_whitened_white_jerk():
     """The prior increments have unit covariance under the white-noise-on-jerk model they claim."""
     h, qc = 0.005, 3.0
-    AB = _process_matrices(h, qc, qc)
+    AB = process_matrices(h, qc, qc)
     rng = np.random.default_rng(1)
     n = 20000
     # exact discretisation of the integrated white noise: x_{j+1} = Φ x_j + w, Cov(w) = Q

@@ -19,9 +19,10 @@ biases (its biases are absorbed in ω and f).  Unknowns per IMU k ≠ reference:
 box-plus), r_k (3, m), o_k (s), d_k (only where the IMU carries its own stamps: a NaN-union
 recording or ``imu_time_offset``; else 0), b_g,k, b_a,k (constants).  A stated nominal orientation
 (not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit
-more than 3 prior std away draws a one-line warning.  The lever arm has a 1 m std prior about
-the nominal position (proper, so LM cannot wander along an unexcited direction; flat for all else).  The lever arm is identified from the ω̇ and
-ω² terms, the orientation from ω (and f), the clock from the timing of ω's changes.
+more than 3 prior std away draws a one-line warning.  The lever arm has a 1 m std prior about the
+nominal position: proper, so LM cannot wander along an unexcited direction, and flat for anything
+the data identify.  The lever arm is identified by the ω̇ and ω² terms, the orientation by ω (and
+f), the clock by the timing of ω's and f's changes.
 
 Assumptions (what the model does not have): constant biases (random walks are not modelled), no
 scale factors or misalignments inside an IMU, stamps exact apart from (o_k, d_k) (stamp jitter is
@@ -29,11 +30,15 @@ not modelled), a constant drift, motion smooth on the scale of h (cubic between 
 vibration above ~1/(4h) are not represented), the reference's nominal orientation exact.
 
 Solve: the package's structured LM (:mod:`accel_bayes.inference.lm`), knots eliminated by the
-block-tridiagonal Schur complement, two passes (samples re-bucketed at the first pass's clocks).
-Posterior: Laplace at the MAP.  Identifiability: the Fisher information of the free parameters,
-scaled by :data:`~.solve.IDENT_SCALE`, has an eigenvalue < 1 along a direction whose std exceeds
-those scales; the parameters in such a direction are reported ``unidentified`` (exit status 4), not
-as confident numbers (e.g. the lever arm along the only rotation axis).
+block-tridiagonal Schur complement; a second pass re-buckets the samples at the first pass's clocks
+where they moved by more than h/4.  Posterior: Laplace at the MAP with the exact Hessian (the
+Gauss–Newton JᵀJ evaluates ∂r/∂o at the noise-fitted ω̇ and is 25–40 % optimistic for the clock),
+Gauss–Newton where the exact one is indefinite (LM stopped on a ridge).  Identifiability: a
+direction of the information scaled by :data:`~.solve.IDENT_SCALE` with eigenvalue < 1 (std above
+those scales) makes the parameters loading on it ``unidentified``; so does the lever arm along the
+only axis the reference gyro turns about (:func:`~.solve.unexcited_axes`), which a noise-fitted
+motion would otherwise credit with information.  Unidentified coordinates get no std (NaN, null in
+positions.json) and ``calibrate`` exits with status 4.
 """
 from .solve import IDENT_SCALE, RigResult, RigSettings, fit_rig, rig_samples
 

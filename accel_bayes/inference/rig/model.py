@@ -18,7 +18,7 @@ import torch
 
 from ...physics.geometry import quat_to_matrix, skew
 
-__all__ = ["RigData", "bucket_samples", "hermite", "sample_time", "measurement_residual",
+__all__ = ["RigData", "bucket_samples", "hermite", "sample_time", "measurement_residual", "process_matrices",
            "measurement_jacobian", "process_residual", "process_jacobian", "full_globals", "D_LOCAL"]
 
 D_LOCAL = 12  # [ω, ω̇, f, ḟ] per knot
@@ -195,7 +195,7 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
     return jac, A.reshape(J1, 6 * S, 12), B.reshape(J1, 6 * S, 12)
 
 
-def _process_matrices(h: float, qc_w: float, qc_f: float, dtype=torch.float64):
+def process_matrices(h: float, qc_w: float, qc_f: float, dtype=torch.float64):
     """(Aw, Bw) (12, 12) such that the whitened white-noise-on-jerk increments are Aw x_j + Bw x_{j+1}:
     e = [v_{j+1} − v_j − h ṡ_j ; ṡ_{j+1} − ṡ_j] per axis, Cov(e) = q_c [[h³/3, h²/2], [h²/2, h]]."""
     A = torch.zeros(12, 12, dtype=dtype)

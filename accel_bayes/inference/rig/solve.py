@@ -16,7 +16,7 @@ from ...physics.geometry import boxminus, matrix_to_quat, quat_to_matrix
 from ..lm import ChainResidual, GlobalResidual, LevenbergMarquardt, Problem, Variable
 from ..lm.linear import NotPositiveDefinite
 from .initial import align_gyros, interp_rows
-from .model import (D_LOCAL, _process_matrices, bucket_samples, measurement_jacobian, measurement_residual,
+from .model import (process_matrices, bucket_samples, measurement_jacobian, measurement_residual,
                     process_jacobian, process_residual)
 
 __all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes"]
@@ -200,7 +200,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     n_knots = int(math.ceil((hi - lo) / h)) + 1
     tau = lo + h * np.arange(n_knots)
     x0, qc_w, qc_f = _initial_knots(smp[0], R0, tau)
-    AB = _process_matrices(h, qc_w * settings.prior_scale, qc_f * settings.prior_scale)
+    AB = process_matrices(h, qc_w * settings.prior_scale, qc_f * settings.prior_scale)
     R0t = torch.as_tensor(R0)
 
     nom_pos = np.asarray(rec.nominal_position, dtype=float)[order]
