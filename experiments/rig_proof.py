@@ -124,6 +124,8 @@ def main(argv=None):
         under.append(run_case(seed, 2 + i % 3, args.duration, rot_axes=(2,)))
         print(f"under-excited seed {seed}: unidentified {under[-1]['unidentified']}", flush=True)
         outputs.write_json(jpath, {"cases": cases, "under": under})
+    if not cases:  # a part run (under-excited rigs only): its records are the product
+        return
     rows, worst = summarise(cases)
     lines = ["# Rig posterior on concealed rigs (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_proof.py --n 30 --duration {args.duration:g} "
