@@ -84,6 +84,12 @@ def test_calibrate_dispatches_to_rig_and_recovers_the_concealed_rig(rig_file, tm
     assert abs(e["clock_drift"]["mean"] - truth["clock_drift"][1]) < 5 * e["clock_drift"]["std"] + 1e-6
     assert np.shape(e["orientation_cov"]) == (3, 3) and e["time_offset"]["std"] > 0
     assert doc["diagnostics"]["unidentified"] == []
+    # one update_rate per chain cannot describe a 2-rate rig: refused in one line, not a wrong density
+    rc = main(["export", str(path), "--positions", str(tmp_path / "cal" / "positions.json"),
+               "-o", str(tmp_path / "chain.yaml")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "recording.time: IMUs at different rates" in err, err
+    assert not (tmp_path / "chain.yaml").exists()
 
 
 def test_under_excited_rig_reports_the_lever_arm_along_the_axis_unidentified(tmp_path, capsys):
