@@ -294,9 +294,9 @@ write the recording; written without `accel_bayes.physics` / `accel_bayes.simula
   lever arms 1–20 cm, nominal orientations 1–5° off on about half the IMUs, identity (missing) on
   the others, nominal positions off by N(0, 2 mm); bias random walks; no filter, no vibration.
   `time` is the union of the stamps, NaN where an IMU has no sample, `imu_time_offset` 0 where it has
-  one. Today's format-v1 validation refuses NaN-union recordings, so `write_case` writes rigs as
-  `.npz` (per-IMU arrays) plus the truth sidecar with the refusal's message; it will write NetCDF
-  as soon as validation accepts them (issue #28's item 1).
+  one. Format v1 holds such multi-rate recordings (DESIGN §7.1; accepted since issue #28's item 1), so
+  `write_case` writes rigs as NetCDF like every other case. The generator's t₀ is 0, a few ms before
+  the recording's first stamp (DESIGN's t₀): o_k at the first stamp is o_k − t_first·d_k/(1 + d_k).
 - **Truth** (`write_case` → `*.truth.json`, never in the recording): ε, phase, drift, skew, jitter,
   beat frequency per IMU, the data age and true read instant of every IMU at every read, filter
   coefficients, error parameters, φ(t) and p(t) at the stamps, rest flags; for rigs o_k, d_k,

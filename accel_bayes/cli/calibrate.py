@@ -184,6 +184,10 @@ def _run(args) -> int:
     options = CalibrateOptions.from_args(args, checkpoint=ckpt)
     out = OutputDir(args.out, overwrite=args.overwrite, resume=args.resume, keep=("checkpoint.pt",),
                     inputs=(args.recording, args.intrinsics, args.model)).open()
+    from ._rig import calibrate_if_rig  # issue #28: a rig recording goes to the rig model, no flag
+    status = calibrate_if_rig(args, out)
+    if status is not None:
+        return status
     from ..pipelines.calibrate import calibrate, write_outputs
 
     if ckpt is not None:

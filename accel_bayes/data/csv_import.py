@@ -56,8 +56,8 @@ What the importer does, and why:
   wrong positions, °/s under a rad/s header), and ``check_gyro_units=False``
   (``--skip-gyro-unit-check``) overrides it, recorded as ``gyro_unit_check = "skipped"`` so that
   later reads skip it too.
-* Fewer than three IMUs with an accelerometer are refused naming ``[[imu]]`` (two-IMU rigs are
-  not yet supported).
+* Fewer than three IMUs with an accelerometer are refused naming ``[[imu]]`` unless they are a rig of
+  two or more that all have gyroscopes (calibrated by the rig model; earlier versions refused two-IMU rigs).
 * Refusals raise :class:`~accel_bayes.errors.UserError` whose message names the file, the line
   and the column, and what was expected.
 """
@@ -742,11 +742,12 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         raise FileNotFoundError(f"{source}: no such CSV file or ASL folder")
     K, ref = len(spec.imus), spec.reference_imu
     n_acc = sum(s.has_acc for s in spec.imus)
-    if n_acc < 3:
+    rig = n_acc >= 2 and all(s.has_gyro for s in spec.imus if s.has_acc)  # the rig model's case (issue #28)
+    if n_acc < 3 and not rig:
         # Said here, in the description's terms, rather than by the recording's validation
         # ("nominal_position: accelerometer triads …"), which names an internal field.
         raise UserError(f"{spec.path}: [[imu]]: {n_acc} IMU{'s' if n_acc != 1 else ''} with an accelerometer; "
-                        "expected at least 3, not on one line (rigs of two IMUs are not yet supported)")
+                        "expected at least 3 not on one line, or at least 2 that all have gyroscopes (a rig)")
     if source.is_dir():
         layout = "ASL"
         found = sorted(p.name for p in source.iterdir() if (p / "data.csv").is_file())

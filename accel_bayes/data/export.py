@@ -81,6 +81,7 @@ from ..physics.geometry import quat_to_matrix
 from .allan import RELATIVE_SE_MAX, allan_random_walk, static_runs
 from .mismatch_report import validate_report
 from .recording import Recording
+from .validation import is_multirate
 
 __all__ = ["FORMATS", "imu_chain", "kalibr_imu_files", "t_i_b", "openvins_acc_intrinsics",
            "gyro_intrinsics_from_report", "export_order", "nominal_rate", "random_walks"]
@@ -325,6 +326,11 @@ def _prepare(recording: Recording, positions: dict, intrinsics, report, fmt: str
                 raise UserError(f"imu[{k}].sensors: IMU {k} has no {kind} data or noise std; {tool} "
                                 f"{'accelerometer' if kind == 'acc' else 'gyroscope'}_noise_density, expected both "
                                 "sensors with a stated or estimated noise")
+    if is_multirate(recording):
+        # one update_rate and density per IMU would be needed; a density from the union's stamp rate
+        # would be silently wrong for every IMU
+        raise UserError("recording.time: IMUs at different rates (multi-rate rig); the export writes one rate for "
+                        "all IMUs, expected a recording whose IMUs share their stamps")
     rate, rate_how = nominal_rate(recording)
     rw = random_walks(recording, rate, imus=[k for k in order if recording.has_gyro[k] or recording.has_acc[k]],
                       required=need)

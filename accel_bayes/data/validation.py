@@ -35,6 +35,10 @@ __all__ = [
     "SEGMENT_LABELS",
     "validate_dataset",
     "validate_recording",
+    "sample_present",
+    "is_multirate",
+    "is_gyro_rig",
+    "rig_model_applies",
     "gyro_unit_diagnostics",
     "gyro_declared_units",
     "units_kind",
@@ -352,6 +356,42 @@ def validate_dataset(ds) -> None:
 
 # ---------------------------------------------------------------- recording level
 
+def sample_present(rec) -> np.ndarray:
+    """(T, K) bool: IMU k has a sample at ``time[t]`` — False only where its acc (and gyro, if it
+    has one) is NaN in every axis (DESIGN §7.1: multi-rate recordings hold the union of stamps)."""
+    acc = np.asarray(rec.acc, dtype=float)
+    miss = np.isnan(acc).all(-1)
+    if rec.gyro is not None:
+        g = np.asarray(rec.gyro, dtype=float)
+        has_g = ~np.all(np.isnan(g), axis=(0, 2))
+        miss = miss & (np.isnan(g).all(-1) | ~has_g[None, :])
+    return ~miss
+
+
+def is_multirate(rec) -> bool:
+    """True when some IMU with an accelerometer lacks a sample at some union stamp (DESIGN §7.1)."""
+    acc = np.asarray(rec.acc, dtype=float)
+    has_acc = ~np.all(np.isnan(acc), axis=(0, 2))
+    return bool((~sample_present(rec)[:, has_acc]).any())
+
+
+def is_gyro_rig(has_acc: np.ndarray, has_gyro: np.ndarray) -> bool:
+    """≥ 2 IMUs with an accelerometer, each with a gyroscope: what the rig model calibrates."""
+    return bool(has_acc.sum() >= 2 and np.all(has_gyro[has_acc]))
+
+
+def rig_model_applies(rec) -> bool:
+    """True for a rig the rig model calibrates (``accel-bayes calibrate`` dispatches there): ≥ 2 IMUs
+    with accelerometers, all with gyroscopes, and either < 3 triads or separately stamped IMUs
+    (multi-rate NaN-union ``time`` or a finite ``imu_time_offset``)."""
+    acc = np.asarray(rec.acc, dtype=float)
+    has_acc = ~np.all(np.isnan(acc), axis=(0, 2))
+    has_gyro = (np.zeros(acc.shape[1], bool) if rec.gyro is None
+                else ~np.all(np.isnan(np.asarray(rec.gyro, dtype=float)), axis=(0, 2)))
+    own = rec.imu_time_offset is not None and np.isfinite(np.asarray(rec.imu_time_offset, dtype=float)).any()
+    return is_gyro_rig(has_acc, has_gyro) and bool(has_acc.sum() < 3 or own or is_multirate(rec))
+
+
 def _shape_check(name, x, shape):
     if x is None:
         return
@@ -500,15 +540,22 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
     has_acc = ~np.all(np.isnan(acc), axis=(0, 2))
     if not has_acc.any():
         raise RecordingError("acc: every IMU is all-NaN; expected accelerometer data for at least 3 IMUs")
-    fin = np.isfinite(acc[:, has_acc, :]).all(-1)
-    if not fin.all():
-        _first_bad(acc[:, has_acc, :], fin, time, "acc", labels[has_acc], "with an accelerometer")
     gyro = None if rec.gyro is None else np.asarray(rec.gyro)
     has_gyro = np.zeros(K, bool) if gyro is None else ~np.all(np.isnan(gyro), axis=(0, 2))
-    if gyro is not None and has_gyro.any():
-        fin = np.isfinite(gyro[:, has_gyro, :]).all(-1)
+    # DESIGN §7.1 multi-rate: an IMU without a sample at a union stamp is NaN in every axis of
+    # every sensor it has there; a partly NaN sample is a damaged reading, not a missing one
+    present = sample_present(rec)
+    for name, x, has, what in (("acc", acc, has_acc, "with an accelerometer"),
+                               ("gyro", gyro, has_gyro, "with a gyroscope")):
+        if x is None or not has.any():
+            continue
+        fin = np.isfinite(x[:, has, :]).all(-1) | ~present[:, has]
         if not fin.all():
-            _first_bad(gyro[:, has_gyro, :], fin, time, "gyro", labels[has_gyro], "with a gyroscope")
+            _first_bad(x[:, has, :], fin, time, name, labels[has], what)
+    if not present[:, has_acc].any(-1).all():
+        i = int(np.flatnonzero(~present[:, has_acc].any(-1))[0])
+        raise RecordingError(f"acc: no IMU has a sample at time index {i} (t = {float(time[i]):.6g} s); expected "
+                             "time to be the union of the IMUs' stamps")
     if require_gyro and not has_gyro.any():
         raise RecordingError("gyro: this analysis needs gyroscope data (variable gyro, rad s-1), the recording has none")
 
@@ -547,10 +594,14 @@ def validate_recording(rec, *, require_gyro: bool = False, reference_imu: int | 
         k = int(np.flatnonzero(bad)[0])
         raise RecordingError(f"nominal_orientation: IMU {k} has {q[k].tolist()} (norm {qn[k]:.6g}); expected a "
                              "unit quaternion (w, x, y, z)")
-    try:
-        check_triad_geometry(torch.as_tensor(pos[has_acc]), labels=labels[has_acc].tolist())
-    except ValueError as exc:
-        raise RecordingError(f"nominal_position: {exc}") from None
+    # a rig of >= 2 IMUs that all have gyros, with < 3 triads or separately stamped IMUs, is
+    # calibrated by the rig model (lever arms from the gyros' ω, ω̇; pipelines.rig.is_rig), so the
+    # [C21] need for three non-collinear triads does not apply to it
+    if not rig_model_applies(rec):
+        try:
+            check_triad_geometry(torch.as_tensor(pos[has_acc]), labels=labels[has_acc].tolist())
+        except ValueError as exc:
+            raise RecordingError(f"nominal_position: {exc}") from None
 
     ref = rec.reference_imu if reference_imu is None else reference_imu
     if isinstance(ref, (bool, np.bool_)) or not isinstance(ref, (int, np.integer)):

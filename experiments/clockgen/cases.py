@@ -213,9 +213,9 @@ def motion_of(truth):
 
 
 def write_case(rec, truth, path):
-    """Write a case: format-v1 NetCDF + truth sidecar, or, where today's validation refuses the
-    recording (NaN-union rigs), per-IMU arrays to ``path.with_suffix('.npz')`` plus the sidecar.
-    Returns the path written."""
+    """Write a case: format-v1 NetCDF + truth sidecar (multi-rate rigs too, DESIGN §7.1, since
+    issue #28 item 1), or, where validation refuses the recording, per-IMU arrays to
+    ``path.with_suffix('.npz')`` plus the sidecar with the refusal.  Returns the path written."""
     from accel_bayes.data import io, outputs
     from accel_bayes.errors import RecordingError
     path = Path(path)

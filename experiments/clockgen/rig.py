@@ -25,14 +25,15 @@ def _random_rotation(rng):
 
 
 def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jitter=True, bias_walk=True,
-             vibration=False, rot_axes=(0, 1, 2)):
+             vibration=False, rot_axes=(0, 1, 2), rates=None):
     """A seeded rig case → (Recording, truth).  Ranges: K ∈ {2, 3, 4}; rates from 100, 125, 200,
     250, 400 Hz (at least two distinct); o_k ~ U(±10 ms), d_k ~ U(±100 ppm); lever arms 1–20 cm in
     random directions; random orientations; nominal orientation given on half the IMUs, 1–5° off,
     else identity (missing); nominal positions off by N(0, 2 mm); stamp jitter N(0, 20–100 µs);
     acc/gyro white noise 0.02–0.06 m/s², 0.2–0.6 °/s; bias random walks 1e-4 m/s²/√s and
     1e-5 rad/s/√s (effects the rig model lacks).  ``rot_axes=(2,)``: an under-excited rig that
-    rotates about the array (reference sensor) z axis only."""
+    rotates about the array (reference sensor) z axis only.  ``rates`` (Hz per IMU) replaces the
+    drawn rates (benchmarks at one rate); every other draw stays the same."""
     from .cases import ACC_RANGE, GYRO_RANGE, RIG_RATES, matrix_to_quat
     rng = np.random.default_rng([seed, 28])
     K = int(n_imu or rng.integers(2, 5))
@@ -40,6 +41,8 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
         rates = rng.choice(RIG_RATES, K)
         if K == 1 or len(set(rates)) > 1:
             break
+    if rates is not None:
+        rates = np.asarray(rates, dtype=float)
     o = np.r_[0.0, rng.uniform(-0.01, 0.01, K - 1)]
     d = np.r_[0.0, rng.uniform(-1e-4, 1e-4, K - 1)]
     Q = np.array([np.eye(3)] + [_random_rotation(rng) for _ in range(K - 1)])

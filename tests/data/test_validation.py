@@ -208,6 +208,7 @@ def test_noise_std_must_be_positive(rec, ds):
 def test_fewer_than_three_triads(rec):
     bad = rec.copy()
     bad.acc[:, 2:] = np.nan  # only IMUs 0 and 1 keep an accelerometer
+    bad.gyro[:, 1] = np.nan  # and IMU 1 no gyro: not a rig (two IMUs with gyros are, tests/test_rig_pipeline.py)
     refused(bad, r"nominal_position: accelerometer triads: at least 3 are needed.*got 2")
 
 

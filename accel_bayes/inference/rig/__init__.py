@@ -1,0 +1,45 @@
+"""Rig calibration: two or more IMUs with gyroscopes, each with its own orientation, lever arm and
+clock, as a posterior (issue #28 item 1).
+
+Model
+-----
+The rig is rigid.  The reference IMU (label ``reference_imu``) defines the array frame through its
+nominal orientation R₀ and its position (the origin) and its clock (o = d = 0).  The motion is a
+continuous-time state in the array frame — angular rate ω(t), its derivative ω̇(t), and the
+reference's specific force f(t) and its derivative — held at knots τ_j every h seconds and
+interpolated by cubic Hermite polynomials (:mod:`.model`).  A white-noise-on-jerk prior scores
+consecutive knots (q_c: the mean squared ω̈, f̈ of the smoothed reference signals over 1 s; weak on
+purpose).  IMU k's sample stamped s on its own clock was taken at t = t₀ + o_k + (s − t₀)/(1 + d_k)
+(DESIGN §7.3), and reads
+
+    y_g = R_k ω(t) + b_g,k + e_g          y_a = R_k [f(t) + ω̇(t)×r_k + ω(t)×(ω(t)×r_k)] + b_a,k + e_a
+
+with white Gaussian e of the recording's stated std.  The reference has R₀ fixed, r = 0 and no
+biases (its biases are absorbed in ω and f).  Unknowns per IMU k ≠ reference: R_k (3, right
+box-plus), r_k (3, m), o_k (s), d_k (only where the IMU carries its own stamps: a NaN-union
+recording or ``imu_time_offset``; else 0), b_g,k, b_a,k (constants).  A stated nominal orientation
+(not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit
+more than 3 prior std away draws a one-line warning.  The lever arm has a 1 m std prior about the
+nominal position: proper, so LM cannot wander along an unexcited direction, and flat for anything
+the data identify.  The lever arm is identified by the ω̇ and ω² terms, the orientation by ω (and
+f), the clock by the timing of ω's and f's changes.
+
+Assumptions (what the model does not have): constant biases (random walks are not modelled), no
+scale factors or misalignments inside an IMU, stamps exact apart from (o_k, d_k) (stamp jitter is
+not modelled), a constant drift, motion smooth on the scale of h (cubic between knots; impacts and
+vibration above ~1/(4h) are not represented), the reference's nominal orientation exact.
+
+Solve: the package's structured LM (:mod:`accel_bayes.inference.lm`), knots eliminated by the
+block-tridiagonal Schur complement; a second pass re-buckets the samples at the first pass's clocks
+where they moved by more than h/4.  Posterior: Laplace at the MAP with the exact Hessian (the
+Gauss–Newton JᵀJ evaluates ∂r/∂o at the noise-fitted ω̇ and is 25–40 % optimistic for the clock),
+Gauss–Newton where the exact one is indefinite (LM stopped on a ridge).  Identifiability: a
+direction of the information scaled by :data:`~.solve.IDENT_SCALE` with eigenvalue < 1 (std above
+those scales) makes the parameters loading on it ``unidentified``; so does the lever arm along the
+only axis the reference gyro turns about (:func:`~.solve.unexcited_axes`), which a noise-fitted
+motion would otherwise credit with information.  Unidentified coordinates get no std (NaN, null in
+positions.json) and ``calibrate`` exits with status 4.
+"""
+from .solve import IDENT_SCALE, RigResult, RigSettings, fit_rig, rig_samples
+
+__all__ = ["RigResult", "RigSettings", "fit_rig", "rig_samples", "IDENT_SCALE"]

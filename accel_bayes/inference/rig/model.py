@@ -1,0 +1,224 @@
+"""The rig signal model: a continuous-time motion through which every IMU's samples are predicted
+at their own clock-corrected instants (see :mod:`accel_bayes.inference.rig` for the model and its
+assumptions).
+
+Motion knots τ_j = τ₀ + j·h carry the local state x_j = [ω, ω̇, f, ḟ] (12 numbers, array frame:
+rad/s, rad/s², m/s², m/s³); between two knots ω(t) and f(t) are the cubic Hermite interpolants of
+(value, derivative) at both ends — the posterior mean of the white-noise-on-jerk Gauss–Markov
+prior whose increments :func:`process_residual` scores.  Each interval [τ_j, τ_{j+1}) is one
+:class:`~accel_bayes.inference.lm.ChainResidual` row holding the (padded) samples whose corrected
+instants fall in it, so the package's structured LM eliminates the knots block-tridiagonally.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ...physics.geometry import quat_to_matrix, skew
+
+__all__ = ["RigData", "bucket_samples", "hermite", "sample_time", "measurement_residual", "process_matrices",
+           "measurement_jacobian", "process_residual", "process_jacobian", "full_globals", "D_LOCAL"]
+
+D_LOCAL = 12  # [ω, ω̇, f, ḟ] per knot
+
+
+@dataclass
+class RigData:
+    """Samples of all IMUs bucketed by motion interval (leading dim J−1 intervals, S slots).
+
+    imu (J−1, S) long: internal IMU index (0 = reference) of the slot; ds (J−1, S): stamp − t₀ (s);
+    tau (J−1,): interval start τ_j (s) − t₀; yg, ya (J−1, S, 3): gyro (rad/s), acc (m/s²) readings;
+    wg, wa (J−1, S): 1/σ (0 for padding and left-out samples); h: knot spacing (s); n_imu: K.
+    """
+
+    imu: torch.Tensor
+    ds: torch.Tensor
+    tau: torch.Tensor
+    yg: torch.Tensor
+    ya: torch.Tensor
+    wg: torch.Tensor
+    wa: torch.Tensor
+    h: float
+    n_imu: int
+
+
+def sample_time(ds, o, d):
+    """Reference-clock instant − t₀ (s) of a sample stamped t₀ + ds by a clock with lag o (s) at t₀
+    and rate error d (DESIGN §7.3: s − t₀ = (t − t₀ − o)(1 + d))."""
+    return o + ds / (1.0 + d)
+
+
+def bucket_samples(samples, o, d, tau0: float, h: float, n_knots: int) -> RigData:
+    """Put each sample into the motion interval that holds its corrected instant.
+
+    samples : list over internal IMU index of dicts with ds (N,), yg (N, 3), ya (N, 3), wg (N,),
+    wa (N,) (numpy); o, d : per-IMU clock parameters (numpy, internal order) used only to choose
+    the interval (the residual re-evaluates the instant from the current o, d, so a sample whose
+    instant moves a little out of its interval is still predicted by that interval's cubic).
+    """
+    K = len(samples)
+    idx, slot_rows = [], []
+    for k, smp in enumerate(samples):
+        t = sample_time(smp["ds"], o[k], d[k])
+        j = np.clip(np.floor((t - tau0) / h).astype(np.int64), 0, n_knots - 2)
+        idx.append(j)
+        slot_rows.append(np.full(len(j), k))
+    j = np.concatenate(idx)
+    kk = np.concatenate(slot_rows)
+    cat = {key: np.concatenate([s[key] for s in samples]) for key in ("ds", "yg", "ya", "wg", "wa")}
+    order = np.argsort(j, kind="stable")
+    j, kk = j[order], kk[order]
+    cat = {key: v[order] for key, v in cat.items()}
+    counts = np.bincount(j, minlength=n_knots - 1)
+    S = max(int(counts.max()), 1)
+    start = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    slot = np.arange(len(j)) - start[j]
+    J1 = n_knots - 1
+
+    def scatter(v, fill=0.0):
+        out = np.full((J1, S) + v.shape[1:], fill, dtype=v.dtype)
+        out[j, slot] = v
+        return out
+
+    t = lambda a, dt=torch.float64: torch.as_tensor(a, dtype=dt)  # noqa: E731
+    return RigData(imu=t(scatter(kk, 0), torch.long), ds=t(scatter(cat["ds"])),
+                   tau=t(tau0 + h * np.arange(J1)), yg=t(scatter(cat["yg"])), ya=t(scatter(cat["ya"])),
+                   wg=t(scatter(cat["wg"])), wa=t(scatter(cat["wa"])), h=float(h), n_imu=K)
+
+
+def hermite(u):
+    """Cubic Hermite basis on u ∈ [0, 1] and its first two u-derivatives: three (..., 4) tensors
+    ordered (h00, h10, h01, h11) — value at 0, slope at 0, value at 1, slope at 1."""
+    u2, u3 = u * u, u * u * u
+    b = torch.stack((2 * u3 - 3 * u2 + 1, u3 - 2 * u2 + u, -2 * u3 + 3 * u2, u3 - u2), -1)
+    db = torch.stack((6 * u2 - 6 * u, 3 * u2 - 4 * u + 1, -6 * u2 + 6 * u, 3 * u2 - 2 * u), -1)
+    ddb = torch.stack((12 * u - 6, 6 * u - 4, -12 * u + 6, 6 * u - 2), -1)
+    return b, db, ddb
+
+
+def full_globals(g: dict, R0: torch.Tensor):
+    """Per-IMU (internal order, reference first) R (K, 3, 3), r, o, d, bg, ba from the free blocks
+    (which hold IMUs 1..K−1); the reference's R is its fixed nominal R0, the rest zero."""
+    z3 = g["r"].new_zeros(1, 3)
+    z1 = g["o"].new_zeros(1)
+    R = torch.cat((R0[None], quat_to_matrix(g["q"])), 0)
+    return (R, torch.cat((z3, g["r"]), 0), torch.cat((z1, g["o"]), 0), torch.cat((z1, g["d"]), 0),
+            torch.cat((z3, g["bg"]), 0), torch.cat((z3, g["ba"]), 0))
+
+
+def _interp(xp, xn, data: RigData, t):
+    """ω, ω̇, ω̈, f, ḟ at instants t (J−1, S) from the knots bracketing each interval."""
+    h = data.h
+    u = (t - data.tau[:, None]) / h
+    b, db, ddb = hermite(u)
+
+    def comb(B, scale, i):  # i: column offset of the (value, slope) pair in the 12-vector
+        vp, sp, vn, sn = xp[:, None, i:i + 3], xp[:, None, i + 3:i + 6], xn[:, None, i:i + 3], xn[:, None, i + 3:i + 6]
+        return (B[..., 0:1] * vp + h * B[..., 1:2] * sp + B[..., 2:3] * vn + h * B[..., 3:4] * sn) / scale
+
+    w, wd, wdd = comb(b, 1.0, 0), comb(db, h, 0), comb(ddb, h * h, 0)
+    f, fd = comb(b, 1.0, 6), comb(db, h, 6)
+    return (b, db), w, wd, wdd, f, fd
+
+
+def _slot_state(g, data: RigData, R0):
+    R, r, o, d, bg, ba = full_globals(g, R0)
+    k = data.imu
+    return R[k], r[k], o[k], d[k], bg[k], ba[k]
+
+
+def measurement_residual(g: dict, xp, xn, data: RigData, R0) -> torch.Tensor:
+    """Whitened gyro and acc residuals (J−1, 6·S): per slot [r_g (3), r_a (3)] with
+    r_g = (R ω(t) + b_g − y_g)/σ_g and r_a = (R [f(t) + ω̇(t)×r + ω(t)×(ω(t)×r)] + b_a − y_a)/σ_a."""
+    R, r, o, d, bg, ba = _slot_state(g, data, R0)
+    t = sample_time(data.ds, o, d)
+    _, w, wd, _, f, _ = _interp(xp, xn, data, t)
+    v = f + torch.cross(wd, r, -1) + torch.cross(w, torch.cross(w, r, -1), -1)
+    rg = ((R @ w.unsqueeze(-1)).squeeze(-1) + bg - data.yg) * data.wg[..., None]
+    ra = ((R @ v.unsqueeze(-1)).squeeze(-1) + ba - data.ya) * data.wa[..., None]
+    return torch.cat((rg, ra), -1).reshape(rg.shape[0], -1)
+
+
+def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
+    """Analytic Jacobians of :func:`measurement_residual`: (dict block → (J−1, 6S, tangent size),
+    A (J−1, 6S, 12) w.r.t. x_j, B (J−1, 6S, 12) w.r.t. x_{j+1}).  Orientation tangent: δ with
+    R ← R·Exp(δ) (the LM's right box-plus), so ∂(R v)/∂δ = −R [v]×."""
+    R, r, o, d, bg, ba = _slot_state(g, data, R0)
+    t = sample_time(data.ds, o, d)
+    (b, db), w, wd, wdd, f, fd = _interp(xp, xn, data, t)
+    h = data.h
+    J1, S = data.imu.shape
+    I3 = torch.eye(3, dtype=w.dtype)
+    Sw, Swd, Sr = skew(w), skew(wd), skew(r)
+    wxr = torch.cross(w, r, -1)
+    v = f + torch.cross(wd, r, -1) + torch.cross(w, wxr, -1)
+    # ∂[ω×(ω×r)]/∂ω = (ω·r) I + ω rᵀ − 2 r ωᵀ ; ∂[ω̇×r]/∂ω̇ = −[r]×
+    Dw = (w * r).sum(-1)[..., None, None] * I3 + w.unsqueeze(-1) * r.unsqueeze(-2) - 2 * r.unsqueeze(-1) * w.unsqueeze(-2)
+    Dwd = -Sr
+    wg, wa = data.wg[..., None, None], data.wa[..., None, None]
+    RG, RA = wg * R, wa * R                       # (J−1, S, 3, 3)
+    RADw, RADwd = RA @ Dw, RA @ Dwd
+    # coefficient of each knot quantity in ω (value) and ω̇ (slope): value basis b, slope basis db/h
+    cv = torch.stack((b[..., 0], h * b[..., 1], b[..., 2], h * b[..., 3]), -1)          # ∂ω/∂(ωp, ω̇p, ωn, ω̇n)
+    cs = torch.stack((db[..., 0] / h, db[..., 1], db[..., 2] / h, db[..., 3]), -1)      # ∂ω̇/∂(…)
+    Z = R.new_zeros(J1, S, 3, 3)
+    blocks = []  # per knot quantity: (6, 3) gyro/acc rows × that quantity
+    for i in range(4):
+        cvi, csi = cv[..., i, None, None], cs[..., i, None, None]
+        jg_w = RG * cvi
+        ja_w = RADw * cvi + RADwd * csi
+        ja_f = RA * cvi
+        blocks.append((torch.cat((jg_w, ja_w), -2), torch.cat((Z, ja_f), -2)))
+    # x layout [ω, ω̇, f, ḟ]: the value entries (i = 0, 2) multiply ω / f, the slopes (1, 3) ω̇ / ḟ
+    A = torch.cat((blocks[0][0], blocks[1][0], blocks[0][1], blocks[1][1]), -1)  # (J−1, S, 6, 12)
+    B = torch.cat((blocks[2][0], blocks[3][0], blocks[2][1], blocks[3][1]), -1)
+    # globals of the slot's IMU
+    jq = torch.cat((-(RG @ Sw), -(RA @ skew(v))), -2)                              # (J−1, S, 6, 3)
+    jr = torch.cat((Z, RA @ (Swd + Sw @ Sw)), -2)
+    jbg = torch.cat((wg * I3, Z), -2)
+    jba = torch.cat((Z, wa * I3), -2)
+    # d/dt of the prediction: gyro R ω̇, acc R (ḟ + ω̈×r + ω̇×(ω×r) + ω×(ω̇×r))
+    dv = fd + torch.cross(wdd, r, -1) + torch.cross(wd, wxr, -1) + torch.cross(w, torch.cross(wd, r, -1), -1)
+    jt = torch.cat(((RG @ wd.unsqueeze(-1)), (RA @ dv.unsqueeze(-1))), -2)          # (J−1, S, 6, 1)
+    jo = jt
+    jd = jt * (-data.ds / (1.0 + d) ** 2)[..., None, None]
+    K1 = data.n_imu - 1
+    onehot = torch.nn.functional.one_hot(data.imu, data.n_imu)[..., 1:].to(w.dtype)  # reference: no globals
+    oh = onehot[:, :, None, :, None]                                               # (J−1, S, 1, K−1, 1)
+
+    def spread(jb):
+        return (jb.unsqueeze(-2) * oh).reshape(J1, 6 * S, K1 * jb.shape[-1])
+
+    jac = {"q": spread(jq), "r": spread(jr), "o": spread(jo), "d": spread(jd), "bg": spread(jbg), "ba": spread(jba)}
+    return jac, A.reshape(J1, 6 * S, 12), B.reshape(J1, 6 * S, 12)
+
+
+def process_matrices(h: float, qc_w: float, qc_f: float, dtype=torch.float64):
+    """(Aw, Bw) (12, 12) such that the whitened white-noise-on-jerk increments are Aw x_j + Bw x_{j+1}:
+    e = [v_{j+1} − v_j − h ṡ_j ; ṡ_{j+1} − ṡ_j] per axis, Cov(e) = q_c [[h³/3, h²/2], [h²/2, h]]."""
+    A = torch.zeros(12, 12, dtype=dtype)
+    B = torch.zeros(12, 12, dtype=dtype)
+    I3 = torch.eye(3, dtype=dtype)
+    for off, qc in ((0, qc_w), (6, qc_f)):
+        Q = qc * torch.tensor([[h ** 3 / 3, h ** 2 / 2], [h ** 2 / 2, h]], dtype=dtype)
+        Li = torch.linalg.inv(torch.linalg.cholesky(Q))   # whitening: Li e ~ N(0, I)
+        Ea = torch.tensor([[-1.0, -h], [0.0, -1.0]], dtype=dtype)
+        Eb = torch.eye(2, dtype=dtype)
+        A[off:off + 6, off:off + 6] = torch.kron(Li @ Ea, I3)
+        B[off:off + 6, off:off + 6] = torch.kron(Li @ Eb, I3)
+    return A, B
+
+
+def process_residual(xp, xn, AB) -> torch.Tensor:
+    """Whitened motion-prior increments (J−1, 12) between consecutive knots."""
+    A, B = AB
+    return xp @ A.T + xn @ B.T
+
+
+def process_jacobian(xp, AB):
+    """(A, B) expanded to (J−1, 12, 12): the prior is linear in the knots and free of globals."""
+    A, B = AB
+    n = xp.shape[0]
+    return {}, A.expand(n, 12, 12), B.expand(n, 12, 12)

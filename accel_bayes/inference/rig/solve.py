@@ -1,0 +1,342 @@
+"""Fit the rig model (:mod:`.model`) to a recording with the package's structured LM, and its
+Laplace posterior with an identifiability check (:class:`RigResult`)."""
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.ndimage import gaussian_filter1d
+
+from ...data.validation import sample_present
+from ...errors import UserError
+from ...physics.geometry import boxminus, matrix_to_quat, quat_to_matrix
+from ..lm import ChainResidual, GlobalResidual, LevenbergMarquardt, Problem, Variable
+from ..lm.linear import NotPositiveDefinite
+from .initial import align_gyros, interp_rows
+from .model import (process_matrices, bucket_samples, measurement_jacobian, measurement_residual,
+                    process_jacobian, process_residual)
+
+__all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes"]
+
+#: per-parameter scales of "a confident number": a direction of the Laplace posterior whose std
+#: exceeds its scale (scaled Fisher information eigenvalue < 1) is reported unidentified
+IDENT_SCALE = {"q": math.radians(1.0), "r": 0.01, "o": 2e-3, "d": 1e-3, "bg": 0.1, "ba": 1.0}
+
+
+@dataclass(frozen=True)
+class RigSettings:
+    """Options of :func:`fit_rig`.
+
+    knot_spacing : s, or None: 2.5 / (sum of the IMUs' rates), clipped to [5, 10] ms, so that every
+        motion interval holds about 2.5 gyro samples of the rig.
+    orientation_prior_deg : std (°) of the nominal-orientation prior (IMUs whose nominal is not the
+        identity, which format v1 cannot tell from "not stated").
+    contradiction_sigma : a fitted orientation further than this many prior std from its nominal
+        draws a warning.
+    max_iter : LM step attempts per pass (a second pass, after re-bucketing the samples at the first
+        pass's clock estimates, runs only where some sample moved by more than h/4).
+    hessian : "exact" (default) or "gauss_newton" information for the Laplace posterior.  The
+        Gauss–Newton JᵀJ evaluates ∂r/∂o = R ω̇ at the *estimated* motion, whose noise adds to its
+        square (errors in variables): on concealed rigs it made the clock std 25–40 % too small;
+        the exact Hessian's local–global cross terms remove that (about as long as the fit itself).
+    lever_prior_std : m, std of the (effectively flat) lever-arm prior about the nominal positions.
+    prior_scale : multiplies the white-jerk intensities q_c estimated from the reference (> 1: weaker).
+    ftol : LM's relative cost-change stop (1e-8 of a cost of order the number of residuals is far
+        below the 0.5 that a 1-std move of one parameter makes).
+    """
+
+    knot_spacing: float | None = None
+    orientation_prior_deg: float = 5.0
+    contradiction_sigma: float = 3.0
+    max_iter: int = 40
+    ftol: float = 1e-8
+    prior_scale: float = 1.0
+    hessian: str = "exact"
+    lever_prior_std: float = 1.0
+
+
+@dataclass
+class RigResult:
+    """A rig posterior (Laplace at the MAP), per IMU in label order.
+
+    orientation (K, 4) quaternions (DESIGN §7.0); orientation_cov (K, 3, 3) rad², sensor frame;
+    position (K, 3) m, array frame, relative to the reference; position_cov (K, 3, 3) m²;
+    time_offset, time_offset_std (K,) s; clock_drift, clock_drift_std (K,) (NaN where the IMU has no
+    own stamps); gyro_bias, acc_bias (K, 3); own_stamps (K,) bool; unidentified: list of
+    (imu label, parameter name) pairs; warnings: one line each; converged, reason, n_iter,
+    chi2_per_dof, seconds.
+    """
+
+    reference_imu: int
+    orientation: np.ndarray
+    orientation_cov: np.ndarray
+    position: np.ndarray
+    position_cov: np.ndarray
+    time_offset: np.ndarray
+    time_offset_std: np.ndarray
+    clock_drift: np.ndarray
+    clock_drift_std: np.ndarray
+    gyro_bias: np.ndarray
+    acc_bias: np.ndarray
+    own_stamps: np.ndarray
+    unidentified: list
+    warnings: list
+    converged: bool
+    reason: str
+    n_iter: int
+    chi2_per_dof: float
+    seconds: float
+    info_eigs: np.ndarray = field(default=None, repr=False)
+    hessian: str = "exact"
+    lever_prior_std: float = 1.0
+
+
+def rig_samples(rec, ref: int):
+    """Per-IMU sample dicts in internal order (reference first), the order, t₀ and own-stamp flags.
+
+    Stamps are ``time`` plus ``imu_time_offset`` where given (the IMU's own clock); clipped or
+    flagged samples keep their slot with zero weight.
+    """
+    time = np.asarray(rec.time, dtype=float)
+    t0 = float(time[0])
+    K = rec.K
+    if rec.gyro is None or np.isnan(np.asarray(rec.gyro)).all(axis=(0, 2)).any():
+        raise UserError("gyro: the rig model needs a gyroscope on every IMU")
+    present = sample_present(rec)
+    order = [ref] + [k for k in range(K) if k != ref]
+    off = None if rec.imu_time_offset is None else np.asarray(rec.imu_time_offset, dtype=float)
+    out, own = [], np.zeros(K, bool)
+    for k in order:
+        rows = np.flatnonzero(present[:, k])
+        s = time[rows].copy()
+        if off is not None and np.isfinite(off[rows, k]).any():
+            s = s + np.nan_to_num(off[rows, k])
+            own[k] = True
+        if not np.array_equal(present[:, k], present[:, ref]):
+            own[k] = True
+        keep_a = np.ones(len(rows), bool)
+        keep_g = np.ones(len(rows), bool)
+        for name, keep in (("acc_clipped", keep_a), ("acc_flagged", keep_a), ("gyro_clipped", keep_g),
+                           ("gyro_flagged", keep_g)):
+            m = getattr(rec, name)
+            if m is not None:
+                keep &= ~np.asarray(m)[rows, k]
+        out.append({"ds": s - t0, "yg": np.asarray(rec.gyro)[rows, k], "ya": np.asarray(rec.acc)[rows, k],
+                    "wg": keep_g / float(np.asarray(rec.gyro_noise_std)[k]),
+                    "wa": keep_a / float(np.asarray(rec.acc_noise_std)[k])})
+    own[ref] = False
+    return out, order, t0, own
+
+
+def _initial_knots(smp0, R0, tau):
+    """[ω, ω̇, f, ḟ] at the knots from the reference IMU alone (interpolated, lightly smoothed)."""
+    h = tau[1] - tau[0]
+    w = interp_rows(tau, smp0["ds"], smp0["yg"]) @ R0
+    f = interp_rows(tau, smp0["ds"], smp0["ya"]) @ R0
+    ws, fs = gaussian_filter1d(w, 1.5, axis=0), gaussian_filter1d(f, 1.5, axis=0)
+    wd, fd = np.gradient(ws, h, axis=0), np.gradient(fs, h, axis=0)
+    wdd, fdd = np.gradient(gaussian_filter1d(wd, 1.5, axis=0), h, axis=0), np.gradient(
+        gaussian_filter1d(fd, 1.5, axis=0), h, axis=0)
+    # prior intensity: the mean squared ω̈ (f̈) over 1 s — a generous (weak) white-jerk prior
+    qc_w = max(float((wdd ** 2).mean()), 1e-6)
+    qc_f = max(float((fdd ** 2).mean()), 1e-6)
+    return np.concatenate((ws, wd, fs, fd), 1), qc_w, qc_f
+
+
+def unexcited_axes(smp0, R0, sigma_g: float, width_s: float = 0.02, factor: float = 100.0) -> list:
+    """Array-frame axes (unit 3-vectors) the rig never turns about: eigen-directions of the mean
+    ω ωᵀ of the reference gyro (Gaussian-smoothed over ``width_s``) below ``factor`` × the smoothed
+    noise variance σ_g²/(2√π·n), n the smoothing width in samples."""
+    dt = float(np.median(np.diff(smp0["ds"])))
+    n = max(width_s / dt, 1.0)
+    w = gaussian_filter1d(smp0["yg"] @ R0, n, axis=0)
+    lam, V = np.linalg.eigh(w.T @ w / len(w))
+    floor = sigma_g ** 2 / (2 * math.sqrt(math.pi) * n)
+    return [V[:, i] for i in range(3) if lam[i] < factor * floor]
+
+
+def blind_lever_axes(unexcited: list) -> list:
+    """Lever-arm directions no acc sees: with rotation about one axis only (two unexcited axes) the
+    lever arm along that axis; with no rotation, every direction; else none (ω in a plane still
+    sees r ⊥ the plane through −|ω|² r)."""
+    if len(unexcited) == 3:
+        return [np.eye(3)[i] for i in range(3)]
+    if len(unexcited) == 2:
+        return [np.cross(unexcited[0], unexcited[1])]
+    return []
+
+
+def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
+    """MAP and Laplace posterior of a rig's orientations, lever arms, clock offsets and drifts.
+
+    rec : a format-v1 :class:`~accel_bayes.data.recording.Recording` with gyros on every IMU
+    (≥ 2 IMUs; multi-rate NaN-union recordings as DESIGN §7.1).  Units: s, m, rad.
+    """
+    t_start = _time.perf_counter()
+    ref = int(rec.reference_imu)
+    K = rec.K
+    if K < 2:
+        raise UserError("acc: a rig needs at least 2 IMUs")
+    smp, order, t0, own_lab = rig_samples(rec, ref)
+    own = own_lab[order]
+    q_nom = np.asarray(rec.nominal_orientation, dtype=float)[order]
+    R0 = quat_to_matrix(torch.as_tensor(q_nom[0])).numpy()
+    rates = np.array([1.0 / np.median(np.diff(s["ds"])) for s in smp])
+    h = settings.knot_spacing or float(np.clip(2.5 / rates.sum(), 5e-3, 10e-3))
+
+    # starting values: gyro alignment against the reference (Kabsch + lag search)
+    R_init, o_init = [], [0.0]
+    w_ref_arr = smp[0]["yg"] @ R0   # reference readings in the array frame
+    for k in range(1, K):
+        Rk, ok = align_gyros(smp[0]["ds"], w_ref_arr, smp[k]["ds"], smp[k]["yg"])
+        R_init.append(Rk), o_init.append(ok)
+    o_init = np.asarray(o_init)
+    d_init = np.zeros(K)
+    lo = min(s["ds"].min() for s in smp) - 0.03
+    hi = max(s["ds"].max() for s in smp) + 0.03
+    n_knots = int(math.ceil((hi - lo) / h)) + 1
+    tau = lo + h * np.arange(n_knots)
+    x0, qc_w, qc_f = _initial_knots(smp[0], R0, tau)
+    AB = process_matrices(h, qc_w * settings.prior_scale, qc_f * settings.prior_scale)
+    R0t = torch.as_tensor(R0)
+
+    nom_pos = np.asarray(rec.nominal_position, dtype=float)[order]
+    tt = lambda a: torch.as_tensor(np.asarray(a, dtype=float))  # noqa: E731
+    q0 = matrix_to_quat(tt(np.stack(R_init)))
+    values = {"q": q0, "r": tt(nom_pos[1:] - nom_pos[0]), "o": tt(o_init[1:]), "d": tt(d_init[1:]),
+              "bg": torch.zeros(K - 1, 3, dtype=torch.float64), "ba": torch.zeros(K - 1, 3, dtype=torch.float64)}
+    fixed_d = torch.as_tensor(~own[1:])
+    # nominal orientations other than the identity are stated ones (format v1 writes identity when absent)
+    stated = ~np.all(np.isclose(q_nom[1:], [1.0, 0, 0, 0]) | np.isclose(q_nom[1:], [-1.0, 0, 0, 0]), axis=1)
+    sig_q = math.radians(settings.orientation_prior_deg)
+    qn_t = tt(q_nom[1:])
+    # a proper but effectively flat lever-arm prior (1 m std about the nominal): it changes nothing
+    # the data identify (stds of tens of µm) and keeps LM from wandering along an unexcited
+    # direction (the lever arm along the only rotation axis) to metres
+    r_nom = tt(nom_pos[1:] - nom_pos[0])
+    priors = [GlobalResidual(lambda g: ((g["r"] - r_nom) / settings.lever_prior_std).reshape(-1),
+                             jac=lambda g: {"r": torch.eye(3 * (K - 1), dtype=torch.float64) / settings.lever_prior_std},
+                             name="lever_arm_prior")]
+    if stated.any():
+        sel = torch.as_tensor(stated)
+        priors.append(GlobalResidual(lambda g: (boxminus(g["q"][sel], qn_t[sel]) / sig_q).reshape(-1),
+                                     name="orientation_prior"))
+
+    x = tt(x0)
+    log_all, res = [], None
+    o_used = d_used = None
+    for _ in range(2):
+        o_full = np.r_[0.0, values["o"].numpy()]
+        d_full = np.r_[0.0, values["d"].numpy()]
+        if o_used is not None:
+            span = max(float(s["ds"].max()) for s in smp)
+            moved = np.abs(o_full - o_used) + span * np.abs(d_full - d_used)
+            if moved.max() < h / 4:  # every sample still in (or a cubic's short reach from) its interval
+                break
+        o_used, d_used = o_full, d_full
+        data = bucket_samples(smp, o_full, d_full, lo, h, n_knots)
+        meas = ChainResidual(lambda g, xp, xn, dd: measurement_residual(g, xp, xn, dd, R0t), data=data,
+                             jac=lambda g, xp, xn, dd: measurement_jacobian(g, xp, xn, dd, R0t), name="rig")
+        proc = ChainResidual(lambda g, xp, xn, dd: process_residual(xp, xn, dd), data=AB,
+                             jac=lambda g, xp, xn, dd: process_jacobian(xp, dd), name="motion_prior")
+        prob = Problem({"q": Variable(values["q"], "quaternion"), "r": Variable(values["r"]),
+                        "o": Variable(values["o"]), "d": Variable(values["d"], fixed=fixed_d),
+                        "bg": Variable(values["bg"]), "ba": Variable(values["ba"])},
+                       x, [meas, proc] + priors)
+        res = LevenbergMarquardt(max_iter=settings.max_iter, ftol=settings.ftol, xtol=1e-12, gtol=1e-9).solve(prob)
+        values, x = res.values, res.locals
+        log_all += res.log
+
+    # Laplace posterior of the free globals (knots marginalised by the Schur complement)
+    labels = res.free_labels()
+    scale = np.array([IDENT_SCALE[name] for name, _ in labels])
+    hess_used = settings.hessian
+    try:
+        S = res.information(settings.hessian).numpy()
+        indefinite = np.linalg.eigvalsh(S * scale[:, None] * scale[None, :]).min() < 0
+    except NotPositiveDefinite:
+        indefinite = True
+    if indefinite:
+        # not at a minimum (LM stopped on a ridge along an unexcited direction): the PSD
+        # Gauss–Newton information; its errors-in-variables optimism is why the excitation rule
+        # below checks the lever arm independently
+        S = res.information("gauss_newton").numpy()
+        hess_used = "gauss_newton (exact Hessian indefinite)"
+    # Directions whose std would exceed IDENT_SCALE (scaled eigenvalue < 1, negative included: at
+    # an unexcited direction LM stops on a ridge, not at a minimum) are unidentified.  The
+    # covariance is the inverse on the identified subspace (conditional on the unidentified
+    # directions), and the parameters that load on an unidentified direction get NaN (no number).
+    Ss = S * scale[:, None] * scale[None, :]
+    lam, V = np.linalg.eigh(0.5 * (Ss + Ss.T))
+    ok = lam >= 1.0
+    cov = (V[:, ok] / lam[ok]) @ V[:, ok].T * scale[:, None] * scale[None, :]
+    unident = set()
+    flagged = np.zeros(len(labels), bool)
+    for i in np.flatnonzero(~ok):
+        for j in np.flatnonzero(np.abs(V[:, i]) > 0.3):
+            flagged[j] = True
+            name, idx = labels[j]
+            unident.add((order[idx[0] + 1], name))
+    # the lever arm along an axis the board never turns about is seen by nothing (ω̇×r and
+    # ω×(ω×r) vanish for r ∥ ω), whatever a noise-fitted motion suggests to the information matrix
+    for axis in blind_lever_axes(unexcited_axes(smp[0], R0, float(np.asarray(rec.gyro_noise_std)[ref]))):
+        for j, (name, idx) in enumerate(labels):
+            if name == "r" and abs(axis[idx[1]]) > 0.3:
+                flagged[j] = True
+                unident.add((order[idx[0] + 1], "r"))
+    cov[flagged, :] = np.nan
+    cov[:, flagged] = np.nan
+
+    n_res = int((data.wg > 0).sum() * 3 + (data.wa > 0).sum() * 3)
+    r_meas = measurement_residual(values, x[:-1], x[1:], data, R0t)
+    chi2 = float((r_meas ** 2).sum()) / max(n_res - len(labels), 1)
+
+    # back to label order, covariances per block
+    pos_idx = {lab: i for i, lab in enumerate(labels)}
+
+    def block(name, k_int, n):
+        ii = [pos_idx.get((name, (k_int - 1,) + ((c,) if n > 1 else ()))) for c in range(n)]
+        C = np.zeros((n, n))
+        for a, ia in enumerate(ii):
+            for b, ib in enumerate(ii):
+                if ia is not None and ib is not None:
+                    C[a, b] = cov[ia, ib]
+        return C
+
+    ori = np.zeros((K, 4)); ori_cov = np.zeros((K, 3, 3)); pos = np.zeros((K, 3)); pos_cov = np.zeros((K, 3, 3))
+    to = np.zeros(K); to_s = np.zeros(K); dr = np.full(K, np.nan); dr_s = np.full(K, np.nan)
+    bgo = np.zeros((K, 3)); bao = np.zeros((K, 3))
+    ori[ref] = q_nom[0]
+    dr[ref], dr_s[ref] = 0.0, 0.0
+    qv = values["q"].numpy()
+    warnings = []
+    for ki in range(1, K):
+        lab = order[ki]
+        ori[lab] = qv[ki - 1] * np.sign(qv[ki - 1][0] or 1.0)
+        Rk = quat_to_matrix(values["q"][ki - 1]).numpy()
+        # tangent δ acts in the array frame (R Exp(δ)); the contract reports the sensor frame (R δ)
+        ori_cov[lab] = Rk @ block("q", ki, 3) @ Rk.T
+        pos[lab] = values["r"][ki - 1].numpy()
+        pos_cov[lab] = block("r", ki, 3)
+        to[lab] = float(values["o"][ki - 1]); to_s[lab] = math.sqrt(max(block("o", ki, 1)[0, 0], 0.0))
+        if own[ki]:
+            dr[lab] = float(values["d"][ki - 1]); dr_s[lab] = math.sqrt(max(block("d", ki, 1)[0, 0], 0.0))
+        bgo[lab] = values["bg"][ki - 1].numpy(); bao[lab] = values["ba"][ki - 1].numpy()
+        if stated[ki - 1]:
+            ang = float(boxminus(values["q"][ki - 1], qn_t[ki - 1]).norm())
+            if ang > settings.contradiction_sigma * sig_q:
+                warnings.append(f"nominal_orientation: IMU {lab} is {math.degrees(ang):.1f}° from its nominal "
+                                f"orientation (> {settings.contradiction_sigma:g} × {settings.orientation_prior_deg:g}° "
+                                "prior std); the data contradict it")
+    return RigResult(reference_imu=ref, orientation=ori, orientation_cov=ori_cov, position=pos, position_cov=pos_cov,
+                     time_offset=to, time_offset_std=to_s, clock_drift=dr, clock_drift_std=dr_s, gyro_bias=bgo,
+                     acc_bias=bao, own_stamps=own_lab, unidentified=sorted(unident), warnings=warnings,
+                     converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
+                     seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used)
+
+
+def time_elapsed(t_start: float) -> float:
+    return float(_time.perf_counter() - t_start)
