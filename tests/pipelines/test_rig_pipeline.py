@@ -2,23 +2,19 @@
 ``calibrate`` dispatch to the rig model, recovery on a short concealed rig, and the
 ``unidentified`` path of an under-excited rig."""
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+from experiments.clockgen import draw_case, write_case
 
-from clockgen import draw_case, write_case  # noqa: E402
-
-from accel_bayes.cli import main  # noqa: E402
-from accel_bayes.data import io  # noqa: E402
-from accel_bayes.data.validation import validate_recording  # noqa: E402
-from accel_bayes.errors import RecordingError  # noqa: E402
-from accel_bayes.physics.geometry import matrix_to_quat, quat_exp, quat_log, quat_mul, quat_to_matrix  # noqa: E402
-from accel_bayes.pipelines.rig import is_rig  # noqa: E402
+from accel_bayes.cli import main
+from accel_bayes.data import io
+from accel_bayes.data.validation import validate_recording
+from accel_bayes.errors import RecordingError
+from accel_bayes.physics.geometry import matrix_to_quat, quat_exp, quat_log, quat_mul, quat_to_matrix
+from accel_bayes.pipelines.rig import is_rig
 
 
 @pytest.fixture(scope="module")
