@@ -37,7 +37,7 @@ temperature) reads as a random walk: on MIMU4444 experiment 1 (20 rests, 460 s, 
 28 s) the first condition alone accepts apparent random walks of ≈ 1e-3 m/s³/√Hz
 (accelerometers) and 1e-4–2e-4 rad/s²/√Hz (two gyros) with τ̂_c of 2.5–11 s; the second
 refuses them all (at 10 τ̂_c one gyro's would still pass).  The criterion is checked on
-simulated series with a known K in ``tests/prep/test_allan.py`` and
+simulated series with a known K in ``tests/data/test_allan.py`` and
 ``experiments/allan_criterion.md`` (RMS z 1.1–1.25 where the rests are long enough).
 """
 from __future__ import annotations

@@ -286,7 +286,7 @@ def test_random_walk_from_long_rests(tmp_path):
         e = d[f"imu{j}"]
         for word, truth in (("accelerometer", K_A), ("gyroscope", K_G)):
             est, se = e[f"{word}_random_walk"], e[f"{word}_random_walk_std"]
-            assert abs(est - truth) < 4 * se and se < 0.25 * est  # 4 se: tests/prep/test_allan.py measures the calibration
+            assert abs(est - truth) < 4 * se and se < 0.25 * est  # 4 se: tests/data/test_allan.py measures the calibration
     assert "rests, Allan deviation: 300 s static" in out.read_text()
 
 
