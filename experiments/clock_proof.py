@@ -6,8 +6,10 @@ Cases (experiments/clockgen, ``draw_case``; nothing about the truth reaches the 
 seed, real-size linear gyro errors on even seeds), their synchronised ``twin`` (same seed), and
 ``clean`` seeds 1000… .  Each case lasts ``--duration`` s.
 
-Detector: :func:`accel_bayes.mismatch.detect` with its defaults except ``max_findings=0`` and
-``refine=False`` (time: the rounds cost ~90 s a case on the shared machine).  The clock stage
+Detector: :func:`accel_bayes.mismatch.detect` with its defaults except ``max_findings=0``,
+``refine=False`` and ``n_twins=5`` (time: the rounds cost ~90 s a case on the shared machine; the
+twins are the located-excess check's posterior predictive replicas, run before and apart from the
+clock stage).  The clock stage
 (step 3b) runs before the rounds and nothing after it changes its findings (the drop-one loop and
 the refined model concern the rounds' findings only), so its ``sampling_clock`` findings are the
 ones the defaults give — ``tests/test_clock_detect.py`` checks that on one case.
@@ -56,7 +58,7 @@ def run_case(kind, seed, duration):
         return json.loads(path.read_text())
     rec, truth = draw_case(kind, seed, duration=duration)
     t0 = time.perf_counter()
-    rep = detect(rec, max_findings=0, refine=False)
+    rep = detect(rec, max_findings=0, refine=False, n_twins=5)
     secs = time.perf_counter() - t0
     t = rep.prep.time.numpy()
     t_mid = 0.5 * float(t[0] + t[-1])
@@ -98,8 +100,8 @@ def summary(results, cmd):
     L = [f"# clock_proof — the detector's sampling_clock on concealed clockgen cases", "",
          f"Regenerate: `{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
          f"{platform.system()}, shared 2-core CPU; per-case results cached in `experiments/results/clock_proof/`).",
-         "Detector defaults except max_findings=0 and refine=False (the clock stage's findings do not depend on "
-         "either; see the script's docstring).", "",
+         "Detector defaults except max_findings=0, refine=False, n_twins=5 (the clock stage's findings depend on "
+         "none of them; see the script's docstring).", "",
          f"Cases: {len(clock)} clock ({len({r['board'] for r in clock})} boards, read rates "
          f"{sorted({r['f_host'] for r in clock})} Hz, {sum(r['gyro_linear'] for r in clock)} with linear gyro errors), "
          f"{len(twins)} synchronised twins, {len(clean)} clean; {clock[0]['duration'] if clock else '?'} s each.", "",
@@ -140,9 +142,9 @@ def summary(results, cmd):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--n-clock", type=int, default=32)
+    ap.add_argument("--n-clock", type=int, default=30)
     ap.add_argument("--n-clean", type=int, default=10)
-    ap.add_argument("--duration", type=float, default=30.0)
+    ap.add_argument("--duration", type=float, default=20.0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--summary", action="store_true")
     a = ap.parse_args(argv)

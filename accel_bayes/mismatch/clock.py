@@ -11,7 +11,9 @@ output is the motion δ later) adds a_t δ_t to b_t, so the clock's data age, δ
     b_t ≈ −a_t·age_t + n_t,   n_t ~ N(0, a_t)   (Var b = a under the null, exactly).
 
 Search.  age_t = W·frac(φ + βt + ½dt²) + const.  The sawtooth's fundamental carries the phase:
-−W·frac(x) = const + (W/π)·Σ_m sin(2πmx)/m, so Σ_t b_t e^(−2πi(βt + ½dt²)) peaks at the beat.
+−W·frac(x) = const + (W/π)·Σ_m sin(2πmx)/m, so Σ_t b_t e^(−2πim(βt + ½dt²)) peaks at the beat for
+every harmonic m; the search ranks β by Σ_{m≤3} |F_m|²/m (a residual at the motion's own frequencies
+has no such harmonics, and on boards with linear gyro errors it outranks the fundamental alone).
 The kept samples go onto the uniform grid of the read rate (zeros where the selection dropped
 one), are de-chirped for each drift on a grid (step 1/(2D²), D the span), zero-padded ×4 and
 FFT'd: every β in (−f_read/2, f_read/2].  The real input makes ±β peak alike; the sawtooth's
@@ -47,7 +49,7 @@ from .model import ModelFit
 from .prepared import Prepared
 from .wander import fit_wander, sample_steps
 
-__all__ = ["ClockStage", "estimate_clock", "clock_stage", "data_age", "clock_corrected", "NOMINAL_INTERNAL_RATE_HZ"]
+__all__ = ["ClockStage", "estimate_clock", "clock_stage", "clock_ages", "data_age", "clock_corrected", "NOMINAL_INTERNAL_RATE_HZ"]
 
 #: the internal sampling rate of an MPU-6050/9150 with its low-pass on (Hz): reports f_k from the beat
 NOMINAL_INTERNAL_RATE_HZ = 1000.0
@@ -55,6 +57,7 @@ NOMINAL_INTERNAL_RATE_HZ = 1000.0
 MAX_DRIFT_HZ_PER_S = 0.008
 _PAD = 4           # zero padding of the FFT (frequency step f_read/(4N))
 _N_PEAKS = 8       # peaks of the periodogram tried in the exact model
+_HARMONICS = 3     # sawtooth harmonics summed in the search
 #: fewest sawtooth cycles over the recording's span for a clock (fewer: indistinguishable from a wander)
 MIN_CYCLES = 5.0
 #: the sawtooth width W (s) a clock may have: 1/f_k ≈ 1 ms, larger where the fitted output rates
@@ -123,10 +126,15 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
     freqs = np.fft.fftfreq(L, 1.0 / f_read)
     tt = t - t0
     peaks = []
+    idx = np.arange(L)
     for d in drifts:
-        z = np.zeros(L, complex)
-        z[n] = b * np.exp(-1j * math.pi * d * tt ** 2)
-        P = np.abs(np.fft.fft(z)) ** 2
+        # harmonic m of the sawtooth sits at m·β with chirp m·d, amplitude 1/m: ranking by
+        # Σ_m |F_m(mβ)|²/m, a slow motion-frequency residual (one line, no harmonics) ranks lower
+        P = np.zeros(L)
+        for mh in range(1, _HARMONICS + 1):
+            z = np.zeros(L, complex)
+            z[n] = b * np.exp(-1j * math.pi * mh * d * tt ** 2)
+            P += np.abs(np.fft.fft(z))[(mh * idx) % L] ** 2 / mh
         # under MIN_CYCLES over the span a sawtooth is a slow wander, not a clock
         P[np.abs(freqs) < MIN_CYCLES / D] = 0.0
         top = np.argpartition(P, -_N_PEAKS)[-_N_PEAKS:]
@@ -174,6 +182,27 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
             "const_s": c, "gain": gain, "mean": m, "cells": int(N * len(drifts))}
 
 
+def _gls_mean(a, b, steps, s_t, wander: dict) -> tuple[np.ndarray, float, float]:
+    """δ_t = const − W·s_t with (const, W) by GLS under the AR(1) instant error + white noise of
+    ``wander`` (σ, ρ, c; :func:`accel_bayes.mismatch.wander.fit_wander`): with M = diag(a)/c² and
+    P = Σ⁻¹ + M (tridiagonal), the weight matrix is M − M P⁻¹ M (Woodbury), and its product with
+    δ_LS = b/a is b/c² − M P⁻¹ b/c² (no division by a).  Returns (δ (T,) s, W s, const s)."""
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    from .wander import ar1_precision_bands
+
+    c2 = wander["c"] ** 2
+    P, _ = ar1_precision_bands(len(a), steps, wander["sigma"], wander["rho"])
+    P[1] += a / c2
+    cP = cholesky_banded(P, lower=False)
+    X = np.stack([np.ones_like(s_t), -s_t], 1)
+    MX = X * (a / c2)[:, None]
+    KX = MX - (a / c2)[:, None] * cho_solve_banded((cP, False), MX)
+    Kd = b / c2 - (a / c2) * cho_solve_banded((cP, False), b / c2)
+    theta = np.linalg.solve(X.T @ KX, X.T @ Kd)
+    return X @ theta, float(theta[1]), float(theta[0])
+
+
 def data_age(clocks, time, K: int) -> torch.Tensor:
     """(T, K) the data age (s) of every IMU at the read times ``time`` (s) from its
     :class:`SamplingClock` (0 on IMUs without one).  ``clocks``: SamplingClock effects (a
@@ -219,11 +248,16 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
         a, b = a_t.numpy(), b_t.numpy()
         est = estimate_clock(t, a, b, f_read)
         mean = est.pop("mean")
+        w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
+        if w0["sigma"] > 0:
+            # the sawtooth's width and offset again by GLS under the wander's covariance: fitted
+            # under white noise they would claim what the wander explains and lose against it
+            s_t = _frac(est["phase"] + est["beat_hz"] * t + 0.5 * est["drift_hz_per_s"] * t * t)
+            mean, est["width_s"], est["const_s"] = _gls_mean(a, b, steps, s_t, w0)
         # the clock's mean timing taken off: b' = b − a m, Σ r̃'² = Σ r̃² − 2Σbm + Σam²
         b2 = b - a * mean
         rr2 = max(rr - 2 * float(b @ mean) + float(a @ (mean * mean)), 1e-12)
         g_none, g_clock = _white_loglik(rr, n_obs), _white_loglik(rr2, n_obs)
-        w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
         w1 = fit_wander(a, b2, steps, sigma_max=dt, rr=rr2, n=n_obs)
         est.update({"imu": k, "evidence": 2 * (g_clock - g_none),
                     "evidence_vs_wander": 2 * ((g_clock + w1["gain"]) - (g_none + w0["gain"])),
@@ -253,3 +287,11 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
     fit_c = fit_model(prep_c, [e.copy() for e in fit.effects], init=fit, laplace=False)
     info["evidence_refit"] = 2.0 * (fit_c.loglik - fit.loglik)
     return ClockStage(clocks, fits, prep_c, fit_c, thr, info)
+
+
+def clock_ages(prep: Prepared, fit: ModelFit, *, alpha: float = 0.01, threshold: float = 0.0) -> tuple[torch.Tensor, ClockStage]:
+    """(ages (T, K) s, the :class:`ClockStage`): every IMU's data age at ``prep``'s sample times from
+    the clocks :func:`clock_stage` accepts at ``fit`` (0 on IMUs without one).  ``threshold`` adds a
+    floor to the stage's own look-elsewhere threshold (the detector passes its Bonferroni one)."""
+    st = clock_stage(prep, fit, m=1, alpha=alpha, threshold=threshold)
+    return data_age(st.clocks, prep.time, prep.K), st
