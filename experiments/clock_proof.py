@@ -151,8 +151,12 @@ def main(argv=None):
     from accel_bayes.data.outputs import write_text
 
     OUT.mkdir(parents=True, exist_ok=True)
-    cases = ([("clock", s) for s in range(a.n_clock)] + [("twin", s) for s in range(a.n_clock)]
-             + [("clean", 1000 + s) for s in range(a.n_clean)])
+    # interleaved (a case, its twin, every few seeds a clean one) so that a partial run is balanced
+    every = max(a.n_clock // max(a.n_clean, 1), 1)
+    cases, clean = [], [("clean", 1000 + s) for s in range(a.n_clean)]
+    for s in range(a.n_clock):
+        cases += [("clock", s), ("twin", s)] + ([clean.pop(0)] if s % every == 0 and clean else [])
+    cases += clean
     if a.summary:
         results = [json.loads((OUT / f"{k}-{s:03d}.json").read_text()) for k, s in cases
                    if (OUT / f"{k}-{s:03d}.json").exists()]

@@ -31,6 +31,16 @@ Procedure
    rest in the residual, where a random timing effect explains them better (1/21 concealed
    multi-effect cases named right before this stage, experiments/mismatch_multi.md).  Skipped
    when ``effects`` does not name ``gyro_linear`` (the default names every effect).
+3b. **Clock stage** (:mod:`accel_bayes.mismatch.clock`): on every IMU with a gyroscope, a
+   ``sampling_clock`` (:class:`~accel_bayes.physics.effects.SamplingClock`: the data age a sawtooth
+   beating against the read rate, shared by the IMU's acc and gyro) found by a beat-frequency search
+   on the gyro's restricted timing statistics (those ``timing_wander`` is fitted on), accepted where
+   its evidence against no clock *and* against the best AR(1) instant error (``timing_wander``; its
+   ρ = 0 end is white jitter) both exceed the stage threshold (the threshold below, or the χ²₄
+   look-elsewhere quantile over the (beat, drift) cells searched if larger) and its width is
+   physical.  The recording is corrected for the accepted clocks, which are held fixed from here
+   on like the gyro blocks; one finding per IMU, not counted by ``max_findings``.  Skipped when
+   ``effects`` does not name ``sampling_clock``.
 4. **Screen** (cheap, all candidates, at the current fit):
 
    * mean effects — the score (Lagrange-multiplier) test: u = ∂logL/∂η at η = 0 and the
