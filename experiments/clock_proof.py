@@ -12,7 +12,7 @@ twins are the located-excess check's posterior predictive replicas, run before a
 clock stage).  The clock stage
 (step 3b) runs before the rounds and nothing after it changes its findings (the drop-one loop and
 the refined model concern the rounds' findings only), so its ``sampling_clock`` findings are the
-ones the defaults give — ``tests/test_clock_detect.py`` checks that on one case.
+ones the defaults give (``tests/test_clock.py::test_rounds_do_not_change_the_clock_findings``, marked slow).
 
 Scored per IMU: found (a ``sampling_clock`` finding on it), beat error |β̂(t_m) − β(t_m)| at the
 recording's middle t_m (β(t_m) from the truth clock: rate f_int(1 + ε + a·sin(2πt_m/P + ψ)), the

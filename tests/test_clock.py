@@ -101,3 +101,12 @@ def test_report_parameters_and_units(reports):
     # the internal rate is the read rate's nearest multiple of 1 kHz plus the beat
     assert p["internal_rate_hz"] == pytest.approx(1000.0 + p["beat_hz"])
     assert 0.2e-3 < p["age_rms_s"] < 1.2e-3
+
+
+@pytest.mark.slow
+def test_rounds_do_not_change_the_clock_findings(clock_case, reports):
+    """clock_proof runs detect with max_findings=0: the defaults must give the same clocks."""
+    full = detect(clock_case[0]).to_dict()
+    pick = lambda d: sorted((f["imu"], f["parameters"]["beat_hz"], f["parameters"]["phase"])  # noqa: E731
+                            for f in d["findings"] if f["effect"] == "sampling_clock")
+    assert pick(full) == pick(reports["clock"]) and pick(full)
