@@ -31,6 +31,16 @@ Procedure
    rest in the residual, where a random timing effect explains them better (1/21 concealed
    multi-effect cases named right before this stage, experiments/mismatch_multi.md).  Skipped
    when ``effects`` does not name ``gyro_linear`` (the default names every effect).
+3b. **Clock stage** (:mod:`accel_bayes.mismatch.clock`): on every IMU with a gyroscope, a
+   ``sampling_clock`` (:class:`~accel_bayes.physics.effects.SamplingClock`: the data age a sawtooth
+   beating against the read rate, shared by the IMU's acc and gyro) found by a beat-frequency search
+   on the gyro's restricted timing statistics (those ``timing_wander`` is fitted on), accepted where
+   its evidence against no clock *and* against the best AR(1) instant error (``timing_wander``; its
+   ρ = 0 end is white jitter) both exceed the stage threshold (the threshold below, or the χ²₄
+   look-elsewhere quantile over the (beat, drift) cells searched if larger) and its width is
+   physical.  The recording is corrected for the accepted clocks, which are held fixed from here
+   on like the gyro blocks; one finding per IMU, not counted by ``max_findings``.  Skipped when
+   ``effects`` does not name ``sampling_clock``.
 4. **Screen** (cheap, all candidates, at the current fit):
 
    * mean effects — the score (Lagrange-multiplier) test: u = ∂logL/∂η at η = 0 and the
@@ -146,6 +156,7 @@ from .budget import group_power, residual_budget
 from .compare import compare_fits, posterior_comparison
 from .fit import _effect_std, baseline_fit, fit_model
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
+from .clock import clock_corrected, clock_stage
 from .jitter import jitter_evidence
 from .model import ModelFit, project_off_states
 from .prepared import Prepared, prepare
@@ -675,6 +686,19 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
         prep0, prep, current = prep, stage.prep, stage.fit
         say(f"gyro linear stage: {stage.info['result']}")
     timings["gyro_linear_s"] = _time.perf_counter() - t0
+    t0 = _time.perf_counter()
+    clock = None
+    if (names is None or "sampling_clock" in names) and prep.gyro_rate is not None:
+        # step 3b: every IMU's sampling clock, held fixed from here on like the gyro blocks (not a
+        # round candidate, so not capped by max_findings: accel_bayes.mismatch.clock)
+        clock = clock_stage(prep, current, m=m, alpha=alpha, threshold=threshold)
+        if clock.clocks:
+            if stage is not None:  # the blocks' refresh re-corrects prep0: it must carry the clocks too
+                prep0 = clock_corrected(prep0, current, clock.clocks)
+                stage.prep, stage.fit = clock.prep, clock.fit
+            prep, current = clock.prep, clock.fit
+        say(f"clock stage: sampling_clock on IMUs {clock.info['accepted']}")
+    timings["clock_s"] = _time.perf_counter() - t0
     blocked = {e.imu for e in stage.blocks} if stage is not None else set()
     last_screens: list[Screen] = []
     for rnd in range(int(max_findings)):
@@ -843,6 +867,15 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
                                        **({"instants_s": {"mean": eff.stats["instant_mean_s"],
                                                           "rms": eff.stats["instant_rms_s"]}}
                                           if "instant_mean_s" in eff.stats else {})}))
+    for c in (clock.clocks if clock is not None else []):  # the clock stage's (held fixed like the blocks)
+        ev = float(c.stats["evidence"])
+        findings.append(Finding(effect=c, evidence=ev, df=c.df, log10_p=_log10_sf(ev, 4),
+                                where={"regime": "all regimes", "time_s": None}, explanation=c.explain(),
+                                screen_statistic=None, orientations=prep.q,
+                                extra={"evidence_kind": "2·Δlog L of the gyro's restricted timing statistics, "
+                                                        "white-noise factor profiled (mismatch.clock)",
+                                       "evidence_vs_wander": float(c.stats["evidence_vs_wander"]),
+                                       "units": {p.name: p.unit for p in c.parameters}}))
     fixed = list(stage.blocks) if stage is not None else []
     for e in fixed:  # the gyro linear stage's blocks (held fixed in every fit above)
         ev = float(e.stats["statistic_robust"])
@@ -901,7 +934,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
     comparison = None
     post = None
     t0 = _time.perf_counter()
-    if refine and (accepted or fixed):
+    if refine and (accepted or fixed or (clock is not None and clock.clocks)):
         refined = current
         comparison = compare_fits(base, refined, draws=loo_draws, seed=seed)
         say(f"refined: χ²/dof {base.chi2_per_dof:.4g} → {refined.chi2_per_dof:.4g}")
@@ -929,5 +962,7 @@ def detect(recording, *, effects=None, alpha: float = 0.01, max_findings: int = 
                         "preparation": prep.preparation,
                         "sample_rate_hz": rec.sample_rate},
         prep=prep, characterisation=characterisation,
-        gyro_linear=None if stage is None else stage.info, fixed_effects=fixed,
+        gyro_linear=None if stage is None else stage.info,
+        fixed_effects=fixed + (list(clock.clocks) if clock is not None else []),
+        clock=None if clock is None else clock.info,
     )

@@ -131,6 +131,7 @@ class MismatchReport:
     budget: list = field(default_factory=list)
     gyro_linear: dict | None = None  # the detector's gyro linear stage (step 3a): tests, blocks kept
     fixed_effects: list = field(default_factory=list)  # its blocks: in the refined model, not in refined_fit.effects
+    clock: dict | None = None  # the detector's clock stage (step 3b): every IMU's beat search, the clocks kept
 
     # ---------------------------------------------------------------- contract blocks
     @property
@@ -195,6 +196,7 @@ class MismatchReport:
             "comparison": self.comparison,
             "posterior": self.posterior,
             "gyro_linear_stage": self.gyro_linear,
+            "clock_stage": self.clock,
             "rounds": self.rounds,
             "withdrawn": self.withdrawn,
             "screen_top_last_round": self.screens,

@@ -50,7 +50,7 @@ def test_vocabulary_and_parameters():
     assert VOCABULARY == ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
                           "triad_orientation", "gyro_bias", "gyro_scale", "gyro_g_sensitivity",
                           "gyro_nonlinearity", "time_offset",
-                          "saturation", "noise_level", "unexplained", "sampling_jitter")
+                          "saturation", "noise_level", "unexplained", "sampling_jitter", "sampling_clock")
     assert EFFECTS["gyro_misalignment"].vocabulary_name == "gyro_scale"
     e = make_effect("gyro_scale", imu=2, axis="z", parameters={"scale": 0.01, "from_axis": "x"})
     assert e.name == "gyro_misalignment" and e.vocabulary_parameters() == {"scale": 0.01, "from_axis": "x"}
@@ -89,7 +89,7 @@ def test_vocabulary_and_parameters():
         make_effect("acc_bias", imu=1, axis="x", parameters={"offset": 1.0})
 
 
-@pytest.mark.parametrize("name", [n for n in VOCABULARY if EFFECTS[n].kind == "mean" and n != "time_offset"])
+@pytest.mark.parametrize("name", [n for n in VOCABULARY if EFFECTS[n].kind == "mean" and not EFFECTS[n].needs_rates])
 def test_zero_at_null_and_local_to_its_imu(setup, name):
     arr, tr, pos, q, ctx = setup
     kw = {"imu": 5}

@@ -23,6 +23,8 @@ time_offset            one IMU sampled late relative to the others           yes
 saturation             samples clipped at (an unstated) sensor range         optional    optional
 noise_level            noise larger than stated                              optional    no
 sampling_jitter        samples taken at random instants (free-running clock)  yes         no
+sampling_clock         own free-running clock read asynchronously: data age   yes         no
+                       a sawtooth (vocab. 1.2; estimated by mismatch.clock)
 unexplained            a located mismatch no candidate explains (finding     –           –
                        kind only, no signal model)
 =====================  ====================================================  ==========  =========
@@ -111,6 +113,7 @@ from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity, 
 from .timing import GyroDelay, TimeOffset, sample_times
 from .output import Saturation, NoiseLevel, Unexplained
 from .jitter import SamplingJitter, TimingWander, jittered_times, log_marginal_gain
+from .clock import SamplingClock, clock_age
 
 VOCABULARY = tuple(n for n, c in EFFECTS.items()
                    if c.vocabulary_name is None and c.in_vocabulary)  # DESIGN §7.2 table order
@@ -154,6 +157,8 @@ __all__ = [
     "EXTENSIONS",
     "GyroDelay",
     "TimingWander",
+    "SamplingClock",
+    "clock_age",
     "register_effect",
     "get_effect",
     "make_effect",

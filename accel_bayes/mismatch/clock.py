@@ -1,0 +1,297 @@
+"""The detector's clock stage: a ``sampling_clock`` (:class:`~accel_bayes.physics.effects.SamplingClock`)
+estimated on every IMU with a gyroscope, compared with the random timing explanations, and held
+fixed in the rounds (:mod:`accel_bayes.mismatch.detect`, step 3b).
+
+Data.  Per IMU k and sample t the gyro triad's restricted timing statistics of
+:func:`accel_bayes.mismatch.jitter.jitter_ab` (the machinery ``timing_wander`` is fitted on):
+a_t = ṽᵀPṽ (s⁻²) and b_t = ṽᵀP r̃ (s⁻¹), ṽ the whitened gyro output rate, P the projection off
+the per-sample motion states, r̃ the whitened residual.  A timing error δ_t (s, positive = the
+output is the motion δ later) adds a_t δ_t to b_t, so the clock's data age, δ_t = −age_t, gives
+
+    b_t ≈ −a_t·age_t + n_t,   n_t ~ N(0, a_t)   (Var b = a under the null, exactly).
+
+Search.  age_t = W·frac(φ + βt + ½dt²) + const.  The sawtooth's fundamental carries the phase:
+−W·frac(x) = const + (W/π)·Σ_m sin(2πmx)/m, so Σ_t b_t e^(−2πim(βt + ½dt²)) peaks at the beat for
+every harmonic m; the search ranks β by Σ_{m≤3} |F_m|²/m (a residual at the motion's own frequencies
+has no such harmonics, and on boards with linear gyro errors it outranks the fundamental alone).
+The kept samples go onto the uniform grid of the read rate (zeros where the selection dropped
+one), are de-chirped for each drift on a grid (step 1/(2D²), D the span), zero-padded ×4 and
+FFT'd: every β in (−f_read/2, f_read/2].  The real input makes ±β peak alike; the sawtooth's
+shape (slow ramp, fast jump) tells them apart, so the best few peaks are tried with both signs in
+the exact sawtooth model (W and the constant profiled by weighted least squares, weights a_t), then
+(φ, β, d) refined by Nelder–Mead on that profile; the best fit with W > 0 is the estimate.
+
+Evidence (nats ×2; the triad's white-noise factor c profiled throughout, so a clock never earns
+what a larger noise would):
+
+* ``evidence`` = 2·(log L(clock) − log L(no clock));
+* ``evidence_vs_wander`` = 2·(log L(clock + best AR(1) instant error) − log L(best AR(1) instant
+  error)): what the deterministic sawtooth explains that the random timing effects cannot
+  (``timing_wander`` is the AR(1) instant error; its ρ = 0 end is white jitter, the Gaussian form
+  of ``sampling_jitter``).  :func:`accel_bayes.mismatch.wander.fit_wander` gives both fits.
+
+An IMU's clock is accepted when its sawtooth width W is physical (:data:`WIDTH_RANGE_S`: a 1 kHz
+tick is 1 ms) and both evidences exceed the stage threshold: the detector's threshold, or, if
+larger, the χ²₄ quantile at 1 − α/(K·cells), cells = the independent (β, d) cells searched — the
+search looks at every frequency, and the largest of many noise peaks is not χ²-distributed.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import torch
+
+from ..physics.effects import SamplingClock
+from .jitter import jitter_ab
+from .model import ModelFit
+from .prepared import Prepared
+from .wander import fit_wander, sample_steps
+
+__all__ = ["ClockStage", "estimate_clock", "clock_stage", "clock_ages", "data_age", "clock_corrected", "NOMINAL_INTERNAL_RATE_HZ"]
+
+#: the internal sampling rate of an MPU-6050/9150 with its low-pass on (Hz): reports f_k from the beat
+NOMINAL_INTERNAL_RATE_HZ = 1000.0
+#: the largest |beat drift| searched (Hz/s): a temperature drift of ±1e-4 of 1 kHz over ≥ 100 s periods
+MAX_DRIFT_HZ_PER_S = 0.008
+_PAD = 4           # zero padding of the FFT (frequency step f_read/(4N))
+_N_PEAKS = 8       # peaks of the periodogram tried in the exact model
+_HARMONICS = 3     # sawtooth harmonics summed in the search
+#: fewest sawtooth cycles over the recording's span for a clock (fewer: indistinguishable from a wander)
+MIN_CYCLES = 5.0
+#: the sawtooth width W (s) a clock may have: 1/f_k ≈ 1 ms, larger where the fitted output rates
+#: under-state the true ones (fast content near the read rate's Nyquist frequency), never ≪ 1 ms
+WIDTH_RANGE_S = (0.4e-3, 4e-3)
+
+
+@dataclasses.dataclass
+class ClockStage:
+    """What :func:`clock_stage` found: ``clocks`` (accepted :class:`SamplingClock` effects, with
+    ``stats``), ``fits`` (every IMU's estimate dict, accepted or not), ``prep``/``fit`` (the
+    recording corrected for the accepted clocks and the model refitted on it; the inputs when none
+    was accepted), ``threshold``, ``info`` (the report's ``details.clock_stage``)."""
+
+    clocks: list
+    fits: list
+    prep: Prepared
+    fit: ModelFit
+    threshold: float
+    info: dict
+
+
+def _profile(b, a, age_shape):
+    """Weighted LS of b/a on [1, −s] with weights a: returns (gain Σbm − ½Σam², W, const, m)."""
+    s = age_shape
+    Saa, Sas, Sass = a.sum(), (a * s).sum(), (a * s * s).sum()
+    Sb, Sbs = b.sum(), (b * s).sum()
+    G = np.array([[Saa, -Sas], [-Sas, Sass]])
+    g = np.array([Sb, -Sbs])
+    try:
+        c, W = np.linalg.solve(G, g)
+    except np.linalg.LinAlgError:
+        return 0.0, 0.0, 0.0, np.zeros_like(b)
+    m = c - W * s
+    return float(g @ np.array([c, W])) / 2.0, float(W), float(c), m
+
+
+def _frac(x):
+    return x - np.floor(x)
+
+
+def _white_loglik(rr: float, n: int) -> float:
+    """log N(r̃; 0, c²I) at the best c (c² = rr/n), constants dropped (nats): −n/2·log(rr/n) − n/2.
+    ``wander.fit_wander``'s gains are over this model on the same residuals."""
+    return -0.5 * n * math.log(max(rr / n, 1e-300)) - 0.5 * n
+
+
+def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S) -> dict:
+    """The beat search of the module docstring on one IMU's (a, b) at times t (s): returns
+    {"beat_hz", "phase", "drift_hz_per_s", "width_s" (W, s), "const_s", "gain" (Σbm − ½Σam², nats
+    at the stated noise), "mean" (T,) the fitted δ_t = const − age_t (s), "cells" (independent
+    (β, d) cells searched)}."""
+    from scipy.optimize import minimize
+
+    t = np.asarray(t, float)
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    t0 = t[0]
+    n = np.rint((t - t0) * f_read).astype(np.int64)
+    N = int(n[-1]) + 1
+    D = max(float(t[-1] - t0), 1.0 / f_read)
+    step = 0.5 / D ** 2
+    nd = int(min(max_drift / step, 100))
+    drifts = step * np.arange(-nd, nd + 1)
+    L = int(2 ** math.ceil(math.log2(_PAD * N)))
+    freqs = np.fft.fftfreq(L, 1.0 / f_read)
+    tt = t - t0
+    peaks = []
+    idx = np.arange(L)
+    for d in drifts:
+        # harmonic m of the sawtooth sits at m·β with chirp m·d, amplitude 1/m: ranking by
+        # Σ_m |F_m(mβ)|²/m, a slow motion-frequency residual (one line, no harmonics) ranks lower
+        P = np.zeros(L)
+        for mh in range(1, _HARMONICS + 1):
+            z = np.zeros(L, complex)
+            z[n] = b * np.exp(-1j * math.pi * mh * d * tt ** 2)
+            P += np.abs(np.fft.fft(z))[(mh * idx) % L] ** 2 / mh
+        # under MIN_CYCLES over the span a sawtooth is a slow wander, not a clock
+        P[np.abs(freqs) < MIN_CYCLES / D] = 0.0
+        top = np.argpartition(P, -_N_PEAKS)[-_N_PEAKS:]
+        peaks += [(float(P[i]), float(freqs[i]), float(d)) for i in top]
+    peaks.sort(key=lambda p: -p[0])
+    # a peak and its neighbours are one peak: keep distinct |β| (beyond 2 bins) only
+    chosen = []
+    for p in peaks:
+        if all(abs(abs(p[1]) - abs(q[1])) > 2 * f_read / L or abs(p[2] - q[2]) > 2 * step for q in chosen):
+            chosen.append(p)
+        if len(chosen) == _N_PEAKS:
+            break
+
+    def neg(x):
+        phase, beat, drift = x
+        s = _frac(phase + beat * t + 0.5 * drift * t * t)
+        gain, W, _, _ = _profile(b, a, s)
+        return -gain if W > 0 else 0.0
+
+    best = None
+    for _, f0, d0 in chosen:
+        for beat in (f0, -f0):
+            # the phase on a grid first (the profile is piecewise smooth in it); the search's
+            # chirp is about t0, the model's about t = 0: the beat at t = 0 is f0 − d·t0
+            cands = []
+            for ph in np.linspace(0, 1, 24, endpoint=False):
+                x0 = np.array([ph, beat - d0 * t0, d0])
+                cands.append((neg(x0), x0))
+            cands.sort(key=lambda c: c[0])
+            x0 = cands[0][1]
+            res = minimize(neg, x0, method="Nelder-Mead",
+                           options={"xatol": 1e-7, "fatol": 1e-6, "maxiter": 600,
+                                    "initial_simplex": [x0, x0 + [0.02, 0, 0], x0 + [0, 0.1 * f_read / L, 0],
+                                                        x0 + [0, 0, 0.5 * step]]})
+            x = res.x if res.fun <= cands[0][0] else x0
+            val = min(res.fun, cands[0][0])
+            if best is None or val < best[0]:
+                best = (val, x)
+    phase, beat, drift = best[1]
+    # β and β + f_read give the same reads: report it in (−f_read/2, f_read/2]
+    beat = beat - f_read * math.ceil(beat / f_read - 0.5)
+    s = _frac(phase + beat * t + 0.5 * drift * t * t)
+    gain, W, c, m = _profile(b, a, s)
+    return {"beat_hz": float(beat), "phase": float(_frac(phase)), "drift_hz_per_s": float(drift), "width_s": W,
+            "const_s": c, "gain": gain, "mean": m, "cells": int(N * len(drifts))}
+
+
+def _gls_mean(a, b, steps, s_t, wander: dict) -> tuple[np.ndarray, float, float]:
+    """δ_t = const − W·s_t with (const, W) by GLS under the AR(1) instant error + white noise of
+    ``wander`` (σ, ρ, c; :func:`accel_bayes.mismatch.wander.fit_wander`): with M = diag(a)/c² and
+    P = Σ⁻¹ + M (tridiagonal), the weight matrix is M − M P⁻¹ M (Woodbury), and its product with
+    δ_LS = b/a is b/c² − M P⁻¹ b/c² (no division by a).  Returns (δ (T,) s, W s, const s)."""
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    from .wander import ar1_precision_bands
+
+    c2 = wander["c"] ** 2
+    P, _ = ar1_precision_bands(len(a), steps, wander["sigma"], wander["rho"])
+    P[1] += a / c2
+    cP = cholesky_banded(P, lower=False)
+    X = np.stack([np.ones_like(s_t), -s_t], 1)
+    MX = X * (a / c2)[:, None]
+    KX = MX - (a / c2)[:, None] * cho_solve_banded((cP, False), MX)
+    Kd = b / c2 - (a / c2) * cho_solve_banded((cP, False), b / c2)
+    theta = np.linalg.solve(X.T @ KX, X.T @ Kd)
+    return X @ theta, float(theta[1]), float(theta[0])
+
+
+def data_age(clocks, time, K: int) -> torch.Tensor:
+    """(T, K) the data age (s) of every IMU at the read times ``time`` (s) from its
+    :class:`SamplingClock` (0 on IMUs without one).  ``clocks``: SamplingClock effects (a
+    :class:`ClockStage`'s ``clocks``, or a report's refitted ``fixed_effects`` filtered to them)."""
+    t = torch.as_tensor(time, dtype=torch.float64)
+    out = torch.zeros(len(t), K, dtype=torch.float64)
+    for c in clocks:
+        out[:, c.imu] = c.age(t)
+    return out
+
+
+def clock_corrected(prep: Prepared, fit: ModelFit, clocks) -> Prepared:
+    """``prep`` with every accepted clock's linearised output effect taken off its outputs
+    (y − d, d the :class:`SamplingClock` perturbation at ``fit``'s context: the fit's output rates)."""
+    if not clocks:
+        return prep
+    ya, yg = prep.y_acc.clone(), prep.y_gyro.clone()
+    for c in clocks:
+        da, dg = c.perturbation(None, fit.ctx)
+        ya, yg = ya - da, yg - dg
+    return dataclasses.replace(prep, y_acc=ya * prep.m_acc, y_gyro=yg * prep.m_gyro)
+
+
+def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshold: float) -> ClockStage:
+    """Estimate a clock on every IMU with a gyroscope at ``fit`` (module docstring), accept those
+    whose two evidences pass the stage threshold, correct ``prep`` for them and refit the model
+    (effects of ``fit`` kept).  ``m``, ``alpha``, ``threshold``: the detector's Bonferroni count,
+    family-wise error rate and threshold."""
+    from scipy.stats import chi2
+
+    from .fit import fit_model
+
+    t = prep.time.detach().cpu().double().numpy()
+    dt = float(np.median(np.diff(t)))
+    f_read = 1.0 / dt
+    steps = sample_steps(t)
+    fits, clocks = [], []
+    thr = None
+    for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
+        if prep.gyro_rate is None or not bool(prep.m_gyro[:, k].any()):
+            continue
+        a_t, b_t, rr, n_obs = jitter_ab(prep, fit, k, "gyro", with_residual_power=True)
+        a, b = a_t.numpy(), b_t.numpy()
+        est = estimate_clock(t, a, b, f_read)
+        mean = est.pop("mean")
+        w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
+        if w0["sigma"] > 0:
+            # the sawtooth's width and offset again by GLS under the wander's covariance: fitted
+            # under white noise they would claim what the wander explains and lose against it
+            s_t = _frac(est["phase"] + est["beat_hz"] * t + 0.5 * est["drift_hz_per_s"] * t * t)
+            mean, est["width_s"], est["const_s"] = _gls_mean(a, b, steps, s_t, w0)
+        # the clock's mean timing taken off: b' = b − a m, Σ r̃'² = Σ r̃² − 2Σbm + Σam²
+        b2 = b - a * mean
+        rr2 = max(rr - 2 * float(b @ mean) + float(a @ (mean * mean)), 1e-12)
+        g_none, g_clock = _white_loglik(rr, n_obs), _white_loglik(rr2, n_obs)
+        w1 = fit_wander(a, b2, steps, sigma_max=dt, rr=rr2, n=n_obs)
+        est.update({"imu": k, "evidence": 2 * (g_clock - g_none),
+                    "evidence_vs_wander": 2 * ((g_clock + w1["gain"]) - (g_none + w0["gain"])),
+                    "wander_before": {"sigma_s": w0["sigma"], "rho": w0["rho"], "evidence": w0["evidence"]},
+                    "wander_after": {"sigma_s": w1["sigma"], "rho": w1["rho"], "evidence": w1["evidence"]},
+                    "f_read_hz": f_read})
+        if thr is None:
+            n_imu = int(np.asarray(prep.has_gyro).sum())
+            thr = max(threshold, float(chi2.isf(alpha / max(n_imu * est["cells"], 1), 4)))
+        est["accepted"] = bool(est["evidence"] > thr and est["evidence_vs_wander"] > thr
+                               and WIDTH_RANGE_S[0] <= est["width_s"] <= WIDTH_RANGE_S[1])
+        fits.append(est)
+        if est["accepted"]:
+            f_int = f_read * round(NOMINAL_INTERNAL_RATE_HZ / f_read) + est["beat_hz"]
+            c = SamplingClock(imu=k, params={"internal_rate_hz": f_int, "beat_hz": est["beat_hz"], "phase": est["phase"],
+                                             "drift_hz_per_s": est["drift_hz_per_s"],
+                                             "age_rms_s": est["width_s"] / math.sqrt(12.0),
+                                             "filter_delay_acc_minus_gyro_s": 0.0})
+            c.stats = {kk: v for kk, v in est.items() if kk not in ("wander_before", "wander_after")}
+            clocks.append(c)
+    thr = threshold if thr is None else thr
+    info = {"threshold": thr, "imus": [{kk: v for kk, v in f.items()} for f in fits],
+            "accepted": [c.imu for c in clocks]}
+    if not clocks:
+        return ClockStage([], fits, prep, fit, thr, info)
+    prep_c = clock_corrected(prep, fit, clocks)
+    fit_c = fit_model(prep_c, [e.copy() for e in fit.effects], init=fit, laplace=False)
+    info["evidence_refit"] = 2.0 * (fit_c.loglik - fit.loglik)
+    return ClockStage(clocks, fits, prep_c, fit_c, thr, info)
+
+
+def clock_ages(prep: Prepared, fit: ModelFit, *, alpha: float = 0.01, threshold: float = 0.0) -> tuple[torch.Tensor, ClockStage]:
+    """(ages (T, K) s, the :class:`ClockStage`): every IMU's data age at ``prep``'s sample times from
+    the clocks :func:`clock_stage` accepts at ``fit`` (0 on IMUs without one).  ``threshold`` adds a
+    floor to the stage's own look-elsewhere threshold (the detector passes its Bonferroni one)."""
+    st = clock_stage(prep, fit, m=1, alpha=alpha, threshold=threshold)
+    return data_age(st.clocks, prep.time, prep.K), st

@@ -1,0 +1,112 @@
+"""sampling_clock: the effect's data age against clockgen's truth, the detector's clock stage on a
+clock case and on its synchronised twin, and the report's parameters and units (issue #27 item 2)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from accel_bayes.physics.effects import SamplingClock, SignalContext, clock_age
+from accel_bayes.mismatch import detect
+from accel_bayes.mismatch.clock import clock_ages
+from accel_bayes.mismatch.fit import baseline_fit
+from accel_bayes.mismatch.prepared import prepare
+from experiments.clock_proof import truth_beat_mid
+from experiments.clockgen import draw_case
+
+SEED, DURATION = 1, 12.0   # plate4, 250 Hz, beats 1.15 to −6.8 Hz: ≥ 13 cycles in 12 s
+
+
+@pytest.fixture(scope="module")
+def clock_case():
+    return draw_case("clock", SEED, duration=DURATION)
+
+
+@pytest.fixture(scope="module")
+def reports(clock_case):
+    twin = draw_case("twin", SEED, duration=DURATION)[0]
+    return {"clock": detect(clock_case[0], max_findings=0, refine=False, n_twins=5).to_dict(),
+            "twin": detect(twin, max_findings=0, refine=False, n_twins=5).to_dict()}
+
+
+def test_clock_age_is_a_sawtooth_of_the_beat():
+    t = torch.arange(0, 2, 0.016, dtype=torch.float64)
+    age = clock_age(t, -2.5, 0.25, 0.0, 1e-3)
+    assert float(age.min()) >= 0 and float(age.max()) < 1e-3
+    # beat −2.5 Hz: the age falls by 2.5·0.016 = 0.04 of the width per read, except at a wrap
+    d = torch.diff(age) / 1e-3
+    assert torch.allclose(d[d < 0], torch.full_like(d[d < 0], -0.04), atol=1e-9)
+    assert int((d > 0).sum()) == 5  # 2 s at 2.5 Hz: five wraps
+
+
+def test_perturbation_is_the_first_order_delay():
+    """y(t − age) of a 3 Hz sinusoid against y − age·ẏ (gyro) and with the acc−gyro delay (acc)."""
+    t = torch.arange(0, 1, 0.01, dtype=torch.float64)
+    w = 2 * math.pi * 3
+    y, ydot = torch.sin(w * t), w * torch.cos(w * t)
+    out = torch.stack([y, y, y], -1)[:, None, :]
+    rate = torch.stack([ydot, ydot, ydot], -1)[:, None, :]
+    z = torch.zeros(len(t), 3, dtype=torch.float64)
+    ctx = SignalContext(t, z, z, z, torch.zeros(1, 3, dtype=torch.float64),
+                        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64), out, out, rate, rate)
+    e = SamplingClock(imu=0, params={"beat_hz": 1.3, "phase": 0.1, "age_rms_s": 1e-3 / math.sqrt(12),
+                                     "filter_delay_acc_minus_gyro_s": 2e-4})
+    da, dg = e.perturbation(None, ctx)
+    age = e.age(t)
+    exact_g = torch.sin(w * (t - age)) - y
+    exact_a = torch.sin(w * (t - age - 2e-4)) - y
+    # the neglected term is ½(age + delay)²·ÿ ≤ ½(w·1.2 ms)² for |y| ≤ 1; a wrong sign errs by 2× the effect
+    bound = 0.5 * (w * 1.2e-3) ** 2
+    assert float((dg[:, 0, 0] - exact_g).abs().max()) < bound < 0.05 * float(exact_g.abs().max())
+    assert float((da[:, 0, 0] - exact_a).abs().max()) < bound
+
+
+def test_stage_recovers_clockgen_age(clock_case):
+    """The accepted clocks' centred data age follows the generator's true age (beat, phase)."""
+    rec, truth = clock_case
+    prep = prepare(rec)
+    base, _ = baseline_fit(prep)
+    ages, st = clock_ages(prep, base)
+    assert sorted(c.imu for c in st.clocks) == list(range(rec.K))
+    true_age = np.asarray(truth["data_age"])[prep.selection.index]
+    for c in st.clocks:
+        k = c.imu
+        # the beat at the middle of the recording (the truth's clock rate drifts on some seeds)
+        t_mid = 0.5 * float(prep.time[0] + prep.time[-1])
+        beat_mid = float(c.params["beat_hz"] + c.params["drift_hz_per_s"] * t_mid)
+        assert abs(beat_mid - truth_beat_mid(truth, k, t_mid)) < 0.02
+        est = ages[:, k].numpy() - ages[:, k].numpy().mean()
+        tru = true_age[:, k] - true_age[:, k].mean()
+        # the same sawtooth (the width is estimated on the fitted rates: compare shapes)
+        assert np.corrcoef(est, tru)[0, 1] > 0.9
+
+
+def test_finding_on_clock_case_none_on_twin(reports):
+    clock = [f for f in reports["clock"]["findings"] if f["effect"] == "sampling_clock"]
+    twin = [f for f in reports["twin"]["findings"] if f["effect"] == "sampling_clock"]
+    assert sorted(f["imu"] for f in clock) == [0, 1, 2, 3]
+    assert twin == []
+    assert reports["twin"]["details"]["clock_stage"]["accepted"] == []
+
+
+def test_report_parameters_and_units(reports):
+    f = next(f for f in reports["clock"]["findings"] if f["effect"] == "sampling_clock")
+    keys = {"internal_rate_hz", "beat_hz", "phase", "drift_hz_per_s", "age_rms_s", "filter_delay_acc_minus_gyro_s"}
+    assert set(f["parameters"]) == keys
+    assert f["units"] == {"internal_rate_hz": "Hz", "beat_hz": "Hz", "phase": "1", "drift_hz_per_s": "Hz s-1",
+                          "age_rms_s": "s", "filter_delay_acc_minus_gyro_s": "s"}
+    assert f["axis"] is None and f["evidence"] > reports["clock"]["threshold"]
+    p = f["parameters"]
+    assert 0 <= p["phase"] < 1 and abs(p["beat_hz"]) <= 125.0
+    # the internal rate is the read rate's nearest multiple of 1 kHz plus the beat
+    assert p["internal_rate_hz"] == pytest.approx(1000.0 + p["beat_hz"])
+    assert 0.2e-3 < p["age_rms_s"] < 1.2e-3
+
+
+@pytest.mark.slow
+def test_rounds_do_not_change_the_clock_findings(clock_case, reports):
+    """clock_proof runs detect with max_findings=0: the defaults must give the same clocks."""
+    full = detect(clock_case[0]).to_dict()
+    pick = lambda d: sorted((f["imu"], f["parameters"]["beat_hz"], f["parameters"]["phase"])  # noqa: E731
+                            for f in d["findings"] if f["effect"] == "sampling_clock")
+    assert pick(full) == pick(reports["clock"]) and pick(full)
