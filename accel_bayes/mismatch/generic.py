@@ -24,7 +24,6 @@ import math
 from dataclasses import dataclass
 
 import torch
-from scipy.optimize import minimize_scalar
 
 from .unresolved import fit_scales, gauss_logpdf, loadings, lowrank_terms, t_logpdf
 
@@ -35,22 +34,32 @@ _NU_BOUNDS = (math.log(0.3), math.log(1e4))  # degrees of freedom searched (a t 
 
 def _band_mean(x: torch.Tensor, lab: torch.Tensor, B: int, weights: torch.Tensor | None = None) -> torch.Tensor:
     """Per band the (weighted) mean over samples of x (T, ...) → (B, ...)."""
-    oh = torch.nn.functional.one_hot(lab, B).to(x.dtype)
-    if weights is not None:
-        oh = oh * weights[:, None]
-    num = torch.einsum("tb,t...->b...", oh, x)
-    return num / oh.sum(0).clamp_min(1e-300).reshape((B,) + (1,) * (x.dim() - 1))
+    wts = torch.ones(len(x), dtype=x.dtype) if weights is None else weights
+    num = torch.zeros((B,) + tuple(x.shape[1:]), dtype=x.dtype).index_add_(0, lab, x * wts.reshape((-1,) + (1,) * (x.dim() - 1)))
+    den = torch.zeros(B, dtype=x.dtype).index_add_(0, lab, wts)
+    return num / den.clamp_min(1e-300).reshape((B,) + (1,) * (x.dim() - 1))
 
 
-def _fit_nu(loglik_of_nu) -> float:
-    """The degrees of freedom maximising ``loglik_of_nu(nu)`` (a float), searched on log ν."""
-    r = minimize_scalar(lambda x: -loglik_of_nu(math.exp(x)), bounds=_NU_BOUNDS, method="bounded",
-                        options={"xatol": 1e-3})
-    return float(math.exp(r.x))
+def _fit_nu(quad: torch.Tensor, logdet: torch.Tensor, n) -> torch.Tensor:
+    """The degrees of freedom maximising Σ_t log t_ν(quad_t, logdet_t) for each column of quad
+    (T,) or (T, K) (one ν per column): a grid of step 0.08 on log ν, refined by the parabola
+    through the best grid point and its neighbours."""
+    grid = torch.linspace(*_NU_BOUNDS, 136, dtype=quad.dtype)
+    shape = (-1,) + (1,) * quad.dim()
+    ll = t_logpdf(quad[None], logdet[None], n, torch.exp(grid).reshape(shape)).sum(1)  # (G, [K])
+    i = ll.argmax(0).clamp(1, len(grid) - 2)
+    l0, l1, l2 = (ll.gather(0, (i + o)[None] if ll.dim() > 1 else (i + o).reshape(1)).squeeze(0) for o in (-1, 0, 1))
+    h = grid[1] - grid[0]
+    den = l0 - 2 * l1 + l2
+    off = torch.where(den < 0, 0.5 * h * (l0 - l2) / den, torch.zeros_like(den)).clamp(-h, h)
+    return torch.exp(grid[i] + off)
 
 
-def _no_term(y, d, s2):
-    return d is None or s2 is None or not bool((torch.as_tensor(s2) > 0).any())
+def _ridged(cov: torch.Tensor) -> torch.Tensor:
+    """cov (B, n, n) + 1e-6 × its mean diagonal: keeps a band with fewer samples than channels
+    invertible, negligible otherwise."""
+    m = torch.diagonal(cov, dim1=-2, dim2=-1).mean(-1)
+    return cov + 1e-6 * m[:, None, None] * torch.eye(cov.shape[-1], dtype=cov.dtype)
 
 
 @dataclass
@@ -97,7 +106,7 @@ class TriadT:
         return self.logpdf_triads(y, lab).sum(1)
 
     @classmethod
-    def fit(cls, y, lab, B, *, n_iter: int = 60, tol: float = 1e-7) -> "TriadT":
+    def fit(cls, y, lab, B, *, n_iter: int = 100, tol: float = 1e-6) -> "TriadT":
         """ML by EM (weights u = (ν + 3)/(ν + |y|²/v)) with ν_k by ECME, per IMU."""
         r2 = (y ** 2).sum(-1)  # (T, K)
         K = y.shape[1]
@@ -107,14 +116,10 @@ class TriadT:
             q = r2 / model.v[:, lab].T
             u = (model.nu[None, :] + 3) / (model.nu[None, :] + q)
             model.v = torch.stack([_band_mean(u[:, k] * r2[:, k] / 3, lab, B) for k in range(K)])
-            nu = []
-            for k in range(K):
-                vk = model.v[k, lab]
-                qk, ldk = r2[:, k] / vk, 3 * torch.log(vk)
-                nu.append(_fit_nu(lambda n: float(t_logpdf(qk, ldk, 3, n).sum())))
-            model.nu = torch.as_tensor(nu, dtype=y.dtype)
+            v = model.v[:, lab].T
+            model.nu = _fit_nu(r2 / v, 3 * torch.log(v), 3)
             cur = float(model.logpdf(y, lab).sum())
-            if abs(cur - prev) < tol * abs(cur):
+            if abs(cur - prev) < tol * len(y):
                 break
             prev = cur
         return model
@@ -142,7 +147,7 @@ class SampleT:
         return t_logpdf(quad, ld, y.shape[1] * 3, self.nu)
 
     @classmethod
-    def fit(cls, y, lab, B, d=None, *, n_iter: int = 60, tol: float = 1e-7, start: "BandedWhite | None" = None) -> "SampleT":
+    def fit(cls, y, lab, B, d=None, *, n_iter: int = 100, tol: float = 1e-6, start: "BandedWhite | None" = None) -> "SampleT":
         """ML.  Without ``d``: EM (u = (ν + n)/(ν + q)) with ν by ECME.  With ``d``: the EM fit
         without the term, then L-BFGS on (log v, log s², log ν) from it and ``start``'s scales."""
         T, K, _ = y.shape
@@ -155,14 +160,18 @@ class SampleT:
             u = (model.nu + n) / (model.nu + quad)
             model.v = torch.stack([_band_mean(u * r2[:, k] / 3, lab, B) for k in range(K)])
             quad, ld = model._terms(y, lab, None)
-            model.nu = _fit_nu(lambda nu: float(t_logpdf(quad, ld, n, nu).sum()))
+            model.nu = float(_fit_nu(quad, ld, n))
             cur = float(model.logpdf(y, lab).sum())
-            if abs(cur - prev) < tol * abs(cur):
+            if abs(cur - prev) < tol * T:
                 break
             prev = cur
         if d is None:
             return model
-        s0 = start.s if start is not None and start.s is not None else torch.full((B,), 1.0, dtype=y.dtype)
+        if start is not None and start.s is not None:
+            s0 = start.s
+        else:  # the unresolved part at a tenth of the white variance, as fit_scales starts
+            s0 = torch.full((B,), math.sqrt(0.1 * float(model.v.mean()) / float((d ** 2).mean().clamp_min(1e-300))),
+                            dtype=y.dtype)
         lv = torch.log(model.v).clone().requires_grad_(True)
         ls = (2 * torch.log(s0.clamp_min(1e-12))).clone().requires_grad_(True)
         lnu = torch.tensor(math.log(model.nu), dtype=y.dtype, requires_grad=True)
@@ -173,16 +182,18 @@ class SampleT:
 
         def closure():
             opt.zero_grad()
-            v = torch.exp(lv)[:, lab].T[:, :, None].expand(T, K, 3).reshape(T, -1)
-            quad, ld = lowrank_terms(yf, U, torch.exp(ls)[lab][:, None].expand(T, 3), v=v)
-            loss = -t_logpdf(quad, ld, n, torch.exp(lnu).clamp(*map(math.exp, _NU_BOUNDS))).sum()
+            v = torch.exp(lv.clamp(-60, 60))[:, lab].T[:, :, None].expand(T, K, 3).reshape(T, -1)
+            # bounded log-parameters keep a line search's trial point finite
+            s2 = torch.exp(ls.clamp(-60, 60))[lab][:, None].expand(T, 3)
+            quad, ld = lowrank_terms(yf, U, s2, v=v)
+            loss = -t_logpdf(quad, ld, n, torch.exp(lnu.clamp(*_NU_BOUNDS))).sum()
             loss.backward()
             return loss
 
         for _ in range(2):
             opt.step(closure)
-        return cls(torch.exp(lv.detach()), float(torch.exp(lnu.detach()).clamp(*map(math.exp, _NU_BOUNDS))),
-                   torch.exp(0.5 * ls.detach()))
+        return cls(torch.exp(lv.detach().clamp(-60, 60)), float(torch.exp(lnu.detach().clamp(*_NU_BOUNDS))),
+                   torch.exp(0.5 * ls.detach().clamp(-60, 60)))
 
 
 @dataclass
@@ -196,45 +207,62 @@ class FullCov:
     def logpdf(self, y, lab, d=None) -> torch.Tensor:
         """Per-sample log density (nats, (T,))."""
         T = len(y)
-        L = torch.linalg.cholesky(self.cov)[lab]
         if self.s is None or d is None:
             U, s2 = torch.zeros(T, y.shape[1] * 3, 1, dtype=y.dtype), torch.zeros(T, 1, dtype=y.dtype)
         else:
             U, s2 = loadings(d), (self.s[lab] ** 2)[:, None].expand(T, 3)
-        quad, ld = lowrank_terms(y.reshape(T, -1), U, s2, chol=L)
+        quad, ld = lowrank_terms(y.reshape(T, -1), U, s2, prec=torch.linalg.inv(self.cov), lab=lab)
         return gauss_logpdf(quad, ld, y.shape[1] * 3)
 
     @classmethod
-    def fit(cls, y, lab, B, d=None, *, n_iter: int = 100, tol: float = 1e-8, start: "BandedWhite | None" = None) -> "FullCov":
+    def fit(cls, y, lab, B, d=None, *, n_iter: int = 200, tol: float = 1e-5, start: "BandedWhite | None" = None) -> "FullCov":
         """ML: the band's second-moment matrix; with ``d``, EM on the unresolved motion m_t
         (E: its Gaussian posterior; M: Σ_b the expected second moment of y − U m, s²_b the
-        expected |m|²/3), from ``start``'s scales."""
-        T = len(y)
+        expected |m|²/3), from ``start``'s scales; stops when the log likelihood gains less than
+        ``tol`` nats per sample."""
+        T, K, _ = y.shape
         yf = y.reshape(T, -1)
-        outer = yf[:, :, None] * yf[:, None, :]
-        model = cls(_band_mean(outer, lab, B))
+        model = cls(_ridged(torch.stack([_second_moment(yf[lab == b]) for b in range(B)])))
         if d is None:
             return model
-        U = loadings(d)
         model.s = (start.s.clone() if start is not None and start.s is not None
                    else torch.full((B,), 1.0, dtype=y.dtype))
         prev = -math.inf
         eye = torch.eye(3, dtype=y.dtype)
         for _ in range(n_iter):
-            Sinv = torch.linalg.inv(model.cov)[lab]  # (T, n, n)
-            s2 = (model.s ** 2)[lab]
-            # posterior of m_t: precision I/s² + Uᵀ Σ⁻¹ U, mean P Uᵀ Σ⁻¹ y
-            prec = eye / s2[:, None, None].clamp_min(1e-300) + U.transpose(1, 2) @ Sinv @ U
-            P = torch.linalg.inv(prec)
-            m = (P @ (U.transpose(1, 2) @ (Sinv @ yf[..., None])))[..., 0]
-            e = yf - (U @ m[..., None])[..., 0]
-            model.cov = _band_mean(e[:, :, None] * e[:, None, :] + U @ P @ U.transpose(1, 2), lab, B)
-            model.s = torch.sqrt(_band_mean(((m ** 2).sum(-1) + torch.diagonal(P, dim1=1, dim2=2).sum(-1)) / 3, lab, B))
-            cur = float(model.logpdf(y, lab, d).sum())
-            if abs(cur - prev) < tol * abs(cur):
+            cov, s_new, cur = [], [], 0.0
+            for b in range(B):
+                sel = lab == b
+                yb, db = yf[sel], d[sel]
+                Pb = torch.linalg.inv(model.cov[b])
+                # posterior of m_t: precision I/s² + Uᵀ Σ⁻¹ U, mean P Uᵀ Σ⁻¹ y (U = d ⊗ I₃)
+                P4 = Pb.reshape(K, 3, K, 3)
+                dd = (db[:, :, None] * db[:, None, :]).reshape(len(db), K * K)
+                UtSU = (dd @ P4.permute(0, 2, 1, 3).reshape(K * K, 9)).reshape(-1, 3, 3)
+                UtSy = torch.einsum("tk,tki->ti", db, (yb @ Pb).reshape(-1, K, 3))
+                s2 = model.s[b] ** 2
+                Mb = eye + s2 * UtSU  # = s² × posterior precision
+                Lm = torch.linalg.cholesky(Mb)
+                m = s2 * torch.cholesky_solve(UtSy[..., None], Lm)[..., 0]
+                Pm = s2 * torch.cholesky_inverse(Lm)  # posterior covariance (T_b, 3, 3)
+                # marginal log likelihood at the current parameters (Woodbury, as lowrank_terms)
+                quad = (yb @ Pb * yb).sum(-1) - s2 * (UtSy * torch.cholesky_solve(UtSy[..., None], Lm)[..., 0]).sum(-1)
+                ld = -torch.linalg.slogdet(Pb)[1] + 2 * torch.log(torch.diagonal(Lm, dim1=-2, dim2=-1)).sum(-1)
+                cur += float(gauss_logpdf(quad, ld, 3 * K).sum())
+                e = yb - (db[:, :, None] * m[:, None, :]).reshape(len(yb), -1)
+                extra = (dd.T @ Pm.reshape(-1, 9)).reshape(K, K, 3, 3).permute(0, 2, 1, 3).reshape(3 * K, 3 * K)
+                cov.append((e.T @ e + extra) / max(len(yb), 1))
+                s_new.append(torch.sqrt(((m ** 2).sum(-1) + torch.diagonal(Pm, dim1=1, dim2=2).sum(-1)).mean() / 3))
+            model.cov, model.s = _ridged(torch.stack(cov)), torch.stack(s_new)
+            if abs(cur - prev) < tol * T:
                 break
             prev = cur
         return model
+
+
+def _second_moment(x: torch.Tensor) -> torch.Tensor:
+    """xᵀx / n (n, m) → (m, m): the zero-mean ML covariance."""
+    return x.T @ x / max(len(x), 1)
 
 
 def describe(model) -> dict:

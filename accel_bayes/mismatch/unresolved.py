@@ -33,27 +33,33 @@ __all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "marginal_lo
 
 
 def lowrank_terms(y: torch.Tensor, U: torch.Tensor, s2: torch.Tensor, *, v: torch.Tensor | None = None,
-                  chol: torch.Tensor | None = None, w: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                  w: torch.Tensor | None = None, prec: torch.Tensor | None = None,
+                  lab: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(quad (T,), logdet (T,)): yᵀC⁻¹y and log det C per sample for C = A + U diag(s2) Uᵀ.
 
     y (T, n); U (T, n, r); s2 (T, r) ≥ 0 (zero allowed: the term is then absent).  The base A is
     either ``v`` (T, n) diagonal variances, with optional ``w`` (T, n) 0/1 marking the channels
-    that enter (the density is then the marginal of those channels), or ``chol`` (T, n, n) the
-    lower Cholesky factor of a full A (every channel enters).  Units: those of y² for A and of
-    (y/U)² for s2.  Exact: C⁻¹ = A⁻¹ − A⁻¹Ũ M⁻¹ŨᵀA⁻¹ and det C = det A det M with Ũ = U S^½ and
-    M = I + ŨᵀA⁻¹Ũ, which stays positive definite at s2 = 0."""
+    that enter (the density is then the marginal of those channels), or full per group: ``prec``
+    (B, n, n) the inverses A_b⁻¹ and ``lab`` (T,) each sample's group (every channel enters).
+    Units: those of y² for A and of (y/U)² for s2.  Exact: C⁻¹ = A⁻¹ − A⁻¹Ũ M⁻¹ŨᵀA⁻¹ and
+    det C = det A det M with Ũ = U S^½ and M = I + ŨᵀA⁻¹Ũ, which stays positive definite at
+    s2 = 0; per sample only r × r matrices are factorised."""
     Us = U * torch.sqrt(s2.clamp_min(0))[:, None, :]
-    if chol is None:
+    if prec is None:
         if v is None:
-            raise ValueError("lowrank_terms: give v (diagonal base) or chol (full base)")
+            raise ValueError("lowrank_terms: give v (diagonal base) or prec and lab (full base)")
         inv = 1.0 / v if w is None else w / v
         Ay = y * inv
         AU = Us * inv[..., None]
         ld = torch.log(v).sum(-1) if w is None else (w * torch.log(v)).sum(-1)
     else:
-        Ay = torch.cholesky_solve(y[..., None], chol)[..., 0]
-        AU = torch.cholesky_solve(Us, chol)
-        ld = 2 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+        Ay = torch.empty_like(y)
+        AU = torch.empty_like(Us)
+        for b in range(prec.shape[0]):
+            sel = lab == b
+            Ay[sel] = y[sel] @ prec[b]  # A⁻¹ is symmetric
+            AU[sel] = torch.matmul(prec[b], Us[sel])
+        ld = -torch.linalg.slogdet(prec)[1][lab]
     r = U.shape[-1]
     M = torch.eye(r, dtype=y.dtype) + Us.transpose(-1, -2) @ AU
     Lm = torch.linalg.cholesky(M)

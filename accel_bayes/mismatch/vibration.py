@@ -116,16 +116,18 @@ def instant_errors(prep: Prepared, fit: ModelFit, *, shrink: bool = True) -> tup
     return delta, ok
 
 
-def array_residuals(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
-    """(a (T, K, 3) m/s², valid (T, K) bool): the leverage-corrected accelerometer residuals
-    r/√(1 − h) rotated into the array frame (a = R_kᵀ r, R_k array → sensor); 0 where the triad is
-    not fully observed."""
+def array_residuals(prep: Prepared, fit: ModelFit, sensor: str = "acc") -> tuple[torch.Tensor, torch.Tensor]:
+    """(a (T, K, 3), valid (T, K) bool): the leverage-corrected residuals r/√(1 − h) of ``sensor``
+    ("acc": m/s², "gyro": rad/s) rotated into the array frame (a = R_kᵀ r, R_k array → sensor); 0
+    where the triad is not fully observed."""
     from ..physics.geometry import quat_to_matrix
 
-    h = fit.linear().h.reshape(prep.T, 2, prep.K, 3)[:, 0]
-    r = fit.res_acc / torch.sqrt((1 - h).clamp_min(1e-3))
+    j = {"acc": 0, "gyro": 1}[sensor]
+    h = fit.linear().h.reshape(prep.T, 2, prep.K, 3)[:, j]
+    res, m = (fit.res_acc, prep.m_acc) if sensor == "acc" else (fit.res_gyro, prep.m_gyro)
+    r = res / torch.sqrt((1 - h).clamp_min(1e-3))
     R = quat_to_matrix(torch.as_tensor(prep.q, dtype=r.dtype))  # (K, 3, 3): array → sensor
-    ok = (prep.m_acc > 0).all(-1)
+    ok = (m > 0).all(-1)
     a = torch.einsum("kji,tkj->tki", R, r) * ok[..., None]
     return a, ok
 
