@@ -107,13 +107,14 @@ def _saw_fit(t, x, f):
     return best
 
 
-def acquire_clock(res: Residuals, window=None, *, step_factor: float = 4.0):
+def acquire_clock(res: Residuals, window=None, *, pad: int = 4):
     """Beat frequency (K,) Hz in (−f_read/2, f_read/2] and phase (K,) cycles of each IMU's data
-    age from its gyro instant errors δ ≈ c − age (the reading is the sample of age s before):
-    the peak of δ's periodogram on a grid of step 1/(step_factor × span), the sign (which
-    direction the sawtooth ramps) and the phase from a sawtooth least-squares fit, then the peak
-    refined on a 20× finer grid.  ``window`` (T,) bool: the samples used (default all).  A
-    stand-in for the ``sampling_clock`` effect's own acquisition (issue #27 item 2)."""
+    age from its gyro instant errors δ ≈ c − age (the reading is the sample of age s before).
+    The peak of δ's periodogram over (0, f_read/2) — an FFT on the read grid (samples not kept
+    are zeros), zero-padded ``pad``× — refined by a direct transform on a 20× finer grid around
+    it; then the sign (which way the sawtooth ramps) and the phase from a sawtooth least-squares
+    fit.  ``window`` (T,) bool: the samples used (default all).  A stand-in for the
+    ``sampling_clock`` effect's own acquisition (issue #27 item 2)."""
     t_all = res.time.numpy()
     window = np.ones(len(t_all), bool) if window is None else np.asarray(window, bool)
     K = res.delta.shape[1]
@@ -125,18 +126,17 @@ def acquire_clock(res: Residuals, window=None, *, step_factor: float = 4.0):
         x = x - x.mean()
         if len(t) < 20:
             continue
-        span = max(float(t[-1] - t[0]), 1.0)
-        grid = np.arange(1.0 / span, res.f_read / 2, 1.0 / (step_factor * span))
-
-        def power(fs):
-            out = np.empty(len(fs))
-            for i in range(0, len(fs), 256):
-                out[i:i + 256] = np.abs(np.exp(-2j * np.pi * np.outer(fs[i:i + 256], t)) @ x)
-            return out
-
-        f0 = grid[np.argmax(power(grid))]
-        fine = f0 + np.linspace(-1, 1, 41) / (step_factor * span)
-        f0 = fine[np.argmax(power(fine))]
+        n = np.round((t - t[0]) * res.f_read).astype(int)
+        N = 1 << int(np.ceil(np.log2(pad * (n[-1] + 1))))
+        grid = np.zeros(N)
+        np.add.at(grid, n, x)
+        P = np.abs(np.fft.rfft(grid))
+        f_axis = np.fft.rfftfreq(N, 1.0 / res.f_read)
+        P[(f_axis <= 0) | (f_axis >= res.f_read / 2)] = 0
+        f0 = f_axis[np.argmax(P)]
+        h = f_axis[1]
+        fine = f0 + np.linspace(-h, h, 41)
+        f0 = fine[np.argmax(np.abs(np.exp(-2j * np.pi * np.outer(fine, t)) @ x))]
         fits = [(_saw_fit(t, x, sgn * f0), sgn * f0) for sgn in (1.0, -1.0)]
         (sse, phi, _), f = min(fits, key=lambda z: z[0][0])
         beat[k] = f
