@@ -117,3 +117,28 @@ def test_fitted_scales_recover_clockgen_truth_and_vanish_on_the_twin():
         fitted, true = clock[s]
         assert np.all(fitted / true > 0.8) and np.all(fitted / true < 2.2), (s, fitted, true)
         assert np.all(twin[s][0] < 0.15 * fitted), (s, twin[s][0], fitted)
+
+
+def test_unresolved_motion_term_budget_hook_and_finding():
+    """The budget's predicted variance is s²_b d² per channel on both sensors; the finding carries
+    jerk_rms / angular_acc_rms per band with imu and axis null (vocabulary 1.2); the term's
+    log-likelihood is the sum of the two sensors' marginals."""
+    from accel_bayes.mismatch.unresolved import UnresolvedMotion
+
+    g = np.random.default_rng(2)
+    T, K = 8, 4
+    d = torch.as_tensor(g.normal(scale=3e-4, size=(T, K)))
+    lab = torch.as_tensor(g.integers(0, 2, size=T))
+    term = UnresolvedMotion(d, lab, [1.0], torch.tensor([300.0, 500.0], dtype=torch.float64),
+                            torch.tensor([40.0, 90.0], dtype=torch.float64))
+    va, vg = term.predicted_variance()
+    np.testing.assert_allclose(va[:, :, 1].numpy(), (np.array([300.0, 500.0])[lab.numpy()][:, None] * d.numpy()) ** 2)
+    np.testing.assert_allclose(vg[:, :, 2].numpy(), (np.array([40.0, 90.0])[lab.numpy()][:, None] * d.numpy()) ** 2)
+    f = term.finding(evidence=12.5)
+    assert (f["effect"], f["imu"], f["axis"]) == ("unresolved_motion", None, None)
+    assert f["parameters"]["jerk_rms"] == [300.0, 500.0] and f["parameters"]["angular_acc_rms"] == [40.0, 90.0]
+    ya, yg = (torch.as_tensor(g.normal(size=(T, K, 3))) for _ in range(2))
+    w, v = torch.ones(T, K, dtype=torch.float64), torch.full((T, K), 0.5, dtype=torch.float64)
+    want = (marginal_loglik(ya, d, w, v, torch.tensor([300.0, 500.0], dtype=torch.float64)[lab] ** 2)
+            + marginal_loglik(yg, d, w, v, torch.tensor([40.0, 90.0], dtype=torch.float64)[lab] ** 2))
+    np.testing.assert_allclose(term.loglik(ya, yg, w, v, v).numpy(), want.numpy())

@@ -25,11 +25,12 @@ jerk of :mod:`accel_bayes.mismatch.vibration`, which evaluates and fits it with 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
 __all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "marginal_loglik", "fit_scales",
-           "predicted_variance", "finding"]
+           "predicted_variance", "finding", "UnresolvedMotion"]
 
 
 def lowrank_terms(y: torch.Tensor, U: torch.Tensor, s2: torch.Tensor, *, v: torch.Tensor | None = None,
@@ -189,3 +190,41 @@ def finding(edges, jerk_rms, angular_acc_rms, *, evidence: float, jerk_rms_std=N
             "parameters": params, "where": {"regime": "all |omega| bands", "time_s": None},
             "explanation": "board motion faster than the outputs resolve (vibration, impacts), seen through each "
                            "IMU's data age as a per-sample error common to the board"}
+
+
+@dataclass
+class UnresolvedMotion:
+    """The fitted term as the refit and the §7.2 budget take a random effect: ``d`` (T, K) the
+    centred data ages (s) of the fit's samples, ``lab`` (T,) their |ω| band, ``edges`` the inner
+    band edges (rad/s), ``jerk_rms`` (B,) m/s³ and ``angular_acc_rms`` (B,) rad/s² per axis.
+    ``predicted_variance(params, ctx)`` is the budget's hook
+    (:func:`accel_bayes.mismatch.budget.predicted_extra_variance`); :meth:`loglik` the term's
+    contribution to a refit's log-likelihood given white variances."""
+
+    d: torch.Tensor
+    lab: torch.Tensor
+    edges: list
+    jerk_rms: torch.Tensor
+    angular_acc_rms: torch.Tensor
+    name: str = "unresolved_motion"
+    kind: str = "random"
+
+    def predicted_variance(self, params=None, ctx=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(acc, gyro) (T, K, 3): s²_b d² per channel (units²), the same on the three axes."""
+        w = torch.ones_like(self.d)
+        out = []
+        for s in (self.jerk_rms, self.angular_acc_rms):
+            out.append(predicted_variance(self.d, w, torch.as_tensor(s, dtype=self.d.dtype)[self.lab] ** 2)[..., None]
+                       .expand(*self.d.shape, 3))
+        return out[0], out[1]
+
+    def loglik(self, y_acc, y_gyro, w, v_acc, v_gyro) -> torch.Tensor:
+        """Per-sample log density (nats, (T,)) of both sensors' array-frame residuals (T, K, 3)
+        with white variances v (T, K) and this term marginalised (:func:`marginal_loglik`)."""
+        dt = self.d.dtype
+        return (marginal_loglik(y_acc, self.d * w, w, v_acc, torch.as_tensor(self.jerk_rms, dtype=dt)[self.lab] ** 2)
+                + marginal_loglik(y_gyro, self.d * w, w, v_gyro, torch.as_tensor(self.angular_acc_rms, dtype=dt)[self.lab] ** 2))
+
+    def finding(self, evidence: float) -> dict:
+        """The report's finding (:func:`finding`)."""
+        return finding(self.edges, self.jerk_rms, self.angular_acc_rms, evidence=evidence)
