@@ -106,7 +106,7 @@ class TriadT:
         return self.logpdf_triads(y, lab).sum(1)
 
     @classmethod
-    def fit(cls, y, lab, B, *, n_iter: int = 100, tol: float = 1e-6) -> "TriadT":
+    def fit(cls, y, lab, B, *, n_iter: int = 50, tol: float = 1e-5) -> "TriadT":
         """ML by EM (weights u = (ν + 3)/(ν + |y|²/v)) with ν_k by ECME, per IMU."""
         r2 = (y ** 2).sum(-1)  # (T, K)
         K = y.shape[1]
@@ -147,7 +147,7 @@ class SampleT:
         return t_logpdf(quad, ld, y.shape[1] * 3, self.nu)
 
     @classmethod
-    def fit(cls, y, lab, B, d=None, *, n_iter: int = 100, tol: float = 1e-6, start: "BandedWhite | None" = None) -> "SampleT":
+    def fit(cls, y, lab, B, d=None, *, n_iter: int = 50, tol: float = 1e-5, start: "BandedWhite | None" = None) -> "SampleT":
         """ML.  Without ``d``: EM (u = (ν + n)/(ν + q)) with ν by ECME.  With ``d``: the EM fit
         without the term, then L-BFGS on (log v, log s², log ν) from it and ``start``'s scales."""
         T, K, _ = y.shape
@@ -175,7 +175,7 @@ class SampleT:
         lv = torch.log(model.v).clone().requires_grad_(True)
         ls = (2 * torch.log(s0.clamp_min(1e-12))).clone().requires_grad_(True)
         lnu = torch.tensor(math.log(model.nu), dtype=y.dtype, requires_grad=True)
-        opt = torch.optim.LBFGS([lv, ls, lnu], max_iter=200, line_search_fn="strong_wolfe", tolerance_grad=1e-9,
+        opt = torch.optim.LBFGS([lv, ls, lnu], max_iter=80, line_search_fn="strong_wolfe", tolerance_grad=1e-9,
                                 tolerance_change=1e-12)
         U = loadings(d)
         yf = y.reshape(T, -1)
@@ -190,8 +190,7 @@ class SampleT:
             loss.backward()
             return loss
 
-        for _ in range(2):
-            opt.step(closure)
+        opt.step(closure)
         return cls(torch.exp(lv.detach().clamp(-60, 60)), float(torch.exp(lnu.detach().clamp(*_NU_BOUNDS))),
                    torch.exp(0.5 * ls.detach().clamp(-60, 60)))
 

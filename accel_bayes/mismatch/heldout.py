@@ -152,10 +152,12 @@ def _mean_coeff(y, rate, d, ok) -> float:
     return float((g * y).sum() / (g * g).sum().clamp_min(1e-300))
 
 
-def fit_source(res: Residuals, age: torch.Tensor, *, models=GENERIC + PHYSICS) -> dict:
+def fit_source(res: Residuals, age: torch.Tensor, *, models=GENERIC + PHYSICS, progress=None) -> dict:
     """Fit every model on a source's residuals (its samples with all triads observed), per sensor.
     Returns {"edges": [...], "acc": {...}, "gyro": {...}}: per sensor the fitted models by name
-    and the mean's coefficient ``c``."""
+    and the mean's coefficient ``c``, and ``seconds`` per model.  ``progress``: called with a
+    line after each fit."""
+    import time
     edges = band_edges(res.omega.numpy())
     lab_all = torch.as_tensor(np.digitize(res.omega.numpy(), edges), dtype=torch.long)
     B = len(edges) + 1
@@ -166,23 +168,20 @@ def fit_source(res: Residuals, age: torch.Tensor, *, models=GENERIC + PHYSICS) -
         y, lab, d, rate = res.y[s][ok], lab_all[ok], d_all[ok], res.rate[s][ok]
         c = _mean_coeff(y, rate, d, torch.ones(len(y), dtype=torch.bool))
         e = y + c * d[:, :, None] * rate
-        m = {"c": c}
-        if "white" in models:
-            m["white"] = BandedWhite.fit(y, lab, B)
-        if "triad_t" in models:
-            m["triad_t"] = TriadT.fit(y, lab, B)
-        if "sample_t" in models:
-            m["sample_t"] = SampleT.fit(y, lab, B)
-        if "full_cov" in models:
-            m["full_cov"] = FullCov.fit(y, lab, B)
-        phys = BandedWhite.fit(e, lab, B, d=d)
-        m["physics"] = phys
-        if "physics+triad_t" in models:
-            m["physics+triad_t"] = TriadT.fit(e, lab, B)
-        if "physics+sample_t" in models:
-            m["physics+sample_t"] = SampleT.fit(e, lab, B, d=d, start=phys)
-        if "physics+full_cov" in models:
-            m["physics+full_cov"] = FullCov.fit(e, lab, B, d=d, start=phys)
+        m, secs = {"c": c}, {}
+        fits = {"white": lambda: BandedWhite.fit(y, lab, B), "triad_t": lambda: TriadT.fit(y, lab, B),
+                "sample_t": lambda: SampleT.fit(y, lab, B), "full_cov": lambda: FullCov.fit(y, lab, B),
+                "physics": lambda: BandedWhite.fit(e, lab, B, d=d),
+                "physics+triad_t": lambda: TriadT.fit(e, lab, B),
+                "physics+sample_t": lambda: SampleT.fit(e, lab, B, d=d, start=m["physics"]),
+                "physics+full_cov": lambda: FullCov.fit(e, lab, B, d=d, start=m["physics"])}
+        for name in ("physics",) + tuple(k for k in fits if k in models and k != "physics"):
+            t0 = time.perf_counter()
+            m[name] = fits[name]()
+            secs[name] = time.perf_counter() - t0
+            if progress is not None:
+                progress(f"  {s} {name}: {secs[name]:.1f} s")
+        m["seconds"] = secs
         out[s] = m
     return out
 
@@ -203,7 +202,7 @@ def score(source: dict, res: Residuals, age: torch.Tensor, keep) -> dict:
         e = y + m["c"] * d[:, :, None] * rate
         ll = {}
         for name, model in m.items():
-            if name == "c":
+            if name in ("c", "seconds"):
                 continue
             phys = name.startswith("physics")
             with torch.no_grad():
@@ -217,7 +216,8 @@ def describe_source(source: dict) -> dict:
     out = {"edges": [float(e) for e in source["edges"]]}
     for s in ("acc", "gyro"):
         out[s] = {"c": float(source[s]["c"])}
-        out[s].update({k: describe(v) for k, v in source[s].items() if k != "c"})
+        out[s].update({k: describe(v) for k, v in source[s].items() if k not in ("c", "seconds")})
+        out[s]["seconds"] = dict(source[s].get("seconds", {}))
     return out
 
 
