@@ -26,6 +26,11 @@ Sherman–Morrison):
     log N = −½ [Σ_k a_k²/v_k − s² (Σ_k d_k a_k / v_k)² / (1 + s² c) + Σ_k log v_k + log(1 + s² c)
                 + K log 2π],   c = Σ_k d_k² / v_k.
 
+This is the accelerometer half of ``unresolved_motion`` with the gyros' instant errors as the
+loading: the density and its fit are :func:`accel_bayes.mismatch.unresolved.marginal_loglik` and
+:func:`~accel_bayes.mismatch.unresolved.fit_scales` (``coupled_loglik`` / ``fit_arrays`` here are
+those, under their old names).
+
 The null model is s² = 0: a white variance per IMU and |ω| band, the physics-free baseline of
 ``experiments/mimu_mismatch.py``.  Both are fitted by maximum likelihood (j_t marginalised); the
 likelihood ratio against the null is the ``evidence``.  It is *not* χ²-distributed on real fits:
