@@ -207,6 +207,7 @@ def main(argv=None) -> int:
         write_document(args, R, R.get("finished_utc", "unknown date"))
         return 0
     torch.manual_seed(0)
+    args.out.mkdir(parents=True, exist_ok=True)  # before the long computation, so the results can be written
     t_start = time.perf_counter()
     data, R = {}, {"acquire_s": args.acquire_s, "experiments": args.experiments, "info": {}, "sources": {},
                    "pairs": {}, "pair_order": [], "max_samples": args.max_samples}
