@@ -185,7 +185,7 @@ def write_document(args, R, when) -> None:
             "that window. Best generic and best physics variant are chosen on the target's scores (so the generic "
             "side gets its best model). The last column re-acquires the target clock on its whole recording: a "
             "diagnostic of how much the clock's extrapolation costs, not a held-out number.", ""]
-    outputs.write_text(args.doc, "\n".join(head) + summary_markdown(R) + "\n\n" + CAVEATS)
+    outputs.write_text(args.doc, "\n".join(head) + "\n" + summary_markdown(R) + "\n\n" + CAVEATS)
     print(f"written {args.doc}")
 
 
