@@ -26,6 +26,11 @@ Sherman–Morrison):
     log N = −½ [Σ_k a_k²/v_k − s² (Σ_k d_k a_k / v_k)² / (1 + s² c) + Σ_k log v_k + log(1 + s² c)
                 + K log 2π],   c = Σ_k d_k² / v_k.
 
+This is the accelerometer half of ``unresolved_motion`` with the gyros' instant errors as the
+loading: the density and its fit are :func:`accel_bayes.mismatch.unresolved.marginal_loglik` and
+:func:`~accel_bayes.mismatch.unresolved.fit_scales` (``coupled_loglik`` / ``fit_arrays`` here are
+those, under their old names).
+
 The null model is s² = 0: a white variance per IMU and |ω| band, the physics-free baseline of
 ``experiments/mimu_mismatch.py``.  Both are fitted by maximum likelihood (j_t marginalised); the
 likelihood ratio against the null is the ``evidence``.  It is *not* χ²-distributed on real fits:
@@ -59,6 +64,9 @@ import torch
 from .budget import band_edges
 from .model import ModelFit
 from .prepared import Prepared
+# one implementation of the marginal and its fit: the aliased jerk is unresolved_motion's acc half on
+# the gyros' instant errors
+from .unresolved import fit_scales as fit_arrays, marginal_loglik as coupled_loglik  # noqa: F401
 
 __all__ = ["AliasedJerk", "instant_errors", "array_residuals", "coupled_loglik", "fit_aliased_jerk",
            "omega_edges", "fit_arrays"]
@@ -113,34 +121,20 @@ def instant_errors(prep: Prepared, fit: ModelFit, *, shrink: bool = True) -> tup
     return delta, ok
 
 
-def array_residuals(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
-    """(a (T, K, 3) m/s², valid (T, K) bool): the leverage-corrected accelerometer residuals
-    r/√(1 − h) rotated into the array frame (a = R_kᵀ r, R_k array → sensor); 0 where the triad is
-    not fully observed."""
+def array_residuals(prep: Prepared, fit: ModelFit, sensor: str = "acc") -> tuple[torch.Tensor, torch.Tensor]:
+    """(a (T, K, 3), valid (T, K) bool): the leverage-corrected residuals r/√(1 − h) of ``sensor``
+    ("acc": m/s², "gyro": rad/s) rotated into the array frame (a = R_kᵀ r, R_k array → sensor); 0
+    where the triad is not fully observed."""
     from ..physics.geometry import quat_to_matrix
 
-    h = fit.linear().h.reshape(prep.T, 2, prep.K, 3)[:, 0]
-    r = fit.res_acc / torch.sqrt((1 - h).clamp_min(1e-3))
+    j = {"acc": 0, "gyro": 1}[sensor]
+    h = fit.linear().h.reshape(prep.T, 2, prep.K, 3)[:, j]
+    res, m = (fit.res_acc, prep.m_acc) if sensor == "acc" else (fit.res_gyro, prep.m_gyro)
+    r = res / torch.sqrt((1 - h).clamp_min(1e-3))
     R = quat_to_matrix(torch.as_tensor(prep.q, dtype=r.dtype))  # (K, 3, 3): array → sensor
-    ok = (prep.m_acc > 0).all(-1)
+    ok = (m > 0).all(-1)
     a = torch.einsum("kji,tkj->tki", R, r) * ok[..., None]
     return a, ok
-
-
-def coupled_loglik(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, v: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
-    """Per-sample log density (nats, (T,)) of the model in the module docstring.
-
-    a (T, K, 3) array-frame residuals; d (T, K) centred instant errors (s); w (T, K) 1 where IMU
-    k's residual enters sample t, else 0; v (T, K) white variances ((m/s²)²); s2 (T,) the jerk
-    variance ((m/s³)²; 0 gives the white model)."""
-    inv = w / v
-    quad = (a ** 2).sum(-1).mul(inv).sum(1)
-    c = (d ** 2 * inv).sum(1)
-    proj = torch.einsum("tk,tki->ti", d * inv, a)  # (T, 3)
-    quad = quad - s2 / (1 + s2 * c) * (proj ** 2).sum(-1)
-    n = w.sum(1)
-    logdet = (w * torch.log(v)).sum(1) + torch.log1p(s2 * c)
-    return -0.5 * (quad + 3 * logdet + 3 * n * math.log(2 * math.pi))
 
 
 def _centred(delta: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -215,66 +209,6 @@ class AliasedJerk:
         v0 = torch.as_tensor(self.v_null, dtype=a.dtype)[:, lab].T
         s2 = torch.as_tensor(self.jerk_rms, dtype=a.dtype)[lab] ** 2
         return float(coupled_loglik(a, d, w, v, s2).sum()), float(coupled_loglik(a, d, w, v0, torch.zeros_like(s2)).sum())
-
-
-def fit_arrays(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, lab: torch.Tensor, B: int, *, max_iter: int = 200,
-               std: bool = True):
-    """The maximum-likelihood fit behind :func:`fit_aliased_jerk`, on arrays: a (T, K, 3), d (T, K)
-    centred instant errors, w (T, K) weights 0/1, lab (T,) band index in [0, B).  Returns
-    (v_null (K, B), log v (K, B), log s² (B,), loglik_null, loglik, std of log s² (B,) — NaN with
-    ``std=False``, which skips the Hessian)."""
-    T, K = w.shape
-    onehot = torch.nn.functional.one_hot(lab, B).to(a.dtype)  # (T, B)
-    # null: the ML white variance per IMU and band in closed form
-    num = torch.einsum("tb,tk->kb", onehot, (a ** 2).sum(-1) * w)
-    den = 3 * torch.einsum("tb,tk->kb", onehot, w)
-    v0 = (num / den.clamp_min(1)).clamp_min(1e-12)
-    v0 = torch.where(den > 0, v0, v0[den > 0].mean() if (den > 0).any() else torch.ones_like(v0))
-    ll0 = coupled_loglik(a, d, w, v0[:, lab].T, torch.zeros(T, dtype=a.dtype)).sum()
-
-    # coupled: log-parameters, L-BFGS from the null plus a coupled part of a tenth of the white
-    # variance (a fixed start would sit where the gradient vanishes when d is tiny)
-    lv = torch.log(v0).clone().requires_grad_(True)
-    d2 = float((d ** 2 * w).sum() / w.sum().clamp_min(1))
-    s2_0 = 0.1 * float(v0.mean()) / d2 if d2 > 0 else 1e6
-    ls = torch.full((B,), math.log(s2_0), dtype=a.dtype, requires_grad=True)
-    opt = torch.optim.LBFGS([lv, ls], max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9,
-                            tolerance_change=1e-12)
-
-    def nll(lv_, ls_):
-        return -coupled_loglik(a, d, w, torch.exp(lv_)[:, lab].T, torch.exp(ls_)[lab]).sum()
-
-    def closure():
-        opt.zero_grad()
-        loss = nll(lv, ls)
-        loss.backward()
-        return loss
-
-    for _ in range(3):
-        opt.step(closure)
-    lv, ls = lv.detach(), ls.detach()
-    ll1 = -nll(lv, ls)
-    if not std:
-        return v0, lv, ls, float(ll0), float(ll1), torch.full((B,), float("nan"), dtype=a.dtype)
-    # the jerk scales' standard errors from the observed information of all log-parameters; the
-    # bands share no parameter and no sample, so the information is block-diagonal by band
-    sd_ls = torch.full((B,), float("nan"), dtype=a.dtype)
-    for b in range(B):
-        sel = lab == b
-        if not bool(sel.any()):
-            continue
-        ab, db, wb = a[sel], d[sel], w[sel]
-
-        def nll_b(x):
-            return -coupled_loglik(ab, db, wb, torch.exp(x[:K])[None, :].expand(len(ab), K),
-                                   torch.exp(x[K]).expand(len(ab))).sum()
-
-        H = torch.autograd.functional.hessian(nll_b, torch.cat((lv[:, b], ls[b:b + 1])), vectorize=True)
-        try:
-            sd_ls[b] = torch.sqrt(torch.linalg.inv(H)[K, K].clamp_min(0))
-        except RuntimeError:  # singular (e.g. an IMU without samples in the band): no std
-            pass
-    return v0, lv, ls, float(ll0), float(ll1), sd_ls
 
 
 def _profile_lr(a, d, w, v, lab, B: int) -> float:

@@ -1,0 +1,230 @@
+"""``unresolved_motion`` (DESIGN §7.2 vocabulary 1.2; issue #27 item 3): board motion faster than
+the outputs resolve, seen through each IMU's data age, marginalised exactly.
+
+Physics.  IMU k's output read at t is the sample its sensor took at t − age_kt (its clock's data
+age, ``sampling_clock``).  The part of the board's motion between the outputs that the fitted
+motion does not resolve — vibration and impacts above the host's Nyquist rate — is a per-sample
+jerk j_t (m/s³) on the accelerometers and angular acceleration α_t (rad/s²) on the gyroscopes,
+common to the rigid board.  To first order it adds −age_kt j_t (acc) and −age_kt α_t (gyro) to
+IMU k's residual; a common age is absorbed by the motion states, so the loading is the centred
+age d_kt = age_kt − mean_k age_kt (s).  Per sample and sensor, in the array frame,
+
+    y_kt = d_kt m_t + e_kt,   m_t ~ N(0, s²_b(t) I₃),   e_kt ~ N(0, v_k,b(t) I₃),
+
+s_b the scale of the unresolved motion in |ω| band b (``jerk_rms`` m/s³ for acc,
+``angular_acc_rms`` rad/s² for gyro), v the white variance per IMU and band.  The 3K residuals of
+a sample are Gaussian with covariance A + U S Uᵀ, U = d ⊗ I₃ (rank 3), which
+:func:`lowrank_terms` evaluates exactly (Woodbury identity, matrix determinant lemma) for any
+base A — diagonal (this model) or a full cross-IMU covariance (held-out remainders,
+:mod:`accel_bayes.mismatch.heldout`) — batched over samples, O(T n r²).
+
+Its contribution to the §7.2 budget is the predicted extra variance s²_b d²_kt per channel-sample
+(:func:`predicted_variance`).  The accelerometer half on the gyros' instant errors is the aliased
+jerk of :mod:`accel_bayes.mismatch.vibration`, which evaluates and fits it with the functions here.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "marginal_loglik", "fit_scales",
+           "predicted_variance", "finding", "UnresolvedMotion"]
+
+
+def lowrank_terms(y: torch.Tensor, U: torch.Tensor, s2: torch.Tensor, *, v: torch.Tensor | None = None,
+                  w: torch.Tensor | None = None, prec: torch.Tensor | None = None,
+                  lab: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(quad (T,), logdet (T,)): yᵀC⁻¹y and log det C per sample for C = A + U diag(s2) Uᵀ.
+
+    y (T, n); U (T, n, r); s2 (T, r) ≥ 0 (zero allowed: the term is then absent).  The base A is
+    either ``v`` (T, n) diagonal variances, with optional ``w`` (T, n) 0/1 marking the channels
+    that enter (the density is then the marginal of those channels), or full per group: ``prec``
+    (B, n, n) the inverses A_b⁻¹ and ``lab`` (T,) each sample's group (every channel enters).
+    Units: those of y² for A and of (y/U)² for s2.  Exact: C⁻¹ = A⁻¹ − A⁻¹Ũ M⁻¹ŨᵀA⁻¹ and
+    det C = det A det M with Ũ = U S^½ and M = I + ŨᵀA⁻¹Ũ, which stays positive definite at
+    s2 = 0; per sample only r × r matrices are factorised."""
+    Us = U * torch.sqrt(s2.clamp_min(0))[:, None, :]
+    if prec is None:
+        if v is None:
+            raise ValueError("lowrank_terms: give v (diagonal base) or prec and lab (full base)")
+        inv = 1.0 / v if w is None else w / v
+        Ay = y * inv
+        AU = Us * inv[..., None]
+        ld = torch.log(v).sum(-1) if w is None else (w * torch.log(v)).sum(-1)
+    else:
+        Ay = torch.empty_like(y)
+        AU = torch.empty_like(Us)
+        for b in range(prec.shape[0]):
+            sel = lab == b
+            Ay[sel] = y[sel] @ prec[b]  # A⁻¹ is symmetric
+            AU[sel] = torch.matmul(prec[b], Us[sel])
+        ld = -torch.linalg.slogdet(prec)[1][lab]
+    r = U.shape[-1]
+    M = torch.eye(r, dtype=y.dtype) + Us.transpose(-1, -2) @ AU
+    Lm = torch.linalg.cholesky(M)
+    b = torch.einsum("tnr,tn->tr", Us, Ay)
+    z = torch.cholesky_solve(b[..., None], Lm)[..., 0]
+    quad = (y * Ay).sum(-1) - (b * z).sum(-1)
+    logdet = ld + 2 * torch.log(torch.diagonal(Lm, dim1=-2, dim2=-1)).sum(-1)
+    return quad, logdet
+
+
+def gauss_logpdf(quad: torch.Tensor, logdet: torch.Tensor, n) -> torch.Tensor:
+    """Zero-mean Gaussian log density (nats) from :func:`lowrank_terms`' output; n channels."""
+    return -0.5 * (quad + logdet + n * math.log(2 * math.pi))
+
+
+def t_logpdf(quad: torch.Tensor, logdet: torch.Tensor, n, nu) -> torch.Tensor:
+    """Zero-mean multivariate-t log density (nats), scale matrix C (quad, logdet as for the
+    Gaussian), ``nu`` degrees of freedom; n channels."""
+    nu = torch.as_tensor(nu, dtype=quad.dtype)
+    n = torch.as_tensor(n, dtype=quad.dtype)
+    return (torch.lgamma((nu + n) / 2) - torch.lgamma(nu / 2) - n / 2 * torch.log(nu * math.pi) - logdet / 2
+            - (nu + n) / 2 * torch.log1p(quad / nu))
+
+
+def loadings(d: torch.Tensor) -> torch.Tensor:
+    """U (T, 3K, 3) = d ⊗ I₃: the centred data ages d (T, K) s as the loading of a per-sample
+    3-vector on the K triads, channels ordered (IMU, axis)."""
+    T, K = d.shape
+    eye = torch.eye(3, dtype=d.dtype)
+    return (d[:, :, None, None] * eye).reshape(T, 3 * K, 3)
+
+
+def marginal_loglik(y: torch.Tensor, d: torch.Tensor, w: torch.Tensor, v: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
+    """Per-sample log density (nats, (T,)) of the model in the module docstring, the motion m_t
+    marginalised.  y (T, K, 3) array-frame residuals (sensor units); d (T, K) centred data ages
+    (s); w (T, K) 1 where IMU k's triad enters sample t, else 0; v (T, K) white variances (units²);
+    s2 (T,) the unresolved motion's variance per axis ((units/s)²; 0 gives the white model)."""
+    # lowrank_terms with U = d ⊗ I₃ and a per-triad isotropic base has M = (1 + s² c) I₃, c = Σ_k d²/v:
+    # the closed form below (checked against lowrank_terms in the tests) is several times faster
+    # inside the fits' autograd
+    inv = w / v
+    quad = (y ** 2).sum(-1).mul(inv).sum(1)
+    c = (d ** 2 * inv).sum(1)
+    proj = torch.einsum("tk,tki->ti", d * inv, y)  # (T, 3)
+    quad = quad - s2 / (1 + s2 * c) * (proj ** 2).sum(-1)
+    logdet = 3 * ((w * torch.log(v)).sum(1) + torch.log1p(s2 * c))
+    return gauss_logpdf(quad, logdet, 3 * w.sum(1))
+
+
+def fit_scales(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, lab: torch.Tensor, B: int, *, max_iter: int = 200,
+               std: bool = True):
+    """Maximum-likelihood fit of :func:`marginal_loglik` on arrays: a (T, K, 3), d (T, K) centred
+    data ages or instant errors (s), w (T, K) weights 0/1, lab (T,) |ω| band index in [0, B).
+    Returns (v_null (K, B), log v (K, B), log s² (B,), loglik_null, loglik, std of log s² (B,) —
+    NaN with ``std=False``, which skips the Hessian); s in units/s per axis."""
+    T, K = w.shape
+    onehot = torch.nn.functional.one_hot(lab, B).to(a.dtype)  # (T, B)
+    # null: the ML white variance per IMU and band in closed form
+    num = torch.einsum("tb,tk->kb", onehot, (a ** 2).sum(-1) * w)
+    den = 3 * torch.einsum("tb,tk->kb", onehot, w)
+    v0 = (num / den.clamp_min(1)).clamp_min(1e-12)
+    v0 = torch.where(den > 0, v0, v0[den > 0].mean() if (den > 0).any() else torch.ones_like(v0))
+    ll0 = marginal_loglik(a, d, w, v0[:, lab].T, torch.zeros(T, dtype=a.dtype)).sum()
+
+    # log-parameters, L-BFGS from the null plus a term of a tenth of the white variance (a fixed
+    # start would sit where the gradient vanishes when d is tiny)
+    lv = torch.log(v0).clone().requires_grad_(True)
+    d2 = float((d ** 2 * w).sum() / w.sum().clamp_min(1))
+    s2_0 = 0.1 * float(v0.mean()) / d2 if d2 > 0 else 1e6
+    ls = torch.full((B,), math.log(s2_0), dtype=a.dtype, requires_grad=True)
+    opt = torch.optim.LBFGS([lv, ls], max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-9,
+                            tolerance_change=1e-12)
+
+    def nll(lv_, ls_):
+        return -marginal_loglik(a, d, w, torch.exp(lv_)[:, lab].T, torch.exp(ls_)[lab]).sum()
+
+    def closure():
+        opt.zero_grad()
+        loss = nll(lv, ls)
+        loss.backward()
+        return loss
+
+    for _ in range(3):
+        opt.step(closure)
+    lv, ls = lv.detach(), ls.detach()
+    ll1 = -nll(lv, ls)
+    if not std:
+        return v0, lv, ls, float(ll0), float(ll1), torch.full((B,), float("nan"), dtype=a.dtype)
+    # the scales' standard errors from the observed information of all log-parameters; the bands
+    # share no parameter and no sample, so the information is block-diagonal by band
+    sd_ls = torch.full((B,), float("nan"), dtype=a.dtype)
+    for b in range(B):
+        sel = lab == b
+        if not bool(sel.any()):
+            continue
+        ab, db, wb = a[sel], d[sel], w[sel]
+
+        def nll_b(x):
+            return -marginal_loglik(ab, db, wb, torch.exp(x[:K])[None, :].expand(len(ab), K),
+                                    torch.exp(x[K]).expand(len(ab))).sum()
+
+        H = torch.autograd.functional.hessian(nll_b, torch.cat((lv[:, b], ls[b:b + 1])), vectorize=True)
+        try:
+            sd_ls[b] = torch.sqrt(torch.linalg.inv(H)[K, K].clamp_min(0))
+        except RuntimeError:  # singular (e.g. an IMU without samples in the band): no std
+            pass
+    return v0, lv, ls, float(ll0), float(ll1), sd_ls
+
+
+def predicted_variance(d: torch.Tensor, w: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
+    """(T, K): the extra variance per channel the term predicts, s²_b(t) d²_kt (units²) — its part
+    b of the §7.2 budget, per channel-sample; 0 where the triad does not enter."""
+    return s2[:, None] * d ** 2 * w
+
+
+def finding(edges, jerk_rms, angular_acc_rms, *, evidence: float, jerk_rms_std=None, angular_acc_rms_std=None) -> dict:
+    """The §7.2 finding (vocabulary 1.2) of fitted scales: ``jerk_rms`` (m/s³) and
+    ``angular_acc_rms`` (rad/s²) per |ω| band, inner band edges ``edges`` (rad/s); imu and axis
+    null (a per-sample error common to the board)."""
+    params = {"omega_edges": [float(e) for e in edges], "jerk_rms": [float(x) for x in jerk_rms],
+              "angular_acc_rms": [float(x) for x in angular_acc_rms]}
+    if jerk_rms_std is not None:
+        params["jerk_rms_std"] = [float(x) for x in jerk_rms_std]
+    if angular_acc_rms_std is not None:
+        params["angular_acc_rms_std"] = [float(x) for x in angular_acc_rms_std]
+    return {"effect": "unresolved_motion", "imu": None, "axis": None, "evidence": float(evidence),
+            "parameters": params, "where": {"regime": "all |omega| bands", "time_s": None},
+            "explanation": "board motion faster than the outputs resolve (vibration, impacts), seen through each "
+                           "IMU's data age as a per-sample error common to the board"}
+
+
+@dataclass
+class UnresolvedMotion:
+    """The fitted term as the refit and the §7.2 budget take a random effect: ``d`` (T, K) the
+    centred data ages (s) of the fit's samples, ``lab`` (T,) their |ω| band, ``edges`` the inner
+    band edges (rad/s), ``jerk_rms`` (B,) m/s³ and ``angular_acc_rms`` (B,) rad/s² per axis.
+    ``predicted_variance(params, ctx)`` is the budget's hook
+    (:func:`accel_bayes.mismatch.budget.predicted_extra_variance`); :meth:`loglik` the term's
+    contribution to a refit's log-likelihood given white variances."""
+
+    d: torch.Tensor
+    lab: torch.Tensor
+    edges: list
+    jerk_rms: torch.Tensor
+    angular_acc_rms: torch.Tensor
+    name: str = "unresolved_motion"
+    kind: str = "random"
+
+    def predicted_variance(self, params=None, ctx=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(acc, gyro) (T, K, 3): s²_b d² per channel (units²), the same on the three axes."""
+        w = torch.ones_like(self.d)
+        out = []
+        for s in (self.jerk_rms, self.angular_acc_rms):
+            out.append(predicted_variance(self.d, w, torch.as_tensor(s, dtype=self.d.dtype)[self.lab] ** 2)[..., None]
+                       .expand(*self.d.shape, 3))
+        return out[0], out[1]
+
+    def loglik(self, y_acc, y_gyro, w, v_acc, v_gyro) -> torch.Tensor:
+        """Per-sample log density (nats, (T,)) of both sensors' array-frame residuals (T, K, 3)
+        with white variances v (T, K) and this term marginalised (:func:`marginal_loglik`)."""
+        dt = self.d.dtype
+        return (marginal_loglik(y_acc, self.d * w, w, v_acc, torch.as_tensor(self.jerk_rms, dtype=dt)[self.lab] ** 2)
+                + marginal_loglik(y_gyro, self.d * w, w, v_gyro, torch.as_tensor(self.angular_acc_rms, dtype=dt)[self.lab] ** 2))
+
+    def finding(self, evidence: float) -> dict:
+        """The report's finding (:func:`finding`)."""
+        return finding(self.edges, self.jerk_rms, self.angular_acc_rms, evidence=evidence)
