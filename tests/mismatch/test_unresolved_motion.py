@@ -4,8 +4,6 @@ fitted scales against the generator's true unresolved jerk / angular acceleratio
 case, and ~zero on its synchronised twin."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +12,6 @@ from scipy.stats import multivariate_normal
 
 from accel_bayes.mismatch.unresolved import gauss_logpdf, loadings, lowrank_terms, marginal_loglik
 
-EXP = Path(__file__).resolve().parents[1] / "experiments"
 
 
 def test_lowrank_terms_equal_the_dense_gaussian_for_diagonal_masked_and_full_bases():
@@ -64,9 +61,8 @@ def _case_scales(kind, lateness=None):
     """Fit the physics model (clock-age mean + unresolved motion) to a 10 s clockgen case (seed 3,
     MIMU4444 board, 62.5 Hz, every generator effect on) with the clock case's true per-IMU
     lateness; returns (fitted scales per sensor (B,), true rms per axis per band, lateness)."""
-    sys.path.insert(0, str(EXP))
-    from clockgen import draw_case
-    from clockgen.cases import motion_of
+    from experiments.clockgen import draw_case
+    from experiments.clockgen.cases import motion_of
 
     from accel_bayes.mismatch import baseline_fit, prepare
     from accel_bayes.mismatch.budget import band_edges

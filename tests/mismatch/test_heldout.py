@@ -3,8 +3,6 @@ on series of known variance, the sawtooth age, and the clock acquisition on a fi
 clock case (experiments/clockgen)."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +10,6 @@ import torch
 
 from accel_bayes.mismatch.heldout import block_bootstrap_se, centred, clock_age
 
-EXP = Path(__file__).resolve().parents[1] / "experiments"
 
 
 def test_block_bootstrap_se_matches_known_standard_errors():
@@ -48,8 +45,7 @@ def test_acquire_clock_recovers_the_beats_of_a_clockgen_case():
     beat within 0.05 Hz of the truth, and the acquired ages correlate with the true ones
     (centred, r > 0.6).  With real-size gyro linear errors (seed 0) the stand-in fails on most
     IMUs: the residual's linear-error part swamps the instant errors (measured 2026-11-27)."""
-    sys.path.insert(0, str(EXP))
-    from clockgen import draw_case
+    from experiments.clockgen import draw_case
 
     from accel_bayes.mismatch import baseline_fit, prepare
     from accel_bayes.mismatch.heldout import acquire_clock, residuals_of
