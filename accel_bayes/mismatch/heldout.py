@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..physics.effects import clock_age as sawtooth_age
 from .budget import band_edges
 from .generic import BandedWhite, FullCov, SampleT, TriadT, describe
 from .vibration import array_residuals, instant_errors
@@ -78,10 +79,12 @@ def residuals_of(prep, fit) -> Residuals:
 
 def clock_age(t, beat, phase, f_int=F_INT_NOMINAL) -> torch.Tensor:
     """(T, K) data age (s) of IMUs with beat frequencies ``beat`` (K,) Hz and phases ``phase``
-    (K,) cycles at times t (T,) s: frac(beat·t + phase)/f_int, a sawtooth on [0, 1/f_int)."""
+    (K,) cycles at times t (T,) s: frac(beat·t + phase)/f_int, a sawtooth on [0, 1/f_int) —
+    the effect's own :func:`accel_bayes.physics.effects.clock_age` without drift, over the IMUs."""
     t = torch.as_tensor(t, dtype=torch.float64)[:, None]
-    x = torch.as_tensor(beat, dtype=torch.float64)[None, :] * t + torch.as_tensor(phase, dtype=torch.float64)[None, :]
-    return torch.remainder(x, 1.0) / f_int
+    beat = torch.as_tensor(beat, dtype=torch.float64)[None, :]
+    phase = torch.as_tensor(phase, dtype=torch.float64)[None, :]
+    return sawtooth_age(t, beat, phase, 0.0, 1.0 / f_int)
 
 
 def centred(age: torch.Tensor) -> torch.Tensor:
