@@ -19,7 +19,11 @@ one), are de-chirped for each drift on a grid (step 1/(2D²), D the span), zero-
 FFT'd: every β in (−f_read/2, f_read/2].  The real input makes ±β peak alike; the sawtooth's
 shape (slow ramp, fast jump) tells them apart, so the best few peaks are tried with both signs in
 the exact sawtooth model (W and the constant profiled by weighted least squares, weights a_t), then
-(φ, β, d) refined by Nelder–Mead on that profile; the best fit with W > 0 is the estimate.
+(φ, β, d) refined by Nelder–Mead on that profile.  The refined fits with W > 0 are candidates, best gain
+first; the stage keeps the first that passes its acceptance (below), so that on reads
+slower than twice the board's vibration the fitted output rates alias that content (flipped,
+scaled), so the sawtooth's white-noise gain is weak and slow motion-frequency lines in b (which a
+wander explains) that outrank the beat there do not hide it.
 
 Evidence (nats ×2; the triad's white-noise factor c profiled throughout, so a clock never earns
 what a larger noise would):
@@ -198,7 +202,8 @@ _N_STAGE = 6
 
 
 def _rank(est) -> tuple:
-    """A candidate's order: physical width first, then the evidence over the best AR(1) instant error."""
+    """The order of rejected candidates (the one kept for the record): physical width first, then the
+    evidence over the best AR(1) instant error."""
     return (WIDTH_RANGE_S[0] <= est["width_s"] <= WIDTH_RANGE_S[1], est["evidence_vs_wander"])
 
 
@@ -289,21 +294,25 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
         a, b = a_t.numpy(), b_t.numpy()
         w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
         g_none = _white_loglik(rr, n_obs)
+        cands = estimate_clock(t, a, b, f_read, candidates=True)[:_N_STAGE]
+        if thr is None:
+            n_imu = int(np.asarray(prep.has_gyro).sum())
+            thr = max(threshold, float(chi2.isf(alpha / max(n_imu * cands[0]["cells"], 1), 4)))
         est = None
-        for cand in estimate_clock(t, a, b, f_read, candidates=True)[:_N_STAGE]:
+        for cand in cands:
             cand = _versus_wander(cand, a, b, t, steps, dt, rr, n_obs, w0, g_none)
-            # the peak ranked by what the random timing cannot explain, not by its gain over white
-            # noise: slow motion-frequency lines in b (no clock: a wander explains them) outrank the
-            # beat on the white gain where content above the read's Nyquist rate flips and scales the
-            # output-rate regressor (100–125 Hz reads of 30–95 Hz vibration)
+            cand["accepted"] = bool(cand["evidence"] > thr and cand["evidence_vs_wander"] > thr
+                                    and WIDTH_RANGE_S[0] <= cand["width_s"] <= WIDTH_RANGE_S[1])
+            # the best white gain that passes; the next peak only where it does not: on reads slower
+            # than twice the vibration, slow motion-frequency lines in b (a wander explains them)
+            # outrank the beat on the white gain.  Ranking every peak by its evidence over the
+            # wander instead would trade a slow true beat (partly a wander) for a faster line
+            if cand["accepted"]:
+                est = cand
+                break
             if est is None or _rank(cand) > _rank(est):
                 est = cand
         est.update({"imu": k, "f_read_hz": f_read})
-        if thr is None:
-            n_imu = int(np.asarray(prep.has_gyro).sum())
-            thr = max(threshold, float(chi2.isf(alpha / max(n_imu * est["cells"], 1), 4)))
-        est["accepted"] = bool(est["evidence"] > thr and est["evidence_vs_wander"] > thr
-                               and WIDTH_RANGE_S[0] <= est["width_s"] <= WIDTH_RANGE_S[1])
         fits.append(est)
         if est["accepted"]:
             f_int = f_read * round(NOMINAL_INTERNAL_RATE_HZ / f_read) + est["beat_hz"]
