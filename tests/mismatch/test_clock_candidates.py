@@ -11,7 +11,8 @@ from experiments.clock_proof import truth_beat_mid
 from experiments.clockgen import draw_case
 
 # clockgen clock seed 21: mimu4444 read at 100 Hz; IMU 3's beat −1.68 Hz (34 cycles in 20 s) was
-# missed by the single-peak search (clock_proof before commit "clock: rank beat peaks ...")
+# missed by the single-peak search (experiments/clock_proof.md at 00ec409): its best white-gain
+# peak (a slow line) failed the wander comparison and no other peak was weighed
 SEED, DURATION, IMU = 21, 20.0, 3
 
 
