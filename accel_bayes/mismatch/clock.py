@@ -19,7 +19,11 @@ one), are de-chirped for each drift on a grid (step 1/(2D²), D the span), zero-
 FFT'd: every β in (−f_read/2, f_read/2].  The real input makes ±β peak alike; the sawtooth's
 shape (slow ramp, fast jump) tells them apart, so the best few peaks are tried with both signs in
 the exact sawtooth model (W and the constant profiled by weighted least squares, weights a_t), then
-(φ, β, d) refined by Nelder–Mead on that profile; the best fit with W > 0 is the estimate.
+(φ, β, d) refined by Nelder–Mead on that profile.  The refined fits with W > 0 are candidates, best gain
+first; the stage keeps the first that passes its acceptance (below), so that on reads
+slower than twice the board's vibration the fitted output rates alias that content (flipped,
+scaled), so the sawtooth's white-noise gain is weak and slow motion-frequency lines in b (which a
+wander explains) that outrank the beat there do not hide it.
 
 Evidence (nats ×2; the triad's white-noise factor c profiled throughout, so a clock never earns
 what a larger noise would):
@@ -105,11 +109,12 @@ def _white_loglik(rr: float, n: int) -> float:
     return -0.5 * n * math.log(max(rr / n, 1e-300)) - 0.5 * n
 
 
-def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S) -> dict:
+def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S, candidates: bool = False):
     """The beat search of the module docstring on one IMU's (a, b) at times t (s): returns
     {"beat_hz", "phase", "drift_hz_per_s", "width_s" (W, s), "const_s", "gain" (Σbm − ½Σam², nats
     at the stated noise), "mean" (T,) the fitted δ_t = const − age_t (s), "cells" (independent
-    (β, d) cells searched)}."""
+    (β, d) cells searched)}.  ``candidates``: the list of such dicts instead, one per distinct refined
+    peak with W > 0, best gain first (the stage ranks them by what the random timing cannot explain)."""
     from scipy.optimize import minimize
 
     t = np.asarray(t, float)
@@ -154,7 +159,7 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
         gain, W, _, _ = _profile(b, a, s)
         return -gain if W > 0 else 0.0
 
-    best = None
+    fits = []
     for _, f0, d0 in chosen:
         for beat in (f0, -f0):
             # the phase on a grid first (the profile is piecewise smooth in it); the search's
@@ -170,16 +175,57 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
                                     "initial_simplex": [x0, x0 + [0.02, 0, 0], x0 + [0, 0.1 * f_read / L, 0],
                                                         x0 + [0, 0, 0.5 * step]]})
             x = res.x if res.fun <= cands[0][0] else x0
-            val = min(res.fun, cands[0][0])
-            if best is None or val < best[0]:
-                best = (val, x)
-    phase, beat, drift = best[1]
-    # β and β + f_read give the same reads: report it in (−f_read/2, f_read/2]
-    beat = beat - f_read * math.ceil(beat / f_read - 0.5)
-    s = _frac(phase + beat * t + 0.5 * drift * t * t)
-    gain, W, c, m = _profile(b, a, s)
-    return {"beat_hz": float(beat), "phase": float(_frac(phase)), "drift_hz_per_s": float(drift), "width_s": W,
-            "const_s": c, "gain": gain, "mean": m, "cells": int(N * len(drifts))}
+            fits.append((min(res.fun, cands[0][0]), x))
+    fits.sort(key=lambda f: f[0])
+    out = []
+    for _, (phase, beat, drift) in fits:
+        # β and β + f_read give the same reads: report it in (−f_read/2, f_read/2]
+        beat = beat - f_read * math.ceil(beat / f_read - 0.5)
+        s = _frac(phase + beat * t + 0.5 * drift * t * t)
+        gain, W, c, m = _profile(b, a, s)
+        if W <= 0 or any(abs(beat - o["beat_hz"]) < 2 * f_read / L for o in out):
+            continue
+        out.append({"beat_hz": float(beat), "phase": float(_frac(phase)), "drift_hz_per_s": float(drift), "width_s": W,
+                    "const_s": c, "gain": gain, "mean": m, "cells": int(N * len(drifts))})
+    if not out:  # no sawtooth with W > 0 anywhere: the best fit, for the record (rejected by its width)
+        phase, beat, drift = fits[0][1]
+        s = _frac(phase + beat * t + 0.5 * drift * t * t)
+        gain, W, c, m = _profile(b, a, s)
+        out.append({"beat_hz": float(beat - f_read * math.ceil(beat / f_read - 0.5)), "phase": float(_frac(phase)),
+                    "drift_hz_per_s": float(drift), "width_s": W, "const_s": c, "gain": gain, "mean": m,
+                    "cells": int(N * len(drifts))})
+    return out if candidates else out[0]
+
+
+#: refined peaks the stage weighs against the random timing (the rest rank lower on the white gain)
+_N_STAGE = 6
+
+
+def _rank(est) -> tuple:
+    """The order of rejected candidates (the one kept for the record): physical width first, then the
+    evidence over the best AR(1) instant error."""
+    return (WIDTH_RANGE_S[0] <= est["width_s"] <= WIDTH_RANGE_S[1], est["evidence_vs_wander"])
+
+
+def _versus_wander(est, a, b, t, steps, dt, rr, n_obs, w0, g_none) -> dict:
+    """``est`` (one :func:`estimate_clock` candidate) with its width and offset by GLS under the
+    no-clock wander ``w0`` and its two evidences (module docstring) added; ``mean`` removed."""
+    mean = est.pop("mean")
+    if w0["sigma"] > 0:
+        # the sawtooth's width and offset again by GLS under the wander's covariance: fitted
+        # under white noise they would claim what the wander explains and lose against it
+        s_t = _frac(est["phase"] + est["beat_hz"] * t + 0.5 * est["drift_hz_per_s"] * t * t)
+        mean, est["width_s"], est["const_s"] = _gls_mean(a, b, steps, s_t, w0)
+    # the clock's mean timing taken off: b' = b − a m, Σ r̃'² = Σ r̃² − 2Σbm + Σam²
+    b2 = b - a * mean
+    rr2 = max(rr - 2 * float(b @ mean) + float(a @ (mean * mean)), 1e-12)
+    g_clock = _white_loglik(rr2, n_obs)
+    w1 = fit_wander(a, b2, steps, sigma_max=dt, rr=rr2, n=n_obs)
+    est.update({"evidence": 2 * (g_clock - g_none),
+                "evidence_vs_wander": 2 * ((g_clock + w1["gain"]) - (g_none + w0["gain"])),
+                "wander_before": {"sigma_s": w0["sigma"], "rho": w0["rho"], "evidence": w0["evidence"]},
+                "wander_after": {"sigma_s": w1["sigma"], "rho": w1["rho"], "evidence": w1["evidence"]}})
+    return est
 
 
 def _gls_mean(a, b, steps, s_t, wander: dict) -> tuple[np.ndarray, float, float]:
@@ -246,29 +292,27 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
             continue
         a_t, b_t, rr, n_obs = jitter_ab(prep, fit, k, "gyro", with_residual_power=True)
         a, b = a_t.numpy(), b_t.numpy()
-        est = estimate_clock(t, a, b, f_read)
-        mean = est.pop("mean")
         w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
-        if w0["sigma"] > 0:
-            # the sawtooth's width and offset again by GLS under the wander's covariance: fitted
-            # under white noise they would claim what the wander explains and lose against it
-            s_t = _frac(est["phase"] + est["beat_hz"] * t + 0.5 * est["drift_hz_per_s"] * t * t)
-            mean, est["width_s"], est["const_s"] = _gls_mean(a, b, steps, s_t, w0)
-        # the clock's mean timing taken off: b' = b − a m, Σ r̃'² = Σ r̃² − 2Σbm + Σam²
-        b2 = b - a * mean
-        rr2 = max(rr - 2 * float(b @ mean) + float(a @ (mean * mean)), 1e-12)
-        g_none, g_clock = _white_loglik(rr, n_obs), _white_loglik(rr2, n_obs)
-        w1 = fit_wander(a, b2, steps, sigma_max=dt, rr=rr2, n=n_obs)
-        est.update({"imu": k, "evidence": 2 * (g_clock - g_none),
-                    "evidence_vs_wander": 2 * ((g_clock + w1["gain"]) - (g_none + w0["gain"])),
-                    "wander_before": {"sigma_s": w0["sigma"], "rho": w0["rho"], "evidence": w0["evidence"]},
-                    "wander_after": {"sigma_s": w1["sigma"], "rho": w1["rho"], "evidence": w1["evidence"]},
-                    "f_read_hz": f_read})
+        g_none = _white_loglik(rr, n_obs)
+        cands = estimate_clock(t, a, b, f_read, candidates=True)[:_N_STAGE]
         if thr is None:
             n_imu = int(np.asarray(prep.has_gyro).sum())
-            thr = max(threshold, float(chi2.isf(alpha / max(n_imu * est["cells"], 1), 4)))
-        est["accepted"] = bool(est["evidence"] > thr and est["evidence_vs_wander"] > thr
-                               and WIDTH_RANGE_S[0] <= est["width_s"] <= WIDTH_RANGE_S[1])
+            thr = max(threshold, float(chi2.isf(alpha / max(n_imu * cands[0]["cells"], 1), 4)))
+        est = None
+        for cand in cands:
+            cand = _versus_wander(cand, a, b, t, steps, dt, rr, n_obs, w0, g_none)
+            cand["accepted"] = bool(cand["evidence"] > thr and cand["evidence_vs_wander"] > thr
+                                    and WIDTH_RANGE_S[0] <= cand["width_s"] <= WIDTH_RANGE_S[1])
+            # the best white gain that passes; the next peak only where it does not: on reads slower
+            # than twice the vibration, slow motion-frequency lines in b (a wander explains them)
+            # outrank the beat on the white gain.  Ranking every peak by its evidence over the
+            # wander instead would trade a slow true beat (partly a wander) for a faster line
+            if cand["accepted"]:
+                est = cand
+                break
+            if est is None or _rank(cand) > _rank(est):
+                est = cand
+        est.update({"imu": k, "f_read_hz": f_read})
         fits.append(est)
         if est["accepted"]:
             f_int = f_read * round(NOMINAL_INTERNAL_RATE_HZ / f_read) + est["beat_hz"]
