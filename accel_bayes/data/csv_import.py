@@ -15,10 +15,12 @@ What the importer does, and why:
 * **One time base.**  IMUs at the reference's rate are put on the reference IMU's stamps (each
   contributes its nearest sample within a tolerance, default a quarter of the reference's median
   sample period; its own stamp minus ``time`` is kept in ``imu_time_offset``).  IMUs at
-  different rates (``time_base="auto"`` decides by the median sample periods, which must agree
-  within :data:`~accel_bayes.data.csv_timebase.SAME_RATE_REL`) are not resampled and lose no
-  sample: ``time`` is the sorted union of every IMU's stamps, NaN where an IMU has no sample
-  (DESIGN §7.1), ``imu_time_offset`` 0 where it has one.  In both, stamps outside the span every
+  different rates (median sample periods further apart than
+  :data:`~accel_bayes.data.csv_timebase.SAME_RATE_REL`) are not resampled and lose no sample:
+  ``time`` is the sorted union of every IMU's stamps, NaN where an IMU has no sample (DESIGN
+  §7.1), ``imu_time_offset`` 0 where it has one; the rigid-board plausibility check, which
+  compares IMUs at one instant, is not run, and the gyro-unit check compares each IMU's nearest
+  sample to the reference's stamps.  On the reference's stamps, stamps outside the span every
   IMU covers (IMUs that start or stop at slightly different times) are dropped and counted.
 * **Noise**: with ``noise="rests"`` (default) the rests are found and the noise std estimated
   from them exactly as :mod:`accel_bayes.data.mimu` does (:func:`accel_bayes.data.segments.analyse_static`);
@@ -50,7 +52,7 @@ from ..constants import DEG_TO_RAD, G0
 from ..errors import UserError
 from .csv_description import SENSORS, ArraySpec, ImuSpec, read_array_description
 from .csv_read import ASL_COLUMNS, ImuStream, read_asl_imu, read_wide_csv
-from .csv_timebase import align_streams
+from .csv_timebase import align_streams, median_period_ns, nearest_index, rates_agree, union_streams
 from .outputs import to_jsonable
 from .recording import Recording
 from .segments import analyse_static, segment_labels
@@ -137,28 +139,18 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
         streams = read_wide_csv(source, spec)
     warns = apply_t_bs(spec, streams)
 
-    ref_period = np.median(np.diff(streams[ref].stamps_ns)) if streams[ref].stamps_ns.size > 1 else 0
-    if time_tolerance is None:
-        tol_ns = int(ref_period // 4)
-    else:
-        if not (time_tolerance >= 0 and math.isfinite(time_tolerance)):
-            raise UserError(f"--time-tolerance: expected a non-negative number of seconds, got {time_tolerance}")
-        tol_ns = int(round(time_tolerance * 1e9))
-    base, index, rows = align_streams(streams, ref, tol_ns)
-    T = base.size
-    # Integer differences first; only the differences become float seconds.
-    time = (base - base[0]).astype(np.float64) / 1e9
-    offsets_ns = np.stack([streams[k].stamps_ns[index[:, k]] - base for k in range(K)], -1)
-    offsets = offsets_ns.astype(np.float64) / 1e9 if np.any(offsets_ns) else None
+    tb = _time_base(streams, ref, time_tolerance)
+    time, present, T = tb.time, tb.present, tb.time.size
 
     acc = np.full((T, K, 3), np.nan)
     any_gyro = any(s.has_gyro for s in spec.imus)
     gyro = np.full((T, K, 3), np.nan) if any_gyro else None
     for k, (s, st) in enumerate(zip(spec.imus, streams)):
+        rows_k, idx = present[:, k], tb.index[present[:, k], k]
         if st.acc is not None:
-            acc[:, k] = st.acc[index[:, k]]
+            acc[rows_k, k] = st.acc[idx]
         if st.gyro is not None:
-            gyro[:, k] = st.gyro[index[:, k]]
+            gyro[rows_k, k] = st.gyro[idx]
 
     # Clipping from the stated ranges (per IMU, else the array's).
     def ranges(kind):
@@ -169,7 +161,12 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     acc_clipped = None if np.isnan(acc_r).all() else (np.abs(acc) >= acc_r[None, :, None]).any(-1)
     gyro_clipped = None if gyro is None or np.isnan(gyro_r).all() else (np.abs(gyro) >= gyro_r[None, :, None]).any(-1)
 
-    acc_flagged, gyro_flagged, mark_lines = _plausibility_marks(spec, acc, gyro, time, acc_r, gyro_r)
+    if tb.union:
+        # The rigid-board check compares IMUs at one instant; at different rates they share none.
+        acc_flagged = gyro_flagged = None
+        mark_lines = ["plausibility (rigid board): IMUs at different rates share no instants, not checked"]
+    else:
+        acc_flagged, gyro_flagged, mark_lines = _plausibility_marks(spec, acc, gyro, time, acc_r, gyro_r)
 
     def common(r, present):
         r = r[present]
@@ -186,7 +183,8 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
             if math.isfinite(getattr(s, f"{kind}_noise_std")):
                 v[k], frm[k] = getattr(s, f"{kind}_noise_std"), "description"
             elif yk in st.sensor_yaml:
-                rate = st.sensor_yaml.get("rate_hz", 1e9 / ref_period if ref_period else math.nan)
+                # the IMU's own rate: at mixed rates the reference's would be wrong by up to 2x in σ
+                rate = st.sensor_yaml.get("rate_hz", 1e9 / tb.periods_ns[k] if tb.periods_ns[k] > 0 else math.nan)
                 v[k], frm[k] = st.sensor_yaml[yk] * math.sqrt(rate), "sensor.yaml density·√rate"
         stated[kind], stated_from[kind] = v, frm
 
@@ -228,12 +226,17 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     rate_hz = streams[ref].sensor_yaml.get("rate_hz")
     if rate_hz is not None:
         attrs["rate_hz"] = float(rate_hz)  # the stated rate, for densities in the export
+    own_rates = [s.sensor_yaml.get("rate_hz") for s in streams]
+    if any(r is not None for r in own_rates):
+        attrs["imu_rate_hz"] = to_jsonable(own_rates, nonfinite="null")  # per IMU, for the export's densities
     if any_gyro and check_gyro_units:
         from .validation import gyro_unit_diagnostics
 
         probe = Recording(time=time, acc=acc, gyro=gyro, nominal_position=np.stack([s.position for s in spec.imus]),
                           nominal_orientation=quat, acc_noise_std=final["acc"], gyro_noise_std=final["gyro"],
                           acc_clipped=acc_clipped, gyro_clipped=gyro_clipped, segment=segment)
+        if tb.union:
+            probe = _on_reference_stamps(probe, tb, ref)
         d = gyro_unit_diagnostics(probe)
         if d["flag"]:
             raise UserError(_gyro_unit_refusal(d["flag"], acc, gyro, spec))
@@ -249,27 +252,19 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
             attrs[f"{kind}_range_per_imu"] = to_jsonable(np.asarray(r, dtype=np.float64), nonfinite="null")
 
     files = ", ".join(str(s.file) for s in streams) if layout == "ASL" else str(source)
-    source_text = (f"CSV import ({layout}) of {files}; array description {spec.path}; time base = stamps of the "
-                   f"reference IMU {spec.labels[ref]!r} (integer ns), others matched to the nearest sample within "
-                   f"{tol_ns / 1e6:g} ms; {noise_phrase}; imported by accel_bayes.data.csv_import")
+    source_text = (f"CSV import ({layout}) of {files}; array description {spec.path}; time base = {tb.how}; "
+                   f"{noise_phrase}; imported by accel_bayes.data.csv_import")
     rec = Recording(
         time=time, acc=acc, gyro=gyro,
         nominal_position=np.stack([s.position for s in spec.imus]), nominal_orientation=quat,
         acc_noise_std=final["acc"], gyro_noise_std=final["gyro"],
         acc_clipped=acc_clipped, gyro_clipped=gyro_clipped, acc_flagged=acc_flagged, gyro_flagged=gyro_flagged,
-        segment=segment, imu_time_offset=offsets,
+        segment=segment, imu_time_offset=tb.offsets,
         reference_imu=ref,
         acc_range=common(acc_r, has_acc), gyro_range=common(gyro_r, has_gyro) if any_gyro else None,
         description=spec.description or f"CSV import of {source.name}", source=source_text, attrs=attrs,
     )
-    head = [f"layout: {layout}, {K} IMUs, {T} samples on the time base of {spec.labels[ref]!r} "
-            f"(tolerance {tol_ns / 1e6:g} ms)"]
-    if rows and rows[0]["dropped_ends"]:
-        head.append(f"dropped {rows[0]['dropped_ends']} reference stamps outside the span every IMU covers")
-    for r in rows:
-        head.append(f"IMU {r['label']}: {r['samples']} samples read, {r['used']} used, worst stamp mismatch "
-                    f"{r['worst_ns'] / 1e6:.6g} ms, median offset {r['median_ns'] / 1e6:.6g} ms")
-    lines = head + lines
+    lines = [f"layout: {layout}, {K} IMUs, {T} samples; time base = {tb.how}"] + tb.lines + lines
     lines.append(f"noise std: acc {_fmt(final['acc'])} m/s², gyro {_fmt(final['gyro'])} rad/s "
                  f"({noise_phrase})")  # rad/s, as `info` prints it
     for kind, m in (("acc", acc_clipped), ("gyro", gyro_clipped)):
@@ -304,6 +299,70 @@ def _gyro_unit_refusal(flag: str, acc, gyro, spec: ArraySpec) -> str:
     return (f"{evidence}; likely causes: {'; '.join(causes)}; if the gyro values are rad/s, import with "
             "--skip-gyro-unit-check")
 
+
+
+@dataclass
+class _TimeBase:
+    """The recording's time axis and where each IMU's samples go on it."""
+
+    time: np.ndarray  # (T,) s from the first stamp of the time base
+    index: np.ndarray  # (T, K) into each stream (−1: no sample)
+    present: np.ndarray  # (T, K) bool
+    offsets: np.ndarray | None  # (T, K) s, imu_time_offset, or None when all zero
+    periods_ns: list  # each IMU's median stamp step
+    union: bool
+    how: str  # for ``source``
+    lines: list  # for the import report
+
+
+def _time_base(streams, ref: int, time_tolerance: float | None) -> _TimeBase:
+    """The reference's stamps when every IMU runs at its rate, else the union of all stamps
+    (module docstring, :mod:`accel_bayes.data.csv_timebase`)."""
+    K = len(streams)
+    periods = [median_period_ns(s.stamps_ns) for s in streams]
+    if time_tolerance is not None and not (time_tolerance >= 0 and math.isfinite(time_tolerance)):
+        raise UserError(f"--time-tolerance: expected a non-negative number of seconds, got {time_tolerance}")
+    if not rates_agree(streams, ref):
+        base, index, rows = union_streams(streams)
+        present = index >= 0
+        offsets = np.where(present, 0.0, np.nan)  # §7.1: the IMU's own stamp is the union stamp where it has one
+        rates = ", ".join(f"{r['rate_hz']:.4g}" for r in rows)
+        how = (f"the union of the IMUs' own stamps (integer ns; rates {rates} Hz), every sample kept, NaN where an "
+               "IMU has none (DESIGN 7.1)")
+        lines = [f"IMU {r['label']}: {r['samples']} samples read, {r['used']} kept, {r['rate_hz']:.6g} Hz" for r in rows]
+        return _TimeBase((base - base[0]).astype(np.float64) / 1e9, index, present, offsets, periods, True, how, lines)
+    p0 = periods[ref] if periods[ref] > 0 else 0
+    tol_ns = int(p0 // 4) if time_tolerance is None else int(round(time_tolerance * 1e9))
+    base, index, rows = align_streams(streams, ref, tol_ns)
+    # Integer differences first; only the differences become float seconds.
+    offsets_ns = np.stack([streams[k].stamps_ns[index[:, k]] - base for k in range(K)], -1)
+    offsets = offsets_ns.astype(np.float64) / 1e9 if np.any(offsets_ns) else None
+    how = (f"stamps of the reference IMU {streams[ref].label!r} (integer ns), others matched to the nearest sample "
+           f"within {tol_ns / 1e6:g} ms")
+    lines = []
+    if rows and rows[0]["dropped_ends"]:
+        lines.append(f"dropped {rows[0]['dropped_ends']} reference stamps outside the span every IMU covers")
+    lines += [f"IMU {r['label']}: {r['samples']} samples read, {r['used']} used, worst stamp mismatch "
+              f"{r['worst_ns'] / 1e6:.6g} ms, median offset {r['median_ns'] / 1e6:.6g} ms" for r in rows]
+    return _TimeBase((base - base[0]).astype(np.float64) / 1e9, index, np.ones(index.shape, bool), offsets, periods,
+                     False, how, lines)
+
+
+def _on_reference_stamps(rec: Recording, tb: _TimeBase, ref: int) -> Recording:
+    """``rec`` (a union of stamps) resampled to the reference IMU's stamps by nearest sample: for
+    the gyro-unit check only, which compares IMUs at one instant.  Offsets of up to half a
+    reference period do not matter there: it tells factors of 57 apart."""
+    rows = np.flatnonzero(tb.present[:, ref])
+    t_ns = np.round(tb.time * 1e9).astype(np.int64)
+    pick = np.stack([np.flatnonzero(tb.present[:, k])[nearest_index(t_ns[tb.present[:, k]], t_ns[rows])]
+                     for k in range(tb.present.shape[1])], -1)  # (T_ref, K) union rows
+    cols = np.arange(pick.shape[1])[None, :]
+    take = lambda x: None if x is None else np.asarray(x)[pick, cols]  # noqa: E731
+    return Recording(time=tb.time[rows], acc=take(rec.acc), gyro=take(rec.gyro), nominal_position=rec.nominal_position,
+                     nominal_orientation=rec.nominal_orientation, acc_noise_std=rec.acc_noise_std,
+                     gyro_noise_std=rec.gyro_noise_std, acc_clipped=take(rec.acc_clipped),
+                     gyro_clipped=take(rec.gyro_clipped),
+                     segment=None if rec.segment is None else np.asarray(rec.segment)[rows])
 
 
 def _imu_folder(source: Path, label: str) -> Path:

@@ -1,8 +1,11 @@
 """One time base for the IMUs of a CSV import (DESIGN §7.1).
 
-:func:`align_streams` puts IMUs that share the reference's rate on the reference IMU's stamps:
-each contributes, at every reference stamp, its sample with the nearest stamp within a
-tolerance, and its own stamp minus ``time`` becomes ``imu_time_offset``.
+* :func:`align_streams` puts IMUs that share the reference's rate on the reference IMU's stamps:
+  each contributes, at every reference stamp, its sample with the nearest stamp within a
+  tolerance, and its own stamp minus ``time`` becomes ``imu_time_offset``.
+* :func:`union_streams` is for IMUs at different rates (:func:`rates_agree` false): the time
+  base is the sorted union of every IMU's stamps and each IMU keeps every sample, NaN where it
+  has none — matching a 400 Hz IMU to a 125 Hz reference would throw away 69 % of its samples.
 """
 from __future__ import annotations
 
@@ -11,7 +14,62 @@ import numpy as np
 from ..errors import UserError
 from .csv_read import ImuStream
 
-__all__ = ["align_streams"]
+__all__ = ["align_streams", "union_streams", "rates_agree", "median_period_ns", "nearest_index", "SAME_RATE_REL"]
+
+# Median sample periods that differ by more than this fraction mean different rates.  Clock
+# drifts are ~1e-4 and EuRoC's stamp steps differ by 4e-5, while the nearest distinct rates an
+# IMU offers (e.g. 100 / 104 Hz) differ by 4 %.
+SAME_RATE_REL = 0.01
+
+
+def median_period_ns(stamps_ns: np.ndarray) -> float:
+    """Median step of integer-ns stamps (ns); NaN for fewer than two stamps."""
+    return float(np.median(np.diff(stamps_ns))) if stamps_ns.size > 1 else float("nan")
+
+
+def rates_agree(streams: list[ImuStream], reference: int) -> bool:
+    """True when every IMU's median sample period is within :data:`SAME_RATE_REL` of the
+    reference's (an IMU with a single sample has no rate and agrees)."""
+    p0 = median_period_ns(streams[reference].stamps_ns)
+    ps = [median_period_ns(s.stamps_ns) for s in streams]
+    return all(not (p > 0) or not (p0 > 0) or abs(p / p0 - 1.0) <= SAME_RATE_REL for p in ps)
+
+
+def nearest_index(stamps_ns: np.ndarray, base_ns: np.ndarray) -> np.ndarray:
+    """Index into ``stamps_ns`` (sorted) of the stamp nearest to each of ``base_ns``, compared in
+    integers (a tie goes to the earlier stamp)."""
+    st = stamps_ns
+    if st.size < 2:
+        return np.zeros(base_ns.size, np.int64)
+    j = np.clip(np.searchsorted(st, base_ns), 1, st.size - 1)
+    left_closer = (base_ns - st[j - 1]) <= (st[j] - base_ns)
+    return np.where(left_closer, j - 1, j)
+
+
+def union_streams(streams: list[ImuStream]):
+    """The sorted union of the IMUs' stamps as the time base; every sample kept.
+
+    Returns ``(base_ns (T,), index (T, K) into each stream, −1 where the IMU has no sample at
+    that stamp, rows)``, ``rows`` one dict per IMU with ``label``, ``samples``, ``used`` (=
+    ``samples``) and ``rate_hz`` (from the median step).  Raises :class:`UserError` when the
+    IMUs' recordings do not overlap in time (then they are not one recording).
+    """
+    lo = max(int(s.stamps_ns[0]) for s in streams)
+    hi = min(int(s.stamps_ns[-1]) for s in streams)
+    if lo > hi:
+        late = max(range(len(streams)), key=lambda k: int(streams[k].stamps_ns[0]))
+        raise UserError(f"{streams[late].file}: IMU {streams[late].label!r} starts at {lo} ns, after another IMU's last "
+                        f"stamp ({hi} ns); expected the IMUs' recordings to overlap in time")
+    base = np.unique(np.concatenate([s.stamps_ns for s in streams]))
+    index = np.full((base.size, len(streams)), -1, dtype=np.int64)
+    rows = []
+    for k, s in enumerate(streams):
+        # stamps are strictly increasing per file (csv_read), so each lands on its own union slot
+        index[np.searchsorted(base, s.stamps_ns), k] = np.arange(s.stamps_ns.size)
+        p = median_period_ns(s.stamps_ns)
+        rows.append({"label": s.label, "samples": int(s.stamps_ns.size), "used": int(s.stamps_ns.size),
+                     "rate_hz": 1e9 / p if p > 0 else float("nan")})
+    return base, index, rows
 
 
 def align_streams(streams: list[ImuStream], reference: int, tolerance_ns: int):
@@ -37,11 +95,7 @@ def align_streams(streams: list[ImuStream], reference: int, tolerance_ns: int):
     rows = []
     for k, s in enumerate(streams):
         st = s.stamps_ns
-        j = np.clip(np.searchsorted(st, base), 1, st.size - 1) if st.size > 1 else np.zeros(base.size, np.int64)
-        if st.size > 1:
-            # Nearest of the two neighbours, compared in integers.
-            left_closer = (base - st[j - 1]) <= (st[j] - base)
-            j = np.where(left_closer, j - 1, j)
+        j = nearest_index(st, base)
         off = st[j] - base
         bad = np.flatnonzero(np.abs(off) > tolerance_ns)
         if bad.size:

@@ -1,0 +1,154 @@
+"""Multi-rate rigs through ``import-csv`` (issue #28, item 1: "IMUs may run at different rates").
+
+The rigs come from the independent generator (``experiments.clockgen``: exact kinematics, each
+IMU on its own clock and rate, stamp jitter, bias random walks); each IMU's own samples are
+written as an ASL folder (its own stamps, integer ns near EuRoC's epoch) and imported again.
+Before: every IMU was matched to the reference's stamps, so a 125/250/250/400 Hz rig kept only
+the samples nearest the 125 Hz stamps, and a 100/125/400 Hz rig was refused (two 400 Hz samples
+nearest one 100 Hz stamp's neighbours).  Now ``time`` is the union of the stamps (DESIGN §7.1)
+and every sample is kept — counted here — and the rig pipeline calibrates the imported rig.
+"""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from experiments.clockgen import draw_case
+
+from accel_bayes.cli import main
+from accel_bayes.data.csv_import import import_csv, write_imported
+from accel_bayes.data.io import read_recording
+from accel_bayes.data.validation import sample_present
+from accel_bayes.pipelines.rig import is_rig
+
+ASL_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+              "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
+T0_NS = 1403636579758555392  # EuRoC MH_01's first IMU stamp: float64 seconds would lose the ns
+# Seeds of experiments/clockgen's rig draw whose rates are the issue's two rigs (reference first).
+RIGS = {"100/125/400": (136, 3, [100.0, 125.0, 400.0]), "125/250/250/400": (190, 4, [125.0, 250.0, 250.0, 400.0])}
+
+
+def _stamps_ns(rec, k):
+    present = sample_present(rec)[:, k]
+    return T0_NS + np.round(np.asarray(rec.time)[present] * 1e9).astype(np.int64), present
+
+
+def write_rig(rec, folder, sensor_yaml=None):
+    """Each IMU's own samples (only where it has one) as ``folder/imu<k>/data.csv``; values to 17
+    digits, so the import must give them back exactly.  ``sensor_yaml``: text per IMU or None."""
+    for k in range(rec.K):
+        s, present = _stamps_ns(rec, k)
+        rows = [ASL_HEADER]
+        for ns, g, a in zip(s, rec.gyro[present, k], rec.acc[present, k]):
+            rows.append(",".join([str(int(ns))] + [repr(float(v)) for v in (*g, *a)]))
+        d = folder / f"imu{k}"
+        d.mkdir(parents=True)
+        (d / "data.csv").write_text("\n".join(rows) + "\n")
+        if sensor_yaml is not None:
+            (d / "sensor.yaml").write_text(sensor_yaml[k])
+    return folder
+
+
+def write_description(rec, path, noise=True):
+    lines = ['reference_imu = "imu0"']
+    for k in range(rec.K):
+        q = ", ".join(repr(float(v)) for v in rec.nominal_orientation[k])
+        p = ", ".join(repr(float(v)) for v in rec.nominal_position[k])
+        lines += ["[[imu]]", f'label = "imu{k}"', f"position = [{p}]", f"orientation = [{q}]"]
+        if noise:
+            lines += [f"acc_noise_std = {float(rec.acc_noise_std[k])!r}", f"gyro_noise_std = {float(rec.gyro_noise_std[k])!r}"]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module", params=list(RIGS))
+def rig(request):
+    seed, K, rates = RIGS[request.param]
+    rec, truth = draw_case("rig", seed, n_imu=K, duration=10.0)
+    assert list(truth["rate"]) == rates  # the seed still draws the rig this test is about
+    return request.param, rec, truth
+
+
+def test_every_sample_of_every_imu_is_kept(rig, tmp_path):
+    name, rec, truth = rig
+    src = write_rig(rec, tmp_path / "run")
+    res = import_csv(src, write_description(rec, tmp_path / "array.toml"), noise="stated")
+    got = res.recording
+    present = sample_present(got)
+    for k in range(rec.K):
+        own, was = _stamps_ns(rec, k)
+        # every sample of every IMU, at its own stamp, with its own values
+        assert int(present[:, k].sum()) == own.size == len(truth["stamps"][k]), (name, k)
+        np.testing.assert_array_equal(np.round(got.time[present[:, k]] * 1e9).astype(np.int64), own - own.min()
+                                      + (own.min() - min(_stamps_ns(rec, j)[0].min() for j in range(rec.K))))
+        np.testing.assert_array_equal(got.acc[present[:, k], k], rec.acc[was, k])
+        np.testing.assert_array_equal(got.gyro[present[:, k], k], rec.gyro[was, k])
+        assert np.isnan(got.acc[~present[:, k], k]).all()
+    assert got.T == rec.T  # the union of the stamps: no stamp invented, none lost
+    assert np.all(got.imu_time_offset[present] == 0.0) and np.isnan(got.imu_time_offset[~present]).all()
+    kept = [ln for ln in res.lines if ln.startswith("IMU ") and " kept, " in ln]
+    assert [int(ln.split(": ")[1].split()[0]) for ln in kept] == [len(s) for s in truth["stamps"]]
+    assert "union of the IMUs' own stamps" in got.source
+    path = write_imported(res, tmp_path / "rec.nc")
+    back = read_recording(path)
+    assert is_rig(back)  # calibrate goes to the rig model with no flag
+    # the generator's own recording, which the rig pipeline's tests calibrate, up to t0
+    np.testing.assert_allclose(back.time - back.time[0], rec.time - rec.time[0], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(back.acc, rec.acc)
+    np.testing.assert_array_equal(back.gyro, rec.gyro)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed, K", [(7, 2), RIGS["100/125/400"][:2]])
+def test_imported_multirate_rig_calibrates(tmp_path, capsys, seed, K):
+    """Imported with every default (noise from rests where found), calibrated by plain
+    ``calibrate``: the issue's per-rig bounds (lever arm 2 mm, orientation 0.2°, offset 0.5 ms).
+    Seed 7 is tests/pipelines/test_rig_pipeline.py's 125/200 Hz rig (exit 0).  On the
+    100/125/400 Hz rig the rig model's LM stops at its iteration limit (exit 4, the same on the
+    generator's own file: the import changes nothing), still within the bounds.  1–3 min each."""
+    rec, truth = draw_case("rig", seed, n_imu=K, duration=10.0)
+    src = write_rig(rec, tmp_path / "run")
+    rp = tmp_path / "rec.nc"
+    assert main(["import-csv", str(src), "--array", str(write_description(rec, tmp_path / "a.toml")), "-o", str(rp)]) == 0
+    rc = main(["calibrate", str(rp), "--out", str(tmp_path / "cal")])
+    err = capsys.readouterr().err
+    assert "rig model" in err and (rc == 0 or (seed == 136 and rc == 4 and "unconverged (max_iter)" in err)), err
+    doc = json.loads((tmp_path / "cal" / "positions.json").read_text())
+    from tests.pipelines.test_rig_pipeline import _rot_err_deg
+    for k in range(1, K):
+        e = doc["imus"][k]
+        assert np.linalg.norm(np.subtract(e["mean"], truth["position"][k])) < 2e-3
+        assert _rot_err_deg(e["orientation"], truth["orientation"][k]) < 0.2
+        assert abs(e["time_offset"]["mean"] - truth["time_offset"][k]) < 0.5e-3
+
+
+def test_sensor_yaml_density_uses_each_imus_own_rate(tmp_path):
+    """σ = density·√rate with the IMU's own rate where its sensor.yaml states none (before: the
+    reference's rate for every IMU, σ of a 400 Hz IMU √(400/100) = 2× too small)."""
+    seed, K, rates = RIGS["100/125/400"]
+    rec, _ = draw_case("rig", seed, n_imu=K, duration=2.0)
+    ys = ["accelerometer_noise_density: 2.0e-3\ngyroscope_noise_density: 1.7e-4\n"] * K
+    src = write_rig(rec, tmp_path / "run", sensor_yaml=ys)
+    got = import_csv(src, write_description(rec, tmp_path / "a.toml", noise=False), noise="stated").recording
+    for k in range(K):
+        # the median stamp step of a jittered clock is within 0.1 % of the nominal period
+        assert got.acc_noise_std[k] == pytest.approx(2.0e-3 * math.sqrt(rates[k]), rel=1e-3)
+        assert got.gyro_noise_std[k] == pytest.approx(1.7e-4 * math.sqrt(rates[k]), rel=1e-3)
+
+
+def test_same_rate_imus_still_share_the_reference_stamps(tmp_path):
+    """Rates within 1 %: the old time base (nearest sample on the reference's stamps), no NaN."""
+    seed, K, _ = RIGS["100/125/400"]
+    rec, _ = draw_case("rig", seed, n_imu=K, duration=2.0)
+    one = rec.copy()
+    p0 = sample_present(rec)[:, 0]
+    for name in ("acc", "gyro"):
+        x = getattr(one, name)[p0]
+        x[:, 1:] = x[:, :1] + 0.0  # every IMU at the reference's instants
+        setattr(one, name, x)
+    one.time, one.acc_clipped, one.gyro_clipped, one.imu_time_offset = one.time[p0], None, None, None
+    src = write_rig(one, tmp_path / "run")
+    got = import_csv(src, write_description(one, tmp_path / "a.toml"), noise="stated",
+                     check_gyro_units=False).recording
+    assert got.T == int(p0.sum()) and np.isfinite(got.acc).all() and got.imu_time_offset is None
