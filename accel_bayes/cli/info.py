@@ -48,6 +48,9 @@ def _run(args) -> int:
     if "sample_rate_hz" in s:
         lines.append(f"sample rate:     {s['sample_rate_hz']:.6g} Hz (median step {s['dt_median_s'] * 1e3:.6g} ms; "
                      f"jitter std {_us(s['dt_jitter_std_s'])}, max |Δt − median| {_us(s['dt_max_dev_s'])})")
+    if "imu_sample_rate_hz" in s:
+        lines.append(f"IMU rates:       {', '.join(f'{r:.6g}' for r in s['imu_sample_rate_hz'])} Hz (multi-rate: time is "
+                     "the union of the IMUs' stamps, NaN where an IMU has none; the line above is the union's)")
     lines.append(f"IMUs K:          {s['imus']} ({s['imus_with_acc']} with accelerometer, {s['imus_with_gyro']} with gyroscope)")
     lines.append(f"reference IMU:   {s['reference_imu']}")
     lines.append(f"acc noise std:   {std_text(rec.acc_noise_std, has_a, 'm/s²')}")

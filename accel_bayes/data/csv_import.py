@@ -54,7 +54,7 @@ from .csv_description import SENSORS, ArraySpec, ImuSpec, read_array_description
 from .csv_read import ASL_COLUMNS, ImuStream, read_asl_imu, read_wide_csv
 from .csv_timebase import align_streams, median_period_ns, nearest_index, rates_agree, union_streams
 from .outputs import to_jsonable
-from .recording import Recording
+from .recording import Recording, stamp_rate
 from .segments import analyse_static, segment_labels
 from .sensor_yaml import apply_t_bs, read_sensor_yaml
 
@@ -184,7 +184,7 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
                 v[k], frm[k] = getattr(s, f"{kind}_noise_std"), "description"
             elif yk in st.sensor_yaml:
                 # the IMU's own rate: at mixed rates the reference's would be wrong by up to 2x in σ
-                rate = st.sensor_yaml.get("rate_hz", 1e9 / tb.periods_ns[k] if tb.periods_ns[k] > 0 else math.nan)
+                rate = st.sensor_yaml.get("rate_hz", stamp_rate((st.stamps_ns - st.stamps_ns[0]) / 1e9))
                 v[k], frm[k] = st.sensor_yaml[yk] * math.sqrt(rate), "sensor.yaml density·√rate"
         stated[kind], stated_from[kind] = v, frm
 
@@ -309,7 +309,6 @@ class _TimeBase:
     index: np.ndarray  # (T, K) into each stream (−1: no sample)
     present: np.ndarray  # (T, K) bool
     offsets: np.ndarray | None  # (T, K) s, imu_time_offset, or None when all zero
-    periods_ns: list  # each IMU's median stamp step
     union: bool
     how: str  # for ``source``
     lines: list  # for the import report
@@ -319,7 +318,6 @@ def _time_base(streams, ref: int, time_tolerance: float | None) -> _TimeBase:
     """The reference's stamps when every IMU runs at its rate, else the union of all stamps
     (module docstring, :mod:`accel_bayes.data.csv_timebase`)."""
     K = len(streams)
-    periods = [median_period_ns(s.stamps_ns) for s in streams]
     if time_tolerance is not None and not (time_tolerance >= 0 and math.isfinite(time_tolerance)):
         raise UserError(f"--time-tolerance: expected a non-negative number of seconds, got {time_tolerance}")
     if not rates_agree(streams, ref):
@@ -330,8 +328,9 @@ def _time_base(streams, ref: int, time_tolerance: float | None) -> _TimeBase:
         how = (f"the union of the IMUs' own stamps (integer ns; rates {rates} Hz), every sample kept, NaN where an "
                "IMU has none (DESIGN 7.1)")
         lines = [f"IMU {r['label']}: {r['samples']} samples read, {r['used']} kept, {r['rate_hz']:.6g} Hz" for r in rows]
-        return _TimeBase((base - base[0]).astype(np.float64) / 1e9, index, present, offsets, periods, True, how, lines)
-    p0 = periods[ref] if periods[ref] > 0 else 0
+        return _TimeBase((base - base[0]).astype(np.float64) / 1e9, index, present, offsets, True, how, lines)
+    p0 = median_period_ns(streams[ref].stamps_ns)
+    p0 = p0 if p0 > 0 else 0
     tol_ns = int(p0 // 4) if time_tolerance is None else int(round(time_tolerance * 1e9))
     base, index, rows = align_streams(streams, ref, tol_ns)
     # Integer differences first; only the differences become float seconds.
@@ -344,7 +343,7 @@ def _time_base(streams, ref: int, time_tolerance: float | None) -> _TimeBase:
         lines.append(f"dropped {rows[0]['dropped_ends']} reference stamps outside the span every IMU covers")
     lines += [f"IMU {r['label']}: {r['samples']} samples read, {r['used']} used, worst stamp mismatch "
               f"{r['worst_ns'] / 1e6:.6g} ms, median offset {r['median_ns'] / 1e6:.6g} ms" for r in rows]
-    return _TimeBase((base - base[0]).astype(np.float64) / 1e9, index, np.ones(index.shape, bool), offsets, periods,
+    return _TimeBase((base - base[0]).astype(np.float64) / 1e9, index, np.ones(index.shape, bool), offsets,
                      False, how, lines)
 
 

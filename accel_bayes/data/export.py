@@ -15,7 +15,8 @@ and both random walks > 0 for every IMU, OpenVINS those of ``imu0`` (a missing n
 Random walks come from the rests (:mod:`accel_bayes.data.allan`, when the static stretches give
 them to ±25 % from a rest of at least 20 crossover times), else from the recording (the array description's ``acc_random_walk`` /
 ``gyro_random_walk`` or sensor.yaml's, stored at import); else the export is refused naming the
-key.  Noise densities use the stated rate (:func:`nominal_rate`).
+key.  Noise densities and ``update_rate`` use each IMU's own rate (:func:`nominal_rate`): the
+stated one, else that of its own stamps — a multi-rate rig's IMUs each get theirs.
 
 Frames and conventions (also written into the file's comments)
 ----------------------------------------------------------------
@@ -80,11 +81,11 @@ from ..errors import UserError
 from ..physics.geometry import quat_to_matrix
 from .allan import RELATIVE_SE_MAX, allan_random_walk, static_runs
 from .mismatch_report import validate_report
-from .recording import Recording
-from .validation import is_multirate
+from .recording import Recording, stamp_rate
+from .validation import is_multirate, sample_present
 
 __all__ = ["FORMATS", "imu_chain", "kalibr_imu_files", "t_i_b", "openvins_acc_intrinsics",
-           "gyro_intrinsics_from_report", "export_order", "nominal_rate", "random_walks"]
+           "gyro_intrinsics_from_report", "export_order", "nominal_rate", "imu_stamps", "random_walks"]
 
 FORMATS = ("kalibr", "openvins", "kalibr-imu")
 AXES = ("x", "y", "z")
@@ -183,27 +184,40 @@ def export_order(K: int, ref: int) -> list[int]:
     return [ref] + [k for k in range(K) if k != ref]
 
 
-def nominal_rate(recording: Recording) -> tuple[float, str]:
-    """(rate, Hz; how it was obtained).  The stated rate where the recording carries one
-    (``rate_hz``, from sensor.yaml at import), else the median stamp rate rounded to 3
-    significant figures: stamps jitter by a few µs, so the median of a 200 Hz recording reads
-    200.0013 Hz, and a density computed from it reads 0.0019999872 for a stated 2.0e-3; the
-    rounding changes a density by at most 0.25 %, far below its own uncertainty."""
-    stated = recording.attrs.get("rate_hz")
+def imu_stamps(recording: Recording, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, stamps s) of IMU k's own samples: the rows where it has one (DESIGN §7.1: a
+    multi-rate recording is NaN elsewhere) and ``time`` plus its ``imu_time_offset`` there."""
+    rows = np.flatnonzero(sample_present(recording)[:, k])
+    s = np.asarray(recording.time, dtype=np.float64)[rows]
+    if recording.imu_time_offset is not None:
+        s = s + np.nan_to_num(np.asarray(recording.imu_time_offset, dtype=np.float64)[rows, k])
+    return rows, s
+
+
+def nominal_rate(recording: Recording, k: int | None = None) -> tuple[float, str]:
+    """(rate, Hz; how it was obtained) of IMU ``k`` (default the reference IMU): its stated rate
+    where the recording carries one (``imu_rate_hz[k]``, or ``rate_hz`` for an IMU of a single-rate
+    recording — sensor.yaml's, at import), else the rate of its own stamps
+    (:func:`~accel_bayes.data.recording.stamp_rate`).  Each IMU of a multi-rate rig has its own."""
+    k = int(recording.reference_imu) if k is None else int(k)
+    per = recording.attrs.get("imu_rate_hz")
+    stated = per[k] if isinstance(per, list) and len(per) == recording.K else None
+    if stated is None and not is_multirate(recording):
+        stated = recording.attrs.get("rate_hz")
     if isinstance(stated, (int, float)) and not isinstance(stated, bool) and math.isfinite(stated) and stated > 0:
         return float(stated), "stated (sensor.yaml rate_hz)"
-    rate = recording.sample_rate
+    rate = stamp_rate(imu_stamps(recording, k)[1])
     if not (rate > 0 and math.isfinite(rate)):
-        raise UserError("recording.time: expected at least two samples to give a sample rate")
-    r = float(f"{rate:.3g}")
-    return r, f"median stamp rate {rate:.7g} Hz rounded to 3 significant figures"
+        raise UserError(f"recording.time: IMU {k} has fewer than two samples; expected its stamps to give a sample rate")
+    return rate, "mean rate of its own stamps"
 
 
 _RW_KEYS = {"acc": ("accelerometer_random_walk", "m/s^3/sqrt(Hz)"), "gyro": ("gyroscope_random_walk", "rad/s^2/sqrt(Hz)")}
 
 
-def random_walks(recording: Recording, rate: float, imus=None, required=None) -> dict:
+def random_walks(recording: Recording, rate, imus=None, required=None) -> dict:
     """Bias random walk per IMU and sensor: ``{(k, "acc"|"gyro"): (K, std or None, source)}``.
+    ``rate``: Hz, one for all IMUs or one per IMU (each IMU's rests are read on its own stamps).
 
     From the rests (:func:`accel_bayes.data.allan.allan_random_walk`) where the recording's
     static stretches give K̂ to within :data:`~accel_bayes.data.allan.RELATIVE_SE_MAX`; else from
@@ -214,21 +228,32 @@ def random_walks(recording: Recording, rate: float, imus=None, required=None) ->
     K = recording.K
     imus = list(range(K) if imus is None else imus)
     required = set(imus if required is None else required)
-    runs = []
-    if recording.segment is not None:
+    rates = np.broadcast_to(np.asarray(rate, dtype=np.float64), (K,))
+
+    def rests(k):
+        """(rows of IMU k's own samples, static runs in them): each IMU on its own stamps."""
+        rows, s = imu_stamps(recording, k)
+        if recording.segment is None:
+            return rows, []
+        seg = np.asarray(recording.segment)[rows]
         # A stretch must be evenly sampled: split it where a stamp gap exceeds 1.5 periods.
-        gap = np.flatnonzero(np.diff(recording.time) > 1.5 / rate) + 1
-        for a, b in static_runs(recording.segment):
+        gap = np.flatnonzero(np.diff(s) > 1.5 / rates[k]) + 1
+        runs = []
+        for a, b in static_runs(seg):
             cuts = [a] + [int(g) for g in gap if a < g < b] + [b]
             runs += [(c0, c1) for c0, c1 in zip(cuts[:-1], cuts[1:]) if c1 - c0 >= 6]
+        return rows, runs
+
     labels = recording.attrs.get("imu_labels")
     out = {}
     for k in imus:
+        rows, runs = rests(k)
+        rate = float(rates[k])
         for kind in ("acc", "gyro"):
             data = recording.acc if kind == "acc" else recording.gyro
             if data is None or not np.isfinite(np.asarray(data)[:, k]).any():
                 continue
-            est = allan_random_walk(np.asarray(data, dtype=np.float64)[:, k], runs, rate) if runs else None
+            est = allan_random_walk(np.asarray(data, dtype=np.float64)[rows, k], runs, rate) if runs else None
             if est is not None and est.accepted:
                 out[k, kind] = (est.k, est.k_se, f"rests, Allan deviation: {est.static_s:.0f} s static, longest "
                                                  f"{est.longest_s:.0f} s")
@@ -326,12 +351,9 @@ def _prepare(recording: Recording, positions: dict, intrinsics, report, fmt: str
                 raise UserError(f"imu[{k}].sensors: IMU {k} has no {kind} data or noise std; {tool} "
                                 f"{'accelerometer' if kind == 'acc' else 'gyroscope'}_noise_density, expected both "
                                 "sensors with a stated or estimated noise")
-    if is_multirate(recording):
-        # one update_rate and density per IMU would be needed; a density from the union's stamp rate
-        # would be silently wrong for every IMU
-        raise UserError("recording.time: IMUs at different rates (multi-rate rig); the export writes one rate for "
-                        "all IMUs, expected a recording whose IMUs share their stamps")
-    rate, rate_how = nominal_rate(recording)
+    # Each IMU's own rate (a multi-rate rig's differ): update_rate and densities per IMU.
+    rates = [nominal_rate(recording, k) for k in range(K)]
+    rate, rate_how = np.array([r[0] for r in rates]), [r[1] for r in rates]
     rw = random_walks(recording, rate, imus=[k for k in order if recording.has_gyro[k] or recording.has_acc[k]],
                       required=need)
     report_ix = gyro_intrinsics_from_report(report, K) if report is not None else None
@@ -370,7 +392,7 @@ def _imu_lines(recording: Recording, P: dict, j: int, *, with_pose: bool) -> lis
             ocov = np.diag(np.square(np.asarray(e["orientation_std"], dtype=np.float64).reshape(3)))
         if ocov is not None:
             out += _matrix("T_i_b_rotation_cov", ocov, comment="rad^2, rotation vector in IMU's frame (positions.json)")
-    rate = P["rate"]
+    rate = float(P["rate"][k])
     for kind, sig, has in (("acc", recording.acc_noise_std, recording.has_acc),
                            ("gyro", recording.gyro_noise_std, recording.has_gyro)):
         word = "accelerometer" if kind == "acc" else "gyroscope"
@@ -402,7 +424,7 @@ def _imu_lines(recording: Recording, P: dict, j: int, *, with_pose: bool) -> lis
                 out.append(f"  clock_drift_std: {_num(dt[2]['std'])}")
     else:
         out.append("  # time_offset: not estimated")
-    out.append(f"  update_rate: {_num(rate)}  # Hz, {P['rate_how']}")
+    out.append(f"  update_rate: {_num(rate)}  # Hz, {P['rate_how'][k]}")
     return out
 
 

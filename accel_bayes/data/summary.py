@@ -5,6 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..constants import RAD_TO_DEG
+from .export import imu_stamps
+from .recording import stamp_rate
+from .validation import is_multirate
 
 __all__ = ["summarize", "std_text", "gyro_range_deg_s"]
 
@@ -43,6 +46,9 @@ def summarize(rec, path=None) -> dict:
         out["dt_median_s"] = med
         out["dt_jitter_std_s"] = float(np.std(dt))
         out["dt_max_dev_s"] = float(np.max(np.abs(dt - med)))
+    if is_multirate(rec):
+        # the union's steps say nothing of any one IMU's rate (DESIGN §7.1)
+        out["imu_sample_rate_hz"] = [stamp_rate(imu_stamps(rec, k)[1]) for k in range(K)]
     has_a, has_g = rec.has_acc, rec.has_gyro
     out.update(imus_with_acc=int(has_a.sum()), imus_with_gyro=int(has_g.sum()), reference_imu=int(rec.reference_imu))
     out["acc_noise_std"] = np.asarray(rec.acc_noise_std, float).tolist()

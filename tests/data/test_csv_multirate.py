@@ -152,3 +152,14 @@ def test_same_rate_imus_still_share_the_reference_stamps(tmp_path):
     got = import_csv(src, write_description(one, tmp_path / "a.toml"), noise="stated",
                      check_gyro_units=False).recording
     assert got.T == int(p0.sum()) and np.isfinite(got.acc).all() and got.imu_time_offset is None
+
+
+def test_info_prints_each_imus_rate(rig, tmp_path, capsys):
+    """``info`` on a multi-rate import: each IMU's own rate (before: only the union's median step)."""
+    name, rec, truth = rig
+    path = write_imported(import_csv(write_rig(rec, tmp_path / "run"), write_description(rec, tmp_path / "a.toml"),
+                                     noise="stated"), tmp_path / "rec.nc")
+    assert main(["info", str(path)]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("IMU rates:"))
+    got = [float(v) for v in line.split(":", 1)[1].split(" Hz")[0].split(",")]
+    np.testing.assert_allclose(got, truth["rate"], rtol=1e-4)

@@ -327,3 +327,66 @@ def test_positions_draw_counts_are_ints(tmp_path):
     assert '"draws_per_chain": 1000,' in text and type(d["draws_per_chain"]) is int
     assert type(d["checks"]) is int and type(d["num_draws"]) is int and d["converged"] is True
     assert type(d["seconds"]) is float and d["ess_bulk_min"] == 812.4
+
+
+# ---------------------------------------------------------------- multi-rate rigs, per-IMU rates
+def test_multirate_rig_every_format_with_each_imus_own_rate(tmp_path):
+    """A 125/250/250/400 Hz rig (DESIGN §7.1 union of stamps): each IMU's update_rate and
+    densities from its own stamps, read by Kalibr's and OpenVINS' reads.  Before: refused
+    ("recording.time: IMUs at different rates"), since one rate was written for all IMUs."""
+    from experiments.clockgen import draw_case
+
+    rec, truth = draw_case("rig", 190, n_imu=4, duration=3.0)
+    assert list(truth["rate"]) == [125.0, 250.0, 250.0, 400.0]
+    rec.reference_imu = 3  # the 400 Hz IMU: it must come first, with its own rate
+    rec.attrs = {"acc_random_walk": RW_A, "gyro_random_walk": RW_G}
+    rp = write_recording(rec, tmp_path / "rig.nc")
+    means = np.asarray(truth["position"]) - np.asarray(truth["position"])[3]
+    doc = positions_document(method="map", reference_imu=3, means=means, covs=np.tile(np.eye(3) * 1e-8, (4, 1, 1)),
+                             orientations=np.asarray(truth["orientation"]), diagnostics={"seconds": 1.0})
+    for e in doc["imus"]:
+        e["time_offset"] = {"mean": float(truth["time_offset"][e["imu"]]), "std": 1e-4}
+    pp = write_positions(doc, tmp_path / "positions.json")
+    chain, ov, kdir = tmp_path / "chain.yaml", tmp_path / "ov.yaml", tmp_path / "kalibr"
+    assert _run(rp, "--positions", pp, "-o", chain) == 0
+    assert _run(rp, "--positions", pp, "--format", "openvins", "-o", ov) == 0
+    assert _run(rp, "--positions", pp, "--format", "kalibr-imu", "--out", kdir) == 0
+    d = yaml.safe_load(chain.read_text())
+    order = [3, 0, 1, 2]
+    for j, k in enumerate(order):
+        for source in (KalibrImuParameters(d[f"imu{j}"]), KalibrImuParameters.from_file(kdir / f"imu{j}.yaml")):
+            got = source.read_all()
+            # the stamps jitter by 20-100 µs: their mean rate is the nominal one to 1e-4
+            assert got["update_rate"] == pytest.approx(truth["rate"][k], rel=1e-4), (j, k)
+            assert got["acc"][0] == pytest.approx(rec.acc_noise_std[k], rel=1e-12)  # Kalibr's σ = density·√rate
+            assert got["gyro"][0] == pytest.approx(rec.gyro_noise_std[k], rel=1e-12)
+            assert got["acc"][1] == RW_A[k]
+        assert d[f"imu{j}"]["time_offset"] == pytest.approx(truth["time_offset"][k] - truth["time_offset"][3], abs=1e-15)
+    np.testing.assert_array_equal(d["imu0"]["T_i_b"], np.eye(4))
+    r = OpenVinsImuReader(ov)
+    got = r.load()
+    assert r.all_params_found_successfully, r.missing
+    assert got["accelerometer_noise_density"] == pytest.approx(rec.acc_noise_std[3] / math.sqrt(400.0), rel=1e-4)
+
+
+def test_density_from_the_stamps_mean_rate(tmp_path):
+    """No stated rate: σ/√rate with the mean rate of the stamps.  At 1666 Hz (an LSM6DS ODR) with
+    EuRoC-like uneven steps, 2.0e-3·√1666 must read back as 2.0e-3; the median step rounded to 3
+    significant figures gave 1670 Hz and 0.0019976."""
+    T, K = 4000, 3
+    k = np.arange(T, dtype=np.int64)
+    period_ns = round(1e9 / 1666)  # 600240 ns
+    ns = k * (period_ns - 64) + (k // 3) * 192  # steps P−64, P−64, P+128: mean P, median P−64
+    rng = np.random.default_rng(3)
+    sig = 2.0e-3 * math.sqrt(1e9 / period_ns)
+    rec = Recording(time=ns / 1e9, acc=rng.normal(0, 0.05, (T, K, 3)) + [0.0, 0.0, 9.81], gyro=rng.normal(0, 0.01, (T, K, 3)),
+                    nominal_position=POS[:3], acc_noise_std=np.full(K, sig), gyro_noise_std=np.full(K, sig),
+                    attrs={"acc_random_walk": RW_A[:3], "gyro_random_walk": RW_G[:3]})
+    rp = write_recording(rec, tmp_path / "r.nc")
+    doc = positions_document(method="map", reference_imu=0, means=POS[:3], covs=np.zeros((3, 3, 3)),
+                             diagnostics={"seconds": 1.0})
+    pp = write_positions(doc, tmp_path / "p.json")
+    assert _run(rp, "--positions", pp, "--format", "kalibr-imu", "--out", tmp_path / "k") == 0
+    got = KalibrImuParameters.from_file(tmp_path / "k" / "imu1.yaml").read_all()
+    assert got["update_rate"] == pytest.approx(1e9 / period_ns, rel=1e-6)
+    assert got["acc"][2] == pytest.approx(2.0e-3, rel=1e-6) and got["gyro"][2] == pytest.approx(2.0e-3, rel=1e-6)
