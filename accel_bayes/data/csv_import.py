@@ -19,8 +19,9 @@ What the importer does, and why:
   :data:`~accel_bayes.data.csv_timebase.SAME_RATE_REL`) are not resampled and lose no sample:
   ``time`` is the sorted union of every IMU's stamps, NaN where an IMU has no sample (DESIGN
   §7.1), ``imu_time_offset`` 0 where it has one; the rigid-board plausibility check, which
-  compares IMUs at one instant, is not run, and the gyro-unit check compares each IMU's nearest
-  sample to the reference's stamps.  On the reference's stamps, stamps outside the span every
+  compares IMUs at one instant, is not run; rests and the gyro-unit check use each IMU's nearest
+  sample to the reference's stamps (a rest marks the union rows between two static reference
+  samples).  On the reference's stamps, stamps outside the span every
   IMU covers (IMUs that start or stop at slightly different times) are dropped and counted.
 * **Noise**: with ``noise="rests"`` (default) the rests are found and the noise std estimated
   from them exactly as :mod:`accel_bayes.data.mimu` does (:func:`accel_bayes.data.segments.analyse_static`);
@@ -192,15 +193,25 @@ def import_csv(source, array, *, time_tolerance: float | None = None, noise: str
     quat = np.stack([s.orientation for s in spec.imus])
     noise_est = {}
     if noise == "rests":
-        st = analyse_static(acc, gyro, time, quat, tol_deg=tol_deg, **static_kwargs)
-        segment = segment_labels(st.mask)
+        if tb.union:
+            # A rest is the whole board at rest, judged where every IMU has a sample: on the
+            # reference's stamps (each IMU's nearest sample), then carried to the union's rows.
+            rows, pick = _reference_picks(tb, ref)
+            cols = np.arange(K)[None, :]
+            st = analyse_static(acc[pick, cols], None if gyro is None else gyro[pick, cols], time[rows], quat,
+                                tol_deg=tol_deg, **static_kwargs)
+            mask = _between_reference_rows(st.mask, rows, T)
+        else:
+            st = analyse_static(acc, gyro, time, quat, tol_deg=tol_deg, **static_kwargs)
+            mask = st.mask
+        segment = segment_labels(mask)
         if st.n_segments:
             noise_est = {"acc": st.acc_noise_std, "gyro": st.gyro_noise_std}
             noise_phrase = (f"noise std estimated from {st.n_segments} static segments (pooled within-segment std "
                             "after removing each segment's mean, RMS over axes)")
         else:
             noise_phrase = "no static segment found: noise std as stated"
-        lines.append(f"static segments: {st.n_segments} ({100 * float(st.mask.mean()):.1f} % of samples), "
+        lines.append(f"static segments: {st.n_segments} ({100 * float(mask.mean()):.1f} % of samples), "
                      f"{st.n_orientations} distinct orientations")
     else:
         noise_phrase = "noise std as stated (rests not used)"
@@ -347,14 +358,30 @@ def _time_base(streams, ref: int, time_tolerance: float | None) -> _TimeBase:
                      False, how, lines)
 
 
+def _reference_picks(tb: _TimeBase, ref: int):
+    """(rows (T_ref,), pick (T_ref, K)): the union rows of the reference IMU's samples and, for
+    each IMU, the union row of its sample nearest to each of them."""
+    rows = np.flatnonzero(tb.present[:, ref])
+    t_ns = np.round(tb.time * 1e9).astype(np.int64)
+    pick = np.stack([np.flatnonzero(tb.present[:, k])[nearest_index(t_ns[tb.present[:, k]], t_ns[rows])]
+                     for k in range(tb.present.shape[1])], -1)
+    return rows, pick
+
+
+def _between_reference_rows(mask_ref: np.ndarray, rows: np.ndarray, T: int) -> np.ndarray:
+    """(T,) a union row is marked where the reference samples on both sides of it are (rows
+    before the first or after the last reference sample take their one neighbour's mark)."""
+    j = np.searchsorted(rows, np.arange(T))  # first reference row at or after each union row
+    nxt = np.clip(j, 0, rows.size - 1)
+    prev = np.clip(np.where(rows[nxt] == np.arange(T), nxt, j - 1), 0, rows.size - 1)
+    return np.asarray(mask_ref, bool)[prev] & np.asarray(mask_ref, bool)[nxt]
+
+
 def _on_reference_stamps(rec: Recording, tb: _TimeBase, ref: int) -> Recording:
     """``rec`` (a union of stamps) resampled to the reference IMU's stamps by nearest sample: for
     the gyro-unit check only, which compares IMUs at one instant.  Offsets of up to half a
     reference period do not matter there: it tells factors of 57 apart."""
-    rows = np.flatnonzero(tb.present[:, ref])
-    t_ns = np.round(tb.time * 1e9).astype(np.int64)
-    pick = np.stack([np.flatnonzero(tb.present[:, k])[nearest_index(t_ns[tb.present[:, k]], t_ns[rows])]
-                     for k in range(tb.present.shape[1])], -1)  # (T_ref, K) union rows
+    rows, pick = _reference_picks(tb, ref)
     cols = np.arange(pick.shape[1])[None, :]
     take = lambda x: None if x is None else np.asarray(x)[pick, cols]  # noqa: E731
     return Recording(time=tb.time[rows], acc=take(rec.acc), gyro=take(rec.gyro), nominal_position=rec.nominal_position,
@@ -362,7 +389,6 @@ def _on_reference_stamps(rec: Recording, tb: _TimeBase, ref: int) -> Recording:
                      gyro_noise_std=rec.gyro_noise_std, acc_clipped=take(rec.acc_clipped),
                      gyro_clipped=take(rec.gyro_clipped),
                      segment=None if rec.segment is None else np.asarray(rec.segment)[rows])
-
 
 def _imu_folder(source: Path, label: str) -> Path:
     """``source/label`` resolved (links followed), refused unless it lies inside ``source``: an
