@@ -23,8 +23,10 @@ def register(subparsers) -> None:
             "three columns per IMU and sensor). The array description (TOML) gives each IMU's label, "
             "nominal position (m), orientation (quaternion w, x, y, z, array -> sensor, or a 3x3 matrix), "
             "sensors, noise and ranges, and the reference IMU. Units come from the header ('[m s^-2]') or "
-            "the description's [csv.units]; they are never guessed. IMUs are put on the reference IMU's "
-            "stamps (nearest sample within --time-tolerance) and their own stamps kept in imu_time_offset."
+            "the description's [csv.units]; they are never guessed. IMUs at the reference IMU's rate are put on "
+            "its stamps (nearest sample within --time-tolerance) and their own stamps kept in imu_time_offset; "
+            "IMUs at different rates keep every sample, on the union of their stamps (NaN where an IMU has none; "
+            "in a wide CSV, its cells left empty)."
         ),
     )
     p.add_argument("source", metavar="SOURCE", help="ASL folder (imu0/data.csv, ...) or wide CSV file")
@@ -33,8 +35,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="recording file to write (.nc)")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     p.add_argument("--time-tolerance", type=opt.real(0.0, 3600.0, unit="s"), default=None, metavar="SECONDS",
-                   help="largest |IMU stamp - reference stamp| accepted when matching samples, s "
-                        "(default a quarter of the reference IMU's median sample period)")
+                   help="largest |IMU stamp - reference stamp| accepted when matching samples of IMUs at the "
+                        "reference's rate, s (default a quarter of the reference IMU's median sample period)")
     p.add_argument("--noise", choices=("rests", "stated"), default="rests",
                    help="'rests': noise std estimated from the static segments where found, stated otherwise "
                         "(default); 'stated': the description's std (or sensor.yaml density x sqrt(rate)), "

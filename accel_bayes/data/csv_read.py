@@ -8,6 +8,7 @@
   S), and ``sensor.yaml`` beside it where present (:mod:`accel_bayes.data.sensor_yaml`).
 * **Wide CSV**: one file, a time column and three columns per IMU and sensor, named by the
   description's column map, by default ``<label>_acc_x`` … ``<label>_gyro_z`` and ``time``.
+  IMUs at different rates leave their cells empty in the rows of the other IMUs' stamps.
 
 Units are those the header declares in brackets or, for columns without one, the description's
 ``[csv.units]``; nothing is guessed.  Stamps are read as exact integers of nanoseconds (decimal
@@ -16,6 +17,7 @@ byte-order mark and CRLF line ends are read as such.  Refusals name the file, li
 """
 from __future__ import annotations
 
+import copy
 import csv
 import math
 import re
@@ -103,6 +105,12 @@ class _Table:
             raise UserError(f"{self.path}:1: column {self.raw[col]!r}: the header says {got!r}, csv.units.{kind} says "
                             f"{declared!r}; expected them to agree")
         return c
+
+    def rows(self, keep: np.ndarray) -> "_Table":
+        """The same table restricted to the rows where ``keep`` (line numbers kept for messages)."""
+        sub = copy.copy(self)
+        sub.cells, sub.lines = self.cells[keep], self.lines[keep]
+        return sub
 
     def floats(self, col: int) -> np.ndarray:
         x = self.cells[:, col]
@@ -204,16 +212,22 @@ def read_wide_csv(path, array: ArraySpec) -> list[ImuStream]:
         cols = s.columns
         tname = cols.get("time", array.time_column)
         tcol = table.index(tname, f"time stamps of IMU {s.label!r}")
-        stamps = table.stamps_ns(tcol, table.unit(tcol, "time", array.units.get("time")))
-        table.check_increasing(tcol, stamps)
+        names = {kind: cols.get(kind, [f"{s.label}_{kind}_{a}" for a in AXES])
+                 for kind, has in (("acc", s.has_acc), ("gyro", s.has_gyro)) if has}
+        data_cols = [table.index(n, f"{kind} {a} axis") for kind in names for n, a in zip(names[kind], AXES)]
+        # IMUs at different rates in one file: a row where all of an IMU's cells are empty is a
+        # stamp of another IMU (a partly empty row is refused below, naming its line and column)
+        blank = np.char.str_len(np.char.strip(table.cells[:, data_cols])).max(1) == 0
+        own = table.rows(~blank) if blank.any() else table
+        if not own.cells.shape[0]:
+            raise UserError(f"{path}:1: IMU {s.label!r} has no sample (its columns are empty in every row)")
+        stamps = own.stamps_ns(tcol, own.unit(tcol, "time", array.units.get("time")))
+        own.check_increasing(tcol, stamps)
         used.add(tname)
         out = {}
-        for kind, has in (("acc", s.has_acc), ("gyro", s.has_gyro)):
-            if not has:
-                continue
-            names = cols.get(kind, [f"{s.label}_{kind}_{a}" for a in AXES])
-            out[kind] = _triad(table, names, kind, array.units.get(kind))
-            used.update(names)
+        for kind in names:
+            out[kind] = _triad(own, names[kind], kind, array.units.get(kind))
+            used.update(names[kind])
         streams.append(ImuStream(s.label, path, stamps, out.get("acc"), out.get("gyro")))
     extra = [r for n, r in zip(table.names, table.raw) if n not in used]
     if extra:

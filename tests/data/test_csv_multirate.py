@@ -183,3 +183,43 @@ def test_rests_of_a_multirate_rig_give_the_noise(tmp_path):
     assert motion.rest_mask(got.time[static] + rec.time[0]).all()
     np.testing.assert_allclose(got.acc_noise_std, rec.acc_noise_std, rtol=0.15)
     np.testing.assert_allclose(got.gyro_noise_std, rec.gyro_noise_std, rtol=0.15)
+
+
+def write_wide(rec, path):
+    """One wide CSV: the union of the stamps, each IMU's cells empty where it has no sample."""
+    present = sample_present(rec)
+    head = ["time [ns]"] + [f"imu{k}_{s}_{a} [{'m s^-2' if s == 'acc' else 'rad s^-1'}]"
+                            for k in range(rec.K) for s in ("acc", "gyro") for a in "xyz"]
+    rows = [",".join(head)]
+    for t in range(rec.T):
+        cells = [str(int(T0_NS + round(float(rec.time[t]) * 1e9)))]
+        for k in range(rec.K):
+            vals = (*rec.acc[t, k], *rec.gyro[t, k])
+            cells += [repr(float(v)) for v in vals] if present[t, k] else [""] * 6
+        rows.append(",".join(cells))
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_wide_csv_with_empty_cells_is_the_same_multirate_recording(tmp_path, capsys):
+    """A wide CSV holds a multi-rate rig as empty cells: it imports to the ASL folders' recording
+    (before: "expected a finite number, got ''"); a row with only some of an IMU's cells empty is
+    a damaged row, refused naming its line and column."""
+    seed, K, _ = RIGS["125/250/250/400"]
+    rec, _ = draw_case("rig", seed, n_imu=K, duration=2.0)
+    toml = write_description(rec, tmp_path / "a.toml")
+    wide = import_csv(write_wide(rec, tmp_path / "wide.csv"), toml, noise="stated").recording
+    asl = import_csv(write_rig(rec, tmp_path / "run"), toml, noise="stated").recording
+    np.testing.assert_array_equal(wide.time, asl.time)
+    np.testing.assert_array_equal(wide.acc, asl.acc)
+    np.testing.assert_array_equal(wide.gyro, asl.gyro)
+    lines = (tmp_path / "wide.csv").read_text().splitlines()
+    i = next(j for j, ln in enumerate(lines[1:], 1) if ln.split(",")[1])  # a row where imu0 has a sample
+    cells = lines[i].split(",")
+    cells[2] = ""  # imu0_acc_y only
+    lines[i] = ",".join(cells)
+    (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
+    rc = main(["import-csv", str(tmp_path / "bad.csv"), "--array", str(toml), "-o", str(tmp_path / "x.nc")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert f"bad.csv:{i + 1}: column 'imu0_acc_y [m s^-2]': expected a finite number, got ''" in err, err
