@@ -223,3 +223,28 @@ def test_wide_csv_with_empty_cells_is_the_same_multirate_recording(tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1, err
     assert f"bad.csv:{i + 1}: column 'imu0_acc_y [m s^-2]': expected a finite number, got ''" in err, err
+
+
+def test_stated_rates_per_imu_reach_the_export(tmp_path):
+    """Each IMU's sensor.yaml ``rate_hz`` is its own update_rate in Kalibr's per-IMU files, with
+    densities that give back sensor.yaml's (before: the reference's rate_hz for every IMU)."""
+    import yaml
+
+    from accel_bayes.data.positions import positions_document, write_positions
+
+    seed, K, rates = RIGS["100/125/400"]
+    rec, truth = draw_case("rig", seed, n_imu=K, duration=2.0)
+    ys = [f"rate_hz: {r:g}\naccelerometer_noise_density: 2.0e-3\ngyroscope_noise_density: 1.7e-4\n"
+          "accelerometer_random_walk: 3.0e-3\ngyroscope_random_walk: 2.0e-5\n" for r in rates]
+    path = write_imported(import_csv(write_rig(rec, tmp_path / "run", sensor_yaml=ys),
+                                     write_description(rec, tmp_path / "a.toml", noise=False), noise="stated"),
+                          tmp_path / "rec.nc")
+    doc = positions_document(method="map", reference_imu=0, means=np.asarray(truth["position"]),
+                             covs=np.zeros((K, 3, 3)), diagnostics={"seconds": 1.0})
+    pp = write_positions(doc, tmp_path / "p.json")
+    assert main(["export", str(path), "--positions", str(pp), "--format", "kalibr-imu", "--out", str(tmp_path / "k")]) == 0
+    for j in range(K):
+        d = yaml.safe_load((tmp_path / "k" / f"imu{j}.yaml").read_text())
+        assert d["update_rate"] == rates[j]
+        assert d["accelerometer_noise_density"] == pytest.approx(2.0e-3, rel=1e-14)
+        assert d["gyroscope_noise_density"] == pytest.approx(1.7e-4, rel=1e-14)
