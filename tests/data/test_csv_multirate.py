@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from experiments.clockgen import draw_case
 
@@ -20,6 +21,7 @@ from accel_bayes.cli import main
 from accel_bayes.data.csv_import import import_csv, write_imported
 from accel_bayes.data.io import read_recording
 from accel_bayes.data.validation import sample_present
+from accel_bayes.physics.geometry import quat_to_matrix
 from accel_bayes.pipelines.rig import is_rig
 
 ASL_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
@@ -60,6 +62,12 @@ def write_description(rec, path, noise=True):
             lines += [f"acc_noise_std = {float(rec.acc_noise_std[k])!r}", f"gyro_noise_std = {float(rec.gyro_noise_std[k])!r}"]
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _rot_err_deg(q_hat, q_true):
+    """Angle (°) of the rotation between two array → sensor quaternions."""
+    R = quat_to_matrix(torch.as_tensor(np.asarray(q_hat, float))) @ quat_to_matrix(torch.as_tensor(np.asarray(q_true, float))).T
+    return float(np.degrees(np.arccos(np.clip((float(torch.trace(R)) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 @pytest.fixture(scope="module", params=list(RIGS))
@@ -115,7 +123,6 @@ def test_imported_multirate_rig_calibrates(tmp_path, capsys, seed, K):
     err = capsys.readouterr().err
     assert "rig model" in err and (rc == 0 or (seed == 136 and rc == 4 and "unconverged (max_iter)" in err)), err
     doc = json.loads((tmp_path / "cal" / "positions.json").read_text())
-    from tests.pipelines.test_rig_pipeline import _rot_err_deg
     for k in range(1, K):
         e = doc["imus"][k]
         assert np.linalg.norm(np.subtract(e["mean"], truth["position"][k])) < 2e-3
