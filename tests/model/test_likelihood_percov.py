@@ -1,0 +1,206 @@
+"""The per-sample-covariance likelihood (accel_bayes.model.likelihood_percov, issue #30 item 1).
+
+The references are independent of the estimator's algebra: per sample a dense 3A × 3A Gaussian
+built from the kinematics (models.specific_force columns for H, no Woodbury identity, no
+determinant lemma, no shared factor) — with a proper φ prior the full N(y; Gu, Q + s²DDᵀ + HFHᵀ)
+of scipy, with the flat prior the dense weighted projection; the heavy tails against numerical
+quadrature over the mixture's scale; the gradient against central finite differences.
+"""
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import integrate, stats
+
+from accel_bayes.errors import UserError
+from accel_bayes.model.gyro_posterior import gyro_posterior
+from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+from accel_bayes.model.likelihood_percov import (PerSampleCovLikelihood, ages_from_clocks, band_scale,
+                                                 with_unresolved_motion)
+from accel_bayes.physics.models import specific_force, u_of_omega
+
+DT = torch.float64
+POS5 = torch.tensor([[0.0, 0.0, 0.0], [0.10, 0.01, 0.0], [0.02, 0.09, 0.01], [0.01, -0.02, 0.08],
+                     [0.07, 0.06, -0.03]], dtype=DT)
+SIG = 0.3  # m/s²
+
+
+def _case(T=7, seed=3, jerk=2000.0, age_scale=1e-3, pos=POS5):
+    """acc (T, A, 3) with an age-loaded jerk in it, gyro posterior, ages (T, A) s, s (T,) m/s³."""
+    g = torch.Generator().manual_seed(seed)
+    A = pos.shape[0]
+    w = 4 * torch.randn(T, 3, generator=g, dtype=DT)
+    wd = 3 * torch.randn(T, 3, generator=g, dtype=DT)
+    s = 3 * torch.randn(T, 3, generator=g, dtype=DT)
+    age = age_scale * torch.rand(T, A, generator=g, dtype=DT)
+    m = jerk * torch.randn(T, 3, generator=g, dtype=DT)
+    acc = (specific_force(pos, w, wd, s) - age[..., None] * m[:, None, :]
+           + SIG * torch.randn(T, A, 3, generator=g, dtype=DT))
+    gyro = w[:, None, :] + 0.05 * torch.randn(T, 4, 3, generator=g, dtype=DT)
+    omega = gyro_posterior(gyro, torch.full((4,), 0.05, dtype=DT), "calibrated")
+    jerk_std = jerk * (0.5 + torch.rand(T, generator=g, dtype=DT))
+    return acc, omega, age, jerk_std
+
+
+def _kinematic_H(pos):
+    """(3A, 6): the specific force of unit ω̇ (ω = 0) and unit s, from models.specific_force."""
+    cols = []
+    zero = torch.zeros(1, 3, dtype=DT)
+    for j in range(6):
+        e = torch.zeros(1, 6, dtype=DT)
+        e[0, j] = 1
+        cols.append(specific_force(pos, zero, e[:, :3], e[:, 3:]).reshape(-1))
+    return torch.stack(cols, -1).numpy()
+
+
+def _dense_sample_logpdfs(pos, acc, omega, age, jerk_std, F=None, lam_scale=1.0):
+    """Per sample log p(y_t | ω_t, θ) (T,), all constants included, by dense 3A × 3A algebra.
+
+    F None: flat unit-density prior on φ (the dense projection); else N(0, F) (a plain Gaussian).
+    ``lam_scale`` divides every covariance (the scale mixture's λ)."""
+    A = pos.shape[0]
+    n = 3 * A
+    H = _kinematic_H(pos)
+    out = []
+    for t in range(acc.shape[0]):
+        mean = specific_force(pos, omega[t:t + 1], torch.zeros(1, 3, dtype=DT), torch.zeros(1, 3, dtype=DT))
+        r = (acc[t] - mean[0]).reshape(-1).numpy()
+        d = (age[t] - age[t].mean()).numpy()
+        D = np.kron(d[:, None], np.eye(3))
+        Sig = (SIG ** 2 * np.eye(n) + float(jerk_std[t]) ** 2 * D @ D.T) / lam_scale
+        if F is not None:
+            out.append(stats.multivariate_normal(np.zeros(n), Sig + H @ (F / lam_scale) @ H.T).logpdf(r))
+            continue
+        Si = np.linalg.inv(Sig)
+        M = H.T @ Si @ H
+        P = Si - Si @ H @ np.linalg.solve(M, H.T @ Si)
+        out.append(-(n - 6) / 2 * math.log(2 * math.pi) - 0.5 * np.linalg.slogdet(Sig)[1]
+                   - 0.5 * np.linalg.slogdet(M)[1] - 0.5 * r @ P @ r)
+    return np.array(out)
+
+
+def _ours(acc, omega, age, jerk_std, nu=None, phi_prior=None, num_draws=3):
+    return PerSampleCovLikelihood(acc, omega, SIG, num_draws, age, jerk_std, nu=nu, phi_prior=phi_prior)
+
+
+@pytest.mark.parametrize("prior", [None, "proper"])
+def test_given_omega_equals_the_dense_gaussian_at_two_geometries(prior):
+    acc, omega, age, s = _case()
+    F = None if prior is None else np.diag([30.0, 20.0, 25.0, 9.0, 16.0, 4.0])
+    lik = _ours(acc, omega, age, s, phi_prior=None if F is None else torch.as_tensor(F))
+    w = omega.mean + 0.1
+    const = lik.T * (-(3 * 5 - 6) / 2 * math.log(2 * math.pi) - 15 * math.log(SIG))
+    if F is not None:  # the base class omits −½ log|F| and −3 log 2π of the proper prior too
+        const += lik.T * (-0.5 * np.linalg.slogdet(F)[1] - 3 * math.log(2 * math.pi))
+    for pos in (POS5, POS5 * 1.3):  # row 0 stays the origin (a proper φ prior is not translation invariant)
+        want = _dense_sample_logpdfs(pos, acc, w, age, s, F=F).sum()
+        got = float(lik.log_lik_given_omega(pos, w)) + const
+        assert got == pytest.approx(want, rel=1e-10, abs=1e-8)
+
+
+@pytest.mark.parametrize("A", [5, 3])
+def test_log_phat_equals_the_dense_monte_carlo_average_on_the_same_draws(A):
+    """A = 3: C = GᵀSG is singular (rank 3A − 6 = 3), the eigendecomposition factor is used."""
+    pos = POS5[:A]
+    acc, omega, age, s = _case(T=6, pos=pos)
+    for N in (1, 5, 40):
+        lik = _ours(acc, omega, age, s, num_draws=N)
+        z = lik.sample_z((), N, torch.Generator().manual_seed(N))
+        om = lik.omega_draws(z)  # (T, N, 3)
+        per = np.stack([_dense_sample_logpdfs(pos, acc, om[:, n], age, s) for n in range(N)], -1)
+        const = lik.T * (-(3 * A - 6) / 2 * math.log(2 * math.pi) - 3 * A * math.log(SIG))
+        want = (torch.logsumexp(torch.as_tensor(per), -1) - math.log(N)).sum().item()
+        got = float(lik.log_phat(pos, z=z)) + const
+        assert got == pytest.approx(want, rel=1e-9, abs=1e-8)
+        # a batch of two geometries with one z per geometry agrees with them one by one
+        pos2 = torch.stack((pos, pos * 1.1))
+        zb = lik.sample_z((2,), N, torch.Generator().manual_seed(7))
+        both = lik.log_phat(pos2, z=zb)
+        one = torch.stack([lik.log_phat(pos2[i], z=zb[i]) for i in range(2)])
+        assert torch.allclose(both, one, rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("prior", [None, "proper"])
+def test_scale_mixture_equals_quadrature_over_the_scale(prior):
+    acc, omega, age, s = _case(T=3)
+    nu = 4.5
+    F = None if prior is None else np.diag([30.0, 20.0, 25.0, 9.0, 16.0, 4.0])
+    lik = _ours(acc, omega, age, s, nu=nu, phi_prior=None if F is None else torch.as_tensor(F))
+    w = omega.mean - 0.2
+    got = float(lik.log_lik_given_omega(POS5, w))
+    lik_g = _ours(acc, omega, age, s, phi_prior=None if F is None else torch.as_tensor(F))
+    gauss = float(lik_g.log_lik_given_omega(POS5, w))
+    dense_g = _dense_sample_logpdfs(POS5, acc, w, age, s, F=F)
+    a = nu / 2
+    want = 0.0
+    for t in range(lik.T):
+        def f(lam, t=t):
+            return math.exp(_dense_sample_logpdfs(POS5, acc[t:t + 1], w[t:t + 1], age[t:t + 1], s[t:t + 1], F=F,
+                                                  lam_scale=lam)[0] - dense_g[t]) * stats.gamma(a, scale=1 / a).pdf(lam)
+        val, err = integrate.quad(f, 0, np.inf, limit=200, epsabs=0, epsrel=1e-11)
+        want += math.log(val) + dense_g[t]
+    # both sides carry the Gaussian's constants: compare against the Gaussian's offset
+    assert got - gauss == pytest.approx(want - dense_g.sum(), rel=1e-8, abs=1e-8)
+    assert abs(got - gauss) > 0.5  # the tails change the value: the check can fail
+
+
+def test_zero_scale_equals_the_flat_likelihood_to_1e_10():
+    acc, omega, age, s = _case(T=40, seed=8)
+    for N in (1, 4, 64):
+        flat = RaoBlackwellLikelihood(acc, omega, SIG, N)
+        z = flat.sample_z((), N, torch.Generator().manual_seed(1))
+        pos = torch.stack((POS5, POS5 * 0.9))
+        want = flat.log_phat(pos, z=z)
+        zero = with_unresolved_motion(flat, age, 0.0)
+        assert len(zero.active) == 0
+        assert torch.allclose(zero.log_phat(pos, z=z), want, rtol=0, atol=1e-10)
+        # a vanishing but non-zero scale goes through the per-sample path and converges to it
+        tiny = with_unresolved_motion(flat, age, s * 1e-9)
+        assert len(tiny.active) == 40
+        assert torch.allclose(tiny.log_phat(pos, z=z), want, rtol=0, atol=1e-10)
+    w = omega.mean + 0.05
+    assert float(tiny.log_lik_given_omega(POS5, w)) == pytest.approx(float(flat.log_lik_given_omega(POS5, w)),
+                                                                    abs=1e-10)
+    # and the term matters at its real size (the check above is not vacuous)
+    full = with_unresolved_motion(flat, age, s)
+    assert abs(float(full.log_lik_given_omega(POS5, w)) - float(flat.log_lik_given_omega(POS5, w))) > 1.0
+
+
+def test_gradient_matches_finite_differences():
+    acc, omega, age, s = _case(T=10, seed=4)
+    for nu in (None, 6.0):
+        lik = _ours(acc, omega, age, s, nu=nu, num_draws=5)
+        z = lik.sample_z((), 5, torch.Generator().manual_seed(2))
+        pos = POS5.clone().requires_grad_(True)
+        val = lik.log_phat(pos, z=z)
+        (grad,) = torch.autograd.grad(val, pos)
+        h = 1e-6
+        with torch.no_grad():
+            for k, i in ((1, 0), (2, 1), (3, 2), (4, 0)):
+                e = torch.zeros_like(POS5)
+                e[k, i] = h
+                fd = (lik.log_phat(POS5 + e, z=z) - lik.log_phat(POS5 - e, z=z)) / (2 * h)
+                assert float(grad[k, i]) == pytest.approx(float(fd), rel=1e-5, abs=1e-4)
+
+
+def test_inputs_are_checked_and_helpers_map_bands_and_clocks():
+    acc, omega, age, s = _case(T=5)
+    with pytest.raises(UserError, match="^age: expected shape"):
+        _ours(acc, omega, age[:, :3], s)
+    with pytest.raises(UserError, match="^jerk_std"):
+        _ours(acc, omega, age, -s)
+    with pytest.raises(UserError, match="^nu"):
+        _ours(acc, omega, age, s, nu=0.0)
+    got = band_scale([0.1, 1.0, 2.5, 9.0], [1.0, 3.0], [10.0, 20.0, 30.0])
+    assert got.tolist() == [10.0, 20.0, 20.0, 30.0]
+    with pytest.raises(UserError, match="^jerk_rms"):
+        band_scale([0.1], [1.0], [1.0])
+    from accel_bayes.physics.effects import make_effect
+    clock = make_effect("sampling_clock", imu=2, axis=None, parameters={
+        "internal_rate_hz": 1000.0, "beat_hz": 0.5, "phase": 0.25, "drift_hz_per_s": 0.0,
+        "age_rms_s": 1e-3 / math.sqrt(12), "filter_delay_acc_minus_gyro_s": 2e-4})
+    t = torch.tensor([0.0, 0.5, 1.0])
+    ages = ages_from_clocks(t, {2: clock}, [0, 2], sensor="acc")
+    assert ages[:, 0].tolist() == [0.0, 0.0, 0.0]
+    assert ages[:, 1].numpy() == pytest.approx([0.25e-3 + 2e-4, 0.5e-3 + 2e-4, 0.75e-3 + 2e-4], abs=1e-15)
