@@ -411,6 +411,9 @@ class RaoBlackwellLikelihood(DrawSums):
         e = torch.matmul(U, V, out=ws("e", (Bn, T, n)))  # Λ^½ (y − e)
         if reuse and not extras:
             c = e.sub_(yu[:, :n]).square_().sum(-1)  # ‖Λ^½ e‖² (the sign of e is immaterial)
+        elif reuse:
+            e = torch.sub(yu[:, :n], e, out=e)  # Λ^½ e, kept for the caller
+            c = torch.mul(e, e, out=ws("e2", (Bn, T, n))).sum(-1)
         else:
             e = yu[:, :n] - e  # Λ^½ e (B, T, 3A)
             c = (e * e).sum(-1)

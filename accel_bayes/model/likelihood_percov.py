@@ -55,6 +55,9 @@ from ..physics.models import u_of_omega
 from .likelihood import RaoBlackwellLikelihood
 from .unresolved_cov import centred_ages
 
+# the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
+_PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
+
 __all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale"]
 
 
@@ -140,41 +143,80 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         # Ũ_t = s_t D_t only through the product u_kt = s_t d_kt (m/s² per unit-variance jerk)
         self.loading = centred_ages(age) * s[:, None]
         self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
+        self._tf_cache = None
 
     # ------------------------------------------------------------------ per-θ terms
     def _percov_terms(self, r: torch.Tensor) -> dict:
-        """The flat projection at r (B, A, 3) plus V (B, T, 3, 6), v (B, T, 3) and log|N_t|
-        (B, T) of the module docstring (zero where the sample has no loading)."""
+        """The flat projection at r (B, A, 3) plus ``V`` (B, 3, 7, T): rows i of [V_t, v_t] =
+        L_t⁻¹[Ũ_tᵀSG, Ũ_tᵀSr̄_t] stored component-first for the per-draw sums, and ``logdetN``
+        (B, T) (module docstring; zero where the sample has no loading)."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         idx = self.active
-        u = self.loading[idx]  # (Ta, A)
-        sl = self._sqrt_lam.view(A, 3)
-        lam = self.lam.view(A, 3)
-        Hs = proj["Hw"].view(B, A, 3, 6) * sl[..., None]  # rows of Λ H
-        Gs = proj["Gt"].view(B, A, 3, 6) * sl[..., None]  # rows of Λ Ẽ = S G
-        Y = torch.einsum("ta,baij->btji", u, Hs)  # HᵀΛŨ_t (B, Ta, 6, 3)
-        Ta = len(idx)
-        Yh = torch.linalg.solve_triangular(proj["L"], Y.permute(0, 2, 1, 3).reshape(B, 6, Ta * 3), upper=False)
-        Yh = Yh.view(B, 6, Ta, 3)
-        # N_t = I + ŨᵀΛŨ − (HᵀΛŨ)ᵀ(M + F⁻¹)⁻¹(HᵀΛŨ) = I + Ũ_tᵀ S Ũ_t
-        Nt = -torch.einsum("bitj,bitk->btjk", Yh, Yh)
-        diag = 1.0 + (u * u) @ lam  # (Ta, 3)
-        Nt = Nt + torch.diag_embed(diag)
-        Ln, info = torch.linalg.cholesky_ex(Nt)
-        if bool((info != 0).any()):  # cannot happen for finite inputs: N_t ⪰ I
+        full = len(idx) == T
+        u_t, diag, usl, sum3 = self._theta_free
+        Ta = u_t.shape[1]
+        sl = self._sqrt_lam.view(A, 3, 1)
+        # Without autograd the (B, ·, T) temporaries live in reused buffers, as in the flat
+        # projection (fresh MB-sized allocations cost page faults comparable to the arithmetic).
+        reuse = not (torch.is_grad_enabled() and r.requires_grad)
+        ws = self._workspace if reuse else (lambda name, shape: None)
+        # Layouts keep the sample index last (contiguous), so every per-sample step below is an
+        # elementwise op over T or a reduction over an outer dimension.
+        # HᵀΛŨ_t as (B, 6, 3, Ta): one (18 × A)(A × Ta) product per θ
+        Hs = (proj["Hw"].view(B, A, 3, 6) * sl).permute(0, 3, 2, 1).reshape(B, 18, A)
+        Y = torch.matmul(Hs, u_t, out=ws("pc_Y", (B, 18, Ta))).view(B, 6, 3 * Ta)
+        Yh = torch.linalg.solve_triangular(proj["L"], Y, upper=False, out=ws("pc_Yh", (B, 6, 3 * Ta)))
+        Yh = Yh.view(B, 6, 3, Ta)  # (M + F⁻¹)^(-½) HᵀΛŨ_t
+        # N_t = I + ŨᵀΛŨ − (HᵀΛŨ)ᵀ(M + F⁻¹)⁻¹(HᵀΛŨ) = I + Ũ_tᵀSŨ_t: its 6 distinct entries
+        tmp = ws("pc_tmp", (B, 6, Ta))
+        P = [torch.mul(Yh[:, :, j], Yh[:, :, k], out=tmp).sum(1) for j, k in _PAIRS]
+        n00, n11, n22 = diag[0] - P[0], diag[1] - P[1], diag[2] - P[2]
+        n10, n20, n21 = P[3].neg(), P[4].neg(), P[5].neg()
+        # 3×3 Cholesky and forward substitution in closed form over all samples at once (N_t ⪰ I:
+        # the square roots are of numbers ≥ 1 up to rounding)
+        l00 = n00.sqrt()
+        l10, l20 = n10 / l00, n20 / l00
+        l11 = (n11 - l10 * l10).sqrt()
+        l21 = (n21 - l20 * l10) / l11
+        l22 = (n22 - l20 * l20 - l21 * l21).sqrt()
+        e_w = proj["e_w"] if full else proj["e_w"][:, idx]
+        a = torch.matmul(torch.mul(e_w, usl, out=ws("pc_eu", (B, Ta, 3 * A))), sum3)  # Ũ_tᵀ Λ e_t = Ũ_tᵀ S r̄_t
+        Gs = (proj["Gt"].view(B, A, 3, 6) * sl).permute(0, 2, 3, 1).reshape(B, 18, A)
+        Ea = torch.cat((torch.matmul(Gs, u_t, out=ws("pc_E", (B, 18, Ta))).view(B, 3, 6, Ta),
+                        a.transpose(1, 2)[:, :, None]), 2, out=ws("pc_Ea", (B, 3, 7, Ta)))  # [Ũ_tᵀSG, Ũ_tᵀSr̄_t]
+        Xb = ws("pc_X", (B, 3, 7, Ta))
+        o = (lambda i: None) if Xb is None else (lambda i: Xb[:, i])
+        x0 = torch.div(Ea[:, 0], l00[:, None], out=o(0))
+        x1 = torch.addcmul(Ea[:, 1], l10[:, None], x0, value=-1, out=o(1))
+        x1 = torch.div(x1, l11[:, None], out=o(1))
+        x2 = torch.addcmul(Ea[:, 2], l20[:, None], x0, value=-1, out=o(2))
+        x2 = torch.addcmul(x2, l21[:, None], x1, value=-1, out=o(2))
+        x2 = torch.div(x2, l22[:, None], out=o(2))
+        X = Xb if Xb is not None else torch.stack((x0, x1, x2), 1)  # (B, 3, 7, Ta)
+        logdetN = 2 * (l00.log() + l11.log() + l22.log())
+        if not bool(torch.isfinite(logdetN).all()):
             raise UserError("age: the per-sample covariance is not positive definite (non-finite loading?)")
-        E = torch.einsum("ta,baij->btij", u, Gs)  # Ũ_tᵀ S G (B, Ta, 3, 6)
-        a = torch.einsum("ta,btai->bti", u, proj["e_w"][:, idx].view(B, Ta, A, 3) * sl)  # Ũ_tᵀ S r̄_t
-        Vt = torch.linalg.solve_triangular(Ln, torch.cat((E, a[..., None]), -1), upper=False)  # (B, Ta, 3, 7)
-        V = torch.zeros(B, T, 3, 6, dtype=self.dtype, device=self.device)
-        v = torch.zeros(B, T, 3, dtype=self.dtype, device=self.device)
-        logdetN = torch.zeros(B, T, dtype=self.dtype, device=self.device)
-        V[:, idx] = Vt[..., :6]
-        v[:, idx] = Vt[..., 6]
-        logdetN[:, idx] = 2 * torch.diagonal(Ln, dim1=-2, dim2=-1).log().sum(-1)
-        proj.update(V=V, v=v, logdetN=logdetN)
+        if full:
+            V = X
+        else:
+            V = torch.zeros(B, 3, 7, T, dtype=self.dtype, device=self.device)
+            V[..., idx] = X
+            logdetN = torch.zeros(B, T, dtype=self.dtype, device=self.device).index_copy(1, idx, logdetN)
+        proj.update(V=V, logdetN=logdetN)
         return proj
+
+    @property
+    def _theta_free(self):
+        """Cached θ-free tensors of the loaded samples: uᵀ (A, Ta); diag(ŨᵀΛŨ) + 1 (3, Ta);
+        u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major vector over the triads."""
+        if getattr(self, "_tf_cache", None) is None:
+            u = self.loading[self.active]  # (Ta, A)
+            lam = self.lam.view(self.A, 3)
+            usl = (u[..., None] * self._sqrt_lam.view(self.A, 3)).reshape(len(u), 3 * self.A)
+            sum3 = torch.eye(3, dtype=self.dtype, device=self.device).repeat(self.A, 1)
+            self._tf_cache = (u.T.contiguous(), (1.0 + (u * u) @ lam).T.contiguous(), usl, sum3)
+        return self._tf_cache
 
     def _kernel(self, q: torch.Tensor) -> torch.Tensor:
         """Per-draw log weight from q̃ (any shape): −½ q̃ (Gaussian) or the scale mixture's
@@ -197,8 +239,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         omega = torch.as_tensor(omega, dtype=self.dtype, device=self.device)
         delta = (u_of_omega(omega) - u_of_omega(self.omega.mean)).expand(*batch, self.T, 6).reshape(B, self.T, 6)
         p = self._percov_terms(r.reshape(B, self.A, 3))
-        q = (p["c"] - 2 * (p["b"] * delta).sum(-1) + ((delta @ p["C"]) * delta).sum(-1)
-             - ((p["V"] @ delta[..., None])[..., 0] - p["v"]).square().sum(-1))
+        V = p["V"]  # (B, 3, 7, T)
+        corr = (torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]).square().sum(1)
+        q = p["c"] - 2 * (p["b"] * delta).sum(-1) + ((delta @ p["C"]) * delta).sum(-1) - corr
         out = self._kernel(q).sum(-1) - 0.5 * self.T * p["logdetM"] - 0.5 * p["logdetN"].sum(-1)
         return out.reshape(batch)
 
@@ -224,14 +267,18 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         if len(zt.shape[:-3]):
             zt = zt.expand(*batch, *zt.shape[-3:]).reshape(B, self.T, 3, N)
         Rc, w, floor = self._factor_any(p["c"], p["b"], p["C"])
-        V, v = p["V"], p["v"]
+        V = p["V"]  # (B, 3, 7, T)
 
         def logw(s, d, t0, t1):
-            # d (…, 6, τ, N): q̃ = s + floor − ‖V δ − v‖²
-            Vc = V[:, t0:t1]
-            Vd = torch.einsum("btij,jtn->bitn", Vc, d) if d.dim() == 3 else torch.einsum("btij,bjtn->bitn", Vc, d)
-            corr = (Vd - v[:, t0:t1].transpose(1, 2)[..., None]).square().sum(1)  # (B, τ, N)
-            return self._kernel(s + floor[:, t0:t1, None] - corr)
+            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖², the 3×6 product as six fused
+            # multiply-adds over (B, 3, τ, N) (a batched matmul of 3×6 blocks is slower)
+            Vc = V[..., t0:t1, None]  # (B, 3, 7, τ, 1)
+            acc = -Vc[:, :, 6]
+            dd = d if d.dim() == 3 else d[:, None]  # (6, τ, N) or (B, 1, 6, τ, N)
+            for j in range(6):
+                acc = torch.addcmul(acc, Vc[:, :, j], dd[..., j, :, :])
+            corr = acc.square().sum(1)  # (B, τ, N)
+            return self._kernel(corr.neg_().add_(s).add_(floor[:, t0:t1, None]))
 
         inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
         lse = self._lse_direct(zt, Rc, w, inplace, logw=logw)  # (B, T)
