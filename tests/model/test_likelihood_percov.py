@@ -204,3 +204,29 @@ def test_inputs_are_checked_and_helpers_map_bands_and_clocks():
     ages = ages_from_clocks(t, {2: clock}, [0, 2], sensor="acc")
     assert ages[:, 0].tolist() == [0.0, 0.0, 0.0]
     assert ages[:, 1].numpy() == pytest.approx([0.25e-3 + 2e-4, 0.5e-3 + 2e-4, 0.75e-3 + 2e-4], abs=1e-15)
+
+
+def test_timing_gyro_posterior_is_the_dense_generalised_least_squares():
+    from accel_bayes.model.gyro_posterior import gyro_posterior_timing
+
+    g = np.random.default_rng(4)
+    T, G = 6, 5
+    y = g.normal(size=(T, G, 3))
+    std = g.uniform(0.01, 0.05, size=G)
+    age = g.uniform(0, 1e-3, size=(T, G))
+    s = g.uniform(0, 200.0, size=T)
+    got = gyro_posterior_timing(torch.as_tensor(y), torch.as_tensor(std), torch.as_tensor(age), torch.as_tensor(s))
+    one = np.kron(np.ones((G, 1)), np.eye(3))
+    for t in range(T):
+        d = age[t] - age[t].mean()
+        cov = np.kron(np.diag(std ** 2) + s[t] ** 2 * np.outer(d, d), np.eye(3))
+        P = one.T @ np.linalg.solve(cov, one)
+        mean = np.linalg.solve(P, one.T @ np.linalg.solve(cov, y[t].ravel()))
+        assert got.mean[t].numpy() == pytest.approx(mean, rel=1e-10, abs=1e-12)
+        assert got.cov[t].numpy() == pytest.approx(np.linalg.inv(P), rel=1e-10, abs=1e-16)
+    # equal noise: the centred loading is orthogonal to the mean, the calibrated posterior exactly
+    eq = gyro_posterior_timing(torch.as_tensor(y), 0.02, torch.as_tensor(age), torch.as_tensor(s))
+    cal = gyro_posterior(torch.as_tensor(y), torch.full((G,), 0.02, dtype=DT), "calibrated")
+    assert torch.allclose(eq.mean, cal.mean, rtol=1e-12) and torch.allclose(eq.cov, cal.cov, rtol=1e-12)
+    assert not torch.allclose(got.cov, gyro_posterior(torch.as_tensor(y), torch.as_tensor(std), "calibrated").cov,
+                              rtol=1e-6)
