@@ -61,18 +61,23 @@ _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
 __all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale"]
 
 
-def band_scale(omega_norm, edges, rms) -> torch.Tensor:
+def band_scale(omega_norm, edges, rms, field: str = "jerk_rms") -> torch.Tensor:
     """s_t (T,) per sample from a per-|ω|-band scale: ``edges`` the B − 1 inner band edges
     (rad/s, ascending, as the ``unresolved_motion`` finding's ``omega_edges``), ``rms`` (B,) the
-    band's scale (``jerk_rms``, m/s³), ``omega_norm`` (T,) rad/s.  Band b holds
-    edges[b−1] ≤ |ω| < edges[b]."""
+    band's scale (``jerk_rms`` m/s³ or ``angular_acc_rms`` rad/s², named by ``field`` in errors),
+    ``omega_norm`` (T,) rad/s.  Band b holds edges[b−1] ≤ |ω| < edges[b]."""
     w = torch.as_tensor(np.asarray(omega_norm, dtype=np.float64))
-    e = torch.as_tensor(np.asarray(edges, dtype=np.float64)).reshape(-1)
-    v = torch.as_tensor(np.asarray(rms, dtype=np.float64)).reshape(-1)
+    try:
+        e = torch.as_tensor(np.asarray(edges, dtype=np.float64)).reshape(-1)
+        v = torch.as_tensor(np.asarray(rms, dtype=np.float64)).reshape(-1)
+    except (TypeError, ValueError):
+        raise UserError(f"{field}: expected numbers per |omega| band and numeric omega_edges") from None
     if len(v) != len(e) + 1:
-        raise UserError(f"jerk_rms: expected {len(e) + 1} values for {len(e)} band edges, got {len(v)}")
+        raise UserError(f"{field}: expected {len(e) + 1} values for {len(e)} band edges, got {len(v)}")
     if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
-        raise UserError("jerk_rms: expected finite values >= 0")
+        raise UserError(f"{field}: expected finite values >= 0")
+    if not bool(torch.isfinite(e).all()) or bool((e[1:] < e[:-1]).any()):
+        raise UserError("omega_edges: expected finite band edges in ascending order (rad/s)")
     return v[torch.bucketize(w, e, right=True)]
 
 

@@ -230,3 +230,44 @@ def test_timing_gyro_posterior_is_the_dense_generalised_least_squares():
     assert torch.allclose(eq.mean, cal.mean, rtol=1e-12) and torch.allclose(eq.cov, cal.cov, rtol=1e-12)
     assert not torch.allclose(got.cov, gyro_posterior(torch.as_tensor(y), torch.as_tensor(std), "calibrated").cov,
                               rtol=1e-6)
+
+
+def _clock_report(findings):
+    rows = [{"effect": name, "imu": imu, "axis": None, "evidence": 100.0, "parameters": dict(params),
+             "where": {"regime": "all", "time_s": None}, "explanation": "test finding"}
+            for name, imu, params in findings]
+    return {"schema": "accel_bayes.mismatch/1", "mismatch_detected": bool(rows), "threshold": 20.0,
+            "baseline": {"loglik": 0.0, "chi2_per_dof": 1.0, "dof": 1},
+            "refined": {"effects": [r["effect"] for r in rows], "loglik": 0.0, "chi2_per_dof": 1.0} if rows else None,
+            "findings": rows}
+
+
+def test_report_terms_read_clock_ages_and_band_scales(monkeypatch):
+    from accel_bayes.data import mismatch_report
+    from accel_bayes.model.report_terms import unresolved_terms
+    from accel_bayes.physics.effects.clock import clock_age
+
+    if "unresolved_motion" not in mismatch_report.VOCABULARY + mismatch_report.EXTENSIONS:
+        # DESIGN §7.2 vocabulary 1.2 names it; the effects library registers it on the detect branch
+        monkeypatch.setattr(mismatch_report, "EXTENSIONS", mismatch_report.EXTENSIONS + ("unresolved_motion",))
+
+    clock = {"internal_rate_hz": 1002.5, "beat_hz": -2.5, "phase": 0.3, "drift_hz_per_s": 1e-4,
+             "age_rms_s": 0.9e-3 / math.sqrt(12), "filter_delay_acc_minus_gyro_s": 1e-4}
+    um = {"omega_edges": [1.0, 2.0], "jerk_rms": [100.0, 200.0, 300.0], "angular_acc_rms": [1.0, 2.0, 3.0]}
+    t = torch.linspace(0, 3, 7, dtype=DT)
+    wn = torch.tensor([0.5, 1.5, 2.5, 0.1, 1.0, 2.0, 9.0], dtype=DT)
+    rep = _clock_report([("sampling_clock", 1, clock), ("unresolved_motion", None, um)])
+    got = unresolved_terms(rep, t, [0, 1, 2], [1, 2], wn)
+    want1 = clock_age(t, -2.5, 0.3, 1e-4, 0.9e-3)
+    assert torch.allclose(got.age_gyro[:, 0], want1, atol=1e-18) and bool((got.age_gyro[:, 1] == 0).all())
+    assert torch.allclose(got.age_acc[:, 1], want1 + 1e-4, atol=1e-18) and bool((got.age_acc[:, [0, 2]] == 0).all())
+    assert got.jerk_std.tolist() == [100.0, 200.0, 300.0, 100.0, 200.0, 300.0, 300.0]
+    assert got.angular_acc_std.tolist() == [1.0, 2.0, 3.0, 1.0, 2.0, 3.0, 3.0]
+    assert [u["effect"] for u in got.used] == ["sampling_clock", "unresolved_motion"]
+    assert unresolved_terms(_clock_report([("sampling_clock", 1, clock)]), t, [0, 1], [1], wn) is None
+    bad = _clock_report([("unresolved_motion", None, {**um, "jerk_rms": [1.0, 2.0]})])
+    with pytest.raises(UserError, match=r"^model: findings\[0\]\.parameters\.jerk_rms: expected 3 values"):
+        unresolved_terms(bad, t, [0], [0], wn)
+    bad = _clock_report([("unresolved_motion", None, {k: v for k, v in um.items() if k != "angular_acc_rms"})])
+    with pytest.raises(UserError, match=r"^model: findings\[0\]\.parameters\.angular_acc_rms: missing"):
+        unresolved_terms(bad, t, [0], [0], wn)
