@@ -182,6 +182,29 @@ def test_gradient_matches_finite_differences():
                 e[k, i] = h
                 fd = (lik.log_phat(POS5 + e, z=z) - lik.log_phat(POS5 - e, z=z)) / (2 * h)
                 assert float(grad[k, i]) == pytest.approx(float(fd), rel=1e-5, abs=1e-4)
+        # the exact given-ω value (what a MAP would climb), in positions and in ω
+        w = (omega.mean + 0.1).requires_grad_(True)
+        gp, gw = torch.autograd.grad(lik.log_lik_given_omega(pos, w), (pos, w))
+        with torch.no_grad():
+            e = torch.zeros_like(POS5)
+            e[3, 1] = h
+            fd = (lik.log_lik_given_omega(POS5 + e, w) - lik.log_lik_given_omega(POS5 - e, w)) / (2 * h)
+            assert float(gp[3, 1]) == pytest.approx(float(fd), rel=1e-5, abs=1e-4)
+            ew = torch.zeros_like(w)
+            ew[4, 2] = h
+            fd = (lik.log_lik_given_omega(POS5, w + ew) - lik.log_lik_given_omega(POS5, w - ew)) / (2 * h)
+            assert float(gw[4, 2]) == pytest.approx(float(fd), rel=1e-5, abs=1e-4)
+
+
+def test_a_moved_copy_keeps_the_terms_and_the_value():
+    acc, omega, age, s = _case(T=8, seed=6)
+    lik = _ours(acc, omega, age, s, nu=3.0, num_draws=4)
+    z = lik.sample_z((), 4, torch.Generator().manual_seed(3))
+    want = lik.log_phat(POS5, z=z)
+    moved = lik.to("cpu")
+    assert isinstance(moved, PerSampleCovLikelihood) and moved.nu == 3.0
+    assert not hasattr(moved, "_tf_cache") or moved._tf_cache is None
+    assert torch.equal(moved.log_phat(POS5, z=z), want)
 
 
 def test_inputs_are_checked_and_helpers_map_bands_and_clocks():
