@@ -139,9 +139,11 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             raise UserError(f"jerk_std: expected a finite scale >= 0 (m/s³), scalar or ({self.T},), got shape "
                             f"{tuple(s.shape)}")
         if nu is not None:
-            nu = float(nu)
-            if not (math.isfinite(nu) and nu > 0):
-                raise UserError(f"nu: expected degrees of freedom > 0 or None, got {nu!r}")
+            # a tensor that requires grad is kept (fits of ν); anything else becomes a float
+            nu = nu if torch.is_tensor(nu) and nu.requires_grad else float(nu)
+            v = float(nu.detach()) if torch.is_tensor(nu) else nu
+            if not (math.isfinite(v) and v > 0):
+                raise UserError(f"nu: expected degrees of freedom > 0 or None, got {v!r}")
         self.age = age
         self.jerk_std = s
         self.nu = nu
@@ -164,7 +166,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         sl = self._sqrt_lam.view(A, 3, 1)
         # Without autograd the (B, ·, T) temporaries live in reused buffers, as in the flat
         # projection (fresh MB-sized allocations cost page faults comparable to the arithmetic).
-        reuse = not (torch.is_grad_enabled() and r.requires_grad)
+        reuse = not (torch.is_grad_enabled() and (r.requires_grad or self.loading.requires_grad))
         ws = self._workspace if reuse else (lambda name, shape: None)
         # Layouts keep the sample index last (contiguous), so every per-sample step below is an
         # elementwise op over T or a reduction over an outer dimension.
@@ -228,9 +230,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         closed form (module docstring)."""
         if self.nu is None:
             return -0.5 * q
-        a = 0.5 * self.nu
+        a = 0.5 * torch.as_tensor(self.nu, dtype=q.dtype, device=q.device)
         n = 3 * self.A - (0 if self.phi_prior_prec is not None else 6)
-        const = math.lgamma(a + n / 2) - math.lgamma(a) - n / 2 * math.log(a)
+        const = torch.lgamma(a + n / 2) - torch.lgamma(a) - n / 2 * torch.log(a)
         return const - (a + n / 2) * torch.log1p(q.clamp_min(0) / (2 * a))
 
     # ------------------------------------------------------------------ estimators
