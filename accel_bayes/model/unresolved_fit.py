@@ -28,13 +28,15 @@ _LOG_NU_BOUNDS = (math.log(0.05), math.log(1e4))
 
 @dataclass
 class UnresolvedFit:
-    """jerk_rms (B,) m/s³ per band; nu (None without the mixture); loglik and loglik_flat (nats,
-    the flat model's at the same θ, ω and noise, constants included) and their difference gain."""
+    """jerk_rms (B,) m/s³ per band; nu (None without the mixture); noise_factor the common factor
+    on the noise levels chosen; loglik and loglik_flat (nats, the flat model's at the same θ, ω and
+    the given noise, constants included) and their difference gain."""
 
     jerk_rms: torch.Tensor
     nu: float | None
     loglik: float
     loglik_flat: float
+    noise_factor: float = 1.0
 
     @property
     def gain(self) -> float:
@@ -42,12 +44,34 @@ class UnresolvedFit:
 
 
 def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, omega=None, *, fit_nu: bool = False,
-                          max_iter: int = 100) -> UnresolvedFit:
+                          noise_factors=(1.0,), max_iter: int = 100) -> UnresolvedFit:
     """Fit the jerk scale per band (and ν with ``fit_nu``) on ``lik``'s data (module docstring).
 
     age (T, A) s the rows' data ages; band (T,) integer |ω| band of each sample (0 … B − 1, e.g.
     ``torch.bucketize(|ω̄|, edges, right=True)``); positions (A, 3) m; omega (T, 3) rad/s (default:
-    the gyro posterior mean).  Bands without samples keep scale 0."""
+    the gyro posterior mean).  Bands without samples keep scale 0.  ``noise_factors``: common
+    factors f on ``lik``'s noise levels to try (the best fit over them is returned): the scale
+    mixture's spread is not the Gaussian's rms, so with ``fit_nu`` the noise level moves too."""
+    best = None
+    for f in noise_factors:
+        f = float(f)
+        if not (math.isfinite(f) and f > 0):
+            raise UserError(f"noise_factors: expected factors > 0, got {f!r}")
+        scaled = lik if f == 1.0 else RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std * f, 1,
+                                                             reference=lik.reference, phi_prior=lik.phi_prior)
+        fit = _fit_one(scaled, age, band, positions, omega, fit_nu, max_iter)
+        fit.noise_factor = f
+        if best is None or fit.loglik > best.loglik:
+            best = fit
+    if best.noise_factor != 1.0:  # the flat reference stays the one at the given noise
+        with torch.no_grad():
+            pos = torch.as_tensor(positions, dtype=lik.dtype, device=lik.device)
+            w = lik.omega.mean if omega is None else torch.as_tensor(omega, dtype=lik.dtype, device=lik.device)
+            best.loglik_flat = float(lik.log_lik_given_omega(pos, w)) + lik.log_constant
+    return best
+
+
+def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter) -> UnresolvedFit:
     band = torch.as_tensor(band, device=lik.device)
     if band.shape != (lik.T,) or band.dtype in (torch.float32, torch.float64) or bool((band < 0).any()):
         raise UserError(f"band: expected ({lik.T},) non-negative integers (|omega| band per sample)")

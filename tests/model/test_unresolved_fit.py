@@ -1,5 +1,6 @@
 """Type-II ML of the unresolved jerk's scales per band and of ν (accel_bayes.model.unresolved_fit):
 recovery on data drawn from the model with known scales, and ν large on Gaussian data."""
+
 import math
 
 import pytest
@@ -17,7 +18,7 @@ POS8 = torch.tensor([[x, y, z] for x in (0.0, 0.05) for y in (0.0, 0.04) for z i
 SIG = 0.2
 
 
-def _data(T, scales, nu=None, seed=0):
+def _data(T, scales, nu=None, seed=0, stated=SIG):
     """Data drawn from the per-sample model: two |ω| bands (first/second half), jerk scale per band,
     optional Gamma(ν/2, ν/2) precision scale per sample on noise and jerk together."""
     g = torch.Generator().manual_seed(seed)
@@ -36,7 +37,7 @@ def _data(T, scales, nu=None, seed=0):
     acc = specific_force(POS8, w, wd, s) + err
     omega = gyro_posterior(w[:, None, :] + 1e-4 * torch.randn(T, 3, 3, generator=g, dtype=DT),
                            torch.full((3,), 1e-4, dtype=DT), "calibrated")
-    return RaoBlackwellLikelihood(acc, omega, SIG, 1), age, band, w
+    return RaoBlackwellLikelihood(acc, omega, stated, 1), age, band, w
 
 
 def test_band_scales_are_recovered_and_gain_over_the_flat_model():
@@ -55,6 +56,14 @@ def test_nu_is_recovered_on_heavy_tails_and_large_on_gaussian_data():
     assert fit.jerk_rms[0].item() == pytest.approx(3000.0, rel=0.08)
     lik, age, band, w = _data(3000, [3000.0, 3000.0], seed=2)
     assert fit_unresolved_scales(lik, age, band, POS8, w, fit_nu=True).nu > 30.0
+
+
+def test_the_noise_factor_finds_the_mixture_scale_under_a_stated_rms():
+    """t noise with ν = 4 has rms √2 × its scale: stated at the rms, the factor 1/√2 fits best."""
+    lik, age, band, w = _data(3000, [3000.0, 3000.0], nu=4.0, seed=3, stated=SIG * math.sqrt(2))
+    fit = fit_unresolved_scales(lik, age, band, POS8, w, fit_nu=True, noise_factors=(0.5, 1 / math.sqrt(2), 1.0))
+    assert fit.noise_factor == pytest.approx(1 / math.sqrt(2)) and 3.0 < fit.nu < 5.5
+    assert fit.gain > 0
 
 
 def test_band_must_be_integer_labels():
