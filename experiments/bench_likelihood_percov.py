@@ -12,7 +12,7 @@ kept samples' times.  The jerk scale is one number fitted here by maximising the
 log p(y | ω̄, θ_nominal) (ω at the gyro mean) over a log grid — not a per-band fit; the cost does
 not depend on it.  Both versions are evaluated in the same process, alternating blocks of calls,
 on the same standard normals; medians of all calls (wall clock).  The per-sample model's ``nu``
-variant (scale mixture, ν fitted on a grid) is timed too.  Noise per triad: the rms of the
+variant (scale mixture, ν fitted) is timed too.  Noise per triad: the rms of the
 flat model's φ-projected residual at the nominal positions (a moment stand-in for ``calibrate``'s
 type-II ML levels; the stated rest noise would make every gain meaningless).
 
@@ -44,6 +44,7 @@ from accel_bayes.data.mimu import import_mimu  # noqa: E402
 from accel_bayes.data.outputs import write_text  # noqa: E402
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.model.likelihood_percov import with_unresolved_motion  # noqa: E402
+from accel_bayes.model.unresolved_fit import fit_unresolved_scales  # noqa: E402
 from accel_bayes.physics.effects.clock import clock_age  # noqa: E402
 from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 
@@ -67,22 +68,6 @@ def residual_noise(lik, pos) -> torch.Tensor:
     with torch.no_grad():
         e = lik._projection_hot(lik._positions(pos)[None], extras=True)["e_w"][0] / lik._sqrt_lam
     return (e.view(lik.T, lik.A, 3).square().sum((0, 2)) / (lik.T * (3 - 6 / lik.A))).sqrt()
-
-
-def fit_grid(make, grid, pos, lik) -> tuple:
-    """(best grid point, gain nats) of log p(y | ω̄, θ) of ``make(*point)`` over ``grid`` against
-    ``lik``, the noise constants included (they differ where the noise level does)."""
-    def value(m):
-        return float(m.log_lik_given_omega(pos, m.omega.mean)) + m.log_constant
-
-    base = value(lik)
-    best = (None, -float("inf"))
-    with torch.no_grad():
-        for x in grid:
-            v = value(make(*x)) - base
-            if v > best[1]:
-                best = (x, v)
-    return best
 
 
 def timed_blocks(fns: dict, rounds: int, block: int) -> dict:
@@ -116,18 +101,17 @@ def main(argv=None):
     sigma = residual_noise(stated, pos)
     flat = RaoBlackwellLikelihood(stated.acc, stated.omega, sigma, 1, reference=stated.reference)
     age = exp1_ages(rec, stated)
-    (s,), gain = fit_grid(lambda x: with_unresolved_motion(flat, age, x), [(x,) for x in np.logspace(1, 6, 41)],
-                          pos, flat)
-
-    def scaled(f):
-        return RaoBlackwellLikelihood(flat.acc, flat.omega, sigma * f, 1, reference=flat.reference)
-
-    # the scale mixture's ν with a common factor f on the noise (the mixture's scale is not the
-    # Gaussian's rms); the jerk scale is rescaled with it
-    (f, nu), gain_t = fit_grid(lambda f, x: with_unresolved_motion(scaled(f), age, s * f, nu=x),
-                               [(f, x) for f in np.logspace(-1.5, 0, 16) for x in np.logspace(-1, 2, 25)], pos, flat)
+    # the jerk scale per |ω| quartile band, then with the scale mixture's ν and a common noise factor
+    # (type-II ML at the nominal θ and the gyro-mean ω: accel_bayes.model.unresolved_fit)
+    wn = flat.omega.mean.norm(dim=-1)
+    edges = torch.quantile(wn, torch.tensor([0.25, 0.5, 0.75], dtype=wn.dtype))
+    band = torch.bucketize(wn, edges, right=True)
+    fit = fit_unresolved_scales(flat, age, band, pos)
+    fit_t = fit_unresolved_scales(flat, age, band, pos, fit_nu=True, noise_factors=np.logspace(-1.5, 0, 10))
+    s, f, nu = fit.jerk_rms[band], fit_t.noise_factor, fit_t.nu
+    scaled = RaoBlackwellLikelihood(flat.acc, flat.omega, sigma * f, 1, reference=flat.reference)
     per = with_unresolved_motion(flat, age, s)
-    per_t = with_unresolved_motion(scaled(f), age, s * f, nu=nu)
+    per_t = with_unresolved_motion(scaled, age, fit_t.jerk_rms[band], nu=nu)
     z = flat.sample_z((), 1, torch.Generator().manual_seed(0))
     with torch.no_grad():
         # with the noise constants (the mixture's noise factor f changes them)
@@ -155,11 +139,13 @@ def main(argv=None):
         f"at the nominal positions and ω̄ ({float(sigma.min()):.2f}–{float(sigma.max()):.2f} m/s²; a moment "
         "stand-in for `calibrate`'s type-II ML levels, same for both models). Data ages: the sampling clocks of "
         "`results/clock_mimu/exp_1.json` (rms of the centred age over samples and IMUs "
-        f"{1e3 * float((age - age.mean(1, keepdim=True)).std()):.3f} ms). One jerk scale for all samples, "
-        f"fitted on a log grid of the exact log p(y | ω̄, θ_nominal): s = {s:.4g} m/s³, gain over the flat model "
-        f"{gain:.1f} nats ({gain / flat.T:.3f} per sample); then the scale mixture's ν (log grid 0.1–100) with a "
-        f"common factor f on noise and jerk scales (log grid 0.03–1): ν = {nu:.3g}, f = {f:.2f}, gain {gain_t:.1f} nats "
-        f"({gain_t / flat.T:.3f} per sample). In-sample fits at a fixed θ, "
+        f"{1e3 * float((age - age.mean(1, keepdim=True)).std()):.3f} ms). Scales by type-II ML at the nominal "
+        "positions and the gyro-mean ω (`accel_bayes.model.unresolved_fit`), one per |ω| quartile band "
+        f"(edges {', '.join(f'{float(e):.2f}' for e in edges)} rad/s): jerk_rms "
+        f"{', '.join(f'{float(v):.3g}' for v in fit.jerk_rms)} m/s³, gain over the flat model {fit.gain:.1f} nats "
+        f"({fit.gain / flat.T:.3f} per sample); with the scale mixture (ν and a common noise factor f on a log grid "
+        f"0.03–1 fitted too): ν = {nu:.3g}, f = {f:.3f}, jerk_rms {', '.join(f'{float(v):.3g}' for v in fit_t.jerk_rms)} "
+        f"m/s³, gain {fit_t.gain:.1f} nats ({fit_t.gain / flat.T:.3f} per sample). In-sample fits at a fixed θ, "
         "not held out: a cost setting, not an evidence claim.",
         "",
         "| model | log p̂ + noise constants (same z) | ms per log p̂ | × flat |",
