@@ -330,3 +330,34 @@ def test_the_maximum_is_consistent_and_pmmh_runs_on_it():
     run = run_pmmh(k, num_samples=60, warmup_steps=40, num_chains=1, initial_params=th.detach().reshape(1, 4, 3),
                    progress=False)
     assert bool(torch.isfinite(run.log_phat).all()) and float(run.accepted.double().mean()) > 0.05
+
+
+def test_flat_value_is_the_beta_limit_of_one_dense_gaussian_over_all_stacked_samples():
+    """All T samples' 3A-vectors stacked into one Gaussian (block-diagonal covariance, φ_t with the
+    prior N(0, β I₆) integrated out by the dense covariance Σ_t + β H Hᵀ): log N + 3T log(2πβ)
+    converges to the flat-prior value as β grows (DESIGN §4's brute-force limit)."""
+    from scipy.linalg import block_diag
+
+    acc, omega, age, s = _case(T=5, seed=9)
+    lik = _ours(acc, omega, age, s)
+    w = omega.mean - 0.1
+    got = float(lik.log_lik_given_omega(POS5, w)) + lik.log_constant
+    H = _kinematic_H(POS5)
+    n = 15
+    r, covs = [], []
+    for t in range(lik.T):
+        mean = specific_force(POS5, w[t:t + 1], torch.zeros(1, 3, dtype=DT), torch.zeros(1, 3, dtype=DT))
+        r.append((acc[t] - mean[0]).reshape(-1).numpy())
+        d = (age[t] - age[t].mean()).numpy()
+        D = np.kron(d[:, None], np.eye(3))
+        covs.append(SIG ** 2 * np.eye(n) + float(s[t]) ** 2 * D @ D.T)
+    r = np.concatenate(r)
+    errs = []
+    for beta in (1e2, 1e5, 1e8):  # the error falls like 1/β
+        big = block_diag(*[c + beta * H @ H.T for c in covs])
+        Lc = np.linalg.cholesky(big)  # scipy's own check refuses the conditioning at large β
+        u = np.linalg.solve(Lc, r)
+        logpdf = -0.5 * (len(r) * math.log(2 * math.pi) + 2 * np.log(np.diag(Lc)).sum() + u @ u)
+        val = logpdf + 3 * lik.T * math.log(2 * math.pi * beta)
+        errs.append(abs(val - got))
+    assert errs[-1] < 1e-4 and errs[0] > 10 * errs[-1], errs  # converging to ours, not by accident
