@@ -37,10 +37,16 @@ the gyro posterior, so p̂ is still unbiased (pseudo-marginal MH stays exact).
 
 Cost.  Per θ on top of the flat projection: the 3×3 N_t and the 3×6 and 3-vector maps
 V_t = L_t⁻¹Ũ_tᵀSG, v_t = L_t⁻¹Ũ_tᵀSr̄_t (r̄ centred at the gyro mean), all from the flat
-projection's weighted residuals by sums over the A triads (O(T·A)), batched 3×3 Choleskys;
+projection's weighted residuals by sums over the A triads (O(T·A)), the 3×3 Choleskys in
+closed form elementwise over the samples (a batched LAPACK call per 3×3 costs more than the rest);
 per draw q̃ = q − ‖V_t δ − v_t‖², δ = u(ω) − u(ω̄_t), on top of the flat path's shared 6×6 factor
 (:mod:`.draw_sums`).  Samples with s_t d_t = 0 get zero corrections; a recording with none
 takes the flat path unchanged.  ``experiments/bench_likelihood_percov.py`` times it on exp_1.
+
+Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
+and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
+unresolved angular acceleration in the posterior of ω (:func:`.gyro_posterior.gyro_posterior_timing`);
+the same covariance on residuals, as the detector scores it (:mod:`.unresolved_cov`).
 """
 from __future__ import annotations
 
@@ -104,6 +110,9 @@ def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None) 
     """The per-sample-covariance likelihood on ``lik``'s data (shared, not copied): ``age`` (T, A)
     s the rows' data ages, ``jerk_std`` scalar or (T,) m/s³, ``nu`` None or the degrees of
     freedom of the scale mixture (module docstring)."""
+    if type(lik) is not RaoBlackwellLikelihood and not isinstance(lik, PerSampleCovLikelihood):
+        # a subclass (the tempered likelihood) would silently lose its own log_phat here
+        raise UserError(f"lik: expected an untempered RaoBlackwellLikelihood, got {type(lik).__name__}")
     new = copy.copy(lik)
     new.__class__ = PerSampleCovLikelihood
     new._set_terms(age, jerk_std, nu)

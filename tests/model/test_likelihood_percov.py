@@ -216,6 +216,9 @@ def test_inputs_are_checked_and_helpers_map_bands_and_clocks():
         _ours(acc, omega, age, -s)
     with pytest.raises(UserError, match="^nu"):
         _ours(acc, omega, age, s, nu=0.0)
+    from accel_bayes.model.tempering import TemperedLikelihood
+    with pytest.raises(UserError, match="^lik: expected an untempered"):
+        with_unresolved_motion(TemperedLikelihood(acc, omega, SIG, 1, 2.0), age, s)
     got = band_scale([0.1, 1.0, 2.5, 9.0], [1.0, 3.0], [10.0, 20.0, 30.0])
     assert got.tolist() == [10.0, 20.0, 20.0, 30.0]
     with pytest.raises(UserError, match="^jerk_rms"):
