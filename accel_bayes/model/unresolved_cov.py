@@ -48,7 +48,7 @@ def lowrank_terms(y: torch.Tensor, U: torch.Tensor, s2: torch.Tensor, *, v: torc
             AU[sel] = torch.matmul(prec[b], Us[sel])
         ld = -torch.linalg.slogdet(prec)[1][lab]
     r = U.shape[-1]
-    M = torch.eye(r, dtype=y.dtype) + Us.transpose(-1, -2) @ AU
+    M = torch.eye(r, dtype=y.dtype, device=y.device) + Us.transpose(-1, -2) @ AU
     Lm = torch.linalg.cholesky(M)
     b = torch.einsum("tnr,tn->tr", Us, Ay)
     z = torch.cholesky_solve(b[..., None], Lm)[..., 0]
@@ -75,7 +75,7 @@ def loadings(d: torch.Tensor) -> torch.Tensor:
     """U (T, 3K, 3) = d ⊗ I₃: the centred data ages d (T, K) s as the loading of a per-sample
     3-vector on the K triads, channels ordered (IMU, axis)."""
     T, K = d.shape
-    eye = torch.eye(3, dtype=d.dtype)
+    eye = torch.eye(3, dtype=d.dtype, device=d.device)
     return (d[:, :, None, None] * eye).reshape(T, 3 * K, 3)
 
 
