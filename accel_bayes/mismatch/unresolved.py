@@ -29,85 +29,12 @@ from dataclasses import dataclass
 
 import torch
 
+# The covariance algebra lives in the model layer (issue #30 item 5: one implementation, shared with
+# the calibration likelihood); re-exported here for the detector's callers.
+from ..model.unresolved_cov import gauss_logpdf, loadings, lowrank_terms, marginal_loglik, t_logpdf  # noqa: F401
+
 __all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "marginal_loglik", "fit_scales",
            "predicted_variance", "finding", "UnresolvedMotion"]
-
-
-def lowrank_terms(y: torch.Tensor, U: torch.Tensor, s2: torch.Tensor, *, v: torch.Tensor | None = None,
-                  w: torch.Tensor | None = None, prec: torch.Tensor | None = None,
-                  lab: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """(quad (T,), logdet (T,)): yᵀC⁻¹y and log det C per sample for C = A + U diag(s2) Uᵀ.
-
-    y (T, n); U (T, n, r); s2 (T, r) ≥ 0 (zero allowed: the term is then absent).  The base A is
-    either ``v`` (T, n) diagonal variances, with optional ``w`` (T, n) 0/1 marking the channels
-    that enter (the density is then the marginal of those channels), or full per group: ``prec``
-    (B, n, n) the inverses A_b⁻¹ and ``lab`` (T,) each sample's group (every channel enters).
-    Units: those of y² for A and of (y/U)² for s2.  Exact: C⁻¹ = A⁻¹ − A⁻¹Ũ M⁻¹ŨᵀA⁻¹ and
-    det C = det A det M with Ũ = U S^½ and M = I + ŨᵀA⁻¹Ũ, which stays positive definite at
-    s2 = 0; per sample only r × r matrices are factorised."""
-    Us = U * torch.sqrt(s2.clamp_min(0))[:, None, :]
-    if prec is None:
-        if v is None:
-            raise ValueError("lowrank_terms: give v (diagonal base) or prec and lab (full base)")
-        inv = 1.0 / v if w is None else w / v
-        Ay = y * inv
-        AU = Us * inv[..., None]
-        ld = torch.log(v).sum(-1) if w is None else (w * torch.log(v)).sum(-1)
-    else:
-        Ay = torch.empty_like(y)
-        AU = torch.empty_like(Us)
-        for b in range(prec.shape[0]):
-            sel = lab == b
-            Ay[sel] = y[sel] @ prec[b]  # A⁻¹ is symmetric
-            AU[sel] = torch.matmul(prec[b], Us[sel])
-        ld = -torch.linalg.slogdet(prec)[1][lab]
-    r = U.shape[-1]
-    M = torch.eye(r, dtype=y.dtype) + Us.transpose(-1, -2) @ AU
-    Lm = torch.linalg.cholesky(M)
-    b = torch.einsum("tnr,tn->tr", Us, Ay)
-    z = torch.cholesky_solve(b[..., None], Lm)[..., 0]
-    quad = (y * Ay).sum(-1) - (b * z).sum(-1)
-    logdet = ld + 2 * torch.log(torch.diagonal(Lm, dim1=-2, dim2=-1)).sum(-1)
-    return quad, logdet
-
-
-def gauss_logpdf(quad: torch.Tensor, logdet: torch.Tensor, n) -> torch.Tensor:
-    """Zero-mean Gaussian log density (nats) from :func:`lowrank_terms`' output; n channels."""
-    return -0.5 * (quad + logdet + n * math.log(2 * math.pi))
-
-
-def t_logpdf(quad: torch.Tensor, logdet: torch.Tensor, n, nu) -> torch.Tensor:
-    """Zero-mean multivariate-t log density (nats), scale matrix C (quad, logdet as for the
-    Gaussian), ``nu`` degrees of freedom; n channels."""
-    nu = torch.as_tensor(nu, dtype=quad.dtype)
-    n = torch.as_tensor(n, dtype=quad.dtype)
-    return (torch.lgamma((nu + n) / 2) - torch.lgamma(nu / 2) - n / 2 * torch.log(nu * math.pi) - logdet / 2
-            - (nu + n) / 2 * torch.log1p(quad / nu))
-
-
-def loadings(d: torch.Tensor) -> torch.Tensor:
-    """U (T, 3K, 3) = d ⊗ I₃: the centred data ages d (T, K) s as the loading of a per-sample
-    3-vector on the K triads, channels ordered (IMU, axis)."""
-    T, K = d.shape
-    eye = torch.eye(3, dtype=d.dtype)
-    return (d[:, :, None, None] * eye).reshape(T, 3 * K, 3)
-
-
-def marginal_loglik(y: torch.Tensor, d: torch.Tensor, w: torch.Tensor, v: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
-    """Per-sample log density (nats, (T,)) of the model in the module docstring, the motion m_t
-    marginalised.  y (T, K, 3) array-frame residuals (sensor units); d (T, K) centred data ages
-    (s); w (T, K) 1 where IMU k's triad enters sample t, else 0; v (T, K) white variances (units²);
-    s2 (T,) the unresolved motion's variance per axis ((units/s)²; 0 gives the white model)."""
-    # lowrank_terms with U = d ⊗ I₃ and a per-triad isotropic base has M = (1 + s² c) I₃, c = Σ_k d²/v:
-    # the closed form below (checked against lowrank_terms in the tests) is several times faster
-    # inside the fits' autograd
-    inv = w / v
-    quad = (y ** 2).sum(-1).mul(inv).sum(1)
-    c = (d ** 2 * inv).sum(1)
-    proj = torch.einsum("tk,tki->ti", d * inv, y)  # (T, 3)
-    quad = quad - s2 / (1 + s2 * c) * (proj ** 2).sum(-1)
-    logdet = 3 * ((w * torch.log(v)).sum(1) + torch.log1p(s2 * c))
-    return gauss_logpdf(quad, logdet, 3 * w.sum(1))
 
 
 def fit_scales(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, lab: torch.Tensor, B: int, *, max_iter: int = 200,

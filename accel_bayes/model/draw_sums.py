@@ -70,7 +70,7 @@ class DrawSums:
             return None
         return Lc.transpose(-1, -2), w, floor
 
-    def _lse_direct(self, zt, Rc, w, inplace=True):
+    def _lse_direct(self, zt, Rc, w, inplace=True, logw=None):
         """log Σ_n exp(−½(q_tn − floor_t)) → (B, T), with q_tn − floor_t = ‖R_C d_tn + w_t‖².
 
         d_tn = u(ω_tn) − u(ω̄_t) is formed from v = L_t z_tn (ω = ω̄ + v) as
@@ -79,6 +79,12 @@ class DrawSums:
         Per draw that is ~40 flops for d plus a 6×6 triangular product per θ (one matrix product
         over all t and n), instead of the 6×10 map F_t per (θ, t) of :meth:`_lse_shared`.
         For N = 1 the log-sum-exp is the term itself (no exp/log).
+
+        ``logw`` (optional) turns each chunk's s = ‖R_C d + w‖² (B, τ, N) into per-draw log
+        weights: called as ``logw(s, d, t0, t1)`` with d (…, 6, τ, N) the chunk's draws of
+        u(ω) − u(ω̄) (a reused buffer: read it before returning); the result is log-sum-exp'ed
+        with the max shift (the per-sample covariance of :mod:`.likelihood_percov` subtracts a
+        further term per draw, so s − floor is no longer a lower bound).
         """
         B = Rc.shape[0]
         T, N = zt.shape[-3], zt.shape[-1]
@@ -111,6 +117,10 @@ class DrawSums:
             y = y.add_(w[:, :, t0:t1, None]) if inplace else y + w[:, :, t0:t1, None]
             y = y.mul_(y) if inplace else y * y
             s = torch.sum(y, 1, out=ws("s", (B, tau, N)))  # (B, τ, N)
+            if logw is not None:
+                h = logw(s, d, t0, t1)
+                out.append(h[..., 0] if N == 1 else torch.logsumexp(h, -1))
+                continue
             out.append(s[..., 0] * -0.5 if N == 1 else self._log_mean_exp_shifted(s))
         return torch.cat(out, 1)
 

@@ -11,7 +11,7 @@ import torch
 
 from ..errors import UserError
 
-__all__ = ["GyroPosterior", "gyro_posterior"]
+__all__ = ["GyroPosterior", "gyro_posterior", "gyro_posterior_timing"]
 
 
 @dataclass
@@ -99,3 +99,46 @@ def gyro_posterior(gyro_array: torch.Tensor, gyro_noise_std, method: str = "samp
     cov = 0.5 * (cov + cov.transpose(-1, -2))
     return GyroPosterior(mean, cov, method)
 
+
+
+def gyro_posterior_timing(gyro_array: torch.Tensor, gyro_noise_std, age, angular_acc_std) -> GyroPosterior:
+    """The calibrated posterior of ω_t with the unresolved angular acceleration loaded by the gyros'
+    data ages: the gyro twin of :mod:`.likelihood_percov`'s jerk term (issue #30 item 1).
+
+    Model per sample: y_kt = ω_t − d_kt α_t + e_kt, e_kt ~ N(0, σ_k² I₃), α_t ~ N(0, s_t² I₃)
+    (rad/s²), d_kt = age_kt − mean_k age_kt (s), flat prior on ω_t.  The G gyros' covariance is
+    (diag(σ²) + s_t² d_t d_tᵀ) ⊗ I₃, so the generalised least-squares weights are
+    ρ_t = Σ_t⁻¹1 (Sherman–Morrison, elementwise over t): mean Σ_k ρ_kt y_kt / Σ_k ρ_kt,
+    covariance I₃ / Σ_k ρ_kt.  With equal gyro noise Σ_k d_kt = 0 makes the term orthogonal to the
+    mean, so it changes nothing ("calibrated" exactly); it matters through unequal noise levels.
+
+    gyro_array (T, G, 3) rad/s array frame; gyro_noise_std (G,) rad/s; age (T, G) s; angular_acc_std
+    scalar or (T,) rad/s².  Method "timing".
+    """
+    y = torch.as_tensor(gyro_array)
+    if y.dim() != 3 or y.shape[-1] != 3:
+        raise UserError(f"gyro_array: expected shape (T, G, 3), got {tuple(y.shape)}")
+    T, G, _ = y.shape
+    dtype, device = y.dtype, y.device
+    std = torch.as_tensor(gyro_noise_std, dtype=dtype, device=device)
+    std = std.expand(G) if std.dim() == 0 else std
+    if std.shape != (G,) or bool((std <= 0).any()):
+        raise UserError(f"gyro_noise_std: expected ({G},) values > 0 (rad/s), got shape {tuple(std.shape)}")
+    age = torch.as_tensor(age, dtype=dtype, device=device)
+    if age.shape != (T, G) or not bool(torch.isfinite(age).all()):
+        raise UserError(f"age: expected finite data ages of shape (T, G) = ({T}, {G}) s, got {tuple(age.shape)}")
+    s = torch.as_tensor(angular_acc_std, dtype=dtype, device=device)
+    s = s.expand(T) if s.dim() == 0 else s
+    if s.shape != (T,) or not bool(torch.isfinite(s).all()) or bool((s < 0).any()):
+        raise UserError(f"angular_acc_std: expected a finite scale >= 0 (rad/s²), scalar or ({T},)")
+    if bool(torch.isnan(y).any()):
+        raise UserError("gyro_array: contains NaN; select samples/IMUs with gyro data first")
+    w = std.pow(-2)
+    d = age - age.mean(-1, keepdim=True)
+    s2 = s * s
+    wd = w * d  # (T, G)
+    rho = w - (s2 * wd.sum(-1) / (1 + s2 * (wd * d).sum(-1)))[:, None] * wd  # Σ_t⁻¹ 1
+    prec = rho.sum(-1)
+    mean = (rho[..., None] * y).sum(-2) / prec[:, None]
+    cov = torch.eye(3, dtype=dtype, device=device) / prec[:, None, None]
+    return GyroPosterior(mean, cov, "timing")

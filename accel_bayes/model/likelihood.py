@@ -358,7 +358,7 @@ class RaoBlackwellLikelihood(DrawSums):
         b = Le @ G
         return {"M": M, "L": L, "logdetM": logdetM, "C": C, "c": c, "b": b, "phi": phi}
 
-    def _projection_hot(self, r: torch.Tensor) -> dict:
+    def _projection_hot(self, r: torch.Tensor, extras: bool = False) -> dict:
         """``c``, ``b``, ``C``, ``logdetM`` of :meth:`projection` centred at the gyro posterior
         mean, for r (B, A, 3): log_phat's hot path, two passes over the data instead of five.
 
@@ -373,6 +373,9 @@ class RaoBlackwellLikelihood(DrawSums):
         the large φ part of y and the remainder).  Same quantities as :meth:`projection`, to
         round-off, including a φ prior (M → M + F⁻¹, C += (K_wG_w)ᵀF⁻¹(K_wG_w)).  Without
         autograd ``b`` is a view of a scratch buffer that the next call overwrites.
+        ``extras=True`` also returns ``Hw`` (B, 3A, 6), ``Gt`` = Λ^½Ẽ (B, 3A, 6), ``L`` the
+        Cholesky factor of M (B, 6, 6) and ``e_w`` = Λ^½e (B, T, 3A), which the per-sample
+        covariance of :mod:`.likelihood_percov` projects further.
         """
         sl = self._sqrt_lam
         Hw = sl.unsqueeze(-1) * H_matrix(r)  # (B, 3A, 6)
@@ -406,14 +409,20 @@ class RaoBlackwellLikelihood(DrawSums):
         V = torch.cat((Gw, Hw), -1).transpose(-1, -2)  # (B, 12, 3A)
         U = torch.cat((yu[:, n:].expand(Bn, T, 6), phi), -1, out=ws("U", (Bn, T, 12)))
         e = torch.matmul(U, V, out=ws("e", (Bn, T, n)))  # Λ^½ (y − e)
-        if reuse:
+        if reuse and not extras:
             c = e.sub_(yu[:, :n]).square_().sum(-1)  # ‖Λ^½ e‖² (the sign of e is immaterial)
+        elif reuse:
+            e = torch.sub(yu[:, :n], e, out=e)  # Λ^½ e, kept for the caller
+            c = torch.mul(e, e, out=ws("e2", (Bn, T, n))).sum(-1)
         else:
             e = yu[:, :n] - e  # Λ^½ e (B, T, 3A)
             c = (e * e).sum(-1)
         if self.phi_prior_prec is not None:
             c = c + ((phi @ self.phi_prior_prec) * phi).sum(-1)
-        return {"c": c, "b": b, "C": C, "logdetM": logdetM}
+        out = {"c": c, "b": b, "C": C, "logdetM": logdetM}
+        if extras:
+            out.update(Hw=Hw, Gt=Gt, L=L, e_w=e)
+        return out
 
     @property
     def _sqrt_lam(self) -> torch.Tensor:

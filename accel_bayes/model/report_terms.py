@@ -38,6 +38,15 @@ inverted on IMU k's gyro outputs before anything else, y_k ← (I + M_k)⁻¹(y_
 detector did to the recording before it named the other effects.  The rates ω̇ of the timing
 effects are then read from the corrected gyros.
 
+Sampling clocks and unresolved motion → the per-sample covariance (read, not yet applied)
+------------------------------------------------------------------------------------------
+:func:`unresolved_terms` reads the ``sampling_clock`` findings (each IMU's data age, a sawtooth, plus
+the acc − gyro filter delay on the accelerometer) and the ``unresolved_motion`` finding (jerk and
+angular-acceleration scales per |ω| band) into what
+:class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood` and
+:func:`~accel_bayes.model.gyro_posterior.gyro_posterior_timing` take.  ``calibrate --model`` does not
+use them yet (issue #30 item 2); :func:`load_model` still lists them as skipped.
+
 Everything else → recorded as skipped, with the reason
 ------------------------------------------------------
 * ``unexplained``: carries no model;
@@ -60,7 +69,8 @@ from ..data.mismatch_report import read_report
 from ..errors import UserError
 from .gyro_posterior import GyroPosterior
 
-__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array"]
+__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array", "UnresolvedTerms",
+           "unresolved_terms"]
 
 # effects whose gyroscope part is a per-sample timing error (the moment-matched covariance above)
 _TIMING = ("timing_wander", "sampling_jitter")
@@ -231,3 +241,63 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects):
     cov = 0.5 * (cov + cov.transpose(-1, -2))
     mean = (cov @ (Pk @ y.unsqueeze(-1)).sum(1)).squeeze(-1)
     return GyroPosterior(mean, cov, "model"), wdot
+
+
+@dataclass
+class UnresolvedTerms:
+    """A report's unresolved motion at a calibration's samples (module docstring).
+
+    age_acc (T, A) s, age_gyro (T, G) s : the data ages of the accelerometer rows and the gyros;
+    jerk_std (T,) m/s³, angular_acc_std (T,) rad/s² : the per-axis scales at each sample's |ω| band;
+    used : [{"finding", "effect", "imu", "how"}] the findings read."""
+
+    age_acc: torch.Tensor
+    age_gyro: torch.Tensor
+    jerk_std: torch.Tensor
+    angular_acc_std: torch.Tensor
+    used: list
+
+
+def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "UnresolvedTerms | None":
+    """The per-sample covariance's inputs from a mismatch report (path, dict or report object):
+    ``time`` (T,) s of the calibration's samples on the recording's time axis, ``acc_labels`` /
+    ``gyro_labels`` the IMU labels of the accelerometer rows and gyros, ``omega_norm`` (T,) rad/s
+    (|ω̄_t|, for the bands).  None when the report has no ``unresolved_motion`` finding (without
+    its scales there is no term); IMUs without a ``sampling_clock`` finding get age 0.  Bad
+    findings → one-line :class:`UserError` naming ``findings[i]`` and the field."""
+    from ..physics.effects import make_effect
+    from .likelihood_percov import ages_from_clocks, band_scale
+
+    doc, _, _ = read_report(model, "model")
+    clocks, used, um = {}, [], None
+    for i, f in enumerate(doc["findings"]):
+        if f["effect"] == "sampling_clock":
+            if f.get("imu") is None:
+                raise UserError(f"model: findings[{i}].imu: a sampling_clock finding names its IMU")
+            try:
+                clocks[int(f["imu"])] = make_effect("sampling_clock", imu=f["imu"], axis=None,
+                                                    parameters=dict(f["parameters"]))
+            except UserError as exc:
+                raise UserError(f"model: findings[{i}]: {exc}") from None
+            used.append({"finding": i, "effect": "sampling_clock", "imu": int(f["imu"]),
+                         "how": "data age (sawtooth) loading the unresolved motion; acc + filter delay"})
+        elif f["effect"] == "unresolved_motion":
+            if um is not None:
+                raise UserError(f"model: findings[{i}]: a second unresolved_motion finding (expected one per report)")
+            um = (i, f["parameters"])
+    if um is None:
+        return None
+    i, p = um
+    for key in ("omega_edges", "jerk_rms", "angular_acc_rms"):
+        if key not in p:
+            raise UserError(f"model: findings[{i}].parameters.{key}: missing (unresolved_motion, vocabulary 1.2)")
+    try:
+        jerk = band_scale(omega_norm, p["omega_edges"], p["jerk_rms"], "jerk_rms")
+        alpha = band_scale(omega_norm, p["omega_edges"], p["angular_acc_rms"], "angular_acc_rms")
+    except UserError as exc:
+        raise UserError(f"model: findings[{i}].parameters.{exc}") from None
+    used.append({"finding": i, "effect": "unresolved_motion", "imu": None,
+                 "how": "per-sample covariance: jerk on the accelerometers, angular acceleration on the gyros, "
+                        "loaded by the centred data ages, scales per |omega| band"})
+    return UnresolvedTerms(ages_from_clocks(time, clocks, acc_labels, "acc"),
+                           ages_from_clocks(time, clocks, gyro_labels, "gyro"), jerk, alpha, used)

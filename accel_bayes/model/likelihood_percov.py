@@ -1,0 +1,318 @@
+"""The Rao-Blackwellized likelihood with a per-sample covariance: the board's unresolved jerk,
+loaded on each IMU by its data age, projected out with φ_t; heavy tails as a scale mixture
+(issue #30 item 1; the physics: issue #27 items 2–3, :mod:`accel_bayes.mismatch.unresolved`).
+
+Model, per sample t, array frame, stacked over the A triads (3A numbers)::
+
+    y_t = G(θ) u(ω_t) + H(θ) φ_t + D_t m_t + e_t,   e_t ~ N(0, Q/λ_t),  m_t ~ N(0, s_t² I₃/λ_t),
+    D_t = d_t ⊗ I₃,   d_kt = age_kt − mean_k age_kt  (s),
+
+age_kt the data age of triad k's output at t (its sampling clock's sawtooth, plus the acc − gyro
+filter delay: :func:`ages_from_clocks`), m_t the board's jerk that the outputs do not resolve
+(m/s³) with scale s_t (its |ω| band's ``jerk_rms``, :func:`band_scale`), φ_t = [ω̇_t; s_t] with
+the prior of :class:`~.likelihood.RaoBlackwellLikelihood` (flat, or N(0, F/λ_t)), and λ_t a
+per-sample precision scale: λ_t ≡ 1 (``nu=None``, Gaussian) or λ_t ~ Gamma(ν/2, rate ν/2) (mean
+1), which makes y_t a multivariate t with ν degrees of freedom given ω_t: heavy tails as a scale
+mixture, not a post-hoc inflation.  The loading is centred because a common age moves every triad
+alike, which φ_t's s_t absorbs; with the flat prior centring changes nothing.
+
+Integrating φ_t and m_t out (m first with its prior; the determinant lemma, DESIGN §4's −½
+exponent for the φ part) gives, with S the flat likelihood's φ-projection, Ũ_t = s_t D_t,
+r_t = y_t − G u(ω_t), N_t = I₃ + Ũ_tᵀSŨ_t (3×3) and, for λ_t = 1,
+
+    log p(y_t | ω_t, θ) = −½ q̃_t − ½ log|M(θ)| − ½ log|N_t(θ)|,
+    q̃_t = r_tᵀSr_t − ‖L_t⁻¹Ũ_tᵀSr_t‖²,   N_t = L_t L_tᵀ,
+
+up to the base class's θ-free constants (:attr:`log_constant`; the same ones, so values compare
+with the flat likelihood's).  |N_t| depends on θ through S: it is the per-sample determinant, with
+exponent −½ like |M|.  With s_t d_t = 0, N_t = I and q̃ = q: the flat likelihood exactly.  With the
+scale mixture, per sample and draw (closed form, exact; n = 3A − 6 flat prior, 3A proper)::
+
+    log ∫ p(y_t | ω, θ, λ) Gamma(λ; ν/2, ν/2) dλ
+        = lgamma(a + n/2) − lgamma(a) − (n/2) log a − (a + n/2) log1p(q̃/(2a)) − ½ log|M| − ½ log|N_t|,
+
+a = ν/2 (λ scales Q, the jerk prior and a proper φ prior together; the determinants do not
+depend on λ beyond λ^(n/2)).  The ω_t integral stays the [C21] Monte Carlo average over draws from
+the gyro posterior, so p̂ is still unbiased (pseudo-marginal MH stays exact).
+
+Cost.  Per θ on top of the flat projection: the 3×3 N_t and the 3×6 and 3-vector maps
+V_t = L_t⁻¹Ũ_tᵀSG, v_t = L_t⁻¹Ũ_tᵀSr̄_t (r̄ centred at the gyro mean), all from the flat
+projection's weighted residuals by sums over the A triads (O(T·A)), the 3×3 Choleskys in
+closed form elementwise over the samples (a batched LAPACK call per 3×3 costs more than the rest);
+per draw q̃ = q − ‖V_t δ − v_t‖², δ = u(ω) − u(ω̄_t), on top of the flat path's shared 6×6 factor
+(:mod:`.draw_sums`).  Samples with s_t d_t = 0 get zero corrections; a recording with none
+takes the flat path unchanged.  ``experiments/bench_likelihood_percov.py`` times it on exp_1.
+
+Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
+and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
+unresolved angular acceleration in the posterior of ω (:func:`.gyro_posterior.gyro_posterior_timing`);
+the same covariance on residuals, as the detector scores it (:mod:`.unresolved_cov`).
+"""
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+from ..physics.models import u_of_omega
+from .likelihood import RaoBlackwellLikelihood
+from .unresolved_cov import centred_ages
+
+# the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
+_PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
+
+__all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale"]
+
+
+def band_scale(omega_norm, edges, rms, field: str = "jerk_rms") -> torch.Tensor:
+    """s_t (T,) per sample from a per-|ω|-band scale: ``edges`` the B − 1 inner band edges
+    (rad/s, ascending, as the ``unresolved_motion`` finding's ``omega_edges``), ``rms`` (B,) the
+    band's scale (``jerk_rms`` m/s³ or ``angular_acc_rms`` rad/s², named by ``field`` in errors),
+    ``omega_norm`` (T,) rad/s.  Band b holds edges[b−1] ≤ |ω| < edges[b]."""
+    w = torch.as_tensor(np.asarray(omega_norm, dtype=np.float64))
+    try:
+        e = torch.as_tensor(np.asarray(edges, dtype=np.float64)).reshape(-1)
+        v = torch.as_tensor(np.asarray(rms, dtype=np.float64)).reshape(-1)
+    except (TypeError, ValueError):
+        raise UserError(f"{field}: expected numbers per |omega| band and numeric omega_edges") from None
+    if len(v) != len(e) + 1:
+        raise UserError(f"{field}: expected {len(e) + 1} values for {len(e)} band edges, got {len(v)}")
+    if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
+        raise UserError(f"{field}: expected finite values >= 0")
+    if not bool(torch.isfinite(e).all()) or bool((e[1:] < e[:-1]).any()):
+        raise UserError("omega_edges: expected finite band edges in ascending order (rad/s)")
+    return v[torch.bucketize(w, e, right=True)]
+
+
+def ages_from_clocks(time, clocks: dict, labels, sensor: str = "acc") -> torch.Tensor:
+    """The data ages (T, len(labels)) s of the rows ``labels`` (IMU labels) at the read times
+    ``time`` (T,) s (the recording's own time axis), from ``clocks`` {IMU label:
+    :class:`~accel_bayes.physics.effects.clock.SamplingClock`}.  ``sensor="acc"`` adds each
+    clock's acc − gyro filter delay.  IMUs without a clock get age 0 (read in step with the host)."""
+    if sensor not in ("acc", "gyro"):
+        raise UserError(f"sensor: expected 'acc' or 'gyro', got {sensor!r}")
+    t = torch.as_tensor(np.asarray(time, dtype=np.float64))
+    out = torch.zeros(len(t), len(labels), dtype=torch.float64)
+    for j, k in enumerate(labels):
+        clock = clocks.get(int(k))
+        if clock is None:
+            continue
+        out[:, j] = clock.age(t)
+        if sensor == "acc":
+            out[:, j] += float(clock.params["filter_delay_acc_minus_gyro_s"])
+    return out
+
+
+def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None) -> "PerSampleCovLikelihood":
+    """The per-sample-covariance likelihood on ``lik``'s data (shared, not copied): ``age`` (T, A)
+    s the rows' data ages, ``jerk_std`` scalar or (T,) m/s³, ``nu`` None or the degrees of
+    freedom of the scale mixture (module docstring)."""
+    if type(lik) is not RaoBlackwellLikelihood and not isinstance(lik, PerSampleCovLikelihood):
+        # a subclass (the tempered likelihood) would silently lose its own log_phat here
+        raise UserError(f"lik: expected an untempered RaoBlackwellLikelihood, got {type(lik).__name__}")
+    new = copy.copy(lik)
+    new.__class__ = PerSampleCovLikelihood
+    new._set_terms(age, jerk_std, nu)
+    return new
+
+
+class PerSampleCovLikelihood(RaoBlackwellLikelihood):
+    """:class:`~.likelihood.RaoBlackwellLikelihood` with the unresolved jerk loaded by the data
+    ages and an optional scale mixture (module docstring).
+
+    Extra parameters: ``age`` (T, A) s, the data age of each row's output (centred here);
+    ``jerk_std`` scalar or (T,) m/s³, the jerk's scale per axis at each sample (0: absent);
+    ``nu`` None (Gaussian) or ν > 0, the degrees of freedom of the per-sample scale mixture.
+    The tempered likelihood (:mod:`.tempering`) does not combine with it.
+    """
+
+    def __init__(self, acc, omega, acc_noise_std, num_draws, age, jerk_std, nu=None, reference: int = 0,
+                 dtype=torch.float64, device=None, phi_prior=None):
+        super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device,
+                         phi_prior=phi_prior)
+        self._set_terms(age, jerk_std, nu)
+
+    def _set_terms(self, age, jerk_std, nu):
+        age = torch.as_tensor(np.asarray(age, dtype=np.float64) if not torch.is_tensor(age) else age,
+                              dtype=self.dtype, device=self.device)
+        if age.shape != (self.T, self.A):
+            raise UserError(f"age: expected shape (T, A) = ({self.T}, {self.A}) s, got {tuple(age.shape)}")
+        if not bool(torch.isfinite(age).all()):
+            raise UserError("age: expected finite data ages (s)")
+        s = torch.as_tensor(jerk_std, dtype=self.dtype, device=self.device)
+        s = s.expand(self.T) if s.dim() == 0 else s
+        if s.shape != (self.T,) or not bool(torch.isfinite(s).all()) or bool((s < 0).any()):
+            raise UserError(f"jerk_std: expected a finite scale >= 0 (m/s³), scalar or ({self.T},), got shape "
+                            f"{tuple(s.shape)}")
+        if nu is not None:
+            # a tensor that requires grad is kept (fits of ν); anything else becomes a float
+            nu = nu if torch.is_tensor(nu) and nu.requires_grad else float(nu)
+            v = float(nu.detach()) if torch.is_tensor(nu) else nu
+            if not (math.isfinite(v) and v > 0):
+                raise UserError(f"nu: expected degrees of freedom > 0 or None, got {v!r}")
+        self.age = age
+        self.jerk_std = s
+        self.nu = nu
+        # Ũ_t = s_t D_t only through the product u_kt = s_t d_kt (m/s² per unit-variance jerk)
+        self.loading = centred_ages(age) * s[:, None]
+        self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
+        self._tf_cache = None
+
+    # ------------------------------------------------------------------ per-θ terms
+    def _percov_terms(self, r: torch.Tensor) -> dict:
+        """The flat projection at r (B, A, 3) plus ``V`` (B, 3, 7, T): rows i of [V_t, v_t] =
+        L_t⁻¹[Ũ_tᵀSG, Ũ_tᵀSr̄_t] stored component-first for the per-draw sums, and ``logdetN``
+        (B, T) (module docstring; zero where the sample has no loading)."""
+        proj = self._projection_hot(r, extras=True)
+        B, A, T = r.shape[0], self.A, self.T
+        idx = self.active
+        full = len(idx) == T
+        u_t, diag, usl, sum3 = self._theta_free
+        Ta = u_t.shape[1]
+        sl = self._sqrt_lam.view(A, 3, 1)
+        # Without autograd the (B, ·, T) temporaries live in reused buffers, as in the flat
+        # projection (fresh MB-sized allocations cost page faults comparable to the arithmetic).
+        reuse = not (torch.is_grad_enabled() and (r.requires_grad or self.loading.requires_grad))
+        ws = self._workspace if reuse else (lambda name, shape: None)
+        # Layouts keep the sample index last (contiguous), so every per-sample step below is an
+        # elementwise op over T or a reduction over an outer dimension.
+        # HᵀΛŨ_t as (B, 6, 3, Ta): one (18 × A)(A × Ta) product per θ
+        Hs = (proj["Hw"].view(B, A, 3, 6) * sl).permute(0, 3, 2, 1).reshape(B, 18, A)
+        Y = torch.matmul(Hs, u_t, out=ws("pc_Y", (B, 18, Ta))).view(B, 6, 3 * Ta)
+        Yh = torch.linalg.solve_triangular(proj["L"], Y, upper=False, out=ws("pc_Yh", (B, 6, 3 * Ta)))
+        Yh = Yh.view(B, 6, 3, Ta)  # (M + F⁻¹)^(-½) HᵀΛŨ_t
+        # N_t = I + ŨᵀΛŨ − (HᵀΛŨ)ᵀ(M + F⁻¹)⁻¹(HᵀΛŨ) = I + Ũ_tᵀSŨ_t: its 6 distinct entries
+        tmp = ws("pc_tmp", (B, 6, Ta))
+        P = [torch.mul(Yh[:, :, j], Yh[:, :, k], out=tmp).sum(1) for j, k in _PAIRS]
+        n00, n11, n22 = diag[0] - P[0], diag[1] - P[1], diag[2] - P[2]
+        n10, n20, n21 = P[3].neg(), P[4].neg(), P[5].neg()
+        # 3×3 Cholesky and forward substitution in closed form over all samples at once (N_t ⪰ I:
+        # the square roots are of numbers ≥ 1 up to rounding)
+        l00 = n00.sqrt()
+        l10, l20 = n10 / l00, n20 / l00
+        l11 = (n11 - l10 * l10).sqrt()
+        l21 = (n21 - l20 * l10) / l11
+        l22 = (n22 - l20 * l20 - l21 * l21).sqrt()
+        e_w = proj["e_w"] if full else proj["e_w"][:, idx]
+        a = torch.matmul(torch.mul(e_w, usl, out=ws("pc_eu", (B, Ta, 3 * A))), sum3)  # Ũ_tᵀ Λ e_t = Ũ_tᵀ S r̄_t
+        Gs = (proj["Gt"].view(B, A, 3, 6) * sl).permute(0, 2, 3, 1).reshape(B, 18, A)
+        Ea = torch.cat((torch.matmul(Gs, u_t, out=ws("pc_E", (B, 18, Ta))).view(B, 3, 6, Ta),
+                        a.transpose(1, 2)[:, :, None]), 2, out=ws("pc_Ea", (B, 3, 7, Ta)))  # [Ũ_tᵀSG, Ũ_tᵀSr̄_t]
+        Xb = ws("pc_X", (B, 3, 7, Ta))
+        o = (lambda i: None) if Xb is None else (lambda i: Xb[:, i])
+        x0 = torch.div(Ea[:, 0], l00[:, None], out=o(0))
+        x1 = torch.addcmul(Ea[:, 1], l10[:, None], x0, value=-1, out=o(1))
+        x1 = torch.div(x1, l11[:, None], out=o(1))
+        x2 = torch.addcmul(Ea[:, 2], l20[:, None], x0, value=-1, out=o(2))
+        x2 = torch.addcmul(x2, l21[:, None], x1, value=-1, out=o(2))
+        x2 = torch.div(x2, l22[:, None], out=o(2))
+        X = Xb if Xb is not None else torch.stack((x0, x1, x2), 1)  # (B, 3, 7, Ta)
+        logdetN = 2 * (l00.log() + l11.log() + l22.log())
+        if not bool(torch.isfinite(logdetN).all()):
+            raise UserError("age: the per-sample covariance is not positive definite (non-finite loading?)")
+        if full:
+            V = X
+        else:
+            V = torch.zeros(B, 3, 7, T, dtype=self.dtype, device=self.device)
+            V[..., idx] = X
+            logdetN = torch.zeros(B, T, dtype=self.dtype, device=self.device).index_copy(1, idx, logdetN)
+        proj.update(V=V, logdetN=logdetN)
+        return proj
+
+    @property
+    def _theta_free(self):
+        """Cached θ-free tensors of the loaded samples: uᵀ (A, Ta); diag(ŨᵀΛŨ) + 1 (3, Ta);
+        u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major vector over the triads."""
+        if getattr(self, "_tf_cache", None) is None:
+            u = self.loading[self.active]  # (Ta, A)
+            lam = self.lam.view(self.A, 3)
+            usl = (u[..., None] * self._sqrt_lam.view(self.A, 3)).reshape(len(u), 3 * self.A)
+            sum3 = torch.eye(3, dtype=self.dtype, device=self.device).repeat(self.A, 1)
+            self._tf_cache = (u.T.contiguous(), (1.0 + (u * u) @ lam).T.contiguous(), usl, sum3)
+        return self._tf_cache
+
+    def _kernel(self, q: torch.Tensor) -> torch.Tensor:
+        """Per-draw log weight from q̃ (any shape): −½ q̃ (Gaussian) or the scale mixture's
+        closed form (module docstring)."""
+        if self.nu is None:
+            return -0.5 * q
+        a = 0.5 * torch.as_tensor(self.nu, dtype=q.dtype, device=q.device)
+        n = 3 * self.A - (0 if self.phi_prior_prec is not None else 6)
+        const = torch.lgamma(a + n / 2) - torch.lgamma(a) - n / 2 * torch.log(a)
+        return const - (a + n / 2) * torch.log1p(q.clamp_min(0) / (2 * a))
+
+    # ------------------------------------------------------------------ estimators
+    def log_lik_given_omega(self, positions: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
+        """log p(y^a | ω_{1:T}, θ) with φ_t, m_t (and λ_t) integrated out (module docstring), up to
+        the base class's dropped constants.  positions (..., A, 3) m; omega (T, 3) or (..., T, 3)
+        rad/s broadcasting against the positions' batch.  Returns (...); differentiable."""
+        r = self._positions(positions)
+        batch = r.shape[:-2]
+        B = int(np.prod(batch)) if len(batch) else 1
+        omega = torch.as_tensor(omega, dtype=self.dtype, device=self.device)
+        delta = (u_of_omega(omega) - u_of_omega(self.omega.mean)).expand(*batch, self.T, 6).reshape(B, self.T, 6)
+        p = self._percov_terms(r.reshape(B, self.A, 3))
+        V = p["V"]  # (B, 3, 7, T)
+        corr = (torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]).square().sum(1)
+        q = p["c"] - 2 * (p["b"] * delta).sum(-1) + ((delta @ p["C"]) * delta).sum(-1) - corr
+        out = self._kernel(q).sum(-1) - 0.5 * self.T * p["logdetM"] - 0.5 * p["logdetN"].sum(-1)
+        return out.reshape(batch)
+
+    def log_phat(self, positions, generator=None, z=None, num_draws=None, independent_draws: bool = False):
+        """log p̂(y^a | y^g, θ) with the per-sample covariance (module docstring); the arguments and
+        the draws are :meth:`RaoBlackwellLikelihood.log_phat`'s (same z → the same ω draws).
+        Without any loaded sample and with ``nu=None`` it is the flat estimator itself."""
+        if len(self.active) == 0 and self.nu is None:
+            return super().log_phat(positions, generator=generator, z=z, num_draws=num_draws,
+                                    independent_draws=independent_draws)
+        r = self._positions(positions)
+        batch = r.shape[:-2]
+        if z is None:
+            z = self.sample_z(batch if independent_draws else (), num_draws, generator)
+        else:
+            z = torch.as_tensor(z, dtype=self.dtype, device=self.device)
+            if z.dim() < 3 or z.shape[-3] != self.T or z.shape[-1] != 3:
+                raise UserError(f"z: expected shape (..., T={self.T}, N, 3), got {tuple(z.shape)}")
+        N = z.shape[-2]
+        B = int(np.prod(batch)) if len(batch) else 1
+        p = self._percov_terms(r.reshape(B, self.A, 3))
+        zt = z.transpose(-1, -2)
+        if len(zt.shape[:-3]):
+            zt = zt.expand(*batch, *zt.shape[-3:]).reshape(B, self.T, 3, N)
+        Rc, w, floor = self._factor_any(p["c"], p["b"], p["C"])
+        V = p["V"]  # (B, 3, 7, T)
+
+        def logw(s, d, t0, t1):
+            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖², the 3×6 product as six fused
+            # multiply-adds over (B, 3, τ, N) (a batched matmul of 3×6 blocks is slower)
+            Vc = V[..., t0:t1, None]  # (B, 3, 7, τ, 1)
+            acc = -Vc[:, :, 6]
+            dd = d if d.dim() == 3 else d[:, None]  # (6, τ, N) or (B, 1, 6, τ, N)
+            for j in range(6):
+                acc = torch.addcmul(acc, Vc[:, :, j], dd[..., j, :, :])
+            corr = acc.square().sum(1)  # (B, τ, N)
+            return self._kernel(corr.neg_().add_(s).add_(floor[:, t0:t1, None]))
+
+        inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
+        lse = self._lse_direct(zt, Rc, w, inplace, logw=logw)  # (B, T)
+        out = lse.sum(-1) - self.T * math.log(N) - 0.5 * self.T * p["logdetM"] - 0.5 * p["logdetN"].sum(-1)
+        return out.reshape(batch)
+
+    def _factor_any(self, c, b, C):
+        """(R_C, w, floor) with q = ‖R_C δ + w_t‖² + floor_t: :meth:`_factor` where it applies,
+        else (C singular, A ≤ 4 rounding) a square root of C from its eigendecomposition and the
+        pseudo-inverse (b_t lies in C's range, both being Ẽ_wᵀ times a vector); ``floor`` is then
+        only c − ‖w‖², which the max-shifted log-sum-exp does not need to bound q."""
+        fac = self._factor(c, b, C)
+        if fac is not None:
+            return fac
+        ev, Vc = torch.linalg.eigh(C)
+        tol = ev.amax(-1, keepdim=True) * 1e-12
+        root = ev.clamp_min(0).sqrt()
+        Rc = root[..., :, None] * Vc.transpose(-1, -2)  # C = RcᵀRc
+        inv = torch.where(ev > tol, 1.0 / root.clamp_min(1e-300), torch.zeros_like(root))
+        w = -(inv[..., :, None] * (Vc.transpose(-1, -2) @ b.transpose(-1, -2)))  # −Rc⁺ᵀ b (B, 6, T)
+        return Rc, w, c - (w * w).sum(-2)

@@ -1,0 +1,112 @@
+"""Type-II maximum likelihood of the per-sample covariance's scales: the unresolved jerk's scale per
+|ω| band and, optionally, the scale mixture's ν (issue #30 item 1: "a proper Gaussian prior whose
+scale per band is fitted"), on the calibration's own likelihood.
+
+The scales are fitted on the exact log p(y | ω, θ) of
+:class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood` at a fixed geometry θ and
+rates ω (the MAP's, or the gyro mean), φ_t and m_t integrated out — the same empirical-Bayes step
+as the noise levels of :mod:`accel_bayes.model.noise` (with ~10⁴ samples per band the scales'
+own uncertainty is ignored by the sampler).  Parameters are log s_b and log ν, by L-BFGS with
+autograd; the start is a moment estimate.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..errors import UserError
+from .likelihood import RaoBlackwellLikelihood
+from .likelihood_percov import with_unresolved_motion
+from .unresolved_cov import centred_ages
+
+__all__ = ["UnresolvedFit", "fit_unresolved_scales"]
+
+_LOG_NU_BOUNDS = (math.log(0.05), math.log(1e4))
+
+
+@dataclass
+class UnresolvedFit:
+    """jerk_rms (B,) m/s³ per band; nu (None without the mixture); noise_factor the common factor
+    on the noise levels chosen; loglik and loglik_flat (nats, the flat model's at the same θ, ω and
+    the given noise, constants included) and their difference gain."""
+
+    jerk_rms: torch.Tensor
+    nu: float | None
+    loglik: float
+    loglik_flat: float
+    noise_factor: float = 1.0
+
+    @property
+    def gain(self) -> float:
+        return self.loglik - self.loglik_flat
+
+
+def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, omega=None, *, fit_nu: bool = False,
+                          noise_factors=(1.0,), max_iter: int = 100) -> UnresolvedFit:
+    """Fit the jerk scale per band (and ν with ``fit_nu``) on ``lik``'s data (module docstring).
+
+    age (T, A) s the rows' data ages; band (T,) integer |ω| band of each sample (0 … B − 1, e.g.
+    ``torch.bucketize(|ω̄|, edges, right=True)``); positions (A, 3) m; omega (T, 3) rad/s (default:
+    the gyro posterior mean).  Bands without samples keep scale 0.  ``noise_factors``: common
+    factors f on ``lik``'s noise levels to try (the best fit over them is returned): the scale
+    mixture's spread is not the Gaussian's rms, so with ``fit_nu`` the noise level moves too."""
+    best = None
+    for f in noise_factors:
+        f = float(f)
+        if not (math.isfinite(f) and f > 0):
+            raise UserError(f"noise_factors: expected factors > 0, got {f!r}")
+        scaled = lik if f == 1.0 else RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std * f, 1,
+                                                             reference=lik.reference, phi_prior=lik.phi_prior)
+        fit = _fit_one(scaled, age, band, positions, omega, fit_nu, max_iter)
+        fit.noise_factor = f
+        if best is None or fit.loglik > best.loglik:
+            best = fit
+    if best.noise_factor != 1.0:  # the flat reference stays the one at the given noise
+        with torch.no_grad():
+            pos = torch.as_tensor(positions, dtype=lik.dtype, device=lik.device)
+            w = lik.omega.mean if omega is None else torch.as_tensor(omega, dtype=lik.dtype, device=lik.device)
+            best.loglik_flat = float(lik.log_lik_given_omega(pos, w)) + lik.log_constant
+    return best
+
+
+def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter) -> UnresolvedFit:
+    band = torch.as_tensor(band, device=lik.device)
+    if band.shape != (lik.T,) or band.dtype in (torch.float32, torch.float64) or bool((band < 0).any()):
+        raise UserError(f"band: expected ({lik.T},) non-negative integers (|omega| band per sample)")
+    B = int(band.max()) + 1
+    omega = lik.omega.mean if omega is None else torch.as_tensor(omega, dtype=lik.dtype, device=lik.device)
+    pos = torch.as_tensor(positions, dtype=lik.dtype, device=lik.device)
+    with torch.no_grad():
+        flat = float(lik.log_lik_given_omega(pos, omega)) + lik.log_constant
+        # start: a tenth of the flat residual variance per triad explained by the term
+        d2 = centred_ages(torch.as_tensor(age, dtype=lik.dtype, device=lik.device)).square().mean()
+    s0 = math.sqrt(0.1 * float(lik.acc_noise_std.square().mean()) / max(float(d2), 1e-30))
+    counts = torch.bincount(band, minlength=B)
+    x = torch.full((B,), math.log(s0), dtype=lik.dtype, device=lik.device, requires_grad=True)
+    xn = torch.tensor(math.log(10.0), dtype=lik.dtype, device=lik.device, requires_grad=fit_nu)
+    params = [x, xn] if fit_nu else [x]
+    opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-7,
+                            tolerance_change=1e-10)
+    scale = float(lik.T)  # the objective per sample keeps L-BFGS's tolerances meaningful
+
+    def model(x_, xn_):
+        s = torch.where(counts[band] > 0, torch.exp(x_)[band], torch.zeros((), dtype=lik.dtype))
+        nu = torch.exp(xn_.clamp(*_LOG_NU_BOUNDS)) if fit_nu else None
+        return with_unresolved_motion(lik, age, s, nu=nu)
+
+    def closure():
+        opt.zero_grad()
+        loss = -model(x, xn).log_lik_given_omega(pos, omega) / scale
+        loss.backward()
+        return loss
+
+    for _ in range(3):
+        opt.step(closure)
+    with torch.no_grad():
+        fitted = model(x, xn)
+        ll = float(fitted.log_lik_given_omega(pos, omega)) + fitted.log_constant
+        s = torch.where(counts > 0, torch.exp(x), torch.zeros((), dtype=lik.dtype))
+    return UnresolvedFit(s.detach(), float(torch.exp(xn.detach().clamp(*_LOG_NU_BOUNDS))) if fit_nu else None, ll,
+                         flat)
