@@ -491,9 +491,29 @@ def run_pipelines(out: dict):
             keep("map", "map/positions.json")
             cli("selfcal", "rec.nc", "--out", "selfcal", "--max-iter", "50", "--no-progress")
             keep("selfcal", "selfcal/positions.json")
+            cli("selfcal", "rec.nc", "--out", "selfcal_clip", "--max-iter", "50", "--no-progress", "--drop-clipped")
+            keep("selfcal_clip", "selfcal_clip/positions.json")
+            cli("map", "rec.nc", "--out", "map_rot", "--select", "rotation")
+            keep("map_rot", "map_rot/positions.json")
+            cli("motion", "rec.nc", "--calibration", "map/positions.json", "-o", "motion.nc", "--draws", "20",
+                "--seed", "1")
+            motion_outputs(out, "motion.nc")
+            cli("mismatch", "rec.nc", "--out", "mismatch", "--twins", "20", "--no-figures", "--max-findings", "2")
+            doc = _without_seconds(json.loads(open("mismatch/report.json", encoding="utf-8").read()))
+            for key, value in _split(doc, "pipelines.mismatch").items():
+                out[key] = value
         finally:
             os.chdir(here)
     out["pipelines.calibrate_tempered.document"] = np.array(json.dumps(_without_seconds(_tempered_run())))
+
+
+def motion_outputs(out: dict, path: str) -> None:
+    """The estimates of an ``accel_bayes.motion/1`` file (``accel-bayes motion``) as outputs."""
+    import xarray as xr
+
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        for v in ("omega", "omega_dot", "s", "omega_std", "omega_dot_std", "s_std", "chi2"):
+            out[f"pipelines.motion.{v}"] = np.asarray(ds[v].values, dtype=np.float64)
 
 
 def _tempered_run() -> dict:

@@ -60,6 +60,7 @@ from ..threads import torch_threads
 from .calibrate_defaults import DEFAULTS
 from .calibrate_options import CalibrateOptions
 from ..data.outputs import to_jsonable, write_text
+from ..prep.prepared import prepare_recording
 from ..prep.preprocess import preprocess
 from ..data.io import load_recording
 
@@ -344,9 +345,8 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, phi_prior="flat"
     temper = _temper_step(acc_s, w_s, P_s, std, res, lik.reference, nominal_acc, prior_std, prior, inflate)
     kappa = temper.kappa
     new = TemperedLikelihood(acc_s, GyroPosterior(w_s, P_s, lik.omega.method), std * math.sqrt(kappa), 1, kappa,
-                             reference=lik.reference, dtype=lik.dtype, device=lik.device, phi_prior=prior)
-    new.imu_labels, new.gyro_labels = lik.imu_labels, lik.gyro_labels
-    new.sample_index, new.nominal_positions = lik.sample_index, lik.nominal_positions
+                             reference=lik.reference, dtype=lik.dtype, device=lik.device, phi_prior=prior,
+                             prepared=lik.prepared)
     return NoiseStep(lik=new, phi_prior=phi_record, noise=nm, noise_model={**nm.to_dict(), **temper.record},
                      map=_usable_map(temper.result))
 
@@ -418,7 +418,8 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
             else opts.gyro_method
         if cmodel is not None:
             gm = "calibrated"  # the model's fused posterior generalises it (model.report_terms)
-        lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gm, selection=pre.selection)
+        lik = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1,
+                                                    gyro_method=gm)
         gyro_info = None
         if cmodel is not None:
             lik, gyro_info = _model_gyro_step(lik, rec, cmodel)
@@ -536,9 +537,7 @@ def _model_gyro_step(lik, rec, cmodel):
     effects = [(k, e) for _, k, e in cmodel.gyro_effects]
     omega, wdot = fused_gyro_posterior(gyro, gstd, glabels, time_s, effects)
     new = RaoBlackwellLikelihood(lik.acc, omega, lik.acc_noise_std, lik.num_draws, reference=lik.reference,
-                                 dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior)
-    for name in ("imu_labels", "gyro_labels", "sample_index", "selection", "nominal_positions"):
-        setattr(new, name, getattr(lik, name))
+                                 dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior, prepared=lik.prepared)
     sd = lambda P: float(torch.diagonal(P, dim1=-2, dim2=-1).sqrt().median())  # noqa: E731
     info = {"method": "model (precision-weighted fusion with per-sample gyro covariances)",
             "omega_std_median_rad_s": {"calibrated": sd(lik.omega.cov), "model": sd(omega.cov)},
