@@ -69,7 +69,6 @@ from .lm import BatchedLevenbergMarquardt, StoppingRule
 from ..physics.models import specific_force
 from ..physics.jacobians import AxisProjection, axis_force, axis_force_jacobian, df_dr
 from ..data.positions import POSITIONS_SCHEMA, read_positions
-from ..data.recording import Recording
 
 __all__ = [
     "MOTION_SCHEMA",
@@ -293,8 +292,9 @@ def estimate_motion(prepared, calibration, *, draws: int = 200, seed: int = 0, g
     prepared : a :class:`~accel_bayes.prep.prepared.PreparedRecording` (its recording's
         sensor-frame outputs at its kept samples are used; intrinsics, when wanted, applied before
         preparing — :func:`accel_bayes.pipelines.motion.motion` does — and named in its
-        ``provenance["intrinsics"]``), or a :class:`Recording`, prepared here with every sample
-        kept (``prepare_recording(rec, select="all", gyro="optional", stated_noise=False)``).
+        ``provenance["intrinsics"]``), or a :class:`~accel_bayes.data.recording.Recording`,
+        prepared here with every sample kept
+        (``prepare_recording(rec, select="all", gyro="optional", stated_noise=False)``).
         Samples are not dropped for clipping: in a clipped triad only the axes at the range get
         weight 0 (module docstring), which is a per-axis weight, not a sample selection.
     calibration : positions.json path or dict (DESIGN §7.3), a (K, 3) array of positions relative

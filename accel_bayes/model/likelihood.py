@@ -67,7 +67,8 @@ __all__ = [
 ]
 
 # DEFAULT_MIN_ROTATION (0.5 rad/s) lives with THE sample selection (accel_bayes.prep.selection) and
-# is re-exported here, where select="rotation" uses it.
+# is re-exported here for code that imported it from the likelihood before prepare_recording took
+# the sample selection over.
 
 
 # ---------------------------------------------------------------------------- parameterisation

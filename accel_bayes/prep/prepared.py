@@ -92,7 +92,8 @@ def refuse_removed_keywords(fit: str, keywords: dict) -> None:
     old = [k for k in REMOVED_KEYWORDS if k in keywords]
     if old:
         raise TypeError(f"{fit}: {', '.join(k + '=' for k in old)} removed in 0.2.0; choose the samples with "
-                        f"accel_bayes.prep.prepared.prepare_recording(rec, {old[0]}=...) and pass its PreparedRecording")
+                        f"accel_bayes.prep.prepared.prepare_recording(rec, {old[0]}=...) and pass its "
+                        "PreparedRecording")
 
 
 def as_prepared(source, fit: str, **options) -> PreparedRecording:
@@ -176,10 +177,10 @@ def prepare_recording(rec, *, selection: Selection | None = None, select=None, m
         rot = isinstance(select, str) and select == "rotation"
         every = isinstance(select, str) and select == "all"
         thr = (DEFAULT_MIN_ROTATION if min_rotation is None else float(min_rotation)) if rot else 0.0
+        user = None if (select is None or isinstance(select, str)) else select
         selection = select_samples(rec, drop_static=False, drop_clipped=bool(drop_clipped), drop_flagged=not every,
-                                   min_rotation=thr, user=None if (select is None or isinstance(select, str)) else select,
-                                   acc_imus=labels, gyro_imus=glabels if use_gyro else None,
-                                   use_gyro=use_gyro and not every)
+                                   min_rotation=thr, user=user, acc_imus=labels,
+                                   gyro_imus=glabels if use_gyro else None, use_gyro=use_gyro and not every)
     idx = np.array(selection.index)
     if len(idx) == 0:
         raise UserError("select: no samples left after selection")
