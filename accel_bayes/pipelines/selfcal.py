@@ -154,7 +154,7 @@ def prepare(recording, options: SelfcalOptions | None = None, **keywords) -> Sel
     rec = prepared.recording
     labels = list(prepared.imu_labels)
     index = prepared.sample_index
-    if index.size < 3:
+    if selection is not None and index.size < 3:  # without one, self_calibrate names the recording's length
         raise UserError(f"selection: keeps {index.size} samples; self-calibration needs at least 3")
     acc = prepared.sensor_acc()
     if not np.isfinite(acc).all():
