@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..data.recording import Recording
 from ..errors import UserError
 from ..physics.arrays import check_triad_geometry
 from .selection import DEFAULT_MIN_ROTATION, Selection, select_samples
@@ -102,7 +103,7 @@ def as_prepared(source, fit: str, **options) -> PreparedRecording:
     sample prepare_recording keeps by default).  Anything else: a TypeError naming ``fit``."""
     if isinstance(source, PreparedRecording):
         return source
-    if hasattr(source, "acc_tensor"):  # a Recording (duck-typed: prep/ does not import data/io)
+    if isinstance(source, Recording):
         return prepare_recording(source, **options)
     raise TypeError(f"{fit}: expected a PreparedRecording (accel_bayes.prep.prepared.prepare_recording) or a "
                     f"Recording, got {type(source).__name__}")

@@ -1,5 +1,6 @@
-"""``prepare_recording`` (issue #26 item 1, begun): one frozen record of a recording's fit inputs,
-made by one function in ``prep/``; the likelihood's ``from_recording`` takes it."""
+"""``prepare_recording`` (issue #26 item 1): one frozen record of a recording's fit inputs, made by
+one function in ``prep/``; the likelihood's ``from_recording`` takes it (every other fit too:
+``test_fits_take_prepared.py``)."""
 import dataclasses
 
 import numpy as np
