@@ -59,6 +59,7 @@ NOEDITABLE = "/tmp/noeditable"  # hides an editable install of another checkout,
 def _build(name, device="cpu"):
     import torch
     from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.prep.prepared import prepare_recording
     from accel_bayes.physics import arrays
     from accel_bayes.simulate import simulate
 
@@ -73,13 +74,15 @@ def _build(name, device="cpu"):
             return None
         pre = preprocess(import_mimu(path))
         rec = pre.recording
-        lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, selection=pre.selection, device=device)
+        lik = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1,
+                                                    device=device)
         return lik, lik.nominal_positions.clone().to(device)
     if name in ("mimu8", "plate7"):
         T, N, seed = (5900, 1, 1) if name == "mimu8" else (2600, 25, 2)
         sim = simulate(arrays.mimu4444_8(), "smooth", T=T, seed=seed)
         acc = None if name == "mimu8" else list(range(7))
-        lik = RaoBlackwellLikelihood.from_recording(sim.recording, num_draws=N, acc_imus=acc, device=device)
+        lik = RaoBlackwellLikelihood.from_recording(prepare_recording(sim.recording, acc_imus=acc), num_draws=N,
+                                                    device=device)
     elif name in ("mimu32", "mimu32k"):
         sim = simulate(arrays.mimu4444_32(), "iid", T=500, seed=3, position_error_std=0.0, acc_noise_std=0.04,
                        clip=False)

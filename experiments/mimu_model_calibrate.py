@@ -102,6 +102,7 @@ def heteroscedastic(exp: int, data: Path, reports: Path) -> dict:
     from accel_bayes.model.report_terms import load_model
     from accel_bayes.inference.noise_fit import fit_map_with_noise, sandwich_inflation
     from accel_bayes.model.noise import scale_samples
+    from accel_bayes.prep.prepared import prepare_recording
     from accel_bayes.prep.preprocess import preprocess
 
     raw = import_mimu(Path(data) / f"exp_{exp}" / "data.bin.gz")
@@ -109,7 +110,8 @@ def heteroscedastic(exp: int, data: Path, reports: Path) -> dict:
     cm.check_recording(raw)
     pre = preprocess(raw)
     rec = pre.recording
-    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method="calibrated", selection=pre.selection)
+    lik = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1,
+                                                gyro_method="calibrated")
     lik, _ = _model_gyro_step(lik, rec, cm)
     nominal = torch.as_tensor(np.asarray(rec.nominal_position)[list(lik.imu_labels)], dtype=torch.float64)
     t = np.asarray(rec.time, dtype=float)[lik.sample_index]

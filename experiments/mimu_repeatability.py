@@ -104,6 +104,7 @@ def intrinsics_sensitivity(exp: int, data: str, n_draws: int, seed: int) -> dict
 
     from accel_bayes.pipelines.calibrate import calibrate
     from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.prep.prepared import prepare_recording
     from accel_bayes.data.mimu import import_mimu
     from accel_bayes.inference.noise_fit import fit_map_tempered
     from accel_bayes.prep.preprocess import draw_intrinsics, preprocess
@@ -118,8 +119,8 @@ def intrinsics_sensitivity(exp: int, data: str, n_draws: int, seed: int) -> dict
     nominal = torch.as_tensor(np.asarray(raw.nominal_position), dtype=torch.float64)
 
     def tempered_map(rec):
-        lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=res.settings["gyro_method"],
-                                                    select=pre.keep, drop_clipped=False)
+        lik = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, select=pre.keep), num_draws=1,
+                                                    gyro_method=res.settings["gyro_method"])
         m = fit_map_tempered(lik.acc, lik.omega.mean, lik.omega.cov, std, kappa, reference=lik.reference,
                              prior_mean=nominal, prior_std=res.settings["prior_std"])
         return m.positions.numpy(), m.position_std().numpy()

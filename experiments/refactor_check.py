@@ -34,7 +34,10 @@ Outputs (each a small problem, seconds each):
   accelerometer axis displaced by 3 mm) makes the sandwich temper the likelihood (κ ≈ 1.5): each
   ``positions.json`` document whole (provenance settings included) as JSON text, compared for
   equality, with only the wall-clock ``seconds`` left out (issue #26 item 3: the options records
-  must not change a setting, their order or a draw);
+  must not change a setting, their order or a draw); since issue #26 item 1 (one
+  ``PreparedRecording`` for every fit) also ``selfcal --drop-clipped``, ``map --select rotation``,
+  ``motion`` (its NetCDF estimates, ``pipelines.motion.*``) and ``mismatch`` (its ``report.json``,
+  layout for equality and numbers to the tolerance) on the same recording;
 * ``demo.*`` — ``accel-bayes demo`` (seed 1, the full run; minutes): its posterior
   ``positions.json`` and the mismatch ``report.json`` (layout compared for equality, numbers to
   the tolerance), ``summary.csv`` and the demo's ``report.md`` (text), wall-clock times left
@@ -60,6 +63,18 @@ to 1.1e5, e.g. its gyro-linear group statistic 66.15036471200 vs 66.15036471199,
         --only pipelines,demo --out base.npz
     cd /tmp && PYTHONPATH=/path/to/checkout python3 /path/to/experiments/refactor_check.py --only pipelines,demo --out after.npz
     python3 experiments/refactor_check.py --compare /tmp/base.npz /tmp/after.npz
+
+The ``PreparedRecording`` work (issue #26 item 1) was checked against its parent c03e6a6 with every
+stage, the demo included (``experiments/refactor_check.md`` holds the table and says when and
+where)::
+
+    git -C /work/main archive c03e6a6 | tar -x -C /tmp/prep_base
+    cd /tmp/prep_run && cp /tmp/prep_base/experiments/_conceal.py . && cp /path/to/experiments/refactor_check.py .
+    PYTHONPATH=/tmp/prep_base:/tmp/noeditable python3 refactor_check.py --out base.npz \
+        --only map,selfcal,selfcal_modes,conventional,intrinsics,motion,mismatch,conceal,noise,pipelines,demo
+    PYTHONPATH=/path/to/checkout python3 /path/to/experiments/refactor_check.py --out after.npz --only <the same>
+    python3 experiments/refactor_check.py --compare base.npz after.npz --report experiments/refactor_check.md \
+        --header "A: c03e6a6 (parent), B: this checkout"
 
 ``--compare`` prints max |a − b| and max |a − b| / max |a| per output and flags every output
 whose relative difference exceeds ``--tol`` (default 1e-6: the LM solvers stop at relative cost
@@ -491,9 +506,29 @@ def run_pipelines(out: dict):
             keep("map", "map/positions.json")
             cli("selfcal", "rec.nc", "--out", "selfcal", "--max-iter", "50", "--no-progress")
             keep("selfcal", "selfcal/positions.json")
+            cli("selfcal", "rec.nc", "--out", "selfcal_clip", "--max-iter", "50", "--no-progress", "--drop-clipped")
+            keep("selfcal_clip", "selfcal_clip/positions.json")
+            cli("map", "rec.nc", "--out", "map_rot", "--select", "rotation")
+            keep("map_rot", "map_rot/positions.json")
+            cli("motion", "rec.nc", "--calibration", "map/positions.json", "-o", "motion.nc", "--draws", "20",
+                "--seed", "1")
+            motion_outputs(out, "motion.nc")
+            cli("mismatch", "rec.nc", "--out", "mismatch", "--twins", "20", "--no-figures", "--max-findings", "2")
+            doc = _without_seconds(json.loads(open("mismatch/report.json", encoding="utf-8").read()))
+            for key, value in _split(doc, "pipelines.mismatch").items():
+                out[key] = value
         finally:
             os.chdir(here)
     out["pipelines.calibrate_tempered.document"] = np.array(json.dumps(_without_seconds(_tempered_run())))
+
+
+def motion_outputs(out: dict, path: str) -> None:
+    """The estimates of an ``accel_bayes.motion/1`` file (``accel-bayes motion``) as outputs."""
+    import xarray as xr
+
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        for v in ("omega", "omega_dot", "s", "omega_std", "omega_dot_std", "s_std", "chi2"):
+            out[f"pipelines.motion.{v}"] = np.asarray(ds[v].values, dtype=np.float64)
 
 
 def _tempered_run() -> dict:
@@ -550,23 +585,26 @@ STAGES = {"map": run_map, "selfcal": run_selfcal, "selfcal_modes": run_selfcal_m
 DEFAULT_STAGES = [s for s in STAGES if s != "demo"]
 
 
-def compare(a_path: str, b_path: str, tol: float) -> int:
+def compare(a_path: str, b_path: str, tol: float, report: str | None = None, header: str = "") -> int:
+    """Print max |a − b|, max |a| and their ratio per output of two .npz files (text outputs: equal
+    or not) and return 1 when any is beyond ``tol``; with ``report``, also write that table as a
+    Markdown document (``header`` first: how it was made)."""
     a, b = np.load(a_path), np.load(b_path)
     bad = 0
-    print(f"{'output':34s} {'max|a-b|':>11s} {'max|a|':>11s} {'rel':>10s}")
+    rows = [f"{'output':34s} {'max|a-b|':>11s} {'max|a|':>11s} {'rel':>10s}"]
     for k in sorted(set(a.files) | set(b.files)):
         if k not in a.files or k not in b.files:
-            print(f"{k:34s} missing in {'A' if k not in a.files else 'B'}")
+            rows.append(f"{k:34s} missing in {'A' if k not in a.files else 'B'}")
             bad += 1
             continue
         x, y = a[k], b[k]
         if x.dtype.kind in "US":
             same = x.shape == y.shape and bool((x == y).all())
-            print(f"{k:34s} {'equal' if same else 'DIFFERENT: ' + str(x) + ' vs ' + str(y)}")
+            rows.append(f"{k:34s} {'equal' if same else 'DIFFERENT: ' + str(x)[:300] + ' vs ' + str(y)[:300]}")
             bad += not same
             continue
         if x.shape != y.shape:
-            print(f"{k:34s} shape {x.shape} vs {y.shape}")
+            rows.append(f"{k:34s} shape {x.shape} vs {y.shape}")
             bad += 1
             continue
         d = float(np.nanmax(np.abs(x - y))) if x.size else 0.0
@@ -574,8 +612,27 @@ def compare(a_path: str, b_path: str, tol: float) -> int:
         rel = d / s if s > 0 else d
         flag = "" if rel <= tol else "  <-- exceeds tol"
         bad += rel > tol
-        print(f"{k:34s} {d:11.3e} {s:11.3e} {rel:10.2e}{flag}")
-    print(f"{bad} output(s) beyond the tolerance {tol:g}" if bad else f"all outputs within the tolerance {tol:g}")
+        rows.append(f"{k:34s} {d:11.3e} {s:11.3e} {rel:10.2e}{flag}")
+    verdict = f"{bad} output(s) beyond the tolerance {tol:g}" if bad else f"all outputs within the tolerance {tol:g}"
+    exact = sum(1 for r in rows[1:] if r.split()[1:2] in (["equal"], ["0.000e+00"]))
+    print("\n".join(rows))
+    print(verdict)
+    if report:
+        from accel_bayes.data.outputs import write_text
+
+        import datetime
+        import os
+        import platform
+
+        made = (f"# refactor_check: {a_path} against {b_path}\n\nRegenerate with (after making both .npz files, "
+                f"module docstring):\n\n    python3 experiments/refactor_check.py --compare {a_path} {b_path} "
+                f"--report {report}" + (" --header ..." if header else "") + "\n\n"
+                f"Made {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC on {platform.node()} "
+                f"({platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
+                f"torch {torch.__version__}).")
+        text = made + "\n\n" + (header + "\n\n" if header else "") + f"**{verdict}**; {exact} of {len(rows) - 1} outputs " \
+            "identical (text equal or max|a-b| = 0).\n\n```\n" + "\n".join(rows) + "\n```\n"
+        write_text(report, text)
     return 1 if bad else 0
 
 
@@ -584,11 +641,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="write the outputs to this .npz")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two .npz files")
     ap.add_argument("--tol", type=float, default=1e-6, help="max relative difference per output (default 1e-6)")
+    ap.add_argument("--report", help="with --compare: also write the table as this Markdown file")
+    ap.add_argument("--header", default="", help="with --report: Markdown put before the table (how it was made)")
     ap.add_argument("--only", default=",".join(DEFAULT_STAGES),
                     help=f"comma-separated stages to run (default {','.join(DEFAULT_STAGES)}; also: demo)")
     args = ap.parse_args(argv)
     if args.compare:
-        return compare(*args.compare, args.tol)
+        return compare(*args.compare, args.tol, args.report, args.header)
     if not args.out:
         ap.error("give --out or --compare")
     torch.set_num_threads(1)

@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
 from ..constants import DEFAULT_PRIOR_STD
@@ -372,33 +371,32 @@ def fit_map(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, pr
                      phi_prior=prob.map_info["phi_prior"])
 
 
-def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_rotation=None,
-                      drop_clipped: bool = False, selection=None, acc_imus=None, gyro_imus=None,
-                      prior_std=DEFAULT_PRIOR_STD,
-                      prior_mean=None, phi_prior="empirical", dtype=torch.float64, device=None, **kw) -> MAPResult:
-    """:func:`fit_map` on a :class:`~accel_bayes.data.recording.Recording`.
+def fit_map_recording(prepared, *, gyro_method: str = "sample_cov", prior_std=DEFAULT_PRIOR_STD, prior_mean=None,
+                      phi_prior="empirical", dtype=torch.float64, device=None, **kw) -> MAPResult:
+    """:func:`fit_map` on a :class:`~accel_bayes.prep.prepared.PreparedRecording` (or a Recording,
+    prepared with :func:`~accel_bayes.prep.prepared.prepare_recording`'s defaults).
 
-    Data preparation is the likelihood's (:meth:`accel_bayes.model.likelihood.RaoBlackwellLikelihood.from_recording`):
-    outputs rotated into the array frame with the nominal orientations, the gyroscope posterior
-    of ``gyro_method`` ("sample_cov" = [C21] eq. 30 as printed, "sample_cov_mean", "calibrated"),
-    explicit sample selection (``select``/``min_rotation``/``drop_clipped``, or a ready
-    :class:`~accel_bayes.prep.selection.Selection` such as ``preprocess(rec).selection``).  The
-    prior mean is the nominal design of the used IMUs (relative to ``rec.reference_imu``) unless
+    Data preparation is the record's (which IMUs, which samples, the array frame); the gyroscope
+    posterior is ``gyro_method``'s ("sample_cov" = [C21] eq. 30 as printed, "sample_cov_mean",
+    "calibrated"), as in :meth:`accel_bayes.model.likelihood.RaoBlackwellLikelihood.from_recording`.
+    The prior mean is the nominal design of the used IMUs (relative to the reference) unless
     given.  Rows of the result follow ``result.imu_labels``; ``result.selection`` is the Selection
     used and ``result.sample_index`` its kept indices.  ``phi_prior``: None or "flat" (flat φ,
     [C21]), "empirical" (:func:`accel_bayes.model.phi_prior.empirical_phi_prior` at the prior mean,
     with the recording's stated noise; as ``calibrate`` does) or a given prior; the one used is
-    ``result.phi_prior``.  Other keywords go to :func:`fit_map`.
+    ``result.phi_prior``.  Other keywords go to :func:`fit_map`; the sample-selection keywords of
+    0.1 (``select=``, ``min_rotation=``, ``drop_clipped=``, …) are a TypeError.
     """
-    from ..model.likelihood import RaoBlackwellLikelihood
+    import dataclasses
 
-    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, gyro_method=gyro_method, select=select,
-                                                min_rotation=min_rotation, drop_clipped=drop_clipped,
-                                                selection=selection, acc_imus=acc_imus, gyro_imus=gyro_imus,
-                                                dtype=dtype, device=device)
-    labels = list(lik.imu_labels)
+    from ..model.likelihood import RaoBlackwellLikelihood
+    from ..prep.prepared import refuse_removed_keywords
+
+    refuse_removed_keywords("fit_map_recording", kw)
+    lik = RaoBlackwellLikelihood.from_recording(prepared, num_draws=1, gyro_method=gyro_method, dtype=dtype,
+                                                device=device)
     if prior_mean is None:
-        prior_mean = torch.as_tensor(np.asarray(rec.nominal_position)[labels], dtype=dtype, device=device)
+        prior_mean = lik.nominal_positions.to(dtype=dtype, device=device)
     if isinstance(phi_prior, str):
         from ..model.phi_prior import PHI_PRIOR_CHOICES, empirical_phi_prior
 
@@ -408,7 +406,5 @@ def fit_map_recording(rec, *, gyro_method: str = "sample_cov", select=None, min_
                                                                            torch.as_tensor(prior_mean, dtype=dtype))
     res = fit_map(lik.acc, lik.omega.mean, lik.omega.cov, lik.acc_noise_std, reference=lik.reference,
                   prior_mean=prior_mean, prior_std=prior_std, phi_prior=phi_prior, dtype=dtype, device=device, **kw)
-    res.imu_labels = tuple(labels)
-    res.sample_index = lik.sample_index
-    res.selection = lik.selection
-    return res
+    return dataclasses.replace(res, imu_labels=tuple(lik.imu_labels), sample_index=lik.sample_index,
+                               selection=lik.selection)

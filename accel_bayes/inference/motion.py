@@ -69,7 +69,6 @@ from .lm import BatchedLevenbergMarquardt, StoppingRule
 from ..physics.models import specific_force
 from ..physics.jacobians import AxisProjection, axis_force, axis_force_jacobian, df_dr
 from ..data.positions import POSITIONS_SCHEMA, read_positions
-from ..data.recording import Recording
 
 __all__ = [
     "MOTION_SCHEMA",
@@ -283,18 +282,23 @@ def _sigma(x, name, K):
     return s
 
 
-def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws: int = 200, seed: int = 0,
-                    geometry: str = "draws", include_cov: bool = False, acc_noise_std=None, gyro_noise_std=None,
-                    max_iter: int = 50, draw_steps: int = 2, chunk_systems: int = 100_000):
-    """Estimate ω, ω̇ and s at every sample of ``recording`` from a calibrated array.
+def estimate_motion(prepared, calibration, *, draws: int = 200, seed: int = 0, geometry: str = "draws",
+                    include_cov: bool = False, acc_noise_std=None, gyro_noise_std=None, max_iter: int = 50,
+                    draw_steps: int = 2, chunk_systems: int = 100_000, **removed):
+    """Estimate ω, ω̇ and s at every kept sample of a prepared recording from a calibrated array.
 
     Parameters
     ----------
-    recording : :class:`Recording` (sensor-frame outputs).
+    prepared : a :class:`~accel_bayes.prep.prepared.PreparedRecording` (its recording's
+        sensor-frame outputs at its kept samples are used; intrinsics, when wanted, applied before
+        preparing — :func:`accel_bayes.pipelines.motion.motion` does — and named in its
+        ``provenance["intrinsics"]``), or a :class:`~accel_bayes.data.recording.Recording`,
+        prepared here with every sample kept
+        (``prepare_recording(rec, select="all", gyro="optional", stated_noise=False)``).
+        Samples are not dropped for clipping: in a clipped triad only the axes at the range get
+        weight 0 (module docstring), which is a per-axis weight, not a sample selection.
     calibration : positions.json path or dict (DESIGN §7.3), a (K, 3) array of positions relative
         to the reference IMU (no uncertainty), or a :class:`Calibration`.
-    intrinsics : None, an :class:`accel_bayes.prep.intrinsics.Intrinsics` or its JSON path/dict —
-        applied to the recording first.
     draws : number of geometry draws for ``geometry="draws"`` (0 → no geometry part).
     seed : seed of the geometry draws (same seed → same result).
     geometry : "draws" (re-solve per draw; default) or "linear" (first-order propagation).
@@ -313,28 +317,31 @@ def estimate_motion(recording: Recording, calibration, *, intrinsics=None, draws
     ``chi2`` (weighted residual sum of squares), ``dof``, and flags ``converged``,
     ``ill_posed`` (NaN estimates: the measurements left do not determine all 9 unknowns),
     ``gyro_clipped``, ``acc_clipped``, ``omega_needs_acc``.  Attributes hold units and
-    provenance (schema ``accel_bayes.motion/1``).
+    provenance (schema ``accel_bayes.motion/1``).  ``intrinsics=`` and the sample-selection
+    keywords (before 0.2.0) are a TypeError.
     """
     import time as _time
 
     import xarray as xr
 
+    from ..prep.prepared import as_prepared, refuse_removed_keywords
+
     t_start = _time.perf_counter()
-    if not isinstance(recording, Recording):
-        raise UserError(f"recording: expected a Recording, got {type(recording).__name__}")
+    refuse_removed_keywords("estimate_motion", removed)
+    if "intrinsics" in removed:
+        raise TypeError("estimate_motion: intrinsics= removed in 0.2.0; apply them to the recording before "
+                        "prepare_recording (accel_bayes.pipelines.motion.motion does)")
+    if removed:
+        raise TypeError(f"estimate_motion: unexpected keyword(s) {sorted(removed)}")
     if geometry not in ("draws", "linear"):
         raise UserError(f"geometry: expected 'draws' or 'linear', got {geometry!r}")
     if isinstance(draws, bool) or not isinstance(draws, (int, np.integer)) or draws < 0 or draws == 1:
         raise UserError(f"draws: expected 0 or an integer >= 2, got {draws!r}")
+    prepared = as_prepared(prepared, "estimate_motion", select="all", gyro="optional", stated_noise=False)
+    recording = prepared.kept_recording()
     K = recording.K
     cal = load_calibration(calibration, K)
-    intr_note = "none"
-    if intrinsics is not None:
-        from ..prep.intrinsics import Intrinsics
-
-        intr = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_json(intrinsics)
-        recording = intr.apply(recording)
-        intr_note = intr.source or "given"
+    intr_note = prepared.provenance.get("intrinsics", "none")
     sa = _sigma(recording.acc_noise_std if acc_noise_std is None else acc_noise_std, "acc_noise_std", K)
     sg = _sigma(recording.gyro_noise_std if gyro_noise_std is None else gyro_noise_std, "gyro_noise_std", K)
 

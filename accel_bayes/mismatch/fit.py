@@ -282,7 +282,7 @@ def baseline_fit(prep: Prepared, *, use_map: bool = True, prior_std: float = DEF
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 # the flat φ of the mismatch model (mismatch/model.py), not calibrate's default prior
-                mres = fit_map_recording(prep.rec, gyro_method="calibrated", prior_std=prior_std,
+                mres = fit_map_recording(prep.prepared, gyro_method="calibrated", prior_std=prior_std,
                                          hessian="gauss_newton", on_divergence="ignore", phi_prior="flat")
             labels = list(mres.imu_labels)
             if mres.converged or not str(mres.reason).startswith("diverged"):

@@ -1,6 +1,9 @@
 """A recording prepared for mismatch analysis (:func:`prepare`): THE calibration's preparation
 (:func:`accel_bayes.prep.preprocess.preprocess` — intrinsics from the rests, the one sample
-selection), then converted to the tensors the augmented-model fits use (:class:`Prepared`).
+selection), made into the package's one fit input
+(:func:`accel_bayes.prep.prepared.prepare_recording`, where the IMU, geometry and noise checks
+live), then converted to the tensors the augmented-model fits use (:class:`Prepared`,
+:func:`from_prepared`).
 """
 from __future__ import annotations
 
@@ -10,12 +13,12 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ..physics.arrays import check_triad_geometry
 from ..physics.effects import CandidateLayout
+from ..prep.prepared import PreparedRecording, prepare_recording
 from ..prep.preprocess import Preprocessed, preprocess
 from ..prep.selection import DEFAULT_MIN_ROTATION, Selection
 
-__all__ = ["Prepared", "prepare"]
+__all__ = ["Prepared", "prepare", "from_prepared"]
 
 
 @dataclass
@@ -33,6 +36,8 @@ class Prepared:
     JSON-ready account of both steps (``report.json`` ``details.recording.preparation``).
     n_dropped_clipped : samples dropped as clipped.  source : the whole prepared recording
     (every sample, intrinsics applied when they were), of which ``rec`` is the selection.
+    prepared : the :class:`~accel_bayes.prep.prepared.PreparedRecording` it was made from (the
+    IMUs, reference, samples and checks are its).
     """
 
     rec: object
@@ -54,6 +59,7 @@ class Prepared:
     selection: Selection | None = field(default=None, repr=False)
     source: object = field(default=None, repr=False)
     preparation: dict = field(default_factory=dict)
+    prepared: PreparedRecording | None = field(default=None, repr=False)
 
     @property
     def T(self) -> int:
@@ -82,8 +88,9 @@ def prepare(rec, *, intrinsics="auto", drop_static: bool = True, drop_clipped: b
     """Prepare a recording for mismatch analysis exactly as the calibration prepares it, and
     convert it to the fits' form.
 
-    rec : a :class:`~accel_bayes.data.recording.Recording`, or the
-        :class:`~accel_bayes.prep.preprocess.Preprocessed` of one (used as it is).
+    rec : a :class:`~accel_bayes.data.recording.Recording`, the
+        :class:`~accel_bayes.prep.preprocess.Preprocessed` of one, or a
+        :class:`~accel_bayes.prep.prepared.PreparedRecording` (both used as they are).
     intrinsics, drop_static, drop_clipped, min_rotation, segments : passed to
         :func:`accel_bayes.prep.preprocess.preprocess`; the defaults are
         :func:`accel_bayes.pipelines.calibrate.calibrate`'s (intrinsics from the recording's own rests when
@@ -102,6 +109,8 @@ def prepare(rec, *, intrinsics="auto", drop_static: bool = True, drop_clipped: b
     The kept recording is ``Prepared.rec``; what was done is ``Prepared.preparation`` and
     ``Prepared.selection``.
     """
+    if isinstance(rec, PreparedRecording):
+        return from_prepared(rec)
     if isinstance(rec, Preprocessed):
         pre = rec
     else:
@@ -113,7 +122,6 @@ def prepare(rec, *, intrinsics="auto", drop_static: bool = True, drop_clipped: b
     if sel.n_kept < 10:  # 9 motion states per sample are profiled: a handful of samples says nothing
         raise UserError(f"mismatch: too few samples remain for mismatch detection ({sel.summary()}); "
                         "relax the selection (min_rotation, drop_static, drop_clipped)")
-    rec = pre.recording if sel.n_kept == sel.T else pre.recording.select(sel.keep)
     it = pre.summary["intrinsics"]
     preparation = {
         "by": "accel_bayes.prep.preprocess (the calibration's preparation)",
@@ -122,30 +130,38 @@ def prepare(rec, *, intrinsics="auto", drop_static: bool = True, drop_clipped: b
         "selection": sel.to_dict(),
         "notes": list(pre.notes),
     }
+    return from_prepared(prepare_recording(pre.recording, selection=sel, provenance={"preparation": preparation}))
+
+
+def from_prepared(prepared: PreparedRecording) -> Prepared:
+    """The mismatch fits' form of a :class:`~accel_bayes.prep.prepared.PreparedRecording` (its IMU,
+    reference, geometry and noise checks already done there): every IMU of the recording, sensor
+    frame, NaN outputs masked, only the kept samples.  ``preparation`` is the record's
+    ``provenance["preparation"]`` when :func:`prepare` made it, else the selection alone."""
+    sel = prepared.selection
+    if sel.n_kept < 10:
+        raise UserError(f"mismatch: too few samples remain for mismatch detection ({sel.summary()}); "
+                        "relax the selection (min_rotation, drop_static, drop_clipped)")
+    if not prepared.gyro_labels:
+        raise UserError("gyro: mismatch detection needs gyroscope data (the motion is estimated from the gyros)")
+    preparation = prepared.provenance.get("preparation") or {"by": "accel_bayes.prep.prepared.prepare_recording",
+                                                             "selection": sel.to_dict()}
+    rec = prepared.kept_recording()
     has_acc = np.asarray(rec.has_acc, bool)
     has_gyro = np.asarray(rec.has_gyro, bool)
-    if has_acc.sum() < 3:
-        raise UserError(f"acc: at least 3 IMUs with accelerometer data are needed, got {int(has_acc.sum())}")
-    ref = int(rec.reference_imu)
-    if not has_acc[ref]:
-        raise UserError(f"reference_imu: IMU {ref} has no accelerometer data")
+    ref = prepared.imu_labels[prepared.reference]
     f = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float64))  # noqa: E731
     acc, gyro = f(rec.acc), f(rec.gyro)
     m_acc = torch.isfinite(acc).double() * f(has_acc)[None, :, None]
     m_gyro = torch.isfinite(gyro).double() * f(has_gyro)[None, :, None]
     nominal = f(rec.nominal_position)
     nominal = nominal - nominal[ref]
-    try:
-        check_triad_geometry(nominal[torch.as_tensor(has_acc)], labels=np.flatnonzero(has_acc).tolist())
-    except ValueError as exc:
-        raise UserError(f"nominal_position: {exc}") from None
     sa, sg = f(rec.acc_noise_std), f(rec.gyro_noise_std)
-    if bool((sa[torch.as_tensor(has_acc)] <= 0).any()) or bool((sg[torch.as_tensor(has_gyro)] <= 0).any()):
-        raise UserError("acc_noise_std/gyro_noise_std: expected > 0 for every IMU with data")
+    # IMUs without the sensor have no stated noise; any positive value does (their mask is 0)
     sa = torch.where(sa > 0, sa, torch.ones_like(sa))
     sg = torch.where(sg > 0, sg, torch.ones_like(sg))
     return Prepared(rec=rec, time=f(rec.time), y_acc=torch.nan_to_num(acc), y_gyro=torch.nan_to_num(gyro),
                     m_acc=m_acc, m_gyro=m_gyro, sigma_acc=sa, sigma_gyro=sg, q=f(rec.nominal_orientation),
                     nominal=nominal, ref=ref, has_acc=has_acc, has_gyro=has_gyro,
                     n_dropped_clipped=int(sel.dropped["clipped"]), selection=sel, preparation=preparation,
-                    source=pre.recording)
+                    source=prepared.recording, prepared=prepared)

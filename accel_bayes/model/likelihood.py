@@ -52,8 +52,8 @@ import torch
 
 from ..errors import UserError
 from ..physics.models import G_matrix, H_matrix, acc_noise_std_per_axis, u_of_omega
-from ..prep.prepared import prepare_recording
-from ..prep.selection import DEFAULT_MIN_ROTATION, Selection
+from ..prep.prepared import as_prepared, refuse_removed_keywords
+from ..prep.selection import DEFAULT_MIN_ROTATION  # noqa: F401  (re-exported, see below)
 from .draw_sums import DIRECT_MAX_DRAWS, DrawSums
 from .gyro_posterior import GyroPosterior, gyro_posterior
 from .phi_prior import PhiPrior
@@ -67,7 +67,8 @@ __all__ = [
 ]
 
 # DEFAULT_MIN_ROTATION (0.5 rad/s) lives with THE sample selection (accel_bayes.prep.selection) and
-# is re-exported here, where select="rotation" uses it.
+# is re-exported here for code that imported it from the likelihood before prepare_recording took
+# the sample selection over.
 
 
 # ---------------------------------------------------------------------------- parameterisation
@@ -123,6 +124,9 @@ class RaoBlackwellLikelihood(DrawSums):
     num_draws : int — N, Monte Carlo draws of ω per sample (choose it with :func:`~.draw_tuning.choose_num_draws`).
     reference : int — row of the reference triad (origin, r_ref ≡ 0).
     dtype, device — float64 CPU by default.
+    prepared : the :class:`~accel_bayes.prep.prepared.PreparedRecording` the data came from (gives
+        ``imu_labels``, ``gyro_labels``, ``sample_index``, ``selection``, ``nominal_positions``),
+        or None for arrays not from a recording.
     phi_prior : None (the flat prior on φ_t = [ω̇_t; s_t] of [C21] and DESIGN §4) or a proper
         zero-mean Gaussian prior N(0, F) on φ_t: a :class:`~accel_bayes.model.phi_prior.PhiPrior`
         (e.g. :func:`~accel_bayes.model.phi_prior.empirical_phi_prior`, what ``calibrate`` uses by
@@ -152,6 +156,7 @@ class RaoBlackwellLikelihood(DrawSums):
         dtype=torch.float64,
         device=None,
         phi_prior=None,
+        prepared=None,
     ):
         acc = as_acc_tensor(acc, dtype=dtype, device=device)
         T, A, _ = acc.shape
@@ -169,11 +174,13 @@ class RaoBlackwellLikelihood(DrawSums):
         self.T, self.A = int(T), int(A)
         self.num_draws = num_draws
         self.reference = int(reference)
-        self.imu_labels = tuple(range(A))
-        self.sample_index = None  # indices into the source recording, set by from_recording
-        self.selection = None  # the Selection behind sample_index, set by from_recording
-        self.gyro_labels = None  # set by from_recording
-        self.nominal_positions = None  # (A, 3) design positions of the rows, set by from_recording
+        # what the rows and samples are in the recording: known only when built from a PreparedRecording
+        self.prepared = prepared
+        self.imu_labels = tuple(range(A)) if prepared is None else prepared.imu_labels
+        self.sample_index = None if prepared is None else prepared.sample_index
+        self.selection = None if prepared is None else prepared.selection
+        self.gyro_labels = None if prepared is None else prepared.gyro_labels
+        self.nominal_positions = None if prepared is None else prepared.nominal_positions  # (A, 3) m
         self.acc = acc
         self.y = acc.reshape(T, 3 * A)  # stacked y_t, triad-major like models.G_matrix/H_matrix
         self.acc_noise_std = std.contiguous()
@@ -193,62 +200,30 @@ class RaoBlackwellLikelihood(DrawSums):
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_recording(
-        cls,
-        rec,
-        num_draws: int = 1000,
-        gyro_method: str = "sample_cov",
-        select=None,
-        min_rotation: float | None = None,
-        drop_clipped: bool = False,
-        acc_imus=None,
-        gyro_imus=None,
-        dtype=torch.float64,
-        device=None,
-        phi_prior=None,
-        selection: "Selection | None" = None,
-    ) -> "RaoBlackwellLikelihood":
-        """Build the likelihood from a :class:`~accel_bayes.data.recording.Recording`.
+    def from_recording(cls, prepared, num_draws: int = 1000, gyro_method: str = "sample_cov", dtype=torch.float64,
+                       device=None, phi_prior=None, **removed) -> "RaoBlackwellLikelihood":
+        """Build the likelihood from a :class:`~accel_bayes.prep.prepared.PreparedRecording` (or a
+        Recording, prepared with :func:`~accel_bayes.prep.prepared.prepare_recording`'s defaults:
+        every sample with a finite gyro reading and no importer flag).
 
-        Accelerometer and gyroscope outputs are rotated into the array frame with the nominal
-        orientations (R(q)ᵀ, DESIGN §7.0).  The A triads are the IMUs with accelerometer data
-        (or ``acc_imus``, a list of labels), kept in ``self.imu_labels`` in ascending order;
-        positions passed to the methods follow that order.  The gyroscope posterior uses the
-        gyros of the IMUs that have one (or ``gyro_imus``) with ``gyro_method`` (see
-        :func:`~.gyro_posterior.gyro_posterior`; default "sample_cov" = [C21] eq. 30 as printed).  The reference
-        row is the recording's ``reference_imu``.  ``self.nominal_positions`` (A, 3) holds the
-        design positions of the rows (a natural central θ), ``self.gyro_labels`` the gyros used.
-
-        The IMUs, the samples and their checks are :func:`accel_bayes.prep.prepared.prepare_recording`'s.
-        Sample selection (explicit, never hidden; ``self.sample_index`` records what was kept and
-        ``self.selection`` the :class:`~accel_bayes.prep.selection.Selection` it came from):
-
-        * ``selection`` — a :class:`~accel_bayes.prep.selection.Selection` (e.g. the one of
-          :func:`accel_bayes.prep.preprocess.preprocess`) is used as it is; ``select``,
-          ``min_rotation`` and ``drop_clipped`` must then be left at their defaults.
-        * otherwise :func:`~accel_bayes.prep.selection.select_samples` is called on the IMUs used
-          (no rests): ``select=None`` keeps every sample with a finite gyro reading; a bool mask
-          (T,) or integer indices keeps those; ``select="rotation"`` keeps samples with
-          |ω̄_t| ≥ ``min_rotation`` rad/s (default :data:`DEFAULT_MIN_ROTATION` = 0.5 rad/s;
-          ω̄_t the inverse-variance-weighted gyro mean).  Samples without rotation carry no
-          information on θ ([C21] §IV-C: G u(ω) ≈ 0, and the rotational part of H carries only
-          ω̇, which is integrated out) but still cost time.
-        * ``drop_clipped=True`` further drops samples with ``acc_clipped``/``gyro_clipped`` set for
-          any used IMU.  By default clipped samples are **kept** (the recording says they are at
-          the range; the caller decides).
+        The IMUs, the samples, the array-frame outputs and their checks are the record's: the A
+        triads are ``prepared.imu_labels`` (ascending; positions passed to the methods follow that
+        order), the reference row is ``prepared.reference``, ``self.sample_index`` and
+        ``self.selection`` say which samples were kept, ``self.nominal_positions`` (A, 3) holds
+        the design positions of the rows (a natural central θ) and ``self.gyro_labels`` the gyros
+        used.  Samples without rotation carry no information on θ ([C21] §IV-C) but still cost
+        time: ``prepare_recording(rec, select="rotation")`` leaves them out.  The gyroscope
+        posterior uses ``gyro_method`` (see :func:`~.gyro_posterior.gyro_posterior`; default
+        "sample_cov" = [C21] eq. 30 as printed).  ``select=``, ``min_rotation=``,
+        ``drop_clipped=``, ``selection=``, ``acc_imus=``, ``gyro_imus=`` (before 0.2.0) are a TypeError.
         """
-        prep = prepare_recording(rec, selection=selection, select=select, min_rotation=min_rotation,
-                                 drop_clipped=drop_clipped, acc_imus=acc_imus, gyro_imus=gyro_imus, dtype=dtype,
-                                 device=device)
+        refuse_removed_keywords("RaoBlackwellLikelihood.from_recording", removed)
+        if removed:
+            raise TypeError(f"RaoBlackwellLikelihood.from_recording: unexpected keyword(s) {sorted(removed)}")
+        prep = as_prepared(prepared, "RaoBlackwellLikelihood.from_recording", dtype=dtype, device=device)
         omega = gyro_posterior(prep.gyro, prep.gyro_noise_std, gyro_method)
-        lik = cls(prep.acc, omega, prep.acc_noise_std, num_draws, reference=prep.reference, dtype=dtype, device=device,
-                  phi_prior=phi_prior)
-        lik.imu_labels = prep.imu_labels
-        lik.gyro_labels = prep.gyro_labels
-        lik.sample_index = prep.sample_index
-        lik.selection = prep.selection
-        lik.nominal_positions = prep.nominal_positions
-        return lik
+        return cls(prep.acc, omega, prep.acc_noise_std, num_draws, reference=prep.reference, dtype=dtype,
+                   device=device, phi_prior=phi_prior, prepared=prep)
 
     def with_phi_prior(self, phi_prior) -> "RaoBlackwellLikelihood":
         """A shallow copy with another prior on φ (anything ``phi_prior`` of the constructor takes;

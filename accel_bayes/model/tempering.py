@@ -32,13 +32,13 @@ class TemperedLikelihood(RaoBlackwellLikelihood):
     """
 
     def __init__(self, acc, omega, acc_noise_std, num_draws, kappa: float, reference: int = 0,
-                 dtype=torch.float64, device=None, phi_prior=None):
+                 dtype=torch.float64, device=None, phi_prior=None, prepared=None):
         self.kappa = float(kappa)
         if not self.kappa >= 1.0:
             raise UserError(f"kappa: expected a factor >= 1, got {kappa!r}")
         prior = PhiPrior.coerce(phi_prior, dtype=dtype, device=device)
         super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device,
-                         phi_prior=None if prior is None else prior.scaled(self.kappa))
+                         phi_prior=None if prior is None else prior.scaled(self.kappa), prepared=prepared)
 
     def occam_correction(self, positions) -> torch.Tensor:
         """(1 − 1/κ)(T/2) log|M(θ) + F⁻¹| for positions (..., A, 3) (M alone for the flat prior);

@@ -70,6 +70,7 @@ def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_metho
     from .. import __version__
     from ..errors import UserError
     from ..inference.map import fit_map_recording
+    from ..prep.prepared import prepare_recording
     from ..prep.selection import clipped_mask
 
     if select not in SELECTS:
@@ -78,9 +79,9 @@ def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_metho
     rec = loaded.recording
     n_clip = int(clipped_mask(rec).sum())
     t0 = time.perf_counter()
-    res = fit_map_recording(rec, gyro_method=gyro_method, prior_std=prior_std,
-                            select=None if select == "all" else "rotation", drop_clipped=drop_clipped,
-                            max_iter=max_iter, progress=progress, phi_prior=phi_prior)
+    prepared = prepare_recording(rec, select=None if select == "all" else "rotation", drop_clipped=drop_clipped)
+    res = fit_map_recording(prepared, gyro_method=gyro_method, prior_std=prior_std, max_iter=max_iter,
+                            progress=progress, phi_prior=phi_prior)
     seconds = time.perf_counter() - t0
     labels = list(res.imu_labels)
     K = rec.K
@@ -100,10 +101,7 @@ def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_metho
                              provenance={"version": __version__, "input_sha256": loaded.sha256(),
                                          "seed": None, "settings": settings})
     omega = res.omega.detach().cpu().numpy()
-    lik_index = getattr(res, "sample_index", None)
-    t = rec.time if lik_index is None else rec.time[lik_index]
-    if len(t) != len(omega):
-        t = np.arange(len(omega), dtype=float)
+    t = prepared.time
     std = np.sqrt(np.clip(np.diagonal(covs, axis1=1, axis2=2), 0, None))
     return MapRun(result=res, document=doc, means=means, std=std, labels=labels, omega=np.column_stack([t, omega]),
                   n_clipped=n_clip, drop_clipped=bool(drop_clipped), seconds=seconds,

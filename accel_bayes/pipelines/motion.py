@@ -15,7 +15,7 @@ import numpy as np
 from ..constants import RAD_TO_DEG
 from ..data.io import load_recording
 
-__all__ = ["MotionRun", "motion", "write_outputs"]
+__all__ = ["MotionRun", "motion", "prepare_motion", "write_outputs"]
 
 # (variable, factor to the printed unit, printed unit)
 _ROWS = (("omega", RAD_TO_DEG, "°/s"), ("omega_dot", RAD_TO_DEG, "°/s²"), ("s", 1.0, "m/s²"))
@@ -56,7 +56,7 @@ def motion(recording, calibration, *, intrinsics=None, draws: int = 200, seed: i
     if isinstance(calibration, (str, Path)) and not Path(calibration).exists():
         raise FileNotFoundError(f"{calibration}: no such calibration file")
     rec = load_recording(recording, streams=True).recording
-    ds = estimate_motion(rec, calibration, intrinsics=intrinsics, draws=draws, seed=seed, geometry=geometry,
+    ds = estimate_motion(prepare_motion(rec, intrinsics), calibration, draws=draws, seed=seed, geometry=geometry,
                          acc_noise_std=acc_noise_std, gyro_noise_std=gyro_noise_std)
     ok = ~ds["ill_posed"].values
     rows = []
@@ -77,6 +77,23 @@ def motion(recording, calibration, *, intrinsics=None, draws: int = 200, seed: i
               "omega_needs_acc": int(ds["omega_needs_acc"].values.sum()), "ill_posed": int((~ok).sum()),
               "not_converged": int((~ds["converged"].values).sum())}
     return MotionRun(dataset=ds, recording=rec, rows=rows, chi2_per_dof=chi2, counts=counts)
+
+
+def prepare_motion(rec, intrinsics=None):
+    """The :class:`~accel_bayes.prep.prepared.PreparedRecording` motion estimation takes: the
+    intrinsics (an :class:`~accel_bayes.prep.intrinsics.Intrinsics` or its JSON path/dict)
+    applied first and named in its provenance, every sample kept (an estimate per sample is the
+    output), gyroscopes used when the recording has them."""
+    from ..prep.prepared import prepare_recording
+
+    note = "none"
+    if intrinsics is not None:
+        from ..prep.intrinsics import Intrinsics
+
+        intr = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_json(intrinsics)
+        rec = intr.apply(rec)
+        note = intr.source or "given"
+    return prepare_recording(rec, select="all", gyro="optional", stated_noise=False, provenance={"intrinsics": note})
 
 
 def write_outputs(run: MotionRun, path, *, overwrite: bool = False) -> Path:

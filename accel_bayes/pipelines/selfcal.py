@@ -43,6 +43,7 @@ class SelfcalInput:
     clipped : fraction of the fitted accelerometer samples flagged clipped (fitted as they are).
     selection : the :class:`~accel_bayes.prep.selection.Selection` the samples came from, or None
         (every sample); time : (T,) their times, s.
+    prepared : the :class:`~accel_bayes.prep.prepared.PreparedRecording` all of it was taken from.
     """
 
     recording: object
@@ -58,6 +59,7 @@ class SelfcalInput:
     clipped: float
     time: np.ndarray
     selection: object = None
+    prepared: object = field(default=None, repr=False)
 
 
 @dataclass
@@ -109,8 +111,13 @@ def prepare(recording, options: SelfcalOptions | None = None, **keywords) -> Sel
     """Check a recording for the [S16] model and extract its inputs (one-line :class:`UserError`
     naming the field otherwise), by the ``fixed``, ``selection`` and ``drop_clipped`` of
     ``options`` (:class:`~accel_bayes.pipelines.selfcal_options.SelfcalOptions`; keywords, kept
-    for 0.2 only, replace its fields).
+    for 0.2 only, replace its fields).  The IMUs, the samples and their checks are
+    :func:`accel_bayes.prep.prepared.prepare_recording`'s (gyroscopes ignored).
 
+    recording : a path, a Recording, a LoadedRecording, or a
+        :class:`~accel_bayes.prep.prepared.PreparedRecording` (made with ``gyro="ignored"``; its
+        reference IMU is the fixed one and its samples are fitted: give no ``fixed``,
+        ``selection`` or ``drop_clipped`` then).
     fixed : label of the IMU held at its nominal pose (default the recording's reference IMU).
     selection : None (every sample, the [S16] setting) or a
         :class:`~accel_bayes.prep.selection.Selection` of this recording (the package's one sample
@@ -122,37 +129,34 @@ def prepare(recording, options: SelfcalOptions | None = None, **keywords) -> Sel
         flagged at its range (``select_samples(rec, drop_clipped=True, …)``, no other reason);
         default False: every sample, clipped ones fitted as they are ([S16]).
     """
-    opts = _options(options, keywords)
-    fixed, selection, drop_clipped = opts.fixed, opts.selection, opts.drop_clipped
-    loaded = load_recording(recording)
-    rec = loaded.recording
-    K = rec.K
-    fixed_label = int(rec.reference_imu if fixed is None else fixed)
-    if not 0 <= fixed_label < K:
-        raise UserError(f"--fixed: expected an IMU label in 0..{K - 1}, got {fixed_label}")
-    has_acc = np.asarray(rec.has_acc)
-    labels = [int(k) for k in np.nonzero(has_acc)[0]]
-    if fixed_label not in labels:
-        raise UserError(f"--fixed: IMU {fixed_label} has no accelerometer triad")
-    if len(labels) < 3:
-        raise UserError(f"acc: self-calibration needs at least 3 accelerometer triads, the recording has {len(labels)}")
-    if drop_clipped:
-        from ..prep.selection import select_samples
+    from ..prep.prepared import PreparedRecording, prepare_recording
 
-        selection = select_samples(rec, drop_static=False, drop_clipped=True, min_rotation=None,
-                                   acc_imus=labels, use_gyro=False)
-    time_s = np.asarray(rec.time, dtype=float)
-    acc = np.asarray(rec.acc, dtype=float)[:, labels]
-    index = slice(None)
-    if selection is not None:
-        keep = getattr(selection, "keep", None)
-        if keep is None or np.shape(keep) != (rec.T,):
-            raise UserError(f"selection: expected a Selection of this recording's {rec.T} samples "
-                            f"(accel_bayes.prep.selection.select_samples), got {type(selection).__name__}")
-        index = np.asarray(selection.index)
-        if index.size < 3:
-            raise UserError(f"selection: keeps {index.size} samples; self-calibration needs at least 3")
-        acc, time_s = acc[index], time_s[index]
+    opts = _options(options, keywords)
+    if isinstance(recording, PreparedRecording):
+        if opts.fixed is not None or opts.selection is not None or opts.drop_clipped:
+            raise UserError("recording: a PreparedRecording carries its fixed IMU and samples; give no fixed, "
+                            "selection or drop_clipped with it")
+        prepared = recording
+        loaded = load_recording(prepared.recording)
+        # every sample kept: the [S16] setting, fitted without gap bookkeeping (as no selection is)
+        selection = None if prepared.selection.n_kept == prepared.recording.T else prepared.selection
+    else:
+        loaded = load_recording(recording)
+        rec = loaded.recording
+        fixed_label = int(rec.reference_imu if opts.fixed is None else opts.fixed)
+        if not 0 <= fixed_label < rec.K:
+            raise UserError(f"--fixed: expected an IMU label in 0..{rec.K - 1}, got {fixed_label}")
+        asked = opts.selection is not None or opts.drop_clipped
+        prepared = prepare_recording(rec, selection=opts.selection, select=None if asked else "all",
+                                     drop_clipped=opts.drop_clipped, reference=fixed_label, reference_field="--fixed",
+                                     gyro="ignored")
+        selection = prepared.selection if asked else None
+    rec = prepared.recording
+    labels = list(prepared.imu_labels)
+    index = prepared.sample_index
+    if selection is not None and index.size < 3:  # without one, self_calibrate names the recording's length
+        raise UserError(f"selection: keeps {index.size} samples; self-calibration needs at least 3")
+    acc = prepared.sensor_acc()
     if not np.isfinite(acc).all():
         bad = sorted({labels[j] for j in np.nonzero(~np.isfinite(acc).all(axis=(0, 2)))[0]})
         raise UserError(f"acc: missing (NaN) samples for IMU(s) {bad}; self-calibration needs every sample "
@@ -160,18 +164,12 @@ def prepare(recording, options: SelfcalOptions | None = None, **keywords) -> Sel
     clipped = 0.0
     if rec.acc_clipped is not None:
         clipped = float(np.asarray(rec.acc_clipped)[index][:, labels].mean())
-    p_nom = np.asarray(rec.nominal_position, dtype=float)
-    q_nom = np.asarray(rec.nominal_orientation, dtype=float)
-    noise = np.asarray(rec.acc_noise_std, dtype=float)[labels]
-    try:
-        from ..physics.arrays import check_triad_geometry
-
-        check_triad_geometry(torch.as_tensor(p_nom[labels]), labels=labels)
-    except ValueError as exc:
-        raise UserError(f"nominal_position: {exc}") from None
+    fixed_label = labels[prepared.reference]
     return SelfcalInput(recording=rec, source=loaded, labels=labels, fixed_label=fixed_label,
-                        fixed=labels.index(fixed_label), acc=acc, noise=noise, p_nom=p_nom, q_nom=q_nom,
-                        has_acc=has_acc, clipped=clipped, time=time_s, selection=selection)
+                        fixed=prepared.reference, acc=acc, noise=np.asarray(prepared.acc_noise_std, dtype=float),
+                        p_nom=np.asarray(rec.nominal_position, dtype=float),
+                        q_nom=np.asarray(rec.nominal_orientation, dtype=float), has_acc=np.asarray(rec.has_acc),
+                        clipped=clipped, time=prepared.time, selection=selection, prepared=prepared)
 
 
 def selfcal(recording, options: SelfcalOptions | None = None, *, progress: bool = False, **keywords) -> SelfcalRun:
@@ -203,7 +201,7 @@ def selfcal(recording, options: SelfcalOptions | None = None, *, progress: bool 
     from ..physics.geometry import boxminus
 
     opts = _options(options, keywords)
-    inp = recording if isinstance(recording, SelfcalInput) else prepare(recording, opts)
+    inp = recording if isinstance(recording, SelfcalInput) else prepare(recording, opts)  # PreparedRecording too
     rec, labels, fixed_label, fixed = inp.recording, inp.labels, inp.fixed_label, inp.fixed
     K = rec.K
     p_nom, q_nom, noise = inp.p_nom, inp.q_nom, inp.noise

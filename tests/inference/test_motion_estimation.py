@@ -199,6 +199,7 @@ def test_calibration_orientation_is_used():
 
 
 def test_intrinsics_are_applied():
+    from accel_bayes.pipelines.motion import prepare_motion
     from accel_bayes.prep.intrinsics import Intrinsics
 
     rec, rel, truth = _sim(T=200, seed=8, noise=False)
@@ -214,7 +215,7 @@ def test_intrinsics_are_applied():
     intr = Intrinsics(acc_bias=b, acc_matrix=T, acc_cov=np.zeros((K, 9, 9)), gyro_bias=bg,
                       gyro_bias_cov=np.zeros((K, 3, 3)), residual_rms=nan, chi2_per_dof=nan, acc_noise_std=nan,
                       n_rests=np.zeros(K, int), n_orientations=0, g=9.80665, source="test")
-    ds = estimate_motion(raw, rel, intrinsics=intr, acc_noise_std=0.04, gyro_noise_std=1e-3)
+    ds = estimate_motion(prepare_motion(raw, intr), rel, acc_noise_std=0.04, gyro_noise_std=1e-3)
     for name in ("omega", "omega_dot", "s"):
         np.testing.assert_allclose(ds[name].values, truth[name], atol=1e-8)
     assert ds.attrs["intrinsics"] == "test"

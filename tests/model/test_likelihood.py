@@ -13,6 +13,7 @@ import torch
 from accel_bayes.errors import UserError
 from accel_bayes.model.draw_tuning import choose_num_draws
 from accel_bayes.model.gyro_posterior import GyroPosterior, gyro_posterior
+from accel_bayes.prep.prepared import prepare_recording
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood, positions_from_theta, theta_from_positions
 from accel_bayes.physics.models import G_matrix, H_matrix, imu_outputs, specific_force, u_of_omega
 from accel_bayes.data.recording import Recording
@@ -400,13 +401,14 @@ def test_from_recording_rotates_selects_and_labels():
     f = specific_force(arr.positions[keep], w, wd, s)
     assert torch.allclose(lik.acc, f, atol=1e-12)  # back in the array frame
     assert torch.allclose(lik.omega.mean, w, atol=1e-12)
-    lr = RaoBlackwellLikelihood.from_recording(rec, num_draws=16, select="rotation", drop_clipped=True)
+    lr = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, select="rotation", drop_clipped=True),
+                                               num_draws=16)
     expect = [t for t in range(T) if float(w[t].norm()) >= 0.5 and t != 12]
     assert lr.sample_index.tolist() == expect and lr.T == len(expect)
-    lm = RaoBlackwellLikelihood.from_recording(rec, num_draws=16, select=np.arange(T) % 2 == 0)
+    lm = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, select=np.arange(T) % 2 == 0), num_draws=16)
     assert lm.T == T // 2
     with pytest.raises(UserError):
-        RaoBlackwellLikelihood.from_recording(rec, select="everything")
+        prepare_recording(rec, select="everything")
 
 
 # ---------------------------------------------------------------- 5. choosing N

@@ -9,7 +9,7 @@ import shutil
 import pytest
 import torch
 
-import accel_bayes.pipelines.calibrate as cal_mod
+import accel_bayes.pipelines.calibrate_steps as steps_mod
 from accel_bayes.physics.arrays import preset
 from accel_bayes.cli import main
 from accel_bayes.inference.mcmc import CHECKPOINT_FORMAT
@@ -77,8 +77,8 @@ def test_bad_checkpoint_refused_before_computation(case, made, tmp_path, capsys,
     def boom(*a, **k):
         raise AssertionError("preprocessing ran before the checkpoint was checked")
 
-    monkeypatch.setattr(cal_mod, "preprocess", boom)
-    monkeypatch.setattr(cal_mod, "_fit_map", boom)
+    monkeypatch.setattr(steps_mod, "preprocess", boom)
+    monkeypatch.setattr(steps_mod, "_fit_map", boom)
     rc, cap = _cli(["calibrate", str(made["rec"]), "--out", str(out), *RUN, "--resume"], capsys)
     err = cap.err.strip().splitlines()
     assert rc == 2, cap.err
@@ -96,7 +96,7 @@ def test_checkpoint_of_another_run_refused_before_computation(change, needle, ma
     out = tmp_path / "out"
     out.mkdir()
     shutil.copy(made["ckpt"], out / "checkpoint.pt")
-    monkeypatch.setattr(cal_mod, "preprocess", lambda *a, **k: pytest.fail("preprocessing ran"))
+    monkeypatch.setattr(steps_mod, "preprocess", lambda *a, **k: pytest.fail("preprocessing ran"))
     args = [a for a in RUN if a not in ("--seed", "4")] + (extra or ["--seed", "4"])
     rc, cap = _cli(["calibrate", str(made[which]), "--out", str(out), *args, "--resume"], capsys)
     err = cap.err.strip().splitlines()

@@ -1,5 +1,6 @@
-"""``prepare_recording`` (issue #26 item 1, begun): one frozen record of a recording's fit inputs,
-made by one function in ``prep/``; the likelihood's ``from_recording`` takes it."""
+"""``prepare_recording`` (issue #26 item 1): one frozen record of a recording's fit inputs, made by
+one function in ``prep/``; the likelihood's ``from_recording`` takes it (every other fit too:
+``test_fits_take_prepared.py``)."""
 import dataclasses
 
 import numpy as np
@@ -32,8 +33,7 @@ def test_prepared_recording_is_frozen_and_what_the_likelihood_is_built_from(rec)
     assert 0 < p.T < rec.T and np.array_equal(p.sample_index, p.selection.index)
     omega_bar = rec.gyro_tensor("array")[p.sample_index].mean(1).norm(dim=-1)
     assert bool((omega_bar >= thr - 1e-12).all())  # gyros of equal noise: ω̄ is the plain mean
-    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=4, select="rotation", min_rotation=thr,
-                                                gyro_method="calibrated")
+    lik = RaoBlackwellLikelihood.from_recording(p, num_draws=4, gyro_method="calibrated")
     direct = RaoBlackwellLikelihood(p.acc, gyro_posterior(p.gyro, p.gyro_noise_std, "calibrated"), p.acc_noise_std,
                                     4, reference=p.reference)
     pos = p.nominal_positions + 1e-4
@@ -51,5 +51,5 @@ def test_prepare_recording_refusals_name_the_field(rec):
     sel = prepare_recording(rec).selection
     with pytest.raises(UserError, match="^selection: given together with"):
         prepare_recording(rec, selection=sel, drop_clipped=True)
-    with pytest.raises(UserError, match="^select: expected None, a mask"):
+    with pytest.raises(UserError, match="^select: expected None, .all., a mask"):
         prepare_recording(rec, select="static")

@@ -114,6 +114,7 @@ def test_every_fit_takes_the_same_selection():
     from accel_bayes.inference.map import fit_map_recording
     from accel_bayes.model.likelihood import RaoBlackwellLikelihood
     from accel_bayes.physics.arrays import mimu4444_8
+    from accel_bayes.prep.prepared import prepare_recording
     from accel_bayes.prep.preprocess import preprocess
     from accel_bayes.simulate import simulate
 
@@ -121,16 +122,18 @@ def test_every_fit_takes_the_same_selection():
     rec = sim.recording
     pre = preprocess(rec)
     assert pre.keep is pre.selection.keep and 0 < pre.n_kept < rec.T
-    lik = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, selection=pre.selection)
+    prepared = prepare_recording(rec, selection=pre.selection)
+    lik = RaoBlackwellLikelihood.from_recording(prepared, num_draws=1)
     assert lik.selection is pre.selection and lik.T == pre.n_kept
     np.testing.assert_array_equal(lik.sample_index, pre.selection.index)
-    lik2 = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, select="rotation", drop_clipped=True)
+    lik2 = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, select="rotation", drop_clipped=True),
+                                                 num_draws=1)
     np.testing.assert_array_equal(lik2.sample_index, pre.selection.index)  # same rule, no rests here
-    res = fit_map_recording(rec, selection=pre.selection, max_iter=5)
+    res = fit_map_recording(prepared, max_iter=5)
     assert res.selection is pre.selection
     np.testing.assert_array_equal(res.sample_index, pre.selection.index)
     with pytest.raises(UserError, match="selection"):
-        RaoBlackwellLikelihood.from_recording(rec, selection=pre.selection, select="rotation")
+        prepare_recording(rec, selection=pre.selection, select="rotation")
 
 
 def test_flagged_samples_are_left_out_with_their_own_reason():
