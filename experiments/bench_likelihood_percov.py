@@ -46,6 +46,7 @@ from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.model.likelihood_percov import with_unresolved_motion  # noqa: E402
 from accel_bayes.model.unresolved_fit import fit_unresolved_scales  # noqa: E402
 from accel_bayes.physics.effects.clock import clock_age  # noqa: E402
+from accel_bayes.prep.prepared import prepare_recording  # noqa: E402
 from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 
 
@@ -96,7 +97,7 @@ def main(argv=None):
         return
     pre = preprocess(import_mimu(path))
     rec = pre.recording
-    stated = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, selection=pre.selection)
+    stated = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1)
     pos = stated.nominal_positions.clone()
     sigma = residual_noise(stated, pos)
     flat = RaoBlackwellLikelihood(stated.acc, stated.omega, sigma, 1, reference=stated.reference)

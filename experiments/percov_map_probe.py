@@ -37,6 +37,7 @@ from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.model.likelihood_percov import with_unresolved_motion  # noqa: E402
 from accel_bayes.model.phi_prior import empirical_phi_prior  # noqa: E402
 from accel_bayes.model.unresolved_fit import fit_unresolved_scales  # noqa: E402
+from accel_bayes.prep.prepared import prepare_recording  # noqa: E402
 from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 
 SPACING_MM = 18.9
@@ -84,7 +85,7 @@ def main():
         return
     pre = preprocess(import_mimu(path))
     rec = pre.recording
-    st = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, selection=pre.selection)
+    st = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1)
     pos0 = st.nominal_positions.clone()
     nom = (pos0 - pos0[st.reference])[[k for k in range(st.A) if k != st.reference]].reshape(-1)
     g = nom / (nom @ nom)  # ∂s/∂θ of the least-squares scale s = ⟨θ, nom⟩/⟨nom, nom⟩
