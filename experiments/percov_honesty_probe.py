@@ -61,6 +61,7 @@ from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 SPACING_MM = 18.9
 BAR = 1.3
 CACHE = HERE / "results" / "percov_honesty"
+NOISE_FACTORS = tuple(np.round(np.linspace(0.3, 1.0, 8), 2))  # common factors on σ tried with the jerk fit
 SIM_REPS = 3  # replicates of the model-simulated meat (its own sampling error ~ 1/√(3T))
 OMEGA_PIN = 1e-12  # (rad/s)²: gyro covariance that pins ω at ω̄ in sandwich_inflation's profiled Jacobian
 
@@ -107,6 +108,25 @@ def simulated_scores(lik, th, wbar, gen, reps):
     return torch.cat(out)
 
 
+def excess_by_quartile(S, Ssim, cov, x, reps):
+    """Per quartile of ``x`` (T,): the median over coordinates of the variance factor real / model-simulated
+    of the lag-0 meat restricted to those samples, whole sample and IMU blocks (the cross-IMU part is
+    their quotient)."""
+    band = torch.bucketize(x, torch.quantile(x, torch.tensor([0.25, 0.5, 0.75], dtype=x.dtype)), right=True)
+    out = []
+    for k in range(4):
+        m = band == k
+        ms = m.repeat(reps)
+        row = {}
+        for key, f in (("sample", lambda Z: score_sandwich(Z, cov, lags=0)),
+                       ("imu_block", lambda Z: block_meat_sandwich(Z, cov, 0))):
+            real = np.asarray(f(S[m])["std_ratio"]) ** 2
+            sim = np.asarray(f(Ssim[ms])["std_ratio"]) ** 2 / reps
+            row[key] = float(np.median(real / sim))
+        out.append(row)
+    return out
+
+
 def summary(r):
     v = np.asarray(r["std_ratio"])
     return {"median": float(np.median(v)), "max": float(v.max()), "lags": int(r["lags"]), "all": v.tolist()}
@@ -126,6 +146,10 @@ def run_one(exp: str) -> dict:
     wbar = st.omega.mean
     wn = wbar.norm(dim=-1)
     band = torch.bucketize(wn, torch.quantile(wn, torch.tensor([0.25, 0.5, 0.75], dtype=wn.dtype)), right=True)
+    # |ω̈̄| rad/s³ by second differences of ω̄ on the kept samples' times (a covariate, not in the model)
+    tk = np.asarray(rec.time)[np.asarray(st.sample_index)]
+    wdd = np.gradient(np.gradient(wbar.numpy(), tk, axis=0), tk, axis=0)
+    wddn = torch.as_tensor(np.linalg.norm(wdd, axis=1))
     flat = RaoBlackwellLikelihood(st.acc, st.omega, sigma, 1, reference=ref)
     fit = fit_unresolved_scales(flat, age, band, pos0)
     models = {"flat": with_unresolved_motion(flat, age, 0.0),
@@ -133,6 +157,12 @@ def run_one(exp: str) -> dict:
     out = {"exp": exp, "T": st.T, "A": A, "reference": ref, "imu_labels": [int(k) for k in st.imu_labels],
            "sigma": sigma.tolist(), "jerk_rms": fit.jerk_rms.tolist(), "gain_nats": fit.gain,
            "nominal": pos0.tolist(), "models": {}}
+    # the same model with a common factor on the noise levels fitted with the jerk scales (type-II ML over
+    # NOISE_FACTORS): the flat residual rms counts the jerk's variance twice
+    fit_s = fit_unresolved_scales(flat, age, band, pos0, noise_factors=NOISE_FACTORS)
+    flat_s = RaoBlackwellLikelihood(st.acc, st.omega, sigma * fit_s.noise_factor, 1, reference=ref)
+    models["jerk_sigma"] = with_unresolved_motion(flat_s, age, fit_s.jerk_rms[band])
+    out.update(jerk_rms_sigma=fit_s.jerk_rms.tolist(), gain_nats_sigma=fit_s.gain, noise_factor=fit_s.noise_factor)
     age_all = exp1_ages(rec, st, exp, accepted_only=False)
     if not torch.equal(age_all, age):  # a clock clock_mimu did not accept: the same model with it used anyway
         fit_all = fit_unresolved_scales(flat, age_all, band, pos0)
@@ -166,6 +196,8 @@ def run_one(exp: str) -> dict:
                 res[key]["relative_median"] = float(np.median(np.asarray(res[key]["all"]) / white))
                 res[key]["relative_max"] = float(np.max(np.asarray(res[key]["all"]) / white))
             res[f"no_logdetM_{lag_name}"] = summary(score_sandwich(S - d, cov, lags=lags))
+        res["by_omega_quartile"] = excess_by_quartile(S, Ssim, cov, wn, SIM_REPS)
+        res["by_angular_jerk_quartile"] = excess_by_quartile(S, Ssim, cov, wddn, SIM_REPS)
         C = score_sandwich(S, cov)["cov"]
         res["sandwich_std"] = C.diagonal().clamp_min(0).sqrt().tolist()
         s = float(th @ g_scale)
@@ -214,7 +246,8 @@ def pooled_spacing(results, name, which):
 def markdown(results, wall) -> str:
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     E = [r["exp"].split("_")[1] for r in results]
-    names = {"flat": "flat", "jerk": "per-sample jerk"}
+    names = {"flat": "flat", "jerk": "per-sample jerk", "jerk_sigma": "per-sample jerk, σ refit"}
+    MODELS = tuple(names)
 
     def row(label, f):
         return f"| {label} | " + " | ".join(f(r) for r in results) + " |"
@@ -252,7 +285,7 @@ def markdown(results, wall) -> str:
         "| model, meat | " + " | ".join(f"exp {e}" for e in E) + " |",
         "|---|" + "---|" * len(E),
     ]
-    for name in ("flat", "jerk"):
+    for name in MODELS:
         for key, label in (("sample_nw", "sample, Newey–West (the sandwich)"),
                            ("sample_lag0", "sample, lag 0 (no time correlation)"),
                            ("imu_block_nw", "IMU blocks, Newey–West (no cross-IMU)"),
@@ -271,13 +304,27 @@ def markdown(results, wall) -> str:
         "| model, meat, relative to the model-simulated meat | " + " | ".join(f"exp {e}" for e in E) + " |",
         "|---|" + "---|" * len(E),
     ]
-    for name in ("flat", "jerk"):
+    for name in MODELS:
         for key, label in (("sample_nw", "sample, Newey–West"), ("sample_lag0", "sample, lag 0"),
                            ("imu_block_lag0", "IMU blocks, lag 0")):
             L.append(row(f"{names[name]}: {label}", lambda r, n=name, k=key: "{:.2f} / {:.2f}".format(
                 r['models'][n][k]['relative_median'], r['models'][n][k]['relative_max'])))
-    L.append(row("simulated sample NW ratio, median (flat / jerk; ≈ 1: Laplace = the model's Fisher)",
-                 lambda r: " / ".join(f"{np.median(r['models'][n]['sample_nw']['white']):.2f}" for n in ("flat", "jerk"))))
+    L.append(row("simulated sample NW ratio, median (flat / jerk / jerk σ refit; ≈ 1: Laplace = the model's Fisher)",
+                 lambda r: " / ".join(f"{np.median(r['models'][n]['sample_nw']['white']):.2f}" for n in MODELS)))
+    L += [
+        "",
+        "Where the excess sits: the lag-0 meat restricted to each quartile of |ω̄| and of |ω̈̄| (second differences "
+        "of ω̄ on the kept samples' times; a covariate, not in either model), as a variance factor real / "
+        "model-simulated on the same samples, median over coordinates; within-IMU (IMU blocks) / cross-IMU "
+        "(sample over IMU blocks), quartiles low → high:",
+        "",
+        "| model, covariate | " + " | ".join(f"exp {e}" for e in E) + " |",
+        "|---|" + "---|" * len(E),
+    ]
+    for name in MODELS:
+        for key, label in (("by_omega_quartile", "|ω̄|"), ("by_angular_jerk_quartile", "|ω̈̄|")):
+            L.append(row(f"{names[name]}, {label}: within-IMU / cross-IMU", lambda r, n=name, k=key: "; ".join(
+                f"{q['imu_block']:.2f} / {q['sample'] / q['imu_block']:.2f}" for q in r["models"][n][k])))
     L += [
         "",
         "`sandwich_inflation`'s own clusters on the flat model at the same point (its convention: a channel's "
@@ -304,16 +351,15 @@ def markdown(results, wall) -> str:
         row("T", lambda r: str(r["T"])),
         row("jerk rms per |ω̄| quartile (m/s³)", lambda r: ", ".join(f"{v:.3g}" for v in r["jerk_rms"])),
         row("type-II gain over flat (nats, at nominal θ)", lambda r: f"{r['gain_nats']:.0f}"),
-        row("median Laplace std flat / jerk (µm)", lambda r: " / ".join(
-            f"{1e6 * np.median(r['models'][n]['laplace_std']):.1f}" for n in ("flat", "jerk"))),
-        row("median sandwich std flat / jerk (µm)", lambda r: " / ".join(
-            f"{1e6 * np.median(r['models'][n]['sandwich_std']):.1f}" for n in ("flat", "jerk"))),
-        row("x–y spacing flat (mm, ± Laplace, ± sandwich)", lambda r: "{:.3f} ± {:.3f}, ± {:.3f}".format(
-            SPACING_MM * r['models']['flat']['scale']['s'], SPACING_MM * r['models']['flat']['scale']['laplace_sd'],
-            SPACING_MM * r['models']['flat']['scale']['sandwich_sd'])),
-        row("x–y spacing jerk (mm, ± Laplace, ± sandwich)", lambda r: "{:.3f} ± {:.3f}, ± {:.3f}".format(
-            SPACING_MM * r['models']['jerk']['scale']['s'], SPACING_MM * r['models']['jerk']['scale']['laplace_sd'],
-            SPACING_MM * r['models']['jerk']['scale']['sandwich_sd'])),
+        row("σ refit: noise factor; jerk rms (m/s³); gain (nats)", lambda r: "{:.2f}; {}; {:.0f}".format(
+            r["noise_factor"], ", ".join(f"{v:.3g}" for v in r["jerk_rms_sigma"]), r["gain_nats_sigma"])),
+        row("median Laplace std flat / jerk / jerk σ refit (µm)", lambda r: " / ".join(
+            f"{1e6 * np.median(r['models'][n]['laplace_std']):.1f}" for n in MODELS)),
+        row("median sandwich std flat / jerk / jerk σ refit (µm)", lambda r: " / ".join(
+            f"{1e6 * np.median(r['models'][n]['sandwich_std']):.1f}" for n in MODELS)),
+        *[row(f"x–y spacing {names[n]} (mm, ± Laplace, ± sandwich)", lambda r, n=n: "{:.3f} ± {:.3f}, ± {:.3f}".format(
+            SPACING_MM * r['models'][n]['scale']['s'], SPACING_MM * r['models'][n]['scale']['laplace_sd'],
+            SPACING_MM * r['models'][n]['scale']['sandwich_sd'])) for n in MODELS],
         row("wall time (s)", lambda r: f"{r['seconds']:.0f}"),
         "",
         "## Across experiments: leave-one-out z and spacing",
@@ -327,7 +373,7 @@ def markdown(results, wall) -> str:
         "scatter of the six (sd of mean, mm) |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for name in ("flat", "jerk"):
+    for name in MODELS:
         for which, sdk in (("laplace_std", "laplace_sd"), ("sandwich_std", "sandwich_sd")):
             an = loo(results, name, which)
             z = np.asarray(an["z_loo"])
@@ -338,6 +384,7 @@ def markdown(results, wall) -> str:
                      f"{z46:.2f} | {med:.1f} | {sp:.3f} ± {sp_sd:.3f} | {sc:.3f} |")
     fl = [r["models"]["flat"] for r in results]
     jk = [r["models"]["jerk"] for r in results]
+    js = [r["models"]["jerk_sigma"] for r in results]
 
     def med(ms, k):
         return float(np.median([m[k]["median"] for m in ms]))
@@ -362,7 +409,7 @@ def markdown(results, wall) -> str:
         d = json.loads((HERE / "results" / "clock_mimu" / f"{exp}.json").read_text())["imus"]
         return next(c["beat_hz"] for c in d if int(c["imu"]) == imu)
 
-    zs = {(n, w): loo(results, n, w) for n in ("flat", "jerk") for w in ("laplace_std", "sandwich_std")}
+    zs = {(n, w): loo(results, n, w) for n in MODELS for w in ("laplace_std", "sandwich_std")}
     shift = [(r["models"]["jerk"]["scale"]["s"] - r["models"]["flat"]["scale"]["s"])
              / r["models"]["flat"]["scale"]["laplace_sd"] for r in results]
     tc = (rel(jk, 'sample_nw') / rel(jk, 'sample_lag0')) ** 2
@@ -372,7 +419,9 @@ def markdown(results, wall) -> str:
         "",
         f"**Bar (ratio ≤ {BAR} on every coordinate) met with the per-sample jerk model: {'YES' if met else 'NO'}** "
         f"(max over experiments {mx(jk, 'sample_nw'):.2f}; flat {mx(fl, 'sample_nw'):.2f}; per experiment "
-        + ", ".join(f"{m['sample_nw']['max']:.2f}" for m in jk) + ").",
+        + ", ".join(f"{m['sample_nw']['max']:.2f}" for m in jk) + f"); with σ refit: "
+        f"{'YES' if mx(js, 'sample_nw') <= BAR else 'NO'} (max {mx(js, 'sample_nw'):.2f}; per experiment "
+        + ", ".join(f"{m['sample_nw']['max']:.2f}" for m in js) + ").",
         "",
         "Decomposition, medians over the experiments of the per-experiment median, relative to each model's own "
         "simulated meat (flat → jerk), as variance factors (squared ratios): within-IMU — heteroscedasticity, "
@@ -381,10 +430,28 @@ def markdown(results, wall) -> str:
         f"blocks, lag 0) {(rel(fl, 'sample_lag0') / rel(fl, 'imu_block_lag0')) ** 2:.2f} → "
         f"{(rel(jk, 'sample_lag0') / rel(jk, 'imu_block_lag0')) ** 2:.2f}; time correlation (Newey–West over lag 0) "
         f"{(rel(fl, 'sample_nw') / rel(fl, 'sample_lag0')) ** 2:.2f} → {(rel(jk, 'sample_nw') / rel(jk, 'sample_lag0')) ** 2:.2f}; "
-        f"in all {rel(fl, 'sample_nw') ** 2:.2f} → {rel(jk, 'sample_nw') ** 2:.2f}.",
+        f"in all {rel(fl, 'sample_nw') ** 2:.2f} → {rel(jk, 'sample_nw') ** 2:.2f}. With σ refit: within-IMU "
+        f"{rel(js, 'imu_block_lag0') ** 2:.2f}, cross-IMU {(rel(js, 'sample_lag0') / rel(js, 'imu_block_lag0')) ** 2:.2f}, "
+        f"time {(rel(js, 'sample_nw') / rel(js, 'sample_lag0')) ** 2:.2f}, in all {rel(js, 'sample_nw') ** 2:.2f}.",
         "",
-        "What the jerk term removes: the within-IMU excess, all of it on five experiments (IMU-block ratio relative to "
-        "the model ≈ 1.0), i.e. the heteroscedastic, |ω|-growing misfit of each triad is the age-loaded jerk. What "
+        "The quartile table shows what the within-IMU ≈ 1 of the jerk model averages over: with σ the flat model's "
+        "residual rms, the model over-states the variance at small |ω̄| (factor ≪ 1: the noise floor is below σ) "
+        "and under-states it at large |ω̄|. Fitting a common factor on σ together with the jerk scales (type-II ML: "
+        "factor " + ", ".join(f"{r['noise_factor']:.2f}" for r in results) + "; gain over flat "
+        + ", ".join(f"{r['gain_nats_sigma']:.0f}" for r in results) + " nats against "
+        + ", ".join(f"{r['gain_nats']:.0f}" for r in results) + " with σ fixed) is the better model by its "
+        f"evidence but the *less* honest one: median ratio {med(js, 'sample_nw'):.2f}, within-IMU factor "
+        f"{rel(js, 'imu_block_lag0') ** 2:.2f}, in the top |ω̄| quartile "
+        + ", ".join(f"{m['by_omega_quartile'][3]['imu_block']:.2f}" for m in js) + ". So the jerk model's "
+        "honesty at σ fixed rests partly on σ being inflated at small |ω| (a tempering in disguise), and the "
+        "variance that grows with |ω| is not all proportional to the squared centred data age, as the jerk term "
+        "makes it: a variance term growing with the motion itself (per-|ω|-band noise levels, "
+        "accel_bayes.model.noise's rate bins, or accelerometer scale/misalignment errors ∝ the specific force) "
+        "is the other physics the data point to, next to the angular-jerk term below.",
+        "",
+        "What the jerk term removes: the within-IMU excess on average over the samples, all of it on five "
+        "experiments (IMU-block ratio relative to the model ≈ 1.0): most of each triad's |ω|-growing misfit is the "
+        "age-loaded jerk (its fitted scale grows from ~0.05 to ~8000 m/s³ over the |ω̄| quartiles). What "
         "remains: an excess correlated between IMUs of the same sample (cross-IMU factor > 1), "
         + ("with no positive time correlation (Newey–West below lag 0). " if tc <= 1.0 else
            f"with a time-correlation factor {tc:.2f}. ")
@@ -424,15 +491,17 @@ def markdown(results, wall) -> str:
         "(`mimu_model_calibrate.md`, a different run: calibrate's ω-integrated posterior). The x–y spacing here "
         "is for the flat φ prior with ω fixed at ω̄ and sits "
         f"{SPACING_MM - pooled_spacing(results, 'jerk', 'laplace_sd')[0]:.2f} mm short of 18.9 mm (jerk model, "
-        "pooled), far outside its std; `percov_map_probe.md` shows on exp_1 that the empirical φ prior "
-        "(calibrate's default) moves it to 18.97 mm and integrating ω moves it by −0.2 %, so the spacing figure is "
-        "a property of this probe's setting more than of the jerk term (which moves it by "
-        + ", ".join(f"{v:+.1f}" for v in shift) + " flat-model Laplace std, exp 1–6).",
+        f"pooled; {SPACING_MM - pooled_spacing(results, 'jerk_sigma', 'laplace_sd')[0]:.2f} mm with σ refit), far "
+        "outside its std; `percov_map_probe.md` shows on exp_1 that the empirical φ prior (calibrate's default) "
+        "moves it to 18.97 mm and integrating ω moves it by −0.2 %: the spacing depends on the φ prior and on how "
+        "the samples are weighted (σ refit weights the slow samples up) by more than its std, so none of these "
+        "spacings is a calibrated figure. The jerk term at fixed σ moves it by "
+        + ", ".join(f"{v:+.1f}" for v in shift) + " flat-model Laplace std, exp 1–6.",
         "",
         "Limits: ω is fixed at ω̄ (not calibrate's ω-integrated posterior); the jerk scales are fitted at the nominal "
         "positions on the same data (empirical Bayes, their uncertainty ignored); the flat φ prior (the cluster "
         "split of `sandwich_inflation` needs it); noise levels are the flat model's residual rms, not refitted "
-        "with the jerk term.",
+        "with the jerk term except for the one common factor of the 'σ refit' rows.",
         "",
     ]
     return "\n".join(L)
