@@ -50,10 +50,11 @@ from accel_bayes.prep.prepared import prepare_recording  # noqa: E402
 from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 
 
-def exp1_ages(rec, lik) -> torch.Tensor:
-    """(T, A) s: the clock_mimu sawtooth of each row's IMU at the kept samples' times."""
-    clocks = json.loads((HERE / "results" / "clock_mimu" / "exp_1.json").read_text())["imus"]
-    by_imu = {int(c["imu"]): c for c in clocks if c.get("accepted")}
+def exp1_ages(rec, lik, exp: str = "exp_1", accepted_only: bool = True) -> torch.Tensor:
+    """(T, A) s: the clock_mimu sawtooth of each row's IMU at the kept samples' times (experiment ``exp``;
+    IMUs whose clock clock_mimu did not accept get age 0 unless ``accepted_only`` is False)."""
+    clocks = json.loads((HERE / "results" / "clock_mimu" / f"{exp}.json").read_text())["imus"]
+    by_imu = {int(c["imu"]): c for c in clocks if c.get("accepted") or not accepted_only}
     t = torch.as_tensor(np.asarray(rec.time)[np.asarray(lik.sample_index)], dtype=torch.float64)
     out = torch.zeros(lik.T, lik.A, dtype=torch.float64)
     for j, k in enumerate(lik.imu_labels):

@@ -20,7 +20,8 @@ from .lm import ExtraCost, LevenbergMarquardt
 from .lm.linear import NotPositiveDefinite
 from .map import MAPResult, build_map_problem, fit_map
 
-__all__ = ["fit_map_with_noise", "newey_west_lags", "sandwich_inflation", "fit_map_tempered"]
+__all__ = ["fit_map_with_noise", "newey_west_lags", "newey_west_meat", "score_sandwich", "per_sample_scores",
+           "sandwich_inflation", "fit_map_tempered"]
 
 
 def fit_map_with_noise(acc, omega_mean, omega_cov, acc_noise_std, *, reference: int = 0, prior_mean=None,
@@ -141,16 +142,8 @@ def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *,
         s = (Jp.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)  # (T, n)
     else:  # rows are triad-major (3 per triad), as the likelihood stacks them
         s = (Jp * r.unsqueeze(-1)).reshape(T, m // per, per, n).sum(2).reshape(T * (m // per), n)  # (T·units, n)
-    L = newey_west_lags(T) if lags is None else int(lags)
-    B = s.T @ s
-    u = m // per
-    for lag in range(1, min(L, T - 1) + 1):  # L ≈ 10: a handful of (n × n) products
-        Gm = s[:-lag * u].T @ s[lag * u:]  # unit c of sample t with unit c of sample t + lag
-        B = B + (1.0 - lag / (L + 1.0)) * (Gm + Gm.T)
     Ainv = torch.as_tensor(map_result.laplace_cov, dtype=torch.float64)
-    C = Ainv @ B @ Ainv
-    ratio = torch.diagonal(C) / torch.diagonal(Ainv)
-    out = {"kappa": float(ratio.mean()), "std_ratio": ratio.clamp_min(0).sqrt().numpy(), "lags": L}
+    out = score_sandwich(s, Ainv, units=m // per, lags=lags)
     if m == 3 * A:  # flat φ prior: r_t = P⊥ z_t, P⊥ the same for every sample
         Hw = _sqrt_lam_rows(acc_noise_std, A)[:, None] * H_matrix(torch.as_tensor(map_result.positions, dtype=torch.float64))
         Pp = torch.eye(m, dtype=torch.float64) - Hw @ torch.linalg.solve(Hw.T @ Hw, Hw.T)
@@ -163,6 +156,41 @@ def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *,
         out["std_ratio_white"] = out["std_ratio_relative"] = None
     return out
 
+
+
+def newey_west_meat(scores: torch.Tensor, *, units: int = 1, lags: int | None = None) -> tuple[torch.Tensor, int]:
+    """(B (n, n), L): Σ_t g_t g_tᵀ + Σ_{l=1..L} (1 − l/(L+1)) (Γ_l + Γ_lᵀ), Bartlett weights, of the
+    scores ``scores`` (T·units, n) in time order, ``units`` consecutive rows per sample; Γ_l pairs
+    each unit with itself ``l`` samples later.  L = ``lags`` or :func:`newey_west_lags` (T)."""
+    s = torch.as_tensor(scores, dtype=torch.float64)
+    u = int(units)
+    T = s.shape[0] // u
+    L = newey_west_lags(T) if lags is None else int(lags)
+    B = s.T @ s
+    for lag in range(1, min(L, T - 1) + 1):  # L ≈ 10: a handful of (n × n) products
+        Gm = s[:-lag * u].T @ s[lag * u:]
+        B = B + (1.0 - lag / (L + 1.0)) * (Gm + Gm.T)
+    return B, L
+
+
+def score_sandwich(scores, laplace_cov, *, units: int = 1, lags: int | None = None) -> dict:
+    """The sandwich C = A⁻¹ B A⁻¹ (B: :func:`newey_west_meat` of ``scores``) against the Laplace
+    covariance A⁻¹ = ``laplace_cov`` (n, n) (units of θ²).  Returns {"kappa": mean of the
+    per-coordinate variance ratios, "std_ratio": (n,) their square roots, "lags": L, "cov": C}."""
+    Ainv = torch.as_tensor(laplace_cov, dtype=torch.float64)
+    B, L = newey_west_meat(scores, units=units, lags=lags)
+    C = Ainv @ B @ Ainv
+    ratio = torch.diagonal(C) / torch.diagonal(Ainv)
+    return {"kappa": float(ratio.mean()), "std_ratio": ratio.clamp_min(0).sqrt().numpy(), "lags": L, "cov": C}
+
+
+def per_sample_scores(log_density, theta: torch.Tensor) -> torch.Tensor:
+    """(T, n): the Jacobian ∂ℓ_t/∂θ of ``log_density`` (θ (n,) ↦ (T,) per-sample log-densities,
+    nats), by forward-mode products (n ≪ T: one pass per coordinate of θ)."""
+    th = torch.as_tensor(theta, dtype=torch.float64).detach()
+    cols = [torch.autograd.functional.jvp(log_density, th, torch.eye(len(th), dtype=th.dtype)[i])[1]
+            for i in range(len(th))]
+    return torch.stack(cols, -1)
 
 
 def _sqrt_lam_rows(acc_noise_std, A: int) -> torch.Tensor:

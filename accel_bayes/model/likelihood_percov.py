@@ -249,6 +249,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         """log p(y^a | ω_{1:T}, θ) with φ_t, m_t (and λ_t) integrated out (module docstring), up to
         the base class's dropped constants.  positions (..., A, 3) m; omega (T, 3) or (..., T, 3)
         rad/s broadcasting against the positions' batch.  Returns (...); differentiable."""
+        return self.log_lik_per_sample(positions, omega).sum(-1)
+
+    def log_lik_per_sample(self, positions: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
+        """The terms log p(y_t^a | ω_t, θ) (..., T) nats of :meth:`log_lik_given_omega`, each with
+        its share −½ log|M(θ)| of the common determinant: differentiated per sample they are the
+        scores a sandwich needs (the samples are independent given ω and θ)."""
         r = self._positions(positions)
         batch = r.shape[:-2]
         B = int(np.prod(batch)) if len(batch) else 1
@@ -258,8 +264,8 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         V = p["V"]  # (B, 3, 7, T)
         corr = (torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]).square().sum(1)
         q = p["c"] - 2 * (p["b"] * delta).sum(-1) + ((delta @ p["C"]) * delta).sum(-1) - corr
-        out = self._kernel(q).sum(-1) - 0.5 * self.T * p["logdetM"] - 0.5 * p["logdetN"].sum(-1)
-        return out.reshape(batch)
+        out = self._kernel(q) - 0.5 * p["logdetM"][:, None] - 0.5 * p["logdetN"]
+        return out.reshape(*batch, self.T)
 
     def log_phat(self, positions, generator=None, z=None, num_draws=None, independent_draws: bool = False):
         """log p̂(y^a | y^g, θ) with the per-sample covariance (module docstring); the arguments and
