@@ -56,6 +56,7 @@ from accel_bayes.inference.noise_fit import (  # noqa: E402
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.model.likelihood_percov import with_unresolved_motion  # noqa: E402
 from accel_bayes.model.unresolved_fit import fit_unresolved_scales  # noqa: E402
+from accel_bayes.prep.prepared import prepare_recording  # noqa: E402
 from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 
 SPACING_MM = 18.9
@@ -136,7 +137,7 @@ def run_one(exp: str) -> dict:
     t0 = time.time()
     pre = preprocess(import_mimu(data_dir() / exp / "data.bin.gz"))
     rec = pre.recording
-    st = RaoBlackwellLikelihood.from_recording(rec, num_draws=1, selection=pre.selection)
+    st = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1)
     A, ref = st.A, st.reference
     pos0 = st.nominal_positions.clone()
     nom = free_of(pos0, ref)
