@@ -42,8 +42,8 @@ Procedure
    on like the gyro blocks; one finding per IMU, not counted by ``max_findings``.  Skipped when
    ``effects`` does not name ``sampling_clock``.
 3c. **Filter delay** (:mod:`accel_bayes.mismatch.filter_delay`): the accelerometer's filter delay
-   beyond the gyroscope's, one for the clocked IMUs, where the data identify it (the recording is
-   then corrected for it too); else ``filter_delay_acc_minus_gyro_s`` is reported null with the reason.
+   beyond the gyroscope's, one for the clocked IMUs, reported where the data identify it (not
+   applied to the recording); else ``filter_delay_acc_minus_gyro_s`` is reported null with the reason.
 4. **Screen** every candidate cheaply at the current fit (:mod:`accel_bayes.mismatch.screens`: score
    tests of the mean effects, the restricted likelihood ratio of ``noise_level``, the profiled
    marginal of the random effects, the clamp gain of ``saturation``).
@@ -94,7 +94,6 @@ from __future__ import annotations
 import time as _time
 
 import numpy as np
-import torch
 
 from ..data.io import load_recording
 from ..errors import UserError
@@ -105,7 +104,7 @@ from .characterise import characterise, describe
 from .choose import GYRO_LINEAR_TERMS, REFRESH_PASSES, alternatives, choose, evidence, pick, random_channels
 from .clock import clock_corrected, clock_stage
 from .compare import compare_fits, posterior_comparison
-from .filter_delay import delay_corrected, filter_delay
+from .filter_delay import filter_delay
 from .fit import _effect_std, baseline_fit, fit_model
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
@@ -269,17 +268,9 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                 prep0 = clock_corrected(prep0, current, clock.clocks)
                 stage.prep, stage.fit = clock.prep, clock.fit
             prep, current = clock.prep, clock.fit
-            # step 3c: the accelerometers' filter delay beyond the gyros', where identified
-            imus = [c.imu for c in clock.clocks]
-            fd = filter_delay(prep, current, imus)
-            if fd["identified"]:
-                for c in clock.clocks:
-                    c.params["filter_delay_acc_minus_gyro_s"] = torch.tensor(fd["value_s"], dtype=torch.float64)
-                prep0 = delay_corrected(prep0, current, imus, fd["value_s"])
-                prep = delay_corrected(prep, current, imus, fd["value_s"])
-                current = fit_model(prep, [e.copy() for e in current.effects], init=current, laplace=False)
-                if stage is not None:
-                    stage.prep, stage.fit = prep, current
+            # step 3c: the accelerometers' filter delay beyond the gyros', reported where identified
+            # (not applied: accel_bayes.mismatch.filter_delay says why)
+            fd = filter_delay(prep, current, [c.imu for c in clock.clocks])
         say(f"clock stage: sampling_clock on IMUs {clock.info['accepted']}; filter delay "
             f"{fd['value_s'] if fd['identified'] else 'not identified'}")
     timings["clock_s"] = _time.perf_counter() - t0

@@ -30,7 +30,6 @@ is part of b (:func:`accel_bayes.mismatch.budget.residual_budget`'s ``extra_vari
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
