@@ -24,8 +24,11 @@ Workloads (the same samples in both trees):
 
 The baseline is a checkout of c03e6a6 (``--base DIR``; default a ``git worktree`` under
 ``experiments/out``).  Each baseline call gets ``--timeout`` seconds (default 300; ``--full`` lifts it).
+``--parallel`` runs the two calls at the same time instead of one after the other: on a machine
+shared with other jobs both then see the same load (the CPU times are the fairer comparison).
 
-    python experiments/bench_detect.py [--base DIR] [--only mimu_exp1,mimu32_T3000] [--timeout S | --full] [--md PATH]
+    python experiments/bench_detect.py [--base DIR] [--only mimu_exp1,mimu32_T3000] [--timeout S | --full]
+                                       [--parallel] [--md PATH]
 
 ``--md PATH`` also writes the printed lines as a results document (``experiments/bench_detect.md``).
 ``--profile WORKLOAD`` instead runs our ``detect`` once in this process under cProfile (CPU time)
@@ -127,19 +130,37 @@ WORKER = textwrap.dedent('''
 ''')
 
 
-def run_case(tree: Path, mode: str, path: Path, timeout: float | None) -> dict:
+def _start(tree: Path, mode: str, path: Path):
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    load0 = os.getloadavg()[0]
+    return subprocess.Popen([sys.executable, "-c", WORKER, mode, str(path)], cwd="/tmp", env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _finish(proc, tree: Path, path: Path, timeout: float | None, load0: float) -> dict:
     try:
-        out = subprocess.run([sys.executable, "-c", WORKER, mode, str(path)], cwd="/tmp", env=env, capture_output=True,
-                             text=True, timeout=timeout)
+        out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
         return {"timeout": timeout, "load": [load0, os.getloadavg()[0]]}
-    if out.returncode != 0:
-        raise SystemExit(f"detect failed in {tree} on {path}:\n{out.stderr[-2000:]}")
-    r = json.loads(out.stdout.strip().splitlines()[-1])
+    if proc.returncode != 0:
+        raise SystemExit(f"detect failed in {tree} on {path}:\n{err[-2000:]}")
+    r = json.loads(out.strip().splitlines()[-1])
     r["load"] = [load0, os.getloadavg()[0]]
     return r
+
+
+def run_case(tree: Path, mode: str, path: Path, timeout: float | None) -> dict:
+    load0 = os.getloadavg()[0]
+    return _finish(_start(tree, mode, path), tree, path, timeout, load0)
+
+
+def run_pair(order, timeout_of) -> dict:
+    """Both trees at once (``--parallel``): on a shared machine whose load changes by the minute,
+    the two calls then see the same load, and the CPU times compare what each computes."""
+    load0 = os.getloadavg()[0]
+    procs = [(who, tree, inp, _start(tree, *inp)) for who, tree, inp in order]
+    return {who: _finish(p, tree, inp[1], timeout_of(who), load0) for who, tree, inp, p in procs}
 
 
 def write_cases(tmp: Path, only: list) -> dict:
@@ -212,6 +233,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default=",".join(DEFAULT_WORKLOADS), help="comma-separated workloads (default mimu_exp1)")
     ap.add_argument("--timeout", type=float, default=300.0, help=f"seconds per {BASE_COMMIT} call (default 300)")
     ap.add_argument("--full", action="store_true", help=f"no timeout for {BASE_COMMIT}")
+    ap.add_argument("--parallel", action="store_true", help="run the two trees at the same time (a loaded machine)")
     ap.add_argument("--md", type=Path, default=None, help="also write the printed lines to this markdown file")
     ap.add_argument("--profile", choices=WORKLOADS, default=None, help="profile our detect on one workload instead")
     args = ap.parse_args(argv)
@@ -239,7 +261,10 @@ def main(argv=None) -> int:
             order = [("ours", REPO, ours_in), ("base", base, base_in)]
             if i % 2:
                 order.reverse()
-            r = {who: run_case(tree, *inp, timeout=None if who == "ours" else timeout) for who, tree, inp in order}
+            if args.parallel:
+                r = run_pair(order, lambda who: None if who == "ours" else timeout)
+            else:
+                r = {who: run_case(tree, *inp, timeout=None if who == "ours" else timeout) for who, tree, inp in order}
             print(f"{wl} ({desc}):\n  ours:    {_fmt(r['ours'])}\n  {BASE_COMMIT}: {_fmt(r['base'])}", flush=True)
             xo, rb = r["ours"]["seconds"], r["base"]
             if "timeout" in rb:
