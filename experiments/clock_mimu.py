@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT.parent))
 def run(i: int, data: Path) -> dict:
     from accel_bayes.data.outputs import to_jsonable, write_json
     from accel_bayes.mismatch.clock import clock_stage
-    from accel_bayes.mismatch.detect import candidate_effects, threshold_rule
+    from accel_bayes.mismatch.screens import candidate_effects, threshold_rule
     from accel_bayes.mismatch.fit import baseline_fit
     from accel_bayes.mismatch.gyro_linear import gyro_linear_stage
     from accel_bayes.mismatch.prepared import prepare

@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT.parent))
 def clock_only(rec) -> dict:
     """The detector's steps up to the clock stage on ``rec``: {"accepted", "best_evidence", "imus"}."""
     from accel_bayes.mismatch.clock import clock_stage
-    from accel_bayes.mismatch.detect import candidate_effects, threshold_rule
+    from accel_bayes.mismatch.screens import candidate_effects, threshold_rule
     from accel_bayes.mismatch.fit import baseline_fit
     from accel_bayes.mismatch.gyro_linear import gyro_linear_stage
     from accel_bayes.mismatch.prepared import prepare

@@ -11,7 +11,6 @@ clean report would be unfounded).
 """
 from __future__ import annotations
 
-from ..errors import UserError
 from . import _options as opt
 
 
@@ -22,7 +21,7 @@ def register(subparsers) -> None:
         "mismatch",
         help="find where the model and a recording disagree, name the missing physics, refit",
         description="Fit the nominal array model, locate residual excess (IMU, axis, motion regime), test every "
-        "candidate effect of vocabulary v1.1 (DESIGN §7.2; --effects names a subset, an unknown name is refused with the list) by "
+        "candidate effect of vocabulary v1.2 (DESIGN §7.2; --effects names a subset, an unknown name is refused with the list) by "
         "its likelihood-ratio evidence against a Bonferroni threshold, add the supported ones, refit and compare. Writes DIR/report.json "
         "(accel_bayes.mismatch/1) and DIR/report.md with figures.",
     )
@@ -33,7 +32,7 @@ def register(subparsers) -> None:
     p.add_argument("--alpha", type=opt.fraction(lo_open=True), default=0.01,
                    help="family-wise error rate of the Bonferroni-corrected threshold (default 0.01)")
     p.add_argument("--effects", default=None, metavar="A,B,...",
-                   help="comma-separated effect names to try (default: all of vocabulary v1.1)")
+                   help="comma-separated effect names to try (default: all of vocabulary v1.2)")
     p.add_argument("--max-findings", type=opt.count(0), default=3, help="most effects added to the model (default 3)")
     p.add_argument("--no-refine", action="store_true", help="skip the refined-model comparison (refined = null)")
     p.add_argument("--posterior", action="store_true",
@@ -46,22 +45,23 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    effects = None
-    if args.effects is not None:
-        effects = [e.strip() for e in args.effects.split(",") if e.strip()]
-        if not effects:
-            raise UserError("--effects: expected a comma-separated list of effect names")
     from ..data.outputs import OutputDir
     from ..data.paths import require_file
+    from ..mismatch.options import DetectOptions
 
-    require_file(args.recording, "recording file")  # input and target before torch is imported
+    # the options, the input and the target are checked before torch is imported
+    options = DetectOptions.from_args(args)
+    require_file(args.recording, "recording file")
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=(args.recording,)).open()
     from ..mismatch import detect
-    from ..pipelines.calibrate import calibrate
 
-    report = detect(args.recording, effects=effects, alpha=args.alpha, max_findings=args.max_findings,
-                    refine=not args.no_refine, posterior=calibrate if args.posterior else False, seed=args.seed, progress=args.progress,
-                    n_twins=args.twins)
+    if args.posterior:
+        import dataclasses
+
+        from ..pipelines.calibrate import calibrate
+
+        options = dataclasses.replace(options, posterior=calibrate)
+    report = detect(args.recording, options)
     paths = report.write(out.staging, figures=not args.no_figures)
     out.commit()
     d = report.to_dict()

@@ -14,6 +14,10 @@ from pathlib import Path
 
 from ..errors import UserError
 from ..physics.effects import EXTENSIONS, VOCABULARY
+
+#: vocabulary-1.2 names the detector fits as terms beside the model, not as effects-library classes
+#: (``unresolved_motion``: accel_bayes.mismatch.unresolved_stage)
+TERMS = ("unresolved_motion",)
 from .outputs import write_text
 
 __all__ = ["SCHEMA", "validate_report", "read_report", "report_json", "write_report_json"]
@@ -78,8 +82,8 @@ def validate_report(doc: dict) -> None:
     for f in doc["findings"]:
         for k in ("effect", "imu", "axis", "evidence", "parameters", "where", "explanation"):
             need(k in f, f"finding missing key {k!r}")
-        need(f["effect"] in VOCABULARY + EXTENSIONS,
-             f"unknown effect {f['effect']!r}; expected one of {VOCABULARY + EXTENSIONS}")
+        need(f["effect"] in VOCABULARY + EXTENSIONS + TERMS,
+             f"unknown effect {f['effect']!r}; expected one of {VOCABULARY + EXTENSIONS + TERMS}")
         need(f["imu"] is None or isinstance(f["imu"], int), "finding imu must be an int label or null")
         need(f["axis"] in (None, "x", "y", "z"), "finding axis must be x, y, z or null")
         need(isinstance(f["where"], dict) and "regime" in f["where"] and "time_s" in f["where"],

@@ -4,7 +4,9 @@ with the nominal array model, name the physics the model left out, add it, refit
 * :mod:`accel_bayes.physics.effects` — the effects library (one class per physical effect,
   vocabulary v1.1), re-exported here;
 * :mod:`.locate` — standardized residuals, excess per IMU/axis/regime, posterior predictive check;
-* :mod:`.detect` — :func:`detect`, the public entry point (screen → refit → rank → threshold);
+* :mod:`.detector` — :func:`detect`, the public entry point (stages → screen → refit → rank →
+  threshold), its options record :class:`~.options.DetectOptions` (:mod:`.options`, torch-free), the
+  screens (:mod:`.screens`) and the choice rules (:mod:`.choose`);
 * :mod:`.prepared` — the recording prepared as the calibration prepares it (intrinsics, THE
   sample selection), in the fits' form;
 * :mod:`.model` — the augmented model and its linear algebra; :mod:`.fit` — fitting it jointly
@@ -20,22 +22,41 @@ with the nominal array model, name the physics the model left out, add it, refit
 
 >>> from accel_bayes.mismatch import detect          # doctest: +SKIP
 >>> report = detect("rec.nc"); report.write("out")   # doctest: +SKIP
+
+Importing this package imports no numerical library: the public names below are loaded on first use
+(PEP 562), so that ``accel-bayes mismatch`` checks its :class:`DetectOptions` before torch is paid for.
 """
-from ..physics.effects import EFFECTS, VOCABULARY, Effect, SignalContext, get_effect, make_effect, register_effect
-from .detect import candidate_effects, detect, screen, threshold_rule
-from .locate import Location, locate
-from .compare import compare_fits
-from .fit import baseline_fit, fit_model
-from .jitter import jitter_evidence, random_variance
-from .model import ModelFit
-from .prepared import Prepared, prepare
-from ..data.mismatch_report import SCHEMA, validate_report
-from .report import Finding, MismatchReport
+# public name -> the module that defines it, imported on first access
+_LAZY = {
+    **{n: "..physics.effects" for n in ("EFFECTS", "VOCABULARY", "Effect", "SignalContext", "get_effect", "make_effect",
+                                        "register_effect")},
+    "detect": ".detector", "DetectOptions": ".options",
+    **{n: ".screens" for n in ("candidate_effects", "screen", "threshold_rule")},
+    # not ``locate``: the submodule of that name, once imported, would shadow it on the package
+    "Location": ".locate", "compare_fits": ".compare", "baseline_fit": ".fit", "fit_model": ".fit",
+    "jitter_evidence": ".jitter", "random_variance": ".jitter", "ModelFit": ".model", "Prepared": ".prepared",
+    "prepare": ".prepared", "SCHEMA": "..data.mismatch_report", "validate_report": "..data.mismatch_report",
+    "Finding": ".report", "MismatchReport": ".report",
+}
 
 __all__ = [
-    "detect", "MismatchReport", "Finding", "SCHEMA", "validate_report",
+    "detect", "DetectOptions", "MismatchReport", "Finding", "SCHEMA", "validate_report",
     "EFFECTS", "VOCABULARY", "Effect", "SignalContext", "get_effect", "make_effect", "register_effect",
-    "candidate_effects", "screen", "threshold_rule", "locate", "Location",
+    "candidate_effects", "screen", "threshold_rule", "Location",
     "prepare", "Prepared", "baseline_fit", "fit_model", "compare_fits", "ModelFit",
     "jitter_evidence", "random_variance",
 ]
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

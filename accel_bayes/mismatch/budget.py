@@ -28,7 +28,10 @@ units² ((m/s²)² or (rad/s)²).
   - any other effect in the refined model that defines ``predicted_variance(params, ctx)``
     returning (acc_var, gyro_var), each (T, K, 3) in units² on top of the stated noise (the hook
     for random effects such as ``sampling_jitter``; ``ctx`` is the refined fit's
-    :class:`~accel_bayes.physics.effects.SignalContext`, which carries the output rates).
+    :class:`~accel_bayes.physics.effects.SignalContext`, which carries the output rates);
+  - the terms fitted beside the refined model and held out of its mean fit (``extra``: the
+    detector's ``unresolved_motion``, :mod:`accel_bayes.mismatch.unresolved_stage`), through the
+    same hook.
 
   A refined model that explains the misfit has b ≈ a in every row, not only in ``"all"``.  With
   no refined model (clean recording), b = 0.
@@ -75,13 +78,13 @@ def leverage_corrected_sq(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, 
     return (fit.res_acc ** 2 / one_minus[:, 0] * prep.m_acc, fit.res_gyro ** 2 / one_minus[:, 1] * prep.m_gyro)
 
 
-def predicted_extra_variance(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
+def predicted_extra_variance(prep: Prepared, fit: ModelFit, extra=()) -> tuple[torch.Tensor, torch.Tensor]:
     """(acc, gyro) (T, K, 3) the variance ``fit``'s model adds to the stated noise, units²: the
     noise factors' (c² − 1) σ² plus every effect's ``predicted_variance(params, ctx)`` where it
-    has one (module docstring); 0 where unobserved."""
+    has one, ``fit``'s effects and the terms ``extra`` (module docstring); 0 where unobserved."""
     va = ((fit.acc_factor ** 2 - 1) * prep.sigma_acc ** 2)[None, :, None].expand(prep.T, prep.K, 3).clone()
     vg = ((fit.gyro_factor ** 2 - 1) * prep.sigma_gyro ** 2)[None, :, None].expand(prep.T, prep.K, 3).clone()
-    for e in fit.effects:
+    for e in list(fit.effects) + list(extra):
         fn = getattr(e, "predicted_variance", None)
         if fn is not None:
             a, g = fn(None, fit.ctx)
@@ -89,15 +92,19 @@ def predicted_extra_variance(prep: Prepared, fit: ModelFit) -> tuple[torch.Tenso
     return va * prep.m_acc, vg * prep.m_gyro
 
 
-def residual_budget(prep: Prepared, baseline: ModelFit, refined: ModelFit | None = None) -> list[dict]:
+def residual_budget(prep: Prepared, baseline: ModelFit, refined: ModelFit | None = None, *, extra=(),
+                    predicted=None) -> list[dict]:
     """The budget rows of the module docstring for ``baseline`` and ``refined`` (None: b = 0),
-    sensors acc then gyro, regimes in :func:`budget_regimes` order.  Sensors without any
-    observed output are left out."""
+    sensors acc then gyro, regimes in :func:`budget_regimes` order; ``extra``: terms fitted beside
+    ``refined`` whose predicted variance is part of b; ``predicted``: (acc, gyro) (T, K, 3) units²
+    to use instead of :func:`predicted_extra_variance` (e.g. with random-effect scales taken from
+    another recording).  Sensors without any observed output are left out."""
     regs = budget_regimes(baseline)
     base_sq = leverage_corrected_sq(prep, baseline)
     if refined is not None:
         ref_sq = leverage_corrected_sq(prep, refined)
-        extra = predicted_extra_variance(prep, refined)
+        pred = predicted_extra_variance(prep, refined, extra) if predicted is None else \
+            (predicted[0] * prep.m_acc, predicted[1] * prep.m_gyro)
     rows = []
     for j, sensor in enumerate(("acc", "gyro")):
         mask = prep.m_acc if sensor == "acc" else prep.m_gyro
@@ -105,7 +112,7 @@ def residual_budget(prep: Prepared, baseline: ModelFit, refined: ModelFit | None
         # per time sample: (observed count, Σ r̃²_base, Σ σ², Σ r̃²_ref, Σ predicted extra)
         per_t = [mask.sum((1, 2)), base_sq[j].sum((1, 2)), sig2.sum((1, 2))]
         if refined is not None:
-            per_t += [ref_sq[j].sum((1, 2)), extra[j].sum((1, 2))]
+            per_t += [ref_sq[j].sum((1, 2)), pred[j].sum((1, 2))]
         per_t = np.stack([v.detach().cpu().numpy() for v in per_t], 1)
         if per_t[:, 0].sum() == 0:
             continue

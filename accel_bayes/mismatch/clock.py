@@ -1,6 +1,6 @@
 """The detector's clock stage: a ``sampling_clock`` (:class:`~accel_bayes.physics.effects.SamplingClock`)
 estimated on every IMU with a gyroscope, compared with the random timing explanations, and held
-fixed in the rounds (:mod:`accel_bayes.mismatch.detect`, step 3b).
+fixed in the rounds (:mod:`accel_bayes.mismatch.detector`, step 3b).
 
 Data.  Per IMU k and sample t the gyro triad's restricted timing statistics of
 :func:`accel_bayes.mismatch.jitter.jitter_ab` (the machinery ``timing_wander`` is fitted on):

@@ -1,4 +1,4 @@
-"""The detector's gyro linear stage (:func:`accel_bayes.mismatch.detect.detect`, step 3a): every
+"""The detector's gyro linear stage (:func:`accel_bayes.mismatch.detect`, step 3a): every
 gyroscope's whole linear error, y_k = (I + M_k) g_k + b_k (sensor frame; g_k the true rate
 R_k ω, M_k 3 × 3 relative, b_k rad/s; :class:`~accel_bayes.physics.effects.GyroLinear`), before
 the rounds that name one effect at a time.

@@ -14,9 +14,11 @@ source's band edges:
   and ``physics+full_cov`` put the term on those models' covariance, ``physics+triad_t`` has the
   mean only (a per-triad scale mixture does not marginalise with a term shared across triads).
 
-The clock's beat and phase per IMU are acquired from each IMU's gyro instant errors
-(:func:`accel_bayes.mismatch.vibration.instant_errors`) by :func:`acquire_clock` — on the
-target's first ``acquire_s`` seconds of kept samples only; the source's on its whole recording.
+The clock's beat, phase and drift per IMU are acquired by the detector's own beat search
+(:func:`accel_bayes.mismatch.clock.estimate_clock`) on each IMU's gyro timing statistics
+(:func:`accel_bayes.mismatch.jitter.jitter_ab`, kept in :class:`Residuals`) — on the target's
+first ``acquire_s`` seconds of kept samples only; the source's on its whole recording
+(:func:`clocks_of`).
 Every scale (white variances, degrees of freedom, covariances, unresolved scales, the mean's c)
 comes from the source.  Uncertainty: a moving-block bootstrap over the scored samples
 (:func:`block_bootstrap_se`).
@@ -31,11 +33,12 @@ import torch
 
 from ..physics.effects import clock_age as sawtooth_age
 from .budget import band_edges
+from .clock import estimate_clock
 from .generic import BandedWhite, FullCov, SampleT, TriadT, describe
 from .vibration import array_residuals, instant_errors
 
-__all__ = ["Residuals", "residuals_of", "acquire_clock", "clock_age", "centred", "fit_source", "score",
-           "block_bootstrap_se", "GENERIC", "PHYSICS"]
+__all__ = ["Residuals", "residuals_of", "clocks_of", "clock_age", "centred", "fit_source", "score",
+           "block_bootstrap_se", "acquired_age", "GENERIC", "PHYSICS"]
 
 GENERIC = ("white", "triad_t", "sample_t", "full_cov")
 PHYSICS = ("physics", "physics+triad_t", "physics+sample_t", "physics+full_cov")
@@ -47,7 +50,9 @@ class Residuals:
     """One recording's held-out inputs (torch float64): ``time`` (T,) s; ``omega`` (T,) |ω| of the
     fitted motion rad/s; per sensor ``y[s]`` (T, K, 3) array-frame residuals, ``rate[s]`` (T, K, 3)
     the fitted outputs' rates in the array frame (units/s), ``ok[s]`` (T,) all triads observed;
-    ``delta`` (T, K) s the gyro instant errors and ``delta_ok`` (T, K)."""
+    ``delta`` (T, K) s the gyro instant errors and ``delta_ok`` (T, K); ``timing_a`` (T, K) s⁻² and
+    ``timing_b`` (T, K) s⁻¹ each IMU's gyro timing statistics (:func:`~accel_bayes.mismatch.jitter.jitter_ab`,
+    0 where it has no gyro), which the clock acquisition reads."""
 
     time: torch.Tensor
     omega: torch.Tensor
@@ -57,6 +62,8 @@ class Residuals:
     delta: torch.Tensor
     delta_ok: torch.Tensor
     f_read: float
+    timing_a: torch.Tensor | None = None
+    timing_b: torch.Tensor | None = None
 
 
 def residuals_of(prep, fit) -> Residuals:
@@ -70,11 +77,17 @@ def residuals_of(prep, fit) -> Residuals:
         y[s], okk = array_residuals(prep, fit, s)
         ok[s] = okk.all(1)
         rate[s] = torch.einsum("kji,tkj->tki", R, r.to(torch.float64))
+    from .jitter import jitter_ab
+
     delta, dok = instant_errors(prep, fit)
     t = prep.time.to(torch.float64)
     f_read = float(1.0 / np.median(np.diff(t.numpy())))
+    ta = torch.zeros(prep.T, prep.K, dtype=torch.float64)
+    tb = torch.zeros_like(ta)
+    for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
+        ta[:, k], tb[:, k] = jitter_ab(prep, fit, k, "gyro")
     return Residuals(t, torch.linalg.norm(fit.x[:, 0:3].detach(), dim=1).to(torch.float64), y, rate, ok,
-                     delta, dok, f_read)
+                     delta, dok, f_read, ta, tb)
 
 
 def clock_age(t, beat, phase, f_int=F_INT_NOMINAL) -> torch.Tensor:
@@ -92,60 +105,31 @@ def centred(age: torch.Tensor) -> torch.Tensor:
     return age - age.mean(1, keepdim=True)
 
 
-def _saw_fit(t, x, f):
-    """Least-squares fit of x ≈ c − A·frac(f t + φ) over a phase grid (A ≥ 0): (sse, φ, A)."""
-    best = (math.inf, 0.0, 0.0)
-    for phi in np.linspace(0, 1, 64, endpoint=False):
-        s = np.remainder(f * t + phi, 1.0)
-        s = s - s.mean()
-        den = float(s @ s)
-        if den <= 0:
-            continue
-        A = -float(s @ x) / den
-        if A < 0:
-            continue
-        sse = float(((x + A * s) ** 2).sum())
-        if sse < best[0]:
-            best = (sse, float(phi), A)
-    return best
-
-
-def acquire_clock(res: Residuals, window=None, *, pad: int = 4):
-    """Beat frequency (K,) Hz in (−f_read/2, f_read/2] and phase (K,) cycles of each IMU's data
-    age from its gyro instant errors δ ≈ c − age (the reading is the sample of age s before).
-    The peak of δ's periodogram over (0, f_read/2) — an FFT on the read grid (samples not kept
-    are zeros), zero-padded ``pad``× — refined by a direct transform on a 20× finer grid around
-    it; then the sign (which way the sawtooth ramps) and the phase from a sawtooth least-squares
-    fit.  ``window`` (T,) bool: the samples used (default all).  A stand-in for the
-    ``sampling_clock`` effect's own acquisition (issue #27 item 2)."""
+def clocks_of(res: Residuals, window=None) -> dict:
+    """Each IMU's clock from the detector's beat search (:func:`accel_bayes.mismatch.clock.estimate_clock`)
+    on its gyro timing statistics over the samples ``window`` (T,) bool (default all): {"beat_hz",
+    "phase" (cycles at t = 0 of the recording's clock), "drift_hz_per_s", "width_s"}, each (K,) numpy;
+    zeros on an IMU without gyro statistics or with fewer than 20 samples in the window."""
     t_all = res.time.numpy()
     window = np.ones(len(t_all), bool) if window is None else np.asarray(window, bool)
-    K = res.delta.shape[1]
-    beat, phase = np.zeros(K), np.zeros(K)
+    K = res.timing_a.shape[1]
+    out = {k: np.zeros(K) for k in ("beat_hz", "phase", "drift_hz_per_s", "width_s")}
     for k in range(K):
-        sel = window & res.delta_ok[:, k].numpy()
-        t = t_all[sel] - t_all[0]
-        x = res.delta[sel, k].numpy()
-        x = x - x.mean()
-        if len(t) < 20:
+        a, b = res.timing_a[window, k].numpy(), res.timing_b[window, k].numpy()
+        if int((a > 0).sum()) < 20:
             continue
-        n = np.round((t - t[0]) * res.f_read).astype(int)
-        N = 1 << int(np.ceil(np.log2(pad * (n[-1] + 1))))
-        grid = np.zeros(N)
-        np.add.at(grid, n, x)
-        P = np.abs(np.fft.rfft(grid))
-        f_axis = np.fft.rfftfreq(N, 1.0 / res.f_read)
-        P[(f_axis <= 0) | (f_axis >= res.f_read / 2)] = 0
-        f0 = f_axis[np.argmax(P)]
-        h = f_axis[1]
-        fine = f0 + np.linspace(-h, h, 41)
-        f0 = fine[np.argmax(np.abs(np.exp(-2j * np.pi * np.outer(fine, t)) @ x))]
-        fits = [(_saw_fit(t, x, sgn * f0), sgn * f0) for sgn in (1.0, -1.0)]
-        (sse, phi, _), f = min(fits, key=lambda z: z[0][0])
-        beat[k] = f
-        # the phase refers to time 0 of the recording's clock, not to the window's start
-        phase[k] = (phi - f * t_all[0]) % 1.0
-    return beat, phase
+        est = estimate_clock(t_all[window], a, b, res.f_read)
+        for key in out:
+            out[key][k] = est[key]
+    return out
+
+
+def acquired_age(res: Residuals, clock: dict, f_int=F_INT_NOMINAL) -> torch.Tensor:
+    """(T, K) data age (s) at ``res``'s times of the clocks :func:`clocks_of` gave, each a
+    sawtooth of span 1/f_int (the age's mean and width are taken up by the fitted coefficient c)."""
+    t = torch.as_tensor(res.time, dtype=torch.float64)[:, None]
+    c = {k: torch.as_tensor(v, dtype=torch.float64)[None, :] for k, v in clock.items()}
+    return sawtooth_age(t, c["beat_hz"], c["phase"], c["drift_hz_per_s"], 1.0 / f_int)
 
 
 def _mean_coeff(y, rate, d, ok) -> float:

@@ -18,7 +18,7 @@ a_t and b_t, formed as the *restricted* (REML) likelihood of the residuals, exac
   rate was large — and a clean simulation gave acc timing evidences of 9–14 (median) instead of
   ≈ 0, the false alarms of ``experiments/mismatch_proof.md``'s re-check.)  The white-noise
   factor's residual power Σ r²/(1 − h) is leverage-corrected (REML-like, as ``noise_level``'s
-  :func:`accel_bayes.mismatch.detect.noise_evidence`).
+  :func:`accel_bayes.mismatch.screens.noise_evidence`).
 
 Evidence = 2·(max_w Σ_t gain_t(w) − 0): the likelihood ratio against w = 0, a hypothesis on the
 boundary of the parameter space (w ≥ 0), so under the null it is distributed as the 50:50

@@ -58,6 +58,9 @@ class Finding:
     screen_statistic: float | None = None
     orientations: object = field(default=None, repr=False)
     extra: dict = field(default_factory=dict)
+    #: values the detector reports in place of the model's own (a parameter the data do not
+    #: identify is null here while the model keeps its neutral value)
+    parameters_reported: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.model = self.effect
@@ -76,9 +79,8 @@ class Finding:
         m = self.model
         if m.name == "triad_orientation":
             return m.report_parameters(orientations=self.orientations)
-        if hasattr(m, "vocabulary_parameters"):
-            return m.vocabulary_parameters()
-        return m.report_parameters()
+        p = m.vocabulary_parameters() if hasattr(m, "vocabulary_parameters") else m.report_parameters()
+        return {**p, **self.parameters_reported}
 
     def to_dict(self) -> dict:
         d = {"effect": self.effect, "imu": self.imu, "axis": self.axis, "evidence": float(self.evidence),
@@ -132,6 +134,7 @@ class MismatchReport:
     gyro_linear: dict | None = None  # the detector's gyro linear stage (step 3a): tests, blocks kept
     fixed_effects: list = field(default_factory=list)  # its blocks: in the refined model, not in refined_fit.effects
     clock: dict | None = None  # the detector's clock stage (step 3b): every IMU's beat search, the clocks kept
+    unresolved: dict | None = None  # the detector's unresolved-motion stage (step 7a): tests, scales, the sensors kept
 
     # ---------------------------------------------------------------- contract blocks
     @property
@@ -151,7 +154,9 @@ class MismatchReport:
         r = self.refined_fit
         noise = r.has_noise_effect
         allfx = list(self.fixed_effects) + list(r.effects)
-        d = {"effects": [e.vocabulary_name or e.name for e in allfx], "loglik": float(r.loglik),
+        # unresolved_motion is marginalised beside the mean fit: its log-likelihood gain joins the refit's
+        gain = float((self.unresolved or {}).get("loglik_gain", 0.0))
+        d = {"effects": [e.vocabulary_name or e.name for e in allfx], "loglik": float(r.loglik) + gain,
              "chi2_per_dof": float(r.chi2_per_dof_model if noise else r.chi2_per_dof),
              "chi2_noise": ("refined (the model's own per-sample variance: "
                             + ", ".join(sorted({e.name for e in r.effects if e.kind in ("noise", "random")})) + ")")
@@ -159,6 +164,8 @@ class MismatchReport:
              "chi2_per_dof_stated": float(r.chi2_per_dof), "chi2_per_dof_stated_noise": float(r.chi2_per_dof),
              "dof": int(r.dof),
              "labels": [e.label() for e in allfx]}
+        if gain:
+            d["loglik_unresolved_motion_gain"] = gain
         if self.comparison and "elpd_loo" in self.comparison and "difference" in self.comparison["elpd_loo"]:
             e = self.comparison["elpd_loo"]
             d["elpd_loo"] = e["after"]["elpd_loo"]
@@ -197,6 +204,7 @@ class MismatchReport:
             "posterior": self.posterior,
             "gyro_linear_stage": self.gyro_linear,
             "clock_stage": self.clock,
+            "unresolved_stage": self.unresolved,
             "rounds": self.rounds,
             "withdrawn": self.withdrawn,
             "screen_top_last_round": self.screens,

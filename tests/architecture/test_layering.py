@@ -41,8 +41,7 @@ ALLOWED_LARGE: dict = {}
 REASON_PHRASE = "over 600 lines"
 # Over MAX_LINES when issue #26's layering work ended, owned by other developers that session.
 OVERSIZE_TODAY = {
-    "diagnostics.py",
-    "mismatch/detect.py", "data/mimu.py", "data/validation.py", "data/outputs.py", "physics/motion.py",
+    "diagnostics.py", "data/mimu.py", "data/validation.py", "data/outputs.py", "physics/motion.py",
 }
 
 

@@ -164,7 +164,7 @@ def test_gyro_delay_is_a_first_order_lowpass():
 
 
 def test_noise_level_refused_for_a_structured_excess():
-    from accel_bayes.mismatch.detect import HETEROSCEDASTIC_RATIO, _heteroscedastic
+    from accel_bayes.mismatch.choose import HETEROSCEDASTIC_RATIO, heteroscedastic as _heteroscedastic
     from accel_bayes.physics.effects import make_effect
 
     def char(q, log10_p):

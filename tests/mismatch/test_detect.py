@@ -14,7 +14,7 @@ from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.cli import main
 from accel_bayes.data.io import write_recording
 from accel_bayes.mismatch import SCHEMA, detect, make_effect, validate_report
-from accel_bayes.mismatch.detect import candidate_effects, noise_evidence, screen
+from accel_bayes.mismatch.screens import candidate_effects, noise_evidence, screen
 from accel_bayes.mismatch import Prepared, baseline_fit, fit_model, prepare
 from accel_bayes.simulate import simulate
 
@@ -212,7 +212,7 @@ def test_log_tail_probability_is_finite_and_accurate():
     evidences would tie).  The asymptotic branch must agree with SciPy where both work."""
     from scipy.stats import chi2
 
-    from accel_bayes.mismatch.detect import _log10_sf
+    from accel_bayes.mismatch.locate import log10_chi2_sf as _log10_sf
 
     for df in (1, 3, 20):
         for x in (600.0, 900.0, 1200.0):
@@ -263,7 +263,7 @@ def test_heldout_fit_with_fixed_effects(gyro_case, clean_rec):
 def test_regressor_on_one_imu_context_equals_full_context(gyro_case):
     """The score test's regressors are computed on a one-IMU sub-context (IMU-separability);
     check against differencing the full-context perturbation for one candidate of every class."""
-    from accel_bayes.mismatch.detect import _regressor
+    from accel_bayes.mismatch.screens import _regressor
 
     prep, base = gyro_case
     ctx = base.ctx
@@ -362,7 +362,7 @@ def test_excess_cells_rank_by_evidence_when_p_values_underflow(clean_rec):
 def test_alternatives_are_the_candidates_with_akaike_weight_above_five_percent():
     """alternatives(): relative likelihood exp(((e_alt − 2 df_alt) − (e_best − 2 df_best)) / 2)
     computed by hand for three rivals of a 1-df finding with robust evidence 100."""
-    from accel_bayes.mismatch.detect import ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD, alternatives
+    from accel_bayes.mismatch.choose import ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD, alternatives
 
     def res(name, axis, ev, **kw):
         return {"effect": make_effect(name, imu=2, axis=axis, **kw), "evidence": ev + 1.0, "evidence_robust": ev}

@@ -100,7 +100,7 @@ def test_noise_level_refits_only_in_rounds_without_an_acceptable_mean_effect():
 def test_detect_runs_with_one_thread_and_restores_the_count(monkeypatch):
     import importlib
 
-    det = importlib.import_module("accel_bayes.mismatch.detect")  # the module (the package exports the function)
+    det = importlib.import_module("accel_bayes.mismatch.detector")  # the driver module
 
     seen = []
 

@@ -1,4 +1,4 @@
-"""The stationarity guard of the detector's rounds (accel_bayes.mismatch.detect.stationarity): a
+"""The stationarity guard of the detector's rounds (accel_bayes.mismatch.screens.stationarity): a
 constant-parameter effect whose parameter the data want different in different parts of the
 recording is refused.  Data from the independent generator ``experiments/_conceal.py``."""
 from __future__ import annotations
@@ -10,7 +10,8 @@ from scipy.stats import chi2
 
 from experiments import _conceal as C
 
-from accel_bayes.mismatch.detect import STATIONARITY_SEGMENTS, detect, stationarity  # noqa: E402
+from accel_bayes.mismatch import detect
+from accel_bayes.mismatch.screens import STATIONARITY_SEGMENTS, stationarity  # noqa: E402
 from accel_bayes.mismatch.fit import baseline_fit, fit_model  # noqa: E402
 from accel_bayes.mismatch.prepared import prepare  # noqa: E402
 from accel_bayes.physics.effects import make_effect  # noqa: E402

@@ -92,7 +92,7 @@ identifiable, and therefore never a candidate: the same array-frame acceleromete
 IMU (absorbed by s), the same time offset on every IMU (a shift of the time axis), the same
 rotation of every IMU (a rotation of the array frame), and gyro effects with a single gyroscope
 triad beyond what the accelerometers constrain (the score test in
-:mod:`accel_bayes.mismatch.detect` drops candidates whose efficient information is singular).
+:mod:`accel_bayes.mismatch.detector` drops candidates whose efficient information is singular).
 
 Layout (one module per sensor): :mod:`.base` (context, parameters, the :class:`Effect` base
 class, registry, composition), :mod:`.accelerometer`, :mod:`.mounting`, :mod:`.gyroscope`,

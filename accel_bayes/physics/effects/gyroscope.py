@@ -179,7 +179,7 @@ class GyroLinear(Effect):
     term per round leaves the other eleven in the residual, where a random timing effect
     explains them better (experiments/mismatch_multi.md: 1/21 cases named right while they were
     there).  The detector tests these blocks in a stage of their own, before its rounds
-    (:mod:`accel_bayes.mismatch.detect`, step 3a); they are not round candidates
+    (:mod:`accel_bayes.mismatch.detector`, step 3a); they are not round candidates
     (``screened = False``).
 
     Reported under the vocabulary name ``gyro_scale`` (DESIGN §7.2: "gyroscope scale-factor /
