@@ -17,7 +17,7 @@ from ..lm import ChainResidual, GlobalResidual, LevenbergMarquardt, Problem, Var
 from ..lm.linear import NotPositiveDefinite
 from .initial import align_gyros, interp_rows
 from .model import (process_matrices, bucket_samples, measurement_jacobian, measurement_residual,
-                    process_jacobian, process_residual)
+                    process_jacobian, process_residual, stamp_jitter_std, timing_noise_directions)
 
 __all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes"]
 
@@ -43,6 +43,8 @@ class RigSettings:
         square (errors in variables): on concealed rigs it made the clock std 25–40 % too small;
         the exact Hessian's local–global cross terms remove that (about as long as the fit itself).
     lever_prior_std : m, std of the (effectively flat) lever-arm prior about the nominal positions.
+    stamp_jitter : model each IMU's stamping error as per-sample timing noise, its std estimated from
+        the stamps (:func:`~.model.stamp_jitter_std`; only where the IMUs carry their own stamps).
     prior_scale : multiplies the white-jerk intensities q_c estimated from the reference (> 1: weaker).
     ftol : LM's relative cost-change stop (1e-8 of a cost of order the number of residuals is far
         below the 0.5 that a 1-std move of one parameter makes).
@@ -56,6 +58,8 @@ class RigSettings:
     prior_scale: float = 1.0
     hessian: str = "exact"
     lever_prior_std: float = 1.0
+    stamp_jitter_std: np.ndarray = None
+    stamp_jitter: bool = True
 
 
 @dataclass
@@ -65,7 +69,8 @@ class RigResult:
     orientation (K, 4) quaternions (DESIGN §7.0); orientation_cov (K, 3, 3) rad², sensor frame;
     position (K, 3) m, array frame, relative to the reference; position_cov (K, 3, 3) m²;
     time_offset, time_offset_std (K,) s; clock_drift, clock_drift_std (K,) (NaN where the IMU has no
-    own stamps); gyro_bias, acc_bias (K, 3); own_stamps (K,) bool; unidentified: list of
+    own stamps); gyro_bias, acc_bias (K, 3); own_stamps (K,) bool; stamp_jitter_std (K,) s (0 where
+    not modelled); unidentified: list of
     (imu label, parameter name) pairs; warnings: one line each; converged, reason, n_iter,
     chi2_per_dof, seconds.
     """
@@ -92,6 +97,7 @@ class RigResult:
     info_eigs: np.ndarray = field(default=None, repr=False)
     hessian: str = "exact"
     lever_prior_std: float = 1.0
+    stamp_jitter_std: np.ndarray = None
 
 
 def rig_samples(rec, ref: int):
@@ -225,6 +231,11 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         priors.append(GlobalResidual(lambda g: (boxminus(g["q"][sel], qn_t[sel]) / sig_q).reshape(-1),
                                      name="orientation_prior"))
 
+    # stamping errors are timing noise of each sample; a shared stamp column (one clock) moves
+    # every IMU alike and is left out (see the package docstring)
+    sep = bool(own_lab.any()) and settings.stamp_jitter
+    sig_j = np.array([stamp_jitter_std(s["ds"]) if sep else 0.0 for s in smp])
+
     x = tt(x0)
     log_all, res = [], None
     o_used = d_used = None
@@ -238,6 +249,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                 break
         o_used, d_used = o_full, d_full
         data = bucket_samples(smp, o_full, d_full, lo, h, n_knots)
+        if sig_j.any():  # the weights of this pass, from its starting motion and clocks
+            data.u = timing_noise_directions(values, x[:-1], x[1:], data, R0t, sig_j)
         meas = ChainResidual(lambda g, xp, xn, dd: measurement_residual(g, xp, xn, dd, R0t), data=data,
                              jac=lambda g, xp, xn, dd: measurement_jacobian(g, xp, xn, dd, R0t), name="rig")
         proc = ChainResidual(lambda g, xp, xn, dd: process_residual(xp, xn, dd), data=AB,
@@ -308,7 +321,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
 
     ori = np.zeros((K, 4)); ori_cov = np.zeros((K, 3, 3)); pos = np.zeros((K, 3)); pos_cov = np.zeros((K, 3, 3))
     to = np.zeros(K); to_s = np.zeros(K); dr = np.full(K, np.nan); dr_s = np.full(K, np.nan)
-    bgo = np.zeros((K, 3)); bao = np.zeros((K, 3))
+    bgo = np.zeros((K, 3)); bao = np.zeros((K, 3)); sjo = np.zeros(K)
+    sjo[order] = sig_j
     ori[ref] = q_nom[0]
     dr[ref], dr_s[ref] = 0.0, 0.0
     qv = values["q"].numpy()
@@ -335,7 +349,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                      time_offset=to, time_offset_std=to_s, clock_drift=dr, clock_drift_std=dr_s, gyro_bias=bgo,
                      acc_bias=bao, own_stamps=own_lab, unidentified=sorted(unident), warnings=warnings,
                      converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
-                     seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used)
+                     seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used,
+                     stamp_jitter_std=sjo)
 
 
 def time_elapsed(t_start: float) -> float:
