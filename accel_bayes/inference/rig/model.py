@@ -238,7 +238,8 @@ def stamp_jitter_std(ds: np.ndarray) -> float:
     An IMU ticks regularly on its own crystal (the clock model's constant offset and drift), so
     Δ²s_n = ε_{n+1} − 2ε_n + ε_{n−1} for iid stamping errors ε (a host's latency in stamping): its
     variance is 6σ_j², while a constant rate and slow wander cancel.  Robust (MAD) and restricted to
-    triples without a dropped sample (both steps within 25 % of the median period).  Stamps that
+    triples without a dropped sample (both steps within 25 % of the median period p), which keeps
+    it unbiased for σ_j ≲ p/10 (at σ_j = p/5 it reads about half the jitter).  Stamps that
     are irregular because the samples really were taken irregularly are read as jitter too: that
     only down-weights the fast-moving samples (a conservative std).
     """

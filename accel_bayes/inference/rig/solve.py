@@ -59,6 +59,10 @@ class RigSettings:
     hessian: str = "exact"
     lever_prior_std: float = 1.0
     stamp_jitter_std: np.ndarray = None
+    #: joint posterior covariance of the free parameters (NaN rows where unidentified) and their
+    #: labels (imu label, block name, component) — the cross terms the per-block fields leave out
+    free_cov: np.ndarray = field(default=None, repr=False)
+    free_labels: list = field(default=None, repr=False)
     stamp_jitter: bool = True
 
 
@@ -98,6 +102,10 @@ class RigResult:
     hessian: str = "exact"
     lever_prior_std: float = 1.0
     stamp_jitter_std: np.ndarray = None
+    #: joint posterior covariance of the free parameters (NaN rows where unidentified) and their
+    #: labels (imu label, block name, component) — the cross terms the per-block fields leave out
+    free_cov: np.ndarray = field(default=None, repr=False)
+    free_labels: list = field(default=None, repr=False)
 
 
 def rig_samples(rec, ref: int):
@@ -350,7 +358,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                      acc_bias=bao, own_stamps=own_lab, unidentified=sorted(unident), warnings=warnings,
                      converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
                      seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used,
-                     stamp_jitter_std=sjo)
+                     stamp_jitter_std=sjo, free_cov=cov,
+                     free_labels=[(order[idx[0] + 1], name, idx[1] if len(idx) > 1 else 0) for name, idx in labels])
 
 
 def time_elapsed(t_start: float) -> float:
