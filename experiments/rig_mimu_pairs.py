@@ -4,8 +4,8 @@ item 1 must-show "Real MIMU data") → ``experiments/rig_mimu_pairs.md``.
     PYTHONPATH=. python3 experiments/rig_mimu_pairs.py [--exp exp_1] [--window 30]
 
 The recording is imported as ``accel-bayes import-mimu`` does and cut to the ``--window`` seconds of
-hand motion picked by :func:`experiments.rig_mimu_offsets.window` (most rotation below 15 % of the
-gyro range; the final spin is out of the rig model's reach, see there).  The eight-IMU rig is fitted
+hand motion picked by :func:`window` (most rotation below 15 % of the gyro range; the final spin
+is out of the rig model's reach, see there).  The eight-IMU rig is fitted
 once (``fit_rig``, one clock: offsets only); then every pair (i, j), i < j, as a two-IMU recording
 with i as reference.  Compared: the relative time offset o_j − o_i, whose eight-IMU value and std
 come from the joint posterior covariance.  The pair uses a subset of the eight-IMU data, so
@@ -37,7 +37,36 @@ sys.path.insert(0, str(REPO))
 from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.data.mimu import import_mimu  # noqa: E402
 from accel_bayes.inference.rig import fit_rig  # noqa: E402
-from experiments.rig_mimu_offsets import DATA, window  # noqa: E402
+
+DATA = Path("/work/shared/data/mimu4444-bcd")
+
+
+def window(rec, seconds, range_fraction=0.15):
+    """The ``seconds``-long slice of ``rec`` with the largest mean |ω| (board mean gyro) among those
+    whose gyros stay below ``range_fraction`` of their full scale (15 %: 300 °/s on the MIMU4444,
+    above the hand motion's 150–220 °/s peaks and below the spin's ramp).
+
+    Why the cap: exp_1 ends in a 2-minute spin at |ω| ≈ 30 rad/s that reaches the ±2000 °/s range;
+    there the eight gyros disagree by 0.25–0.3 rad/s RMS after the best 3×3 linear map between
+    them (~60× their white noise; 0.004–0.007 rad/s in the hand-motion windows), which the rig
+    model (no nonlinearity, no clipping) cannot fit: χ²/dof ≈ 2300, and LM's Gauss–Newton steps on
+    such a large-residual problem converge linearly (the 40-step stop of the first version).
+    """
+    w = np.linalg.norm(np.nanmean(rec.gyro, axis=1), axis=-1)
+    n = int(round(seconds * rec.sample_rate))
+    peak = np.nanmax(np.abs(np.asarray(rec.gyro)), axis=(1, 2))
+    too_fast = np.convolve((peak >= range_fraction * float(rec.gyro_range)).astype(float), np.ones(n), "valid") > 0
+    score = np.convolve(w, np.ones(n), "valid")
+    score[too_fast] = -np.inf
+    i0 = int(np.argmax(score))
+    sub = rec.copy()
+    for name in ("time", "acc", "gyro", "acc_clipped", "gyro_clipped", "acc_flagged", "gyro_flagged", "segment",
+                 "imu_time_offset"):
+        v = getattr(sub, name)
+        if v is not None:
+            setattr(sub, name, np.asarray(v)[i0:i0 + n].copy())
+    return sub
+
 
 PER_IMU = ("acc", "gyro", "acc_clipped", "gyro_clipped", "acc_flagged", "gyro_flagged", "imu_time_offset")
 
