@@ -22,6 +22,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import datetime  # noqa: E402
 import itertools  # noqa: E402
+import json  # noqa: E402
 import math  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
@@ -94,47 +95,88 @@ def offset_difference(res, i, j):
     return float(res.time_offset[j] - res.time_offset[i]), math.sqrt(max(float(w @ res.free_cov @ w), 0.0))
 
 
+def _pair_record(sub, i, j):
+    pair = fit_rig(imus(sub, [i, j]))
+    return {"i": i, "j": j, "offset": float(pair.time_offset[1]), "std": float(pair.time_offset_std[1]),
+            "reason": pair.reason, "n_iter": pair.n_iter, "seconds": pair.seconds}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--exp", default="exp_1")
     ap.add_argument("--window", type=float, default=30.0)
+    ap.add_argument("--part", default=None, metavar="WHAT",
+                    help="run one part and write its records to --json: 'full' (the eight-IMU rig) or 'k/n' "
+                         "(every n-th pair from the k-th); then combine with --from-json")
+    ap.add_argument("--json", default=None, help="records of a --part run")
+    ap.add_argument("--from-json", nargs="+", default=None, metavar="JSON", help="write the document from parts")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     t_all = time.time()
     rec = import_mimu(DATA / args.exp / "data.bin.gz")
     sub = window(rec, args.window)
-    full = fit_rig(sub)
-    print(f"eight-IMU rig: {full.reason} after {full.n_iter} steps, {full.seconds:.0f} s, chi2/dof "
-          f"{full.chi2_per_dof:.2f}, {full.hessian}", flush=True)
+    pairs = list(itertools.combinations(range(rec.K), 2))
+    if args.part is not None:
+        if args.part == "full":
+            res = fit_rig(sub)
+            out = {"full": {"time_offset": res.time_offset.tolist(), "reason": res.reason, "n_iter": res.n_iter,
+                            "hessian": res.hessian, "chi2_per_dof": res.chi2_per_dof, "seconds": res.seconds,
+                            "unidentified": [[int(k), n] for k, n in res.unidentified],
+                            "diff": {f"{i}-{j}": offset_difference(res, i, j) for i, j in pairs},
+                            "std0": [offset_difference(res, 0, k)[1] if k else 0.0 for k in range(rec.K)]}}
+        else:
+            k, n = (int(v) for v in args.part.split("/"))
+            out = {"pairs": []}
+            for i, j in pairs[k::n]:
+                out["pairs"].append(_pair_record(sub, i, j))
+                print(out["pairs"][-1], flush=True)
+                outputs.write_json(Path(args.json), out)
+        outputs.write_json(Path(args.json), out)
+        return
+    full, recs = None, []
+    if args.from_json:
+        for f in args.from_json:
+            d = json.loads(Path(f).read_text())
+            full = d.get("full", full)
+            recs += d.get("pairs", [])
+    else:
+        res = fit_rig(sub)
+        full = {"time_offset": res.time_offset.tolist(), "reason": res.reason, "n_iter": res.n_iter,
+                "hessian": res.hessian, "chi2_per_dof": res.chi2_per_dof, "seconds": res.seconds,
+                "unidentified": [[int(k), n] for k, n in res.unidentified],
+                "diff": {f"{i}-{j}": offset_difference(res, i, j) for i, j in pairs},
+                "std0": [offset_difference(res, 0, k)[1] if k else 0.0 for k in range(rec.K)]}
+        recs = [_pair_record(sub, i, j) for i, j in pairs]
+    recs.sort(key=lambda r: (r["i"], r["j"]))
     rows, zs = [], []
-    for i, j in itertools.combinations(range(rec.K), 2):
-        pair = fit_rig(imus(sub, [i, j]))
-        d_p, s_p = float(pair.time_offset[1]), float(pair.time_offset_std[1])
-        d_8, s_8 = offset_difference(full, i, j)
+    for r in recs:
+        i, j, d_p, s_p = r["i"], r["j"], r["offset"], r["std"]
+        d_8, s_8 = full["diff"][f"{i}-{j}"]
         var = s_p ** 2 - s_8 ** 2
         z = (d_p - d_8) / math.sqrt(var) if var > 0 else float("nan")
         zs.append(z)
         rows.append(f"| {i} | {j} | {1e3 * d_8:+.4f} ± {1e3 * s_8:.4f} | {1e3 * d_p:+.4f} ± {1e3 * s_p:.4f} | "
-                    f"{z:+.2f} | {pair.reason} ({pair.n_iter}) | {pair.seconds:.0f} |")
-        print(rows[-1], flush=True)
+                    f"{z:+.2f} | {r['reason']} ({r['n_iter']}) | {r['seconds']:.0f} |")
     zs = np.asarray(zs)
     ok = np.isfinite(zs)
     rms = float(np.sqrt(np.mean(zs[ok] ** 2))) if ok.any() else float("nan")
-    off = 1e3 * (full.time_offset - full.time_offset[0])
+    off = 1e3 * (np.asarray(full["time_offset"]) - full["time_offset"][0])
     lines = ["# Two-IMU rigs of the MIMU4444 against the eight-IMU rig posterior (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_mimu_pairs.py --exp {args.exp} --window "
              f"{args.window:g}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
-             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs, "
-             f"{time.time() - t_all:.0f} s).", "",
+             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs; or in parts: "
+             f"`--part full --json F.json`, `--part k/n --json Pk.json` for k < n, then `--from-json F.json Pk.json …`; "
+             f"fit times in the table).", "",
              f"{args.exp}, {rec.K} IMUs at {rec.sample_rate:.1f} Hz, window {sub.time[0]:.2f}–{sub.time[-1]:.2f} s "
              f"({args.window:g} s of hand motion: the most rotation below 15 % of the gyro range; a shorter "
              "window than the recording to keep the 29 fits within the session's budget).  One clock: offsets "
              "only.", "",
-             f"Eight-IMU rig: LM {full.reason} after {full.n_iter} steps, Laplace from {full.hessian}, χ²/dof "
-             f"{full.chi2_per_dof:.2f}, unidentified: {full.unidentified or 'none'}.", "",
+             f"Eight-IMU rig: LM {full['reason']} after {full['n_iter']} steps ({full['seconds']:.0f} s), Laplace "
+             f"from {full['hessian']}, χ²/dof {full['chi2_per_dof']:.2f}, unidentified: {full['unidentified'] or 'none'}.",
+             "",
              "| IMU | time offset vs IMU 0 (ms) | std (ms) |", "|---|---|---|"]
     for k in range(rec.K):
-        s = offset_difference(full, 0, k)[1] if k else 0.0
+        s = full["std0"][k]
         lines.append(f"| {k} | {off[k]:+.4f} | {1e3 * s:.4f} |")
     lines += ["", f"Largest |offset| {np.abs(off).max():.4f} ms: "
               f"{'within' if np.abs(off).max() < 1.0 else 'NOT within'} the board's ~1 ms register hold.", "",
