@@ -26,7 +26,6 @@ import json  # noqa: E402
 import math  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -112,7 +111,6 @@ def main(argv=None):
     ap.add_argument("--from-json", nargs="+", default=None, metavar="JSON", help="write the document from parts")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    t_all = time.time()
     rec = import_mimu(DATA / args.exp / "data.bin.gz")
     sub = window(rec, args.window)
     pairs = list(itertools.combinations(range(rec.K), 2))
