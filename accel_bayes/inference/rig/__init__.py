@@ -14,7 +14,13 @@ purpose).  IMU k's sample stamped s on its own clock was taken at t = t₀ + o_k
 
     y_g = R_k ω(t) + b_g,k + e_g          y_a = R_k [f(t) + ω̇(t)×r_k + ω(t)×(ω(t)×r_k)] + b_a,k + e_a
 
-with white Gaussian e of the recording's stated std.  The reference has R₀ fixed, r = 0 and no
+with Gaussian e: white noise of the recording's stated std plus, where the IMUs carry their own
+stamps, the stamping error (a host's latency in stamping; the IMU itself ticks regularly) as a
+timing error ε ~ N(0, σ_j,k²) of the whole sample, which moves its six readings along ∂y/∂t: the
+sample's covariance is diag(σ_g², σ_a²) + σ_j,k² ẏ ẏᵀ.  σ_j,k is read off the stamps (their second
+differences, :func:`~.model.stamp_jitter_std`); ẏ is evaluated at the start of each LM pass and held
+fixed within it (iteratively reweighted), so each sample is whitened by (I + u uᵀ)^{-1/2},
+u = σ_j ẏ/σ.  With one stamp column for all IMUs the error is common to every IMU and left out.  The reference has R₀ fixed, r = 0 and no
 biases (its biases are absorbed in ω and f).  Unknowns per IMU k ≠ reference: R_k (3, right
 box-plus), r_k (3, m), o_k (s), d_k (only where the IMU carries its own stamps: a NaN-union
 recording or ``imu_time_offset``; else 0), b_g,k, b_a,k (constants).  A stated nominal orientation
@@ -24,9 +30,11 @@ nominal position: proper, so LM cannot wander along an unexcited direction, and 
 the data identify.  The lever arm is identified by the ω̇ and ω² terms, the orientation by ω (and
 f), the clock by the timing of ω's and f's changes.
 
-Assumptions (what the model does not have): constant biases (random walks are not modelled), no
-scale factors or misalignments inside an IMU, stamps exact apart from (o_k, d_k) (stamp jitter is
-not modelled), a constant drift, motion smooth on the scale of h (cubic between knots; impacts and
+Assumptions (what the model does not have): constant biases (random walks are not modelled: on
+concealed rigs a walk of 1e-4 m/s²/√s, 4e-4 m/s² over 15 s, moves the time offsets by up to 2.5 std,
+``experiments/rig_offset_decomposition.md``), no scale factors, misalignments or nonlinearity inside
+an IMU (exp_1's final spin near the gyro range is out of reach), stamp errors independent between
+samples, a constant drift, motion smooth on the scale of h (cubic between knots; impacts and
 vibration above ~1/(4h) are not represented), the reference's nominal orientation exact.
 
 Solve: the package's structured LM (:mod:`accel_bayes.inference.lm`), knots eliminated by the

@@ -11,6 +11,7 @@ instants fall in it, so the package's structured LM eliminates the knots block-t
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +20,8 @@ import torch
 from ...physics.geometry import quat_to_matrix, skew
 
 __all__ = ["RigData", "bucket_samples", "hermite", "sample_time", "measurement_residual", "process_matrices",
-           "measurement_jacobian", "process_residual", "process_jacobian", "full_globals", "D_LOCAL"]
+           "measurement_jacobian", "process_residual", "process_jacobian", "full_globals", "D_LOCAL",
+           "timing_noise_directions", "stamp_jitter_std"]
 
 D_LOCAL = 12  # [ω, ω̇, f, ḟ] per knot
 
@@ -30,7 +32,9 @@ class RigData:
 
     imu (J−1, S) long: internal IMU index (0 = reference) of the slot; ds (J−1, S): stamp − t₀ (s);
     tau (J−1,): interval start τ_j (s) − t₀; yg, ya (J−1, S, 3): gyro (rad/s), acc (m/s²) readings;
-    wg, wa (J−1, S): 1/σ (0 for padding and left-out samples); h: knot spacing (s); n_imu: K.
+    wg, wa (J−1, S): 1/σ (0 for padding and left-out samples); h: knot spacing (s); n_imu: K;
+    u (J−1, S, 6) or None: the whitened timing-noise direction σ_j ∂r/∂t of each slot (stamp jitter,
+    :func:`timing_noise_directions`), held fixed while LM runs.
     """
 
     imu: torch.Tensor
@@ -42,6 +46,7 @@ class RigData:
     wa: torch.Tensor
     h: float
     n_imu: int
+    u: torch.Tensor | None = None
 
 
 def sample_time(ds, o, d):
@@ -123,6 +128,20 @@ def _interp(xp, xn, data: RigData, t):
     return (b, db), w, wd, wdd, f, fd
 
 
+def _jitter_whiten(data: RigData, m):
+    """Apply W = (I + u uᵀ)^{-1/2} = I − κ u uᵀ, κ = 1/(√(1+‖u‖²)(1 + √(1+‖u‖²))), to the 6-row slot
+    blocks m (J−1, S, 6) or (J−1, S, 6, n): the residual's covariance with stamp jitter is
+    I + u uᵀ (one time error ε ~ N(0, σ_j²) moves all six readings of a sample along ∂r/∂t)."""
+    if data.u is None:
+        return m
+    u = data.u
+    s = torch.sqrt(1.0 + (u * u).sum(-1))
+    kappa = 1.0 / (s * (1.0 + s))
+    if m.dim() == 3:
+        return m - (kappa * (u * m).sum(-1))[..., None] * u
+    return m - (kappa[..., None, None] * u[..., :, None]) * (u[..., None, :] @ m)
+
+
 def _slot_state(g, data: RigData, R0):
     R, r, o, d, bg, ba = full_globals(g, R0)
     k = data.imu
@@ -138,7 +157,7 @@ def measurement_residual(g: dict, xp, xn, data: RigData, R0) -> torch.Tensor:
     v = f + torch.cross(wd, r, -1) + torch.cross(w, torch.cross(w, r, -1), -1)
     rg = ((R @ w.unsqueeze(-1)).squeeze(-1) + bg - data.yg) * data.wg[..., None]
     ra = ((R @ v.unsqueeze(-1)).squeeze(-1) + ba - data.ya) * data.wa[..., None]
-    return torch.cat((rg, ra), -1).reshape(rg.shape[0], -1)
+    return _jitter_whiten(data, torch.cat((rg, ra), -1)).reshape(rg.shape[0], -1)
 
 
 def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
@@ -188,11 +207,52 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
     onehot = torch.nn.functional.one_hot(data.imu, data.n_imu)[..., 1:].to(w.dtype)  # reference: no globals
     oh = onehot[:, :, None, :, None]                                               # (J−1, S, 1, K−1, 1)
 
+    A, B = _jitter_whiten(data, A), _jitter_whiten(data, B)
+
     def spread(jb):
+        jb = _jitter_whiten(data, jb)
         return (jb.unsqueeze(-2) * oh).reshape(J1, 6 * S, K1 * jb.shape[-1])
 
     jac = {"q": spread(jq), "r": spread(jr), "o": spread(jo), "d": spread(jd), "bg": spread(jbg), "ba": spread(jba)}
     return jac, A.reshape(J1, 6 * S, 12), B.reshape(J1, 6 * S, 12)
+
+
+def timing_noise_directions(g: dict, xp, xn, data: RigData, R0, sigma_j) -> torch.Tensor:
+    """u (J−1, S, 6) = σ_j,k · ∂r/∂t of each slot: the whitened change of its six readings per second
+    of timing error, times the stamp-jitter std σ_j,k (s) of the slot's IMU (sigma_j: (K,) internal
+    order; padding slots get 0 through their zero weights)."""
+    R, r, o, d, _, _ = _slot_state(g, data, R0)
+    t = sample_time(data.ds, o, d)
+    _, w, wd, wdd, f, fd = _interp(xp, xn, data, t)
+    wxr = torch.cross(w, r, -1)
+    dv = fd + torch.cross(wdd, r, -1) + torch.cross(wd, wxr, -1) + torch.cross(w, torch.cross(wd, r, -1), -1)
+    jt = torch.cat(((R @ wd.unsqueeze(-1)).squeeze(-1) * data.wg[..., None],
+                    (R @ dv.unsqueeze(-1)).squeeze(-1) * data.wa[..., None]), -1)
+    sj = torch.as_tensor(np.asarray(sigma_j, dtype=float))[data.imu]
+    return jt * sj[..., None]
+
+
+def stamp_jitter_std(ds: np.ndarray) -> float:
+    """Std (s) of the stamping error of one IMU's own stamps ds (s), from their second differences.
+
+    An IMU ticks regularly on its own crystal (the clock model's constant offset and drift), so
+    Δ²s_n = ε_{n+1} − 2ε_n + ε_{n−1} for iid stamping errors ε (a host's latency in stamping): its
+    variance is 6σ_j², while a constant rate and slow wander cancel.  Robust (MAD) and restricted to
+    triples without a dropped sample (both steps within 25 % of the median period p), which keeps
+    it unbiased for σ_j ≲ p/10 (at σ_j = p/5 it reads about half the jitter).  Stamps that
+    are irregular because the samples really were taken irregularly are read as jitter too: that
+    only down-weights the fast-moving samples (a conservative std).
+    """
+    ds = np.asarray(ds, dtype=float)
+    if len(ds) < 8:
+        return 0.0
+    st = np.diff(ds)
+    p = float(np.median(st))
+    ok = (np.abs(st[1:] - p) < 0.25 * p) & (np.abs(st[:-1] - p) < 0.25 * p)
+    d2 = (st[1:] - st[:-1])[ok]
+    if len(d2) < 8:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
 
 
 def process_matrices(h: float, qc_w: float, qc_f: float, dtype=torch.float64):

@@ -17,9 +17,10 @@ from ..lm import ChainResidual, GlobalResidual, LevenbergMarquardt, Problem, Var
 from ..lm.linear import NotPositiveDefinite
 from .initial import align_gyros, interp_rows
 from .model import (process_matrices, bucket_samples, measurement_jacobian, measurement_residual,
-                    process_jacobian, process_residual)
+                    process_jacobian, process_residual, stamp_jitter_std, timing_noise_directions)
 
-__all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes"]
+__all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes",
+           "default_knot_spacing"]
 
 #: per-parameter scales of "a confident number": a direction of the Laplace posterior whose std
 #: exceeds its scale (scaled Fisher information eigenvalue < 1) is reported unidentified
@@ -30,8 +31,7 @@ IDENT_SCALE = {"q": math.radians(1.0), "r": 0.01, "o": 2e-3, "d": 1e-3, "bg": 0.
 class RigSettings:
     """Options of :func:`fit_rig`.
 
-    knot_spacing : s, or None: 2.5 / (sum of the IMUs' rates), clipped to [5, 10] ms, so that every
-        motion interval holds about 2.5 gyro samples of the rig.
+    knot_spacing : s, or None: :func:`default_knot_spacing`.
     orientation_prior_deg : std (°) of the nominal-orientation prior (IMUs whose nominal is not the
         identity, which format v1 cannot tell from "not stated").
     contradiction_sigma : a fitted orientation further than this many prior std from its nominal
@@ -43,6 +43,8 @@ class RigSettings:
         square (errors in variables): on concealed rigs it made the clock std 25–40 % too small;
         the exact Hessian's local–global cross terms remove that (about as long as the fit itself).
     lever_prior_std : m, std of the (effectively flat) lever-arm prior about the nominal positions.
+    stamp_jitter : model each IMU's stamping error as per-sample timing noise, its std estimated from
+        the stamps (:func:`~.model.stamp_jitter_std`; only where the IMUs carry their own stamps).
     prior_scale : multiplies the white-jerk intensities q_c estimated from the reference (> 1: weaker).
     ftol : LM's relative cost-change stop (1e-8 of a cost of order the number of residuals is far
         below the 0.5 that a 1-std move of one parameter makes).
@@ -56,6 +58,12 @@ class RigSettings:
     prior_scale: float = 1.0
     hessian: str = "exact"
     lever_prior_std: float = 1.0
+    stamp_jitter_std: np.ndarray = None
+    #: joint posterior covariance of the free parameters (NaN rows where unidentified) and their
+    #: labels (imu label, block name, component) — the cross terms the per-block fields leave out
+    free_cov: np.ndarray = field(default=None, repr=False)
+    free_labels: list = field(default=None, repr=False)
+    stamp_jitter: bool = True
 
 
 @dataclass
@@ -65,7 +73,8 @@ class RigResult:
     orientation (K, 4) quaternions (DESIGN §7.0); orientation_cov (K, 3, 3) rad², sensor frame;
     position (K, 3) m, array frame, relative to the reference; position_cov (K, 3, 3) m²;
     time_offset, time_offset_std (K,) s; clock_drift, clock_drift_std (K,) (NaN where the IMU has no
-    own stamps); gyro_bias, acc_bias (K, 3); own_stamps (K,) bool; unidentified: list of
+    own stamps); gyro_bias, acc_bias (K, 3); own_stamps (K,) bool; stamp_jitter_std (K,) s (0 where
+    not modelled); unidentified: list of
     (imu label, parameter name) pairs; warnings: one line each; converged, reason, n_iter,
     chi2_per_dof, seconds.
     """
@@ -92,6 +101,11 @@ class RigResult:
     info_eigs: np.ndarray = field(default=None, repr=False)
     hessian: str = "exact"
     lever_prior_std: float = 1.0
+    stamp_jitter_std: np.ndarray = None
+    #: joint posterior covariance of the free parameters (NaN rows where unidentified) and their
+    #: labels (imu label, block name, component) — the cross terms the per-block fields leave out
+    free_cov: np.ndarray = field(default=None, repr=False)
+    free_labels: list = field(default=None, repr=False)
 
 
 def rig_samples(rec, ref: int):
@@ -146,6 +160,21 @@ def _initial_knots(smp0, R0, tau):
     return np.concatenate((ws, wd, fs, fd), 1), qc_w, qc_f
 
 
+def default_knot_spacing(samples, own_stamps: bool) -> float:
+    """Knot spacing h (s): 2.5 / (rate of distinct sampling instants), clipped to [5, 10] ms, so that
+    every motion interval holds about 2.5 sampling instants of the rig.
+
+    Separately stamped IMUs sample at their own instants (the rate is the sum of their rates); IMUs
+    on one stamp column sample together (the rate is one IMU's).  Why it matters: exp_1's eight
+    62.5 Hz IMUs on one clock got 5 ms knots from the sum, three knot intervals per 16 ms sample
+    gap held only by the motion prior, and LM stopped at 80 steps far from the optimum (offsets of
+    3.5 and 4.3 ms); at 10 ms it converges in 12 (``experiments/rig_mimu_pairs.md``).
+    """
+    rates = np.array([1.0 / np.median(np.diff(s["ds"])) for s in samples])
+    rate = rates.sum() if own_stamps else rates.max()
+    return float(np.clip(2.5 / rate, 5e-3, 10e-3))
+
+
 def unexcited_axes(smp0, R0, sigma_g: float, width_s: float = 0.02, factor: float = 100.0) -> list:
     """Array-frame axes (unit 3-vectors) the rig never turns about: eigen-directions of the mean
     ω ωᵀ of the reference gyro (Gaussian-smoothed over ``width_s``) below ``factor`` × the smoothed
@@ -184,8 +213,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     own = own_lab[order]
     q_nom = np.asarray(rec.nominal_orientation, dtype=float)[order]
     R0 = quat_to_matrix(torch.as_tensor(q_nom[0])).numpy()
-    rates = np.array([1.0 / np.median(np.diff(s["ds"])) for s in smp])
-    h = settings.knot_spacing or float(np.clip(2.5 / rates.sum(), 5e-3, 10e-3))
+    h = settings.knot_spacing or default_knot_spacing(smp, bool(own_lab.any()))
 
     # starting values: gyro alignment against the reference (Kabsch + lag search)
     R_init, o_init = [], [0.0]
@@ -225,6 +253,11 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         priors.append(GlobalResidual(lambda g: (boxminus(g["q"][sel], qn_t[sel]) / sig_q).reshape(-1),
                                      name="orientation_prior"))
 
+    # stamping errors are timing noise of each sample; a shared stamp column (one clock) moves
+    # every IMU alike and is left out (see the package docstring)
+    sep = bool(own_lab.any()) and settings.stamp_jitter
+    sig_j = np.array([stamp_jitter_std(s["ds"]) if sep else 0.0 for s in smp])
+
     x = tt(x0)
     log_all, res = [], None
     o_used = d_used = None
@@ -238,6 +271,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                 break
         o_used, d_used = o_full, d_full
         data = bucket_samples(smp, o_full, d_full, lo, h, n_knots)
+        if sig_j.any():  # the weights of this pass, from its starting motion and clocks
+            data.u = timing_noise_directions(values, x[:-1], x[1:], data, R0t, sig_j)
         meas = ChainResidual(lambda g, xp, xn, dd: measurement_residual(g, xp, xn, dd, R0t), data=data,
                              jac=lambda g, xp, xn, dd: measurement_jacobian(g, xp, xn, dd, R0t), name="rig")
         proc = ChainResidual(lambda g, xp, xn, dd: process_residual(xp, xn, dd), data=AB,
@@ -308,7 +343,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
 
     ori = np.zeros((K, 4)); ori_cov = np.zeros((K, 3, 3)); pos = np.zeros((K, 3)); pos_cov = np.zeros((K, 3, 3))
     to = np.zeros(K); to_s = np.zeros(K); dr = np.full(K, np.nan); dr_s = np.full(K, np.nan)
-    bgo = np.zeros((K, 3)); bao = np.zeros((K, 3))
+    bgo = np.zeros((K, 3)); bao = np.zeros((K, 3)); sjo = np.zeros(K)
+    sjo[order] = sig_j
     ori[ref] = q_nom[0]
     dr[ref], dr_s[ref] = 0.0, 0.0
     qv = values["q"].numpy()
@@ -335,7 +371,9 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                      time_offset=to, time_offset_std=to_s, clock_drift=dr, clock_drift_std=dr_s, gyro_bias=bgo,
                      acc_bias=bao, own_stamps=own_lab, unidentified=sorted(unident), warnings=warnings,
                      converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
-                     seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used)
+                     seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used,
+                     stamp_jitter_std=sjo, free_cov=cov,
+                     free_labels=[(order[idx[0] + 1], name, idx[1] if len(idx) > 1 else 0) for name, idx in labels])
 
 
 def time_elapsed(t_start: float) -> float:
