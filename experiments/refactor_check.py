@@ -82,7 +82,7 @@ DEG = math.pi / 180
 # the 7adf109 paths this file imports -> their homes since 0.1
 OLD_PATHS = {"arrays": "physics.arrays", "models": "physics.models", "motion": "physics.motion",
              "geometry": "physics.geometry", "recording": "data.recording", "intrinsics": "prep.intrinsics",
-             "motion_estimation": "inference.motion"}
+             "motion_estimation": "inference.motion_estimate"}
 
 
 def _bind_old_paths() -> None:

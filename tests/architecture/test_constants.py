@@ -35,7 +35,7 @@ def test_file_format_strings_are_the_contracts_not_module_paths():
     from accel_bayes.data.mismatch_report import SCHEMA as MISMATCH_SCHEMA
     from accel_bayes.prep.intrinsics import SCHEMA as INTRINSICS_SCHEMA
     from accel_bayes.inference.mcmc.checkpoint import CHECKPOINT_FORMAT
-    import accel_bayes.inference.motion as me
+    import accel_bayes.inference.motion_estimate as me
 
     assert FORMAT == "accel_bayes.recording/1"
     assert POSITIONS_SCHEMA == "accel_bayes.positions/1"

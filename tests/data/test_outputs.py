@@ -54,7 +54,7 @@ COMPUTE = {
     "simulate": ("accel_bayes.simulate", "simulate"),
     "import-mimu": ("accel_bayes.data.mimu", "import_mimu"),
     "intrinsics": ("accel_bayes.prep.intrinsics", "estimate_intrinsics"),
-    "motion": ("accel_bayes.inference.motion", "estimate_motion"),
+    "motion": ("accel_bayes.inference.motion_estimate", "estimate_motion"),
     "map": ("accel_bayes.inference.map", "fit_map_recording"),
     "calibrate": ("accel_bayes.pipelines.calibrate", "calibrate"),
     "selfcal": ("accel_bayes.inference.selfcal", "self_calibrate"),
