@@ -220,7 +220,7 @@ def _longer_hint(settings) -> str:
 def format_table(res) -> str:
     """IMU, posterior mean (mm), std (µm), worst R̂ and smallest bulk ESS over its 3 coordinates
     ("n/a" where they cannot be computed: one chain, a few draws)."""
-    from ..diagnostics import format_stat
+    from ..diagnostics.stats import format_stat
 
     summ = res.summary
     doc = res.positions

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from .. import __version__
-from .. import diagnostics as dg
+from ..diagnostics import arviz_calls as dg_az, plots as dg_plots, stats as dg_stats
 from ..data import positions as _positions_mod
 from ..errors import UserError
 from ..inference.mcmc import PMMHKernel, PMMHRun, check_checkpoint_request, read_checkpoint, run_pmmh, \
@@ -86,7 +86,7 @@ class CalibrationResult:
 
     idata : ``az.InferenceData`` (posterior ``r`` (chain, draw, imu, axis), m, relative to the
         reference triad; sample stats; log-likelihood estimates).
-    summary : pandas DataFrame from :func:`accel_bayes.diagnostics.summarize` (R̂, ESS, MCSE).
+    summary : pandas DataFrame from :func:`accel_bayes.diagnostics.arviz_calls.summarize` (R̂, ESS, MCSE).
     positions : the DESIGN §7.3 ``positions.json`` document (a dict).
     settings : every setting used (including the N chosen and its variance table).
     seconds : wall time of the whole calibration.
@@ -470,12 +470,12 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
 
         # step 7, summary: ArviZ diagnostics and the positions document
         N = draws.num_draws
-        idata = dg.to_inference_data(
+        idata = dg_az.to_inference_data(
             run.theta, free_labels, run.log_phat, log_prior=run.log_prior, accepted=run.accepted,
             accept_prob=run.accept_prob, step_size=run.step_size, reference_imu=ref_label,
             attrs={"method": "pmmh", "num_draws": int(N), "seed": opts.seed, "accel_bayes_version": __version__},
         )
-        summary = dg.summarize(idata)
+        summary = dg_az.summarize(idata)
         seconds = time.perf_counter() - t0
         settings.update(_convergence_settings(run, opts))
         settings["acceptance_rate"] = [float(a) for a in run.acceptance_rate]
@@ -561,7 +561,7 @@ def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
                                 prior_mean=nominal_acc, prior_std=prior_std, phi_prior=lik.phi_prior)
     lap = np.sqrt(np.clip(np.diagonal(np.asarray(map_res.laplace_cov, dtype=np.float64)), 0, None))
     ratio = np.asarray(sw["std_ratio"], dtype=np.float64)
-    names = [f"r[{k}, {a}]" for k in free_labels for a in dg.AXES]
+    names = [f"r[{k}, {a}]" for k in free_labels for a in dg_az.AXES]
     return {"kappa": float(sw["kappa"]), "lags": int(sw["lags"]), "tempering_applied": kappa,
             "std_ratio_max": float(ratio.max()), "std_ratio_median": float(np.median(ratio)),
             "coordinates": names, "laplace_std_m": [float(v) for v in lap],
@@ -732,7 +732,7 @@ def _chains_step(lik, pri, draws: DrawsStep, start: StartStep, opts: CalibrateOp
         run = run_pmmh(kernel, opts.draws, opts.warmup, opts.chains, init_theta, **common)
     else:
         def check(theta):
-            return dg.convergence_check(theta.cpu(), rhat_max=opts.rhat_max, ess_min=opts.ess_target, names=names)
+            return dg_stats.convergence_check(theta.cpu(), rhat_max=opts.rhat_max, ess_min=opts.ess_target, names=names)
 
         run = run_pmmh_until(kernel, check, opts.warmup, opts.chains, init_theta, check_every=opts.check_every,
                              max_samples=opts.max_draws, max_seconds=opts.max_seconds, **common)
@@ -747,7 +747,7 @@ def _run_on_cpu(run):
 
 def _coordinate_names(imu_labels, reference: int) -> list[str]:
     """``r[imu, axis]`` of the free coordinates, in θ's order (the rows of ``summary.csv``)."""
-    return [f"r[{k}, {a}]" for i, k in enumerate(imu_labels) if i != reference for a in dg.AXES]
+    return [f"r[{k}, {a}]" for i, k in enumerate(imu_labels) if i != reference for a in dg_az.AXES]
 
 
 # why a run ended, in words (settings["convergence"]["stopped"] holds the key)
@@ -782,11 +782,11 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
     """The DESIGN §7.3 document for a PmMH posterior (built by :mod:`accel_bayes.data.positions`, the
     one writer of the format): every IMU sorted by label, posterior mean/std/cov of its triad
     position relative to the reference IMU (array frame, m; zeros for the reference), R̂/ESS
-    diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.convergence_check`
+    diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.stats.convergence_check`
     with the criteria of ``settings["convergence"]`` (default R̂ < 1.01, bulk and tail ESS ≥ 400);
     R̂/ESS are null where they cannot be computed; the draws per chain, the number of checks and
     why the run stopped) and provenance.  IMUs without an accelerometer triad get null moments."""
-    mom = dg.posterior_moments(idata)
+    mom = dg_stats.posterior_moments(idata)
     means = np.zeros((int(K), 3))
     covs = np.zeros((int(K), 3, 3))
     estimated = set(mom["imu"]) | {int(reference_imu)}
@@ -799,10 +799,10 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
             covs[k] = np.nan
     conv = settings.get("convergence") or {}
     crit = conv.get("criteria") or {}
-    x = idata.posterior[dg.VAR]
+    x = idata.posterior[dg_az.VAR]
     names = [f"r[{int(i)}, {a}]" for i in x.coords["imu"].values for a in x.coords["axis"].values]
-    chk = dg.convergence_check(x.values, rhat_max=crit.get("rhat_max", dg.RHAT_MAX),
-                               ess_min=crit.get("ess_bulk_min", dg.ESS_MIN), names=names)
+    chk = dg_stats.convergence_check(x.values, rhat_max=crit.get("rhat_max", dg_stats.RHAT_MAX),
+                               ess_min=crit.get("ess_bulk_min", dg_stats.ESS_MIN), names=names)
     reasons = list(chk.failed)
     if reasons and conv.get("stopped") in ("max_draws", "max_seconds"):
         reasons.append(f"stopped unconverged after {conv.get('draws')} draws per chain and {conv.get('checks')} "
@@ -839,11 +839,11 @@ def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True, tru
         raise UserError(f"--out: {out} exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
-    paths["posterior"] = dg.save(result.idata, out / "posterior.nc")
+    paths["posterior"] = dg_az.save(result.idata, out / "posterior.nc")
     paths["summary"] = write_text(out / "summary.csv", result.summary.to_csv())
     paths["positions"] = _positions_mod.write_positions(result.positions, out / "positions.json")
     if plots and result.array is not None:
-        for q in dg.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std"),
+        for q in dg_plots.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std"),
                                truth=truth):
             paths[q.stem] = q
     return paths

@@ -120,7 +120,7 @@ def _run_stages(od, cfg: dict, progress: bool) -> None:
     # 3–4. posterior + diagnostics ------------------------------------------------------------
     try:
         from .calibrate import CalibrateOptions, calibrate, write_outputs
-        from ..diagnostics import format_stat, truth_check
+        from ..diagnostics.stats import format_stat, truth_check
     except ImportError:
         _say("[3/5] posterior: not available in this version", log)
         report += ["## 3. Posterior", "Not available in this version.", ""]
