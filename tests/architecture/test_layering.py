@@ -42,7 +42,7 @@ REASON_PHRASE = "over 600 lines"
 # Over MAX_LINES when issue #26's layering work ended, owned by other developers that session.
 OVERSIZE_TODAY = {
     "pipelines/calibrate.py", "data/csv_import.py",
-    "mismatch/detect.py", "data/validation.py", "data/outputs.py",
+    "mismatch/detect.py", "data/outputs.py",
 }
 
 
