@@ -16,7 +16,7 @@ from . import _options as opt
 
 
 def register(subparsers) -> None:
-    from ..data.outputs import OVERWRITE_DIR_HELP
+    from ..data.output_sets import OVERWRITE_DIR_HELP
 
     p = subparsers.add_parser(
         "mismatch",
@@ -51,7 +51,7 @@ def run(args) -> int:
         effects = [e.strip() for e in args.effects.split(",") if e.strip()]
         if not effects:
             raise UserError("--effects: expected a comma-separated list of effect names")
-    from ..data.outputs import OutputDir
+    from ..data.output_sets import OutputDir
     from ..data.paths import require_file
 
     require_file(args.recording, "recording file")  # input and target before torch is imported

@@ -106,7 +106,8 @@ class ConvergenceCheck:
 def convergence_check(theta_chains, rhat_max: float = RHAT_MAX, ess_min: float = ESS_MIN, names=None
                       ) -> ConvergenceCheck:
     """The convergence rule: every coordinate has rank-normalised split R̂ < ``rhat_max`` and bulk
-    and tail ESS ≥ ``ess_min`` (ArviZ ``rhat`` and ``ess(method="bulk"/"tail")``: :func:`~accel_bayes.diagnostics.arviz_calls.rank_diagnostics`).
+    and tail ESS ≥ ``ess_min`` (ArviZ ``rhat`` and ``ess(method="bulk"/"tail")``, through
+    :func:`~accel_bayes.diagnostics.arviz_calls.rank_diagnostics`).
 
     theta_chains : (C, D, ...) array or tensor of draws, C chains × D draws; the trailing
         dimensions are flattened into coordinates.

@@ -833,7 +833,7 @@ def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True, tru
     rank.png, autocorr.png, ellipses.png into ``out_dir``, each file atomically; returns
     {name: path}.  ``truth``: (K, 3) true positions relative to the reference, m, drawn in
     ellipses.png where known (a simulation's).  The CLI passes the staging directory of an
-    :class:`accel_bayes.data.outputs.OutputDir`, so that the files appear in ``--out`` as one set."""
+    :class:`accel_bayes.data.output_sets.OutputDir`, so that the files appear in ``--out`` as one set."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: {out} exists and is not a directory")
