@@ -81,7 +81,7 @@ from ..physics.geometry import matrix_to_quat
 from .outputs import to_jsonable
 from .recording import Recording
 from .segments import analyse_static, segment_labels
-from .format_v1 import units_kind
+from .validation import units_kind
 
 __all__ = [
     "ASL_COLUMNS",
@@ -106,7 +106,7 @@ AXES = ("x", "y", "z")
 SENSORS = ("acc", "gyro")
 
 # Factors to SI of the units each kind of column accepts, by canonical name.  The SI and degree
-# spellings are those :func:`accel_bayes.data.format_v1.units_kind` knows; g and the sub-second time
+# spellings are those :func:`accel_bayes.data.validation.units_kind` knows; g and the sub-second time
 # units are added here.  Time factors are integers: nanoseconds per unit.
 _FACTORS = {"acc": {"m s-2": 1.0, "g": G0}, "gyro": {"rad s-1": 1.0, "deg s-1": DEG_TO_RAD},
             "time": {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000}}
