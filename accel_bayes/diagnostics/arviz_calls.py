@@ -162,7 +162,8 @@ def load(path):
 @contextlib.contextmanager
 def _arviz_quiet():
     """Silence ArviZ's logger ("Shape validation failed" for one chain): the NaN it returns is
-    reported by :func:`convergence_warnings`, and the command line keeps stderr to one line."""
+    reported by :func:`accel_bayes.diagnostics.stats.convergence_warnings`, and the command line
+    keeps stderr to one line."""
     # ArviZ 0.x logs through its own Logger instance, not one registered with logging.getLogger
     log = getattr(az, "_log", None) or logging.getLogger("arviz")
     level = log.level
@@ -271,4 +272,4 @@ def draw(kind: str, idata, axes, *, coords, figsize, **kwargs):
         if kind == "autocorr":
             return az.plot_autocorr(mm, var_names=[VAR], coords=coords, combined=True, show=False, ax=axes,
                                     figsize=figsize, **kwargs)
-    raise ValueError(f"kind: expected 'trace', 'rank' or 'autocorr', got {kind!r}")
+    raise UserError(f"kind: expected 'trace', 'rank' or 'autocorr', got {kind!r}")

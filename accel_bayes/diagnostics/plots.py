@@ -123,7 +123,7 @@ def plot_ellipses(idata_or_moments, array, ax=None, level=0.5, prior_std=None, l
                   exaggerate: float = 1.0):
     """[C21] Fig. 5: x–y confidence ellipses of each free triad's position over the board.
 
-    idata_or_moments : an InferenceData from :func:`to_inference_data`, or a dict
+    idata_or_moments : an InferenceData from :func:`~.arviz_calls.to_inference_data`, or a dict
         {"imu": labels, "mean": (A−1, 3) m, "cov": (A−1, 3, 3) m²} (e.g. a Laplace approximation),
         positions relative to the reference triad.
     array : :class:`~accel_bayes.physics.arrays.SensorArray` (or a Recording: its ``sensor_array()``) —

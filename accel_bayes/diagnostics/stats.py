@@ -33,9 +33,10 @@ def convergence_warnings(rhat: float | None, ess_bulk: float | None, chains: int
     summary form of the rule (max R̂, min bulk ESS, 100 per chain); ``calibrate`` decides with
     :func:`convergence_check` (every coordinate, bulk and tail ESS).
 
-    rhat : largest split R̂ (:func:`rhat_max`); ess_bulk : smallest bulk ESS (:func:`ess_bulk_min`),
-    draws; chains : number of chains.  None or NaN (too few draws to compute the statistic) counts
-    as not converged: convergence that cannot be checked is not established.
+    rhat : largest split R̂ (:func:`~.arviz_calls.rhat_max`); ess_bulk : smallest bulk ESS
+    (:func:`~.arviz_calls.ess_bulk_min`), draws; chains : number of chains.  None or NaN (too few
+    draws to compute the statistic) counts as not converged: convergence that cannot be checked is
+    not established.
     """
     out = []
     need = ESS_PER_CHAIN * int(chains)
