@@ -163,6 +163,21 @@ def _diffstat() -> list[str]:
     return [ln.rstrip() for ln in out.splitlines() if ln.strip()]
 
 
+def _structure_verdict(structure: str) -> str:
+    """One sentence from bench_structure's output: which workloads are not slower (speedup ≥ 0.95)
+    on the same results, and which are slower or computed something else (the heading must not
+    claim more than the numbers show)."""
+    import re
+
+    speed = {m.group(1): float(m.group(2)) for m in re.finditer(r"RESULT structure_(\w+): .* speedup ([0-9.]+)x", structure)}
+    rel = {m.group(1): float(m.group(2))
+           for m in re.finditer(r"INFO structure_(\w+): .*result max \|diff\| \S+ \(relative ([0-9.e+-]+)\)", structure)}
+    same = [w for w in speed if speed[w] >= 0.95 and rel.get(w, 0.0) == 0.0]
+    other = [f"{w} ({speed[w]:.3f}x, results relative {rel.get(w, 0.0):.1e})" for w in speed if w not in same]
+    return (f"Not slower and the same results: {', '.join(same) or 'none'}. "
+            f"Slower or not the same work in both trees: {', '.join(other) or 'none'}.")
+
+
 def _previous_results(path: Path) -> list[str]:
     """The "Measured …" line and the RESULT lines of an earlier report written by :func:`_write_md`
     (read before the new report replaces it), so that a rerun keeps the numbers it is compared with."""
@@ -218,7 +233,9 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, st
     ]
     if structure:
         lines += [
-            "## The computing commands are not slower",
+            "## The computing commands",
+            "",
+            _structure_verdict(structure),
             "",
             f"`bench_structure.py` (workloads {args.structure}; median of {args.structure_reps} fresh processes per tree, "
             "alternating, one thread; `speedup` = 00ae2ff / ours, the bar of issue #10 ≥ 0.95; `result max |diff|`: "
