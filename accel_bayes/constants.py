@@ -32,7 +32,7 @@ DEFAULT_PRIOR_STD = 3e-3
 
 # The defaults below are the command line's too: kept here, with no numerical import, so that
 # ``accel-bayes calibrate --help`` shows them without importing torch (issue #26).  Their modules
-# (prep.selection, model.noise, threads, diagnostics) re-export them.
+# (prep.selection, model.noise, threads, diagnostics.stats) re-export them.
 
 DEFAULT_MIN_ROTATION = 0.5
 """rad/s (≈ 29 °/s) — |ω̄_t| below this marks a sample "without rotation": at 20 mm the centripetal
@@ -46,7 +46,7 @@ DEFAULT_THREADS = 1
 on a shared machine."""
 
 RHAT_MAX = 1.01
-"""R̂ threshold of :func:`accel_bayes.diagnostics.convergence_check` (Vehtari, Gelman, Simpson,
+"""R̂ threshold of :func:`accel_bayes.diagnostics.stats.convergence_check` (Vehtari, Gelman, Simpson,
 Carpenter & Bürkner 2021, §4: R̂ < 1.01)."""
 
 ESS_PER_CHAIN = 100

@@ -1,7 +1,7 @@
 """Simulated inertial sensor array recordings with known ground truth.
 
 :func:`simulate` draws a true geometry around a :class:`~accel_bayes.physics.arrays.SensorArray`
-design, moves the board with a motion from :mod:`accel_bayes.physics.motion`, computes each IMU's
+design, moves the board with a motion from :mod:`accel_bayes.physics.motion_generators`, computes each IMU's
 sensor-frame outputs with :func:`accel_bayes.physics.models.imu_outputs` (the package's one signal
 model, [C21] eq. 4), adds white Gaussian noise and clips at the sensor ranges.  It returns a
 :class:`~accel_bayes.data.recording.Recording` that holds only what a real file would (nominal design,
@@ -24,7 +24,8 @@ from .data.outputs import to_jsonable
 from .errors import UserError, nonnegative
 from .physics.geometry import boxminus, boxplus
 from .physics.models import imu_outputs
-from .physics.motion import MotionTrace, as_generator, make_motion
+from .physics.motion_generators import make_motion
+from .physics.trajectories import MotionTrace, as_generator
 from .physics.effects.timing import sample_times
 from .data.recording import Recording
 

@@ -27,6 +27,7 @@ and puts its output in the Markdown file too.
 
     python experiments/bench_cli.py [--reps 10] [--base DIR] [--md experiments/bench_cli.md]
                                     [--structure lm_selfcal,map,likelihood --structure-reps 5]
+                                    [--previous experiments/bench_cli.md]
 """
 from __future__ import annotations
 
@@ -110,7 +111,11 @@ def main(argv=None) -> int:
     ap.add_argument("--structure", default="", metavar="W1,W2",
                     help="also run bench_structure.py on these workloads against the same baseline (default: none)")
     ap.add_argument("--structure-reps", type=int, default=5, help="bench_structure.py --reps (default 5)")
+    ap.add_argument("--previous", type=Path, default=None,
+                    help="an earlier report of this script (e.g. the --md file before it is overwritten): its "
+                         "measurement line and RESULT lines are carried into a 'previous run' section")
     args = ap.parse_args(argv)
+    previous = _previous_results(args.previous) if args.previous is not None else None
     base = ensure_base(args.base)
     load0 = os.getloadavg()
     started = datetime.datetime.now(datetime.timezone.utc)
@@ -143,7 +148,7 @@ def main(argv=None) -> int:
         structure = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, check=True).stdout
         print(structure, end="", flush=True)
     if args.md is not None:
-        _write_md(args.md, rows, args.reps, base, started, load0, load1, structure, args)
+        _write_md(args.md, rows, args.reps, base, started, load0, load1, structure, args, previous)
     return 0
 
 
@@ -158,7 +163,34 @@ def _diffstat() -> list[str]:
     return [ln.rstrip() for ln in out.splitlines() if ln.strip()]
 
 
-def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, structure, args) -> None:
+def _structure_verdict(structure: str) -> str:
+    """One sentence from bench_structure's output: which workloads are not slower (speedup ≥ 0.95)
+    on the same results, and which are slower or computed something else (the heading must not
+    claim more than the numbers show)."""
+    import re
+
+    speed = {m.group(1): float(m.group(2)) for m in re.finditer(r"RESULT structure_(\w+): .* speedup ([0-9.]+)x", structure)}
+    rel = {m.group(1): float(m.group(2))
+           for m in re.finditer(r"INFO structure_(\w+): .*result max \|diff\| \S+ \(relative ([0-9.e+-]+)\)", structure)}
+    same = [w for w in speed if speed[w] >= 0.95 and rel.get(w, 0.0) == 0.0]
+    other = [f"{w} ({speed[w]:.3f}x, results relative {rel.get(w, 0.0):.1e})" for w in speed if w not in same]
+    return (f"Not slower and the same results: {', '.join(same) or 'none'}. "
+            f"Slower or not the same work in both trees: {', '.join(other) or 'none'}.")
+
+
+def _previous_results(path: Path) -> list[str]:
+    """The "Measured …" line and the RESULT lines of an earlier report written by :func:`_write_md`
+    (read before the new report replaces it), so that a rerun keeps the numbers it is compared with."""
+    text = path.read_text(encoding="utf-8").splitlines()
+    measured = [ln for ln in text if ln.startswith("Measured ")][:1]
+    results = [ln for ln in text if ln.startswith("RESULT ")]
+    if not results:
+        raise SystemExit(f"--previous: {path} holds no RESULT line; expected a report of this script")
+    return measured + results
+
+
+def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, structure, args,
+              previous: list[str] | None = None) -> None:
     sys.path.insert(0, str(REPO))
     from accel_bayes.data.outputs import write_text
 
@@ -168,7 +200,8 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, st
         f"Regenerate ({(time.time() - started.timestamp()) / 60:.0f} min here; run it when the machine is quiet):",
         "",
         "    python experiments/bench_cli.py --md experiments/bench_cli.md"
-        + (f" --structure {args.structure} --structure-reps {args.structure_reps}" if structure else ""),
+        + (f" --structure {args.structure} --structure-reps {args.structure_reps}" if structure else "")
+        + (f" --previous {args.previous}" if previous else ""),
         "",
         f"Measured {started:%Y-%m-%d %H:%M} UTC on `{platform.node()}` ({os.cpu_count()} cores, "
         f"Python {platform.python_version()}), shared with other developers' jobs: load average (1/5/15 min) "
@@ -200,7 +233,9 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, st
     ]
     if structure:
         lines += [
-            "## The computing commands are not slower",
+            "## The computing commands",
+            "",
+            _structure_verdict(structure),
             "",
             f"`bench_structure.py` (workloads {args.structure}; median of {args.structure_reps} fresh processes per tree, "
             "alternating, one thread; `speedup` = 00ae2ff / ours, the bar of issue #10 ≥ 0.95; `result max |diff|`: "
@@ -215,6 +250,20 @@ def _write_md(path: Path, rows, reps: int, base: Path, started, load0, load1, st
             "",
             "```",
             *structure.strip().splitlines(),
+            "```",
+            "",
+        ]
+    if previous:
+        lines += [
+            "## The previous run of this report",
+            "",
+            "Carried over by `--previous` (the same script, an earlier checkout; compare it with the tables "
+            "above, minding the machine load of each run):",
+            "",
+            *(previous[:1] if previous[0].startswith("Measured ") else []),
+            "",
+            "```",
+            *[ln for ln in previous if ln.startswith("RESULT ")],
             "```",
             "",
         ]

@@ -110,7 +110,7 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
     """
     import torch
 
-    from accel_bayes import diagnostics as dg
+    from accel_bayes.diagnostics import arviz_calls as dg_az
     from accel_bayes.inference.map import fit_map
     from accel_bayes.inference.mcmc import PMMHKernel, run_pmmh
     from accel_bayes.inference.mcmc.priors import GaussianPrior
@@ -149,7 +149,7 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
                         independence_mean=centre, independence_cov=lap)
     init = prior.sample((chains,), generator=torch.Generator().manual_seed(30_000 + i))
     run = run_pmmh(kernel, draws, warmup, chains, init, progress=False)
-    idata = dg.to_inference_data(run.theta, [1, 2, 3], run.log_phat, log_prior=run.log_prior)
+    idata = dg_az.to_inference_data(run.theta, [1, 2, 3], run.log_phat, log_prior=run.log_prior)
     post = idata.posterior["r"]
     ranks, covered = {}, None
     for k, ax in COORDS:
@@ -160,7 +160,7 @@ def replicate(i: int, T: int = 30, prior_std: float = DEFAULT_PRIOR_STD, chains:
         if (k, ax) == STUDY_COORD:
             lo, hi = np.quantile(x, [0.05, 0.95])
             covered = bool(lo <= t <= hi)
-    return {"i": i, "ranks": ranks, "covered": covered, "rhat": dg.rhat_max(idata), "ess_bulk_min": dg.ess_bulk_min(idata),
+    return {"i": i, "ranks": ranks, "covered": covered, "rhat": dg_az.rhat_max(idata), "ess_bulk_min": dg_az.ess_bulk_min(idata),
             "num_draws": int(N), "seconds": time.perf_counter() - t0, "phi_model": phi_model,
             "acceptance": float(run.accepted.double().mean()),
             "T": T, "chains": chains, "draws": draws, "warmup": warmup}

@@ -133,7 +133,7 @@ def posterior_task(T, acc_std, rep, seed, omega_std_dps, chains, draws, warmup, 
                    scan_mode=""):
     """One simulated data set → N choice, PmMH (``calibrate``), two Laplace approximations."""
     import torch
-    from accel_bayes import diagnostics as dg
+    from accel_bayes.diagnostics import arviz_calls as dg_az
     from accel_bayes.pipelines.calibrate import calibrate
     from accel_bayes.model.draw_tuning import choose_num_draws
     from accel_bayes.model.likelihood import RaoBlackwellLikelihood
@@ -180,7 +180,7 @@ def posterior_task(T, acc_std, rep, seed, omega_std_dps, chains, draws, warmup, 
         "laplace_std_um": lap_g.std_mean_um, "laplace_true_omega_std_um": lap_t.std_mean_um,
         "map_laplace_std_um": map_std,
         "ratio_pmmh_laplace": float(std.mean()) * 1e6 / lap_g.std_mean_um,
-        "rhat_max": dg.rhat_max(res.idata), "ess_bulk_min": dg.ess_bulk_min(res.idata),
+        "rhat_max": dg_az.rhat_max(res.idata), "ess_bulk_min": dg_az.ess_bulk_min(res.idata),
         "pmmh_mean_err_um": float(np.abs(flat.mean(0) - truth_rel[1:].reshape(-1)).mean()) * 1e6,
         "seconds_setup": t1 - t0, "seconds_pmmh": t2 - t1, "seconds_laplace": t3 - t2,
     }

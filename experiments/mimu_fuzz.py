@@ -63,20 +63,22 @@ from _data import data_dir  # noqa: E402
 from accel_bayes.errors import RecordingError
 from accel_bayes.data.plausibility import JUMP_MOTION, SPREAD_FACTOR
 from accel_bayes.physics.arrays import mimu4444_8
-from accel_bayes.data.mimu import (  # noqa: I001 - _stamp_deviation: the importer's own rule, measured
-    ACC_SCALE,
+from accel_bayes.data.mimu_decode import (  # noqa: I001 - _stamp_deviation: the importer's own rule, measured
     FIRST_PACKET_LEAD_TICKS,
-    GYRO_SCALE,
-    MIMU_ACK,
     NEAR_LIMIT_LSB,
-    NOMINAL_PERIOD_TICKS,
     PLAUSIBILITY_FLOOR_LSB,
     SATURATED_LSB,
     TIME_TOL_TICKS,
     _stamp_deviation,
     decode_mimu_bytes,
-    encode_mimu_packets,
     plausibility_statistics,
+)
+from accel_bayes.data.mimu_packets import (
+    ACC_SCALE,
+    GYRO_SCALE,
+    MIMU_ACK,
+    NOMINAL_PERIOD_TICKS,
+    encode_mimu_packets,
     read_mimu_bytes,
 )
 

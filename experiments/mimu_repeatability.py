@@ -204,7 +204,7 @@ def ellipse_plot(results: list[dict], path: Path, array) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
 
-    from accel_bayes.diagnostics import auto_exaggeration, plot_ellipses
+    from accel_bayes.diagnostics.plots import auto_exaggeration, plot_ellipses
 
     def moments(r, labels):
         return {"imu": labels, "mean": np.array([r["mean"][k] for k in labels]),

@@ -208,14 +208,14 @@ def _argv(cmd, inputs, target, seed):
 def _complete(cmd, target: Path, ref_files) -> bool:
     """The target holds a complete output of ``cmd``: for a set, its marker lists exactly the
     files of the unsignalled run and each is there; for a file, it reads."""
-    from accel_bayes.data import outputs
+    from accel_bayes.data import output_sets
 
     if COMMANDS[cmd][1] == "--out":
-        if not outputs.is_output_set(target):
+        if not output_sets.is_output_set(target):
             return False
-        files = json.loads((target / outputs.SET_MARKER).read_text())["files"]
+        files = json.loads((target / output_sets.SET_MARKER).read_text())["files"]
         on_disk = sorted(str(p.relative_to(target)) for p in target.rglob("*") if p.is_file()
-                         and p.name != outputs.SET_MARKER)
+                         and p.name != output_sets.SET_MARKER)
         return sorted(files) == sorted(ref_files) == on_disk
     import xarray as xr
 
@@ -275,9 +275,9 @@ def signal_study(n: int, workers: int, seed: int, work: Path, kinds=tuple(KINDS)
             r = pool[0].run(dict(argv=_argv(cmd, inputs, t0, 2), cwd=str(d), stderr=str(work / f"ref_{cmd}.err")))
             files = None
             if COMMANDS[cmd][1] == "--out":
-                from accel_bayes.data import outputs
+                from accel_bayes.data import output_sets
 
-                files = json.loads((t0 / outputs.SET_MARKER).read_text())["files"]
+                files = json.loads((t0 / output_sets.SET_MARKER).read_text())["files"]
             shutil.rmtree(d, ignore_errors=True)
             shutil.copytree(base, d)
             t1 = time.monotonic()

@@ -360,10 +360,10 @@ def _out_dot(run, inp, work):
         d = work / cmd / "here"
         d.mkdir(parents=True)
         rc, err = run(_argv(cmd, inp, "."), cwd=d)
-        from accel_bayes.data import outputs
+        from accel_bayes.data import output_sets
 
         names = sorted(p.name for p in d.parent.iterdir())
-        ok = rc in (0, 3, 4) and outputs.is_output_set(d) and names == ["here"]
+        ok = rc in (0, 3, 4) and output_sets.is_output_set(d) and names == ["here"]
         cases.append(_case(f"{cmd} --out . in an empty directory", ok, rc, err))
     return {"rule": "runs (its usual status), the set in the directory, no lock or staging folder left", "cases": cases}
 

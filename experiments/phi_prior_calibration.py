@@ -9,7 +9,7 @@ and once with ``phi_prior="flat"`` ([C21] as published), on the same data:
   ``experiments/_boards.py`` (independent simulator ``_conceal``, 6–10 IMUs over 6–16 cm,
   100–250 Hz, T ≈ 2500, no rests).
 
-Per run, :func:`accel_bayes.diagnostics.truth_check` gives the posterior mean's error
+Per run, :func:`accel_bayes.diagnostics.stats.truth_check` gives the posterior mean's error
 e = m − truth in the posterior's own units:
 
 * the Mahalanobis χ² = eᵀC⁻¹e, χ²_d distributed when the posterior is calibrated (d = 3 × the
@@ -63,7 +63,7 @@ def one_run(seed: int, form: str, data_set: str = "demo") -> dict:
     """Calibrate run ``seed`` of ``data_set`` with ``phi_prior=form``; the truth statistics."""
     import warnings
 
-    from accel_bayes.diagnostics import truth_check
+    from accel_bayes.diagnostics.stats import truth_check
     from accel_bayes.pipelines.calibrate import calibrate
     from scipy import stats
 
@@ -159,7 +159,7 @@ def document(rows, summ, args, wall) -> str:
                 "N(0, (0.3 mm)²)),",
                 f"seeds 1–{args.seeds}; `calibrate` with its defaults, 4 chains × (1000 + 1000) iterations, and "
                 "`phi_prior` =",
-                "empirical (default) or flat, on the same data. Statistics of `diagnostics.truth_check` (21 free "
+                "empirical (default) or flat, on the same data. Statistics of `diagnostics.stats.truth_check` (21 free "
                 "coordinates per run)."]
     else:
         cmd = f"python experiments/phi_prior_calibration.py --set boards --workers {args.workers}"
@@ -168,7 +168,7 @@ def document(rows, summ, args, wall) -> str:
         what = ["The 20 random boards and the two regression boards of `experiments/_boards.py` (independent",
                 "simulator `_conceal`: 6–10 IMUs over 6–16 cm, smooth random motion, 100–250 Hz, T ≈ 2500, no",
                 "rests), `calibrate` with its defaults and `phi_prior` = empirical (default) or flat, on the same data.",
-                "Statistics of `diagnostics.truth_check` (3 × (K − 1) free coordinates per board)."]
+                "Statistics of `diagnostics.stats.truth_check` (3 × (K − 1) free coordinates per board)."]
     lines = [
         "# Calibration of the posterior: empirical-Bayes prior on φ (default) against the flat prior"
         + (" — 22 boards" if args.set == "boards" else ""),

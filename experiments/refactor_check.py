@@ -95,9 +95,9 @@ import torch
 DEG = math.pi / 180
 
 # the 7adf109 paths this file imports -> their homes since 0.1
-OLD_PATHS = {"arrays": "physics.arrays", "models": "physics.models", "motion": "physics.motion",
+OLD_PATHS = {"arrays": "physics.arrays", "models": "physics.models", "motion": "physics.motion_generators",
              "geometry": "physics.geometry", "recording": "data.recording", "intrinsics": "prep.intrinsics",
-             "motion_estimation": "inference.motion"}
+             "motion_estimation": "inference.motion_estimate"}
 
 
 def _bind_old_paths() -> None:
@@ -195,7 +195,7 @@ def run_selfcal(out: dict):
 
 def _process_motion():
     """``simulate_process_motion`` from its 7adf109 home (``inference.selfcal``) or, in a tree where
-    the self-calibration became a package, from the motion generators (``physics.motion``)."""
+    the self-calibration became a package, from the motion generators (``physics.motion_generators``)."""
     try:
         from accel_bayes.inference.selfcal import simulate_process_motion
     except ImportError:

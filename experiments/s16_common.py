@@ -20,7 +20,7 @@ from accel_bayes import s16_plate
 from accel_bayes.constants import DEG_TO_RAD
 from accel_bayes.physics import models
 from accel_bayes.physics.geometry import boxplus
-from accel_bayes.physics.motion import smooth_motion, table_motion
+from accel_bayes.physics.motion_generators import smooth_motion, table_motion
 
 RATE = 125.0
 T_S16 = 675  # 5.4 s at 125 Hz ([S16] §V)

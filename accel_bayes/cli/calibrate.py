@@ -38,7 +38,7 @@ INTRINSICS_MODES = ("auto", "estimate", "none")
 
 def register(sub) -> None:
     from ..pipelines.calibrate_defaults import DEFAULTS
-    from ..data.outputs import OVERWRITE_DIR_HELP
+    from ..data.output_sets import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "calibrate",
@@ -169,7 +169,7 @@ def _correlation(s: str):
 def _run(args) -> int:
     from pathlib import Path
 
-    from ..data.outputs import OutputDir
+    from ..data.output_sets import OutputDir
     from ..data.paths import require_file
     from ..pipelines.calibrate_options import CalibrateOptions
 
@@ -220,7 +220,7 @@ def _longer_hint(settings) -> str:
 def format_table(res) -> str:
     """IMU, posterior mean (mm), std (µm), worst R̂ and smallest bulk ESS over its 3 coordinates
     ("n/a" where they cannot be computed: one chain, a few draws)."""
-    from ..diagnostics import format_stat
+    from ..diagnostics.stats import format_stat
 
     summ = res.summary
     doc = res.positions

@@ -5,7 +5,7 @@ from . import _options as opt
 
 
 def register(sub) -> None:
-    from ..data.outputs import OVERWRITE_DIR_HELP
+    from ..data.output_sets import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "demo",
@@ -27,7 +27,7 @@ def _run(args) -> int:
     import json
     from pathlib import Path
 
-    from ..data.outputs import OutputDir
+    from ..data.output_sets import OutputDir
     from ._status import EXIT_OK, untrusted
 
     OutputDir(args.out, overwrite=args.overwrite).check()  # refused before torch is imported; run_demo opens it

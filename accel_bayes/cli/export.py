@@ -47,7 +47,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..data.outputs import OutputDir, OutputFile
+    from ..data.output_sets import OutputDir
+    from ..data.outputs import OutputFile
     from ..data.paths import require_file
     from ..errors import UserError
 

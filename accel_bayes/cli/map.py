@@ -14,7 +14,7 @@ from . import _options as opt
 
 
 def register(sub) -> None:
-    from ..data.outputs import OVERWRITE_DIR_HELP
+    from ..data.output_sets import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "map",
@@ -44,7 +44,7 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from ..data.outputs import OutputDir
+    from ..data.output_sets import OutputDir
     from ..data.paths import require_file
     from ._status import EXIT_OK, untrusted
 

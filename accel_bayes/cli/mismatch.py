@@ -15,7 +15,7 @@ from . import _options as opt
 
 
 def register(subparsers) -> None:
-    from ..data.outputs import OVERWRITE_DIR_HELP
+    from ..data.output_sets import OVERWRITE_DIR_HELP
 
     p = subparsers.add_parser(
         "mismatch",
@@ -45,7 +45,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..data.outputs import OutputDir
+    from ..data.output_sets import OutputDir
     from ..data.paths import require_file
     from ..mismatch.options import DetectOptions
 

@@ -2,7 +2,7 @@
 [--seed S] [--geometry draws|linear]``.
 
 Estimates ω, ω̇ and the specific force s (at the calibration's reference IMU) for every sample of
-REC from a calibrated array (:mod:`accel_bayes.inference.motion`), with their uncertainty
+REC from a calibrated array (:mod:`accel_bayes.inference.motion_estimate`), with their uncertainty
 (measurement noise + the calibration's position uncertainty), writes them as NetCDF and prints
 a summary.
 """

@@ -34,7 +34,7 @@ from ._status import EXIT_DIVERGED, EXIT_OK, untrusted
 
 
 def register(sub) -> None:
-    from ..data.outputs import OVERWRITE_DIR_HELP
+    from ..data.output_sets import OVERWRITE_DIR_HELP
 
     p = sub.add_parser(
         "selfcal",
@@ -75,7 +75,7 @@ def _fail(msg: str) -> int:
 
 
 def _run(args) -> int:
-    from ..data.outputs import OutputDir
+    from ..data.output_sets import OutputDir
     from ..data.paths import require_file
 
     # what the file system decides, before torch is imported: the input is there, the target usable

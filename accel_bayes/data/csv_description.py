@@ -20,7 +20,7 @@ import torch
 from ..constants import DEG_TO_RAD, G0
 from ..errors import UserError
 from ..physics.geometry import matrix_to_quat
-from .validation import units_kind
+from .format_v1 import units_kind
 
 __all__ = ["ImuSpec", "ArraySpec", "read_array_description", "AXES", "SENSORS"]
 

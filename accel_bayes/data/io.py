@@ -6,7 +6,7 @@
   temporary file in the target directory, fsynced, then :func:`os.replace`), so a failed write
   never leaves a half-written or corrupted file, and an existing file is only replaced with
   ``overwrite=True``.  Reading never modifies the file and
-  validates it (:mod:`accel_bayes.data.validation`); files from other tools that follow the contract
+  validates it (:mod:`accel_bayes.data.format_v1`, :mod:`accel_bayes.data.validation`); files from other tools that follow the contract
   are accepted (no ``format`` attribute, bool masks stored as integers, float32 data, an
   explicit ``units = "deg s-1"`` on ``gyro``, which is converted).
 * :func:`write_truth` / :func:`read_truth`: simulator ground truth in a JSON sidecar
@@ -30,15 +30,8 @@ from .paths import require_file, truth_path
 from ..constants import DEG_TO_RAD
 from ..errors import RecordingError, UserError
 from .recording import Recording
-from .validation import (
-    FORMAT,
-    VARIABLES,
-    COORDS,
-    gyro_declared_units,
-    units_kind,
-    validate_dataset,
-    validate_recording,
-)
+from .format_v1 import COORDS, FORMAT, VARIABLES, gyro_declared_units, units_kind, validate_dataset
+from .validation import validate_recording
 
 __all__ = [
     "FORMAT",
@@ -184,7 +177,7 @@ def recording_to_dataset(rec: Recording):
 def recording_from_dataset(ds, *, require_gyro: bool = False, check_gyro_units: bool = True) -> Recording:
     """Build and validate a :class:`Recording` from a format-v1 dataset (fully loaded).
 
-    Structure is checked first (:func:`~accel_bayes.data.validation.validate_dataset`), then the
+    Structure is checked first (:func:`~accel_bayes.data.format_v1.validate_dataset`), then the
     recording (:func:`~accel_bayes.data.validation.validate_recording`).  Conversions made here are
     only those the file declares or the contract implies: float32 → float64, 0/1 integer masks →
     bool, gyro declared ``"deg s-1"`` → rad/s, scalar noise attributes → per-IMU arrays.

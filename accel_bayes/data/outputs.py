@@ -1,4 +1,4 @@
-"""Output files and output directories: the one atomic writer and the output-set rules (DESIGN §7.5).
+"""Output files: the one atomic writer, ``-o FILE`` targets and JSON values (DESIGN §7.5).
 
 Files
     Every file the package writes goes through :func:`atomic_path` (or its wrappers
@@ -18,41 +18,18 @@ Files
     Once one file of an open target (FILE or a sidecar) has been replaced, the others are written
     even after a SIGINT/SIGTERM, so a recording and its truth file never come from two runs.
 
-``--out DIR`` targets (:class:`OutputDir`): one consistent set
-    Checked before any computation (not a file, no file on the way, writable parent; a non-empty
-    DIR is refused without ``--overwrite``, except ``--resume`` of the run in it).  What a run may
-    remove from DIR is exactly: the files listed in the ``files`` of its marker
-    :data:`SET_MARKER`, the marker, the ``keep`` files (``checkpoint.pt``) and the temporary files
-    of their killed writers.  **Anything else in DIR — a user's file, hidden file, folder or link —
-    makes the run refuse** (with or without ``--overwrite``, also with ``--resume``), in one line
-    naming it, before any computation and again just before the swap; nothing is kept aside.  A
-    DIR that contains an input of the run is refused too.  ``--out .`` (or ``..``) is taken as the
-    directory's absolute path, so its lock and staging folder lie beside it, not in it.
-    The results are written into a staging directory beside DIR (``.DIR.partial-<pid>-<hex8>``),
-    the marker is added last, and the set is moved into place only when complete: DIR (if any) is
-    renamed aside (``.DIR.old-<pid>-<hex8>``), the staging directory renamed to DIR, and the listed
-    files of the old set deleted.  A run killed at any moment therefore leaves either the previous
-    set, or no DIR at all, plus possibly those hidden siblings.  Files that must survive a killed
-    run (calibrate's ``checkpoint.pt``) live in DIR itself and are carried into the new set.
-
-Leftovers
-    The next run into a target removes the hidden siblings of dead runs into *that* target only:
-    the parent folder is listed and each name parsed against the exact schemes above
-    (``.NAME.partial-<pid>-<hex8>``, ``.NAME.old-<pid>-<hex8>``, ``.NAME.<pid>-<hex8>.tmp``, NAME
-    escaped) — never a glob built from NAME — and only when that pid no longer runs.  A hidden
-    folder without a pid is never ours.  A staging folder is removed whole (only its run wrote
-    into it); an old set loses only what its marker lists, so a file put there survives.
+``--out DIR`` targets
+    One consistent set of results: :class:`accel_bayes.data.output_sets.OutputDir`.
 
 Signals
     SIGINT/SIGTERM only set a flag (:mod:`accel_bayes.interrupts`); every writer checks it just
-    before making a file (:func:`atomic_path`) or a set (:meth:`OutputDir.commit`) visible and
-    then discards what it staged, leaving the earlier output as it was.
+    before making a file (:func:`atomic_path`) or a set
+    (:meth:`~accel_bayes.data.output_sets.OutputDir.commit`) visible and then discards what it
+    staged, leaving the earlier output as it was.
 
 Locks
-    A target being written is locked by a sibling file ``.NAME.lock`` created with ``O_EXCL``
-    and holding ``<pid> <host>``; a second run into the same target is refused with one line.
-    Stale-lock rule: a lock whose process no longer exists on this host (or an unreadable lock
-    older than :data:`STALE_UNREADABLE_S` seconds) is removed and taken over.
+    A target being written is locked by a sibling ``.NAME.lock``; a second run into it is refused
+    with one line (:mod:`accel_bayes.data.output_siblings`).
 
 All refusals are :class:`~accel_bayes.errors.UserError` with one line naming the option
 (``--out`` / ``-o``) and what was expected; the CLI turns them into exit status 2.
@@ -62,17 +39,13 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import re
 import secrets
-import shutil
-import signal
-import socket
-import time
 from contextlib import contextmanager
 from pathlib import Path
 
 from .. import interrupts
 from ..errors import UserError
+from .output_siblings import acquire_lock, hidden_siblings, pid_alive
 
 __all__ = [
     "to_jsonable",
@@ -86,16 +59,11 @@ __all__ = [
     "write_csv",
     "save_figure",
     "OutputFile",
-    "OutputDir",
     "abort_open",
     "display_path",
-    "lock_path",
-    "hold_lock",
-    "STALE_UNREADABLE_S",
-    "SET_MARKER",
-    "SET_SCHEMA",
-    "is_output_set",
-    "OVERWRITE_DIR_HELP",
+    "Target",
+    "OPEN_TARGETS",
+    "fsync_dir",
 ]
 
 
@@ -165,22 +133,11 @@ def _plain(obj, null: bool, unknown: str, where: str):
         return obj
     raise UserError(f"{where}: cannot store a {type(obj).__name__} as JSON; convert it to numbers, strings or arrays")
 
-# Written last into every committed --out DIR: what --overwrite is allowed to replace.
-SET_MARKER = ".accel-bayes-set.json"
-SET_SCHEMA = "accel_bayes.output_set/1"
-
-# The --overwrite help of every --out DIR command (one wording everywhere).
-OVERWRITE_DIR_HELP = ("replace the earlier results in a non-empty --out DIR (only a set written by accel-bayes; "
-                      "refused otherwise)")
-
-# A lock file is written in one small write right after its O_EXCL creation; one that still
-# cannot be parsed after this long belongs to a process that died in between.
-STALE_UNREADABLE_S = 60.0
-
 
 # ---------------------------------------------------------------- the one atomic writer
 
-def _fsync_dir(d: Path) -> None:
+def fsync_dir(d: Path) -> None:
+    """Flush directory ``d``'s entries to disk (best effort)."""
     # The rename itself is durable only once the directory entry is on disk.
     try:
         fd = os.open(d, os.O_RDONLY)
@@ -222,14 +179,14 @@ def _temp_sibling(path: Path) -> Path:
 def _commit_file(tmp: Path, path: Path) -> None:
     with open(tmp, "rb+") as f:  # data on disk before the rename makes it visible
         os.fsync(f.fileno())
-    started = [t for t in _OPEN if isinstance(t, OutputFile) and t.started]
+    started = [t for t in OPEN_TARGETS if isinstance(t, OutputFile) and t.started]
     if not started:  # once one file of a command is replaced, its others follow (no mix of two runs)
         interrupts.check()  # the last moment a SIGINT/SIGTERM can still keep the old file
     os.replace(tmp, path)
-    for t in _OPEN:
+    for t in OPEN_TARGETS:
         if isinstance(t, OutputFile) and t.owns(path):
             t.started = True
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 @contextmanager
@@ -337,90 +294,16 @@ def check_not_inputs(targets: dict, inputs: dict) -> None:
                                 "input: choose another file")
 
 
-# ---------------------------------------------------------------- locks
-
-def lock_path(target) -> Path:
-    """The lock file of an output target: ``.NAME.lock`` beside it."""
-    target = Path(target)
-    return target.parent / f".{target.name}.lock"
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
-
-
-def _lock_owner(lock: Path):
-    """(pid, host) written in ``lock``, or None when it cannot be read or parsed."""
-    try:
-        pid, host = lock.read_text(encoding="utf-8").split()[:2]
-        return int(pid), host
-    except (OSError, ValueError):
-        return None
-
-
-def _is_stale(lock: Path) -> bool:
-    owner = _lock_owner(lock)
-    if owner is None:
-        try:
-            return time.time() - lock.stat().st_mtime > STALE_UNREADABLE_S
-        except FileNotFoundError:
-            return True
-    pid, host = owner
-    return host == socket.gethostname() and not _pid_alive(pid)
-
-
-def _acquire(target: Path, flag: str) -> Path:
-    lock = lock_path(target)
-    for _ in range(2):  # a second try after removing a stale lock
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            if _is_stale(lock):
-                lock.unlink(missing_ok=True)
-                continue
-            owner = _lock_owner(lock)
-            who = f"pid {owner[0]} on {owner[1]}" if owner else "another process"
-            raise UserError(f"{flag}: {target} is being written by another accel-bayes run ({who}); "
-                            f"wait for it, or delete {lock} if that run is gone") from None
-        except OSError as exc:
-            raise UserError(f"{flag}: cannot write in {lock.parent} ({exc.strerror or exc})") from None
-        try:
-            os.write(fd, f"{os.getpid()} {socket.gethostname()}\n".encode())
-        except OSError as exc:
-            os.close(fd)
-            lock.unlink(missing_ok=True)
-            raise UserError(f"{flag}: cannot write in {lock.parent} ({exc.strerror or exc})") from None
-        os.close(fd)
-        return lock
-    raise UserError(f"{flag}: {target} is being written by another accel-bayes run; lock {lock}")
-
-
-@contextmanager
-def hold_lock(target, flag: str = "--out"):
-    """Hold the lock of ``target`` for the duration of the block (what a running command does)."""
-    lock = _acquire(Path(target), flag)
-    try:
-        yield lock
-    finally:
-        lock.unlink(missing_ok=True)
-
-
 # ---------------------------------------------------------------- output targets
 
-_OPEN: list = []  # targets opened and neither committed nor aborted (aborted by the CLI on error)
+OPEN_TARGETS: list = []  # targets opened and neither committed nor aborted (aborted by the CLI on error)
 
 
 def display_path(p) -> str:
     """``p`` as the user knows it: a path inside the staging directory of an open
     :class:`OutputDir` is shown at its place in DIR."""
-    for t in _OPEN:
-        if isinstance(t, OutputDir) and t._staged:
+    for t in OPEN_TARGETS:
+        if t._staged:
             q = t.final(p)
             if q != Path(p):
                 return str(q)
@@ -430,12 +313,21 @@ def display_path(p) -> str:
 def abort_open() -> None:
     """Abort every output target still open: staged files deleted, locks released.  The CLI
     calls this after each command, so that an error or interrupt leaves nothing behind."""
-    while _OPEN:
-        _OPEN[-1].abort()
+    while OPEN_TARGETS:
+        OPEN_TARGETS[-1].abort()
 
 
-class _Target:
+class Target:
+    """An output target being written (:class:`OutputFile`, :class:`~accel_bayes.data.output_sets.OutputDir`):
+    a context manager that commits on a clean exit and aborts on an exception."""
+
     flag = "--out"
+    _staged = False  # an OutputDir's staging directory holds this run's files
+
+    def final(self, p) -> Path:
+        """Where a path written for this target ends up once committed (itself, but for an
+        OutputDir's staged files)."""
+        return Path(p)
 
     def __enter__(self):
         return self.open()
@@ -453,11 +345,11 @@ class _Target:
         if self._lock is not None:
             self._lock.unlink(missing_ok=True)
             self._lock = None
-        if self in _OPEN:
-            _OPEN.remove(self)
+        if self in OPEN_TARGETS:
+            OPEN_TARGETS.remove(self)
 
 
-class OutputFile(_Target):
+class OutputFile(Target):
     """An ``-o FILE`` target (plus sidecar files written beside it, e.g. ``rec.truth.json``).
 
     :meth:`open` checks every path (:func:`check_file_target`) and locks FILE; the writers then
@@ -479,8 +371,8 @@ class OutputFile(_Target):
     def open(self) -> "OutputFile":
         for p in (self.path, *self.also):
             check_file_target(p, overwrite=self.overwrite, flag=self.flag)
-        self._lock = _acquire(self.path, self.flag)
-        _OPEN.append(self)
+        self._lock = acquire_lock(self.path, self.flag)
+        OPEN_TARGETS.append(self)
         try:
             for p in (self.path, *self.also):  # again, under the lock: another run may have written it
                 check_file_target(p, overwrite=self.overwrite, flag=self.flag)
@@ -488,8 +380,8 @@ class OutputFile(_Target):
             self.abort()
             raise
         for p in (self.path, *self.also):  # temporary files of killed writers of these targets
-            for tmp, pid in _siblings(p, ("",), ".tmp"):
-                if pid != os.getpid() and not _pid_alive(pid) and not tmp.is_dir():
+            for tmp, pid in hidden_siblings(p, ("",), ".tmp"):
+                if pid != os.getpid() and not pid_alive(pid) and not tmp.is_dir():
                     tmp.unlink(missing_ok=True)
         return self
 
@@ -497,264 +389,4 @@ class OutputFile(_Target):
         self._release()
 
     def abort(self) -> None:
-        self._release()
-
-
-def is_output_set(d) -> bool:
-    """Whether directory ``d`` holds an output set committed by :class:`OutputDir` (its marker)."""
-    try:
-        return json.loads((Path(d) / SET_MARKER).read_text(encoding="utf-8")).get("schema") == SET_SCHEMA
-    except (OSError, ValueError, AttributeError):
-        return False
-
-
-@contextmanager
-def _signals_held():
-    # The two renames of a commit are not interrupted half-way; a Ctrl-C or SIGTERM arriving
-    # meanwhile is delivered right after.
-    sigs = {signal.SIGINT, signal.SIGTERM}
-    try:
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
-    except (AttributeError, OSError, ValueError):
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
-def _nearest_existing(p: Path) -> Path:
-    for a in (p, *p.parents):
-        if a.exists():
-            return a
-    return Path(".")
-
-
-def _siblings(target: Path, kinds, suffix: str = ""):
-    """(path, pid) of the hidden siblings this package's writers make for ``target``:
-    ``.NAME.<kind><pid>-<hex8><suffix>`` for each kind in ``kinds`` (e.g. "partial-", "old-", or ""
-    for the temporary files of :func:`atomic_path`).  The directory is listed and each name parsed
-    exactly (NAME escaped), never globbed: a NAME holding ``*`` or ``[`` matches only itself, and a
-    name without a pid is never taken for ours."""
-    alts = "|".join(re.escape(k) for k in kinds)
-    pat = re.compile(rf"\.{re.escape(target.name)}\.(?:{alts})([0-9]+)-[0-9a-f]{{8}}{re.escape(suffix)}")
-    try:
-        names = os.listdir(target.parent)
-    except OSError:
-        return []
-    return [(target.parent / n, int(m.group(1))) for n in names if (m := pat.fullmatch(n))]
-
-
-def _set_files(d: Path) -> set[str]:
-    """The files the marker of the output set in ``d`` lists (relative POSIX paths); empty when
-    ``d`` holds no valid marker."""
-    try:
-        doc = json.loads((d / SET_MARKER).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return set()
-    files = doc.get("files") if isinstance(doc, dict) and doc.get("schema") == SET_SCHEMA else None
-    return {f for f in files if isinstance(f, str)} if isinstance(files, list) else set()
-
-
-def _ours(d: Path, keep) -> tuple[set[str], list[str]]:
-    """Split the content of directory ``d`` into what this package may remove — the files its set
-    marker lists, the marker, the ``keep`` files and the temporary files of their killed writers —
-    and the rest (sorted relative paths; an empty folder the set does not need ends in "/").
-    Symbolic links are entries, never followed."""
-    listed = _set_files(d) | set(keep) | {SET_MARKER}
-    ours, other = set(), []
-    for root, dirs, files in os.walk(d):
-        rel = Path(os.path.relpath(root, d))
-        links = [x for x in dirs if os.path.islink(os.path.join(root, x))]
-        for name in files + links:
-            r = (rel / name).as_posix()
-            tmp = re.fullmatch(r"\.(.+)\.[0-9]+-[0-9a-f]{8}\.tmp", name)
-            if r in listed or (tmp and (rel / tmp.group(1)).as_posix() in listed):
-                ours.add(r)
-            else:
-                other.append(r)
-        if not files and not dirs and rel != Path("."):
-            r = rel.as_posix()
-            if not any(f.startswith(r + "/") for f in listed):
-                other.append(r + "/")
-    return ours, sorted(other)
-
-
-def _remove_set(d: Path, keep=()) -> list[str]:
-    """Remove from ``d`` what :func:`_ours` says is ours, then the folders that became empty and
-    ``d`` itself if empty; returns what was left (files this package did not write)."""
-    if d.is_symlink():  # a DIR given as a link was moved aside as the link: its target is not ours
-        d.unlink(missing_ok=True)
-        return []
-    ours, other = _ours(d, keep)
-    for r in ours:
-        (d / r).unlink(missing_ok=True)
-    for root, _, _ in sorted(os.walk(d, topdown=False), key=lambda w: -len(w[0])):
-        with contextlib.suppress(OSError):
-            os.rmdir(root)  # only empty ones go
-    return other
-
-
-class OutputDir(_Target):
-    """An ``--out DIR`` target written as one consistent set (see the module docstring).
-
-    ``keep`` names files that live in DIR itself during the run (``checkpoint.pt``) and are
-    carried into the committed set; ``resume`` allows a non-empty DIR that holds one of them.
-    ``inputs`` are the run's input files: a DIR that contains one is never replaced.
-    After :meth:`open`, write into :attr:`staging` (or ``self / "name"``); :meth:`commit` moves
-    the set into place; :meth:`final` maps a staged path to its place in DIR."""
-
-    def __init__(self, path, *, overwrite: bool = False, resume: bool = False, keep=(), inputs=(),
-                 flag: str = "--out"):
-        self.target = Path(path)
-        if self.target.name in ("", ".", ".."):
-            # "--out ." names the directory by its own name in its parent, where the lock and the
-            # staging folder go (inside it they would make it "not empty" and be swapped with it)
-            self.target = Path(os.path.abspath(self.target))
-        self.overwrite = bool(overwrite)
-        self.resume = bool(resume)
-        self.keep = tuple(keep)
-        self.inputs = [Path(p) for p in inputs if p is not None]
-        self.flag = flag
-        self.staging: Path | None = None
-        self._staged = False  # the staging directory exists and holds this run's files
-        self._lock = None
-
-    def __truediv__(self, name) -> Path:
-        return self.staging / name
-
-    def final(self, p) -> Path:
-        """Where a staged path ``p`` ends up after :meth:`commit`."""
-        p = Path(p)
-        if self.staging is None:
-            return p
-        try:
-            return self.target / p.relative_to(self.staging)
-        except ValueError:
-            return p
-
-    def check(self) -> None:
-        """Refuse a target that cannot hold the results (no side effects)."""
-        t, f = self.target, self.flag
-        if t.exists() and not t.is_dir():
-            raise UserError(f"{f}: {t} exists and is not a directory")
-        if not t.exists():
-            a = _nearest_existing(t.parent)
-            if not a.is_dir():
-                raise UserError(f"{f}: {t}: {a} is a file, not a directory")
-        else:
-            names = {e.name for e in t.iterdir()}
-            if not names:
-                return
-            resuming = self.resume and names & set(self.keep)
-            if not self.overwrite and not resuming:
-                raise UserError(f"{f}: {t} is not empty; pass --overwrite to replace its contents "
-                                "(or choose another directory)")
-            inside = [p for p in self.inputs if p.exists() and t.resolve() in p.resolve().parents]
-            if inside:
-                raise UserError(f"{f}: {t} contains the input {inside[0]}, which replacing the results would "
-                                "delete; choose another directory")
-            self._refuse_foreign()
-
-    def _refuse_foreign(self) -> None:
-        # The set's own list is the only list of what may go; anything else stops the run here,
-        # before any computation (and again just before the swap, for a file added meanwhile).
-        t, f = self.target, self.flag
-        _, other = _ours(t, self.keep)
-        if not other:
-            return
-        more = f" and {len(other) - 1} more" if len(other) > 1 else ""
-        if not is_output_set(t):
-            raise UserError(f"{f}: {t} holds files that accel-bayes did not write ({other[0]}{more}; no "
-                            f"{SET_MARKER}); --overwrite replaces only an earlier output set: choose another "
-                            "directory")
-        raise UserError(f"{f}: {t} holds {other[0]}{more}, which its output set does not list; accel-bayes "
-                        "removes only the files of its own set: move it out or choose another directory")
-
-    def open(self) -> "OutputDir":
-        """Check the target, lock it and create the staging directory, before any computation."""
-        self.check()
-        t = self.target
-        try:
-            t.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"{self.flag}: cannot create {t.parent} ({exc.strerror or exc})") from None
-        self._lock = _acquire(t, self.flag)
-        _OPEN.append(self)
-        try:
-            self.check()  # again, under the lock: a run that finished meanwhile may have filled DIR
-            self._remove_leftovers()
-            self.staging = t.parent / f".{t.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
-            self.staging.mkdir()
-            self._staged = True
-        except OSError as exc:
-            self.abort()
-            raise UserError(f"{self.flag}: cannot write in {t.parent} ({exc.strerror or exc})") from None
-        except BaseException:
-            self.abort()
-            raise
-        return self
-
-    def ensure_target(self) -> Path:
-        """Create DIR itself (for files that must outlive a killed run, such as checkpoints)."""
-        self.target.mkdir(exist_ok=True)
-        return self.target
-
-    def _remove_leftovers(self) -> None:
-        # Hidden siblings of killed runs into this target (exact names with the writer's pid); we
-        # hold the lock, so their writers are gone unless the pid is alive (then left alone).  A
-        # staging folder holds only what its run wrote; an old set loses only the files its marker
-        # lists, so a file someone put there survives.
-        for p, pid in _siblings(self.target, ("partial-", "old-")):
-            if pid == os.getpid() or _pid_alive(pid):
-                continue
-            if p.name.startswith(f".{self.target.name}.partial-") and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                _remove_set(p, self.keep)
-
-    def commit(self) -> None:
-        """Move the staged set into place (old set or nothing at every instant) and unlock."""
-        if not self._staged:
-            return
-        t, s = self.target, self.staging
-        for name in self.keep:
-            src, dst = t / name, s / name
-            if src.is_file() and not dst.exists():
-                try:
-                    os.link(src, dst)
-                except OSError:
-                    shutil.copy2(src, dst)
-        from .. import __version__
-
-        files = sorted(str(p.relative_to(s)) for p in s.rglob("*") if p.is_file())
-        write_json(s / SET_MARKER, {"schema": SET_SCHEMA, "written_by": f"accel-bayes {__version__}",
-                                    "pid": os.getpid(), "time": time.time(), "files": files})
-        _fsync_dir(s)
-        if t.is_dir():
-            self._refuse_foreign()
-        interrupts.check()  # the last moment a SIGINT/SIGTERM can still keep the old set
-        old = None
-        with _signals_held():
-            if t.exists():
-                old = t.parent / f".{t.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
-                os.rename(t, old)
-            try:
-                os.rename(s, t)
-            except BaseException:
-                if old is not None:
-                    os.rename(old, t)  # put the previous set back
-                raise
-            self._staged = False
-        _fsync_dir(t.parent)
-        if old is not None:
-            _remove_set(old, self.keep)  # what is left (added during the swap) stays in .NAME.old-*
-        self._release()
-
-    def abort(self) -> None:
-        """Delete the staged files and unlock; DIR keeps what it held."""
-        if self._staged:
-            shutil.rmtree(self.staging, ignore_errors=True)
-            self._staged = False
         self._release()

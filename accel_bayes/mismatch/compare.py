@@ -4,7 +4,7 @@
 effect is in the model, and it says so), log-likelihood, ELPD by PSIS-LOO over time samples
 (:func:`elpd_loo`: pointwise log-likelihood at Laplace draws of the globals, with each sample's
 motion state re-profiled through the local linearisation; the ArviZ calls, ``az.loo`` and
-``az.compare``, are :func:`accel_bayes.diagnostics.psis_loo` / :func:`~accel_bayes.diagnostics.compare_loo`)
+``az.compare``, are :func:`accel_bayes.diagnostics.arviz_calls.psis_loo` / :func:`~accel_bayes.diagnostics.arviz_calls.compare_loo`)
 and the geometry before/after.  :func:`posterior_comparison` additionally runs
 :func:`accel_bayes.pipelines.calibrate.calibrate` (PmMH) on the recording before and after correction
 (:func:`corrected_recording`).
@@ -37,8 +37,8 @@ def elpd_loo(fit: ModelFit, *, draws: int = 200, seed: int = 0):
 
 def _elpd_loo(fit: ModelFit, *, draws: int = 200, seed: int = 0):
     """:func:`elpd_loo` plus ArviZ's ``ELPDData`` (pointwise), which :func:`compare_fits` hands
-    to :func:`accel_bayes.diagnostics.compare_loo` so that PSIS-LOO is not recomputed there."""
-    from ..diagnostics import psis_loo  # lazy: ArviZ and matplotlib only when a comparison is made
+    to :func:`accel_bayes.diagnostics.arviz_calls.compare_loo` so that PSIS-LOO is not recomputed there."""
+    from ..diagnostics.arviz_calls import psis_loo  # lazy: ArviZ and matplotlib only when a comparison is made
 
     lin = fit.linear()
     n = lin.n
@@ -107,7 +107,7 @@ def compare_fits(before: ModelFit, after: ModelFit, *, draws: int = 200, seed: i
     }
     if loo:
         try:
-            from ..diagnostics import compare_loo  # lazy, as in _elpd_loo
+            from ..diagnostics.arviz_calls import compare_loo  # lazy, as in _elpd_loo
 
             e0, _, loo0 = _elpd_loo(before, draws=draws, seed=seed)
             e1, _, loo1 = _elpd_loo(after, draws=draws, seed=seed + 1)

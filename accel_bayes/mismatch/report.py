@@ -240,9 +240,9 @@ class MismatchReport:
         return paths
 
     def save_figures(self, out: Path) -> dict:
-        """The report's figures (drawn by :func:`accel_bayes.diagnostics.save_mismatch_figures`,
+        """The report's figures (drawn by :func:`accel_bayes.diagnostics.mismatch_figures.save_mismatch_figures`,
         where every plot of the package lives); returns {name: path}."""
-        from ..diagnostics import save_mismatch_figures  # lazy: matplotlib only when writing figures
+        from ..diagnostics.mismatch_figures import save_mismatch_figures  # lazy: matplotlib only when writing figures
         from .locate import CHANNELS
 
         refined = self.location_after is not None and self.refined_fit is not None

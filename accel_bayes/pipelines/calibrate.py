@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .. import __version__
-from .. import diagnostics as dg
+from ..diagnostics import arviz_calls as dg_az, plots as dg_plots, stats as dg_stats
 from ..data import positions as _positions_mod
 from ..data.outputs import to_jsonable, write_text
 from ..errors import UserError
@@ -70,7 +70,7 @@ class CalibrationResult:
 
     idata : ``az.InferenceData`` (posterior ``r`` (chain, draw, imu, axis), m, relative to the
         reference triad; sample stats; log-likelihood estimates).
-    summary : pandas DataFrame from :func:`accel_bayes.diagnostics.summarize` (R̂, ESS, MCSE).
+    summary : pandas DataFrame from :func:`accel_bayes.diagnostics.arviz_calls.summarize` (R̂, ESS, MCSE).
     positions : the DESIGN §7.3 ``positions.json`` document (a dict).
     settings : every setting used (including the N chosen and its variance table).
     seconds : wall time of the whole calibration.
@@ -205,12 +205,12 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
 
         # step 7, summary: ArviZ diagnostics and the positions document
         N = draws.num_draws
-        idata = dg.to_inference_data(
+        idata = dg_az.to_inference_data(
             run.theta, free_labels, run.log_phat, log_prior=run.log_prior, accepted=run.accepted,
             accept_prob=run.accept_prob, step_size=run.step_size, reference_imu=ref_label,
             attrs={"method": "pmmh", "num_draws": int(N), "seed": opts.seed, "accel_bayes_version": __version__},
         )
-        summary = dg.summarize(idata)
+        summary = dg_az.summarize(idata)
         seconds = time.perf_counter() - t0
         settings.update(_convergence_settings(run, opts))
         settings["acceptance_rate"] = [float(a) for a in run.acceptance_rate]
@@ -227,11 +227,11 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
     """The DESIGN §7.3 document for a PmMH posterior (built by :mod:`accel_bayes.data.positions`, the
     one writer of the format): every IMU sorted by label, posterior mean/std/cov of its triad
     position relative to the reference IMU (array frame, m; zeros for the reference), R̂/ESS
-    diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.convergence_check`
+    diagnostics (``converged`` and ``warnings`` by :func:`accel_bayes.diagnostics.stats.convergence_check`
     with the criteria of ``settings["convergence"]`` (default R̂ < 1.01, bulk and tail ESS ≥ 400);
     R̂/ESS are null where they cannot be computed; the draws per chain, the number of checks and
     why the run stopped) and provenance.  IMUs without an accelerometer triad get null moments."""
-    mom = dg.posterior_moments(idata)
+    mom = dg_stats.posterior_moments(idata)
     means = np.zeros((int(K), 3))
     covs = np.zeros((int(K), 3, 3))
     estimated = set(mom["imu"]) | {int(reference_imu)}
@@ -244,10 +244,10 @@ def positions_document(idata, *, K: int, reference_imu: int, seconds: float, set
             covs[k] = np.nan
     conv = settings.get("convergence") or {}
     crit = conv.get("criteria") or {}
-    x = idata.posterior[dg.VAR]
+    x = idata.posterior[dg_az.VAR]
     names = [f"r[{int(i)}, {a}]" for i in x.coords["imu"].values for a in x.coords["axis"].values]
-    chk = dg.convergence_check(x.values, rhat_max=crit.get("rhat_max", dg.RHAT_MAX),
-                               ess_min=crit.get("ess_bulk_min", dg.ESS_MIN), names=names)
+    chk = dg_stats.convergence_check(x.values, rhat_max=crit.get("rhat_max", dg_stats.RHAT_MAX),
+                               ess_min=crit.get("ess_bulk_min", dg_stats.ESS_MIN), names=names)
     reasons = list(chk.failed)
     if reasons and conv.get("stopped") in ("max_draws", "max_seconds"):
         reasons.append(f"stopped unconverged after {conv.get('draws')} draws per chain and {conv.get('checks')} "
@@ -278,17 +278,17 @@ def write_outputs(result: CalibrationResult, out_dir, *, plots: bool = True, tru
     rank.png, autocorr.png, ellipses.png into ``out_dir``, each file atomically; returns
     {name: path}.  ``truth``: (K, 3) true positions relative to the reference, m, drawn in
     ellipses.png where known (a simulation's).  The CLI passes the staging directory of an
-    :class:`accel_bayes.data.outputs.OutputDir`, so that the files appear in ``--out`` as one set."""
+    :class:`accel_bayes.data.output_sets.OutputDir`, so that the files appear in ``--out`` as one set."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: {out} exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
-    paths["posterior"] = dg.save(result.idata, out / "posterior.nc")
+    paths["posterior"] = dg_az.save(result.idata, out / "posterior.nc")
     paths["summary"] = write_text(out / "summary.csv", result.summary.to_csv())
     paths["positions"] = _positions_mod.write_positions(result.positions, out / "positions.json")
     if plots and result.array is not None:
-        for q in dg.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std"),
+        for q in dg_plots.save_plots(result.idata, result.array, out, prior_std=result.settings.get("prior_std"),
                                truth=truth):
             paths[q.stem] = q
     return paths

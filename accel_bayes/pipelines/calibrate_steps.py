@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from .. import __version__
-from .. import diagnostics as dg
+from ..diagnostics import arviz_calls as dg_az, stats as dg_stats
 from ..data.io import load_recording
 from ..errors import UserError
 from ..inference.mcmc import PMMHKernel, check_checkpoint_request, read_checkpoint, run_pmmh, run_pmmh_until
@@ -373,7 +373,7 @@ def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
                                 prior_mean=nominal_acc, prior_std=prior_std, phi_prior=lik.phi_prior)
     lap = np.sqrt(np.clip(np.diagonal(np.asarray(map_res.laplace_cov, dtype=np.float64)), 0, None))
     ratio = np.asarray(sw["std_ratio"], dtype=np.float64)
-    names = [f"r[{k}, {a}]" for k in free_labels for a in dg.AXES]
+    names = [f"r[{k}, {a}]" for k in free_labels for a in dg_az.AXES]
     return {"kappa": float(sw["kappa"]), "lags": int(sw["lags"]), "tempering_applied": kappa,
             "std_ratio_max": float(ratio.max()), "std_ratio_median": float(np.median(ratio)),
             "coordinates": names, "laplace_std_m": [float(v) for v in lap],
@@ -544,7 +544,7 @@ def _chains_step(lik, pri, draws: DrawsStep, start: StartStep, opts: CalibrateOp
         run = run_pmmh(kernel, opts.draws, opts.warmup, opts.chains, init_theta, **common)
     else:
         def check(theta):
-            return dg.convergence_check(theta.cpu(), rhat_max=opts.rhat_max, ess_min=opts.ess_target, names=names)
+            return dg_stats.convergence_check(theta.cpu(), rhat_max=opts.rhat_max, ess_min=opts.ess_target, names=names)
 
         run = run_pmmh_until(kernel, check, opts.warmup, opts.chains, init_theta, check_every=opts.check_every,
                              max_samples=opts.max_draws, max_seconds=opts.max_seconds, **common)
@@ -559,7 +559,7 @@ def _run_on_cpu(run):
 
 def _coordinate_names(imu_labels, reference: int) -> list[str]:
     """``r[imu, axis]`` of the free coordinates, in θ's order (the rows of ``summary.csv``)."""
-    return [f"r[{k}, {a}]" for i, k in enumerate(imu_labels) if i != reference for a in dg.AXES]
+    return [f"r[{k}, {a}]" for i, k in enumerate(imu_labels) if i != reference for a in dg_az.AXES]
 
 
 # why a run ended, in words (settings["convergence"]["stopped"] holds the key)

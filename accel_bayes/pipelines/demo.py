@@ -52,10 +52,10 @@ def run_demo(out_dir: str | Path = "demo_out", *, quick: bool = False, progress:
 
     ``quick`` shrinks the run (fewer samples and draws) for smoke tests.  Keyword overrides
     replace entries of :data:`DEFAULTS`.  ``out_dir`` is one output set
-    (:class:`accel_bayes.data.outputs.OutputDir`): checked before anything runs, refused when
+    (:class:`accel_bayes.data.output_sets.OutputDir`): checked before anything runs, refused when
     non-empty unless ``overwrite``, and filled only when every stage has finished.
     """
-    from ..data.outputs import OutputDir
+    from ..data.output_sets import OutputDir
 
     cfg = dict(DEFAULTS)
     if quick:
@@ -120,7 +120,7 @@ def _run_stages(od, cfg: dict, progress: bool) -> None:
     # 3–4. posterior + diagnostics ------------------------------------------------------------
     try:
         from .calibrate import CalibrateOptions, calibrate, write_outputs
-        from ..diagnostics import format_stat, truth_check
+        from ..diagnostics.stats import format_stat, truth_check
     except ImportError:
         _say("[3/5] posterior: not available in this version", log)
         report += ["## 3. Posterior", "Not available in this version.", ""]

@@ -110,7 +110,7 @@ def map_positions(recording, *, prior_std: float = DEFAULT_PRIOR_STD, gyro_metho
 
 def write_outputs(run: MapRun, out_dir) -> dict:
     """Write ``positions.json`` and ``omega.csv`` into ``out_dir`` (each file atomically; the CLI
-    passes an :class:`~accel_bayes.data.outputs.OutputDir`); returns {name: path}."""
+    passes an :class:`~accel_bayes.data.output_sets.OutputDir`); returns {name: path}."""
     out = Path(out_dir)
     paths = {"positions": write_positions(run.document, out / "positions.json")}
     paths["omega"] = write_csv(out / "omega.csv", run.omega, "time_s,omega_x_rad_s,omega_y_rad_s,omega_z_rad_s")

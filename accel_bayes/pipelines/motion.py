@@ -2,7 +2,7 @@
 
 :func:`motion` loads the recording (a format-v1 file, or a MIMU4444 stream imported on the fly),
 estimates ω, ω̇ and the specific force s at every sample with their uncertainty
-(:func:`accel_bayes.inference.motion.estimate_motion`) and summarises them (:class:`MotionRun`);
+(:func:`accel_bayes.inference.motion_estimate.estimate_motion`) and summarises them (:class:`MotionRun`);
 :func:`write_outputs` writes the ``accel_bayes.motion/1`` NetCDF file.
 """
 from __future__ import annotations
@@ -51,7 +51,7 @@ def motion(recording, calibration, *, intrinsics=None, draws: int = 200, seed: i
         uncertainty (draws re-solved per sample, or first-order "linear").
     acc_noise_std, gyro_noise_std : noise std to assume (m/s², rad/s; default the recording's).
     """
-    from ..inference.motion import estimate_motion
+    from ..inference.motion_estimate import estimate_motion
 
     if isinstance(calibration, (str, Path)) and not Path(calibration).exists():
         raise FileNotFoundError(f"{calibration}: no such calibration file")
@@ -98,6 +98,6 @@ def prepare_motion(rec, intrinsics=None):
 
 def write_outputs(run: MotionRun, path, *, overwrite: bool = False) -> Path:
     """Write the motion NetCDF file (atomically; an existing file only with ``overwrite``)."""
-    from ..inference.motion import write_motion
+    from ..inference.motion_estimate import write_motion
 
     return write_motion(run.dataset, path, overwrite=overwrite)

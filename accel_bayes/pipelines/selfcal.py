@@ -7,7 +7,7 @@ the fixed triad, the nominal poses); :func:`selfcal` runs
 DESIGN §7.3 positions document (method "selfcal", relative to the fixed IMU, Laplace std/cov with
 the motion marginalised, orientations), the ``poses.csv`` rows and the ``motion.csv`` table;
 :func:`write_outputs` writes them and ``convergence.png``
-(:func:`accel_bayes.diagnostics.plot_convergence`).  Gyroscopes are ignored.
+(:func:`accel_bayes.diagnostics.plots.plot_convergence`).  Gyroscopes are ignored.
 """
 from __future__ import annotations
 
@@ -285,7 +285,7 @@ def _process_noise_setting(pn: dict) -> dict:
 
 def write_convergence(run: SelfcalRun, out_dir, title: str = "") -> Path:
     """``convergence.png`` ([S16] Fig. 5) of a run, diverged or not."""
-    from ..diagnostics import plot_convergence
+    from ..diagnostics.plots import plot_convergence
 
     path = Path(out_dir) / "convergence.png"
     plot_convergence(run.result.full_cost_log, run.result.n_constraints, path, title=title)

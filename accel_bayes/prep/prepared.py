@@ -3,7 +3,7 @@ frozen :class:`PreparedRecording` — which IMUs, which samples, the array-frame
 noise — with the checks every fit needs, once.
 
 Every fit takes it: the likelihood (``RaoBlackwellLikelihood.from_recording``), the MAP
-(``inference.map.fit_map_recording``), motion estimation (``inference.motion.estimate_motion``),
+(``inference.map.fit_map_recording``), motion estimation (``inference.motion_estimate.estimate_motion``),
 self-calibration (``pipelines.selfcal.prepare``) and the mismatch fits
 (``mismatch.prepared.Prepared`` is made from one).  The fits no longer take ``select=``,
 ``min_rotation=`` or ``drop_clipped=``: the samples are chosen here (0.2.0);

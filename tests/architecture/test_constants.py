@@ -30,12 +30,12 @@ def test_file_format_strings_are_the_contracts_not_module_paths():
     must not change them, or every file written before the move is refused.  Literal values
     from DESIGN §7 and the files written by 7adf109."""
     from accel_bayes.data.positions import POSITIONS_SCHEMA
-    from accel_bayes.data.validation import FORMAT
+    from accel_bayes.data.format_v1 import FORMAT
     from accel_bayes.data.io import TRUTH_SCHEMA
     from accel_bayes.data.mismatch_report import SCHEMA as MISMATCH_SCHEMA
     from accel_bayes.prep.intrinsics import SCHEMA as INTRINSICS_SCHEMA
     from accel_bayes.inference.mcmc.checkpoint import CHECKPOINT_FORMAT
-    import accel_bayes.inference.motion as me
+    import accel_bayes.inference.motion_estimate as me
 
     assert FORMAT == "accel_bayes.recording/1"
     assert POSITIONS_SCHEMA == "accel_bayes.positions/1"

@@ -4,8 +4,8 @@
   dependencies: the old ``mismatch`` cycle locate → refine → report → locate ran through them,
   which the module-level check, :func:`test_no_import_cycle` below, cannot see);
 * ``accel_bayes.simulate`` does not import ``accel_bayes.mismatch`` (the simulator is physics);
-* only ``accel_bayes/diagnostics.py`` imports ArviZ or matplotlib (every ArviZ call and every
-  plot in one module).
+* only ``accel_bayes/diagnostics/`` imports ArviZ or matplotlib (every plot in that package), and
+  ArviZ only in ``diagnostics/arviz_calls.py`` (every ArviZ call in one module).
 """
 import ast
 import subprocess
@@ -15,8 +15,8 @@ from tests.paths import REPO
 
 ROOT = REPO / "accel_bayes"
 
-# Modules still allowed to import arviz/matplotlib outside diagnostics.py: none since the [S16]
-# convergence plot moved from cli/selfcal.py to diagnostics.plot_convergence (issue #10 item 6).
+# Modules still allowed to import arviz/matplotlib outside diagnostics/: none since the [S16]
+# convergence plot moved from cli/selfcal.py to diagnostics (issue #10 item 6).
 PENDING_PLOTTING: set = set()
 PLOTTING = ("arviz", "matplotlib")
 
@@ -114,25 +114,36 @@ def test_simulate_does_not_import_mismatch():
     assert out.strip() == "[]", out
 
 
+ARVIZ_MODULE = "diagnostics/arviz_calls.py"
+
+
+def _plotting_imports(p: Path) -> set:
+    names = set()
+    for node in _imports(p, lazy=True):
+        mods = [node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
+        names.update(n for n in mods if n.split(".")[0] in PLOTTING)
+    return names
+
+
 def test_only_diagnostics_imports_arviz_or_matplotlib():
-    offenders = {}
+    offenders, arviz = {}, set()
     for p in ROOT.rglob("*.py"):
         rel = p.relative_to(ROOT).as_posix()
-        if rel == "diagnostics.py" or rel in PENDING_PLOTTING:
+        names = _plotting_imports(p)
+        if any(n.split(".")[0] == "arviz" for n in names):
+            arviz.add(rel)
+        if rel.startswith("diagnostics/") or rel in PENDING_PLOTTING:
             continue
-        names = set()
-        for node in _imports(p, lazy=True):
-            mods = [node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
-            names.update(n for n in mods if n.split(".")[0] in PLOTTING)
         if names:
             offenders[rel] = sorted(names)
     assert not offenders, offenders
+    assert arviz == {ARVIZ_MODULE}, f"ArviZ imported outside {ARVIZ_MODULE}: {sorted(arviz - {ARVIZ_MODULE})}"
     for rel in PENDING_PLOTTING:  # the exception must not outlive its reason
         assert (ROOT / rel).exists(), f"{rel} is gone: remove it from PENDING_PLOTTING"
 
 
 def test_importing_mismatch_loads_neither_arviz_nor_matplotlib():
-    """The mismatch package reaches diagnostics.py only inside functions (a comparison, a figure)."""
+    """The mismatch package reaches diagnostics/ only inside functions (a comparison, a figure)."""
     code = ("import sys, accel_bayes.mismatch; "
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'arviz', 'matplotlib'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

@@ -8,9 +8,7 @@
   The root ``accel_bayes/__init__.py`` (the version, and public names loaded on first use by
   ``importlib``, which no AST scan sees) counts as the bottom layer.
 * No module over :data:`MAX_LINES` lines except at most three listed in :data:`ALLOWED_LARGE`, each
-  saying why in its module docstring.  Today more remain (:data:`OVERSIZE_TODAY`, split by their
-  owners): that check is an expected failure, strict, and a second check keeps the list from
-  growing or going stale.
+  saying why in its module docstring (none is needed today: every module is under the limit).
 """
 import ast
 
@@ -39,10 +37,6 @@ MAX_LINES = 600
 # contain the phrase below.
 ALLOWED_LARGE: dict = {}
 REASON_PHRASE = "over 600 lines"
-# Over MAX_LINES when issue #26's layering work ended, owned by other developers that session.
-OVERSIZE_TODAY = {
-    "diagnostics.py", "data/mimu.py", "data/validation.py", "data/outputs.py", "physics/motion.py",
-}
 
 
 def layer_of(module: str):
@@ -106,16 +100,6 @@ def test_allowed_large_files_say_why():
         assert REASON_PHRASE in doc.lower(), f"{rel}: its docstring must say why it is {REASON_PHRASE}"
 
 
-def test_oversize_list_neither_grows_nor_goes_stale():
-    """No new module over MAX_LINES; a listed one that shrank below it leaves the list."""
-    over = {rel for rel, n in _line_counts().items() if n > MAX_LINES} - set(ALLOWED_LARGE)
-    assert over <= OVERSIZE_TODAY, f"new modules over {MAX_LINES} lines: {sorted(over - OVERSIZE_TODAY)}"
-    assert OVERSIZE_TODAY <= over, f"no longer over {MAX_LINES} lines, drop from OVERSIZE_TODAY: " \
-                                   f"{sorted(OVERSIZE_TODAY - over)}"
-
-
-@pytest.mark.xfail(strict=True, reason="issue #26: 9 modules over 600 lines remain, owned by other developers "
-                                       "this session: " + ", ".join(sorted(OVERSIZE_TODAY)))
 def test_no_module_over_600_lines_but_the_allowed():
     over = sorted(rel for rel, n in _line_counts().items() if n > MAX_LINES and rel not in ALLOWED_LARGE)
     assert not over, f"modules over {MAX_LINES} lines: {over}"

@@ -30,6 +30,31 @@ def misplaced_test_files(folder: Path) -> list[str]:
     return bad
 
 
+def conflicting_constants(folder: Path) -> list[str]:
+    """``NAME: file = value; file = value`` for every module-level UPPER_CASE name that two test
+    modules of ``folder`` bind to different expressions (source text compared): a reader of one
+    subject must not meet ``FAST`` meaning two things, as after the ``test_mismatch`` /
+    ``_fast`` / ``_v11`` split by history."""
+    seen: dict = {}
+    for path in sorted(folder.glob("*.py")):
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.Assign):
+                for t in node.targets:
+                    if isinstance(t, ast.Name) and t.id.lstrip("_").isupper():
+                        seen.setdefault(t.id, {})[path.name] = ast.unparse(node.value)
+    return [f"{name}: " + "; ".join(f"{f} = {v}" for f, v in by_file.items())
+            for name, by_file in sorted(seen.items()) if len(set(by_file.values())) > 1]
+
+
+# Subjects whose test files were split by history (issue #26 item 7)
+SPLIT_BY_HISTORY = ("mismatch", "pipelines", "mcmc")
+
+
+def test_one_meaning_per_constant_name_in_a_subject():
+    bad = [f"tests/{s}: {c}" for s in SPLIT_BY_HISTORY for c in conflicting_constants(REPO / "tests" / s)]
+    assert not bad, "\n".join(bad)
+
+
 def test_no_test_file_edits_sys_path():
     found = sys_path_edits(REPO / "tests")
     assert not found, found
@@ -49,3 +74,6 @@ def test_checks_see_what_they_look_for(tmp_path):
     (t / "test_b.py").write_text("def test_b(monkeypatch):\n    monkeypatch.syspath_prepend('x')\n")
     assert sys_path_edits(t) == ["tests/cli/test_a.py:2", "tests/test_b.py:2"]
     assert misplaced_test_files(t) == ["tests/test_b.py: not in a subject folder", "tests/cli: no __init__.py"]
+    (t / "cli" / "test_c.py").write_text("FAST = dict(n=1)\nDEG = 0.5\n")
+    (t / "cli" / "test_d.py").write_text("FAST = dict(n=2)\nDEG = 0.5\n")
+    assert conflicting_constants(t / "cli") == ["FAST: test_c.py = dict(n=1); test_d.py = dict(n=2)"]

@@ -1,4 +1,4 @@
-"""MIMU4444 stream importer (accel_bayes.data.mimu) and ``accel-bayes import-mimu``.
+"""MIMU4444 stream importer (accel_bayes.data.mimu, mimu_packets, mimu_decode, mimu_report) and ``accel-bayes import-mimu``.
 
 Two halves:
 
@@ -26,15 +26,9 @@ import torch
 from accel_bayes.physics.arrays import G0, MIMU_BOTTOM_QUAT, mimu4444_8
 from accel_bayes.errors import RecordingError
 from accel_bayes.physics.geometry import quat_to_matrix
-from accel_bayes.data.mimu import (
-    ACC_SCALE,
-    GYRO_SCALE,
-    MIMU_ACK,
-    decode_mimu_bytes,
-    encode_mimu_packets,
-    import_mimu,
-    read_mimu_stream,
-)
+from accel_bayes.data.mimu import import_mimu
+from accel_bayes.data.mimu_decode import decode_mimu_bytes, read_mimu_stream
+from accel_bayes.data.mimu_packets import ACC_SCALE, GYRO_SCALE, MIMU_ACK, encode_mimu_packets
 from accel_bayes.data.segments import angle_deg
 
 EXPERIMENTS = [f"exp_{i}" for i in range(1, 7)]

@@ -11,7 +11,8 @@ import pytest
 
 from experiments import mimu_fuzz as mf
 
-from accel_bayes.data.mimu import MIMU_ACK, NOMINAL_PERIOD_TICKS, decode_mimu_bytes, encode_mimu_packets  # noqa: E402
+from accel_bayes.data.mimu_decode import decode_mimu_bytes  # noqa: E402
+from accel_bayes.data.mimu_packets import MIMU_ACK, NOMINAL_PERIOD_TICKS, encode_mimu_packets  # noqa: E402
 
 
 def _check(verdicts, min_applied):

@@ -16,12 +16,12 @@ import pytest
 from tests.data.test_outputs import COMMANDS, REPO, argv, inputs, one_line, snapshot  # noqa: F401  (inputs: fixture)
 
 from accel_bayes.cli import main  # noqa: E402
-from accel_bayes.data import outputs  # noqa: E402
+from accel_bayes.data import output_sets, outputs  # noqa: E402
 
 
 def _committed_set(target: Path, files=("positions.json",)) -> None:
     """An earlier output set written through OutputDir, so its marker lists its files."""
-    with outputs.OutputDir(target) as od:
+    with output_sets.OutputDir(target) as od:
         for f in files:
             (od / f).parent.mkdir(parents=True, exist_ok=True)
             outputs.write_text(od / f, '{"earlier": true}')
@@ -46,7 +46,7 @@ def test_overwrite_still_replaces_a_set_holding_only_its_own_files(inputs, tmp_p
     _committed_set(target, files=("positions.json", "sub/old.txt"))
     assert main(argv("map", inputs, target, "--overwrite")) == 0
     capsys.readouterr()
-    assert sorted(p.name for p in target.iterdir()) == sorted(["positions.json", "omega.csv", outputs.SET_MARKER])
+    assert sorted(p.name for p in target.iterdir()) == sorted(["positions.json", "omega.csv", output_sets.SET_MARKER])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
@@ -85,7 +85,7 @@ def test_leftover_cleanup_matches_exact_names_only(tmp_path):
         (runs / name).mkdir()
     before = snapshot(runs)
     for name in ("a*", "a?", "[a]*", "o"):
-        with outputs.OutputDir(runs / name) as od:
+        with output_sets.OutputDir(runs / name) as od:
             outputs.write_text(od / "x.txt", "x")
         with outputs.OutputFile(runs / f"{name}.nc", overwrite=True) as of:
             outputs.write_text(of.path, "x")
@@ -100,7 +100,7 @@ def test_a_dead_runs_own_leftovers_are_still_cleared_but_not_a_file_put_there(tm
     _committed_set(old)  # a dead run's old set, moved aside, with a file a user put there
     (old / "my_notes.txt").write_text("mine")
     (tmp_path / f".out.partial-{dead}-0123abcd").mkdir()
-    with outputs.OutputDir(target) as od:
+    with output_sets.OutputDir(target) as od:
         outputs.write_text(od / "x.txt", "x")
     assert sorted(p.name for p in tmp_path.iterdir()) == [old.name, "out"]
     assert sorted(p.name for p in old.iterdir()) == ["my_notes.txt"]
@@ -248,7 +248,7 @@ def test_out_dot_in_an_empty_directory_is_allowed(inputs, tmp_path, capsys, monk
     monkeypatch.chdir(here)
     assert main(argv("map", inputs, Path("."))) == 0
     capsys.readouterr()
-    assert sorted(p.name for p in here.iterdir()) == sorted(["positions.json", "omega.csv", outputs.SET_MARKER])
+    assert sorted(p.name for p in here.iterdir()) == sorted(["positions.json", "omega.csv", output_sets.SET_MARKER])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]  # no lock or staging folder left
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from accel_bayes.data import outputs
+from accel_bayes.data import output_sets, output_siblings, outputs
 from accel_bayes.physics.arrays import preset
 from accel_bayes.cli import main
 from accel_bayes.errors import UserError
@@ -54,7 +54,7 @@ COMPUTE = {
     "simulate": ("accel_bayes.simulate", "simulate"),
     "import-mimu": ("accel_bayes.data.mimu", "import_mimu"),
     "intrinsics": ("accel_bayes.prep.intrinsics", "estimate_intrinsics"),
-    "motion": ("accel_bayes.inference.motion", "estimate_motion"),
+    "motion": ("accel_bayes.inference.motion_estimate", "estimate_motion"),
     "map": ("accel_bayes.inference.map", "fit_map_recording"),
     "calibrate": ("accel_bayes.pipelines.calibrate", "calibrate"),
     "selfcal": ("accel_bayes.inference.selfcal", "self_calibrate"),
@@ -109,7 +109,7 @@ def earlier_set(target: Path) -> None:
     target.mkdir()
     (target / "stale_from_an_earlier_run.txt").write_text("old")
     (target / "positions.json").write_text('{"old": true}')
-    (target / outputs.SET_MARKER).write_text(json.dumps({"schema": outputs.SET_SCHEMA, "files": [
+    (target / output_sets.SET_MARKER).write_text(json.dumps({"schema": output_sets.SET_SCHEMA, "files": [
         "stale_from_an_earlier_run.txt", "positions.json"]}))  # the set's own list: what --overwrite may remove
 
 
@@ -186,7 +186,7 @@ def test_bad_target_refused_before_computing(cmd, case, inputs, tmp_path, capsys
             needle = "exists; pass --overwrite"
     else:
         needle = "being written by another accel-bayes run"
-    with outputs.hold_lock(target) if case == "locked" else contextlib.nullcontext():  # another run's
+    with output_siblings.hold_lock(target) if case == "locked" else contextlib.nullcontext():  # another run's
         before = snapshot(tmp_path)
         trap(cmd)
         rc = main(argv(cmd, inputs, target))
@@ -221,7 +221,7 @@ def test_unwritable_parent_refused_before_computing(cmd, inputs, tmp_path, capsy
         rc = main(argv(cmd, inputs, ro / target_name(cmd)))
         line = one_line(capsys.readouterr().err)
         assert rc == 2 and "cannot write in" in line and str(ro) in line, line
-        assert not (ro / target_name(cmd)).exists() and not outputs.lock_path(ro / target_name(cmd)).exists()
+        assert not (ro / target_name(cmd)).exists() and not output_siblings.lock_path(ro / target_name(cmd)).exists()
     finally:
         if ro != Path("/sys"):
             ro.chmod(0o755)
@@ -265,8 +265,8 @@ def test_overwrite_replaces_the_whole_set(cmd, inputs, tmp_path, capsys):
     assert rc == rc_ok
     check_valid(cmd, target)
     if kind == "dir":
-        assert {p.name for p in target.iterdir()} == files | {outputs.SET_MARKER}  # nothing of the earlier set
-        assert set(json.loads((target / outputs.SET_MARKER).read_text())["files"]) == files
+        assert {p.name for p in target.iterdir()} == files | {output_sets.SET_MARKER}  # nothing of the earlier set
+        assert set(json.loads((target / output_sets.SET_MARKER).read_text())["files"]) == files
     # no staging directory, old set, temporary file or lock left beside the target
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         [target.name] + ([target.with_suffix(".truth.json").name] if cmd == "simulate" else []))
@@ -279,7 +279,7 @@ def test_resume_needs_no_overwrite_and_keeps_the_checkpoint(inputs, tmp_path, ca
     assert main(base) == 4  # 10 draws: written, marked unconverged (DESIGN §7.5)
     first = json.loads((out / "positions.json").read_text())
     assert {p.name for p in out.iterdir()} == {"posterior.nc", "summary.csv", "positions.json", "checkpoint.pt",
-                                               outputs.SET_MARKER}
+                                               output_sets.SET_MARKER}
     capsys.readouterr()
     assert main(base) == 2 and "--overwrite" in one_line(capsys.readouterr().err)
     assert main(base + ["--resume"]) == 4  # the run in DIR, continued (here: already complete, still unconverged)
@@ -294,19 +294,19 @@ def test_stale_lock_and_leftovers_of_a_dead_run_are_cleared(tmp_path):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()  # a pid that no longer exists
     target = tmp_path / "out"
-    outputs.lock_path(target).write_text(f"{dead.pid} {__import__('socket').gethostname()}\n")
+    output_siblings.lock_path(target).write_text(f"{dead.pid} {__import__('socket').gethostname()}\n")
     (tmp_path / f".out.partial-{dead.pid}-0123abcd").mkdir()
     (tmp_path / f".out.old-{dead.pid}-0123abcd").mkdir()
     live = tmp_path / f".out.partial-{os.getppid()}-0123abcd"  # a live writer's: left alone
     live.mkdir()
-    with outputs.OutputDir(target) as od:
+    with output_sets.OutputDir(target) as od:
         outputs.write_text(od / "a.txt", "new")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["out", live.name])
     assert (target / "a.txt").read_text() == "new"
     # a live lock is refused with the owner named
-    with outputs.hold_lock(target):
+    with output_siblings.hold_lock(target):
         with pytest.raises(UserError, match=f"pid {os.getpid()}"):
-            outputs.OutputDir(target, overwrite=True).open()
+            output_sets.OutputDir(target, overwrite=True).open()
 
 
 # ----------------------------------------------------------------------------- disk full, kill, SIGTERM
@@ -423,7 +423,7 @@ def test_kill_while_writing_a_set_leaves_the_old_set_or_nothing(point, forked):
         assert visible == {}
     assert point != "rename2" or not out.exists()  # the killed moment really was between the renames
     # the next run into DIR is not blocked by the dead run's lock and clears its hidden leftovers
-    with outputs.OutputDir(out, overwrite=True) as od:
+    with output_sets.OutputDir(out, overwrite=True) as od:
         outputs.write_text(od / "x.txt", "next run")
     assert sorted(p.name for p in d.iterdir()) == ["out"]
 

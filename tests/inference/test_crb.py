@@ -13,7 +13,7 @@ from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.errors import UserError
 from accel_bayes.inference.crb import crb_theta, fisher_information_theta
 from accel_bayes.physics.models import specific_force
-from accel_bayes.physics.motion import iid_motion
+from accel_bayes.physics.motion_generators import iid_motion
 
 DT = torch.float64
 DEG = math.pi / 180

@@ -15,7 +15,7 @@ from accel_bayes.errors import UserError
 from accel_bayes.inference.crb import crb_theta
 from accel_bayes.inference.map import MAPDivergence, build_map_problem, fit_map, fit_map_recording
 from accel_bayes.physics.models import imu_outputs, to_array_frame
-from accel_bayes.physics.motion import iid_motion
+from accel_bayes.physics.motion_generators import iid_motion
 
 DT = torch.float64
 DEG = math.pi / 180

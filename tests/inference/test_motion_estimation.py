@@ -1,4 +1,4 @@
-"""Per-sample motion from a calibrated array (accel_bayes.inference.motion).
+"""Per-sample motion from a calibrated array (accel_bayes.inference.motion_estimate).
 
 Independent checks: the factored normal equations against autograd on the one signal model
 (models.specific_force), exact recovery of simulated ω, ω̇, s without noise, the reported noise
@@ -15,7 +15,7 @@ from accel_bayes import mimu4444_8
 from accel_bayes.errors import UserError
 from accel_bayes.physics.geometry import quat_to_matrix
 from accel_bayes.physics.models import specific_force
-from accel_bayes.inference.motion import (
+from accel_bayes.inference.motion_estimate import (
     _cost_grad_hess,
     _Data,
     estimate_motion,

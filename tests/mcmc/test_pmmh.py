@@ -24,7 +24,7 @@ import pytest
 import scipy.stats
 import torch
 
-from accel_bayes import diagnostics as dg
+from accel_bayes.diagnostics import stats as dg_stats
 from accel_bayes.errors import UserError
 from accel_bayes.inference.mcmc import PMMHKernel, regularized_cov, run_pmmh, run_pmmh_until, warmup_windows
 from accel_bayes.inference.mcmc.priors import BoxPrior, GaussianPrior
@@ -544,15 +544,15 @@ def test_resume_with_a_larger_budget_continues_as_one_run(tmp_path):
 
 
 def test_with_the_real_convergence_check():
-    """dg.convergence_check as the check (what calibrate uses); the checks are recorded."""
-    check = lambda th: dg.convergence_check(th, rhat_max=1.05, ess_min=100)  # noqa: E731
+    """dg_stats.convergence_check as the check (what calibrate uses); the checks are recorded."""
+    check = lambda th: dg_stats.convergence_check(th, rhat_max=1.05, ess_min=100)  # noqa: E731
     g = torch.Generator().manual_seed(0)
     init = 1e-3 + 1e-3 * torch.randn(C, 2, 3, generator=g, dtype=torch.float64)  # around the posterior
     run = run_pmmh_until(_kernel(noise=0.1), check, 400, C, init, check_every=200, max_samples=4000,
                          progress=False)
     assert run.stopped == "converged" and run.checks[-1]["converged"] and len(run.checks) >= 2
     assert all(not c["converged"] and c["failed"] for c in run.checks[:-1])
-    last = dg.convergence_check(run.theta, rhat_max=1.05, ess_min=100)
+    last = dg_stats.convergence_check(run.theta, rhat_max=1.05, ess_min=100)
     assert last.converged and last.as_dict()["rhat_max"] == run.checks[-1]["rhat_max"]
     # the noisier chains do not get there within a small budget: stopped, with the reasons recorded
     run = run_pmmh_until(_kernel(), check, W, C, check_every=100, max_samples=300, progress=False)

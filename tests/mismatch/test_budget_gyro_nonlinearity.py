@@ -14,12 +14,13 @@ from accel_bayes.mismatch.budget import BANDS, residual_budget
 
 from experiments import _conceal as C
 
-FAST = dict(n_twins=20, loo_draws=40, n_refit=3, max_findings=2)
+# detect's quick settings (fewer twins and LOO draws than its defaults), at most two findings
+BUDGET_DETECT = dict(n_twins=20, loo_draws=40, n_refit=3, max_findings=2)
 T = 800
 # seed 2 hides k2 = −6.4e-5 (rad/s)⁻¹ on IMU 3 x (peak k2·ω² ≈ 6 σ_g),
 # seed 5 −7.4e-5 on IMU 4 x (≈ 2 σ_g at the peaks: the weakest of the three), seed 3 −1.9e-4 on
 # IMU 6 z (≈ 16 σ_g)
-CASES = (2, 5, 3)
+SEEDS = (2, 5, 3)
 
 
 def _case(effect, seed):
@@ -29,19 +30,19 @@ def _case(effect, seed):
 @pytest.fixture(scope="module")
 def reports():
     out = {}
-    for seed in CASES:
+    for seed in SEEDS:
         case = _case("gyro_nonlinearity", seed)
-        out[seed] = (case, detect(case.recording, seed=0, **FAST))
+        out[seed] = (case, detect(case.recording, seed=0, **BUDGET_DETECT))
     return out
 
 
 @pytest.fixture(scope="module")
 def clean():
-    case = _case("none", CASES[0])  # the exact clean twin of the first case
-    return case, detect(case.recording, seed=0, **FAST)
+    case = _case("none", SEEDS[0])  # the exact clean twin of the first case
+    return case, detect(case.recording, seed=0, **BUDGET_DETECT)
 
 
-@pytest.mark.parametrize("seed", CASES)
+@pytest.mark.parametrize("seed", SEEDS)
 def test_concealed_gyro_nonlinearity_is_named_with_imu_axis_and_k2(reports, seed):
     case, rep = reports[seed]
     tr, d = case.truth, rep.to_dict()
@@ -103,7 +104,7 @@ def _numpy_budget(prep, base, ref):
 
 
 def test_budget_matches_a_numpy_recomputation_and_b_matches_a(reports):
-    case, rep = reports[CASES[0]]
+    case, rep = reports[SEEDS[0]]
     d = rep.to_dict()
     ref = _numpy_budget(rep.prep, rep.baseline_fit, rep.refined_fit)
     assert len(d["budget"]) == len(ref) == 22
@@ -127,7 +128,7 @@ def test_budget_matches_a_numpy_recomputation_and_b_matches_a(reports):
 
 
 def test_chi2_stated_and_json_round_trip(reports, tmp_path):
-    case, rep = reports[CASES[0]]
+    case, rep = reports[SEEDS[0]]
     d = rep.to_dict()
     r = d["refined"]
     assert r["chi2_noise"] == "stated"  # no noise effect in the model

@@ -17,13 +17,14 @@ from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.simulate import simulate
 
 DEG = math.pi / 180
-KW = dict(T=300, rate=200.0, acc_noise_std=0.02, gyro_noise_std=0.1 * DEG)
+# the simulation of these numerics checks (shorter than test_detect's: they compare two computations)
+NUMERICS_SIM = dict(T=300, rate=200.0, acc_noise_std=0.02, gyro_noise_std=0.1 * DEG)
 
 
 @pytest.fixture(scope="module")
 def prepared():
     eff = make_effect("acc_scale", imu=3, axis="y", parameters={"scale": 0.02})
-    prep = prepare(simulate(mimu4444_8(), "smooth", seed=31, effects=[eff], **KW).recording)
+    prep = prepare(simulate(mimu4444_8(), "smooth", seed=31, effects=[eff], **NUMERICS_SIM).recording)
     base, _ = baseline_fit(prep)
     return prep, base
 
@@ -82,7 +83,7 @@ def test_chi2_log_tail_is_scipys():
 
 def test_noise_level_refits_only_in_rounds_without_an_acceptable_mean_effect():
     eff = make_effect("acc_scale", imu=3, axis="x", parameters={"scale": 0.03})
-    rep = detect(simulate(mimu4444_8(), "smooth", seed=32, effects=[eff], **KW).recording, seed=0,
+    rep = detect(simulate(mimu4444_8(), "smooth", seed=32, effects=[eff], **NUMERICS_SIM).recording, seed=0,
                  n_twins=10, loo_draws=20, refine=False)
     assert rep.findings and rep.findings[0].effect == "acc_scale"
     skipped = 0

@@ -157,14 +157,15 @@ def test_conceal_jitter_is_exact_kinematics_at_random_instants():
     assert np.abs(dg - rate * delta[:, None]).max() < 0.02 * np.abs(dg).max()
 
 
-FAST = dict(n_twins=10, loo_draws=20, n_refit=3)
+# half the twins and LOO draws of test_detect's settings: these tests run detect on many cases
+JITTER_DETECT = dict(n_twins=10, loo_draws=20, n_refit=3)
 VARIANCE_EFFECTS = ["sampling_jitter", "noise_level", "time_offset", "gyro_scale", "acc_scale"]
 
 
 def _named(case, **kw):
     from accel_bayes.mismatch import detect
 
-    rep = detect(case.recording, seed=0, **{**FAST, **kw})
+    rep = detect(case.recording, seed=0, **{**JITTER_DETECT, **kw})
     f = [x for x in rep.findings if x.effect != "unexplained"]
     return rep, f
 

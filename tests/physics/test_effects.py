@@ -11,7 +11,7 @@ from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.errors import UserError
 from accel_bayes.physics.geometry import boxplus, quat_exp, quat_mul, quat_to_matrix
 from accel_bayes.physics.models import imu_outputs, to_array_frame
-from accel_bayes.physics.motion import smooth_motion
+from accel_bayes.physics.motion_generators import smooth_motion
 from accel_bayes.physics.effects import (
     AXES, EFFECTS, VOCABULARY, CandidateLayout, SignalContext, apply_effects, get_effect, make_effect,
     model_outputs, noise_factors, output_rates,
@@ -206,7 +206,7 @@ def test_triad_orientation_matches_rotated_imu_and_simulator_convention(setup):
 
 
 def test_time_offset_linear_term_against_shifted_trajectory():
-    """Independent check: the continuous trajectory evaluated at t + δ (accel_bayes.physics.motion);
+    """Independent check: the continuous trajectory evaluated at t + δ (accel_bayes.physics.trajectories);
     the linearisation error must shrink as δ² (halving δ quarters it)."""
     arr = mimu4444_8()
     tr = smooth_motion(300, 200.0, seed=11)

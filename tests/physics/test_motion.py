@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from accel_bayes.physics import geometry as g, models
-from accel_bayes.physics import motion as M
+from accel_bayes.physics import motion_generators as G, trajectories as M
 from accel_bayes.errors import UserError
 
 F64 = torch.float64
@@ -46,21 +46,21 @@ def _check_fd(tr, tol_rel):
 
 
 def test_smooth_motion_matches_finite_differences_of_point_positions():
-    tr = M.smooth_motion(300, 100.0, omega_rms=600 * DEG, accel_rms=8.0, generator=3)
+    tr = G.smooth_motion(300, 100.0, omega_rms=600 * DEG, accel_rms=8.0, generator=3)
     errs = _check_fd(tr, tol_rel=1e-6)
     print("smooth FD max error (h = 4, 2, 1 ms):", errs)
 
 
 def test_table_motion_matches_finite_differences_of_point_positions():
-    tr = M.table_motion(675, 125.0, omega_amplitude=300 * DEG, frequency=1.3, rest_duration=0.3,
+    tr = G.table_motion(675, 125.0, omega_amplitude=300 * DEG, frequency=1.3, rest_duration=0.3,
                         center=(0.01, -0.02, 0.03), initial_attitude="random", generator=5)
     errs = _check_fd(tr, tol_rel=1e-6)
     print("table FD max error (h = 4, 2, 1 ms):", errs)
 
 
 @pytest.mark.parametrize("make", [
-    lambda: M.smooth_motion(200, 62.5, omega_rms=250 * DEG, generator=11),
-    lambda: M.table_motion(300, 125.0, rest_duration=0.2, generator=1),
+    lambda: G.smooth_motion(200, 62.5, omega_rms=250 * DEG, generator=11),
+    lambda: G.table_motion(300, 125.0, rest_duration=0.2, generator=1),
 ])
 def test_omega_and_omega_dot_are_derivatives_of_the_attitude(make):
     tr = make()
@@ -81,7 +81,7 @@ def test_omega_and_omega_dot_are_derivatives_of_the_attitude(make):
 
 def test_iid_motion_statistics():
     T = 20000
-    tr = M.iid_motion(T, generator=7)
+    tr = G.iid_motion(T, generator=7)
     # [C21] §IV-A standard deviations, SI
     for x, sd in ((tr.omega, 1000 * DEG), (tr.omega_dot, 35000 * DEG), (tr.s, 20.0)):
         std = x.std(0)
@@ -97,9 +97,9 @@ def test_iid_motion_statistics():
 
 
 def test_iid_motion_custom_std_and_determinism():
-    a = M.iid_motion(500, omega_std=2.0, omega_dot_std=0.0, s_std=1.0, generator=1)
-    b = M.iid_motion(500, omega_std=2.0, omega_dot_std=0.0, s_std=1.0, generator=1)
-    c = M.iid_motion(500, omega_std=2.0, omega_dot_std=0.0, s_std=1.0, generator=2)
+    a = G.iid_motion(500, omega_std=2.0, omega_dot_std=0.0, s_std=1.0, generator=1)
+    b = G.iid_motion(500, omega_std=2.0, omega_dot_std=0.0, s_std=1.0, generator=1)
+    c = G.iid_motion(500, omega_std=2.0, omega_dot_std=0.0, s_std=1.0, generator=2)
     assert torch.equal(a.omega, b.omega) and torch.equal(a.s, b.s)
     assert not torch.equal(a.omega, c.omega)
     assert torch.count_nonzero(a.omega_dot) == 0
@@ -107,7 +107,7 @@ def test_iid_motion_custom_std_and_determinism():
 
 @pytest.mark.parametrize("omega_rms_deg,rate", [(250, 62.5), (600, 1000.0)])
 def test_smooth_motion_hits_requested_rms(omega_rms_deg, rate):
-    tr = M.smooth_motion(400, rate, omega_rms=omega_rms_deg * DEG, accel_rms=3.0, freq_range=(0.5, 5.0), generator=2)
+    tr = G.smooth_motion(400, rate, omega_rms=omega_rms_deg * DEG, accel_rms=3.0, freq_range=(0.5, 5.0), generator=2)
     w_rms = float(torch.sqrt((tr.omega ** 2).sum(-1).mean()))
     a_rms = float(torch.sqrt((tr.trajectory.acceleration(tr.time) ** 2).sum(-1).mean()))
     assert w_rms == pytest.approx(omega_rms_deg * DEG, rel=1e-9)
@@ -116,13 +116,13 @@ def test_smooth_motion_hits_requested_rms(omega_rms_deg, rate):
 
 
 def test_still_level_board_reads_plus_one_g():
-    tr = M.smooth_motion(50, 100.0, omega_rms=0.0, accel_rms=0.0, initial_attitude="level", generator=0)
+    tr = G.smooth_motion(50, 100.0, omega_rms=0.0, accel_rms=0.0, initial_attitude="level", generator=0)
     assert torch.count_nonzero(tr.omega) == 0 and torch.count_nonzero(tr.omega_dot) == 0
     assert torch.allclose(tr.s, torch.tensor([0.0, 0.0, 9.80665], dtype=F64).expand(50, 3), atol=1e-14)
 
 
 def test_continuous_motion_evaluates_at_shifted_times_and_rebuilds_from_dict():
-    tr = M.smooth_motion(100, 100.0, generator=4)
+    tr = G.smooth_motion(100, 100.0, generator=4)
     traj = tr.trajectory
     # one sample later on the grid equals the next sample
     nxt = traj.trace(tr.time + 0.01)
@@ -138,19 +138,19 @@ def test_continuous_motion_evaluates_at_shifted_times_and_rebuilds_from_dict():
 
 
 def test_smooth_motion_seed_and_dtype():
-    a = M.smooth_motion(100, 100.0, generator=9)
-    b = M.smooth_motion(100, 100.0, generator=torch.Generator().manual_seed(9))
-    c = M.smooth_motion(100, 100.0, generator=10)
+    a = G.smooth_motion(100, 100.0, generator=9)
+    b = G.smooth_motion(100, 100.0, generator=torch.Generator().manual_seed(9))
+    c = G.smooth_motion(100, 100.0, generator=10)
     assert torch.equal(a.omega, b.omega) and torch.equal(a.s, b.s)
     assert not torch.allclose(a.omega, c.omega)
-    f = M.smooth_motion(100, 100.0, generator=9, dtype=torch.float32)
+    f = G.smooth_motion(100, 100.0, generator=9, dtype=torch.float32)
     assert f.omega.dtype == torch.float32
     assert torch.allclose(f.omega.double(), a.omega, rtol=1e-5, atol=1e-5)
 
 
 def test_table_motion_structure():
     T, rate, rest = 500, 125.0, 0.2
-    tr = M.table_motion(T, rate, axes="xyz", omega_amplitude=200 * DEG, frequency=1.0, rest_duration=rest)
+    tr = G.table_motion(T, rate, axes="xyz", omega_amplitude=200 * DEG, frequency=1.0, rest_duration=rest)
     seg = tr.segment
     assert seg is not None and set(seg) == {"static", "dynamic"}
     st = torch.as_tensor(seg == "static")
@@ -172,7 +172,7 @@ def test_table_motion_structure():
 
 
 def test_table_without_rests_has_no_segment_labels_and_offset_centre_accelerates_origin():
-    tr = M.table_motion(300, 100.0, center=(0.0, 0.0, 0.05))
+    tr = G.table_motion(300, 100.0, center=(0.0, 0.0, 0.05))
     assert tr.segment is None
     a = tr.trajectory.acceleration(tr.time)
     assert float(a.norm(dim=-1).max()) > 0.1
@@ -182,14 +182,14 @@ def test_table_without_rests_has_no_segment_labels_and_offset_centre_accelerates
 
 
 @pytest.mark.parametrize("call", [
-    lambda: M.smooth_motion(100, 4.0),  # band above Nyquist
-    lambda: M.smooth_motion(0, 100.0),
-    lambda: M.iid_motion(10, rate=-1.0),
-    lambda: M.iid_motion(10, omega_std=-1.0),
-    lambda: M.table_motion(100, 100.0, axes="xq"),
-    lambda: M.table_motion(10, 100.0, rest_duration=1.0),  # rests leave no time to move
-    lambda: M.make_motion("wave", 10, 100.0),
-    lambda: M.make_motion("iid", 10, 100.0, bogus=1),
+    lambda: G.smooth_motion(100, 4.0),  # band above Nyquist
+    lambda: G.smooth_motion(0, 100.0),
+    lambda: G.iid_motion(10, rate=-1.0),
+    lambda: G.iid_motion(10, omega_std=-1.0),
+    lambda: G.table_motion(100, 100.0, axes="xq"),
+    lambda: G.table_motion(10, 100.0, rest_duration=1.0),  # rests leave no time to move
+    lambda: G.make_motion("wave", 10, 100.0),
+    lambda: G.make_motion("iid", 10, 100.0, bogus=1),
 ])
 def test_bad_arguments_raise_user_error(call):
     with pytest.raises(UserError):
@@ -199,7 +199,7 @@ def test_bad_arguments_raise_user_error(call):
 def test_motion_trace_to_dict_is_json_ready():
     import json
 
-    tr = M.table_motion(50, 100.0, rest_duration=0.05)
+    tr = G.table_motion(50, 100.0, rest_duration=0.05)
     d = json.loads(json.dumps(tr.to_dict()))
     assert d["kind"] == "table" and len(d["omega"]) == 50 and d["trajectory"]["class"] == "TableTrajectory"
     assert np.allclose(d["s"], tr.s.numpy())

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from accel_bayes.physics import geometry as g
-from accel_bayes.physics import motion as M
+from accel_bayes.physics import trajectories as M
 from accel_bayes.physics.arrays import SensorArray, mimu4444_8, mimu4444_32, s16_plate
 from accel_bayes.errors import UserError
 from accel_bayes.physics.models import specific_force, to_array_frame

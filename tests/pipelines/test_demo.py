@@ -1,7 +1,7 @@
 """The README's main job: ``accel-bayes demo`` runs every stage and says where its report is."""
 import json
 
-from accel_bayes.data import outputs
+from accel_bayes.data import output_sets
 from accel_bayes.cli import main
 
 
@@ -9,7 +9,7 @@ def test_demo_quick_runs_all_stages(tmp_path, capsys):
     out = tmp_path / "demo"
     out.mkdir()
     (out / "report.md").write_text("an earlier run's report")
-    (out / outputs.SET_MARKER).write_text(json.dumps({"schema": outputs.SET_SCHEMA, "files": ["report.md"]}))  # a demo's set
+    (out / output_sets.SET_MARKER).write_text(json.dumps({"schema": output_sets.SET_SCHEMA, "files": ["report.md"]}))  # a demo's set
     assert main(["demo", "--quick", "--out", str(out), "--no-progress"]) == 2  # non-empty: refused
     assert "--overwrite" in capsys.readouterr().err
     assert main(["demo", "--quick", "--out", str(out), "--no-progress", "--overwrite"]) == 0

@@ -1,4 +1,4 @@
-"""ArviZ conversion, statistics, NetCDF round trip and plots (accel_bayes.diagnostics)."""
+"""ArviZ conversion, statistics, NetCDF round trip and plots (accel_bayes.diagnostics: arviz_calls, stats, plots)."""
 import math
 
 import matplotlib
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from accel_bayes import diagnostics as dg
+from accel_bayes.diagnostics import arviz_calls as dg_az, plots as dg_plots, stats as dg_stats
 from accel_bayes.physics.arrays import mimu4444_8
 from accel_bayes.errors import UserError
 
@@ -25,7 +25,7 @@ def _draws(shift_chain=0.0, seed=0):
 
 def _idata(**kw):
     x, rng = _draws(**kw)
-    return dg.to_inference_data(
+    return dg_az.to_inference_data(
         x, list(range(1, 8)), rng.standard_normal((C, D)), log_prior=np.full((C, D), -3.0),
         accepted=rng.random((C, D)) < 0.2, accept_prob=rng.random((C, D)), step_size=np.array([0.1, 0.2, 0.3]),
         reference_imu=0, attrs={"seed": 5, "method": "pmmh"},
@@ -52,34 +52,34 @@ def test_inference_data_dims_coords_groups():
 def test_pointwise_log_likelihood_and_shape_errors():
     x, rng = _draws()
     pw = rng.standard_normal((C, D, 11))
-    idata = dg.to_inference_data(x, range(1, 8), pw.sum(-1), pointwise_log_lik=pw)
+    idata = dg_az.to_inference_data(x, range(1, 8), pw.sum(-1), pointwise_log_lik=pw)
     assert idata.log_likelihood["y"].dims == ("chain", "draw", "time")
     with pytest.raises(UserError, match="imu_labels"):
-        dg.to_inference_data(x, range(1, 7))
+        dg_az.to_inference_data(x, range(1, 7))
     with pytest.raises(UserError, match="log_phat"):
-        dg.to_inference_data(x, range(1, 8), np.zeros((C, D + 1)))
+        dg_az.to_inference_data(x, range(1, 8), np.zeros((C, D + 1)))
     with pytest.raises(UserError, match="draws"):
-        dg.to_inference_data(x[0], range(1, 8))
+        dg_az.to_inference_data(x[0], range(1, 8))
 
 
 def test_summary_statistics_and_rhat():
     idata, x = _idata()
-    s = dg.summarize(idata)
+    s = dg_az.summarize(idata)
     assert len(s) == AF * 3
     for col in ("mean", "sd", "mcse_mean", "mcse_sd", "ess_bulk", "ess_tail", "r_hat"):
         assert col in s.columns, col
     # unrounded values: the mean of r[3, y] is the plain average of its draws
     assert s.loc["r[3, y]", "mean"] == pytest.approx(x[:, :, 2, 1].mean(), rel=1e-12)
     # independent draws: R̂ ≈ 1 and ESS ≈ C·D; one chain shifted by 3 sd: R̂ clearly > 1.1
-    assert dg.rhat_max(idata) < 1.01
-    assert dg.ess_bulk_min(idata) > 0.7 * C * D
+    assert dg_az.rhat_max(idata) < 1.01
+    assert dg_az.ess_bulk_min(idata) > 0.7 * C * D
     bad, _ = _idata(shift_chain=3e-4)
-    assert dg.rhat_max(bad) > 1.1
+    assert dg_az.rhat_max(bad) > 1.1
 
 
 def test_posterior_moments_match_numpy():
     idata, x = _idata()
-    mom = dg.posterior_moments(idata)
+    mom = dg_stats.posterior_moments(idata)
     flat = x.reshape(-1, AF, 3)
     np.testing.assert_allclose(mom["mean"], flat.mean(0), rtol=1e-12)
     for k in range(AF):
@@ -89,24 +89,24 @@ def test_posterior_moments_match_numpy():
 
 def test_netcdf_round_trip(tmp_path):
     idata, x = _idata()
-    p = dg.save(idata, tmp_path / "post.nc")
-    back = dg.load(p)
+    p = dg_az.save(idata, tmp_path / "post.nc")
+    back = dg_az.load(p)
     np.testing.assert_array_equal(back.posterior["r"].values, x)
     np.testing.assert_array_equal(back.sample_stats["accept"].values, idata.sample_stats["accept"].values)
     assert list(back.posterior["r"].coords["axis"].values) == ["x", "y", "z"]
     assert back.posterior.attrs["reference_imu"] == 0
     with pytest.raises(FileNotFoundError):
-        dg.load(tmp_path / "missing.nc")
+        dg_az.load(tmp_path / "missing.nc")
 
 
 def test_ellipse_geometry_matches_chi2():
     # the 2-D Gaussian ellipse with probability p has squared Mahalanobis radius χ²₂(p)
     for p in (0.5, 0.95):
-        assert dg._chi2_2_quantile(p) == pytest.approx(scipy.stats.chi2.ppf(p, 2), rel=1e-12)
+        assert dg_plots._chi2_2_quantile(p) == pytest.approx(scipy.stats.chi2.ppf(p, 2), rel=1e-12)
     arr = mimu4444_8()
     mom = {"imu": [1], "mean": np.array([[0.0, 0.0, -2e-3]]),
            "cov": np.array([[[4e-8, 0, 0], [0, 1e-8, 0], [0, 0, 1e-8]]])}
-    fig = dg.plot_ellipses(mom, arr, level=(0.5, 0.95))
+    fig = dg_plots.plot_ellipses(mom, arr, level=(0.5, 0.95))
     ells = [p for ax in fig.axes for p in ax.patches if isinstance(p, matplotlib.patches.Ellipse)]
     assert len(ells) == 2
     widths = sorted(e.width for e in ells)
@@ -117,28 +117,28 @@ def test_ellipse_geometry_matches_chi2():
     assert len(fig.axes) == 2 and len(fig.axes[1].patches) > len(fig.axes[0].patches) - 8
     assert ells[0].center == pytest.approx(tuple(arr.positions[1, :2].numpy() * 1e3))
     with pytest.raises(UserError, match="level"):
-        dg.plot_ellipses(mom, arr, level=1.5)
+        dg_plots.plot_ellipses(mom, arr, level=1.5)
 
 
 def test_plots_return_figures_and_files(tmp_path):
     idata, _ = _idata()
     arr = mimu4444_8()
-    for fn in (dg.plot_trace, dg.plot_rank, dg.plot_autocorr):
+    for fn in (dg_plots.plot_trace, dg_plots.plot_rank, dg_plots.plot_autocorr):
         fig = fn(idata, max_imus=1)
         assert isinstance(fig, matplotlib.figure.Figure)
-    fig = dg.plot_ellipses(idata, arr, prior_std=3e-3, exaggerate=5)
+    fig = dg_plots.plot_ellipses(idata, arr, prior_std=3e-3, exaggerate=5)
     assert "×5" in fig.axes[0].get_title()
     # 95 % semi-axis of a 0.1 mm posterior ≈ 0.245 mm; a quarter of a 4 mm package wants ×4.1 → 2
-    assert dg.auto_exaggeration(idata, arr) == 2.0
+    assert dg_plots.auto_exaggeration(idata, arr) == 2.0
     tiny = {"imu": [1], "mean": np.zeros((1, 3)), "cov": np.eye(3)[None] * 1e-10}  # 10 µm: ×40.8 → 20
-    assert dg.auto_exaggeration(tiny, arr) == 20.0
-    paths = dg.save_plots(idata, arr, tmp_path, max_imus=1)
+    assert dg_plots.auto_exaggeration(tiny, arr) == 20.0
+    paths = dg_plots.save_plots(idata, arr, tmp_path, max_imus=1)
     assert [p.name for p in paths] == ["trace.png", "rank.png", "autocorr.png", "ellipses.png"]
     assert all(p.stat().st_size > 1000 for p in paths)
 
 
 def test_convergence_rule_R_hat_below_1_01_and_100_ESS_per_chain():
-    from accel_bayes.diagnostics import convergence_warnings
+    from accel_bayes.diagnostics.stats import convergence_warnings
 
     assert convergence_warnings(1.009, 400.0, 4) == []
     assert [w.split()[0] for w in convergence_warnings(1.01, 400.0, 4)] == ["max"]  # R̂ = 1.01 is not < 1.01
@@ -164,7 +164,7 @@ def test_convergence_check_on_chains_with_a_known_answer():
     draws) though their R-hat may pass; too few draws cannot establish anything."""
     rng = np.random.default_rng(0)
     iid = rng.normal(size=(4, 500, 2, 3))
-    ok = dg.convergence_check(iid)
+    ok = dg_stats.convergence_check(iid)
     assert ok.converged and ok.failed == [] and ok.rhat_max < 1.01 and ok.ess_bulk_min >= 400
     assert ok.ess_tail_min >= 400 and (ok.rhat_limit, ok.ess_min) == (1.01, 400.0)
     assert ok.chains == 4 and ok.draws == 500
@@ -174,26 +174,26 @@ def test_convergence_check_on_chains_with_a_known_answer():
     shifted = iid.copy()
     shifted[0, :, 1, 2] += 2.0  # chain 0 sits elsewhere in coordinate r[2, z]
     names = [f"r[{i}, {a}]" for i in (1, 2) for a in "xyz"]
-    bad = dg.convergence_check(shifted, names=names)
+    bad = dg_stats.convergence_check(shifted, names=names)
     assert not bad.converged and bad.rhat_at == "r[2, z]" and bad.rhat_max > 1.1
     assert bad.failed[0].startswith("R-hat") and "r[2, z]" in bad.failed[0] and ">= 1.01" in bad.failed[0]
     assert "1 of 6 coordinates" in bad.failed[0]
 
-    ar = dg.convergence_check(_ar1(0.98, 4, 1000, 3, seed=1))
+    ar = dg_stats.convergence_check(_ar1(0.98, 4, 1000, 3, seed=1))
     assert not ar.converged and ar.ess_bulk_min < 400
     assert any(f.startswith("bulk ESS") and "< 400" in f for f in ar.failed)
     # the same chains with a lenient threshold pass, and a stricter one fails R-hat too
-    assert dg.convergence_check(_ar1(0.5, 4, 1000, 3, seed=1), ess_min=400).converged
-    assert not dg.convergence_check(iid, rhat_max=1.0001).converged
+    assert dg_stats.convergence_check(_ar1(0.5, 4, 1000, 3, seed=1), ess_min=400).converged
+    assert not dg_stats.convergence_check(iid, rhat_max=1.0001).converged
 
-    few = dg.convergence_check(iid[:, :2])
+    few = dg_stats.convergence_check(iid[:, :2])
     assert not few.converged and any("could not be computed" in f for f in few.failed)
     with pytest.raises(UserError, match="rhat_max"):
-        dg.convergence_check(iid, rhat_max=1.0)
+        dg_stats.convergence_check(iid, rhat_max=1.0)
     with pytest.raises(UserError, match="ess_min"):
-        dg.convergence_check(iid, ess_min=float("nan"))
+        dg_stats.convergence_check(iid, ess_min=float("nan"))
     with pytest.raises(UserError, match="names"):
-        dg.convergence_check(iid, names=["a"])
+        dg_stats.convergence_check(iid, names=["a"])
 
 
 def test_truth_check_against_the_closed_form():
@@ -216,8 +216,8 @@ def test_truth_check_against_the_closed_form():
     calibrated = L @ rng.normal(0, 1, d)
     for offset in (e, calibrated, np.zeros(d)):
         x = (u + offset) + rng.normal(0, 1, (200_000, d)) @ L.T
-        idata = dg.to_inference_data(x.reshape(4, 50_000, 4, 3), range(1, 5))
-        tc = dg.truth_check(idata, truth)
+        idata = dg_az.to_inference_data(x.reshape(4, 50_000, 4, 3), range(1, 5))
+        tc = dg_stats.truth_check(idata, truth)
         assert tc["dof"] == d
         assert np.allclose(tc["band99"], stats.chi2.ppf([0.005, 0.995], d))
         want = float(offset @ np.linalg.solve(C, offset))
@@ -237,11 +237,12 @@ def test_importing_and_plotting_leave_the_matplotlib_backend_alone(tmp_path):
     import subprocess
     import sys
 
-    code = ("import matplotlib, numpy as np; from accel_bayes import diagnostics as dg; "
+    code = ("import matplotlib, numpy as np; from accel_bayes.diagnostics import plots as dg_plots; "
+            "from accel_bayes.data.outputs import save_figure; "
             "from accel_bayes.physics.arrays import mimu4444_8; "
             "b = matplotlib.get_backend(); "
             "mom = {'imu': [1], 'mean': np.zeros((1, 3)), 'cov': np.eye(3)[None] * 1e-8}; "
-            f"dg.save_figure(dg.plot_ellipses(mom, mimu4444_8()), r'{tmp_path / 'e.png'}'); "
+            f"save_figure(dg_plots.plot_ellipses(mom, mimu4444_8()), r'{tmp_path / 'e.png'}'); "
             "print(b, matplotlib.get_backend())")
     env = {**__import__("os").environ, "MPLBACKEND": "pdf"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
@@ -273,7 +274,7 @@ def test_offsets_plot_is_readable_at_a_glance():
            "cov": np.array([np.diag([4e-10, 1e-10, 1e-10])] * 7)}  # std 20 µm in x, 10 µm in y, z
     truth = nominal.copy()
     truth[1:] += off + 3e-5
-    fig = dg.plot_offsets(mom, arr, truth=truth, prior_std=3e-3)
+    fig = dg_plots.plot_offsets(mom, arr, truth=truth, prior_std=3e-3)
     assert not _ink_on_the_border(fig)
     panels = [a for a in fig.axes if a.get_visible()]
     assert len(panels) == 7 and [a.get_title().split("\n")[0] for a in panels] == [f"IMU {k}" for k in range(1, 8)]
@@ -291,4 +292,4 @@ def test_the_board_view_with_a_title_is_clipped_no_more():
     """The board view ([C21] Fig. 5, kept for studies) under constrained layout: its two-line titles fit."""
     arr = mimu4444_8()
     mom = {"imu": [1], "mean": np.array([[0.0, 0.0, -2e-3]]), "cov": np.eye(3)[None] * 1e-8}
-    assert not _ink_on_the_border(dg.plot_ellipses(mom, arr, exaggerate=5))
+    assert not _ink_on_the_border(dg_plots.plot_ellipses(mom, arr, exaggerate=5))

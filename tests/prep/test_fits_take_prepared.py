@@ -12,7 +12,7 @@ import torch
 import accel_bayes.prep.prepared as prepared_mod
 from accel_bayes.errors import UserError
 from accel_bayes.inference.map import fit_map_recording
-from accel_bayes.inference.motion import estimate_motion
+from accel_bayes.inference.motion_estimate import estimate_motion
 from accel_bayes.mismatch.prepared import prepare as mismatch_prepare
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood
 from accel_bayes.physics.arrays import mimu4444_8

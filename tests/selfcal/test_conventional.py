@@ -13,7 +13,7 @@ from accel_bayes.inference.conventional import (
     conventional_jacobians,
     conventional_residuals,
 )
-from accel_bayes.physics.motion import smooth_motion
+from accel_bayes.physics.motion_generators import smooth_motion
 
 F64 = torch.float64
 RATE = 125.0

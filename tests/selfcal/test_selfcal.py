@@ -25,7 +25,7 @@ from accel_bayes.inference.selfcal import (
     triad_jacobians,
     triad_residuals,
 )
-from accel_bayes.physics.motion import simulate_process_motion
+from accel_bayes.physics.motion_generators import simulate_process_motion
 
 F64 = torch.float64
 RATE = 125.0
@@ -291,7 +291,7 @@ def test_rerun_from_estimate_fixes_partially_flipped_rotation_sign():
     """
     arr = s16_plate()
     T = 400
-    from accel_bayes.physics.motion import smooth_motion
+    from accel_bayes.physics.motion_generators import smooth_motion
 
     m = smooth_motion(T, RATE, seed=1, omega_rms=6.0, freq_range=(0.05, 0.2), accel_rms=0.0)
     wd = torch.diff(m.omega, dim=0) * RATE  # Euler-consistent ω̇ (eq. 7 exact)
@@ -384,7 +384,7 @@ def test_cli_selfcal_writes_outputs(tmp_path, capsys):
     import csv
     import json
 
-    from accel_bayes.physics.motion import smooth_motion
+    from accel_bayes.physics.motion_generators import smooth_motion
     from accel_bayes.data.positions import read_positions
 
     m = smooth_motion(500, RATE, seed=1, omega_rms=6.0, freq_range=(0.05, 0.2), accel_rms=0.0)
@@ -420,7 +420,7 @@ def test_cli_selfcal_writes_outputs(tmp_path, capsys):
 
 def test_cli_selfcal_divergence_exits_3(tmp_path, capsys):
     from accel_bayes.errors import UserError
-    from accel_bayes.physics.motion import MotionTrace
+    from accel_bayes.physics.trajectories import MotionTrace
 
     T = 200
     t = torch.arange(T, dtype=F64) / RATE

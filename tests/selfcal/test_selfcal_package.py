@@ -15,7 +15,7 @@ from accel_bayes.physics.arrays import s16_plate
 PKG = Path(sc.__file__).parent
 
 # the public names of accel_bayes/inference/selfcal.py at 9279a3c (its __all__ and the names that
-# experiments/ imported), less simulate_process_motion, now a motion generator (physics.motion)
+# experiments/ imported), less simulate_process_motion, now a motion generator (physics.motion_generators)
 OLD_PUBLIC = [
     "triad_residuals", "triad_jacobians", "process_residuals", "process_jacobians", "process_sqrt_information",
     "bridged_process_whitening", "PROCESS_NOISE_MODES", "wnoj_process_covariance", "wnoj_process_whitening",
@@ -92,7 +92,7 @@ def test_a_rerun_that_is_not_kept_leaves_the_kept_runs_process_noise(monkeypatch
     fix both were the last run's (the re-run's).  The re-run is made "worse" by inflating its
     reported cost after it ran, so that the first run is kept."""
     from accel_bayes.physics.geometry import boxplus
-    from accel_bayes.physics.motion import simulate_process_motion
+    from accel_bayes.physics.motion_generators import simulate_process_motion
 
     arr = s16_plate()
     g = torch.Generator().manual_seed(8)

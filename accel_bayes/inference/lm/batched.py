@@ -44,7 +44,7 @@ class BatchedLevenbergMarquardt:
     """Levenberg–Marquardt on many small independent problems at once (no loop over problems).
 
     The problems share one size n and one ``linearize`` that evaluates all of them together —
-    e.g. the 9 motion unknowns of every sample (:mod:`accel_bayes.inference.motion`, batched over
+    e.g. the 9 motion unknowns of every sample (:mod:`accel_bayes.inference.motion_estimate`, batched over
     samples and geometry draws) or the 9 rest-model parameters of every IMU
     (:mod:`accel_bayes.prep.intrinsics`).  The pieces are those of :class:`LevenbergMarquardt`: the
     damping strategy (:mod:`~accel_bayes.inference.lm.damping`, one λ per problem), the stopping

@@ -20,7 +20,7 @@ order they build on each other:
 
 The public names are re-exported here: ``from accel_bayes.inference.selfcal import
 self_calibrate``.  Motion drawn from the process model itself, for tests and studies, is a motion
-generator: :func:`accel_bayes.physics.motion.simulate_process_motion`.
+generator: :func:`accel_bayes.physics.motion_generators.simulate_process_motion`.
 """
 from .factors import process_jacobians, process_residuals, triad_jacobians, triad_residuals
 from .fitcheck import MISFIT_RMS, UNIDENTIFIED_SCALE_STD, FitCheck, check_divergence, fit_check
