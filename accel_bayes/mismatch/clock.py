@@ -47,7 +47,7 @@ import math
 import numpy as np
 import torch
 
-from ..physics.effects import SamplingClock
+from ..physics.effects import SamplingClock, board_gyro_rate
 from .jitter import jitter_ab
 from .model import ModelFit
 from .prepared import Prepared
@@ -62,6 +62,8 @@ MAX_DRIFT_HZ_PER_S = 0.008
 _PAD = 4           # zero padding of the FFT (frequency step f_read/(4N))
 _N_PEAKS = 8       # peaks of the periodogram tried in the exact model
 _HARMONICS = 3     # sawtooth harmonics summed in the search
+_FLOOR_HZ = 0.5    # width (Hz) of the blocks whose median is the periodogram's local continuum
+_N_CONTINUUM = 6   # further peaks nominated by their height over the local continuum
 #: fewest sawtooth cycles over the recording's span for a clock (fewer: indistinguishable from a wander)
 MIN_CYCLES = 5.0
 #: the sawtooth width W (s) a clock may have: 1/f_k ≈ 1 ms, larger where the fitted output rates
@@ -99,6 +101,16 @@ def _profile(b, a, age_shape):
     return float(g @ np.array([c, W])) / 2.0, float(W), float(c), m
 
 
+def _continuum(power, nb: int) -> np.ndarray:
+    """The periodogram's local continuum: the median of ``power`` over blocks of ``nb`` bins, per
+    bin (a line is a few bins, so it barely moves its block's median)."""
+    L = len(power)
+    nblk = -(-L // nb)
+    padded = np.concatenate([power, np.full(nblk * nb - L, np.nan)])
+    med = np.nanmedian(padded.reshape(nblk, nb), axis=1)
+    return np.maximum(np.repeat(med, nb)[:L], 1e-300 + 1e-12 * float(np.nanmax(med)))
+
+
 def _frac(x):
     return x - np.floor(x)
 
@@ -130,28 +142,44 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
     L = int(2 ** math.ceil(math.log2(_PAD * N)))
     freqs = np.fft.fftfreq(L, 1.0 / f_read)
     tt = t - t0
-    peaks = []
     idx = np.arange(L)
+    # a constant time offset (read skew, filter delay) gives b = −a·const, whose spectrum is that
+    # of a_t — the slow envelope of the motion — and outranks the beat: searched without it
+    b_search = b - a * (b.sum() / max(a.sum(), 1e-300))
+    z = np.zeros(L)
+    z[n] = b_search
+    floor = _continuum(np.abs(np.fft.fft(z)) ** 2, max(int(round(_FLOOR_HZ * L / f_read)), 8))
+    peaks = ([], [])  # (raw ranking, ranking against the local continuum)
     for d in drifts:
         # harmonic m of the sawtooth sits at m·β with chirp m·d, amplitude 1/m: ranking by
-        # Σ_m |F_m(mβ)|²/m, a slow motion-frequency residual (one line, no harmonics) ranks lower
-        P = np.zeros(L)
+        # Σ_m |F_m(mβ)|²/m, a slow motion-frequency residual (one line, no harmonics) ranks lower.
+        # Where that residual is strong, its red continuum (what a wander explains) still outranks
+        # a beat that stands out where it is: the peaks of Σ_m |F_m(mβ)|²/(m·continuum(mβ)) are
+        # nominated too (alone they favour a beat's harmonics, whose continuum is lower)
+        P, Pn = np.zeros(L), np.zeros(L)
         for mh in range(1, _HARMONICS + 1):
             z = np.zeros(L, complex)
-            z[n] = b * np.exp(-1j * math.pi * mh * d * tt ** 2)
-            P += np.abs(np.fft.fft(z))[(mh * idx) % L] ** 2 / mh
-        # under MIN_CYCLES over the span a sawtooth is a slow wander, not a clock
-        P[np.abs(freqs) < MIN_CYCLES / D] = 0.0
-        top = np.argpartition(P, -_N_PEAKS)[-_N_PEAKS:]
-        peaks += [(float(P[i]), float(freqs[i]), float(d)) for i in top]
-    peaks.sort(key=lambda p: -p[0])
-    # a peak and its neighbours are one peak: keep distinct |β| (beyond 2 bins) only
+            z[n] = b_search * np.exp(-1j * math.pi * mh * d * tt ** 2)
+            j = (mh * idx) % L
+            pw = np.abs(np.fft.fft(z))[j] ** 2 / mh
+            P += pw
+            Pn += pw / floor[j]
+        for Q, out in ((P, peaks[0]), (Pn, peaks[1])):
+            # under MIN_CYCLES over the span a sawtooth is a slow wander, not a clock
+            Q[np.abs(freqs) < MIN_CYCLES / D] = 0.0
+            top = np.argpartition(Q, -_N_PEAKS)[-_N_PEAKS:]
+            out += [(float(Q[i]), float(freqs[i]), float(d)) for i in top]
+    # a peak and its neighbours are one peak: keep distinct |β| (beyond 2 bins) or drifts only
     chosen = []
-    for p in peaks:
-        if all(abs(abs(p[1]) - abs(q[1])) > 2 * f_read / L or abs(p[2] - q[2]) > 2 * step for q in chosen):
-            chosen.append(p)
-        if len(chosen) == _N_PEAKS:
-            break
+    for ranked, n_keep in ((peaks[0], _N_PEAKS), (peaks[1], _N_PEAKS + _N_CONTINUUM)):
+        ranked.sort(key=lambda p: -p[0])
+        for p in ranked:
+            if len(chosen) >= n_keep:
+                break
+            # (β, d) and (−β, −d) are one peak of the real input's spectrum
+            if all(abs(abs(p[1]) - abs(q[1])) > 2 * f_read / L or abs(p[2] * np.sign(p[1]) - q[2] * np.sign(q[1])) > 2 * step
+                   for q in chosen):
+                chosen.append(p)
 
     def neg(x):
         phase, beat, drift = x
@@ -161,12 +189,12 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
 
     fits = []
     for _, f0, d0 in chosen:
-        for beat in (f0, -f0):
+        for beat, drift in ((f0, d0), (-f0, -d0)):  # the real input's mirror peak is (−β, −d)
             # the phase on a grid first (the profile is piecewise smooth in it); the search's
-            # chirp is about t0, the model's about t = 0: the beat at t = 0 is f0 − d·t0
+            # chirp is about t0, the model's about t = 0: the beat at t = 0 is β − d·t0
             cands = []
             for ph in np.linspace(0, 1, 24, endpoint=False):
-                x0 = np.array([ph, beat - d0 * t0, d0])
+                x0 = np.array([ph, beat - drift * t0, drift])
                 cands.append((neg(x0), x0))
             cands.sort(key=lambda c: c[0])
             x0 = cands[0][1]
@@ -287,10 +315,13 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
     steps = sample_steps(t)
     fits, clocks = [], []
     thr = None
+    # the age's regressor: the board's angular acceleration at each sample, not the finite
+    # difference of the sampled outputs (aliased vibration flips and shrinks it; board_gyro_rate)
+    prep_rate = dataclasses.replace(prep, gyro_rate=board_gyro_rate(fit.ctx))
     for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
         if prep.gyro_rate is None or not bool(prep.m_gyro[:, k].any()):
             continue
-        a_t, b_t, rr, n_obs = jitter_ab(prep, fit, k, "gyro", with_residual_power=True)
+        a_t, b_t, rr, n_obs = jitter_ab(prep_rate, fit, k, "gyro", with_residual_power=True)
         a, b = a_t.numpy(), b_t.numpy()
         w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
         g_none = _white_loglik(rr, n_obs)

@@ -33,9 +33,10 @@ import math
 import torch
 
 from ...errors import UserError
+from ..geometry import quat_to_matrix
 from .base import Effect, Param, register_effect, _onehot
 
-__all__ = ["SamplingClock", "clock_age"]
+__all__ = ["SamplingClock", "clock_age", "board_gyro_rate"]
 
 
 def clock_age(time, beat_hz, phase, drift_hz_per_s, width_s):
@@ -44,6 +45,20 @@ def clock_age(time, beat_hz, phase, drift_hz_per_s, width_s):
     t = torch.as_tensor(time, dtype=torch.float64)
     x = phase + beat_hz * t + 0.5 * drift_hz_per_s * t * t
     return width_s * (x - torch.floor(x))
+
+
+def board_gyro_rate(ctx) -> torch.Tensor:
+    """(T, K, 3) d/dt of the nominal gyro outputs (rad/s²): R_k ω̇_t, the context's own angular
+    acceleration (array frame, ``ctx.omega_dot``) turned into each IMU's sensor frame.
+
+    Why not the finite difference of the sampled outputs (``ctx.gyro_rate``): board vibration above
+    the read's Nyquist rate folds to f_read − f, where the sampled signal's derivative is −(f_read −
+    f)/f times the true one (flipped and shrunk), so a data age loaded on it has the wrong sign and
+    size.  ω̇_t is the rigid board's angular acceleration at the sample instant itself — a per-sample
+    motion state the accelerometer array measures through the tangential term ω̇ × r — so nothing
+    folds."""
+    R = quat_to_matrix(ctx.orientations.to(ctx.omega_dot.dtype))
+    return torch.einsum("kij,tj->tki", R, ctx.omega_dot)
 
 
 @register_effect
@@ -73,11 +88,11 @@ class SamplingClock(Effect):
     def perturbation(self, params, ctx):
         p = self._p(params)
         k = self._imu_checked(ctx)
-        if ctx.acc_rate is None or ctx.gyro_rate is None:
-            raise UserError("sampling_clock: the signal context has no output rates (acc_rate, gyro_rate)")
+        if ctx.acc_rate is None:
+            raise UserError("sampling_clock: the signal context has no accelerometer output rate (acc_rate)")
         age = self.age(ctx.time, p)[:, None, None]
         m = _onehot(ctx.K, k, None, ctx.acc)
-        return (-(age + p["filter_delay_acc_minus_gyro_s"]) * m * ctx.acc_rate, -age * m * ctx.gyro_rate)
+        return (-(age + p["filter_delay_acc_minus_gyro_s"]) * m * ctx.acc_rate, -age * m * board_gyro_rate(ctx))
 
     def explain(self, params=None):
         p = {k: float(v) for k, v in self._p(params).items()}
