@@ -4,26 +4,44 @@ fixed in the rounds (:mod:`accel_bayes.mismatch.detect`, step 3b).
 
 Data.  Per IMU k and sample t the gyro triad's restricted timing statistics of
 :func:`accel_bayes.mismatch.jitter.jitter_ab` (the machinery ``timing_wander`` is fitted on):
-a_t = ṽᵀPṽ (s⁻²) and b_t = ṽᵀP r̃ (s⁻¹), ṽ the whitened gyro output rate, P the projection off
-the per-sample motion states, r̃ the whitened residual.  A timing error δ_t (s, positive = the
-output is the motion δ later) adds a_t δ_t to b_t, so the clock's data age, δ_t = −age_t, gives
+a_t = ṽᵀPṽ (s⁻²) and b_t = ṽᵀP r̃ (s⁻¹), P the projection off the per-sample motion states, r̃
+the whitened residual, and ṽ the whitened rate of the gyro output, ġ_kt = R_k ω̇_t.  A timing error
+δ_t (s, positive = the output is the motion δ later) adds a_t δ_t to b_t, so the clock's data age,
+δ_t = −age_t, gives
 
     b_t ≈ −a_t·age_t + n_t,   n_t ~ N(0, a_t)   (Var b = a under the null, exactly).
+
+The regressor (issue #27, recall).  IMU k's output read at t is its filtered signal at
+t − age_kt, so its residual is −age_kt·ġ_kt with ġ the true rate *at the sample instant*.  The
+board's per-sample motion states hold that rate, ω̇_t, measured by the accelerometer array through
+the tangential term ω̇ × r (:func:`accel_bayes.physics.effects.board_gyro_rate`); the finite
+difference of the sampled gyro outputs (``prep.gyro_rate``, the regressor until 2026-11-27) is not
+it once the board vibrates above the read's Nyquist rate: a line at f folds to f' = f_read − f,
+where the sampled signal's derivative is −(f'/f) times the true one — flipped and shrunk.  On
+clockgen's 125 Hz cube6 case (seed 14) the age effect regressed on the finite difference had
+R² 0.02–0.10 with the sign flipped, on R_k ω̇ R² 0.88–0.93 with slope ≈ 1; on the real MIMU's
+experiment 1 the evidence of the same beats rose 1.6–2.3× (``experiments/clock_mimu.md``).  The unresolved part of the board's motion (what the states
+get wrong: ``unresolved_motion``, :mod:`accel_bayes.mismatch.unresolved`) is then white noise on
+the regressor, common to the board; it scales W by |ω̇|²/(|ω̇|² + noise), it does not move the
+beat or the phase.  W also scales with the fitted lever arms (ω̇ ∝ 1/r): clockgen's mimu4444 board
+is fitted at 0.68 of its true size before the clocks are corrected, and its W at 0.6–0.8 ms.
 
 Search.  age_t = W·frac(φ + βt + ½dt²) + const.  The sawtooth's fundamental carries the phase:
 −W·frac(x) = const + (W/π)·Σ_m sin(2πmx)/m, so Σ_t b_t e^(−2πim(βt + ½dt²)) peaks at the beat for
 every harmonic m; the search ranks β by Σ_{m≤3} |F_m|²/m (a residual at the motion's own frequencies
 has no such harmonics, and on boards with linear gyro errors it outranks the fundamental alone).
+The constant is taken off b first (b − a·Σb/Σa): a constant time offset (read skew) gives
+b = −a·const, the spectrum of the motion's envelope, which outranked beats.
 The kept samples go onto the uniform grid of the read rate (zeros where the selection dropped
 one), are de-chirped for each drift on a grid (step 1/(2D²), D the span), zero-padded ×4 and
-FFT'd: every β in (−f_read/2, f_read/2].  The real input makes ±β peak alike; the sawtooth's
-shape (slow ramp, fast jump) tells them apart, so the best few peaks are tried with both signs in
+FFT'd: every β in (−f_read/2, f_read/2].  The best peaks of that ranking are nominated, and the best
+of the same ranking with each harmonic divided by the periodogram's local continuum (median over
+0.5 Hz): slow motion-frequency lines in b (a wander explains them) have a red continuum and
+outrank a beat that stands out where it is.  The real input makes (β, d) and (−β, −d) peak alike;
+the sawtooth's shape (slow ramp, fast jump) tells them apart, so each peak is tried with both in
 the exact sawtooth model (W and the constant profiled by weighted least squares, weights a_t), then
-(φ, β, d) refined by Nelder–Mead on that profile.  The refined fits with W > 0 are candidates, best gain
-first; the stage keeps the first that passes its acceptance (below), so that on reads
-slower than twice the board's vibration the fitted output rates alias that content (flipped,
-scaled), so the sawtooth's white-noise gain is weak and slow motion-frequency lines in b (which a
-wander explains) that outrank the beat there do not hide it.
+(φ, β, d) refined by Nelder–Mead on that profile.  The refined fits with W > 0 are candidates, best
+gain first; the stage keeps the first that passes its acceptance (below).
 
 Evidence (nats ×2; the triad's white-noise factor c profiled throughout, so a clock never earns
 what a larger noise would):

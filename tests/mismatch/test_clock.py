@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes.physics.effects import SamplingClock, SignalContext, clock_age
+from accel_bayes.physics.effects import SamplingClock, SignalContext, board_gyro_rate, clock_age, output_rates
+from accel_bayes.physics.geometry import quat_to_matrix
 from accel_bayes.mismatch import detect
 from accel_bayes.mismatch.clock import clock_ages
 from accel_bayes.mismatch.fit import baseline_fit
@@ -40,15 +41,16 @@ def test_clock_age_is_a_sawtooth_of_the_beat():
 
 
 def test_perturbation_is_the_first_order_delay():
-    """y(t − age) of a 3 Hz sinusoid against y − age·ẏ (gyro) and with the acc−gyro delay (acc)."""
+    """y(t − age) of a 3 Hz sinusoid against y − age·ẏ (gyro: ẏ = R ω̇ of the context's motion) and
+    with the acc−gyro delay (acc)."""
     t = torch.arange(0, 1, 0.01, dtype=torch.float64)
     w = 2 * math.pi * 3
     y, ydot = torch.sin(w * t), w * torch.cos(w * t)
     out = torch.stack([y, y, y], -1)[:, None, :]
     rate = torch.stack([ydot, ydot, ydot], -1)[:, None, :]
     z = torch.zeros(len(t), 3, dtype=torch.float64)
-    ctx = SignalContext(t, z, z, z, torch.zeros(1, 3, dtype=torch.float64),
-                        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64), out, out, rate, rate)
+    ctx = SignalContext(t, out[:, 0], rate[:, 0], z, torch.zeros(1, 3, dtype=torch.float64),
+                        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64), out, out, rate, None)
     e = SamplingClock(imu=0, params={"beat_hz": 1.3, "phase": 0.1, "age_rms_s": 1e-3 / math.sqrt(12),
                                      "filter_delay_acc_minus_gyro_s": 2e-4})
     da, dg = e.perturbation(None, ctx)
@@ -59,6 +61,25 @@ def test_perturbation_is_the_first_order_delay():
     bound = 0.5 * (w * 1.2e-3) ** 2
     assert float((dg[:, 0, 0] - exact_g).abs().max()) < bound < 0.05 * float(exact_g.abs().max())
     assert float((da[:, 0, 0] - exact_a).abs().max()) < bound
+
+
+def test_board_gyro_rate_is_the_unaliased_output_rate():
+    """A 90 Hz angular vibration read at 125 Hz: the finite difference of the sampled gyro outputs
+    (the regressor before issue #27's recall fix) has the sign of the folded 35 Hz line, opposite
+    to the true rate; board_gyro_rate is R_k ω̇ at the sample instants, exact."""
+    t = torch.arange(0, 2, 1 / 125.0, dtype=torch.float64)
+    w = 2 * math.pi * 90.0
+    omega = torch.stack([0.1 * torch.sin(w * t), 0.05 * torch.cos(w * t), 0.02 * torch.sin(w * t + 1)], -1)
+    omega_dot = torch.stack([0.1 * w * torch.cos(w * t), -0.05 * w * torch.sin(w * t),
+                             0.02 * w * torch.cos(w * t + 1)], -1)
+    q = torch.tensor([[1.0, 0, 0, 0], [0.5, 0.5, -0.5, 0.5]], dtype=torch.float64)
+    pos = torch.tensor([[0.0, 0, 0], [0.02, 0.01, 0]], dtype=torch.float64)
+    ctx = SignalContext.from_motion(pos, q, omega, omega_dot, torch.zeros_like(omega), t)
+    true_rate = torch.einsum("kij,tj->tki", quat_to_matrix(q), omega_dot)
+    assert torch.allclose(board_gyro_rate(ctx), true_rate, atol=1e-9 * float(true_rate.abs().max()))
+    _, fd = output_rates(t, ctx.acc, ctx.gyro)
+    inner = lambda x, y: float((x[2:-2] * y[2:-2]).sum())  # noqa: E731 (interior: np.gradient's ends are one-sided)
+    assert inner(fd, true_rate) < -0.1 * math.sqrt(inner(fd, fd) * inner(true_rate, true_rate))
 
 
 def test_stage_recovers_clockgen_age(clock_case):

@@ -15,10 +15,13 @@ absolute filter delay d_s is common to the whole board (the datasheet's) and abs
 motion; only the accelerometer's delay beyond the gyro's, ``filter_delay_acc_minus_gyro_s``, is
 identifiable.  Linearised (like ``time_offset``, :mod:`.timing`):
 
-    d_gyro = −age(t)·ġ(t),   d_acc = −(age(t) + filter_delay_acc_minus_gyro_s)·ȧ(t),
+    d_gyro = −age(t)·R_k ω̇(t),   d_acc = −(age(t) + filter_delay_acc_minus_gyro_s)·ȧ(t),
 
-ġ, ȧ the output rates (``ctx.gyro_rate``, ``ctx.acc_rate``).  The neglected term is
-age²/2 · ÿ, below 1e-3 of the effect for ages ≤ 1 ms and motion under ~50 Hz.
+R_k ω̇ the gyro output's rate from the context's angular acceleration (:func:`board_gyro_rate`:
+the rate at the sample instant, which the finite difference of the sampled outputs is not once
+the board vibrates above the read's Nyquist rate), ȧ the accelerometer output rate
+(``ctx.acc_rate``).  The neglected term is age²/2 · ÿ, below 1e-3 of the effect for ages ≤ 1 ms
+and motion under ~50 Hz.
 
 The phase, beat and drift enter through a discontinuous sawtooth, so the effect is not fitted by
 the LM refits: :mod:`accel_bayes.mismatch.clock` estimates it by a beat-frequency search and the
