@@ -71,7 +71,7 @@ from .model import ModelFit
 from .prepared import Prepared
 from .wander import fit_wander, sample_steps
 
-__all__ = ["ClockStage", "estimate_clock", "clock_stage", "clock_ages", "data_age", "clock_corrected", "NOMINAL_INTERNAL_RATE_HZ"]
+__all__ = ["ClockStage", "estimate_clock", "clock_ab", "clock_stage", "clock_ages", "data_age", "clock_corrected", "NOMINAL_INTERNAL_RATE_HZ"]
 
 #: the internal sampling rate of an MPU-6050/9150 with its low-pass on (Hz): reports f_k from the beat
 NOMINAL_INTERNAL_RATE_HZ = 1000.0
@@ -140,7 +140,7 @@ def _white_loglik(rr: float, n: int) -> float:
 
 
 def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S, candidates: bool = False):
-    """The beat search of the module docstring on one IMU's (a, b) at times t (s): returns
+    """The beat search of the module docstring on one IMU's (a, b) (:func:`clock_ab`) at times t (s): returns
     {"beat_hz", "phase", "drift_hz_per_s", "width_s" (W, s), "const_s", "gain" (Σbm − ½Σam², nats
     at the stated noise), "mean" (T,) the fitted δ_t = const − age_t (s), "cells" (independent
     (β, d) cells searched)}.  ``candidates``: the list of such dicts instead, one per distinct refined
@@ -318,6 +318,16 @@ def clock_corrected(prep: Prepared, fit: ModelFit, clocks) -> Prepared:
     return dataclasses.replace(prep, y_acc=ya * prep.m_acc, y_gyro=yg * prep.m_gyro)
 
 
+def clock_ab(prep: Prepared, fit: ModelFit, k: int):
+    """IMU k's gyro timing statistics at ``fit`` with the data age's regressor of the module
+    docstring, ġ = R_k ω̇ (:func:`accel_bayes.physics.effects.board_gyro_rate`), not the finite
+    difference ``prep.gyro_rate``: (a (T,) s⁻², b (T,) s⁻¹, Σ r̃ᵀr̃, observed channels) as
+    :func:`accel_bayes.mismatch.jitter.jitter_ab` (``"gyro"``, ``with_residual_power``).  What
+    :func:`estimate_clock` takes, wherever a clock is acquired."""
+    prep_rate = dataclasses.replace(prep, gyro_rate=board_gyro_rate(fit.ctx))
+    return jitter_ab(prep_rate, fit, k, "gyro", with_residual_power=True)
+
+
 def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshold: float) -> ClockStage:
     """Estimate a clock on every IMU with a gyroscope at ``fit`` (module docstring), accept those
     whose two evidences pass the stage threshold, correct ``prep`` for them and refit the model
@@ -333,13 +343,10 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
     steps = sample_steps(t)
     fits, clocks = [], []
     thr = None
-    # the age's regressor: the board's angular acceleration at each sample, not the finite
-    # difference of the sampled outputs (aliased vibration flips and shrinks it; board_gyro_rate)
-    prep_rate = dataclasses.replace(prep, gyro_rate=board_gyro_rate(fit.ctx))
     for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
         if prep.gyro_rate is None or not bool(prep.m_gyro[:, k].any()):
             continue
-        a_t, b_t, rr, n_obs = jitter_ab(prep_rate, fit, k, "gyro", with_residual_power=True)
+        a_t, b_t, rr, n_obs = clock_ab(prep, fit, k)
         a, b = a_t.numpy(), b_t.numpy()
         w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
         g_none = _white_loglik(rr, n_obs)
