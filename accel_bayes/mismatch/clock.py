@@ -20,12 +20,13 @@ it once the board vibrates above the read's Nyquist rate: a line at f folds to f
 where the sampled signal's derivative is −(f'/f) times the true one — flipped and shrunk.  On
 clockgen's 125 Hz cube6 case (seed 14) the age effect regressed on the finite difference had
 R² 0.02–0.10 with the sign flipped, on R_k ω̇ R² 0.88–0.93 with slope ≈ 1; on the real MIMU's
-six experiments the evidence of the same beats rose 1.3–3.2× (``experiments/clock_mimu.md``).  The unresolved part of the board's motion (what the states
-get wrong: ``unresolved_motion``, :mod:`accel_bayes.mismatch.unresolved`) is then white noise on
-the regressor, common to the board; it scales W by |ω̇|²/(|ω̇|² + noise), it does not move the
-beat or the phase.  W also scales with the fitted lever arms (ω̇ ∝ 1/r): clockgen's mimu4444 board
-is fitted at 0.68 of its true size before the clocks are corrected, and its W at 0.3–0.8 ms: the
-lower end fails :data:`WIDTH_RANGE_S` with the beat right (``experiments/clock_proof.md``, mimu4444 at 250 Hz).
+six experiments the evidence of the same beats rose 1.3–3.2× (``experiments/clock_mimu.md``).  The
+unresolved part of the board's motion (what the states get wrong: ``unresolved_motion``,
+:mod:`accel_bayes.mismatch.unresolved`) is then noise on the regressor, common to the board; it
+scales W by |ω̇|²/(|ω̇|² + noise), it does not move the beat or the phase.  W also scales with the
+fitted lever arms (ω̇ ∝ 1/r): clockgen's mimu4444 board is fitted at 0.68 of its true size before
+the clocks are corrected, and its W at 0.3–0.8 ms; the lower end fails :data:`WIDTH_RANGE_S` with
+the beat right (``experiments/clock_proof.md``: mimu4444 at 250 Hz; 4/48 real IMU-experiments).
 
 Search.  age_t = W·frac(φ + βt + ½dt²) + const.  The sawtooth's fundamental carries the phase:
 −W·frac(x) = const + (W/π)·Σ_m sin(2πmx)/m, so Σ_t b_t e^(−2πim(βt + ½dt²)) peaks at the beat for
