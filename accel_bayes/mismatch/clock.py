@@ -4,26 +4,46 @@ fixed in the rounds (:mod:`accel_bayes.mismatch.detector`, step 3b).
 
 Data.  Per IMU k and sample t the gyro triad's restricted timing statistics of
 :func:`accel_bayes.mismatch.jitter.jitter_ab` (the machinery ``timing_wander`` is fitted on):
-a_t = ṽᵀPṽ (s⁻²) and b_t = ṽᵀP r̃ (s⁻¹), ṽ the whitened gyro output rate, P the projection off
-the per-sample motion states, r̃ the whitened residual.  A timing error δ_t (s, positive = the
-output is the motion δ later) adds a_t δ_t to b_t, so the clock's data age, δ_t = −age_t, gives
+a_t = ṽᵀPṽ (s⁻²) and b_t = ṽᵀP r̃ (s⁻¹), P the projection off the per-sample motion states, r̃
+the whitened residual, and ṽ the whitened rate of the gyro output, ġ_kt = R_k ω̇_t.  A timing error
+δ_t (s, positive = the output is the motion δ later) adds a_t δ_t to b_t, so the clock's data age,
+δ_t = −age_t, gives
 
     b_t ≈ −a_t·age_t + n_t,   n_t ~ N(0, a_t)   (Var b = a under the null, exactly).
+
+The regressor (issue #27, recall).  IMU k's output read at t is its filtered signal at
+t − age_kt, so its residual is −age_kt·ġ_kt with ġ the true rate *at the sample instant*.  The
+board's per-sample motion states hold that rate, ω̇_t, measured by the accelerometer array through
+the tangential term ω̇ × r (:func:`accel_bayes.physics.effects.board_gyro_rate`); the finite
+difference of the sampled gyro outputs (``prep.gyro_rate``, the regressor until 2026-11-27) is not
+it once the board vibrates above the read's Nyquist rate: a line at f folds to f' = f_read − f,
+where the sampled signal's derivative is −(f'/f) times the true one — flipped and shrunk.  On
+clockgen's 125 Hz cube6 case (seed 14) the age effect regressed on the finite difference had
+R² 0.02–0.10 with the sign flipped, on R_k ω̇ R² 0.88–0.93 with slope ≈ 1; on the real MIMU's
+six experiments the evidence of the same beats rose 1.3–3.2× (``experiments/clock_mimu.md``).  The
+unresolved part of the board's motion (what the states get wrong: ``unresolved_motion``,
+:mod:`accel_bayes.mismatch.unresolved`) is then noise on the regressor, common to the board; it
+scales W by |ω̇|²/(|ω̇|² + noise), it does not move the beat or the phase.  W also scales with the
+fitted lever arms (ω̇ ∝ 1/r): clockgen's mimu4444 board is fitted at 0.68 of its true size before
+the clocks are corrected, and its W at 0.3–0.8 ms; the lower end fails :data:`WIDTH_RANGE_S` with
+the beat right (``experiments/clock_proof.md``: mimu4444 at 250 Hz; 4/48 real IMU-experiments).
 
 Search.  age_t = W·frac(φ + βt + ½dt²) + const.  The sawtooth's fundamental carries the phase:
 −W·frac(x) = const + (W/π)·Σ_m sin(2πmx)/m, so Σ_t b_t e^(−2πim(βt + ½dt²)) peaks at the beat for
 every harmonic m; the search ranks β by Σ_{m≤3} |F_m|²/m (a residual at the motion's own frequencies
 has no such harmonics, and on boards with linear gyro errors it outranks the fundamental alone).
+The constant is taken off b first (b − a·Σb/Σa): a constant time offset (read skew) gives
+b = −a·const, the spectrum of the motion's envelope, which outranked beats.
 The kept samples go onto the uniform grid of the read rate (zeros where the selection dropped
 one), are de-chirped for each drift on a grid (step 1/(2D²), D the span), zero-padded ×4 and
-FFT'd: every β in (−f_read/2, f_read/2].  The real input makes ±β peak alike; the sawtooth's
-shape (slow ramp, fast jump) tells them apart, so the best few peaks are tried with both signs in
+FFT'd: every β in (−f_read/2, f_read/2].  The best peaks of that ranking are nominated, and the best
+of the same ranking with each harmonic divided by the periodogram's local continuum (median over
+0.5 Hz): slow motion-frequency lines in b (a wander explains them) have a red continuum and
+outrank a beat that stands out where it is.  The real input makes (β, d) and (−β, −d) peak alike;
+the sawtooth's shape (slow ramp, fast jump) tells them apart, so each peak is tried with both in
 the exact sawtooth model (W and the constant profiled by weighted least squares, weights a_t), then
-(φ, β, d) refined by Nelder–Mead on that profile.  The refined fits with W > 0 are candidates, best gain
-first; the stage keeps the first that passes its acceptance (below), so that on reads
-slower than twice the board's vibration the fitted output rates alias that content (flipped,
-scaled), so the sawtooth's white-noise gain is weak and slow motion-frequency lines in b (which a
-wander explains) that outrank the beat there do not hide it.
+(φ, β, d) refined by Nelder–Mead on that profile.  The refined fits with W > 0 are candidates, best
+gain first; the stage keeps the first that passes its acceptance (below).
 
 Evidence (nats ×2; the triad's white-noise factor c profiled throughout, so a clock never earns
 what a larger noise would):
@@ -47,13 +67,13 @@ import math
 import numpy as np
 import torch
 
-from ..physics.effects import SamplingClock
+from ..physics.effects import SamplingClock, board_gyro_rate
 from .jitter import jitter_ab
 from .model import ModelFit
 from .prepared import Prepared
 from .wander import fit_wander, sample_steps
 
-__all__ = ["ClockStage", "estimate_clock", "clock_stage", "clock_ages", "data_age", "clock_corrected", "NOMINAL_INTERNAL_RATE_HZ"]
+__all__ = ["ClockStage", "estimate_clock", "clock_ab", "clock_stage", "clock_ages", "data_age", "clock_corrected", "NOMINAL_INTERNAL_RATE_HZ"]
 
 #: the internal sampling rate of an MPU-6050/9150 with its low-pass on (Hz): reports f_k from the beat
 NOMINAL_INTERNAL_RATE_HZ = 1000.0
@@ -62,6 +82,8 @@ MAX_DRIFT_HZ_PER_S = 0.008
 _PAD = 4           # zero padding of the FFT (frequency step f_read/(4N))
 _N_PEAKS = 8       # peaks of the periodogram tried in the exact model
 _HARMONICS = 3     # sawtooth harmonics summed in the search
+_FLOOR_HZ = 0.5    # width (Hz) of the blocks whose median is the periodogram's local continuum
+_N_CONTINUUM = 6   # further peaks nominated by their height over the local continuum
 #: fewest sawtooth cycles over the recording's span for a clock (fewer: indistinguishable from a wander)
 MIN_CYCLES = 5.0
 #: the sawtooth width W (s) a clock may have: 1/f_k ≈ 1 ms, larger where the fitted output rates
@@ -99,6 +121,16 @@ def _profile(b, a, age_shape):
     return float(g @ np.array([c, W])) / 2.0, float(W), float(c), m
 
 
+def _continuum(power, nb: int) -> np.ndarray:
+    """The periodogram's local continuum: the median of ``power`` over blocks of ``nb`` bins, per
+    bin (a line is a few bins, so it barely moves its block's median)."""
+    L = len(power)
+    nblk = -(-L // nb)
+    padded = np.concatenate([power, np.full(nblk * nb - L, np.nan)])
+    med = np.nanmedian(padded.reshape(nblk, nb), axis=1)
+    return np.maximum(np.repeat(med, nb)[:L], 1e-300 + 1e-12 * float(np.nanmax(med)))
+
+
 def _frac(x):
     return x - np.floor(x)
 
@@ -110,7 +142,7 @@ def _white_loglik(rr: float, n: int) -> float:
 
 
 def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S, candidates: bool = False):
-    """The beat search of the module docstring on one IMU's (a, b) at times t (s): returns
+    """The beat search of the module docstring on one IMU's (a, b) (:func:`clock_ab`) at times t (s): returns
     {"beat_hz", "phase", "drift_hz_per_s", "width_s" (W, s), "const_s", "gain" (Σbm − ½Σam², nats
     at the stated noise), "mean" (T,) the fitted δ_t = const − age_t (s), "cells" (independent
     (β, d) cells searched)}.  ``candidates``: the list of such dicts instead, one per distinct refined
@@ -130,28 +162,44 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
     L = int(2 ** math.ceil(math.log2(_PAD * N)))
     freqs = np.fft.fftfreq(L, 1.0 / f_read)
     tt = t - t0
-    peaks = []
     idx = np.arange(L)
+    # a constant time offset (read skew, filter delay) gives b = −a·const, whose spectrum is that
+    # of a_t — the slow envelope of the motion — and outranks the beat: searched without it
+    b_search = b - a * (b.sum() / max(a.sum(), 1e-300))
+    z = np.zeros(L)
+    z[n] = b_search
+    floor = _continuum(np.abs(np.fft.fft(z)) ** 2, max(int(round(_FLOOR_HZ * L / f_read)), 8))
+    peaks = ([], [])  # (raw ranking, ranking against the local continuum)
     for d in drifts:
         # harmonic m of the sawtooth sits at m·β with chirp m·d, amplitude 1/m: ranking by
-        # Σ_m |F_m(mβ)|²/m, a slow motion-frequency residual (one line, no harmonics) ranks lower
-        P = np.zeros(L)
+        # Σ_m |F_m(mβ)|²/m, a slow motion-frequency residual (one line, no harmonics) ranks lower.
+        # Where that residual is strong, its red continuum (what a wander explains) still outranks
+        # a beat that stands out where it is: the peaks of Σ_m |F_m(mβ)|²/(m·continuum(mβ)) are
+        # nominated too (alone they favour a beat's harmonics, whose continuum is lower)
+        P, Pn = np.zeros(L), np.zeros(L)
         for mh in range(1, _HARMONICS + 1):
             z = np.zeros(L, complex)
-            z[n] = b * np.exp(-1j * math.pi * mh * d * tt ** 2)
-            P += np.abs(np.fft.fft(z))[(mh * idx) % L] ** 2 / mh
-        # under MIN_CYCLES over the span a sawtooth is a slow wander, not a clock
-        P[np.abs(freqs) < MIN_CYCLES / D] = 0.0
-        top = np.argpartition(P, -_N_PEAKS)[-_N_PEAKS:]
-        peaks += [(float(P[i]), float(freqs[i]), float(d)) for i in top]
-    peaks.sort(key=lambda p: -p[0])
-    # a peak and its neighbours are one peak: keep distinct |β| (beyond 2 bins) only
+            z[n] = b_search * np.exp(-1j * math.pi * mh * d * tt ** 2)
+            j = (mh * idx) % L
+            pw = np.abs(np.fft.fft(z))[j] ** 2 / mh
+            P += pw
+            Pn += pw / floor[j]
+        for Q, out in ((P, peaks[0]), (Pn, peaks[1])):
+            # under MIN_CYCLES over the span a sawtooth is a slow wander, not a clock
+            Q[np.abs(freqs) < MIN_CYCLES / D] = 0.0
+            top = np.argpartition(Q, -_N_PEAKS)[-_N_PEAKS:]
+            out += [(float(Q[i]), float(freqs[i]), float(d)) for i in top]
+    # a peak and its neighbours are one peak: keep distinct |β| (beyond 2 bins) or drifts only
     chosen = []
-    for p in peaks:
-        if all(abs(abs(p[1]) - abs(q[1])) > 2 * f_read / L or abs(p[2] - q[2]) > 2 * step for q in chosen):
-            chosen.append(p)
-        if len(chosen) == _N_PEAKS:
-            break
+    for ranked, n_keep in ((peaks[0], _N_PEAKS), (peaks[1], _N_PEAKS + _N_CONTINUUM)):
+        ranked.sort(key=lambda p: -p[0])
+        for p in ranked:
+            if len(chosen) >= n_keep:
+                break
+            # (β, d) and (−β, −d) are one peak of the real input's spectrum
+            if all(abs(abs(p[1]) - abs(q[1])) > 2 * f_read / L or abs(p[2] * np.sign(p[1]) - q[2] * np.sign(q[1])) > 2 * step
+                   for q in chosen):
+                chosen.append(p)
 
     def neg(x):
         phase, beat, drift = x
@@ -161,12 +209,12 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
 
     fits = []
     for _, f0, d0 in chosen:
-        for beat in (f0, -f0):
+        for beat, drift in ((f0, d0), (-f0, -d0)):  # the real input's mirror peak is (−β, −d)
             # the phase on a grid first (the profile is piecewise smooth in it); the search's
-            # chirp is about t0, the model's about t = 0: the beat at t = 0 is f0 − d·t0
+            # chirp is about t0, the model's about t = 0: the beat at t = 0 is β − d·t0
             cands = []
             for ph in np.linspace(0, 1, 24, endpoint=False):
-                x0 = np.array([ph, beat - d0 * t0, d0])
+                x0 = np.array([ph, beat - drift * t0, drift])
                 cands.append((neg(x0), x0))
             cands.sort(key=lambda c: c[0])
             x0 = cands[0][1]
@@ -272,6 +320,16 @@ def clock_corrected(prep: Prepared, fit: ModelFit, clocks) -> Prepared:
     return dataclasses.replace(prep, y_acc=ya * prep.m_acc, y_gyro=yg * prep.m_gyro)
 
 
+def clock_ab(prep: Prepared, fit: ModelFit, k: int):
+    """IMU k's gyro timing statistics at ``fit`` with the data age's regressor of the module
+    docstring, ġ = R_k ω̇ (:func:`accel_bayes.physics.effects.board_gyro_rate`), not the finite
+    difference ``prep.gyro_rate``: (a (T,) s⁻², b (T,) s⁻¹, Σ r̃ᵀr̃, observed channels) as
+    :func:`accel_bayes.mismatch.jitter.jitter_ab` (``"gyro"``, ``with_residual_power``).  What
+    :func:`estimate_clock` takes, wherever a clock is acquired."""
+    prep_rate = dataclasses.replace(prep, gyro_rate=board_gyro_rate(fit.ctx))
+    return jitter_ab(prep_rate, fit, k, "gyro", with_residual_power=True)
+
+
 def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshold: float) -> ClockStage:
     """Estimate a clock on every IMU with a gyroscope at ``fit`` (module docstring), accept those
     whose two evidences pass the stage threshold, correct ``prep`` for them and refit the model
@@ -290,7 +348,7 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
     for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
         if prep.gyro_rate is None or not bool(prep.m_gyro[:, k].any()):
             continue
-        a_t, b_t, rr, n_obs = jitter_ab(prep, fit, k, "gyro", with_residual_power=True)
+        a_t, b_t, rr, n_obs = clock_ab(prep, fit, k)
         a, b = a_t.numpy(), b_t.numpy()
         w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
         g_none = _white_loglik(rr, n_obs)

@@ -3,6 +3,8 @@
 poor regressor for the timing error, the white-noise gain's best peak is a slow motion-frequency
 line a wander explains, and the true beat is only found by ranking the peaks on the evidence over
 the AR(1) instant error."""
+import pytest
+
 from accel_bayes.mismatch.clock import clock_ages, estimate_clock
 from accel_bayes.mismatch.fit import baseline_fit
 from accel_bayes.mismatch.gyro_linear import gyro_linear_stage
@@ -16,6 +18,7 @@ from experiments.clockgen import draw_case
 SEED, DURATION, IMU = 21, 20.0, 3
 
 
+@pytest.mark.slow  # a 20 s 8-IMU case; the default run's low-read-rate case: test_clock_aliasing.py
 def test_beat_found_among_the_peaks_a_wander_cannot_explain():
     rec, truth = draw_case("clock", SEED, duration=DURATION)
     prep = prepare(rec)

@@ -113,7 +113,7 @@ from .gyroscope import GyroBias, GyroScale, GyroMisalignment, GyroGSensitivity, 
 from .timing import GyroDelay, TimeOffset, sample_times
 from .output import Saturation, NoiseLevel, Unexplained
 from .jitter import SamplingJitter, TimingWander, jittered_times, log_marginal_gain
-from .clock import SamplingClock, clock_age
+from .clock import SamplingClock, board_gyro_rate, clock_age
 
 VOCABULARY = tuple(n for n, c in EFFECTS.items()
                    if c.vocabulary_name is None and c.in_vocabulary)  # DESIGN §7.2 table order
@@ -159,6 +159,7 @@ __all__ = [
     "TimingWander",
     "SamplingClock",
     "clock_age",
+    "board_gyro_rate",
     "register_effect",
     "get_effect",
     "make_effect",

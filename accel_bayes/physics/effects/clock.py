@@ -15,10 +15,13 @@ absolute filter delay d_s is common to the whole board (the datasheet's) and abs
 motion; only the accelerometer's delay beyond the gyro's, ``filter_delay_acc_minus_gyro_s``, is
 identifiable.  Linearised (like ``time_offset``, :mod:`.timing`):
 
-    d_gyro = −age(t)·ġ(t),   d_acc = −(age(t) + filter_delay_acc_minus_gyro_s)·ȧ(t),
+    d_gyro = −age(t)·R_k ω̇(t),   d_acc = −(age(t) + filter_delay_acc_minus_gyro_s)·ȧ(t),
 
-ġ, ȧ the output rates (``ctx.gyro_rate``, ``ctx.acc_rate``).  The neglected term is
-age²/2 · ÿ, below 1e-3 of the effect for ages ≤ 1 ms and motion under ~50 Hz.
+R_k ω̇ the gyro output's rate from the context's angular acceleration (:func:`board_gyro_rate`:
+the rate at the sample instant, which the finite difference of the sampled outputs is not once
+the board vibrates above the read's Nyquist rate), ȧ the accelerometer output rate
+(``ctx.acc_rate``).  The neglected term is age²/2 · ÿ, below 1e-3 of the effect for ages ≤ 1 ms
+and motion under ~50 Hz.
 
 The phase, beat and drift enter through a discontinuous sawtooth, so the effect is not fitted by
 the LM refits: :mod:`accel_bayes.mismatch.clock` estimates it by a beat-frequency search and the
@@ -33,9 +36,10 @@ import math
 import torch
 
 from ...errors import UserError
+from ..geometry import quat_to_matrix
 from .base import Effect, Param, register_effect, _onehot
 
-__all__ = ["SamplingClock", "clock_age"]
+__all__ = ["SamplingClock", "clock_age", "board_gyro_rate"]
 
 
 def clock_age(time, beat_hz, phase, drift_hz_per_s, width_s):
@@ -44,6 +48,20 @@ def clock_age(time, beat_hz, phase, drift_hz_per_s, width_s):
     t = torch.as_tensor(time, dtype=torch.float64)
     x = phase + beat_hz * t + 0.5 * drift_hz_per_s * t * t
     return width_s * (x - torch.floor(x))
+
+
+def board_gyro_rate(ctx) -> torch.Tensor:
+    """(T, K, 3) d/dt of the nominal gyro outputs (rad/s²): R_k ω̇_t, the context's own angular
+    acceleration (array frame, ``ctx.omega_dot``) turned into each IMU's sensor frame.
+
+    Why not the finite difference of the sampled outputs (``ctx.gyro_rate``): board vibration above
+    the read's Nyquist rate folds to f_read − f, where the sampled signal's derivative is −(f_read −
+    f)/f times the true one (flipped and shrunk), so a data age loaded on it has the wrong sign and
+    size.  ω̇_t is the rigid board's angular acceleration at the sample instant itself — a per-sample
+    motion state the accelerometer array measures through the tangential term ω̇ × r — so nothing
+    folds."""
+    R = quat_to_matrix(ctx.orientations.to(ctx.omega_dot.dtype))
+    return torch.einsum("kij,tj->tki", R, ctx.omega_dot)
 
 
 @register_effect
@@ -73,11 +91,11 @@ class SamplingClock(Effect):
     def perturbation(self, params, ctx):
         p = self._p(params)
         k = self._imu_checked(ctx)
-        if ctx.acc_rate is None or ctx.gyro_rate is None:
-            raise UserError("sampling_clock: the signal context has no output rates (acc_rate, gyro_rate)")
+        if ctx.acc_rate is None:
+            raise UserError("sampling_clock: the signal context has no accelerometer output rate (acc_rate)")
         age = self.age(ctx.time, p)[:, None, None]
         m = _onehot(ctx.K, k, None, ctx.acc)
-        return (-(age + p["filter_delay_acc_minus_gyro_s"]) * m * ctx.acc_rate, -age * m * ctx.gyro_rate)
+        return (-(age + p["filter_delay_acc_minus_gyro_s"]) * m * ctx.acc_rate, -age * m * board_gyro_rate(ctx))
 
     def explain(self, params=None):
         p = {k: float(v) for k, v in self._p(params).items()}
