@@ -438,7 +438,7 @@ def markdown(results, wall) -> str:
         f"{rel(js, 'imu_block_lag0') ** 2:.2f}, cross-IMU {(rel(js, 'sample_lag0') / rel(js, 'imu_block_lag0')) ** 2:.2f}, "
         f"time {(rel(js, 'sample_nw') / rel(js, 'sample_lag0')) ** 2:.2f}, in all {rel(js, 'sample_nw') ** 2:.2f}.",
         "",
-        "The quartile table shows what the within-IMU ≈ 1 of the jerk model averages over: with σ the flat model's "
+        "The quartile table shows what the jerk model's within-IMU factor averages over: with σ the flat model's "
         "residual rms, the model over-states the variance at small |ω̄| (factor ≪ 1: the noise floor is below σ) "
         "and under-states it at large |ω̄|. Fitting a common factor on σ together with the jerk scales (type-II ML: "
         "factor " + ", ".join(f"{r['noise_factor']:.2f}" for r in results) + "; gain over flat "
