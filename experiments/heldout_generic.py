@@ -168,7 +168,7 @@ CAVEATS = """## Caveats (what this study does not settle)
   is removed before scoring, for any model.
 - On the first-principles generator the unresolved-motion scale is over-stated by 1.2–1.9×
   (acc) and 1.6–1.9× (gyro) against the true unresolved jerk / angular acceleration at the board's
-  centre (`tests/test_unresolved_motion.py`, 10 s case); not yet explained (candidates: the
+  centre (`tests/mismatch/test_unresolved_motion.py`, 10 s case); not yet explained (candidates: the
   per-IMU lever-arm jerk, which the board-common term cannot hold, and the linearisation at
   2π f × age ≈ 0.6 rad for 95 Hz vibration).
 """
