@@ -460,6 +460,17 @@ class RaoBlackwellLikelihood(DrawSums):
         return M + self.phi_prior_prec
 
     # ------------------------------------------------------------------ Monte Carlo estimator
+    def _draws(self, batch, z, num_draws, generator, independent_draws: bool) -> torch.Tensor:
+        """The standard normals of :meth:`log_phat` for a positions batch ``batch``: ``z`` checked
+        (..., T, N, 3) when given, else drawn by :meth:`sample_z` (one z for the whole batch, or one
+        per element with ``independent_draws``)."""
+        if z is None:
+            return self.sample_z(batch if independent_draws else (), num_draws, generator)
+        z = torch.as_tensor(z, dtype=self.dtype, device=self.device)
+        if z.dim() < 3 or z.shape[-3] != self.T or z.shape[-1] != 3:
+            raise UserError(f"z: expected shape (..., T={self.T}, N, 3), got {tuple(z.shape)}")
+        return z
+
     def log_phat(
         self,
         positions: torch.Tensor,
@@ -496,13 +507,7 @@ class RaoBlackwellLikelihood(DrawSums):
         """
         r = self._positions(positions)
         batch = r.shape[:-2]
-        if z is None:
-            zb = batch if independent_draws else ()
-            z = self.sample_z(zb, num_draws, generator)
-        else:
-            z = torch.as_tensor(z, dtype=self.dtype, device=self.device)
-            if z.dim() < 3 or z.shape[-3] != self.T or z.shape[-1] != 3:
-                raise UserError(f"z: expected shape (..., T={self.T}, N, 3), got {tuple(z.shape)}")
+        z = self._draws(batch, z, num_draws, generator, independent_draws)
         N = z.shape[-2]
         B = int(np.prod(batch)) if len(batch) else 1
         proj = self._projection_hot(r.reshape(B, self.A, 3))

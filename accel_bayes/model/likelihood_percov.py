@@ -276,12 +276,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                                     independent_draws=independent_draws)
         r = self._positions(positions)
         batch = r.shape[:-2]
-        if z is None:
-            z = self.sample_z(batch if independent_draws else (), num_draws, generator)
-        else:
-            z = torch.as_tensor(z, dtype=self.dtype, device=self.device)
-            if z.dim() < 3 or z.shape[-3] != self.T or z.shape[-1] != 3:
-                raise UserError(f"z: expected shape (..., T={self.T}, N, 3), got {tuple(z.shape)}")
+        z = self._draws(batch, z, num_draws, generator, independent_draws)
         N = z.shape[-2]
         B = int(np.prod(batch)) if len(batch) else 1
         p = self._percov_terms(r.reshape(B, self.A, 3))
