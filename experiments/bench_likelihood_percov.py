@@ -50,6 +50,21 @@ from accel_bayes.prep.prepared import prepare_recording  # noqa: E402
 from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 
 
+def load_experiment(path):
+    """(recording, likelihood at the stated noise, N = 1) of one raw MIMU recording prepared as
+    ``calibrate`` prepares it: the intrinsics from the rests and the one sample selection."""
+    pre = preprocess(import_mimu(path))
+    rec = pre.recording
+    return rec, RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1)
+
+
+def quartile_band(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(band (T,) 0–3, edges (3,)): the quartile of each sample's ``x`` (e.g. |ω̄| rad/s) and the
+    quartiles themselves; the bands the jerk scales are fitted in."""
+    edges = torch.quantile(x, torch.tensor([0.25, 0.5, 0.75], dtype=x.dtype))
+    return torch.bucketize(x, edges, right=True), edges
+
+
 def exp1_ages(rec, lik, exp: str = "exp_1", accepted_only: bool = True) -> torch.Tensor:
     """(T, A) s: the clock_mimu sawtooth of each row's IMU at the kept samples' times (experiment ``exp``;
     IMUs whose clock clock_mimu did not accept get age 0 unless ``accepted_only`` is False)."""
@@ -96,18 +111,14 @@ def main(argv=None):
     if not path.exists():
         print(f"skipped: {path} not found")
         return
-    pre = preprocess(import_mimu(path))
-    rec = pre.recording
-    stated = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1)
+    rec, stated = load_experiment(path)
     pos = stated.nominal_positions.clone()
     sigma = residual_noise(stated, pos)
     flat = RaoBlackwellLikelihood(stated.acc, stated.omega, sigma, 1, reference=stated.reference)
     age = exp1_ages(rec, stated)
     # the jerk scale per |ω| quartile band, then with the scale mixture's ν and a common noise factor
     # (type-II ML at the nominal θ and the gyro-mean ω: accel_bayes.model.unresolved_fit)
-    wn = flat.omega.mean.norm(dim=-1)
-    edges = torch.quantile(wn, torch.tensor([0.25, 0.5, 0.75], dtype=wn.dtype))
-    band = torch.bucketize(wn, edges, right=True)
+    band, edges = quartile_band(flat.omega.mean.norm(dim=-1))
     fit = fit_unresolved_scales(flat, age, band, pos)
     fit_t = fit_unresolved_scales(flat, age, band, pos, fit_nu=True, noise_factors=np.logspace(-1.5, 0, 10))
     s, f, nu = fit.jerk_rms[band], fit_t.noise_factor, fit_t.nu

@@ -45,19 +45,16 @@ import torch
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _data import data_dir  # noqa: E402
-from bench_likelihood_percov import exp1_ages, residual_noise  # noqa: E402
+from bench_likelihood_percov import exp1_ages, load_experiment, quartile_band, residual_noise  # noqa: E402
 from mimu_repeatability import analyse  # noqa: E402
 from percov_map_probe import fixed_omega_max  # noqa: E402
 
-from accel_bayes.data.mimu import import_mimu  # noqa: E402
 from accel_bayes.data.outputs import write_json, write_text  # noqa: E402
 from accel_bayes.inference.noise_fit import (  # noqa: E402
     newey_west_lags, per_sample_scores, sandwich_inflation, score_sandwich)  # noqa: E402
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.model.likelihood_percov import with_unresolved_motion  # noqa: E402
 from accel_bayes.model.unresolved_fit import fit_unresolved_scales  # noqa: E402
-from accel_bayes.prep.prepared import prepare_recording  # noqa: E402
-from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 
 SPACING_MM = 18.9
 BAR = 1.3
@@ -113,7 +110,7 @@ def excess_by_quartile(S, Ssim, cov, x, reps):
     """Per quartile of ``x`` (T,): the median over coordinates of the variance factor real / model-simulated
     of the lag-0 meat restricted to those samples, whole sample and IMU blocks (the cross-IMU part is
     their quotient)."""
-    band = torch.bucketize(x, torch.quantile(x, torch.tensor([0.25, 0.5, 0.75], dtype=x.dtype)), right=True)
+    band, _ = quartile_band(x)
     out = []
     for k in range(4):
         m = band == k
@@ -135,9 +132,7 @@ def summary(r):
 
 def run_one(exp: str) -> dict:
     t0 = time.time()
-    pre = preprocess(import_mimu(data_dir() / exp / "data.bin.gz"))
-    rec = pre.recording
-    st = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1)
+    rec, st = load_experiment(data_dir() / exp / "data.bin.gz")
     A, ref = st.A, st.reference
     pos0 = st.nominal_positions.clone()
     nom = free_of(pos0, ref)
@@ -146,7 +141,7 @@ def run_one(exp: str) -> dict:
     age = exp1_ages(rec, st, exp)
     wbar = st.omega.mean
     wn = wbar.norm(dim=-1)
-    band = torch.bucketize(wn, torch.quantile(wn, torch.tensor([0.25, 0.5, 0.75], dtype=wn.dtype)), right=True)
+    band, _ = quartile_band(wn)
     # |ω̈̄| rad/s³ by second differences of ω̄ on the kept samples' times (a covariate, not in the model)
     tk = np.asarray(rec.time)[np.asarray(st.sample_index)]
     wdd = np.gradient(np.gradient(wbar.numpy(), tk, axis=0), tk, axis=0)

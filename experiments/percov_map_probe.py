@@ -29,16 +29,13 @@ import torch
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _data import data_dir  # noqa: E402
-from bench_likelihood_percov import exp1_ages, residual_noise  # noqa: E402
+from bench_likelihood_percov import exp1_ages, load_experiment, quartile_band, residual_noise  # noqa: E402
 
-from accel_bayes.data.mimu import import_mimu  # noqa: E402
 from accel_bayes.data.outputs import write_text  # noqa: E402
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.model.likelihood_percov import with_unresolved_motion  # noqa: E402
 from accel_bayes.model.phi_prior import empirical_phi_prior  # noqa: E402
 from accel_bayes.model.unresolved_fit import fit_unresolved_scales  # noqa: E402
-from accel_bayes.prep.prepared import prepare_recording  # noqa: E402
-from accel_bayes.prep.preprocess import preprocess  # noqa: E402
 
 SPACING_MM = 18.9
 N_INTEGRATED = 16  # draws of ω per sample for the ω-integrated maximum (fixed: common random numbers)
@@ -83,17 +80,13 @@ def main():
     if not path.exists():
         print(f"skipped: {path} not found")
         return
-    pre = preprocess(import_mimu(path))
-    rec = pre.recording
-    st = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1)
+    rec, st = load_experiment(path)
     pos0 = st.nominal_positions.clone()
     nom = (pos0 - pos0[st.reference])[[k for k in range(st.A) if k != st.reference]].reshape(-1)
     g = nom / (nom @ nom)  # ∂s/∂θ of the least-squares scale s = ⟨θ, nom⟩/⟨nom, nom⟩
     sigma = residual_noise(st, pos0)
     age = exp1_ages(rec, st)
-    wn = st.omega.mean.norm(dim=-1)
-    edges = torch.quantile(wn, torch.tensor([0.25, 0.5, 0.75], dtype=wn.dtype))
-    band = torch.bucketize(wn, edges, right=True)
+    band, _ = quartile_band(st.omega.mean.norm(dim=-1))
     rows, res = [], {}
     z = st.sample_z((), N_INTEGRATED, torch.Generator().manual_seed(0))
     for prior_name in ("flat", "empirical"):
