@@ -42,6 +42,25 @@ class GyroPosterior:
 _GYRO_METHODS = ("sample_cov", "sample_cov_mean", "calibrated")
 
 
+def _checked_gyros(gyro_array: torch.Tensor, gyro_noise_std) -> torch.Tensor:
+    """The gyro posteriors' input checks, one line naming the field: ``gyro_array`` (T, G, 3) rad/s with
+    G ≥ 1 and no NaN; returns ``gyro_noise_std`` as (G,) rad/s, each > 0 (a scalar is broadcast)."""
+    if gyro_array.dim() != 3 or gyro_array.shape[-1] != 3:
+        raise UserError(f"gyro_array: expected shape (T, G, 3), got {tuple(gyro_array.shape)}")
+    G = gyro_array.shape[1]
+    std = torch.as_tensor(gyro_noise_std, dtype=gyro_array.dtype, device=gyro_array.device)
+    std = std.expand(G) if std.dim() == 0 else std
+    if std.shape != (G,):
+        raise UserError(f"gyro_noise_std: expected shape ({G},) for G={G} gyros, got {tuple(std.shape)}")
+    if bool((std <= 0).any()):
+        raise UserError("gyro_noise_std: expected > 0 for every gyro")
+    if G < 1:
+        raise UserError("gyro_array: no gyroscope triad (G = 0); the likelihood needs at least one")
+    if bool(torch.isnan(gyro_array).any()):
+        raise UserError("gyro_array: contains NaN; select samples/IMUs with gyro data first")
+    return std
+
+
 def gyro_posterior(gyro_array: torch.Tensor, gyro_noise_std, method: str = "sample_cov") -> GyroPosterior:
     """Gaussian posterior of ω_t from the G gyroscope triads of one sample (flat prior on ω_t).
 
@@ -62,20 +81,9 @@ def gyro_posterior(gyro_array: torch.Tensor, gyro_noise_std, method: str = "samp
     (Σ_k σ_k⁻²)⁻¹: Q̄_t ← V diag(max(λ_i, σ²_cal)) Vᵀ.  The result is never singular and never
     narrower than what the stated gyro noise alone allows.  Needs G ≥ 2.
     """
-    if gyro_array.dim() != 3 or gyro_array.shape[-1] != 3:
-        raise UserError(f"gyro_array: expected shape (T, G, 3), got {tuple(gyro_array.shape)}")
+    std = _checked_gyros(gyro_array, gyro_noise_std)
     T, G, _ = gyro_array.shape
     dtype, device = gyro_array.dtype, gyro_array.device
-    std = torch.as_tensor(gyro_noise_std, dtype=dtype, device=device)
-    std = std.expand(G) if std.dim() == 0 else std
-    if std.shape != (G,):
-        raise UserError(f"gyro_noise_std: expected shape ({G},) for G={G} gyros, got {tuple(std.shape)}")
-    if bool((std <= 0).any()):
-        raise UserError("gyro_noise_std: expected > 0 for every gyro")
-    if G < 1:
-        raise UserError("gyro_array: no gyroscope triad (G = 0); the likelihood needs at least one")
-    if bool(torch.isnan(gyro_array).any()):
-        raise UserError("gyro_array: contains NaN; select samples/IMUs with gyro data first")
     w = std.pow(-2)
     var_cal = 1.0 / w.sum()
     eye = torch.eye(3, dtype=dtype, device=device)
@@ -116,14 +124,9 @@ def gyro_posterior_timing(gyro_array: torch.Tensor, gyro_noise_std, age, angular
     scalar or (T,) rad/s².  Method "timing".
     """
     y = torch.as_tensor(gyro_array)
-    if y.dim() != 3 or y.shape[-1] != 3:
-        raise UserError(f"gyro_array: expected shape (T, G, 3), got {tuple(y.shape)}")
+    std = _checked_gyros(y, gyro_noise_std)
     T, G, _ = y.shape
     dtype, device = y.dtype, y.device
-    std = torch.as_tensor(gyro_noise_std, dtype=dtype, device=device)
-    std = std.expand(G) if std.dim() == 0 else std
-    if std.shape != (G,) or bool((std <= 0).any()):
-        raise UserError(f"gyro_noise_std: expected ({G},) values > 0 (rad/s), got shape {tuple(std.shape)}")
     age = torch.as_tensor(age, dtype=dtype, device=device)
     if age.shape != (T, G) or not bool(torch.isfinite(age).all()):
         raise UserError(f"age: expected finite data ages of shape (T, G) = ({T}, {G}) s, got {tuple(age.shape)}")
@@ -131,8 +134,6 @@ def gyro_posterior_timing(gyro_array: torch.Tensor, gyro_noise_std, age, angular
     s = s.expand(T) if s.dim() == 0 else s
     if s.shape != (T,) or not bool(torch.isfinite(s).all()) or bool((s < 0).any()):
         raise UserError(f"angular_acc_std: expected a finite scale >= 0 (rad/s²), scalar or ({T},)")
-    if bool(torch.isnan(y).any()):
-        raise UserError("gyro_array: contains NaN; select samples/IMUs with gyro data first")
     w = std.pow(-2)
     d = age - age.mean(-1, keepdim=True)
     s2 = s * s
