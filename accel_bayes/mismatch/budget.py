@@ -5,14 +5,16 @@ the refined model accounts for.
 One row per sensor (``"acc"``, ``"gyro"``) and regime::
 
     {"sensor": "gyro", "regime": "|omega| 90-100%", "samples": n, "channel_samples": n_c,
-     "excess_var_observed": a, "excess_var_explained": b, "stated_var": s2}
+     "excess_var_observed": a, "excess_var_explained": b, "stated_var": s2,
+     "excess_var_observed_se": se}
 
 Regimes (:func:`budget_regimes`): ``"all"``, and the quantile bands 0–25, 25–50, 50–75, 75–90 and
 90–100 % of |ω| (``"|omega| 0-25%"`` …) and of |ω̇| (``"|omega_dot| 0-25%"`` …), from the
 *baseline* fit's motion, so the rows of a and b cover the same samples.  ``samples`` counts the
 time samples of the band, ``channel_samples`` the observed outputs of the sensor in it (every
 IMU, every axis); a, b and ``stated_var`` are means over those channel-samples, in the sensor's
-units² ((m/s²)² or (rad/s)²).
+units² ((m/s²)² or (rad/s)²); ``excess_var_observed_se`` is a's standard error over blocks of
+consecutive samples (:func:`_ratio_se`).
 
 * ``a`` = mean of r̃² − σ², r the baseline residual, σ the stated noise std of the output's IMU.
   r̃² = r²/(1 − h) is the *leverage-corrected* squared residual (h the leverage of the sample's
@@ -120,14 +122,32 @@ def residual_budget(prep: Prepared, baseline: ModelFit, refined: ModelFit | None
             s = per_t[sel].sum(0)
             n = float(s[0])
             if n == 0:
-                a = b = s2 = float("nan")
+                a = b = s2 = se = float("nan")
             else:
                 a = (s[1] - s[2]) / n
                 s2 = s[2] / n
                 b = ((s[1] - s[3]) + s[4]) / n if refined is not None else 0.0
+                se = _ratio_se(per_t[sel, 1] - per_t[sel, 2], per_t[sel, 0], a)
             rows.append({"sensor": sensor, "regime": name, "samples": int(sel.sum()), "channel_samples": int(n),
-                         "excess_var_observed": float(a), "excess_var_explained": float(b), "stated_var": float(s2)})
+                         "excess_var_observed": float(a), "excess_var_explained": float(b), "stated_var": float(s2),
+                         "excess_var_observed_se": float(se)})
     return rows
+
+
+#: consecutive samples of a regime per block of :func:`_ratio_se`: the excess comes in bursts
+#: (impacts) that last several samples, so samples are not independent
+SE_BLOCK = 16
+
+
+def _ratio_se(x: np.ndarray, n: np.ndarray, ratio: float) -> float:
+    """Standard error of Σx/Σn (the ratio estimator over blocks of :data:`SE_BLOCK` consecutive
+    samples, taken as independent): x (T,) per-sample excess sums, n (T,) channel counts."""
+    nb = max(len(x) // SE_BLOCK, 1)
+    xb = np.array([v.sum() for v in np.array_split(x, nb)])
+    cb = np.array([v.sum() for v in np.array_split(n, nb)])
+    if nb < 2 or cb.sum() == 0:
+        return float("nan")
+    return float(np.sqrt(nb / (nb - 1) * ((xb - ratio * cb) ** 2).sum()) / cb.sum())
 
 
 def group_power(prep: Prepared, fit: ModelFit, effect, h: torch.Tensor) -> float:

@@ -112,7 +112,7 @@ from .options import DetectOptions
 from .prepared import prepare
 from .report import Finding, MismatchReport
 from .screens import STATIONARITY_SEGMENTS, Screen, candidate_effects, log10_p, screen, stationarity, threshold_rule
-from .unresolved_stage import unresolved_stage
+from .unresolved_stage import supersede_random_timing, unresolved_stage
 
 __all__ = ["detect"]
 
@@ -414,8 +414,15 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
     t0 = _time.perf_counter()
     unres = None
     if clock is not None and clock.clocks:
-        unres = unresolved_stage(prep, current, clock.clocks, threshold=threshold, alpha=alpha, m=m,
-                                 n_permutations=o.unresolved_permutations, seed=seed + 2)
+        kw = dict(threshold=threshold, alpha=alpha, m=m, n_permutations=o.unresolved_permutations, seed=seed + 2)
+        unres = unresolved_stage(prep, current, clock.clocks, **kw)
+        unres, current, gone = supersede_random_timing(prep, current, clock.clocks, unres, **kw)
+        if gone:  # their findings leave the report; the refit without them is the final model
+            withdrawn += gone
+            gone_labels = {g["effect"] for g in gone}
+            findings = [f for f in findings if getattr(f.effect, "kind", None) != "random"
+                        or f.effect.label() not in gone_labels]
+            say("superseded by the unresolved motion's age error: " + ", ".join(g["effect"] for g in gone))
         say(f"unresolved motion: kept on {unres.info.get('kept', [])} (evidence {unres.evidence:.4g})")
         if unres.effect is not None:
             fixed.append(unres.effect)
@@ -423,9 +430,10 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                                     log10_p=log10_chi2_sf(unres.evidence, unres.effect.df),
                                     where={"regime": "all |omega| bands", "time_s": None},
                                     explanation=unres.effect.explain(), screen_statistic=None,
-                                    extra={"evidence_kind": "2·Δlog L of the marginal (white variances per IMU and "
-                                                            "|omega| band refitted), tested by permuting the ages "
-                                                            "within bands (mismatch.unresolved_stage)",
+                                    extra={"evidence_kind": "2·Δlog L of the marginal (scales per |omega| x |omega_dot| "
+                                                            "cell, white variance per IMU, age error) against white "
+                                                            "variances per IMU and |omega| band; the ages tested by "
+                                                            "permuting them within bands (mismatch.unresolved_stage)",
                                            "loglik_gain": unres.loglik_gain}))
     timings["unresolved_s"] = _time.perf_counter() - t0
 

@@ -33,8 +33,8 @@ import torch
 # the calibration likelihood); re-exported here for the detector's callers.
 from ..model.unresolved_cov import gauss_logpdf, loadings, lowrank_terms, marginal_loglik, t_logpdf  # noqa: F401
 
-__all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "marginal_loglik", "fit_scales",
-           "predicted_variance", "finding", "UnresolvedMotion"]
+__all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "marginal_loglik", "fit_scales", "fit_grid",
+           "GridFit", "predicted_variance", "finding", "UnresolvedMotion"]
 
 
 def fit_scales(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, lab: torch.Tensor, B: int, *, max_iter: int = 200,
@@ -97,6 +97,106 @@ def fit_scales(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, lab: torch.Ten
     return v0, lv, ls, float(ll0), float(ll1), sd_ls
 
 
+@dataclass
+class GridFit:
+    """:func:`fit_grid`'s result: ``v`` (K,) white variance per IMU (units²); ``s2`` (C,) the
+    unresolved motion's variance per axis per cell ((units/s)², 0 in an empty cell); ``e2`` the age
+    error's variance (s²); ``loglik`` (nats); ``loglik_no_age_error`` (nats, refitted with e2 = 0);
+    ``sd_log_s2`` (C,) standard errors of log s2 (NaN where not computed); ``v_no_age_error``,
+    ``s2_no_age_error`` the refit with e2 = 0."""
+
+    v: torch.Tensor
+    s2: torch.Tensor
+    e2: float
+    loglik: float
+    loglik_no_age_error: float
+    sd_log_s2: torch.Tensor
+    v_no_age_error: torch.Tensor
+    s2_no_age_error: torch.Tensor
+
+
+def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known):
+    """L-BFGS on the per-sample objective of :func:`fit_grid` (e fixed at exp(le) unless ``free_e``)."""
+    T = a.shape[0]
+    params = [lv, ls] + ([le] if free_e else [])
+    opt = torch.optim.LBFGS(params, max_iter=300, line_search_fn="strong_wolfe", tolerance_grad=1e-9,
+                            tolerance_change=1e-12)
+    filled = (counts > 0)[cell]
+
+    def nll(lv_, ls_, le_):
+        s2 = torch.where(filled, torch.exp(ls_)[cell], torch.zeros((), dtype=a.dtype))
+        v = torch.exp(lv_)[None, :] + torch.exp(le_) * s2[:, None] + v_known
+        return -marginal_loglik(a, d, w, v, s2).sum()
+
+    def closure():
+        opt.zero_grad()
+        loss = nll(lv, ls, le) / T  # per sample: keeps L-BFGS's tolerances meaningful
+        loss.backward()
+        return loss
+
+    for _ in range(3):
+        opt.step(closure)
+    return nll
+
+
+def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tensor, C: int, *,
+             v_known: torch.Tensor | None = None, std: bool = True) -> GridFit:
+    """Maximum-likelihood fit of the unresolved motion seen through the clocks' ages *and* an age
+    error the clocks do not give (issue #27 budget):
+
+        y_kt = (d_kt + ε_kt) m_t + e_kt,   m_t ~ N(0, s²_c(t) I₃),   ε_kt ~ (0, e²) iid,
+        e_kt ~ N(0, v_k I₃),
+
+    a (T, K, 3) array-frame residuals (units), d (T, K) centred clock ages (s), w (T, K) 0/1, cell
+    (T,) in [0, C) the motion cell of each sample (the |ω| × |ω̇| bands).  ε m is not Gaussian; it
+    enters by its first two moments — zero mean, variance e² s²_c per axis, uncorrelated across IMUs
+    and with d m — so the per-sample covariance is (v_k + e² s²_c) I on the diagonal plus
+    s²_c d dᵀ ⊗ I₃, evaluated exactly by :func:`marginal_loglik`.  The white part v_k is one
+    constant per IMU (the sensor's own noise does not follow the motion); all that grows with the
+    motion is loaded by the common unresolved m_t, through d or through ε.  ``v_known`` (T, K)
+    units²: variance per channel the model already predicts (its random effects), added to the
+    white part so that the term is fitted on top of it, not in its place."""
+    T, K = w.shape
+    v_known = torch.zeros_like(w) if v_known is None else v_known
+    counts = torch.bincount(cell, minlength=C)
+    p = (a ** 2).sum(-1) * w
+    d2 = float((d ** 2 * w).sum() / w.sum().clamp_min(1))
+    # start: a tenth of each IMU's power white, half the mean power on the term, ε of 0.1 ms
+    lv = torch.log((0.1 * p.sum(0) / (3 * w.sum(0)).clamp_min(1)).clamp_min(1e-12)).clone().requires_grad_(True)
+    ls = torch.full((C,), math.log(max(0.5 * float(p.sum() / (3 * w.sum().clamp_min(1))) / max(d2, 1e-30), 1e-12)),
+                    dtype=a.dtype, requires_grad=True)
+    le = torch.tensor(math.log(1e-8), dtype=a.dtype, requires_grad=True)
+    nll = _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, True, v_known)
+    with torch.no_grad():
+        ll = float(-nll(lv, ls, le))
+    fit = (lv.detach().clone(), ls.detach().clone(), le.detach().clone())
+    # the same without the age error, from the fit (its evidence is the difference)
+    lv0, ls0 = fit[0].clone().requires_grad_(True), fit[1].clone().requires_grad_(True)
+    le0 = torch.tensor(-200.0, dtype=a.dtype)
+    nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known)
+    with torch.no_grad():
+        ll0 = float(-nll0(lv0, ls0, le0))
+    lv, ls, le = fit
+    sd = torch.full((C,), float("nan"), dtype=a.dtype)
+    if std:
+        x = torch.cat((lv, ls, le[None]))
+
+        def f(x_):
+            return nll(x_[:K], x_[K:K + C], x_[K + C])
+
+        H = torch.autograd.functional.hessian(f, x, vectorize=True)
+        keep = torch.cat((torch.ones(K, dtype=torch.bool), counts > 0, torch.ones(1, dtype=torch.bool)))
+        try:
+            cov = torch.linalg.inv(H[keep][:, keep])
+            sd[counts > 0] = torch.sqrt(torch.diagonal(cov)[K:K + int((counts > 0).sum())].clamp_min(0))
+        except RuntimeError:  # singular information: no standard errors
+            pass
+    zero = torch.zeros((), dtype=a.dtype)
+    s2 = torch.where(counts > 0, torch.exp(ls), zero)
+    s20 = torch.where(counts > 0, torch.exp(ls0.detach()), zero)
+    return GridFit(torch.exp(lv), s2, float(torch.exp(le)), ll, ll0, sd, torch.exp(lv0.detach()), s20)
+
+
 def predicted_variance(d: torch.Tensor, w: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
     """(T, K): the extra variance per channel the term predicts, s²_b(t) d²_kt (units²) — its part
     b of the §7.2 budget, per channel-sample; 0 where the triad does not enter."""
@@ -124,6 +224,12 @@ class UnresolvedMotion:
     """The fitted term as the refit and the §7.2 budget take a random effect: ``d`` (T, K) the
     centred data ages (s) of the fit's samples, ``lab`` (T,) their |ω| band, ``edges`` the inner
     band edges (rad/s), ``jerk_rms`` (B,) m/s³ and ``angular_acc_rms`` (B,) rad/s² per axis.
+
+    With ``omega_dot_edges`` (inner |ω̇| band edges, rad/s², C − 1 of them) the scales are per
+    motion cell instead: ``lab`` = b·C + c (|ω| band b, |ω̇| band c) and ``jerk_rms`` /
+    ``angular_acc_rms`` have B·C entries (:func:`fit_grid`); ``age_error_rms`` (acc, gyro) s is the
+    rms e of the age error ε the clocks do not give, which adds e² s² per channel on the clocked
+    IMUs (those with a nonzero ``d``, or ``w`` (T, K) 0/1 when given).
     ``predicted_variance(params, ctx)`` is the budget's hook
     (:func:`accel_bayes.mismatch.budget.predicted_extra_variance`); :meth:`loglik` the term's
     contribution to a refit's log-likelihood given white variances."""
@@ -135,23 +241,51 @@ class UnresolvedMotion:
     angular_acc_rms: torch.Tensor
     name: str = "unresolved_motion"
     kind: str = "random"
+    omega_dot_edges: list | None = None
+    age_error_rms: tuple = (0.0, 0.0)
+    w: torch.Tensor | None = None
+
+    def _mask(self) -> torch.Tensor:
+        return (self.d != 0).to(self.d.dtype) if self.w is None else self.w.to(self.d.dtype)
+
+    def _s2(self, scales) -> torch.Tensor:
+        return torch.as_tensor(scales, dtype=self.d.dtype)[self.lab] ** 2
 
     def predicted_variance(self, params=None, ctx=None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(acc, gyro) (T, K, 3): s²_b d² per channel (units²), the same on the three axes."""
-        w = torch.ones_like(self.d)
+        """(acc, gyro) (T, K, 3): s² (d² + e²) per channel (units²), the same on the three axes."""
+        w = self._mask()
         out = []
-        for s in (self.jerk_rms, self.angular_acc_rms):
-            out.append(predicted_variance(self.d, w, torch.as_tensor(s, dtype=self.d.dtype)[self.lab] ** 2)[..., None]
+        for s, e in zip((self.jerk_rms, self.angular_acc_rms), self.age_error_rms):
+            s2 = self._s2(s)
+            out.append(((predicted_variance(self.d, w, s2) + s2[:, None] * float(e) ** 2 * w)[..., None])
                        .expand(*self.d.shape, 3))
         return out[0], out[1]
 
     def loglik(self, y_acc, y_gyro, w, v_acc, v_gyro) -> torch.Tensor:
         """Per-sample log density (nats, (T,)) of both sensors' array-frame residuals (T, K, 3)
         with white variances v (T, K) and this term marginalised (:func:`marginal_loglik`)."""
-        dt = self.d.dtype
-        return (marginal_loglik(y_acc, self.d * w, w, v_acc, torch.as_tensor(self.jerk_rms, dtype=dt)[self.lab] ** 2)
-                + marginal_loglik(y_gyro, self.d * w, w, v_gyro, torch.as_tensor(self.angular_acc_rms, dtype=dt)[self.lab] ** 2))
+        out = 0.0
+        for y, v, s, e in ((y_acc, v_acc, self.jerk_rms, self.age_error_rms[0]),
+                           (y_gyro, v_gyro, self.angular_acc_rms, self.age_error_rms[1])):
+            s2 = self._s2(s)
+            out = out + marginal_loglik(y, self.d * w, w, v + float(e) ** 2 * s2[:, None] * w, s2)
+        return out
+
+    def band_rms(self) -> tuple[list, list]:
+        """(jerk m/s³, angular acceleration rad/s²) rms per |ω| band: the scales themselves, or with
+        cells the root of their mean square over the band's samples."""
+        if self.omega_dot_edges is None:
+            return [float(x) for x in self.jerk_rms], [float(x) for x in self.angular_acc_rms]
+        C = len(self.omega_dot_edges) + 1
+        band = self.lab // C
+        out = []
+        for s in (self.jerk_rms, self.angular_acc_rms):
+            s2 = self._s2(s)
+            out.append([float(torch.sqrt(s2[band == b].mean())) if bool((band == b).any()) else 0.0
+                        for b in range(len(self.edges) + 1)])
+        return out[0], out[1]
 
     def finding(self, evidence: float) -> dict:
         """The report's finding (:func:`finding`)."""
-        return finding(self.edges, self.jerk_rms, self.angular_acc_rms, evidence=evidence)
+        j, g = self.band_rms()
+        return finding(self.edges, j, g, evidence=evidence)

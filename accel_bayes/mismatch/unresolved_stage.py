@@ -30,18 +30,20 @@ is part of b (:func:`accel_bayes.mismatch.budget.residual_budget`'s ``extra_vari
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
+from .budget import band_edges, predicted_extra_variance
 from .clock import data_age
 from .model import ModelFit
 from .prepared import Prepared
-from .unresolved import UnresolvedMotion, fit_scales
+from .unresolved import UnresolvedMotion, fit_grid, fit_scales
 from .vibration import _bands, _profile_lr, array_residuals, omega_edges
 
-__all__ = ["UnresolvedStage", "UnresolvedEffect", "unresolved_stage", "term_for", "SENSORS"]
+__all__ = ["UnresolvedStage", "UnresolvedEffect", "unresolved_stage", "supersede_random_timing", "term_for", "SENSORS"]
 
 SENSORS = ("acc", "gyro")
 _SCALE_NAME = {"acc": "jerk_rms", "gyro": "angular_acc_rms"}
@@ -61,26 +63,33 @@ class UnresolvedEffect:
         self.term, self.sensors = term, list(sensors)
         self.std = {}  # the Finding's Laplace block: the scales' standard errors go in the parameters instead
         self._std = std
-        self.df = 2 * len(term.edges) + 2 if len(self.sensors) == 2 else len(term.edges) + 1
+        n = len(term.jerk_rms) + (1 if term.omega_dot_edges is not None else 0)  # scales (+ the age error)
+        self.df = n * len(self.sensors)
 
     def label(self) -> str:
         return "unresolved_motion"
 
     def vocabulary_parameters(self) -> dict:
-        p = {"omega_edges": [float(e) for e in self.term.edges],
-             "jerk_rms": [float(x) for x in self.term.jerk_rms],
-             "angular_acc_rms": [float(x) for x in self.term.angular_acc_rms], "sensors": self.sensors}
+        j, g = self.term.band_rms()
+        p = {"omega_edges": [float(e) for e in self.term.edges], "jerk_rms": j, "angular_acc_rms": g,
+             "sensors": self.sensors}
+        if self.term.omega_dot_edges is not None:
+            p.update({"omega_dot_edges": [float(e) for e in self.term.omega_dot_edges],
+                      "jerk_rms_grid": [float(x) for x in self.term.jerk_rms],
+                      "angular_acc_rms_grid": [float(x) for x in self.term.angular_acc_rms],
+                      "age_error_rms_s": {"acc": float(self.term.age_error_rms[0]),
+                                          "gyro": float(self.term.age_error_rms[1])}})
         p.update({f"{k}_std": [float(x) for x in v] for k, v in self._std.items()})
         return p
 
     def explain(self) -> str:
         return ("board motion faster than the outputs resolve (vibration, impacts), seen through each IMU's clock "
-                "data age as a per-sample error common to the board, on " + " and ".join(
+                "data age and the part of its sampling instant the clock does not give, on " + " and ".join(
                     {"acc": "the accelerometers (jerk)", "gyro": "the gyroscopes (angular acceleration)"}[s]
                     for s in self.sensors))
 
     def predicted_variance(self, params=None, ctx=None):
-        """(acc, gyro) (T, K, 3) units²: s²_b d² per channel (0 on IMUs without a clock)."""
+        """(acc, gyro) (T, K, 3) units²: s² (d² + e²) per channel (0 on IMUs without a clock)."""
         return self.term.predicted_variance()
 
 
@@ -111,16 +120,48 @@ def _ages_and_bands(prep: Prepared, fit: ModelFit, clocks):
     return data_age(clocks, prep.time, prep.K), has, edges, _bands(fit, edges)
 
 
-def term_for(prep: Prepared, fit: ModelFit, clocks, jerk_rms, angular_acc_rms, *, sensors=SENSORS, std=None) -> UnresolvedEffect:
-    """The term with given scales per |ω| band (m/s³, rad/s² per axis; band b of ``fit``'s own |ω|
-    quantile bands) loaded by ``clocks``' data ages at ``prep``'s samples — e.g. scales fitted on
-    another recording of the same board."""
+def _cells(fit: ModelFit, lab: torch.Tensor) -> tuple[list, torch.Tensor]:
+    """(|ω̇| inner edges rad/s², cell (T,) = b·C + c): each sample's |ω| band b (``lab``) and |ω̇|
+    band c among the budget's C quantile bands of ``fit``'s motion."""
+    od = np.linalg.norm(fit.x[:, 3:6].detach().cpu().numpy(), axis=1)
+    od_edges = band_edges(od)
+    C = len(od_edges) + 1
+    return od_edges, lab * C + torch.as_tensor(np.digitize(od, od_edges), dtype=torch.long)
+
+
+def term_for(prep: Prepared, fit: ModelFit, clocks, jerk_rms, angular_acc_rms, *, sensors=SENSORS, std=None,
+             grid: bool = False, age_error_rms=(0.0, 0.0)) -> UnresolvedEffect:
+    """The term with given scales (m/s³, rad/s² per axis) loaded by ``clocks``' data ages at
+    ``prep``'s samples — e.g. scales fitted on another recording of the same board.  Scales per
+    |ω| band b of ``fit``'s own |ω| quantile bands, or with ``grid`` per cell b·C + c (|ω̇| band c
+    of ``fit``'s own |ω̇| quantile bands, :func:`_cells`) with ``age_error_rms`` (acc, gyro) s."""
     age, has, edges, lab = _ages_and_bands(prep, fit, clocks)
     # one term: the accelerometers' and the gyroscopes' ages differ only by which triads enter
-    d = _centred_ages(age, has[None, :].to(age.dtype).expand_as(age))
+    w = has[None, :].to(age.dtype).expand_as(age)
+    d = _centred_ages(age, w)
+    od_edges = None
+    if grid:
+        od_edges, lab = _cells(fit, lab)
     term = UnresolvedMotion(d=d, lab=lab, edges=list(edges), jerk_rms=torch.as_tensor(jerk_rms, dtype=torch.float64),
-                            angular_acc_rms=torch.as_tensor(angular_acc_rms, dtype=torch.float64))
+                            angular_acc_rms=torch.as_tensor(angular_acc_rms, dtype=torch.float64),
+                            omega_dot_edges=od_edges, age_error_rms=tuple(float(e) for e in age_error_rms), w=w)
+    n = (len(edges) + 1) * (len(od_edges) + 1 if grid else 1)
+    for name, v in (("jerk_rms", term.jerk_rms), ("angular_acc_rms", term.angular_acc_rms)):
+        if v.shape != (n,):
+            raise ValueError(f"{name}: expected {n} scales ({'cells' if grid else '|omega| bands'}), got {tuple(v.shape)}")
     return UnresolvedEffect(term, std or {}, list(sensors))
+
+
+def _band_rms_std(s2: torch.Tensor, sd_log: torch.Tensor, cell: torch.Tensor, C: int, B: int) -> list:
+    """Standard error (units/s) of each |ω| band's rms √(Σ_c n_bc s²_c / n_b), by the delta method
+    from the cells' log-variance standard errors (taken as independent)."""
+    out = []
+    for b in range(B):
+        n = torch.bincount(cell[cell // C == b] - b * C, minlength=C).to(s2.dtype)
+        s2b, sdb = s2[b * C:(b + 1) * C], torch.nan_to_num(sd_log[b * C:(b + 1) * C])
+        rms = torch.sqrt((n * s2b).sum() / n.sum().clamp_min(1))
+        out.append(float(torch.sqrt((((n * s2b) / (2 * n.sum().clamp_min(1) * rms.clamp_min(1e-30))) * sdb).pow(2).sum())))
+    return out
 
 
 def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float, alpha: float, m: int,
@@ -147,7 +188,12 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
             sel = np.flatnonzero(lab.numpy() == b)
             idx[sel] = rng.permutation(sel)
         perms.append(torch.as_tensor(idx))
-    scales, stds, kept, per = {}, {}, [], {}
+    od_edges, cell = _cells(fit, lab)
+    C = len(od_edges) + 1
+    # what the model's own variance effects already predict (noise factors, random timing): the term
+    # is fitted on top of it, so that b does not count the same variance twice
+    known = dict(zip(SENSORS, (v.mean(-1) for v in predicted_extra_variance(prep, fit))))
+    scales, ages_rms, stds, kept, per = {}, {}, {}, [], {}
     gain = evidence = 0.0
     for s in SENSORS:
         a, ok = array_residuals(prep, fit, s)
@@ -155,32 +201,82 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
         d = _centred_ages(age, w)
         # only the clocked IMUs enter (the others' white variances would have no information)
         a, d, w, ag = a[:, has], d[:, has], w[:, has], age[:, has]
-        v0, lv, ls, ll0, ll1, sd = fit_scales(a, d, w, lab, B)
+        v0, lv, ls, ll0, ll1, sd = fit_scales(a, d, w, lab, B, std=False)
         v_null = v0[:, lab].T
         stat = _profile_lr(a, d, w, v_null, lab, B)
         null = np.array([_profile_lr(a, _centred_ages(ag[p], w), w, v_null, lab, B) for p in perms])
         bar = max(threshold, float(null.max()), float(null.mean() + z * null.std(ddof=1)) if len(null) > 1 else 0.0)
-        lr = 2.0 * (ll1 - ll0)
         ok_s = bool(stat > bar)
-        rms = torch.exp(0.5 * ls)
         per[s] = {"statistic": stat, "permuted_max": float(null.max()), "permuted_mean": float(null.mean()),
                   "permuted_sd": float(null.std(ddof=1)) if len(null) > 1 else None, "bar": bar,
-                  "likelihood_ratio": lr, "kept": ok_s, _SCALE_NAME[s]: rms.tolist(),
-                  f"{_SCALE_NAME[s]}_std": (0.5 * rms * sd).tolist(),
-                  "white_var": v0.mean(0).tolist()}
-        if ok_s:
-            kept.append(s)
-            scales[s] = rms
-            stds[_SCALE_NAME[s]] = 0.5 * rms * sd  # d s = ½ s d(log s²)
-            gain += 0.5 * lr
-            evidence += lr
-        else:
-            scales[s] = torch.zeros(B, dtype=a.dtype)
-    info = {"imus": imus, "omega_edges": [float(e) for e in edges], "permutations": int(n_permutations),
-            "seed": int(seed), "z": z, "sensors": per, "kept": kept,
+                  "likelihood_ratio_bands": 2.0 * (ll1 - ll0), "kept": ok_s, "white_var_bands": v0.mean(0).tolist(),
+                  _SCALE_NAME[s]: torch.exp(0.5 * ls).tolist()}  # per |ω| band; replaced by the cells' below
+        if not ok_s:
+            scales[s], ages_rms[s] = torch.zeros(B * C, dtype=a.dtype), 0.0
+            continue
+        # the kept term's scales per |ω| × |ω̇| cell, the white noise one constant per IMU, and the
+        # age error the clocks do not give (fit_grid); the age error is kept only past the threshold
+        g = fit_grid(a, d, w, cell, B * C, v_known=known[s][:, has] * w)
+        lr_age = 2.0 * (g.loglik - g.loglik_no_age_error)
+        use_age = lr_age > threshold
+        s2, ll, sd_log = (g.s2, g.loglik, g.sd_log_s2) if use_age else (g.s2_no_age_error, g.loglik_no_age_error,
+                                                                        torch.full_like(g.s2, float("nan")))
+        rms = torch.sqrt(s2)
+        lr = 2.0 * (ll - ll0)
+        per[s].update({"likelihood_ratio": lr, f"{_SCALE_NAME[s]}_cells": rms.tolist(),
+                       _SCALE_NAME[s]: [float(torch.sqrt(s2[cell][lab == b].mean())) for b in range(B)],
+                       "age_error_rms_s": math.sqrt(g.e2) if use_age else 0.0, "age_error_lr": lr_age,
+                       "age_error_kept": bool(use_age), "white_var": (g.v if use_age else g.v_no_age_error).tolist(),
+                       "loglik_cells": ll, "loglik_bands": ll1, "loglik_null": ll0})
+        kept.append(s)
+        scales[s], ages_rms[s] = rms, (math.sqrt(g.e2) if use_age else 0.0)
+        stds[_SCALE_NAME[s]] = _band_rms_std(s2, sd_log, cell, C, B)
+        gain += 0.5 * lr
+        evidence += lr
+    info = {"imus": imus, "omega_edges": [float(e) for e in edges], "omega_dot_edges": [float(e) for e in od_edges],
+            "permutations": int(n_permutations), "seed": int(seed), "z": z, "sensors": per, "kept": kept,
             "mean_refit": False}
     if not kept:
         return UnresolvedStage(None, 0.0, 0.0, info)
-    eff = term_for(prep, fit, clocks, scales["acc"], scales["gyro"], sensors=kept, std=stds)
+    eff = term_for(prep, fit, clocks, scales["acc"], scales["gyro"], sensors=kept, std=stds, grid=True,
+                   age_error_rms=(ages_rms["acc"], ages_rms["gyro"]))
     info["loglik_gain"] = gain
     return UnresolvedStage(eff, evidence, gain, info)
+
+
+def _sensor_of(effect) -> str | None:
+    return getattr(effect, "which", None) or getattr(effect, "params", {}).get("sensor") or getattr(effect, "sensor", None)
+
+
+def supersede_random_timing(prep: Prepared, fit: ModelFit, clocks, stage: UnresolvedStage, **stage_kw):
+    """(stage, fit, withdrawn): a random timing effect (``timing_wander``, ``sampling_jitter``) on a
+    sensor where ``stage`` keeps the age error describes the same thing — that sensor's instant
+    error times the motion — on one IMU, with a variance that does not follow the unresolved motion.
+    Per sensor (acc, then gyro) the model is refitted without those effects and the stage rerun on
+    the refit; the refit replaces ``fit`` when the sensor's log-likelihood with the term
+    (``loglik_cells``) is higher without them than with them (their predicted variance a known part,
+    their conditional means taken off: the comparison favours keeping them).  ``stage_kw``: the
+    arguments of :func:`unresolved_stage`.  ``withdrawn``: [{"effect", "reason", "loglik_with",
+    "loglik_without"}]."""
+    from .fit import fit_model
+
+    withdrawn = []
+    for s in SENSORS:
+        info = stage.info.get("sensors", {}).get(s, {})
+        if not info.get("age_error_kept"):
+            continue
+        cands = [e for e in fit.effects if e.kind == "random" and e.name in ("timing_wander", "sampling_jitter")
+                 and _sensor_of(e) == s]
+        if not cands:
+            continue
+        refit = fit_model(prep, [e.copy() for e in fit.effects if not any(e is c for c in cands)], init=fit,
+                          laplace=False)
+        st2 = unresolved_stage(prep, refit, clocks, **stage_kw)
+        with_, without = info["loglik_cells"], st2.info.get("sensors", {}).get(s, {}).get("loglik_cells")
+        if without is None or not without > with_:
+            continue
+        withdrawn += [{"effect": e.label(), "loglik_with": with_, "loglik_without": without,
+                       "reason": f"superseded by unresolved_motion's age error on the {s} (every clocked IMU)"}
+                      for e in cands]
+        stage, fit = st2, refit
+    return stage, fit, withdrawn

@@ -104,7 +104,7 @@ def _linear_errors(rng, K, gyro_linear, clean):
 
 def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_linear=None,
               filtered=True, noise=True, quantised=True, vibration=True, errors=True, drift=None,
-              read_jitter=None, n_imu=None, rot_axes=(0, 1, 2)):
+              read_jitter=None, n_imu=None, rot_axes=(0, 1, 2), read_jitter_max=None):
     """A seeded blind-test case: returns (Recording, truth dict).
 
     ``clock`` / ``twin`` / ``clean`` on ``board_name`` (default: by seed among 'mimu4444',
@@ -117,7 +117,8 @@ def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_l
     white noise acc 0.02–0.06 m/s², gyro 0.2–0.6 °/s at the register; int16 at ±16 g / ±2000 °/s.
     ``filtered``, ``noise``, ``quantised``, ``vibration``, ``errors`` (all linear errors) switch
     pieces off for validation; ``drift`` / ``read_jitter`` force the clock drift and the read
-    jitter on or off (None: by seed).  ``rot_axes`` (rigs): the array axes the rig rotates
+    jitter on or off (None: by seed); ``read_jitter_max`` (s) replaces the drawn upper end of the
+    read latency where the jitter is on (a bus whose reads wait longer than 30 µs).  ``rot_axes`` (rigs): the array axes the rig rotates
     about — (2,) gives an under-excited rig (rotation about z only).  The exact motion is :func:`motion_of` (truth).
     """
     if kind == "rig":
@@ -149,6 +150,8 @@ def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_l
     skew = np.arange(K) * rng.uniform(20e-6, 80e-6)
     jitter_on = rng.random() < 0.5
     jitter = rng.uniform(0, 30e-6) * (jitter_on if read_jitter is None else bool(read_jitter))
+    if read_jitter_max is not None and jitter > 0:
+        jitter = float(read_jitter_max)
     dgd = rng.uniform(-0.3e-3, 0.3e-3) * (rng.random() < 0.5)
     if kind == "clock":
         clocks = [Clock(F_INT, eps[k], phase[k], drift[k], drift_P[k], drift_psi[k]) for k in range(K)]
