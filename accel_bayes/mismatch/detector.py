@@ -59,10 +59,12 @@ Procedure
    cell enumerated — IMU 0, accelerometer x — was reported whatever the data).
 7a. **Unresolved motion** (:mod:`accel_bayes.mismatch.unresolved_stage`): with accepted clocks on
    ≥ 2 IMUs, ``unresolved_motion`` — per-sample jerk and angular acceleration common to the board,
-   loaded by the clocks' data ages, marginalised — fitted per |ω| band and sensor at the final
-   model and kept per sensor where it passes its permutation test; a finding (imu null) when
-   either sensor keeps it, its log-likelihood gain added to ``refined.loglik``, its predicted
-   variance part of the budget's b.  Not capped by ``max_findings``.
+   loaded by the clocks' data ages, marginalised — tested per |ω| band and sensor at the final
+   model and kept per sensor where it passes its permutation test, then fitted per |ω| × |ω̇|
+   cell with the age error the clocks do not give; random timing effects it supersedes are
+   withdrawn and the model refitted without them; a finding (imu null) when either sensor keeps
+   it, its log-likelihood gain added to ``refined.loglik``, its predicted variance part of the
+   budget's b.  Not capped by ``max_findings``.
 8. **Budget** (:func:`accel_bayes.mismatch.budget.residual_budget`, vocabulary 1.1): per sensor and
    per |ω| and |ω̇| quantile band of the baseline motion, the excess variance the baseline leaves
    (a, leverage-corrected squared residual minus the stated variance) and the part the final

@@ -19,7 +19,9 @@ base A — diagonal (this model) or a full cross-IMU covariance (held-out remain
 :mod:`accel_bayes.mismatch.heldout`) — batched over samples, O(T n r²).
 
 Its contribution to the §7.2 budget is the predicted extra variance s²_b d²_kt per channel-sample
-(:func:`predicted_variance`).  The accelerometer half on the gyros' instant errors is the aliased
+(:func:`predicted_variance`).  The detector fits the richer form of :func:`fit_grid`: scales per
+|ω| × |ω̇| cell, one white variance per IMU, and an age error ε_kt the clocks do not give, through
+which the same m_t adds s² e² per channel (issue #27 budget).  The accelerometer half on the gyros' instant errors is the aliased
 jerk of :mod:`accel_bayes.mismatch.vibration`, which evaluates and fits it with the functions here.
 """
 from __future__ import annotations

@@ -7,11 +7,25 @@ Data.  Per sensor, the final fit's leverage-corrected residuals in the array fra
 ``sampling_clock``; their data ages centred over those IMUs per sample (a common age is absorbed by
 the motion states); the |ω| quantile bands of the final fit's motion.  Needs clocks on ≥ 2 IMUs.
 
-Fit.  :func:`~accel_bayes.mismatch.unresolved.fit_scales`: a white variance per IMU and band and
-the term's scale per band (``jerk_rms`` m/s³ on the accelerometers, ``angular_acc_rms`` rad/s² on
-the gyroscopes), both by maximum likelihood with the per-sample motion marginalised exactly.  The
-mean model is not refitted with the term (the term is profiled at the final mean, as the random
-effects are); the term's log-likelihood gain is added to the refined model's (``refined.loglik``).
+Fit.  The test below uses :func:`~accel_bayes.mismatch.unresolved.fit_scales` (a white variance per
+IMU and |ω| band, the term's scale per band).  A kept sensor's term is then fitted by
+:func:`~accel_bayes.mismatch.unresolved.fit_grid` (issue #27 budget): the scale per cell of the
+budget's |ω| × |ω̇| quantile bands (``jerk_rms`` m/s³ on the accelerometers, ``angular_acc_rms``
+rad/s² on the gyroscopes), one white variance per IMU, and the age error e — the part of each IMU's
+sampling instant its clock does not give, iid per IMU and sample, which carries the same unresolved
+motion: y_kt = (d_kt + ε_kt) m_t + e_kt.  On the six real recordings (97e5674's final models) the
+accelerometer excess the band model left white grew with the band's jerk² and lay along the fitted
+jerk; e came out 0.17–0.23 ms on both sensors (``experiments/mimu_budget_decompose.md``).  What
+else the model already predicts (noise factors, random effects) is a known part of the white
+variance, so the term is fitted on top of it.  By maximum likelihood with the per-sample motion
+marginalised exactly (ε m by its first two moments).  The mean model is not refitted with the term
+(the term is profiled at the final mean, as the random effects are); the term's log-likelihood gain
+over the band model's null is added to the refined model's (``refined.loglik``).
+
+Superseded random timing (:func:`supersede_random_timing`): a ``timing_wander`` or
+``sampling_jitter`` on a sensor where the age error is kept names the same instant error on one IMU
+with a variance that does not follow the unresolved motion; it is withdrawn when the model without
+it, refitted, has the higher likelihood with the term.
 
 Test, per sensor.  The likelihood ratio is not χ²-distributed on fitted residuals (the per-sample
 motion states correlate the residuals of a sample, and a rank-3 term soaks that up; see
@@ -25,8 +39,8 @@ permutation null at the detector's family-wise level).  A sensor that fails has 
 finding (vocabulary 1.2, imu and axis null) is reported when either sensor passes, its evidence
 the sum of the kept sensors' likelihood ratios (white variances refitted).
 
-Budget: the term's predicted variance s²_b d²_kt per channel-sample (the same on the three axes)
-is part of b (:func:`accel_bayes.mismatch.budget.residual_budget`'s ``extra_variance``).
+Budget: the term's predicted variance s²_c (d²_kt + e²) per channel-sample (the same on the three
+axes) is part of b (:func:`accel_bayes.mismatch.budget.residual_budget`'s ``extra``).
 """
 from __future__ import annotations
 
