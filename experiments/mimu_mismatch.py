@@ -138,6 +138,72 @@ def _save_state(d: Path, rep) -> None:
                 "fixed": [e for e in rep.fixed_effects if e.name != "unresolved_motion"]}, d / "state.pt")
 
 
+def stage_restage(args, exps):
+    """Step 7a (the unresolved stage and the random timing it supersedes) and the budget recomputed on a
+    cached detection (``--from``: its ``exp_i/state.pt`` and ``report.json``), with the detector's own
+    settings (threshold, family-wise rate, Bonferroni count, permutations, seed) read from the report.
+    Every step before 7a is unchanged code, so this equals a full rerun of ``detect`` in its findings
+    and budget; the characterisation and the located excess stay the cached run's.  Writes OUT/exp_i
+    (report.json with ``details.restaged``, info.json, state.pt)."""
+    import shutil
+
+    import torch
+    from scipy.stats import norm
+
+    from accel_bayes.mismatch.budget import residual_budget
+    from accel_bayes.mismatch.unresolved_stage import supersede_random_timing, unresolved_stage
+
+    for i in exps:
+        src, d = args.restage_from / f"exp_{i}", args.out / f"exp_{i}"
+        if (d / "report.json").exists() and not args.redo:
+            print(f"exp_{i}: restaged report exists, skipped (--redo to recompute)")
+            continue
+        if not (src / "state.pt").exists():
+            print(f"exp_{i}: no cached detection in {src}")
+            continue
+        t0 = time.perf_counter()
+        state = torch.load(src / "state.pt", weights_only=False)
+        doc = json.loads((src / "report.json").read_text())
+        prep, base, ref = state["prep"], state["base"], state["refined"]
+        clocks = [e for e in state["fixed"] if e.name == "sampling_clock"]
+        det = doc["details"]
+        us = det["unresolved_stage"]
+        kw = dict(threshold=doc["threshold"], alpha=det["alpha"], m=int(det["n_candidates"]),
+                  n_permutations=us["permutations"], seed=us["seed"])
+        st = unresolved_stage(prep, ref, clocks, **kw)
+        st, ref, gone = supersede_random_timing(prep, ref, clocks, st, **kw)
+        gone_labels = {g["effect"] for g in gone}
+        findings = [f for f in doc["findings"] if f["effect"] != "unresolved_motion"
+                    and not (f["effect"] in ("timing_wander", "sampling_jitter") and _finding_label(f) in gone_labels)]
+        if st.effect is not None:
+            findings.append({"effect": "unresolved_motion", "imu": None, "axis": None, "evidence": st.evidence,
+                             "df": st.effect.df, "parameters": st.effect.vocabulary_parameters(),
+                             "where": {"regime": "all |omega| bands", "time_s": None},
+                             "explanation": st.effect.explain(), "loglik_gain": st.loglik_gain})
+        findings.sort(key=lambda f: -f["evidence"])
+        doc.update(findings=findings, budget=residual_budget(prep, base, ref, extra=[st.effect] if st.effect else []))
+        det.update(unresolved_stage=st.info, withdrawn=(det.get("withdrawn") or []) + gone,
+                   restaged={"from": str(src), "what": "step 7a and the budget; characterisation and located excess "
+                                                       "are the cached run's", "seconds": time.perf_counter() - t0})
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "report.json").write_text(json.dumps(doc, indent=1, default=float))
+        info = json.loads((src / "info.json").read_text())
+        info["restage_seconds"] = time.perf_counter() - t0
+        (d / "info.json").write_text(json.dumps(info, indent=1))
+        torch.save({**state, "refined": ref}, d / "state.pt")
+        for png in src.glob("*.png"):
+            shutil.copy(png, d / png.name)
+        print(f"exp_{i}: restaged in {info['restage_seconds']:.0f} s; superseded {sorted(gone_labels)}; budget b/a "
+              + ", ".join(f"{x} {_budget_all(doc['budget'], x)[1] / _budget_all(doc['budget'], x)[0]:.3f}"
+                          for x in ("acc", "gyro")), flush=True)
+
+
+def _finding_label(f: dict) -> str:
+    """A round finding's effect label as the model writes it (``timing_wander[imu=2,sensor=acc]``)."""
+    sensor = (f.get("parameters") or {}).get("sensor")
+    return f"{f['effect']}[imu={f['imu']}" + (f",sensor={sensor}" if sensor else "") + "]"
+
+
 def _scale_source(i: int, exps: list) -> int:
     """The experiment whose random-effect scales exp i's transferred budget uses: the next one in the
     list (cyclic), so every experiment lends and borrows once."""
@@ -460,6 +526,13 @@ def write_doc(args, md: str) -> None:
             for st, f in (("detect", "report.json"), ("transfer", "transfer.json"), ("shares", "shares.json"))}
     have["heldout"] = (args.out / "heldout.json").exists()
     stages = [st for st in ("detect", "transfer", "shares", "heldout") if have[st]]
+    restaged = [json.loads((args.out / f"exp_{i}" / "report.json").read_text())["details"].get("restaged")
+                for i in exps if (args.out / f"exp_{i}" / "report.json").exists()]
+    restaged = [r for r in restaged if r]
+    if restaged:  # the detections are cached ones, step 7a and the budget recomputed (stage_restage)
+        src = Path(restaged[0]["from"])
+        src = (src.relative_to(REPO) if src.is_absolute() and src.is_relative_to(REPO) else src).parent
+        stages = [f"restage --from {src}"] + [st for st in stages if st != "detect"]
     missing = [st for st in ("shares", "heldout") if not have[st]]
     out_rel = args.out.relative_to(REPO) if args.out.is_relative_to(REPO) else args.out
     sel = "" if list(exps) == [1, 2, 3, 4, 5, 6] else " --experiments " + " ".join(map(str, exps))
@@ -477,6 +550,12 @@ def write_doc(args, md: str) -> None:
             "experiment's budget with every random-effect scale taken from the next experiment); shares (each "
             "finding's share of the explained excess in sequence and dropped from the final model); held-out (30 "
             "ordered pairs against a physics-free baseline); summary."
+            + (" **Restaged:** the detections (the rounds, the clock stage, the characterisation) are those cached "
+               f"in `{src}` (made at 97e5674, 2026-11-27 09:37 UTC, with `--stage detect`); step 7a — the unresolved "
+               "stage and the random timing it supersedes — and the budget are recomputed on them with this version's "
+               "code and the detector's own settings read from each report (`--stage restage`). Every step before 7a "
+               "is the same code, so the findings and budget equal a full rerun's; a full rerun (about 300–430 s per "
+               "experiment alone) did not fit the shared machine's load in this session." if restaged else "")
             + (f" Not run for this version (too long on the shared machine; their tables are absent): "
                f"{', '.join(missing)}." if missing else "")
             + (f" **Experiments in this version: {list(exps)}** (the others' detections did not finish in the time "
@@ -874,7 +953,10 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=None, help="folder with exp_1..exp_6 (default ../shared/data/mimu4444-bcd)")
     ap.add_argument("--out", type=Path, default=HERE / "out" / "mimu_mismatch")
     ap.add_argument("--experiments", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
-    ap.add_argument("--stage", choices=("detect", "transfer", "shares", "heldout", "summary", "all"), default="all")
+    ap.add_argument("--stage", choices=("detect", "restage", "transfer", "shares", "heldout", "summary", "all"),
+                    default="all")
+    ap.add_argument("--from", dest="restage_from", type=Path, default=None,
+                    help="restage: the cached detections to restage (default OUT)")
     ap.add_argument("--max-samples", type=int, default=None, help="keep the last N samples (default all)")
     ap.add_argument("--detect-opt", action="append", default=[], metavar="KEY=VALUE",
                     help="extra keyword for detect() (JSON value), e.g. n_twins=20; default none")
@@ -898,6 +980,9 @@ def main(argv=None) -> int:
     with torch_threads(1):
         if args.stage in ("detect", "all"):
             stage_detect(args, args.experiments)
+        if args.stage == "restage":
+            args.restage_from = args.restage_from or args.out
+            stage_restage(args, args.experiments)
         if args.stage in ("transfer", "all"):
             stage_transfer(args, args.experiments)
         if args.stage in ("shares", "all"):
