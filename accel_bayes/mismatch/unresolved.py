@@ -117,7 +117,7 @@ class GridFit:
     s2_no_age_error: torch.Tensor
 
 
-def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known):
+def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known, v_floor):
     """L-BFGS on the per-sample objective of :func:`fit_grid` (e fixed at exp(le) unless ``free_e``)."""
     T = a.shape[0]
     params = [lv, ls] + ([le] if free_e else [])
@@ -127,7 +127,7 @@ def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known):
 
     def nll(lv_, ls_, le_):
         s2 = torch.where(filled, torch.exp(ls_)[cell], torch.zeros((), dtype=a.dtype))
-        v = torch.exp(lv_)[None, :] + torch.exp(le_) * s2[:, None] + v_known
+        v = v_floor[None, :] + torch.exp(lv_)[None, :] + torch.exp(le_) * s2[:, None] + v_known
         return -marginal_loglik(a, d, w, v, s2).sum()
 
     def closure():
@@ -142,7 +142,7 @@ def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known):
 
 
 def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tensor, C: int, *,
-             v_known: torch.Tensor | None = None, std: bool = True) -> GridFit:
+             v_known: torch.Tensor | None = None, v_floor: torch.Tensor | None = None, std: bool = True) -> GridFit:
     """Maximum-likelihood fit of the unresolved motion seen through the clocks' ages *and* an age
     error the clocks do not give (issue #27 budget):
 
@@ -157,25 +157,29 @@ def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tens
     constant per IMU (the sensor's own noise does not follow the motion); all that grows with the
     motion is loaded by the common unresolved m_t, through d or through ε.  ``v_known`` (T, K)
     units²: variance per channel the model already predicts (its random effects), added to the
-    white part so that the term is fitted on top of it, not in its place."""
+    white part so that the term is fitted on top of it, not in its place.  ``v_floor`` (K,) units²:
+    the least white variance per IMU (its stated noise): without it an IMU's white variance can
+    collapse to 0 with its residual taken wholly by d_k m_t (a Heywood case of the factor model)."""
     T, K = w.shape
     v_known = torch.zeros_like(w) if v_known is None else v_known
+    v_floor = torch.zeros(K, dtype=a.dtype) if v_floor is None else torch.as_tensor(v_floor, dtype=a.dtype)
     counts = torch.bincount(cell, minlength=C)
     p = (a ** 2).sum(-1) * w
     d2 = float((d ** 2 * w).sum() / w.sum().clamp_min(1))
     # start: a tenth of each IMU's power white, half the mean power on the term, ε of 0.1 ms
-    lv = torch.log((0.1 * p.sum(0) / (3 * w.sum(0)).clamp_min(1)).clamp_min(1e-12)).clone().requires_grad_(True)
-    ls = torch.full((C,), math.log(max(0.5 * float(p.sum() / (3 * w.sum().clamp_min(1))) / max(d2, 1e-30), 1e-12)),
-                    dtype=a.dtype, requires_grad=True)
+    lv_0 = torch.log((0.1 * p.sum(0) / (3 * w.sum(0)).clamp_min(1)).clamp_min(1e-12))
+    ls_0 = torch.full((C,), math.log(max(0.5 * float(p.sum() / (3 * w.sum().clamp_min(1))) / max(d2, 1e-30), 1e-12)),
+                      dtype=a.dtype)
+    lv, ls = lv_0.clone().requires_grad_(True), ls_0.clone().requires_grad_(True)
     le = torch.tensor(math.log(1e-8), dtype=a.dtype, requires_grad=True)
-    nll = _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, True, v_known)
+    nll = _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, True, v_known, v_floor)
     with torch.no_grad():
         ll = float(-nll(lv, ls, le))
     fit = (lv.detach().clone(), ls.detach().clone(), le.detach().clone())
-    # the same without the age error, from the fit (its evidence is the difference)
-    lv0, ls0 = fit[0].clone().requires_grad_(True), fit[1].clone().requires_grad_(True)
+    # the same without the age error, from the same start (its evidence is the difference)
+    lv0, ls0 = lv_0.clone().requires_grad_(True), ls_0.clone().requires_grad_(True)
     le0 = torch.tensor(-200.0, dtype=a.dtype)
-    nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known)
+    nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor)
     with torch.no_grad():
         ll0 = float(-nll0(lv0, ls0, le0))
     lv, ls, le = fit
@@ -196,7 +200,7 @@ def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tens
     zero = torch.zeros((), dtype=a.dtype)
     s2 = torch.where(counts > 0, torch.exp(ls), zero)
     s20 = torch.where(counts > 0, torch.exp(ls0.detach()), zero)
-    return GridFit(torch.exp(lv), s2, float(torch.exp(le)), ll, ll0, sd, torch.exp(lv0.detach()), s20)
+    return GridFit(v_floor + torch.exp(lv), s2, float(torch.exp(le)), ll, ll0, sd, v_floor + torch.exp(lv0.detach()), s20)
 
 
 def predicted_variance(d: torch.Tensor, w: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:

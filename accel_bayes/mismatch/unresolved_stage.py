@@ -230,7 +230,8 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
             continue
         # the kept term's scales per |ω| × |ω̇| cell, the white noise one constant per IMU, and the
         # age error the clocks do not give (fit_grid); the age error is kept only past the threshold
-        g = fit_grid(a, d, w, cell, B * C, v_known=known[s][:, has] * w)
+        sig2 = ((prep.sigma_acc if s == "acc" else prep.sigma_gyro) ** 2)[has]
+        g = fit_grid(a, d, w, cell, B * C, v_known=known[s][:, has] * w, v_floor=sig2)
         lr_age = 2.0 * (g.loglik - g.loglik_no_age_error)
         use_age = lr_age > threshold
         s2, ll, sd_log = (g.s2, g.loglik, g.sd_log_s2) if use_age else (g.s2_no_age_error, g.loglik_no_age_error,
