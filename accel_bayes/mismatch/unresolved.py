@@ -182,6 +182,11 @@ def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tens
     nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor)
     with torch.no_grad():
         ll0 = float(-nll0(lv0, ls0, le0))
+    if not math.isfinite(ll0):  # the line search left the domain from that start: from the fit instead
+        lv0, ls0 = fit[0].clone().requires_grad_(True), fit[1].clone().requires_grad_(True)
+        nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor)
+        with torch.no_grad():
+            ll0 = float(-nll0(lv0, ls0, le0))
     lv, ls, le = fit
     sd = torch.full((C,), float("nan"), dtype=a.dtype)
     if std:

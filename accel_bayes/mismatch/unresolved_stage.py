@@ -233,7 +233,7 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
         sig2 = ((prep.sigma_acc if s == "acc" else prep.sigma_gyro) ** 2)[has]
         g = fit_grid(a, d, w, cell, B * C, v_known=known[s][:, has] * w, v_floor=sig2)
         lr_age = 2.0 * (g.loglik - g.loglik_no_age_error)
-        use_age = lr_age > threshold
+        use_age = not lr_age <= threshold  # a failed fit without it (NaN) keeps it
         s2, ll, sd_log = (g.s2, g.loglik, g.sd_log_s2) if use_age else (g.s2_no_age_error, g.loglik_no_age_error,
                                                                         torch.full_like(g.s2, float("nan")))
         rms = torch.sqrt(s2)
