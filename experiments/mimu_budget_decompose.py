@@ -170,7 +170,7 @@ def markdown(res: dict, cmd: str, out_dir: Path) -> str:
               "|---|---|---|---|---|---|---|"]
         for i, r in res.items():
             for row in r[sensor]["rows"]:
-                L.append(f"| {i} | {row['regime']} | {row['excess']:.4g} | {row['own random effects']:.2f} | {row['bands']:.2f} | "
+                L.append(f"| {i} | {row['regime'].replace('|', chr(92) + '|')} | {row['excess']:.4g} | {row['own random effects']:.2f} | {row['bands']:.2f} | "
                          f"{row['cells']:.2f} | "
                          f"{row['cells + age error']:.2f} |")
     L += ["\n## What the remainder looks like\n",
