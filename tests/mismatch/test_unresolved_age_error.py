@@ -119,3 +119,28 @@ def test_the_fitted_age_error_grows_by_the_read_latency(case):
     true2 = float((err ** 2).mean())
     assert e2["acc"] > e2_0["acc"] + 0.3 * true2, (e2, e2_0, true2)
     assert 0.5 * true2 < e2["gyro"] - e2_0["gyro"] < 2.0 * true2, (e2, e2_0, true2)
+
+
+def test_fit_grid_recovers_the_scales_and_the_age_error():
+    """The estimator on its own model's form (a unit check; the concealed case is above): per cell
+    scales and e come back, and the white part stays at the sensors' noise."""
+    from accel_bayes.mismatch.unresolved import fit_grid
+
+    rng = np.random.default_rng(5)
+    T, K = 3000, 8
+    d = rng.uniform(0, 1e-3, (T, K))
+    d -= d.mean(1, keepdims=True)
+    cell = rng.integers(0, 2, T)
+    s = np.array([2000.0, 6000.0])[cell]  # m/s³
+    e, sig = 0.2e-3, 0.05  # s, m/s²
+    m = rng.normal(0, 1, (T, 3)) * s[:, None]
+    eps = rng.normal(0, e, (T, K))
+    y = (d + eps)[..., None] * m[:, None, :] + rng.normal(0, sig, (T, K, 3))
+    t = lambda x: torch.as_tensor(x, dtype=torch.float64)  # noqa: E731
+    g = fit_grid(t(y), t(d), torch.ones(T, K, dtype=torch.float64), torch.as_tensor(cell), 2,
+                 v_floor=torch.full((K,), sig ** 2, dtype=torch.float64))
+    assert np.sqrt(g.e2) == pytest.approx(e, rel=0.1)
+    assert np.sqrt(g.s2.numpy()) == pytest.approx([2000.0, 6000.0], rel=0.1)
+    # the white part does not take the age error's variance (e² s² ≥ 0.16 (m/s²)² per axis here)
+    assert (g.v.numpy() - sig ** 2).max() < 0.05 * e ** 2 * 2000.0 ** 2
+    assert g.loglik - g.loglik_no_age_error > 100  # the age error is what the data have
