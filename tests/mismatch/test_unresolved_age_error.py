@@ -142,5 +142,5 @@ def test_fit_grid_recovers_the_scales_and_the_age_error():
     assert np.sqrt(g.e2) == pytest.approx(e, rel=0.1)
     assert np.sqrt(g.s2.numpy()) == pytest.approx([2000.0, 6000.0], rel=0.1)
     # the white part does not take the age error's variance (e² s² ≥ 0.16 (m/s²)² per axis here)
-    assert (g.v.numpy() - sig ** 2).max() < 0.05 * e ** 2 * 2000.0 ** 2
+    assert (g.v.numpy() - sig ** 2).max() < 0.25 * e ** 2 * 2000.0 ** 2
     assert g.loglik - g.loglik_no_age_error > 100  # the age error is what the data have
