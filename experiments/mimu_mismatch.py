@@ -554,7 +554,9 @@ def write_doc(args, md: str) -> None:
                f"in `{src}` (made at 97e5674, 2026-11-27 09:37 UTC, with `--stage detect`); step 7a — the unresolved "
                "stage and the random timing it supersedes — and the budget are recomputed on them with this version's "
                "code and the detector's own settings read from each report (`--stage restage`). Every step before 7a "
-               "is the same code, so the findings and budget equal a full rerun's; a full rerun (about 300–430 s per "
+               "is the same code, so the findings and budget equal a full rerun's; the \"Fit before/after\" table, "
+               "the characterisation and the located excess are the cached final models' (before any random timing "
+               "was superseded); a full rerun (about 300–430 s per "
                "experiment alone) did not fit the shared machine's load in this session." if restaged else "")
             + (f" Not run for this version (too long on the shared machine; their tables are absent): "
                f"{', '.join(missing)}." if missing else "")
