@@ -101,6 +101,25 @@ def run_one(i: int, process_noise: str, marginal_scale: bool | str = True) -> di
             "q": pn.get("intensities"), "noise_iter": len(pn.get("history", []))}
 
 
+def _kept_reading(path: str) -> list[str]:
+    """The hand-written reading below the criteria table of an existing ``path``, so that a rerun
+    refreshes every generated figure without deleting the analysis written about them (the reading
+    quotes the summary's figures; a rerun that changes them must be followed by an edit of it)."""
+    try:
+        old = open(path, encoding="utf-8").read().splitlines()
+    except FileNotFoundError:
+        return []
+    if "| criterion | pass |" not in old:
+        return []
+    i = old.index("| criterion | pass |") + 1
+    while i < len(old) and old[i].startswith("|"):
+        i += 1
+    tail = old[i:]
+    while tail and not tail[-1].strip():
+        tail.pop()
+    return tail
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n", type=int, default=24, help="number of recordings (default 24)")
@@ -183,7 +202,7 @@ def main(argv=None) -> int:
     ] + [f"| {k} | {'yes' if v else '**no**'} |" for k, v in checks.items()]
     from accel_bayes.data.outputs import write_text
 
-    write_text(out, "\n".join(lines) + "\n")
+    write_text(out, "\n".join(lines + _kept_reading(out)) + "\n")
     print("\n".join(lines[-12:]))
     print(f"wrote {out}")
     return 0
