@@ -445,7 +445,8 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
             # the data age's width: what the fit found over the regressor's scale (rate_scale)
             cand.update({"imu": k, "f_read_hz": f_read, "rate_scale": lam, "width_fit_s": cand["width_s"],
                          "beat_mid_hz": cand["beat_hz"] + cand["drift_hz_per_s"] * 0.5 * (t[0] + t[-1]),
-                         "width_s": cand["width_s"] / lam if lam > 0 else float("nan")})
+                         # λ ≤ 0 (a regressor against the gyro's own rate): no physical width, rejected
+                         "width_s": cand["width_s"] / max(lam, 1e-12)})
             cand["accepted"] = bool(cand["evidence"] > thr and cand["evidence_vs_wander"] > thr
                                     and WIDTH_RANGE_S[0] <= cand["width_s"] <= WIDTH_RANGE_S[1]
                                     and physical_beats(cand["beat_hz"], f_read))
