@@ -23,10 +23,18 @@ R² 0.02–0.10 with the sign flipped, on R_k ω̇ R² 0.88–0.93 with slope �
 six experiments the evidence of the same beats rose 1.3–3.2× (``experiments/clock_mimu.md``).  The
 unresolved part of the board's motion (what the states get wrong: ``unresolved_motion``,
 :mod:`accel_bayes.mismatch.unresolved`) is then noise on the regressor, common to the board; it
-scales W by |ω̇|²/(|ω̇|² + noise), it does not move the beat or the phase.  W also scales with the
-fitted lever arms (ω̇ ∝ 1/r): clockgen's mimu4444 board is fitted at 0.68 of its true size before
-the clocks are corrected, and its W at 0.3–0.8 ms; the lower end fails :data:`WIDTH_RANGE_S` with
-the beat right (``experiments/clock_proof.md``: mimu4444 at 250 Hz; 4/48 real IMU-experiments).
+scales W by |ω̇|²/(|ω̇|² + noise), it does not move the beat or the phase.
+
+Width (issue #27, clock_proof at 97e5674: mimu4444 at 250 Hz 0/8).  The per-sample ω̇ states
+carry the fitted lever arms' scale error (ω̇ ∝ 1/r) and noise: on clockgen's mimu4444 board with
+real-size gyro errors they are ~3.6× the true angular acceleration below 20 Hz, and the sawtooth
+fitted on R_k ω̇ is λ·W wide, λ = 0.28 (0.3 ms of a 1 ms tick), under :data:`WIDTH_RANGE_S` with the
+beat right.  The scale is not the clock's: λ, the true gyro rate per unit of the regressor, is
+measured where the gyro itself is exact — its increments over 0.1 s blocks, the integral of its
+true rate (:func:`rate_scale`) — and the data age's width is the fitted one over λ (reported as
+``width_s``, the fit's as ``width_fit_s``; the :class:`SamplingClock` carries λ as ``rate_scale``,
+so its correction is the fitted one).  λ stands for the full-band scale of the regressor: where its
+noise lies above 10 Hz the width is over-corrected by the share of that noise.
 
 Search.  age_t = W·frac(φ + βt + ½dt²) + const.  The sawtooth's fundamental carries the phase:
 −W·frac(x) = const + (W/π)·Σ_m sin(2πmx)/m, so Σ_t b_t e^(−2πim(βt + ½dt²)) peaks at the beat for
@@ -55,9 +63,14 @@ what a larger noise would):
   of ``sampling_jitter``).  :func:`accel_bayes.mismatch.wander.fit_wander` gives both fits.
 
 An IMU's clock is accepted when its sawtooth width W is physical (:data:`WIDTH_RANGE_S`: a 1 kHz
-tick is 1 ms) and both evidences exceed the stage threshold: the detector's threshold, or, if
-larger, the χ²₄ quantile at 1 − α/(K·cells), cells = the independent (β, d) cells searched — the
-search looks at every frequency, and the largest of many noise peaks is not χ²-distributed.
+tick is 1 ms), its beat is one of an internal rate within :data:`INTERNAL_RATE_TOLERANCE` of
+1 kHz (:func:`physical_beats`: at a 200 Hz read |β| ≤ 30 Hz; at 62.5 Hz every beat — only those are
+searched, and the look-elsewhere count is theirs), and both evidences exceed the stage threshold:
+the detector's threshold, or, if larger, the χ²₄ quantile at 1 − α/(K·cells), cells = the
+independent (β, d) cells searched — the search looks at every frequency, and the largest of many
+noise peaks is not χ²-distributed.  Among accepted candidates related as β and 2β (a slow motion
+line at β/2 carries the beat as its 2nd harmonic) the larger evidence over the wander decides
+(:func:`_choose`).
 """
 from __future__ import annotations
 
@@ -73,7 +86,8 @@ from .model import ModelFit
 from .prepared import Prepared
 from .wander import fit_wander, sample_steps
 
-__all__ = ["ClockStage", "estimate_clock", "clock_ab", "clock_stage", "clock_ages", "data_age", "clock_corrected", "NOMINAL_INTERNAL_RATE_HZ"]
+__all__ = ["ClockStage", "estimate_clock", "clock_ab", "clock_stage", "clock_ages", "data_age", "clock_corrected", "physical_beats",
+           "rate_scale", "NOMINAL_INTERNAL_RATE_HZ", "INTERNAL_RATE_TOLERANCE"]
 
 #: the internal sampling rate of an MPU-6050/9150 with its low-pass on (Hz): reports f_k from the beat
 NOMINAL_INTERNAL_RATE_HZ = 1000.0
@@ -89,6 +103,11 @@ MIN_CYCLES = 5.0
 #: the sawtooth width W (s) a clock may have: 1/f_k ≈ 1 ms, larger where the fitted output rates
 #: under-state the true ones (fast content near the read rate's Nyquist frequency), never ≪ 1 ms
 WIDTH_RANGE_S = (0.4e-3, 4e-3)
+#: the largest relative offset of an IMU's internal rate from :data:`NOMINAL_INTERNAL_RATE_HZ` a beat may
+#: imply: the gyro oscillator's ±1 % over temperature, with room for a part out of its datasheet
+INTERNAL_RATE_TOLERANCE = 0.03
+#: the block (s) over which the gyro's own increments measure the regressor's scale (:func:`rate_scale`)
+SCALE_BLOCK_S = 0.1
 
 
 @dataclasses.dataclass
@@ -141,7 +160,17 @@ def _white_loglik(rr: float, n: int) -> float:
     return -0.5 * n * math.log(max(rr / n, 1e-300)) - 0.5 * n
 
 
-def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S, candidates: bool = False):
+def physical_beats(beat, f_read: float, *, f_nominal: float = NOMINAL_INTERNAL_RATE_HZ,
+                   tolerance: float = INTERNAL_RATE_TOLERANCE):
+    """True where a beat (Hz, array) is n·f_read away from an internal rate within ``tolerance``
+    (relative) of ``f_nominal`` (Hz) for some integer n: the beats a real clock can have."""
+    beat = np.asarray(beat, float)
+    n = np.rint((f_nominal - beat) / f_read)
+    return np.abs(n * f_read + beat - f_nominal) <= tolerance * f_nominal
+
+
+def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S, candidates: bool = False,
+                   rate_tolerance: float | None = INTERNAL_RATE_TOLERANCE):
     """The beat search of the module docstring on one IMU's (a, b) (:func:`clock_ab`) at times t (s): returns
     {"beat_hz", "phase", "drift_hz_per_s", "width_s" (W, s), "const_s", "gain" (Σbm − ½Σam², nats
     at the stated noise), "mean" (T,) the fitted δ_t = const − age_t (s), "cells" (independent
@@ -163,6 +192,10 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
     freqs = np.fft.fftfreq(L, 1.0 / f_read)
     tt = t - t0
     idx = np.arange(L)
+    # beats no real clock has (at 200 Hz reads, |β| > 30 Hz is a rate 3 % off 1 kHz) are not searched:
+    # there a vibration line's product with its own fold, or a beat's 2nd harmonic, outranked the beat
+    allowed = np.ones(L, bool) if rate_tolerance is None else physical_beats(freqs, f_read, tolerance=rate_tolerance)
+    n_cells = int(N * len(drifts) * allowed.mean())
     # a constant time offset (read skew, filter delay) gives b = −a·const, whose spectrum is that
     # of a_t — the slow envelope of the motion — and outranks the beat: searched without it
     b_search = b - a * (b.sum() / max(a.sum(), 1e-300))
@@ -187,6 +220,7 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
         for Q, out in ((P, peaks[0]), (Pn, peaks[1])):
             # under MIN_CYCLES over the span a sawtooth is a slow wander, not a clock
             Q[np.abs(freqs) < MIN_CYCLES / D] = 0.0
+            Q[~allowed] = 0.0
             top = np.argpartition(Q, -_N_PEAKS)[-_N_PEAKS:]
             out += [(float(Q[i]), float(freqs[i]), float(d)) for i in top]
     # a peak and its neighbours are one peak: keep distinct |β| (beyond 2 bins) or drifts only
@@ -233,15 +267,17 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
         gain, W, c, m = _profile(b, a, s)
         if W <= 0 or any(abs(beat - o["beat_hz"]) < 2 * f_read / L for o in out):
             continue
+        if rate_tolerance is not None and not physical_beats(beat, f_read, tolerance=rate_tolerance):
+            continue  # the refinement walked out of the physical beats
         out.append({"beat_hz": float(beat), "phase": float(_frac(phase)), "drift_hz_per_s": float(drift), "width_s": W,
-                    "const_s": c, "gain": gain, "mean": m, "cells": int(N * len(drifts))})
+                    "const_s": c, "gain": gain, "mean": m, "cells": n_cells})
     if not out:  # no sawtooth with W > 0 anywhere: the best fit, for the record (rejected by its width)
         phase, beat, drift = fits[0][1]
         s = _frac(phase + beat * t + 0.5 * drift * t * t)
         gain, W, c, m = _profile(b, a, s)
         out.append({"beat_hz": float(beat - f_read * math.ceil(beat / f_read - 0.5)), "phase": float(_frac(phase)),
                     "drift_hz_per_s": float(drift), "width_s": W, "const_s": c, "gain": gain, "mean": m,
-                    "cells": int(N * len(drifts))})
+                    "cells": n_cells})
     return out if candidates else out[0]
 
 
@@ -330,6 +366,53 @@ def clock_ab(prep: Prepared, fit: ModelFit, k: int):
     return jitter_ab(prep_rate, fit, k, "gyro", with_residual_power=True)
 
 
+def rate_scale(prep: Prepared, fit: ModelFit, k: int, *, block_s: float = SCALE_BLOCK_S) -> float:
+    """λ: the true gyro rate of IMU k per unit of the data age's regressor R_k ω̇ (:func:`clock_ab`),
+    measured where the gyro itself is exact — over blocks of ``block_s`` s (contiguous kept samples):
+    the finite difference ``prep.gyro_rate`` summed over a block telescopes to the gyro's own
+    increment, the integral of its true rate (no folding), so λ = Σ G·V / Σ V·V, G and V the block
+    sums of the finite difference and of the regressor (observed channels).  The fitted width is
+    λ·W (W the data age's, s): the per-sample ω̇ states carry the fitted lever arms' scale error
+    (ω̇ ∝ 1/r) and noise (clockgen's mimu4444 at 250 Hz: λ ≈ 0.28, fitted W 0.3 ms of a 1 ms tick)."""
+    t = prep.time.detach().cpu().double().numpy()
+    f_read = 1.0 / float(np.median(np.diff(t)))
+    n = np.rint((t - t[0]) * f_read).astype(np.int64)
+    run = np.concatenate([[0], np.cumsum(np.diff(n) != 1)])
+    # a block: one time bin of one contiguous run (a gap breaks the telescoping)
+    _, blk = np.unique(np.stack([n // max(int(round(block_s * f_read)), 2), run]), axis=1, return_inverse=True)
+    blk = blk.ravel()
+    m = prep.m_gyro[:, k].detach().cpu().double().numpy()
+    v = board_gyro_rate(fit.ctx)[:, k].detach().cpu().double().numpy() * m
+    g = prep.gyro_rate[:, k].detach().cpu().double().numpy() * m
+    V, G = np.zeros((blk.max() + 1, 3)), np.zeros((blk.max() + 1, 3))
+    np.add.at(V, blk, v)
+    np.add.at(G, blk, g)
+    vv = float((V * V).sum())
+    return float((V * G).sum()) / vv if vv > 0 else 1.0
+
+
+def _choose(cands: list, tol_hz: float) -> dict:
+    """One IMU's clock from its candidates (in the search's order, with ``accepted``): the first
+    accepted one — the next peak only where it is not: on reads slower than twice the vibration, slow
+    motion-frequency lines in b (a wander explains them) outrank the beat on the white gain, and
+    ranking every peak by its evidence over the wander instead would trade a slow true beat (partly a
+    wander) for a faster line — else the best rejected one for the record (:func:`_rank`).
+
+    A sawtooth at β/2 carries β as its 2nd harmonic, so where a slow motion line sits at β/2 (or the
+    beat's 2nd harmonic meets one at 2β) the exact fit there can gain more on the white noise than the
+    beat itself (clockgen clock-020: a 6.19 Hz hand-motion line, IMU 4 beating at −12.37 Hz).  The
+    motion line is what the random timing explains, so between an accepted pick and its accepted
+    ½× / 2× relatives (|β| within ``tol_hz``, Hz, at the recording's middle) the one with the larger
+    evidence over the wander is kept."""
+    acc = [c for c in cands if c["accepted"]]
+    if not acc:
+        return max(cands, key=_rank)
+    best = acc[0]
+    rel = [c for c in acc[1:] if any(abs(abs(c["beat_mid_hz"]) - r * abs(best["beat_mid_hz"])) < tol_hz
+                                     for r in (0.5, 2.0))]
+    return max([best] + rel, key=lambda c: c["evidence_vs_wander"])
+
+
 def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshold: float) -> ClockStage:
     """Estimate a clock on every IMU with a gyroscope at ``fit`` (module docstring), accept those
     whose two evidences pass the stage threshold, correct ``prep`` for them and refit the model
@@ -343,8 +426,7 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
     dt = float(np.median(np.diff(t)))
     f_read = 1.0 / dt
     steps = sample_steps(t)
-    fits, clocks = [], []
-    thr = None
+    fits, thr = [], None
     for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
         if prep.gyro_rate is None or not bool(prep.m_gyro[:, k].any()):
             continue
@@ -356,28 +438,29 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
         if thr is None:
             n_imu = int(np.asarray(prep.has_gyro).sum())
             thr = max(threshold, float(chi2.isf(alpha / max(n_imu * cands[0]["cells"], 1), 4)))
-        est = None
+        lam = rate_scale(prep, fit, k)
+        done = []
         for cand in cands:
             cand = _versus_wander(cand, a, b, t, steps, dt, rr, n_obs, w0, g_none)
+            # the data age's width: what the fit found over the regressor's scale (rate_scale)
+            cand.update({"imu": k, "f_read_hz": f_read, "rate_scale": lam, "width_fit_s": cand["width_s"],
+                         "beat_mid_hz": cand["beat_hz"] + cand["drift_hz_per_s"] * 0.5 * (t[0] + t[-1]),
+                         # λ ≤ 0 (a regressor against the gyro's own rate): no physical width, rejected
+                         "width_s": cand["width_s"] / max(lam, 1e-12)})
             cand["accepted"] = bool(cand["evidence"] > thr and cand["evidence_vs_wander"] > thr
-                                    and WIDTH_RANGE_S[0] <= cand["width_s"] <= WIDTH_RANGE_S[1])
-            # the best white gain that passes; the next peak only where it does not: on reads slower
-            # than twice the vibration, slow motion-frequency lines in b (a wander explains them)
-            # outrank the beat on the white gain.  Ranking every peak by its evidence over the
-            # wander instead would trade a slow true beat (partly a wander) for a faster line
-            if cand["accepted"]:
-                est = cand
-                break
-            if est is None or _rank(cand) > _rank(est):
-                est = cand
-        est.update({"imu": k, "f_read_hz": f_read})
-        fits.append(est)
+                                    and WIDTH_RANGE_S[0] <= cand["width_s"] <= WIDTH_RANGE_S[1]
+                                    and physical_beats(cand["beat_hz"], f_read))
+            done.append(cand)
+        fits.append(_choose(done, 1.0 / max(float(t[-1] - t[0]), dt)))
+    clocks = []
+    for est in fits:
         if est["accepted"]:
+            k, lam = est["imu"], est["rate_scale"]
             f_int = f_read * round(NOMINAL_INTERNAL_RATE_HZ / f_read) + est["beat_hz"]
             c = SamplingClock(imu=k, params={"internal_rate_hz": f_int, "beat_hz": est["beat_hz"], "phase": est["phase"],
                                              "drift_hz_per_s": est["drift_hz_per_s"],
                                              "age_rms_s": est["width_s"] / math.sqrt(12.0),
-                                             "filter_delay_acc_minus_gyro_s": 0.0})
+                                             "filter_delay_acc_minus_gyro_s": 0.0, "rate_scale": lam})
             c.stats = {kk: v for kk, v in est.items() if kk not in ("wander_before", "wander_after")}
             clocks.append(c)
     thr = threshold if thr is None else thr

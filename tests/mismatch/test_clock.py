@@ -127,10 +127,11 @@ def test_finding_on_clock_case_none_on_twin(reports):
 def test_report_parameters_and_units(clock_report):
     f = next(f for f in clock_report["findings"] if f["effect"] == "sampling_clock")
     assert sorted(g["imu"] for g in clock_report["findings"] if g["effect"] == "sampling_clock") == [0, 1, 2, 3]
-    keys = {"internal_rate_hz", "beat_hz", "phase", "drift_hz_per_s", "age_rms_s", "filter_delay_acc_minus_gyro_s"}
+    keys = {"internal_rate_hz", "beat_hz", "phase", "drift_hz_per_s", "age_rms_s", "filter_delay_acc_minus_gyro_s",
+            "rate_scale"}
     assert set(f["parameters"]) == keys
     assert f["units"] == {"internal_rate_hz": "Hz", "beat_hz": "Hz", "phase": "1", "drift_hz_per_s": "Hz s-1",
-                          "age_rms_s": "s", "filter_delay_acc_minus_gyro_s": "s"}
+                          "age_rms_s": "s", "filter_delay_acc_minus_gyro_s": "s", "rate_scale": "1"}
     assert f["axis"] is None and f["evidence"] > clock_report["threshold"]
     p = f["parameters"]
     assert 0 <= p["phase"] < 1 and abs(p["beat_hz"]) <= 125.0

@@ -15,12 +15,15 @@ absolute filter delay d_s is common to the whole board (the datasheet's) and abs
 motion; only the accelerometer's delay beyond the gyro's, ``filter_delay_acc_minus_gyro_s``, is
 identifiable.  Linearised (like ``time_offset``, :mod:`.timing`):
 
-    d_gyro = −age(t)·R_k ω̇(t),   d_acc = −(age(t) + filter_delay_acc_minus_gyro_s)·ȧ(t),
+    d_gyro = −age(t)·λ·R_k ω̇(t),   d_acc = −(age(t) + filter_delay_acc_minus_gyro_s)·ȧ(t),
 
 R_k ω̇ the gyro output's rate from the context's angular acceleration (:func:`board_gyro_rate`:
 the rate at the sample instant, which the finite difference of the sampled outputs is not once
 the board vibrates above the read's Nyquist rate), ȧ the accelerometer output rate
-(``ctx.acc_rate``).  The neglected term is age²/2 · ÿ, below 1e-3 of the effect for ages ≤ 1 ms
+(``ctx.acc_rate``).  λ = ``rate_scale`` is the true gyro rate per unit of the context's R_k ω̇
+(1 where the motion states are right): the per-sample ω̇ states carry the fitted lever arms' scale
+error and noise, and the age is physical only with that scale taken apart
+(:func:`accel_bayes.mismatch.clock.rate_scale` measures it from the gyro's own increments).  The neglected term is age²/2 · ÿ, below 1e-3 of the effect for ages ≤ 1 ms
 and motion under ~50 Hz.
 
 The phase, beat and drift enter through a discontinuous sawtooth, so the effect is not fitted by
@@ -81,6 +84,8 @@ class SamplingClock(Effect):
         Param("drift_hz_per_s", (), "Hz s-1", None, "rate of change of the beat frequency"),
         Param("age_rms_s", (), "s", None, "rms of the data age about its mean: width/√12 (0: no clock effect)"),
         Param("filter_delay_acc_minus_gyro_s", (), "s", None, "accelerometer filter delay beyond the gyroscope's"),
+        Param("rate_scale", (), "1", None, "true gyro rate per unit of the model's R_k ω̇ (the regressor's scale)",
+              null=1.0),
     )
 
     def age(self, time, params=None) -> torch.Tensor:
@@ -95,7 +100,8 @@ class SamplingClock(Effect):
             raise UserError("sampling_clock: the signal context has no accelerometer output rate (acc_rate)")
         age = self.age(ctx.time, p)[:, None, None]
         m = _onehot(ctx.K, k, None, ctx.acc)
-        return (-(age + p["filter_delay_acc_minus_gyro_s"]) * m * ctx.acc_rate, -age * m * board_gyro_rate(ctx))
+        return (-(age + p["filter_delay_acc_minus_gyro_s"]) * m * ctx.acc_rate,
+                -age * p["rate_scale"] * m * board_gyro_rate(ctx))
 
     def explain(self, params=None):
         p = {k: float(v) for k, v in self._p(params).items()}
