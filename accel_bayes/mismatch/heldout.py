@@ -31,9 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..physics.effects import clock_age as sawtooth_age
+from ..physics.effects import board_gyro_rate, clock_age as sawtooth_age
 from .budget import band_edges
-from .clock import estimate_clock
+from .clock import clock_ab, estimate_clock
 from .generic import BandedWhite, FullCov, SampleT, TriadT, describe
 from .vibration import array_residuals, instant_errors
 
@@ -68,24 +68,28 @@ class Residuals:
 
 def residuals_of(prep, fit) -> Residuals:
     """The :class:`Residuals` of a prepared recording and its nominal fit (``baseline_fit``, which
-    also set ``prep.acc_rate`` / ``prep.gyro_rate``)."""
+    also set ``prep.acc_rate``).  The rate regressors are the ``sampling_clock`` effect's
+    (:class:`~accel_bayes.physics.effects.SamplingClock`): the gyro's R_k ω̇ of the fitted motion
+    (:func:`~accel_bayes.physics.effects.board_gyro_rate`; the finite difference of the sampled
+    outputs folds vibration above the read's Nyquist rate, flipped and shrunk), the accelerometer's
+    ``prep.acc_rate``; the timing statistics are the detector's clock stage's
+    (:func:`accel_bayes.mismatch.clock.clock_ab`)."""
     from ..physics.geometry import quat_to_matrix
 
     R = quat_to_matrix(torch.as_tensor(prep.q, dtype=torch.float64))
     y, rate, ok = {}, {}, {}
-    for s, r in (("acc", prep.acc_rate), ("gyro", prep.gyro_rate)):
+    for s, r in (("acc", prep.acc_rate), ("gyro", board_gyro_rate(fit.ctx).detach())):
         y[s], okk = array_residuals(prep, fit, s)
         ok[s] = okk.all(1)
         rate[s] = torch.einsum("kji,tkj->tki", R, r.to(torch.float64))
-    from .jitter import jitter_ab
-
     delta, dok = instant_errors(prep, fit)
     t = prep.time.to(torch.float64)
     f_read = float(1.0 / np.median(np.diff(t.numpy())))
     ta = torch.zeros(prep.T, prep.K, dtype=torch.float64)
     tb = torch.zeros_like(ta)
     for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
-        ta[:, k], tb[:, k] = jitter_ab(prep, fit, k, "gyro")
+        a, b, *_ = clock_ab(prep, fit, k)
+        ta[:, k], tb[:, k] = a.detach(), b.detach()
     return Residuals(t, torch.linalg.norm(fit.x[:, 0:3].detach(), dim=1).to(torch.float64), y, rate, ok,
                      delta, dok, f_read, ta, tb)
 
