@@ -9,16 +9,19 @@ source's band edges:
 
 - generic: ``white`` (banded white noise per IMU), ``triad_t``, ``sample_t``, ``full_cov``;
 - physics: the clock's data age d_kt (centred over the IMUs, s) gives a mean −c·d_kt ẏ_kt (ẏ the
-  fitted output's rate: the resolved motion seen late) and loads the unresolved motion
+  ``sampling_clock`` effect's rate regressor: the resolved motion seen late) and loads the unresolved motion
   (:mod:`accel_bayes.mismatch.unresolved`) — ``physics`` has a white remainder, ``physics+sample_t``
   and ``physics+full_cov`` put the term on those models' covariance, ``physics+triad_t`` has the
   mean only (a per-triad scale mixture does not marginalise with a term shared across triads).
 
 The clock's beat, phase and drift per IMU are acquired by the detector's own beat search
-(:func:`accel_bayes.mismatch.clock.estimate_clock`) on each IMU's gyro timing statistics
-(:func:`accel_bayes.mismatch.jitter.jitter_ab`, kept in :class:`Residuals`) — on the target's
-first ``acquire_s`` seconds of kept samples only; the source's on its whole recording
-(:func:`clocks_of`).
+(:func:`accel_bayes.mismatch.clock.estimate_clock`) on each IMU's gyro timing statistics — the
+clock stage's (:func:`accel_bayes.mismatch.clock.clock_ab`, on the regressor R_k ω̇; kept in
+:class:`Residuals`): the source's on its whole recording (:func:`clocks_of`); the target's on its
+first 30 s of contiguous motion (:func:`motion_window`), every sample of it, from the window's own
+fit (:func:`window_statistics`), every model then scored on the kept samples after the window.  The
+causal tracker (:func:`tracked_age`) scores prequentially: each later block's clock is acquired on
+the target samples before that block only.
 Every scale (white variances, degrees of freedom, covariances, unresolved scales, the mean's c)
 comes from the source.  Uncertainty: a moving-block bootstrap over the scored samples
 (:func:`block_bootstrap_se`).
@@ -38,7 +41,8 @@ from .generic import BandedWhite, FullCov, SampleT, TriadT, describe
 from .vibration import array_residuals, instant_errors
 
 __all__ = ["Residuals", "residuals_of", "clocks_of", "clock_age", "centred", "fit_source", "score",
-           "block_bootstrap_se", "acquired_age", "GENERIC", "PHYSICS"]
+           "block_bootstrap_se", "acquired_age", "motion_window", "window_statistics", "clocks_from", "tracked_age",
+           "GENERIC", "PHYSICS"]
 
 GENERIC = ("white", "triad_t", "sample_t", "full_cov")
 PHYSICS = ("physics", "physics+triad_t", "physics+sample_t", "physics+full_cov")
@@ -49,9 +53,10 @@ F_INT_NOMINAL = 1000.0  # Hz: the MPU-6050/9150 internal sample rate (DLPF on), 
 class Residuals:
     """One recording's held-out inputs (torch float64): ``time`` (T,) s; ``omega`` (T,) |ω| of the
     fitted motion rad/s; per sensor ``y[s]`` (T, K, 3) array-frame residuals, ``rate[s]`` (T, K, 3)
-    the fitted outputs' rates in the array frame (units/s), ``ok[s]`` (T,) all triads observed;
+    the clock effect's rate regressor in the array frame (units/s: R_k ω̇ for the gyro, the fitted
+    outputs' finite difference for the accelerometer), ``ok[s]`` (T,) all triads observed;
     ``delta`` (T, K) s the gyro instant errors and ``delta_ok`` (T, K); ``timing_a`` (T, K) s⁻² and
-    ``timing_b`` (T, K) s⁻¹ each IMU's gyro timing statistics (:func:`~accel_bayes.mismatch.jitter.jitter_ab`,
+    ``timing_b`` (T, K) s⁻¹ each IMU's gyro timing statistics (:func:`~accel_bayes.mismatch.clock.clock_ab`,
     0 where it has no gyro), which the clock acquisition reads."""
 
     time: torch.Tensor
@@ -114,18 +119,96 @@ def clocks_of(res: Residuals, window=None) -> dict:
     on its gyro timing statistics over the samples ``window`` (T,) bool (default all): {"beat_hz",
     "phase" (cycles at t = 0 of the recording's clock), "drift_hz_per_s", "width_s"}, each (K,) numpy;
     zeros on an IMU without gyro statistics or with fewer than 20 samples in the window."""
-    t_all = res.time.numpy()
-    window = np.ones(len(t_all), bool) if window is None else np.asarray(window, bool)
-    K = res.timing_a.shape[1]
+    window = np.ones(len(res.time), bool) if window is None else np.asarray(window, bool)
+    return clocks_from(res.time.numpy()[window], res.timing_a[window], res.timing_b[window], res.f_read)
+
+
+def motion_window(prep, seconds: float) -> np.ndarray:
+    """(T_source,) bool over ``prep.source`` (every sample of the recording): the first ``seconds``
+    of contiguous motion — from the first sample after which the board does not rest for
+    ``seconds`` (rests: :func:`accel_bayes.prep.intrinsics.rest_segments`).  Why not the
+    recording's first ``seconds``: a recording that opens with rests for the intrinsics (the MIMU
+    experiments: ~500 s of rests with 1.5 s turns between them) has no timing information there
+    (ω̇ = 0 gives a_t = 0).  Every sample of the window counts, slow ones too (the position fit's
+    rotation test is about the centripetal term, not about timing); the window's clipped and
+    flagged samples are dropped by the selection.  Refuses a recording without such a stretch."""
+    from ..errors import UserError
+    from ..prep.intrinsics import rest_segments
+
+    src = prep.source
+    T = int(src.T)
+    moving = np.ones(T, bool)
+    for a, b in rest_segments(src, None):
+        moving[a:b] = False
+    t = np.asarray(src.time, float)
+    starts = np.flatnonzero(moving & np.concatenate(([True], ~moving[:-1])))
+    for i0 in starts:
+        end = i0 + np.searchsorted(t[i0:], t[i0] + seconds)
+        if end <= T and moving[i0:end].all() and t[min(end, T) - 1] - t[i0] >= seconds - 2 * np.median(np.diff(t)):
+            w = np.zeros(T, bool)
+            w[i0:end] = True
+            return w
+    raise UserError(f"acquire_s: expected a stretch of {seconds:g} s without rests in the recording, found none")
+
+
+def window_statistics(prep, window) -> tuple[np.ndarray, torch.Tensor, torch.Tensor, float]:
+    """The gyro timing statistics of the clock stage (:func:`accel_bayes.mismatch.clock.clock_ab`) on
+    the samples ``window`` of ``prep.source`` (:func:`motion_window`), from the window's own
+    nominal fit (positions and motion fitted on the window alone, :func:`baseline_fit`): (times (n,)
+    s, a (n, K) s⁻², b (n, K) s⁻¹, f_read Hz)."""
+    from ..prep.prepared import prepare_recording
+    from ..prep.selection import select_samples
+    from .fit import baseline_fit
+    from .prepared import from_prepared
+
+    sel = select_samples(prep.source, min_rotation=0.0, drop_static=False, user=np.asarray(window, bool))
+    prep_w = from_prepared(prepare_recording(prep.source, selection=sel))
+    fit_w, _ = baseline_fit(prep_w)
+    res_w = residuals_of(prep_w, fit_w)
+    return res_w.time.numpy(), res_w.timing_a, res_w.timing_b, res_w.f_read
+
+
+def clocks_from(t, a, b, f_read: float) -> dict:
+    """Each IMU's clock from the detector's beat search (:func:`accel_bayes.mismatch.clock.estimate_clock`)
+    on timing statistics a, b (n, K) at times t (n,) s: {"beat_hz", "phase" (cycles at t = 0 of the
+    recording's clock), "drift_hz_per_s", "width_s"}, each (K,) numpy; zeros on an IMU with fewer
+    than 20 samples of information (a > 0)."""
+    t = np.asarray(t, float)
+    K = a.shape[1]
     out = {k: np.zeros(K) for k in ("beat_hz", "phase", "drift_hz_per_s", "width_s")}
     for k in range(K):
-        a, b = res.timing_a[window, k].numpy(), res.timing_b[window, k].numpy()
-        if int((a > 0).sum()) < 20:
+        ak, bk = np.asarray(a[:, k], float), np.asarray(b[:, k], float)
+        if int((ak > 0).sum()) < 20:
             continue
-        est = estimate_clock(t_all[window], a, b, res.f_read)
+        est = estimate_clock(t, ak, bk, f_read)
         for key in out:
             out[key][k] = est[key]
     return out
+
+
+def tracked_age(res: Residuals, window_stats, *, after: float, block_s: float, f_int=F_INT_NOMINAL):
+    """The causal (prequential) clock tracker: (T, K) data age (s) at ``res``'s times t ≥ ``after``
+    (0 before), where each block of ``block_s`` seconds from ``after`` on takes the clock the beat
+    search (:func:`clocks_from`) acquires on every target sample *before the block*: the
+    acquisition window's ``window_stats`` (:func:`window_statistics`) and ``res``'s own kept samples
+    from ``after`` to the block's start.  Returns (age, blocks): blocks a list of (start s, clock)."""
+    tw, aw, bw, f_read = window_stats
+    t = res.time.numpy()
+    age = torch.zeros(len(t), res.timing_a.shape[1], dtype=torch.float64)
+    blocks = []
+    start = after
+    while start <= t[-1]:
+        stop = start + block_s
+        past = (t >= after) & (t < start)
+        clock = clocks_from(np.concatenate([tw, t[past]]), torch.cat([aw, res.timing_a[past]]),
+                            torch.cat([bw, res.timing_b[past]]), f_read)
+        cur = (t >= start) & (t < stop)
+        if cur.any():
+            age[cur] = sawtooth_age(res.time[cur][:, None], *(torch.as_tensor(clock[k])[None, :] for k in
+                                    ("beat_hz", "phase", "drift_hz_per_s")), 1.0 / f_int)
+        blocks.append((float(start), clock))
+        start = stop
+    return age, blocks
 
 
 def acquired_age(res: Residuals, clock: dict, f_int=F_INT_NOMINAL) -> torch.Tensor:

@@ -1,0 +1,80 @@
+"""The held-out study's target clock acquisition (accel_bayes/mismatch/heldout.py): the window of
+contiguous motion, and the causal tracker's prequential blocks."""
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from accel_bayes.errors import UserError
+from accel_bayes.mismatch import heldout
+
+
+def _prep_with_rests(monkeypatch, T, rests, f=62.5):
+    """A stand-in prepared recording of T samples at f Hz whose rests are ``rests`` (index pairs)."""
+    import accel_bayes.prep.intrinsics as intr
+
+    monkeypatch.setattr(intr, "rest_segments", lambda rec, seg=None: list(rests))
+    src = types.SimpleNamespace(T=T, time=np.arange(T) / f)
+    return types.SimpleNamespace(source=src)
+
+
+def test_motion_window_starts_after_the_last_rest_before_a_long_enough_stretch(monkeypatch):
+    """Rests with 2 s turns between them, then motion from sample 2875 on: the 30 s window starts
+    there (not at the first turn), holds 30 s of samples and no rest sample."""
+    rests = [(0, 1400), (1525, 2875)]
+    prep = _prep_with_rests(monkeypatch, 6000, rests)
+    w = heldout.motion_window(prep, 30.0)
+    idx = np.flatnonzero(w)
+    assert idx[0] == 2875
+    assert np.all(np.diff(idx) == 1)
+    assert (idx[-1] - idx[0]) / 62.5 == pytest.approx(30.0, abs=0.05)
+
+
+def test_motion_window_refuses_a_recording_without_a_long_enough_stretch(monkeypatch):
+    prep = _prep_with_rests(monkeypatch, 3000, [(0, 1400), (1525, 2875)])
+    with pytest.raises(UserError, match="acquire_s"):
+        heldout.motion_window(prep, 30.0)
+
+
+def _synthetic(seed, T=3125, f=62.5, beat=(1.3, -0.7)):
+    """Residuals-like timing statistics of two IMUs with sawtooth ages and a slowly drifting beat:
+    b = −a·age + N(0, a) (clock.py's model), a the motion's excitation."""
+    g = np.random.default_rng(seed)
+    t = np.arange(T) / f
+    a = g.uniform(0.5, 2.0, (T, 2)) * 1e8
+    beat_t = np.asarray(beat)[None, :] + 2e-3 * t[:, None]   # 2e-3 Hz/s: the phase runs off a fixed beat
+    x = np.cumsum(beat_t / f, 0) + g.random(2)[None, :]
+    age = 1e-3 * (x - np.floor(x))
+    b = -a * age + np.sqrt(a) * g.normal(size=(T, 2))
+    res = types.SimpleNamespace(time=torch.as_tensor(t), timing_a=torch.as_tensor(a), timing_b=torch.as_tensor(b),
+                                f_read=f)
+    return res, age
+
+
+def test_tracker_is_causal_and_follows_the_clock():
+    """Each block's age depends only on samples before the block: changing the statistics from a
+    block on leaves the earlier blocks' ages unchanged.  With a beat drifting as the search's model
+    allows, the tracked ages correlate with the truth (r > 0.8) on every block."""
+    res, age = _synthetic(1)
+    n_win = int(30 * 62.5)
+    window = (res.time[:n_win].numpy(), res.timing_a[:n_win], res.timing_b[:n_win], 62.5)
+    after = float(res.time[n_win - 1]) + 0.008
+    tr, blocks = heldout.tracked_age(res, window, after=after, block_s=10.0)
+    assert tr[:n_win].abs().max() == 0
+    t = res.time.numpy()
+    for b0, _ in blocks:
+        cur = (t >= b0) & (t < b0 + 10.0)
+        for k in range(2):
+            assert np.corrcoef(tr[cur, k].numpy(), age[cur, k])[0, 1] > 0.8
+    # corrupt everything from the second block on: the first block's ages do not move, the last one's do
+    cut = blocks[1][0]
+    bad = res.time.numpy() >= cut
+    res2 = types.SimpleNamespace(**vars(res))
+    res2.timing_b = res.timing_b.clone()
+    res2.timing_b[bad] = torch.as_tensor(np.random.default_rng(9).normal(size=(int(bad.sum()), 2)) * 1e4)
+    tr2, _ = heldout.tracked_age(res2, window, after=after, block_s=10.0)
+    torch.testing.assert_close(tr2[~bad], tr[~bad])
+    assert not torch.allclose(tr2[bad], tr[bad])
