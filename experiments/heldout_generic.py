@@ -6,16 +6,23 @@ For each experiment (loaded as ``experiments/mimu_mismatch.py`` loads it: the ra
 package's preparation — intrinsics from the rests, the one sample selection — and the nominal
 fit), the residuals of :func:`accel_bayes.mismatch.heldout.residuals_of`.  Each IMU's clock (beat,
 phase, drift) is acquired by the detector's own beat search on its gyro timing statistics
-(:func:`accel_bayes.mismatch.heldout.clocks_of`, i.e. :func:`accel_bayes.mismatch.clock.estimate_clock`)
-twice: on the whole recording (used when the experiment is the source) and on its first
-``--acquire-s`` seconds of kept samples (used when it is the target; every model is then scored on
-the rest).  For all ordered pairs source → target, per sensor, in nats per sample on the same
-residuals: banded white noise, Student-t per triad, multivariate t per sample, full cross-IMU
-covariance per band, the physics model (clock-age mean + unresolved motion, white remainder) and
-the physics model with each generic remainder; every parameter from the source.  Headline: the
-physics-specific gain = best physics variant − best generic model (both chosen on the target's
-scores), with a moving-block bootstrap standard error (blocks of 2 s) of that difference.
+(:func:`accel_bayes.mismatch.heldout.clocks_from`, i.e. :func:`accel_bayes.mismatch.clock.estimate_clock`
+on :func:`accel_bayes.mismatch.clock.clock_ab`): on the whole recording (used when the experiment is
+the source; a diagnostic on the target), on its first ``--acquire-s`` seconds of contiguous motion
+(:func:`~accel_bayes.mismatch.heldout.motion_window`, every sample, the window's own fit: the
+protocol's acquisition), and by the causal tracker (:func:`~accel_bayes.mismatch.heldout.tracked_clocks`:
+blocks of ``--block-s`` s, each with the clock acquired on the target's samples before it); each with
+every acquired clock and with the evidence rule (an IMU whose clock does not pass the clock stage's
+look-elsewhere threshold or width range gets none).  Every model is scored on the target's kept
+samples after the window.  For all ordered pairs source → target, per sensor, in nats per sample on
+the same residuals: banded white noise, Student-t per triad, multivariate t per sample, full
+cross-IMU covariance per band, the physics model (clock-age mean + unresolved motion, white
+remainder) and the physics model with each generic remainder; every parameter from the source.
+Headline: the physics-specific gain = best physics variant − best generic model (both chosen on the
+target's scores), with a moving-block bootstrap standard error (blocks of 2 s) of that difference.
 
+    python experiments/heldout_generic.py --cache-only --experiments 1 2 3 &  # optional: load in two
+    python experiments/heldout_generic.py --cache-only --experiments 4 5 6    # processes (cache)
     python experiments/heldout_generic.py                      # all six, whole recordings
     python experiments/heldout_generic.py --experiments 1 2    # a subset (the document says so)
     python experiments/heldout_generic.py --from-results       # rewrite the document from results.json
@@ -46,8 +53,9 @@ from mimu_mismatch import load_recording  # noqa: E402
 from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.mismatch import baseline_fit, prepare  # noqa: E402
 from accel_bayes.mismatch.heldout import (GENERIC, PHYSICS, acquired_age, block_bootstrap_se,  # noqa: E402
-                                          clocks_from, clocks_of, describe_source, fit_source, motion_window,
-                                          residuals_of, score, tracked_age, window_statistics)
+                                          clocks_of, describe_source, fit_source, motion_window,
+                                          residuals_of, score, tracked_age, tracked_clocks,
+                                          window_statistics)
 
 SENSORS = ("acc", "gyro")
 
@@ -59,6 +67,7 @@ def load(i, args):
     cache = args.out / f"exp_{i}.pt"
     if cache.exists() and not args.fresh:
         return torch.load(cache, weights_only=False)
+    t0 = time.perf_counter()
     rec, info = load_recording(i, args.data, args.max_samples)
     prep = prepare(rec)
     fit, _ = baseline_fit(prep)
@@ -68,23 +77,31 @@ def load(i, args):
     after = float(t_src[window][-1]) + 0.5 / res.f_read
     stats = window_statistics(prep, window)
     c_all = clocks_of(res)
-    c_acq = clocks_from(*stats)
-    age_tr, blocks = tracked_age(res, stats, after=after, block_s=args.block_s)
+    blocks = tracked_clocks(res, stats, after=after, block_s=args.block_s)
+    c_acq = blocks[0][1]  # the tracker's first block has only the window before it: the plain acquisition
     first = res.time.numpy() < after
     info.update(T_kept=int(len(res.time)), f_read=res.f_read, span_s=float(res.time[-1] - res.time[0]),
                 window_start_s=float(t_src[window][0]), window_end_s=after, n_window=int(window.sum()),
                 n_window_used=int(len(stats[0])), n_kept_before=int(first.sum()), n_scored_max=int((~first).sum()),
-                beat_whole=c_all["beat_hz"].tolist(), phase_whole=c_all["phase"].tolist(),
-                drift_whole=c_all["drift_hz_per_s"].tolist(), width_whole=c_all["width_s"].tolist(),
-                beat_first=c_acq["beat_hz"].tolist(), phase_first=c_acq["phase"].tolist(),
-                drift_first=c_acq["drift_hz_per_s"].tolist(), width_first=c_acq["width_s"].tolist(),
-                tracker_blocks=[{"start_s": b0, "beat_hz": c["beat_hz"].tolist(),
+                clock_whole={k: v.tolist() for k, v in c_all.items()},
+                tracker_blocks=[{"start_s": b0, **{k: v.tolist() for k, v in c.items()},
                                  "beat_at_start_hz": (c["beat_hz"] + c["drift_hz_per_s"] * b0).tolist()}
-                                for b0, c in blocks])
-    out = {"res": res, "first": first, "info": info, "age_whole": acquired_age(res, c_all),
-           "age_first": acquired_age(res, c_acq), "age_tracked": age_tr}
+                                for b0, c in blocks], load_seconds=time.perf_counter() - t0)
+    out = {"res": res, "first": first, "info": info, "clock_whole": c_all, "blocks": blocks}
     torch.save(out, cache)
     return out
+
+
+def with_ages(d, args):
+    """The cached experiment ``d`` with its ages: whole-recording clock, the plain 30 s acquisition and
+    the causal tracker, each with every acquired clock and with the evidence rule
+    (:func:`accel_bayes.mismatch.heldout.acquired_age`)."""
+    res, blocks = d["res"], d["blocks"]
+    for acc, tag in ((None, ""), ("evidence", "_ev")):
+        d[f"age_whole{tag}"] = acquired_age(res, d["clock_whole"], accept=acc)
+        d[f"age_first{tag}"] = acquired_age(res, blocks[0][1], accept=acc)
+        d[f"age_tracked{tag}"] = tracked_age(res, blocks, block_s=args.block_s, accept=acc)
+    return d
 
 
 def pair_result(src, tgt, args, seed):
@@ -96,7 +113,7 @@ def pair_result(src, tgt, args, seed):
     clock acquired on its whole recording."""
     keep = ~tgt["first"]
     out = {}
-    scores = {v: score(src["models"], tgt["res"], tgt[f"age_{v}"], keep) for v in ("first", "tracked", "whole")}
+    scores = {v: score(src["models"], tgt["res"], tgt[f"age_{v}"], keep) for v, _, _ in VARIANTS}
     for s in SENSORS:
         ll = scores["first"][s]["ll"]
         mean = {k: float(np.mean(v)) for k, v in ll.items()}
@@ -105,7 +122,7 @@ def pair_result(src, tgt, args, seed):
              "gain_over_white": {k: mean[k] - mean["white"] for k in mean},
              "physics_over_white_se": block_bootstrap_se(ll["physics"] - ll["white"], block=args.block,
                                                           n_boot=args.boot, seed=seed)}
-        for v, tag in (("first", ""), ("tracked", "_tracked"), ("whole", "_clock_whole_target")):
+        for v, tag, _ in VARIANTS:
             llv = scores[v][s]["ll"]
             mv = {k: float(np.mean(x)) for k, x in llv.items()}
             best_p = max(PHYSICS, key=lambda k: mv[k])
@@ -118,8 +135,23 @@ def pair_result(src, tgt, args, seed):
     return out
 
 
-VARIANTS = (("", "30 s acquisition (the protocol)"), ("_tracked", "causal tracker (protocol extension)"),
-            ("_clock_whole_target", "clock from the whole target (diagnostic, not held out)"))
+#: (age key, result suffix, name): the target clock's acquisitions scored; "_ev": the evidence rule
+VARIANTS = (("first", "", "30 s acquisition (the protocol)"),
+            ("first_ev", "_ev", "30 s acquisition, evidence rule"),
+            ("tracked", "_tracked", "causal tracker (protocol extension)"),
+            ("tracked_ev", "_tracked_ev", "causal tracker, evidence rule"),
+            ("whole", "_clock_whole_target", "clock from the whole target (diagnostic, not held out)"))
+
+
+def _local_beats(c, t0) -> list:
+    """The beats β₀ + d·t0 (Hz) of a clock dict as strings, starred where the evidence rule drops it."""
+    from accel_bayes.mismatch.clock import WIDTH_RANGE_S
+
+    out = []
+    for b, d, e, th, w in zip(c["beat_hz"], c["drift_hz_per_s"], c["evidence"], c["threshold"], c["width_s"]):
+        ok = e > th and WIDTH_RANGE_S[0] <= w <= WIDTH_RANGE_S[1]
+        out.append(f"{b + d * t0:+.3f}" + ("" if ok else "*"))
+    return out
 
 
 def _z(r, tag):
@@ -135,29 +167,28 @@ def _counts(R, s, tag):
 def summary_markdown(R) -> str:
     """The results document's body from ``results.json``'s content."""
     exps = R["experiments"]
-    K = len(R["info"][str(exps[0])]["beat_whole"])
+    K = len(R["info"][str(exps[0])]["clock_whole"]["beat_hz"])
     L = ["## Headline: physics-specific gain (best physics variant − best generic model), nats/sample", "",
          "| sensor | clock | median | range | pairs > +3 SE | pairs < −3 SE |", "|---|---|---|---|---|---|"]
     for s in SENSORS:
-        for tag, name in VARIANTS:
+        for _, tag, name in VARIANTS:
             g, z = _counts(R, s, tag)
             L.append(f"| {s} | {name} | {np.median(g):+.3f} | {g.min():+.3f} to {g.max():+.3f} | "
                      f"**{int((z > 3).sum())}/{len(g)}** | {int((z < -3).sum())} |")
     L += ["", "## Clock acquisition (the detector's beat search): beat frequency per IMU (Hz)", "",
-          "Whole recording / first 30 s of motion / the tracker's last block (all acquired from the target's "
-          "data before the block), each as the beat at the start of its own data "
-          "(β(t) = β₀ + d·t: comparable across acquisitions). Acquired by "
-          "`accel_bayes.mismatch.clock.estimate_clock` on each IMU's gyro timing statistics "
-          "(`clock.clock_ab`); the sign says which way the sawtooth ramps. A 30 s window holds fewer than "
-          "5 cycles of a beat under 0.17 Hz, which the search does not consider (`clock.MIN_CYCLES`).", "",
+          "Whole recording / first 30 s of motion / the tracker's last block (acquired on the target's data "
+          "before that block), each the local beat β₀ + d·t at the window's start (comparable across "
+          "acquisitions); `*`: under the evidence rule's threshold or outside the width range (the IMU gets "
+          "no clock under the rule). Acquired by `accel_bayes.mismatch.clock.estimate_clock` on each IMU's gyro "
+          "timing statistics (`clock.clock_ab`); the sign says which way the sawtooth ramps. A 30 s window "
+          "holds fewer than 5 cycles of a beat under 0.17 Hz, which the search does not consider "
+          "(`clock.MIN_CYCLES`).", "",
           "| exp | " + " | ".join(f"IMU {k}" for k in range(K)) + " |", "|---|" + "---|" * K]
     for i in exps:
         inf = R["info"][str(i)]
         t0 = inf["window_start_s"]
-        bw = np.array(inf["beat_whole"]) + np.array(inf["drift_whole"]) * t0
-        bf = np.array(inf["beat_first"]) + np.array(inf["drift_first"]) * t0
-        bt = inf["tracker_blocks"][-1]["beat_at_start_hz"] if inf["tracker_blocks"] else [float("nan")] * K
-        L.append(f"| {i} | " + " | ".join(f"{a:+.3f} / {b:+.3f} / {c:+.3f}" for a, b, c in zip(bw, bf, bt)) + " |")
+        cols = [_local_beats(c, t0) for c in (inf["clock_whole"], inf["tracker_blocks"][0], inf["tracker_blocks"][-1])]
+        L.append(f"| {i} | " + " | ".join(" / ".join(c[k] for c in cols) for k in range(K)) + " |")
     L += ["", "Acquisition window per experiment (the first stretch of " f"{R['acquire_s']:g} s without rests; "
           "samples of the window used: all but the clipped/flagged ones) and the scored samples (kept samples "
           "after the window):", "",
@@ -174,14 +205,16 @@ def summary_markdown(R) -> str:
               + ", ".join(f"{k} {np.median([r['gain_over_white'][k] for r in rows]):+.3f}" for k in GENERIC + PHYSICS)
               + ".", "",
               "| pair | n | best generic (gain over white) | physics over white ± SE | 30 s: best physics variant, specific gain ± SE (z) "
-              "| tracker: specific gain ± SE (z) | whole-target clock (diagnostic) |",
-              "|---|---|---|---|---|---|---|"]
+              "| 30 s, evidence rule | tracker: specific gain ± SE (z) | tracker, evidence rule | whole-target clock (diagnostic) |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for p, r in zip(R["pair_order"], rows):
             gw = r["gain_over_white"]
             L.append(f"| {p} | {r['n']} | {r['best_generic']} ({gw[r['best_generic']]:+.3f}) | "
                      f"{gw['physics']:+.3f} ± {r['physics_over_white_se']:.3f} | {r['best_physics']}: "
                      f"{r['specific_gain']:+.3f} ± {r['specific_se']:.3f} ({_z(r, ''):+.1f}) | "
+                     f"{r['specific_gain_ev']:+.3f} ± {r['specific_se_ev']:.3f} ({_z(r, '_ev'):+.1f}) | "
                      f"{r['specific_gain_tracked']:+.3f} ± {r['specific_se_tracked']:.3f} ({_z(r, '_tracked'):+.1f}) | "
+                     f"{r['specific_gain_tracked_ev']:+.3f} ± {r['specific_se_tracked_ev']:.3f} ({_z(r, '_tracked_ev'):+.1f}) | "
                      f"{r['specific_gain_clock_whole_target']:+.3f} ({_z(r, '_clock_whole_target'):+.1f}) |")
     L += ["", "## Source fits", "", "Per source and sensor: the clock-age mean's coefficient c (1 if the "
           "acquired age is the data age and the rate regressor the resolved motion's), the unresolved "
@@ -247,7 +280,7 @@ CAVEATS = """## Caveats (what this study does not settle)
 def _headline(R) -> str:
     """The caveat on the headline (30/30 pairs above 3 SE per sensor), from the results."""
     parts = []
-    for tag, name in VARIANTS[:2]:
+    for _, tag, name in VARIANTS[:4]:
         c = {s: int((_counts(R, s, tag)[1] > 3).sum()) for s in SENSORS}
         n = len(R["pair_order"])
         parts.append(f"{name}: {'met' if all(v == n for v in c.values()) else 'not met'} "
@@ -264,7 +297,9 @@ def write_document(args, R, when) -> None:
         f" --max-samples {args.max_samples}" if args.max_samples else "")
     head = ["# Held-out scoring against strong generic models: the clock + unresolved-motion physics (issue #27 item 4)",
             "", f"Generated by `OMP_NUM_THREADS=1 PYTHONPATH=. {cmd}` (finished {when}), "
-            f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs, {R['seconds']:.0f} s "
+            f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs: "
+            f"{sum(R['info'][str(i)]['load_seconds'] for i in R['experiments']):.0f} s loading and acquiring the "
+            f"clocks (possibly in two `--cache-only` processes), {R['seconds']:.0f} s fitting and scoring "
             "(per-experiment cache in `--out`; `--fresh` recomputes it; `--from-results` rewrites this document "
             "from results.json). " + ("Whole recordings." if not args.max_samples else
                                       f"Last {args.max_samples} raw samples of each recording only."), "",
@@ -287,6 +322,8 @@ def main(argv=None) -> int:
     ap.add_argument("--acquire-s", type=float, default=30.0, help="target clock acquisition window (s of contiguous motion)")
     ap.add_argument("--max-samples", type=int, default=None, help="last N raw samples only (off: whole recordings)")
     ap.add_argument("--block-s", type=float, default=15.0, help="causal tracker's block length (s)")
+    ap.add_argument("--cache-only", action="store_true",
+                    help="only load the experiments into the cache (to run them in two processes), no scoring")
     ap.add_argument("--fresh", action="store_true", help="recompute the per-experiment cache OUT/exp_I.pt")
     ap.add_argument("--block", type=int, default=125, help="bootstrap block length (samples)")
     ap.add_argument("--boot", type=int, default=400, help="bootstrap resamples")
@@ -304,13 +341,18 @@ def main(argv=None) -> int:
                    "pairs": {}, "pair_order": [], "max_samples": args.max_samples}
     for i in args.experiments:
         t0 = time.perf_counter()
-        data[i] = load(i, args)
+        data[i] = with_ages(load(i, args), args)
         t1 = time.perf_counter()
+        if args.cache_only:
+            print(f"exp_{i}: cached ({t1 - t0:.0f} s)", flush=True)
+            continue
         data[i]["models"] = fit_source(data[i]["res"], data[i]["age_whole"], progress=lambda m: print(m, flush=True))
-        R["info"][str(i)] = dict(data[i]["info"], load_seconds=t1 - t0, fit_seconds=time.perf_counter() - t1)
+        R["info"][str(i)] = dict(data[i]["info"], fit_seconds=time.perf_counter() - t1)
         R["sources"][str(i)] = describe_source(data[i]["models"])
         print(f"exp_{i}: {data[i]['info']['T_kept']} kept samples; loaded {t1 - t0:.0f} s, models fitted "
-              f"{time.perf_counter() - t1:.0f} s; beats {np.round(data[i]['info']['beat_whole'], 3)}", flush=True)
+              f"{time.perf_counter() - t1:.0f} s; beats {np.round(data[i]['clock_whole']['beat_hz'], 3)}", flush=True)
+    if args.cache_only:
+        return 0
     for n, i in enumerate(args.experiments):
         for j in args.experiments:
             if i == j:

@@ -36,12 +36,12 @@ import torch
 
 from ..physics.effects import board_gyro_rate, clock_age as sawtooth_age
 from .budget import band_edges
-from .clock import clock_ab, estimate_clock
+from .clock import WIDTH_RANGE_S, clock_ab, estimate_clock
 from .generic import BandedWhite, FullCov, SampleT, TriadT, describe
 from .vibration import array_residuals, instant_errors
 
 __all__ = ["Residuals", "residuals_of", "clocks_of", "clock_age", "centred", "fit_source", "score",
-           "block_bootstrap_se", "acquired_age", "motion_window", "window_statistics", "clocks_from", "tracked_age",
+           "block_bootstrap_se", "acquired_age", "motion_window", "window_statistics", "clocks_from", "tracked_clocks", "tracked_age",
            "GENERIC", "PHYSICS"]
 
 GENERIC = ("white", "triad_t", "sample_t", "full_cov")
@@ -171,52 +171,74 @@ def window_statistics(prep, window) -> tuple[np.ndarray, torch.Tensor, torch.Ten
 def clocks_from(t, a, b, f_read: float) -> dict:
     """Each IMU's clock from the detector's beat search (:func:`accel_bayes.mismatch.clock.estimate_clock`)
     on timing statistics a, b (n, K) at times t (n,) s: {"beat_hz", "phase" (cycles at t = 0 of the
-    recording's clock), "drift_hz_per_s", "width_s"}, each (K,) numpy; zeros on an IMU with fewer
-    than 20 samples of information (a > 0)."""
+    recording's clock), "drift_hz_per_s", "width_s", "evidence", "threshold"}, each (K,) numpy;
+    zeros on an IMU with fewer than 20 samples of information (a > 0).  ``evidence`` (nats ×2):
+    2·gain/ĉ², the search's gain with the statistics' noise factor ĉ² = Σb²/Σa profiled (Var b = ĉ²a
+    without a clock); ``threshold``: the clock stage's look-elsewhere χ²₄ quantile at 1 − 0.01/(K·cells)."""
+    from scipy.stats import chi2
+
     t = np.asarray(t, float)
     K = a.shape[1]
-    out = {k: np.zeros(K) for k in ("beat_hz", "phase", "drift_hz_per_s", "width_s")}
+    out = {k: np.zeros(K) for k in ("beat_hz", "phase", "drift_hz_per_s", "width_s", "evidence", "threshold")}
     for k in range(K):
         ak, bk = np.asarray(a[:, k], float), np.asarray(b[:, k], float)
         if int((ak > 0).sum()) < 20:
             continue
         est = estimate_clock(t, ak, bk, f_read)
-        for key in out:
+        for key in ("beat_hz", "phase", "drift_hz_per_s", "width_s"):
             out[key][k] = est[key]
+        out["evidence"][k] = 2.0 * est["gain"] * ak.sum() / max(float((bk * bk).sum()), 1e-300)
+        out["threshold"][k] = float(chi2.isf(0.01 / (K * max(est["cells"], 1)), 4))
     return out
 
 
-def tracked_age(res: Residuals, window_stats, *, after: float, block_s: float, f_int=F_INT_NOMINAL):
-    """The causal (prequential) clock tracker: (T, K) data age (s) at ``res``'s times t ≥ ``after``
-    (0 before), where each block of ``block_s`` seconds from ``after`` on takes the clock the beat
-    search (:func:`clocks_from`) acquires on every target sample *before the block*: the
-    acquisition window's ``window_stats`` (:func:`window_statistics`) and ``res``'s own kept samples
-    from ``after`` to the block's start.  Returns (age, blocks): blocks a list of (start s, clock)."""
+def tracked_clocks(res: Residuals, window_stats, *, after: float, block_s: float) -> list:
+    """The causal (prequential) clock tracker: the scored stretch t ≥ ``after`` cut into blocks of
+    ``block_s`` s, each with the clock the beat search (:func:`clocks_from`) acquires on every target
+    sample *before the block*: the acquisition window's ``window_stats`` (:func:`window_statistics`)
+    and ``res``'s own kept samples from ``after`` to the block's start.  Returns [(start s, clock)]
+    (the first block's clock is the window's alone: the plain acquisition)."""
     tw, aw, bw, f_read = window_stats
     t = res.time.numpy()
-    age = torch.zeros(len(t), res.timing_a.shape[1], dtype=torch.float64)
-    blocks = []
-    start = after
+    blocks, start = [], after
     while start <= t[-1]:
-        stop = start + block_s
         past = (t >= after) & (t < start)
-        clock = clocks_from(np.concatenate([tw, t[past]]), torch.cat([aw, res.timing_a[past]]),
-                            torch.cat([bw, res.timing_b[past]]), f_read)
-        cur = (t >= start) & (t < stop)
+        blocks.append((float(start), clocks_from(np.concatenate([tw, t[past]]), torch.cat([aw, res.timing_a[past]]),
+                                                 torch.cat([bw, res.timing_b[past]]), f_read)))
+        start += block_s
+    return blocks
+
+
+def tracked_age(res: Residuals, blocks: list, *, block_s: float, accept=None, f_int=F_INT_NOMINAL) -> torch.Tensor:
+    """(T, K) data age (s) at ``res``'s times from :func:`tracked_clocks`'s blocks (each block's
+    samples get its clock; 0 before the first block), through :func:`acquired_age`."""
+    t = res.time.numpy()
+    age = torch.zeros(len(t), res.timing_a.shape[1], dtype=torch.float64)
+    for start, clock in blocks:
+        cur = (t >= start) & (t < start + block_s)
         if cur.any():
-            age[cur] = sawtooth_age(res.time[cur][:, None], *(torch.as_tensor(clock[k])[None, :] for k in
-                                    ("beat_hz", "phase", "drift_hz_per_s")), 1.0 / f_int)
-        blocks.append((float(start), clock))
-        start = stop
-    return age, blocks
+            age[cur] = acquired_age(res, clock, f_int, accept=accept)[cur]
+    return age
 
 
-def acquired_age(res: Residuals, clock: dict, f_int=F_INT_NOMINAL) -> torch.Tensor:
-    """(T, K) data age (s) at ``res``'s times of the clocks :func:`clocks_of` gave, each a
-    sawtooth of span 1/f_int (the age's mean and width are taken up by the fitted coefficient c)."""
+def acquired_age(res: Residuals, clock: dict, f_int=F_INT_NOMINAL, accept=None) -> torch.Tensor:
+    """(T, K) data age (s) at ``res``'s times of the clocks :func:`clocks_from` gave, each a
+    sawtooth of span 1/f_int (the age's mean and width are taken up by the fitted coefficient c).
+    ``accept``: None (every clock) or "evidence" — an IMU whose clock's evidence is under its
+    look-elsewhere threshold, or whose width is outside the clock stage's
+    :data:`~accel_bayes.mismatch.clock.WIDTH_RANGE_S`, gets the IMUs' mean age instead (no clock: a
+    beat the search cannot tell from noise would load the wrong samples)."""
     t = torch.as_tensor(res.time, dtype=torch.float64)[:, None]
-    c = {k: torch.as_tensor(v, dtype=torch.float64)[None, :] for k, v in clock.items()}
-    return sawtooth_age(t, c["beat_hz"], c["phase"], c["drift_hz_per_s"], 1.0 / f_int)
+    c = {k: torch.as_tensor(clock[k], dtype=torch.float64)[None, :] for k in ("beat_hz", "phase", "drift_hz_per_s")}
+    age = sawtooth_age(t, c["beat_hz"], c["phase"], c["drift_hz_per_s"], 1.0 / f_int)
+    if accept == "evidence":
+        ok = ((np.asarray(clock["evidence"]) > np.asarray(clock["threshold"]))
+              & (np.asarray(clock["width_s"]) >= WIDTH_RANGE_S[0]) & (np.asarray(clock["width_s"]) <= WIDTH_RANGE_S[1]))
+        if ok.any():
+            age[:, ~ok] = age[:, ok].mean(1, keepdim=True)
+        else:
+            age[:] = 0.0
+    return age
 
 
 def _mean_coeff(y, rate, d, ok) -> float:
