@@ -282,6 +282,10 @@ CAVEATS = """## Caveats (what this study does not settle)
   board's 30–95 Hz vibration like the gyro's finite difference did; there is no per-sample board jerk
   state to replace it with. The accelerometer's clock physics is the unresolved-motion term, loaded on
   the ages in the covariance.
+- Only the clock acquisition is causal: the target's residuals and, after the window, the timing
+  statistics the tracker reads are the target's whole-recording nominal fit's (positions fitted on
+  all its kept samples), the same for every model; the window's own statistics come from a fit on
+  the window alone.
 - The clock is acquired on the nominal fit's residuals, not the detector's (no gyro linear blocks
   removed first); a constant per-IMU lateness (read skew, filter-delay differences) is left out of
   the loading (the sawtooth's offset is dropped); the sawtooth width is the nominal 1 ms.
