@@ -293,8 +293,8 @@ CAVEATS = """## Caveats (what this study does not settle)
   is removed before scoring, for any model.
 - On the first-principles generator (`tests/mismatch/test_unresolved_motion.py`, slow, 10 s case) the
   unresolved-motion scale was over-stated 1.2–1.9× (acc) and 1.6–1.9× (gyro) with the finite-difference
-  regressor; with the gyro's R_k ω̇ the gyro's fitted scale is 0.27–0.39× the test's truth (exact
-  angular acceleration less the finite-difference rate), and 0.25–0.33× the exact less the fitted ω̇
+  regressor; with the gyro's R_k ω̇ the gyro's fitted scale is 0.33–0.39× the test's truth (exact
+  angular acceleration less the finite-difference rate), and 0.24–0.33× the exact less the fitted ω̇
   state: that slow test fails on this branch, unexplained (the mean term now takes the resolved
   vibration; what the remainder's truth is needs working out).
 """
