@@ -6,16 +6,23 @@ For each experiment (loaded as ``experiments/mimu_mismatch.py`` loads it: the ra
 package's preparation — intrinsics from the rests, the one sample selection — and the nominal
 fit), the residuals of :func:`accel_bayes.mismatch.heldout.residuals_of`.  Each IMU's clock (beat,
 phase, drift) is acquired by the detector's own beat search on its gyro timing statistics
-(:func:`accel_bayes.mismatch.heldout.clocks_of`, i.e. :func:`accel_bayes.mismatch.clock.estimate_clock`)
-twice: on the whole recording (used when the experiment is the source) and on its first
-``--acquire-s`` seconds of kept samples (used when it is the target; every model is then scored on
-the rest).  For all ordered pairs source → target, per sensor, in nats per sample on the same
-residuals: banded white noise, Student-t per triad, multivariate t per sample, full cross-IMU
-covariance per band, the physics model (clock-age mean + unresolved motion, white remainder) and
-the physics model with each generic remainder; every parameter from the source.  Headline: the
-physics-specific gain = best physics variant − best generic model (both chosen on the target's
-scores), with a moving-block bootstrap standard error (blocks of 2 s) of that difference.
+(:func:`accel_bayes.mismatch.heldout.clocks_from`, i.e. :func:`accel_bayes.mismatch.clock.estimate_clock`
+on :func:`accel_bayes.mismatch.clock.clock_ab`): on the whole recording (used when the experiment is
+the source; a diagnostic on the target), on its first ``--acquire-s`` seconds of contiguous motion
+(:func:`~accel_bayes.mismatch.heldout.motion_window`, every sample, the window's own fit: the
+protocol's acquisition), and by the causal tracker (:func:`~accel_bayes.mismatch.heldout.tracked_clocks`:
+blocks of ``--block-s`` s, each with the clock acquired on the target's samples before it); each with
+every acquired clock and with the evidence rule (an IMU whose clock does not pass the clock stage's
+look-elsewhere threshold or width range gets none).  Every model is scored on the target's kept
+samples after the window.  For all ordered pairs source → target, per sensor, in nats per sample on
+the same residuals: banded white noise, Student-t per triad, multivariate t per sample, full
+cross-IMU covariance per band, the physics model (clock-age mean + unresolved motion, white
+remainder) and the physics model with each generic remainder; every parameter from the source.
+Headline: the physics-specific gain = best physics variant − best generic model (both chosen on the
+target's scores), with a moving-block bootstrap standard error (blocks of 2 s) of that difference.
 
+    python experiments/heldout_generic.py --cache-only --experiments 1 2 3 &  # optional: load in two
+    python experiments/heldout_generic.py --cache-only --experiments 4 5 6    # processes (cache)
     python experiments/heldout_generic.py                      # all six, whole recordings
     python experiments/heldout_generic.py --experiments 1 2    # a subset (the document says so)
     python experiments/heldout_generic.py --from-results       # rewrite the document from results.json
@@ -26,6 +33,7 @@ document ``experiments/heldout_generic.md``.
 from __future__ import annotations
 
 import argparse
+import io
 import datetime
 import json
 import platform
@@ -46,100 +54,179 @@ from mimu_mismatch import load_recording  # noqa: E402
 from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.mismatch import baseline_fit, prepare  # noqa: E402
 from accel_bayes.mismatch.heldout import (GENERIC, PHYSICS, acquired_age, block_bootstrap_se,  # noqa: E402
-                                          clocks_of, describe_source, fit_source, residuals_of, score)
+                                          clocks_of, describe_source, fit_source, motion_window,
+                                          residuals_of, score, tracked_age, tracked_clocks,
+                                          window_statistics)
 
 SENSORS = ("acc", "gyro")
 
 
 def load(i, args):
-    """Experiment i's residuals and its two clock acquisitions (whole; first ``acquire_s``)."""
+    """Experiment i's residuals and its clock acquisitions: whole recording (as a source, and a
+    diagnostic), the first ``acquire_s`` of contiguous motion (all samples, the window's own fit),
+    and the causal tracker from there on.  Cached in ``CACHE/exp_{i}.pt`` (``--fresh`` recomputes)."""
+    cache = args.cache / f"exp_{i}.pt"
+    waited = 0.0
+    while not cache.exists() and waited < args.wait_cache:  # another --cache-only process is writing it
+        time.sleep(10.0)
+        waited += 10.0
+    if waited:
+        time.sleep(10.0)
+    if cache.exists() and not args.fresh:
+        return torch.load(cache, weights_only=False)
+    t0 = time.perf_counter()
     rec, info = load_recording(i, args.data, args.max_samples)
     prep = prepare(rec)
     fit, _ = baseline_fit(prep)
     res = residuals_of(prep, fit)
-    n_acq = int(round(args.acquire_s * res.f_read))
-    first = np.zeros(len(res.time), bool)
-    first[:n_acq] = True
+    window = motion_window(prep, args.acquire_s)
+    t_src = np.asarray(prep.source.time, float)
+    after = float(t_src[window][-1]) + 0.5 / res.f_read
+    stats = window_statistics(prep, window)
     c_all = clocks_of(res)
-    c_acq = clocks_of(res, first)
-    info.update(T_kept=int(len(res.time)), n_acquire=int(first.sum()), f_read=res.f_read,
-                span_s=float(res.time[-1] - res.time[0]),
-                acquire_span_s=float(res.time[n_acq - 1] - res.time[0]) if n_acq <= len(res.time) else None,
-                beat_whole=c_all["beat_hz"].tolist(), phase_whole=c_all["phase"].tolist(),
-                drift_whole=c_all["drift_hz_per_s"].tolist(),
-                beat_first=c_acq["beat_hz"].tolist(), phase_first=c_acq["phase"].tolist(),
-                drift_first=c_acq["drift_hz_per_s"].tolist())
-    return {"res": res, "first": first, "info": info,
-            "age_whole": acquired_age(res, c_all), "age_first": acquired_age(res, c_acq)}
+    blocks = tracked_clocks(res, stats, after=after, block_s=args.block_s)
+    c_acq = blocks[0][1]  # the tracker's first block has only the window before it: the plain acquisition
+    first = res.time.numpy() < after
+    info.update(T_kept=int(len(res.time)), f_read=res.f_read, span_s=float(res.time[-1] - res.time[0]),
+                window_start_s=float(t_src[window][0]), window_end_s=after, n_window=int(window.sum()),
+                n_window_used=int(len(stats[0])), n_kept_before=int(first.sum()), n_scored_max=int((~first).sum()),
+                clock_whole={k: v.tolist() for k, v in c_all.items()},
+                tracker_blocks=[{"start_s": b0, **{k: v.tolist() for k, v in c.items()},
+                                 "beat_at_start_hz": (c["beat_hz"] + c["drift_hz_per_s"] * b0).tolist()}
+                                for b0, c in blocks], load_seconds=time.perf_counter() - t0)
+    out = {"res": res, "first": first, "info": info, "clock_whole": c_all, "blocks": blocks}
+    buf = io.BytesIO()
+    torch.save(out, buf)
+    outputs.write_bytes(cache, buf.getvalue())
+    return out
+
+
+def with_ages(d, args):
+    """The cached experiment ``d`` with its ages: whole-recording clock, the plain 30 s acquisition and
+    the causal tracker, each with every acquired clock and with the evidence rule
+    (:func:`accel_bayes.mismatch.heldout.acquired_age`)."""
+    res, blocks = d["res"], d["blocks"]
+    for acc, tag in ((None, ""), ("evidence", "_ev")):
+        d[f"age_whole{tag}"] = acquired_age(res, d["clock_whole"], accept=acc)
+        d[f"age_first{tag}"] = acquired_age(res, blocks[0][1], accept=acc)
+        d[f"age_tracked{tag}"] = tracked_age(res, blocks, block_s=args.block_s, accept=acc)
+    return d
 
 
 def pair_result(src, tgt, args, seed):
-    """Scores of every model of ``src`` on ``tgt``'s samples after its acquisition window, per
-    sensor: mean nats/sample, gains over white, the headline and its bootstrap SE; the same
-    physics scored with the target's clock acquired on its whole recording (a diagnostic that
-    uses the scored samples for the clock: not a held-out number)."""
+    """Scores of every model of ``src`` on ``tgt``'s kept samples after its acquisition window, per
+    sensor: mean nats/sample, gains over white, the headline (physics with the target clock
+    acquired on its first ``acquire_s`` of motion) and its bootstrap SE; the same with the causal
+    tracker's clock (prequential: each block's clock from target samples before it); and, as a
+    diagnostic that uses the scored samples for the clock (not a held-out number), with the target
+    clock acquired on its whole recording."""
     keep = ~tgt["first"]
-    sc = score(src["models"], tgt["res"], tgt["age_first"], keep)
-    sc_in = score(src["models"], tgt["res"], tgt["age_whole"], keep)
     out = {}
+    scores = {v: score(src["models"], tgt["res"], tgt[f"age_{v}"], keep) for v, _, _ in VARIANTS}
     for s in SENSORS:
-        ll = sc[s]["ll"]
+        ll = scores["first"][s]["ll"]
         mean = {k: float(np.mean(v)) for k, v in ll.items()}
         best_g = max(GENERIC, key=lambda k: mean[k])
-        best_p = max(PHYSICS, key=lambda k: mean[k])
-        diff = ll[best_p] - ll[best_g]
-        se = block_bootstrap_se(diff, block=args.block, n_boot=args.boot, seed=seed)
-        se_pw = block_bootstrap_se(ll["physics"] - ll["white"], block=args.block, n_boot=args.boot, seed=seed)
-        mean_in = {k: float(np.mean(v)) for k, v in sc_in[s]["ll"].items()}
-        best_p_in = max(PHYSICS, key=lambda k: mean_in[k])
-        out[s] = {"n": sc[s]["n"], "mean": mean, "best_generic": best_g, "best_physics": best_p,
-                  "gain_over_white": {k: mean[k] - mean["white"] for k in mean},
-                  "specific_gain": float(np.mean(diff)), "specific_se": se,
-                  "physics_over_white_se": se_pw,
-                  "specific_gain_clock_whole_target": mean_in[best_p_in] - max(mean_in[k] for k in GENERIC)}
+        r = {"n": scores["first"][s]["n"], "mean": mean, "best_generic": best_g,
+             "gain_over_white": {k: mean[k] - mean["white"] for k in mean},
+             "physics_over_white_se": block_bootstrap_se(ll["physics"] - ll["white"], block=args.block,
+                                                          n_boot=args.boot, seed=seed)}
+        for v, tag, _ in VARIANTS:
+            llv = scores[v][s]["ll"]
+            mv = {k: float(np.mean(x)) for k, x in llv.items()}
+            best_p = max(PHYSICS, key=lambda k: mv[k])
+            diff = llv[best_p] - ll[best_g]  # generic scores do not depend on the clock
+            r[f"best_physics{tag}"] = best_p
+            r[f"physics_over_white{tag}"] = mv["physics"] - mean["white"]
+            r[f"specific_gain{tag}"] = float(np.mean(diff))
+            r[f"specific_se{tag}"] = block_bootstrap_se(diff, block=args.block, n_boot=args.boot, seed=seed)
+        out[s] = r
     return out
+
+
+#: (age key, result suffix, name): the target clock's acquisitions scored; "_ev": the evidence rule
+VARIANTS = (("first", "", "30 s acquisition (the protocol)"),
+            ("first_ev", "_ev", "30 s acquisition, evidence rule"),
+            ("tracked", "_tracked", "causal tracker (protocol extension)"),
+            ("tracked_ev", "_tracked_ev", "causal tracker, evidence rule"),
+            ("whole", "_clock_whole_target", "clock from the whole target (diagnostic, not held out)"))
+
+
+def _local_beats(c, t0) -> list:
+    """The beats β₀ + d·t0 (Hz) of a clock dict as strings, starred where the evidence rule drops it."""
+    from accel_bayes.mismatch.clock import WIDTH_RANGE_S
+
+    out = []
+    for b, d, e, th, w in zip(c["beat_hz"], c["drift_hz_per_s"], c["evidence"], c["threshold"], c["width_s"]):
+        ok = e > th and WIDTH_RANGE_S[0] <= w <= WIDTH_RANGE_S[1]
+        out.append(f"{b + d * t0:+.3f}" + ("" if ok else "*"))
+    return out
+
+
+def _z(r, tag):
+    return r[f"specific_gain{tag}"] / r[f"specific_se{tag}"]
+
+
+def _counts(R, s, tag):
+    """(gains (P,), z (P,)) of the physics-specific gain of variant ``tag`` over the pairs."""
+    rows = [R["pairs"][p][s] for p in R["pair_order"]]
+    return np.array([r[f"specific_gain{tag}"] for r in rows]), np.array([_z(r, tag) for r in rows])
 
 
 def summary_markdown(R) -> str:
     """The results document's body from ``results.json``'s content."""
     exps = R["experiments"]
-    L = ["## Clock acquisition (the detector's beat search): beat frequency per IMU (Hz)", "",
-         "Whole recording (first-30-s acquisition in brackets), at t = 0 of the recording's clock. Acquired by "
-         "`accel_bayes.mismatch.clock.estimate_clock` on each IMU's gyro timing statistics; the sign says which "
-         "way the sawtooth ramps.", "",
-         "| exp | " + " | ".join(f"IMU {k}" for k in range(len(R["info"][str(exps[0])]["beat_whole"]))) + " |",
-         "|---|" + "---|" * len(R["info"][str(exps[0])]["beat_whole"])]
+    K = len(R["info"][str(exps[0])]["clock_whole"]["beat_hz"])
+    L = ["## Headline: physics-specific gain (best physics variant − best generic model), nats/sample", "",
+         "| sensor | clock | median | range | pairs > +3 SE | pairs < −3 SE |", "|---|---|---|---|---|---|"]
+    for s in SENSORS:
+        for _, tag, name in VARIANTS:
+            g, z = _counts(R, s, tag)
+            L.append(f"| {s} | {name} | {np.median(g):+.3f} | {g.min():+.3f} to {g.max():+.3f} | "
+                     f"**{int((z > 3).sum())}/{len(g)}** | {int((z < -3).sum())} |")
+    L += ["", "## Clock acquisition (the detector's beat search): beat frequency per IMU (Hz)", "",
+          "Whole recording / first 30 s of motion / the tracker's last block (acquired on the target's data "
+          "before that block), each the local beat β₀ + d·t at the window's start (comparable across "
+          "acquisitions); `*`: under the evidence rule's threshold or outside the width range (the IMU gets "
+          "no clock under the rule). Acquired by `accel_bayes.mismatch.clock.estimate_clock` on each IMU's gyro "
+          "timing statistics (`clock.clock_ab`); the sign says which way the sawtooth ramps. A 30 s window "
+          "holds fewer than 5 cycles of a beat under 0.17 Hz, which the search does not consider "
+          "(`clock.MIN_CYCLES`).", "",
+          "| exp | " + " | ".join(f"IMU {k}" for k in range(K)) + " |", "|---|" + "---|" * K]
     for i in exps:
         inf = R["info"][str(i)]
-        L.append(f"| {i} | " + " | ".join(f"{a:+.3f} ({b:+.3f})" for a, b in zip(inf["beat_whole"], inf["beat_first"])) + " |")
-    L += ["", "Kept samples per experiment and the acquisition window (first "
-          f"{R['acquire_s']:g} s of kept samples = {R['info'][str(exps[0])]['n_acquire']} samples):", "",
-          "| exp | kept samples | recording span of kept samples (s) | acquisition window span (s) |", "|---|---|---|---|"]
+        t0 = inf["window_start_s"]
+        cols = [_local_beats(c, t0) for c in (inf["clock_whole"], inf["tracker_blocks"][0], inf["tracker_blocks"][-1])]
+        L.append(f"| {i} | " + " | ".join(" / ".join(c[k] for c in cols) for k in range(K)) + " |")
+    L += ["", "Acquisition window per experiment (the first stretch of " f"{R['acquire_s']:g} s without rests; "
+          "samples of the window used: all but the clipped/flagged ones) and the scored samples (kept samples "
+          "after the window):", "",
+          "| exp | kept samples | window start (s) | window samples (used) | kept samples before the window end (not scored) "
+          "| scored samples (max) | tracker blocks |", "|---|---|---|---|---|---|---|"]
     for i in exps:
         inf = R["info"][str(i)]
-        L.append(f"| {i} | {inf['T_kept']} | {inf['span_s']:.0f} | {inf['acquire_span_s']:.0f} |")
+        L.append(f"| {i} | {inf['T_kept']} | {inf['window_start_s']:.1f} | {inf['n_window']} ({inf['n_window_used']}) | "
+                 f"{inf['n_kept_before']} | {inf['n_scored_max']} | {len(inf['tracker_blocks'])} |")
     for s in SENSORS:
         rows = [R["pairs"][p][s] for p in R["pair_order"]]
-        g = np.array([r["specific_gain"] for r in rows])
-        se = np.array([r["specific_se"] for r in rows])
-        z = g / se
-        L += ["", f"## {s}: held-out nats per sample (target's samples after its acquisition window)", "",
-              f"**Physics-specific gain** (best physics variant − best generic model): median {np.median(g):+.3f}, "
-              f"range {g.min():+.3f} to {g.max():+.3f} nats/sample; above 3 block-bootstrap SE on "
-              f"**{int((z > 3).sum())}/{len(g)}** pairs, below −3 SE on {int((z < -3).sum())}.", "",
-              "Gains over banded white noise (nats/sample), per model; medians over the pairs: " + ", ".join(
-                  f"{k} {np.median([r['gain_over_white'][k] for r in rows]):+.3f}" for k in GENERIC + PHYSICS) + ".", "",
-              "| pair | n | best generic (gain over white) | physics over white ± SE | best physics variant (gain over white) "
-              "| specific gain ± SE | z | clock from whole target (diagnostic) |",
-              "|---|---|---|---|---|---|---|---|"]
+        L += ["", f"## {s}: held-out nats per sample, per pair (target's kept samples after its acquisition window)", "",
+              "Gains over banded white noise (nats/sample), per model (30 s acquisition); medians over the pairs: "
+              + ", ".join(f"{k} {np.median([r['gain_over_white'][k] for r in rows]):+.3f}" for k in GENERIC + PHYSICS)
+              + ".", "",
+              "| pair | n | best generic (gain over white) | physics over white ± SE | 30 s: best physics variant, specific gain ± SE (z) "
+              "| 30 s, evidence rule | tracker: specific gain ± SE (z) | tracker, evidence rule | whole-target clock (diagnostic) |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for p, r in zip(R["pair_order"], rows):
             gw = r["gain_over_white"]
             L.append(f"| {p} | {r['n']} | {r['best_generic']} ({gw[r['best_generic']]:+.3f}) | "
-                     f"{gw['physics']:+.3f} ± {r['physics_over_white_se']:.3f} | {r['best_physics']} "
-                     f"({gw[r['best_physics']]:+.3f}) | {r['specific_gain']:+.3f} ± {r['specific_se']:.3f} | "
-                     f"{r['specific_gain'] / r['specific_se']:+.1f} | {r['specific_gain_clock_whole_target']:+.3f} |")
+                     f"{gw['physics']:+.3f} ± {r['physics_over_white_se']:.3f} | {r['best_physics']}: "
+                     f"{r['specific_gain']:+.3f} ± {r['specific_se']:.3f} ({_z(r, ''):+.1f}) | "
+                     f"{r['specific_gain_ev']:+.3f} ± {r['specific_se_ev']:.3f} ({_z(r, '_ev'):+.1f}) | "
+                     f"{r['specific_gain_tracked']:+.3f} ± {r['specific_se_tracked']:.3f} ({_z(r, '_tracked'):+.1f}) | "
+                     f"{r['specific_gain_tracked_ev']:+.3f} ± {r['specific_se_tracked_ev']:.3f} ({_z(r, '_tracked_ev'):+.1f}) | "
+                     f"{r['specific_gain_clock_whole_target']:+.3f} ({_z(r, '_clock_whole_target'):+.1f}) |")
     L += ["", "## Source fits", "", "Per source and sensor: the clock-age mean's coefficient c (1 if the "
-          "acquired age is the data age and the fitted outputs' rates the resolved motion), the unresolved "
+          "acquired age is the data age and the rate regressor the resolved motion's), the unresolved "
           "scales per |ω| band (m/s³ for acc, rad/s² for gyro) of the physics model, and the fitted degrees "
           "of freedom of the t models.", "",
           "| source | sensor | c | unresolved scale per band (physics) | ν triad-t (per IMU) | ν sample-t |",
@@ -153,38 +240,105 @@ def summary_markdown(R) -> str:
     return "\n".join(L)
 
 
+PROTOCOL = """## Protocol
+
+DESIGN §7.2.1, with these choices stated:
+
+- **Acquisition window.** The MIMU experiments open with ~500 s of rests in 20 orientations (for the
+  intrinsic calibration) joined by ~1.5 s turns; the recording's first 30 s hold one turn, and a rest
+  carries no timing information (ω̇ = 0, so the timing statistic a_t = 0). The window is therefore the
+  first 30 s of *contiguous motion*: from the first sample after which the board does not rest for 30 s
+  (`heldout.motion_window`). Every sample of the window is used (the position fit's rotation test
+  dropped ~20 % of them; only clipped/flagged samples go), with the window's own nominal fit (positions
+  and motion fitted on the window alone, `heldout.window_statistics`), so the acquisition sees no
+  scored sample. Every model is scored on the target's kept samples *after* the window; the kept
+  samples of the turns before it are scored by no model.
+- **The rate regressor** of the clock's mean −c·d·ẏ is the `sampling_clock` effect's: R_k ω̇ of the
+  fitted motion for the gyro, and the timing statistics are the detector's clock stage's
+  (`clock.clock_ab`); the accelerometer's is the finite difference of the fitted outputs
+  (`prep.acc_rate`), as in the effect. All scales, ν and c from the source.
+- **Causal tracker (protocol extension).** The beats drift with temperature, and a beat acquired on
+  30 s is extrapolated over the following ~75 s (phase error Δβ·t). The tracker scores
+  prequentially: the scored stretch is cut into blocks of {block_s:g} s; each block's clock is acquired
+  by the same beat search on every target sample *before the block* (the window, then the scored
+  samples already scored). Each block's score uses only data that precede it — an honest
+  held-out score (prequential, as a filter's one-step-ahead prediction), not fitted to the block.
+  The generic models have no target-specific parameter in §7.2.1 (all from the source), so there is
+  nothing of theirs to track; both sides see the same target data before each block.
+"""
+
 CAVEATS = """## Caveats (what this study does not settle)
 
-- The target's acquisition window (its first 1875 kept samples) spans ~500 s of its ~580 s of
-  kept-sample time, because the selection keeps scattered samples: the clock is extrapolated over
-  the last ~80 s only, and the scored samples are the recording's last ~3900 kept samples.  A
-  window of 30 s of wall time holds too few kept samples (50–77) to acquire a beat.
 {headline}
-- The clock is acquired by the detector's beat search (`estimate_clock`, with drift), but the
-  acquisition sees the nominal fit's residuals, not the detector's (no gyro linear blocks removed
-  first); a constant per-IMU lateness (read skew, filter-delay differences) is left out of the
-  loading (the sawtooth's offset is dropped).
+{short}
+- The plain 30 s acquisition extrapolates a beat over the following 60–75 s: its local beats agree
+  with the whole recording's to ~0.01 Hz on most IMUs (table above), but 0.01 Hz over 75 s is 0.75 of
+  a sawtooth cycle, and the gyro mean −c·d·R_kω̇ with a wrong phase costs more than it gains (gyro
+  physics with a white remainder over banded white noise, median over the pairs: {pw_first:+.2f} with the
+  30 s clock, {pw_tracked:+.2f} with the tracker's, {pw_whole:+.2f} with the whole target's). The evidence rule
+  changes nothing here: every acquired clock passes it (smallest evidence / threshold {ev_ratio:.1f}).
+- The accelerometer's clock-mean coefficient c is {acc_c} over the sources (gyro: {gyro_c}): its rate
+  regressor (the finite difference of the fitted outputs, `prep.acc_rate`, the effect's own) folds the
+  board's 30–95 Hz vibration like the gyro's finite difference did; there is no per-sample board jerk
+  state to replace it with. The accelerometer's clock physics is the unresolved-motion term, loaded on
+  the ages in the covariance.
+- Only the clock acquisition is causal: the target's residuals and, after the window, the timing
+  statistics the tracker reads are the target's whole-recording nominal fit's (positions fitted on
+  all its kept samples), the same for every model; the window's own statistics come from a fit on
+  the window alone.
+- The clock is acquired on the nominal fit's residuals, not the detector's (no gyro linear blocks
+  removed first); a constant per-IMU lateness (read skew, filter-delay differences) is left out of
+  the loading (the sawtooth's offset is dropped); the sawtooth width is the nominal 1 ms.
 - Residuals are the nominal fit's: no mean effect (e.g. the gyro scale errors the detector finds)
   is removed before scoring, for any model.
-- On the first-principles generator the unresolved-motion scale is over-stated by 1.2–1.9×
-  (acc) and 1.6–1.9× (gyro) against the true unresolved jerk / angular acceleration at the board's
-  centre (`tests/mismatch/test_unresolved_motion.py`, 10 s case); not yet explained (candidates: the
-  per-IMU lever-arm jerk, which the board-common term cannot hold, and the linearisation at
-  2π f × age ≈ 0.6 rad for 95 Hz vibration).
+- On the first-principles generator (`tests/mismatch/test_unresolved_motion.py`, slow, 10 s case) the
+  unresolved-motion scale was over-stated 1.2–1.9× (acc) and 1.6–1.9× (gyro) with the finite-difference
+  regressor; with the gyro's R_k ω̇ the gyro's fitted scale is 0.33–0.39× the test's truth (exact
+  angular acceleration less the finite-difference rate), and 0.24–0.33× the exact less the fitted ω̇
+  state: that slow test fails on this branch, unexplained (the mean term now takes the resolved
+  vibration; what the remainder's truth is needs working out).
 """
+
+
+def _ev_ratio(R) -> float:
+    """The smallest evidence/threshold of any acquired clock (30 s and tracker blocks)."""
+    r = [e / t for i in R["experiments"] for b in R["info"][str(i)]["tracker_blocks"]
+         for e, t in zip(b["evidence"], b["threshold"]) if t > 0]
+    return min(r) if r else float("nan")
+
+
+def _short(R) -> str:
+    """The pairs where the causal tracker's gain is not above 3 SE, per sensor, with their evidence."""
+    L = []
+    for s in SENSORS:
+        for p in R["pair_order"]:
+            r = R["pairs"][p][s]
+            if _z(r, "_tracked") <= 3:
+                L.append(f"- Tracker, {s}, pair {p}: gain {r['specific_gain_tracked']:+.3f} ± "
+                         f"{r['specific_se_tracked']:.3f} ({_z(r, '_tracked'):+.1f} SE; {r['best_physics_tracked']} "
+                         f"against {r['best_generic']}); with the whole-target clock {r['specific_gain_clock_whole_target']:+.3f} "
+                         f"({_z(r, '_clock_whole_target'):+.1f} SE); 30 s acquisition {r['specific_gain']:+.3f} "
+                         f"({_z(r, ''):+.1f} SE).")
+    return "\n".join(L) if L else "- The tracker's gain is above 3 SE on every pair for both sensors."
+
+
+def _c_range(R, s) -> str:
+    """The range of the sources' clock-mean coefficient c for sensor s, as text."""
+    c = [R["sources"][str(i)][s]["c"] for i in R["experiments"]]
+    return f"{min(c):+.3f} to {max(c):+.3f}"
 
 
 def _headline(R) -> str:
     """The caveat on the headline (30/30 pairs above 3 SE per sensor), from the results."""
     parts = []
-    for s in SENSORS:
-        z = np.array([R["pairs"][p][s]["specific_gain"] / R["pairs"][p][s]["specific_se"] for p in R["pair_order"]])
-        parts.append(f"{int((z > 3).sum())}/{len(z)} ({s})")
-    met = all(int((np.array([R["pairs"][p][s]["specific_gain"] / R["pairs"][p][s]["specific_se"]
-                             for p in R["pair_order"]]) > 3).sum()) == len(R["pair_order"]) for s in SENSORS)
+    for _, tag, name in VARIANTS[:4]:
+        c = {s: int((_counts(R, s, tag)[1] > 3).sum()) for s in SENSORS}
+        n = len(R["pair_order"])
+        parts.append(f"{name}: {'met' if all(v == n for v in c.values()) else 'not met'} "
+                     f"(acc {c['acc']}/{n}, gyro {c['gyro']}/{n})")
     best = sorted({R["pairs"][p][s]["best_generic"] for p in R["pair_order"] for s in SENSORS})
-    return (f"- The headline (above 3 SE on every pair, per sensor) is {'met' if met else 'not met'}: "
-            f"{' and '.join(parts)}.  Best generic models chosen on the targets: {', '.join(best)}.")
+    return (f"- The headline (above 3 SE on every pair, per sensor): {'; '.join(parts)}.  Best generic models "
+            f"chosen on the targets: {', '.join(best)}.")
 
 
 def write_document(args, R, when) -> None:
@@ -193,21 +347,26 @@ def write_document(args, R, when) -> None:
         f" --experiments {' '.join(map(str, args.experiments))}" if list(args.experiments) != [1, 2, 3, 4, 5, 6] else "") + (
         f" --max-samples {args.max_samples}" if args.max_samples else "")
     head = ["# Held-out scoring against strong generic models: the clock + unresolved-motion physics (issue #27 item 4)",
-            "", f"Generated by `PYTHONPATH=. {cmd}` (finished {when}), "
-            f"{platform.machine()} {platform.system()}, 2-core CPU shared with 6 other jobs, {R['seconds']:.0f} s "
-            "(the document can be rewritten from the cached results with `--from-results`). "
-            + ("Whole recordings (every kept sample)." if not args.max_samples else
-               f"Last {args.max_samples} raw samples of each recording only."), "",
+            "", f"Generated by `OMP_NUM_THREADS=1 PYTHONPATH=. {cmd}` (finished {when}), "
+            f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs: "
+            f"{sum(R['info'][str(i)]['load_seconds'] for i in R['experiments']):.0f} s loading and acquiring the "
+            f"clocks (this run: two `--cache-only` processes, `--experiments 1 2 3` and `--experiments 4 5 6`, "
+            "then the command above with `--wait-cache 1500`), {R['seconds']:.0f} s fitting and scoring "
+            "(per-experiment cache in `--cache`, default experiments/out/heldout_generic; `--fresh` recomputes it; `--from-results` rewrites this document "
+            "from results.json). " + ("Whole recordings." if not args.max_samples else
+                                      f"Last {args.max_samples} raw samples of each recording only."), "",
             "Method: `accel_bayes/mismatch/heldout.py` (module docstring). Every model scores the same residuals "
             "(the nominal fit's, leverage-corrected, array frame; samples with all 8 triads of the sensor observed). "
-            "The target's clock is acquired on its first "
-            f"{R['acquire_s']:g} s of *kept* samples (the sample selection keeps only ~50–77 samples in the "
-            "first 30 s of wall time, too few to acquire a beat); every model is scored on the kept samples after "
-            "that window. Best generic and best physics variant are chosen on the target's scores (so the generic "
-            "side gets its best model). The last column re-acquires the target clock on its whole recording: a "
-            "diagnostic of how much the clock's extrapolation costs, not a held-out number.", ""]
+            "Best generic and best physics variant are chosen on the target's scores (so the generic side gets its "
+            "best model). SE: moving-block bootstrap (2 s blocks) of the per-sample difference.", "",
+            PROTOCOL.format(block_s=R.get("block_s", 15.0))]
     outputs.write_text(args.doc, "\n".join(head) + "\n" + summary_markdown(R) + "\n\n"
-                       + CAVEATS.format(headline=_headline(R)))
+                       + CAVEATS.format(headline=_headline(R), short=_short(R), ev_ratio=_ev_ratio(R),
+                                        **{f"pw_{v}": float(np.median([R["pairs"][p]["gyro"][f"physics_over_white{t}"]
+                                                                        for p in R["pair_order"]]))
+                                           for v, t in (("first", ""), ("tracked", "_tracked"),
+                                                        ("whole", "_clock_whole_target"))},
+                                        **{f"{s}_c": _c_range(R, s) for s in SENSORS}))
     print(f"written {args.doc}")
 
 
@@ -216,9 +375,17 @@ def main(argv=None) -> int:
     ap.add_argument("--experiments", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     ap.add_argument("--data", type=Path, default=data_dir())
     ap.add_argument("--out", type=Path, default=HERE / "results" / "heldout_generic")
+    ap.add_argument("--cache", type=Path, default=HERE / "out" / "heldout_generic",
+                    help="per-experiment cache folder (git-ignored)")
     ap.add_argument("--doc", type=Path, default=HERE / "heldout_generic.md")
-    ap.add_argument("--acquire-s", type=float, default=30.0, help="target clock acquisition window (s of kept samples)")
+    ap.add_argument("--acquire-s", type=float, default=30.0, help="target clock acquisition window (s of contiguous motion)")
     ap.add_argument("--max-samples", type=int, default=None, help="last N raw samples only (off: whole recordings)")
+    ap.add_argument("--block-s", type=float, default=15.0, help="causal tracker's block length (s)")
+    ap.add_argument("--cache-only", action="store_true",
+                    help="only load the experiments into the cache (to run them in two processes), no scoring")
+    ap.add_argument("--wait-cache", type=float, default=0.0,
+                    help="seconds to wait for a missing cache file that a --cache-only process is writing")
+    ap.add_argument("--fresh", action="store_true", help="recompute the per-experiment cache CACHE/exp_I.pt")
     ap.add_argument("--block", type=int, default=125, help="bootstrap block length (samples)")
     ap.add_argument("--boot", type=int, default=400, help="bootstrap resamples")
     ap.add_argument("--from-results", action="store_true", help="only rewrite the document from OUT/results.json")
@@ -229,19 +396,25 @@ def main(argv=None) -> int:
         write_document(args, R, R.get("finished_utc", "unknown date"))
         return 0
     torch.manual_seed(0)
-    args.out.mkdir(parents=True, exist_ok=True)  # before the long computation, so the results can be written
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.cache.mkdir(parents=True, exist_ok=True)  # before the long computation, so the results can be written
     t_start = time.perf_counter()
-    data, R = {}, {"acquire_s": args.acquire_s, "experiments": args.experiments, "info": {}, "sources": {},
+    data, R = {}, {"acquire_s": args.acquire_s, "block_s": args.block_s, "experiments": args.experiments, "info": {}, "sources": {},
                    "pairs": {}, "pair_order": [], "max_samples": args.max_samples}
     for i in args.experiments:
         t0 = time.perf_counter()
-        data[i] = load(i, args)
+        data[i] = with_ages(load(i, args), args)
         t1 = time.perf_counter()
+        if args.cache_only:
+            print(f"exp_{i}: cached ({t1 - t0:.0f} s)", flush=True)
+            continue
         data[i]["models"] = fit_source(data[i]["res"], data[i]["age_whole"], progress=lambda m: print(m, flush=True))
-        R["info"][str(i)] = dict(data[i]["info"], load_seconds=t1 - t0, fit_seconds=time.perf_counter() - t1)
+        R["info"][str(i)] = dict(data[i]["info"], fit_seconds=time.perf_counter() - t1)
         R["sources"][str(i)] = describe_source(data[i]["models"])
         print(f"exp_{i}: {data[i]['info']['T_kept']} kept samples; loaded {t1 - t0:.0f} s, models fitted "
-              f"{time.perf_counter() - t1:.0f} s; beats {np.round(data[i]['info']['beat_whole'], 3)}", flush=True)
+              f"{time.perf_counter() - t1:.0f} s; beats {np.round(data[i]['clock_whole']['beat_hz'], 3)}", flush=True)
+    if args.cache_only:
+        return 0
     for n, i in enumerate(args.experiments):
         for j in args.experiments:
             if i == j:

@@ -9,16 +9,19 @@ source's band edges:
 
 - generic: ``white`` (banded white noise per IMU), ``triad_t``, ``sample_t``, ``full_cov``;
 - physics: the clock's data age d_kt (centred over the IMUs, s) gives a mean −c·d_kt ẏ_kt (ẏ the
-  fitted output's rate: the resolved motion seen late) and loads the unresolved motion
+  ``sampling_clock`` effect's rate regressor: the resolved motion seen late) and loads the unresolved motion
   (:mod:`accel_bayes.mismatch.unresolved`) — ``physics`` has a white remainder, ``physics+sample_t``
   and ``physics+full_cov`` put the term on those models' covariance, ``physics+triad_t`` has the
   mean only (a per-triad scale mixture does not marginalise with a term shared across triads).
 
 The clock's beat, phase and drift per IMU are acquired by the detector's own beat search
-(:func:`accel_bayes.mismatch.clock.estimate_clock`) on each IMU's gyro timing statistics
-(:func:`accel_bayes.mismatch.jitter.jitter_ab`, kept in :class:`Residuals`) — on the target's
-first ``acquire_s`` seconds of kept samples only; the source's on its whole recording
-(:func:`clocks_of`).
+(:func:`accel_bayes.mismatch.clock.estimate_clock`) on each IMU's gyro timing statistics — the
+clock stage's (:func:`accel_bayes.mismatch.clock.clock_ab`, on the regressor R_k ω̇; kept in
+:class:`Residuals`): the source's on its whole recording (:func:`clocks_of`); the target's on its
+first 30 s of contiguous motion (:func:`motion_window`), every sample of it, from the window's own
+fit (:func:`window_statistics`), every model then scored on the kept samples after the window.  The
+causal tracker (:func:`tracked_age`) scores prequentially: each later block's clock is acquired on
+the target samples before that block only.
 Every scale (white variances, degrees of freedom, covariances, unresolved scales, the mean's c)
 comes from the source.  Uncertainty: a moving-block bootstrap over the scored samples
 (:func:`block_bootstrap_se`).
@@ -31,14 +34,15 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..physics.effects import clock_age as sawtooth_age
+from ..physics.effects import board_gyro_rate, clock_age as sawtooth_age
 from .budget import band_edges
-from .clock import estimate_clock
+from .clock import WIDTH_RANGE_S, clock_ab, estimate_clock
 from .generic import BandedWhite, FullCov, SampleT, TriadT, describe
 from .vibration import array_residuals, instant_errors
 
 __all__ = ["Residuals", "residuals_of", "clocks_of", "clock_age", "centred", "fit_source", "score",
-           "block_bootstrap_se", "acquired_age", "GENERIC", "PHYSICS"]
+           "block_bootstrap_se", "acquired_age", "motion_window", "window_statistics", "clocks_from", "tracked_clocks", "tracked_age",
+           "GENERIC", "PHYSICS"]
 
 GENERIC = ("white", "triad_t", "sample_t", "full_cov")
 PHYSICS = ("physics", "physics+triad_t", "physics+sample_t", "physics+full_cov")
@@ -49,9 +53,10 @@ F_INT_NOMINAL = 1000.0  # Hz: the MPU-6050/9150 internal sample rate (DLPF on), 
 class Residuals:
     """One recording's held-out inputs (torch float64): ``time`` (T,) s; ``omega`` (T,) |ω| of the
     fitted motion rad/s; per sensor ``y[s]`` (T, K, 3) array-frame residuals, ``rate[s]`` (T, K, 3)
-    the fitted outputs' rates in the array frame (units/s), ``ok[s]`` (T,) all triads observed;
+    the clock effect's rate regressor in the array frame (units/s: R_k ω̇ for the gyro, the fitted
+    outputs' finite difference for the accelerometer), ``ok[s]`` (T,) all triads observed;
     ``delta`` (T, K) s the gyro instant errors and ``delta_ok`` (T, K); ``timing_a`` (T, K) s⁻² and
-    ``timing_b`` (T, K) s⁻¹ each IMU's gyro timing statistics (:func:`~accel_bayes.mismatch.jitter.jitter_ab`,
+    ``timing_b`` (T, K) s⁻¹ each IMU's gyro timing statistics (:func:`~accel_bayes.mismatch.clock.clock_ab`,
     0 where it has no gyro), which the clock acquisition reads."""
 
     time: torch.Tensor
@@ -68,24 +73,28 @@ class Residuals:
 
 def residuals_of(prep, fit) -> Residuals:
     """The :class:`Residuals` of a prepared recording and its nominal fit (``baseline_fit``, which
-    also set ``prep.acc_rate`` / ``prep.gyro_rate``)."""
+    also set ``prep.acc_rate``).  The rate regressors are the ``sampling_clock`` effect's
+    (:class:`~accel_bayes.physics.effects.SamplingClock`): the gyro's R_k ω̇ of the fitted motion
+    (:func:`~accel_bayes.physics.effects.board_gyro_rate`; the finite difference of the sampled
+    outputs folds vibration above the read's Nyquist rate, flipped and shrunk), the accelerometer's
+    ``prep.acc_rate``; the timing statistics are the detector's clock stage's
+    (:func:`accel_bayes.mismatch.clock.clock_ab`)."""
     from ..physics.geometry import quat_to_matrix
 
     R = quat_to_matrix(torch.as_tensor(prep.q, dtype=torch.float64))
     y, rate, ok = {}, {}, {}
-    for s, r in (("acc", prep.acc_rate), ("gyro", prep.gyro_rate)):
+    for s, r in (("acc", prep.acc_rate), ("gyro", board_gyro_rate(fit.ctx).detach())):
         y[s], okk = array_residuals(prep, fit, s)
         ok[s] = okk.all(1)
         rate[s] = torch.einsum("kji,tkj->tki", R, r.to(torch.float64))
-    from .jitter import jitter_ab
-
     delta, dok = instant_errors(prep, fit)
     t = prep.time.to(torch.float64)
     f_read = float(1.0 / np.median(np.diff(t.numpy())))
     ta = torch.zeros(prep.T, prep.K, dtype=torch.float64)
     tb = torch.zeros_like(ta)
     for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
-        ta[:, k], tb[:, k] = jitter_ab(prep, fit, k, "gyro")
+        a, b, *_ = clock_ab(prep, fit, k)
+        ta[:, k], tb[:, k] = a.detach(), b.detach()
     return Residuals(t, torch.linalg.norm(fit.x[:, 0:3].detach(), dim=1).to(torch.float64), y, rate, ok,
                      delta, dok, f_read, ta, tb)
 
@@ -110,26 +119,126 @@ def clocks_of(res: Residuals, window=None) -> dict:
     on its gyro timing statistics over the samples ``window`` (T,) bool (default all): {"beat_hz",
     "phase" (cycles at t = 0 of the recording's clock), "drift_hz_per_s", "width_s"}, each (K,) numpy;
     zeros on an IMU without gyro statistics or with fewer than 20 samples in the window."""
-    t_all = res.time.numpy()
-    window = np.ones(len(t_all), bool) if window is None else np.asarray(window, bool)
-    K = res.timing_a.shape[1]
-    out = {k: np.zeros(K) for k in ("beat_hz", "phase", "drift_hz_per_s", "width_s")}
+    window = np.ones(len(res.time), bool) if window is None else np.asarray(window, bool)
+    return clocks_from(res.time.numpy()[window], res.timing_a[window], res.timing_b[window], res.f_read)
+
+
+def motion_window(prep, seconds: float) -> np.ndarray:
+    """(T_source,) bool over ``prep.source`` (every sample of the recording): the first ``seconds``
+    of contiguous motion — from the first sample after which the board does not rest for
+    ``seconds`` (rests: :func:`accel_bayes.prep.intrinsics.rest_segments`).  Why not the
+    recording's first ``seconds``: a recording that opens with rests for the intrinsics (the MIMU
+    experiments: ~500 s of rests with 1.5 s turns between them) has no timing information there
+    (ω̇ = 0 gives a_t = 0).  Every sample of the window counts, slow ones too (the position fit's
+    rotation test is about the centripetal term, not about timing); the window's clipped and
+    flagged samples are dropped by the selection.  Refuses a recording without such a stretch."""
+    from ..errors import UserError
+    from ..prep.intrinsics import rest_segments
+
+    src = prep.source
+    T = int(src.T)
+    moving = np.ones(T, bool)
+    for a, b in rest_segments(src, None):
+        moving[a:b] = False
+    t = np.asarray(src.time, float)
+    starts = np.flatnonzero(moving & np.concatenate(([True], ~moving[:-1])))
+    for i0 in starts:
+        end = i0 + np.searchsorted(t[i0:], t[i0] + seconds)
+        if end <= T and moving[i0:end].all() and t[min(end, T) - 1] - t[i0] >= seconds - 2 * np.median(np.diff(t)):
+            w = np.zeros(T, bool)
+            w[i0:end] = True
+            return w
+    raise UserError(f"acquire_s: expected a stretch of {seconds:g} s without rests in the recording, found none")
+
+
+def window_statistics(prep, window) -> tuple[np.ndarray, torch.Tensor, torch.Tensor, float]:
+    """The gyro timing statistics of the clock stage (:func:`accel_bayes.mismatch.clock.clock_ab`) on
+    the samples ``window`` of ``prep.source`` (:func:`motion_window`), from the window's own
+    nominal fit (positions and motion fitted on the window alone, :func:`baseline_fit`): (times (n,)
+    s, a (n, K) s⁻², b (n, K) s⁻¹, f_read Hz)."""
+    from ..prep.prepared import prepare_recording
+    from ..prep.selection import select_samples
+    from .fit import baseline_fit
+    from .prepared import from_prepared
+
+    sel = select_samples(prep.source, min_rotation=0.0, drop_static=False, user=np.asarray(window, bool))
+    prep_w = from_prepared(prepare_recording(prep.source, selection=sel))
+    fit_w, _ = baseline_fit(prep_w)
+    res_w = residuals_of(prep_w, fit_w)
+    return res_w.time.numpy(), res_w.timing_a, res_w.timing_b, res_w.f_read
+
+
+def clocks_from(t, a, b, f_read: float) -> dict:
+    """Each IMU's clock from the detector's beat search (:func:`accel_bayes.mismatch.clock.estimate_clock`)
+    on timing statistics a, b (n, K) at times t (n,) s: {"beat_hz", "phase" (cycles at t = 0 of the
+    recording's clock), "drift_hz_per_s", "width_s", "evidence", "threshold"}, each (K,) numpy;
+    zeros on an IMU with fewer than 20 samples of information (a > 0).  ``evidence`` (nats ×2):
+    2·gain/ĉ², the search's gain with the statistics' noise factor ĉ² = Σb²/Σa profiled (Var b = ĉ²a
+    without a clock); ``threshold``: the clock stage's look-elsewhere χ²₄ quantile at 1 − 0.01/(K·cells)."""
+    from scipy.stats import chi2
+
+    t = np.asarray(t, float)
+    K = a.shape[1]
+    out = {k: np.zeros(K) for k in ("beat_hz", "phase", "drift_hz_per_s", "width_s", "evidence", "threshold")}
     for k in range(K):
-        a, b = res.timing_a[window, k].numpy(), res.timing_b[window, k].numpy()
-        if int((a > 0).sum()) < 20:
+        ak, bk = np.asarray(a[:, k], float), np.asarray(b[:, k], float)
+        if int((ak > 0).sum()) < 20:
             continue
-        est = estimate_clock(t_all[window], a, b, res.f_read)
-        for key in out:
+        est = estimate_clock(t, ak, bk, f_read)
+        for key in ("beat_hz", "phase", "drift_hz_per_s", "width_s"):
             out[key][k] = est[key]
+        out["evidence"][k] = 2.0 * est["gain"] * ak.sum() / max(float((bk * bk).sum()), 1e-300)
+        out["threshold"][k] = float(chi2.isf(0.01 / (K * max(est["cells"], 1)), 4))
     return out
 
 
-def acquired_age(res: Residuals, clock: dict, f_int=F_INT_NOMINAL) -> torch.Tensor:
-    """(T, K) data age (s) at ``res``'s times of the clocks :func:`clocks_of` gave, each a
-    sawtooth of span 1/f_int (the age's mean and width are taken up by the fitted coefficient c)."""
+def tracked_clocks(res: Residuals, window_stats, *, after: float, block_s: float) -> list:
+    """The causal (prequential) clock tracker: the scored stretch t ≥ ``after`` cut into blocks of
+    ``block_s`` s, each with the clock the beat search (:func:`clocks_from`) acquires on every target
+    sample *before the block*: the acquisition window's ``window_stats`` (:func:`window_statistics`)
+    and ``res``'s own kept samples from ``after`` to the block's start.  Returns [(start s, clock)]
+    (the first block's clock is the window's alone: the plain acquisition)."""
+    tw, aw, bw, f_read = window_stats
+    t = res.time.numpy()
+    blocks, start = [], after
+    while start <= t[-1]:
+        past = (t >= after) & (t < start)
+        blocks.append((float(start), clocks_from(np.concatenate([tw, t[past]]), torch.cat([aw, res.timing_a[past]]),
+                                                 torch.cat([bw, res.timing_b[past]]), f_read)))
+        start += block_s
+    return blocks
+
+
+def tracked_age(res: Residuals, blocks: list, *, block_s: float, accept=None, f_int=F_INT_NOMINAL) -> torch.Tensor:
+    """(T, K) data age (s) at ``res``'s times from :func:`tracked_clocks`'s blocks (each block's
+    samples get its clock; 0 before the first block), through :func:`acquired_age`."""
+    t = res.time.numpy()
+    age = torch.zeros(len(t), res.timing_a.shape[1], dtype=torch.float64)
+    for start, clock in blocks:
+        cur = (t >= start) & (t < start + block_s)
+        if cur.any():
+            age[cur] = acquired_age(res, clock, f_int, accept=accept)[cur]
+    return age
+
+
+def acquired_age(res: Residuals, clock: dict, f_int=F_INT_NOMINAL, accept=None) -> torch.Tensor:
+    """(T, K) data age (s) at ``res``'s times of the clocks :func:`clocks_from` gave, each a
+    sawtooth of span 1/f_int (the age's mean and width are taken up by the fitted coefficient c).
+    ``accept``: None (every clock) or "evidence" — an IMU whose clock's evidence is under its
+    look-elsewhere threshold, or whose width is outside the clock stage's
+    :data:`~accel_bayes.mismatch.clock.WIDTH_RANGE_S`, gets the IMUs' mean age instead (no clock: a
+    beat the search cannot tell from noise would load the wrong samples)."""
     t = torch.as_tensor(res.time, dtype=torch.float64)[:, None]
-    c = {k: torch.as_tensor(v, dtype=torch.float64)[None, :] for k, v in clock.items()}
-    return sawtooth_age(t, c["beat_hz"], c["phase"], c["drift_hz_per_s"], 1.0 / f_int)
+    c = {k: torch.as_tensor(clock[k], dtype=torch.float64)[None, :] for k in ("beat_hz", "phase", "drift_hz_per_s")}
+    age = sawtooth_age(t, c["beat_hz"], c["phase"], c["drift_hz_per_s"], 1.0 / f_int)
+    if accept == "evidence":
+        ok = ((np.asarray(clock["evidence"]) > np.asarray(clock["threshold"]))
+              & (np.asarray(clock["width_s"]) >= WIDTH_RANGE_S[0]) & (np.asarray(clock["width_s"]) <= WIDTH_RANGE_S[1]))
+        if ok.any():
+            age[:, ~ok] = age[:, ok].mean(1, keepdim=True)
+        else:
+            age[:] = 0.0
+    return age
 
 
 def _mean_coeff(y, rate, d, ok) -> float:
