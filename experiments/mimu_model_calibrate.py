@@ -76,6 +76,10 @@ def run_one(exp: int, variant: str, data: Path, reports: Path, chains: int, draw
         m = st["model"]
         out["model"] = {k: m[k] for k in ("source", "sha256", "used", "skipped", "gyro_posterior")}
         out["sandwich"] = m["sandwich"]
+        # with an unresolved_motion finding: the per-sample covariance's record and the flat model's sandwich
+        out["unresolved_motion"] = m.get("unresolved_motion")
+        out["sandwich_flat"] = m.get("sandwich_flat")
+        out["cov"] = [e.get("cov") for e in doc["imus"]]
         out["untempered_ratio_max"] = m["sandwich"]["std_ratio_max"]
         out["untempered_ratio_median"] = m["sandwich"]["std_ratio_median"]
         out["untempered_kappa"] = m["sandwich"]["kappa"]
@@ -112,7 +116,7 @@ def heteroscedastic(exp: int, data: Path, reports: Path) -> dict:
     rec = pre.recording
     lik = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1,
                                                 gyro_method="calibrated")
-    lik, _ = _model_gyro_step(lik, rec, cm)
+    lik, _, _ = _model_gyro_step(lik, rec, cm)
     nominal = torch.as_tensor(np.asarray(rec.nominal_position)[list(lik.imu_labels)], dtype=torch.float64)
     t = np.asarray(rec.time, dtype=float)[lik.sample_index]
     acc_rate, wdot = output_rates(t, lik.acc, lik.omega.mean[:, None])
