@@ -204,7 +204,15 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
             lik = pc.lik
             settings["model"]["sandwich_flat"] = settings["model"]["sandwich"]
             settings["model"]["sandwich"] = _percov_sandwich_record(pc, free_labels)
-            settings["model"]["unresolved_motion"] = {**pc.record, "mode_positions_m": pc.positions.tolist()}
+            settings["model"]["unresolved_motion"] = {
+                **pc.record, "mode_positions_m": pc.positions.tolist(),
+                "chains_centre": "this likelihood's mode at omega-bar and its Laplace covariance (central theta, "
+                                 "proposal, independence proposal and starts), not the flat MAP's"}
+            if map_res is not None:
+                # the flat MAP sits ~2 of its std off this target's mode (percov_honesty_probe.md): an
+                # independence proposal there would leave the target's tails to the random walk alone
+                map_res = dataclasses.replace(map_res, positions=pc.positions, theta=pc.positions[
+                    [i for i in range(lik.A) if i != lik.reference]], laplace_cov=pc.laplace_cov)
         draws = _central_step(lik, pri, map_res, opts)
         lik.num_draws = int(draws.num_draws)
         settings.update(draws.settings())
