@@ -80,10 +80,54 @@ def run_one(exp: int, variant: str, data: Path, reports: Path, chains: int, draw
         out["unresolved_motion"] = m.get("unresolved_motion")
         out["sandwich_flat"] = m.get("sandwich_flat")
         out["cov"] = [e.get("cov") for e in doc["imus"]]
+        if "percov" in res.extra:
+            out["decomposition"] = decomposition(res.extra["percov"], rec, exp)
         out["untempered_ratio_max"] = m["sandwich"]["std_ratio_max"]
         out["untempered_ratio_median"] = m["sandwich"]["std_ratio_median"]
         out["untempered_kappa"] = m["sandwich"]["kappa"]
     return out
+
+
+SIM_REPS = 3
+
+
+def decomposition(pc, rec, exp: int) -> dict:
+    """Where the per-sample model's sandwich excess sits, at its mode (ω = ω̄), the scores in
+    ``sandwich_inflation``'s convention (∂log|M| left out; :mod:`accel_bayes.pipelines.calibrate_model`):
+    the meats of ``percov_honesty_probe.py`` (whole sample with Newey–West lags and at lag 0; IMU
+    blocks at lag 0), each against the same meat on data simulated from the model at its mode
+    (``SIM_REPS`` replicates, seeded by the experiment), as variance factors (median over the
+    coordinates): time correlation (NW over lag 0), within-IMU (IMU blocks real / simulated) and
+    cross-IMU (sample over IMU blocks, real / simulated); and per quartile of |ω̄| and |ω̈̄|."""
+    import torch
+
+    from accel_bayes.inference.noise_fit import per_sample_scores, score_sandwich
+    from percov_honesty_probe import block_meat_sandwich, excess_by_quartile, free_of, full_of, simulated_scores
+
+    lik = pc.lik
+    A, ref = lik.A, lik.reference
+    th = free_of(pc.positions, ref)
+    wbar = lik.omega.mean
+
+    def half_logdet_m(t):
+        return -0.5 * lik._projection_hot(lik._positions(full_of(t, A, ref))[None])["logdetM"]
+
+    d = per_sample_scores(half_logdet_m, th)[0]
+    S = per_sample_scores(lambda t: lik.log_lik_per_sample(full_of(t, A, ref), wbar), th) - d
+    Ssim = simulated_scores(lik, th, wbar, torch.Generator().manual_seed(exp), SIM_REPS, lik.phi_prior) - d
+    cov = pc.laplace_cov
+    r = lambda sw: np.asarray(sw["std_ratio"]) ** 2  # noqa: E731 - variance factors per coordinate
+    nw, l0, b0 = r(score_sandwich(S, cov)), r(score_sandwich(S, cov, lags=0)), r(block_meat_sandwich(S, cov, 0))
+    snw = r(score_sandwich(Ssim, cov, lags=None)) / SIM_REPS
+    s0, sb0 = r(score_sandwich(Ssim, cov, lags=0)) / SIM_REPS, r(block_meat_sandwich(Ssim, cov, 0)) / SIM_REPS
+    tk = np.asarray(rec.time)[np.asarray(lik.sample_index)]
+    wdd = np.gradient(np.gradient(wbar.numpy(), tk, axis=0), tk, axis=0)
+    med = lambda x: float(np.median(x))  # noqa: E731
+    return {"in_all": med(nw / snw), "time": med(nw / l0), "within_imu": med(b0 / sb0),
+            "cross_imu": med((l0 / s0) / (b0 / sb0)), "simulated_ratio_median": med(np.sqrt(snw)),
+            "by_omega_quartile": excess_by_quartile(S, Ssim, cov, wbar.norm(dim=-1), SIM_REPS),
+            "by_angular_jerk_quartile": excess_by_quartile(S, Ssim, cov, torch.as_tensor(np.linalg.norm(wdd, axis=1)),
+                                                           SIM_REPS)}
 
 
 HETERO = (("1 level per triad", None, 1), ("× 8 bins of |ω̄|", "omega", 8), ("× 8 bins of |ω̇|", "omega_dot", 8),

@@ -202,6 +202,7 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
                      else noise.noise.sample_scale(model_norm.cpu().numpy()))
             pc = _model_percov_step(lik, terms, omega_norm, scale, map_res, nominal_acc, ps)
             lik = pc.lik
+            extra["percov"] = pc
             settings["model"]["sandwich_flat"] = settings["model"]["sandwich"]
             settings["model"]["sandwich"] = _percov_sandwich_record(pc, free_labels)
             settings["model"]["unresolved_motion"] = {
