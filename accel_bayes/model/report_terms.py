@@ -69,7 +69,8 @@ from ..data.mismatch_report import read_report
 from ..errors import UserError
 from .gyro_posterior import GyroPosterior
 
-__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array", "UnresolvedTerms",
+__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array", "clock_corrected",
+           "UnresolvedTerms",
            "unresolved_terms"]
 
 # effects whose gyroscope part is a per-sample timing error (the moment-matched covariance above)
@@ -204,8 +205,9 @@ def load_model(model) -> CalibrationModel:
             out.skipped.append({**row, "why": "no unresolved_motion finding in the report: a data age alone loads "
                                               "nothing (the per-sample covariance needs the motion's scales)"})
         elif row["effect"] == "sampling_clock":
-            out.used.append({**row, "sensor": "acc+gyro", "how": "data age (sawtooth; acc + the acc - gyro filter "
-                                                                 "delay) loading the unresolved motion per sample"})
+            out.used.append({**row, "sensor": "acc+gyro", "how": "mean effect taken off (y <- y + age dy/dt, the acc "
+                                                                 "age with the acc - gyro filter delay); the centred "
+                                                                 "age loads the unresolved motion per sample"})
         else:
             out.used.append({**row, "sensor": "acc+gyro", "how": "per-sample covariance: jerk on the accelerometer "
                                                                  "rows (projected out with phi_t, scale per |omega| "
@@ -286,6 +288,22 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects, age=None, a
     cov = 0.5 * (cov + cov.transpose(-1, -2))
     mean = (cov @ rhs).squeeze(-1)
     return GyroPosterior(mean, cov, "model"), wdot
+
+
+def clock_corrected(acc, gyro, time, age_acc, age_gyro):
+    """The sampling clocks' mean effect taken off (DESIGN §7.2 vocabulary 1.2, ``sampling_clock``):
+    an output read ``age`` late is y(t − age) ≈ y(t) − age·ẏ(t), so y ← y + age·ẏ, ẏ by second-order
+    differences of the outputs themselves within each run of contiguous samples
+    (:func:`~accel_bayes.physics.effects.output_rates`, the rates the detector's clock effect uses).
+    acc (T, A, 3) m/s², gyro (T, G, 3) rad/s (any one frame); time (T,) s; age_acc (T, A) s (with the
+    acc − gyro filter delay), age_gyro (T, G) s.  Returns (acc, gyro) corrected, float64."""
+    from ..physics.effects import output_rates
+
+    acc = torch.as_tensor(acc, dtype=torch.float64)
+    gyro = torch.as_tensor(gyro, dtype=torch.float64)
+    acc_rate, gyro_rate = output_rates(torch.as_tensor(time, dtype=torch.float64), acc, gyro)
+    return (acc + torch.as_tensor(age_acc, dtype=torch.float64)[..., None] * acc_rate,
+            gyro + torch.as_tensor(age_gyro, dtype=torch.float64)[..., None] * gyro_rate)
 
 
 @dataclass

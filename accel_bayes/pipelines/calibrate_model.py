@@ -25,9 +25,10 @@ def _model_gyro_step(lik, rec, cmodel):
     axis before and after, and the median share of the precision the gyros with a finding keep.
     Returns (likelihood, summary, :class:`~accel_bayes.model.report_terms.UnresolvedTerms` or None):
     with an ``unresolved_motion`` finding the report's clocks and scales at the samples, read at
-    the bands of the "calibrated" |ω̄| (before the model changes ω̄), and its angular acceleration
-    enters the fused posterior."""
-    from ..model.report_terms import corrected_gyro_array, fused_gyro_posterior, unresolved_terms
+    the bands of the "calibrated" |ω̄| (before the model changes ω̄); the clocks' mean effect is then
+    taken off the accelerometer and gyro outputs (:func:`~accel_bayes.model.report_terms.clock_corrected`)
+    and the angular acceleration enters the fused posterior."""
+    from ..model.report_terms import clock_corrected, corrected_gyro_array, fused_gyro_posterior, unresolved_terms
 
     idx = np.asarray(lik.sample_index)
     glabels = list(lik.gyro_labels)
@@ -38,20 +39,24 @@ def _model_gyro_step(lik, rec, cmodel):
     gstd = np.asarray(rec.gyro_noise_std, dtype=np.float64)[glabels]
     time_s = np.asarray(rec.time, dtype=np.float64)[idx]
     effects = [(k, e) for _, k, e in cmodel.gyro_effects]
-    terms = None
+    terms, acc, shift = None, lik.acc, {}
     if cmodel.unresolved:
         terms = unresolved_terms(cmodel.report, time_s, list(lik.imu_labels), glabels, lik.omega.mean.norm(dim=-1))
+        acc, gyro_c = clock_corrected(lik.acc, gyro, time_s, terms.age_acc, terms.age_gyro)
+        rms = lambda d: float(d.square().sum(-1).mean().sqrt())  # noqa: E731
+        shift = {"clock_mean_correction_rms": {"acc_m_s2": rms(acc - lik.acc), "gyro_rad_s": rms(gyro_c - gyro)}}
+        gyro = gyro_c
     omega, wdot = fused_gyro_posterior(gyro, gstd, glabels, time_s, effects,
                                        age=None if terms is None else terms.age_gyro,
                                        angular_acc_std=None if terms is None else terms.angular_acc_std)
-    new = RaoBlackwellLikelihood(lik.acc, omega, lik.acc_noise_std, lik.num_draws, reference=lik.reference,
+    new = RaoBlackwellLikelihood(acc, omega, lik.acc_noise_std, lik.num_draws, reference=lik.reference,
                                  dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior, prepared=lik.prepared)
     sd = lambda P: float(torch.diagonal(P, dim1=-2, dim2=-1).sqrt().median())  # noqa: E731
     info = {"method": "model (precision-weighted fusion with per-sample gyro covariances"
                       + ("; unresolved angular acceleration loaded by the centred data ages)" if terms else ")"),
             "omega_std_median_rad_s": {"calibrated": sd(lik.omega.cov), "model": sd(omega.cov)},
             "omega_dot_norm_median_rad_s2": float(wdot.norm(dim=-1).median()),
-            "omega_shift_rms_rad_s": float((omega.mean - lik.omega.mean).norm(dim=-1).pow(2).mean().sqrt())}
+            "omega_shift_rms_rad_s": float((omega.mean - lik.omega.mean).norm(dim=-1).pow(2).mean().sqrt()), **shift}
     return new, info, terms
 
 

@@ -14,7 +14,7 @@ from experiments import _conceal as C
 from accel_bayes.errors import UserError
 from accel_bayes.model.gyro_posterior import gyro_posterior_timing
 from accel_bayes.model.likelihood_percov import PerSampleCovLikelihood
-from accel_bayes.model.report_terms import fused_gyro_posterior, load_model, unresolved_terms
+from accel_bayes.model.report_terms import clock_corrected, fused_gyro_posterior, load_model, unresolved_terms
 from accel_bayes.physics.effects import make_effect
 from accel_bayes.pipelines.calibrate import calibrate
 
@@ -95,6 +95,23 @@ def test_clocks_and_unresolved_motion_are_used_and_listed(case):
     assert all("unresolved_motion" in s["why"] for s in m2.skipped)
 
 
+def test_clock_mean_effect_is_taken_off():
+    """Outputs read late by a sawtooth age (y(t − age), a smooth motion, two runs with a gap): the
+    correction y + age·ẏ removes the age·ẏ error but for the rate's own error where the age jumps
+    (the read outputs' differences see the jump: a few % of ẏ at those samples)."""
+    t = np.r_[np.arange(200), np.arange(260, 500)] / 62.5
+    clock = make_effect("sampling_clock", imu=0, parameters=dict(_clock(0, 2.3, 0.4)[2]))
+    age = clock.age(torch.as_tensor(t)).numpy()
+    f = lambda tt: np.stack([np.sin(3 * tt), np.cos(2 * tt), tt ** 2], -1) * 40.0  # noqa: E731
+    true = f(t)[:, None]
+    read = f(t - age)[:, None]
+    acc, gyro = clock_corrected(read, read / 10, t, age[:, None], age[:, None])
+    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
+    before, after = rms(read - true), rms(acc.numpy() - true)
+    assert before > 0.1 and after < 0.05 * before and np.abs(acc.numpy() - true).max() < 0.1 * np.abs(read - true).max()
+    np.testing.assert_allclose(gyro.numpy(), acc.numpy() / 10, rtol=1e-12)
+
+
 def test_unidentified_filter_delay_is_no_difference(case):
     """The detector writes an unidentified acc − gyro filter delay as null (clockgen reports): read as
     0 — acc age = gyro age on that IMU — not a traceback."""
@@ -127,6 +144,7 @@ def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch):
     np.testing.assert_allclose(draws.theta.numpy(), np.asarray(u["mode_positions_m"])[1:], rtol=1e-12)
     assert sum(u["band_samples"]) == r.settings["T"] and len(u["jerk_rms_fitted_m_s3"]) == 3
     assert u["jerk_rms_report_m_s3"] == [100.0, 500.0, 2000.0]
+    assert m["gyro_posterior"]["clock_mean_correction_rms"]["acc_m_s2"] > 0
     for key in ("sandwich", "sandwich_flat"):
         assert len(m[key]["std_ratio"]) == 3 * (rec.K - 1) and np.isfinite(m[key]["std_ratio"]).all()
     prov = r.positions["provenance"]["settings"]["model"]
