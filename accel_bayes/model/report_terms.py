@@ -38,14 +38,21 @@ inverted on IMU k's gyro outputs before anything else, y_k ← (I + M_k)⁻¹(y_
 detector did to the recording before it named the other effects.  The rates ω̇ of the timing
 effects are then read from the corrected gyros.
 
-Sampling clocks and unresolved motion → the per-sample covariance (read, not yet applied)
-------------------------------------------------------------------------------------------
-:func:`unresolved_terms` reads the ``sampling_clock`` findings (each IMU's data age, a sawtooth, plus
-the acc − gyro filter delay on the accelerometer) and the ``unresolved_motion`` finding (jerk and
-angular-acceleration scales per |ω| band) into what
-:class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood` and
-:func:`~accel_bayes.model.gyro_posterior.gyro_posterior_timing` take.  ``calibrate --model`` does not
-use them yet (issue #30 item 2); :func:`load_model` still lists them as skipped.
+Sampling clocks and unresolved motion → mean effect corrected, random effect as covariance
+-------------------------------------------------------------------------------------------
+With an ``unresolved_motion`` finding (issue #30 Deliver 2; :mod:`accel_bayes.pipelines.calibrate_model`):
+
+* :func:`unresolved_terms` reads each ``sampling_clock`` finding's data age at the samples (a
+  sawtooth; the accelerometer's plus the acc − gyro filter delay, an unidentified delay, written
+  null, taken as 0) and the ``unresolved_motion`` finding's band edges and scales;
+* the clocks' mean effect is taken off the outputs, y ← y + age·ẏ (:func:`clock_corrected`);
+* the unresolved angular acceleration, loaded on each gyro by its centred age, enters the fused
+  posterior of ω (:func:`fused_gyro_posterior` with ``age``);
+* the unresolved jerk, loaded on each accelerometer triad by its centred age, is projected out per
+  sample with φ_t (:class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood`), its scale
+  per report band fitted by type-II ML on the calibration's own likelihood; no tempering.
+
+Without an ``unresolved_motion`` finding the clocks are listed as skipped (an age alone loads nothing).
 
 Everything else → recorded as skipped, with the reason
 ------------------------------------------------------
