@@ -1,27 +1,30 @@
-"""Model-aware calibration of the six real MIMU4444 experiments (issue #11 item 5).
+"""``calibrate --model`` of the six real MIMU4444 experiments, untempered (issues #11 item 5, #30).
 
-Every experiment is calibrated twice in one run, same seed and chain length (4 chains × 1000 draws
-after 1000 warm-up, seed 0, as ``experiments/mimu_repeatability.py``):
+Every experiment is calibrated with the same seed and chain length (4 chains × D draws after W
+warm-up, seed 0; the issue #30 run used D = W = 500):
 
 * **without** — the default pipeline (``calibrate(rec)``): a noise level per triad at its type-II
   ML, then the likelihood tempered by the sandwich factor κ;
 * **with** — ``calibrate(rec, model=report.json)``, the experiment's own mismatch report
-  (``experiments/mimu_mismatch.py``: timing_wander on three gyros): the findings as per-sample
-  gyro covariances (:mod:`accel_bayes.model.report_terms`), the noise levels at their type-II ML
-  again, NO tempering; the sandwich at the MAP measured and recorded.
+  (``experiments/mimu_mismatch.py``): gyro linear blocks inverted, random gyro effects as per-sample
+  gyro covariances and, with its ``sampling_clock`` and ``unresolved_motion`` findings, the clocks'
+  mean effect taken off and the unresolved motion in the per-sample covariance
+  (:mod:`accel_bayes.pipelines.calibrate_model`), NO tempering; the sandwich at the mode recorded,
+  and here its decomposition (:func:`decomposition`);
+* **with_bins** (optional, ``--variants with_bins``) — the same with ``noise_bins=8`` and the flat φ
+  prior: the noise level × a factor per |ω̄| octile.
 
 Per experiment and coordinate: posterior mean and std, the sandwich std and its ratio to the
-Laplace std at the MAP (``with``: per coordinate; ``without``: the max and median the pipeline
-records before tempering, and κ).  Across experiments (:func:`mimu_repeatability.analyse`, the
-one implementation): leave-one-out z, z_e = (m_e − m̄_{−e}) / √(s_e² + 1/Σ_{j≠e} s_j⁻²) with
-m̄_{−e} the inverse-variance mean of the other five, its RMS over the 6 × 21 values; the spread
-(std, ddof 1) of the six means per coordinate; the x–y spacing of the top IMUs (x of IMUs 4, 6
-and −y of IMUs 2, 6; 18.9 mm by design).
+Laplace std at the mode.  Across experiments (:func:`mimu_repeatability.analyse`, the one
+implementation): leave-one-out z, z_e = (m_e − m̄_{−e}) / √(s_e² + 1/Σ_{j≠e} s_j⁻²) with m̄_{−e}
+the inverse-variance mean of the other five, its RMS (all, exp 1–3, exp 4–6); the spread of the six
+means; the x–y spacing of the top IMUs (x of IMUs 4, 6 and −y of IMUs 2, 6; 18.9 mm by design).
 
-    python experiments/mimu_model_calibrate.py [--reports experiments/out/mimu_mismatch]
-        [--out experiments/out/mimu_model_calibrate] [--doc experiments/mimu_model_calibrate.md]
+    PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports experiments/out/mimu_mismatch
+        --no-hetero --draws 500 --warmup 500 [--variants with,without,with_bins]
 
-Results are cached per (variant, experiment) in ``--out``; a rerun only computes what is missing.
+Results are cached per (variant, experiment) in ``--out``; a rerun only computes what is missing, and
+two processes with different ``--variants`` can fill the cache at once.
 """
 from __future__ import annotations
 
@@ -308,7 +311,8 @@ def markdown(results: dict, summ: dict, args) -> str:
     sp = summ["with"]["spacing_unc"], summ["without"]["spacing_unc"]
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     L = ["# `calibrate --model` of the six MIMU4444 experiments, untempered (issues #11 item 5, #30)", "",
-         f"Regenerate: `PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports {args.reports} --no-hetero` "
+         f"Regenerate: `PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports {args.reports} --no-hetero "
+         f"--draws {args.draws} --warmup {args.warmup} --variants {','.join(results)}` "
          f"({stamp}, {platform.machine()} {platform.system()}, shared 2-core CPU under heavy load from other jobs, "
          f"one torch thread; results cached in `{args.out}`). Reports: each experiment's own `mismatch` report "
          "(`experiments/mimu_mismatch.py`, the detector of main 97e5674), sha256 in the table below. Each "
