@@ -1,32 +1,36 @@
-"""Model-aware calibration of the six real MIMU4444 experiments (issue #11 item 5).
+"""``calibrate --model`` of the six real MIMU4444 experiments, untempered (issues #11 item 5, #30).
 
-Every experiment is calibrated twice in one run, same seed and chain length (4 chains × 1000 draws
-after 1000 warm-up, seed 0, as ``experiments/mimu_repeatability.py``):
+Every experiment is calibrated with the same seed and chain length (4 chains × D draws after W
+warm-up, seed 0; the issue #30 run used D = W = 500):
 
 * **without** — the default pipeline (``calibrate(rec)``): a noise level per triad at its type-II
   ML, then the likelihood tempered by the sandwich factor κ;
 * **with** — ``calibrate(rec, model=report.json)``, the experiment's own mismatch report
-  (``experiments/mimu_mismatch.py``: timing_wander on three gyros): the findings as per-sample
-  gyro covariances (:mod:`accel_bayes.model.report_terms`), the noise levels at their type-II ML
-  again, NO tempering; the sandwich at the MAP measured and recorded.
+  (``experiments/mimu_mismatch.py``): gyro linear blocks inverted, random gyro effects as per-sample
+  gyro covariances and, with its ``sampling_clock`` and ``unresolved_motion`` findings, the clocks'
+  mean effect taken off and the unresolved motion in the per-sample covariance
+  (:mod:`accel_bayes.pipelines.calibrate_model`), NO tempering; the sandwich at the mode recorded,
+  and here its decomposition (:func:`decomposition`);
+* **with_bins** (optional, ``--variants with_bins``) — the same with ``noise_bins=8`` and the flat φ
+  prior: the noise level × a factor per |ω̄| octile.
 
 Per experiment and coordinate: posterior mean and std, the sandwich std and its ratio to the
-Laplace std at the MAP (``with``: per coordinate; ``without``: the max and median the pipeline
-records before tempering, and κ).  Across experiments (:func:`mimu_repeatability.analyse`, the
-one implementation): leave-one-out z, z_e = (m_e − m̄_{−e}) / √(s_e² + 1/Σ_{j≠e} s_j⁻²) with
-m̄_{−e} the inverse-variance mean of the other five, its RMS over the 6 × 21 values; the spread
-(std, ddof 1) of the six means per coordinate; the x–y spacing of the top IMUs (x of IMUs 4, 6
-and −y of IMUs 2, 6; 18.9 mm by design).
+Laplace std at the mode.  Across experiments (:func:`mimu_repeatability.analyse`, the one
+implementation): leave-one-out z, z_e = (m_e − m̄_{−e}) / √(s_e² + 1/Σ_{j≠e} s_j⁻²) with m̄_{−e}
+the inverse-variance mean of the other five, its RMS (all, exp 1–3, exp 4–6); the spread of the six
+means; the x–y spacing of the top IMUs (x of IMUs 4, 6 and −y of IMUs 2, 6; 18.9 mm by design).
 
-    python experiments/mimu_model_calibrate.py [--reports experiments/out/mimu_mismatch]
-        [--out experiments/out/mimu_model_calibrate] [--doc experiments/mimu_model_calibrate.md]
+    PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports experiments/out/mimu_mismatch
+        --no-hetero --draws 500 --warmup 500 [--variants with,without,with_bins]
 
-Results are cached per (variant, experiment) in ``--out``; a rerun only computes what is missing.
+Results are cached per (variant, experiment) in ``--out``; a rerun only computes what is missing, and
+two processes with different ``--variants`` can fill the cache at once.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import platform
 import sys
 import time
 import warnings
@@ -40,7 +44,12 @@ sys.path.insert(0, str(HERE))
 from _data import data_dir  # noqa: E402
 from mimu_repeatability import analyse, coordinate_diagnostics  # noqa: E402
 
+from accel_bayes.data.outputs import write_json, write_text  # noqa: E402
+
 VARIANTS = ("without", "with")
+# beyond the two the document needs: the model with the noise level × a factor per |ω̄| octile bin
+# (the variance growing with the motion, empirical; flat φ prior, which the per-sample rescaling needs)
+EXTRA = {"with_bins": dict(noise_bins=8, phi_prior="flat")}
 AIM_RATIO = 1.15
 Z_RMS_BAND = (0.8, 1.25)
 
@@ -56,7 +65,8 @@ def run_one(exp: int, variant: str, data: Path, reports: Path, chains: int, draw
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        res = calibrate(rec, chains=chains, draws=draws, warmup=warmup, seed=seed, progress=False, model=model)
+        res = calibrate(rec, chains=chains, draws=draws, warmup=warmup, seed=seed, progress=False, model=model,
+                        **EXTRA.get(variant, {}))
     doc, st, summ = res.positions, res.settings, res.summary
     rh, ess = coordinate_diagnostics(doc, summ, rec.K)
     nm = st.get("noise_model") or {}
@@ -76,10 +86,58 @@ def run_one(exp: int, variant: str, data: Path, reports: Path, chains: int, draw
         m = st["model"]
         out["model"] = {k: m[k] for k in ("source", "sha256", "used", "skipped", "gyro_posterior")}
         out["sandwich"] = m["sandwich"]
+        # with an unresolved_motion finding: the per-sample covariance's record and the flat model's sandwich
+        out["unresolved_motion"] = m.get("unresolved_motion")
+        out["sandwich_flat"] = m.get("sandwich_flat")
+        out["cov"] = [e.get("cov") for e in doc["imus"]]
+        if "percov" in res.extra:
+            out["decomposition"] = decomposition(res.extra["percov"], rec, exp)
         out["untempered_ratio_max"] = m["sandwich"]["std_ratio_max"]
         out["untempered_ratio_median"] = m["sandwich"]["std_ratio_median"]
         out["untempered_kappa"] = m["sandwich"]["kappa"]
     return out
+
+
+SIM_REPS = 3
+
+
+def decomposition(pc, rec, exp: int) -> dict:
+    """Where the per-sample model's sandwich excess sits, at its mode (ω = ω̄), the scores in
+    ``sandwich_inflation``'s convention (∂log|M| left out; :mod:`accel_bayes.pipelines.calibrate_model`):
+    the meats of ``percov_honesty_probe.py`` (whole sample with Newey–West lags and at lag 0; IMU
+    blocks at lag 0), each against the same meat on data simulated from the model at its mode
+    (``SIM_REPS`` replicates, seeded by the experiment), as variance factors (median over the
+    coordinates): time correlation (NW over lag 0), within-IMU (IMU blocks real / simulated) and
+    cross-IMU (sample over IMU blocks, real / simulated); and per quartile of |ω̄| and |ω̈̄|."""
+    import torch
+
+    from accel_bayes.inference.noise_fit import per_sample_scores, score_sandwich
+    from percov_honesty_probe import block_meat_sandwich, excess_by_quartile, free_of, full_of, simulated_scores
+
+    lik = pc.lik
+    A, ref = lik.A, lik.reference
+    th = free_of(pc.positions, ref)
+    wbar = lik.omega.mean
+
+    def half_logdet_m(t):
+        return -0.5 * lik._projection_hot(lik._positions(full_of(t, A, ref))[None])["logdetM"]
+
+    d = per_sample_scores(half_logdet_m, th)[0]
+    S = per_sample_scores(lambda t: lik.log_lik_per_sample(full_of(t, A, ref), wbar), th) - d
+    Ssim = simulated_scores(lik, th, wbar, torch.Generator().manual_seed(exp), SIM_REPS, lik.phi_prior) - d
+    cov = pc.laplace_cov
+    r = lambda sw: np.asarray(sw["std_ratio"]) ** 2  # noqa: E731 - variance factors per coordinate
+    nw, l0, b0 = r(score_sandwich(S, cov)), r(score_sandwich(S, cov, lags=0)), r(block_meat_sandwich(S, cov, 0))
+    snw = r(score_sandwich(Ssim, cov, lags=None)) / SIM_REPS
+    s0, sb0 = r(score_sandwich(Ssim, cov, lags=0)) / SIM_REPS, r(block_meat_sandwich(Ssim, cov, 0)) / SIM_REPS
+    tk = np.asarray(rec.time)[np.asarray(lik.sample_index)]
+    wdd = np.gradient(np.gradient(wbar.numpy(), tk, axis=0), tk, axis=0)
+    med = lambda x: float(np.median(x))  # noqa: E731
+    return {"in_all": med(nw / snw), "time": med(nw / l0), "within_imu": med(b0 / sb0),
+            "cross_imu": med((l0 / s0) / (b0 / sb0)), "simulated_ratio_median": med(np.sqrt(snw)),
+            "by_omega_quartile": excess_by_quartile(S, Ssim, cov, wbar.norm(dim=-1), SIM_REPS),
+            "by_angular_jerk_quartile": excess_by_quartile(S, Ssim, cov, torch.as_tensor(np.linalg.norm(wdd, axis=1)),
+                                                           SIM_REPS)}
 
 
 HETERO = (("1 level per triad", None, 1), ("× 8 bins of |ω̄|", "omega", 8), ("× 8 bins of |ω̇|", "omega_dot", 8),
@@ -112,7 +170,7 @@ def heteroscedastic(exp: int, data: Path, reports: Path) -> dict:
     rec = pre.recording
     lik = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1,
                                                 gyro_method="calibrated")
-    lik, _ = _model_gyro_step(lik, rec, cm)
+    lik, _, _ = _model_gyro_step(lik, rec, cm)
     nominal = torch.as_tensor(np.asarray(rec.nominal_position)[list(lik.imu_labels)], dtype=torch.float64)
     t = np.asarray(rec.time, dtype=float)[lik.sample_index]
     acc_rate, wdot = output_rates(t, lik.acc, lik.omega.mean[:, None])
@@ -164,24 +222,75 @@ def spacing(results) -> dict:
             "all_min": float(min(sx.min(), sy.min())), "all_max": float(max(sx.max(), sy.max()))}
 
 
+def spacing_pooled(results) -> dict:
+    """Inverse-variance pooled x and y spacing over the experiments, 'mean ± std' (mm), each
+    experiment's std from its four coordinates' posterior std (cross-IMU covariances left out)."""
+    out = {}
+    for ax, (i, j, c, sgn) in (("x", (4, 6, 0, 1)), ("y", (2, 6, 1, -1))):
+        v, s2 = [], []
+        for r in results:
+            m, sd = np.asarray(r["mean"], dtype=float) * 1e3, np.asarray(r["std"], dtype=float) * 1e3
+            v.append(sgn * 0.5 * (m[i, c] + m[j, c]))
+            s2.append(0.25 * (sd[i, c] ** 2 + sd[j, c] ** 2))
+        w = 1 / np.asarray(s2)
+        out[ax] = f"{float((w * v).sum() / w.sum()):.3f} ± {float(w.sum() ** -0.5):.3f}"
+    return out
+
+
+def decomposition_markdown(results) -> list:
+    """The per-sample model's sandwich excess split (:func:`decomposition`), one row per experiment."""
+    rs = [r for r in sorted(results["with"], key=lambda r: r["exp"]) if r.get("decomposition")]
+    if not rs:
+        return []
+    rsb = [r for r in sorted(results.get("with_bins", []), key=lambda r: r["exp"]) if r.get("decomposition")]
+    L = ["## Where the excess sits after the model (negative result's decomposition)", "",
+         "At the per-sample model's mode, its scores (`sandwich_inflation`'s convention), variance factors real / "
+         "simulated from the model itself at its mode (3 replicates; 1 = what the model predicts), median over the "
+         "21 coordinates: *in all* (Newey–West meat), *time* (NW over lag 0, real), *within-IMU* (IMU-block meat: "
+         "heteroscedasticity, in-triad correlation, tails), *cross-IMU* (whole sample over IMU blocks); then the "
+         "within-IMU / cross-IMU factors per quartile of |ω̄| and of |ω̈̄| (low → high).", "",
+         "| exp | in all | time | within-IMU | cross-IMU | by \\|ω̄\\| quartile: within / cross | by \\|ω̈̄\\| "
+         "quartile: within / cross |", "|---|---|---|---|---|---|---|"]
+    def q(rows):
+        return "; ".join(f"{x['imu_block']:.2f} / {x['sample'] / x['imu_block']:.2f}" for x in rows)
+
+    bins_label = " (× 8 \\|ω̄\\| bins)"
+    for r in rs + rsb:
+        d = r["decomposition"]
+        L.append(f"| {r['exp']}{bins_label if r['variant'] == 'with_bins' else ''} | {d['in_all']:.2f} | {d['time']:.2f} | {d['within_imu']:.2f} | {d['cross_imu']:.2f} | "
+                 f"{q(d['by_omega_quartile'])} | {q(d['by_angular_jerk_quartile'])} |")
+    L += ["", "## The per-sample covariance per experiment", "",
+          "| exp | report sha256 (first 16) | band samples | jerk rms, report (m/s³) | jerk rms, fitted here (m/s³) | "
+          "type-II gain (nats) | centred age rms (ms) |", "|---|---|---|---|---|---|---|"]
+    for r in rs:
+        u = r["unresolved_motion"]
+        L.append(f"| {r['exp']} | {r['model']['sha256'][:16]} | {', '.join(str(n) for n in u['band_samples'])} | "
+                 f"{', '.join(f'{v:.3g}' for v in u['jerk_rms_report_m_s3'])} | "
+                 f"{', '.join('—' if v is None else f'{v:.3g}' for v in u['jerk_rms_fitted_m_s3'])} | "
+                 f"{u['type2_gain_nats']:.0f} | {1e3 * u['age_rms_s']:.3f} |")
+    return L + [""]
+
+
 def summarise(results: dict) -> dict:
     """Per variant: the repeatability analysis, the std ratios, z RMS, spread and spacing."""
     out = {}
-    for v in VARIANTS:
+    n = len(results["with"])
+    for v in [v for v in results if len(results[v]) == n]:
         rs = sorted(results[v], key=lambda r: r["exp"])
         an = analyse(rs)
-        s = {"analysis": an, "spacing": spacing(rs),
+        s = {"analysis": an, "spacing": spacing(rs), "spacing_unc": spacing_pooled(rs),
              "spread_um": (np.asarray(an["spread"]) * 1e6).tolist(),
              "ratio_max": [r["untempered_ratio_max"] for r in rs],
              "ratio_median": [r["untempered_ratio_median"] for r in rs],
              "kappa": [r["untempered_kappa"] for r in rs], "kappa_applied": [r["kappa_applied"] for r in rs],
              "std_um_median": [float(np.median(_free_stack([r], "std")) * 1e6) for r in rs],
              "seconds": [r["wall_seconds"] for r in rs]}
-        if v == "with":
+        if v != "without":
             post = _free_stack(rs, "std")
             sand = np.array([r["sandwich"]["sandwich_std_m"] for r in rs])
             s["sandwich_over_posterior"] = (sand / post).tolist()
             s["sandwich_over_posterior_max"] = (sand / post).max(1).tolist()
+            s["sandwich_over_posterior_median"] = np.median(sand / post, 1).tolist()
             # LOO z with each experiment's std replaced by its sandwich std (what an honest std would be)
             rs2 = [dict(r, std=[[0.0, 0.0, 0.0]] + np.asarray(r["sandwich"]["sandwich_std_m"]).reshape(-1, 3).tolist())
                    for r in rs]
@@ -197,53 +306,82 @@ def _f(x, fmt=".2f"):
 def markdown(results: dict, summ: dict, args) -> str:
     w, m = summ["without"], summ["with"]
     exps = sorted(r["exp"] for r in results["with"])
-    L = ["# Model-aware calibration of the six MIMU4444 experiments (issue #11 item 5)", "",
-         f"Generated by `python experiments/mimu_model_calibrate.py` (results cached in `{args.out}`). Each "
-         f"experiment is calibrated twice, {args.chains} chains × {args.draws} draws after {args.warmup} warm-up, seed "
-         f"{args.seed}: **without** — the default pipeline (noise level per triad at its type-II ML, likelihood "
-         "tempered by the sandwich factor κ); **with** — `calibrate(rec, model=report.json)` with the experiment's own "
-         "mismatch report (`experiments/mimu_mismatch.py`): the `timing_wander` findings as per-sample gyro "
-         "covariances, the ω posterior by precision-weighted fusion, noise levels at their type-II ML, **no "
-         "tempering**; the sandwich at the MAP is measured and recorded (`positions.json` provenance "
-         "`settings.model`).", "",
-         "Definitions. *Ratio*: sandwich std / Laplace std at the MAP of the untempered likelihood, per coordinate "
-         "(21 per experiment; `without`: the pipeline's own measurement before it tempers). *LOO z*: for experiment e "
-         "and coordinate c, z = (m_e − m̄_{−e}) / √(s_e² + 1/Σ_{j≠e} s_j⁻²), m̄_{−e} the inverse-variance mean of "
-         "the other five, s the posterior std of the run (`experiments/mimu_repeatability.py`'s `analyse`); RMS over "
-         "the 6 × 21 values, 1 for honest stds. *Spread*: std (ddof 1) of the six posterior means per coordinate. "
-         "*Spacing*: x of IMUs 4 and 6 and −y of IMUs 2 and 6 (top IMUs), averaged per axis; 18.9 mm by design.", "",
-         "## Headline", "",
-         "| | without model (default, tempered) | with model (untempered) |",
-         "|---|---|---|",
-         f"| sandwich/Laplace std ratio at the untempered MAP, max over coordinates (per experiment) | "
-         f"{', '.join(_f(x) for x in w['ratio_max'])} | {', '.join(_f(x) for x in m['ratio_max'])} |",
+    z = {v: np.asarray(summ[v]["analysis"]["z_loo"], dtype=float).reshape(len(exps), -1) for v in VARIANTS}
+    zr = lambda v, sl: float(np.sqrt(np.mean(z[v][sl] ** 2)))  # noqa: E731
+    sp = summ["with"]["spacing_unc"], summ["without"]["spacing_unc"]
+    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    L = ["# `calibrate --model` of the six MIMU4444 experiments, untempered (issues #11 item 5, #30)", "",
+         f"Regenerate: `PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports {args.reports} --no-hetero "
+         f"--draws {args.draws} --warmup {args.warmup} --variants {','.join(results)}` "
+         f"({stamp}, {platform.machine()} {platform.system()}, shared 2-core CPU under heavy load from other jobs, "
+         f"one torch thread; results cached in `{args.out}`). Reports: each experiment's own `mismatch` report "
+         "(`experiments/mimu_mismatch.py`, the detector of main 97e5674), sha256 in the table below. Each "
+         f"experiment is calibrated twice, {args.chains} chains × {args.draws} draws after {args.warmup} warm-up, "
+         f"seed {args.seed}: **without** — the default pipeline (noise level per triad at its type-II ML, likelihood "
+         "tempered by the sandwich factor κ); **with** — `calibrate(rec, model=report.json)`: the gyro linear blocks "
+         "inverted, the `timing_wander` findings as per-sample gyro covariances, the `sampling_clock` ages and the "
+         "`unresolved_motion` angular acceleration in the fused ω posterior, the unresolved jerk loaded by the "
+         "centred data ages in the per-sample likelihood (`model/likelihood_percov.py`, one scale per report |ω| "
+         "band by type-II ML at the MAP, noise levels kept), chains centred on that likelihood's own mode, "
+         "**no tempering**.", "",
+         "Definitions. *Ratio*: sandwich std / Laplace std at the mode of the chains' untempered likelihood, per "
+         "coordinate (21 per experiment; `without`: the pipeline's own `sandwich_inflation` before it tempers; "
+         "`with`: the per-sample model's own scores in `sandwich_inflation`'s convention, Newey–West lags, "
+         "`pipelines/calibrate_model.py`). *LOO z*: for experiment e and coordinate c, z = (m_e − m̄_{−e}) / "
+         "√(s_e² + 1/Σ_{j≠e} s_j⁻²), m̄_{−e} the inverse-variance mean of the other five, s the posterior std of "
+         "the run (`experiments/mimu_repeatability.py`'s `analyse`); RMS over the values, 1 for honest stds. Every "
+         "setting of the model is fixed before any experiment is seen (the scales are fitted per experiment by type-II "
+         "ML, as the noise levels are); exp 1–3 and exp 4–6 are reported apart. *Spacing*: x of IMUs 4 and 6 and −y of "
+         "IMUs 2 and 6 (top IMUs), averaged per axis; 18.9 mm by design; its std from the posterior std of the four "
+         "coordinates (cross-IMU covariances not in positions.json, left out).", "",
+         "## Must show (issue #30)", "",
+         "| | without model (default, tempered) | with model (untempered) | bar |",
+         "|---|---|---|---|",
+         f"| sandwich/Laplace std ratio, max over coordinates (per experiment) | "
+         f"{', '.join(_f(x) for x in w['ratio_max'])} (before tempering) | {', '.join(_f(x) for x in m['ratio_max'])} "
+         "| ≤ 1.3 (aim 1.15) |",
          f"| same, median | {', '.join(_f(x) for x in w['ratio_median'])} | "
-         f"{', '.join(_f(x) for x in m['ratio_median'])} |",
-         f"| κ (mean variance ratio) measured / applied | {', '.join(_f(x) for x in w['kappa'])} / "
-         f"{', '.join(_f(x) for x in w['kappa_applied'])} | {', '.join(_f(x) for x in m['kappa'])} / "
-         f"{', '.join(_f(x) for x in m['kappa_applied'])} |",
-         f"| sandwich std / PmMH posterior std, max per experiment | — | "
-         f"{', '.join(_f(x) for x in m['sandwich_over_posterior_max'])} |",
+         f"{', '.join(_f(x) for x in m['ratio_median'])} | |",
+         f"| sandwich std / PmMH posterior std, max (median) per experiment | — | "
+         f"{', '.join(f'{a:.2f} ({b:.2f})' for a, b in zip(m['sandwich_over_posterior_max'], m['sandwich_over_posterior_median']))} | ≤ 1.3 |",
+         f"| LOO z RMS, all / exp 1–3 / exp 4–6 | {zr('without', slice(None)):.2f} / {zr('without', slice(0, 3)):.2f} / "
+         f"{zr('without', slice(3, 6)):.2f} | {zr('with', slice(None)):.2f} / {zr('with', slice(0, 3)):.2f} / "
+         f"{zr('with', slice(3, 6)):.2f} (with the sandwich std instead: {m['z_loo_rms_sandwich']:.2f}) | 0.8–1.25 |",
+         f"| max \\|LOO z\\|, all / exp 4–6 | {np.abs(z['without']).max():.2f} / {np.abs(z['without'][3:]).max():.2f} | "
+         f"{np.abs(z['with']).max():.2f} / {np.abs(z['with'][3:]).max():.2f} | < 4 |",
          f"| posterior std, median over coordinates (µm) | {', '.join(_f(x, '.0f') for x in w['std_um_median'])} | "
-         f"{', '.join(_f(x, '.0f') for x in m['std_um_median'])} |",
-         f"| LOO z RMS (band {Z_RMS_BAND[0]}–{Z_RMS_BAND[1]}) | {w['analysis']['z_loo_rms']:.2f} | "
-         f"{m['analysis']['z_loo_rms']:.2f} (with the sandwich std instead: {m['z_loo_rms_sandwich']:.2f}) |",
-         f"| max \\|LOO z\\| | {w['analysis']['z_loo_max']:.2f} | {m['analysis']['z_loo_max']:.2f} |",
+         f"{', '.join(_f(x, '.0f') for x in m['std_um_median'])} | with ≤ without |",
+         f"| x–y spacing, pooled (inverse-variance) x / y (mm ± posterior std) | {sp[1]['x']} / {sp[1]['y']} | "
+         f"{sp[0]['x']} / {sp[0]['y']} | 18.9 |",
+         f"| x–y spacing per experiment, x / y (mm) | {'; '.join(f'{a:.3f} / {b:.3f}' for a, b in zip(w['spacing']['x_mm'], w['spacing']['y_mm']))} | "
+         f"{'; '.join(f'{a:.3f} / {b:.3f}' for a, b in zip(m['spacing']['x_mm'], m['spacing']['y_mm']))} | |",
          f"| spread of the six means per coordinate (µm), min–median–max | "
          f"{min(np.ravel(w['spread_um'])):.0f}–{np.median(w['spread_um']):.0f}–{max(np.ravel(w['spread_um'])):.0f} | "
-         f"{min(np.ravel(m['spread_um'])):.0f}–{np.median(m['spread_um']):.0f}–{max(np.ravel(m['spread_um'])):.0f} |",
-         f"| x–y spacing (mm), mean x / mean y, range over experiments | {w['spacing']['x_mean']:.3f} / "
-         f"{w['spacing']['y_mean']:.3f}, {w['spacing']['all_min']:.3f}–{w['spacing']['all_max']:.3f} | "
-         f"{m['spacing']['x_mean']:.3f} / {m['spacing']['y_mean']:.3f}, {m['spacing']['all_min']:.3f}–"
-         f"{m['spacing']['all_max']:.3f} |",
+         f"{min(np.ravel(m['spread_um'])):.0f}–{np.median(m['spread_um']):.0f}–{max(np.ravel(m['spread_um'])):.0f} | |",
+         f"| κ (mean variance ratio) measured / applied | {', '.join(_f(x) for x in w['kappa'])} / "
+         f"{', '.join(_f(x) for x in w['kappa_applied'])} | {', '.join(_f(x) for x in m['kappa'])} / "
+         f"{', '.join(_f(x) for x in m['kappa_applied'])} | |",
          f"| R̂ max / bulk ESS min over experiments | {max(w['analysis']['rhat_max']):.3f} / "
          f"{min(w['analysis']['ess_min']):.0f} | {max(m['analysis']['rhat_max']):.3f} / "
-         f"{min(m['analysis']['ess_min']):.0f} |",
-         f"| wall time per calibration (s) | {', '.join(f'{x:.0f}' for x in w['seconds'])} | "
-         f"{', '.join(f'{x:.0f}' for x in m['seconds'])} |", ""]
-    met = all(x <= AIM_RATIO for x in m["ratio_max"])
-    L += [f"**Aim (every coordinate's sandwich/posterior ratio ≤ {AIM_RATIO}) met with the model: "
+         f"{min(m['analysis']['ess_min']):.0f} | |",
+         f"| wall time per calibration (s, this run's load) | {', '.join(f'{x:.0f}' for x in w['seconds'])} | "
+         f"{', '.join(f'{x:.0f}' for x in m['seconds'])} | |", ""]
+    if "with_bins" in summ:
+        b = summ["with_bins"]
+        zb = np.asarray(b["analysis"]["z_loo"], dtype=float).reshape(len(exps), -1)
+        zrb = lambda sl: float(np.sqrt(np.mean(zb[sl] ** 2)))  # noqa: E731
+        L += ["The model with the noise level × a factor per |ω̄| octile bin (`noise_bins=8`, flat φ prior: the "
+              "per-sample rescaling needs it; fixed before any experiment was seen): sandwich/Laplace ratio max "
+              f"{', '.join(_f(x) for x in b['ratio_max'])} (median {', '.join(_f(x) for x in b['ratio_median'])}); "
+              f"sandwich/posterior max {', '.join(_f(x) for x in b['sandwich_over_posterior_max'])}; LOO z RMS "
+              f"{zrb(slice(None)):.2f} / {zrb(slice(0, 3)):.2f} / {zrb(slice(3, 6)):.2f} (all / exp 1–3 / exp 4–6), "
+              f"max |z| {np.abs(zb).max():.2f}; median posterior std "
+              f"{', '.join(_f(x, '.0f') for x in b['std_um_median'])} µm; spacing pooled x / y "
+              f"{b['spacing_unc']['x']} / {b['spacing_unc']['y']} mm.", ""]
+    met = all(x <= 1.3 for x in m["ratio_max"])
+    L += [f"**Bar (every coordinate's sandwich/Laplace ratio ≤ 1.3) met with the model: "
           f"{'YES' if met else 'NO'}** (max over experiments {max(m['ratio_max']):.2f}).", ""]
+    L += decomposition_markdown(results)
     L += ["## Per experiment: the model's gyro posterior and the noise levels", "",
           "| exp | T | findings used | skipped | ω shift RMS (rad/s) | median ω std calibrated → model (mrad/s) | "
           "acc levels without (m/s²) | acc levels with (m/s²) |", "|---|---|---|---|---|---|---|---|"]
@@ -358,21 +496,31 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-hetero", action="store_true", help="skip the MAP-level heteroscedasticity diagnostic")
+    ap.add_argument("--variants", default=",".join(VARIANTS),
+                    help="compute only these variants (two processes can fill the cache in parallel); the document "
+                         "is written when every variant of every experiment is cached")
     args = ap.parse_args(argv)
     data = args.data or data_dir()
     exps = [int(x) for x in args.experiments.split(",")]
-    results = {v: [] for v in VARIANTS}
+    todo = set(args.variants.split(","))
+    allv = VARIANTS + tuple(v for v in EXTRA if v in todo or (args.out / v).exists())
+    results = {v: [] for v in allv}
     for e in exps:
-        for v in VARIANTS:
+        for v in allv:
             f = args.out / v / f"exp_{e}.json"
             if f.exists():
                 r = json.loads(f.read_text())
+            elif v not in todo:
+                continue
             else:
                 r = run_one(e, v, data, args.reports, args.chains, args.draws, args.warmup, args.seed)
                 f.parent.mkdir(parents=True, exist_ok=True)
-                f.write_text(json.dumps(r, indent=1))
+                write_json(f, r)
             print(f"exp {e} {v}: ratio max {r['untempered_ratio_max']:.2f}, {r['wall_seconds']:.0f} s", flush=True)
             results[v].append(r)
+    if any(len(results[v]) < len(exps) for v in VARIANTS):
+        print("not every variant is cached yet: no document written")
+        return 0
     summ = summarise(results)
     hetero = []
     if not args.no_hetero:
@@ -388,12 +536,12 @@ def main(argv=None) -> int:
                   flush=True)
             hetero.append(h)
     summ["hetero"] = hetero
-    (args.out / "summary.json").write_text(json.dumps(summ, indent=1))
+    write_json(args.out / "summary.json", summ)
     figure(results, summ, args.doc.parent / "figures" / "mimu_model_calibrate_ratio.png")
     md = markdown(results, summ, args)
     old = args.doc.read_text() if args.doc.exists() else ""
     tail = old[old.index(READING_MARK):] if READING_MARK in old else READING_MARK + "\n"
-    args.doc.write_text(md + "\n" + tail)
+    write_text(args.doc, md + "\n" + tail)
     print(md)
     return 0
 

@@ -87,7 +87,7 @@ def block_meat_sandwich(S, cov, lags):
     return score_sandwich(Su.reshape(-1, n), cov, units=units, lags=lags)
 
 
-def simulated_scores(lik, th, wbar, gen, reps):
+def simulated_scores(lik, th, wbar, gen, reps, phi_prior=None):
     """Scores at θ̂ on ``reps`` data sets drawn from the model itself at θ̂ (its fitted values at ω̄
     plus its own noise and jerk term), stacked in time order: the meat the model expects, so a
     meat that is not 1 by construction (IMU blocks, lag 0) has its reference."""
@@ -100,7 +100,7 @@ def simulated_scores(lik, th, wbar, gen, reps):
         noise = torch.randn(T, 3 * A, generator=gen, dtype=torch.float64) * lik.acc_noise_std.reshape(3 * A)
         jerk = (lik.loading[:, :, None] * torch.randn(T, 1, 3, generator=gen, dtype=torch.float64)).reshape(T, 3 * A)
         sim = RaoBlackwellLikelihood((fitted + noise + jerk).reshape(T, A, 3), lik.omega, lik.acc_noise_std, 1,
-                                     reference=ref)
+                                     reference=ref, phi_prior=phi_prior)
         sim = with_unresolved_motion(sim, lik.age, lik.jerk_std)
         out.append(per_sample_scores(lambda t, sim=sim: sim.log_lik_per_sample(full_of(t, A, ref), wbar), th))
     return torch.cat(out)

@@ -35,43 +35,15 @@ from accel_bayes.data.outputs import write_text  # noqa: E402
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.model.likelihood_percov import with_unresolved_motion  # noqa: E402
 from accel_bayes.model.phi_prior import empirical_phi_prior  # noqa: E402
-from accel_bayes.model.unresolved_fit import fit_unresolved_scales  # noqa: E402
+from accel_bayes.model.unresolved_fit import fit_unresolved_scales, fixed_omega_mode  # noqa: E402
 
 SPACING_MM = 18.9
 N_INTEGRATED = 16  # draws of ω per sample for the ω-integrated maximum (fixed: common random numbers)
 
 
 def fixed_omega_max(lik, pos0, z=None):
-    """(θ̂ (A, 3) m, Laplace covariance of the free coordinates) of log p(y | ω̄, θ), or with ``z``
-    (standard normals (T, N, 3)) of log p̂(y | θ) on those draws (ω integrated, common random
-    numbers: a smooth function of θ)."""
-    A, ref = lik.A, lik.reference
-    free = [k for k in range(A) if k != ref]
-
-    def full(th):
-        P = torch.zeros(A, 3, dtype=th.dtype)
-        P[free] = th.reshape(A - 1, 3)
-        return P
-
-    def nll(th):
-        if z is not None:
-            return -lik.log_phat(full(th), z=z)
-        return -lik.log_lik_given_omega(full(th), lik.omega.mean)
-
-    th = (pos0 - pos0[ref])[free].reshape(-1).clone().requires_grad_(True)
-    opt = torch.optim.LBFGS([th], max_iter=100, line_search_fn="strong_wolfe", tolerance_grad=1e-10,
-                            tolerance_change=1e-14)
-
-    def closure():
-        opt.zero_grad()
-        loss = nll(th)
-        loss.backward()
-        return loss
-
-    for _ in range(3):
-        opt.step(closure)
-    H = torch.autograd.functional.hessian(nll, th.detach())
-    return full(th.detach()), torch.linalg.inv(H)
+    """:func:`accel_bayes.model.unresolved_fit.fixed_omega_mode` without a prior (this probe's maxima)."""
+    return fixed_omega_mode(lik, pos0, z=z)
 
 
 def main():

@@ -38,14 +38,21 @@ inverted on IMU k's gyro outputs before anything else, y_k ← (I + M_k)⁻¹(y_
 detector did to the recording before it named the other effects.  The rates ω̇ of the timing
 effects are then read from the corrected gyros.
 
-Sampling clocks and unresolved motion → the per-sample covariance (read, not yet applied)
-------------------------------------------------------------------------------------------
-:func:`unresolved_terms` reads the ``sampling_clock`` findings (each IMU's data age, a sawtooth, plus
-the acc − gyro filter delay on the accelerometer) and the ``unresolved_motion`` finding (jerk and
-angular-acceleration scales per |ω| band) into what
-:class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood` and
-:func:`~accel_bayes.model.gyro_posterior.gyro_posterior_timing` take.  ``calibrate --model`` does not
-use them yet (issue #30 item 2); :func:`load_model` still lists them as skipped.
+Sampling clocks and unresolved motion → mean effect corrected, random effect as covariance
+-------------------------------------------------------------------------------------------
+With an ``unresolved_motion`` finding (issue #30 Deliver 2; :mod:`accel_bayes.pipelines.calibrate_model`):
+
+* :func:`unresolved_terms` reads each ``sampling_clock`` finding's data age at the samples (a
+  sawtooth; the accelerometer's plus the acc − gyro filter delay, an unidentified delay, written
+  null, taken as 0) and the ``unresolved_motion`` finding's band edges and scales;
+* the clocks' mean effect is taken off the outputs, y ← y + age·ẏ (:func:`clock_corrected`);
+* the unresolved angular acceleration, loaded on each gyro by its centred age, enters the fused
+  posterior of ω (:func:`fused_gyro_posterior` with ``age``);
+* the unresolved jerk, loaded on each accelerometer triad by its centred age, is projected out per
+  sample with φ_t (:class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood`), its scale
+  per report band fitted by type-II ML on the calibration's own likelihood; no tempering.
+
+Without an ``unresolved_motion`` finding the clocks are listed as skipped (an age alone loads nothing).
 
 Everything else → recorded as skipped, with the reason
 ------------------------------------------------------
@@ -69,11 +76,14 @@ from ..data.mismatch_report import read_report
 from ..errors import UserError
 from .gyro_posterior import GyroPosterior
 
-__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array", "UnresolvedTerms",
+__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array", "clock_corrected",
+           "UnresolvedTerms",
            "unresolved_terms"]
 
 # effects whose gyroscope part is a per-sample timing error (the moment-matched covariance above)
 _TIMING = ("timing_wander", "sampling_jitter")
+# effects that enter together as the per-sample unresolved-motion covariance (the section above)
+_UNRESOLVED = ("sampling_clock", "unresolved_motion")
 
 
 @dataclass
@@ -86,6 +96,8 @@ class CalibrationModel:
     gyro_effects : [(finding index, IMU label, effect)] — the random gyro effects used.
     gyro_linear : [(finding index, IMU label, GyroLinear)] — the gyro linear blocks used.
     used, skipped : [{"finding", "effect", "imu", "sensor", "how"/"why"}] per finding.
+    report : the report's document as read (what :func:`unresolved_terms` reads again at the samples).
+    unresolved : the report has an ``unresolved_motion`` finding: the per-sample covariance is used.
     """
 
     source: str | None
@@ -95,6 +107,8 @@ class CalibrationModel:
     gyro_linear: list = field(default_factory=list)
     used: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
+    report: dict = field(default_factory=dict, repr=False)
+    unresolved: bool = False
 
     def check_recording(self, rec) -> None:
         """Refuse (one-line :class:`UserError` naming the field) a report that was not made on
@@ -140,7 +154,8 @@ def load_model(model) -> CalibrationModel:
         v = rec_info.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
             raise UserError(f"model: details.recording.{key}: expected a positive integer, got {v!r}")
-    out = CalibrationModel(source=source, sha256=sha, recording=dict(rec_info))
+    out = CalibrationModel(source=source, sha256=sha, recording=dict(rec_info), report=doc)
+    unresolved = []
     for i, f in enumerate(doc["findings"]):
         name, imu = f["effect"], f.get("imu")
         params = dict(f.get("parameters") or {})
@@ -149,6 +164,9 @@ def load_model(model) -> CalibrationModel:
         if name == "unexplained":
             out.skipped.append({**row, "why": "no model: an unexplained excess names no physics to put in the "
                                               "likelihood (the type-II ML noise level and the sandwich cover it)"})
+            continue
+        if name in _UNRESOLVED:  # sorted below, once it is known whether the report has the motion's scales
+            unresolved.append(row)
             continue
         if name == "timing_wander" and "sensor" in f and "sensor" not in params:
             params["sensor"] = f["sensor"]
@@ -188,6 +206,21 @@ def load_model(model) -> CalibrationModel:
         if which == "both":
             out.skipped.append({**row, "sensor": "acc", "why": "accelerometer half of sampling_jitter: the likelihood "
                                                                "has one noise level per triad, constant over samples"})
+    out.unresolved = any(r["effect"] == "unresolved_motion" for r in unresolved)
+    for row in unresolved:
+        if not out.unresolved:
+            out.skipped.append({**row, "why": "no unresolved_motion finding in the report: a data age alone loads "
+                                              "nothing (the per-sample covariance needs the motion's scales)"})
+        elif row["effect"] == "sampling_clock":
+            out.used.append({**row, "sensor": "acc+gyro", "how": "mean effect taken off (y <- y + age dy/dt, the acc "
+                                                                 "age with the acc - gyro filter delay); the centred "
+                                                                 "age loads the unresolved motion per sample"})
+        else:
+            out.used.append({**row, "sensor": "acc+gyro", "how": "per-sample covariance: jerk on the accelerometer "
+                                                                 "rows (projected out with phi_t, scale per |omega| "
+                                                                 "band by type-II ML on the calibration's own "
+                                                                 "likelihood), angular acceleration in the gyro "
+                                                                 "posterior of omega (the report's scales)"})
     return out
 
 
@@ -208,13 +241,19 @@ def corrected_gyro_array(gyro, orientations, gyro_labels, blocks):
     return y
 
 
-def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects):
+def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects, age=None, angular_acc_std=None):
     """The gyro posterior of ω_t with the report's random gyro effects (module docstring).
 
     gyro : (T, G, 3) rad/s, array frame, the selected samples.  gyro_std : (G,) rad/s stated noise.
     gyro_labels : the G IMU labels of the gyros.  time : (T,) s of those samples (gaps allowed).
     effects : [(IMU label, effect)] with ``params`` width (s) and, for ``timing_wander``,
     excess_noise_var ((rad/s)²).
+    age (T, G) s, angular_acc_std (T,) rad/s² (both or neither): the unresolved angular
+    acceleration α_t ~ N(0, s_t² I₃) loaded on gyro k by its centred data age d_kt, common to the
+    gyros of a sample, so the stacked covariance is blockdiag(C_t,k) + s_t² (d_t d_tᵀ) ⊗ I₃; the GLS
+    posterior through Woodbury with P_k = C_t,k⁻¹: precision Σ_k P_k − s² b (I + s² c)⁻¹ b,
+    b = Σ_k d_k P_k, c = Σ_k d_k² P_k (with C_t,k = σ_k² I it is
+    :func:`~accel_bayes.model.gyro_posterior.gyro_posterior_timing`).
     Returns (:class:`~accel_bayes.model.gyro_posterior.GyroPosterior` with method "model", ω̇ (T, 3) rad/s²).
     """
     from ..physics.effects import output_rates
@@ -237,10 +276,41 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects):
             C[:, g] += float(e.params["excess_noise_var"]) * eye
     Pk = torch.linalg.inv(C)  # (T, G, 3, 3) per-gyro precisions
     prec = Pk.sum(1)
+    Py = Pk @ y.unsqueeze(-1)  # (T, G, 3, 1)
+    rhs = Py.sum(1)
+    if (age is None) != (angular_acc_std is None):
+        raise UserError("age, angular_acc_std: give both (the unresolved angular acceleration) or neither")
+    if age is not None:
+        d = torch.as_tensor(age, dtype=torch.float64)
+        if d.shape != (T, G) or not bool(torch.isfinite(d).all()):
+            raise UserError(f"age: expected finite data ages of shape (T, G) = ({T}, {G}) s, got {tuple(d.shape)}")
+        d = d - d.mean(-1, keepdim=True)
+        s2 = torch.as_tensor(angular_acc_std, dtype=torch.float64).expand(T).square()[:, None, None]
+        b = (d[:, :, None, None] * Pk).sum(1)
+        c = (d.square()[:, :, None, None] * Pk).sum(1)
+        Minv_b = torch.linalg.solve(eye + s2 * c, b)  # (I + s² c)⁻¹ b
+        prec = prec - s2 * b @ Minv_b
+        rhs = rhs - s2 * Minv_b.transpose(-1, -2) @ (d[:, :, None, None] * Py).sum(1)
     cov = torch.linalg.inv(prec)
     cov = 0.5 * (cov + cov.transpose(-1, -2))
-    mean = (cov @ (Pk @ y.unsqueeze(-1)).sum(1)).squeeze(-1)
+    mean = (cov @ rhs).squeeze(-1)
     return GyroPosterior(mean, cov, "model"), wdot
+
+
+def clock_corrected(acc, gyro, time, age_acc, age_gyro):
+    """The sampling clocks' mean effect taken off (DESIGN §7.2 vocabulary 1.2, ``sampling_clock``):
+    an output read ``age`` late is y(t − age) ≈ y(t) − age·ẏ(t), so y ← y + age·ẏ, ẏ by second-order
+    differences of the outputs themselves within each run of contiguous samples
+    (:func:`~accel_bayes.physics.effects.output_rates`, the rates the detector's clock effect uses).
+    acc (T, A, 3) m/s², gyro (T, G, 3) rad/s (any one frame); time (T,) s; age_acc (T, A) s (with the
+    acc − gyro filter delay), age_gyro (T, G) s.  Returns (acc, gyro) corrected, float64."""
+    from ..physics.effects import output_rates
+
+    acc = torch.as_tensor(acc, dtype=torch.float64)
+    gyro = torch.as_tensor(gyro, dtype=torch.float64)
+    acc_rate, gyro_rate = output_rates(torch.as_tensor(time, dtype=torch.float64), acc, gyro)
+    return (acc + torch.as_tensor(age_acc, dtype=torch.float64)[..., None] * acc_rate,
+            gyro + torch.as_tensor(age_gyro, dtype=torch.float64)[..., None] * gyro_rate)
 
 
 @dataclass
@@ -249,13 +319,15 @@ class UnresolvedTerms:
 
     age_acc (T, A) s, age_gyro (T, G) s : the data ages of the accelerometer rows and the gyros;
     jerk_std (T,) m/s³, angular_acc_std (T,) rad/s² : the per-axis scales at each sample's |ω| band;
-    used : [{"finding", "effect", "imu", "how"}] the findings read."""
+    used : [{"finding", "effect", "imu", "how"}] the findings read; parameters : the
+    ``unresolved_motion`` finding's parameters (``omega_edges`` rad/s, ``jerk_rms`` m/s³, …)."""
 
     age_acc: torch.Tensor
     age_gyro: torch.Tensor
     jerk_std: torch.Tensor
     angular_acc_std: torch.Tensor
     used: list
+    parameters: dict = field(default_factory=dict)
 
 
 def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "UnresolvedTerms | None":
@@ -274,9 +346,11 @@ def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "Unres
         if f["effect"] == "sampling_clock":
             if f.get("imu") is None:
                 raise UserError(f"model: findings[{i}].imu: a sampling_clock finding names its IMU")
+            # a filter delay the detector could not identify is written null: no acc - gyro difference taken
+            params = {k: (0.0 if v is None and k == "filter_delay_acc_minus_gyro_s" else v)
+                      for k, v in dict(f["parameters"]).items()}
             try:
-                clocks[int(f["imu"])] = make_effect("sampling_clock", imu=f["imu"], axis=None,
-                                                    parameters=dict(f["parameters"]))
+                clocks[int(f["imu"])] = make_effect("sampling_clock", imu=f["imu"], axis=None, parameters=params)
             except UserError as exc:
                 raise UserError(f"model: findings[{i}]: {exc}") from None
             used.append({"finding": i, "effect": "sampling_clock", "imu": int(f["imu"]),
@@ -300,4 +374,4 @@ def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "Unres
                  "how": "per-sample covariance: jerk on the accelerometers, angular acceleration on the gyros, "
                         "loaded by the centred data ages, scales per |omega| band"})
     return UnresolvedTerms(ages_from_clocks(time, clocks, acc_labels, "acc"),
-                           ages_from_clocks(time, clocks, gyro_labels, "gyro"), jerk, alpha, used)
+                           ages_from_clocks(time, clocks, gyro_labels, "gyro"), jerk, alpha, used, dict(p))

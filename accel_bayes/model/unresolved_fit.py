@@ -21,7 +21,7 @@ from .likelihood import RaoBlackwellLikelihood
 from .likelihood_percov import with_unresolved_motion
 from .unresolved_cov import centred_ages
 
-__all__ = ["UnresolvedFit", "fit_unresolved_scales"]
+__all__ = ["UnresolvedFit", "fit_unresolved_scales", "fixed_omega_mode"]
 
 _LOG_NU_BOUNDS = (math.log(0.05), math.log(1e4))
 
@@ -110,3 +110,44 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter) -> UnresolvedFi
         s = torch.where(counts > 0, torch.exp(x), torch.zeros((), dtype=lik.dtype))
     return UnresolvedFit(s.detach(), float(torch.exp(xn.detach().clamp(*_LOG_NU_BOUNDS))) if fit_nu else None, ll,
                          flat)
+
+
+def fixed_omega_mode(lik, pos0, *, z=None, prior_mean=None, prior_std=None):
+    """(θ̂ (A, 3) m, Laplace covariance (3(A−1), 3(A−1)) m² of the free coordinates, IMU-major) of
+    log p(y | ω̄, θ) (ω fixed at ``lik``'s gyro posterior mean), or with ``z`` (standard normals
+    (T, N, 3)) of log p̂(y | θ) on those draws (ω integrated with common random numbers: a smooth
+    function of θ).  ``prior_mean`` (A, 3) m and ``prior_std`` m add the Gaussian prior on the
+    positions (the calibration's).  L-BFGS from ``pos0`` (A, 3) m, Hessian by autograd; any
+    likelihood of :mod:`.likelihood` or :mod:`.likelihood_percov`."""
+    A, ref = lik.A, lik.reference
+    free = [k for k in range(A) if k != ref]
+    dtype = lik.dtype
+    pos0 = torch.as_tensor(pos0, dtype=dtype)
+    mu = None if prior_mean is None else torch.as_tensor(prior_mean, dtype=dtype)
+    mu = None if mu is None else (mu - mu[ref])[free].reshape(-1)
+
+    def full(th):
+        P = torch.zeros(A, 3, dtype=th.dtype)
+        P[free] = th.reshape(A - 1, 3)
+        return P
+
+    def nll(th):
+        out = -lik.log_phat(full(th), z=z) if z is not None else -lik.log_lik_given_omega(full(th), lik.omega.mean)
+        if mu is not None:
+            out = out + 0.5 * ((th - mu) / float(prior_std)).square().sum()
+        return out
+
+    th = (pos0 - pos0[ref])[free].reshape(-1).clone().requires_grad_(True)
+    opt = torch.optim.LBFGS([th], max_iter=100, line_search_fn="strong_wolfe", tolerance_grad=1e-10,
+                            tolerance_change=1e-14)
+
+    def closure():
+        opt.zero_grad()
+        loss = nll(th)
+        loss.backward()
+        return loss
+
+    for _ in range(3):
+        opt.step(closure)
+    H = torch.autograd.functional.hessian(nll, th.detach())
+    return full(th.detach()), torch.linalg.inv(H)

@@ -54,10 +54,10 @@ from .calibrate_defaults import DEFAULTS
 from .calibrate_options import CalibrateOptions
 # The steps and the records they return (split out to keep each file under 600 lines);
 # _recording_hash and _model_gyro_step are imported from here by tests/ and experiments/.
+from .calibrate_model import _model_gyro_step, _model_percov_step, _percov_sandwich_record, _sandwich_record
 from .calibrate_steps import (  # noqa: F401
     _central_step, _chains_fingerprint, _chains_step, _check_resume, _convergence_settings, _coordinate_names,
-    _load_step, _map_step, _model_gyro_step, _model_option, _noise_step, _prepare_step,
-    _recording_hash, _sandwich_record, _start_step)
+    _load_step, _map_step, _model_option, _noise_step, _prepare_step, _recording_hash, _start_step)
 
 __all__ = ["calibrate", "CalibrateOptions", "CalibrationResult", "write_outputs", "positions_document", "DEFAULTS"]
 
@@ -143,6 +143,9 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         raw, sha, src = _load_step(recording)
         if cmodel is not None:
             cmodel.check_recording(raw)
+            if cmodel.unresolved and opts.inflate_noise:
+                raise UserError("noise_inflation: the model's per-sample covariance (its unresolved_motion finding) "
+                                "replaces the tempering; expected no noise inflation with this report")
         request = _check_resume(raw, sha, opts, None if cmodel is None else cmodel.sha256)
         # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
         pre = _prepare_step(raw, opts)
@@ -154,9 +157,11 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
             gm = "calibrated"  # the model's fused posterior generalises it (model.report_terms)
         lik = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1,
                                                     gyro_method=gm)
-        gyro_info = None
+        gyro_info = terms = None
         if cmodel is not None:
-            lik, gyro_info = _model_gyro_step(lik, rec, cmodel)
+            omega_norm = lik.omega.mean.norm(dim=-1)  # the "calibrated" |ω̄|: the report's bands are of it
+            lik, gyro_info, terms = _model_gyro_step(lik, rec, cmodel)
+            model_norm = lik.omega.mean.norm(dim=-1)  # what the noise model's per-sample scale is read at
             gm = "model"
         array = raw.sensor_array()
         labels = list(lik.imu_labels)
@@ -191,6 +196,24 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         if cmodel is not None:
             settings["model"] = {**cmodel.describe(), "gyro_posterior": gyro_info,
                                  "sandwich": _sandwich_record(lik, map_res, nominal_acc, ps, free_labels)}
+        if terms is not None:
+            # the per-sample covariance: the chains' likelihood from here on; the flat model's sandwich kept beside
+            scale = (np.ones(lik.T) if noise.noise is None
+                     else noise.noise.sample_scale(model_norm.cpu().numpy()))
+            pc = _model_percov_step(lik, terms, omega_norm, scale, map_res, nominal_acc, ps)
+            lik = pc.lik
+            extra["percov"] = pc
+            settings["model"]["sandwich_flat"] = settings["model"]["sandwich"]
+            settings["model"]["sandwich"] = _percov_sandwich_record(pc, free_labels)
+            settings["model"]["unresolved_motion"] = {
+                **pc.record, "mode_positions_m": pc.positions.tolist(),
+                "chains_centre": "this likelihood's mode at omega-bar and its Laplace covariance (central theta, "
+                                 "proposal, independence proposal and starts), not the flat MAP's"}
+            if map_res is not None:
+                # the flat MAP sits ~2 of its std off this target's mode (percov_honesty_probe.md): an
+                # independence proposal there would leave the target's tails to the random walk alone
+                map_res = dataclasses.replace(map_res, positions=pc.positions, theta=pc.positions[
+                    [i for i in range(lik.A) if i != lik.reference]], laplace_cov=pc.laplace_cov)
         draws = _central_step(lik, pri, map_res, opts)
         lik.num_draws = int(draws.num_draws)
         settings.update(draws.settings())

@@ -333,53 +333,6 @@ def _model_option(model):
     return load_model(model)
 
 
-def _model_gyro_step(lik, rec, cmodel):
-    """The likelihood with the model's gyro posterior (:func:`accel_bayes.model.report_terms.fused_gyro_posterior`)
-    on the same samples, and a summary of what it changed: the median posterior std of ω per
-    axis before and after, and the median share of the precision the gyros with a finding keep."""
-    from ..model.report_terms import corrected_gyro_array, fused_gyro_posterior
-
-    idx = np.asarray(lik.sample_index)
-    glabels = list(lik.gyro_labels)
-    gyro = rec.gyro_tensor("array", dtype=torch.float64)[torch.as_tensor(idx)][:, torch.as_tensor(glabels)]
-    if cmodel.gyro_linear:  # the report's gyro linear blocks, inverted first
-        q = np.asarray(rec.nominal_orientation, dtype=np.float64)[glabels]
-        gyro = corrected_gyro_array(gyro, q, glabels, [(k, e) for _, k, e in cmodel.gyro_linear])
-    gstd = np.asarray(rec.gyro_noise_std, dtype=np.float64)[glabels]
-    time_s = np.asarray(rec.time, dtype=np.float64)[idx]
-    effects = [(k, e) for _, k, e in cmodel.gyro_effects]
-    omega, wdot = fused_gyro_posterior(gyro, gstd, glabels, time_s, effects)
-    new = RaoBlackwellLikelihood(lik.acc, omega, lik.acc_noise_std, lik.num_draws, reference=lik.reference,
-                                 dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior, prepared=lik.prepared)
-    sd = lambda P: float(torch.diagonal(P, dim1=-2, dim2=-1).sqrt().median())  # noqa: E731
-    info = {"method": "model (precision-weighted fusion with per-sample gyro covariances)",
-            "omega_std_median_rad_s": {"calibrated": sd(lik.omega.cov), "model": sd(omega.cov)},
-            "omega_dot_norm_median_rad_s2": float(wdot.norm(dim=-1).median()),
-            "omega_shift_rms_rad_s": float((omega.mean - lik.omega.mean).norm(dim=-1).pow(2).mean().sqrt())}
-    return new, info
-
-
-def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
-    """The sandwich covariance at the MAP of the chains' likelihood against its Laplace covariance
-    (:func:`accel_bayes.inference.noise_fit.sandwich_inflation`): per free coordinate the Laplace std, the
-    sandwich std and their ratio (m, m, 1), κ and the lags — what the model still misses."""
-    if map_res is None:
-        return {"kappa": None, "why": "no usable MAP"}
-    kappa = float(getattr(lik, "kappa", 1.0))
-    std = lik.acc_noise_std
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        sw = sandwich_inflation(lik.acc, lik.omega.mean, lik.omega.cov, std, map_res, reference=lik.reference,
-                                prior_mean=nominal_acc, prior_std=prior_std, phi_prior=lik.phi_prior)
-    lap = np.sqrt(np.clip(np.diagonal(np.asarray(map_res.laplace_cov, dtype=np.float64)), 0, None))
-    ratio = np.asarray(sw["std_ratio"], dtype=np.float64)
-    names = [f"r[{k}, {a}]" for k in free_labels for a in dg_az.AXES]
-    return {"kappa": float(sw["kappa"]), "lags": int(sw["lags"]), "tempering_applied": kappa,
-            "std_ratio_max": float(ratio.max()), "std_ratio_median": float(np.median(ratio)),
-            "coordinates": names, "laplace_std_m": [float(v) for v in lap],
-            "sandwich_std_m": [float(v) for v in lap * ratio], "std_ratio": [float(v) for v in ratio]}
-
-
 def _prepare_step(raw, opts: CalibrateOptions):
     """Step 2, prepare: intrinsics and THE sample selection (:func:`accel_bayes.prep.preprocess.preprocess`,
     the user's ``select`` ANDed in).  Returns the Preprocessed (its ``recording``, and its

@@ -1,0 +1,168 @@
+"""The steps of ``calibrate --model report.json`` (:mod:`accel_bayes.model.report_terms`): the gyro
+posterior with the report's random gyro effects and, when the report has an ``unresolved_motion``
+finding, its angular acceleration loaded by the clocks' data ages (:func:`_model_gyro_step`); the
+per-sample unresolved-jerk covariance in the accelerometer likelihood (:func:`_model_percov_step`,
+issue #30); and the sandwich of the chains' likelihood at its mode (:func:`_sandwich_record`,
+:func:`_percov_sandwich_record`).  Split from ``calibrate_steps.py`` to keep both under 600 lines.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..diagnostics import arviz_calls as dg_az
+from ..errors import UserError
+from ..inference.noise_fit import per_sample_scores, sandwich_inflation, score_sandwich
+from ..model.likelihood import RaoBlackwellLikelihood
+
+
+def _model_gyro_step(lik, rec, cmodel):
+    """The likelihood with the model's gyro posterior (:func:`accel_bayes.model.report_terms.fused_gyro_posterior`)
+    on the same samples, and a summary of what it changed: the median posterior std of ω per
+    axis before and after, and the median share of the precision the gyros with a finding keep.
+    Returns (likelihood, summary, :class:`~accel_bayes.model.report_terms.UnresolvedTerms` or None):
+    with an ``unresolved_motion`` finding the report's clocks and scales at the samples, read at
+    the bands of the "calibrated" |ω̄| (before the model changes ω̄); the clocks' mean effect is then
+    taken off the accelerometer and gyro outputs (:func:`~accel_bayes.model.report_terms.clock_corrected`)
+    and the angular acceleration enters the fused posterior."""
+    from ..model.report_terms import clock_corrected, corrected_gyro_array, fused_gyro_posterior, unresolved_terms
+
+    idx = np.asarray(lik.sample_index)
+    glabels = list(lik.gyro_labels)
+    gyro = rec.gyro_tensor("array", dtype=torch.float64)[torch.as_tensor(idx)][:, torch.as_tensor(glabels)]
+    if cmodel.gyro_linear:  # the report's gyro linear blocks, inverted first
+        q = np.asarray(rec.nominal_orientation, dtype=np.float64)[glabels]
+        gyro = corrected_gyro_array(gyro, q, glabels, [(k, e) for _, k, e in cmodel.gyro_linear])
+    gstd = np.asarray(rec.gyro_noise_std, dtype=np.float64)[glabels]
+    time_s = np.asarray(rec.time, dtype=np.float64)[idx]
+    effects = [(k, e) for _, k, e in cmodel.gyro_effects]
+    terms, acc, shift = None, lik.acc, {}
+    if cmodel.unresolved:
+        terms = unresolved_terms(cmodel.report, time_s, list(lik.imu_labels), glabels, lik.omega.mean.norm(dim=-1))
+        acc, gyro_c = clock_corrected(lik.acc, gyro, time_s, terms.age_acc, terms.age_gyro)
+        rms = lambda d: float(d.square().sum(-1).mean().sqrt())  # noqa: E731
+        shift = {"clock_mean_correction_rms": {"acc_m_s2": rms(acc - lik.acc), "gyro_rad_s": rms(gyro_c - gyro)}}
+        gyro = gyro_c
+    omega, wdot = fused_gyro_posterior(gyro, gstd, glabels, time_s, effects,
+                                       age=None if terms is None else terms.age_gyro,
+                                       angular_acc_std=None if terms is None else terms.angular_acc_std)
+    new = RaoBlackwellLikelihood(acc, omega, lik.acc_noise_std, lik.num_draws, reference=lik.reference,
+                                 dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior, prepared=lik.prepared)
+    sd = lambda P: float(torch.diagonal(P, dim1=-2, dim2=-1).sqrt().median())  # noqa: E731
+    info = {"method": "model (precision-weighted fusion with per-sample gyro covariances"
+                      + ("; unresolved angular acceleration loaded by the centred data ages)" if terms else ")"),
+            "omega_std_median_rad_s": {"calibrated": sd(lik.omega.cov), "model": sd(omega.cov)},
+            "omega_dot_norm_median_rad_s2": float(wdot.norm(dim=-1).median()),
+            "omega_shift_rms_rad_s": float((omega.mean - lik.omega.mean).norm(dim=-1).pow(2).mean().sqrt()), **shift}
+    return new, info, terms
+
+
+@dataclass
+class PercovStep:
+    """The chains' likelihood with the per-sample covariance (``lik``), its mode at ω̄ with the
+    Laplace covariance (``positions`` (A, 3) m, ``laplace_cov`` m²) and the provenance ``record``."""
+
+    lik: object
+    positions: torch.Tensor
+    laplace_cov: torch.Tensor
+    record: dict
+
+
+def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std) -> PercovStep:
+    """The untempered likelihood of the noise step (``lik``: the samples already divided by the noise
+    model's per-sample scale ``sample_scale`` (T,), 1 with the stated noise) with the report's
+    unresolved jerk projected out per sample (:func:`accel_bayes.model.likelihood_percov.with_unresolved_motion`).
+
+    The loading is each row's centred data age (``terms.age_acc``, s); the jerk's scale per |ω|
+    band of the report (``omega_edges``, bands of the "calibrated" |ω̄| ``omega_norm`` rad/s) is
+    fitted by type-II ML on this likelihood at the MAP's positions and ω̄
+    (:func:`accel_bayes.model.unresolved_fit.fit_unresolved_scales`), with the noise levels kept:
+    the detector's scales were fitted against its own white levels, and refitting the levels
+    with the scales made the real board's std less honest (``experiments/percov_honesty_probe.md``,
+    'σ refit').  In the scaled samples a band's scale s_b is the physical jerk s_b·s_t."""
+    from ..model.likelihood_percov import with_unresolved_motion
+    from ..model.unresolved_fit import fit_unresolved_scales, fixed_omega_mode
+
+    if float(getattr(lik, "kappa", 1.0)) != 1.0:  # pragma: no cover - refused with the options
+        raise UserError("noise_inflation: the per-sample covariance replaces the tempering; expected none")
+    base = RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std, 1, reference=lik.reference,
+                                  dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior, prepared=lik.prepared)
+    p = terms.parameters
+    band = torch.bucketize(torch.as_tensor(omega_norm, dtype=torch.float64),
+                           torch.as_tensor(p["omega_edges"], dtype=torch.float64), right=True)
+    pos0 = nominal_acc if map_res is None else torch.as_tensor(map_res.positions, dtype=torch.float64)
+    fit = fit_unresolved_scales(base, terms.age_acc, band, pos0)
+    s_t = torch.as_tensor(np.asarray(sample_scale, dtype=np.float64))
+    new = with_unresolved_motion(base, terms.age_acc, fit.jerk_rms[band])
+    P, cov = fixed_omega_mode(new, pos0, prior_mean=nominal_acc, prior_std=prior_std)
+    phys = [float((fit.jerk_rms[b] * s_t[band == b]).median()) if bool((band == b).any()) else None
+            for b in range(len(fit.jerk_rms))]
+    record = {"omega_edges_rad_s": [float(e) for e in p["omega_edges"]],
+              "band_samples": [int((band == b).sum()) for b in range(len(fit.jerk_rms))],
+              "jerk_rms_report_m_s3": [float(v) for v in p["jerk_rms"]],
+              "jerk_rms_fitted_m_s3": phys,
+              "jerk_rms_fitted_scaled": [float(v) for v in fit.jerk_rms],
+              "angular_acc_rms_report_rad_s2": [float(v) for v in p["angular_acc_rms"]],
+              "type2_gain_nats": float(fit.gain),
+              "age_rms_s": float(terms.age_acc.sub(terms.age_acc.mean(-1, keepdim=True)).square().mean().sqrt()),
+              "how": "jerk m_t ~ N(0, s_b^2 I3) per |omega| band of the report, loaded on triad k by its centred "
+                     "data age, projected out with phi_t; s_b by type-II ML at the MAP positions and omega-bar, "
+                     "noise levels kept; untempered"}
+    return PercovStep(new, P, cov, record)
+
+
+def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
+    """The sandwich covariance at the MAP of the chains' likelihood against its Laplace covariance
+    (:func:`accel_bayes.inference.noise_fit.sandwich_inflation`): per free coordinate the Laplace std, the
+    sandwich std and their ratio (m, m, 1), κ and the lags — what the model still misses."""
+    if map_res is None:
+        return {"kappa": None, "why": "no usable MAP"}
+    kappa = float(getattr(lik, "kappa", 1.0))
+    std = lik.acc_noise_std
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        sw = sandwich_inflation(lik.acc, lik.omega.mean, lik.omega.cov, std, map_res, reference=lik.reference,
+                                prior_mean=nominal_acc, prior_std=prior_std, phi_prior=lik.phi_prior)
+    lap = np.sqrt(np.clip(np.diagonal(np.asarray(map_res.laplace_cov, dtype=np.float64)), 0, None))
+    return _ratio_record(sw, lap, tempering=kappa, free_labels=free_labels)
+
+
+def _percov_sandwich_record(step: PercovStep, free_labels) -> dict:
+    """The sandwich of the per-sample-covariance likelihood at its mode ``step.positions`` (ω = ω̄):
+    per-sample scores ψ_t = ∂ℓ_t/∂θ of its own terms ℓ_t = log p(y_t | ω̄_t, θ) less their common
+    share of ∂(−½ log|M|)/∂θ (:func:`sandwich_inflation`'s convention, which these scores reproduce
+    to 1e-12 on the flat model: ``experiments/percov_honesty_probe.md``), Newey–West meat, against
+    the Laplace covariance at that mode; the same record as :func:`_sandwich_record`."""
+    lik = step.lik
+    A, ref = lik.A, lik.reference
+    free = [k for k in range(A) if k != ref]
+
+    def full(th):
+        P = torch.zeros(A, 3, dtype=th.dtype)
+        P[free] = th.reshape(A - 1, 3)
+        return P
+
+    def ell(th):
+        return lik.log_lik_per_sample(full(th), lik.omega.mean)
+
+    def half_logdet_m(th):  # −½ log|M(θ)|: the same in every sample
+        return -0.5 * lik._projection_hot(lik._positions(full(th))[None])["logdetM"]
+
+    P = step.positions
+    th = (P - P[ref])[free].reshape(-1)
+    S = per_sample_scores(ell, th) - per_sample_scores(half_logdet_m, th)[0]
+    sw = score_sandwich(S, step.laplace_cov)
+    lap = step.laplace_cov.diagonal().clamp_min(0).sqrt().numpy()
+    return _ratio_record(sw, lap, tempering=1.0, free_labels=free_labels)
+
+
+def _ratio_record(sw, lap, *, tempering, free_labels) -> dict:
+    ratio = np.asarray(sw["std_ratio"], dtype=np.float64)
+    names = [f"r[{k}, {a}]" for k in free_labels for a in dg_az.AXES]
+    return {"kappa": float(sw["kappa"]), "lags": int(sw["lags"]), "tempering_applied": float(tempering),
+            "std_ratio_max": float(ratio.max()), "std_ratio_median": float(np.median(ratio)),
+            "coordinates": names, "laplace_std_m": [float(v) for v in lap],
+            "sandwich_std_m": [float(v) for v in lap * ratio], "std_ratio": [float(v) for v in ratio]}
