@@ -37,12 +37,11 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
     from .cases import ACC_RANGE, GYRO_RANGE, RIG_RATES, matrix_to_quat
     rng = np.random.default_rng([seed, 28])
     K = int(n_imu or rng.integers(2, 5))
-    while True:
-        rates = rng.choice(RIG_RATES, K)
-        if K == 1 or len(set(rates)) > 1:
+    while True:  # drawn even where ``rates`` replaces them, so that every later draw stays the same
+        drawn = rng.choice(RIG_RATES, K)
+        if K == 1 or len(set(drawn)) > 1:
             break
-    if rates is not None:
-        rates = np.asarray(rates, dtype=float)
+    rates = drawn if rates is None else np.asarray(rates, dtype=float)
     o = np.r_[0.0, rng.uniform(-0.01, 0.01, K - 1)]
     d = np.r_[0.0, rng.uniform(-1e-4, 1e-4, K - 1)]
     Q = np.array([np.eye(3)] + [_random_rotation(rng) for _ in range(K - 1)])
@@ -92,7 +91,9 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
                     gyro_noise_std=np.array([e[1].noise_std for e in errs]) if noise else np.full(K, 1e-4),
                     acc_clipped=CA, gyro_clipped=CG, imu_time_offset=off, acc_range=ACC_RANGE,
                     gyro_range=GYRO_RANGE, description=f"clockgen rig, seed {seed}",
-                    source="experiments/clockgen (independent first-principles generator)")
+                    source="experiments/clockgen (independent first-principles generator)",
+                    # what a user's array description states (unit/√s = unit/s/√Hz); absent without a walk
+                    attrs={"acc_random_walk": [1e-4] * K, "gyro_random_walk": [1e-5] * K} if bias_walk else {})
     truth = {"generator": "experiments/clockgen", "kind": "rig", "seed": int(seed), "n_imu": K,
              "duration": duration, "vibration": vibration, "rot_axes": list(rot_axes),
              "rate": rates.tolist(), "t0": t0, "time_offset": o, "clock_drift": d,
