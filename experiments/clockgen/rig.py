@@ -92,8 +92,9 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
                     acc_clipped=CA, gyro_clipped=CG, imu_time_offset=off, acc_range=ACC_RANGE,
                     gyro_range=GYRO_RANGE, description=f"clockgen rig, seed {seed}",
                     source="experiments/clockgen (independent first-principles generator)",
-                    # what a user's array description states (unit/√s = unit/s/√Hz); absent without a walk
-                    attrs={"acc_random_walk": [1e-4] * K, "gyro_random_walk": [1e-5] * K} if bias_walk else {})
+                    # what a user's array description states (unit/√s = unit/s/√Hz): the sensors' figure,
+                    # also where ``bias_walk=False`` leaves the walk out of the data (only the data change)
+                    attrs={"acc_random_walk": [1e-4] * K, "gyro_random_walk": [1e-5] * K})
     truth = {"generator": "experiments/clockgen", "kind": "rig", "seed": int(seed), "n_imu": K,
              "duration": duration, "vibration": vibration, "rot_axes": list(rot_axes),
              "rate": rates.tolist(), "t0": t0, "time_offset": o, "clock_drift": d,
