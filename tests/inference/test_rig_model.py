@@ -82,3 +82,21 @@ def test_process_prior_is_whitened_white_jerk():
     assert np.allclose(C, np.eye(12), atol=0.05)
     jd, A, B = process_jacobian(torch.as_tensor(xp[:3]), AB)
     assert jd == {} and torch.equal(A[0], AB[0]) and torch.equal(B[0], AB[1])
+
+
+def test_bias_walk_prior_is_whitened_random_walk():
+    """The knots' bias increments are whitened by the walk density: unit variance under a random
+    walk of that density, and each IMU's gyro and acc by their own figure."""
+    h, walk = 0.005, np.array([[2e-5, 3e-4], [5e-5, 1e-3]])   # two non-reference IMUs: [gyro, acc]
+    AB = process_matrices(h, 1.0, 1.0, walk)
+    D = local_dim(3)
+    assert AB[0].shape == (D, D)
+    rng = np.random.default_rng(2)
+    n = 20000
+    xp = np.zeros((n, D))
+    xn = np.zeros((n, D))
+    sd = np.repeat(walk, 3, axis=1).reshape(-1) * np.sqrt(h)
+    xp[:, 12:] = rng.normal(size=(n, D - 12))
+    xn[:, 12:] = xp[:, 12:] + sd * rng.normal(size=(n, D - 12))
+    e = process_residual(torch.as_tensor(xp), torch.as_tensor(xn), AB).numpy()[:, 12:]
+    assert np.allclose(np.cov(e.T), np.eye(D - 12), atol=0.05)
