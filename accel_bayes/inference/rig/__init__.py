@@ -31,8 +31,9 @@ walks with both.  K per IMU and sensor comes from long rests (Allan deviation, t
 :func:`accel_bayes.data.export.random_walks`), else from the recording (``gyro_random_walk``,
 ``acc_random_walk`` of the array description or sensor.yaml), else EuRoC's ADIS16448 figures with a
 one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised with the motion,
-so the clock, lever-arm and orientation stds include them: a walk of 1e-4 m/s²/√s moves a 15 s
-rig's time offsets by up to 2.5 (constant-bias) std (``experiments/rig_offset_decomposition.md``).  A stated nominal orientation
+so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
+1e-4 m/s²/√s moves the offsets' z by ≤ 0.05, ``experiments/rig_offset_decomposition.md``; a walk
+of the white noise's size over the recording widens the clock std, ``tests/inference/test_rig_walk.py``).  A stated nominal orientation
 (not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit
 more than 3 prior std away draws a one-line warning.  The lever arm has a 1 m std prior about the
 nominal position: proper, so LM cannot wander along an unexcited direction, and flat for anything
