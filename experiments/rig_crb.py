@@ -7,8 +7,12 @@ t_i = t_f + o_k + (s_i − t_f)/(1 + d_k) (s_i its exact stamp, t_f the recordin
 DESIGN §7.3 offset that ``experiments/rig_proof.py`` scores), with F(t, r) the exact specific force
 at lever arm r (the generator's :meth:`~experiments.clockgen.motion.Motion.specific_force`).  The
 noise e_i has covariance diag(σ_g² I, σ_a² I) + σ_j,k² ẏ_i ẏ_iᵀ: white noise plus the stamping error
-as a timing error of the whole sample (σ_j,k the generator's jitter std; bias random walks, at most
-4e-4 m/s² over 15 s against 0.02 m/s² of white noise, are left out).
+as a timing error of the whole sample (σ_j,k the generator's jitter std).  The biases b_g,k(t),
+b_a,k(t) walk: with ``bias_walk`` (default) they are a nuisance, linear between knots of the
+motion's spacing h, whose increments have the generator's walk variance (K_k² + K_ref²) h per
+axis (the reference's walk enters through the motion, so the relative bias walks with both) — a
+hybrid (Bayesian) bound: the walk is random with a known law, its starting value and the motion are
+deterministic unknowns; without it the biases are constants among the globals.
 
 Parameters: per non-reference IMU the sensor-frame rotation error ε (Q̂ = Exp(ε) Q), r, o, d (where
 the IMU has its own stamps), b_g, b_a; and the unknown motion as a nuisance: corrections δω(t),
@@ -67,13 +71,15 @@ def exact_stamps(truth, k):
     return (t - float(truth["time_offset"][k])) * (1.0 + float(truth["clock_drift"][k]))
 
 
-def rig_crb(rec, truth, h, *, own_stamps=None, fd_step=None):
+def rig_crb(rec, truth, h, *, own_stamps=None, fd_step=None, bias_walk=True):
     """CRB (covariance) of the non-reference IMUs' parameters of a clockgen rig.
 
     rec, truth : :func:`experiments.clockgen.draw_case` ``("rig", …)`` output; h : nuisance knot
     spacing (s).  own_stamps : (K,) bool, which IMUs have a drift parameter (default: all but the
     reference, as the generator's recordings carry every IMU's own stamps).  Returns
     (cov (P, P), labels [(imu k, name, component)]) in the units rad, m, s, 1, rad/s, m/s².
+    bias_walk : the biases as the generator's random walks (``truth["errors"]`` ``rw_std``; then no
+    ``bg``/``ba`` labels) rather than constants (also what a walk-free truth gives).
     """
     K = int(truth["n_imu"])
     own = np.r_[False, np.ones(K - 1, bool)] if own_stamps is None else np.asarray(own_stamps, bool)
@@ -87,11 +93,17 @@ def rig_crb(rec, truth, h, *, own_stamps=None, fd_step=None):
     step = {"q": 1e-6, "r": 1e-5, "o": 1e-6, "d": 1e-6, **(fd_step or {})}
     t_all = np.concatenate([np.asarray(truth["true_time"][k], float) for k in range(K)])
     lo, n_coef = spline_span(t_all, h)
+    err = truth["errors"]
+    rw = np.array([[err["gyro"][k]["rw_std"], err["acc"][k]["rw_std"]] for k in range(K)], float)
+    walk = bool(bias_walk) and bool((rw > 0).any())
+    # walk knots: spacing h over all instants, 6 columns [b_g, b_a] per knot and non-reference IMU
+    lo_b, n_b = float(t_all.min()) - 1e-9, int(np.floor((t_all.max() - t_all.min()) / h)) + 2
+    col_b0 = 6 * n_coef
 
     labels = []
     for k in range(1, K):
         for name in GLOBAL_NAMES:
-            if name == "d" and not own[k]:
+            if (name == "d" and not own[k]) or (walk and name in ("bg", "ba")):
                 continue
             n = 3 if name in ("q", "r", "bg", "ba") else 1
             labels += [(k, name, c) for c in range(n)]
@@ -123,8 +135,9 @@ def rig_crb(rec, truth, h, *, own_stamps=None, fd_step=None):
                 e = np.eye(3)[c]
                 J[:, :, col[(k, "q", c)]] = central("eps", step["q"] * e)
                 J[:, :, col[(k, "r", c)]] = central("r", step["r"] * e)
-                J[:, c, col[(k, "bg", c)]] = 1.0
-                J[:, 3 + c, col[(k, "ba", c)]] = 1.0
+                if not walk:
+                    J[:, c, col[(k, "bg", c)]] = 1.0
+                    J[:, 3 + c, col[(k, "ba", c)]] = 1.0
             J[:, :, col[(k, "o", 0)]] = ydot
             if own[k]:
                 J[:, :, col[(k, "d", 0)]] = central("d", step["d"])
@@ -153,12 +166,34 @@ def rig_crb(rec, truth, h, *, own_stamps=None, fd_step=None):
         rows.append(np.broadcast_to(rr, (N, 6, 24)).ravel())
         cols.append(np.broadcast_to(cc, (N, 6, 24)).ravel())
         vals.append(Jw.ravel())
+        if walk and k > 0:
+            # the walking biases at the true instant: (1 − u) on knot jb, u on jb + 1, one per row
+            x = (t - lo_b) / h
+            jb = np.clip(np.floor(x).astype(np.int64), 0, n_b - 2)
+            u = x - jb
+            Jb = np.zeros((N, 6, 2, 6))
+            Jb[:, np.arange(6), 0, np.arange(6)] = (1 - u)[:, None]
+            Jb[:, np.arange(6), 1, np.arange(6)] = u[:, None]
+            Jbw = np.linalg.solve(L, Jb.reshape(N, 6, 12))
+            base_c = col_b0 + 6 * n_b * (k - 1)
+            cb = (base_c + 6 * (jb[:, None, None] + np.arange(2)[None, :, None]) + np.arange(6)).reshape(N, 1, 12)
+            rows.append(np.broadcast_to(rr, (N, 6, 12)).ravel())
+            cols.append(np.broadcast_to(cb, (N, 6, 12)).ravel())
+            vals.append(Jbw.ravel())
         row0 += 6 * N
     Jg = np.concatenate(Jg_rows)
-    Jm = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(row0, 6 * n_coef))
+    n_cols = col_b0 + (6 * n_b * (K - 1) if walk else 0)
+    Jm = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(row0, n_cols))
     A = Jg.T @ Jg
-    Bm = np.asarray((Jm.T @ Jg))                                      # (6 n_coef, P)
-    C = (Jm.T @ Jm).tocsc()
+    Bm = np.asarray((Jm.T @ Jg))                                      # (nuisance, P)
+    C = Jm.T @ Jm
+    if walk:
+        # the walk's prior: whitened increments (b_{j+1} − b_j)/√(q h), q = K_k² + K_ref² per axis
+        Dif = sp.diags([-np.ones(n_b - 1), np.ones(n_b - 1)], [0, 1], shape=(n_b - 1, n_b))
+        Wp = sp.block_diag([sp.kron(Dif, sp.diags(1.0 / np.sqrt(np.repeat(rw[k] ** 2 + rw[0] ** 2, 3) * h)))
+                            for k in range(1, K)])
+        C = C + sp.block_diag([sp.csr_matrix((col_b0, col_b0)), Wp.T @ Wp])
+    C = C.tocsc()
     schur = A - Bm.T @ splu(C).solve(Bm)
     return np.linalg.inv(0.5 * (schur + schur.T)), labels
 

@@ -12,6 +12,15 @@ come from the joint posterior covariance.  The pair uses a subset of the eight-I
 Var(Δ) = s_pair² − s_8² (the eight-IMU estimate is the pair's plus independent information):
 z = Δ/√(s_pair² − s_8²), whose RMS over the 28 pairs should lie in 0.7–1.4 (the 28 z share IMUs,
 so they are correlated and the RMS is a rough check).
+
+``--stamps clock`` tests the data-age hypothesis (issue #28 item 3): each IMU's output read at t is
+its signal at t − age_k(t), a sawtooth of width W_k beating against the read rate (#27's sampling
+clocks), which a constant offset cannot hold.  The ages come from the detector's clock stage on the
+whole recording (``experiments/clock_mimu.py``'s cache ``experiments/results/clock_mimu/EXP.json``:
+beat, phase, drift, width of every IMU, the best fit where the stage did not accept it) and enter
+as each IMU's own stamps, ``imu_time_offset`` = −age (so every IMU also gets a clock drift, 0 in
+truth on one board clock).  ``--stamps own`` is its control: the same own-stamp model with zero
+age.  Each writes ``rig_mimu_pairs_<stamps>.md``.
 """
 from __future__ import annotations
 
@@ -36,7 +45,8 @@ sys.path.insert(0, str(REPO))
 
 from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.data.mimu import import_mimu  # noqa: E402
-from accel_bayes.inference.rig import fit_rig  # noqa: E402
+from accel_bayes.inference.rig import RigSettings, fit_rig  # noqa: E402
+from accel_bayes.physics.effects.clock import clock_age  # noqa: E402
 
 DATA = Path("/work/shared/data/mimu4444-bcd")
 
@@ -94,8 +104,30 @@ def offset_difference(res, i, j):
     return float(res.time_offset[j] - res.time_offset[i]), math.sqrt(max(float(w @ res.free_cov @ w), 0.0))
 
 
+def with_stamps(sub, how: str, exp: str):
+    """``sub`` with per-IMU stamps: "one" (unchanged, one clock), "own" (imu_time_offset 0: each IMU
+    its own clock, drift free) or "clock" (imu_time_offset = −data age of the cached clock fit)."""
+    if how == "one":
+        return sub
+    out = sub.copy()
+    off = np.zeros((len(out.time), out.K))
+    if how == "clock":
+        fits = json.loads((REPO / "experiments" / "results" / "clock_mimu" / f"{exp}.json").read_text())["imus"]
+        for f in fits:
+            off[:, f["imu"]] = -clock_age(torch.as_tensor(np.asarray(out.time, float)), f["beat_hz"], f["phase"],
+                                          f["drift_hz_per_s"], f["width_s"]).numpy()
+    out.imu_time_offset = off
+    return out
+
+
+#: the knot spacing every fit gets (what one 62.5 Hz clock gets by default): with own stamps the
+#: default would count eight IMUs' instants and choose 5 ms, which LM does not converge on
+#: (:func:`~accel_bayes.inference.rig.solve.default_knot_spacing`)
+SETTINGS = RigSettings(knot_spacing=0.01)
+
+
 def _pair_record(sub, i, j):
-    pair = fit_rig(imus(sub, [i, j]))
+    pair = fit_rig(imus(sub, [i, j]), SETTINGS)
     return {"i": i, "j": j, "offset": float(pair.time_offset[1]), "std": float(pair.time_offset_std[1]),
             "reason": pair.reason, "n_iter": pair.n_iter, "seconds": pair.seconds}
 
@@ -109,14 +141,17 @@ def main(argv=None):
                          "(every n-th pair from the k-th); then combine with --from-json")
     ap.add_argument("--json", default=None, help="records of a --part run")
     ap.add_argument("--from-json", nargs="+", default=None, metavar="JSON", help="write the document from parts")
+    ap.add_argument("--stamps", choices=("one", "own", "clock"), default="one",
+                    help="one board clock (default), each IMU its own clock, or own stamps shifted by the "
+                         "clock stage's data age (the data-age hypothesis)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     rec = import_mimu(DATA / args.exp / "data.bin.gz")
-    sub = window(rec, args.window)
+    sub = with_stamps(window(rec, args.window), args.stamps, args.exp)
     pairs = list(itertools.combinations(range(rec.K), 2))
     if args.part is not None:
         if args.part == "full":
-            res = fit_rig(sub)
+            res = fit_rig(sub, SETTINGS)
             out = {"full": {"time_offset": res.time_offset.tolist(), "reason": res.reason, "n_iter": res.n_iter,
                             "hessian": res.hessian, "chi2_per_dof": res.chi2_per_dof, "seconds": res.seconds,
                             "unidentified": [[int(k), n] for k, n in res.unidentified],
@@ -138,7 +173,7 @@ def main(argv=None):
             full = d.get("full", full)
             recs += d.get("pairs", [])
     else:
-        res = fit_rig(sub)
+        res = fit_rig(sub, SETTINGS)
         full = {"time_offset": res.time_offset.tolist(), "reason": res.reason, "n_iter": res.n_iter,
                 "hessian": res.hessian, "chi2_per_dof": res.chi2_per_dof, "seconds": res.seconds,
                 "unidentified": [[int(k), n] for k, n in res.unidentified],
@@ -161,7 +196,7 @@ def main(argv=None):
     off = 1e3 * (np.asarray(full["time_offset"]) - full["time_offset"][0])
     lines = ["# Two-IMU rigs of the MIMU4444 against the eight-IMU rig posterior (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_mimu_pairs.py --exp {args.exp} --window "
-             f"{args.window:g}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
+             f"{args.window:g} --stamps {args.stamps}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
              f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs; or in parts: "
              f"`--part full --json F.json`, `--part k/n --json Pk.json` for k < n, then `--from-json F.json Pk.json …`; "
              f"fit times in the table).", "",
@@ -183,7 +218,8 @@ def main(argv=None):
     lines += ["", f"z RMS over {int(ok.sum())} pairs: {rms:.2f} (target 0.7–1.4: "
               f"{'met' if 0.7 <= rms <= 1.4 else 'NOT met'}); max |z| {np.nanmax(np.abs(zs)):.2f}."
               + ("" if ok.all() else f"  {int((~ok).sum())} pairs with s_pair ≤ s_8 have no z."), ""]
-    outputs.write_text(REPO / "experiments" / "rig_mimu_pairs.md", "\n".join(lines) + "\n")
+    name = "rig_mimu_pairs.md" if args.stamps == "one" else f"rig_mimu_pairs_{args.stamps}.md"
+    outputs.write_text(REPO / "experiments" / name, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

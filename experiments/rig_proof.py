@@ -4,9 +4,10 @@
 
 Rigs come from the independent generator ``experiments/clockgen`` (``draw_case("rig", seed)``: 2, 3
 and 4 IMUs, 100–400 Hz mixed, offsets ±10 ms, drift ±100 ppm, random orientations, lever arms
-1–20 cm, nominal orientations 1–5° off or missing, stamp jitter and bias random walks the model
-lacks).  The fit sees only the recording (written and read back as format-v1 NetCDF); the truth
-sidecar is read afterwards.  Per coordinate z = error / Laplace std; orientation errors are
+1–20 cm, nominal orientations 1–5° off or missing, stamp jitter, bias random walks whose density
+the recording states as an array description would, and which the rig model marginalises).  The
+fit sees only the recording (written and read back as format-v1 NetCDF); the truth sidecar is read
+afterwards.  Per coordinate z = error / Laplace std; orientation errors are
 rotation vectors log(R̂ R_trueᵀ) in the sensor frame (the frame of ``orientation_cov``).
 Under-excited rigs (rotation about the array z axis only) must report the lever arm's z
 coordinate unidentified.  Per-rig records go to ``experiments/rig_proof.json`` as they finish.
@@ -191,10 +192,11 @@ def main(argv=None):
               f"orientation {worst['orient_deg']:.4f}° (≤ 0.2, {yes(worst['orient_deg'] <= 0.2)}), time offset "
               f"{worst['offset_ms']:.4f} ms (≤ 0.5, {yes(worst['offset_ms'] <= 0.5)}).", "",
               "std: the Laplace posterior at the MAP (exact Hessian), with stamp jitter as per-sample timing noise "
-              "(σ_j from the stamps). CRB: `experiments/rig_crb.py`, the Fisher information of the generator's exact "
+              "(σ_j from the stamps) and each IMU's biases as random walks of the density the recording states "
+              "(marginalised with the motion). CRB: `experiments/rig_crb.py`, the information of the generator's exact "
               "kinematics at the true parameters (finite-difference Jacobian; white noise plus the true stamp jitter; "
-              "the motion a cubic-B-spline nuisance, eliminated by its Schur complement; no priors; bias random walks "
-              "left out), independent of the solver.  The bound depends on the motion class: a spline at the fit's "
+              "the motion a cubic-B-spline nuisance and the biases the generator's random walks, a hybrid bound, both "
+              "eliminated by their Schur complement; no priors on the parameters), independent of the solver.  The bound depends on the motion class: a spline at the fit's "
               "knot spacing h has half the degrees of freedom of the fit's Hermite knots (value and slope), a "
               "spline at h/2 as many; the first is the tighter bound, the second the one for a motion model as "
               "flexible as the fit's (its column is filled only from records of runs that computed it: `run_case` "

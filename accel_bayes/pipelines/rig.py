@@ -72,16 +72,17 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
         e["time_offset"] = {"mean": js(res.time_offset[k]), "std": js(res.time_offset_std[k])}
         if res.own_stamps[k]:
             e["clock_drift"] = {"mean": js(res.clock_drift[k]), "std": js(res.clock_drift_std[k])}
+        # time means of the walking biases, relative to the reference's; the walk densities used
         e["gyro_bias"] = js(res.gyro_bias[k])
         e["acc_bias"] = js(res.acc_bias[k])
+        e["bias_random_walk"] = {"gyro": float(res.random_walk[k, 0]), "acc": float(res.random_walk[k, 1])}
         names = sorted(_NAMES[n] for kk, n in unid if kk == k)
         if names:
             e["unidentified"] = names
     return doc
 
 
-_NAMES = {"q": "orientation", "r": "position", "o": "time_offset", "d": "clock_drift", "bg": "gyro_bias",
-          "ba": "acc_bias"}
+_NAMES = {"q": "orientation", "r": "position", "o": "time_offset", "d": "clock_drift"}
 
 
 def calibrate_rig(recording, settings: RigSettings = RigSettings()) -> RigRun:

@@ -24,6 +24,10 @@ def _random_rotation(rng):
     return quat_to_matrix(q / np.linalg.norm(q))
 
 
+def _without_walk(e: SensorErrors) -> SensorErrors:
+    return SensorErrors(M=e.M, bias=e.bias, noise_std=e.noise_std)
+
+
 def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jitter=True, bias_walk=True,
              vibration=False, rot_axes=(0, 1, 2), rates=None):
     """A seeded rig case → (Recording, truth).  Ranges: K ∈ {2, 3, 4}; rates from 100, 125, 200,
@@ -37,12 +41,11 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
     from .cases import ACC_RANGE, GYRO_RANGE, RIG_RATES, matrix_to_quat
     rng = np.random.default_rng([seed, 28])
     K = int(n_imu or rng.integers(2, 5))
-    while True:
-        rates = rng.choice(RIG_RATES, K)
-        if K == 1 or len(set(rates)) > 1:
+    while True:  # drawn even where ``rates`` replaces them, so that every later draw stays the same
+        drawn = rng.choice(RIG_RATES, K)
+        if K == 1 or len(set(drawn)) > 1:
             break
-    if rates is not None:
-        rates = np.asarray(rates, dtype=float)
+    rates = drawn if rates is None else np.asarray(rates, dtype=float)
     o = np.r_[0.0, rng.uniform(-0.01, 0.01, K - 1)]
     d = np.r_[0.0, rng.uniform(-1e-4, 1e-4, K - 1)]
     Q = np.array([np.eye(3)] + [_random_rotation(rng) for _ in range(K - 1)])
@@ -74,8 +77,15 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
         erng = np.random.default_rng([seed, 5, k])
         ea = SensorErrors(noise_std=erng.uniform(0.02, 0.06) * noise, rw_std=1e-4 * bias_walk)
         eg = SensorErrors(noise_std=np.deg2rad(erng.uniform(0.2, 0.6)) * noise, rw_std=1e-5 * bias_walk)
-        a, ca = quantise(ea.apply(f[:, 0] @ Q[k].T, t, erng), ACC_LSB, quantised)
-        g, cg = quantise(eg.apply(w @ Q[k].T, t, erng), GYRO_LSB, quantised)
+        # the walks from a stream of their own, drawn whether or not they are applied: with the walk
+        # drawn from erng, ``bias_walk=False`` shifted the gyro noise and the stamp jitter to other
+        # draws, and a comparison of the two variants compared noise realisations too
+        wrng = np.random.default_rng([seed, 6, k])
+        dt = np.sqrt(np.diff(t, prepend=t[0]))[:, None]
+        walk_a = np.cumsum(ea.rw_std * dt * wrng.normal(size=(len(t), 3)), axis=0)
+        walk_g = np.cumsum(eg.rw_std * dt * wrng.normal(size=(len(t), 3)), axis=0)
+        a, ca = quantise(_without_walk(ea).apply(f[:, 0] @ Q[k].T, t, erng) + walk_a, ACC_LSB, quantised)
+        g, cg = quantise(_without_walk(eg).apply(w @ Q[k].T, t, erng) + walk_g, GYRO_LSB, quantised)
         stamps.append(s + erng.normal(0, sj[k], len(s)) if sj[k] > 0 else s)
         true_t.append(t)
         acc.append(a), gyro.append(g), clip_a.append(ca), clip_g.append(cg), errs.append((ea, eg))
@@ -92,7 +102,10 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
                     gyro_noise_std=np.array([e[1].noise_std for e in errs]) if noise else np.full(K, 1e-4),
                     acc_clipped=CA, gyro_clipped=CG, imu_time_offset=off, acc_range=ACC_RANGE,
                     gyro_range=GYRO_RANGE, description=f"clockgen rig, seed {seed}",
-                    source="experiments/clockgen (independent first-principles generator)")
+                    source="experiments/clockgen (independent first-principles generator)",
+                    # what a user's array description states (unit/√s = unit/s/√Hz): the sensors' figure,
+                    # also where ``bias_walk=False`` leaves the walk out of the data (only the data change)
+                    attrs={"acc_random_walk": [1e-4] * K, "gyro_random_walk": [1e-5] * K})
     truth = {"generator": "experiments/clockgen", "kind": "rig", "seed": int(seed), "n_imu": K,
              "duration": duration, "vibration": vibration, "rot_axes": list(rot_axes),
              "rate": rates.tolist(), "t0": t0, "time_offset": o, "clock_drift": d,

@@ -93,13 +93,13 @@ def test_spline_basis_matches_scipy():
 def test_rig_crb_matches_a_brute_force_fisher_on_a_tiny_rig():
     rec, truth = _tiny_rig()
     h = 0.01
-    cov, labels = rig_crb(rec, truth, h)
+    cov, labels = rig_crb(rec, truth, h, bias_walk=False)   # constant biases: the brute force's model
     assert [n for _, n, _ in labels] == ["q"] * 3 + ["r"] * 3 + ["o", "d"] + ["bg"] * 3 + ["ba"] * 3
     ref = _brute_force_cov(rec, truth, h)
     std, std_ref = np.sqrt(np.diag(cov)), np.sqrt(np.diag(ref))
     assert np.all(np.abs(std / std_ref - 1) < 1e-3), np.c_[std, std_ref]
     # the jitter (5× the generator's range) must matter, or the test would not check its covariance
-    no_jit, _ = rig_crb(rec, dict(truth, stamp_jitter_std=np.zeros(2)), h)
+    no_jit, _ = rig_crb(rec, dict(truth, stamp_jitter_std=np.zeros(2)), h, bias_walk=False)
     assert np.sqrt(cov[6, 6] / no_jit[6, 6]) > 1.05
 
 
@@ -109,8 +109,28 @@ def test_rig_offset_std_with_stamp_jitter_reaches_the_crb():
     bound on this rig, σ_j ≈ 0.2 ms); modelled as timing noise the std meets the independent CRB."""
     rec, truth = draw_rig(1, duration=8.0, n_imu=2, jitter=2.5, bias_walk=False)
     h = float(np.clip(2.5 / np.sum(truth["rate"]), 5e-3, 10e-3))
-    cov, labels = rig_crb(rec, truth, h)
+    cov, labels = rig_crb(rec, truth, h, bias_walk=False)
     crb_o = np.sqrt(cov[labels.index((1, "o", 0)), labels.index((1, "o", 0))])
     res = fit_rig(rec)
     assert np.allclose(res.stamp_jitter_std, truth["stamp_jitter_std"], rtol=0.1)
     assert abs(res.time_offset_std[1] / crb_o - 1) < 0.1, (res.time_offset_std[1], crb_o)
+
+
+def _walk_truth(truth, gyro, acc):
+    err = {kind: [dict(e, rw_std=v) for e in truth["errors"][kind]] for kind, v in (("gyro", gyro), ("acc", acc))}
+    return dict(truth, errors=err)
+
+
+def test_rig_crb_walk_nuisance_tends_to_constant_biases_and_widens_the_bound():
+    """The walking-bias nuisance (linear between knots, random-walk prior) reduces to the constant
+    biases as the walk vanishes, and a walk of the generator's size widens the clock bound."""
+    rec, truth = _tiny_rig(3.0, 3.5)
+    h = 0.01
+    const, lab_c = rig_crb(rec, truth, h, bias_walk=False)
+    tiny, lab_t = rig_crb(rec, _walk_truth(truth, 1e-7, 1e-6), h)
+    assert "bg" not in {n for _, n, _ in lab_t}
+    ic = [lab_c.index(lab) for lab in lab_t]
+    assert np.allclose(np.sqrt(np.diag(tiny)), np.sqrt(np.diag(const)[ic]), rtol=1e-2)
+    big, _ = rig_crb(rec, _walk_truth(truth, 1e-2, 1e-1), h)   # a walk of the white noise's size over 0.5 s
+    io = lab_t.index((1, "o", 0))
+    assert big[io, io] > 1.1 * tiny[io, io]

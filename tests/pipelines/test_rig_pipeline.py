@@ -80,6 +80,8 @@ def test_calibrate_dispatches_to_rig_and_recovers_the_concealed_rig(rig_file, tm
     assert abs(e["clock_drift"]["mean"] - truth["clock_drift"][1]) < 5 * e["clock_drift"]["std"] + 1e-6
     assert np.shape(e["orientation_cov"]) == (3, 3) and e["time_offset"]["std"] > 0
     assert doc["diagnostics"]["unidentified"] == []
+    # the walks the model marginalised: the ones the recording states, so no assumed-walk warning
+    assert e["bias_random_walk"] == {"gyro": 1e-5, "acc": 1e-4} and "random_walk" not in err
     # the export gives each IMU of the 2-rate rig its own update_rate (tests/data/test_export_consumers.py);
     # the random walks a consumer needs stated, as an import from a description gives them
     rw = io.read_recording(path)

@@ -23,16 +23,27 @@ fixed within it (iteratively reweighted), so each sample is whitened by (I + u u
 u = σ_j ẏ/σ.  With one stamp column for all IMUs the error is common to every IMU and left out.  The reference has R₀ fixed, r = 0 and no
 biases (its biases are absorbed in ω and f).  Unknowns per IMU k ≠ reference: R_k (3, right
 box-plus), r_k (3, m), o_k (s), d_k (only where the IMU carries its own stamps: a NaN-union
-recording or ``imu_time_offset``; else 0), b_g,k, b_a,k (constants).  A stated nominal orientation
+recording or ``imu_time_offset``; else 0), and its gyro and acc biases b_g,k(t), b_a,k(t) relative
+to the reference's, as random walks: part of the knot state (6 numbers per IMU and knot, linear
+between knots), consecutive knots differing by N(0, (K_k² + K_ref²) h) per axis, K the walk's
+density (rad/s/√s, m/s²/√s) — the reference's walk enters through ω and f, so the relative bias
+walks with both.  K per IMU and sensor comes from long rests (Allan deviation, the exports'
+:func:`accel_bayes.data.export.random_walks`), else from the recording (``gyro_random_walk``,
+``acc_random_walk`` of the array description or sensor.yaml), else EuRoC's ADIS16448 figures with a
+one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised with the motion,
+so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
+1e-4 m/s²/√s moves the offsets' z by ≤ 0.05, ``experiments/rig_offset_decomposition.md``; a walk
+of the white noise's size over the recording widens the clock std, ``tests/inference/test_rig_walk.py``).  A stated nominal orientation
 (not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit
 more than 3 prior std away draws a one-line warning.  The lever arm has a 1 m std prior about the
 nominal position: proper, so LM cannot wander along an unexcited direction, and flat for anything
 the data identify.  The lever arm is identified by the ω̇ and ω² terms, the orientation by ω (and
 f), the clock by the timing of ω's and f's changes.
 
-Assumptions (what the model does not have): constant biases (random walks are not modelled: on
-concealed rigs a walk of 1e-4 m/s²/√s, 4e-4 m/s² over 15 s, moves the time offsets by up to 2.5 std,
-``experiments/rig_offset_decomposition.md``), no scale factors, misalignments or nonlinearity inside
+Assumptions (what the model does not have): bias walks of the stated density (a walk faster than
+stated makes the stds too small; bias instability (flicker) is read as a walk; the walk is the
+linear interpolant of a Brownian motion between knots h apart, whose bridge, ≲ K√(h)/2, is far below
+the white noise), no scale factors, misalignments or nonlinearity inside
 an IMU (exp_1's final spin near the gyro range is out of reach), stamp errors independent between
 samples, a constant drift, motion smooth on the scale of h (cubic between knots; impacts and
 vibration above ~1/(4h) are not represented), the reference's nominal orientation exact.

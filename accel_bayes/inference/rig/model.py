@@ -8,6 +8,11 @@ rad/s, rad/s², m/s², m/s³); between two knots ω(t) and f(t) are the cubic He
 prior whose increments :func:`process_residual` scores.  Each interval [τ_j, τ_{j+1}) is one
 :class:`~accel_bayes.inference.lm.ChainResidual` row holding the (padded) samples whose corrected
 instants fall in it, so the package's structured LM eliminates the knots block-tridiagonally.
+
+The knots also carry each non-reference IMU's relative biases [b_g,k, b_a,k] (6 per IMU, after the
+motion's 12: :func:`local_dim`), a Brownian motion sampled at the knots and linear between them:
+consecutive values differ by N(0, q_k h) per axis (:func:`process_matrices`), q_k the IMU's and the
+reference's random-walk densities squared and summed (the reference's walk is absorbed in ω, f).
 """
 from __future__ import annotations
 
@@ -21,9 +26,14 @@ from ...physics.geometry import quat_to_matrix, skew
 
 __all__ = ["RigData", "bucket_samples", "hermite", "sample_time", "measurement_residual", "process_matrices",
            "measurement_jacobian", "process_residual", "process_jacobian", "full_globals", "D_LOCAL",
-           "timing_noise_directions", "stamp_jitter_std"]
+           "timing_noise_directions", "stamp_jitter_std", "local_dim", "knot_biases"]
 
-D_LOCAL = 12  # [ω, ω̇, f, ḟ] per knot
+D_LOCAL = 12  # [ω, ω̇, f, ḟ] per knot; the biases of the K − 1 non-reference IMUs follow
+
+
+def local_dim(n_imu: int) -> int:
+    """Numbers per knot: the motion's 12 and 6 walking biases per non-reference IMU."""
+    return D_LOCAL + 6 * (n_imu - 1)
 
 
 @dataclass
@@ -104,13 +114,29 @@ def hermite(u):
 
 
 def full_globals(g: dict, R0: torch.Tensor):
-    """Per-IMU (internal order, reference first) R (K, 3, 3), r, o, d, bg, ba from the free blocks
-    (which hold IMUs 1..K−1); the reference's R is its fixed nominal R0, the rest zero."""
+    """Per-IMU (internal order, reference first) R (K, 3, 3), r, o, d from the free blocks (which
+    hold IMUs 1..K−1); the reference's R is its fixed nominal R0, the rest zero."""
     z3 = g["r"].new_zeros(1, 3)
     z1 = g["o"].new_zeros(1)
     R = torch.cat((R0[None], quat_to_matrix(g["q"])), 0)
-    return (R, torch.cat((z3, g["r"]), 0), torch.cat((z1, g["o"]), 0), torch.cat((z1, g["d"]), 0),
-            torch.cat((z3, g["bg"]), 0), torch.cat((z3, g["ba"]), 0))
+    return R, torch.cat((z3, g["r"]), 0), torch.cat((z1, g["o"]), 0), torch.cat((z1, g["d"]), 0)
+
+
+def knot_biases(x, n_imu: int):
+    """(J, K, 6) [b_g, b_a] per knot and IMU in internal order (the reference's: zero) from the
+    knots x (J, :func:`local_dim`)."""
+    b = x[:, D_LOCAL:].reshape(x.shape[0], n_imu - 1, 6)
+    return torch.cat((b.new_zeros(x.shape[0], 1, 6), b), 1)
+
+
+def _slot_biases(xp, xn, data: RigData, t):
+    """Each slot's IMU's biases at its instant t (J−1, S, 6), linear between the two knots, the
+    interpolation weight u (J−1, S) and the biases' rate (J−1, S, 6) (per s)."""
+    u = (t - data.tau[:, None]) / data.h
+    k = data.imu[..., None].expand(-1, -1, 6)
+    bp = torch.gather(knot_biases(xp, data.n_imu), 1, k)
+    bn = torch.gather(knot_biases(xn, data.n_imu), 1, k)
+    return bp + u[..., None] * (bn - bp), u, (bn - bp) / data.h
 
 
 def _interp(xp, xn, data: RigData, t):
@@ -143,17 +169,19 @@ def _jitter_whiten(data: RigData, m):
 
 
 def _slot_state(g, data: RigData, R0):
-    R, r, o, d, bg, ba = full_globals(g, R0)
+    R, r, o, d = full_globals(g, R0)
     k = data.imu
-    return R[k], r[k], o[k], d[k], bg[k], ba[k]
+    return R[k], r[k], o[k], d[k]
 
 
 def measurement_residual(g: dict, xp, xn, data: RigData, R0) -> torch.Tensor:
     """Whitened gyro and acc residuals (J−1, 6·S): per slot [r_g (3), r_a (3)] with
-    r_g = (R ω(t) + b_g − y_g)/σ_g and r_a = (R [f(t) + ω̇(t)×r + ω(t)×(ω(t)×r)] + b_a − y_a)/σ_a."""
-    R, r, o, d, bg, ba = _slot_state(g, data, R0)
+    r_g = (R ω(t) + b_g(t) − y_g)/σ_g and r_a = (R [f(t) + ω̇(t)×r + ω(t)×(ω(t)×r)] + b_a(t) − y_a)/σ_a."""
+    R, r, o, d = _slot_state(g, data, R0)
     t = sample_time(data.ds, o, d)
     _, w, wd, _, f, _ = _interp(xp, xn, data, t)
+    b, _, _ = _slot_biases(xp, xn, data, t)
+    bg, ba = b[..., :3], b[..., 3:]
     v = f + torch.cross(wd, r, -1) + torch.cross(w, torch.cross(w, r, -1), -1)
     rg = ((R @ w.unsqueeze(-1)).squeeze(-1) + bg - data.yg) * data.wg[..., None]
     ra = ((R @ v.unsqueeze(-1)).squeeze(-1) + ba - data.ya) * data.wa[..., None]
@@ -164,9 +192,10 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
     """Analytic Jacobians of :func:`measurement_residual`: (dict block → (J−1, 6S, tangent size),
     A (J−1, 6S, 12) w.r.t. x_j, B (J−1, 6S, 12) w.r.t. x_{j+1}).  Orientation tangent: δ with
     R ← R·Exp(δ) (the LM's right box-plus), so ∂(R v)/∂δ = −R [v]×."""
-    R, r, o, d, bg, ba = _slot_state(g, data, R0)
+    R, r, o, d = _slot_state(g, data, R0)
     t = sample_time(data.ds, o, d)
     (b, db), w, wd, wdd, f, fd = _interp(xp, xn, data, t)
+    _, ub, brate = _slot_biases(xp, xn, data, t)
     h = data.h
     J1, S = data.imu.shape
     I3 = torch.eye(3, dtype=w.dtype)
@@ -193,18 +222,22 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
     # x layout [ω, ω̇, f, ḟ]: the value entries (i = 0, 2) multiply ω / f, the slopes (1, 3) ω̇ / ḟ
     A = torch.cat((blocks[0][0], blocks[1][0], blocks[0][1], blocks[1][1]), -1)  # (J−1, S, 6, 12)
     B = torch.cat((blocks[2][0], blocks[3][0], blocks[2][1], blocks[3][1]), -1)
+    K1 = data.n_imu - 1
+    onehot = torch.nn.functional.one_hot(data.imu, data.n_imu)[..., 1:].to(w.dtype)  # reference: no globals, no biases
+    # biases of the slot's IMU at both knots: weights (1 − u) and u on the whitened identity
+    wdiag = torch.diag_embed(torch.cat((data.wg[..., None].expand(-1, -1, 3), data.wa[..., None].expand(-1, -1, 3)), -1))
+    jb = (wdiag[..., None, :] * onehot[:, :, None, :, None]).reshape(J1, S, 6, 6 * K1)   # (J−1, S, 6, 6(K−1))
+    A = torch.cat((A, jb * (1.0 - ub)[..., None, None]), -1)
+    B = torch.cat((B, jb * ub[..., None, None]), -1)
     # globals of the slot's IMU
     jq = torch.cat((-(RG @ Sw), -(RA @ skew(v))), -2)                              # (J−1, S, 6, 3)
     jr = torch.cat((Z, RA @ (Swd + Sw @ Sw)), -2)
-    jbg = torch.cat((wg * I3, Z), -2)
-    jba = torch.cat((Z, wa * I3), -2)
-    # d/dt of the prediction: gyro R ω̇, acc R (ḟ + ω̈×r + ω̇×(ω×r) + ω×(ω̇×r))
+    # d/dt of the prediction: gyro R ω̇ + ḃ_g, acc R (ḟ + ω̈×r + ω̇×(ω×r) + ω×(ω̇×r)) + ḃ_a
     dv = fd + torch.cross(wdd, r, -1) + torch.cross(wd, wxr, -1) + torch.cross(w, torch.cross(wd, r, -1), -1)
     jt = torch.cat(((RG @ wd.unsqueeze(-1)), (RA @ dv.unsqueeze(-1))), -2)          # (J−1, S, 6, 1)
+    jt = jt + (wdiag @ brate.unsqueeze(-1))
     jo = jt
     jd = jt * (-data.ds / (1.0 + d) ** 2)[..., None, None]
-    K1 = data.n_imu - 1
-    onehot = torch.nn.functional.one_hot(data.imu, data.n_imu)[..., 1:].to(w.dtype)  # reference: no globals
     oh = onehot[:, :, None, :, None]                                               # (J−1, S, 1, K−1, 1)
 
     A, B = _jitter_whiten(data, A), _jitter_whiten(data, B)
@@ -213,21 +246,23 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
         jb = _jitter_whiten(data, jb)
         return (jb.unsqueeze(-2) * oh).reshape(J1, 6 * S, K1 * jb.shape[-1])
 
-    jac = {"q": spread(jq), "r": spread(jr), "o": spread(jo), "d": spread(jd), "bg": spread(jbg), "ba": spread(jba)}
-    return jac, A.reshape(J1, 6 * S, 12), B.reshape(J1, 6 * S, 12)
+    jac = {"q": spread(jq), "r": spread(jr), "o": spread(jo), "d": spread(jd)}
+    D = A.shape[-1]
+    return jac, A.reshape(J1, 6 * S, D), B.reshape(J1, 6 * S, D)
 
 
 def timing_noise_directions(g: dict, xp, xn, data: RigData, R0, sigma_j) -> torch.Tensor:
     """u (J−1, S, 6) = σ_j,k · ∂r/∂t of each slot: the whitened change of its six readings per second
     of timing error, times the stamp-jitter std σ_j,k (s) of the slot's IMU (sigma_j: (K,) internal
     order; padding slots get 0 through their zero weights)."""
-    R, r, o, d, _, _ = _slot_state(g, data, R0)
+    R, r, o, d = _slot_state(g, data, R0)
     t = sample_time(data.ds, o, d)
     _, w, wd, wdd, f, fd = _interp(xp, xn, data, t)
     wxr = torch.cross(w, r, -1)
     dv = fd + torch.cross(wdd, r, -1) + torch.cross(wd, wxr, -1) + torch.cross(w, torch.cross(wd, r, -1), -1)
-    jt = torch.cat(((R @ wd.unsqueeze(-1)).squeeze(-1) * data.wg[..., None],
-                    (R @ dv.unsqueeze(-1)).squeeze(-1) * data.wa[..., None]), -1)
+    _, _, brate = _slot_biases(xp, xn, data, t)
+    jt = torch.cat((((R @ wd.unsqueeze(-1)).squeeze(-1) + brate[..., :3]) * data.wg[..., None],
+                    ((R @ dv.unsqueeze(-1)).squeeze(-1) + brate[..., 3:]) * data.wa[..., None]), -1)
     sj = torch.as_tensor(np.asarray(sigma_j, dtype=float))[data.imu]
     return jt * sj[..., None]
 
@@ -255,11 +290,16 @@ def stamp_jitter_std(ds: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
 
 
-def process_matrices(h: float, qc_w: float, qc_f: float, dtype=torch.float64):
-    """(Aw, Bw) (12, 12) such that the whitened white-noise-on-jerk increments are Aw x_j + Bw x_{j+1}:
-    e = [v_{j+1} − v_j − h ṡ_j ; ṡ_{j+1} − ṡ_j] per axis, Cov(e) = q_c [[h³/3, h²/2], [h²/2, h]]."""
-    A = torch.zeros(12, 12, dtype=dtype)
-    B = torch.zeros(12, 12, dtype=dtype)
+def process_matrices(h: float, qc_w: float, qc_f: float, walk=None, dtype=torch.float64):
+    """(Aw, Bw) (D, D), D = :func:`local_dim`, such that the whitened prior increments are
+    Aw x_j + Bw x_{j+1}: per motion axis the white-noise-on-jerk e = [v_{j+1} − v_j − h ṡ_j ;
+    ṡ_{j+1} − ṡ_j], Cov(e) = q_c [[h³/3, h²/2], [h²/2, h]]; per bias axis the random-walk increment
+    b_{j+1} − b_j, Var = q h.  walk : (K − 1, 2) random-walk densities [gyro (rad/s/√s), acc
+    (m/s²/√s)] of the IMU's bias relative to the reference's (None: no non-reference IMU)."""
+    walk = np.zeros((0, 2)) if walk is None else np.asarray(walk, dtype=float).reshape(-1, 2)
+    D = D_LOCAL + 6 * len(walk)
+    A = torch.zeros(D, D, dtype=dtype)
+    B = torch.zeros(D, D, dtype=dtype)
     I3 = torch.eye(3, dtype=dtype)
     for off, qc in ((0, qc_w), (6, qc_f)):
         Q = qc * torch.tensor([[h ** 3 / 3, h ** 2 / 2], [h ** 2 / 2, h]], dtype=dtype)
@@ -268,11 +308,15 @@ def process_matrices(h: float, qc_w: float, qc_f: float, dtype=torch.float64):
         Eb = torch.eye(2, dtype=dtype)
         A[off:off + 6, off:off + 6] = torch.kron(Li @ Ea, I3)
         B[off:off + 6, off:off + 6] = torch.kron(Li @ Eb, I3)
+    inv_sd = 1.0 / (np.repeat(walk, 3, axis=1) * math.sqrt(h)).reshape(-1)   # [g g g a a a] per IMU
+    idx = torch.arange(D_LOCAL, D)
+    A[idx, idx] = -torch.as_tensor(inv_sd, dtype=dtype)
+    B[idx, idx] = torch.as_tensor(inv_sd, dtype=dtype)
     return A, B
 
 
 def process_residual(xp, xn, AB) -> torch.Tensor:
-    """Whitened motion-prior increments (J−1, 12) between consecutive knots."""
+    """Whitened motion- and walk-prior increments (J−1, D) between consecutive knots."""
     A, B = AB
     return xp @ A.T + xn @ B.T
 
@@ -281,4 +325,4 @@ def process_jacobian(xp, AB):
     """(A, B) expanded to (J−1, 12, 12): the prior is linear in the knots and free of globals."""
     A, B = AB
     n = xp.shape[0]
-    return {}, A.expand(n, 12, 12), B.expand(n, 12, 12)
+    return {}, A.expand(n, *A.shape), B.expand(n, *B.shape)

@@ -16,15 +16,22 @@ from ...physics.geometry import boxminus, matrix_to_quat, quat_to_matrix
 from ..lm import ChainResidual, GlobalResidual, LevenbergMarquardt, Problem, Variable
 from ..lm.linear import NotPositiveDefinite
 from .initial import align_gyros, interp_rows
-from .model import (process_matrices, bucket_samples, measurement_jacobian, measurement_residual,
-                    process_jacobian, process_residual, stamp_jitter_std, timing_noise_directions)
+from .model import (bucket_samples, knot_biases, measurement_jacobian, measurement_residual,
+                    process_jacobian, process_matrices, process_residual, stamp_jitter_std,
+                    timing_noise_directions)
 
 __all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes",
-           "default_knot_spacing"]
+           "default_knot_spacing", "bias_walks", "DEFAULT_RANDOM_WALK"]
 
 #: per-parameter scales of "a confident number": a direction of the Laplace posterior whose std
 #: exceeds its scale (scaled Fisher information eigenvalue < 1) is reported unidentified
-IDENT_SCALE = {"q": math.radians(1.0), "r": 0.01, "o": 2e-3, "d": 1e-3, "bg": 0.1, "ba": 1.0}
+IDENT_SCALE = {"q": math.radians(1.0), "r": 0.01, "o": 2e-3, "d": 1e-3}
+
+#: bias random-walk densities assumed where neither the rests nor the recording give them (gyro
+#: rad/s/√s, acc m/s²/√s): EuRoC's ADIS16448 sensor.yaml figures, the values VIO users start from
+#: and an upper end for MEMS IMUs (a walk assumed too large widens the clock std, one too small
+#: makes it overconfident: ``experiments/rig_offset_decomposition.md``)
+DEFAULT_RANDOM_WALK = {"gyro": 1.9393e-5, "acc": 3.0e-3}
 
 
 @dataclass(frozen=True)
@@ -37,7 +44,9 @@ class RigSettings:
     contradiction_sigma : a fitted orientation further than this many prior std from its nominal
         draws a warning.
     max_iter : LM step attempts per pass (a second pass, after re-bucketing the samples at the first
-        pass's clock estimates, runs only where some sample moved by more than h/4).
+        pass's clock estimates, runs only where some sample moved by more than h/4).  40 stopped 6 of
+        exp_1's 28 MIMU pair fits short of convergence (``experiments/rig_mimu_pairs.md``); fits that
+        converge stop earlier.
     hessian : "exact" (default) or "gauss_newton" information for the Laplace posterior.  The
         Gauss–Newton JᵀJ evaluates ∂r/∂o = R ω̇ at the *estimated* motion, whose noise adds to its
         square (errors in variables): on concealed rigs it made the clock std 25–40 % too small;
@@ -45,6 +54,8 @@ class RigSettings:
     lever_prior_std : m, std of the (effectively flat) lever-arm prior about the nominal positions.
     stamp_jitter : model each IMU's stamping error as per-sample timing noise, its std estimated from
         the stamps (:func:`~.model.stamp_jitter_std`; only where the IMUs carry their own stamps).
+    random_walk : {"gyro": rad/s/√s, "acc": m/s²/√s} for every IMU, or None: per IMU from
+        :func:`bias_walks` (rests, then the recording, then :data:`DEFAULT_RANDOM_WALK` with a warning).
     prior_scale : multiplies the white-jerk intensities q_c estimated from the reference (> 1: weaker).
     ftol : LM's relative cost-change stop (1e-8 of a cost of order the number of residuals is far
         below the 0.5 that a 1-std move of one parameter makes).
@@ -53,17 +64,13 @@ class RigSettings:
     knot_spacing: float | None = None
     orientation_prior_deg: float = 5.0
     contradiction_sigma: float = 3.0
-    max_iter: int = 40
+    max_iter: int = 100
     ftol: float = 1e-8
     prior_scale: float = 1.0
     hessian: str = "exact"
     lever_prior_std: float = 1.0
-    stamp_jitter_std: np.ndarray = None
-    #: joint posterior covariance of the free parameters (NaN rows where unidentified) and their
-    #: labels (imu label, block name, component) — the cross terms the per-block fields leave out
-    free_cov: np.ndarray = field(default=None, repr=False)
-    free_labels: list = field(default=None, repr=False)
     stamp_jitter: bool = True
+    random_walk: dict | None = None
 
 
 @dataclass
@@ -73,7 +80,9 @@ class RigResult:
     orientation (K, 4) quaternions (DESIGN §7.0); orientation_cov (K, 3, 3) rad², sensor frame;
     position (K, 3) m, array frame, relative to the reference; position_cov (K, 3, 3) m²;
     time_offset, time_offset_std (K,) s; clock_drift, clock_drift_std (K,) (NaN where the IMU has no
-    own stamps); gyro_bias, acc_bias (K, 3); own_stamps (K,) bool; stamp_jitter_std (K,) s (0 where
+    own stamps); gyro_bias, acc_bias (K, 3): time means of the walking biases relative to the
+    reference's (rad/s, m/s²); random_walk (K, 2): the [gyro, acc] walk densities used (rad/s/√s,
+    m/s²/√s); own_stamps (K,) bool; stamp_jitter_std (K,) s (0 where
     not modelled); unidentified: list of
     (imu label, parameter name) pairs; warnings: one line each; converged, reason, n_iter,
     chi2_per_dof, seconds.
@@ -106,6 +115,36 @@ class RigResult:
     #: labels (imu label, block name, component) — the cross terms the per-block fields leave out
     free_cov: np.ndarray = field(default=None, repr=False)
     free_labels: list = field(default=None, repr=False)
+    random_walk: np.ndarray = None
+
+
+def bias_walks(rec, samples, order, settings) -> tuple[np.ndarray, list]:
+    """(K, 2) [gyro, acc] bias random-walk densities (rad/s/√s, m/s²/√s) in internal order, and
+    warnings: ``settings.random_walk`` if given, else per IMU from its rests (Allan deviation) or the
+    recording's ``gyro_random_walk`` / ``acc_random_walk`` (:func:`accel_bayes.data.export.random_walks`),
+    else :data:`DEFAULT_RANDOM_WALK` with a one-line warning naming the key."""
+    from ...data.export import random_walks  # the exports' resolution: one way for both
+    K = len(order)
+    if settings.random_walk is not None:
+        return np.tile([settings.random_walk["gyro"], settings.random_walk["acc"]], (K, 1)).astype(float), []
+    rates = np.ones(rec.K)
+    for i, k in enumerate(order):
+        rates[k] = 1.0 / float(np.median(np.diff(samples[i]["ds"])))
+    known = random_walks(rec, rates, required=[])
+    out, missing = np.zeros((K, 2)), set()
+    for i, k in enumerate(order):
+        for c, kind in enumerate(("gyro", "acc")):
+            if (k, kind) in known:
+                out[i, c] = known[k, kind][0]
+            else:
+                out[i, c] = DEFAULT_RANDOM_WALK[kind]
+                missing.add(kind)
+    if not missing:
+        return out, []
+    said = ", ".join(f"{kind}_random_walk {DEFAULT_RANDOM_WALK[kind]:g}" for kind in sorted(missing))
+    return out, [f"{'/'.join(f'{m}_random_walk' for m in sorted(missing))}: unknown for some IMUs (no long rests, "
+                 f"not in the recording); assumed {said} (EuRoC ADIS16448) — state them in the array "
+                 "description for a clock std that fits the sensors"]
 
 
 def rig_samples(rec, ref: int):
@@ -228,14 +267,18 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     n_knots = int(math.ceil((hi - lo) / h)) + 1
     tau = lo + h * np.arange(n_knots)
     x0, qc_w, qc_f = _initial_knots(smp[0], R0, tau)
-    AB = process_matrices(h, qc_w * settings.prior_scale, qc_f * settings.prior_scale)
+    # each IMU's bias relative to the reference's walks with both walks' variances (the
+    # reference's own walk is absorbed in ω and f)
+    walk, warnings = bias_walks(rec, smp, order, settings)
+    walk_rel = np.sqrt(walk[1:] ** 2 + walk[0] ** 2)
+    AB = process_matrices(h, qc_w * settings.prior_scale, qc_f * settings.prior_scale, walk_rel)
+    x0 = np.concatenate((x0, np.zeros((n_knots, 6 * (K - 1)))), 1)
     R0t = torch.as_tensor(R0)
 
     nom_pos = np.asarray(rec.nominal_position, dtype=float)[order]
     tt = lambda a: torch.as_tensor(np.asarray(a, dtype=float))  # noqa: E731
     q0 = matrix_to_quat(tt(np.stack(R_init)))
-    values = {"q": q0, "r": tt(nom_pos[1:] - nom_pos[0]), "o": tt(o_init[1:]), "d": tt(d_init[1:]),
-              "bg": torch.zeros(K - 1, 3, dtype=torch.float64), "ba": torch.zeros(K - 1, 3, dtype=torch.float64)}
+    values = {"q": q0, "r": tt(nom_pos[1:] - nom_pos[0]), "o": tt(o_init[1:]), "d": tt(d_init[1:])}
     fixed_d = torch.as_tensor(~own[1:])
     # nominal orientations other than the identity are stated ones (format v1 writes identity when absent)
     stated = ~np.all(np.isclose(q_nom[1:], [1.0, 0, 0, 0]) | np.isclose(q_nom[1:], [-1.0, 0, 0, 0]), axis=1)
@@ -278,8 +321,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         proc = ChainResidual(lambda g, xp, xn, dd: process_residual(xp, xn, dd), data=AB,
                              jac=lambda g, xp, xn, dd: process_jacobian(xp, dd), name="motion_prior")
         prob = Problem({"q": Variable(values["q"], "quaternion"), "r": Variable(values["r"]),
-                        "o": Variable(values["o"]), "d": Variable(values["d"], fixed=fixed_d),
-                        "bg": Variable(values["bg"]), "ba": Variable(values["ba"])},
+                        "o": Variable(values["o"]), "d": Variable(values["d"], fixed=fixed_d)},
                        x, [meas, proc] + priors)
         res = LevenbergMarquardt(max_iter=settings.max_iter, ftol=settings.ftol, xtol=1e-12, gtol=1e-9).solve(prob)
         values, x = res.values, res.locals
@@ -348,7 +390,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     ori[ref] = q_nom[0]
     dr[ref], dr_s[ref] = 0.0, 0.0
     qv = values["q"].numpy()
-    warnings = []
+    b_mean = knot_biases(x, K).mean(0).numpy()   # (K, 6) internal order
+    wko = np.zeros((K, 2)); wko[order] = walk
     for ki in range(1, K):
         lab = order[ki]
         ori[lab] = qv[ki - 1] * np.sign(qv[ki - 1][0] or 1.0)
@@ -360,7 +403,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         to[lab] = float(values["o"][ki - 1]); to_s[lab] = math.sqrt(max(block("o", ki, 1)[0, 0], 0.0))
         if own[ki]:
             dr[lab] = float(values["d"][ki - 1]); dr_s[lab] = math.sqrt(max(block("d", ki, 1)[0, 0], 0.0))
-        bgo[lab] = values["bg"][ki - 1].numpy(); bao[lab] = values["ba"][ki - 1].numpy()
+        bgo[lab], bao[lab] = b_mean[ki, :3], b_mean[ki, 3:]
         if stated[ki - 1]:
             ang = float(boxminus(values["q"][ki - 1], qn_t[ki - 1]).norm())
             if ang > settings.contradiction_sigma * sig_q:
@@ -372,7 +415,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                      acc_bias=bao, own_stamps=own_lab, unidentified=sorted(unident), warnings=warnings,
                      converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
                      seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used,
-                     stamp_jitter_std=sjo, free_cov=cov,
+                     stamp_jitter_std=sjo, free_cov=cov, random_walk=wko,
                      free_labels=[(order[idx[0] + 1], name, idx[1] if len(idx) > 1 else 0) for name, idx in labels])
 
 
