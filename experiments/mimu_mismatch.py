@@ -908,7 +908,7 @@ def figures(s, out: Path):
             ax.set_ylabel("explained share b/a of the excess variance")
         for ax in axes:
             ax.set_ylim(-0.05, top)
-        axes[1].legend(fontsize=7, loc="upper right")
+        axes[1].legend(fontsize=7, loc="lower right", ncol=2)
         fig.tight_layout()
         fig.savefig(out / "budget_share.png", dpi=100)
         plt.close(fig)
