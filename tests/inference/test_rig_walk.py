@@ -39,3 +39,16 @@ def test_a_faster_walk_widens_the_lever_arm_and_orientation_std():
     assert np.all(sd(fast.position_cov[1]) > 1.1 * sd(slow.position_cov[1]))
     assert np.all(sd(fast.orientation_cov[1]) > 1.1 * sd(slow.orientation_cov[1]))
     assert fast.time_offset_std[1] > slow.time_offset_std[1] and fast.clock_drift_std[1] > slow.clock_drift_std[1]
+
+
+@pytest.mark.parametrize("walk", [{"gyro": 0.0, "acc": 0.0}, {"gyro": 1e-5}, {"gyro": -1e-5, "acc": 1e-4},
+                                  {"gyro": float("nan"), "acc": 1e-4}, "1e-4"])
+def test_random_walk_setting_refused_in_one_line(walk):
+    """A zero density made LM fail at its initial point ("the cost is not finite"); a bad
+    ``random_walk`` is now refused when the settings are built, naming the option."""
+    from accel_bayes.errors import UserError
+    from accel_bayes.inference.rig import RigSettings
+
+    with pytest.raises(UserError, match=r"^random_walk: ") as e:
+        RigSettings(random_walk=walk)
+    assert "\n" not in str(e.value)

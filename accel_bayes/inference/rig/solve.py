@@ -72,6 +72,20 @@ class RigSettings:
     stamp_jitter: bool = True
     random_walk: dict | None = None
 
+    def __post_init__(self):
+        # the walk prior's precision is 1/density² per knot step: a zero or missing density would make
+        # the initial cost infinite deep inside LM, so it is refused here, naming the option
+        if self.random_walk is None:
+            return
+        rw = self.random_walk
+        if not isinstance(rw, dict) or set(rw) != {"gyro", "acc"}:
+            raise UserError('random_walk: expected {"gyro": rad/s/√s, "acc": m/s²/√s} or None')
+        for kind in ("gyro", "acc"):
+            v = rw[kind]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise UserError(f"random_walk: {kind} must be a finite density > 0 (got {v!r}); the rig model has "
+                                "no constant-bias mode, a very small density is the closest")
+
 
 @dataclass
 class RigResult:
