@@ -315,7 +315,7 @@ def markdown(results: dict, summ: dict, args) -> str:
          f"--draws {args.draws} --warmup {args.warmup} --variants {','.join(results)}` "
          f"({stamp}, {platform.machine()} {platform.system()}, shared 2-core CPU under heavy load from other jobs, "
          f"one torch thread; results cached in `{args.out}`). Reports: each experiment's own `mismatch` report "
-         "(`experiments/mimu_mismatch.py`, the detector of main 97e5674), sha256 in the table below. Each "
+         "(`experiments/mimu_mismatch.py`, whole-recording `detect` with its defaults, the run `mimu_mismatch.md` reports), sha256 in the table below. Each "
          f"experiment is calibrated twice, {args.chains} chains × {args.draws} draws after {args.warmup} warm-up, "
          f"seed {args.seed}: **without** — the default pipeline (noise level per triad at its type-II ML, likelihood "
          "tempered by the sandwich factor κ); **with** — `calibrate(rec, model=report.json)`: the gyro linear blocks "
