@@ -351,7 +351,7 @@ def write_document(args, R, when) -> None:
             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs: "
             f"{sum(R['info'][str(i)]['load_seconds'] for i in R['experiments']):.0f} s loading and acquiring the "
             f"clocks (this run: two `--cache-only` processes, `--experiments 1 2 3` and `--experiments 4 5 6`, "
-            "then the command above with `--wait-cache 1500`), {R['seconds']:.0f} s fitting and scoring "
+            f"then the command above with `--wait-cache 1500`), {R['seconds']:.0f} s fitting and scoring "
             "(per-experiment cache in `--cache`, default experiments/out/heldout_generic; `--fresh` recomputes it; `--from-results` rewrites this document "
             "from results.json). " + ("Whole recordings." if not args.max_samples else
                                       f"Last {args.max_samples} raw samples of each recording only."), "",
