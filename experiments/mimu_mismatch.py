@@ -50,6 +50,7 @@ REPO = HERE.parent
 sys.path.insert(0, str(HERE))
 
 from _data import data_dir  # noqa: E402
+from _reading import READING_MARKER, kept_reading  # noqa: E402
 
 
 def load_recording(i: int, data: Path, max_samples: int | None = None):
@@ -495,13 +496,13 @@ def stage_summary(args, exps):
         write_doc(args, md)
 
 
-READING_MARKER = "<!-- reading: hand-written below this line, kept when the document is regenerated -->"
-
-
 def write_doc(args, md: str) -> None:
     """The results document: how it was made, the summary tables and figures, and the
-    hand-written reading kept from the previous version (below :data:`READING_MARKER`)."""
+    hand-written reading kept from the previous version (below :data:`READING_MARKER`), written
+    atomically."""
     import shutil
+
+    from accel_bayes.data import outputs
 
     doc = Path(args.doc)
     figdir = HERE / "figures"
@@ -514,9 +515,7 @@ def write_doc(args, md: str) -> None:
             dst = figdir / f"{doc.stem}_{name}"  # one set of figures per results document
             shutil.copyfile(src, dst)
             figs.append(f"![{title}](figures/{dst.name})")
-    reading = ""
-    if doc.exists() and READING_MARKER in doc.read_text():
-        reading = doc.read_text().split(READING_MARKER, 1)[1]
+    reading = kept_reading(doc)
     import datetime
     import platform
 
@@ -562,7 +561,7 @@ def write_doc(args, md: str) -> None:
                f"{', '.join(missing)}." if missing else "")
             + (f" **Experiments in this version: {list(exps)}** (the others' detections did not finish in the time "
                "the shared machine allowed)." if sel else ""), ""]
-    doc.write_text("\n".join(head) + "\n" + md + "\n" + "\n\n".join(figs) + "\n\n" + READING_MARKER + reading)
+    outputs.write_text(doc, "\n".join(head) + "\n" + md + "\n" + "\n\n".join(figs) + "\n\n" + READING_MARKER + reading)
     print(f"written {doc}")
 
 

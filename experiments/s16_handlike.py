@@ -38,6 +38,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+from _reading import READING_MARKER, kept_reading  # noqa: E402
+
 SEED_BASE = 12_000  # issue #12; fixed: the recordings are the benchmark
 RATES = (62.5, 100.0, 125.0, 200.0, 250.0)
 
@@ -99,25 +101,6 @@ def run_one(i: int, process_noise: str, marginal_scale: bool | str = True) -> di
             "scale": float((run.means[free] * tr[free]).sum() / (tr[free] ** 2).sum()), "scale_std": c.scale_std,
             "rms_triad": c.rms_triad, "rms_process": c.rms_process, "misfit": c.misfit, "identified": c.identified,
             "q": pn.get("intensities"), "noise_iter": len(pn.get("history", []))}
-
-
-def _kept_reading(path: str) -> list[str]:
-    """The hand-written reading below the criteria table of an existing ``path``, so that a rerun
-    refreshes every generated figure without deleting the analysis written about them (the reading
-    quotes the summary's figures; a rerun that changes them must be followed by an edit of it)."""
-    try:
-        old = open(path, encoding="utf-8").read().splitlines()
-    except FileNotFoundError:
-        return []
-    if "| criterion | pass |" not in old:
-        return []
-    i = old.index("| criterion | pass |") + 1
-    while i < len(old) and old[i].startswith("|"):
-        i += 1
-    tail = old[i:]
-    while tail and not tail[-1].strip():
-        tail.pop()
-    return tail
 
 
 def main(argv=None) -> int:
@@ -202,7 +185,9 @@ def main(argv=None) -> int:
     ] + [f"| {k} | {'yes' if v else '**no**'} |" for k, v in checks.items()]
     from accel_bayes.data.outputs import write_text
 
-    write_text(out, "\n".join(lines + _kept_reading(out)) + "\n")
+    # the hand-written reading below the marker survives a rerun; it quotes the summary's figures, so a
+    # rerun that changes them must be followed by an edit of it
+    write_text(out, "\n".join(lines) + "\n\n" + READING_MARKER + (kept_reading(out) or "\n"))
     print("\n".join(lines[-12:]))
     print(f"wrote {out}")
     return 0
