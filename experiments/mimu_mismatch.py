@@ -173,7 +173,9 @@ def stage_restage(args, exps):
                   n_permutations=us["permutations"], seed=us["seed"])
         st = unresolved_stage(prep, ref, clocks, **kw)
         st, ref, gone = supersede_random_timing(prep, ref, clocks, st, **kw)
-        gone_labels = {g["effect"] for g in gone}
+        # the cached run's superseded findings too: its state's refined model is already without them (a
+        # report that still lists them would lend their scales in --stage transfer)
+        gone_labels = {g["effect"] for g in gone} | {g["effect"] for g in det.get("withdrawn") or [] if "reason" in g}
         findings = [f for f in doc["findings"] if f["effect"] != "unresolved_motion"
                     and not (f["effect"] in ("timing_wander", "sampling_jitter") and _finding_label(f) in gone_labels)]
         if st.effect is not None:
@@ -214,8 +216,9 @@ def _scale_source(i: int, exps: list) -> int:
 def transferred_budget(state: dict, doc_j: dict) -> tuple[list, dict]:
     """The §7.2 budget of a detection (``state``: :func:`_save_state`'s) with every random-effect scale
     taken from another experiment's report ``doc_j``: noise factors, the random timing effects (matched by
-    label; a term j does not have predicts 0) and ``unresolved_motion``'s scales per |ω| band (the bands of
-    each recording's own |ω| quantiles).  The mean part — the refined fit's residuals, the random effects'
+    label; a term j does not have predicts 0) and ``unresolved_motion``'s scales per |ω| × |ω̇| cell, the cells
+    j's own band edges applied as absolute values, the age error j's, the loading this recording's physical
+    clock ages (:func:`accel_bayes.mismatch.unresolved_stage.term_for`).  The mean part — the refined fit's residuals, the random effects'
     GLS conditional means included — stays this experiment's.  Returns (budget rows, what was used)."""
     import torch
 
@@ -251,9 +254,13 @@ def transferred_budget(state: dict, doc_j: dict) -> tuple[list, dict]:
         p = un["parameters"]
         if "jerk_rms_grid" in p:  # scales per |ω| × |ω̇| cell and the age error (issue #27 budget)
             ae = p.get("age_error_rms_s") or {}
+            # the source's own band edges, as absolute values: a borrowed cell's scale is applied to the motion it
+            # was fitted on (this recording's quantiles would be another motion where the sessions differ)
             term = term_for(prep, ref, clocks, p["jerk_rms_grid"], p["angular_acc_rms_grid"], grid=True,
-                            age_error_rms=(ae.get("acc", 0.0), ae.get("gyro", 0.0)))
-            used["unresolved_motion"] = {k: p[k] for k in ("jerk_rms_grid", "angular_acc_rms_grid", "age_error_rms_s")}
+                            age_error_rms=(ae.get("acc", 0.0), ae.get("gyro", 0.0)), omega_edges=p["omega_edges"],
+                            omega_dot_edges=p["omega_dot_edges"])
+            used["unresolved_motion"] = {k: p[k] for k in ("jerk_rms_grid", "angular_acc_rms_grid", "age_error_rms_s",
+                                                           "omega_edges", "omega_dot_edges")}
         else:
             term = term_for(prep, ref, clocks, p["jerk_rms"], p["angular_acc_rms"])
             used["unresolved_motion"] = {"jerk_rms": p["jerk_rms"], "angular_acc_rms": p["angular_acc_rms"]}

@@ -4,8 +4,9 @@ loaded on every IMU by its accepted clock's data age, on both sensors.
 
 Data.  Per sensor, the final fit's leverage-corrected residuals in the array frame
 (:func:`accel_bayes.mismatch.vibration.array_residuals`) on the IMUs that have an accepted
-``sampling_clock``; their data ages centred over those IMUs per sample (a common age is absorbed by
-the motion states); the |ω| quantile bands of the final fit's motion.  Needs clocks on ≥ 2 IMUs.
+``sampling_clock``; their physical data ages (each clock's sawtooth of width 1/f_k,
+:func:`physical_ages`) centred over those IMUs per sample (a common age is absorbed by the motion
+states); the |ω| quantile bands of the final fit's motion.  Needs clocks on ≥ 2 IMUs.
 
 Fit.  The test below uses :func:`~accel_bayes.mismatch.unresolved.fit_scales` (a white variance per
 IMU and |ω| band, the term's scale per band).  A kept sensor's term is then fitted by
@@ -50,14 +51,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..physics.effects.clock import clock_age
 from .budget import band_edges, predicted_extra_variance
-from .clock import data_age
 from .model import ModelFit
 from .prepared import Prepared
 from .unresolved import UnresolvedMotion, fit_grid, fit_scales
 from .vibration import _bands, _profile_lr, array_residuals, omega_edges
 
-__all__ = ["UnresolvedStage", "UnresolvedEffect", "unresolved_stage", "supersede_random_timing", "term_for", "SENSORS"]
+__all__ = ["UnresolvedStage", "UnresolvedEffect", "unresolved_stage", "supersede_random_timing", "term_for", "physical_ages",
+           "SENSORS"]
 
 SENSORS = ("acc", "gyro")
 _SCALE_NAME = {"acc": "jerk_rms", "gyro": "angular_acc_rms"}
@@ -126,36 +128,66 @@ def _centred_ages(age: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return (age - (age * w).sum(1, keepdim=True) / n) * w
 
 
-def _ages_and_bands(prep: Prepared, fit: ModelFit, clocks):
-    """(ages (T, K) s, has (K,) bool: IMUs with a clock, |ω| inner edges, band labels (T,)) at ``fit``."""
+def physical_ages(clocks, time, K: int) -> torch.Tensor:
+    """(T, K) the data age (s) of every IMU at the read times ``time`` (s) on its clock's physical
+    sawtooth: width 1/``internal_rate_hz`` (the register holds the latest of samples taken every
+    1/f_k), the clock's beat, phase and drift; 0 on IMUs without a clock.  A clock without
+    ``params`` (an object with ``imu`` and ``age(t)``, e.g. a simulator's true age) gives its own age.
+
+    Why not the clock's fitted width (``age_rms_s``, :func:`accel_bayes.mismatch.clock.data_age`):
+    that is the regression coefficient of the gyro outputs on their rate, shrunk wherever the
+    regressor is noisy (0.12–0.32 ms rms on the six real recordings where the sawtooth gives
+    0.29 ms), and a term loaded on it carries that shrinkage in its scale — so the scale would not
+    mean the same in two recordings.  On the six, the physical width also fits better: the
+    term's log-likelihood is higher by 1.0e4–2.2e4 nats on every recording and sensor
+    (``experiments/mimu_unresolved_transfer.md``).  The held-out study loads the same physical
+    sawtooth (:func:`accel_bayes.mismatch.heldout.clock_age`)."""
+    t = torch.as_tensor(time, dtype=torch.float64)
+    out = torch.zeros(len(t), K, dtype=torch.float64)
+    for c in clocks:
+        if getattr(c, "params", None) is None:  # an age known exactly (a generator's truth): physical already
+            out[:, c.imu] = c.age(t)
+            continue
+        p = {k: float(v) for k, v in c.params.items()}
+        out[:, c.imu] = clock_age(t, p["beat_hz"], p["phase"], p["drift_hz_per_s"], 1.0 / p["internal_rate_hz"])
+    return out
+
+
+def _ages_and_bands(prep: Prepared, fit: ModelFit, clocks, edges=None):
+    """(ages (T, K) s, has (K,) bool: IMUs with a clock, |ω| inner edges, band labels (T,)) at ``fit``;
+    ``edges`` (rad/s) absolute |ω| edges to use instead of ``fit``'s own quantiles."""
     has = torch.zeros(prep.K, dtype=torch.bool)
     has[sorted({int(c.imu) for c in clocks})] = True
-    edges = omega_edges(fit)
-    return data_age(clocks, prep.time, prep.K), has, edges, _bands(fit, edges)
+    edges = omega_edges(fit) if edges is None else [float(e) for e in edges]
+    return physical_ages(clocks, prep.time, prep.K), has, edges, _bands(fit, edges)
 
 
-def _cells(fit: ModelFit, lab: torch.Tensor) -> tuple[list, torch.Tensor]:
+def _cells(fit: ModelFit, lab: torch.Tensor, od_edges=None) -> tuple[list, torch.Tensor]:
     """(|ω̇| inner edges rad/s², cell (T,) = b·C + c): each sample's |ω| band b (``lab``) and |ω̇|
-    band c among the budget's C quantile bands of ``fit``'s motion."""
+    band c among the budget's C quantile bands of ``fit``'s motion, or of the absolute edges
+    ``od_edges`` (rad/s²) when given."""
     od = np.linalg.norm(fit.x[:, 3:6].detach().cpu().numpy(), axis=1)
-    od_edges = band_edges(od)
+    od_edges = band_edges(od) if od_edges is None else [float(e) for e in od_edges]
     C = len(od_edges) + 1
     return od_edges, lab * C + torch.as_tensor(np.digitize(od, od_edges), dtype=torch.long)
 
 
 def term_for(prep: Prepared, fit: ModelFit, clocks, jerk_rms, angular_acc_rms, *, sensors=SENSORS, std=None,
-             grid: bool = False, age_error_rms=(0.0, 0.0)) -> UnresolvedEffect:
-    """The term with given scales (m/s³, rad/s² per axis) loaded by ``clocks``' data ages at
-    ``prep``'s samples — e.g. scales fitted on another recording of the same board.  Scales per
-    |ω| band b of ``fit``'s own |ω| quantile bands, or with ``grid`` per cell b·C + c (|ω̇| band c
-    of ``fit``'s own |ω̇| quantile bands, :func:`_cells`) with ``age_error_rms`` (acc, gyro) s."""
-    age, has, edges, lab = _ages_and_bands(prep, fit, clocks)
+             grid: bool = False, age_error_rms=(0.0, 0.0), omega_edges=None, omega_dot_edges=None) -> UnresolvedEffect:
+    """The term with given scales (m/s³, rad/s² per axis) loaded by ``clocks``' physical data ages
+    (:func:`physical_ages`) at ``prep``'s samples — e.g. scales fitted on another recording of the
+    same board.  Scales per |ω| band b, or with ``grid`` per cell b·C + c (|ω̇| band c,
+    :func:`_cells`) with ``age_error_rms`` (acc, gyro) s.  The bands are ``fit``'s own |ω| and |ω̇|
+    quantile bands, or the absolute inner edges ``omega_edges`` (rad/s) and ``omega_dot_edges``
+    (rad/s²) when given: with scales from another recording, give that recording's edges (its
+    report's), so that each borrowed scale is applied to the same motion it was fitted on."""
+    age, has, edges, lab = _ages_and_bands(prep, fit, clocks, omega_edges)
     # one term: the accelerometers' and the gyroscopes' ages differ only by which triads enter
     w = has[None, :].to(age.dtype).expand_as(age)
     d = _centred_ages(age, w)
     od_edges = None
     if grid:
-        od_edges, lab = _cells(fit, lab)
+        od_edges, lab = _cells(fit, lab, omega_dot_edges)
     term = UnresolvedMotion(d=d, lab=lab, edges=list(edges), jerk_rms=torch.as_tensor(jerk_rms, dtype=torch.float64),
                             angular_acc_rms=torch.as_tensor(angular_acc_rms, dtype=torch.float64),
                             omega_dot_edges=od_edges, age_error_rms=tuple(float(e) for e in age_error_rms), w=w)
