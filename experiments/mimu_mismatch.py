@@ -489,6 +489,9 @@ def stage_summary(args, exps):
     hpath = args.out / "heldout.json"
     held = json.loads(hpath.read_text()) if hpath.exists() else {}
     summary = {"experiments": rows, "heldout": held}
+    tp = args.out / "unresolved_transfer.json"  # every ordered pair (experiments/mimu_unresolved_transfer.py)
+    if tp.exists():
+        summary["transfer_pairs"] = json.loads(tp.read_text())["pairs"]
     if len(P0) >= 2:
         summary["repeatability_baseline"] = _spread(np.stack(P0))
         summary["repeatability_refined"] = _spread(np.stack(P1))
@@ -557,7 +560,7 @@ def write_doc(args, md: str) -> None:
             "finding's share of the explained excess in sequence and dropped from the final model); held-out (30 "
             "ordered pairs against a physics-free baseline); summary."
             + (" **Restaged:** the detections (the rounds, the clock stage, the characterisation) are those cached "
-               f"in `{src}` (made at 97e5674, 2026-11-27 09:37 UTC, with `--stage detect`); step 7a — the unresolved "
+               f"in `{src}` (their `--stage detect` run: the reading below); step 7a — the unresolved "
                "stage and the random timing it supersedes — and the budget are recomputed on them with this version's "
                "code and the detector's own settings read from each report (`--stage restage`). Every step before 7a "
                "is the same code, so the findings and budget equal a full rerun's; the \"Fit before/after\" table, "
@@ -666,6 +669,20 @@ def _check_cell(rows: list, sensor: str) -> str:
         f" [{', '.join(_cell(b) for b in bad)}]" if bad else "")
 
 
+def _pairs_row(pairs) -> list:
+    """The verdict row of every ordered pair's borrowed budget (``mimu_unresolved_transfer.py``), or none."""
+    if not pairs:
+        return []
+    part = []
+    for sn in ("acc", "gyro"):
+        v = [p[f"{sn}_all"] for p in pairs]
+        ok = [p for p in pairs if p[f"{sn}_all"] >= NAMED_MIN]
+        part.append(f"{sn} {min(v):.0%}–{max(v):.0%} (median {np.median(v):.0%}), ≥ {NAMED_MIN:.0%} on {len(ok)}/{len(pairs)}, "
+                    f"every band too on {sum(not p[f'{sn}_bad_bands'] for p in ok)}/{len(pairs)}")
+    return [f"| the same on every ordered pair (`mimu_unresolved_transfer.md`) | {'; '.join(part)} | the pairs that fail "
+            "borrow from or lend to the calmest and the most vigorous sessions (exps 6 and 5) |"]
+
+
 def _issue27_markdown(s: dict) -> list:
     """The budget checks of issue #27 and the verdict table (what the clocks explain, what remains,
     what the data can and cannot separate), from the cached results."""
@@ -729,6 +746,7 @@ def _issue27_markdown(s: dict) -> list:
           f"the excess (\"all\"; with the gyro blocks and the round findings) | budget check table; target ≥ {NAMED_MIN:.0%} |",
           f"| the same with every random-effect scale from another experiment | acc {ta_lo:.0%}–{ta_hi:.0%}, gyro "
           f"{tg_lo:.0%}–{tg_hi:.0%} | the mean part stays each experiment's own fit |",
+          *_pairs_row(s.get("transfer_pairs")),
           f"| what remains | acc {1 - a_hi:.0%}–{1 - a_lo:.0%}, gyro {1 - g_hi:+.0%}–{1 - g_lo:+.0%} of the excess "
           "(\"all\"); the bands outside 0.7–1.3 are in the budget check table | the characterisation below "
           "describes what is left |",

@@ -51,7 +51,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..physics.effects.clock import clock_age
 from .budget import band_edges, predicted_extra_variance
 from .model import ModelFit
 from .prepared import Prepared
@@ -130,26 +129,24 @@ def _centred_ages(age: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def physical_ages(clocks, time, K: int) -> torch.Tensor:
     """(T, K) the data age (s) of every IMU at the read times ``time`` (s) on its clock's physical
-    sawtooth: width 1/``internal_rate_hz`` (the register holds the latest of samples taken every
-    1/f_k), the clock's beat, phase and drift; 0 on IMUs without a clock.  A clock without
-    ``params`` (an object with ``imu`` and ``age(t)``, e.g. a simulator's true age) gives its own age.
+    sawtooth (:meth:`~accel_bayes.physics.effects.SamplingClock.physical_age`: width 1/``internal_rate_hz``,
+    the register holds the latest of samples taken every 1/f_k; the clock's beat, phase and drift);
+    0 on IMUs without a clock.  A clock without ``physical_age`` (an object with ``imu`` and
+    ``age(t)``, e.g. a simulator's true age) gives its own age.
 
     Why not the clock's fitted width (``age_rms_s``, :func:`accel_bayes.mismatch.clock.data_age`):
     that is the regression coefficient of the gyro outputs on their rate, shrunk wherever the
     regressor is noisy (0.12–0.32 ms rms on the six real recordings where the sawtooth gives
     0.29 ms), and a term loaded on it carries that shrinkage in its scale — so the scale would not
     mean the same in two recordings.  On the six, the physical width also fits better: the
-    term's log-likelihood is higher by 1.0e4–2.2e4 nats on every recording and sensor
+    term's log-likelihood is higher by 0.6e4–2.2e4 nats on every recording and sensor
     (``experiments/mimu_unresolved_transfer.md``).  The held-out study loads the same physical
     sawtooth (:func:`accel_bayes.mismatch.heldout.clock_age`)."""
     t = torch.as_tensor(time, dtype=torch.float64)
     out = torch.zeros(len(t), K, dtype=torch.float64)
     for c in clocks:
-        if getattr(c, "params", None) is None:  # an age known exactly (a generator's truth): physical already
-            out[:, c.imu] = c.age(t)
-            continue
-        p = {k: float(v) for k, v in c.params.items()}
-        out[:, c.imu] = clock_age(t, p["beat_hz"], p["phase"], p["drift_hz_per_s"], 1.0 / p["internal_rate_hz"])
+        # an age known exactly (a generator's truth, no physical_age): physical already
+        out[:, c.imu] = c.physical_age(t) if hasattr(c, "physical_age") else c.age(t)
     return out
 
 

@@ -100,7 +100,7 @@ def ages_from_clocks(time, clocks: dict, labels, sensor: str = "acc") -> torch.T
         clock = clocks.get(int(k))
         if clock is None:
             continue
-        out[:, j] = clock.age(t)
+        out[:, j] = clock.physical_age(t)  # the hold's sawtooth: what the report's scales were fitted on
         if sensor == "acc":
             out[:, j] += float(clock.params["filter_delay_acc_minus_gyro_s"])
     return out

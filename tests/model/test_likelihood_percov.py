@@ -285,7 +285,8 @@ def test_report_terms_read_clock_ages_and_band_scales(monkeypatch):
     wn = torch.tensor([0.5, 1.5, 2.5, 0.1, 1.0, 2.0, 9.0], dtype=DT)
     rep = _clock_report([("sampling_clock", 1, clock), ("unresolved_motion", None, um)])
     got = unresolved_terms(rep, t, [0, 1, 2], [1, 2], wn)
-    want1 = clock_age(t, -2.5, 0.3, 1e-4, 0.9e-3)
+    # the hold's own sawtooth (width 1/f_k), not the fitted 0.9 ms: the loading the report's scales were fitted on
+    want1 = clock_age(t, -2.5, 0.3, 1e-4, 1 / 1002.5)
     assert torch.allclose(got.age_gyro[:, 0], want1, atol=1e-18) and bool((got.age_gyro[:, 1] == 0).all())
     assert torch.allclose(got.age_acc[:, 1], want1 + 1e-4, atol=1e-18) and bool((got.age_acc[:, [0, 2]] == 0).all())
     assert got.jerk_std.tolist() == [100.0, 200.0, 300.0, 100.0, 200.0, 300.0, 300.0]
