@@ -142,6 +142,9 @@ def stage_fits(out: Path) -> dict:
                                     "age_error_ms_physical": 1e3 * np.sqrt(f1["e2"]),
                                     "age_rms_ms_fitted_width": 1e3 * float(np.sqrt(f0["load_d"].sum() / f0["w"].sum())),
                                     "age_rms_ms_physical": 1e3 * float(np.sqrt(f1["load_d"].sum() / f1["w"].sum()))})
+    # per absolute cell: each experiment's scale over the six's geometric mean (a level shift or a shape?)
+    rows["cells"] = {s: {i: fits[(i, s, True)]["s2"].tolist() for i in EXPS} for s in SENSORS}
+    rows["cell_counts"] = {i: np.bincount(cells[i], minlength=25).tolist() for i in EXPS}
     for i in EXPS:
         rows["observables"].append({"experiment": i, **{k: float(np.sqrt(v.mean())) for k, v in obs[i].items()}})
     # cyclic borrowing of the physical-width term: scales by absolute cell, or a ratio to an observable
@@ -201,6 +204,17 @@ def markdown(fits: dict, pairs: list) -> str:
         v1 = [r["scale_rms_physical"] for r in fits["loading"] if r["sensor"] == s]
         L.append(f"\n{s}: scale rms max/min over the six {max(v0) / min(v0):.2f} (fitted width), "
                  f"{max(v1) / min(v1):.2f} (physical) ({u}).")
+    L += ["\nPer absolute cell (|ω| band b × |ω̇| band c, physical loading): each experiment's scale over the six's "
+          "geometric mean in that cell (cells with ≥ 30 samples in every experiment):\n",
+          "| sensor | cell b,c | " + " | ".join(f"exp {i}" for i in EXPS) + " |", "|---|---|" + "---|" * len(EXPS)]
+    for s in SENSORS:
+        S = np.sqrt(np.array([fits["cells"][s][i] for i in EXPS]))  # (6, 25) rms per axis
+        n = np.array([fits["cell_counts"][i] for i in EXPS])
+        keep = (n >= 30).all(0) & (S > 0).all(0)
+        rel = S[:, keep] / np.exp(np.log(S[:, keep]).mean(0))
+        for c, col in zip(np.flatnonzero(keep), rel.T):
+            L.append(f"| {s} | {c // 5},{c % 5} | " + " | ".join(f"{v:.2f}" for v in col) + " |")
+        L.append(f"| {s} | below the mean in | " + " | ".join(f"{int((r < 1).sum())}/{keep.sum()}" for r in rel) + " |")
     L += ["\n### 2. Does the scale track the resolved motion's high-frequency content?\n",
           "Each quantity over its mean across the six (scale: the physical-width fit's rms; observables: rms over the "
           "recording):\n",
