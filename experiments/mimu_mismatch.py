@@ -196,7 +196,8 @@ def stage_restage(args, exps):
         torch.save({**state, "refined": ref}, d / "state.pt")
         for png in src.glob("*.png"):
             shutil.copy(png, d / png.name)
-        print(f"exp_{i}: restaged in {info['restage_seconds']:.0f} s; superseded {sorted(gone_labels)}; budget b/a "
+        print(f"exp_{i}: restaged in {info['restage_seconds']:.0f} s; superseded now {sorted(g['effect'] for g in gone)}, "
+              f"before {sorted(gone_labels - {g['effect'] for g in gone})}; budget b/a "
               + ", ".join(f"{x} {_budget_all(doc['budget'], x)[1] / _budget_all(doc['budget'], x)[0]:.3f}"
                           for x in ("acc", "gyro")), flush=True)
 

@@ -13,7 +13,8 @@ recordings:
    pooled 25/50/75/90 % quantiles of the six recordings' |ω| and |ω̇|), loaded either by each clock's
    fitted sawtooth width (``age_rms_s``, the detector's loading before this study) or by the physical
    width 1/f_k (:func:`accel_bayes.mismatch.unresolved_stage.physical_ages`): log-likelihood, the
-   scale's rms over the samples, its spread across the six.
+   scale's rms over the samples, its spread across the six; per absolute cell, each experiment's scale
+   over the six's geometric mean (does a session differ by a level or by a shape?).
 2. **A resolved observable.**  Whether the fitted scale tracks something each recording shows
    without its residuals — the high-frequency content of the resolved motion: the board-mean gyro's
    and accelerometer's second differences (rad/s², m/s³ per read interval) and the increments of the
