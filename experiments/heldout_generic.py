@@ -53,10 +53,11 @@ from mimu_mismatch import load_recording  # noqa: E402
 
 from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.mismatch import baseline_fit, prepare  # noqa: E402
+from accel_bayes.mismatch.age_predictive import beat_walk_rate  # noqa: E402
 from accel_bayes.mismatch.heldout import (GENERIC, PHYSICS, acquired_age, block_bootstrap_se,  # noqa: E402
-                                          clocks_of, describe_source, fit_source, motion_window,
-                                          residuals_of, score, tracked_age, tracked_clocks,
-                                          window_statistics)
+                                          clock_posteriors, clocks_from, clocks_of, describe_source, fit_source,
+                                          marginal_age, motion_window, residuals_of, score, tracked_age,
+                                          tracked_clocks, window_statistics, with_rate_scale)
 
 SENSORS = ("acc", "gyro")
 
@@ -101,15 +102,49 @@ def load(i, args):
     return out
 
 
+def load_window(i, d, args):
+    """Experiment i's acquisition window statistics and each IMU's regressor scale λ on the window's
+    own fit (:func:`~accel_bayes.mismatch.heldout.window_statistics`), cached in
+    ``CACHE/exp_{i}_window.pt`` (``--fresh`` recomputes): the raw import and preparation again (a few
+    seconds), not the whole-recording fit.  Checks that the window reproduces the cached
+    acquisition's beats (the main cache's tracker was acquired on the same statistics)."""
+    cache = args.cache / f"exp_{i}_window.pt"
+    if cache.exists() and not args.fresh:
+        return torch.load(cache, weights_only=False)
+    t0 = time.perf_counter()
+    rec, _ = load_recording(i, args.data, args.max_samples)
+    prep = prepare(rec)
+    stats, lam = window_statistics(prep, motion_window(prep, args.acquire_s), rate_scales=True)
+    beat = clocks_from(*stats)["beat_hz"]
+    out = {"stats": stats, "rate_scale": lam, "seconds": time.perf_counter() - t0,
+           "max_beat_change_hz": float(np.max(np.abs(beat - d["blocks"][0][1]["beat_hz"])))}
+    buf = io.BytesIO()
+    torch.save(out, buf)
+    outputs.write_bytes(cache, buf.getvalue())
+    return out
+
+
 def with_ages(d, args):
     """The cached experiment ``d`` with its ages: whole-recording clock, the plain 30 s acquisition and
     the causal tracker, each with every acquired clock and with the evidence rule
-    (:func:`accel_bayes.mismatch.heldout.acquired_age`)."""
-    res, blocks = d["res"], d["blocks"]
+    (:func:`accel_bayes.mismatch.heldout.acquired_age`); the acquisition window's phase/beat posteriors
+    (:func:`~accel_bayes.mismatch.heldout.clock_posteriors`, for the marginalised age) and, as a source,
+    its beat walk's rate (:func:`~accel_bayes.mismatch.age_predictive.beat_walk_rate`: its beats tracked
+    over blocks of ``--acquire-s`` from its window's start)."""
+    t0 = time.perf_counter()
+    res = d["res"]
+    # the cached clocks carry the fitted width; the evidence rule reads the data age's (fitted / λ, λ of
+    # the window's fit — the tracker's later statistics are the whole fit's, whose λ is not cached)
+    d["blocks"] = [(b0, with_rate_scale(c, d["window"]["rate_scale"])) for b0, c in d["blocks"]]
+    blocks = d["blocks"]
     for acc, tag in ((None, ""), ("evidence", "_ev")):
         d[f"age_whole{tag}"] = acquired_age(res, d["clock_whole"], accept=acc)
         d[f"age_first{tag}"] = acquired_age(res, blocks[0][1], accept=acc)
         d[f"age_tracked{tag}"] = tracked_age(res, blocks, block_s=args.block_s, accept=acc)
+        d[f"posts{tag}"] = clock_posteriors(d["window"]["stats"], blocks[0][1], accept=acc)
+    d["walk"] = beat_walk_rate(res.time.numpy(), res.timing_a.numpy(), res.timing_b.numpy(), d["clock_whole"],
+                               start=d["info"]["window_start_s"], block_s=args.acquire_s)
+    d["predictive_seconds"] = time.perf_counter() - t0
     return d
 
 
@@ -122,7 +157,10 @@ def pair_result(src, tgt, args, seed):
     clock acquired on its whole recording."""
     keep = ~tgt["first"]
     out = {}
-    scores = {v: score(src["models"], tgt["res"], tgt[f"age_{v}"], keep) for v, _, _ in VARIANTS}
+    q = src["walk"]["q_hz2_per_s"]  # the drift prior is the source's: nothing of the target's scored data
+    ages = {v: (marginal_age(tgt["res"], tgt["posts" + v[4:]], q) if v.startswith("marg") else tgt[f"age_{v}"])
+            for v, _, _ in VARIANTS}
+    scores = {v: score(src["models"], tgt["res"], ages[v], keep) for v, _, _ in VARIANTS}
     for s in SENSORS:
         ll = scores["first"][s]["ll"]
         mean = {k: float(np.mean(v)) for k, v in ll.items()}
@@ -145,8 +183,10 @@ def pair_result(src, tgt, args, seed):
 
 
 #: (age key, result suffix, name): the target clock's acquisitions scored; "_ev": the evidence rule
-VARIANTS = (("first", "", "30 s acquisition (the protocol)"),
-            ("first_ev", "_ev", "30 s acquisition, evidence rule"),
+VARIANTS = (("marg", "_marg", "30 s acquisition, age marginalised (the protocol)"),
+            ("marg_ev", "_marg_ev", "30 s acquisition, age marginalised, evidence rule"),
+            ("first", "", "30 s acquisition, deterministic age"),
+            ("first_ev", "_ev", "30 s acquisition, deterministic age, evidence rule"),
             ("tracked", "_tracked", "causal tracker (protocol extension)"),
             ("tracked_ev", "_tracked_ev", "causal tracker, evidence rule"),
             ("whole", "_clock_whole_target", "clock from the whole target (diagnostic, not held out)"))
@@ -403,13 +443,27 @@ def main(argv=None) -> int:
                    "pairs": {}, "pair_order": [], "max_samples": args.max_samples}
     for i in args.experiments:
         t0 = time.perf_counter()
-        data[i] = with_ages(load(i, args), args)
+        d = load(i, args)
+        d["window"] = load_window(i, d, args)
+        data[i] = with_ages(d, args)
         t1 = time.perf_counter()
         if args.cache_only:
             print(f"exp_{i}: cached ({t1 - t0:.0f} s)", flush=True)
             continue
         data[i]["models"] = fit_source(data[i]["res"], data[i]["age_whole"], progress=lambda m: print(m, flush=True))
-        R["info"][str(i)] = dict(data[i]["info"], fit_seconds=time.perf_counter() - t1)
+        w, walk = data[i]["window"], data[i]["walk"]
+        R["info"][str(i)] = dict(data[i]["info"], fit_seconds=time.perf_counter() - t1,
+                                 window_seconds=w["seconds"], window_max_beat_change_hz=w["max_beat_change_hz"],
+                                 rate_scale=w["rate_scale"].tolist(), predictive_seconds=data[i]["predictive_seconds"],
+                                 walk_q_hz2_per_s=walk["q_hz2_per_s"], walk_increments=walk["n_increments"],
+                                 walk_blocks=walk["blocks"],
+                                 posterior=[None if p is None else {"phase": p["phase"], "beat_hz": p["beat_hz"],
+                                                                    "sd_phase": float(np.sqrt(p["cov"][0, 0])),
+                                                                    "sd_beat_hz": float(np.sqrt(p["cov"][1, 1])),
+                                                                    "t_c": p["t_c"]} for p in data[i]["posts"]],
+                                 posterior_ev_none=[k for k, p in enumerate(data[i]["posts_ev"]) if p is None],
+                                 width_phys_s=data[i]["blocks"][0][1]["width_s"].tolist(),
+                                 width_fit_s=data[i]["blocks"][0][1]["width_fit_s"].tolist())
         R["sources"][str(i)] = describe_source(data[i]["models"])
         print(f"exp_{i}: {data[i]['info']['T_kept']} kept samples; loaded {t1 - t0:.0f} s, models fitted "
               f"{time.perf_counter() - t1:.0f} s; beats {np.round(data[i]['clock_whole']['beat_hz'], 3)}", flush=True)
