@@ -150,14 +150,17 @@ def beat_walk_rate(t, a, b, clocks: dict, *, start: float, block_s: float = 30.0
     blocks of ``block_s`` s from ``start`` (s): each block's beat is the posterior mean of
     :func:`phase_posterior` on the block about the recording's clock (``clocks``: per IMU (K,)
     "beat_hz", "phase", "drift_hz_per_s", "width_s", as :func:`accel_bayes.mismatch.heldout.clocks_from`
-    gives; an IMU with width 0 is skipped).  For a walk, E Δβ² = q Δt + v₁ + v₂ between consecutive
-    blocks Δt apart (v the blocks' posterior variances), so q = max(0, Σ(Δβ² − v₁ − v₂)) / ΣΔt,
-    pooled over the increments of every IMU.  a, b (n, K), t (n,) s.  Returns {"q_hz2_per_s",
-    "blocks": per IMU [(t_c, β, var β)], "n_increments"}."""
+    gives; an IMU with width 0 is skipped).  For a walk, the increment between consecutive blocks Δt
+    apart is Δβ ~ N(0, q Δt + v₁ + v₂), v the blocks' posterior variances; q is the maximum-likelihood
+    value over every IMU's increments (pooled: one temperature), q ≥ 0 — a block the data barely
+    constrain (large v, e.g. a short last block) weighs little instead of swamping the sum.
+    a, b (n, K), t (n,) s.  Returns {"q_hz2_per_s", "blocks": per IMU [(t_c, β, var β)], "n_increments"}."""
+    from scipy.optimize import minimize_scalar
+
     t = np.asarray(t, float)
     a, b = np.asarray(a, float), np.asarray(b, float)
     K = a.shape[1]
-    blocks, num, den, n_inc = [], 0.0, 0.0, 0
+    blocks, inc = [], []
     edges = np.arange(start, t[-1] + block_s, block_s)
     for k in range(K):
         rows = []
@@ -169,12 +172,21 @@ def beat_walk_rate(t, a, b, clocks: dict, *, start: float, block_s: float = 30.0
                 p = phase_posterior(t[sel], a[sel, k], b[sel, k], beat_hz=clocks["beat_hz"][k], phase=clocks["phase"][k],
                                     drift_hz_per_s=clocks["drift_hz_per_s"][k], t_c=lo + 0.5 * block_s)
                 rows.append((p["t_c"], p["beat_hz"], float(p["cov"][1, 1])))
-        for (t1, b1, v1), (t2, b2, v2) in zip(rows[:-1], rows[1:]):
-            num += (b2 - b1) ** 2 - v1 - v2
-            den += t2 - t1
-            n_inc += 1
+        inc += [((b2 - b1) ** 2, t2 - t1, v1 + v2) for (t1, b1, v1), (t2, b2, v2) in zip(rows[:-1], rows[1:])]
         blocks.append(rows)
-    return {"q_hz2_per_s": max(num, 0.0) / den if den > 0 else 0.0, "blocks": blocks, "n_increments": n_inc}
+    if not inc:
+        return {"q_hz2_per_s": 0.0, "blocks": blocks, "n_increments": 0}
+    d2, dt, v = (np.array(x) for x in zip(*inc))
+    v = np.maximum(v, 1e-18)
+
+    def nll(q):
+        var = q * dt + v
+        return float((np.log(var) + d2 / var).sum())
+
+    r = minimize_scalar(lambda lq: nll(math.exp(lq)), bounds=(math.log(1e-14), math.log(1e-1)), method="bounded",
+                        options={"xatol": 1e-4})
+    q = math.exp(r.x) if nll(math.exp(r.x)) < nll(0.0) else 0.0
+    return {"q_hz2_per_s": q, "blocks": blocks, "n_increments": len(inc)}
 
 
 def phase_predictive(t, post: dict, q: float) -> tuple[np.ndarray, np.ndarray]:

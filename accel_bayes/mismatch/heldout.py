@@ -21,7 +21,16 @@ clock stage's (:func:`accel_bayes.mismatch.clock.clock_ab`, on the regressor R_k
 first 30 s of contiguous motion (:func:`motion_window`), every sample of it, from the window's own
 fit (:func:`window_statistics`), every model then scored on the kept samples after the window.  The
 causal tracker (:func:`tracked_age`) scores prequentially: each later block's clock is acquired on
-the target samples before that block only.
+the target samples before that block only (a protocol extension).
+
+The age marginalised (the protocol's physics): the acquisition is a posterior, not a certainty, and
+the beats drift.  :func:`clock_posteriors` gives each IMU's phase/beat posterior on the window,
+:func:`marginal_age` carries it forward with the *source's* beat random walk
+(:func:`~accel_bayes.mismatch.age_predictive.beat_walk_rate`) into the centred ages' predictive moments,
+and :func:`score` then scores the physics with the age marginalised (the mean term on E d, the
+covariance gaining the age variance: :mod:`accel_bayes.mismatch.age_predictive`).  The evidence rule
+(:func:`clock_accepted`) reads the data age's width, the fitted one over the regressor's scale λ
+(:func:`with_rate_scale`, the clock stage's definition).
 Every scale (white variances, degrees of freedom, covariances, unresolved scales, the mean's c)
 comes from the source.  Uncertainty: a moving-block bootstrap over the scored samples
 (:func:`block_bootstrap_se`).

@@ -116,9 +116,10 @@ def _clock_dict(clocks, f_host, t0):
 
 def test_beat_walk_rate_on_clockgen_clocks_with_known_drift():
     """clockgen clocks at 62.5 Hz with the generator's temperature drift (a = 1e-4, periods 150–200 s):
-    the tracked rate q = Σ(Δβ² − v₁ − v₂)/ΣΔt over 20 s blocks is within 20 % of the truth's, Σ Δβ²/ΣΔt of
-    the true beats (block means of f_int(1 + ε + a sin(2πt/P + ψ)) − n f_host); the same clocks without
-    drift give q under 2 % of it (the blocks' estimation variance subtracted)."""
+    the tracked rate q (maximum likelihood of the increments Δβ ~ N(0, qΔt + v₁ + v₂) over 20 s blocks)
+    is within 20 % of the truth's, Σ Δβ²/ΣΔt of the true beats (block means of f_int(1 + ε + a sin(2πt/P
+    + ψ)) − n f_host); the same clocks without drift give q under 2 % of it (the blocks' estimation
+    variance accounted for)."""
     f_host, T_s, blk = 62.5, 120.0, 20.0
     spec = [(-2.4e-3, 0.3, 150.0, 0.4), (0.9e-3, 0.7, 200.0, 2.0)]
     drifting = [Clock(1000.0, e, ph, 1e-4, P, psi) for e, ph, P, psi in spec]
