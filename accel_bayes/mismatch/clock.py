@@ -87,7 +87,7 @@ from .prepared import Prepared
 from .wander import fit_wander, sample_steps
 
 __all__ = ["ClockStage", "estimate_clock", "clock_ab", "clock_stage", "clock_ages", "data_age", "clock_corrected", "physical_beats",
-           "rate_scale", "NOMINAL_INTERNAL_RATE_HZ", "INTERNAL_RATE_TOLERANCE"]
+           "rate_scale", "physical_width", "NOMINAL_INTERNAL_RATE_HZ", "INTERNAL_RATE_TOLERANCE"]
 
 #: the internal sampling rate of an MPU-6050/9150 with its low-pass on (Hz): reports f_k from the beat
 NOMINAL_INTERNAL_RATE_HZ = 1000.0
@@ -391,6 +391,14 @@ def rate_scale(prep: Prepared, fit: ModelFit, k: int, *, block_s: float = SCALE_
     return float((V * G).sum()) / vv if vv > 0 else 1.0
 
 
+def physical_width(width_fit_s: float, lam: float) -> float:
+    """The data age's sawtooth width (s) from the width fitted on the regressor R_k ω̇ and the
+    regressor's scale λ (:func:`rate_scale`): width_fit/λ (module docstring, "Width"); λ ≤ 0 (a
+    regressor against the gyro's own rate) gives an unphysical width, rejected by :data:`WIDTH_RANGE_S`.
+    The reported ``age_rms_s`` is this width over √12."""
+    return float(width_fit_s) / max(float(lam), 1e-12)
+
+
 def _choose(cands: list, tol_hz: float) -> dict:
     """One IMU's clock from its candidates (in the search's order, with ``accepted``): the first
     accepted one — the next peak only where it is not: on reads slower than twice the vibration, slow
@@ -445,8 +453,7 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
             # the data age's width: what the fit found over the regressor's scale (rate_scale)
             cand.update({"imu": k, "f_read_hz": f_read, "rate_scale": lam, "width_fit_s": cand["width_s"],
                          "beat_mid_hz": cand["beat_hz"] + cand["drift_hz_per_s"] * 0.5 * (t[0] + t[-1]),
-                         # λ ≤ 0 (a regressor against the gyro's own rate): no physical width, rejected
-                         "width_s": cand["width_s"] / max(lam, 1e-12)})
+                         "width_s": physical_width(cand["width_s"], lam)})
             cand["accepted"] = bool(cand["evidence"] > thr and cand["evidence_vs_wander"] > thr
                                     and WIDTH_RANGE_S[0] <= cand["width_s"] <= WIDTH_RANGE_S[1]
                                     and physical_beats(cand["beat_hz"], f_read))

@@ -14,7 +14,9 @@ K triads enter (the held-out scoring keeps the samples where they do):
 ``BandedWhite``, ``SampleT`` and ``FullCov`` take optional centred data ages d (T, K) s and a
 scale s_b per band: the covariance (scale matrix for ``SampleT``) gains s²_b (d dᵀ ⊗ I₃), the
 unresolved motion of :mod:`accel_bayes.mismatch.unresolved`, evaluated by its exact low-rank
-identity.  Fits are maximum likelihood: closed form (white, full covariance), EM with the degrees
+identity.  Their densities also take the ages' predictive moments instead
+(:class:`~accel_bayes.mismatch.age_predictive.AgeMoments`: the age marginalised, the covariance
+gaining the age variance's terms).  Fits are maximum likelihood: closed form (white, full covariance), EM with the degrees
 of freedom by ECME (t models), EM for the full covariance with the low-rank term, L-BFGS for the
 multivariate t with it.
 """
@@ -25,6 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .age_predictive import AgeMoments, moment_loadings
 from .unresolved import fit_scales, gauss_logpdf, loadings, lowrank_terms, t_logpdf
 
 __all__ = ["BandedWhite", "TriadT", "SampleT", "FullCov", "describe"]
@@ -53,6 +56,15 @@ def _fit_nu(quad: torch.Tensor, logdet: torch.Tensor, n) -> torch.Tensor:
     den = l0 - 2 * l1 + l2
     off = torch.where(den < 0, 0.5 * h * (l0 - l2) / den, torch.zeros_like(den)).clamp(-h, h)
     return torch.exp(grid[i] + off)
+
+
+def _age_term(d, s2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(U, s2 per column) of the unresolved term for :func:`lowrank_terms`: ``d`` the centred data
+    ages (T, K) s, or their predictive :class:`~.age_predictive.AgeMoments` (the age marginalised,
+    :func:`~.age_predictive.moment_loadings`); ``s2`` (T,) the scale² per sample."""
+    if isinstance(d, AgeMoments):
+        return moment_loadings(d, s2)
+    return loadings(d), s2[:, None].expand(len(d), 3)
 
 
 def _ridged(cov: torch.Tensor) -> torch.Tensor:
@@ -85,7 +97,7 @@ class BandedWhite:
         if self.s is None or d is None:
             quad = (y.reshape(len(y), -1) ** 2 / v).sum(-1)
             return gauss_logpdf(quad, torch.log(v).sum(-1), v.shape[1])
-        quad, ld = lowrank_terms(y.reshape(len(y), -1), loadings(d), (self.s[lab] ** 2)[:, None].expand(len(y), 3), v=v)
+        quad, ld = lowrank_terms(y.reshape(len(y), -1), *_age_term(d, self.s[lab] ** 2), v=v)
         return gauss_logpdf(quad, ld, v.shape[1])
 
 
@@ -139,7 +151,7 @@ class SampleT:
         v = self.v[:, lab].T[:, :, None].expand_as(y).reshape(T, -1)
         if self.s is None or d is None:
             return (y.reshape(T, -1) ** 2 / v).sum(-1), torch.log(v).sum(-1)
-        return lowrank_terms(y.reshape(T, -1), loadings(d), (self.s[lab] ** 2)[:, None].expand(T, 3), v=v)
+        return lowrank_terms(y.reshape(T, -1), *_age_term(d, self.s[lab] ** 2), v=v)
 
     def logpdf(self, y, lab, d=None) -> torch.Tensor:
         """Per-sample log density (nats, (T,))."""
@@ -209,7 +221,7 @@ class FullCov:
         if self.s is None or d is None:
             U, s2 = torch.zeros(T, y.shape[1] * 3, 1, dtype=y.dtype), torch.zeros(T, 1, dtype=y.dtype)
         else:
-            U, s2 = loadings(d), (self.s[lab] ** 2)[:, None].expand(T, 3)
+            U, s2 = _age_term(d, self.s[lab] ** 2)
         quad, ld = lowrank_terms(y.reshape(T, -1), U, s2, prec=torch.linalg.inv(self.cov), lab=lab)
         return gauss_logpdf(quad, ld, y.shape[1] * 3)
 

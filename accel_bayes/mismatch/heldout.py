@@ -21,7 +21,16 @@ clock stage's (:func:`accel_bayes.mismatch.clock.clock_ab`, on the regressor R_k
 first 30 s of contiguous motion (:func:`motion_window`), every sample of it, from the window's own
 fit (:func:`window_statistics`), every model then scored on the kept samples after the window.  The
 causal tracker (:func:`tracked_age`) scores prequentially: each later block's clock is acquired on
-the target samples before that block only.
+the target samples before that block only (a protocol extension).
+
+The age marginalised (the protocol's physics): the acquisition is a posterior, not a certainty, and
+the beats drift.  :func:`clock_posteriors` gives each IMU's phase/beat posterior on the window,
+:func:`marginal_age` carries it forward with the *source's* beat random walk
+(:func:`~accel_bayes.mismatch.age_predictive.beat_walk_rate`) into the centred ages' predictive moments,
+and :func:`score` then scores the physics with the age marginalised (the mean term on E d, the
+covariance gaining the age variance: :mod:`accel_bayes.mismatch.age_predictive`).  The evidence rule
+(:func:`clock_accepted`) reads the data age's width, the fitted one over the regressor's scale λ
+(:func:`with_rate_scale`, the clock stage's definition).
 Every scale (white variances, degrees of freedom, covariances, unresolved scales, the mean's c)
 comes from the source.  Uncertainty: a moving-block bootstrap over the scored samples
 (:func:`block_bootstrap_se`).
@@ -35,14 +44,15 @@ import numpy as np
 import torch
 
 from ..physics.effects import board_gyro_rate, clock_age as sawtooth_age
+from .age_predictive import AgeMoments, age_moments, phase_posterior
 from .budget import band_edges
-from .clock import WIDTH_RANGE_S, clock_ab, estimate_clock
+from .clock import WIDTH_RANGE_S, clock_ab, estimate_clock, physical_width, rate_scale
 from .generic import BandedWhite, FullCov, SampleT, TriadT, describe
 from .vibration import array_residuals, instant_errors
 
 __all__ = ["Residuals", "residuals_of", "clocks_of", "clock_age", "centred", "fit_source", "score",
            "block_bootstrap_se", "acquired_age", "motion_window", "window_statistics", "clocks_from", "tracked_clocks", "tracked_age",
-           "GENERIC", "PHYSICS"]
+           "with_rate_scale", "clock_accepted", "clock_posteriors", "marginal_age", "GENERIC", "PHYSICS"]
 
 GENERIC = ("white", "triad_t", "sample_t", "full_cov")
 PHYSICS = ("physics", "physics+triad_t", "physics+sample_t", "physics+full_cov")
@@ -151,11 +161,13 @@ def motion_window(prep, seconds: float) -> np.ndarray:
     raise UserError(f"acquire_s: expected a stretch of {seconds:g} s without rests in the recording, found none")
 
 
-def window_statistics(prep, window) -> tuple[np.ndarray, torch.Tensor, torch.Tensor, float]:
+def window_statistics(prep, window, *, rate_scales: bool = False):
     """The gyro timing statistics of the clock stage (:func:`accel_bayes.mismatch.clock.clock_ab`) on
     the samples ``window`` of ``prep.source`` (:func:`motion_window`), from the window's own
     nominal fit (positions and motion fitted on the window alone, :func:`baseline_fit`): (times (n,)
-    s, a (n, K) s⁻², b (n, K) s⁻¹, f_read Hz)."""
+    s, a (n, K) s⁻², b (n, K) s⁻¹, f_read Hz); with ``rate_scales``, (that, λ (K,)) — each IMU's
+    regressor scale on the window's fit (:func:`accel_bayes.mismatch.clock.rate_scale`; 1 without
+    gyro), which turns a fitted sawtooth width into the data age's (:func:`with_rate_scale`)."""
     from ..prep.prepared import prepare_recording
     from ..prep.selection import select_samples
     from .fit import baseline_fit
@@ -165,16 +177,24 @@ def window_statistics(prep, window) -> tuple[np.ndarray, torch.Tensor, torch.Ten
     prep_w = from_prepared(prepare_recording(prep.source, selection=sel))
     fit_w, _ = baseline_fit(prep_w)
     res_w = residuals_of(prep_w, fit_w)
-    return res_w.time.numpy(), res_w.timing_a, res_w.timing_b, res_w.f_read
+    stats = res_w.time.numpy(), res_w.timing_a, res_w.timing_b, res_w.f_read
+    if not rate_scales:
+        return stats
+    lam = np.ones(prep_w.K)
+    for k in [int(j) for j in np.flatnonzero(prep_w.has_gyro)]:
+        lam[k] = rate_scale(prep_w, fit_w, k)
+    return stats, lam
 
 
-def clocks_from(t, a, b, f_read: float) -> dict:
+def clocks_from(t, a, b, f_read: float, rate_scales=None) -> dict:
     """Each IMU's clock from the detector's beat search (:func:`accel_bayes.mismatch.clock.estimate_clock`)
     on timing statistics a, b (n, K) at times t (n,) s: {"beat_hz", "phase" (cycles at t = 0 of the
     recording's clock), "drift_hz_per_s", "width_s", "evidence", "threshold"}, each (K,) numpy;
     zeros on an IMU with fewer than 20 samples of information (a > 0).  ``evidence`` (nats ×2):
     2·gain/ĉ², the search's gain with the statistics' noise factor ĉ² = Σb²/Σa profiled (Var b = ĉ²a
-    without a clock); ``threshold``: the clock stage's look-elsewhere χ²₄ quantile at 1 − 0.01/(K·cells)."""
+    without a clock); ``threshold``: the clock stage's look-elsewhere χ²₄ quantile at 1 − 0.01/(K·cells).
+    ``rate_scales`` (K,): the regressor's scale λ per IMU — ``width_s`` is then the data age's width,
+    the fitted one over λ, as the clock stage reports it (:func:`with_rate_scale`)."""
     from scipy.stats import chi2
 
     t = np.asarray(t, float)
@@ -189,7 +209,30 @@ def clocks_from(t, a, b, f_read: float) -> dict:
             out[key][k] = est[key]
         out["evidence"][k] = 2.0 * est["gain"] * ak.sum() / max(float((bk * bk).sum()), 1e-300)
         out["threshold"][k] = float(chi2.isf(0.01 / (K * max(est["cells"], 1)), 4))
+    return out if rate_scales is None else with_rate_scale(out, rate_scales)
+
+
+def with_rate_scale(clock: dict, lam) -> dict:
+    """A :func:`clocks_from` clock (fitted widths, as cached before λ was applied) with the clock
+    stage's definition of the width: ``width_fit_s`` the fitted one, ``width_s`` =
+    :func:`~accel_bayes.mismatch.clock.physical_width` (fitted / λ), ``age_rms_s`` = width_s/√12,
+    ``rate_scale`` λ (K,).  Applying it twice is refused (the width would be divided twice)."""
+    if "rate_scale" in clock:
+        raise ValueError("with_rate_scale: the clock's width already has its rate scale")
+    out = dict(clock)
+    out["width_fit_s"] = np.asarray(clock["width_s"], float)
+    out["rate_scale"] = np.asarray(lam, float)
+    out["width_s"] = np.array([physical_width(w, l) for w, l in zip(out["width_fit_s"], out["rate_scale"])])
+    out["age_rms_s"] = out["width_s"] / math.sqrt(12.0)
     return out
+
+
+def clock_accepted(clock: dict) -> np.ndarray:
+    """(K,) bool: the evidence rule — the clock's evidence above its look-elsewhere threshold and its
+    width (``width_s``, the data age's: :func:`with_rate_scale`) within the clock stage's
+    :data:`~accel_bayes.mismatch.clock.WIDTH_RANGE_S`."""
+    w = np.asarray(clock["width_s"])
+    return (np.asarray(clock["evidence"]) > np.asarray(clock["threshold"])) & (w >= WIDTH_RANGE_S[0]) & (w <= WIDTH_RANGE_S[1])
 
 
 def tracked_clocks(res: Residuals, window_stats, *, after: float, block_s: float) -> list:
@@ -224,21 +267,47 @@ def tracked_age(res: Residuals, blocks: list, *, block_s: float, accept=None, f_
 def acquired_age(res: Residuals, clock: dict, f_int=F_INT_NOMINAL, accept=None) -> torch.Tensor:
     """(T, K) data age (s) at ``res``'s times of the clocks :func:`clocks_from` gave, each a
     sawtooth of span 1/f_int (the age's mean and width are taken up by the fitted coefficient c).
-    ``accept``: None (every clock) or "evidence" — an IMU whose clock's evidence is under its
-    look-elsewhere threshold, or whose width is outside the clock stage's
-    :data:`~accel_bayes.mismatch.clock.WIDTH_RANGE_S`, gets the IMUs' mean age instead (no clock: a
-    beat the search cannot tell from noise would load the wrong samples)."""
+    ``accept``: None (every clock) or "evidence" — an IMU that fails :func:`clock_accepted` gets the
+    IMUs' mean age instead (no clock: a beat the search cannot tell from noise would load the wrong
+    samples)."""
     t = torch.as_tensor(res.time, dtype=torch.float64)[:, None]
     c = {k: torch.as_tensor(clock[k], dtype=torch.float64)[None, :] for k in ("beat_hz", "phase", "drift_hz_per_s")}
     age = sawtooth_age(t, c["beat_hz"], c["phase"], c["drift_hz_per_s"], 1.0 / f_int)
     if accept == "evidence":
-        ok = ((np.asarray(clock["evidence"]) > np.asarray(clock["threshold"]))
-              & (np.asarray(clock["width_s"]) >= WIDTH_RANGE_S[0]) & (np.asarray(clock["width_s"]) <= WIDTH_RANGE_S[1]))
+        ok = clock_accepted(clock)
         if ok.any():
             age[:, ~ok] = age[:, ok].mean(1, keepdim=True)
         else:
             age[:] = 0.0
     return age
+
+
+def clock_posteriors(window_stats, clock: dict, *, accept=None) -> list:
+    """Per IMU the posterior of its phase and beat at the acquisition window's centre
+    (:func:`~.age_predictive.phase_posterior`) on the window's statistics ``window_stats``
+    (:func:`window_statistics`) about ``clock`` (:func:`clocks_from` on them); None — no clock, the
+    age uniform — on an IMU with under 20 informative samples or no sawtooth (width 0), or failing
+    :func:`clock_accepted` when ``accept`` is "evidence"."""
+    tw, aw, bw, _ = window_stats
+    aw, bw = np.asarray(aw, float), np.asarray(bw, float)
+    ok = clock_accepted(clock) if accept == "evidence" else np.ones(aw.shape[1], bool)
+    posts = []
+    for k in range(aw.shape[1]):
+        info = aw[:, k] > 0
+        if not ok[k] or int(info.sum()) < 20 or clock["width_s"][k] <= 0:
+            posts.append(None)
+            continue
+        posts.append(phase_posterior(tw[info], aw[info, k], bw[info, k], beat_hz=clock["beat_hz"][k], phase=clock["phase"][k],
+                                     drift_hz_per_s=clock["drift_hz_per_s"][k], t_c=0.5 * (tw[0] + tw[-1])))
+    return posts
+
+
+def marginal_age(res: Residuals, posts: list, q: float, *, f_int=F_INT_NOMINAL) -> AgeMoments:
+    """The centred data ages' predictive moments at ``res``'s times (:class:`~.age_predictive.AgeMoments`)
+    from the acquisition's :func:`clock_posteriors` carried forward with the beat walk's rate q
+    (Hz²/s; :func:`~.age_predictive.beat_walk_rate` on the source), ages of span 1/f_int (s)."""
+    mean, var = age_moments(res.time.numpy(), posts, q, 1.0 / f_int)
+    return AgeMoments.of(mean, var)
 
 
 def _mean_coeff(y, rate, d, ok) -> float:
@@ -282,13 +351,16 @@ def fit_source(res: Residuals, age: torch.Tensor, *, models=GENERIC + PHYSICS, p
     return out
 
 
-def score(source: dict, res: Residuals, age: torch.Tensor, keep) -> dict:
+def score(source: dict, res: Residuals, age, keep) -> dict:
     """Per sensor, each model's per-sample log density (nats, numpy (n,)) of the target's
     residuals on the samples ``keep`` (T,) bool that have all triads observed, with the source's
-    parameters and the target's centred ages."""
+    parameters and the target's ages: (T, K) s (deterministic, centred here), or the centred ages'
+    predictive :class:`~.age_predictive.AgeMoments` (:func:`marginal_age`, all T samples): the physics
+    models then score the age marginalised (mean term on E d, covariance with the age variance)."""
     edges = source["edges"]
     lab_all = torch.as_tensor(np.digitize(res.omega.numpy(), edges), dtype=torch.long)
-    d_all = centred(age)
+    marg = isinstance(age, AgeMoments)
+    d_all = age.mean if marg else centred(age)
     keep = torch.as_tensor(np.asarray(keep, bool))
     out = {}
     for s in ("acc", "gyro"):
@@ -296,6 +368,8 @@ def score(source: dict, res: Residuals, age: torch.Tensor, keep) -> dict:
         y, lab, d, rate = res.y[s][sel], lab_all[sel], d_all[sel], res.rate[s][sel]
         m = source[s]
         e = y + m["c"] * d[:, :, None] * rate
+        if marg:
+            d = AgeMoments(d, age.factor[sel], m["c"] * rate)
         ll = {}
         for name, model in m.items():
             if name in ("c", "seconds"):
