@@ -31,8 +31,8 @@ enters through ω and f, so the relative bias walks with both.  H (:func:`~.solv
 is the largest spacing at which the linear interpolant misses the walk (its Brownian bridge,
 K√H/2 at mid-interval) by at most a quarter of a sample's white-noise std, at least 1 s (so each
 bias knot is fixed by its second of samples rather than by the walk prior) and at most the
-recording: EuRoC's walks on the MIMU4444's noise give 15–30 s, the concealed rigs' small walks one
-interval over the recording.  Why not at the motion knots: 6 bias numbers per IMU every 10 ms, each
+recording: on exp_1's 30 s window EuRoC's walks and the MIMU4444's noise give two 15 s acc intervals and
+one 30 s gyro interval, the concealed rigs' small walks one interval over the recording.  Why not at the motion knots: 6 bias numbers per IMU every 10 ms, each
 held by the walk prior rather than by its few samples, left LM crawling along thousands of weakly
 determined directions (exp_1's 30 s pairs stopped at the iteration limit on offsets of 1–88 ms).  K per IMU and sensor comes from long rests (Allan deviation, the exports'
 :func:`accel_bayes.data.export.random_walks`), else from the recording (``gyro_random_walk``,
