@@ -184,7 +184,8 @@ def main(argv=None):
     lines = ["# Rig posterior on concealed rigs (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_proof.py --n 30 --duration {args.duration:g} "
              "--under 4` (one process), or in parts with `--first-seed/--n/--first-under/--under --json PART.json` "
-             "and then `--from-json PART.json ...` (what produced this file: "
+             "and then `--from-json PART.json ...`; `--crb-from OLD.json` takes the bounds of an earlier run of the same draws "
+             "(they do not depend on the fit) instead of recomputing them (what produced this file: "
              f"{len(cases)} rigs, {len(under)} under-excited; "
              f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
              f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs; fit time per rig in the "
