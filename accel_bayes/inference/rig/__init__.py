@@ -40,7 +40,8 @@ determined directions (exp_1's 30 s pairs stopped at the iteration limit on offs
 one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised (Schur complement of the bias knots),
 so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
 1e-4 m/s²/√s moves the offsets' z by ≤ 0.05, ``experiments/rig_offset_decomposition.md``; a walk
-of the white noise's size over the recording widens the clock std, ``tests/inference/test_rig_walk.py``).  A stated nominal orientation
+of the white noise's size over the recording widens the lever-arm and orientation stds by 9–32 %,
+``tests/inference/test_rig_walk.py``).  A stated nominal orientation
 (not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit
 more than 3 prior std away draws a one-line warning.  The lever arm has a 1 m std prior about the
 nominal position: proper, so LM cannot wander along an unexcited direction, and flat for anything

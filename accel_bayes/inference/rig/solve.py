@@ -241,7 +241,8 @@ def bias_knot_spacing(sigma, walk, span: float) -> float:
     (the Brownian bridge's std, K√H/2 at mid-interval, ≤ σ/4: the unmodelled part adds ≤ 1/16 to
     a sample's variance), for every IMU (sigma, walk: per non-reference IMU, σ per sample and
     the relative walk density in the same unit per √s); at least :data:`MIN_BIAS_SPACING`, at most
-    the span (s) of the recording (then one interval: a walk between two end knots)."""
+    the span (s) of the recording (then one interval: a walk between two end knots).  :func:`fit_rig`
+    makes it whole intervals over the span, rounding up unless that breaks the 1 s floor."""
     sigma, walk = np.asarray(sigma, dtype=float), np.asarray(walk, dtype=float)
     H = float(np.min((sigma / (2.0 * walk)) ** 2))
     return float(min(max(H, MIN_BIAS_SPACING), span))
@@ -311,7 +312,9 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     for c, key in enumerate(("wg", "wa")):
         sigma = [1.0 / float(np.max(s[key])) if np.max(s[key]) > 0 else np.inf for s in smp[1:]]
         H = bias_knot_spacing(sigma, walk_rel[:, c], span)
-        n_b = int(math.ceil(span / H - 1e-9)) + 1
+        # whole intervals over the span: rounded up to keep the bridge bound, down to keep the 1 s floor
+        n_int = min(int(math.ceil(span / H - 1e-9)), int(math.floor(span / MIN_BIAS_SPACING + 1e-9)))
+        n_b = max(n_int, 1) + 1
         grids.append(BiasGrid(t0=float(tau[0]), H=span / (n_b - 1), n=n_b))
 
     nom_pos = np.asarray(rec.nominal_position, dtype=float)[order]
