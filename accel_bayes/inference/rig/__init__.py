@@ -31,14 +31,18 @@ enters through ω and f, so the relative bias walks with both.  H (:func:`~.solv
 is the largest spacing at which the linear interpolant misses the walk (its Brownian bridge,
 K√H/2 at mid-interval) by at most a quarter of a sample's white-noise std, at least 1 s (so each
 bias knot is fixed by its second of samples rather than by the walk prior) and at most the
-recording: on exp_1's 30 s window EuRoC's walks and the MIMU4444's noise give two 15 s acc intervals and
-one 30 s gyro interval, the concealed rigs' small walks one interval over the recording.  Why not at the motion knots: 6 bias numbers per IMU every 10 ms, each
-held by the walk prior rather than by its few samples, left LM crawling along thousands of weakly
-determined directions (exp_1's 30 s pairs stopped at the iteration limit on offsets of 1–88 ms).  K per IMU and sensor comes from long rests (Allan deviation, the exports'
+recording: on exp_1's 30 s window EuRoC's walks and the MIMU4444's noise give two 15 s acc
+intervals and one 30 s gyro interval, the concealed rigs' small walks one interval over the
+recording.  Why not at the motion knots: 6 bias numbers per IMU every 10 ms, each held by the walk
+prior rather than by its few samples, left LM crawling along thousands of weakly determined
+directions (exp_1's 30 s pairs stopped at the iteration limit on offsets of 1–88 ms).  Cost: the
+bias knots are dense globals of the LM, 6·n(K−1) columns in every interval's Jacobian; a long
+recording with walks fast against its noise (hundreds of bias knots) makes them the dominant
+memory.  K per IMU and sensor comes from long rests (Allan deviation, the exports'
 :func:`accel_bayes.data.export.random_walks`), else from the recording (``gyro_random_walk``,
 ``acc_random_walk`` of the array description or sensor.yaml), else EuRoC's ADIS16448 figures with a
-one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised (Schur complement of the bias knots),
-so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
+one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised (Schur
+complement of the bias knots), so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
 1e-4 m/s²/√s moves the offsets' z by ≤ 0.05, ``experiments/rig_offset_decomposition.md``; a walk
 of the white noise's size over the recording widens the lever-arm and orientation stds by 9–32 %,
 ``tests/inference/test_rig_walk.py``).  A stated nominal orientation

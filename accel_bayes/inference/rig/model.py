@@ -178,7 +178,7 @@ def walk_residual(grid: BiasGrid, walk) -> tuple:
     IMU and axis; walk: (K − 1,) densities (per √s).  Returns (residual function of the block
     (K−1, n, 3), its constant Jacobian (rows, (K−1)·n·3))."""
     walk = np.asarray(walk, dtype=float).reshape(-1)
-    K1, n = len(walk), grid.n
+    n = grid.n
     D = np.zeros((n - 1, n))
     D[np.arange(n - 1), np.arange(n - 1)] = -1.0
     D[np.arange(n - 1), np.arange(1, n)] = 1.0
