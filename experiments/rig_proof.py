@@ -46,7 +46,9 @@ def _rotvec_err(q_hat, q_true):
     return quat_log(matrix_to_quat(R)).numpy()
 
 
-def run_case(seed, n_imu, duration, rot_axes=(0, 1, 2)):
+def run_case(seed, n_imu, duration, rot_axes=(0, 1, 2), crb=None):
+    """One rig's record; crb: its ``crb_*`` entries per IMU from an earlier record of the same draw
+    (seed, IMU count, duration), which the bound does not depend on the fit to reuse."""
     rec, truth = draw_case("rig", seed, n_imu=n_imu, duration=duration, rot_axes=rot_axes)
     with tempfile.TemporaryDirectory() as d:
         path = write_case(rec, truth, Path(d) / "rig.nc")
@@ -71,6 +73,8 @@ def run_case(seed, n_imu, duration, rot_axes=(0, 1, 2)):
                             "err_d": float(e_d), "std_d": float(res.clock_drift_std[k]),
                             "stamp_jitter_est": float(res.stamp_jitter_std[k]),
                             "stamp_jitter_true": float(truth["stamp_jitter_std"][k])})
+    for m in out["imus"]:
+        m.update((crb or {}).get(m["imu"], {}))
     if tuple(rot_axes) == (0, 1, 2):  # an under-excited rig has no finite bound on its blind lever arm
         add_crb(out, rec, truth, res.own_stamps)
     return out
@@ -138,8 +142,15 @@ def main(argv=None):
                     help="per-rig records (written as they finish)")
     ap.add_argument("--from-json", nargs="+", default=None, metavar="JSON",
                     help="write the document from these records (parts run in parallel) instead of running")
+    ap.add_argument("--crb-from", default=None, metavar="JSON",
+                    help="take each rig's bounds from these records of the same --duration instead of recomputing them "
+                         "(the bound is the generator's, independent of the fit)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    crb_cache = {}
+    if args.crb_from:
+        for c in json.loads(Path(args.crb_from).read_text())["cases"]:
+            crb_cache[c["seed"]] = {m["imu"]: {k: v for k, v in m.items() if k.startswith("crb")} for m in c["imus"]}
     t_all = time.time()
     jpath = Path(args.json)
     cases, under = [], []
@@ -157,7 +168,7 @@ def main(argv=None):
         outputs.write_json(jpath, {"cases": cases, "under": under})
     for i in range(args.n):
         seed = args.first_seed + i
-        cases.append(run_case(seed, 2 + seed % 3, args.duration))
+        cases.append(run_case(seed, 2 + seed % 3, args.duration, crb=crb_cache.get(seed)))
         c = cases[-1]
         print(f"seed {seed} K={c['n_imu']} rates={c['rates']} {c['seconds']:.0f}s {c['reason']} "
               f"chi2/dof {c['chi2_per_dof']:.2f} unident {c['unidentified']}", flush=True)
@@ -173,7 +184,8 @@ def main(argv=None):
     lines = ["# Rig posterior on concealed rigs (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_proof.py --n 30 --duration {args.duration:g} "
              "--under 4` (one process), or in parts with `--first-seed/--n/--first-under/--under --json PART.json` "
-             "and then `--from-json PART.json ...` (what produced this file: "
+             "and then `--from-json PART.json ...`; `--crb-from OLD.json` takes the bounds of an earlier run of the same draws "
+             "(they do not depend on the fit) instead of recomputing them (what produced this file: "
              f"{len(cases)} rigs, {len(under)} under-excited; "
              f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
              f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs; fit time per rig in the "
@@ -192,8 +204,8 @@ def main(argv=None):
               f"orientation {worst['orient_deg']:.4f}° (≤ 0.2, {yes(worst['orient_deg'] <= 0.2)}), time offset "
               f"{worst['offset_ms']:.4f} ms (≤ 0.5, {yes(worst['offset_ms'] <= 0.5)}).", "",
               "std: the Laplace posterior at the MAP (exact Hessian), with stamp jitter as per-sample timing noise "
-              "(σ_j from the stamps) and each IMU's biases as random walks of the density the recording states "
-              "(marginalised with the motion). CRB: `experiments/rig_crb.py`, the information of the generator's exact "
+              "(σ_j from the stamps) and each IMU's biases as random walks of the density the recording states, "
+              "linear between bias knots seconds apart (`bias_knot_spacing`), marginalised. CRB: `experiments/rig_crb.py`, the information of the generator's exact "
               "kinematics at the true parameters (finite-difference Jacobian; white noise plus the true stamp jitter; "
               "the motion a cubic-B-spline nuisance and the biases the generator's random walks, a hybrid bound, both "
               "eliminated by their Schur complement; no priors on the parameters), independent of the solver.  The bound depends on the motion class: a spline at the fit's "

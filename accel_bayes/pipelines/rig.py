@@ -57,7 +57,9 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
                                                        for k, n in res.unidentified]},
         provenance={"version": __version__, "input_sha256": sha, "seed": None,
                     "settings": {"model": "rig", "knot_spacing": settings.knot_spacing,
-                                 "orientation_prior_deg": settings.orientation_prior_deg}})
+                                 "orientation_prior_deg": settings.orientation_prior_deg,
+                                 # s, [gyro, acc]: the grids the walking biases were fitted on
+                                 "bias_knot_spacing": [float(v) for v in res.bias_knot_spacing]}})
     doc["model"] = "rig"
     unid = {(int(k), n) for k, n in res.unidentified}
     for k, e in enumerate(doc["imus"]):

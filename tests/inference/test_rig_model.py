@@ -2,8 +2,8 @@
 import numpy as np
 import torch
 
-from accel_bayes.inference.rig.model import (bucket_samples, local_dim, measurement_jacobian, measurement_residual,
-                                             process_jacobian, process_residual, process_matrices)
+from accel_bayes.inference.rig.model import (BiasGrid, bucket_samples, measurement_jacobian, measurement_residual,
+                                             process_jacobian, process_residual, process_matrices, walk_residual)
 from accel_bayes.physics.geometry import boxplus, quat_normalize
 
 
@@ -19,13 +19,14 @@ def _small_rig(seed=0, K=3):
     n_knots = int(np.ceil(0.26 / h)) + 1
     o = np.r_[0.0, rng.uniform(-3e-3, 3e-3, K - 1)]
     d = np.r_[0.0, rng.uniform(-1e-4, 1e-4, K - 1)]
-    data = bucket_samples(samples, o, d, lo, h, n_knots)
+    # bias grids coarser than the motion's and of their own spacing per sensor kind
+    grids = (BiasGrid(lo, 0.26 / 2, 3), BiasGrid(lo, 0.26 / 3, 4))
+    data = bucket_samples(samples, o, d, lo, h, n_knots, grids)
     t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
     g = {"q": quat_normalize(t(rng.normal(size=(K - 1, 4)))), "r": t(rng.normal(0, 0.1, (K - 1, 3))),
-         "o": t(o[1:]), "d": t(d[1:])}
-    # motion and walking biases [b_g, b_a] of the K − 1 non-reference IMUs
-    x = t(rng.normal(size=(n_knots, local_dim(K))) * np.r_[[2.0] * 3, [20.0] * 3, [5.0] * 3, [50.0] * 3,
-                                                              [0.01] * 3 * (K - 1), [0.1] * 3 * (K - 1)])
+         "o": t(o[1:]), "d": t(d[1:]), "bg": t(rng.normal(0, 0.01, (K - 1, 3, 3))),
+         "ba": t(rng.normal(0, 0.1, (K - 1, 4, 3)))}
+    x = t(rng.normal(size=(n_knots, 12)) * np.r_[[2.0] * 3, [20.0] * 3, [5.0] * 3, [50.0] * 3])
     R0 = torch.linalg.qr(t(rng.normal(size=(3, 3))))[0]
     R0 = R0 * torch.sign(torch.det(R0))
     return g, x, data, R0
@@ -36,9 +37,9 @@ def test_measurement_jacobian_matches_finite_differences():
     jac, A, B = measurement_jacobian(g, x[:-1], x[1:], data, R0)
     f = lambda gg, xx: measurement_residual(gg, xx[:-1], xx[1:], data, R0)  # noqa: E731
     eps = 1e-6
-    for name in ("q", "r", "o", "d"):
+    for name in ("q", "r", "o", "d", "bg", "ba"):
         v = g[name]
-        n_t = v.shape[0] * (3 if name in ("q", "r") else 1)
+        n_t = v.shape[0] * 3 if name in ("q", "r") else v.numel()
         for c in range(n_t):
             delta = torch.zeros(n_t, dtype=torch.float64)
             delta[c] = eps
@@ -51,7 +52,7 @@ def test_measurement_jacobian_matches_finite_differences():
                 return f(gg, x)
             fd = (moved(1) - moved(-1)) / (2 * eps)
             assert torch.allclose(jac[name][..., c], fd, rtol=1e-5, atol=1e-4 * (1 + fd.abs().max())), (name, c)
-    # locals (motion and biases): x_j enters interval j through A and interval j−1 through B
+    # locals (the motion): x_j enters interval j through A and interval j−1 through B
     for c in range(x.shape[1]):
         for jj in (3, 10):
             dx = torch.zeros_like(x)
@@ -85,18 +86,14 @@ def test_process_prior_is_whitened_white_jerk():
 
 
 def test_bias_walk_prior_is_whitened_random_walk():
-    """The knots' bias increments are whitened by the walk density: unit variance under a random
-    walk of that density, and each IMU's gyro and acc by their own figure."""
-    h, walk = 0.005, np.array([[2e-5, 3e-4], [5e-5, 1e-3]])   # two non-reference IMUs: [gyro, acc]
-    AB = process_matrices(h, 1.0, 1.0, walk)
-    D = local_dim(3)
-    assert AB[0].shape == (D, D)
+    """The bias knots' increments are whitened by the walk density over the bias spacing H: unit
+    variance under a random walk of that density, each IMU by its own figure."""
+    grid, walk = BiasGrid(0.0, 2.5, 5), np.array([2e-5, 5e-5])   # two non-reference IMUs
     rng = np.random.default_rng(2)
     n = 20000
-    xp = np.zeros((n, D))
-    xn = np.zeros((n, D))
-    sd = np.repeat(walk, 3, axis=1).reshape(-1) * np.sqrt(h)
-    xp[:, 12:] = rng.normal(size=(n, D - 12))
-    xn[:, 12:] = xp[:, 12:] + sd * rng.normal(size=(n, D - 12))
-    e = process_residual(torch.as_tensor(xp), torch.as_tensor(xn), AB).numpy()[:, 12:]
-    assert np.allclose(np.cov(e.T), np.eye(D - 12), atol=0.05)
+    steps = rng.normal(size=(n, 2, grid.n - 1, 3)) * (walk * np.sqrt(grid.H))[None, :, None, None]
+    b = np.concatenate((rng.normal(size=(n, 2, 1, 3)), steps), 2).cumsum(2)
+    fn, J = walk_residual(grid, walk)
+    e = np.stack([fn(torch.as_tensor(bi)).numpy() for bi in b[:2000]])
+    assert np.allclose(np.cov(e.T), np.eye(e.shape[1]), atol=0.12)
+    assert torch.allclose(J @ torch.as_tensor(b[0]).reshape(-1), fn(torch.as_tensor(b[0])))

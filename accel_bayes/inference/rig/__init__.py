@@ -24,16 +24,28 @@ u = σ_j ẏ/σ.  With one stamp column for all IMUs the error is common to ever
 biases (its biases are absorbed in ω and f).  Unknowns per IMU k ≠ reference: R_k (3, right
 box-plus), r_k (3, m), o_k (s), d_k (only where the IMU carries its own stamps: a NaN-union
 recording or ``imu_time_offset``; else 0), and its gyro and acc biases b_g,k(t), b_a,k(t) relative
-to the reference's, as random walks: part of the knot state (6 numbers per IMU and knot, linear
-between knots), consecutive knots differing by N(0, (K_k² + K_ref²) h) per axis, K the walk's
-density (rad/s/√s, m/s²/√s) — the reference's walk enters through ω and f, so the relative bias
-walks with both.  K per IMU and sensor comes from long rests (Allan deviation, the exports'
+to the reference's, as random walks on a grid of bias knots of their own, H seconds apart (one grid
+per sensor kind; globals, linear between bias knots), consecutive bias knots differing by
+N(0, (K_k² + K_ref²) H) per axis, K the walk's density (rad/s/√s, m/s²/√s) — the reference's walk
+enters through ω and f, so the relative bias walks with both.  H (:func:`~.solve.bias_knot_spacing`)
+is the largest spacing at which the linear interpolant misses the walk (its Brownian bridge,
+K√H/2 at mid-interval) by at most a quarter of a sample's white-noise std, at least 1 s (so each
+bias knot is fixed by its second of samples rather than by the walk prior) and at most the
+recording: on exp_1's 30 s window EuRoC's walks and the MIMU4444's noise give two 15 s acc
+intervals and one 30 s gyro interval, the concealed rigs' small walks one interval over the
+recording.  Why not at the motion knots: 6 bias numbers per IMU every 10 ms, each held by the walk
+prior rather than by its few samples, left LM crawling along thousands of weakly determined
+directions (exp_1's 30 s pairs stopped at the iteration limit on offsets of 1–88 ms).  Cost: the
+bias knots are dense globals of the LM, 6·n(K−1) columns in every interval's Jacobian; a long
+recording with walks fast against its noise (hundreds of bias knots) makes them the dominant
+memory.  K per IMU and sensor comes from long rests (Allan deviation, the exports'
 :func:`accel_bayes.data.export.random_walks`), else from the recording (``gyro_random_walk``,
 ``acc_random_walk`` of the array description or sensor.yaml), else EuRoC's ADIS16448 figures with a
-one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised with the motion,
-so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
+one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised (Schur
+complement of the bias knots), so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
 1e-4 m/s²/√s moves the offsets' z by ≤ 0.05, ``experiments/rig_offset_decomposition.md``; a walk
-of the white noise's size over the recording widens the clock std, ``tests/inference/test_rig_walk.py``).  A stated nominal orientation
+of the white noise's size over the recording widens the lever-arm and orientation stds by 9–32 %,
+``tests/inference/test_rig_walk.py``).  A stated nominal orientation
 (not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit
 more than 3 prior std away draws a one-line warning.  The lever arm has a 1 m std prior about the
 nominal position: proper, so LM cannot wander along an unexcited direction, and flat for anything
@@ -42,8 +54,8 @@ f), the clock by the timing of ω's and f's changes.
 
 Assumptions (what the model does not have): bias walks of the stated density (a walk faster than
 stated makes the stds too small; bias instability (flicker) is read as a walk; the walk is the
-linear interpolant of a Brownian motion between knots h apart, whose bridge, ≲ K√(h)/2, is far below
-the white noise), no scale factors, misalignments or nonlinearity inside
+linear interpolant of a Brownian motion between bias knots H apart, whose bridge, ≤ K√H/2, is
+at most a quarter of the white noise, or more where the 1 s floor binds), no scale factors, misalignments or nonlinearity inside
 an IMU (exp_1's final spin near the gyro range is out of reach), stamp errors independent between
 samples, a constant drift, motion smooth on the scale of h (cubic between knots; impacts and
 vibration above ~1/(4h) are not represented), the reference's nominal orientation exact.

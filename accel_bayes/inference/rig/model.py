@@ -9,10 +9,11 @@ prior whose increments :func:`process_residual` scores.  Each interval [τ_j, τ
 :class:`~accel_bayes.inference.lm.ChainResidual` row holding the (padded) samples whose corrected
 instants fall in it, so the package's structured LM eliminates the knots block-tridiagonally.
 
-The knots also carry each non-reference IMU's relative biases [b_g,k, b_a,k] (6 per IMU, after the
-motion's 12: :func:`local_dim`), a Brownian motion sampled at the knots and linear between them:
-consecutive values differ by N(0, q_k h) per axis (:func:`process_matrices`), q_k the IMU's and the
-reference's random-walk densities squared and summed (the reference's walk is absorbed in ω, f).
+Each non-reference IMU's relative biases b_g,k(t), b_a,k(t) are globals on a coarse grid of their
+own (:class:`BiasGrid`, one per sensor kind, seconds apart rather than the motion's milliseconds),
+linear between bias knots; consecutive bias knots differ by N(0, q_k H) per axis
+(:func:`walk_residual`), q_k the IMU's and the reference's random-walk densities squared and summed
+(the reference's walk is absorbed in ω, f).
 """
 from __future__ import annotations
 
@@ -24,16 +25,28 @@ import torch
 
 from ...physics.geometry import quat_to_matrix, skew
 
-__all__ = ["RigData", "bucket_samples", "hermite", "sample_time", "measurement_residual", "process_matrices",
-           "measurement_jacobian", "process_residual", "process_jacobian", "full_globals", "D_LOCAL",
-           "timing_noise_directions", "stamp_jitter_std", "local_dim", "knot_biases"]
+__all__ = ["RigData", "BiasGrid", "bucket_samples", "hermite", "sample_time", "measurement_residual",
+           "process_matrices", "measurement_jacobian", "process_residual", "process_jacobian", "full_globals",
+           "D_LOCAL", "timing_noise_directions", "stamp_jitter_std", "walk_residual", "mean_biases"]
 
-D_LOCAL = 12  # [ω, ω̇, f, ḟ] per knot; the biases of the K − 1 non-reference IMUs follow
+D_LOCAL = 12  # [ω, ω̇, f, ḟ] per knot
 
 
-def local_dim(n_imu: int) -> int:
-    """Numbers per knot: the motion's 12 and 6 walking biases per non-reference IMU."""
-    return D_LOCAL + 6 * (n_imu - 1)
+@dataclass(frozen=True)
+class BiasGrid:
+    """The bias knots of one sensor kind: n ≥ 2 knots t0 + m·H (s, − t₀ of the recording); the
+    global block ("bg" or "ba") is (K − 1, n, 3), the biases of IMUs 1..K−1 at the knots."""
+
+    t0: float
+    H: float
+    n: int
+
+    def locate(self, t):
+        """Knot index m (long, the interval's left knot) and weight u ∈ [0, 1] of the right one at
+        instants t (s); outside the grid the end interval's line is extended."""
+        s = (t - self.t0) / self.H
+        m = torch.clamp(torch.floor(s.detach()), 0, self.n - 2).long()
+        return m, s - m.to(s.dtype)
 
 
 @dataclass
@@ -44,7 +57,8 @@ class RigData:
     tau (J−1,): interval start τ_j (s) − t₀; yg, ya (J−1, S, 3): gyro (rad/s), acc (m/s²) readings;
     wg, wa (J−1, S): 1/σ (0 for padding and left-out samples); h: knot spacing (s); n_imu: K;
     u (J−1, S, 6) or None: the whitened timing-noise direction σ_j ∂r/∂t of each slot (stamp jitter,
-    :func:`timing_noise_directions`), held fixed while LM runs.
+    :func:`timing_noise_directions`), held fixed while LM runs; grids: the gyro and acc
+    :class:`BiasGrid`.
     """
 
     imu: torch.Tensor
@@ -56,6 +70,7 @@ class RigData:
     wa: torch.Tensor
     h: float
     n_imu: int
+    grids: tuple = None
     u: torch.Tensor | None = None
 
 
@@ -65,13 +80,14 @@ def sample_time(ds, o, d):
     return o + ds / (1.0 + d)
 
 
-def bucket_samples(samples, o, d, tau0: float, h: float, n_knots: int) -> RigData:
+def bucket_samples(samples, o, d, tau0: float, h: float, n_knots: int, grids: tuple) -> RigData:
     """Put each sample into the motion interval that holds its corrected instant.
 
     samples : list over internal IMU index of dicts with ds (N,), yg (N, 3), ya (N, 3), wg (N,),
     wa (N,) (numpy); o, d : per-IMU clock parameters (numpy, internal order) used only to choose
     the interval (the residual re-evaluates the instant from the current o, d, so a sample whose
-    instant moves a little out of its interval is still predicted by that interval's cubic).
+    instant moves a little out of its interval is still predicted by that interval's cubic);
+    grids : (gyro, acc) :class:`BiasGrid`.
     """
     K = len(samples)
     idx, slot_rows = [], []
@@ -100,7 +116,7 @@ def bucket_samples(samples, o, d, tau0: float, h: float, n_knots: int) -> RigDat
     t = lambda a, dt=torch.float64: torch.as_tensor(a, dtype=dt)  # noqa: E731
     return RigData(imu=t(scatter(kk, 0), torch.long), ds=t(scatter(cat["ds"])),
                    tau=t(tau0 + h * np.arange(J1)), yg=t(scatter(cat["yg"])), ya=t(scatter(cat["ya"])),
-                   wg=t(scatter(cat["wg"])), wa=t(scatter(cat["wa"])), h=float(h), n_imu=K)
+                   wg=t(scatter(cat["wg"])), wa=t(scatter(cat["wa"])), h=float(h), n_imu=K, grids=tuple(grids))
 
 
 def hermite(u):
@@ -122,21 +138,60 @@ def full_globals(g: dict, R0: torch.Tensor):
     return R, torch.cat((z3, g["r"]), 0), torch.cat((z1, g["o"]), 0), torch.cat((z1, g["d"]), 0)
 
 
-def knot_biases(x, n_imu: int):
-    """(J, K, 6) [b_g, b_a] per knot and IMU in internal order (the reference's: zero) from the
-    knots x (J, :func:`local_dim`)."""
-    b = x[:, D_LOCAL:].reshape(x.shape[0], n_imu - 1, 6)
-    return torch.cat((b.new_zeros(x.shape[0], 1, 6), b), 1)
+def _grid_weights(data: RigData, grid: BiasGrid, t):
+    """Flat knot index c = (k − 1)·n + m of each slot's left bias knot (J−1, S), the weight u of the
+    right one, and a mask (J−1, S) that is 0 on the reference's slots (no bias of its own)."""
+    m, u = grid.locate(t)
+    c = torch.clamp(data.imu - 1, min=0) * grid.n + m
+    return c, u, (data.imu > 0).to(t.dtype)
 
 
-def _slot_biases(xp, xn, data: RigData, t):
-    """Each slot's IMU's biases at its instant t (J−1, S, 6), linear between the two knots, the
-    interpolation weight u (J−1, S) and the biases' rate (J−1, S, 6) (per s)."""
-    u = (t - data.tau[:, None]) / data.h
-    k = data.imu[..., None].expand(-1, -1, 6)
-    bp = torch.gather(knot_biases(xp, data.n_imu), 1, k)
-    bn = torch.gather(knot_biases(xn, data.n_imu), 1, k)
-    return bp + u[..., None] * (bn - bp), u, (bn - bp) / data.h
+def _slot_biases(g: dict, data: RigData, t):
+    """Each slot's IMU's biases [b_g, b_a] at its instant t (J−1, S, 6), linear between bias knots,
+    and their rate (J−1, S, 6) (per s)."""
+    val, rate = [], []
+    for name, grid in zip(("bg", "ba"), data.grids):
+        flat = g[name].reshape(-1, 3)
+        c, u, mask = _grid_weights(data, grid, t)
+        bl, br = flat[c], flat[c + 1]
+        val.append((bl + u[..., None] * (br - bl)) * mask[..., None])
+        rate.append((br - bl) * (mask / grid.H)[..., None])
+    return torch.cat(val, -1), torch.cat(rate, -1)
+
+
+def _bias_jacobian(data: RigData, grid: BiasGrid, t, rows: slice, w):
+    """∂(whitened slot residual)/∂(bias block) (J−1, S, 6, (K−1)·n·3) of one sensor kind: weights
+    1 − u and u on the two bias knots around t, on the identity of that sensor's three rows."""
+    c, u, mask = _grid_weights(data, grid, t)
+    C = (data.n_imu - 1) * grid.n
+    wt = (torch.nn.functional.one_hot(c, C).to(t.dtype) * (1.0 - u)[..., None]
+          + torch.nn.functional.one_hot(c + 1, C).to(t.dtype) * u[..., None]) * (mask * w)[..., None]
+    J1, S = c.shape
+    out = t.new_zeros(J1, S, 6, C, 3)
+    for a in range(3):
+        out[:, :, rows.start + a, :, a] = wt
+    return out.reshape(J1, S, 6, 3 * C)
+
+
+def walk_residual(grid: BiasGrid, walk) -> tuple:
+    """Whitened random-walk increments of one sensor kind's bias knots: (b_{m+1} − b_m)/(K √H) per
+    IMU and axis; walk: (K − 1,) densities (per √s).  Returns (residual function of the block
+    (K−1, n, 3), its constant Jacobian (rows, (K−1)·n·3))."""
+    walk = np.asarray(walk, dtype=float).reshape(-1)
+    n = grid.n
+    D = np.zeros((n - 1, n))
+    D[np.arange(n - 1), np.arange(n - 1)] = -1.0
+    D[np.arange(n - 1), np.arange(1, n)] = 1.0
+    inv = 1.0 / (walk * math.sqrt(grid.H))
+    J = torch.as_tensor(np.kron(np.diag(inv), np.kron(D, np.eye(3))))
+    return (lambda b: J @ b.reshape(-1)), J
+
+
+def mean_biases(b: torch.Tensor) -> np.ndarray:
+    """Time means (K − 1, 3) of the linear bias interpolants whose knots are b (K − 1, n, 3)."""
+    w = torch.ones(b.shape[1], dtype=b.dtype)
+    w[0] = w[-1] = 0.5
+    return ((b * w[None, :, None]).sum(1) / w.sum()).numpy()
 
 
 def _interp(xp, xn, data: RigData, t):
@@ -180,7 +235,7 @@ def measurement_residual(g: dict, xp, xn, data: RigData, R0) -> torch.Tensor:
     R, r, o, d = _slot_state(g, data, R0)
     t = sample_time(data.ds, o, d)
     _, w, wd, _, f, _ = _interp(xp, xn, data, t)
-    b, _, _ = _slot_biases(xp, xn, data, t)
+    b, _ = _slot_biases(g, data, t)
     bg, ba = b[..., :3], b[..., 3:]
     v = f + torch.cross(wd, r, -1) + torch.cross(w, torch.cross(w, r, -1), -1)
     rg = ((R @ w.unsqueeze(-1)).squeeze(-1) + bg - data.yg) * data.wg[..., None]
@@ -195,7 +250,7 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
     R, r, o, d = _slot_state(g, data, R0)
     t = sample_time(data.ds, o, d)
     (b, db), w, wd, wdd, f, fd = _interp(xp, xn, data, t)
-    _, ub, brate = _slot_biases(xp, xn, data, t)
+    _, brate = _slot_biases(g, data, t)
     h = data.h
     J1, S = data.imu.shape
     I3 = torch.eye(3, dtype=w.dtype)
@@ -224,11 +279,7 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
     B = torch.cat((blocks[2][0], blocks[3][0], blocks[2][1], blocks[3][1]), -1)
     K1 = data.n_imu - 1
     onehot = torch.nn.functional.one_hot(data.imu, data.n_imu)[..., 1:].to(w.dtype)  # reference: no globals, no biases
-    # biases of the slot's IMU at both knots: weights (1 − u) and u on the whitened identity
     wdiag = torch.diag_embed(torch.cat((data.wg[..., None].expand(-1, -1, 3), data.wa[..., None].expand(-1, -1, 3)), -1))
-    jb = (wdiag[..., None, :] * onehot[:, :, None, :, None]).reshape(J1, S, 6, 6 * K1)   # (J−1, S, 6, 6(K−1))
-    A = torch.cat((A, jb * (1.0 - ub)[..., None, None]), -1)
-    B = torch.cat((B, jb * ub[..., None, None]), -1)
     # globals of the slot's IMU
     jq = torch.cat((-(RG @ Sw), -(RA @ skew(v))), -2)                              # (J−1, S, 6, 3)
     jr = torch.cat((Z, RA @ (Swd + Sw @ Sw)), -2)
@@ -247,6 +298,9 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
         return (jb.unsqueeze(-2) * oh).reshape(J1, 6 * S, K1 * jb.shape[-1])
 
     jac = {"q": spread(jq), "r": spread(jr), "o": spread(jo), "d": spread(jd)}
+    for name, grid, rows, wgt in (("bg", data.grids[0], slice(0, 3), data.wg), ("ba", data.grids[1], slice(3, 6), data.wa)):
+        jbias = _jitter_whiten(data, _bias_jacobian(data, grid, t, rows, wgt))
+        jac[name] = jbias.reshape(J1, 6 * S, jbias.shape[-1])
     D = A.shape[-1]
     return jac, A.reshape(J1, 6 * S, D), B.reshape(J1, 6 * S, D)
 
@@ -260,7 +314,7 @@ def timing_noise_directions(g: dict, xp, xn, data: RigData, R0, sigma_j) -> torc
     _, w, wd, wdd, f, fd = _interp(xp, xn, data, t)
     wxr = torch.cross(w, r, -1)
     dv = fd + torch.cross(wdd, r, -1) + torch.cross(wd, wxr, -1) + torch.cross(w, torch.cross(wd, r, -1), -1)
-    _, _, brate = _slot_biases(xp, xn, data, t)
+    _, brate = _slot_biases(g, data, t)
     jt = torch.cat((((R @ wd.unsqueeze(-1)).squeeze(-1) + brate[..., :3]) * data.wg[..., None],
                     ((R @ dv.unsqueeze(-1)).squeeze(-1) + brate[..., 3:]) * data.wa[..., None]), -1)
     sj = torch.as_tensor(np.asarray(sigma_j, dtype=float))[data.imu]
@@ -290,16 +344,12 @@ def stamp_jitter_std(ds: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
 
 
-def process_matrices(h: float, qc_w: float, qc_f: float, walk=None, dtype=torch.float64):
-    """(Aw, Bw) (D, D), D = :func:`local_dim`, such that the whitened prior increments are
-    Aw x_j + Bw x_{j+1}: per motion axis the white-noise-on-jerk e = [v_{j+1} − v_j − h ṡ_j ;
-    ṡ_{j+1} − ṡ_j], Cov(e) = q_c [[h³/3, h²/2], [h²/2, h]]; per bias axis the random-walk increment
-    b_{j+1} − b_j, Var = q h.  walk : (K − 1, 2) random-walk densities [gyro (rad/s/√s), acc
-    (m/s²/√s)] of the IMU's bias relative to the reference's (None: no non-reference IMU)."""
-    walk = np.zeros((0, 2)) if walk is None else np.asarray(walk, dtype=float).reshape(-1, 2)
-    D = D_LOCAL + 6 * len(walk)
-    A = torch.zeros(D, D, dtype=dtype)
-    B = torch.zeros(D, D, dtype=dtype)
+def process_matrices(h: float, qc_w: float, qc_f: float, dtype=torch.float64):
+    """(Aw, Bw) (12, 12) such that the whitened prior increments are Aw x_j + Bw x_{j+1}: per motion
+    axis the white-noise-on-jerk e = [v_{j+1} − v_j − h ṡ_j ; ṡ_{j+1} − ṡ_j],
+    Cov(e) = q_c [[h³/3, h²/2], [h²/2, h]]."""
+    A = torch.zeros(D_LOCAL, D_LOCAL, dtype=dtype)
+    B = torch.zeros(D_LOCAL, D_LOCAL, dtype=dtype)
     I3 = torch.eye(3, dtype=dtype)
     for off, qc in ((0, qc_w), (6, qc_f)):
         Q = qc * torch.tensor([[h ** 3 / 3, h ** 2 / 2], [h ** 2 / 2, h]], dtype=dtype)
@@ -308,15 +358,11 @@ def process_matrices(h: float, qc_w: float, qc_f: float, walk=None, dtype=torch.
         Eb = torch.eye(2, dtype=dtype)
         A[off:off + 6, off:off + 6] = torch.kron(Li @ Ea, I3)
         B[off:off + 6, off:off + 6] = torch.kron(Li @ Eb, I3)
-    inv_sd = 1.0 / (np.repeat(walk, 3, axis=1) * math.sqrt(h)).reshape(-1)   # [g g g a a a] per IMU
-    idx = torch.arange(D_LOCAL, D)
-    A[idx, idx] = -torch.as_tensor(inv_sd, dtype=dtype)
-    B[idx, idx] = torch.as_tensor(inv_sd, dtype=dtype)
     return A, B
 
 
 def process_residual(xp, xn, AB) -> torch.Tensor:
-    """Whitened motion- and walk-prior increments (J−1, D) between consecutive knots."""
+    """Whitened motion-prior increments (J−1, 12) between consecutive knots."""
     A, B = AB
     return xp @ A.T + xn @ B.T
 

@@ -16,12 +16,12 @@ from ...physics.geometry import boxminus, matrix_to_quat, quat_to_matrix
 from ..lm import ChainResidual, GlobalResidual, LevenbergMarquardt, Problem, Variable
 from ..lm.linear import NotPositiveDefinite
 from .initial import align_gyros, interp_rows
-from .model import (bucket_samples, knot_biases, measurement_jacobian, measurement_residual,
+from .model import (BiasGrid, bucket_samples, mean_biases, measurement_jacobian, measurement_residual,
                     process_jacobian, process_matrices, process_residual, stamp_jitter_std,
-                    timing_noise_directions)
+                    timing_noise_directions, walk_residual)
 
 __all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes",
-           "default_knot_spacing", "bias_walks", "DEFAULT_RANDOM_WALK"]
+           "default_knot_spacing", "bias_walks", "bias_knot_spacing", "DEFAULT_RANDOM_WALK", "MIN_BIAS_SPACING"]
 
 #: per-parameter scales of "a confident number": a direction of the Laplace posterior whose std
 #: exceeds its scale (scaled Fisher information eigenvalue < 1) is reported unidentified
@@ -32,6 +32,11 @@ IDENT_SCALE = {"q": math.radians(1.0), "r": 0.01, "o": 2e-3, "d": 1e-3}
 #: and an upper end for MEMS IMUs (a walk assumed too large widens the clock std, one too small
 #: makes it overconfident: ``experiments/rig_offset_decomposition.md``)
 DEFAULT_RANDOM_WALK = {"gyro": 1.9393e-5, "acc": 3.0e-3}
+
+#: s, the finest bias-knot spacing (:func:`bias_knot_spacing`): one knot per ≥ 1 s of samples is
+#: determined by the data, not by the walk prior (the 10 ms motion knots' walking biases were not:
+#: LM crawled along their thousands of prior-dominated directions, ``experiments/rig_mimu_pairs.md``)
+MIN_BIAS_SPACING = 1.0
 
 
 @dataclass(frozen=True)
@@ -56,6 +61,7 @@ class RigSettings:
         the stamps (:func:`~.model.stamp_jitter_std`; only where the IMUs carry their own stamps).
     random_walk : {"gyro": rad/s/√s, "acc": m/s²/√s} for every IMU, or None: per IMU from
         :func:`bias_walks` (rests, then the recording, then :data:`DEFAULT_RANDOM_WALK` with a warning).
+        The walks live on a coarse grid of bias knots of their own (:func:`bias_knot_spacing`).
     prior_scale : multiplies the white-jerk intensities q_c estimated from the reference (> 1: weaker).
     ftol : LM's relative cost-change stop (1e-8 of a cost of order the number of residuals is far
         below the 0.5 that a 1-std move of one parameter makes).
@@ -96,7 +102,7 @@ class RigResult:
     time_offset, time_offset_std (K,) s; clock_drift, clock_drift_std (K,) (NaN where the IMU has no
     own stamps); gyro_bias, acc_bias (K, 3): time means of the walking biases relative to the
     reference's (rad/s, m/s²); random_walk (K, 2): the [gyro, acc] walk densities used (rad/s/√s,
-    m/s²/√s); own_stamps (K,) bool; stamp_jitter_std (K,) s (0 where
+    m/s²/√s); bias_knot_spacing (2,): the [gyro, acc] bias grids' spacing (s); own_stamps (K,) bool; stamp_jitter_std (K,) s (0 where
     not modelled); unidentified: list of
     (imu label, parameter name) pairs; warnings: one line each; converged, reason, n_iter,
     chi2_per_dof, seconds.
@@ -130,6 +136,7 @@ class RigResult:
     free_cov: np.ndarray = field(default=None, repr=False)
     free_labels: list = field(default=None, repr=False)
     random_walk: np.ndarray = None
+    bias_knot_spacing: np.ndarray = None
 
 
 def bias_walks(rec, samples, order, settings) -> tuple[np.ndarray, list]:
@@ -228,6 +235,19 @@ def default_knot_spacing(samples, own_stamps: bool) -> float:
     return float(np.clip(2.5 / rate, 5e-3, 10e-3))
 
 
+def bias_knot_spacing(sigma, walk, span: float) -> float:
+    """Spacing H (s) of one sensor kind's bias knots: the largest at which the linear interpolant
+    of a walk of density K between knots misses it by at most a quarter of a sample's white noise σ
+    (the Brownian bridge's std, K√H/2 at mid-interval, ≤ σ/4: the unmodelled part adds ≤ 1/16 to
+    a sample's variance), for every IMU (sigma, walk: per non-reference IMU, σ per sample and
+    the relative walk density in the same unit per √s); at least :data:`MIN_BIAS_SPACING`, at most
+    the span (s) of the recording (then one interval: a walk between two end knots).  :func:`fit_rig`
+    makes it whole intervals over the span, rounding up unless that breaks the 1 s floor."""
+    sigma, walk = np.asarray(sigma, dtype=float), np.asarray(walk, dtype=float)
+    H = float(np.min((sigma / (2.0 * walk)) ** 2))
+    return float(min(max(H, MIN_BIAS_SPACING), span))
+
+
 def unexcited_axes(smp0, R0, sigma_g: float, width_s: float = 0.02, factor: float = 100.0) -> list:
     """Array-frame axes (unit 3-vectors) the rig never turns about: eigen-directions of the mean
     ω ωᵀ of the reference gyro (Gaussian-smoothed over ``width_s``) below ``factor`` × the smoothed
@@ -285,14 +305,24 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     # reference's own walk is absorbed in ω and f)
     walk, warnings = bias_walks(rec, smp, order, settings)
     walk_rel = np.sqrt(walk[1:] ** 2 + walk[0] ** 2)
-    AB = process_matrices(h, qc_w * settings.prior_scale, qc_f * settings.prior_scale, walk_rel)
-    x0 = np.concatenate((x0, np.zeros((n_knots, 6 * (K - 1)))), 1)
+    AB = process_matrices(h, qc_w * settings.prior_scale, qc_f * settings.prior_scale)
     R0t = torch.as_tensor(R0)
+    span = tau[-1] - tau[0]
+    grids = []
+    for c, key in enumerate(("wg", "wa")):
+        sigma = [1.0 / float(np.max(s[key])) if np.max(s[key]) > 0 else np.inf for s in smp[1:]]
+        H = bias_knot_spacing(sigma, walk_rel[:, c], span)
+        # whole intervals over the span: rounded up to keep the bridge bound, down to keep the 1 s floor
+        n_int = min(int(math.ceil(span / H - 1e-9)), int(math.floor(span / MIN_BIAS_SPACING + 1e-9)))
+        n_b = max(n_int, 1) + 1
+        grids.append(BiasGrid(t0=float(tau[0]), H=span / (n_b - 1), n=n_b))
 
     nom_pos = np.asarray(rec.nominal_position, dtype=float)[order]
     tt = lambda a: torch.as_tensor(np.asarray(a, dtype=float))  # noqa: E731
     q0 = matrix_to_quat(tt(np.stack(R_init)))
-    values = {"q": q0, "r": tt(nom_pos[1:] - nom_pos[0]), "o": tt(o_init[1:]), "d": tt(d_init[1:])}
+    values = {"q": q0, "r": tt(nom_pos[1:] - nom_pos[0]), "o": tt(o_init[1:]), "d": tt(d_init[1:]),
+              "bg": torch.zeros(K - 1, grids[0].n, 3, dtype=torch.float64),
+              "ba": torch.zeros(K - 1, grids[1].n, 3, dtype=torch.float64)}
     fixed_d = torch.as_tensor(~own[1:])
     # nominal orientations other than the identity are stated ones (format v1 writes identity when absent)
     stated = ~np.all(np.isclose(q_nom[1:], [1.0, 0, 0, 0]) | np.isclose(q_nom[1:], [-1.0, 0, 0, 0]), axis=1)
@@ -305,6 +335,10 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     priors = [GlobalResidual(lambda g: ((g["r"] - r_nom) / settings.lever_prior_std).reshape(-1),
                              jac=lambda g: {"r": torch.eye(3 * (K - 1), dtype=torch.float64) / settings.lever_prior_std},
                              name="lever_arm_prior")]
+    for c, name in enumerate(("bg", "ba")):
+        fn, Jw = walk_residual(grids[c], walk_rel[:, c])
+        priors.append(GlobalResidual(lambda g, fn=fn, name=name: fn(g[name]),
+                                     jac=lambda g, Jw=Jw, name=name: {name: Jw}, name=f"{name}_walk"))
     if stated.any():
         sel = torch.as_tensor(stated)
         priors.append(GlobalResidual(lambda g: (boxminus(g["q"][sel], qn_t[sel]) / sig_q).reshape(-1),
@@ -327,7 +361,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
             if moved.max() < h / 4:  # every sample still in (or a cubic's short reach from) its interval
                 break
         o_used, d_used = o_full, d_full
-        data = bucket_samples(smp, o_full, d_full, lo, h, n_knots)
+        data = bucket_samples(smp, o_full, d_full, lo, h, n_knots, grids)
         if sig_j.any():  # the weights of this pass, from its starting motion and clocks
             data.u = timing_noise_directions(values, x[:-1], x[1:], data, R0t, sig_j)
         meas = ChainResidual(lambda g, xp, xn, dd: measurement_residual(g, xp, xn, dd, R0t), data=data,
@@ -335,26 +369,30 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         proc = ChainResidual(lambda g, xp, xn, dd: process_residual(xp, xn, dd), data=AB,
                              jac=lambda g, xp, xn, dd: process_jacobian(xp, dd), name="motion_prior")
         prob = Problem({"q": Variable(values["q"], "quaternion"), "r": Variable(values["r"]),
-                        "o": Variable(values["o"]), "d": Variable(values["d"], fixed=fixed_d)},
+                        "o": Variable(values["o"]), "d": Variable(values["d"], fixed=fixed_d),
+                        "bg": Variable(values["bg"]), "ba": Variable(values["ba"])},
                        x, [meas, proc] + priors)
         res = LevenbergMarquardt(max_iter=settings.max_iter, ftol=settings.ftol, xtol=1e-12, gtol=1e-9).solve(prob)
         values, x = res.values, res.locals
         log_all += res.log
 
-    # Laplace posterior of the free globals (knots marginalised by the Schur complement)
-    labels = res.free_labels()
+    # Laplace posterior of the free globals (motion knots marginalised by the LM's Schur complement,
+    # the bias knots by :func:`_marginal_information`)
+    all_labels = res.free_labels()
+    keep = np.array([name in IDENT_SCALE for name, _ in all_labels])
+    labels = [lab for lab, k in zip(all_labels, keep) if k]
     scale = np.array([IDENT_SCALE[name] for name, _ in labels])
     hess_used = settings.hessian
     try:
-        S = res.information(settings.hessian).numpy()
+        S = _marginal_information(res.information(settings.hessian).numpy(), keep)
         indefinite = np.linalg.eigvalsh(S * scale[:, None] * scale[None, :]).min() < 0
-    except NotPositiveDefinite:
+    except (NotPositiveDefinite, np.linalg.LinAlgError):
         indefinite = True
     if indefinite:
         # not at a minimum (LM stopped on a ridge along an unexcited direction): the PSD
         # Gauss–Newton information; its errors-in-variables optimism is why the excitation rule
         # below checks the lever arm independently
-        S = res.information("gauss_newton").numpy()
+        S = _marginal_information(res.information("gauss_newton").numpy(), keep)
         hess_used = "gauss_newton (exact Hessian indefinite)"
     # Directions whose std would exceed IDENT_SCALE (scaled eigenvalue < 1, negative included: at
     # an unexcited direction LM stops on a ridge, not at a minimum) are unidentified.  The
@@ -383,7 +421,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
 
     n_res = int((data.wg > 0).sum() * 3 + (data.wa > 0).sum() * 3)
     r_meas = measurement_residual(values, x[:-1], x[1:], data, R0t)
-    chi2 = float((r_meas ** 2).sum()) / max(n_res - len(labels), 1)
+    chi2 = float((r_meas ** 2).sum()) / max(n_res - len(all_labels), 1)
 
     # back to label order, covariances per block
     pos_idx = {lab: i for i, lab in enumerate(labels)}
@@ -404,7 +442,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     ori[ref] = q_nom[0]
     dr[ref], dr_s[ref] = 0.0, 0.0
     qv = values["q"].numpy()
-    b_mean = knot_biases(x, K).mean(0).numpy()   # (K, 6) internal order
+    b_mean = np.concatenate((np.zeros((1, 6)), np.concatenate((mean_biases(values["bg"]), mean_biases(values["ba"])), 1)))
     wko = np.zeros((K, 2)); wko[order] = walk
     for ki in range(1, K):
         lab = order[ki]
@@ -430,7 +468,22 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                      converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
                      seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used,
                      stamp_jitter_std=sjo, free_cov=cov, random_walk=wko,
+                     bias_knot_spacing=np.array([grids[0].H, grids[1].H]),
                      free_labels=[(order[idx[0] + 1], name, idx[1] if len(idx) > 1 else 0) for name, idx in labels])
+
+
+def _marginal_information(S: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Information of the ``keep`` coordinates with the others (the bias knots) marginalised: the
+    Schur complement S_kk − S_kb S_bb⁻¹ S_bk (Cholesky: raises LinAlgError where S_bb is not
+    positive definite)."""
+    b = ~keep
+    if not b.any():
+        return S
+    Skk, Skb, Sbb = S[np.ix_(keep, keep)], S[np.ix_(keep, b)], S[np.ix_(b, b)]
+    L = np.linalg.cholesky(0.5 * (Sbb + Sbb.T))
+    Y = np.linalg.solve(L, Skb.T)
+    out = Skk - Y.T @ Y
+    return 0.5 * (out + out.T)
 
 
 def time_elapsed(t_start: float) -> float:
