@@ -59,7 +59,7 @@ import torch
 from ..errors import UserError
 from ..physics.models import u_of_omega
 from .likelihood import RaoBlackwellLikelihood
-from .unresolved_cov import centred_ages
+from .unresolved_cov import centred_ages, instant_error_loadings, loadings
 
 # the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
@@ -106,16 +106,18 @@ def ages_from_clocks(time, clocks: dict, labels, sensor: str = "acc") -> torch.T
     return out
 
 
-def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None) -> "PerSampleCovLikelihood":
+def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None, *, rate=None,
+                           instant_std=None) -> "PerSampleCovLikelihood":
     """The per-sample-covariance likelihood on ``lik``'s data (shared, not copied): ``age`` (T, A)
     s the rows' data ages, ``jerk_std`` scalar or (T,) m/s³, ``nu`` None or the degrees of
-    freedom of the scale mixture (module docstring)."""
+    freedom of the scale mixture; ``rate`` (T, A, 3) m/s³ and ``instant_std`` (s, scalar or (A,))
+    the triads' own instant error (module docstring, "Instant error")."""
     if type(lik) is not RaoBlackwellLikelihood and not isinstance(lik, PerSampleCovLikelihood):
         # a subclass (the tempered likelihood) would silently lose its own log_phat here
         raise UserError(f"lik: expected an untempered RaoBlackwellLikelihood, got {type(lik).__name__}")
     new = copy.copy(lik)
     new.__class__ = PerSampleCovLikelihood
-    new._set_terms(age, jerk_std, nu)
+    new._set_terms(age, jerk_std, nu, rate, instant_std)
     return new
 
 
@@ -130,12 +132,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
     """
 
     def __init__(self, acc, omega, acc_noise_std, num_draws, age, jerk_std, nu=None, reference: int = 0,
-                 dtype=torch.float64, device=None, phi_prior=None):
+                 dtype=torch.float64, device=None, phi_prior=None, rate=None, instant_std=None):
         super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device,
                          phi_prior=phi_prior)
-        self._set_terms(age, jerk_std, nu)
+        self._set_terms(age, jerk_std, nu, rate, instant_std)
 
-    def _set_terms(self, age, jerk_std, nu):
+    def _set_terms(self, age, jerk_std, nu, rate=None, instant_std=None):
         age = torch.as_tensor(np.asarray(age, dtype=np.float64) if not torch.is_tensor(age) else age,
                               dtype=self.dtype, device=self.device)
         if age.shape != (self.T, self.A):
@@ -158,14 +160,39 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         self.nu = nu
         # Ũ_t = s_t D_t only through the product u_kt = s_t d_kt (m/s² per unit-variance jerk)
         self.loading = centred_ages(age) * s[:, None]
+        self.rate, self.instant_std, self.W = None, None, None
+        if (rate is None) != (instant_std is None):
+            raise UserError("rate, instant_std: give both (the triads' own instant error) or neither")
+        if rate is not None:
+            self._set_instant_error(rate, instant_std)
         self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
+        if self.W is not None:  # the general path loads every sample
+            self.active = torch.arange(self.T, device=self.device)
         self._tf_cache = None
+
+    def _set_instant_error(self, rate, instant_std):
+        """The whitened loading W_t = Λ^½[s_t D_t, instant-error block] (T, 3A, 3 + A) of the
+        general path (module docstring, "Instant error")."""
+        rate = torch.as_tensor(rate, dtype=self.dtype, device=self.device)
+        if rate.shape != (self.T, self.A, 3) or not bool(torch.isfinite(rate).all()):
+            raise UserError(f"rate: expected finite output rates of shape (T, A, 3) = ({self.T}, {self.A}, 3) m/s³, "
+                            f"got {tuple(rate.shape)}")
+        e = instant_std if torch.is_tensor(instant_std) else torch.as_tensor(instant_std, dtype=self.dtype)
+        e = e.to(self.dtype)
+        if e.dim() > 1 or (e.dim() == 1 and len(e) != self.A) or not bool(torch.isfinite(e).all()) \
+                or bool((e < 0).any()):
+            raise UserError(f"instant_std: expected a finite std >= 0 (s), scalar or ({self.A},)")
+        self.rate, self.instant_std = rate, e
+        U = torch.cat((loadings(self.loading), instant_error_loadings(rate, e)), -1)  # (T, 3A, 3 + A)
+        self.W = U * self._sqrt_lam[None, :, None]
 
     # ------------------------------------------------------------------ per-θ terms
     def _percov_terms(self, r: torch.Tensor) -> dict:
         """The flat projection at r (B, A, 3) plus ``V`` (B, 3, 7, T): rows i of [V_t, v_t] =
         L_t⁻¹[Ũ_tᵀSG, Ũ_tᵀSr̄_t] stored component-first for the per-draw sums, and ``logdetN``
         (B, T) (module docstring; zero where the sample has no loading)."""
+        if self.W is not None:
+            return self._percov_terms_general(r)
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         idx = self.active
@@ -222,10 +249,34 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         proj.update(V=V, logdetN=logdetN)
         return proj
 
+    def _percov_terms_general(self, r: torch.Tensor) -> dict:
+        """:meth:`_percov_terms` for any loading W_t = Λ^½Ũ_t (T, 3A, R) (here the jerk and the
+        triads' instant errors, R = 3 + A): N_t = I + W_tᵀW_t − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t), batched R × R
+        Choleskys, and the rows of V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T)."""
+        proj = self._projection_hot(r, extras=True)
+        B, T = r.shape[0], self.T
+        W = self.W
+        R = W.shape[-1]
+        Y = torch.einsum("bnj,tnr->bjrt", proj["Hw"], W)  # H_wᵀW_t (B, 6, R, T)
+        Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
+        WtW = self._theta_free  # (T, R, R) + I
+        N = WtW - torch.einsum("bjrt,bjst->btrs", Yh, Yh)
+        Ln, info = torch.linalg.cholesky_ex(N)
+        if bool((info != 0).any()):
+            raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
+        Ea = torch.cat((torch.einsum("bnj,tnr->btrj", proj["Gt"], W),
+                        torch.einsum("btn,tnr->btr", proj["e_w"], W)[..., None]), -1)  # (B, T, R, 7)
+        X = torch.linalg.solve_triangular(Ln, Ea, upper=False)
+        proj.update(V=X.permute(0, 2, 3, 1), logdetN=2 * torch.diagonal(Ln, dim1=-2, dim2=-1).log().sum(-1))
+        return proj
+
     @property
     def _theta_free(self):
         """Cached θ-free tensors of the loaded samples: uᵀ (A, Ta); diag(ŨᵀΛŨ) + 1 (3, Ta);
         u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major vector over the triads."""
+        if getattr(self, "_tf_cache", None) is None and self.W is not None:  # general path: I + W_tᵀW_t
+            R = self.W.shape[-1]
+            self._tf_cache = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)
