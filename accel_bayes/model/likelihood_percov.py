@@ -64,7 +64,7 @@ from .unresolved_cov import centred_ages, instant_error_loadings, loadings
 # the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
 
-__all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale"]
+__all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale", "triad_rates"]
 
 
 def band_scale(omega_norm, edges, rms, field: str = "jerk_rms") -> torch.Tensor:
@@ -104,6 +104,27 @@ def ages_from_clocks(time, clocks: dict, labels, sensor: str = "acc") -> torch.T
         if sensor == "acc":
             out[:, j] += float(clock.params["filter_delay_acc_minus_gyro_s"])
     return out
+
+
+def triad_rates(acc, time, sample_scale=None) -> torch.Tensor:
+    """ρ (T, A, 3) m/s³: the rate of each triad's output ``acc`` (T, A, 3) m/s² (any one frame) at
+    the read times ``time`` (T,) s, by the second-order differences of
+    :func:`~accel_bayes.physics.effects.output_rates` within each run of contiguous samples (the
+    rates the clocks' mean correction uses).  ``sample_scale`` (T,): the data were divided by it
+    (a noise model's per-sample scale); the rate is taken in physical units and divided again.
+
+    Why the outputs' own rate is the instant error's loading: a triad read at t + ε errs by ε times
+    the rate of its specific force — the board's jerk, ω̈ × r_k and the rotation terms, which grow
+    with |ω| and |ω̇| and differ by triad — and the outputs at 62.5 Hz resolve that rate to their
+    noise (σ√2/(2Δt) ≈ 70 m/s³ against rates of 10³–10⁴ m/s³); an interior central difference does
+    not use the sample itself, so the loading is independent of that sample's white noise."""
+    from ..physics.effects import output_rates
+
+    acc = torch.as_tensor(acc, dtype=torch.float64)
+    sc = torch.ones(acc.shape[0], dtype=acc.dtype) if sample_scale is None else \
+        torch.as_tensor(np.asarray(sample_scale, dtype=np.float64))
+    phys = acc * sc[:, None, None]
+    return output_rates(torch.as_tensor(np.asarray(time, dtype=np.float64)), phys, phys[:, :1])[0] / sc[:, None, None]
 
 
 def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None, *, rate=None,
@@ -250,22 +271,37 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         return proj
 
     def _percov_terms_general(self, r: torch.Tensor) -> dict:
-        """:meth:`_percov_terms` for any loading W_t = Λ^½Ũ_t (T, 3A, R) (here the jerk and the
-        triads' instant errors, R = 3 + A): N_t = I + W_tᵀW_t − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t), batched R × R
-        Choleskys, and the rows of V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T)."""
+        """:meth:`_percov_terms` with the triads' instant errors beside the jerk (module docstring,
+        "Instant error"): R = 3 + A loading columns, N_t = I + W_tᵀW_t − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t)
+        by batched R × R Choleskys, and the rows of V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T).
+        The instant-error columns are block-sparse (column k lives on triad k's three rows), so
+        their products with H_w, Ẽ_w and e_w are A batched 6 × 3 products, not dense ones."""
         proj = self._projection_hot(r, extras=True)
-        B, T = r.shape[0], self.T
-        W = self.W
-        R = W.shape[-1]
-        Y = torch.einsum("bnj,tnr->bjrt", proj["Hw"], W)  # H_wᵀW_t (B, 6, R, T)
+        B, A, T = r.shape[0], self.A, self.T
+        u_t, wk, wtw = self._theta_free
+        R = 3 + A
+        sl = self._sqrt_lam.view(A, 3, 1)
+        Hw4 = proj["Hw"].view(B, A, 3, 6)
+        Gt4 = proj["Gt"].view(B, A, 3, 6)
+        # H_wᵀW_t: the jerk's columns as in the closed-form path, then the instant errors' (B, 6, R, T)
+        YJ = ((Hw4 * sl).permute(0, 3, 2, 1).reshape(B, 18, A) @ u_t).view(B, 6, 3, T)
+        YE = torch.matmul(Hw4.transpose(-1, -2), wk).transpose(1, 2)  # (B, 6, A, T)
+        Y = torch.cat((YJ, YE), 2)
         Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
-        WtW = self._theta_free  # (T, R, R) + I
-        N = WtW - torch.einsum("bjrt,bjst->btrs", Yh, Yh)
+        # N_t (B, T, R, R): one (R × 6)(6 × R) product per sample
+        Yt = Yh.permute(0, 3, 2, 1)  # (B, T, R, 6)
+        N = wtw - Yt @ Yt.transpose(-1, -2)
         Ln, info = torch.linalg.cholesky_ex(N)
         if bool((info != 0).any()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
-        Ea = torch.cat((torch.einsum("bnj,tnr->btrj", proj["Gt"], W),
-                        torch.einsum("btn,tnr->btr", proj["e_w"], W)[..., None]), -1)  # (B, T, R, 7)
+        # [W_tᵀẼ_w, W_tᵀe_w,t] (B, T, R, 7)
+        EJ = ((Gt4 * sl).permute(0, 2, 3, 1).reshape(B, 18, A) @ u_t).view(B, 3, 6, T)
+        EE = torch.matmul(Gt4.transpose(-1, -2), wk)  # (B, A, 6, T)
+        ew = proj["e_w"].view(B, T, A, 3)
+        aJ = torch.einsum("btki,kt->bti", ew * self._sqrt_lam.view(A, 3), u_t)  # Ũ_JᵀΛe (B, T, 3)
+        aE = (ew * wk.permute(2, 0, 1)).sum(-1)  # (B, T, A)
+        Ea = torch.cat((torch.cat((EJ, EE), 1).permute(0, 3, 1, 2),
+                        torch.cat((aJ, aE), -1)[..., None]), -1)  # (B, T, R, 7)
         X = torch.linalg.solve_triangular(Ln, Ea, upper=False)
         proj.update(V=X.permute(0, 2, 3, 1), logdetN=2 * torch.diagonal(Ln, dim1=-2, dim2=-1).log().sum(-1))
         return proj
@@ -274,9 +310,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
     def _theta_free(self):
         """Cached θ-free tensors of the loaded samples: uᵀ (A, Ta); diag(ŨᵀΛŨ) + 1 (3, Ta);
         u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major vector over the triads."""
-        if getattr(self, "_tf_cache", None) is None and self.W is not None:  # general path: I + W_tᵀW_t
+        if getattr(self, "_tf_cache", None) is None and self.W is not None:
+            # general path: the jerk's loading uᵀ (A, T), the instant errors' λ^½ e ρ (A, 3, T), I + W_tᵀW_t (T, R, R)
             R = self.W.shape[-1]
-            self._tf_cache = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
+            wk = self.W[:, :, 3:].reshape(self.T, self.A, 3, self.A).diagonal(dim1=1, dim2=3)  # (T, 3, A)
+            wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
+            self._tf_cache = (self.loading.T.contiguous(), wk.permute(2, 1, 0).contiguous(), wtw)
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)
