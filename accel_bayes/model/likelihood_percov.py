@@ -288,22 +288,32 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         YE = torch.matmul(Hw4.transpose(-1, -2), wk).transpose(1, 2)  # (B, 6, A, T)
         Y = torch.cat((YJ, YE), 2)
         Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
-        # N_t (B, T, R, R): one (R × 6)(6 × R) product per sample
-        Yt = Yh.permute(0, 3, 2, 1)  # (B, T, R, 6)
-        N = wtw - Yt @ Yt.transpose(-1, -2)
-        Ln, info = torch.linalg.cholesky_ex(N)
-        if bool((info != 0).any()):
-            raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
-        # [W_tᵀẼ_w, W_tᵀe_w,t] (B, T, R, 7)
+        # [W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T)
         EJ = ((Gt4 * sl).permute(0, 2, 3, 1).reshape(B, 18, A) @ u_t).view(B, 3, 6, T)
         EE = torch.matmul(Gt4.transpose(-1, -2), wk)  # (B, A, 6, T)
         ew = proj["e_w"].view(B, T, A, 3)
-        aJ = torch.einsum("btki,kt->bti", ew * self._sqrt_lam.view(A, 3), u_t)  # Ũ_JᵀΛe (B, T, 3)
-        aE = (ew * wk.permute(2, 0, 1)).sum(-1)  # (B, T, A)
-        Ea = torch.cat((torch.cat((EJ, EE), 1).permute(0, 3, 1, 2),
-                        torch.cat((aJ, aE), -1)[..., None]), -1)  # (B, T, R, 7)
-        X = torch.linalg.solve_triangular(Ln, Ea, upper=False)
-        proj.update(V=X.permute(0, 2, 3, 1), logdetN=2 * torch.diagonal(Ln, dim1=-2, dim2=-1).log().sum(-1))
+        aJ = torch.einsum("btki,kt->bit", ew * self._sqrt_lam.view(A, 3), u_t)  # Ũ_JᵀΛe (B, 3, T)
+        aE = (ew * wk.permute(2, 0, 1)).sum(-1).transpose(1, 2)  # (B, A, T)
+        Ea = torch.cat((torch.cat((EJ, EE), 1), torch.cat((aJ, aE), 1)[:, :, None]), 2)
+        # Cholesky of N_t and the forward substitution column by column, each column a (B, R − j, T)
+        # block (sample index last, contiguous): a batched LAPACK call per R × R matrix costs ~10× more
+        cols, X, d = [], [], []
+        rest = Ea  # (B, R − j, 7, T): the right-hand sides not yet solved, updated as columns finish
+        for j in range(R):
+            c = wtw[j:, j] - (Yh[:, :, j:] * Yh[:, :, j:j + 1]).sum(1)  # N_t[j:, j] (B, R − j, T)
+            for k, ck in enumerate(cols):
+                c = c - ck[:, j - k:] * ck[:, j - k:j - k + 1]
+            dj = c[:, :1].sqrt()
+            c = c / dj  # column j of L_N from its diagonal down
+            cols.append(c)
+            d.append(dj[:, 0])
+            xj = rest[:, 0] / dj
+            X.append(xj)
+            rest = rest[:, 1:] - c[:, 1:, None] * xj[:, None]
+        diag = torch.stack(d, -1)  # (B, T, R)
+        if not bool(torch.isfinite(diag).all()):
+            raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
+        proj.update(V=torch.stack(X, 1), logdetN=2 * diag.log().sum(-1))
         return proj
 
     @property
@@ -315,7 +325,8 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             R = self.W.shape[-1]
             wk = self.W[:, :, 3:].reshape(self.T, self.A, 3, self.A).diagonal(dim1=1, dim2=3)  # (T, 3, A)
             wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
-            self._tf_cache = (self.loading.T.contiguous(), wk.permute(2, 1, 0).contiguous(), wtw)
+            self._tf_cache = (self.loading.T.contiguous(), wk.permute(2, 1, 0).contiguous(),
+                              wtw.permute(1, 2, 0).contiguous())  # (R, R, T)
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)
