@@ -43,6 +43,20 @@ per draw q̃ = q − ‖V_t δ − v_t‖², δ = u(ω) − u(ω̄_t), on top of
 (:mod:`.draw_sums`).  Samples with s_t d_t = 0 get zero corrections; a recording with none
 takes the flat path unchanged.  ``experiments/bench_likelihood_percov.py`` times it on exp_1.
 
+Instant error.  Each triad's own sampling instant errs by ε_kt ~ N(0, e_k²) (s), independent
+across triads and samples — the part of the instant no clock gives (the detector's
+``age_error_rms_s``).  Read at t + ε_kt, triad k errs by ε_kt ρ_kt to first order, ρ_kt the rate of
+its output (m/s³: the board's jerk, ω̈ × r_k and the rotation terms, which grow with |ω| and |ω̇|
+and differ by triad; :func:`triad_rates` takes it from the outputs).  With ``rate`` and
+``instant_std`` the loading gains one column per triad, e_k ρ_kt on triad k's rows
+(:func:`~.unresolved_cov.instant_error_loadings`): Ũ_t = [s_t D_t, E_t] of rank R = 3 + A, a
+per-triad covariance e_k² ρ_kt ρ_ktᵀ beside the jerk's; the same algebra with R × R N_t
+(Cholesky over the samples column by column), V_t of R rows.  ρ is a covariate fixed from the
+data, like the ages.  The instant error also multiplies the unresolved jerk (ε_kt m_t, variance
+e² s_t² I per triad); that isotropic part is not carried (a per-triad isotropic variance per
+sample has no low-rank form; the per-|ω̄|-band level factor that would approximate it made the
+real board's std less honest, ``experiments/mimu_model_calibrate.md``, ``with_bins``).
+
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
 unresolved angular acceleration in the posterior of ω (:func:`.gyro_posterior.gyro_posterior_timing`);
