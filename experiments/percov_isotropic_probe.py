@@ -165,6 +165,7 @@ def main(argv=None):
             r = json.loads(f.read_text())
         else:
             r = run(e, args.reports)
+            f.parent.mkdir(parents=True, exist_ok=True)
             write_json(f, r)
         rows.append(r)
         print(f"exp {e}: ratio max {r['base']['ratio_max']:.2f} -> {r['iso']['ratio_max']:.2f}", flush=True)
