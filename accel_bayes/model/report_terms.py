@@ -61,9 +61,10 @@ Everything else → recorded as skipped, with the reason
 ------------------------------------------------------
 * ``unexplained``: carries no model;
 * random effects on accelerometers (``timing_wander`` with sensor ``acc``, the acc half of
-  ``sampling_jitter``): the likelihood has one noise level per triad, constant over the samples
-  (a per-sample scale must be common to all triads, :func:`accel_bayes.model.noise.scale_samples`),
-  so a per-triad, per-sample variance has no place in it; the type-II ML level absorbs it;
+  ``sampling_jitter``): listed as skipped; with an ``unresolved_motion`` finding their physics (an
+  instant error times the triad's output rate) is carried by the one fitted instant error e of every
+  triad (above), not per IMU from the finding's width; without one the likelihood has one noise level
+  per triad, constant over the samples, and the type-II ML level absorbs it;
 * other mean, clip and noise-level effects: not applied by this version; a warning says so.
 """
 from __future__ import annotations
