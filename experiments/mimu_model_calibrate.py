@@ -261,13 +261,19 @@ def decomposition_markdown(results) -> list:
                  f"{q(d['by_omega_quartile'])} | {q(d['by_angular_jerk_quartile'])} |")
     L += ["", "## The per-sample covariance per experiment", "",
           "| exp | report sha256 (first 16) | band samples | jerk rms, report (m/s³) | jerk rms, fitted here (m/s³) | "
-          "type-II gain (nats) | centred age rms (ms) |", "|---|---|---|---|---|---|---|"]
+          "type-II gain (nats) | centred age rms (ms) | instant error e, report / fitted (ms) | its gain over the "
+          "jerk alone (nats) | triad output rate rms (m/s³) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    ms = lambda v: "—" if v is None else f"{1e3 * v:.3f}"  # noqa: E731
     for r in rs:
         u = r["unresolved_motion"]
+        gi = u.get("instant_error_gain_nats")
+        rr = u.get("triad_rate_rms_m_s3")
         L.append(f"| {r['exp']} | {r['model']['sha256'][:16]} | {', '.join(str(n) for n in u['band_samples'])} | "
                  f"{', '.join(f'{v:.3g}' for v in u['jerk_rms_report_m_s3'])} | "
                  f"{', '.join('—' if v is None else f'{v:.3g}' for v in u['jerk_rms_fitted_m_s3'])} | "
-                 f"{u['type2_gain_nats']:.0f} | {1e3 * u['age_rms_s']:.3f} |")
+                 f"{u['type2_gain_nats']:.0f} | {1e3 * u['age_rms_s']:.3f} | "
+                 f"{ms(u.get('instant_error_rms_report_s'))} / {ms(u.get('instant_error_rms_fitted_s'))} | "
+                 f"{'—' if gi is None else f'{gi:.0f}'} | {'—' if rr is None else f'{rr:.3g}'} |")
     return L + [""]
 
 
@@ -322,8 +328,10 @@ def markdown(results: dict, summ: dict, args) -> str:
          "inverted, the `timing_wander` findings as per-sample gyro covariances, the `sampling_clock` ages and the "
          "`unresolved_motion` angular acceleration in the fused ω posterior, the unresolved jerk loaded by the "
          "centred data ages in the per-sample likelihood (`model/likelihood_percov.py`, one scale per report |ω| "
-         "band by type-II ML at the MAP, noise levels kept), chains centred on that likelihood's own mode, "
-         "**no tempering**.", "",
+         "band by type-II ML at the MAP, noise levels kept) and beside it each triad's own sampling-instant error "
+         "times the rate of its output (per-triad covariance e² ρ_kt ρ_ktᵀ, one e by type-II ML from the report's "
+         "`age_error_rms_s`), chains centred on that likelihood's own mode, **no tempering**. The model without the "
+         "instant error (main at 57caaf9, the same script) is quoted from that commit's document where compared.", "",
          "Definitions. *Ratio*: sandwich std / Laplace std at the mode of the chains' untempered likelihood, per "
          "coordinate (21 per experiment; `without`: the pipeline's own `sandwich_inflation` before it tempers; "
          "`with`: the per-sample model's own scores in `sandwich_inflation`'s convention, Newey–West lags, "

@@ -43,6 +43,20 @@ per draw q̃ = q − ‖V_t δ − v_t‖², δ = u(ω) − u(ω̄_t), on top of
 (:mod:`.draw_sums`).  Samples with s_t d_t = 0 get zero corrections; a recording with none
 takes the flat path unchanged.  ``experiments/bench_likelihood_percov.py`` times it on exp_1.
 
+Instant error.  Each triad's own sampling instant errs by ε_kt ~ N(0, e_k²) (s), independent
+across triads and samples — the part of the instant no clock gives (the detector's
+``age_error_rms_s``).  Read at t + ε_kt, triad k errs by ε_kt ρ_kt to first order, ρ_kt the rate of
+its output (m/s³: the board's jerk, ω̈ × r_k and the rotation terms, which grow with |ω| and |ω̇|
+and differ by triad; :func:`triad_rates` takes it from the outputs).  With ``rate`` and
+``instant_std`` the loading gains one column per triad, e_k ρ_kt on triad k's rows
+(:func:`~.unresolved_cov.instant_error_loadings`): Ũ_t = [s_t D_t, E_t] of rank R = 3 + A, a
+per-triad covariance e_k² ρ_kt ρ_ktᵀ beside the jerk's; the same algebra with R × R N_t
+(Cholesky over the samples column by column), V_t of R rows.  ρ is a covariate fixed from the
+data, like the ages.  The instant error also multiplies the unresolved jerk (ε_kt m_t, variance
+e² s_t² I per triad); that isotropic part is not carried (a per-triad isotropic variance per
+sample has no low-rank form; the per-|ω̄|-band level factor that would approximate it made the
+real board's std less honest, ``experiments/mimu_model_calibrate.md``, ``with_bins``).
+
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
 unresolved angular acceleration in the posterior of ω (:func:`.gyro_posterior.gyro_posterior_timing`);
@@ -59,12 +73,12 @@ import torch
 from ..errors import UserError
 from ..physics.models import u_of_omega
 from .likelihood import RaoBlackwellLikelihood
-from .unresolved_cov import centred_ages
+from .unresolved_cov import centred_ages, instant_error_loadings, loadings
 
 # the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
 
-__all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale"]
+__all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale", "triad_rates"]
 
 
 def band_scale(omega_norm, edges, rms, field: str = "jerk_rms") -> torch.Tensor:
@@ -106,16 +120,39 @@ def ages_from_clocks(time, clocks: dict, labels, sensor: str = "acc") -> torch.T
     return out
 
 
-def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None) -> "PerSampleCovLikelihood":
+def triad_rates(acc, time, sample_scale=None) -> torch.Tensor:
+    """ρ (T, A, 3) m/s³: the rate of each triad's output ``acc`` (T, A, 3) m/s² (any one frame) at
+    the read times ``time`` (T,) s, by the second-order differences of
+    :func:`~accel_bayes.physics.effects.output_rates` within each run of contiguous samples (the
+    rates the clocks' mean correction uses).  ``sample_scale`` (T,): the data were divided by it
+    (a noise model's per-sample scale); the rate is taken in physical units and divided again.
+
+    Why the outputs' own rate is the instant error's loading: a triad read at t + ε errs by ε times
+    the rate of its specific force — the board's jerk, ω̈ × r_k and the rotation terms, which grow
+    with |ω| and |ω̇| and differ by triad — and the outputs at 62.5 Hz resolve that rate to their
+    noise (σ√2/(2Δt) ≈ 70 m/s³ against rates of 10³–10⁴ m/s³); an interior central difference does
+    not use the sample itself, so the loading is independent of that sample's white noise."""
+    from ..physics.effects import output_rates
+
+    acc = torch.as_tensor(acc, dtype=torch.float64)
+    sc = torch.ones(acc.shape[0], dtype=acc.dtype) if sample_scale is None else \
+        torch.as_tensor(np.asarray(sample_scale, dtype=np.float64))
+    phys = acc * sc[:, None, None]
+    return output_rates(torch.as_tensor(np.asarray(time, dtype=np.float64)), phys, phys[:, :1])[0] / sc[:, None, None]
+
+
+def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None, *, rate=None,
+                           instant_std=None) -> "PerSampleCovLikelihood":
     """The per-sample-covariance likelihood on ``lik``'s data (shared, not copied): ``age`` (T, A)
     s the rows' data ages, ``jerk_std`` scalar or (T,) m/s³, ``nu`` None or the degrees of
-    freedom of the scale mixture (module docstring)."""
+    freedom of the scale mixture; ``rate`` (T, A, 3) m/s³ and ``instant_std`` (s, scalar or (A,))
+    the triads' own instant error (module docstring, "Instant error")."""
     if type(lik) is not RaoBlackwellLikelihood and not isinstance(lik, PerSampleCovLikelihood):
         # a subclass (the tempered likelihood) would silently lose its own log_phat here
         raise UserError(f"lik: expected an untempered RaoBlackwellLikelihood, got {type(lik).__name__}")
     new = copy.copy(lik)
     new.__class__ = PerSampleCovLikelihood
-    new._set_terms(age, jerk_std, nu)
+    new._set_terms(age, jerk_std, nu, rate, instant_std)
     return new
 
 
@@ -130,12 +167,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
     """
 
     def __init__(self, acc, omega, acc_noise_std, num_draws, age, jerk_std, nu=None, reference: int = 0,
-                 dtype=torch.float64, device=None, phi_prior=None):
+                 dtype=torch.float64, device=None, phi_prior=None, rate=None, instant_std=None):
         super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device,
                          phi_prior=phi_prior)
-        self._set_terms(age, jerk_std, nu)
+        self._set_terms(age, jerk_std, nu, rate, instant_std)
 
-    def _set_terms(self, age, jerk_std, nu):
+    def _set_terms(self, age, jerk_std, nu, rate=None, instant_std=None):
         age = torch.as_tensor(np.asarray(age, dtype=np.float64) if not torch.is_tensor(age) else age,
                               dtype=self.dtype, device=self.device)
         if age.shape != (self.T, self.A):
@@ -158,14 +195,39 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         self.nu = nu
         # Ũ_t = s_t D_t only through the product u_kt = s_t d_kt (m/s² per unit-variance jerk)
         self.loading = centred_ages(age) * s[:, None]
+        self.rate, self.instant_std, self.W = None, None, None
+        if (rate is None) != (instant_std is None):
+            raise UserError("rate, instant_std: give both (the triads' own instant error) or neither")
+        if rate is not None:
+            self._set_instant_error(rate, instant_std)
         self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
+        if self.W is not None:  # the general path loads every sample
+            self.active = torch.arange(self.T, device=self.device)
         self._tf_cache = None
+
+    def _set_instant_error(self, rate, instant_std):
+        """The whitened loading W_t = Λ^½[s_t D_t, instant-error block] (T, 3A, 3 + A) of the
+        general path (module docstring, "Instant error")."""
+        rate = torch.as_tensor(rate, dtype=self.dtype, device=self.device)
+        if rate.shape != (self.T, self.A, 3) or not bool(torch.isfinite(rate).all()):
+            raise UserError(f"rate: expected finite output rates of shape (T, A, 3) = ({self.T}, {self.A}, 3) m/s³, "
+                            f"got {tuple(rate.shape)}")
+        e = instant_std if torch.is_tensor(instant_std) else torch.as_tensor(instant_std, dtype=self.dtype)
+        e = e.to(self.dtype)
+        if e.dim() > 1 or (e.dim() == 1 and len(e) != self.A) or not bool(torch.isfinite(e).all()) \
+                or bool((e < 0).any()):
+            raise UserError(f"instant_std: expected a finite std >= 0 (s), scalar or ({self.A},)")
+        self.rate, self.instant_std = rate, e
+        U = torch.cat((loadings(self.loading), instant_error_loadings(rate, e)), -1)  # (T, 3A, 3 + A)
+        self.W = U * self._sqrt_lam[None, :, None]
 
     # ------------------------------------------------------------------ per-θ terms
     def _percov_terms(self, r: torch.Tensor) -> dict:
         """The flat projection at r (B, A, 3) plus ``V`` (B, 3, 7, T): rows i of [V_t, v_t] =
         L_t⁻¹[Ũ_tᵀSG, Ũ_tᵀSr̄_t] stored component-first for the per-draw sums, and ``logdetN``
         (B, T) (module docstring; zero where the sample has no loading)."""
+        if self.W is not None:
+            return self._percov_terms_general(r)
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         idx = self.active
@@ -222,10 +284,63 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         proj.update(V=V, logdetN=logdetN)
         return proj
 
+    def _percov_terms_general(self, r: torch.Tensor) -> dict:
+        """:meth:`_percov_terms` with the triads' instant errors beside the jerk (module docstring,
+        "Instant error"): R = 3 + A loading columns, N_t = I + W_tᵀW_t − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t)
+        by batched R × R Choleskys, and the rows of V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T).
+        The instant-error columns are block-sparse (column k lives on triad k's three rows), so
+        their products with H_w, Ẽ_w and e_w are A batched 6 × 3 products, not dense ones."""
+        proj = self._projection_hot(r, extras=True)
+        B, A, T = r.shape[0], self.A, self.T
+        u_t, wk, wtw = self._theta_free
+        R = 3 + A
+        sl = self._sqrt_lam.view(A, 3, 1)
+        Hw4 = proj["Hw"].view(B, A, 3, 6)
+        Gt4 = proj["Gt"].view(B, A, 3, 6)
+        # H_wᵀW_t: the jerk's columns as in the closed-form path, then the instant errors' (B, 6, R, T)
+        YJ = ((Hw4 * sl).permute(0, 3, 2, 1).reshape(B, 18, A) @ u_t).view(B, 6, 3, T)
+        YE = torch.matmul(Hw4.transpose(-1, -2), wk).transpose(1, 2)  # (B, 6, A, T)
+        Y = torch.cat((YJ, YE), 2)
+        Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
+        # [W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T)
+        EJ = ((Gt4 * sl).permute(0, 2, 3, 1).reshape(B, 18, A) @ u_t).view(B, 3, 6, T)
+        EE = torch.matmul(Gt4.transpose(-1, -2), wk)  # (B, A, 6, T)
+        ew = proj["e_w"].view(B, T, A, 3)
+        aJ = torch.einsum("btki,kt->bit", ew * self._sqrt_lam.view(A, 3), u_t)  # Ũ_JᵀΛe (B, 3, T)
+        aE = (ew * wk.permute(2, 0, 1)).sum(-1).transpose(1, 2)  # (B, A, T)
+        Ea = torch.cat((torch.cat((EJ, EE), 1), torch.cat((aJ, aE), 1)[:, :, None]), 2)
+        # Cholesky of N_t and the forward substitution column by column, each column a (B, R − j, T)
+        # block (sample index last, contiguous): a batched LAPACK call per R × R matrix costs ~10× more
+        cols, X, d = [], [], []
+        rest = Ea  # (B, R − j, 7, T): the right-hand sides not yet solved, updated as columns finish
+        for j in range(R):
+            c = wtw[j:, j] - (Yh[:, :, j:] * Yh[:, :, j:j + 1]).sum(1)  # N_t[j:, j] (B, R − j, T)
+            for k, ck in enumerate(cols):
+                c = c - ck[:, j - k:] * ck[:, j - k:j - k + 1]
+            dj = c[:, :1].sqrt()
+            c = c / dj  # column j of L_N from its diagonal down
+            cols.append(c)
+            d.append(dj[:, 0])
+            xj = rest[:, 0] / dj
+            X.append(xj)
+            rest = rest[:, 1:] - c[:, 1:, None] * xj[:, None]
+        diag = torch.stack(d, -1)  # (B, T, R)
+        if not bool(torch.isfinite(diag).all()):
+            raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
+        proj.update(V=torch.stack(X, 1), logdetN=2 * diag.log().sum(-1))
+        return proj
+
     @property
     def _theta_free(self):
         """Cached θ-free tensors of the loaded samples: uᵀ (A, Ta); diag(ŨᵀΛŨ) + 1 (3, Ta);
         u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major vector over the triads."""
+        if getattr(self, "_tf_cache", None) is None and self.W is not None:
+            # general path: the jerk's loading uᵀ (A, T), the instant errors' λ^½ e ρ (A, 3, T), I + W_tᵀW_t (T, R, R)
+            R = self.W.shape[-1]
+            wk = self.W[:, :, 3:].reshape(self.T, self.A, 3, self.A).diagonal(dim1=1, dim2=3)  # (T, 3, A)
+            wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
+            self._tf_cache = (self.loading.T.contiguous(), wk.permute(2, 1, 0).contiguous(),
+                              wtw.permute(1, 2, 0).contiguous())  # (R, R, T)
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)

@@ -50,7 +50,10 @@ With an ``unresolved_motion`` finding (issue #30 Deliver 2; :mod:`accel_bayes.pi
   posterior of ω (:func:`fused_gyro_posterior` with ``age``);
 * the unresolved jerk, loaded on each accelerometer triad by its centred age, is projected out per
   sample with φ_t (:class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood`), its scale
-  per report band fitted by type-II ML on the calibration's own likelihood; no tempering.
+  per report band fitted by type-II ML on the calibration's own likelihood; no tempering;
+* beside it each triad's own instant error (the part of its sampling instant no clock gives, the
+  finding's ``age_error_rms_s``), times the rate of that triad's output: a per-triad covariance
+  e² ρ_kt ρ_ktᵀ per sample, e by type-II ML from the report's value.
 
 Without an ``unresolved_motion`` finding the clocks are listed as skipped (an age alone loads nothing).
 
@@ -58,9 +61,10 @@ Everything else → recorded as skipped, with the reason
 ------------------------------------------------------
 * ``unexplained``: carries no model;
 * random effects on accelerometers (``timing_wander`` with sensor ``acc``, the acc half of
-  ``sampling_jitter``): the likelihood has one noise level per triad, constant over the samples
-  (a per-sample scale must be common to all triads, :func:`accel_bayes.model.noise.scale_samples`),
-  so a per-triad, per-sample variance has no place in it; the type-II ML level absorbs it;
+  ``sampling_jitter``): listed as skipped; with an ``unresolved_motion`` finding their physics (an
+  instant error times the triad's output rate) is carried by the one fitted instant error e of every
+  triad (above), not per IMU from the finding's width; without one the likelihood has one noise level
+  per triad, constant over the samples, and the type-II ML level absorbs it;
 * other mean, clip and noise-level effects: not applied by this version; a warning says so.
 """
 from __future__ import annotations
@@ -320,7 +324,8 @@ class UnresolvedTerms:
     age_acc (T, A) s, age_gyro (T, G) s : the data ages of the accelerometer rows and the gyros;
     jerk_std (T,) m/s³, angular_acc_std (T,) rad/s² : the per-axis scales at each sample's |ω| band;
     used : [{"finding", "effect", "imu", "how"}] the findings read; parameters : the
-    ``unresolved_motion`` finding's parameters (``omega_edges`` rad/s, ``jerk_rms`` m/s³, …)."""
+    ``unresolved_motion`` finding's parameters (``omega_edges`` rad/s, ``jerk_rms`` m/s³, …);
+    time (T,) s the samples' read times (the output rates of the triads' instant error are taken on it)."""
 
     age_acc: torch.Tensor
     age_gyro: torch.Tensor
@@ -328,6 +333,7 @@ class UnresolvedTerms:
     angular_acc_std: torch.Tensor
     used: list
     parameters: dict = field(default_factory=dict)
+    time: torch.Tensor | None = None
 
 
 def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "UnresolvedTerms | None":
@@ -374,4 +380,5 @@ def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "Unres
                  "how": "per-sample covariance: jerk on the accelerometers, angular acceleration on the gyros, "
                         "loaded by the centred data ages, scales per |omega| band"})
     return UnresolvedTerms(ages_from_clocks(time, clocks, acc_labels, "acc"),
-                           ages_from_clocks(time, clocks, gyro_labels, "gyro"), jerk, alpha, used, dict(p))
+                           ages_from_clocks(time, clocks, gyro_labels, "gyro"), jerk, alpha, used, dict(p),
+                           torch.as_tensor(np.asarray(time, dtype=np.float64)))

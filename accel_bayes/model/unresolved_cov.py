@@ -3,6 +3,11 @@
 covariance per sample is a base plus U diag(s²) Uᵀ, U the data-age loading d ⊗ I₃ of a board-common
 3-vector (unresolved jerk, m/s³, or angular acceleration, rad/s²).
 
+The same algebra carries each triad's own sampling-instant error ε_kt (the part of its sampling
+instant no clock gives) times the rate of its output, :func:`instant_error_loadings`: a block
+loading of rank K that :func:`lowrank_terms` evaluates on residuals and the calibration's
+likelihood projects out beside the age-loaded jerk.
+
 This module is the one implementation of that covariance.  The detector's refit, budget and
 held-out scoring (:mod:`accel_bayes.mismatch.unresolved`, :mod:`accel_bayes.mismatch.generic`)
 evaluate it on residuals with :func:`lowrank_terms` / :func:`marginal_loglik`; the calibration's
@@ -16,7 +21,8 @@ import math
 
 import torch
 
-__all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "marginal_loglik", "centred_ages"]
+__all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "instant_error_loadings", "marginal_loglik",
+           "centred_ages"]
 
 
 def lowrank_terms(y: torch.Tensor, U: torch.Tensor, s2: torch.Tensor, *, v: torch.Tensor | None = None,
@@ -77,6 +83,20 @@ def loadings(d: torch.Tensor) -> torch.Tensor:
     T, K = d.shape
     eye = torch.eye(3, dtype=d.dtype, device=d.device)
     return (d[:, :, None, None] * eye).reshape(T, 3 * K, 3)
+
+
+def instant_error_loadings(rate: torch.Tensor, std) -> torch.Tensor:
+    """U (T, 3K, K): each triad's own sampling-instant error ε_kt ~ (0, e_k²) (s) as the loading of
+    a unit-variance scalar per triad on that triad's three channels, column k = e_k ρ_kt on the
+    rows of triad k, zero elsewhere: a triad read at t + ε_kt errs by ε_kt ρ_kt to first order,
+    ρ_kt (T, K, 3) the rate of change of its output (units/s), ``std`` e scalar or (K,) s.  Its
+    covariance U Uᵀ is block-diagonal, e_k² ρ_kt ρ_ktᵀ per triad: the instant errors of different
+    triads are independent, so unlike the data ages they carry no common part."""
+    rate = torch.as_tensor(rate)
+    T, K, _ = rate.shape
+    e = torch.as_tensor(std, dtype=rate.dtype, device=rate.device).expand(K)
+    eye = torch.eye(K, dtype=rate.dtype, device=rate.device)
+    return ((rate * e[:, None])[..., None] * eye[:, None, :]).reshape(T, 3 * K, K)
 
 
 def marginal_loglik(y: torch.Tensor, d: torch.Tensor, w: torch.Tensor, v: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:

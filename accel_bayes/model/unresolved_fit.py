@@ -24,6 +24,7 @@ from .unresolved_cov import centred_ages
 __all__ = ["UnresolvedFit", "fit_unresolved_scales", "fixed_omega_mode"]
 
 _LOG_NU_BOUNDS = (math.log(0.05), math.log(1e4))
+_LOG_E_BOUNDS = (math.log(1e-9), math.log(1e-2))  # s: the instant error's std
 
 
 @dataclass
@@ -37,21 +38,42 @@ class UnresolvedFit:
     loglik: float
     loglik_flat: float
     noise_factor: float = 1.0
+    instant_std: float | None = None
+    loglik_no_instant: float | None = None
 
     @property
     def gain(self) -> float:
         return self.loglik - self.loglik_flat
 
+    @property
+    def gain_instant(self) -> float | None:
+        """nats the triads' instant error adds over the jerk alone (both refitted); None without it."""
+        return None if self.loglik_no_instant is None else self.loglik - self.loglik_no_instant
+
 
 def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, omega=None, *, fit_nu: bool = False,
-                          noise_factors=(1.0,), max_iter: int = 100) -> UnresolvedFit:
+                          noise_factors=(1.0,), max_iter: int = 100, rate=None, fit_instant: bool = False,
+                          instant_start: float = 1e-4) -> UnresolvedFit:
     """Fit the jerk scale per band (and ν with ``fit_nu``) on ``lik``'s data (module docstring).
 
     age (T, A) s the rows' data ages; band (T,) integer |ω| band of each sample (0 … B − 1, e.g.
     ``torch.bucketize(|ω̄|, edges, right=True)``); positions (A, 3) m; omega (T, 3) rad/s (default:
     the gyro posterior mean).  Bands without samples keep scale 0.  ``noise_factors``: common
     factors f on ``lik``'s noise levels to try (the best fit over them is returned): the scale
-    mixture's spread is not the Gaussian's rms, so with ``fit_nu`` the noise level moves too."""
+    mixture's spread is not the Gaussian's rms, so with ``fit_nu`` the noise level moves too.
+    ``fit_instant`` with ``rate`` (T, A, 3) m/s³ (the triads' output rates): one std e (s) of
+    the triads' own instant error fitted with the scales, from the jerk-only fit and
+    ``instant_start`` s (:class:`~.likelihood_percov.PerSampleCovLikelihood`'s general path)."""
+    if fit_instant:
+        if rate is None:
+            raise UserError("rate: fit_instant needs the triads' output rates (T, A, 3) m/s³")
+        if len(noise_factors) != 1 or float(noise_factors[0]) != 1.0 or fit_nu:
+            raise UserError("fit_instant: expected the given noise levels and no scale mixture")
+        jerk = _fit_one(lik, age, band, positions, omega, False, max_iter)
+        both = _fit_one(lik, age, band, positions, omega, False, max_iter, rate=rate, instant_start=instant_start,
+                        start=jerk.jerk_rms)
+        both.loglik_no_instant = jerk.loglik
+        return both
     best = None
     for f in noise_factors:
         f = float(f)
@@ -71,7 +93,8 @@ def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, ome
     return best
 
 
-def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter) -> UnresolvedFit:
+def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, instant_start=None,
+             start=None) -> UnresolvedFit:
     band = torch.as_tensor(band, device=lik.device)
     if band.shape != (lik.T,) or band.dtype in (torch.float32, torch.float64) or bool((band < 0).any()):
         raise UserError(f"band: expected ({lik.T},) non-negative integers (|omega| band per sample)")
@@ -84,9 +107,16 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter) -> UnresolvedFi
         d2 = centred_ages(torch.as_tensor(age, dtype=lik.dtype, device=lik.device)).square().mean()
     s0 = math.sqrt(0.1 * float(lik.acc_noise_std.square().mean()) / max(float(d2), 1e-30))
     counts = torch.bincount(band, minlength=B)
-    x = torch.full((B,), math.log(s0), dtype=lik.dtype, device=lik.device, requires_grad=True)
+    x = torch.full((B,), math.log(s0), dtype=lik.dtype, device=lik.device)
+    if start is not None:  # a band fitted to 0 would start where the gradient vanishes: from s0 there
+        st = torch.as_tensor(start, dtype=lik.dtype, device=lik.device)
+        x = torch.where(st > 1e-3 * s0, st.clamp_min(1e-300).log(), x)
+    x.requires_grad_(True)
     xn = torch.tensor(math.log(10.0), dtype=lik.dtype, device=lik.device, requires_grad=fit_nu)
+    xe = None if rate is None else torch.tensor(math.log(instant_start), dtype=lik.dtype, device=lik.device,
+                                                requires_grad=True)
     params = [x, xn] if fit_nu else [x]
+    params += [] if xe is None else [xe]
     opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-7,
                             tolerance_change=1e-10)
     scale = float(lik.T)  # the objective per sample keeps L-BFGS's tolerances meaningful
@@ -94,7 +124,10 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter) -> UnresolvedFi
     def model(x_, xn_):
         s = torch.where(counts[band] > 0, torch.exp(x_)[band], torch.zeros((), dtype=lik.dtype))
         nu = torch.exp(xn_.clamp(*_LOG_NU_BOUNDS)) if fit_nu else None
-        return with_unresolved_motion(lik, age, s, nu=nu)
+        if xe is None:
+            return with_unresolved_motion(lik, age, s, nu=nu)
+        # e below ~1 ns loads nothing measurable: the bound keeps the line search finite as e → 0
+        return with_unresolved_motion(lik, age, s, nu=nu, rate=rate, instant_std=torch.exp(xe.clamp(*_LOG_E_BOUNDS)))
 
     def closure():
         opt.zero_grad()
@@ -108,8 +141,11 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter) -> UnresolvedFi
         fitted = model(x, xn)
         ll = float(fitted.log_lik_given_omega(pos, omega)) + fitted.log_constant
         s = torch.where(counts > 0, torch.exp(x), torch.zeros((), dtype=lik.dtype))
-    return UnresolvedFit(s.detach(), float(torch.exp(xn.detach().clamp(*_LOG_NU_BOUNDS))) if fit_nu else None, ll,
-                         flat)
+    out = UnresolvedFit(s.detach(), float(torch.exp(xn.detach().clamp(*_LOG_NU_BOUNDS))) if fit_nu else None, ll,
+                        flat)
+    if xe is not None:
+        out.instant_std = float(torch.exp(xe.detach().clamp(*_LOG_E_BOUNDS)))
+    return out
 
 
 def fixed_omega_mode(lik, pos0, *, z=None, prior_mean=None, prior_std=None):

@@ -83,7 +83,7 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     the detector's scales were fitted against its own white levels, and refitting the levels
     with the scales made the real board's std less honest (``experiments/percov_honesty_probe.md``,
     'σ refit').  In the scaled samples a band's scale s_b is the physical jerk s_b·s_t."""
-    from ..model.likelihood_percov import with_unresolved_motion
+    from ..model.likelihood_percov import triad_rates, with_unresolved_motion
     from ..model.unresolved_fit import fit_unresolved_scales, fixed_omega_mode
 
     if float(getattr(lik, "kappa", 1.0)) != 1.0:  # pragma: no cover - refused with the options
@@ -94,9 +94,14 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     band = torch.bucketize(torch.as_tensor(omega_norm, dtype=torch.float64),
                            torch.as_tensor(p["omega_edges"], dtype=torch.float64), right=True)
     pos0 = nominal_acc if map_res is None else torch.as_tensor(map_res.positions, dtype=torch.float64)
-    fit = fit_unresolved_scales(base, terms.age_acc, band, pos0)
     s_t = torch.as_tensor(np.asarray(sample_scale, dtype=np.float64))
-    new = with_unresolved_motion(base, terms.age_acc, fit.jerk_rms[band])
+    rate = triad_rates(base.acc, terms.time, s_t) if terms.time is not None else None
+    e0 = (p.get("age_error_rms_s") or {}).get("acc") if isinstance(p.get("age_error_rms_s"), dict) else None
+    e0 = float(e0) if e0 is not None and float(e0) > 0 else 1e-4
+    fit = fit_unresolved_scales(base, terms.age_acc, band, pos0, rate=rate, fit_instant=rate is not None,
+                                instant_start=e0)
+    new = with_unresolved_motion(base, terms.age_acc, fit.jerk_rms[band], rate=rate,
+                                 instant_std=None if rate is None else fit.instant_std)
     P, cov = fixed_omega_mode(new, pos0, prior_mean=nominal_acc, prior_std=prior_std)
     phys = [float((fit.jerk_rms[b] * s_t[band == b]).median()) if bool((band == b).any()) else None
             for b in range(len(fit.jerk_rms))]
@@ -107,10 +112,16 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
               "jerk_rms_fitted_scaled": [float(v) for v in fit.jerk_rms],
               "angular_acc_rms_report_rad_s2": [float(v) for v in p["angular_acc_rms"]],
               "type2_gain_nats": float(fit.gain),
+              "instant_error_rms_report_s": e0 if rate is not None else None,
+              "instant_error_rms_fitted_s": fit.instant_std,
+              "instant_error_gain_nats": fit.gain_instant,
+              "triad_rate_rms_m_s3": None if rate is None else float((rate * s_t[:, None, None]).square().sum(-1)
+                                                                     .mean().sqrt()),
               "age_rms_s": float(terms.age_acc.sub(terms.age_acc.mean(-1, keepdim=True)).square().mean().sqrt()),
               "how": "jerk m_t ~ N(0, s_b^2 I3) per |omega| band of the report, loaded on triad k by its centred "
-                     "data age, projected out with phi_t; s_b by type-II ML at the MAP positions and omega-bar, "
-                     "noise levels kept; untempered"}
+                     "data age, and each triad's own instant error eps_kt ~ N(0, e^2) times the rate of its output "
+                     "(per-triad covariance e^2 rho rho^T), projected out with phi_t; s_b and e by type-II ML at "
+                     "the MAP positions and omega-bar, noise levels kept; untempered"}
     return PercovStep(new, P, cov, record)
 
 

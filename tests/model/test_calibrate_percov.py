@@ -144,6 +144,10 @@ def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch):
     np.testing.assert_allclose(draws.theta.numpy(), np.asarray(u["mode_positions_m"])[1:], rtol=1e-12)
     assert sum(u["band_samples"]) == r.settings["T"] and len(u["jerk_rms_fitted_m_s3"]) == 3
     assert u["jerk_rms_report_m_s3"] == [100.0, 500.0, 2000.0]
+    # the triads' own instant error on their output rates is in the chains' likelihood, e by type-II ML
+    assert lik.W is not None and lik.rate.shape == (lik.T, lik.A, 3)
+    assert float(lik.instant_std) == u["instant_error_rms_fitted_s"] and 0 <= u["instant_error_rms_fitted_s"] < 1e-2
+    assert u["triad_rate_rms_m_s3"] > 0 and np.isfinite(u["instant_error_gain_nats"])
     assert m["gyro_posterior"]["clock_mean_correction_rms"]["acc_m_s2"] > 0
     for key in ("sandwich", "sandwich_flat"):
         assert len(m[key]["std_ratio"]) == 3 * (rec.K - 1) and np.isfinite(m[key]["std_ratio"]).all()
