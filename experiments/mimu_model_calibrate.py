@@ -11,6 +11,9 @@ warm-up, seed 0; the issue #30 run used D = W = 500):
   mean effect taken off and the unresolved motion in the per-sample covariance
   (:mod:`accel_bayes.pipelines.calibrate_model`), NO tempering; the sandwich at the mode recorded,
   and here its decomposition (:func:`decomposition`);
+* **with_instant** (optional, ``--variants with_instant``) — the same with ``instant_error=True``:
+  each triad's own sampling-instant error times the rate of its output projected out too (off by
+  default: ~20× the likelihood's cost);
 * **with_bins** (optional, ``--variants with_bins``) — the same with ``noise_bins=8`` and the flat φ
   prior: the noise level × a factor per |ω̄| octile.
 
@@ -21,7 +24,7 @@ the inverse-variance mean of the other five, its RMS (all, exp 1–3, exp 4–6)
 means; the x–y spacing of the top IMUs (x of IMUs 4, 6 and −y of IMUs 2, 6; 18.9 mm by design).
 
     PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports experiments/out/mimu_mismatch
-        --no-hetero --draws 500 --warmup 500 [--variants with,without,with_bins]
+        --no-hetero --draws 500 --warmup 500 [--variants with,without,with_instant,with_bins]
 
 Results are cached per (variant, experiment) in ``--out``; a rerun only computes what is missing, and
 two processes with different ``--variants`` can fill the cache at once.
@@ -49,7 +52,7 @@ from accel_bayes.data.outputs import write_json, write_text  # noqa: E402
 VARIANTS = ("without", "with")
 # beyond the two the document needs: the model with the noise level × a factor per |ω̄| octile bin
 # (the variance growing with the motion, empirical; flat φ prior, which the per-sample rescaling needs)
-EXTRA = {"with_bins": dict(noise_bins=8, phi_prior="flat")}
+EXTRA = {"with_bins": dict(noise_bins=8, phi_prior="flat"), "with_instant": dict(instant_error=True)}
 AIM_RATIO = 1.15
 Z_RMS_BAND = (0.8, 1.25)
 
@@ -242,7 +245,8 @@ def decomposition_markdown(results) -> list:
     rs = [r for r in sorted(results["with"], key=lambda r: r["exp"]) if r.get("decomposition")]
     if not rs:
         return []
-    rsb = [r for r in sorted(results.get("with_bins", []), key=lambda r: r["exp"]) if r.get("decomposition")]
+    rsb = [r for v in ("with_instant", "with_bins")
+           for r in sorted(results.get(v, []), key=lambda r: r["exp"]) if r.get("decomposition")]
     L = ["## Where the excess sits after the model (negative result's decomposition)", "",
          "At the per-sample model's mode, its scores (`sandwich_inflation`'s convention), variance factors real / "
          "simulated from the model itself at its mode (3 replicates; 1 = what the model predicts), median over the "
@@ -254,10 +258,10 @@ def decomposition_markdown(results) -> list:
     def q(rows):
         return "; ".join(f"{x['imu_block']:.2f} / {x['sample'] / x['imu_block']:.2f}" for x in rows)
 
-    bins_label = " (× 8 \\|ω̄\\| bins)"
+    label = {"with_bins": " (× 8 \\|ω̄\\| bins)", "with_instant": " (+ instant error)"}
     for r in rs + rsb:
         d = r["decomposition"]
-        L.append(f"| {r['exp']}{bins_label if r['variant'] == 'with_bins' else ''} | {d['in_all']:.2f} | {d['time']:.2f} | {d['within_imu']:.2f} | {d['cross_imu']:.2f} | "
+        L.append(f"| {r['exp']}{label.get(r['variant'], '')} | {d['in_all']:.2f} | {d['time']:.2f} | {d['within_imu']:.2f} | {d['cross_imu']:.2f} | "
                  f"{q(d['by_omega_quartile'])} | {q(d['by_angular_jerk_quartile'])} |")
     L += ["", "## The per-sample covariance per experiment", "",
           "| exp | report sha256 (first 16) | band samples | jerk rms, report (m/s³) | jerk rms, fitted here (m/s³) | "
@@ -328,10 +332,11 @@ def markdown(results: dict, summ: dict, args) -> str:
          "inverted, the `timing_wander` findings as per-sample gyro covariances, the `sampling_clock` ages and the "
          "`unresolved_motion` angular acceleration in the fused ω posterior, the unresolved jerk loaded by the "
          "centred data ages in the per-sample likelihood (`model/likelihood_percov.py`, one scale per report |ω| "
-         "band by type-II ML at the MAP, noise levels kept) and beside it each triad's own sampling-instant error "
-         "times the rate of its output (per-triad covariance e² ρ_kt ρ_ktᵀ, one e by type-II ML from the report's "
-         "`age_error_rms_s`), chains centred on that likelihood's own mode, **no tempering**. The model without the "
-         "instant error (main at 57caaf9, the same script) is quoted from that commit's document where compared.", "",
+         "band by type-II ML at the MAP, noise levels kept), chains centred on that likelihood's own mode, **no "
+         "tempering**" + ("; **with_instant** — the same with `instant_error=True`: beside the jerk each triad's own "
+                          "sampling-instant error times the rate of its output (per-triad covariance e² ρ_kt ρ_ktᵀ, "
+                          "one e by type-II ML from the report's `age_error_rms_s`), off by default (~20× the "
+                          "likelihood's cost)" if "with_instant" in results else "") + ".", "",
          "Definitions. *Ratio*: sandwich std / Laplace std at the mode of the chains' untempered likelihood, per "
          "coordinate (21 per experiment; `without`: the pipeline's own `sandwich_inflation` before it tempers; "
          "`with`: the per-sample model's own scores in `sandwich_inflation`'s convention, Newey–West lags, "
@@ -386,6 +391,20 @@ def markdown(results: dict, summ: dict, args) -> str:
               f"max |z| {np.abs(zb).max():.2f}; median posterior std "
               f"{', '.join(_f(x, '.0f') for x in b['std_um_median'])} µm; spacing pooled x / y "
               f"{b['spacing_unc']['x']} / {b['spacing_unc']['y']} mm.", ""]
+    if "with_instant" in summ:
+        b = summ["with_instant"]
+        zb = np.asarray(b["analysis"]["z_loo"], dtype=float).reshape(len(exps), -1)
+        zrb = lambda sl: float(np.sqrt(np.mean(zb[sl] ** 2)))  # noqa: E731
+        L += ["The model with each triad's instant error (`instant_error=True`, CLI `--instant-error`; fixed before "
+              "any experiment was seen): sandwich/Laplace ratio max "
+              f"{', '.join(_f(x) for x in b['ratio_max'])} (median {', '.join(_f(x) for x in b['ratio_median'])}); "
+              f"sandwich/posterior max {', '.join(_f(x) for x in b['sandwich_over_posterior_max'])}; LOO z RMS "
+              f"{zrb(slice(None)):.2f} / {zrb(slice(0, 3)):.2f} / {zrb(slice(3, 6)):.2f} (all / exp 1–3 / exp 4–6), "
+              f"max |z| {np.abs(zb).max():.2f}; median posterior std "
+              f"{', '.join(_f(x, '.0f') for x in b['std_um_median'])} µm; spacing pooled x / y "
+              f"{b['spacing_unc']['x']} / {b['spacing_unc']['y']} mm; wall time per calibration "
+              f"{', '.join(f'{x:.0f}' for x in b['seconds'])} s. Bar (ratio ≤ 1.3 everywhere) with it: "
+              f"{'YES' if all(x <= 1.3 for x in b['ratio_max']) else 'NO'}.", ""]
     met = all(x <= 1.3 for x in m["ratio_max"])
     L += [f"**Bar (every coordinate's sandwich/Laplace ratio ≤ 1.3) met with the model: "
           f"{'YES' if met else 'NO'}** (max over experiments {max(m['ratio_max']):.2f}).", ""]

@@ -116,6 +116,9 @@ def register(sub) -> None:
                         "(timing_wander, sampling_jitter) become per-sample gyro covariances in the likelihood; the "
                         "sandwich is then measured and recorded, not applied (refused if the report is for another "
                         "recording)")
+    p.add_argument("--instant-error", action="store_true",
+                   help="with --model: also project out each triad's own sampling-instant error times its output "
+                        "rate (e by type-II ML; ~20x the cost of one likelihood evaluation); default off")
     p.add_argument("--phi-prior", choices=("empirical", "flat"), default=DEFAULTS["phi_prior"],
                    help="prior on φ = [ω̇; s] that the likelihood integrates out: 'empirical' (default: a Gaussian "
                         "whose covariance is estimated from the recording; removes the flat prior's inward pull on "

@@ -200,7 +200,8 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
             # the per-sample covariance: the chains' likelihood from here on; the flat model's sandwich kept beside
             scale = (np.ones(lik.T) if noise.noise is None
                      else noise.noise.sample_scale(model_norm.cpu().numpy()))
-            pc = _model_percov_step(lik, terms, omega_norm, scale, map_res, nominal_acc, ps)
+            pc = _model_percov_step(lik, terms, omega_norm, scale, map_res, nominal_acc, ps,
+                                    instant_error=opts.instant_error)
             lik = pc.lik
             extra["percov"] = pc
             settings["model"]["sandwich_flat"] = settings["model"]["sandwich"]

@@ -71,7 +71,8 @@ class PercovStep:
     record: dict
 
 
-def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std) -> PercovStep:
+def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, *,
+                       instant_error: bool = False) -> PercovStep:
     """The untempered likelihood of the noise step (``lik``: the samples already divided by the noise
     model's per-sample scale ``sample_scale`` (T,), 1 with the stated noise) with the report's
     unresolved jerk projected out per sample (:func:`accel_bayes.model.likelihood_percov.with_unresolved_motion`).
@@ -82,7 +83,10 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     (:func:`accel_bayes.model.unresolved_fit.fit_unresolved_scales`), with the noise levels kept:
     the detector's scales were fitted against its own white levels, and refitting the levels
     with the scales made the real board's std less honest (``experiments/percov_honesty_probe.md``,
-    'σ refit').  In the scaled samples a band's scale s_b is the physical jerk s_b·s_t."""
+    'σ refit').  In the scaled samples a band's scale s_b is the physical jerk s_b·s_t.
+
+    ``instant_error`` (the ``instant_error`` option): also each triad's own instant error times its
+    output rate, e by type-II ML; off, the record says why it was left out."""
     from ..model.likelihood_percov import triad_rates, with_unresolved_motion
     from ..model.unresolved_fit import fit_unresolved_scales, fixed_omega_mode
 
@@ -95,7 +99,7 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
                            torch.as_tensor(p["omega_edges"], dtype=torch.float64), right=True)
     pos0 = nominal_acc if map_res is None else torch.as_tensor(map_res.positions, dtype=torch.float64)
     s_t = torch.as_tensor(np.asarray(sample_scale, dtype=np.float64))
-    rate = triad_rates(base.acc, terms.time, s_t) if terms.time is not None else None
+    rate = triad_rates(base.acc, terms.time, s_t) if instant_error and terms.time is not None else None
     e0 = (p.get("age_error_rms_s") or {}).get("acc") if isinstance(p.get("age_error_rms_s"), dict) else None
     e0 = float(e0) if e0 is not None and float(e0) > 0 else 1e-4
     fit = fit_unresolved_scales(base, terms.age_acc, band, pos0, rate=rate, fit_instant=rate is not None,
@@ -115,13 +119,17 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
               "instant_error_rms_report_s": e0 if rate is not None else None,
               "instant_error_rms_fitted_s": fit.instant_std,
               "instant_error_gain_nats": fit.gain_instant,
+              "instant_error": ("used" if rate is not None else
+                                "skipped: not asked (option instant_error; ~20x the likelihood's cost)" if not instant_error
+                                else "skipped: the recording has no sample times"),
               "triad_rate_rms_m_s3": None if rate is None else float((rate * s_t[:, None, None]).square().sum(-1)
                                                                      .mean().sqrt()),
               "age_rms_s": float(terms.age_acc.sub(terms.age_acc.mean(-1, keepdim=True)).square().mean().sqrt()),
               "how": "jerk m_t ~ N(0, s_b^2 I3) per |omega| band of the report, loaded on triad k by its centred "
-                     "data age, and each triad's own instant error eps_kt ~ N(0, e^2) times the rate of its output "
-                     "(per-triad covariance e^2 rho rho^T), projected out with phi_t; s_b and e by type-II ML at "
-                     "the MAP positions and omega-bar, noise levels kept; untempered"}
+                     "data age" + (", and each triad's own instant error eps_kt ~ N(0, e^2) times the rate of its "
+                                   "output (per-triad covariance e^2 rho rho^T)" if rate is not None else "")
+                     + ", projected out with phi_t; s_b" + (" and e" if rate is not None else "")
+                     + " by type-II ML at the MAP positions and omega-bar, noise levels kept; untempered"}
     return PercovStep(new, P, cov, record)
 
 

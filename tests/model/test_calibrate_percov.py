@@ -123,9 +123,11 @@ def test_unidentified_filter_delay_is_no_difference(case):
     assert terms.parameters["omega_edges"] == [3.0, 6.0]
 
 
-def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch):
+@pytest.mark.parametrize("instant", [False, True], ids=["default", "instant_error"])
+def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch, instant):
     """The chains' likelihood is the per-sample one (the scales fitted per report band, untempered),
-    provenance records the sha256, what was used and both sandwiches; tempering is refused."""
+    provenance records the sha256, what was used and both sandwiches; tempering is refused.  The
+    triads' instant-error term only when asked (``instant_error``), named as skipped otherwise."""
     import accel_bayes.pipelines.calibrate as cal
 
     rec, rep, _ = case
@@ -135,7 +137,7 @@ def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch):
                                                                                real(lik, pri, draws, *a, **k))[1])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = calibrate(rec, model=rep, **SHORT)
+        r = calibrate(rec, model=rep, instant_error=instant, **SHORT)
     lik, draws = seen[0]
     assert isinstance(lik, PerSampleCovLikelihood) and getattr(lik, "kappa", 1.0) == 1.0
     m = r.settings["model"]
@@ -144,10 +146,14 @@ def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch):
     np.testing.assert_allclose(draws.theta.numpy(), np.asarray(u["mode_positions_m"])[1:], rtol=1e-12)
     assert sum(u["band_samples"]) == r.settings["T"] and len(u["jerk_rms_fitted_m_s3"]) == 3
     assert u["jerk_rms_report_m_s3"] == [100.0, 500.0, 2000.0]
-    # the triads' own instant error on their output rates is in the chains' likelihood, e by type-II ML
-    assert lik.W is not None and lik.rate.shape == (lik.T, lik.A, 3)
-    assert float(lik.instant_std) == u["instant_error_rms_fitted_s"] and 0 <= u["instant_error_rms_fitted_s"] < 1e-2
-    assert u["triad_rate_rms_m_s3"] > 0 and np.isfinite(u["instant_error_gain_nats"])
+    if instant:
+        # the triads' own instant error on their output rates is in the chains' likelihood, e by type-II ML
+        assert lik.W is not None and lik.rate.shape == (lik.T, lik.A, 3) and u["instant_error"] == "used"
+        assert float(lik.instant_std) == u["instant_error_rms_fitted_s"] and 0 <= u["instant_error_rms_fitted_s"] < 1e-2
+        assert u["triad_rate_rms_m_s3"] > 0 and np.isfinite(u["instant_error_gain_nats"])
+    else:
+        assert lik.rate is None and u["instant_error_rms_fitted_s"] is None
+        assert u["instant_error"].startswith("skipped: not asked")
     assert m["gyro_posterior"]["clock_mean_correction_rms"]["acc_m_s2"] > 0
     for key in ("sandwich", "sandwich_flat"):
         assert len(m[key]["std_ratio"]) == 3 * (rec.K - 1) and np.isfinite(m[key]["std_ratio"]).all()
@@ -204,3 +210,17 @@ def test_cli_with_the_detectors_own_report_on_a_concealed_clock_recording(tmp_pa
     assert rc == (0 if doc["diagnostics"]["converged"] else 4)  # 50 draws: written, marked if unconverged
     m = doc["provenance"]["settings"]["model"]
     assert "unresolved_motion" in m and {"sampling_clock", "unresolved_motion"} <= {u["effect"] for u in m["used"]}
+
+
+def test_instant_error_option_needs_a_model_and_enters_the_fingerprint():
+    """``instant_error`` without a model is refused naming the option; with one it changes what a
+    resumed checkpoint must match, and leaves a model run without it unchanged."""
+    from accel_bayes.errors import UserError
+    from accel_bayes.pipelines.calibrate_options import CalibrateOptions
+
+    with pytest.raises(UserError, match="^instant_error: .*needs a model"):
+        CalibrateOptions(instant_error=True)
+    on = CalibrateOptions(model="r.json", instant_error=True).fingerprint("rec", model_sha256="m")["options"]
+    off = CalibrateOptions(model="r.json").fingerprint("rec", model_sha256="m")["options"]
+    assert on["instant_error"] is True and "instant_error" not in off
+    assert {k: v for k, v in on.items() if k != "instant_error"} == off
