@@ -1,0 +1,68 @@
+"""The concealed-clock calibration study (issue #30 item 4, ``experiments/percov_conceal.py``): what
+it hands the pipeline and how it scores.  The study itself runs from the script (minutes a case)."""
+import numpy as np
+import pytest
+
+import experiments.clockgen as cg
+from experiments import percov_conceal as pc
+
+
+def test_known_acc_intrinsics_recover_the_error_free_outputs():
+    # the same case with and without the generator's linear errors (noise and rounding off, so that
+    # only M and b differ): inverting M, b on the accelerometers must give the error-free outputs
+    kw = dict(duration=1.0, noise=False, quantised=False, gyro_linear=False)
+    rec, truth = cg.draw_case("clock", 4, **kw)
+    ref, _ = cg.draw_case("clock", 4, errors=False, **kw)
+    before = np.abs(np.asarray(rec.acc) - np.asarray(ref.acc)).max()
+    fixed = pc.known_acc_intrinsics(rec, truth)
+    assert before > 0.01  # m/s²: the errors are there to undo
+    np.testing.assert_allclose(fixed.acc, ref.acc, atol=1e-9)
+    np.testing.assert_array_equal(fixed.gyro, rec.gyro)  # gyro errors are left to the detector
+
+
+def test_mounted_moves_the_nominal_positions_not_the_truth():
+    rec, truth = cg.draw_case("clock", 2, duration=1.0, noise=False)
+    moved, pos = pc.mounted(rec, truth, 5e-4, 2)
+    np.testing.assert_array_equal(pos, np.asarray(truth["position"]))
+    d = np.asarray(moved.nominal_position) - pos
+    assert 1e-4 < d.std() < 1e-3  # m, a seeded draw at 0.5 mm
+    again, _ = pc.mounted(rec, truth, 5e-4, 2)
+    np.testing.assert_array_equal(again.nominal_position, moved.nominal_position)
+    np.testing.assert_array_equal(rec.nominal_position, pos)  # the input recording is not changed
+
+
+def test_score_is_error_over_std_relative_to_the_reference():
+    pos = np.array([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0], [0.01, 0.02, 0.0]])
+    doc = {"reference_imu": 0, "imus": [
+        {"imu": 0, "mean": [0, 0, 0], "std": [0, 0, 0]},
+        {"imu": 1, "mean": [0.0201, 0.0, 0.0], "std": [1e-4, 1e-4, 1e-4]},
+        {"imu": 2, "mean": [0.0, 0.0196, 0.0002], "std": [1e-4, 2e-4, 1e-4]}]}
+    s = pc.score(doc, pos)
+    np.testing.assert_allclose(s["z"], [1.0, 0.0, 0.0, 0.0, -2.0, 2.0], atol=1e-9)
+    assert s["coordinates"][4] == "r[2, y]"
+
+
+def test_summary_flags_the_band():
+    def case(seed, z):
+        c = {"seed": seed, "board": "plate4", "f_host": 100.0, "duration": 20.0, "mount_std_m": 5e-4,
+             "detect_seconds": 1.0, "findings": [], "acc_intrinsics": "known"}
+        for v in pc.VARIANTS:
+            c[v] = {"score": {"z": list(z), "std_m": [1e-5] * len(z), "error_m": [1e-5 * x for x in z]},
+                    "seconds": 1.0, "T_used": 100, "kappa_applied": 1.0, "rhat_max": 1.0,
+                    "settings": {"chains": 1, "draws": 1, "warmup": 1, "seed": 0}}
+        return c
+    good = pc.summarise([case(0, [1.0, -1.0, 0.5]), case(1, [-0.8, 1.2, 1.1])])
+    assert 0.8 <= good["with"]["all"]["rms"] <= 1.25 and good["with"]["all"]["beyond4"] == 0
+    text = pc.markdown([case(0, [1.0, -5.0, 0.5])], pc.summarise([case(0, [1.0, -5.0, 0.5])]), "cmd", 2, 1.0)
+    assert "**Met with the model: NO**" in text and "**partial**" in text
+
+
+@pytest.mark.slow
+def test_one_case_runs_end_to_end(tmp_path):
+    import argparse
+
+    args = argparse.Namespace(out=tmp_path, duration=8.0, mount_std=5e-4, acc_intrinsics="known", chains=2,
+                              draws=100, warmup=100, seed=0)
+    c = pc.run_case(1, args)
+    assert c["with"]["score"]["z"] and c["without"]["score"]["z"]
+    assert pc.cached(1, tmp_path) is not None
