@@ -415,7 +415,7 @@ def main(argv=None) -> int:
     print(f"[c21_coverage] {len(done)} data sets already in {store}, {len(todo)} to run; settings {settings}")
     t0 = time.perf_counter()
     if todo:
-        with dask_client(args) as client:
+        with dask_client(args, upload=("forced_terms.py",) if smooth else ()) as client:
             # Submit in small batches so every finished batch is on disk before the next starts.
             for b in range(0, len(todo), 4):
                 for r in map_tasks(client, task, todo[b:b + 4], desc=f"data sets {b + 1}–{b + len(todo[b:b + 4])}"):

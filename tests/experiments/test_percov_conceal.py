@@ -42,18 +42,37 @@ def test_score_is_error_over_std_relative_to_the_reference():
     assert s["coordinates"][4] == "r[2, y]"
 
 
+def _raw(truth, mean, std):
+    """A cached calibration as run_case writes it: positions document and score."""
+    doc = {"reference_imu": 0, "imus": [{"imu": k, "mean": list(m), "std": list(sd)}
+                                        for k, (m, sd) in enumerate(zip(mean, std))]}
+    return {"positions": doc, "score": pc.score(doc, np.asarray(truth)), "seconds": 1.0, "T_used": 100,
+            "noise": "estimate", "kappa_applied": 1.0, "rhat_max": 1.0,
+            "settings": {"chains": 1, "draws": 1, "warmup": 1, "seed": 0}}
+
+
+def test_variant_record_states_the_geometry_scale():
+    truth = np.array([[0.0, 0, 0], [0.04, 0, 0], [0, 0.03, 0.01]])
+    sd = np.full((3, 3), 1e-4)
+    assert pc.variant_record(_raw(truth, truth, sd))["scale"] == pytest.approx(1.0)
+    assert pc.variant_record(_raw(truth, -0.7 * truth, sd))["scale"] == pytest.approx(-0.7)
+
+
 def test_summary_flags_the_band():
-    def case(seed, z):
+    truth = np.array([[0.0, 0, 0], [0.04, 0, 0], [0, 0.03, 0.01]])
+    sd = np.full((3, 3), 1e-4)
+
+    def case(seed, dz):
         c = {"seed": seed, "board": "plate4", "f_host": 100.0, "duration": 20.0, "mount_std_m": 5e-4,
              "detect_seconds": 1.0, "findings": [], "acc_intrinsics": "known"}
         for v in pc.VARIANTS:
-            c[v] = {"score": {"z": list(z), "std_m": [1e-5] * len(z), "error_m": [1e-5 * x for x in z]},
-                    "seconds": 1.0, "T_used": 100, "kappa_applied": 1.0, "rhat_max": 1.0,
-                    "settings": {"chains": 1, "draws": 1, "warmup": 1, "seed": 0}}
+            c[v] = pc.variant_record(_raw(truth, truth + 1e-4 * np.asarray(dz), sd))
         return c
-    good = pc.summarise([case(0, [1.0, -1.0, 0.5]), case(1, [-0.8, 1.2, 1.1])])
-    assert 0.8 <= good["with"]["all"]["rms"] <= 1.25 and good["with"]["all"]["beyond4"] == 0
-    text = pc.markdown([case(0, [1.0, -5.0, 0.5])], pc.summarise([case(0, [1.0, -5.0, 0.5])]), "cmd", 2, 1.0)
+    good = [case(0, [[0, 0, 0], [1.0, -1.0, 0.5], [-0.8, 1.2, 1.1]])]
+    summ = pc.summarise(good)
+    assert 0.8 <= summ["with"]["all"]["rms"] <= 1.25 and summ["with"]["all"]["beyond4"] == 0
+    bad = [case(0, [[0, 0, 0], [1.0, -5.0, 0.5], [0.0, 0.0, 0.0]])]
+    text = pc.markdown(bad, pc.summarise(bad), "cmd", 2, 1.0)
     assert "**Met with the model: NO**" in text and "**partial**" in text
 
 
