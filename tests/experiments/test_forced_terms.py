@@ -47,3 +47,10 @@ def test_c21_coverage_refuses_forced_terms_on_iid_data(capsys):
         cov.main(["--model-terms", "forced", "--n", "1"])
     assert e.value.code == 2
     assert "--model-terms" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_forced_replicate_runs_through_calibrate():
+    r = cov.replicate_pipeline(0, T=300, chains=2, draws=100, warmup=100, model_terms="forced")
+    assert sorted(r["ranks"]) == sorted(f"{k}{a}" for k, a in cov.COORDS)
+    assert "unresolved_motion" in r["forced"]["used"] and not r["forced"]["skipped"]
