@@ -121,8 +121,7 @@ def run_variant(rec, variant: str, report_path: Path, chains: int, draws: int, w
     m = st.get("model") or {}
     out = {"positions": res.positions, "seconds": res.seconds, "T_used": st["T"],
            "noise": st.get("noise"), "kappa_applied": sw.get("applied", 1.0),
-           "rhat_max": max([v for e in res.positions["imus"] for v in (e.get("rhat") or []) if v is not None],
-                           default=None)}
+           "rhat_max": res.positions["diagnostics"].get("rhat_max")}
     if m:
         out["model"] = {"used": [{k: u.get(k) for k in ("effect", "imu", "sensor")} for u in m.get("used", [])],
                         "skipped": [{k: u.get(k) for k in ("effect", "imu", "sensor")} for u in m.get("skipped", [])],
@@ -176,7 +175,9 @@ def run_case(seed: int, args) -> dict:
 def variant_record(r: dict) -> dict:
     """What the document needs of one cached calibration, with the geometry's scale against the
     truth: Σ mean·truth / Σ truth² over the free coordinates (truth = mean − error)."""
-    out = {k: r[k] for k in ("score", "seconds", "T_used", "noise", "kappa_applied", "rhat_max", "settings")}
+    out = {k: r[k] for k in ("score", "seconds", "T_used", "noise", "kappa_applied", "settings")}
+    diag = r["positions"].get("diagnostics") or {}
+    out["rhat_max"], out["ess_bulk_min"] = diag.get("rhat_max"), diag.get("ess_bulk_min")
     if "model" in r:
         out["model"] = r["model"]
     ref = int(r["positions"]["reference_imu"])
@@ -290,7 +291,7 @@ def markdown(cases: list[dict], summ: dict, cmd: str, n_asked: int, seconds: flo
     tag = " / ".join(short[v] for v in vs)
     L += ["", f"## Per case ({tag}: {', '.join(f'{short[v]} = {LABEL[v]}' for v in vs)})", "",
           f"| case | board | rate Hz | T used | findings | z RMS {tag} | max \\|z\\| {tag} | scale {tag} | "
-          "κ applied (d) | sandwich ratio max (w) | R̂ max w | s w |",
+          "noise, κ applied (d) | sandwich ratio max (w) | R̂ max / bulk ESS min (w) | s w |",
           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
         names = {}
@@ -303,8 +304,9 @@ def markdown(cases: list[dict], summ: dict, cmd: str, n_asked: int, seconds: flo
                  + " / ".join(f"{np.sqrt(np.mean(z[v] ** 2)):.2f}" for v in vs) + " | "
                  + " / ".join(f"{np.abs(z[v]).max():.2f}" for v in vs) + " | "
                  + " / ".join(f"{c[v]['scale']:.3f}" for v in vs) + " | "
-                 f"{_f(c['without']['kappa_applied'])} | {_f(mo.get('sandwich_ratio_max'))} | "
-                 f"{_f(c['with']['rhat_max'], '.3f')} | {c['with']['seconds']:.0f} |")
+                 f"{c['without']['noise']}, {_f(c['without']['kappa_applied'])} | {_f(mo.get('sandwich_ratio_max'))} | "
+                 f"{_f(c['with']['rhat_max'], '.3f')} / {_f(c['with']['ess_bulk_min'], '.0f')} | "
+                 f"{c['with']['seconds']:.0f} |")
     det = [c["detect_seconds"] for c in cases]
     L += ["", f"Detector seconds per case (median): {_f(float(np.median(det)) if det else None, '.0f')}; "
               "calibration seconds (median): " + ", ".join(

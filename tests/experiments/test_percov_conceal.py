@@ -47,7 +47,7 @@ def _raw(truth, mean, std):
     doc = {"reference_imu": 0, "imus": [{"imu": k, "mean": list(m), "std": list(sd)}
                                         for k, (m, sd) in enumerate(zip(mean, std))]}
     return {"positions": doc, "score": pc.score(doc, np.asarray(truth)), "seconds": 1.0, "T_used": 100,
-            "noise": "estimate", "kappa_applied": 1.0, "rhat_max": 1.0,
+            "noise": "estimate", "kappa_applied": 1.0,
             "settings": {"chains": 1, "draws": 1, "warmup": 1, "seed": 0}}
 
 
