@@ -78,11 +78,12 @@ def known_acc_intrinsics(rec, truth):
     return out
 
 
-def case_recording(seed: int, duration: float, mount_std: float, acc_intrinsics: str = "known"):
-    """The case's recording (as the pipeline sees it), the generator's truth dict, the true positions."""
+def case_recording(seed: int, duration: float, mount_std: float, acc_intrinsics: str = "known", **pieces):
+    """The case's recording (as the pipeline sees it), the generator's truth dict, the true positions.
+    ``pieces``: :func:`draw_case` switches (e.g. ``vibration=False``) for the probe."""
     from experiments.clockgen import draw_case
 
-    rec, truth = draw_case("clock", seed, duration=duration)
+    rec, truth = draw_case("clock", seed, duration=duration, **pieces)
     if acc_intrinsics == "known":
         rec = known_acc_intrinsics(rec, truth)
     rec, pos = mounted(rec, truth, mount_std, seed)
@@ -120,7 +121,7 @@ def run_variant(rec, variant: str, report_path: Path, chains: int, draws: int, w
     sw = nm.get("sandwich") or {}
     m = st.get("model") or {}
     out = {"positions": res.positions, "seconds": res.seconds, "T_used": st["T"],
-           "noise": st.get("noise"), "kappa_applied": sw.get("applied", 1.0),
+           "noise": st.get("noise"), "kappa_applied": sw.get("applied", 1.0), "noise_std": nm.get("std"),
            "rhat_max": res.positions["diagnostics"].get("rhat_max")}
     if m:
         out["model"] = {"used": [{k: u.get(k) for k in ("effect", "imu", "sensor")} for u in m.get("used", [])],
@@ -186,6 +187,55 @@ def variant_record(r: dict) -> dict:
     truth = mean - np.asarray(r["score"]["error_m"], dtype=np.float64)
     out["scale"] = float(mean @ truth / (truth @ truth))
     return out
+
+
+# the generator's pieces switched off one at a time (draw_case switches; vibration=False also drops the impacts)
+PROBE = {"as drawn": {}, "vibration and impacts off": {"vibration": False}, "DLPF off": {"filtered": False}}
+PROBE_CHAINS = (2, 100, 100)  # chains, warm-up, draws: the mean and the scale, not a converged std
+
+
+def probe_case(seed: int, args) -> dict:
+    """Which generator piece breaks the untempered likelihood (the ``untempered`` variant, no report) on
+    case ``seed``: the case as drawn and with each :data:`PROBE` piece off; per row the geometry's
+    scale, z RMS and the fitted noise levels (m/s²).  Cached in ``args.out/probe/``."""
+    from accel_bayes.data.outputs import write_json
+
+    f = args.out / "probe" / f"clock-{seed:03d}.json"
+    if f.exists():
+        return json.loads(f.read_text())
+    rows = []
+    for name, kw in PROBE.items():
+        rec, truth, pos = case_recording(seed, args.duration, args.mount_std, args.acc_intrinsics, **kw)
+        r = run_variant(rec, "untempered", None, *PROBE_CHAINS, args.seed)
+        r["score"] = score(r["positions"], pos)
+        z = np.asarray(r["score"]["z"])
+        rows.append({"pieces": name, "scale": variant_record(r)["scale"], "z_rms": float(np.sqrt(np.mean(z ** 2))),
+                     "noise_std": r["noise_std"], "noise": r["noise"]})
+        print(f"probe clock-{seed:03d} {name}: scale {rows[-1]['scale']:.3f}, z RMS {rows[-1]['z_rms']:.2f}", flush=True)
+    out = {"seed": seed, "board": truth["board"], "f_host": truth["f_host"], "rows": rows,
+           "chains_warmup_draws": list(PROBE_CHAINS)}
+    f.parent.mkdir(parents=True, exist_ok=True)
+    write_json(f, out)
+    return out
+
+
+def probe_markdown(probes: list[dict]) -> list[str]:
+    if not probes:
+        return []
+    c, w, d = probes[0]["chains_warmup_draws"]
+    L = ["## Probe: which generator piece breaks the untempered likelihood", "",
+         f"The `untempered` variant (no report) on the case as drawn and with one piece of the generator switched off "
+         f"(`draw_case` switches; {c} chains × ({w} + {d}): means and scale, not converged stds). Scale / z RMS / "
+         "fitted accelerometer noise levels (m/s², min–max over the triads).", "",
+         "| case | " + " | ".join(PROBE) + " |", "|---|" + "---|" * len(PROBE)]
+    for p in probes:
+        cells = []
+        for r in p["rows"]:
+            ns = r["noise_std"] or []
+            lv = f"{min(ns):.3f}–{max(ns):.3f}" if ns else r["noise"]
+            cells.append(f"{r['scale']:.3f} / {r['z_rms']:.2f} / {lv}")
+        L.append(f"| clock-{p['seed']:03d} {p['board']} {p['f_host']} Hz | " + " | ".join(cells) + " |")
+    return L + [""]
 
 
 def cached(seed: int, out: Path) -> dict | None:
@@ -310,7 +360,9 @@ def markdown(cases: list[dict], summ: dict, cmd: str, n_asked: int, seconds: flo
     det = [c["detect_seconds"] for c in cases]
     L += ["", f"Detector seconds per case (median): {_f(float(np.median(det)) if det else None, '.0f')}; "
               "calibration seconds (median): " + ", ".join(
-                  f"{short[v]} {np.median([c[v]['seconds'] for c in cases]):.0f}" for v in vs) + ".", "",
+                  f"{short[v]} {np.median([c[v]['seconds'] for c in cases]):.0f}" for v in vs)
+          + f". A rerun from scratch: the cached stages sum to {sum(det) + sum(c[v]['seconds'] for c in cases for v in vs):.0f} s "
+            f"(detector {sum(det):.0f} s) on this machine, plus loading.", "",
           "![z per coordinate](figures/percov_conceal_z.png)", ""]
     return "\n".join(L) + "\n"
 
@@ -363,6 +415,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-seconds", type=float, default=None,
                     help="start no new case after this many seconds (the document is written from what is cached)")
     ap.add_argument("--summary", action="store_true", help="write the document from the cache only")
+    ap.add_argument("--probe", default="", help="comma-separated seeds for the generator-piece probe (probe_case)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "percov_conceal")
     args = ap.parse_args(argv)
     from accel_bayes.data.outputs import write_json, write_text
@@ -378,6 +431,11 @@ def main(argv=None) -> int:
         if c is not None:
             cases.append(c)
     cases.sort(key=lambda c: c["seed"])
+    probes = []
+    for s in [int(x) for x in args.probe.split(",") if x.strip()]:
+        f = args.out / "probe" / f"clock-{s:03d}.json"
+        if f.exists() or not args.summary:
+            probes.append(probe_case(s, args))
     secs = time.perf_counter() - t0
     print(f"[percov_conceal] {len(cases)} cases, this invocation {secs:.0f} s", flush=True)
     if not cases:
@@ -388,7 +446,11 @@ def main(argv=None) -> int:
     argv_s = argv if argv is not None else sys.argv[1:]
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/percov_conceal.py " + " ".join(
         a for a in argv_s if a != "--summary")
-    write_text(DOC, markdown(cases, summ, cmd.strip(), args.n, secs))
+    from experiments._reading import READING_MARKER, kept_reading
+
+    write_text(DOC, markdown(cases, summ, cmd.strip(), args.n, secs) + "\n" + "\n".join(probe_markdown(probes))
+               + "\n" + READING_MARKER
+               + (kept_reading(DOC) or "\n"))
     print(DOC.read_text())
     return 0
 
