@@ -206,8 +206,10 @@ def probe_case(seed: int, args) -> dict:
     rows = []
     for name, kw in PROBE.items():
         rec, truth, pos = case_recording(seed, args.duration, args.mount_std, args.acc_intrinsics, **kw)
-        r = run_variant(rec, "untempered", None, *PROBE_CHAINS, args.seed)
+        c, w, d = PROBE_CHAINS
+        r = run_variant(rec, "untempered", None, c, d, w, args.seed)
         r["score"] = score(r["positions"], pos)
+        r["settings"] = dict(zip(("chains", "warmup", "draws"), PROBE_CHAINS), seed=args.seed)
         z = np.asarray(r["score"]["z"])
         rows.append({"pieces": name, "scale": variant_record(r)["scale"], "z_rms": float(np.sqrt(np.mean(z ** 2))),
                      "noise_std": r["noise_std"], "noise": r["noise"]})

@@ -85,3 +85,11 @@ def test_one_case_runs_end_to_end(tmp_path):
     c = pc.run_case(1, args)
     assert c["with"]["score"]["z"] and c["without"]["score"]["z"]
     assert pc.cached(1, tmp_path) is not None
+
+
+def test_probe_table_lists_every_piece():
+    rows = [{"pieces": k, "scale": 1.0, "z_rms": 1.0, "noise_std": [0.03, 0.05], "noise": "estimate"} for k in pc.PROBE]
+    text = "\n".join(pc.probe_markdown([{"seed": 1, "board": "plate4", "f_host": 250.0, "rows": rows,
+                                         "chains_warmup_draws": list(pc.PROBE_CHAINS)}]))
+    assert all(k in text for k in pc.PROBE) and "0.030–0.050" in text
+    assert pc.probe_markdown([]) == []
