@@ -339,7 +339,10 @@ def write_document(out_root: Path, cmd: str, seconds: float) -> str:
               f"| SBC χ² p, min over 9 coordinates (10 bins) | {vs['none']['rank_p_min']:.3f} | "
               f"{vs['forced']['rank_p_min']:.3f} | > 0.01/9 = {0.01 / 9:.4f} |",
               f"| SBC χ² p, pooled | {vs['none']['rank_p_pooled']:.3f} | {vs['forced']['rank_p_pooled']:.3f} | > 0.01 |",
-              f"| R̂ max | {vs['none']['rhat_max']:.4f} | {vs['forced']['rhat_max']:.4f} | < 1.01 |"]
+              f"| R̂ max | {vs['none']['rhat_max']:.4f} | {vs['forced']['rhat_max']:.4f} | < 1.01 |",
+              "| data sets with R̂ ≥ 1.01 (chains from prior draws) | " + " | ".join(
+                  ", ".join(f"{i} ({reps[mt][i]['rhat']:.3f})" for i in both if reps[mt][i]["rhat"] >= 1.01) or "none"
+                  for mt in MODEL_TERMS) + " | |"]
         z = {mt: np.array([(reps[mt][i]["ranks"]["1x"] + 0.5) / (L_RANK + 1) for i in both]) for mt in MODEL_TERMS}
         sd = {mt: np.median([reps[mt][i]["std_r1x"] for i in both]) * 1e6 for mt in MODEL_TERMS}
         L += [f"| median posterior std of r[1,x] (µm) | {sd['none']:.1f} | {sd['forced']:.1f} | |",
