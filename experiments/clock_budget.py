@@ -34,7 +34,7 @@ if str(ROOT.parent) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT.parent))
 
 from experiments.clock_proof import DURATION, clock_cases  # noqa: E402
-from experiments.mimu_mismatch import BAND_RANGE, _band_ok  # noqa: E402
+from experiments.mimu_mismatch import BAND_RANGE, _band_ok, _cell  # noqa: E402
 
 N_REQUIRED = 30  # clock cases the must-show needs
 
@@ -103,6 +103,9 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
          f"Regenerate: `{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
          f"{platform.system()}, shared 2-core CPU, one process, `OMP_NUM_THREADS=1`; per-case results cached in "
          "`experiments/results/clock_budget/`).",
+         "The cases are computed by `OMP_NUM_THREADS=1 PYTHONPATH=. nice -n 5 python3 experiments/clock_budget.py` "
+         "(resumes from the cache; `--first`/`--cases` pick the order or a subset); `--summary` rewrites this "
+         "document from the cache alone.",
          "Detector: the whole `accel_bayes.mismatch.detect`, defaults, blind.  Cases: clock_proof's clock cases "
          f"(`clock_proof.clock_cases`, {DURATION:g} s each).", ""]
     if n < N_REQUIRED:
@@ -128,6 +131,16 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
         v = [x for x in v if x is not None]
         if v:
             L.append(f"| {sensor} b/a of \"all\" (median, min–max) | {np.median(v):.2f} ({min(v):.2f}–{max(v):.2f}) | — |")
+    regimes = [x["regime"] for x in (results[0]["budget"] if results else []) if x["sensor"] == "acc" and x["regime"] != "all"]
+    if regimes:
+        L += ["", "Per band: cases passing (of those run), median b/a.", "", "| band | acc pass | acc b/a | gyro pass | gyro b/a |",
+              "|---|---|---|---|---|"]
+        for g in regimes:
+            cells = []
+            for sensor in ("acc", "gyro"):
+                xs = [x for r in results for x in r["budget"] if x["sensor"] == sensor and x["regime"] == g]
+                cells += [f"{sum(band_ok(x) for x in xs)}/{len(xs)}", f"{np.nanmedian([_ratio(x) for x in xs]):.2f}"]
+            L.append(f"| {_cell(g)} | " + " | ".join(cells) + " |")
     L += ["", "Per case: b/a of \"all\" and its bands' range (acc, gyro); the failing bands; what the detector named.", "",
           "| case | board | read Hz | lin. gyro | acc all (bands) | gyro all (bands) | failing bands | findings |",
           "|---|---|---|---|---|---|---|---|"]
@@ -143,13 +156,13 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
             cells.append(f"{al:.2f} ({np.nanmin(bs):.2f}–{np.nanmax(bs):.2f})")
         bad = [f"{s} {b}" for s in ("acc", "gyro") for b in r["verdict"].get(s, {}).get("failing", [])]
         L.append(f"| clock-{r['seed']:03d} | {r['board']} | {r['f_host']:g} | {'yes' if r['gyro_linear'] else 'no'} | "
-                 f"{cells[0]} | {cells[1]} | {'; '.join(bad) or 'none'} | {_findings_text(r)} |")
+                 f"{cells[0]} | {cells[1]} | {_cell('; '.join(bad) or 'none')} | {_findings_text(r)} |")
     fails = [(r, x) for r in results for x in r["budget"] if x["regime"] != "all" and not band_ok(x)]
     if fails:
         L += ["", "Failing bands: a, b, SE (units² of the sensor).", "",
               "| case | board | read Hz | sensor | band | a | b | b/a | SE of a |", "|---|---|---|---|---|---|---|---|---|"]
         for r, x in fails:
-            L.append(f"| clock-{r['seed']:03d} | {r['board']} | {r['f_host']:g} | {x['sensor']} | {x['regime']} | "
+            L.append(f"| clock-{r['seed']:03d} | {r['board']} | {r['f_host']:g} | {x['sensor']} | {_cell(x['regime'])} | "
                      f"{x['excess_var_observed']:.3g} | {x['excess_var_explained']:.3g} | {_ratio(x):.2f} | "
                      f"{x['excess_var_observed_se']:.3g} |")
     return "\n".join(L) + "\n"
