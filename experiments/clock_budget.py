@@ -91,7 +91,9 @@ def _ratio(r):
 def _findings_text(res) -> str:
     names = {}
     for f in res["findings"]:
-        names.setdefault(f["effect"], []).append("" if f["imu"] is None else str(f["imu"]))
+        # IMU, and the sensor's initial where the effect is on one sensor (timing_wander[2a,2g])
+        names.setdefault(f["effect"], []).append(
+            "" if f["imu"] is None else f"{f['imu']}{(f.get('sensor') or '')[:1] if f.get('sensor') in ('acc', 'gyro') else ''}")
     return ", ".join(f"{k}[{','.join(v)}]" if any(v) else k for k, v in names.items()) or "—"
 
 
