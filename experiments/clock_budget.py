@@ -133,6 +133,17 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
         v = [x for x in v if x is not None]
         if v:
             L.append(f"| {sensor} b/a of \"all\" (median, min–max) | {np.median(v):.2f} ({min(v):.2f}–{max(v):.2f}) | — |")
+    L += ["", "Per board: cases passing, bands passing, median b/a of \"all\".", "",
+          "| board | cases | acc bands | gyro bands | acc all | gyro all |", "|---|---|---|---|---|---|"]
+    for bd in sorted({r["board"] for r in results}):
+        rb = [r for r in results if r["board"] == bd]
+        cells = [f"{sum(r['verdict']['pass'] for r in rb)}/{len(rb)}"]
+        for sensor in ("acc", "gyro"):
+            xs = [x for r in rb for x in r["budget"] if x["sensor"] == sensor and x["regime"] != "all"]
+            cells.append(f"{sum(band_ok(x) for x in xs)}/{len(xs)}")
+        for sensor in ("acc", "gyro"):
+            cells.append(f"{np.median([r['verdict'][sensor]['all_ratio'] for r in rb]):.2f}")
+        L.append(f"| {bd} | " + " | ".join(cells) + " |")
     regimes = [x["regime"] for x in (results[0]["budget"] if results else []) if x["sensor"] == "acc" and x["regime"] != "all"]
     if regimes:
         L += ["", "Per band: cases passing (of those run), median b/a.", "", "| band | acc pass | acc b/a | gyro pass | gyro b/a |",
