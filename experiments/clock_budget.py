@@ -11,9 +11,10 @@ refined model explains b, b/a, and issue #27's band rule (:func:`band_ok`: b/a w
 a is under 3 standard errors, |b − a| ≤ 3 standard errors).  A case passes when every band of both
 sensors passes ("all" is reported, not part of the band rule).
 
-Per-case results are cached as JSON in ``experiments/results/clock_budget/`` (a rerun reuses them).
+``--diagnose SEED…`` reruns those cases for the per-IMU acc residual² of the baseline and the refined fit
+(why b < 0 on plate4).  Per-case results are cached as JSON in ``experiments/results/clock_budget/`` (a rerun reuses them).
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. nice -n 5 python3 experiments/clock_budget.py   # runs missing cases, writes clock_budget.md
+    OMP_NUM_THREADS=1 PYTHONPATH=. nice -n 5 python3 experiments/clock_budget.py --diagnose 10 19   # runs missing cases, writes clock_budget.md
     PYTHONPATH=. python3 experiments/clock_budget.py --summary                      # table only, from the cached cases
 """
 from __future__ import annotations
@@ -83,6 +84,32 @@ def run_case(seed: int, redo: bool = False) -> dict:
     return res
 
 
+def diagnose(seed: int) -> dict:
+    """Where a case's acc b goes negative: per IMU, the mean raw acc residual² (m/s²)² of the
+    baseline and of the refined fit, "all" and the top |ω̇| band; cached as ``diagnose-SEED.json``."""
+    from accel_bayes.data.outputs import write_json
+    from accel_bayes.mismatch import detect
+    from accel_bayes.mismatch.budget import budget_regimes
+    from experiments.clockgen import draw_case
+
+    path = OUT / f"diagnose-{seed:03d}.json"
+    if path.exists():
+        return json.loads(path.read_text())
+    rec, _ = draw_case("clock", seed, duration=DURATION)
+    rep = detect(rec)
+    prep, base, ref = rep.prep, rep.baseline_fit, rep.refined_fit
+    regs = dict(budget_regimes(base))
+    m = prep.m_acc.detach().cpu().numpy()
+    sq = {n: (f.res_acc ** 2 * prep.m_acc).detach().cpu().numpy() for n, f in (("baseline", base), ("refined", ref))}
+    out = {"seed": seed, "effects": [e.label() for e in ref.effects], "bands": {}}
+    for g in ("all", "|omega_dot| 90-100%"):
+        sel = regs[g]
+        out["bands"][g] = {n: [float(v[sel][:, k].sum() / max(m[sel][:, k].sum(), 1)) for k in range(prep.K)]
+                           for n, v in sq.items()}
+    write_json(path, out)
+    return out
+
+
 def _ratio(r):
     a, b = r["excess_var_observed"], r["excess_var_explained"]
     return b / a if a > 0 else float("nan")
@@ -105,7 +132,7 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
          f"Regenerate: `{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
          f"{platform.system()}, shared 2-core CPU, one process, `OMP_NUM_THREADS=1`; per-case results cached in "
          "`experiments/results/clock_budget/`).",
-         "The cases are computed by `OMP_NUM_THREADS=1 PYTHONPATH=. nice -n 5 python3 experiments/clock_budget.py` "
+         "The cases are computed by `OMP_NUM_THREADS=1 PYTHONPATH=. nice -n 5 python3 experiments/clock_budget.py --diagnose 10 19` "
          "(resumes from the cache; `--first`/`--cases` pick the order or a subset); `--summary` rewrites this "
          "document from the cache alone.",
          "Detector: the whole `accel_bayes.mismatch.detect`, defaults, blind.  Cases: clock_proof's clock cases "
@@ -119,7 +146,7 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
           "linear gyro errors): " + ", ".join(f"clock-{r['seed']:03d}" for r in results) + ".",
           f"Detector seconds per case: median {np.median([r['seconds'] for r in results]) if results else float('nan'):.0f}, "
           f"total {sum(r['seconds'] for r in results):.0f}"
-          + (f"; this run's wall time {wall:.0f} s." if wall is not None else "."), "",
+          + (f"; this invocation's wall time {wall:.0f} s (cached cases are not rerun)." if wall is not None else "."), "",
           f"Rule per band (|ω| and |ω̇| quantile bands, acc and gyro): b/a within {BAND_RANGE[0]}–{BAND_RANGE[1]}, or "
           "where a ≤ 3 SE (`excess_var_observed_se`), |b − a| ≤ 3 SE.  A case passes when all 20 bands pass.", "",
           "| measure | value | must |", "|---|---|---|",
@@ -170,6 +197,15 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
         bad = [f"{s} {b}" for s in ("acc", "gyro") for b in r["verdict"].get(s, {}).get("failing", [])]
         L.append(f"| clock-{r['seed']:03d} | {r['board']} | {r['f_host']:g} | {'yes' if r['gyro_linear'] else 'no'} | "
                  f"{cells[0]} | {cells[1]} | {_cell('; '.join(bad) or 'none')} | {_findings_text(r)} |")
+    diag = [json.loads(p.read_text()) for p in sorted(OUT.glob("diagnose-*.json"))]
+    if diag:
+        L += ["", "Diagnosis (`--diagnose SEED`): mean raw acc residual² per IMU, baseline → refined fit, (m/s²)².", "",
+              "| case | band | per IMU | refined fit's effects |", "|---|---|---|---|"]
+        for d in diag:
+            for g, v in d["bands"].items():
+                L.append(f"| clock-{d['seed']:03d} | {_cell(g)} | " + ", ".join(
+                    f"{k}: {x:.3g} → {y:.3g}" for k, (x, y) in enumerate(zip(v["baseline"], v["refined"])))
+                    + f" | {', '.join(d['effects'])} |")
     fails = [(r, x) for r in results for x in r["budget"] if x["regime"] != "all" and not band_ok(x)]
     if fails:
         L += ["", "Failing bands: a, b, SE (units² of the sensor).", "",
@@ -198,6 +234,8 @@ def main(argv=None):
     ap.add_argument("--cases", nargs="*", default=None, metavar="CASE", help="run only these cases")
     ap.add_argument("--summary", action="store_true", help="no detector runs: the table from the cached cases")
     ap.add_argument("--redo", action="store_true", help="recompute cached cases")
+    ap.add_argument("--diagnose", nargs="*", type=int, default=[], metavar="SEED",
+                    help="also rerun these cases for the per-IMU acc residuals of baseline and refined fit")
     a = ap.parse_args(argv)
     from accel_bayes.data.outputs import write_text
 
@@ -209,6 +247,8 @@ def main(argv=None):
         print(f"clock-{s:03d} {r['board']} {r['f_host']:g} Hz: {r['seconds']:.0f} s, "
               f"{'pass' if r['verdict']['pass'] else 'FAIL'} {r['verdict']}; elapsed {time.perf_counter() - t0:.0f} s",
               flush=True)
+    for s in ([] if a.summary else a.diagnose):
+        diagnose(s)
     # the document covers every cached case of the set, whichever run computed it
     results = [json.loads(p.read_text()) for p in (OUT / f"clock-{s:03d}.json" for s in clock_cases(a.n_clock))
                if p.exists()]
