@@ -39,6 +39,15 @@ OUT = ROOT / "results" / "clock_proof"
 sys.path.insert(0, str(ROOT.parent))
 
 
+DURATION = 20.0  # s per case
+
+
+def clock_cases(n_clock: int = 30) -> list[int]:
+    """The clock cases' seeds (``draw_case("clock", seed)``): board and read rate follow the seed,
+    linear gyro errors on even seeds (experiments/clockgen)."""
+    return list(range(n_clock))
+
+
 def truth_beat_mid(truth, k, t_mid):
     """The true beat (Hz) of IMU k at t_mid (s): its clock's instantaneous rate against the read rate."""
     c = truth["clock"]
@@ -166,7 +175,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n-clock", type=int, default=30)
     ap.add_argument("--n-clean", type=int, default=10)
-    ap.add_argument("--duration", type=float, default=20.0)
+    ap.add_argument("--duration", type=float, default=DURATION)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--summary", action="store_true")
     ap.add_argument("--first", nargs="*", default=[], metavar="CASE",
@@ -178,7 +187,7 @@ def main(argv=None):
     # interleaved (a case, its twin, every few seeds a clean one) so that a partial run is balanced
     every = max(a.n_clock // max(a.n_clean, 1), 1)
     cases, clean = [], [("clean", 1000 + s) for s in range(a.n_clean)]
-    for s in range(a.n_clock):
+    for s in clock_cases(a.n_clock):
         cases += [("clock", s), ("twin", s)] + ([clean.pop(0)] if s % every == 0 and clean else [])
     cases += clean
     first = [c for c in cases if f"{c[0]}-{c[1]:03d}" in set(a.first)]
