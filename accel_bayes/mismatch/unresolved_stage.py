@@ -262,7 +262,15 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
         sig2 = ((prep.sigma_acc if s == "acc" else prep.sigma_gyro) ** 2)[has]
         g = fit_grid(a, d, w, cell, B * C, v_known=known[s][:, has] * w, v_floor=sig2)
         lr_age = 2.0 * (g.loglik - g.loglik_no_age_error)
-        use_age = not lr_age <= threshold  # a failed fit without it (NaN) keeps it
+        # a fit that failed (non-finite scales or likelihood) is never reported: the other one is used,
+        # and with neither the sensor is not kept (a report with null scales is refused by calibrate --model)
+        fine = [math.isfinite(ll_) and bool(torch.isfinite(s2_).all())
+                for ll_, s2_ in ((g.loglik, g.s2), (g.loglik_no_age_error, g.s2_no_age_error))]
+        if not any(fine):
+            per[s].update(kept=False, why="the scale fit failed (non-finite) with and without the age error")
+            scales[s], ages_rms[s] = torch.zeros(B * C, dtype=a.dtype), 0.0
+            continue
+        use_age = fine[0] and (not fine[1] or not lr_age <= threshold)
         s2, ll, sd_log = (g.s2, g.loglik, g.sd_log_s2) if use_age else (g.s2_no_age_error, g.loglik_no_age_error,
                                                                         torch.full_like(g.s2, float("nan")))
         rms = torch.sqrt(s2)

@@ -79,3 +79,39 @@ def test_the_term_is_far_smaller_without_vibration(vibrating):
     jv = st_v.info["sensors"]["acc"]["jerk_rms"]
     jq = st_q.info["sensors"]["acc"]["jerk_rms"]
     assert np.median(jq) < 0.3 * np.median(jv), (jq, jv)
+
+
+@pytest.mark.parametrize("broken", ["age_error", "both"])
+def test_a_failed_scale_fit_is_never_reported(monkeypatch, broken):
+    """A concealed clock case (clockgen clock-004 through the whole detector) gave an
+    ``unresolved_motion`` finding listing the accelerometers with every ``jerk_rms`` null: the fit
+    with the age error had failed (NaN) and was kept, and ``calibrate --model`` refused the report.
+    A failed fit falls back to the other one; with both failed the sensor is not kept."""
+    import math
+
+    import accel_bayes.mismatch.unresolved_stage as us
+
+    real = us.fit_grid
+
+    def failing(*a, **k):
+        g = real(*a, **k)
+        nan = torch.full_like(g.s2, float("nan"))
+        g = dataclasses.replace(g, s2=nan, loglik=float("nan"), e2=float("nan"))
+        if broken == "both":
+            g = dataclasses.replace(g, s2_no_age_error=nan, loglik_no_age_error=float("nan"))
+        return g
+
+    monkeypatch.setattr(us, "fit_grid", failing)
+    st, _, _ = _budget(True)
+    for s in ("acc", "gyro"):
+        info = st.info["sensors"][s]
+        if broken == "both":
+            assert s not in st.info["kept"] and not info["kept"] and "non-finite" in info["why"]
+        else:
+            assert s in st.info["kept"] and info["age_error_kept"] is False
+            assert all(math.isfinite(v) for v in info["jerk_rms" if s == "acc" else "angular_acc_rms"])
+    if broken == "both":
+        assert st.effect is None
+    else:
+        p = st.effect.vocabulary_parameters()
+        assert all(math.isfinite(v) for v in p["jerk_rms"] + p["angular_acc_rms"])
