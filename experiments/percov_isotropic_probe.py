@@ -65,7 +65,7 @@ def percov_step(exp: int, reports: Path):
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cal.calibrate(rec, chains=1, draws=10, warmup=10, seed=0, progress=False,
+            cal.calibrate(rec, chains=1, draws=10, warmup=10, seed=0, progress=False, instant_error=True,
                           model=reports / f"exp_{exp}" / "report.json")
     except _Stop:
         pass
