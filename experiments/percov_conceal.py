@@ -389,6 +389,9 @@ def figure(cases: list[dict], path: Path) -> Path:
             ax.axhline(y, color="r", lw=0.8, ls="--")
         ax.axhline(0, color="k", lw=0.5)
         ax.set_yscale("symlog", linthresh=4)
+        # explicit ticks: the default ones at ±1 and 0 print on top of each other inside the linear band
+        ax.set_yticks([-1000, -100, -10, -4, 0, 4, 10, 100, 1000])
+        ax.set_yticklabels(["−1000", "−100", "−10", "−4", "0", "4", "10", "100", "1000"])
         ax.set_xticks(range(len(cases)))
         ax.set_xticklabels([f"{c['seed']}" for c in cases], fontsize=7)
         ax.set_xlabel("case (seed); blue mimu4444, orange plate4, green cube6", fontsize=8)

@@ -190,8 +190,8 @@ def main(argv=None):
          "under load, one torch thread). What it measures and why: the module docstring. Chosen after seeing "
          "exp 1–3 of `mimu_model_calibrate.md`: a diagnostic, not a calibration setting. At the mode at ω̄, no chains.",
          "", "| exp | e (ms) | e·s_b per band (m/s²) | σ rms: calibrate / white part (m/s²) | ratio max (median): "
-         "calibrate --model's likelihood | ratio max (median): + e² s_b² per band | Laplace std median (µm): "
-         "calibrate --model's / + e² s_b² | mode shift (µm, max over IMUs) |", "|---|---|---|---|---|---|---|---|"]
+         "calibrate --model --instant-error likelihood | ratio max (median): + e² s_b² per band | Laplace std median (µm): "
+         "calibrate --model --instant-error / + e² s_b² | mode shift (µm, max over IMUs) |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         b, i = r["base"], r["iso"]
         L.append(f"| {r['exp']} | {1e3 * r['instant_std_s']:.3f} | {', '.join(f'{v:.2f}' for v in r['iso_rms_m_s2'])} | "
@@ -203,7 +203,7 @@ def main(argv=None):
               "coordinate, z = (m_e − m̄_{−e}) / √(s_e² + 1/Σ_{j≠e} s_j⁻²), m̄_{−e} the inverse-variance mean of the others "
               "(`mimu_model_calibrate.md`'s definition, here on modes and Laplace std).", "",
               "| likelihood | LOO z RMS, all / first three / last three | max \|z\| |", "|---|---|---|"]
-        for key, label in (("base", "calibrate --model's"), ("iso", "+ e² s_b² per band")):
+        for key, label in (("base", "calibrate --model --instant-error"), ("iso", "+ e² s_b² per band")):
             z = loo_z(rows, key)
             h = len(z) // 2
             L.append(f"| {label} | {np.sqrt(np.mean(z ** 2)):.2f} / {np.sqrt(np.mean(z[:h] ** 2)):.2f} / "
