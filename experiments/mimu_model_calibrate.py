@@ -240,6 +240,30 @@ def spacing_pooled(results) -> dict:
     return out
 
 
+def _rel(path: Path) -> str:
+    """``path`` relative to the repository when it lies inside it (the document must not name a checkout)."""
+    try:
+        return str(Path(path).resolve().relative_to(HERE.parent))
+    except ValueError:
+        return str(path)
+
+
+def _variant_paragraph(what: str, b: dict, n_exps: int, *, timed: bool) -> str:
+    """One optional variant's must-show figures as a sentence (``b``: its :func:`summarise` entry)."""
+    zb = np.asarray(b["analysis"]["z_loo"], dtype=float).reshape(n_exps, -1)
+    zrb = lambda sl: float(np.sqrt(np.mean(zb[sl] ** 2)))  # noqa: E731
+    out = (f"{what}: sandwich/Laplace ratio max {', '.join(_f(x) for x in b['ratio_max'])} (median "
+           f"{', '.join(_f(x) for x in b['ratio_median'])}); sandwich/posterior max "
+           f"{', '.join(_f(x) for x in b['sandwich_over_posterior_max'])}; LOO z RMS {zrb(slice(None)):.2f} / "
+           f"{zrb(slice(0, 3)):.2f} / {zrb(slice(3, 6)):.2f} (all / exp 1–3 / exp 4–6), max |z| {np.abs(zb).max():.2f}; "
+           f"median posterior std {', '.join(_f(x, '.0f') for x in b['std_um_median'])} µm; spacing pooled x / y "
+           f"{b['spacing_unc']['x']} / {b['spacing_unc']['y']} mm")
+    if not timed:
+        return out + "."
+    return (out + f"; wall time per calibration {', '.join(f'{x:.0f}' for x in b['seconds'])} s. Bar (ratio ≤ 1.3 "
+            f"everywhere) with it: {'YES' if all(x <= 1.3 for x in b['ratio_max']) else 'NO'}.")
+
+
 def decomposition_markdown(results) -> list:
     """The per-sample model's sandwich excess split (:func:`decomposition`), one row per experiment."""
     rs = [r for r in sorted(results["with"], key=lambda r: r["exp"]) if r.get("decomposition")]
@@ -324,7 +348,7 @@ def markdown(results: dict, summ: dict, args) -> str:
          f"Regenerate: `PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports {args.reports} --no-hetero "
          f"--draws {args.draws} --warmup {args.warmup} --variants {','.join(results)}` "
          f"({stamp}, {platform.machine()} {platform.system()}, shared 2-core CPU under heavy load from other jobs, "
-         f"one torch thread; results cached in `{args.out}`). Reports: each experiment's own `mismatch` report "
+         f"one torch thread; results cached in `{_rel(args.out)}`). Reports: each experiment's own `mismatch` report "
          "(`experiments/mimu_mismatch.py`, whole-recording `detect` with its defaults, the run `mimu_mismatch.md` reports), sha256 in the table below. Each "
          f"experiment is calibrated twice, {args.chains} chains × {args.draws} draws after {args.warmup} warm-up, "
          f"seed {args.seed}: **without** — the default pipeline (noise level per triad at its type-II ML, likelihood "
@@ -379,32 +403,13 @@ def markdown(results: dict, summ: dict, args) -> str:
          f"{min(m['analysis']['ess_min']):.0f} | |",
          f"| wall time per calibration (s, this run's load) | {', '.join(f'{x:.0f}' for x in w['seconds'])} | "
          f"{', '.join(f'{x:.0f}' for x in m['seconds'])} | |", ""]
-    if "with_bins" in summ:
-        b = summ["with_bins"]
-        zb = np.asarray(b["analysis"]["z_loo"], dtype=float).reshape(len(exps), -1)
-        zrb = lambda sl: float(np.sqrt(np.mean(zb[sl] ** 2)))  # noqa: E731
-        L += ["The model with the noise level × a factor per |ω̄| octile bin (`noise_bins=8`, flat φ prior: the "
-              "per-sample rescaling needs it; fixed before any experiment was seen): sandwich/Laplace ratio max "
-              f"{', '.join(_f(x) for x in b['ratio_max'])} (median {', '.join(_f(x) for x in b['ratio_median'])}); "
-              f"sandwich/posterior max {', '.join(_f(x) for x in b['sandwich_over_posterior_max'])}; LOO z RMS "
-              f"{zrb(slice(None)):.2f} / {zrb(slice(0, 3)):.2f} / {zrb(slice(3, 6)):.2f} (all / exp 1–3 / exp 4–6), "
-              f"max |z| {np.abs(zb).max():.2f}; median posterior std "
-              f"{', '.join(_f(x, '.0f') for x in b['std_um_median'])} µm; spacing pooled x / y "
-              f"{b['spacing_unc']['x']} / {b['spacing_unc']['y']} mm.", ""]
-    if "with_instant" in summ:
-        b = summ["with_instant"]
-        zb = np.asarray(b["analysis"]["z_loo"], dtype=float).reshape(len(exps), -1)
-        zrb = lambda sl: float(np.sqrt(np.mean(zb[sl] ** 2)))  # noqa: E731
-        L += ["The model with each triad's instant error (`instant_error=True`, CLI `--instant-error`; fixed before "
-              "any experiment was seen): sandwich/Laplace ratio max "
-              f"{', '.join(_f(x) for x in b['ratio_max'])} (median {', '.join(_f(x) for x in b['ratio_median'])}); "
-              f"sandwich/posterior max {', '.join(_f(x) for x in b['sandwich_over_posterior_max'])}; LOO z RMS "
-              f"{zrb(slice(None)):.2f} / {zrb(slice(0, 3)):.2f} / {zrb(slice(3, 6)):.2f} (all / exp 1–3 / exp 4–6), "
-              f"max |z| {np.abs(zb).max():.2f}; median posterior std "
-              f"{', '.join(_f(x, '.0f') for x in b['std_um_median'])} µm; spacing pooled x / y "
-              f"{b['spacing_unc']['x']} / {b['spacing_unc']['y']} mm; wall time per calibration "
-              f"{', '.join(f'{x:.0f}' for x in b['seconds'])} s. Bar (ratio ≤ 1.3 everywhere) with it: "
-              f"{'YES' if all(x <= 1.3 for x in b['ratio_max']) else 'NO'}.", ""]
+    extra = {"with_bins": "The model with the noise level × a factor per |ω̄| octile bin (`noise_bins=8`, flat φ prior: "
+                          "the per-sample rescaling needs it; fixed before any experiment was seen)",
+             "with_instant": "The model with each triad's instant error (`instant_error=True`, CLI `--instant-error`; "
+                             "fixed before any experiment was seen)"}
+    for v, what in extra.items():
+        if v in summ:
+            L += [_variant_paragraph(what, summ[v], len(exps), timed=v == "with_instant"), ""]
     met = all(x <= 1.3 for x in m["ratio_max"])
     L += [f"**Bar (every coordinate's sandwich/Laplace ratio ≤ 1.3) met with the model: "
           f"{'YES' if met else 'NO'}** (max over experiments {max(m['ratio_max']):.2f}).", ""]
