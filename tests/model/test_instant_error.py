@@ -13,7 +13,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from scipy import stats
 
 from accel_bayes.errors import UserError
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood
@@ -21,7 +20,7 @@ from accel_bayes.model.likelihood_percov import PerSampleCovLikelihood, with_unr
 from accel_bayes.model.unresolved_cov import instant_error_loadings, loadings, lowrank_terms
 from accel_bayes.model.unresolved_fit import fit_unresolved_scales
 from accel_bayes.physics.models import specific_force
-from tests.model.test_likelihood_percov import POS5, SIG, _case, _kinematic_H
+from tests.model.test_likelihood_percov import POS5, SIG, _case, _dense_marginal, _kinematic_H
 
 DT = torch.float64
 
@@ -46,14 +45,7 @@ def _dense(pos, acc, omega, age, jerk_std, rate, e, F=None):
         for k in range(A):
             rho = rate[t, k].numpy()
             Sig[3 * k:3 * k + 3, 3 * k:3 * k + 3] += e[k] ** 2 * np.outer(rho, rho)
-        if F is not None:
-            out.append(stats.multivariate_normal(np.zeros(n), Sig + H @ F @ H.T).logpdf(r))
-            continue
-        Si = np.linalg.inv(Sig)
-        M = H.T @ Si @ H
-        P = Si - Si @ H @ np.linalg.solve(M, H.T @ Si)
-        out.append(-(n - 6) / 2 * math.log(2 * math.pi) - 0.5 * np.linalg.slogdet(Sig)[1]
-                   - 0.5 * np.linalg.slogdet(M)[1] - 0.5 * r @ P @ r)
+        out.append(_dense_marginal(r, Sig, H, F))
     return np.array(out)
 
 

@@ -69,15 +69,21 @@ def _dense_sample_logpdfs(pos, acc, omega, age, jerk_std, F=None, lam_scale=1.0)
         d = (age[t] - age[t].mean()).numpy()
         D = np.kron(d[:, None], np.eye(3))
         Sig = (SIG ** 2 * np.eye(n) + float(jerk_std[t]) ** 2 * D @ D.T) / lam_scale
-        if F is not None:
-            out.append(stats.multivariate_normal(np.zeros(n), Sig + H @ (F / lam_scale) @ H.T).logpdf(r))
-            continue
-        Si = np.linalg.inv(Sig)
-        M = H.T @ Si @ H
-        P = Si - Si @ H @ np.linalg.solve(M, H.T @ Si)
-        out.append(-(n - 6) / 2 * math.log(2 * math.pi) - 0.5 * np.linalg.slogdet(Sig)[1]
-                   - 0.5 * np.linalg.slogdet(M)[1] - 0.5 * r @ P @ r)
+        out.append(_dense_marginal(r, Sig, H, None if F is None else F / lam_scale))
     return np.array(out)
+
+
+def _dense_marginal(r, Sig, H, F=None) -> float:
+    """log p(r) of r = H φ + ε, ε ~ N(0, Sig), φ integrated out by dense algebra: N(0, F) (a plain
+    Gaussian), or F None a flat unit-density prior (the 6 directions of H projected out)."""
+    n = r.shape[0]
+    if F is not None:
+        return float(stats.multivariate_normal(np.zeros(n), Sig + H @ F @ H.T).logpdf(r))
+    Si = np.linalg.inv(Sig)
+    M = H.T @ Si @ H
+    P = Si - Si @ H @ np.linalg.solve(M, H.T @ Si)
+    return float(-(n - 6) / 2 * math.log(2 * math.pi) - 0.5 * np.linalg.slogdet(Sig)[1]
+                 - 0.5 * np.linalg.slogdet(M)[1] - 0.5 * r @ P @ r)
 
 
 def _ours(acc, omega, age, jerk_std, nu=None, phi_prior=None, num_draws=3):
