@@ -22,7 +22,8 @@ Headline: the physics-specific gain = best physics variant − best generic mode
 target's scores), with a moving-block bootstrap standard error (blocks of 2 s) of that difference, for
 the protocol's physics: the 30 s acquisition with each IMU's data age marginalised over its predictive
 (:func:`~accel_bayes.mismatch.heldout.clock_posteriors` on the window, carried forward with the source's
-beat walk :func:`~accel_bayes.mismatch.age_predictive.beat_walk_rate`;
+forecast noise :func:`~accel_bayes.mismatch.age_predictive.fit_forecast_noise`, fitted on its own phase
+forecast errors;
 :func:`~accel_bayes.mismatch.heldout.marginal_age`).  Beside it: the deterministic 30 s age (scored as
 if certain), the tracker, the whole-target clock and no clock at all (every age uniform) as diagnostics.
 The per-experiment cache is reused; the acquisition window's statistics and its regressor scale λ are
@@ -61,13 +62,17 @@ from mimu_mismatch import load_recording  # noqa: E402
 
 from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.mismatch import baseline_fit, prepare  # noqa: E402
-from accel_bayes.mismatch.age_predictive import beat_walk_rate  # noqa: E402
+from accel_bayes.mismatch.age_predictive import (beat_walk_rate, fit_forecast_noise, forecast_errors,  # noqa: E402
+                                                 phase_predictive)
 from accel_bayes.mismatch.heldout import (GENERIC, PHYSICS, acquired_age, block_bootstrap_se,  # noqa: E402
                                           clock_posteriors, clocks_from, clocks_of, describe_source, fit_source,
                                           marginal_age, motion_window, residuals_of, score, tracked_age,
                                           tracked_clocks, window_statistics, with_rate_scale)
 
 SENSORS = ("acc", "gyro")
+#: s after the acquisition window's centre where a recording's phase forecast is checked against its local
+#: phase (10 s blocks): the scored stretch spans τ ≈ 15–90 s
+FORECAST_TAUS = np.arange(20.0, 90.1, 5.0)
 
 
 def load(i, args):
@@ -138,7 +143,9 @@ def with_ages(d, args):
     (:func:`accel_bayes.mismatch.heldout.acquired_age`); the acquisition window's phase/beat posteriors
     (:func:`~accel_bayes.mismatch.heldout.clock_posteriors`, for the marginalised age) and, as a source,
     its beat walk's rate (:func:`~accel_bayes.mismatch.age_predictive.beat_walk_rate`: its beats tracked
-    over blocks of ``--acquire-s`` from its window's start)."""
+    over blocks of ``--acquire-s`` from its window's start: the previous forecast) and its forecast noise
+    (:func:`~accel_bayes.mismatch.age_predictive.fit_forecast_noise` on its own phase forecast errors from its
+    window, :func:`~accel_bayes.mismatch.age_predictive.forecast_errors` at ``FORECAST_TAUS``)."""
     t0 = time.perf_counter()
     res = d["res"]
     # the cached clocks carry the fitted width; the evidence rule reads the data age's (fitted / λ, λ of
@@ -150,8 +157,13 @@ def with_ages(d, args):
         d[f"age_first{tag}"] = acquired_age(res, blocks[0][1], accept=acc)
         d[f"age_tracked{tag}"] = tracked_age(res, blocks, block_s=args.block_s, accept=acc)
         d[f"posts{tag}"] = clock_posteriors(d["window"]["stats"], blocks[0][1], accept=acc)
-    d["walk"] = beat_walk_rate(res.time.numpy(), res.timing_a.numpy(), res.timing_b.numpy(), d["clock_whole"],
-                               start=d["info"]["window_start_s"], block_s=args.acquire_s)
+    t, A, B = res.time.numpy(), res.timing_a.numpy(), res.timing_b.numpy()
+    d["walk"] = beat_walk_rate(t, A, B, d["clock_whole"], start=d["info"]["window_start_s"], block_s=args.acquire_s)
+    # the recording's own forecast errors from its acquisition window (as a source: what its forecast
+    # noise is fitted on; as a target: only the calibration table reads them, never a score)
+    d["errors"] = [None if p is None else forecast_errors(t, A[:, k], B[:, k], p, taus=FORECAST_TAUS)
+                   for k, p in enumerate(d["posts"])]
+    d["noise"] = fit_forecast_noise(d["errors"], d["posts"])
     d["predictive_seconds"] = time.perf_counter() - t0
     return d
 
@@ -165,10 +177,11 @@ def pair_result(src, tgt, args, seed):
     clock acquired on its whole recording."""
     keep = ~tgt["first"]
     out = {}
-    q = src["walk"]["q_hz2_per_s"]  # the drift prior is the source's: nothing of the target's scored data
+    q = src["noise"]  # the forecast noise is the source's: nothing of the target's scored data
     K = tgt["res"].timing_a.shape[1]
     point = [None if p is None else dict(p, cov=np.zeros((2, 2))) for p in tgt["posts"]]
-    ages = {v: (marginal_age(tgt["res"], tgt["posts" + v[4:]], q) if v.startswith("marg")
+    ages = {v: (marginal_age(tgt["res"], tgt["posts"], src["walk"]["q_hz2_per_s"]) if v == "marg_walk"
+                else marginal_age(tgt["res"], tgt["posts" + v[4:]], q) if v.startswith("marg")
                 else marginal_age(tgt["res"], [None] * K, q) if v == "lost"
                 else marginal_age(tgt["res"], point, 0.0) if v == "point" else tgt[f"age_{v}"])
             for v, _, _ in VARIANTS}
@@ -205,6 +218,8 @@ def pair_result(src, tgt, args, seed):
 #: (age key, result suffix, name): the target clock's acquisitions scored; "_ev": the evidence rule
 VARIANTS = (("marg", "_marg", "30 s acquisition, age marginalised (the protocol)"),
             ("marg_ev", "_marg_ev", "30 s acquisition, age marginalised, evidence rule"),
+            ("marg_walk", "_marg_walk", "30 s acquisition, age marginalised, previous forecast (Brownian beat at "
+             "the block-increment rate; diagnostic)"),
             ("first", "", "30 s acquisition, deterministic age"),
             ("first_ev", "_ev", "30 s acquisition, deterministic age, evidence rule"),
             ("tracked", "_tracked", "causal tracker (protocol extension)"),
@@ -347,14 +362,19 @@ DESIGN §7.2.1, with these choices stated:
 - **The age marginalised (the protocol's physics, the headline).** The physics model predicts its own
   clock: each IMU's phase and beat at the window's centre have the acquisition's posterior (the beat
   search's sawtooth likelihood on a grid, drift 0 inside the window — a drift fitted on 30 s and
-  extrapolated ½dτ² is what lost the phase), the beat then walks with the rate q estimated on the
-  *source* (its beats tracked block by block), so the phase at τ after the window's centre is
-  N(φ̂ + β̂τ, σ²_φ + 2τσ_φβ + τ²σ²_β + qτ³/3) and the age W·frac(ψ) has exact moments (the sawtooth's
+  extrapolated ½dτ² is what lost the phase); after the window the beat walks (rate q) and drifts
+  linearly at a random rate (variance σ²_d), both fitted on the *source*: maximum likelihood of the
+  source's own phase forecast errors, its window's posterior forecast against its local phase on 10 s
+  blocks at τ = 20–90 s (jointly Gaussian over τ per IMU; `age_predictive.fit_forecast_noise`). The
+  phase at τ after the window's centre is N(φ̂ + β̂τ, σ²_φ + 2τσ_φβ + τ²σ²_β + qτ³/3 + σ²_dτ⁴/4) and
+  the age W·frac(ψ) has exact moments (the sawtooth's
   Fourier series damped by the Gaussian characteristic function). The physics is scored with the age
   marginalised: mean −c·E[d]·ẏ, covariance + s²(E d E dᵀ + Σ_d)⊗I₃ + c²Σ_d∘ẏẏᵀ (the Gaussian with the
   marginal's exact first two moments; `accel_bayes/mismatch/age_predictive.py`). Where the phase is lost
   the mean vanishes and the unresolved motion is loaded by the age variance W²/12. Nothing of the
-  target after the window enters; s, c, ν, covariances and q are the source's. Under the evidence rule an
+  target after the window enters; s, c, ν, covariances, q and σ²_d are the source's. (Before this run
+  the forecast was a Brownian beat alone at the rate of the source's block-to-block beat increments: the
+  "previous forecast" row, kept as a diagnostic.) Under the evidence rule an
   IMU whose clock fails it gets a uniform age (phase unknown).
 """
 
@@ -371,10 +391,10 @@ CAVEATS = """## Caveats (what this study does not settle)
   data age's width (fitted / λ) — smallest evidence / threshold of any acquired clock {ev_ratio:.1f}.
 - The predictive is the Gaussian with the marginal's exact first two moments (for a t remainder, the t
   with that scale matrix), not the marginal itself (a continuous mixture over the ages); the acquisition
-  posterior takes the timing statistics' noise as white at the profiled ĉ² (the AR(1) timing wander the
-  detector also finds makes it somewhat too narrow), and the beat walk is a Brownian beat whose rate is
-  the source's, pooled over its IMUs; the source's models (s, c, remainders) were fitted with the
-  source's whole-recording clock as if certain.
+  posterior takes the timing statistics' noise as white at the profiled ĉ² (ĉ² is the statistics' total
+  variance, not the residual's); the forecast noise (beat walk + drift variance) is one source's, pooled
+  over its IMUs, and the recordings differ in how fast their beats drift; the source's models (s, c,
+  remainders) were fitted with the source's whole-recording clock as if certain.
 - The accelerometer's clock-mean coefficient c is {acc_c} over the sources (gyro: {gyro_c}): its rate
   regressor (the finite difference of the fitted outputs, `prep.acc_rate`, the effect's own) folds the
   board's 30–95 Hz vibration like the gyro's finite difference did; there is no per-sample board jerk
@@ -401,34 +421,49 @@ CAVEATS = """## Caveats (what this study does not settle)
 
 def _predictive_section(R) -> list:
     """The age predictive's inputs per experiment: λ and widths on the acquisition window, the phase and
-    beat posterior's standard deviations, and (as a source) the beat walk's rate with the phase spread it
-    implies."""
+    beat posterior's standard deviations, (as a source) the previous and the fitted forecast noise with the
+    phase spread each implies, and the predictive's calibration before/after."""
     exps = R["experiments"]
     L = ["", "## The age's predictive (`accel_bayes/mismatch/age_predictive.py`)", "",
          "Per experiment as a target: the acquisition window's regressor scale λ (`clock.rate_scale` on the window's "
          "own fit), the data age's sawtooth width per IMU (fitted / λ, `clock.physical_width`, ms; the evidence rule "
          "reads it), and the posterior standard deviation of each IMU's phase (cycles) / beat (mHz) at the window's "
          "centre (`phase_posterior`: the beat search's likelihood on a grid, drift 0 inside the window). As a "
-         "source: the beat walk's rate q (maximum likelihood over the increments of its beats tracked in "
-         f"{R['acquire_s']:g} s blocks from its window's start, all IMUs pooled) and the phase spread √(qτ³/3) it "
-         "adds τ = 30 / 60 / 85 s after the target's window centre (the scored stretch spans τ ≈ 15–90 s).", "",
-         "| exp | λ | width (ms) per IMU | sd phase (cycles) / beat (mHz) per IMU | evidence rule drops | q (Hz²/s) as a source "
-         "(increments) | √(qτ³/3) cycles at 30 / 60 / 85 s |", "|---|---|---|---|---|---|---|"]
+         "source: the previous forecast's beat walk rate q (maximum likelihood over the increments of its beats "
+         f"tracked in {R['acquire_s']:g} s blocks from its window's start, all IMUs pooled), and the fitted forecast "
+         "noise (`fit_forecast_noise`: beat walk q and drift variance σ²_d, maximum likelihood of its own phase forecast "
+         "errors from its window at τ = 20–90 s), each as the phase spread it adds τ = 30 / 60 / 85 s after the "
+         "target's window centre (√(qτ³/3); √(qτ³/3 + σ²_dτ⁴/4)); the scored stretch spans τ ≈ 15–90 s.", "",
+         "| exp | λ | width (ms) per IMU | sd phase (cycles) / beat (mHz) per IMU | evidence rule drops | previous: q (Hz²/s) "
+         "(increments); spread at 30 / 60 / 85 s | fitted: q (Hz²/s), σ_d (Hz/s); spread at 30 / 60 / 85 s |",
+         "|---|---|---|---|---|---|---|"]
     for i in exps:
         inf = R["info"][str(i)]
-        q = inf["walk_q_hz2_per_s"]
+        old, new = _noise(inf, "walk"), _noise(inf, "fitted")
         lam = sorted(set(round(x, 3) for x in inf["rate_scale"]))
         post = ", ".join("—" if p is None else f"{p['sd_phase']:.3f}/{1e3 * p['sd_beat_hz']:.2f}" for p in inf["posterior"])
+        taus = np.array([30.0, 60.0, 85.0])
         L.append(f"| {i} | {', '.join(map(str, lam))} | {', '.join(f'{1e3 * w:.2f}' for w in inf['width_phys_s'])} | "
-                 f"{post} | {inf['posterior_ev_none'] or 'none'} | {q:.2e} ({inf['walk_increments']}) | "
-                 + " / ".join(f"{np.sqrt(q * tau ** 3 / 3):.2f}" for tau in (30.0, 60.0, 85.0)) + " |")
-    L += ["", "Calibration of the phase predictive against the whole-target clock (itself an estimate: the beat "
-          "search on the whole recording, quadratic drift), over every pair's source q and every IMU "
-          "(wrapped phase error e, predictive sd σ; nominal coverage 68 % / 95 %; at large σ the wrapping to "
-          "±½ cycle shrinks |e|):", "", "| τ after the window centre (s) | median abs(e) (cycles) | median σ (cycles) | "
-          "abs(e) < σ | abs(e) < 2σ |", "|---|---|---|---|---|"]
-    for tau, (e, sd) in _calibration(R).items():
-        L.append(f"| {tau:g} | {np.median(e):.3f} | {np.median(sd):.3f} | {np.mean(e < sd):.0%} | {np.mean(e < 2 * sd):.0%} |")
+                 f"{post} | {inf['posterior_ev_none'] or 'none'} | {old.q:.2e} ({inf['walk_increments']}); "
+                 + " / ".join(f"{x:.2f}" for x in np.sqrt(old.var(taus))) + f" | {new.q:.2e}, {np.sqrt(new.drift_var):.1e}; "
+                 + " / ".join(f"{x:.2f}" for x in np.sqrt(new.var(taus))) + " |")
+    L += ["", "Calibration of the phase predictive (nominal coverage 68 % / 95 %), over every pair (the source's "
+          "forecast noise) and every IMU: the wrapped phase error e and the predictive sd σ τ s after the target's window "
+          "centre, against two references, both estimates: the target's *local* phase (the same beat likelihood on "
+          "10 s of the target around t_c + τ, its variance added to σ; `age_predictive.forecast_errors`) and its "
+          "whole-recording clock (the beat search on the whole recording, quadratic drift). *Previous*: the Brownian "
+          "beat at the rate q of the source's block-to-block beat increments (`beat_walk_rate`); *fitted*: the "
+          "source's `ForecastNoise` (beat walk q + drift variance, maximum likelihood of the source's own forecast "
+          "errors from its own window, `fit_forecast_noise`). The references are read only here, never by a score "
+          "(at large σ the wrapping to ±½ cycle shrinks abs(e)).", "",
+          "| τ (s) | reference | n | median abs(e) (cycles) | median σ previous / fitted | abs(e) < σ previous / fitted | "
+          "abs(e) < 2σ previous / fitted |", "|---|---|---|---|---|---|---|"]
+    for ref in ("local", "whole"):
+        old, new = _calibration(R, "walk", ref), _calibration(R, "fitted", ref)
+        for tau in old:
+            (e, so), (_, sn) = old[tau], new[tau]
+            L.append(f"| {tau:g} | {ref} | {len(e)} | {np.median(e):.3f} | {np.median(so):.3f} / {np.median(sn):.3f} | "
+                     f"{np.mean(e < so):.0%} / {np.mean(e < sn):.0%} | {np.mean(e < 2 * so):.0%} / {np.mean(e < 2 * sn):.0%} |")
     reuse = [f"exp {i}: window {R['info'][str(i)].get('window_seconds', float('nan')):.0f} s, beats "
              f"{'reproduced' if R['info'][str(i)]['window_max_beat_change_hz'] < 1e-9 else 'CHANGED by %.2g Hz' % R['info'][str(i)]['window_max_beat_change_hz']}"
              for i in exps]
@@ -439,23 +474,45 @@ def _predictive_section(R) -> list:
     return L
 
 
-def _calibration(R, taus=(30.0, 60.0, 85.0)) -> dict:
-    """{τ: (abs wrapped phase error (n,), predictive sd (n,))} of the target's phase predictive τ s after
-    its window's centre against its whole-recording clock, over the pairs (the source's q) and IMUs."""
+def _noise(inf, which):
+    """A source's forecast noise from its results ``inf``: "walk" the previous (Brownian beat at the block-increment
+    rate q), "fitted" :func:`~accel_bayes.mismatch.age_predictive.fit_forecast_noise`'s."""
+    from accel_bayes.mismatch.age_predictive import ForecastNoise
+
+    if which == "walk":
+        return ForecastNoise(q=inf["walk_q_hz2_per_s"])
+    f = inf["forecast_noise"]
+    return ForecastNoise(q=f["q_hz2_per_s"], drift_var=f["drift_var_hz2_per_s2"])
+
+
+def _calibration(R, which, reference, taus=(30.0, 60.0, 85.0)) -> dict:
+    """{τ: (abs wrapped phase error (n,), predictive sd (n,))} of the target's phase predictive τ s after its
+    window's centre with each pair's source noise ``which`` (:func:`_noise`), over the pairs and IMUs, against
+    ``reference``: "whole" the target's whole-recording clock (quadratic drift), "local" the target's local
+    phase on 10 s around t_c + τ (:func:`~accel_bayes.mismatch.age_predictive.forecast_errors`; its variance
+    added to the predictive's)."""
     out = {}
     for tau in taus:
         e, sd = [], []
         for p in R["pair_order"]:
             i, j = p.split("->")
-            inf, q = R["info"][j], R["info"][i]["walk_q_hz2_per_s"]
+            inf, noise = R["info"][j], _noise(R["info"][i], which)
             cw = inf["clock_whole"]
             for k, post in enumerate(inf["posterior"]):
                 if post is None:
                     continue
                 t = post["t_c"] + tau
-                psi = cw["phase"][k] + cw["beat_hz"][k] * t + 0.5 * cw["drift_hz_per_s"][k] * t * t
-                e.append(abs((psi - post["phase"] - post["beat_hz"] * tau + 0.5) % 1.0 - 0.5))
-                sd.append(np.sqrt(post["sd_phase"] ** 2 + (tau * post["sd_beat_hz"]) ** 2 + q * tau ** 3 / 3.0))
+                mean, s = phase_predictive(np.array([t]), dict(post, cov=np.array(post["cov"])), noise)
+                if reference == "whole":
+                    psi, v = cw["phase"][k] + cw["beat_hz"][k] * t + 0.5 * cw["drift_hz_per_s"][k] * t * t, 0.0
+                else:
+                    err = inf["forecast_errors"][k]
+                    hit = [n for n, x in enumerate(err["tau"]) if abs(x - tau) < 1e-6] if err else []
+                    if not hit:
+                        continue
+                    psi, v = mean[0] + err["e"][hit[0]], err["var"][hit[0]]
+                e.append(abs((psi - mean[0] + 0.5) % 1.0 - 0.5))
+                sd.append(float(np.sqrt(s[0] ** 2 + v)))
         out[tau] = (np.array(e), np.array(sd))
     return out
 
@@ -490,7 +547,7 @@ def _c_range(R, s) -> str:
 def _headline(R) -> str:
     """The caveat on the headline (30/30 pairs above 3 SE per sensor), from the results."""
     parts = []
-    for _, tag, name in [v for v in VARIANTS if v[0] not in ("whole", "lost", "point")]:
+    for _, tag, name in [v for v in VARIANTS if v[0] not in ("whole", "lost", "point", "marg_walk")]:
         c = {s: int((_counts(R, s, tag)[1] > 3).sum()) for s in SENSORS}
         n = len(R["pair_order"])
         parts.append(f"{name}: {'met' if all(v == n for v in c.values()) else 'not met'} "
@@ -578,10 +635,15 @@ def main(argv=None) -> int:
                                  window_seconds=w["seconds"], window_max_beat_change_hz=w["max_beat_change_hz"],
                                  rate_scale=w["rate_scale"].tolist(), predictive_seconds=data[i]["predictive_seconds"],
                                  walk_q_hz2_per_s=walk["q_hz2_per_s"], walk_increments=walk["n_increments"],
+                                 forecast_noise={"q_hz2_per_s": data[i]["noise"].q,
+                                                 "drift_var_hz2_per_s2": data[i]["noise"].drift_var},
+                                 forecast_errors=[None if e is None else {k: v.tolist() for k, v in e.items()}
+                                                  for e in data[i]["errors"]],
                                  walk_blocks=walk["blocks"],
                                  posterior=[None if p is None else {"phase": p["phase"], "beat_hz": p["beat_hz"],
                                                                     "sd_phase": float(np.sqrt(p["cov"][0, 0])),
                                                                     "sd_beat_hz": float(np.sqrt(p["cov"][1, 1])),
+                                                                    "cov": p["cov"].tolist(),
                                                                     "t_c": p["t_c"]} for p in data[i]["posts"]],
                                  posterior_ev_none=[k for k, p in enumerate(data[i]["posts_ev"]) if p is None],
                                  width_phys_s=data[i]["blocks"][0][1]["width_s"].tolist(),

@@ -8,12 +8,17 @@ as certain.  The predictive here is what the physics model knows about its own c
 
 Phase.  IMU k's sawtooth phase is ψ_k(t) = φ_k + β_k τ (cycles), τ = t − t_c, t_c the acquisition
 window's centre.  (φ_k, β_k) has the acquisition's posterior (:func:`phase_posterior`: the beat
-search's exact sawtooth likelihood on a grid, flat prior, drift 0 inside the window), and the beat
-then wanders as a random walk of rate q (Hz²/s) estimated on the *source* recording by tracking its
-beats block by block (:func:`beat_walk_rate`).  A Brownian beat W(τ) adds ∫₀^τ W, of variance q|τ|³/3,
-to the phase, so to first order (Gaussian posterior, :func:`phase_predictive`)
+search's exact sawtooth likelihood on a grid, flat prior, drift 0 inside the window).  After it the
+beat moves: a random walk of rate q (Hz²/s) — a Brownian beat W(τ) adds ∫₀^τ W, of variance q|τ|³/3,
+to the phase — and a linear drift at a random rate of variance σ²_d (Hz²/s², temperature: phase ½dτ²,
+variance σ²_dτ⁴/4); :class:`ForecastNoise`.  Both rates are fitted on the *source* recording by maximum
+likelihood of its own phase forecast errors (its window's posterior against its local phases later,
+:func:`forecast_errors`, :func:`fit_forecast_noise`): on the real MIMU recordings the errors grow faster
+than τ^1.5 (a drifting, not a wandering, beat), and a rate of beat increments alone
+(:func:`beat_walk_rate`, the previous forecast) left the predictive too narrow at 60–85 s.  To first
+order (Gaussian posterior, :func:`phase_predictive`)
 
-    ψ_k(t) ~ N(φ̂ + β̂τ,  σ²_φ + 2τσ_φβ + τ²σ²_β + q|τ|³/3).
+    ψ_k(t) ~ N(φ̂ + β̂τ,  σ²_φ + 2τσ_φβ + τ²σ²_β + q|τ|³/3 + σ²_dτ⁴/4).
 
 Age.  The data age is W·frac(ψ) (W = 1/f_int, s).  Its first two moments under a Gaussian phase
 N(μ, σ²) are exact (:func:`sawtooth_moments`): per integer cycle n the truncated-normal moments of
@@ -53,8 +58,8 @@ from scipy.special import ndtr
 
 from ..model.unresolved_cov import loadings
 
-__all__ = ["sawtooth_moments", "phase_posterior", "beat_walk_rate", "phase_predictive", "age_moments",
-           "AgeMoments", "moment_loadings"]
+__all__ = ["sawtooth_moments", "phase_posterior", "beat_walk_rate", "ForecastNoise",
+           "forecast_errors", "fit_forecast_noise", "phase_predictive", "age_moments", "AgeMoments", "moment_loadings"]
 
 _SQRT2PI = math.sqrt(2.0 * math.pi)
 _SERIES_SIGMA = 0.5   # cycles: above it the Fourier series (ρ_2 < 3e-9) is used, under it the cycle sums
@@ -115,8 +120,8 @@ def phase_posterior(t, a, b, *, beat_hz: float, phase: float, drift_hz_per_s: fl
 
     Likelihood: the search's exact sawtooth model with the noise factor profiled,
     exp(gain/ĉ²), ĉ² = Σb²/Σa (the evidence of :func:`accel_bayes.mismatch.heldout.clocks_from` is
-    2·gain/ĉ²); drift 0 inside the window (beat changes are the random walk's,
-    :func:`beat_walk_rate`); flat prior.  Evaluated on an n_grid² grid, first ±½ cycle × ±2/D Hz
+    2·gain/ĉ²); drift 0 inside the window (what the beat does after it is the :class:`ForecastNoise`'s);
+    flat prior.  Evaluated on an n_grid² grid, first ±½ cycle × ±2/D Hz
     (D the span) about the search's local (φ, β) at t_c, then ``n_zoom`` − 1 times re-centred on the
     posterior mean and narrowed to ±4 posterior standard deviations (never under 2 grid steps).
     Returns {"t_c" s, "phase" cycles at t_c, "beat_hz", "cov" 2×2 (cycles², cycles·Hz, Hz²)}."""
@@ -189,19 +194,114 @@ def beat_walk_rate(t, a, b, clocks: dict, *, start: float, block_s: float = 30.0
     return {"q_hz2_per_s": q, "blocks": blocks, "n_increments": len(inc)}
 
 
-def phase_predictive(t, post: dict, q: float) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class ForecastNoise:
+    """What the phase does after the acquisition that the acquisition cannot see: a Brownian beat of rate
+    ``q`` (Hz²/s; phase variance qτ³/3) and a beat drifting linearly at a random rate of variance
+    ``drift_var`` (Hz²/s²; phase ½dτ², variance drift_var·τ⁴/4), τ s from the acquisition's centre."""
+
+    q: float = 0.0
+    drift_var: float = 0.0
+
+    def cov(self, ti, tj) -> np.ndarray:
+        """Phase covariance (cycles²) between τ = ti (n,) and tj (m,) s (both ≥ 0): the integrated
+        Brownian beat's q(m²M/2 − m³/6), m = min, M = max, plus drift_var·ti²tj²/4."""
+        ti, tj = np.abs(np.asarray(ti, float))[:, None], np.abs(np.asarray(tj, float))[None, :]
+        lo, hi = np.minimum(ti, tj), np.maximum(ti, tj)
+        return self.q * (lo * lo * hi / 2.0 - lo ** 3 / 6.0) + self.drift_var * (ti * tj) ** 2 / 4.0
+
+    def var(self, tau) -> np.ndarray:
+        """Phase variance (cycles²) at τ (any shape) s: qτ³/3 + drift_var·τ⁴/4."""
+        tau = np.abs(np.asarray(tau, float))
+        return self.q * tau ** 3 / 3.0 + self.drift_var * tau ** 4 / 4.0
+
+
+def forecast_errors(t, a, b, post: dict, *, taus, block_s: float = 10.0, max_sd: float = 0.05,
+                    min_info: int = 100) -> dict:
+    """One IMU's phase forecast errors: at each τ of ``taus`` (s after ``post``'s centre, ascending) the
+    phase of :func:`phase_posterior` (white noise) on the timing statistics a (n,) s⁻², b (n,) s⁻¹ at
+    times t (n,) s within ±block_s/2 of t_c + τ, about the forecast φ̂ + β̂τ, less that forecast
+    (cycles; wrapped, then unwrapped along τ — consecutive errors closer than ½ cycle).  A block with
+    under ``min_info`` informative samples, or whose phase sd exceeds ``max_sd`` cycles (no sawtooth
+    seen), is skipped.  Returns {"tau" (m,) s, "e" (m,) cycles, "var" (m,) the local phases' variances}."""
+    t, a, b = (np.asarray(x, float) for x in (t, a, b))
+    out, prev = {"tau": [], "e": [], "var": []}, 0.0
+    for tau in taus:
+        tc = post["t_c"] + tau
+        sel = (np.abs(t - tc) <= 0.5 * block_s) & (a > 0)
+        if int(sel.sum()) < min_info:
+            continue
+        loc = phase_posterior(t[sel], a[sel], b[sel], beat_hz=post["beat_hz"],
+                              phase=post["phase"] - post["beat_hz"] * post["t_c"], t_c=tc)  # ±½ cycle: any seed
+        if loc["cov"][0, 0] > max_sd ** 2:
+            continue
+        e = (loc["phase"] - post["phase"] - post["beat_hz"] * tau + 0.5) % 1.0 - 0.5
+        e += round(prev - e)
+        prev = e
+        out["tau"].append(float(tau))
+        out["e"].append(e)
+        out["var"].append(float(loc["cov"][0, 0]))
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def _forecast_cov(err: dict, post: dict, noise: ForecastNoise) -> np.ndarray:
+    """Covariance (cycles²) of one IMU's forecast errors ``err`` (:func:`forecast_errors`) under the
+    acquisition's posterior, the local phases' variances and ``noise``."""
+    J = np.stack([np.ones_like(err["tau"]), err["tau"]], 1)
+    return J @ post["cov"] @ J.T + np.diag(err["var"]) + noise.cov(err["tau"], err["tau"])
+
+
+def fit_forecast_noise(errors: list, posts: list) -> ForecastNoise:
+    """The :class:`ForecastNoise` that maximises the likelihood of a recording's own phase forecast
+    errors (``errors`` per IMU a :func:`forecast_errors` or None, ``posts`` the acquisition posteriors
+    they came from): per IMU the errors are jointly Gaussian with :func:`_forecast_cov`, independent
+    between IMUs (own oscillators).  Both rates ≥ 0 (searched on a log scale down to 1e-16; a rate
+    that does not raise the likelihood above its value at zero is set to zero)."""
+    from scipy.optimize import minimize
+
+    use = [(e, p) for e, p in zip(errors, posts) if e is not None and p is not None and len(e["tau"])]
+    if not use:
+        return ForecastNoise()
+    groups = {}  # IMUs checked at the same τ share the noise's covariance shapes: one batched solve each
+    for e, p in use:
+        groups.setdefault(tuple(e["tau"]), []).append((_forecast_cov(e, p, ForecastNoise()), e["e"]))
+    stacks = [(ForecastNoise(1.0, 0.0).cov(tau, tau), ForecastNoise(0.0, 1.0).cov(tau, tau),
+               np.stack([c for c, _ in g]), np.stack([x for _, x in g])) for tau, g in groups.items()]
+
+    def nll(noise):
+        tot = 0.0
+        for Kq, Kd, base, x in stacks:
+            C = base + noise.q * Kq + noise.drift_var * Kd
+            sign, logdet = np.linalg.slogdet(C)
+            if np.any(sign <= 0):
+                return np.inf
+            tot += 0.5 * float(logdet.sum() + np.einsum("ni,ni->", x, np.linalg.solve(C, x[..., None])[..., 0]))
+        return tot
+
+    best = min((minimize(lambda x: nll(ForecastNoise(*np.exp(x))), x0, method="Nelder-Mead",
+                         options={"xatol": 1e-3, "fatol": 1e-6, "maxiter": 2000}) for x0 in
+                ([-15.0, -18.0], [-12.0, -22.0], [-18.0, -15.0])), key=lambda r: r.fun)
+    q, d = np.exp(best.x)
+    q = 0.0 if q < 1e-16 or nll(ForecastNoise(0.0, d)) <= best.fun else float(q)
+    d = 0.0 if d < 1e-16 or nll(ForecastNoise(q, 0.0)) <= nll(ForecastNoise(q, d)) else float(d)
+    return ForecastNoise(q, d)
+
+
+def phase_predictive(t, post: dict, noise) -> tuple[np.ndarray, np.ndarray]:
     """(mean, std) of the phase (cycles) at times t (T,) s from :func:`phase_posterior`'s ``post``
-    and the beat walk's rate q (Hz²/s): the module docstring's N(φ̂ + β̂τ, σ²_φ + 2τσ_φβ + τ²σ²_β + q|τ|³/3)."""
+    and what happens after it: ``noise`` a :class:`ForecastNoise`, or a float, the beat walk's rate q
+    (Hz²/s) alone: N(φ̂ + β̂τ, σ²_φ + 2τσ_φβ + τ²σ²_β + qτ³/3 + drift_var·τ⁴/4)."""
+    noise = noise if isinstance(noise, ForecastNoise) else ForecastNoise(q=float(noise))
     tau = np.asarray(t, float) - post["t_c"]
     C = post["cov"]
-    var = C[0, 0] + 2 * tau * C[0, 1] + tau * tau * C[1, 1] + q * np.abs(tau) ** 3 / 3.0
+    var = C[0, 0] + 2 * tau * C[0, 1] + tau * tau * C[1, 1] + noise.var(tau)
     return post["phase"] + post["beat_hz"] * tau, np.sqrt(np.maximum(var, 0.0))
 
 
-def age_moments(t, posts: list, q: float, width_s: float) -> tuple[torch.Tensor, torch.Tensor]:
+def age_moments(t, posts: list, q, width_s: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(mean (T, K) s, variance (T, K) s²) of each IMU's data age W·frac(ψ) at times t (T,) s
     (W = ``width_s``): ``posts`` per IMU a :func:`phase_posterior` or None (no clock: the phase is
-    lost, the age uniform on [0, W)), q the beat walk's rate (Hz²/s)."""
+    lost, the age uniform on [0, W)), q the beat walk's rate (Hz²/s) or a :class:`ForecastNoise`."""
     t = np.asarray(t, float)
     mean = np.full((len(t), len(posts)), 0.5 * width_s)
     var = np.full_like(mean, width_s * width_s / 12.0)

@@ -302,10 +302,11 @@ def clock_posteriors(window_stats, clock: dict, *, accept=None) -> list:
     return posts
 
 
-def marginal_age(res: Residuals, posts: list, q: float, *, f_int=F_INT_NOMINAL) -> AgeMoments:
+def marginal_age(res: Residuals, posts: list, q, *, f_int=F_INT_NOMINAL) -> AgeMoments:
     """The centred data ages' predictive moments at ``res``'s times (:class:`~.age_predictive.AgeMoments`)
-    from the acquisition's :func:`clock_posteriors` carried forward with the beat walk's rate q
-    (Hz²/s; :func:`~.age_predictive.beat_walk_rate` on the source), ages of span 1/f_int (s)."""
+    from the acquisition's :func:`clock_posteriors` carried forward with the source's
+    :class:`~.age_predictive.ForecastNoise` q (:func:`~.age_predictive.fit_forecast_noise`; a float: the beat
+    walk's rate alone, Hz²/s, :func:`~.age_predictive.beat_walk_rate`), ages of span 1/f_int (s)."""
     mean, var = age_moments(res.time.numpy(), posts, q, 1.0 / f_int)
     return AgeMoments.of(mean, var)
 
