@@ -19,6 +19,9 @@ Same window as the pairs study (:func:`experiments.rig_mimu_pairs.window`, 30 s)
   gyro linear errors too): offsets,
   z as the pairs study computes it, and χ² per reading per IMU (cause (c): stated against fitted
   noise).
+* ``swap``: the pairs of :data:`JK_PAIRS` with the other IMU as the reference (the rig model is not
+  symmetric: the reference has no biases, linear errors or delay of its own), o_i − o_j against
+  o_j − o_i.
 * ``jackknife``: the pair offset's delete-one-block jackknife std (10 blocks of 3 s, a block's
   samples weighted 0) against the pair's Laplace std — an estimate of Var that does not rest on the
   model being right (cause (d)).
@@ -141,6 +144,16 @@ def step_jackknife(sub, variant):
     outputs.write_json(CACHE / f"jackknife_{variant}.json", out)
 
 
+def step_swap(sub, variant):
+    settings = _settings(variant)
+    out = {"variant": variant, "pairs": []}
+    for i, j in JK_PAIRS:
+        fwd, back = _pair(sub, i, j, settings), _pair(sub, j, i, settings)
+        out["pairs"].append({"i": i, "j": j, "forward": fwd, "back": back})
+        print(out["pairs"][-1], flush=True)
+    outputs.write_json(CACHE / f"swap_{variant}.json", out)
+
+
 def _z(p, full):
     d8, s8 = full["diff"][f"{p['i']}-{p['j']}"]
     var = p["std"] ** 2 - s8 ** 2
@@ -215,6 +228,17 @@ def report():
                 lines.append(f"| {v} | {p['i']}–{p['j']} | {1e3 * p['offset']:+.4f} | {1e3 * p['std']:.4f} | "
                              f"{1e3 * p['jk_std']:.4f} | {p['jk_std'] / p['std']:.2f} |")
         lines.append("")
+    sw = CACHE / "swap_none.json"
+    if sw.exists():
+        lines += ["## The reference's role: each pair with the other IMU as reference (`--step swap`)", "",
+                  "| pair | o_j − o_i, i reference (ms) | −(o_i − o_j), j reference (ms) | difference / pair std |",
+                  "|---|---|---|---|"]
+        for p in json.loads(sw.read_text())["pairs"]:
+            f, b = p["forward"], p["back"]
+            lines.append(f"| {p['i']}–{p['j']} | {1e3 * f['offset']:+.4f} ± {1e3 * f['std']:.4f} | "
+                         f"{-1e3 * b['offset']:+.4f} ± {1e3 * b['std']:.4f} | "
+                         f"{(f['offset'] + b['offset']) / max(f['std'], b['std']):+.2f} |")
+        lines.append("")
     lines += ["## Reading", "", "READING", ""]
     doc = REPO / "experiments" / "rig_mimu_diagnose.md"
     old = doc.read_text() if doc.exists() else ""
@@ -226,7 +250,7 @@ def report():
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--step", choices=("map", "fits", "jackknife", "report"), required=True)
+    ap.add_argument("--step", choices=("map", "fits", "swap", "jackknife", "report"), required=True)
     ap.add_argument("--variant", choices=VARIANTS, default="none")
     args = ap.parse_args(argv)
     if args.step == "report":
@@ -237,6 +261,8 @@ def main(argv=None):
         outputs.write_json(CACHE / "map.json", _map_rows(sub))
     elif args.step == "fits":
         step_fits(_variant_data(sub, args.variant), args.variant)
+    elif args.step == "swap":
+        step_swap(_variant_data(sub, args.variant), args.variant)
     else:
         step_jackknife(_variant_data(sub, args.variant), args.variant)
 
