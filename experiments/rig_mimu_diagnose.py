@@ -22,6 +22,10 @@ Same window as the pairs study (:func:`experiments.rig_mimu_pairs.window`, 30 s)
 * ``swap``: the pairs of :data:`JK_PAIRS` with the other IMU as the reference (the rig model is not
   symmetric: the reference has no biases, linear errors or delay of its own), o_i − o_j against
   o_j − o_i.
+* ``events``: the window's moves one at a time (the jackknife blocks whose board-mean RMS |ω̇|
+  exceeds :data:`EVENT_WDOT`, each cut out with its neighbours' half blocks): the eight-IMU rig and
+  the pairs of :data:`PAIRS` on each, the pairs study's z per move, and how far the eight-IMU offsets
+  of the moves differ (a constant offset says: within their stds).
 * ``jackknife``: the pair offset's delete-one-block jackknife std (10 blocks of 3 s, a block's
   samples weighted 0) against the pair's Laplace std — an estimate of Var that does not rest on the
   model being right (cause (d)).
@@ -80,6 +84,53 @@ def _variant_data(sub, variant: str):
     out = sub.copy()
     out.acc_noise_std = np.asarray(sub.acc_noise_std, dtype=float) * ACC_MUTE
     return out
+
+
+def _block_motion(sub):
+    """Per jackknife block: RMS |ω| (rad/s) and RMS |ω̇| (rad/s², finite differences) of the board's
+    mean gyro — where the timing information is."""
+    w = np.nanmean(np.asarray(sub.gyro, dtype=float), axis=1)
+    wd = np.gradient(w, np.asarray(sub.time, dtype=float), axis=0)
+    edges = np.linspace(0, len(w), N_BLOCKS + 1).astype(int)
+    return [{"t0": float(sub.time[a]), "rms_w": float(np.sqrt((w[a:b] ** 2).sum(1).mean())),
+             "rms_wdot": float(np.sqrt((wd[a:b] ** 2).sum(1).mean()))} for a, b in zip(edges[:-1], edges[1:])]
+
+
+#: rad/s², board-mean RMS |ω̇| of a jackknife block that holds a move (exp_1's rest blocks: 0.12)
+EVENT_WDOT = 1.0
+
+
+def _slice(sub, a: int, b: int):
+    """``sub`` cut to its rows a:b."""
+    out = sub.copy()
+    for name in ("time", "acc", "gyro", "acc_clipped", "gyro_clipped", "acc_flagged", "gyro_flagged", "segment",
+                 "imu_time_offset"):
+        v = getattr(out, name)
+        if v is not None:
+            setattr(out, name, np.asarray(v)[a:b].copy())
+    return out
+
+
+def step_events(sub, variant):
+    settings = _settings(variant)
+    blocks = _block_motion(sub)
+    n = len(sub.time)
+    edges = np.linspace(0, n, N_BLOCKS + 1).astype(int)
+    half = (edges[1] - edges[0]) // 2
+    out = {"variant": variant, "events": []}
+    for b, blk in enumerate(blocks):
+        if blk["rms_wdot"] < EVENT_WDOT:
+            continue
+        a, e = max(edges[b] - half, 0), min(edges[b + 1] + half, n)
+        cut = _slice(sub, a, e)
+        r = fit_rig(cut, settings)
+        ev = {"block": b, "t0": float(cut.time[0]), "t1": float(cut.time[-1]), "reason": r.reason,
+              "seconds": r.seconds, "chi2_per_dof": r.chi2_per_dof, "time_offset": r.time_offset.tolist(),
+              "diff": {f"{i}-{j}": offset_difference(r, i, j) for i, j in itertools.combinations(range(sub.K), 2)},
+              "pairs": [_pair(cut, i, j, settings) for i, j in PAIRS]}
+        out["events"].append(ev)
+        print({k: ev[k] for k in ("block", "reason", "seconds")}, flush=True)
+    outputs.write_json(CACHE / f"events_{variant}.json", out)
 
 
 def _map_rows(sub):
@@ -222,12 +273,46 @@ def report():
         lines += ["## (d) Is the pair's std honest? Delete-one-block jackknife (`--step jackknife`)", "",
                   f"{N_BLOCKS} blocks of 3 s, each left out once (its samples weighted 0); jackknife std of the pair "
                   "offset against its Laplace std.", "",
-                  "| variant | pair | offset (ms) | Laplace std (ms) | jackknife std (ms) | ratio |", "|---|---|---|---|---|---|"]
+                  "| variant | pair | offset (ms) | Laplace std (ms) | jackknife std (ms) | ratio | offset without block "
+                  "b (ms), b = 0…9 |", "|---|---|---|---|---|---|---|"]
         for v, d in jks.items():
             for p in d["pairs"]:
+                loo = " ".join(f"{1e3 * x:+.3f}" for x in p["loo"])
                 lines.append(f"| {v} | {p['i']}–{p['j']} | {1e3 * p['offset']:+.4f} | {1e3 * p['std']:.4f} | "
-                             f"{1e3 * p['jk_std']:.4f} | {p['jk_std'] / p['std']:.2f} |")
+                             f"{1e3 * p['jk_std']:.4f} | {p['jk_std'] / p['std']:.1f} | {loo} |")
+        bl = CACHE / "blocks.json"
+        if bl.exists():
+            lines += ["", "Motion per block (board mean gyro, `--step map`): " + "; ".join(
+                f"{b}: |ω| {r['rms_w']:.3f} rad/s, |ω̇| {r['rms_wdot']:.2f} rad/s²"
+                for b, r in enumerate(json.loads(bl.read_text()))) + "."]
         lines.append("")
+    evp = CACHE / "events_none.json"
+    if evp.exists():
+        evs = json.loads(evp.read_text())["events"]
+        lines += ["## One move at a time (`--step events`)", "",
+                  "The window's timing information sits in its moves: " + "; ".join(
+                      f"block {e['block']} ({e['t0']:.1f}–{e['t1']:.1f} s, eight-IMU LM {e['reason']}, "
+                      f"χ²/dof {e['chi2_per_dof']:.2f})" for e in evs) + ".  Per move, the pairs study's z and the "
+                  "eight-IMU o_j − o_i; last column: the two moves' eight-IMU values apart in their combined std.", "",
+                  "| pair | " + " | ".join(f"z (block {e['block']})" for e in evs) + " | " +
+                  " | ".join(f"eight-IMU (block {e['block']}, ms)" for e in evs) + " | moves apart (std) |",
+                  "|---|" + "---|" * (2 * len(evs) + 1)]
+        zs_ev = {e["block"]: [] for e in evs}
+        apart = []
+        for a, (i, j) in enumerate(PAIRS):
+            cz, co, vals = [], [], []
+            for e in evs:
+                z, d8, s8 = _z(e["pairs"][a], e)
+                zs_ev[e["block"]].append(z)
+                cz.append(f"{z:+.2f}")
+                co.append(f"{1e3 * d8:+.4f} ± {1e3 * s8:.4f}")
+                vals.append((d8, s8))
+            sep = ((vals[0][0] - vals[-1][0]) / math.hypot(vals[0][1], vals[-1][1])) if len(vals) > 1 else float("nan")
+            apart.append(sep)
+            lines.append(f"| {i}–{j} | " + " | ".join(cz) + " | " + " | ".join(co) + f" | {sep:+.1f} |")
+        lines += ["", "z RMS per move: " + ", ".join(
+            f"block {b} {math.sqrt(np.nanmean(np.square(v))):.2f}" for b, v in zs_ev.items()) +
+            f"; the moves' eight-IMU offsets apart by RMS {math.sqrt(np.nanmean(np.square(apart))):.1f} combined std.", ""]
     sw = CACHE / "swap_none.json"
     if sw.exists():
         lines += ["## The reference's role: each pair with the other IMU as reference (`--step swap`)", "",
@@ -250,7 +335,7 @@ def report():
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--step", choices=("map", "fits", "swap", "jackknife", "report"), required=True)
+    ap.add_argument("--step", choices=("map", "fits", "swap", "events", "jackknife", "report"), required=True)
     ap.add_argument("--variant", choices=VARIANTS, default="none")
     args = ap.parse_args(argv)
     if args.step == "report":
@@ -259,8 +344,11 @@ def main(argv=None):
     sub = window(import_mimu(DATA / "exp_1" / "data.bin.gz"), 30.0)
     if args.step == "map":
         outputs.write_json(CACHE / "map.json", _map_rows(sub))
+        outputs.write_json(CACHE / "blocks.json", _block_motion(sub))
     elif args.step == "fits":
         step_fits(_variant_data(sub, args.variant), args.variant)
+    elif args.step == "events":
+        step_events(_variant_data(sub, args.variant), args.variant)
     elif args.step == "swap":
         step_swap(_variant_data(sub, args.variant), args.variant)
     else:
