@@ -59,9 +59,9 @@ non-orthogonality relative to the reference; the antisymmetric part is R's), rea
 IMU its acc's own time offset δ_k against its gyro (relative to the reference's, which f absorbs):
 the acc readings are predicted at t + δ_k, δ_k ~ N(0, (2 ms)²).  Both are marginalised like the
 biases (M) or reported with a std (δ_k, ``RigResult.acc_delay``).  On the MIMU4444's exp_1 the
-gyros' relative M reaches 2 % but does not explain the pair/eight-IMU offset disagreement; the
-offsets timed by the gyros alone and by both sensors differ by up to 0.2 ms, which ``acc_delay``
-separates (``experiments/rig_mimu_diagnose.md``).
+gyros' relative M reaches 2 %, and the offsets timed by the gyros alone and by both sensors differ
+by up to 0.3 ms; neither term explains the pair/eight-IMU offset disagreement, which is the IMUs'
+relative timing changing by up to 1 ms between moves (``experiments/rig_mimu_diagnose.md``).
 
 Assumptions (what the model does not have): bias walks of the stated density (a walk faster than
 stated makes the stds too small; bias instability (flicker) is read as a walk; the walk is the

@@ -69,14 +69,14 @@ class RigSettings:
         IMU relative to the reference, y = (I + M) R v with M symmetric (scale factors and
         non-orthogonality: Kalibr's scale-misalignment model less its rotation, which R holds),
         marginalised like the biases.  Off by default; on the MIMU4444 the gyros' relative M
-        reaches 2 % and, unmodelled, moved the pairs' clock offsets by up to 0.15 ms
-        (``experiments/rig_mimu_diagnose.md``).
+        reaches 2 % (``experiments/rig_mimu_diagnose.md``).
     linear_error_std : std of each entry of M's Gaussian prior about 0 (dimensionless; 3 %: the
         scale tolerance of consumer MEMS gyros, weak against what 10 s of hand motion determines).
     acc_delay : give each non-reference IMU's accelerometer a time offset δ_k of its own against its
         gyro (relative to the reference's, which f absorbs): its acc readings are taken at t + δ_k.
         Off by default.  On the MIMU4444 the offsets timed by the gyros alone and by both sensors
-        differ by up to 0.2 ms (``experiments/rig_mimu_diagnose.md``).
+        differ by up to 0.3 ms; the delay moves them by up to 0.14 ms
+        (``experiments/rig_mimu_diagnose.md``).
     acc_delay_std : s, std of δ_k's Gaussian prior about 0 (2 ms: the sampling-clock ages' range).
     """
 
