@@ -215,8 +215,7 @@ def report():
     lines = ["# Why exp_1's two-IMU rigs disagree with the eight-IMU rig (issue #28)", "",
              "Regenerate (each `PYTHONPATH=. python3 experiments/rig_mimu_diagnose.py …`): `--step map`; `--step fits "
              "--variant V` for V in none, gyro, gyro_timing, acc_delay; `--step jackknife --variant none`; `--step events "
-             "--variant none`; `--step swap --variant none`; then `--step report` (about 35 min of fits in all on the "
-             "shared CPU; "
+             "--variant none`; `--step swap --variant none`; then `--step report`; about 35 min of fits in all "
              f"({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
              f"{platform.system()}, 2-core CPU shared with other jobs).  exp_1, the pairs study's 30 s window.", ""]
     mp = CACHE / "map.json"
