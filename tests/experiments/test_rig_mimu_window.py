@@ -29,3 +29,18 @@ def test_imus_cuts_the_recording_to_a_pair_with_the_first_as_reference():
     pair = imus(rec, [1, 0])
     assert pair.K == 2 and pair.reference_imu == 0
     assert np.array_equal(pair.gyro[:, 0], rec.gyro[:, 1])
+
+
+def test_offset_difference_ignores_an_unidentified_lever_arms_nan_rows():
+    """With the accs muted (experiments/rig_mimu_diagnose.py's gyro_timing) the lever arms are
+    unidentified and their covariance rows NaN; w·C·w over the whole matrix then gave a NaN std for
+    every offset difference, although the offsets' own block is finite."""
+    from types import SimpleNamespace
+
+    from experiments.rig_mimu_pairs import offset_difference
+    labels = [(1, "r", 0), (1, "o", 0), (2, "o", 0)]
+    cov = np.array([[np.nan, np.nan, np.nan], [np.nan, 4.0, 1.0], [np.nan, 1.0, 9.0]])
+    res = SimpleNamespace(free_labels=labels, free_cov=cov, time_offset=np.array([0.0, 0.5, 2.0]))
+    d, s = offset_difference(res, 1, 2)
+    assert d == 1.5 and s == np.sqrt(4.0 + 9.0 - 2.0)
+    assert offset_difference(res, 0, 2) == (2.0, 3.0)

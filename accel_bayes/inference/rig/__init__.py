@@ -52,11 +52,24 @@ nominal position: proper, so LM cannot wander along an unexcited direction, and 
 the data identify.  The lever arm is identified by the ω̇ and ω² terms, the orientation by ω (and
 f), the clock by the timing of ω's and f's changes.
 
+Optional sensor terms (off by default, :class:`RigSettings`): ``linear_errors`` — per
+non-reference IMU and sensor kind a symmetric 3×3 linear error M (scale factors and
+non-orthogonality relative to the reference; the antisymmetric part is R's), readings
+(I + M) R ω and (I + M) R [f + …], each entry N(0, 3 %²) a priori; ``acc_delay`` — per non-reference
+IMU its acc's own time offset δ_k against its gyro (relative to the reference's, which f absorbs):
+the acc readings are predicted at t + δ_k, δ_k ~ N(0, (2 ms)²).  Both are marginalised like the
+biases (M) or reported with a std (δ_k, ``RigResult.acc_delay``).  On the MIMU4444's exp_1 the
+gyros' relative M reaches 2 %, and the offsets timed by the gyros alone and by both sensors differ
+by up to 0.3 ms; neither term explains the pair/eight-IMU offset disagreement, which is the IMUs'
+relative timing changing by up to 1 ms between moves (``experiments/rig_mimu_diagnose.md``).
+
 Assumptions (what the model does not have): bias walks of the stated density (a walk faster than
 stated makes the stds too small; bias instability (flicker) is read as a walk; the walk is the
 linear interpolant of a Brownian motion between bias knots H apart, whose bridge, ≤ K√H/2, is
-at most a quarter of the white noise, or more where the 1 s floor binds), no scale factors, misalignments or nonlinearity inside
-an IMU (exp_1's final spin near the gyro range is out of reach), stamp errors independent between
+at most a quarter of the white noise, or more where the 1 s floor binds), no scale factors or misalignments inside an IMU
+unless ``linear_errors`` asks for them and no nonlinearity (exp_1's final spin near the gyro range is
+out of reach), the acc and gyro of an IMU sampled at the same instant unless ``acc_delay`` frees it
+(a constant delay, not one that wanders), stamp errors independent between
 samples, a constant drift, motion smooth on the scale of h (cubic between knots; impacts and
 vibration above ~1/(4h) are not represented), the reference's nominal orientation exact.
 

@@ -27,9 +27,24 @@ from ...physics.geometry import quat_to_matrix, skew
 
 __all__ = ["RigData", "BiasGrid", "bucket_samples", "hermite", "sample_time", "measurement_residual",
            "process_matrices", "measurement_jacobian", "process_residual", "process_jacobian", "full_globals",
-           "D_LOCAL", "timing_noise_directions", "stamp_jitter_std", "walk_residual", "mean_biases"]
+           "D_LOCAL", "timing_noise_directions", "stamp_jitter_std", "walk_residual", "mean_biases",
+           "LINEAR_BLOCKS", "symmetric"]
 
 D_LOCAL = 12  # [ω, ω̇, f, ḟ] per knot
+
+#: global block of each sensor kind's linear error (scale and non-orthogonality) per non-reference IMU
+LINEAR_BLOCKS = {"gyro": "mg", "acc": "ma"}
+_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def symmetric(m: torch.Tensor) -> torch.Tensor:
+    """Symmetric 3×3 matrices (..., 3, 3) from their upper triangles m (..., 6) ordered
+    (xx, xy, xz, yy, yz, zz): an IMU's linear error M (y = (I + M) R v).  Symmetric because the
+    antisymmetric part of a small linear error is a rotation, which R already holds."""
+    E = torch.zeros(6, 3, 3, dtype=m.dtype)
+    for i, (a, b) in enumerate(_SYM):
+        E[i, a, b] = E[i, b, a] = 1.0
+    return torch.einsum("...i,iab->...ab", m, E)
 
 
 @dataclass(frozen=True)
@@ -229,26 +244,62 @@ def _slot_state(g, data: RigData, R0):
     return R[k], r[k], o[k], d[k]
 
 
-def measurement_residual(g: dict, xp, xn, data: RigData, R0) -> torch.Tensor:
-    """Whitened gyro and acc residuals (J−1, 6·S): per slot [r_g (3), r_a (3)] with
-    r_g = (R ω(t) + b_g(t) − y_g)/σ_g and r_a = (R [f(t) + ω̇(t)×r + ω(t)×(ω(t)×r)] + b_a(t) − y_a)/σ_a."""
-    R, r, o, d = _slot_state(g, data, R0)
+def _sensor_maps(g, data: RigData, R):
+    """Each slot's gyro and acc maps from the array frame, (I + M) R per sensor kind with a
+    linear-error block in g ("mg", "ma"; the reference's M is 0: its own errors are absorbed in ω
+    and f), else R."""
+    out = []
+    for name in ("mg", "ma"):
+        if name not in g:
+            out.append(R)
+            continue
+        M = symmetric(torch.cat((g[name].new_zeros(1, 6), g[name]), 0))[data.imu]
+        out.append(R + M @ R)
+    return out
+
+
+def _instants(g, data: RigData, o, d):
+    """Reference-clock instants − t₀ of each slot's gyro and acc readings (J−1, S): the acc's later
+    by the IMU's acc delay δ_k where g has the block "oa" (the reference's δ is 0: its acc timing is
+    absorbed in f)."""
     t = sample_time(data.ds, o, d)
+    if "oa" not in g:
+        return t, t
+    delta = torch.cat((g["oa"].new_zeros(1), g["oa"]), 0)[data.imu]
+    return t, t + delta
+
+
+def _predictions(g, xp, xn, data: RigData, R0, t):
+    """Unwhitened predicted gyro and acc readings (J−1, S, 3) each, all evaluated at instants t."""
+    R, r, _, _ = _slot_state(g, data, R0)
+    Rg, Ra = _sensor_maps(g, data, R)
     _, w, wd, _, f, _ = _interp(xp, xn, data, t)
     b, _ = _slot_biases(g, data, t)
-    bg, ba = b[..., :3], b[..., 3:]
     v = f + torch.cross(wd, r, -1) + torch.cross(w, torch.cross(w, r, -1), -1)
-    rg = ((R @ w.unsqueeze(-1)).squeeze(-1) + bg - data.yg) * data.wg[..., None]
-    ra = ((R @ v.unsqueeze(-1)).squeeze(-1) + ba - data.ya) * data.wa[..., None]
+    return (Rg @ w.unsqueeze(-1)).squeeze(-1) + b[..., :3], (Ra @ v.unsqueeze(-1)).squeeze(-1) + b[..., 3:]
+
+
+def measurement_residual(g: dict, xp, xn, data: RigData, R0) -> torch.Tensor:
+    """Whitened gyro and acc residuals (J−1, 6·S): per slot [r_g (3), r_a (3)] with
+    r_g = (R ω(t) + b_g(t) − y_g)/σ_g and r_a = (R [f(t) + ω̇(t)×r + ω(t)×(ω(t)×r)] + b_a(t) − y_a)/σ_a,
+    R replaced by (I + M) R per sensor kind with a linear-error block ("mg", "ma" in g:
+    :func:`symmetric`), and the acc's t by t + δ_k with an acc-delay block ("oa")."""
+    _, _, o, d = _slot_state(g, data, R0)
+    tg, ta = _instants(g, data, o, d)
+    pg, pa = _predictions(g, xp, xn, data, R0, tg)
+    if ta is not tg:
+        _, pa = _predictions(g, xp, xn, data, R0, ta)
+    rg = (pg - data.yg) * data.wg[..., None]
+    ra = (pa - data.ya) * data.wa[..., None]
     return _jitter_whiten(data, torch.cat((rg, ra), -1)).reshape(rg.shape[0], -1)
 
 
-def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
-    """Analytic Jacobians of :func:`measurement_residual`: (dict block → (J−1, 6S, tangent size),
-    A (J−1, 6S, 12) w.r.t. x_j, B (J−1, 6S, 12) w.r.t. x_{j+1}).  Orientation tangent: δ with
-    R ← R·Exp(δ) (the LM's right box-plus), so ∂(R v)/∂δ = −R [v]×."""
+def _slot_jacobian(g: dict, xp, xn, data: RigData, R0, t) -> dict:
+    """Unwhitened per-slot Jacobians of [r_g, r_a] (J−1, S, 6, ·) with every reading evaluated at
+    instants t: "A", "B" (the bracketing knots), the slot IMU's "q", "r", "o" (= ∂r/∂t), "d", "mg",
+    "ma" (where in g), and "bg", "ba" (the whole bias block)."""
     R, r, o, d = _slot_state(g, data, R0)
-    t = sample_time(data.ds, o, d)
+    Rg, Ra = _sensor_maps(g, data, R)
     (b, db), w, wd, wdd, f, fd = _interp(xp, xn, data, t)
     _, brate = _slot_biases(g, data, t)
     h = data.h
@@ -261,7 +312,7 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
     Dw = (w * r).sum(-1)[..., None, None] * I3 + w.unsqueeze(-1) * r.unsqueeze(-2) - 2 * r.unsqueeze(-1) * w.unsqueeze(-2)
     Dwd = -Sr
     wg, wa = data.wg[..., None, None], data.wa[..., None, None]
-    RG, RA = wg * R, wa * R                       # (J−1, S, 3, 3)
+    RG, RA = wg * Rg, wa * Ra                     # (J−1, S, 3, 3)
     RADw, RADwd = RA @ Dw, RA @ Dwd
     # coefficient of each knot quantity in ω (value) and ω̇ (slope): value basis b, slope basis db/h
     cv = torch.stack((b[..., 0], h * b[..., 1], b[..., 2], h * b[..., 3]), -1)          # ∂ω/∂(ωp, ω̇p, ωn, ω̇n)
@@ -274,33 +325,64 @@ def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
         ja_w = RADw * cvi + RADwd * csi
         ja_f = RA * cvi
         blocks.append((torch.cat((jg_w, ja_w), -2), torch.cat((Z, ja_f), -2)))
+    out = {}
     # x layout [ω, ω̇, f, ḟ]: the value entries (i = 0, 2) multiply ω / f, the slopes (1, 3) ω̇ / ḟ
-    A = torch.cat((blocks[0][0], blocks[1][0], blocks[0][1], blocks[1][1]), -1)  # (J−1, S, 6, 12)
-    B = torch.cat((blocks[2][0], blocks[3][0], blocks[2][1], blocks[3][1]), -1)
-    K1 = data.n_imu - 1
-    onehot = torch.nn.functional.one_hot(data.imu, data.n_imu)[..., 1:].to(w.dtype)  # reference: no globals, no biases
+    out["A"] = torch.cat((blocks[0][0], blocks[1][0], blocks[0][1], blocks[1][1]), -1)  # (J−1, S, 6, 12)
+    out["B"] = torch.cat((blocks[2][0], blocks[3][0], blocks[2][1], blocks[3][1]), -1)
     wdiag = torch.diag_embed(torch.cat((data.wg[..., None].expand(-1, -1, 3), data.wa[..., None].expand(-1, -1, 3)), -1))
-    # globals of the slot's IMU
-    jq = torch.cat((-(RG @ Sw), -(RA @ skew(v))), -2)                              # (J−1, S, 6, 3)
-    jr = torch.cat((Z, RA @ (Swd + Sw @ Sw)), -2)
+    out["q"] = torch.cat((-(RG @ Sw), -(RA @ skew(v))), -2)                          # (J−1, S, 6, 3)
+    out["r"] = torch.cat((Z, RA @ (Swd + Sw @ Sw)), -2)
     # d/dt of the prediction: gyro R ω̇ + ḃ_g, acc R (ḟ + ω̈×r + ω̇×(ω×r) + ω×(ω̇×r)) + ḃ_a
     dv = fd + torch.cross(wdd, r, -1) + torch.cross(wd, wxr, -1) + torch.cross(w, torch.cross(wd, r, -1), -1)
     jt = torch.cat(((RG @ wd.unsqueeze(-1)), (RA @ dv.unsqueeze(-1))), -2)          # (J−1, S, 6, 1)
-    jt = jt + (wdiag @ brate.unsqueeze(-1))
-    jo = jt
-    jd = jt * (-data.ds / (1.0 + d) ** 2)[..., None, None]
-    oh = onehot[:, :, None, :, None]                                               # (J−1, S, 1, K−1, 1)
+    out["o"] = jt + (wdiag @ brate.unsqueeze(-1))
+    out["d"] = out["o"] * (-data.ds / (1.0 + d) ** 2)[..., None, None]
+    # ∂[(I + M) R v]/∂m_i = E_i R v, E_i the i-th basis matrix of :func:`symmetric`
+    for name, Rv, wt, top in (("mg", R @ w.unsqueeze(-1), wg, True), ("ma", R @ v.unsqueeze(-1), wa, False)):
+        if name in g:
+            Em = symmetric(torch.eye(6, dtype=w.dtype))                                # (6, 3, 3)
+            jm = wt * torch.einsum("iab,...bc->...ai", Em, Rv)                         # (J−1, S, 3, 6)
+            Z6 = jm.new_zeros(jm.shape)
+            out[name] = torch.cat((jm, Z6) if top else (Z6, jm), -2)
+    for name, grid, rows, wgt in (("bg", data.grids[0], slice(0, 3), data.wg), ("ba", data.grids[1], slice(3, 6), data.wa)):
+        out[name] = _bias_jacobian(data, grid, t, rows, wgt)
+    return out
 
-    A, B = _jitter_whiten(data, A), _jitter_whiten(data, B)
+
+def _merged_jacobian(g: dict, xp, xn, data: RigData, R0) -> dict:
+    """:func:`_slot_jacobian` with the gyro rows at the gyro's instants and the acc rows at the acc's
+    (and "oa", the acc rows' ∂r/∂t, where g has an acc delay)."""
+    _, _, o, d = _slot_state(g, data, R0)
+    tg, ta = _instants(g, data, o, d)
+    out = _slot_jacobian(g, xp, xn, data, R0, tg)
+    if ta is tg:
+        return out
+    at_a = _slot_jacobian(g, xp, xn, data, R0, ta)
+    for key in out:
+        out[key] = torch.cat((out[key][..., :3, :], at_a[key][..., 3:, :]), -2)
+    out["oa"] = torch.cat((torch.zeros_like(at_a["o"][..., :3, :]), at_a["o"][..., 3:, :]), -2)
+    return out
+
+
+def measurement_jacobian(g: dict, xp, xn, data: RigData, R0):
+    """Analytic Jacobians of :func:`measurement_residual`: (dict block → (J−1, 6S, tangent size),
+    A (J−1, 6S, 12) w.r.t. x_j, B (J−1, 6S, 12) w.r.t. x_{j+1}).  Orientation tangent: δ with
+    R ← R·Exp(δ) (the LM's right box-plus), so ∂(R v)/∂δ = −R [v]×."""
+    raw = _merged_jacobian(g, xp, xn, data, R0)
+    J1, S = data.imu.shape
+    K1 = data.n_imu - 1
+    onehot = torch.nn.functional.one_hot(data.imu, data.n_imu)[..., 1:].to(raw["A"].dtype)  # reference: no globals
+    oh = onehot[:, :, None, :, None]                                               # (J−1, S, 1, K−1, 1)
 
     def spread(jb):
         jb = _jitter_whiten(data, jb)
         return (jb.unsqueeze(-2) * oh).reshape(J1, 6 * S, K1 * jb.shape[-1])
 
-    jac = {"q": spread(jq), "r": spread(jr), "o": spread(jo), "d": spread(jd)}
-    for name, grid, rows, wgt in (("bg", data.grids[0], slice(0, 3), data.wg), ("ba", data.grids[1], slice(3, 6), data.wa)):
-        jbias = _jitter_whiten(data, _bias_jacobian(data, grid, t, rows, wgt))
-        jac[name] = jbias.reshape(J1, 6 * S, jbias.shape[-1])
+    jac = {name: spread(raw[name]) for name in ("q", "r", "o", "d", "mg", "ma", "oa") if name in raw}
+    for name in ("bg", "ba"):  # already laid out over every IMU's bias knots
+        jb = _jitter_whiten(data, raw[name])
+        jac[name] = jb.reshape(J1, 6 * S, jb.shape[-1])
+    A, B = _jitter_whiten(data, raw["A"]), _jitter_whiten(data, raw["B"])
     D = A.shape[-1]
     return jac, A.reshape(J1, 6 * S, D), B.reshape(J1, 6 * S, D)
 
@@ -309,14 +391,7 @@ def timing_noise_directions(g: dict, xp, xn, data: RigData, R0, sigma_j) -> torc
     """u (J−1, S, 6) = σ_j,k · ∂r/∂t of each slot: the whitened change of its six readings per second
     of timing error, times the stamp-jitter std σ_j,k (s) of the slot's IMU (sigma_j: (K,) internal
     order; padding slots get 0 through their zero weights)."""
-    R, r, o, d = _slot_state(g, data, R0)
-    t = sample_time(data.ds, o, d)
-    _, w, wd, wdd, f, fd = _interp(xp, xn, data, t)
-    wxr = torch.cross(w, r, -1)
-    dv = fd + torch.cross(wdd, r, -1) + torch.cross(wd, wxr, -1) + torch.cross(w, torch.cross(wd, r, -1), -1)
-    _, brate = _slot_biases(g, data, t)
-    jt = torch.cat((((R @ wd.unsqueeze(-1)).squeeze(-1) + brate[..., :3]) * data.wg[..., None],
-                    ((R @ dv.unsqueeze(-1)).squeeze(-1) + brate[..., 3:]) * data.wa[..., None]), -1)
+    jt = _merged_jacobian(g, xp, xn, data, R0)["o"][..., 0]
     sj = torch.as_tensor(np.asarray(sigma_j, dtype=float))[data.imu]
     return jt * sj[..., None]
 

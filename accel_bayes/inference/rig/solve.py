@@ -16,16 +16,16 @@ from ...physics.geometry import boxminus, matrix_to_quat, quat_to_matrix
 from ..lm import ChainResidual, GlobalResidual, LevenbergMarquardt, Problem, Variable
 from ..lm.linear import NotPositiveDefinite
 from .initial import align_gyros, interp_rows
-from .model import (BiasGrid, bucket_samples, mean_biases, measurement_jacobian, measurement_residual,
+from .model import (LINEAR_BLOCKS, BiasGrid, bucket_samples, mean_biases, measurement_jacobian, measurement_residual,
                     process_jacobian, process_matrices, process_residual, stamp_jitter_std,
-                    timing_noise_directions, walk_residual)
+                    timing_noise_directions, walk_residual, symmetric)
 
 __all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes",
            "default_knot_spacing", "bias_walks", "bias_knot_spacing", "DEFAULT_RANDOM_WALK", "MIN_BIAS_SPACING"]
 
 #: per-parameter scales of "a confident number": a direction of the Laplace posterior whose std
 #: exceeds its scale (scaled Fisher information eigenvalue < 1) is reported unidentified
-IDENT_SCALE = {"q": math.radians(1.0), "r": 0.01, "o": 2e-3, "d": 1e-3}
+IDENT_SCALE = {"q": math.radians(1.0), "r": 0.01, "o": 2e-3, "d": 1e-3, "oa": 2e-3}
 
 #: bias random-walk densities assumed where neither the rests nor the recording give them (gyro
 #: rad/s/√s, acc m/s²/√s): EuRoC's ADIS16448 sensor.yaml figures, the values VIO users start from
@@ -65,6 +65,19 @@ class RigSettings:
     prior_scale : multiplies the white-jerk intensities q_c estimated from the reference (> 1: weaker).
     ftol : LM's relative cost-change stop (1e-8 of a cost of order the number of residuals is far
         below the 0.5 that a 1-std move of one parameter makes).
+    linear_errors : sensor kinds ("gyro", "acc") whose readings get a linear error per non-reference
+        IMU relative to the reference, y = (I + M) R v with M symmetric (scale factors and
+        non-orthogonality: Kalibr's scale-misalignment model less its rotation, which R holds),
+        marginalised like the biases.  Off by default; on the MIMU4444 the gyros' relative M
+        reaches 2 % (``experiments/rig_mimu_diagnose.md``).
+    linear_error_std : std of each entry of M's Gaussian prior about 0 (dimensionless; 3 %: the
+        scale tolerance of consumer MEMS gyros, weak against what 10 s of hand motion determines).
+    acc_delay : give each non-reference IMU's accelerometer a time offset δ_k of its own against its
+        gyro (relative to the reference's, which f absorbs): its acc readings are taken at t + δ_k.
+        Off by default.  On the MIMU4444 the offsets timed by the gyros alone and by both sensors
+        differ by up to 0.3 ms; the delay moves them by up to 0.14 ms
+        (``experiments/rig_mimu_diagnose.md``).
+    acc_delay_std : s, std of δ_k's Gaussian prior about 0 (2 ms: the sampling-clock ages' range).
     """
 
     knot_spacing: float | None = None
@@ -77,8 +90,21 @@ class RigSettings:
     lever_prior_std: float = 1.0
     stamp_jitter: bool = True
     random_walk: dict | None = None
+    linear_errors: tuple = ()
+    linear_error_std: float = 0.03
+    acc_delay: bool = False
+    acc_delay_std: float = 2e-3
 
     def __post_init__(self):
+        bad = set(self.linear_errors) - set(LINEAR_BLOCKS)
+        if bad or isinstance(self.linear_errors, str):
+            raise UserError(f"linear_errors: expected a tuple of 'gyro' and/or 'acc', got {self.linear_errors!r}")
+        if not (math.isfinite(self.linear_error_std) and self.linear_error_std > 0):
+            raise UserError(f"linear_error_std: expected a finite std > 0, got {self.linear_error_std!r}")
+        if not isinstance(self.acc_delay, bool):
+            raise UserError(f"acc_delay: expected true or false, got {self.acc_delay!r}")
+        if not (math.isfinite(self.acc_delay_std) and self.acc_delay_std > 0):
+            raise UserError(f"acc_delay_std: expected a finite std > 0 (s), got {self.acc_delay_std!r}")
         # the walk prior's precision is 1/density² per knot step: a zero or missing density would make
         # the initial cost infinite deep inside LM, so it is refused here, naming the option
         if self.random_walk is None:
@@ -103,7 +129,11 @@ class RigResult:
     own stamps); gyro_bias, acc_bias (K, 3): time means of the walking biases relative to the
     reference's (rad/s, m/s²); random_walk (K, 2): the [gyro, acc] walk densities used (rad/s/√s,
     m/s²/√s); bias_knot_spacing (2,): the [gyro, acc] bias grids' spacing (s); own_stamps (K,) bool; stamp_jitter_std (K,) s (0 where
-    not modelled); unidentified: list of
+    not modelled); linear_error: {"gyro"/"acc": (K, 3, 3) M} for the kinds in
+    ``RigSettings.linear_errors`` (0 for the reference); acc_delay, acc_delay_std (K,) s: each acc's
+    delay δ against its gyro relative to the reference's (0 without ``RigSettings.acc_delay``, NaN std
+    where unidentified); chi2_per_imu (K, 2): [gyro, acc] mean squared
+    whitened residual per reading of each IMU; unidentified: list of
     (imu label, parameter name) pairs; warnings: one line each; converged, reason, n_iter,
     chi2_per_dof, seconds.
     """
@@ -137,6 +167,10 @@ class RigResult:
     free_labels: list = field(default=None, repr=False)
     random_walk: np.ndarray = None
     bias_knot_spacing: np.ndarray = None
+    linear_error: dict = None
+    chi2_per_imu: np.ndarray = None
+    acc_delay: np.ndarray = None
+    acc_delay_std: np.ndarray = None
 
 
 def bias_walks(rec, samples, order, settings) -> tuple[np.ndarray, list]:
@@ -323,6 +357,18 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     values = {"q": q0, "r": tt(nom_pos[1:] - nom_pos[0]), "o": tt(o_init[1:]), "d": tt(d_init[1:]),
               "bg": torch.zeros(K - 1, grids[0].n, 3, dtype=torch.float64),
               "ba": torch.zeros(K - 1, grids[1].n, 3, dtype=torch.float64)}
+    lin = [LINEAR_BLOCKS[kind] for kind in ("gyro", "acc") if kind in settings.linear_errors]
+    priors_lin = []
+    if settings.acc_delay:
+        values["oa"] = torch.zeros(K - 1, dtype=torch.float64)
+        eye_a = torch.eye(K - 1, dtype=torch.float64) / settings.acc_delay_std
+        priors_lin.append(GlobalResidual(lambda g: g["oa"] / settings.acc_delay_std, jac=lambda g: {"oa": eye_a},
+                                         name="acc_delay_prior"))
+    for name in lin:
+        values[name] = torch.zeros(K - 1, 6, dtype=torch.float64)
+        eye = torch.eye(6 * (K - 1), dtype=torch.float64) / settings.linear_error_std
+        priors_lin.append(GlobalResidual(lambda g, name=name: g[name].reshape(-1) / settings.linear_error_std,
+                                         jac=lambda g, name=name, eye=eye: {name: eye}, name=f"{name}_prior"))
     fixed_d = torch.as_tensor(~own[1:])
     # nominal orientations other than the identity are stated ones (format v1 writes identity when absent)
     stated = ~np.all(np.isclose(q_nom[1:], [1.0, 0, 0, 0]) | np.isclose(q_nom[1:], [-1.0, 0, 0, 0]), axis=1)
@@ -339,6 +385,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         fn, Jw = walk_residual(grids[c], walk_rel[:, c])
         priors.append(GlobalResidual(lambda g, fn=fn, name=name: fn(g[name]),
                                      jac=lambda g, Jw=Jw, name=name: {name: Jw}, name=f"{name}_walk"))
+    priors += priors_lin
     if stated.any():
         sel = torch.as_tensor(stated)
         priors.append(GlobalResidual(lambda g: (boxminus(g["q"][sel], qn_t[sel]) / sig_q).reshape(-1),
@@ -370,7 +417,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                              jac=lambda g, xp, xn, dd: process_jacobian(xp, dd), name="motion_prior")
         prob = Problem({"q": Variable(values["q"], "quaternion"), "r": Variable(values["r"]),
                         "o": Variable(values["o"]), "d": Variable(values["d"], fixed=fixed_d),
-                        "bg": Variable(values["bg"]), "ba": Variable(values["ba"])},
+                        "bg": Variable(values["bg"]), "ba": Variable(values["ba"]),
+                        **{name: Variable(values[name]) for name in lin + (["oa"] if settings.acc_delay else [])}},
                        x, [meas, proc] + priors)
         res = LevenbergMarquardt(max_iter=settings.max_iter, ftol=settings.ftol, xtol=1e-12, gtol=1e-9).solve(prob)
         values, x = res.values, res.locals
@@ -422,6 +470,13 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     n_res = int((data.wg > 0).sum() * 3 + (data.wa > 0).sum() * 3)
     r_meas = measurement_residual(values, x[:-1], x[1:], data, R0t)
     chi2 = float((r_meas ** 2).sum()) / max(n_res - len(all_labels), 1)
+    r2 = (r_meas.reshape(*data.imu.shape, 6) ** 2).numpy()
+    chi2_imu = np.zeros((K, 2))
+    for c, (key, cols) in enumerate((("wg", slice(0, 3)), ("wa", slice(3, 6)))):
+        used = (getattr(data, key) > 0).numpy()
+        for ki in range(K):
+            sel = used & (data.imu.numpy() == ki)
+            chi2_imu[order[ki], c] = r2[sel][:, cols].mean() if sel.any() else np.nan
 
     # back to label order, covariances per block
     pos_idx = {lab: i for i, lab in enumerate(labels)}
@@ -437,7 +492,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
 
     ori = np.zeros((K, 4)); ori_cov = np.zeros((K, 3, 3)); pos = np.zeros((K, 3)); pos_cov = np.zeros((K, 3, 3))
     to = np.zeros(K); to_s = np.zeros(K); dr = np.full(K, np.nan); dr_s = np.full(K, np.nan)
-    bgo = np.zeros((K, 3)); bao = np.zeros((K, 3)); sjo = np.zeros(K)
+    bgo = np.zeros((K, 3)); bao = np.zeros((K, 3)); sjo = np.zeros(K); oa = np.zeros(K); oa_s = np.zeros(K)
     sjo[order] = sig_j
     ori[ref] = q_nom[0]
     dr[ref], dr_s[ref] = 0.0, 0.0
@@ -453,6 +508,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         pos[lab] = values["r"][ki - 1].numpy()
         pos_cov[lab] = block("r", ki, 3)
         to[lab] = float(values["o"][ki - 1]); to_s[lab] = math.sqrt(max(block("o", ki, 1)[0, 0], 0.0))
+        if settings.acc_delay:
+            oa[lab] = float(values["oa"][ki - 1]); oa_s[lab] = math.sqrt(max(block("oa", ki, 1)[0, 0], 0.0))
         if own[ki]:
             dr[lab] = float(values["d"][ki - 1]); dr_s[lab] = math.sqrt(max(block("d", ki, 1)[0, 0], 0.0))
         bgo[lab], bao[lab] = b_mean[ki, :3], b_mean[ki, 3:]
@@ -468,8 +525,19 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                      converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
                      seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used,
                      stamp_jitter_std=sjo, free_cov=cov, random_walk=wko,
-                     bias_knot_spacing=np.array([grids[0].H, grids[1].H]),
+                     bias_knot_spacing=np.array([grids[0].H, grids[1].H]), chi2_per_imu=chi2_imu,
+                     acc_delay=oa, acc_delay_std=oa_s,
+                     linear_error={kind: _label_order(symmetric(torch.cat((values[LINEAR_BLOCKS[kind]].new_zeros(1, 6),
+                                                                           values[LINEAR_BLOCKS[kind]]))).numpy(), order)
+                                   for kind in settings.linear_errors},
                      free_labels=[(order[idx[0] + 1], name, idx[1] if len(idx) > 1 else 0) for name, idx in labels])
+
+
+def _label_order(a: np.ndarray, order: list) -> np.ndarray:
+    """Rows of a (internal order, reference first) put in label order."""
+    out = np.empty_like(a)
+    out[order] = a
+    return out
 
 
 def _marginal_information(S: np.ndarray, keep: np.ndarray) -> np.ndarray:
