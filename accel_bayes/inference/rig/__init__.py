@@ -46,7 +46,7 @@ memory.  K per IMU and sensor comes from long rests (Allan deviation, the export
 ``acc_random_walk`` of the array description or sensor.yaml), else EuRoC's ADIS16448 figures with a
 one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised (Schur
 complement of the bias knots), so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
-1e-4 m/s²/√s moves the offsets' z by ≤ 0.05, ``experiments/rig_offset_decomposition.md``; a walk
+1e-4 m/s²/√s moves the offsets' z by ≤ 0.08, ``experiments/rig_offset_decomposition.md``; a walk
 of the white noise's size over the recording widens the lever-arm and orientation stds by 9–32 %,
 ``tests/inference/test_rig_walk.py``).  A stated nominal orientation
 (not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit

@@ -39,9 +39,9 @@ DEFAULT_RANDOM_WALK = {"gyro": 1.9393e-5, "acc": 3.0e-3}
 #: they are the more of each IMU's noise at its own instants they absorb, which the joint MAP then
 #: reads as timing (errors in variables: the Laplace std does not see it).  On concealed rig seed
 #: 29 (4 IMUs, 200/125/100/100 Hz, white noise only) the offsets' z went −1.4/−3.4/−1.4 at 5 ms,
-#: −4.5/−6.3/−11.5 at 2.5 ms and −0.2/−0.7/+0.8 at 10 ms, where the std also reached the bound
+#: −4.5/−6.3/−11.5 at 2.5 ms and −0.8/−0.8/+0.7 at 10 ms, the std there at the bound
 #: (``experiments/rig_knot_spacing.md``).  10 ms still holds the hand motion: a cubic between knots
-#: misses a 7 Hz sinusoid by ~1e-4 of its amplitude (noise-free fits: errors ≤ 0.3 µm, 0.1 µs);
+#: misses a 7 Hz sinusoid by ~1e-4 of its amplitude (noise-free fits: errors ≤ 0.08 of their std);
 #: faster motion (vibration, impacts above ~25 Hz) is what the setting is for.
 DEFAULT_KNOT_SPACING = 0.01
 
