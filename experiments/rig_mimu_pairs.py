@@ -123,9 +123,9 @@ def with_stamps(sub, how: str, exp: str):
     return out
 
 
-#: the knot spacing every fit gets (what one 62.5 Hz clock gets by default): with own stamps the
-#: default would count eight IMUs' instants and choose 5 ms, which LM does not converge on
-#: (:func:`~accel_bayes.inference.rig.solve.default_knot_spacing`)
+#: the knot spacing every fit gets, stated: before issue #28's fifth round the default counted eight
+#: own-stamped IMUs' instants and chose 5 ms, which LM does not converge on; the default is now 10 ms
+#: for every rig (:data:`~accel_bayes.inference.rig.solve.DEFAULT_KNOT_SPACING`)
 SETTINGS = RigSettings(knot_spacing=0.01)
 
 

@@ -38,6 +38,7 @@ from experiments.clockgen import draw_case, write_case  # noqa: E402
 from experiments.rig_crb import rig_crb  # noqa: E402
 from accel_bayes.data import io, outputs  # noqa: E402
 from accel_bayes.inference.rig import fit_rig  # noqa: E402
+from accel_bayes.inference.rig.solve import DEFAULT_KNOT_SPACING  # noqa: E402
 from accel_bayes.physics.geometry import matrix_to_quat, quat_log, quat_to_matrix  # noqa: E402
 
 
@@ -84,7 +85,7 @@ def add_crb(case, rec, truth, own):
     """Per-IMU CRB stds into ``case`` (in place): ``crb_*`` with the motion nuisance a cubic B-spline
     at the fit's knot spacing h, ``crb2_*`` at h/2 (as many motion degrees of freedom as the fit's
     Hermite knots, which carry value and slope: 12 numbers per h against the spline's 6)."""
-    h = float(np.clip(2.5 / np.sum(truth["rate"]), 5e-3, 10e-3))
+    h = DEFAULT_KNOT_SPACING
     for tag, hh in (("crb", h), ("crb2", h / 2)):
         if f"{tag}_o" in case["imus"][0]:
             continue

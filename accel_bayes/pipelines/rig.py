@@ -56,7 +56,7 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
                      "warnings": list(res.warnings) + [f"IMU {k}: {_NAMES[n]} unidentified (not excited by the motion)"
                                                        for k, n in res.unidentified]},
         provenance={"version": __version__, "input_sha256": sha, "seed": None,
-                    "settings": {"model": "rig", "knot_spacing": settings.knot_spacing,
+                    "settings": {"model": "rig", "knot_spacing": res.knot_spacing,
                                  "orientation_prior_deg": settings.orientation_prior_deg,
                                  # s, [gyro, acc]: the grids the walking biases were fitted on
                                  "bias_knot_spacing": [float(v) for v in res.bias_knot_spacing]}})

@@ -72,13 +72,3 @@ def test_stamp_jitter_std_recovers_the_jitter_through_drift_wander_and_a_dropped
     for sig in (0.0, 3e-5, 2e-4):
         est = stamp_jitter_std(ticks + rng.normal(0, sig, len(ticks)))
         assert abs(est - sig) < 0.05 * sig + 1e-8, (sig, est)
-
-
-def test_knot_spacing_counts_instants_not_imus_on_one_clock():
-    """exp_1's eight 62.5 Hz IMUs on one stamp column got 5 ms knots (2.5 / the sum of the rates),
-    three intervals per sample gap, and LM did not converge; one clock samples together."""
-    from accel_bayes.inference.rig.solve import default_knot_spacing
-    one_clock = [{"ds": np.arange(0, 10, 1 / 62.5)} for _ in range(8)]
-    assert default_knot_spacing(one_clock, own_stamps=False) == 0.01
-    separate = [{"ds": np.arange(0, 10, 1 / r) + 1e-3 * i} for i, r in enumerate((200.0, 250.0))]
-    assert abs(default_knot_spacing(separate, own_stamps=True) - 2.5 / 450) < 1e-12

@@ -6,8 +6,11 @@ Model
 The rig is rigid.  The reference IMU (label ``reference_imu``) defines the array frame through its
 nominal orientation R₀ and its position (the origin) and its clock (o = d = 0).  The motion is a
 continuous-time state in the array frame — angular rate ω(t), its derivative ω̇(t), and the
-reference's specific force f(t) and its derivative — held at knots τ_j every h seconds and
-interpolated by cubic Hermite polynomials (:mod:`.model`).  A white-noise-on-jerk prior scores
+reference's specific force f(t) and its derivative — held at knots τ_j every h seconds (10 ms,
+:data:`~.solve.DEFAULT_KNOT_SPACING`, whatever the rates: finer knots absorb each IMU's noise at its
+own instants and the joint MAP reads it as timing, 3–12 std on the offsets of a concealed rig at
+5 and 2.5 ms, ``experiments/rig_knot_spacing.md``) and interpolated by cubic Hermite polynomials
+(:mod:`.model`).  A white-noise-on-jerk prior scores
 consecutive knots (q_c: the mean squared ω̈, f̈ of the smoothed reference signals over 1 s; weak on
 purpose).  IMU k's sample stamped s on its own clock was taken at t = t₀ + o_k + (s − t₀)/(1 + d_k)
 (DESIGN §7.3), and reads
@@ -43,7 +46,7 @@ memory.  K per IMU and sensor comes from long rests (Allan deviation, the export
 ``acc_random_walk`` of the array description or sensor.yaml), else EuRoC's ADIS16448 figures with a
 one-line warning (:data:`~.solve.DEFAULT_RANDOM_WALK`).  The walks are marginalised (Schur
 complement of the bias knots), so the clock, lever-arm and orientation stds include them (on 15 s concealed rigs a walk of
-1e-4 m/s²/√s moves the offsets' z by ≤ 0.05, ``experiments/rig_offset_decomposition.md``; a walk
+1e-4 m/s²/√s moves the offsets' z by ≤ 0.08, ``experiments/rig_offset_decomposition.md``; a walk
 of the white noise's size over the recording widens the lever-arm and orientation stds by 9–32 %,
 ``tests/inference/test_rig_walk.py``).  A stated nominal orientation
 (not the identity, which format v1 cannot tell from "absent") enters as a prior of 5° std; a fit

@@ -21,7 +21,7 @@ from .model import (LINEAR_BLOCKS, BiasGrid, bucket_samples, mean_biases, measur
                     timing_noise_directions, walk_residual, symmetric)
 
 __all__ = ["RigSettings", "RigResult", "fit_rig", "rig_samples", "unexcited_axes", "blind_lever_axes",
-           "default_knot_spacing", "bias_walks", "bias_knot_spacing", "DEFAULT_RANDOM_WALK", "MIN_BIAS_SPACING"]
+           "DEFAULT_KNOT_SPACING", "bias_walks", "bias_knot_spacing", "DEFAULT_RANDOM_WALK", "MIN_BIAS_SPACING"]
 
 #: per-parameter scales of "a confident number": a direction of the Laplace posterior whose std
 #: exceeds its scale (scaled Fisher information eigenvalue < 1) is reported unidentified
@@ -33,6 +33,18 @@ IDENT_SCALE = {"q": math.radians(1.0), "r": 0.01, "o": 2e-3, "d": 1e-3, "oa": 2e
 #: makes it overconfident: ``experiments/rig_offset_decomposition.md``)
 DEFAULT_RANDOM_WALK = {"gyro": 1.9393e-5, "acc": 3.0e-3}
 
+#: s, the motion knots' spacing h unless ``RigSettings.knot_spacing`` says otherwise.  Why fixed and
+#: not finer at higher rates (until issue #28's fifth round h was 2.5 / the rate of sampling
+#: instants, 5–10 ms): the motion knots are nuisances fitted jointly with the clocks, and the finer
+#: they are the more of each IMU's noise at its own instants they absorb, which the joint MAP then
+#: reads as timing (errors in variables: the Laplace std does not see it).  On concealed rig seed
+#: 29 (4 IMUs, 200/125/100/100 Hz, white noise only) the offsets' z went −1.4/−3.4/−1.4 at 5 ms,
+#: −4.5/−6.3/−11.5 at 2.5 ms and −0.8/−0.8/+0.7 at 10 ms, the std there at the bound
+#: (``experiments/rig_knot_spacing.md``).  10 ms still holds the hand motion: a cubic between knots
+#: misses a 7 Hz sinusoid by ~1e-4 of its amplitude (noise-free fits: errors ≤ 0.08 of their std);
+#: faster motion (vibration, impacts above ~25 Hz) is what the setting is for.
+DEFAULT_KNOT_SPACING = 0.01
+
 #: s, the finest bias-knot spacing (:func:`bias_knot_spacing`): one knot per ≥ 1 s of samples is
 #: determined by the data, not by the walk prior (the 10 ms motion knots' walking biases were not:
 #: LM crawled along their thousands of prior-dominated directions, ``experiments/rig_mimu_pairs.md``)
@@ -43,7 +55,7 @@ MIN_BIAS_SPACING = 1.0
 class RigSettings:
     """Options of :func:`fit_rig`.
 
-    knot_spacing : s, or None: :func:`default_knot_spacing`.
+    knot_spacing : s, or None: :data:`DEFAULT_KNOT_SPACING`.
     orientation_prior_deg : std (°) of the nominal-orientation prior (IMUs whose nominal is not the
         identity, which format v1 cannot tell from "not stated").
     contradiction_sigma : a fitted orientation further than this many prior std from its nominal
@@ -171,6 +183,8 @@ class RigResult:
     chi2_per_imu: np.ndarray = None
     acc_delay: np.ndarray = None
     acc_delay_std: np.ndarray = None
+    #: s, the motion knots' spacing h the fit used
+    knot_spacing: float = None
 
 
 def bias_walks(rec, samples, order, settings) -> tuple[np.ndarray, list]:
@@ -254,21 +268,6 @@ def _initial_knots(smp0, R0, tau):
     return np.concatenate((ws, wd, fs, fd), 1), qc_w, qc_f
 
 
-def default_knot_spacing(samples, own_stamps: bool) -> float:
-    """Knot spacing h (s): 2.5 / (rate of distinct sampling instants), clipped to [5, 10] ms, so that
-    every motion interval holds about 2.5 sampling instants of the rig.
-
-    Separately stamped IMUs sample at their own instants (the rate is the sum of their rates); IMUs
-    on one stamp column sample together (the rate is one IMU's).  Why it matters: exp_1's eight
-    62.5 Hz IMUs on one clock got 5 ms knots from the sum, three knot intervals per 16 ms sample
-    gap held only by the motion prior, and LM stopped at 80 steps far from the optimum (offsets of
-    3.5 and 4.3 ms); at 10 ms it converges in 12 (``experiments/rig_mimu_pairs.md``).
-    """
-    rates = np.array([1.0 / np.median(np.diff(s["ds"])) for s in samples])
-    rate = rates.sum() if own_stamps else rates.max()
-    return float(np.clip(2.5 / rate, 5e-3, 10e-3))
-
-
 def bias_knot_spacing(sigma, walk, span: float) -> float:
     """Spacing H (s) of one sensor kind's bias knots: the largest at which the linear interpolant
     of a walk of density K between knots misses it by at most a quarter of a sample's white noise σ
@@ -320,7 +319,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     own = own_lab[order]
     q_nom = np.asarray(rec.nominal_orientation, dtype=float)[order]
     R0 = quat_to_matrix(torch.as_tensor(q_nom[0])).numpy()
-    h = settings.knot_spacing or default_knot_spacing(smp, bool(own_lab.any()))
+    h = settings.knot_spacing or DEFAULT_KNOT_SPACING
 
     # starting values: gyro alignment against the reference (Kabsch + lag search)
     R_init, o_init = [], [0.0]
@@ -525,7 +524,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                      converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
                      seconds=time_elapsed(t_start), info_eigs=lam, hessian=hess_used,
                      stamp_jitter_std=sjo, free_cov=cov, random_walk=wko,
-                     bias_knot_spacing=np.array([grids[0].H, grids[1].H]), chi2_per_imu=chi2_imu,
+                     bias_knot_spacing=np.array([grids[0].H, grids[1].H]), knot_spacing=float(h), chi2_per_imu=chi2_imu,
                      acc_delay=oa, acc_delay_std=oa_s,
                      linear_error={kind: _label_order(symmetric(torch.cat((values[LINEAR_BLOCKS[kind]].new_zeros(1, 6),
                                                                            values[LINEAR_BLOCKS[kind]]))).numpy(), order)
