@@ -276,7 +276,8 @@ MODE_MARGIN_NATS = 1.0
 def _prior_map(acc_s, w_s, P_s, std, flat, reference, nominal_acc, prior_std, prior):
     """The MAP under the proper φ prior, fitted from the flat-φ MAP ``flat`` (warm start) and from
     the nominal design; the one with the higher log posterior (the nominal start only where it wins
-    by more than :data:`MODE_MARGIN_NATS`).  Returns (result, "flat_map" | "nominal").
+    by more than :data:`MODE_MARGIN_NATS`).  Returns (result, record): the record names the start kept
+    ("flat_map" or "nominal") and both log posteriors (nats, θ-free constants dropped).
 
     Why two starts: under the flat prior the Occam term −(T/2)·log|M(θ)| falls by 3 nats per sample
     for each e-fold the array shrinks (M's ω̇ block scales with |θ|²); where the fitted noise is as
@@ -295,10 +296,11 @@ def _prior_map(acc_s, w_s, P_s, std, flat, reference, nominal_acc, prior_std, pr
                                        prior_std=prior_std, init_positions=init, init_omega=init_w,
                                        on_divergence="ignore", phi_prior=prior)))
     (_, warm), (_, nom) = fits
+    record = {"log_posterior": {name: float(f.log_posterior) for name, f in fits}}
     ok = math.isfinite(nom.log_posterior) and bool(torch.isfinite(torch.as_tensor(nom.theta)).all())
     if ok and (not math.isfinite(warm.log_posterior) or nom.log_posterior > warm.log_posterior + MODE_MARGIN_NATS):
-        return nom, "nominal"
-    return warm, "flat_map"
+        return nom, {"start": "nominal", **record}
+    return warm, {"start": "flat_map", **record}
 
 
 def _temper_step(acc_s, w_s, P_s, std, res, reference, nominal_acc, prior_std, prior, inflate) -> TemperStep:

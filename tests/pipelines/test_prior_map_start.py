@@ -30,10 +30,13 @@ def test_noise_step_map_keeps_the_geometry_where_the_flat_map_collapses():
     nominal = torch.as_tensor(pre.recording.nominal_position, dtype=torch.float64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        step = _estimate_noise(lik, nominal, 3e-3, CalibrateOptions().noise_bins, False, phi_prior="empirical")
+        opts = CalibrateOptions()
+        step = _estimate_noise(lik, nominal, opts.prior_std, opts.noise_bins, False, phi_prior=opts.phi_prior)
     res = step.map.result
     assert res is not None
     scale = _scale(np.asarray(res.positions), pos, lik.reference)
     assert 0.95 < scale < 1.05, scale
     # the nominal start won here: the warm start from the collapsed flat MAP is the failure
-    assert step.phi_prior["map_start"] == "nominal"
+    start = step.phi_prior["map_start"]
+    assert start["start"] == "nominal"
+    assert start["log_posterior"]["nominal"] > start["log_posterior"]["flat_map"] + 1.0
