@@ -237,7 +237,7 @@ def sandwich_markdown(docs) -> str:
         for r in d["rows"]:
             rel = "" if r["relative_median"] is None else f" [{r['relative_median']:.2f}]"
             cells.append(f"{r['std_ratio_median']:.2f} ({r['std_ratio_max']:.2f}){rel}, L={r['lags']}")
-        st = d["stated_std"]
+        st = np.ravel(d["stated_std"])
         L.append(f"| clock-{d['seed']:03d} | " + " | ".join(cells) +
                  f" | {d['misfit_rms']:.3f} / {min(st):.3f}–{max(st):.3f} |")
     return "\n".join(L) + "\n"
@@ -298,7 +298,7 @@ def markdown(cases, cmd, secs) -> str:
 def mimu_markdown(rows) -> str:
     if not rows:
         return ""
-    L = ["## The six MIMU experiments: which start the noise step keeps", "",
+    L = ["", "## The six MIMU experiments: which start the noise step keeps", "",
          "calibrate's noise step (`_estimate_noise`, estimated noise, empirical φ prior) on each experiment, "
          "without and (with `--reports`) with its own report's fused gyro posterior. Δ = log posterior "
          "from the design − from the flat MAP (nats); the design start is kept only where Δ > "

@@ -282,7 +282,7 @@ def _prior_map(acc_s, w_s, P_s, std, flat, reference, nominal_acc, prior_std, pr
     Why two starts: under the flat prior the Occam term −(T/2)·log|M(θ)| falls by 3 nats per sample
     for each e-fold the array shrinks (M's ω̇ block scales with |θ|²); where the fitted noise is as
     large as the centripetal signal (vibration and impacts, concealed clock recordings clock-001,
-    -002, -009, -010, -019) it outweighs the data and the flat MAP collapses to θ ≈ 0, and the
+    -002, -009, -010, -018, -019) it outweighs the data and the flat MAP collapses to θ ≈ 0, and the
     proper-prior refit warm-started there stops in a reflected (scale −0.6…−0.85) or mis-sized
     (×0.5, ×1.6) mode thousands of nats below the one reached from the design
     (``experiments/vibgeom_probe.md``)."""
