@@ -258,7 +258,9 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, phi_prior="flat"
     std = np.asarray(nm.std, dtype=np.float64)
     prior, phi_record = _phi_prior_step(acc_s, w_s, std, nominal_acc, phi_prior)
     if prior is not None and bool(torch.isfinite(torch.as_tensor(res.theta)).all()):
-        res, phi_record["map_start"] = _prior_map(acc_s, w_s, P_s, std, res, lik.reference, nominal_acc, prior_std, prior)
+        res, start = _prior_map(acc_s, w_s, P_s, std, res, lik.reference, nominal_acc, prior_std, prior)
+        if start["start"] == "nominal":  # recorded where it changes the result: elsewhere the settings stay as they were
+            phi_record["map_start"] = start
     temper = _temper_step(acc_s, w_s, P_s, std, res, lik.reference, nominal_acc, prior_std, prior, inflate)
     kappa = temper.kappa
     new = TemperedLikelihood(acc_s, GyroPosterior(w_s, P_s, lik.omega.method), std * math.sqrt(kappa), 1, kappa,
