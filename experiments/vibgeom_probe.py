@@ -56,14 +56,14 @@ ROWS = {
 }
 
 
-def _recording(seed, kw, **extra):
+def _recording(seed, kw, duration=20.0, **extra):
     """The case as ``percov_conceal`` builds it (intrinsics known, mounted nominal), with ``kw``'s pieces."""
     from experiments.clockgen import draw_case
     from experiments.percov_conceal import known_acc_intrinsics, mounted
 
     kw = dict(kw, **extra)
     kind = kw.pop("kind", "clock")
-    rec, truth = draw_case(kind, seed, duration=20.0, **kw)
+    rec, truth = draw_case(kind, seed, duration=duration, **kw)
     rec = known_acc_intrinsics(rec, truth)
     rec, pos = mounted(rec, truth, MOUNT_STD, seed)
     return rec, truth, pos
@@ -128,11 +128,11 @@ def _hat(v):
                      np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
 
 
-def misfit(seed, kw) -> dict:
+def misfit(seed, kw, duration=20.0) -> dict:
     """Noise-free projected misfit and centripetal signal RMS (m/s²) at the true positions (docstring)."""
     from experiments.clockgen import quat_to_matrix
 
-    rec, truth, _ = _recording(seed, kw, noise=False, quantised=False, errors=False)
+    rec, truth, _ = _recording(seed, kw, duration, noise=False, quantised=False, errors=False)
     pos = np.asarray(truth["position"], dtype=np.float64)
     K = len(pos)
     Q = np.array([quat_to_matrix(q) for q in truth["orientation"]])
