@@ -220,6 +220,49 @@ def sandwich_split(seed: int, out: Path) -> dict:
     return doc
 
 
+def estimated_noise(seed: int, out: Path, conceal: Path) -> dict:
+    """Class (2): ``calibrate --model`` of a no-rest case with its cached report (``conceal``:
+    percov_conceal's folder) with the noise levels estimated (``noise="estimate"``, untempered: the
+    model refuses κ) instead of the stated σ; scored as percov_conceal scores (2 × (300 + 400), seed 0)."""
+    from accel_bayes.data.outputs import write_json
+    from accel_bayes.pipelines.calibrate import calibrate
+    from experiments.percov_conceal import score
+
+    f = out / f"estimate-clock-{seed:03d}.json"
+    if f.exists():
+        return json.loads(f.read_text())
+    rec, _, pos = _recording(seed, {})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        res = calibrate(rec, chains=2, draws=400, warmup=300, seed=0, progress=False,
+                        model=conceal / f"clock-{seed:03d}" / "report.json", noise="estimate")
+    sc = score(res.positions, pos)
+    z = np.asarray(sc["z"])
+    doc = {"seed": seed, "z": sc["z"], "z_rms": float(np.sqrt(np.mean(z ** 2))), "max_abs_z": float(np.abs(z).max()),
+           "noise_std": (res.settings.get("noise_model") or {}).get("std")}
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(f, doc)
+    print(f"estimate clock-{seed:03d}: z RMS {doc['z_rms']:.2f}, max {doc['max_abs_z']:.2f}", flush=True)
+    return doc
+
+
+def estimate_markdown(docs, conceal: Path) -> str:
+    if not docs:
+        return ""
+    z = np.concatenate([d["z"] for d in docs])
+    L = ["", "## Class (2) with the noise levels estimated instead of stated", "",
+         f"`calibrate(rec, model=report.json, noise=\"estimate\")` (`estimated_noise`; reports from `{conceal.name}/`), "
+         "untempered; against percov_conceal.md's **with** column (stated σ).", "",
+         "| case | z RMS | max \\|z\\| | beyond 4 | fitted σ (m/s², min–max) |", "|---|---|---|---|---|"]
+    for d in docs:
+        zz = np.asarray(d["z"])
+        ns = d["noise_std"] or [float("nan")]
+        L.append(f"| clock-{d['seed']:03d} | {d['z_rms']:.2f} | {d['max_abs_z']:.2f} | {int((np.abs(zz) > 4).sum())}/{zz.size} "
+                 f"| {min(ns):.3f}–{max(ns):.3f} |")
+    L.append(f"| pooled | {np.sqrt(np.mean(z ** 2)):.2f} | {np.abs(z).max():.2f} | {int((np.abs(z) > 4).sum())}/{z.size} | |")
+    return "\n".join(L) + "\n"
+
+
 def sandwich_markdown(docs) -> str:
     if not docs:
         return ""
@@ -315,6 +358,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="1,2,9,10,19")
     ap.add_argument("--sandwich", default="", help="comma-separated no-rest seeds for sandwich_split")
+    ap.add_argument("--estimate", default="", help="comma-separated no-rest seeds for estimated_noise")
+    ap.add_argument("--conceal", type=Path, default=ROOT / "out" / "percov_conceal",
+                    help="percov_conceal's case folder (its cached reports)")
     ap.add_argument("--mimu", default="", help="comma-separated MIMU experiments for mimu_start")
     ap.add_argument("--reports", type=Path, default=None,
                     help="folder of the MIMU reports (exp_N/report.json) for the --model path")
@@ -326,6 +372,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     cases = [run(int(s), args.out) for s in args.seeds.split(",") if s.strip()]
     sand = [sandwich_split(int(x), args.out) for x in args.sandwich.split(",") if x.strip()]
+    est = [estimated_noise(int(x), args.out, args.conceal) for x in args.estimate.split(",") if x.strip()]
     mimu = []
     for e in [int(x) for x in args.mimu.split(",") if x.strip()]:
         mimu.append(mimu_start(e, None, args.out))
@@ -334,9 +381,11 @@ def main(argv=None) -> int:
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/vibgeom_probe.py --seeds " + args.seeds
     if sand:
         cmd += f" --sandwich {args.sandwich}"
+    if est:
+        cmd += f" --estimate {args.estimate}"
     if mimu:
         cmd += f" --mimu {args.mimu}" + (f" --reports {args.reports}" if args.reports else "")
-    write_text(DOC, markdown(cases, cmd, time.perf_counter() - t0) + sandwich_markdown(sand) + mimu_markdown(mimu) + "\n" + READING_MARKER
+    write_text(DOC, markdown(cases, cmd, time.perf_counter() - t0) + sandwich_markdown(sand) + estimate_markdown(est, args.conceal) + mimu_markdown(mimu) + "\n" + READING_MARKER
                + (kept_reading(DOC) or "\n"))
     print(DOC.read_text())
     return 0
