@@ -57,7 +57,7 @@ from .calibrate_options import CalibrateOptions
 from .calibrate_model import _model_gyro_step, _model_percov_step, _percov_sandwich_record, _sandwich_record
 from .calibrate_steps import (  # noqa: F401
     _central_step, _chains_fingerprint, _chains_step, _check_resume, _convergence_settings, _coordinate_names,
-    _load_step, _map_step, _model_option, _noise_step, _prepare_step, _recording_hash, _start_step, noise_mode_for)
+    _load_step, _map_step, _model_option, _noise_step, _prepare_step, _recording_hash, _start_step)
 
 __all__ = ["calibrate", "CalibrateOptions", "CalibrationResult", "write_outputs", "positions_document", "DEFAULTS"]
 
@@ -150,7 +150,7 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
         pre = _prepare_step(raw, opts)
         rec = pre.recording
-        noise_mode = noise_mode_for(opts.noise, pre.has_rests, cmodel is not None)
+        noise_mode = ("estimate" if pre.has_rests else "stated") if opts.noise == "auto" else opts.noise
         gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if opts.gyro_method == "auto" \
             else opts.gyro_method
         if cmodel is not None:

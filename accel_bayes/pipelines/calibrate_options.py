@@ -151,8 +151,8 @@ class CalibrateOptions:
         at the MAP (what the fitted white-noise model still misses: heteroscedasticity, errors
         shared by the triads of a sample); "auto" (default) — "estimate" for a recording with
         rests (the real-data protocol: its stated σ is the rest noise, which does not cover
-        model error during motion) or calibrated with a ``model``, "stated" otherwise
-        (simulations whose stated σ is the truth).  What was estimated is in ``settings["noise_model"]``.
+        model error during motion), "stated" otherwise (simulations whose stated σ is the
+        truth).  What was estimated is in ``settings["noise_model"]``.
     noise_bins : quantile bins of |ω̄| for a rate-dependent noise factor (default 1 = one level
         per triad; see :mod:`accel_bayes.model.noise` for why more bins are not the default).
     noise_inflation : temper by the sandwich factor κ ≥ 1 (estimated noise only).  None (default):

@@ -373,19 +373,6 @@ def _prepare_step(raw, opts: CalibrateOptions):
                       min_rotation=opts.min_rotation, select=opts.select)
 
 
-def noise_mode_for(noise: str, has_rests: bool, has_model: bool) -> str:
-    """The noise mode ``calibrate`` runs: ``noise`` itself unless "auto", then "estimate" for a recording
-    with rests or calibrated with a mismatch report, "stated" otherwise.
-
-    Why a report makes it "estimate": a report says the recording has physics the white stated σ does
-    not cover, and without rests there is no κ to hide it.  On the 7 concealed clock recordings without
-    rests the stated σ (the generator's white 0.02–0.06 m/s²) left ``--model`` overconfident (error/std
-    RMS 9.1, sandwich/Laplace ratio 6–10 at the channel level, ``experiments/vibgeom_probe.md``)."""
-    if noise != "auto":
-        return noise
-    return "estimate" if has_rests or has_model else "stated"
-
-
 def _noise_step(lik, nominal_acc, ps, noise_mode, opts: CalibrateOptions) -> NoiseStep:
     """Step 3, noise and the prior on φ: with ``noise_mode`` "estimate" the noise model fitted with
     the MAP (and the tempered likelihood of that target, :func:`_estimate_noise`); "stated" keeps
