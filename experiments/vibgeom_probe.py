@@ -252,8 +252,8 @@ def estimate_markdown(docs, conceal: Path) -> str:
     z = np.concatenate([d["z"] for d in docs])
     L = ["", "## Class (2) with the noise levels estimated instead of stated", "",
          f"`calibrate(rec, model=report.json, noise=\"estimate\")` (`estimated_noise`; reports from `{conceal.name}/`), "
-         "untempered: what `calibrate --model`'s noise \"auto\" now does on a recording without rests (before: the "
-         "stated σ; those figures are in percov_conceal.md's reading).", "",
+         "untempered: `calibrate --model report.json --noise estimate`. The default \"auto\" uses the stated σ on a "
+         "recording without rests (percov_conceal.md's **with** column).", "",
          "| case | z RMS | max \\|z\\| | beyond 4 | fitted σ (m/s², min–max) |", "|---|---|---|---|---|"]
     for d in docs:
         zz = np.asarray(d["z"])
