@@ -286,7 +286,7 @@ def _prior_map(acc_s, w_s, P_s, std, flat, reference, nominal_acc, prior_std, pr
     large as the centripetal signal (vibration and impacts, concealed clock recordings clock-001,
     -002, -009, -010, -018, -019) it outweighs the data and the flat MAP collapses to θ ≈ 0, and the
     proper-prior refit warm-started there stops in a reflected (scale −0.6…−0.85) or mis-sized
-    (×0.5, ×1.6) mode thousands of nats below the one reached from the design
+    (×0.5, ×1.6, ×2.1) mode thousands of nats below the one reached from the design
     (``experiments/vibgeom_probe.md``)."""
     from ..inference.map import fit_map
 
