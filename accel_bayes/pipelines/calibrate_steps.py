@@ -258,12 +258,9 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, phi_prior="flat"
     std = np.asarray(nm.std, dtype=np.float64)
     prior, phi_record = _phi_prior_step(acc_s, w_s, std, nominal_acc, phi_prior)
     if prior is not None and bool(torch.isfinite(torch.as_tensor(res.theta)).all()):
-        from ..inference.map import fit_map
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            res = fit_map(acc_s, w_s, P_s, std, reference=lik.reference, prior_mean=nominal_acc, prior_std=prior_std,
-                          init_positions=res.positions, init_omega=res.omega, on_divergence="ignore", phi_prior=prior)
+        res, start = _prior_map(acc_s, w_s, P_s, std, res, lik.reference, nominal_acc, prior_std, prior)
+        if start["start"] == "nominal":  # recorded where it changes the result: elsewhere the settings stay as they were
+            phi_record["map_start"] = start
     temper = _temper_step(acc_s, w_s, P_s, std, res, lik.reference, nominal_acc, prior_std, prior, inflate)
     kappa = temper.kappa
     new = TemperedLikelihood(acc_s, GyroPosterior(w_s, P_s, lik.omega.method), std * math.sqrt(kappa), 1, kappa,
@@ -271,6 +268,41 @@ def _estimate_noise(lik, nominal_acc, prior_std, bins, inflate, phi_prior="flat"
                              prepared=lik.prepared)
     return NoiseStep(lik=new, phi_prior=phi_record, noise=nm, noise_model={**nm.to_dict(), **temper.record},
                      map=_usable_map(temper.result))
+
+
+#: nats by which the refit from the nominal design must beat the warm start to replace it: LM
+#: round-off between two fits of one mode is far below this, a different mode far above
+MODE_MARGIN_NATS = 1.0
+
+
+def _prior_map(acc_s, w_s, P_s, std, flat, reference, nominal_acc, prior_std, prior):
+    """The MAP under the proper φ prior, fitted from the flat-φ MAP ``flat`` (warm start) and from
+    the nominal design; the one with the higher log posterior (the nominal start only where it wins
+    by more than :data:`MODE_MARGIN_NATS`).  Returns (result, record): the record names the start kept
+    ("flat_map" or "nominal") and both log posteriors (nats, θ-free constants dropped).
+
+    Why two starts: under the flat prior the Occam term −(T/2)·log|M(θ)| falls by 3 nats per sample
+    for each e-fold the array shrinks (M's ω̇ block scales with |θ|²); where the fitted noise is as
+    large as the centripetal signal (vibration and impacts, concealed clock recordings clock-001,
+    -002, -009, -010, -018, -019) it outweighs the data and the flat MAP collapses to θ ≈ 0, and the
+    proper-prior refit warm-started there stops in a reflected (scale −0.6…−0.85) or mis-sized
+    (×0.5, ×1.6, ×2.1) mode thousands of nats below the one reached from the design
+    (``experiments/vibgeom_probe.md``)."""
+    from ..inference.map import fit_map
+
+    fits = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for name, init, init_w in (("flat_map", flat.positions, flat.omega), ("nominal", nominal_acc, None)):
+            fits.append((name, fit_map(acc_s, w_s, P_s, std, reference=reference, prior_mean=nominal_acc,
+                                       prior_std=prior_std, init_positions=init, init_omega=init_w,
+                                       on_divergence="ignore", phi_prior=prior)))
+    (_, warm), (_, nom) = fits
+    record = {"log_posterior": {name: float(f.log_posterior) for name, f in fits}}
+    ok = math.isfinite(nom.log_posterior) and bool(torch.isfinite(torch.as_tensor(nom.theta)).all())
+    if ok and (not math.isfinite(warm.log_posterior) or nom.log_posterior > warm.log_posterior + MODE_MARGIN_NATS):
+        return nom, {"start": "nominal", **record}
+    return warm, {"start": "flat_map", **record}
 
 
 def _temper_step(acc_s, w_s, P_s, std, res, reference, nominal_acc, prior_std, prior, inflate) -> TemperStep:

@@ -26,6 +26,9 @@ F_INT = 1000.0          # Hz, nominal internal sampling rate (MPU-6050/9150 with
 HOST_RATES = (62.5, 100.0, 125.0, 200.0, 250.0)
 RIG_RATES = (100.0, 125.0, 200.0, 250.0, 400.0)
 ACC_RANGE, GYRO_RANGE = 16 * G0, np.deg2rad(2000.0)
+#: the :class:`~.motion.Motion` pieces ``draw_case(drop=...)`` can remove: rotational / translational
+#: vibration, rotational / translational impacts
+MOTION_PIECES = ("rot_vib", "pos_vib", "rot_imp", "pos_imp")
 T_PRE = 0.2             # s of internal ticks before the first read: the filter settles at rest
 
 
@@ -104,7 +107,7 @@ def _linear_errors(rng, K, gyro_linear, clean):
 
 def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_linear=None,
               filtered=True, noise=True, quantised=True, vibration=True, errors=True, drift=None,
-              read_jitter=None, n_imu=None, rot_axes=(0, 1, 2), read_jitter_max=None):
+              read_jitter=None, n_imu=None, rot_axes=(0, 1, 2), read_jitter_max=None, drop=()):
     """A seeded blind-test case: returns (Recording, truth dict).
 
     ``clock`` / ``twin`` / ``clean`` on ``board_name`` (default: by seed among 'mimu4444',
@@ -120,6 +123,9 @@ def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_l
     jitter on or off (None: by seed); ``read_jitter_max`` (s) replaces the drawn upper end of the
     read latency where the jitter is on (a bus whose reads wait longer than 30 µs).  ``rot_axes`` (rigs): the array axes the rig rotates
     about — (2,) gives an under-excited rig (rotation about z only).  The exact motion is :func:`motion_of` (truth).
+    ``drop``: motion pieces removed after the draw (a subset of :data:`MOTION_PIECES`), for ablations
+    in which every other draw — hand motion, clocks, errors, noise — stays the same (``vibration=False``
+    also skips the impacts' draws, which moves the hand motion's).
     """
     if kind == "rig":
         from .rig import draw_rig
@@ -134,7 +140,7 @@ def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_l
     pos, Q = board(board_name)
     K = len(pos)
     clean = kind == "clean"
-    motion = motion_of({"seed": seed, "duration": duration, "vibration": vibration and not clean})
+    motion = motion_of({"seed": seed, "duration": duration, "vibration": vibration and not clean, "drop": list(drop)})
     acc_err, gyro_err = _linear_errors(np.random.default_rng([seed, 2]), K, gyro_linear, clean or not errors)
     if not noise:
         for e in acc_err + gyro_err:
@@ -192,7 +198,7 @@ def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_l
     truth = {
         "generator": "experiments/clockgen", "kind": kind, "seed": int(seed), "board": board_name,
         "f_host": f_host, "duration": duration, "gyro_linear": gyro_linear,
-        "vibration": vibration and not clean,
+        "vibration": vibration and not clean, "drop": list(drop),
         "clock": {"f_int_nominal": [c.f_int for c in clocks], "eps": [c.eps for c in clocks],
                   "phase": [c.phase for c in clocks], "drift_amp": [c.a for c in clocks],
                   "drift_period": [c.P for c in clocks], "drift_phase": [c.psi for c in clocks],
@@ -211,8 +217,13 @@ def draw_case(kind, seed, *, board_name=None, duration=20.0, f_host=None, gyro_l
 def motion_of(truth):
     """The exact :class:`~.motion.Motion` of a case from its truth (seed, duration, vibration)."""
     vib = bool(truth.get("vibration", True))
-    return draw_motion(np.random.default_rng([truth["seed"], 1]), truth["duration"], vibration=vib, impacts=vib,
-                       rot_axes=tuple(truth.get("rot_axes", (0, 1, 2))))
+    motion = draw_motion(np.random.default_rng([truth["seed"], 1]), truth["duration"], vibration=vib, impacts=vib,
+                         rot_axes=tuple(truth.get("rot_axes", (0, 1, 2))))
+    for piece in truth.get("drop", ()):
+        if piece not in MOTION_PIECES:
+            raise ValueError(f"drop: {piece!r} is not one of {MOTION_PIECES}")
+        setattr(motion, piece, None)
+    return motion
 
 
 def write_case(rec, truth, path):

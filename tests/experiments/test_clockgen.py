@@ -250,3 +250,19 @@ def test_register_holds_the_filtered_sample_of_the_latest_tick():
         # what is left is the filter's departure from a pure delay on the 0.1–7 Hz hand band (≈ 7e-5
         # of full scale on gyro, 2e-5 on acc, measured)
         assert err["age"] < 2e-4 * scale and err["no age"] > 50 * err["age"], (s, err)
+
+
+def test_drop_removes_one_motion_piece_and_keeps_every_other_draw():
+    # vibration=False skips the impacts' draws and so moves the hand motion; drop must not: the
+    # rotation vector without the rotational vibration differs from the full one by exactly the
+    # gated vibration term, and the translation is untouched
+    full = motion_of({"seed": 7, "duration": 20.0})
+    less = motion_of({"seed": 7, "duration": 20.0, "drop": ["rot_vib"]})
+    t = np.linspace(0.0, 20.0, 8001)
+    np.testing.assert_allclose(full.at(t)["phi"] - less.at(t)["phi"], full._gated(full.rot_vib, t)[0], atol=1e-12)
+    np.testing.assert_array_equal(full.at(t)["p"], less.at(t)["p"])
+    assert np.abs(full._gated(full.rot_vib, t)[0]).max() > 1e-4  # rad: there was vibration to remove
+    rec, truth = cg.draw_case("clock", 7, duration=1.0, drop=("pos_imp",))
+    assert truth["drop"] == ["pos_imp"]
+    with pytest.raises(ValueError, match="drop: 'rot_vibe'"):
+        cg.draw_case("clock", 7, duration=1.0, drop=("rot_vibe",))
