@@ -106,7 +106,8 @@ def register(sub) -> None:
     g.add_argument("--noise", choices=("auto", "stated", "estimate"), default=DEFAULTS["noise"],
                    help="accelerometer noise: the recording's stated std, or estimated from the data (a level per "
                         "IMU x a factor per gyro-rate bin, type-II ML at the MAP, inflated by the sandwich factor); "
-                        "'auto' (default): estimate for recordings with rests, stated otherwise")
+                        "'auto' (default): estimate for recordings with rests or with a --model report that has an "
+                        "'unexplained' finding, stated otherwise")
     g.add_argument("--noise-bins", type=opt.count(1), default=DEFAULTS["noise_bins"], metavar="B",
                    help="gyro-rate bins of the estimated noise model (default %(default)s; 1 = one level per IMU)")
     g.add_argument("--no-noise-inflation", action="store_true",

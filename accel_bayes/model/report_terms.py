@@ -102,6 +102,8 @@ class CalibrationModel:
     used, skipped : [{"finding", "effect", "imu", "sensor", "how"/"why"}] per finding.
     report : the report's document as read (what :func:`unresolved_terms` reads again at the samples).
     unresolved : the report has an ``unresolved_motion`` finding: the per-sample covariance is used.
+    unexplained : the report has an ``unexplained`` finding (a misfit none of its effects explains):
+        calibrate's noise "auto" then estimates the levels (``CalibrateOptions.noise_mode``).
     """
 
     source: str | None
@@ -113,6 +115,7 @@ class CalibrationModel:
     skipped: list = field(default_factory=list)
     report: dict = field(default_factory=dict, repr=False)
     unresolved: bool = False
+    unexplained: bool = False
 
     def check_recording(self, rec) -> None:
         """Refuse (one-line :class:`UserError` naming the field) a report that was not made on
@@ -166,6 +169,7 @@ def load_model(model) -> CalibrationModel:
         sensor = f.get("sensor") or params.get("sensor")
         row = {"finding": i, "effect": name, "imu": imu, "sensor": sensor}
         if name == "unexplained":
+            out.unexplained = True
             out.skipped.append({**row, "why": "no model: an unexplained excess names no physics to put in the "
                                               "likelihood (the type-II ML noise level and the sandwich cover it)"})
             continue

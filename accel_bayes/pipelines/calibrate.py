@@ -150,7 +150,7 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
         pre = _prepare_step(raw, opts)
         rec = pre.recording
-        noise_mode = ("estimate" if pre.has_rests else "stated") if opts.noise == "auto" else opts.noise
+        noise_mode = opts.noise_mode(pre.has_rests, cmodel is not None and cmodel.unexplained)
         gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if opts.gyro_method == "auto" \
             else opts.gyro_method
         if cmodel is not None:
