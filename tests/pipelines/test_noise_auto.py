@@ -9,21 +9,19 @@ import warnings
 import numpy as np
 import pytest
 
-from experiments import _conceal as C
 from accel_bayes.pipelines.calibrate import calibrate
 from accel_bayes.pipelines.calibrate_options import CalibrateOptions
-from tests.model.test_calibrate_model import SHORT, _report
+from experiments.noise_auto import minimal_report, standin_case
 
-STATED, TRUE = 0.005, 0.05  # m/s²: the recording states 5 mm/s², its accelerometers carry 50 mm/s²
+SHORT = dict(chains=1, draws=20, warmup=20, seed=0, progress=False)
+TRUE = 0.05  # m/s²: standin_case's accelerometer noise; the recording states 0.005
 
 
 @pytest.fixture(scope="module")
 def overconfident():
     """mimu8 at 100 Hz, no rests (continuous motion), white accelerometer noise 10× the stated σ:
     the stand-in for the concealed clock recordings' vibration seen through the data ages."""
-    case = C.make_case("mimu8", "none", seed=11, T=600, rate=100.0, sigma_a=STATED)
-    rec = case.recording
-    rec.acc = np.array(rec.acc) + np.random.default_rng(11).normal(0.0, np.sqrt(TRUE**2 - STATED**2), rec.acc.shape)
+    rec, _, _ = standin_case()
     return rec
 
 
@@ -36,7 +34,7 @@ def _run(rec, report, **kw):
 def test_an_unexplained_finding_makes_auto_estimate(overconfident):
     """The old rule ran on the stated σ: sandwich/Laplace std ratio ≈ σ_true/σ_stated = 10."""
     rec = overconfident
-    r = _run(rec, _report(rec, [("unexplained", 0, {"chi2_ratio": 100.0, "scales_with": "nothing"})]))
+    r = _run(rec, minimal_report(rec, [("unexplained", 0, {"chi2_ratio": 100.0, "scales_with": "nothing"})]))
     assert r.settings["noise"] == "estimate" and r.settings["noise_inflation"] is False
     std = np.asarray(r.settings["noise_model"]["std"])
     np.testing.assert_allclose(std, TRUE, rtol=0.1)
@@ -46,7 +44,7 @@ def test_an_unexplained_finding_makes_auto_estimate(overconfident):
 def test_a_report_without_unexplained_keeps_the_stated_noise(overconfident):
     """No ``unexplained`` finding: the stated σ, so the overconfidence shows in the recorded sandwich."""
     rec = overconfident
-    r = _run(rec, _report(rec, []))
+    r = _run(rec, minimal_report(rec, []))
     assert r.settings["noise"] == "stated" and "noise_model" not in r.settings
     assert r.settings["model"]["sandwich"]["std_ratio_max"] > 5.0
 
