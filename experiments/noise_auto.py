@@ -18,10 +18,16 @@ accelerometer levels (type-II ML at the MAP, untempered: a model refuses κ) whe
   ``calibrate(rec, model=report.json, noise="stated")``, what "auto" ran before) and after
   (``with.json``, ``percov_conceal.py`` rerun on this code).
 
+* **c21** (``--c21 N``) — the first N clean time-series replicates of ``c21_coverage.py --motion
+  smooth`` (:func:`c21_coverage.replicate_pipeline`'s data, seeds and prior), calibrated without a
+  model and with its forced-terms report, by "auto" (what the committed coverage ran) and by
+  ``noise="estimate"``: the noise mode and whether the two-start MAP kept the design start
+  (``settings.phi_prior.map_start``, present only then).  1 chain × (10 + 10): the settings only.
+
 z = (posterior mean − truth) / posterior std per free coordinate (``percov_conceal.score``).  Every
 row is cached in ``--out``.
 
-    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/noise_auto.py
+    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/noise_auto.py --c21 12
 """
 from __future__ import annotations
 
@@ -103,6 +109,43 @@ def sim_row(name: str, rec, pos, report: dict, noise: str, out: Path) -> dict:
     return doc
 
 
+def c21_row(i: int, out: Path) -> dict:
+    """Replicate ``i`` of c21_coverage's smooth study: noise mode and map_start per variant (module docstring)."""
+    import torch
+
+    from accel_bayes.data.outputs import write_json
+    from accel_bayes.pipelines.calibrate import calibrate
+    from accel_bayes.simulate import simulate
+    from experiments import c21_coverage as cc
+    from experiments.forced_terms import forced_report
+
+    f = out / f"c21-{i:03d}.json"
+    if f.exists():
+        return json.loads(f.read_text())
+    arr = cc.square_board(cc.SMOOTH_ACC_STD)
+    g = torch.Generator().manual_seed(10_000 + i)  # replicate_pipeline's draw of the truth
+    true = arr.positions.clone()
+    true[1:] += cc.DEFAULT_PRIOR_STD * torch.randn(3, 3, generator=g, dtype=torch.float64)
+    rec = simulate(arr, "smooth", 1000, cc.SMOOTH_RATE, seed=20_000 + i, true_positions=true, clip=False).recording
+    doc = {"i": i, "variants": {}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rep = forced_report(rec)
+        doc["report_unexplained"] = any(x["effect"] == "unexplained" for x in rep["findings"])
+        for name, kw in (("none", {}), ("forced", {"model": rep}), ("none estimate", {"noise": "estimate"}),
+                         ("forced estimate", {"model": rep, "noise": "estimate"})):
+            r = calibrate(rec, chains=1, draws=10, warmup=10, seed=i, init="prior", prior_std=cc.DEFAULT_PRIOR_STD,
+                          progress=False, **kw)
+            pp = r.settings.get("phi_prior")
+            doc["variants"][name] = {"noise": r.settings["noise"],
+                                     "map_start": pp.get("map_start") if isinstance(pp, dict) else None}
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(f, doc)
+    print(f"c21 replicate {i}: " + ", ".join(f"{k} {v['noise']} {v['map_start'] is not None}"
+                                            for k, v in doc["variants"].items()), flush=True)
+    return doc
+
+
 def class2_rows(conceal: Path) -> list[dict]:
     """Per no-rest case: the ``with`` calibration on the stated σ (before) and with "auto" now (after)."""
     rows = []
@@ -128,7 +171,24 @@ def _z(z) -> str:
     return f"{np.sqrt(np.mean(z**2)):.2f} / {np.abs(z).max():.2f} / {int((np.abs(z) > 4).sum())}/{z.size}"
 
 
-def markdown(sims: dict, c2: list[dict], cmd: str, secs: float) -> str:
+def c21_markdown(rows: list[dict]) -> list[str]:
+    if not rows:
+        return []
+    names = list(rows[0]["variants"])
+    L = ["", f"## Clean c21 smooth replicates 0–{len(rows) - 1}: the noise mode and the design start", "",
+         "Per variant: how many replicates ran on each noise mode, and on how many the two-start MAP kept the "
+         "design start (`settings.phi_prior.map_start` present). Reports with an `unexplained` finding: "
+         f"{sum(r['report_unexplained'] for r in rows)}/{len(rows)}.", "",
+         "| variant | noise modes | design start kept |", "|---|---|---|"]
+    for n in names:
+        modes = sorted({r["variants"][n]["noise"] for r in rows})
+        counts = ", ".join(f"{m} {sum(r['variants'][n]['noise'] == m for r in rows)}" for m in modes)
+        kept = sum(r["variants"][n]["map_start"] is not None for r in rows)
+        L.append(f"| {n} | {counts} | {kept}/{len(rows)} |")
+    return L
+
+
+def markdown(sims: dict, c2: list[dict], c21: list[dict], cmd: str, secs: float) -> str:
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     L = ["# noise_auto — calibrate --model on recordings without rests: stated or estimated noise (issue #30 item 4)", "",
          f"Regenerate: `{cmd}` ({now}, {platform.machine()} {platform.system()}, shared 2-core CPU, nice 5; rows cached in "
@@ -162,7 +222,7 @@ def markdown(sims: dict, c2: list[dict], cmd: str, secs: float) -> str:
         zb = np.concatenate([r["before"]["z"] for r in c2])
         za = np.concatenate([r["after"]["z"] for r in c2])
         L.append(f"| pooled | {_z(zb)} → {_z(za)} | | |")
-    return "\n".join(L) + "\n"
+    return "\n".join(L + c21_markdown(c21)) + "\n"
 
 
 def main(argv=None) -> int:
@@ -170,6 +230,7 @@ def main(argv=None) -> int:
     ap.add_argument("--conceal", type=Path, default=ROOT / "out" / "percov_conceal",
                     help="percov_conceal's case folder (its cached with.json / with_stated.json)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "noise_auto")
+    ap.add_argument("--c21", type=int, default=0, help="clean c21 smooth replicates 0..N-1 to check (default 0: none)")
     args = ap.parse_args(argv)
     from accel_bayes.data.outputs import write_text
     from experiments._reading import READING_MARKER, kept_reading
@@ -184,9 +245,10 @@ def main(argv=None) -> int:
     for noise in ("stated", "auto"):
         sims[f"standin-{noise}"] = sim_row(f"standin-{noise}", rec, pos, reps["unexplained"], noise, args.out)
     c2 = class2_rows(args.conceal)
+    c21 = [c21_row(i, args.out) for i in range(args.c21)]
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/noise_auto.py" + "".join(
         f" {a}" for a in (argv if argv is not None else sys.argv[1:]))
-    write_text(DOC, markdown(sims, c2, cmd, time.perf_counter() - t0) + "\n" + READING_MARKER + (kept_reading(DOC) or "\n"))
+    write_text(DOC, markdown(sims, c2, c21, cmd, time.perf_counter() - t0) + "\n" + READING_MARKER + (kept_reading(DOC) or "\n"))
     print(DOC.read_text())
     return 0
 
