@@ -184,6 +184,9 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         if src is not None:
             settings["input"] = src
         extra = {"preprocess": pre}
+        if opts.noise == "auto" and noise_mode == "estimate" and not pre.has_rests:
+            # the one case the mode is not the recording's own: say where it came from (provenance)
+            settings["noise_auto"] = "estimate: no rests, but the model's report has an 'unexplained' finding"
 
         noise = _noise_step(lik, nominal_acc, ps, noise_mode, opts)
         settings.update(noise.settings())

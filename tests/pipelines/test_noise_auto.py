@@ -36,6 +36,7 @@ def test_an_unexplained_finding_makes_auto_estimate(overconfident):
     rec = overconfident
     r = _run(rec, minimal_report(rec, [("unexplained", 0, {"chi2_ratio": 100.0, "scales_with": "nothing"})]))
     assert r.settings["noise"] == "estimate" and r.settings["noise_inflation"] is False
+    assert "unexplained" in r.settings["noise_auto"]
     std = np.asarray(r.settings["noise_model"]["std"])
     np.testing.assert_allclose(std, TRUE, rtol=0.1)
     assert r.settings["model"]["sandwich"]["std_ratio_max"] < 1.3
@@ -45,7 +46,7 @@ def test_a_report_without_unexplained_keeps_the_stated_noise(overconfident):
     """No ``unexplained`` finding: the stated σ, so the overconfidence shows in the recorded sandwich."""
     rec = overconfident
     r = _run(rec, minimal_report(rec, []))
-    assert r.settings["noise"] == "stated" and "noise_model" not in r.settings
+    assert r.settings["noise"] == "stated" and "noise_model" not in r.settings and "noise_auto" not in r.settings
     assert r.settings["model"]["sandwich"]["std_ratio_max"] > 5.0
 
 
