@@ -50,28 +50,16 @@ SIM_RUN = dict(chains=2, draws=200, warmup=200, seed=0, progress=False)  # the s
 
 def minimal_report(rec, findings) -> dict:
     """A DESIGN §7.2 report of ``rec`` holding ``findings`` [(effect, imu, parameters)] as the detector writes them."""
-    rows = [{"effect": n, "imu": k, "axis": None, "evidence": 100.0, "parameters": dict(p),
-             "where": {"regime": "all", "time_s": None}, "explanation": "experiment finding"} for n, k, p in findings]
-    return {"schema": "accel_bayes.mismatch/1", "mismatch_detected": bool(rows), "threshold": 20.0,
-            "baseline": {"loglik": 0.0, "chi2_per_dof": 1.0, "dof": 1},
-            "refined": {"effects": [r["effect"] for r in rows], "loglik": 0.0, "chi2_per_dof": 1.0} if rows else None,
-            "findings": rows, "details": {"recording": {"K": int(rec.K), "T_given": int(rec.T), "T": int(rec.T)}}}
+    from experiments._reports import minimal_report as build
+
+    return build(findings, rec, explanation="experiment finding")
 
 
 def wander_case():
     """(recording, true positions (K, 3) m, {"clean", "found"} reports): test_calibrate_model's wander case."""
-    from experiments import _conceal as C
+    from experiments._reports import wander_calibration_case
 
-    case = C.make_case("mimu8", "timing_wander", seed=4, T=800, rate=100.0, magnitude=2e-3, sigma_a=0.005)
-    rec, k = case.recording, case.truth["imu"]
-    g = np.array(rec.gyro)
-    g[:, k] += np.random.default_rng(4).normal(0.0, 0.5, (rec.T, 3))
-    rec.gyro = g
-    p = case.truth["parameters"]
-    found = minimal_report(rec, [("timing_wander", k, {"width": p["width"], "correlation": p["correlation"],
-                                                       "excess_noise_var": 0.25, "sensor": "gyro"}),
-                                 ("unexplained", 0, {"chi2_ratio": 5.0, "scales_with": "|omega_dot|"})])
-    return rec, np.asarray(case.truth["true_position"]), {"clean": minimal_report(rec, []), "found": found}
+    return wander_calibration_case()
 
 
 def standin_case():

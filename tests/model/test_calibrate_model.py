@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from experiments import _conceal as C
+from experiments._reports import minimal_report, wander_calibration_case
 from accel_bayes.errors import UserError  # noqa: E402
 from accel_bayes.model.gyro_posterior import gyro_posterior  # noqa: E402
 from accel_bayes.physics.effects import make_effect  # noqa: E402
@@ -20,30 +21,15 @@ SHORT = dict(chains=1, draws=20, warmup=20, seed=0, progress=False)
 
 def _report(rec, findings):
     """A minimal valid DESIGN §7.2 report of ``rec`` with ``findings`` (parameters as the detector writes them)."""
-    rows = [{"effect": name, "imu": imu, "axis": None, "evidence": 100.0, "parameters": dict(params),
-             "where": {"regime": "all", "time_s": None}, "explanation": "test finding"}
-            for name, imu, params in findings]
-    return {"schema": "accel_bayes.mismatch/1", "mismatch_detected": bool(rows), "threshold": 20.0,
-            "baseline": {"loglik": 0.0, "chi2_per_dof": 1.0, "dof": 1},
-            "refined": {"effects": [r["effect"] for r in rows], "loglik": 0.0, "chi2_per_dof": 1.0} if rows else None,
-            "findings": rows, "details": {"recording": {"K": int(rec.K), "T_given": int(rec.T), "T": int(rec.T)}}}
+    return minimal_report(findings, rec, explanation="test finding")
 
 
 @pytest.fixture(scope="module")
 def wander_case():
-    """mimu8 at 100 Hz with a concealed gyro timing wander (2 ms) on one IMU, plus white noise of
-    std 0.5 rad/s on that gyro (the ``excess_noise_var`` part of the real-data findings); accelerometer
-    noise 5 mm/s² so that the gyro error shared by every triad dominates the misspecification."""
-    case = C.make_case("mimu8", "timing_wander", seed=4, T=800, rate=100.0, magnitude=2e-3, sigma_a=0.005)
-    rec, k = case.recording, case.truth["imu"]
-    g = np.array(rec.gyro)
-    g[:, k] += np.random.default_rng(4).normal(0.0, 0.5, (rec.T, 3))
-    rec.gyro = g
-    p = case.truth["parameters"]
-    found = _report(rec, [("timing_wander", k, {"width": p["width"], "correlation": p["correlation"],
-                                                "excess_noise_var": 0.25, "sensor": "gyro"}),
-                          ("unexplained", 0, {"chi2_ratio": 5.0, "scales_with": "|omega_dot|"})])
-    return rec, found, _report(rec, [])
+    """mimu8 at 100 Hz with a concealed gyro timing wander (2 ms) on one IMU
+    (:func:`experiments._reports.wander_calibration_case`): (recording, the wander's report, a clean report)."""
+    rec, _, reports = wander_calibration_case()
+    return rec, reports["found"], reports["clean"]
 
 
 def test_fused_posterior_is_generalized_least_squares():

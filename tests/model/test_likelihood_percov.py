@@ -266,13 +266,9 @@ def test_timing_gyro_posterior_is_the_dense_generalised_least_squares():
 
 
 def _clock_report(findings):
-    rows = [{"effect": name, "imu": imu, "axis": None, "evidence": 100.0, "parameters": dict(params),
-             "where": {"regime": "all", "time_s": None}, "explanation": "test finding"}
-            for name, imu, params in findings]
-    return {"schema": "accel_bayes.mismatch/1", "mismatch_detected": bool(rows), "threshold": 20.0,
-            "baseline": {"loglik": 0.0, "chi2_per_dof": 1.0, "dof": 1},
-            "refined": {"effects": [r["effect"] for r in rows], "loglik": 0.0, "chi2_per_dof": 1.0} if rows else None,
-            "findings": rows}
+    from experiments._reports import minimal_report
+
+    return minimal_report(findings, explanation="test finding")
 
 
 def test_report_terms_read_clock_ages_and_band_scales(monkeypatch):
