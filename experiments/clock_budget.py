@@ -31,6 +31,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent
 OUT = ROOT / "results" / "clock_budget"
+#: the cached cases of the detector before the plate4 fixes (the clock's acc correction scale, two
+#: accelerometer timing references): the document compares the cases rerun since with them
+BEFORE = OUT / "before_e208926"
 if str(ROOT.parent) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT.parent))
 
@@ -171,6 +174,28 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
         for sensor in ("acc", "gyro"):
             cells.append(f"{np.median([r['verdict'][sensor]['all_ratio'] for r in rb]):.2f}")
         L.append(f"| {bd} | " + " | ".join(cells) + " |")
+    before = {r["seed"]: r for r in (json.loads(p.read_text()) for p in sorted(BEFORE.glob("clock-*.json")))}
+    both = [r for r in results if r["seed"] in before]
+    if both:
+        L += ["", f"Before → after on the {len(both)} cases rerun (before: the detector at e208926, cached in "
+              f"`{BEFORE.relative_to(ROOT)}/`): cases passing, bands passing, median b/a of \"all\".", "",
+              "| board | cases | acc bands | gyro bands | acc all | gyro all |", "|---|---|---|---|---|---|"]
+        for bd in sorted({r["board"] for r in both}):
+            pair = [(before[r["seed"]], r) for r in both if r["board"] == bd]
+            cells = [" → ".join(f"{sum(x[i]['verdict']['pass'] for x in pair)}/{len(pair)}" for i in (0, 1))]
+            for sensor in ("acc", "gyro"):
+                cells.append(" → ".join(
+                    f"{sum(band_ok(b) for x in pair for b in x[i]['budget'] if b['sensor'] == sensor and b['regime'] != 'all')}"
+                    f"/{5 * 2 * len(pair)}" for i in (0, 1)))
+            for sensor in ("acc", "gyro"):
+                cells.append(" → ".join(f"{np.median([x[i]['verdict'][sensor]['all_ratio'] for x in pair]):.2f}" for i in (0, 1)))
+            L.append(f"| {bd} | " + " | ".join(cells) + " |")
+        L += ["", "| case | acc all before → after | acc bands passing | gyro bands passing |", "|---|---|---|---|"]
+        for r in both:
+            o = before[r["seed"]]
+            nb = lambda x, sn: sum(band_ok(b) for b in x["budget"] if b["sensor"] == sn and b["regime"] != "all")  # noqa: E731
+            L.append(f"| clock-{r['seed']:03d} ({r['board']}, {r['f_host']:g} Hz) | {o['verdict']['acc']['all_ratio']:.2f} → "
+                     f"{r['verdict']['acc']['all_ratio']:.2f} | {nb(o, 'acc')} → {nb(r, 'acc')} | {nb(o, 'gyro')} → {nb(r, 'gyro')} |")
     regimes = [x["regime"] for x in (results[0]["budget"] if results else []) if x["sensor"] == "acc" and x["regime"] != "all"]
     if regimes:
         L += ["", "Per band: cases passing (of those run), median b/a.", "", "| band | acc pass | acc b/a | gyro pass | gyro b/a |",
