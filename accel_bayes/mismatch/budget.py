@@ -46,8 +46,7 @@ import torch
 from .model import ModelFit
 from .prepared import Prepared
 
-__all__ = ["BANDS", "band_edges", "budget_regimes", "leverage_corrected_sq", "predicted_extra_variance", "residual_budget",
-           "budget_step", "group_power"]
+__all__ = ["BANDS", "band_edges", "budget_regimes", "leverage_corrected_sq", "predicted_extra_variance", "residual_budget", "group_power"]
 
 BANDS = ((0, 25), (25, 50), (50, 75), (75, 90), (90, 100))  # quantile bands, %
 
@@ -133,26 +132,6 @@ def residual_budget(prep: Prepared, baseline: ModelFit, refined: ModelFit | None
                          "excess_var_observed": float(a), "excess_var_explained": float(b), "stated_var": float(s2),
                          "excess_var_observed_se": float(se)})
     return rows
-
-
-def budget_step(prep: Prepared, with_fit: ModelFit, without_fit: ModelFit, sensors=("acc", "gyro")) -> dict:
-    """{sensor: (step, se)}: the b of :func:`residual_budget` (all samples) that the model gains when it
-    grows from ``without_fit`` to ``with_fit``, (mean r̃²_without − mean r̃²_with) + (mean predicted
-    extra variance with − without), units² per channel-sample of the sensor, and its standard error
-    over blocks of consecutive samples (:func:`_ratio_se`).  A term whose refit leaves more of the
-    sensor's excess unexplained than it predicts has a negative step: the refit moved the motion
-    states and the residuals grew beyond the variance the term accounts for."""
-    out = {}
-    sq_w, sq_o = leverage_corrected_sq(prep, with_fit), leverage_corrected_sq(prep, without_fit)
-    pr_w, pr_o = predicted_extra_variance(prep, with_fit), predicted_extra_variance(prep, without_fit)
-    for j, sensor in enumerate(("acc", "gyro")):
-        cnt = (prep.m_acc if sensor == "acc" else prep.m_gyro).sum((1, 2)).detach().cpu().numpy()
-        if sensor not in sensors or cnt.sum() == 0:
-            continue
-        d = (sq_o[j] - sq_w[j] + pr_w[j] - pr_o[j]).sum((1, 2)).detach().cpu().numpy()
-        step = float(d.sum() / cnt.sum())
-        out[sensor] = (step, _ratio_se(d, cnt, step))
-    return out
 
 
 #: consecutive samples of a regime per block of :func:`_ratio_se`: the excess comes in bursts

@@ -149,9 +149,10 @@ def acc_timing_unidentified(effect, model_effects, K: int) -> bool:
     term (they fix the reference, δ = 0).  With one such IMU left, its own timing error is handed to
     every term: the refit follows it exactly (its residual → 0, leverage → 1) and the termed IMUs
     carry δ_k − δ_ref, correlated where the terms are independent.  Concealed clockgen plate4 at
-    100 Hz (clock-010, wanders on 3 of 4 accelerometers): the third term's budget step was −0.037 ± 0.023
-    (m/s²)², the §7.2 acc b/a 0.30 → 0.10 with the top |ω| and |ω̇| bands negative
-    (experiments/clock_budget.md).  With ≥ 2 left the reference is their mean and their own
+    100 Hz (clock-010, wanders on 3 of 4 accelerometers): the reference IMU's acc residual² fell to
+    0.0003 (m/s²)² (stated noise 0.001), the termed ones rose 2–10×, and adding the third term took
+    the §7.2 acc b/a from 0.30 to 0.10 with the top |ω| and |ω̇| bands negative
+    (tests/mismatch/test_acc_timing_anchors.py, experiments/clock_budget.md).  With ≥ 2 left the reference is their mean and their own
     difference stays in the residual, where it is seen.  Binds only on boards with K ≤ 4 at the
     default three rounds."""
     if effect.kind != "random" or "acc" not in random_channels(effect):
