@@ -86,7 +86,7 @@ from .model import ModelFit
 from .prepared import Prepared
 from .wander import fit_wander, sample_steps
 
-__all__ = ["ClockStage", "estimate_clock", "clock_ab", "clock_stage", "clock_ages", "data_age", "clock_corrected", "acc_correction_scale", "physical_beats",
+__all__ = ["ClockStage", "estimate_clock", "clock_ab", "clock_stage", "clock_ages", "data_age", "clock_corrected", "physical_beats",
            "rate_scale", "physical_width", "NOMINAL_INTERNAL_RATE_HZ", "INTERNAL_RATE_TOLERANCE"]
 
 #: the internal sampling rate of an MPU-6050/9150 with its low-pass on (Hz): reports f_k from the beat
@@ -346,38 +346,14 @@ def data_age(clocks, time, K: int) -> torch.Tensor:
 
 def clock_corrected(prep: Prepared, fit: ModelFit, clocks) -> Prepared:
     """``prep`` with every accepted clock's linearised output effect taken off its outputs
-    (y − d, d the :class:`SamplingClock` perturbation at ``fit``'s context: the fit's output rates),
-    the accelerometer's part scaled by :func:`acc_correction_scale` (kept in the clock's
-    ``stats["acc_correction_scale"]``, so every correction of the same clocks is the same)."""
+    (y − d, d the :class:`SamplingClock` perturbation at ``fit``'s context: the fit's output rates)."""
     if not clocks:
         return prep
     ya, yg = prep.y_acc.clone(), prep.y_gyro.clone()
     for c in clocks:
         da, dg = c.perturbation(None, fit.ctx)
-        if "acc_correction_scale" not in c.stats:
-            c.stats["acc_correction_scale"] = acc_correction_scale(prep, fit, c.imu, da)
-        ya, yg = ya - c.stats["acc_correction_scale"] * da, yg - dg
+        ya, yg = ya - da, yg - dg
     return dataclasses.replace(prep, y_acc=ya * prep.m_acc, y_gyro=yg * prep.m_gyro)
-
-
-def acc_correction_scale(prep: Prepared, fit: ModelFit, k: int, d_acc: torch.Tensor) -> float:
-    """μ in [0, 1]: the share of a clock's accelerometer correction ``d_acc`` (T, K, 3) m/s² that IMU
-    k's accelerometer residuals at ``fit`` carry — the restricted GLS slope of the residuals on it,
-    Σ b/Σ a of :func:`accel_bayes.mismatch.jitter.jitter_ab` with d_acc as the direction (projected
-    off the per-sample motion states: a correction the states absorb tells nothing).
-
-    Why: the correction is the data age times the finite difference of the accelerometer outputs
-    (the states hold no jerk), and once the board vibrates above the read's Nyquist rate that
-    difference is the folded line's, −(f′/f) times the true jerk — the gyro's regressor was moved to
-    R_k ω̇ for the same reason (module docstring).  Applied whole, it added the folded error to every
-    clocked accelerometer: on clockgen's plate4 at 100 Hz (clock-010) the acc residual power grew
-    1.5–1.9× on all four IMUs before any round, the §7.2 budget's acc b/a −0.7 (experiments/clock_budget.md).
-    The gyro's own part is unchanged (its regressor and scale are the clock's)."""
-    rate = torch.zeros_like(prep.acc_rate)
-    rate[:, k] = d_acc[:, k]
-    a, b = jitter_ab(dataclasses.replace(prep, acc_rate=rate), fit, k, "acc")
-    sa = float(a.sum())
-    return min(max(float(b.sum()) / sa, 0.0), 1.0) if sa > 0 else 0.0
 
 
 def clock_ab(prep: Prepared, fit: ModelFit, k: int):

@@ -38,8 +38,7 @@ Procedure
    its evidence against no clock *and* against the best AR(1) instant error (``timing_wander``; its
    ρ = 0 end is white jitter) both exceed the stage threshold (the threshold below, or the χ²₄
    look-elsewhere quantile over the (beat, drift) cells searched if larger) and its width is
-   physical.  The recording is corrected for the accepted clocks (the accelerometer's part scaled by
-   the share its residuals carry, :func:`~accel_bayes.mismatch.clock.acc_correction_scale`), which are held fixed from here
+   physical.  The recording is corrected for the accepted clocks, which are held fixed from here
    on like the gyro blocks; one finding per IMU, not counted by ``max_findings``.  Skipped when
    ``effects`` does not name ``sampling_clock``.
 3c. **Filter delay** (:mod:`accel_bayes.mismatch.filter_delay`): the accelerometer's filter delay
@@ -173,7 +172,6 @@ def _stage_findings(prep, reg, stage, clock, fd) -> list[Finding]:
                            extra={"evidence_kind": "2·Δlog L of the gyro's restricted timing statistics, "
                                                    "white-noise factor profiled (mismatch.clock)",
                                   "evidence_vs_wander": float(c.stats["evidence_vs_wander"]),
-                                  "acc_correction_scale": c.stats.get("acc_correction_scale"),
                                   "filter_delay_acc_minus_gyro": fd,
                                   "units": {p.name: p.unit for p in c.parameters}}))
     for e in (stage.blocks if stage is not None else []):
