@@ -33,7 +33,8 @@ beside it.
      effect whose evidence exceeds :data:`RANDOM_DOMINANCE` (10) × the best acceptable mean
      candidate's is taken first (a wandering timing error looks like structure to every mean
      candidate, each explaining a small part of it).  At most one random effect per IMU and
-     sensor is in the model (each is profiled as if alone), and a ``timing_wander`` only where its
+     sensor is in the model (each is profiled as if alone), none on an accelerometer where it would
+     leave fewer than two IMUs without one (:func:`acc_timing_unidentified`), and a ``timing_wander`` only where its
      timing term alone (against the triad's best noise-only fit) passes the threshold.  ``noise_level`` refits of step 5
      are only done in a round where no mean/clip candidate is acceptable (elsewhere the
      round's ``refits`` list them as skipped);
@@ -53,7 +54,8 @@ from .jitter import jitter_evidence
 from .model import ModelFit
 from .screens import Screen, noise_evidence
 
-__all__ = ["choose", "pick", "alternatives", "evidence", "heteroscedastic", "random_channels",
+__all__ = ["choose", "pick", "alternatives", "evidence", "heteroscedastic", "random_channels", "acc_timing_unidentified",
+           "ACC_TIMING_ANCHORS",
            "ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD", "HETEROSCEDASTIC_RATIO", "RANDOM_DOMINANCE", "REFRESH_PASSES",
            "GYRO_LINEAR_TERMS"]
 
@@ -130,6 +132,33 @@ def random_channels(effect) -> tuple:
     if which in ("acc", "gyro"):
         return (which,)
     return ("acc", "gyro") if effect.sensor == "both" else (effect.sensor,)
+
+
+#: IMUs an accelerometer timing error's common mode needs without a random timing term of their own
+ACC_TIMING_ANCHORS = 2
+
+
+def acc_timing_unidentified(effect, model_effects, K: int) -> bool:
+    """True where a random effect on IMU ``effect.imu``'s accelerometer (``timing_wander`` on acc,
+    ``sampling_jitter``) would leave fewer than :data:`ACC_TIMING_ANCHORS` of the board's K IMUs
+    without one (``model_effects``: the effects already in the model).
+
+    Why: an accelerometer timing error δ_k moves IMU k's output by δ_k·ȧ_k, ȧ_k = R_k(ṡ + ω̈ × r_k + …),
+    and the per-sample motion states absorb the part common to the board (Δs = δ·ṡ, Δω̇ = δ·ω̈): after
+    the projection only the differences of the δ_k are identified, against the IMUs that carry no
+    term (they fix the reference, δ = 0).  With one such IMU left, its own timing error is handed to
+    every term: the refit follows it exactly (its residual → 0, leverage → 1) and the termed IMUs
+    carry δ_k − δ_ref, correlated where the terms are independent.  Concealed clockgen plate4 at
+    100 Hz (clock-010, wanders on 3 of 4 accelerometers): the reference IMU's acc residual² fell to
+    0.0003 (m/s²)² (stated noise 0.001), the termed ones rose 2–10×, and adding the third term took
+    the §7.2 acc b/a from 0.30 to 0.10 with the top |ω| and |ω̇| bands negative
+    (tests/mismatch/test_acc_timing_anchors.py, experiments/clock_budget.md).  With ≥ 2 left the reference is their mean and their own
+    difference stays in the residual, where it is seen.  Binds only on boards with K ≤ 4 at the
+    default three rounds."""
+    if effect.kind != "random" or "acc" not in random_channels(effect):
+        return False
+    termed = {e.imu for e in model_effects if e.kind == "random" and "acc" in random_channels(e)}
+    return len(termed | {effect.imu}) > K - ACC_TIMING_ANCHORS
 
 
 def heteroscedastic(char: dict, effect, alpha: float) -> str | None:

@@ -103,7 +103,8 @@ from ..physics.effects import Unexplained
 from ..threads import torch_threads
 from .budget import group_power, residual_budget
 from .characterise import characterise, describe
-from .choose import GYRO_LINEAR_TERMS, REFRESH_PASSES, alternatives, choose, evidence, pick, random_channels
+from .choose import GYRO_LINEAR_TERMS, REFRESH_PASSES, acc_timing_unidentified, alternatives, choose, evidence, pick, \
+    random_channels
 from .clock import clock_corrected, clock_stage
 from .compare import compare_fits, posterior_comparison
 from .filter_delay import filter_delay
@@ -286,7 +287,8 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
         # block already holds all twelve
         pool = [c.copy() for c in cands_all if c.label() not in in_model
                 and not (c.kind == "random" and any((c.imu, ch) in taken for ch in random_channels(c)))
-                and not (c.name in GYRO_LINEAR_TERMS and c.imu in blocked)]
+                and not (c.name in GYRO_LINEAR_TERMS and c.imu in blocked)
+                and not acc_timing_unidentified(c, current.effects, prep.K)]
         ts = _time.perf_counter()
         screens = screen(prep, current, pool)
         last_screens = screens
