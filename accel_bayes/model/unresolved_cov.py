@@ -21,8 +21,8 @@ import math
 
 import torch
 
-__all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "instant_error_loadings", "marginal_loglik",
-           "centred_ages"]
+__all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "rotational_loadings", "instant_error_loadings",
+           "marginal_loglik", "centred_ages"]
 
 
 def lowrank_terms(y: torch.Tensor, U: torch.Tensor, s2: torch.Tensor, *, v: torch.Tensor | None = None,
@@ -83,6 +83,30 @@ def loadings(d: torch.Tensor) -> torch.Tensor:
     T, K = d.shape
     eye = torch.eye(3, dtype=d.dtype, device=d.device)
     return (d[:, :, None, None] * eye).reshape(T, 3 * K, 3)
+
+
+def rotational_loadings(d: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """U (T, 3K, 3): the centred data ages d (T, K) s as the loading of the board's unresolved
+    angular jerk ω̈_t (rad/s³) on the K accelerometer triads at positions r (K, 3) m.
+
+    Rigid-body kinematics: the specific force at triad k changes at the rate j_t + ω̈_t × r_k (plus
+    terms in ω and ω̇ that the outputs resolve), so a triad read at age d_kt errs by −d_kt(j_t + ω̈_t × r_k)
+    to first order.  :func:`loadings` carries the j_t part; this is the ω̈_t × r_k part, rows of
+    triad k = d_kt [r_k − r̄]× (sign immaterial for a zero-mean prior).  Positions are taken about
+    their centroid r̄: an origin shift o adds d_kt [o]×, which lies in the span of :func:`loadings`,
+    so only the split of variance between the two terms depends on it.  A common age is absorbed
+    by the motion states' ω̇ column as for the jerk, hence d centred (:func:`centred_ages`)."""
+    d = torch.as_tensor(d)
+    r = torch.as_tensor(r, dtype=d.dtype, device=d.device)
+    T, K = d.shape
+    if r.shape != (K, 3):
+        raise ValueError(f"rotational_loadings: r must be ({K}, 3) positions (m), got {tuple(r.shape)}")
+    rc = r - r.mean(0, keepdim=True)
+    z = torch.zeros(K, dtype=d.dtype, device=d.device)
+    cross = torch.stack([torch.stack([z, -rc[:, 2], rc[:, 1]], -1),
+                         torch.stack([rc[:, 2], z, -rc[:, 0]], -1),
+                         torch.stack([-rc[:, 1], rc[:, 0], z], -1)], -2)  # (K, 3, 3): [r_k]× w = r_k × w
+    return (d[:, :, None, None] * cross).reshape(T, 3 * K, 3)
 
 
 def instant_error_loadings(rate: torch.Tensor, std) -> torch.Tensor:
