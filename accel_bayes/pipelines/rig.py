@@ -20,6 +20,7 @@ from ..data.positions import positions_document, write_positions
 from ..data.validation import is_multirate, rig_model_applies
 from ..errors import UserError
 from ..inference.rig import RigResult, RigSettings, fit_rig
+from ..inference.rig.robust import robust_summary
 
 __all__ = ["is_rig", "RigRun", "calibrate_rig", "write_rig_outputs", "format_rig_table"]
 
@@ -62,6 +63,7 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
                                  "bias_knot_spacing": [float(v) for v in res.bias_knot_spacing]}})
     doc["model"] = "rig"
     unid = {(int(k), n) for k, n in res.unidentified}
+    robust = robust_summary(res)
     for k, e in enumerate(doc["imus"]):
         if k == res.reference_imu:
             e["orientation_cov"] = [[0.0] * 3 for _ in range(3)]
@@ -78,6 +80,7 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
         e["gyro_bias"] = js(res.gyro_bias[k])
         e["acc_bias"] = js(res.acc_bias[k])
         e["bias_random_walk"] = {"gyro": float(res.random_walk[k, 0]), "acc": float(res.random_walk[k, 1])}
+        _robust_keys(e, robust.get(k, {}), js)
         names = sorted(_NAMES[n] for kk, n in unid if kk == k)
         if names:
             e["unidentified"] = names
@@ -85,6 +88,28 @@ def _document(res: RigResult, rec, sha: str | None, settings: RigSettings) -> di
 
 
 _NAMES = {"q": "orientation", "r": "position", "o": "time_offset", "d": "clock_drift"}
+
+
+def _robust_keys(e: dict, summ: dict, js) -> None:
+    """Add the block-sandwich keys beside §7.3's Laplace ``std``/``cov`` (whose meaning stays):
+    ``std_robust``, ``cov_robust``, ``std_ratio`` (robust/Laplace), ``std_reported`` (the rig's rule:
+    the sandwich where its misspecification test fires, else the Laplace) and ``robust_used``
+    (per coordinate) — on the position entry itself, as ``orientation_*`` for the orientation, inside
+    ``time_offset`` and ``clock_drift``."""
+    for key, target, prefix in (("position", e, ""), ("orientation", e, "orientation_"),
+                                ("time_offset", e.get("time_offset"), ""), ("clock_drift", e.get("clock_drift"), "")):
+        if key not in summ or target is None:
+            continue
+        v = summ[key]
+        scalar = key in ("time_offset", "clock_drift")
+        one = (lambda a: js(np.asarray(a)[0])) if scalar else js  # noqa: E731
+        target[f"{prefix}std_robust"] = one(v["std_robust"])
+        if not scalar:
+            target[f"{prefix}cov_robust"] = js(v["cov_robust"])
+        target[f"{prefix}std_ratio"] = one(v["ratio"])
+        target[f"{prefix}std_reported"] = one(v["std_reported"])
+        used = np.asarray(v["robust_used"], dtype=bool)
+        target[f"{prefix}robust_used"] = bool(used[0]) if scalar else [bool(u) for u in used]
 
 
 def calibrate_rig(recording, settings: RigSettings = RigSettings()) -> RigRun:
@@ -105,9 +130,12 @@ def write_rig_outputs(run: RigRun, out_dir) -> dict:
 
 
 def format_rig_table(run: RigRun) -> str:
-    """Per IMU: lever arm (mm) ± std (µm), orientation std (°), time offset (ms) ± std (µs), drift (ppm)."""
+    """Per IMU: lever arm (mm) ± std (µm), orientation std (°), time offset (ms) ± std (µs), drift (ppm);
+    the stds are the reported ones (Laplace, or the block sandwich where the misspecification test
+    fired: marked *)."""
     res = run.result
-    lines = [f"rig model (Laplace at the MAP): {len(res.position)} IMUs, reference IMU {res.reference_imu}, "
+    robust = robust_summary(res)
+    lines = [f"rig model (MAP; stds Laplace, * block sandwich): {len(res.position)} IMUs, reference IMU {res.reference_imu}, "
              f"LM {res.reason} after {res.n_iter} steps, {res.seconds:.1f} s",
              f"{'IMU':>4} {'x mm':>9} {'y mm':>9} {'z mm':>9} {'s µm':>7} {'ori s °':>8} {'offset ms':>10} "
              f"{'s µs':>7} {'drift ppm':>10}"]
@@ -116,11 +144,16 @@ def format_rig_table(run: RigRun) -> str:
             lines.append(f"{k:>4}  reference")
             continue
         m = res.position[k] * 1e3
-        s = math.sqrt(max(np.trace(res.position_cov[k]), 0.0) / 3) * 1e6
-        so = math.degrees(math.sqrt(max(np.trace(res.orientation_cov[k]), 0.0) / 3))
+        rb = robust.get(k, {})
+        rms = lambda key, fallback: (float(np.sqrt(np.mean(rb[key]["std_reported"] ** 2))), bool(rb[key]["robust_used"].any())) \
+            if key in rb else (fallback, False)  # noqa: E731
+        s, ms = rms("position", math.sqrt(max(np.trace(res.position_cov[k]), 0.0) / 3))
+        so, mo = rms("orientation", math.sqrt(max(np.trace(res.orientation_cov[k]), 0.0) / 3))
+        st, mt = rms("time_offset", float(res.time_offset_std[k]))
         dr = f"{res.clock_drift[k] * 1e6:10.2f}" if res.own_stamps[k] else f"{'-':>10}"
-        lines.append(f"{k:>4} {m[0]:9.3f} {m[1]:9.3f} {m[2]:9.3f} {s:7.1f} {so:8.4f} {res.time_offset[k] * 1e3:10.4f} "
-                     f"{res.time_offset_std[k] * 1e6:7.1f} {dr}")
+        star = lambda b: "*" if b else " "  # noqa: E731
+        lines.append(f"{k:>4} {m[0]:9.3f} {m[1]:9.3f} {m[2]:9.3f} {s * 1e6:7.1f}{star(ms)}{math.degrees(so):8.4f}{star(mo)}"
+                     f"{res.time_offset[k] * 1e3:10.4f} {st * 1e6:7.1f}{star(mt)}{dr}")
     for k, n in res.unidentified:
         lines.append(f"unidentified: IMU {k} {_NAMES[n]} (the motion does not excite it)")
     return "\n".join(lines)

@@ -29,7 +29,7 @@ def _without_walk(e: SensorErrors) -> SensorErrors:
 
 
 def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jitter=True, bias_walk=True,
-             vibration=False, rot_axes=(0, 1, 2), rates=None):
+             vibration=False, rot_axes=(0, 1, 2), rates=None, offset_wander=0.0):
     """A seeded rig case → (Recording, truth).  Ranges: K ∈ {2, 3, 4}; rates from 100, 125, 200,
     250, 400 Hz (at least two distinct); o_k ~ U(±10 ms), d_k ~ U(±100 ppm); lever arms 1–20 cm in
     random directions; random orientations; nominal orientation given on half the IMUs, 1–5° off,
@@ -37,7 +37,10 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
     acc/gyro white noise 0.02–0.06 m/s², 0.2–0.6 °/s; bias random walks 1e-4 m/s²/√s and
     1e-5 rad/s/√s (effects the rig model lacks).  ``rot_axes=(2,)``: an under-excited rig that
     rotates about the array (reference sensor) z axis only.  ``rates`` (Hz per IMU) replaces the
-    drawn rates (benchmarks at one rate); every other draw stays the same."""
+    drawn rates (benchmarks at one rate); every other draw stays the same.  ``offset_wander`` (s): each
+    non-reference IMU's offset also wanders, o_k + w_k(t) with w_k three sinusoids of 0.2–1 Hz, random
+    phases, RMS ``offset_wander`` (a time-varying timing the rig model's constant offset cannot hold;
+    drawn from a stream of its own, so every other draw stays the same); truth keeps the constant o_k."""
     from .cases import ACC_RANGE, GYRO_RANGE, RIG_RATES, matrix_to_quat
     rng = np.random.default_rng([seed, 28])
     K = int(n_imu or rng.integers(2, 5))
@@ -73,6 +76,10 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
                       int(np.floor((duration - o[k]) * (1 + d[k]) * rates[k])) + 1)
         s = t0 + n / rates[k]
         t = t0 + o[k] + (s - t0) / (1 + d[k])
+        if offset_wander and k:
+            vr = np.random.default_rng([seed, 7, k])
+            f_w, ph = vr.uniform(0.2, 1.0, 3), vr.uniform(0, 2 * np.pi, 3)
+            t = t + offset_wander * np.sqrt(2.0 / 3.0) * np.sin(2 * np.pi * f_w[None] * t[:, None] + ph[None]).sum(1)
         f, w = motion.specific_force(t, pos[k:k + 1])
         erng = np.random.default_rng([seed, 5, k])
         ea = SensorErrors(noise_std=erng.uniform(0.02, 0.06) * noise, rw_std=1e-4 * bias_walk)
@@ -107,7 +114,7 @@ def draw_rig(seed, *, duration=30.0, n_imu=None, noise=True, quantised=True, jit
                     # also where ``bias_walk=False`` leaves the walk out of the data (only the data change)
                     attrs={"acc_random_walk": [1e-4] * K, "gyro_random_walk": [1e-5] * K})
     truth = {"generator": "experiments/clockgen", "kind": "rig", "seed": int(seed), "n_imu": K,
-             "duration": duration, "vibration": vibration, "rot_axes": list(rot_axes),
+             "duration": duration, "vibration": vibration, "rot_axes": list(rot_axes), "offset_wander": offset_wander,
              "rate": rates.tolist(), "t0": t0, "time_offset": o, "clock_drift": d,
              "convention": "s - t0 = (t - t0 - o_k)(1 + d_k) (DESIGN 7.3)",
              "stamp_jitter_std": sj, "stamps": stamps, "true_time": true_t,

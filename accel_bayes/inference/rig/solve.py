@@ -14,8 +14,9 @@ from ...data.validation import sample_present
 from ...errors import UserError
 from ...physics.geometry import boxminus, matrix_to_quat, quat_to_matrix
 from ..lm import ChainResidual, GlobalResidual, LevenbergMarquardt, Problem, Variable
-from ..lm.linear import NotPositiveDefinite
+from ..lm.linear import NotPositiveDefinite, SchurComplementSolver
 from .initial import align_gyros, interp_rows
+from .robust import DEFAULT_SCORE_BLOCK, block_scores, robust_summary, robust_warning
 from .model import (LINEAR_BLOCKS, BiasGrid, bucket_samples, mean_biases, measurement_jacobian, measurement_residual,
                     process_jacobian, process_matrices, process_residual, stamp_jitter_std,
                     timing_noise_directions, walk_residual, symmetric)
@@ -90,6 +91,8 @@ class RigSettings:
         differ by up to 0.3 ms; the delay moves them by up to 0.14 ms
         (``experiments/rig_mimu_diagnose.md``).
     acc_delay_std : s, std of δ_k's Gaussian prior about 0 (2 ms: the sampling-clock ages' range).
+    score_block : s, the block length of the misspecification-robust sandwich covariance
+        (:mod:`.robust`, 3 s); None: no sandwich (Laplace only).
     """
 
     knot_spacing: float | None = None
@@ -106,6 +109,7 @@ class RigSettings:
     linear_error_std: float = 0.03
     acc_delay: bool = False
     acc_delay_std: float = 2e-3
+    score_block: float | None = DEFAULT_SCORE_BLOCK
 
     def __post_init__(self):
         bad = set(self.linear_errors) - set(LINEAR_BLOCKS)
@@ -185,6 +189,8 @@ class RigResult:
     acc_delay_std: np.ndarray = None
     #: s, the motion knots' spacing h the fit used
     knot_spacing: float = None
+    #: the sandwich's per-block influences on the free parameters (:mod:`.robust`; None without)
+    block_scores: object = field(default=None, repr=False)
 
 
 def bias_walks(rec, samples, order, settings) -> tuple[np.ndarray, list]:
@@ -430,8 +436,13 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     labels = [lab for lab, k in zip(all_labels, keep) if k]
     scale = np.array([IDENT_SCALE[name] for name, _ in labels])
     hess_used = settings.hessian
+    prob = res.problem
+    info_blocks = lambda how: (prob.exact_hessian(values, x) if how == "exact"  # noqa: E731
+                               else prob.linearize(values, x, step=False))
+    reduce = lambda L: SchurComplementSolver(prob.local_structure).reduce(L.U, L.W, L.V, L.V_off).numpy()  # noqa: E731
     try:
-        S = _marginal_information(res.information(settings.hessian).numpy(), keep)
+        lin_h = info_blocks(settings.hessian)
+        S = _marginal_information(reduce(lin_h), keep)
         indefinite = np.linalg.eigvalsh(S * scale[:, None] * scale[None, :]).min() < 0
     except (NotPositiveDefinite, np.linalg.LinAlgError):
         indefinite = True
@@ -439,7 +450,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
         # not at a minimum (LM stopped on a ridge along an unexcited direction): the PSD
         # Gauss–Newton information; its errors-in-variables optimism is why the excitation rule
         # below checks the lever arm independently
-        S = _marginal_information(res.information("gauss_newton").numpy(), keep)
+        lin_h = info_blocks("gauss_newton")
+        S = _marginal_information(reduce(lin_h), keep)
         hess_used = "gauss_newton (exact Hessian indefinite)"
     # Directions whose std would exceed IDENT_SCALE (scaled eigenvalue < 1, negative included: at
     # an unexcited direction LM stops on a ridge, not at a minimum) are unidentified.  The
@@ -449,6 +461,8 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
     lam, V = np.linalg.eigh(0.5 * (Ss + Ss.T))
     ok = lam >= 1.0
     cov = (V[:, ok] / lam[ok]) @ V[:, ok].T * scale[:, None] * scale[None, :]
+    # the data's own spread per time block, for the robust std (before the NaN rows below)
+    scores = block_scores(prob, values, x, lin_h, keep, cov, settings.score_block) if settings.score_block else None
     unident = set()
     flagged = np.zeros(len(labels), bool)
     for i in np.flatnonzero(~ok):
@@ -518,7 +532,7 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                 warnings.append(f"nominal_orientation: IMU {lab} is {math.degrees(ang):.1f}° from its nominal "
                                 f"orientation (> {settings.contradiction_sigma:g} × {settings.orientation_prior_deg:g}° "
                                 "prior std); the data contradict it")
-    return RigResult(reference_imu=ref, orientation=ori, orientation_cov=ori_cov, position=pos, position_cov=pos_cov,
+    out = RigResult(reference_imu=ref, orientation=ori, orientation_cov=ori_cov, position=pos, position_cov=pos_cov,
                      time_offset=to, time_offset_std=to_s, clock_drift=dr, clock_drift_std=dr_s, gyro_bias=bgo,
                      acc_bias=bao, own_stamps=own_lab, unidentified=sorted(unident), warnings=warnings,
                      converged=bool(res.converged), reason=res.reason, n_iter=len(log_all), chi2_per_dof=chi2,
@@ -529,7 +543,12 @@ def fit_rig(rec, settings: RigSettings = RigSettings()) -> RigResult:
                      linear_error={kind: _label_order(symmetric(torch.cat((values[LINEAR_BLOCKS[kind]].new_zeros(1, 6),
                                                                            values[LINEAR_BLOCKS[kind]]))).numpy(), order)
                                    for kind in settings.linear_errors},
-                     free_labels=[(order[idx[0] + 1], name, idx[1] if len(idx) > 1 else 0) for name, idx in labels])
+                     free_labels=[(order[idx[0] + 1], name, idx[1] if len(idx) > 1 else 0) for name, idx in labels],
+                     block_scores=scores)
+    line = robust_warning(robust_summary(out))
+    if line:
+        out.warnings.append(line)
+    return out
 
 
 def _label_order(a: np.ndarray, order: list) -> np.ndarray:
