@@ -11,7 +11,12 @@ with i as reference.  Compared: the relative time offset o_j − o_i, whose eigh
 come from the joint posterior covariance.  The pair uses a subset of the eight-IMU data, so
 Var(Δ) = s_pair² − s_8² (the eight-IMU estimate is the pair's plus independent information):
 z = Δ/√(s_pair² − s_8²), whose RMS over the 28 pairs should lie in 0.7–1.4 (the 28 z share IMUs,
-so they are correlated and the RMS is a rough check).
+so they are correlated and the RMS is a rough check).  z is computed three ways: with the reported
+stds (the rig's rule, :mod:`accel_bayes.inference.rig.robust`: the 3 s block sandwich where its
+misspecification test fires, else the Laplace; a pair whose s_pair² − s_8² ≤ 0 gets no z and is
+counted), with the Laplace stds (the old figure), and with the joint sandwich of Δ itself, Σ_b
+(a_b^pair − a_b^8)² over the two fits' common blocks (no subtraction of variances, so every pair
+has a z).
 
 ``--stamps clock`` tests the data-age hypothesis (issue #28 item 3): each IMU's output read at t is
 its signal at t − age_k(t), a sawtooth of width W_k beating against the read rate (#27's sampling

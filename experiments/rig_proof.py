@@ -201,7 +201,9 @@ def main(argv=None):
              "--under 4` (one process), or in parts with `--first-seed/--n/--first-under/--under --json PART.json` "
              "and then `--from-json PART.json ...`; `--crb-from OLD.json` takes the bounds of an earlier run of the same draws "
              "(they do not depend on the fit) instead of recomputing them (what produced this file: "
-             f"{len(cases)} rigs, {len(under)} under-excited; "
+             f"{len(cases)} rigs, {len(under)} under-excited"
+             + ("; the bounds taken with `--crb-from` from the previous run's records" if args.crb_from else "")
+             + ("; the document rewritten from records with `--from-json`" if args.from_json else "") + "; "
              f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
              f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs; fit time per rig in the "
              "table).", "",

@@ -80,6 +80,16 @@ def test_calibrate_dispatches_to_rig_and_recovers_the_concealed_rig(rig_file, tm
     assert abs(e["clock_drift"]["mean"] - truth["clock_drift"][1]) < 5 * e["clock_drift"]["std"] + 1e-6
     assert np.shape(e["orientation_cov"]) == (3, 3) and e["time_offset"]["std"] > 0
     assert doc["diagnostics"]["unidentified"] == []
+    # the block sandwich beside §7.3's Laplace std, and the reported one by the rig's rule
+    for blk, pre in ((e, ""), (e, "orientation_"), (e["time_offset"], ""), (e["clock_drift"], "")):
+        lap = blk["std"] if pre == "" else e["orientation_std"]
+        rob, rep, used = blk[f"{pre}std_robust"], blk[f"{pre}std_reported"], blk[f"{pre}robust_used"]
+        assert np.allclose(blk[f"{pre}std_ratio"], np.divide(rob, lap))
+        assert np.allclose(rep, np.where(used, rob, lap))
+    assert np.allclose(np.sqrt(np.diag(e["cov_robust"])), e["std_robust"])
+    assert (("block sandwich" in err) == any(np.any(x) for x in (e["robust_used"], e["orientation_robust_used"],
+                                                                  e["time_offset"]["robust_used"],
+                                                                  e["clock_drift"]["robust_used"])))
     # the walks the model marginalised: the ones the recording states, so no assumed-walk warning
     assert e["bias_random_walk"] == {"gyro": 1e-5, "acc": 1e-4} and "random_walk" not in err
     # the export gives each IMU of the 2-rate rig its own update_rate (tests/data/test_export_consumers.py);
@@ -105,6 +115,9 @@ def test_under_excited_rig_reports_the_lever_arm_along_the_axis_unidentified(tmp
     doc = json.loads((tmp_path / "cal" / "positions.json").read_text())
     assert "position" in doc["imus"][1]["unidentified"]
     assert {"imu": 1, "parameter": "position"} in doc["diagnostics"]["unidentified"]
+    # an unidentified coordinate has no robust std either (null, not a number)
+    e = doc["imus"][1]
+    assert None in e["std_robust"] and None in e["std_reported"] and e["robust_used"][e["std_robust"].index(None)] is False
 
 
 def test_dispatch_only_rigs(rig_file):

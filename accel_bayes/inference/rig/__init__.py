@@ -80,7 +80,12 @@ Solve: the package's structured LM (:mod:`accel_bayes.inference.lm`), knots elim
 block-tridiagonal Schur complement; a second pass re-buckets the samples at the first pass's clocks
 where they moved by more than h/4.  Posterior: Laplace at the MAP with the exact Hessian (the
 Gauss–Newton JᵀJ evaluates ∂r/∂o at the noise-fitted ω̇ and is 25–40 % optimistic for the clock),
-Gauss–Newton where the exact one is indefinite (LM stopped on a ridge).  Identifiability: a
+Gauss–Newton where the exact one is indefinite (LM stopped on a ridge).  Beside it a
+misspecification-robust std, the block sandwich H⁻¹ B H⁻¹ over 3 s blocks with the motion and bias
+knots profiled out (:mod:`.robust`), and a rule fixed in advance for the reported std: the
+sandwich where a 1 % test says the blocks' spread exceeds the model's, else the Laplace (one-line
+warning; on exp_1's MIMU pairs the Laplace std was 20–65× below a jackknife's because the IMUs'
+relative timing changes between moves, ``experiments/rig_mimu_pairs.md``).  Identifiability: a
 direction of the information scaled by :data:`~.solve.IDENT_SCALE` with eigenvalue < 1 (std above
 those scales) makes the parameters loading on it ``unidentified``; so does the lever arm along the
 only axis the reference gyro turns about (:func:`~.solve.unexcited_axes`), which a noise-fitted
