@@ -57,6 +57,17 @@ e² s_t² I per triad); that isotropic part is not carried (a per-triad isotropi
 sample has no low-rank form; the per-|ω̄|-band level factor that would approximate it made the
 real board's std less honest, ``experiments/mimu_model_calibrate.md``, ``with_bins``).
 
+Angular jerk.  Rigid-body kinematics moves triad k's specific force at j_t + ω̈_t × r_k (plus
+terms in ω and ω̇ that the outputs resolve), so a triad read at centred age d_kt also errs by
+d_kt ω̈_t × (r_k − r̄): the board's unresolved angular jerk ω̈_t ~ N(0, a_t² I₃) (rad/s³, its scale
+per |ω| band like the jerk's) loaded by rows d_kt [r_k − r̄]×
+(:func:`~.unresolved_cov.rotational_loadings`).  With ``angjerk_std`` and ``lever`` (the triads'
+positions, a covariate fixed from the nominal geometry: the θ being inferred moves them by
+millimetres, the loading by that fraction of a lever arm of centimetres) Ũ_t = [s_t D_t, a_t D^r_t]
+of rank 6 (plus the instant error's A columns if given) by the general path below.  On vibrating
+boards read at different instants this is the larger part of the misfit (ω̈ ~ 10⁴–10⁵ rad/s³ ×
+2–5 cm × 0.5 ms ≈ 1–3 m/s²; ``experiments/angjerk_probe.md``).
+
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
 unresolved angular acceleration in the posterior of ω (:func:`.gyro_posterior.gyro_posterior_timing`);
@@ -347,21 +358,11 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         Y = torch.cat(Y, 2)
         Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
         Ea = torch.cat((torch.cat(E, 1), torch.cat(a, 1)[:, :, None]), 2)
-        # Cholesky of N_t and the forward substitution column by column, each column a (B, R − j, T)
-        # block (sample index last, contiguous): a batched LAPACK call per R × R matrix costs ~10× more
-        cols, X, d = [], [], []
-        rest = Ea  # (B, R − j, 7, T): the right-hand sides not yet solved, updated as columns finish
-        for j in range(R):
-            c = wtw[j:, j] - (Yh[:, :, j:] * Yh[:, :, j:j + 1]).sum(1)  # N_t[j:, j] (B, R − j, T)
-            for k, ck in enumerate(cols):
-                c = c - ck[:, j - k:] * ck[:, j - k:j - k + 1]
-            dj = c[:, :1].sqrt()
-            c = c / dj  # column j of L_N from its diagonal down
-            cols.append(c)
-            d.append(dj[:, 0])
-            xj = rest[:, 0] / dj
-            X.append(xj)
-            rest = rest[:, 1:] - c[:, 1:, None] * xj[:, None]
+        # N_t's entries, then its Cholesky and the forward substitution unrolled entry by entry,
+        # each step an elementwise op over the samples (B, T) or (B, 7, T): at exp_1's size (T = 5885,
+        # R = 6) ~4 ms against ~8 ms for a batched LAPACK Cholesky and solve or for column blocks
+        N = [[wtw[i, j] - (Yh[:, :, i] * Yh[:, :, j]).sum(1) for j in range(i + 1)] for i in range(R)]
+        d, X = _unrolled_cholesky_solve(N, list(Ea.unbind(1)))
         diag = torch.stack(d, -1)  # (B, T, R)
         if not bool(torch.isfinite(diag).all()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
@@ -479,3 +480,30 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         inv = torch.where(ev > tol, 1.0 / root.clamp_min(1e-300), torch.zeros_like(root))
         w = -(inv[..., :, None] * (Vc.transpose(-1, -2) @ b.transpose(-1, -2)))  # −Rc⁺ᵀ b (B, 6, T)
         return Rc, w, c - (w * w).sum(-2)
+
+
+def _unrolled_cholesky_solve(N, rhs):
+    """(diagonal of L (R tensors (B, T)), X = L⁻¹[rhs] (R tensors (B, 7, T))) for the per-sample
+    R × R matrices given by their lower entries ``N[i][j]`` (j ≤ i, each (B, T)), N = L Lᵀ, and
+    the R right-hand-side rows ``rhs`` (each (B, 7, T)).  The Cholesky–Banachiewicz recursion
+    written out over the entries, every step elementwise over the samples."""
+    R = len(rhs)
+    L = [[None] * (i + 1) for i in range(R)]
+    for j in range(R):
+        s = N[j][j]
+        for k in range(j):
+            s = torch.addcmul(s, L[j][k], L[j][k], value=-1)
+        L[j][j] = s.sqrt()
+        inv = L[j][j].reciprocal()
+        for i in range(j + 1, R):
+            s = N[i][j]
+            for k in range(j):
+                s = torch.addcmul(s, L[i][k], L[j][k], value=-1)
+            L[i][j] = s * inv
+    X = []
+    for i in range(R):
+        s = rhs[i]
+        for k in range(i):
+            s = torch.addcmul(s, L[i][k][:, None], X[k], value=-1)
+        X.append(s / L[i][i][:, None])
+    return [L[j][j] for j in range(R)], X

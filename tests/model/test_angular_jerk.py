@@ -126,3 +126,20 @@ def test_the_angular_jerk_scale_is_recovered_by_type2_ml_and_the_inputs_are_chec
         with_unresolved_motion(base, age, 1.0, angjerk_std=1.0, lever=pos[:3])
     with pytest.raises(UserError, match="angjerk_std: expected"):
         with_unresolved_motion(base, age, 1.0, angjerk_std=-1.0, lever=pos)
+
+
+def test_the_option_is_on_by_default_enters_the_fingerprint_and_the_cli_turns_it_off():
+    """``angular_jerk`` (default True) is part of a model run's checkpoint fingerprint, so a
+    checkpoint made with one setting is not resumed with the other; ``--no-angular-jerk`` sets it off."""
+    from accel_bayes.cli import build_parser
+    from accel_bayes.pipelines.calibrate_options import CalibrateOptions
+
+    on = CalibrateOptions(model="r.json").fingerprint("rec", model_sha256="m")["options"]
+    off = CalibrateOptions(model="r.json", angular_jerk=False).fingerprint("rec", model_sha256="m")["options"]
+    assert on["angular_jerk"] is True and off["angular_jerk"] is False
+    assert {k: v for k, v in on.items() if k != "angular_jerk"} == {k: v for k, v in off.items() if k != "angular_jerk"}
+    assert "angular_jerk" not in CalibrateOptions().fingerprint("rec")["options"]  # no model: request unchanged
+    args = build_parser().parse_args(["calibrate", "rec.nc", "--out", "o", "--model", "r.json", "--no-angular-jerk"])
+    assert CalibrateOptions.from_args(args).angular_jerk is False
+    args = build_parser().parse_args(["calibrate", "rec.nc", "--out", "o", "--model", "r.json"])
+    assert CalibrateOptions.from_args(args).angular_jerk is True
