@@ -332,25 +332,23 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         jerk (module docstring, "Angular jerk", "Instant error"): R loading columns, N_t = I + W_tᵀW_t
         − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t) by batched R × R Choleskys, and the rows of
         V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T).  The jerk's and the angular jerk's columns are
-        a per-triad weight times a fixed 3 × 3 block per triad (I₃, [r_k − r̄]×), so their products
-        with H_w, Ẽ_w and e_w are one (18 × A)(A × T) product each; the instant-error columns are
-        block-sparse (column k lives on triad k's three rows): A batched 6 × 3 products."""
+        the centred age times a fixed 3 × 3 block per triad (I₃, [r_k − r̄]×) times a per-sample
+        scale, so their products with H_w, Ẽ_w and e_w are one (6J × A)(A × T) product each; the
+        instant-error columns are block-sparse (column k lives on triad k's three rows): A batched 6 × 3 products."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
-        u_t, ur_t, xr, wk, wtw = self._theta_free
+        d_t, cs, P, wk, wtw = self._theta_free
         R = wtw.shape[0]
-        sl = self._sqrt_lam.view(A, 3, 1)
         Hw4 = proj["Hw"].view(B, A, 3, 6)
         Gt4 = proj["Gt"].view(B, A, 3, 6)
         ew = proj["e_w"].view(B, T, A, 3)
-        # H_wᵀW_t (B, 6, R, T) and [W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T), group by group of columns
-        Y = [((Hw4 * sl).permute(0, 3, 2, 1).reshape(B, 18, A) @ u_t).view(B, 6, 3, T)]
-        E = [((Gt4 * sl).permute(0, 2, 3, 1).reshape(B, 18, A) @ u_t).view(B, 3, 6, T)]
-        a = [torch.einsum("btki,kt->bit", ew * self._sqrt_lam.view(A, 3), u_t)]  # Ũ_JᵀΛe (B, 3, T)
-        if ur_t is not None:  # xr = Λ_k^½[r_k − r̄]× (A, 3, 3)
-            Y.append((torch.einsum("bkif,kir->bfrk", Hw4, xr).reshape(B, 18, A) @ ur_t).view(B, 6, 3, T))
-            E.append((torch.einsum("bkif,kir->brfk", Gt4, xr).reshape(B, 18, A) @ ur_t).view(B, 3, 6, T))
-            a.append((torch.einsum("btki,kir->btkr", ew, xr) * ur_t.T[None, :, :, None]).sum(2).transpose(1, 2))
+        # H_wᵀW_t (B, 6, R, T) and [W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T), group by group of columns; the
+        # jerk's and the angular jerk's J columns are d_kt P_k (P_k = Λ_k^½[I₃, [r_k − r̄]×]) times a
+        # per-sample scale per column (cs: s_t, a_t): one (6J × A)(A × T) product each
+        J = P.shape[-1]
+        Y = [(torch.einsum("bkif,kir->bfrk", Hw4, P).reshape(B, 6 * J, A) @ d_t).view(B, 6, J, T) * cs]
+        E = [(torch.einsum("bkif,kir->brfk", Gt4, P).reshape(B, J * 6, A) @ d_t).view(B, J, 6, T) * cs[:, None]]
+        a = [(torch.einsum("btki,kir->btkr", ew, P) * d_t.T[None, :, :, None]).sum(2).transpose(1, 2) * cs]
         if wk is not None:
             Y.append(torch.matmul(Hw4.transpose(-1, -2), wk).transpose(1, 2))  # (B, 6, A, T)
             E.append(torch.matmul(Gt4.transpose(-1, -2), wk))  # (B, A, 6, T)
@@ -373,9 +371,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
     def _theta_free(self):
         """Cached θ-free tensors.  Closed-form path (jerk only), of the loaded samples: uᵀ (A, Ta);
         diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major
-        vector over the triads.  General path: the jerk's weights uᵀ (A, T); the angular jerk's
-        a_t d_kt (A, T) and Λ_k^½[r_k − r̄]× (A, 3, 3), or None; the instant errors' λ^½ e ρ
-        (A, 3, T) or None; I + W_tᵀW_t (R, R, T)."""
+        vector over the triads.  General path: the centred ages dᵀ (A, T); the per-sample scale of
+        each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their per-triad blocks
+        Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
+        I + W_tᵀW_t (R, R, T)."""
         if getattr(self, "_tf_cache", None) is None and self.W is not None:
             R = self.W.shape[-1]
             J = 3 if self.loading_rot is None else 6
@@ -383,12 +382,14 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             if R > J:
                 wk = self.W[:, :, J:].reshape(self.T, self.A, 3, self.A).diagonal(dim1=1, dim2=3)  # (T, 3, A)
                 wk = wk.permute(2, 1, 0).contiguous()
-            ur = xr = None
+            sl = self._sqrt_lam.view(self.A, 3)
+            P = torch.diag_embed(sl)  # (A, 3, 3): Λ_k^½ I₃
+            cs = self.jerk_std.expand(3, self.T)
             if self.loading_rot is not None:
-                ur = self.loading_rot.T.contiguous()
-                xr = self._cross * self._sqrt_lam.view(self.A, 3, 1)
+                P = torch.cat((P, self._cross * sl[..., None]), -1)
+                cs = torch.cat((cs, self.angjerk_std.expand(3, self.T)), 0)
             wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
-            self._tf_cache = (self.loading.T.contiguous(), ur, xr, wk, wtw.permute(1, 2, 0).contiguous())
+            self._tf_cache = (centred_ages(self.age).T.contiguous(), cs, P, wk, wtw.permute(1, 2, 0).contiguous())
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)
@@ -489,21 +490,22 @@ def _unrolled_cholesky_solve(N, rhs):
     written out over the entries, every step elementwise over the samples."""
     R = len(rhs)
     L = [[None] * (i + 1) for i in range(R)]
+    inv = []
     for j in range(R):
         s = N[j][j]
         for k in range(j):
             s = torch.addcmul(s, L[j][k], L[j][k], value=-1)
         L[j][j] = s.sqrt()
-        inv = L[j][j].reciprocal()
+        inv.append(L[j][j].reciprocal())
         for i in range(j + 1, R):
             s = N[i][j]
             for k in range(j):
                 s = torch.addcmul(s, L[i][k], L[j][k], value=-1)
-            L[i][j] = s * inv
+            L[i][j] = s * inv[j]
     X = []
     for i in range(R):
         s = rhs[i]
         for k in range(i):
             s = torch.addcmul(s, L[i][k][:, None], X[k], value=-1)
-        X.append(s / L[i][i][:, None])
+        X.append(s * inv[i][:, None])
     return [L[j][j] for j in range(R)], X

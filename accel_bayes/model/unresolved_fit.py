@@ -29,7 +29,8 @@ _LOG_E_BOUNDS = (math.log(1e-9), math.log(1e-2))  # s: the instant error's std
 
 @dataclass
 class UnresolvedFit:
-    """jerk_rms (B,) m/s³ per band; angjerk_rms (B,) rad/s³ per band or None; nu (None without the mixture); noise_factor the common factor
+    """jerk_rms (B,) m/s³ per band; angjerk_rms (B,) rad/s³ per band or None; nu (None without
+    the mixture); noise_factor the common factor
     on the noise levels chosen; loglik and loglik_flat (nats, the flat model's at the same θ, ω and
     the given noise, constants included) and their difference gain."""
 

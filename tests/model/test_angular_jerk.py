@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from accel_bayes.errors import UserError
+from accel_bayes.model.gyro_posterior import gyro_posterior
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood
 from accel_bayes.model.likelihood_percov import PerSampleCovLikelihood, with_unresolved_motion
 from accel_bayes.model.unresolved_fit import fit_unresolved_scales
@@ -105,13 +106,12 @@ def test_the_angular_jerk_scale_is_recovered_by_type2_ml_and_the_inputs_are_chec
     d = age - age.mean(-1, keepdim=True)
     wdd = 2e4 * torch.randn(T, 3, generator=g, dtype=DT)
     lev = pos - pos.mean(0)
-    from accel_bayes.model.gyro_posterior import gyro_posterior
     omega = gyro_posterior(w[:, None, :] + 1e-3 * torch.randn(T, 4, 3, generator=g, dtype=DT),
                            torch.full((4,), 1e-3, dtype=DT), "calibrated")
     band = torch.zeros(T, dtype=torch.long)
     for truth in (2e4, 0.0):
-        acc = (specific_force(pos, w, wd, sv) - d[..., None] * torch.cross(truth / 2e4 * wdd[:, None, :].expand(T, A, 3),
-                                                                          lev.expand(T, A, 3), dim=-1)
+        rot = torch.cross(truth / 2e4 * wdd[:, None, :].expand(T, A, 3), lev.expand(T, A, 3), dim=-1)  # ω̈ × r
+        acc = (specific_force(pos, w, wd, sv) - d[..., None] * rot
                + SIG * torch.randn(T, A, 3, generator=g, dtype=DT))
         base = RaoBlackwellLikelihood(acc, omega, SIG, 1)
         fit = fit_unresolved_scales(base, age, band, pos, w, lever=pos)
