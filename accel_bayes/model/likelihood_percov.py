@@ -348,14 +348,15 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         J = P.shape[-1]
         Y = [(torch.einsum("bkif,kir->bfrk", Hw4, P).reshape(B, 6 * J, A) @ d_t).view(B, 6, J, T) * cs]
         E = [(torch.einsum("bkif,kir->brfk", Gt4, P).reshape(B, J * 6, A) @ d_t).view(B, J, 6, T) * cs[:, None]]
-        a = [(torch.einsum("btki,kir->btkr", ew, P) * d_t.T[None, :, :, None]).sum(2).transpose(1, 2) * cs]
+        a = [((ew * d_t.T[None, :, :, None]).reshape(B, T, 3 * A) @ P.reshape(3 * A, J)).transpose(1, 2) * cs]
         if wk is not None:
             Y.append(torch.matmul(Hw4.transpose(-1, -2), wk).transpose(1, 2))  # (B, 6, A, T)
             E.append(torch.matmul(Gt4.transpose(-1, -2), wk))  # (B, A, 6, T)
             a.append((ew * wk.permute(2, 0, 1)).sum(-1).transpose(1, 2))  # (B, A, T)
-        Y = torch.cat(Y, 2)
+        one = lambda parts, dim: parts[0] if len(parts) == 1 else torch.cat(parts, dim)  # noqa: E731 — no copy of one
+        Y = one(Y, 2)
         Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
-        Ea = torch.cat((torch.cat(E, 1), torch.cat(a, 1)[:, :, None]), 2)
+        Ea = torch.cat((one(E, 1), one(a, 1)[:, :, None]), 2)
         # N_t's entries, then its Cholesky and the forward substitution unrolled entry by entry,
         # each step an elementwise op over the samples (B, T) or (B, 7, T): at exp_1's size (T = 5885,
         # R = 6) ~4 ms against ~8 ms for a batched LAPACK Cholesky and solve or for column blocks
