@@ -11,7 +11,7 @@ sampling clocks that ``experiments/clock_mimu.py`` found on exp_1 (its
 kept samples' times.  The jerk scale is one number fitted here by maximising the exact
 log p(y | ω̄, θ_nominal) (ω at the gyro mean) over a log grid — not a per-band fit; the cost does
 not depend on it.  The per-sample model with the board's angular jerk (lever arms the nominal
-positions, its own scale per band: ``calibrate --model``'s default) and with the triads' own instant error (its output rates
+positions, its own scale per band: ``--angular-jerk``) and with the triads' own instant error (its output rates
 :func:`~accel_bayes.model.likelihood_percov.triad_rates`, e by type-II ML) is timed beside them.
 All versions are evaluated in the same process, alternating blocks of calls,
 on the same standard normals; medians of all calls (wall clock).  The per-sample model's ``nu``
@@ -176,7 +176,7 @@ def main(argv=None):
         f"error on their output rates (rms {float(rate.square().sum(-1).mean().sqrt()):.3g} m/s³): e = "
         f"{1e3 * fit_e.instant_std:.3f} ms, jerk_rms {', '.join(f'{float(v):.3g}' for v in fit_e.jerk_rms)} m/s³, "
         f"gain over the jerk alone {fit_e.gain_instant:.1f} nats; with the board's angular jerk loaded by the ages "
-        f"times the nominal lever arms (`calibrate --model`'s default): angjerk_rms "
+        f"times the nominal lever arms (opt-in `--angular-jerk`): angjerk_rms "
         f"{', '.join(f'{float(v):.3g}' for v in fit_a.angjerk_rms)} rad/s³, jerk_rms "
         f"{', '.join(f'{float(v):.3g}' for v in fit_a.jerk_rms)} m/s³, gain over the jerk alone "
         f"{fit_a.gain_angjerk:.1f} nats ({fit_a.gain_angjerk / flat.T:.3f} per sample). In-sample fits at a fixed θ, "
@@ -188,7 +188,7 @@ def main(argv=None):
     for k, label in (("flat", "flat (today)"), ("percov", "per-sample covariance, Gaussian"),
                      ("percov_t", f"per-sample covariance + scale mixture ν = {nu:.3g}"),
                      ("percov_e", "per-sample covariance + the triads' instant error (R = 3 + A)"),
-                     ("percov_a", "per-sample covariance + the angular jerk (R = 6; `--model` default)")):
+                     ("percov_a", "per-sample covariance + the angular jerk (R = 6; opt-in `--angular-jerk`)")):
         lines.append(f"| {label} | {values[k]:.2f} | {ms[k]:.3f} | {ms[k] / ms['flat']:.2f} |")
     lines += ["", f"Bar (issue #30 item 3): ≤ 4× the flat model. Per-sample Gaussian: {ms['percov'] / ms['flat']:.2f}×; "
               f"with the scale mixture: {ms['percov_t'] / ms['flat']:.2f}×; with the instant error: "

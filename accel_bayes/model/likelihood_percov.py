@@ -66,7 +66,10 @@ positions, a covariate fixed from the nominal geometry: the θ being inferred mo
 millimetres, the loading by that fraction of a lever arm of centimetres) Ũ_t = [s_t D_t, a_t D^r_t]
 of rank 6 (plus the instant error's A columns if given) by the general path below.  On vibrating
 boards read at different instants this is the larger part of the misfit (ω̈ ~ 10⁴–10⁵ rad/s³ ×
-2–5 cm × 0.5 ms ≈ 1–3 m/s²; ``experiments/angjerk_probe.md``).
+2–5 cm × 0.5 ms ≈ 1–3 m/s²; ``experiments/angjerk_probe.md``, ``experiments/percov_conceal.md``);
+on the six real experiments it brings every sandwich ratio down a little
+(``experiments/mimu_model_calibrate.md``).  Opt-in in ``calibrate`` for its cost: one log p̂ on
+exp_1 is 4.6× the flat model's, above the 4× bar (``experiments/bench_likelihood_percov.md``).
 
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the

@@ -72,7 +72,7 @@ class PercovStep:
 
 
 def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, *,
-                       instant_error: bool = False, angular_jerk: bool = True) -> PercovStep:
+                       instant_error: bool = False, angular_jerk: bool = False) -> PercovStep:
     """The untempered likelihood of the noise step (``lik``: the samples already divided by the noise
     model's per-sample scale ``sample_scale`` (T,), 1 with the stated noise) with the report's
     unresolved jerk projected out per sample (:func:`accel_bayes.model.likelihood_percov.with_unresolved_motion`).
@@ -88,12 +88,13 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     ``instant_error`` (the ``instant_error`` option): also each triad's own instant error times its
     output rate, e by type-II ML; off, the record says why it was left out.
 
-    ``angular_jerk`` (the ``angular_jerk`` option, on by default): also the board's unresolved
+    ``angular_jerk`` (the ``angular_jerk`` option, off by default): also the board's unresolved
     angular jerk ω̈_t, loaded on triad k by its centred age times its lever arm about the triads'
     centroid (the nominal positions ``nominal_acc``, a fixed covariate), its own scale per band by
     type-II ML with the jerk's: rigid-body kinematics moves triad k's specific force at
     j_t + ω̈_t × r_k, and ω̈ × r × the age differences is the larger part of the clock misfit on
-    vibrating boards (``experiments/angjerk_probe.md``)."""
+    vibrating boards (``experiments/angjerk_probe.md``, ``experiments/percov_conceal.md``); off,
+    the record says why it was left out."""
     from ..model.likelihood_percov import triad_rates, with_unresolved_motion
     from ..model.unresolved_fit import fit_unresolved_scales, fixed_omega_mode
 
@@ -125,7 +126,8 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
               "jerk_rms_fitted_scaled": [float(v) for v in fit.jerk_rms],
               "angular_acc_rms_report_rad_s2": [float(v) for v in p["angular_acc_rms"]],
               "type2_gain_nats": float(fit.gain),
-              "angular_jerk": "used" if lever is not None else "skipped: not asked (option angular_jerk off)",
+              "angular_jerk": "used" if lever is not None else
+              "skipped: not asked (option angular_jerk; over 4x the flat likelihood's cost)",
               "angular_jerk_rms_fitted_rad_s3": None if lever is None else
               [float((fit.angjerk_rms[b] * s_t[band == b]).median()) if bool((band == b).any()) else None
                for b in range(len(fit.jerk_rms))],
