@@ -135,7 +135,9 @@ def main(argv=None) -> int:
             write_json(f, {"case": f"exp_{exp}", "board": "mimu4444 (real)", "rate_hz": None, **r})
         rows.append(json.loads(f.read_text()))
     write_json(args.out / "summary.json", rows)
-    write_text(DOC, document(rows, time.perf_counter() - t_start))
+    from experiments._reading import READING_MARKER, kept_reading
+
+    write_text(DOC, document(rows, time.perf_counter() - t_start) + "\n" + READING_MARKER + kept_reading(DOC))
     print(f"wrote {DOC}")
     return 0
 
