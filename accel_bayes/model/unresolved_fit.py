@@ -1,6 +1,7 @@
 """Type-II maximum likelihood of the per-sample covariance's scales: the unresolved jerk's scale per
-|ω| band and, optionally, the scale mixture's ν (issue #30 item 1: "a proper Gaussian prior whose
-scale per band is fitted"), on the calibration's own likelihood.
+|ω| band and, optionally, the board's angular jerk's scale per band, the triads' instant-error std
+or the scale mixture's ν (issue #30 item 1: "a proper Gaussian prior whose scale per band is
+fitted"), on the calibration's own likelihood.
 
 The scales are fitted on the exact log p(y | ω, θ) of
 :class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood` at a fixed geometry θ and
