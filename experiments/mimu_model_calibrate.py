@@ -14,6 +14,9 @@ warm-up, seed 0; the issue #30 run used D = W = 500):
 * **with_instant** (optional, ``--variants with_instant``) — the same with ``instant_error=True``:
   each triad's own sampling-instant error times the rate of its output projected out too (off by
   default: ~20× the likelihood's cost);
+* **with_angjerk** (optional, ``--variants with_angjerk``) — the same with ``angular_jerk=True``: the
+  board's unresolved angular jerk loaded by the data ages times the lever arms projected out too
+  (off by default: over 4× the flat likelihood's cost, ``bench_likelihood_percov.md``);
 * **with_bins** (optional, ``--variants with_bins``) — the same with ``noise_bins=8`` and the flat φ
   prior: the noise level × a factor per |ω̄| octile.
 
@@ -24,7 +27,7 @@ the inverse-variance mean of the other five, its RMS (all, exp 1–3, exp 4–6)
 means; the x–y spacing of the top IMUs (x of IMUs 4, 6 and −y of IMUs 2, 6; 18.9 mm by design).
 
     PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports experiments/out/mimu_mismatch
-        --no-hetero --draws 500 --warmup 500 [--variants with,without,with_instant,with_bins]
+        --no-hetero --draws 500 --warmup 500 [--variants with,without,with_instant,with_angjerk,with_bins]
 
 Results are cached per (variant, experiment) in ``--out``; a rerun only computes what is missing, and
 two processes with different ``--variants`` can fill the cache at once.
@@ -52,7 +55,8 @@ from accel_bayes.data.outputs import write_json, write_text  # noqa: E402
 VARIANTS = ("without", "with")
 # beyond the two the document needs: the model with the noise level × a factor per |ω̄| octile bin
 # (the variance growing with the motion, empirical; flat φ prior, which the per-sample rescaling needs)
-EXTRA = {"with_bins": dict(noise_bins=8, phi_prior="flat"), "with_instant": dict(instant_error=True)}
+EXTRA = {"with_bins": dict(noise_bins=8, phi_prior="flat"), "with_instant": dict(instant_error=True),
+         "with_angjerk": dict(angular_jerk=True)}
 AIM_RATIO = 1.15
 Z_RMS_BAND = (0.8, 1.25)
 
@@ -269,7 +273,7 @@ def decomposition_markdown(results) -> list:
     rs = [r for r in sorted(results["with"], key=lambda r: r["exp"]) if r.get("decomposition")]
     if not rs:
         return []
-    rsb = [r for v in ("with_instant", "with_bins")
+    rsb = [r for v in ("with_instant", "with_angjerk", "with_bins")
            for r in sorted(results.get(v, []), key=lambda r: r["exp"]) if r.get("decomposition")]
     L = ["## Where the excess sits after the model (negative result's decomposition)", "",
          "At the per-sample model's mode, its scores (`sandwich_inflation`'s convention), variance factors real / "
@@ -282,24 +286,29 @@ def decomposition_markdown(results) -> list:
     def q(rows):
         return "; ".join(f"{x['imu_block']:.2f} / {x['sample'] / x['imu_block']:.2f}" for x in rows)
 
-    label = {"with_bins": " (× 8 \\|ω̄\\| bins)", "with_instant": " (+ instant error)"}
+    label = {"with_bins": " (× 8 \\|ω̄\\| bins)", "with_instant": " (+ instant error)",
+             "with_angjerk": " (+ angular jerk)"}
     for r in rs + rsb:
         d = r["decomposition"]
         L.append(f"| {r['exp']}{label.get(r['variant'], '')} | {d['in_all']:.2f} | {d['time']:.2f} | {d['within_imu']:.2f} | {d['cross_imu']:.2f} | "
                  f"{q(d['by_omega_quartile'])} | {q(d['by_angular_jerk_quartile'])} |")
     L += ["", "## The per-sample covariance per experiment", "",
           "| exp | report sha256 (first 16) | band samples | jerk rms, report (m/s³) | jerk rms, fitted here (m/s³) | "
-          "type-II gain (nats) | centred age rms (ms) | instant error e, report / fitted (ms) | its gain over the "
-          "jerk alone (nats) | triad output rate rms (m/s³) |", "|---|---|---|---|---|---|---|---|---|---|"]
+          "type-II gain (nats) | angular jerk rms, fitted here (rad/s³) | its gain over the jerk alone (nats) | "
+          "centred age rms (ms) | instant error e, report / fitted (ms) | its gain over the "
+          "jerk alone (nats) | triad output rate rms (m/s³) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     ms = lambda v: "—" if v is None else f"{1e3 * v:.3f}"  # noqa: E731
-    for r in rs:
+    for r in rs + [r for r in rsb if r["variant"] == "with_angjerk"]:
         u = r["unresolved_motion"]
         gi = u.get("instant_error_gain_nats")
         rr = u.get("triad_rate_rms_m_s3")
-        L.append(f"| {r['exp']} | {r['model']['sha256'][:16]} | {', '.join(str(n) for n in u['band_samples'])} | "
+        ga = u.get("angular_jerk_gain_nats")
+        aj = ", ".join("—" if v is None else f"{v:.3g}" for v in (u.get("angular_jerk_rms_fitted_rad_s3") or [None]))
+        L.append(f"| {r['exp']}{label.get(r['variant'], '')} | {r['model']['sha256'][:16]} | {', '.join(str(n) for n in u['band_samples'])} | "
                  f"{', '.join(f'{v:.3g}' for v in u['jerk_rms_report_m_s3'])} | "
                  f"{', '.join('—' if v is None else f'{v:.3g}' for v in u['jerk_rms_fitted_m_s3'])} | "
-                 f"{u['type2_gain_nats']:.0f} | {1e3 * u['age_rms_s']:.3f} | "
+                 f"{u['type2_gain_nats']:.0f} | {aj} | {'—' if ga is None else f'{ga:.0f}'} | "
+                 f"{1e3 * u['age_rms_s']:.3f} | "
                  f"{ms(u.get('instant_error_rms_report_s'))} / {ms(u.get('instant_error_rms_fitted_s'))} | "
                  f"{'—' if gi is None else f'{gi:.0f}'} | {'—' if rr is None else f'{rr:.3g}'} |")
     return L + [""]
@@ -406,10 +415,12 @@ def markdown(results: dict, summ: dict, args) -> str:
     extra = {"with_bins": "The model with the noise level × a factor per |ω̄| octile bin (`noise_bins=8`, flat φ prior: "
                           "the per-sample rescaling needs it; fixed before any experiment was seen)",
              "with_instant": "The model with each triad's instant error (`instant_error=True`, CLI `--instant-error`; "
-                             "fixed before any experiment was seen)"}
+                             "fixed before any experiment was seen)",
+             "with_angjerk": "The model with the board's angular jerk (`angular_jerk=True`, CLI `--angular-jerk`; "
+                             "fixed before any experiment was seen, on `angjerk_probe.md`'s likelihood gain)"}
     for v, what in extra.items():
         if v in summ:
-            L += [_variant_paragraph(what, summ[v], len(exps), timed=v == "with_instant"), ""]
+            L += [_variant_paragraph(what, summ[v], len(exps), timed=v in ("with_instant", "with_angjerk")), ""]
     met = all(x <= 1.3 for x in m["ratio_max"])
     L += [f"**Bar (every coordinate's sandwich/Laplace ratio ≤ 1.3) met with the model: "
           f"{'YES' if met else 'NO'}** (max over experiments {max(m['ratio_max']):.2f}).", ""]

@@ -54,7 +54,7 @@ from accel_bayes.inference.noise_fit import (  # noqa: E402
     newey_west_lags, per_sample_scores, sandwich_inflation, score_sandwich)  # noqa: E402
 from accel_bayes.model.likelihood import RaoBlackwellLikelihood  # noqa: E402
 from accel_bayes.model.likelihood_percov import with_unresolved_motion  # noqa: E402
-from accel_bayes.model.unresolved_cov import instant_error_loadings  # noqa: E402
+from accel_bayes.model.unresolved_cov import instant_error_loadings, rotational_loadings  # noqa: E402
 from accel_bayes.model.unresolved_fit import fit_unresolved_scales  # noqa: E402
 
 SPACING_MM = 18.9
@@ -101,10 +101,14 @@ def simulated_scores(lik, th, wbar, gen, reps, phi_prior=None):
         noise = torch.randn(T, 3 * A, generator=gen, dtype=torch.float64) * lik.acc_noise_std.reshape(3 * A)
         jerk = (lik.loading[:, :, None] * torch.randn(T, 1, 3, generator=gen, dtype=torch.float64)).reshape(T, 3 * A)
         terms = {}
-        if getattr(lik, "W", None) is not None:  # the triads' own instant errors on their output rates
+        if getattr(lik, "loading_rot", None) is not None:  # the board's angular jerk on the lever arms
+            U = rotational_loadings(lik.loading_rot, lik.lever)  # (T, 3A, 3)
+            jerk = jerk + (U @ torch.randn(T, 3, 1, generator=gen, dtype=torch.float64))[..., 0]
+            terms = {"angjerk_std": lik.angjerk_std, "lever": lik.lever}
+        if getattr(lik, "rate", None) is not None:  # the triads' own instant errors on their output rates
             U = instant_error_loadings(lik.rate, lik.instant_std)  # (T, 3A, A)
             jerk = jerk + (U @ torch.randn(T, A, 1, generator=gen, dtype=torch.float64))[..., 0]
-            terms = {"rate": lik.rate, "instant_std": lik.instant_std}
+            terms.update(rate=lik.rate, instant_std=lik.instant_std)
         sim = RaoBlackwellLikelihood((fitted + noise + jerk).reshape(T, A, 3), lik.omega, lik.acc_noise_std, 1,
                                      reference=ref, phi_prior=phi_prior)
         sim = with_unresolved_motion(sim, lik.age, lik.jerk_std, **terms)

@@ -53,7 +53,11 @@ With an ``unresolved_motion`` finding (issue #30 Deliver 2; :mod:`accel_bayes.pi
   per report band fitted by type-II ML on the calibration's own likelihood; no tempering;
 * beside it each triad's own instant error (the part of its sampling instant no clock gives, the
   finding's ``age_error_rms_s``), times the rate of that triad's output: a per-triad covariance
-  e² ρ_kt ρ_ktᵀ per sample, e by type-II ML from the report's value.
+  e² ρ_kt ρ_ktᵀ per sample, e by type-II ML from the report's value (option ``instant_error``);
+* with option ``angular_jerk``, the board's unresolved angular jerk loaded on each triad by its
+  centred age times its lever arm about the nominal positions' centroid, its own scale per band by
+  type-II ML (the report has no scale for it: ``unresolved_motion`` carries the jerk's and the
+  angular acceleration's only).
 
 Without an ``unresolved_motion`` finding the clocks are listed as skipped (an age alone loads nothing).
 

@@ -1,6 +1,7 @@
 """Type-II maximum likelihood of the per-sample covariance's scales: the unresolved jerk's scale per
-|ω| band and, optionally, the scale mixture's ν (issue #30 item 1: "a proper Gaussian prior whose
-scale per band is fitted"), on the calibration's own likelihood.
+|ω| band and, optionally, the board's angular jerk's scale per band, the triads' instant-error std
+or the scale mixture's ν (issue #30 item 1: "a proper Gaussian prior whose scale per band is
+fitted"), on the calibration's own likelihood.
 
 The scales are fitted on the exact log p(y | ω, θ) of
 :class:`~accel_bayes.model.likelihood_percov.PerSampleCovLikelihood` at a fixed geometry θ and
@@ -29,7 +30,8 @@ _LOG_E_BOUNDS = (math.log(1e-9), math.log(1e-2))  # s: the instant error's std
 
 @dataclass
 class UnresolvedFit:
-    """jerk_rms (B,) m/s³ per band; nu (None without the mixture); noise_factor the common factor
+    """jerk_rms (B,) m/s³ per band; angjerk_rms (B,) rad/s³ per band or None; nu (None without
+    the mixture); noise_factor the common factor
     on the noise levels chosen; loglik and loglik_flat (nats, the flat model's at the same θ, ω and
     the given noise, constants included) and their difference gain."""
 
@@ -40,6 +42,8 @@ class UnresolvedFit:
     noise_factor: float = 1.0
     instant_std: float | None = None
     loglik_no_instant: float | None = None
+    angjerk_rms: torch.Tensor | None = None
+    loglik_no_angjerk: float | None = None
 
     @property
     def gain(self) -> float:
@@ -50,10 +54,19 @@ class UnresolvedFit:
         """nats the triads' instant error adds over the jerk alone (both refitted); None without it."""
         return None if self.loglik_no_instant is None else self.loglik - self.loglik_no_instant
 
+    @property
+    def gain_angjerk(self) -> float | None:
+        """nats the angular jerk adds over the jerk alone (both refitted, before any instant error);
+        None without it."""
+        if self.loglik_no_angjerk is None:
+            return None
+        with_it = self.loglik if self.loglik_no_instant is None else self.loglik_no_instant
+        return with_it - self.loglik_no_angjerk
+
 
 def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, omega=None, *, fit_nu: bool = False,
                           noise_factors=(1.0,), max_iter: int = 100, rate=None, fit_instant: bool = False,
-                          instant_start: float = 1e-4) -> UnresolvedFit:
+                          instant_start: float = 1e-4, lever=None) -> UnresolvedFit:
     """Fit the jerk scale per band (and ν with ``fit_nu``) on ``lik``'s data (module docstring).
 
     age (T, A) s the rows' data ages; band (T,) integer |ω| band of each sample (0 … B − 1, e.g.
@@ -63,17 +76,26 @@ def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, ome
     mixture's spread is not the Gaussian's rms, so with ``fit_nu`` the noise level moves too.
     ``fit_instant`` with ``rate`` (T, A, 3) m/s³ (the triads' output rates): one std e (s) of
     the triads' own instant error fitted with the scales, from the jerk-only fit and
-    ``instant_start`` s (:class:`~.likelihood_percov.PerSampleCovLikelihood`'s general path)."""
-    if fit_instant:
-        if rate is None:
+    ``instant_start`` s (:class:`~.likelihood_percov.PerSampleCovLikelihood`'s general path).
+    ``lever`` (A, 3) m, the triads' nominal positions: the board's angular jerk loaded by them is
+    fitted too, its own scale per band, from the jerk-only fit (then the instant error, if asked,
+    from that fit)."""
+    if fit_instant or lever is not None:
+        if fit_instant and rate is None:
             raise UserError("rate: fit_instant needs the triads' output rates (T, A, 3) m/s³")
         if len(noise_factors) != 1 or float(noise_factors[0]) != 1.0 or fit_nu:
-            raise UserError("fit_instant: expected the given noise levels and no scale mixture")
+            raise UserError("fit_instant, lever: expected the given noise levels and no scale mixture")
         jerk = _fit_one(lik, age, band, positions, omega, False, max_iter)
-        both = _fit_one(lik, age, band, positions, omega, False, max_iter, rate=rate, instant_start=instant_start,
-                        start=jerk.jerk_rms)
-        both.loglik_no_instant = jerk.loglik
-        return both
+        last = jerk
+        if lever is not None:
+            last = _fit_one(lik, age, band, positions, omega, False, max_iter, lever=lever, start=jerk.jerk_rms)
+            last.loglik_no_angjerk = jerk.loglik
+        if fit_instant:
+            both = _fit_one(lik, age, band, positions, omega, False, max_iter, rate=rate, instant_start=instant_start,
+                            start=last.jerk_rms, lever=lever, start_rot=last.angjerk_rms)
+            both.loglik_no_instant, both.loglik_no_angjerk = last.loglik, last.loglik_no_angjerk
+            last = both
+        return last
     best = None
     for f in noise_factors:
         f = float(f)
@@ -94,7 +116,7 @@ def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, ome
 
 
 def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, instant_start=None,
-             start=None) -> UnresolvedFit:
+             start=None, lever=None, start_rot=None) -> UnresolvedFit:
     band = torch.as_tensor(band, device=lik.device)
     if band.shape != (lik.T,) or band.dtype in (torch.float32, torch.float64) or bool((band < 0).any()):
         raise UserError(f"band: expected ({lik.T},) non-negative integers (|omega| band per sample)")
@@ -112,11 +134,22 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, inst
         st = torch.as_tensor(start, dtype=lik.dtype, device=lik.device)
         x = torch.where(st > 1e-3 * s0, st.clamp_min(1e-300).log(), x)
     x.requires_grad_(True)
+    xr = None
+    if lever is not None:
+        lev = torch.as_tensor(lever, dtype=lik.dtype, device=lik.device)
+        # the same start for ω̈ × r: a tenth of the residual variance over the mean squared lever arm
+        r2 = float((lev - lev.mean(0)).square().sum(-1).mean() * 2 / 3)
+        xr = torch.full((B,), math.log(s0 / math.sqrt(max(r2, 1e-12))), dtype=lik.dtype, device=lik.device)
+        if start_rot is not None:
+            st = torch.as_tensor(start_rot, dtype=lik.dtype, device=lik.device)
+            xr = torch.where(st > 1e-3 * xr.exp(), st.clamp_min(1e-300).log(), xr)
+        xr.requires_grad_(True)
     xn = torch.tensor(math.log(10.0), dtype=lik.dtype, device=lik.device, requires_grad=fit_nu)
     xe = None if rate is None else torch.tensor(math.log(instant_start), dtype=lik.dtype, device=lik.device,
                                                 requires_grad=True)
     params = [x, xn] if fit_nu else [x]
     params += [] if xe is None else [xe]
+    params += [] if xr is None else [xr]
     opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-7,
                             tolerance_change=1e-10)
     scale = float(lik.T)  # the objective per sample keeps L-BFGS's tolerances meaningful
@@ -124,10 +157,13 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, inst
     def model(x_, xn_):
         s = torch.where(counts[band] > 0, torch.exp(x_)[band], torch.zeros((), dtype=lik.dtype))
         nu = torch.exp(xn_.clamp(*_LOG_NU_BOUNDS)) if fit_nu else None
+        rot = {} if xr is None else {"angjerk_std": torch.where(counts[band] > 0, torch.exp(xr)[band],
+                                                                torch.zeros((), dtype=lik.dtype)), "lever": lev}
         if xe is None:
-            return with_unresolved_motion(lik, age, s, nu=nu)
+            return with_unresolved_motion(lik, age, s, nu=nu, **rot)
         # e below ~1 ns loads nothing measurable: the bound keeps the line search finite as e → 0
-        return with_unresolved_motion(lik, age, s, nu=nu, rate=rate, instant_std=torch.exp(xe.clamp(*_LOG_E_BOUNDS)))
+        return with_unresolved_motion(lik, age, s, nu=nu, rate=rate, instant_std=torch.exp(xe.clamp(*_LOG_E_BOUNDS)),
+                                      **rot)
 
     def closure():
         opt.zero_grad()
@@ -145,6 +181,8 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, inst
                         flat)
     if xe is not None:
         out.instant_std = float(torch.exp(xe.detach().clamp(*_LOG_E_BOUNDS)))
+    if xr is not None:
+        out.angjerk_rms = torch.where(counts > 0, torch.exp(xr.detach()), torch.zeros((), dtype=lik.dtype))
     return out
 
 

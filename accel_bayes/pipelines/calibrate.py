@@ -204,7 +204,7 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
             scale = (np.ones(lik.T) if noise.noise is None
                      else noise.noise.sample_scale(model_norm.cpu().numpy()))
             pc = _model_percov_step(lik, terms, omega_norm, scale, map_res, nominal_acc, ps,
-                                    instant_error=opts.instant_error)
+                                    instant_error=opts.instant_error, angular_jerk=opts.angular_jerk)
             lik = pc.lik
             extra["percov"] = pc
             settings["model"]["sandwich_flat"] = settings["model"]["sandwich"]

@@ -72,7 +72,7 @@ class PercovStep:
 
 
 def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, *,
-                       instant_error: bool = False) -> PercovStep:
+                       instant_error: bool = False, angular_jerk: bool = False) -> PercovStep:
     """The untempered likelihood of the noise step (``lik``: the samples already divided by the noise
     model's per-sample scale ``sample_scale`` (T,), 1 with the stated noise) with the report's
     unresolved jerk projected out per sample (:func:`accel_bayes.model.likelihood_percov.with_unresolved_motion`).
@@ -86,7 +86,15 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     'σ refit').  In the scaled samples a band's scale s_b is the physical jerk s_b·s_t.
 
     ``instant_error`` (the ``instant_error`` option): also each triad's own instant error times its
-    output rate, e by type-II ML; off, the record says why it was left out."""
+    output rate, e by type-II ML; off, the record says why it was left out.
+
+    ``angular_jerk`` (the ``angular_jerk`` option, off by default): also the board's unresolved
+    angular jerk ω̈_t, loaded on triad k by its centred age times its lever arm about the triads'
+    centroid (the nominal positions ``nominal_acc``, a fixed covariate), its own scale per band by
+    type-II ML with the jerk's: rigid-body kinematics moves triad k's specific force at
+    j_t + ω̈_t × r_k, and ω̈ × r × the age differences is the larger part of the clock misfit on
+    vibrating boards (``experiments/angjerk_probe.md``, ``experiments/percov_conceal.md``); off,
+    the record says why it was left out."""
     from ..model.likelihood_percov import triad_rates, with_unresolved_motion
     from ..model.unresolved_fit import fit_unresolved_scales, fixed_omega_mode
 
@@ -102,10 +110,12 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     rate = triad_rates(base.acc, terms.time, s_t) if instant_error and terms.time is not None else None
     e0 = (p.get("age_error_rms_s") or {}).get("acc") if isinstance(p.get("age_error_rms_s"), dict) else None
     e0 = float(e0) if e0 is not None and float(e0) > 0 else 1e-4
+    lever = nominal_acc if angular_jerk else None
     fit = fit_unresolved_scales(base, terms.age_acc, band, pos0, rate=rate, fit_instant=rate is not None,
-                                instant_start=e0)
+                                instant_start=e0, lever=lever)
+    rot = {} if lever is None else {"angjerk_std": fit.angjerk_rms[band], "lever": lever}
     new = with_unresolved_motion(base, terms.age_acc, fit.jerk_rms[band], rate=rate,
-                                 instant_std=None if rate is None else fit.instant_std)
+                                 instant_std=None if rate is None else fit.instant_std, **rot)
     P, cov = fixed_omega_mode(new, pos0, prior_mean=nominal_acc, prior_std=prior_std)
     phys = [float((fit.jerk_rms[b] * s_t[band == b]).median()) if bool((band == b).any()) else None
             for b in range(len(fit.jerk_rms))]
@@ -116,6 +126,12 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
               "jerk_rms_fitted_scaled": [float(v) for v in fit.jerk_rms],
               "angular_acc_rms_report_rad_s2": [float(v) for v in p["angular_acc_rms"]],
               "type2_gain_nats": float(fit.gain),
+              "angular_jerk": "used" if lever is not None else
+              "skipped: not asked (option angular_jerk; over 4x the flat likelihood's cost)",
+              "angular_jerk_rms_fitted_rad_s3": None if lever is None else
+              [float((fit.angjerk_rms[b] * s_t[band == b]).median()) if bool((band == b).any()) else None
+               for b in range(len(fit.jerk_rms))],
+              "angular_jerk_gain_nats": fit.gain_angjerk,
               "instant_error_rms_report_s": e0 if rate is not None else None,
               "instant_error_rms_fitted_s": fit.instant_std,
               "instant_error_gain_nats": fit.gain_instant,
@@ -126,9 +142,13 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
                                                                      .mean().sqrt()),
               "age_rms_s": float(terms.age_acc.sub(terms.age_acc.mean(-1, keepdim=True)).square().mean().sqrt()),
               "how": "jerk m_t ~ N(0, s_b^2 I3) per |omega| band of the report, loaded on triad k by its centred "
-                     "data age" + (", and each triad's own instant error eps_kt ~ N(0, e^2) times the rate of its "
+                     "data age" + (", the angular jerk w'' ~ N(0, a_b^2 I3) per band loaded on triad k by its "
+                                   "centred data age times [r_k - r_mean]x (nominal positions)" if lever is not None
+                                   else "")
+                     + (", and each triad's own instant error eps_kt ~ N(0, e^2) times the rate of its "
                                    "output (per-triad covariance e^2 rho rho^T)" if rate is not None else "")
-                     + ", projected out with phi_t; s_b" + (" and e" if rate is not None else "")
+                     + ", projected out with phi_t; s_b" + (", a_b" if lever is not None else "")
+                     + (" and e" if rate is not None else "")
                      + " by type-II ML at the MAP positions and omega-bar, noise levels kept; untempered"}
     return PercovStep(new, P, cov, record)
 

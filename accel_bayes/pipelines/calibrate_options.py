@@ -173,6 +173,14 @@ class CalibrateOptions:
         ``age_error_rms_s``; :mod:`accel_bayes.model.likelihood_percov`, "Instant error").  Default
         False: it makes one log p̂ ~20× the flat model's (issue #30's bar is 4×) and moves the real
         board's sandwich ratio only part of the way (``experiments/mimu_model_calibrate.md``).
+    angular_jerk : with ``model``, also project out the board's unresolved angular jerk ω̈_t,
+        loaded on each triad by its centred data age times its lever arm (the nominal positions),
+        its scale per |ω| band by type-II ML beside the jerk's
+        (:mod:`accel_bayes.model.likelihood_percov`, "Angular jerk").  Default False: one log p̂
+        costs more than 4× the flat model's on exp_1 (the bar;
+        ``experiments/bench_likelihood_percov.md``: 4.6×).  It helps on the concealed clock
+        recordings (``experiments/percov_conceal.md``) and a little on the six real experiments
+        (``experiments/mimu_model_calibrate.md``), meeting neither bar.
     phi_prior : the prior on φ_t = [ω̇_t; s_t] (angular acceleration, specific force) that the
         likelihood integrates out (:mod:`accel_bayes.model.phi_prior`).  "empirical" (default) — a
         zero-mean Gaussian whose 6×6 covariance is the type-II ML estimate from the recording
@@ -239,6 +247,7 @@ class CalibrateOptions:
     correlation: Any = DEFAULTS["correlation"]
     model: Any = None
     instant_error: bool = False
+    angular_jerk: bool = False
     device: Any = None
 
     def __post_init__(self):
@@ -304,7 +313,9 @@ class CalibrateOptions:
                             f"'calibrated' with model, got {self.gyro_method!r}")
         if self.instant_error and self.model is None:
             raise UserError("instant_error: the triads' instant-error term needs a model (--model REPORT.json)")
-        for name in ("use_map", "drop_clipped", "drop_static", "resume", "instant_error"):
+        if self.angular_jerk and self.model is None:
+            raise UserError("angular_jerk: the angular-jerk term needs a model (--model REPORT.json)")
+        for name in ("use_map", "drop_clipped", "drop_static", "resume", "instant_error", "angular_jerk"):
             set_(name, bool(getattr(self, name)))
 
     # ------------------------------------------------------------------ construction
@@ -322,7 +333,8 @@ class CalibrateOptions:
             drop_static=not args.keep_static, drop_clipped=not args.keep_clipped, min_rotation=args.min_rotation,
             noise=args.noise, noise_bins=args.noise_bins, noise_inflation=False if args.no_noise_inflation else None,
             phi_prior=args.phi_prior, threads=args.threads, correlation=args.correlation, model=args.model,
-            instant_error=args.instant_error, device=args.device, **given)
+            instant_error=args.instant_error, angular_jerk=args.angular_jerk,
+            device=args.device, **given)
 
     # ------------------------------------------------------------------ derived values
 
@@ -405,5 +417,7 @@ class CalibrateOptions:
             options["model"] = model_sha256
             if self.instant_error:  # only when asked: the request of a model run without it is unchanged
                 options["instant_error"] = True
+            if self.angular_jerk:  # only when asked, as instant_error
+                options["angular_jerk"] = True
         return json.loads(json.dumps({"version": __version__, "recording": recording_sha256, "options": options},
                                      default=str))
