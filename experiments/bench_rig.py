@@ -21,9 +21,7 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # before numpy/torch load their thread pools: ours and the peer alike
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import math
-import platform
 import sys
 import tempfile
 import time
@@ -44,6 +42,7 @@ from accel_bayes.inference.rig import fit_rig, rig_samples  # noqa: E402
 from accel_bayes.inference.rig.initial import interp_rows, kabsch  # noqa: E402
 from accel_bayes.physics.geometry import matrix_to_quat, quat_log, quat_to_matrix  # noqa: E402
 from accel_bayes.physics.geometry import skew  # noqa: E402
+from experiments._stamp import run_stamp  # noqa: E402
 
 
 def conventional(rec):
@@ -132,8 +131,7 @@ def main(argv=None):
     zp = float(np.sqrt(np.mean(np.concatenate([r["z_peer"] for r in rows]) ** 2)))
     lines = ["# Rig calibration: posterior vs conventional pipeline (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/bench_rig.py --seeds {args.seeds} --duration "
-             f"{args.duration:g} --rate {args.rate:g}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
-             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs, 1 torch/numpy thread "
+             f"{args.duration:g} --rate {args.rate:g}` ({run_stamp()}, 1 torch/numpy thread "
              f"each, {time.time() - t_all:.0f} s).", "",
              f"{args.seeds} concealed two-IMU rigs, both IMUs at {args.rate:g} Hz, {args.duration:g} s each "
              "(`draw_rig(seed, n_imu=2, rates=...)`, seeds from 500).", "",

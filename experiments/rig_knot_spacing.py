@@ -22,9 +22,7 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -39,6 +37,7 @@ from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.inference.rig import RigSettings, fit_rig  # noqa: E402
 from experiments.clockgen.rig import draw_rig  # noqa: E402
 from experiments.rig_crb import rig_crb  # noqa: E402
+from experiments._stamp import run_stamp  # noqa: E402
 
 WHITE = {"jitter": False, "bias_walk": False}
 #: (label, generator switches, h in s, other RigSettings)
@@ -80,8 +79,7 @@ def bench(seeds):
             print(rows[-1], flush=True)
     lines = ["# Bench rigs: the lever arm with white noise only, by knot spacing (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_knot_spacing.py --bench --bench-seeds "
-             f"{' '.join(map(str, seeds))}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
-             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs, {time.time() - t_all:.0f} s).", "",
+             f"{' '.join(map(str, seeds))}` ({run_stamp()}, {time.time() - t_all:.0f} s).", "",
              "`bench_rig.py`'s rigs (two IMUs at 200 Hz, 60 s) without the generator's stamp jitter and bias walk (the "
              "white noise the same draw as in the benchmark).  6.25 ms was the default knot spacing there until issue "
              "#28's fifth round (bench lever-arm error/std RMS 1.99 over seeds 500–502 with jitter and walks).", "",
@@ -116,8 +114,7 @@ def main(argv=None):
             print(rows[-1], flush=True)
     lines = ["# Concealed rig seed 29: stamp jitter, walk or motion knots? (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_knot_spacing.py --seed {args.seed} --duration "
-             f"{args.duration:g}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
-             f"{platform.system()}, 2-core CPU shared with other jobs, {time.time() - t_all:.0f} s).", "",
+             f"{args.duration:g}` ({run_stamp()}, {time.time() - t_all:.0f} s).", "",
              f"Rig seed {args.seed} of `rig_proof.py` ({2 + args.seed % 3} IMUs, "
              f"{'/'.join(str(int(r)) for r in truth['rate'])} Hz, {args.duration:g} s); the white noise is the same draw "
              "in every variant.  h: the motion knots' spacing (`RigSettings.knot_spacing`; the default was 5 ms on this "

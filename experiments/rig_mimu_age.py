@@ -20,9 +20,7 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -39,6 +37,7 @@ from accel_bayes.inference.rig.model import timing_noise_directions  # noqa: E40
 from accel_bayes.physics.effects.clock import clock_age  # noqa: E402
 from accel_bayes.physics.geometry import quat_to_matrix  # noqa: E402
 from experiments.rig_mimu_pairs import DATA, SETTINGS, window, with_stamps  # noqa: E402
+from experiments._stamp import run_stamp  # noqa: E402
 
 
 def fit_with_residuals(rec):
@@ -110,8 +109,7 @@ def main(argv=None):
         print(summary[-1], flush=True)
     lines = ["# Data age in the MIMU rig residuals (issue #28 item 3)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_mimu_age.py --exp {args.exp} --window {args.window:g}` "
-             f"({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
-             f"{platform.system()}, 2-core CPU shared with other jobs).", "",
+             f"({run_stamp()}).", "",
              f"{args.exp}, the window of `rig_mimu_pairs.py` ({base.time[0]:.2f}–{base.time[-1]:.2f} s), eight IMUs; "
              "ages from the clock stage's cache (`experiments/results/clock_mimu/`).", "",
              "| stamps | LM (steps) | χ²/dof | spread of the eight offsets (ms) | fit s |", "|---|---|---|---|---|"]

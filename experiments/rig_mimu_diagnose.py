@@ -40,11 +40,9 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import itertools  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -59,6 +57,7 @@ from accel_bayes.data.mimu import import_mimu  # noqa: E402
 from accel_bayes.inference.rig import RigSettings, fit_rig  # noqa: E402
 from accel_bayes.inference.rig.initial import kabsch  # noqa: E402
 from experiments.rig_mimu_pairs import DATA, imus, offset_difference, window  # noqa: E402
+from experiments._stamp import run_stamp  # noqa: E402
 
 CACHE = REPO / "experiments" / "results" / "rig_mimu_diagnose"
 #: the pairs with the largest |z| in rig_mimu_pairs.md (13:29 run) and two near zero as controls
@@ -216,8 +215,7 @@ def report():
              "Regenerate (each `PYTHONPATH=. python3 experiments/rig_mimu_diagnose.py …`): `--step map`; `--step fits "
              "--variant V` for V in none, gyro, gyro_timing, acc_delay; `--step jackknife --variant none`; `--step events "
              "--variant none`; `--step swap --variant none`; then `--step report`; about 35 min of fits in all "
-             f"({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
-             f"{platform.system()}, 2-core CPU shared with other jobs).  exp_1, the pairs study's 30 s window.", ""]
+             f"({run_stamp()}).  exp_1, the pairs study's 30 s window.", ""]
     mp = CACHE / "map.json"
     if mp.exists():
         rows = json.loads(mp.read_text())

@@ -34,11 +34,9 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import itertools  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -53,6 +51,7 @@ from accel_bayes.data.mimu import import_mimu  # noqa: E402
 from accel_bayes.inference.rig import RigSettings, fit_rig  # noqa: E402
 from accel_bayes.inference.rig.robust import DEFAULT_SCORE_BLOCK, TEST_LEVEL, contrast_variances, robust_std  # noqa: E402
 from accel_bayes.physics.effects.clock import clock_age  # noqa: E402
+from experiments._stamp import run_stamp  # noqa: E402
 
 DATA = Path("/work/shared/data/mimu4444-bcd")
 
@@ -261,8 +260,7 @@ def main(argv=None):
     delay = full.get("acc_delay") if args.acc_delay else None
     lines = ["# Two-IMU rigs of the MIMU4444 against the eight-IMU rig posterior (issue #28 item 1)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_mimu_pairs.py --exp {args.exp} --window "
-             f"{args.window:g} --stamps {args.stamps}{flags}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
-             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs; or in parts: "
+             f"{args.window:g} --stamps {args.stamps}{flags}` ({run_stamp()}; or in parts: "
              f"`--part full --json F.json`, `--part k/n --json Pk.json` for k < n, then `--from-json F.json Pk.json …`; "
              f"fit times in the table).", "",
              f"{args.exp}, {rec.K} IMUs at {rec.sample_rate:.1f} Hz, window {sub.time[0]:.2f}–{sub.time[-1]:.2f} s "

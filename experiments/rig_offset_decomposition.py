@@ -24,8 +24,6 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -39,6 +37,7 @@ sys.path.insert(0, str(REPO))
 from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.inference.rig import RigSettings, fit_rig  # noqa: E402
 from experiments.clockgen.rig import draw_rig  # noqa: E402
+from experiments._stamp import run_stamp  # noqa: E402
 
 VARIANTS = {
     "full": ({}, RigSettings()),
@@ -80,8 +79,7 @@ def main(argv=None):
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_offset_decomposition.py --seeds "
              f"{' '.join(map(str, args.seeds))} --duration {args.duration:g} --variants "
              f"{' '.join(repr(v) if ' ' in v else v for v in args.variants)}` "
-             f"({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
-             f"{platform.system()}, 2-core CPU shared with other jobs, {time.time() - t_all:.0f} s).", "",
+             f"({run_stamp()}, {time.time() - t_all:.0f} s).", "",
              "Seeds as in `rig_proof.py`; the white noise is the same draw in every variant of a seed.", "",
              "| seed | K | variant | z time offset | z clock drift | offset error (µs) | fit s |",
              "|---|---|---|---|---|---|---|"] + rows + ["", "| variant | RMS z (offsets and drifts pooled) | n |",

@@ -19,10 +19,8 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # before numpy/torch load their thread pools: ours and the peer alike
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import json
 import math
-import platform
 import sys
 import tempfile
 import time
@@ -41,6 +39,7 @@ from accel_bayes.inference.rig import fit_rig  # noqa: E402
 from accel_bayes.inference.rig.robust import robust_summary  # noqa: E402
 from accel_bayes.inference.rig.solve import DEFAULT_KNOT_SPACING  # noqa: E402
 from accel_bayes.physics.geometry import matrix_to_quat, quat_log, quat_to_matrix  # noqa: E402
+from experiments._stamp import run_stamp  # noqa: E402
 
 
 def _rotvec_err(q_hat, q_true):
@@ -204,8 +203,7 @@ def main(argv=None):
              f"{len(cases)} rigs, {len(under)} under-excited"
              + ("; the bounds taken with `--crb-from` from the previous run's records" if args.crb_from else "")
              + ("; the document rewritten from records with `--from-json`" if args.from_json else "") + "; "
-             f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
-             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs; fit time per rig in the "
+             f"{run_stamp()}; fit time per rig in the "
              "table).", "",
              f"{len(cases)} rigs from `experiments/clockgen` (`draw_case('rig', seed)`, {args.duration:g} s each), "
              "fitted by `accel_bayes.inference.rig.fit_rig` from the format-v1 NetCDF alone.", "",

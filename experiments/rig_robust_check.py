@@ -21,9 +21,7 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -37,6 +35,7 @@ from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.inference.rig import fit_rig  # noqa: E402
 from accel_bayes.inference.rig.robust import DEFAULT_SCORE_BLOCK, robust_summary  # noqa: E402
 from experiments.clockgen.rig import draw_rig  # noqa: E402
+from experiments._stamp import run_stamp  # noqa: E402
 
 
 def _o_true(rec, truth):
@@ -98,8 +97,7 @@ def main(argv=None):
     rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
     lines = ["# The rig's reported std against a timing the model cannot hold (issue #28)", "",
              f"Regenerate: `PYTHONPATH=. python3 experiments/rig_robust_check.py --n {args.n} --duration {args.duration:g} "
-             f"--wander {args.wander:g}` ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
-             f"{platform.machine()} {platform.system()}, 2-core CPU shared with other jobs).", "",
+             f"--wander {args.wander:g}` ({run_stamp()}).", "",
              f"{args.n} two-IMU rigs from `experiments/clockgen` (`draw_rig(seed, n_imu=2)`, {args.duration:g} s, drawn "
              "rates, stamp jitter, bias walks, quantisation).  wander: IMU 1's offset also wanders (three 0.2–1 Hz "
              f"sinusoids, RMS {1e3 * args.wander:g} ms, random phases); control: the same rigs without.  z = offset error "
