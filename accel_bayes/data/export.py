@@ -34,7 +34,9 @@ Frames and conventions (also written into the file's comments)
   :func:`nominal_rate`), in m s-2/√Hz and rad s-1/√Hz; ``*_random_walk`` in m s-3/√Hz and
   rad s-2/√Hz (above), with ``*_random_walk_std`` where estimated.
 * **time_offset** (s, relative to imu0) only where estimated: positions.json ``time_offset``
-  (§7.3; with ``time_offset_std`` and, as extra keys, ``clock_drift``), else a mismatch report's
+  (§7.3; with ``time_offset_std`` and, as extra keys, ``clock_drift``; the std is the rig's
+  ``std_reported`` where positions.json has one — the block sandwich where its misspecification
+  test fired — else the Laplace ``std``, and the YAML comment says which), else a mismatch report's
   ``time_offset`` findings.  Positive = IMU i sampled late — its sample stamped t holds the
   output at t + time_offset — which is Kalibr's meaning (IccSensors.py: an IMU measurement is
   placed at ``stamp + timeOffset``).
@@ -277,6 +279,16 @@ def random_walks(recording: Recording, rate, imus=None, required=None) -> dict:
     return out
 
 
+def _reported_std(entry: dict):
+    """(std s or None, how) of a positions.json ``time_offset``/``clock_drift`` entry: the rig's
+    ``std_reported`` where it has one (the block sandwich where its misspecification test fired,
+    DESIGN §7.3's added keys; what ``calibrate-rig`` prints), else §7.3's Laplace ``std``."""
+    if entry.get("std_reported") is not None:
+        how = "block sandwich: the Laplace std failed its test" if entry.get("robust_used") else "Laplace"
+        return float(entry["std_reported"]), how
+    return (None, None) if entry.get("std") is None else (float(entry["std"]), "Laplace")
+
+
 def _time_offsets(positions: dict, report_ix, order, ref: int):
     """Per recording IMU (offset s relative to the reference, std or None, drift dict or None,
     source) or None: positions.json ``time_offset`` (§7.3) first, else a mismatch report's."""
@@ -289,7 +301,7 @@ def _time_offsets(positions: dict, report_ix, order, ref: int):
             e = imus.get(k, {})
             to = e.get("time_offset")
             if isinstance(to, dict) and to.get("mean") is not None:
-                out[k] = (float(to["mean"]) - o_ref, to.get("std"), e.get("clock_drift"), "positions.json")
+                out[k] = (float(to["mean"]) - o_ref, _reported_std(to), e.get("clock_drift"), "positions.json")
             elif k == ref:
                 out[k] = (0.0, None, None, "reference")
         return out
@@ -416,12 +428,13 @@ def _imu_lines(recording: Recording, P: dict, j: int, *, with_pose: bool) -> lis
     if dt is not None:
         out.append(f"  time_offset: {_num(dt[0])}  # s, relative to imu0, {dt[3]}: positive = sampled late "
                    "(Kalibr: sample stamped t is at t + time_offset)")
-        if dt[1] is not None:
-            out.append(f"  time_offset_std: {_num(dt[1])}  # s")
+        if dt[1] is not None and dt[1][0] is not None:
+            out.append(f"  time_offset_std: {_num(dt[1][0])}  # s, {dt[1][1]}")
         if isinstance(dt[2], dict) and dt[2].get("mean") is not None:
             out.append(f"  clock_drift: {_num(dt[2]['mean'])}  # dimensionless, DESIGN 7.3 (not read by Kalibr/OpenVINS)")
-            if dt[2].get("std") is not None:
-                out.append(f"  clock_drift_std: {_num(dt[2]['std'])}")
+            sd, how = _reported_std(dt[2])
+            if sd is not None:
+                out.append(f"  clock_drift_std: {_num(sd)}  # {how}")
     else:
         out.append("  # time_offset: not estimated")
     out.append(f"  update_rate: {_num(rate)}  # Hz, {P['rate_how'][k]}")

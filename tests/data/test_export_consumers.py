@@ -304,6 +304,30 @@ def test_time_offset_from_positions_relative_to_reference(tmp_path):
         assert d[f"imu{j}"]["time_offset_std"] == 1e-4
 
 
+def test_time_offset_std_is_the_rigs_reported_one(tmp_path):
+    """A rig's positions.json carries the Laplace ``std`` and its ``std_reported`` (the block sandwich
+    where the misspecification test fired, DESIGN §7.3 added keys): the export wrote the Laplace std
+    even where the rig had reported the sandwich — 4x too narrow on the MIMU pairs."""
+    import json
+
+    rec, rp = _recording(tmp_path)
+    pp, _ = _positions(tmp_path, time_offset=[0.0, 0.001, -0.002, 0.0005])
+    doc = json.loads(pp.read_text())
+    for e in doc["imus"]:
+        used = e["imu"] == 1
+        e["time_offset"].update({"std_robust": 4e-4, "std_ratio": 4.0, "std_reported": 4e-4 if used else 1e-4,
+                                 "robust_used": used})
+        e["clock_drift"] = {"mean": 1e-5, "std": 2e-6, "std_reported": 5e-6 if used else 2e-6, "robust_used": used}
+    pp.write_text(json.dumps(doc))
+    out = tmp_path / "chain.yaml"
+    assert _run(rp, "--positions", pp, "-o", out) == 0
+    d = yaml.safe_load(out.read_text())
+    assert d["imu1"]["time_offset_std"] == 4e-4 and d["imu1"]["clock_drift_std"] == 5e-6
+    assert d["imu2"]["time_offset_std"] == 1e-4 and d["imu2"]["clock_drift_std"] == 2e-6
+    text = out.read_text()
+    assert text.count("block sandwich: the Laplace std failed its test") == 2 and "# s, Laplace" in text
+
+
 def test_kalibr_imu_needs_out_dir(tmp_path, capsys):
     rec, rp = _recording(tmp_path)
     pp, _ = _positions(tmp_path)
