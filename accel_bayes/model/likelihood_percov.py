@@ -332,43 +332,41 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
     def _percov_terms_general(self, r: torch.Tensor) -> dict:
         """:meth:`_percov_terms` with the angular jerk and/or the triads' instant errors beside the
-        jerk (module docstring, "Angular jerk", "Instant error"): R loading columns, N_t = I + W_tᵀW_t
-        − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t) by batched R × R Choleskys, and the rows of
-        V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T).  The jerk's and the angular jerk's columns are
-        the centred age times a fixed 3 × 3 block per triad (I₃, [r_k − r̄]×) times a per-sample
-        scale, so their products with H_w, Ẽ_w and e_w are one (6J × A)(A × T) product each; the
-        instant-error columns are block-sparse (column k lives on triad k's three rows): A batched 6 × 3 products."""
+        jerk (module docstring, "Angular jerk", "Instant error"): R loading columns W_t, N_t = I + W_tᵀW_t
+        − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t) and the rows of V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (returned as a
+        (B, R, 7, T) view).  The first J columns (the jerk's, then the angular jerk's) are the centred
+        age times a fixed 3 × 3 block per triad (I₃, [r_k − r̄]×) times a per-sample scale, so their
+        products with L⁻¹H_wᵀ and Ẽ_w are one (12·B·J × A)(A × T) product; any further columns (the
+        instant errors': column k on triad k's three rows) are block-sparse: batched 6 × 3 products."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         d_t, cs, P, wk, wtw = self._theta_free
-        R = wtw.shape[0]
-        Hw4 = proj["Hw"].view(B, A, 3, 6)
-        Gt4 = proj["Gt"].view(B, A, 3, 6)
-        ew = proj["e_w"].view(B, T, A, 3)
-        # H_wᵀW_t (B, 6, R, T) and [W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T), group by group of columns; the
-        # jerk's and the angular jerk's J columns are d_kt P_k (P_k = Λ_k^½[I₃, [r_k − r̄]×]) times a
-        # per-sample scale per column (cs: s_t, a_t): one (6J × A)(A × T) product each
         J = P.shape[-1]
-        Y = [(torch.einsum("bkif,kir->bfrk", Hw4, P).reshape(B, 6 * J, A) @ d_t).view(B, 6, J, T) * cs]
-        E = [(torch.einsum("bkif,kir->brfk", Gt4, P).reshape(B, J * 6, A) @ d_t).view(B, J, 6, T) * cs[:, None]]
-        a = [((ew * d_t.T[None, :, :, None]).reshape(B, T, 3 * A) @ P.reshape(3 * A, J)).transpose(1, 2) * cs]
+        # L⁻¹H_wᵀ first (6 × 3A per θ), so no triangular solve runs over the samples
+        Kh = torch.linalg.solve_triangular(proj["L"], proj["Hw"].transpose(-1, -2), upper=False)
+        KG = torch.cat((Kh, proj["Gt"].transpose(-1, -2)), 1).view(B, 12, A, 3)  # [L⁻¹H_wᵀ; Ẽ_wᵀ]
+        # Layouts (component, column, B, T): the sample index last, so every per-sample step below is an
+        # elementwise op over the samples and the column slices the Cholesky reads are contiguous.
+        lhs = torch.einsum("bfki,kir->frbk", KG, P).reshape(12 * J * B, A)
+        YE = [(lhs @ d_t).view(12, J, B, T) * cs[:, None]]  # rows 0–5 L⁻¹H_wᵀW_t, rows 6–11 W_tᵀẼ_w
+        ew = proj["e_w"].view(B, T, A, 3)
+        a = [((ew * d_t.T[None, :, :, None]).reshape(B, T, 3 * A) @ P.reshape(3 * A, J)).permute(2, 0, 1) * cs[:, None]]
         if wk is not None:
-            Y.append(torch.matmul(Hw4.transpose(-1, -2), wk).transpose(1, 2))  # (B, 6, A, T)
-            E.append(torch.matmul(Gt4.transpose(-1, -2), wk))  # (B, A, 6, T)
-            a.append((ew * wk.permute(2, 0, 1)).sum(-1).transpose(1, 2))  # (B, A, T)
+            KG4 = KG.permute(0, 2, 1, 3)  # (B, A, 12, 3)
+            YE.append(torch.matmul(KG4, wk).permute(2, 1, 0, 3))  # (12, A, B, T)
+            a.append((ew * wk.permute(2, 0, 1)).sum(-1).permute(2, 0, 1))  # (B, A, T) → (A, B, T)
         one = lambda parts, dim: parts[0] if len(parts) == 1 else torch.cat(parts, dim)  # noqa: E731 — no copy of one
-        Y = one(Y, 2)
-        Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
-        Ea = torch.cat((one(E, 1), one(a, 1)[:, :, None]), 2)
-        # N_t's entries, then its Cholesky and the forward substitution unrolled entry by entry,
-        # each step an elementwise op over the samples (B, T) or (B, 7, T): at exp_1's size (T = 5885,
-        # R = 6) ~4 ms against ~8 ms for a batched LAPACK Cholesky and solve or for column blocks
-        N = [[wtw[i, j] - (Yh[:, :, i] * Yh[:, :, j]).sum(1) for j in range(i + 1)] for i in range(R)]
-        d, X = _unrolled_cholesky_solve(N, list(Ea.unbind(1)))
-        diag = torch.stack(d, -1)  # (B, T, R)
-        if not bool(torch.isfinite(diag).all()):
+        YE = one(YE, 1)
+        Yh = YE[:6]
+        rhs = torch.cat((YE[6:], one(a, 0)[None]), 0)  # (7, R, B, T): [W_tᵀẼ_w, W_tᵀe_w,t] row by row
+        # N_t = I + W_tᵀW_t − Σ_f (L⁻¹H_wᵀW_t)_f (L⁻¹H_wᵀW_t)_fᵀ, one rank-1 update per φ component
+        N = torch.addcmul(wtw[:, :, None], Yh[0, :, None], Yh[0, None], value=-1)
+        for f in range(1, 6):
+            N = N.addcmul_(Yh[f, :, None], Yh[f, None], value=-1)
+        piv, X = _cholesky_solve_over_samples(N, rhs)
+        if not bool(torch.isfinite(piv).all()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
-        proj.update(V=torch.stack(X, 1), logdetN=2 * diag.log().sum(-1))
+        proj.update(V=X.permute(2, 1, 0, 3), logdetN=2 * piv.log().sum(0))
         return proj
 
     @property
@@ -487,29 +485,22 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         return Rc, w, c - (w * w).sum(-2)
 
 
-def _unrolled_cholesky_solve(N, rhs):
-    """(diagonal of L (R tensors (B, T)), X = L⁻¹[rhs] (R tensors (B, 7, T))) for the per-sample
-    R × R matrices given by their lower entries ``N[i][j]`` (j ≤ i, each (B, T)), N = L Lᵀ, and
-    the R right-hand-side rows ``rhs`` (each (B, 7, T)).  The Cholesky–Banachiewicz recursion
-    written out over the entries, every step elementwise over the samples."""
-    R = len(rhs)
-    L = [[None] * (i + 1) for i in range(R)]
-    inv = []
+def _cholesky_solve_over_samples(N, X):
+    """(diagonal of L (R, …), L⁻¹X (m, R, …)) for the symmetric R × R matrices ``N`` (R, R, …) (lower
+    part read), N = L Lᵀ, and ``X`` (m, R, …): one R × R system per trailing index (the samples).
+    Right-looking: column j of L, then the rank-1 update of the trailing block, each step one
+    elementwise op over all the samples and remaining entries (a batched LAPACK call per R × R,
+    or the recursion written out entry by entry, costs more than the arithmetic)."""
+    R = N.shape[0]
+    piv, rows = [], []
     for j in range(R):
-        s = N[j][j]
-        for k in range(j):
-            s = torch.addcmul(s, L[j][k], L[j][k], value=-1)
-        L[j][j] = s.sqrt()
-        inv.append(L[j][j].reciprocal())
-        for i in range(j + 1, R):
-            s = N[i][j]
-            for k in range(j):
-                s = torch.addcmul(s, L[i][k], L[j][k], value=-1)
-            L[i][j] = s * inv[j]
-    X = []
-    for i in range(R):
-        s = rhs[i]
-        for k in range(i):
-            s = torch.addcmul(s, L[i][k][:, None], X[k], value=-1)
-        X.append(s * inv[i][:, None])
-    return [L[j][j] for j in range(R)], X
+        p = N[0, 0].sqrt()
+        inv = p.reciprocal()
+        x = X[:, 0] * inv
+        piv.append(p)
+        rows.append(x)
+        if j + 1 < R:
+            col = N[1:, 0] * inv  # L[j+1:, j]
+            N = torch.addcmul(N[1:, 1:], col[:, None], col[None], value=-1)
+            X = torch.addcmul(X[:, 1:], x[:, None], col[None], value=-1)
+    return torch.stack(piv), torch.stack(rows, 1)
