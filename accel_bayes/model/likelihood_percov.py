@@ -341,29 +341,37 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         d_t, cs, P, wk, wtw = self._theta_free
-        J = P.shape[-1]
+        J, R = P.shape[-1], wtw.shape[0]
+        # Without autograd every (·, T) temporary lives in a reused buffer (fresh MB-sized
+        # allocations cost page faults comparable to the arithmetic) and the Cholesky runs in place.
+        reuse = not (torch.is_grad_enabled() and (r.requires_grad or self.W.requires_grad))
+        ws = self._workspace if reuse else (lambda name, shape: None)
+        # Z (13, R, B, T): rows 0–5 L⁻¹H_wᵀW_t, 6–11 W_tᵀẼ_w, 12 W_tᵀe_w,t; the sample index last, so
+        # every per-sample step below is an elementwise op over the samples
+        Z = ws("pc_Z", (13, R, B, T))
+        into = (lambda *idx: None) if Z is None else (lambda *idx: Z[idx])  # noqa: E731
         # L⁻¹H_wᵀ first (6 × 3A per θ), so no triangular solve runs over the samples
         Kh = torch.linalg.solve_triangular(proj["L"], proj["Hw"].transpose(-1, -2), upper=False)
         KG = torch.cat((Kh, proj["Gt"].transpose(-1, -2)), 1).view(B, 12, A, 3)  # [L⁻¹H_wᵀ; Ẽ_wᵀ]
-        # Layouts (component, column, B, T): the sample index last, so every per-sample step below is an
-        # elementwise op over the samples and the column slices the Cholesky reads are contiguous.
         lhs = torch.einsum("bfki,kir->frbk", KG, P).reshape(12 * J * B, A)
-        YE = [(lhs @ d_t).view(12, J, B, T) * cs[:, None]]  # rows 0–5 L⁻¹H_wᵀW_t, rows 6–11 W_tᵀẼ_w
+        ye = torch.mm(lhs, d_t, out=into(slice(0, 12)).view(12 * J * B, T) if Z is not None and R == J else None)
+        ye = torch.mul(ye.view(12, J, B, T), cs[:, None], out=into(slice(0, 12), slice(0, J)))
         ew = proj["e_w"].view(B, T, A, 3)
-        a = [((ew * d_t.T[None, :, :, None]).reshape(B, T, 3 * A) @ P.reshape(3 * A, J)).permute(2, 0, 1) * cs[:, None]]
+        ewd = torch.mul(ew, d_t.T[None, :, :, None], out=ws("pc_ewd", (B, T, A, 3))).view(B * T, 3 * A)
+        ea = torch.mul((ewd @ P.reshape(3 * A, J)).view(B, T, J).permute(2, 0, 1), cs[:, None], out=into(12, slice(0, J)))
         if wk is not None:
-            KG4 = KG.permute(0, 2, 1, 3)  # (B, A, 12, 3)
-            YE.append(torch.matmul(KG4, wk).permute(2, 1, 0, 3))  # (12, A, B, T)
-            a.append((ew * wk.permute(2, 0, 1)).sum(-1).permute(2, 0, 1))  # (B, A, T) → (A, B, T)
-        one = lambda parts, dim: parts[0] if len(parts) == 1 else torch.cat(parts, dim)  # noqa: E731 — no copy of one
-        YE = one(YE, 1)
-        Yh = YE[:6]
-        rhs = torch.cat((YE[6:], one(a, 0)[None]), 0)  # (7, R, B, T): [W_tᵀẼ_w, W_tᵀe_w,t] row by row
-        # N_t = I + W_tᵀW_t − Σ_f (L⁻¹H_wᵀW_t)_f (L⁻¹H_wᵀW_t)_fᵀ, one rank-1 update per φ component
-        N = torch.addcmul(wtw[:, :, None], Yh[0, :, None], Yh[0, None], value=-1)
+            ye_k = torch.matmul(KG.permute(0, 2, 1, 3), wk).permute(2, 1, 0, 3)  # (12, A, B, T)
+            ea_k = (ew * wk.permute(2, 0, 1)).sum(-1).permute(2, 0, 1)  # (A, B, T)
+        if Z is None:
+            cols = (ye,) if wk is None else (ye, ye_k)
+            Z = torch.cat((torch.cat(cols, 1), (ea if wk is None else torch.cat((ea, ea_k), 0))[None]), 0)
+        elif wk is not None:
+            Z[:12, J:], Z[12, J:] = ye_k, ea_k
+        # N_t = I + W_tᵀW_t − Σ_f (L⁻¹H_wᵀW_t)_f (L⁻¹H_wᵀW_t)_fᵀ: one rank-1 update per φ component
+        N = torch.addcmul(wtw[:, :, None], Z[0, :, None], Z[0, None], value=-1, out=ws("pc_N", (R, R, B, T)))
         for f in range(1, 6):
-            N = N.addcmul_(Yh[f, :, None], Yh[f, None], value=-1)
-        piv, X = _cholesky_solve_over_samples(N, rhs)
+            N = N.addcmul_(Z[f, :, None], Z[f, None], value=-1)
+        piv, X = _cholesky_solve_over_samples(N, Z[6:], inplace=reuse)
         if not bool(torch.isfinite(piv).all()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
         proj.update(V=X.permute(2, 1, 0, 3), logdetN=2 * piv.log().sum(0))
@@ -485,22 +493,24 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         return Rc, w, c - (w * w).sum(-2)
 
 
-def _cholesky_solve_over_samples(N, X):
+def _cholesky_solve_over_samples(N, X, inplace: bool = False):
     """(diagonal of L (R, …), L⁻¹X (m, R, …)) for the symmetric R × R matrices ``N`` (R, R, …) (lower
     part read), N = L Lᵀ, and ``X`` (m, R, …): one R × R system per trailing index (the samples).
     Right-looking: column j of L, then the rank-1 update of the trailing block, each step one
     elementwise op over all the samples and remaining entries (a batched LAPACK call per R × R,
-    or the recursion written out entry by entry, costs more than the arithmetic)."""
+    or the recursion written out entry by entry, costs more than the arithmetic).  ``inplace``:
+    N and X are scratch, overwritten (L's lower part, L⁻¹X); not with autograd."""
     R = N.shape[0]
-    piv, rows = [], []
+    out = (lambda v: v) if inplace else (lambda v: None)  # noqa: E731
+    piv, rows, X0 = [], [], X
     for j in range(R):
-        p = N[0, 0].sqrt()
+        p = torch.sqrt(N[0, 0], out=out(N[0, 0]))
         inv = p.reciprocal()
-        x = X[:, 0] * inv
+        x = torch.mul(X[:, 0], inv, out=out(X[:, 0]))
         piv.append(p)
         rows.append(x)
         if j + 1 < R:
-            col = N[1:, 0] * inv  # L[j+1:, j]
-            N = torch.addcmul(N[1:, 1:], col[:, None], col[None], value=-1)
-            X = torch.addcmul(X[:, 1:], x[:, None], col[None], value=-1)
-    return torch.stack(piv), torch.stack(rows, 1)
+            col = torch.mul(N[1:, 0], inv, out=out(N[1:, 0]))  # L[j+1:, j]
+            N = torch.addcmul(N[1:, 1:], col[:, None], col[None], value=-1, out=out(N[1:, 1:]))
+            X = torch.addcmul(X[:, 1:], x[:, None], col[None], value=-1, out=out(X[:, 1:]))
+    return torch.stack(piv), (X0 if inplace else torch.stack(rows, 1))
