@@ -92,6 +92,11 @@ from .unresolved_cov import centred_ages, instant_error_loadings, loadings, rota
 # the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
 
+# The general path takes N_t from the products of the centred ages d_kt d_lt (k ≤ l: A(A+1)/2 rows, one
+# matrix product) up to this many pairs; beyond it the elementwise Gram over the six φ components,
+# whose cost grows only linearly with A, is cheaper (A = 8: 36 pairs, 0.2 ms against 0.7 ms on exp_1).
+_MAX_AGE_PAIRS = 78
+
 __all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale", "triad_rates"]
 
 
@@ -340,42 +345,66 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         instant errors': column k on triad k's three rows) are block-sparse: batched 6 × 3 products."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
-        d_t, cs, P, wk, wtw = self._theta_free
+        d_t, cs, P, wk, wtw, pairs = self._theta_free
         J, R = P.shape[-1], wtw.shape[0]
         # Without autograd every (·, T) temporary lives in a reused buffer (fresh MB-sized
         # allocations cost page faults comparable to the arithmetic) and the Cholesky runs in place.
         reuse = not (torch.is_grad_enabled() and (r.requires_grad or self.W.requires_grad))
         ws = self._workspace if reuse else (lambda name, shape: None)
-        # Z (13, R, B, T): rows 0–5 L⁻¹H_wᵀW_t, 6–11 W_tᵀẼ_w, 12 W_tᵀe_w,t; the sample index last, so
-        # every per-sample step below is an elementwise op over the samples
-        Z = ws("pc_Z", (13, R, B, T))
-        into = (lambda *idx: None) if Z is None else (lambda *idx: Z[idx])  # noqa: E731
         # L⁻¹H_wᵀ first (6 × 3A per θ), so no triangular solve runs over the samples
         Kh = torch.linalg.solve_triangular(proj["L"], proj["Hw"].transpose(-1, -2), upper=False)
-        KG = torch.cat((Kh, proj["Gt"].transpose(-1, -2)), 1).view(B, 12, A, 3)  # [L⁻¹H_wᵀ; Ẽ_wᵀ]
-        lhs = torch.einsum("bfki,kir->frbk", KG, P).reshape(12 * J * B, A)
-        ye = torch.mm(lhs, d_t, out=into(slice(0, 12)).view(12 * J * B, T) if Z is not None and R == J else None)
-        ye = torch.mul(ye.view(12, J, B, T), cs[:, None], out=into(slice(0, 12), slice(0, J)))
+        # Z (m, R, B, T): rows [L⁻¹H_wᵀW_t (6, for the Gram below only),] W_tᵀẼ_w (6), W_tᵀe_w,t (1); the
+        # sample index last, so every per-sample step below is an elementwise op over the samples
+        left = proj["Gt"].transpose(-1, -2) if pairs is not None else torch.cat((Kh, proj["Gt"].transpose(-1, -2)), 1)
+        m = left.shape[1] + 1
+        Z = ws("pc_Z", (m, R, B, T))
+        into = (lambda *idx: None) if Z is None else (lambda *idx: Z[idx])  # noqa: E731
+        lhs = torch.einsum("bfki,kir->frbk", left.view(B, m - 1, A, 3), P).reshape((m - 1) * J * B, A)
+        ye = torch.mm(lhs, d_t, out=into(slice(0, m - 1)).view(-1, T) if Z is not None and R == J else None)
+        ye = torch.mul(ye.view(m - 1, J, B, T), cs[:, None], out=into(slice(0, m - 1), slice(0, J)))
         ew = proj["e_w"].view(B, T, A, 3)
         ewd = torch.mul(ew, d_t.T[None, :, :, None], out=ws("pc_ewd", (B, T, A, 3))).view(B * T, 3 * A)
-        ea = torch.mul((ewd @ P.reshape(3 * A, J)).view(B, T, J).permute(2, 0, 1), cs[:, None], out=into(12, slice(0, J)))
+        ea = torch.mul((ewd @ P.reshape(3 * A, J)).view(B, T, J).permute(2, 0, 1), cs[:, None],
+                       out=into(m - 1, slice(0, J)))
         if wk is not None:
-            ye_k = torch.matmul(KG.permute(0, 2, 1, 3), wk).permute(2, 1, 0, 3)  # (12, A, B, T)
+            ye_k = torch.matmul(left.view(B, m - 1, A, 3).permute(0, 2, 1, 3), wk).permute(2, 1, 0, 3)  # (m-1, A, B, T)
             ea_k = (ew * wk.permute(2, 0, 1)).sum(-1).permute(2, 0, 1)  # (A, B, T)
         if Z is None:
             cols = (ye,) if wk is None else (ye, ye_k)
             Z = torch.cat((torch.cat(cols, 1), (ea if wk is None else torch.cat((ea, ea_k), 0))[None]), 0)
         elif wk is not None:
-            Z[:12, J:], Z[12, J:] = ye_k, ea_k
-        # N_t = I + W_tᵀW_t − Σ_f (L⁻¹H_wᵀW_t)_f (L⁻¹H_wᵀW_t)_fᵀ: one rank-1 update per φ component
-        N = torch.addcmul(wtw[:, :, None], Z[0, :, None], Z[0, None], value=-1, out=ws("pc_N", (R, R, B, T)))
-        for f in range(1, 6):
-            N = N.addcmul_(Z[f, :, None], Z[f, None], value=-1)
-        piv, X = _cholesky_solve_over_samples(N, Z[6:], inplace=reuse)
+            Z[:m - 1, J:], Z[m - 1, J:] = ye_k, ea_k
+        if pairs is not None:
+            N = self._n_from_age_pairs(Kh, P, pairs, ws("pc_N", (J * J * B, T)))
+        else:
+            # N_t = I + W_tᵀW_t − Σ_f (L⁻¹H_wᵀW_t)_f (L⁻¹H_wᵀW_t)_fᵀ: one rank-1 update per φ component
+            N = torch.addcmul(wtw[:, :, None], Z[0, :, None], Z[0, None], value=-1, out=ws("pc_N", (R, R, B, T)))
+            for f in range(1, 6):
+                N = N.addcmul_(Z[f, :, None], Z[f, None], value=-1)
+        piv, X = _cholesky_solve_over_samples(N, Z[m - 7:], inplace=reuse)
         if not bool(torch.isfinite(piv).all()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
         proj.update(V=X.permute(2, 1, 0, 3), logdetN=2 * piv.log().sum(0))
         return proj
+
+    @staticmethod
+    def _n_from_age_pairs(Kh, P, pairs, out=None):
+        """N_t (J, J, B, T) when every loading column is age-loaded (W_t's rows of triad k are
+        d_kt P_k diag(c_t), c_t the columns' scales): N_t − I = diag(c_t) Σ_k,l d_kt d_lt C_kl diag(c_t)
+        with C_kl = δ_kl P_kᵀP_k − (L⁻¹H_w,kᵀP_k)ᵀ(L⁻¹H_w,lᵀP_l) (J × J per θ), so all samples' entries
+        are one (J²·B × A(A+1)/2)(A(A+1)/2 × T) product with the θ-free pair products d_kt d_lt (the
+        elementwise Gram over the φ components costs three times more at A = 8).  ``Kh`` L⁻¹H_wᵀ
+        (B, 6, 3A), ``P`` (A, 3, J), ``pairs`` (k, l, d_k d_l with weight ½ on k = l, 2δ_kl P_kᵀP_k,
+        c_i c_j) from :attr:`_theta_free`."""
+        kk, ll, F, ptp2, sc = pairs
+        B, A, J = Kh.shape[0], P.shape[0], P.shape[-1]
+        Zk = torch.einsum("bfki,kir->bkfr", Kh.view(B, 6, A, 3), P)  # (B, A, 6, J): L⁻¹H_w,kᵀP_k
+        X = torch.einsum("bkfi,blfj->bklij", Zk, Zk)  # (B, A, A, J, J)
+        coef = ptp2 - X[:, kk, ll] - X[:, ll, kk]  # (B, pairs, J, J): C_kl + C_lk (k < l), 2C_kk
+        G = torch.mm(coef.permute(2, 3, 0, 1).reshape(J * J * B, -1), F, out=out).view(J, J, B, -1)
+        N = torch.mul(G, sc[:, :, None], out=G if out is not None else None)
+        N.diagonal(0, 0, 1).add_(1.0)
+        return N
 
     @property
     def _theta_free(self):
@@ -384,7 +413,8 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         vector over the triads.  General path: the centred ages dᵀ (A, T); the per-sample scale of
         each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their per-triad blocks
         Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
-        I + W_tᵀW_t (R, R, T)."""
+        I + W_tᵀW_t (R, R, T); without instant errors and up to ``_MAX_AGE_PAIRS`` pairs of triads,
+        the age pairs of :meth:`_n_from_age_pairs` (else None)."""
         if getattr(self, "_tf_cache", None) is None and self.W is not None:
             R = self.W.shape[-1]
             J = 3 if self.loading_rot is None else 6
@@ -399,7 +429,14 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 P = torch.cat((P, self._cross * sl[..., None]), -1)
                 cs = torch.cat((cs, self.angjerk_std.expand(3, self.T)), 0)
             wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
-            self._tf_cache = (centred_ages(self.age).T.contiguous(), cs, P, wk, wtw.permute(1, 2, 0).contiguous())
+            d_t = centred_ages(self.age).T.contiguous()
+            pairs = None
+            if wk is None and self.A * (self.A + 1) // 2 <= _MAX_AGE_PAIRS:
+                kk, ll = torch.triu_indices(self.A, self.A, device=self.device)
+                F = d_t[kk] * d_t[ll] * torch.where(kk == ll, 0.5, 1.0).to(self.dtype)[:, None]
+                ptp2 = 2 * (P.transpose(-1, -2) @ P)[kk] * (kk == ll).to(self.dtype)[:, None, None]
+                pairs = (kk, ll, F.contiguous(), ptp2, cs[:, None] * cs[None])
+            self._tf_cache = (d_t, cs, P, wk, wtw.permute(1, 2, 0).contiguous(), pairs)
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)
@@ -458,17 +495,22 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         if len(zt.shape[:-3]):
             zt = zt.expand(*batch, *zt.shape[-3:]).reshape(B, self.T, 3, N)
         Rc, w, floor = self._factor_any(p["c"], p["b"], p["C"])
-        V = p["V"]  # (B, 3, 7, T)
+        V = p["V"]  # (B, R, 7, T)
+        R = V.shape[1]
+        # without autograd the per-draw temporary lives in a reused buffer, updated in place
+        grad = torch.is_grad_enabled() and (V.requires_grad or zt.requires_grad)
+        ws = (lambda name, shape: None) if grad else self._workspace
 
         def logw(s, d, t0, t1):
-            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖², the 3×6 product as six fused
-            # multiply-adds over (B, 3, τ, N) (a batched matmul of 3×6 blocks is slower)
-            Vc = V[..., t0:t1, None]  # (B, 3, 7, τ, 1)
-            acc = -Vc[:, :, 6]
+            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖², the R×6 product as six fused
+            # multiply-adds over (B, R, τ, N) (a batched matmul of R×6 blocks is slower)
+            Vc = V[..., t0:t1, None]  # (B, R, 7, τ, 1)
             dd = d if d.dim() == 3 else d[:, None]  # (6, τ, N) or (B, 1, 6, τ, N)
-            for j in range(6):
-                acc = torch.addcmul(acc, Vc[:, :, j], dd[..., j, :, :])
-            corr = acc.square().sum(1)  # (B, τ, N)
+            acc = torch.mul(Vc[:, :, 0], dd[..., 0, :, :], out=ws("pc_acc", (B, R, t1 - t0, N)))
+            for j in range(1, 6):
+                acc = acc.addcmul_(Vc[:, :, j], dd[..., j, :, :])
+            acc = acc.sub_(Vc[:, :, 6])
+            corr = torch.mul(acc, acc, out=None if grad else acc).sum(1)  # (B, τ, N)
             return self._kernel(corr.neg_().add_(s).add_(floor[:, t0:t1, None]))
 
         inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
