@@ -345,7 +345,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         instant errors': column k on triad k's three rows) are block-sparse: batched 6 × 3 products."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
-        d_t, cs, P, wk, wtw, pairs = self._theta_free
+        d_t, d_rows, cs, P, wk, wtw, pairs = self._theta_free
         J, R = P.shape[-1], wtw.shape[0]
         # Without autograd every (·, T) temporary lives in a reused buffer (fresh MB-sized
         # allocations cost page faults comparable to the arithmetic) and the Cholesky runs in place.
@@ -362,13 +362,13 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         lhs = torch.einsum("bfki,kir->frbk", left.view(B, m - 1, A, 3), P).reshape((m - 1) * J * B, A)
         ye = torch.mm(lhs, d_t, out=into(slice(0, m - 1)).view(-1, T) if Z is not None and R == J else None)
         ye = torch.mul(ye.view(m - 1, J, B, T), cs[:, None], out=into(slice(0, m - 1), slice(0, J)))
-        ew = proj["e_w"].view(B, T, A, 3)
-        ewd = torch.mul(ew, d_t.T[None, :, :, None], out=ws("pc_ewd", (B, T, A, 3))).view(B * T, 3 * A)
-        ea = torch.mul((ewd @ P.reshape(3 * A, J)).view(B, T, J).permute(2, 0, 1), cs[:, None],
-                       out=into(m - 1, slice(0, J)))
+        # W_tᵀe_w,t: the centred ages per row (θ-free, each repeated over the triad's three axes, so
+        # the product is contiguous) on Λ^½e_t, summed through the blocks P_k as one (J × 3A)(3A × B·T) product
+        ewd = torch.mul(proj["e_w"], d_rows, out=ws("pc_ewd", (B, T, 3 * A))).view(B * T, 3 * A)
+        ea = torch.mul((P.reshape(3 * A, J).T @ ewd.T).view(J, B, T), cs[:, None], out=into(m - 1, slice(0, J)))
         if wk is not None:
             ye_k = torch.matmul(left.view(B, m - 1, A, 3).permute(0, 2, 1, 3), wk).permute(2, 1, 0, 3)  # (m-1, A, B, T)
-            ea_k = (ew * wk.permute(2, 0, 1)).sum(-1).permute(2, 0, 1)  # (A, B, T)
+            ea_k = (proj["e_w"].view(B, T, A, 3) * wk.permute(2, 0, 1)).sum(-1).permute(2, 0, 1)  # (A, B, T)
         if Z is None:
             cols = (ye,) if wk is None else (ye, ye_k)
             Z = torch.cat((torch.cat(cols, 1), (ea if wk is None else torch.cat((ea, ea_k), 0))[None]), 0)
@@ -382,9 +382,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             for f in range(1, 6):
                 N = N.addcmul_(Z[f, :, None], Z[f, None], value=-1)
         piv, X = _cholesky_solve_over_samples(N, Z[m - 7:], inplace=reuse)
-        if not bool(torch.isfinite(piv).all()):
+        logdetN = 2 * piv.log().sum(0)  # not finite where a pivot is not positive and finite
+        if not bool(torch.isfinite(logdetN).all()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
-        proj.update(V=X.permute(2, 1, 0, 3), logdetN=2 * piv.log().sum(0))
+        proj.update(V=X.permute(2, 1, 0, 3), logdetN=logdetN)
         return proj
 
     @staticmethod
@@ -410,7 +411,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
     def _theta_free(self):
         """Cached θ-free tensors.  Closed-form path (jerk only), of the loaded samples: uᵀ (A, Ta);
         diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major
-        vector over the triads.  General path: the centred ages dᵀ (A, T); the per-sample scale of
+        vector over the triads.  General path: the centred ages dᵀ (A, T) and per row (T, 3A); the per-sample scale of
         each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their per-triad blocks
         Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
         I + W_tᵀW_t (R, R, T); without instant errors and up to ``_MAX_AGE_PAIRS`` pairs of triads,
@@ -436,7 +437,8 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 F = d_t[kk] * d_t[ll] * torch.where(kk == ll, 0.5, 1.0).to(self.dtype)[:, None]
                 ptp2 = 2 * (P.transpose(-1, -2) @ P)[kk] * (kk == ll).to(self.dtype)[:, None, None]
                 pairs = (kk, ll, F.contiguous(), ptp2, cs[:, None] * cs[None])
-            self._tf_cache = (d_t, cs, P, wk, wtw.permute(1, 2, 0).contiguous(), pairs)
+            d_rows = d_t.T.repeat_interleave(3, 1)  # (T, 3A)
+            self._tf_cache = (d_t, d_rows, cs, P, wk, wtw.permute(1, 2, 0).contiguous(), pairs)
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)
