@@ -68,8 +68,18 @@ of rank 6 (plus the instant error's A columns if given) by the general path belo
 boards read at different instants this is the larger part of the misfit (ω̈ ~ 10⁴–10⁵ rad/s³ ×
 2–5 cm × 0.5 ms ≈ 1–3 m/s²; ``experiments/angjerk_probe.md``, ``experiments/percov_conceal.md``);
 on the six real experiments it brings every sandwich ratio down a little
-(``experiments/mimu_model_calibrate.md``).  Opt-in in ``calibrate`` for its cost: one log p̂ on
-exp_1 is 4.6× the flat model's, above the 4× bar (``experiments/bench_likelihood_percov.md``).
+(``experiments/mimu_model_calibrate.md``).  On by default in ``calibrate --model`` (option
+``angular_jerk``, ``--no-angular-jerk``) since one log p̂ with it meets the 4× bar on exp_1
+(``experiments/bench_likelihood_percov.md``).
+
+Cost of the general path (R columns, J = 3 or 6 of them age-loaded).  Per θ: L⁻¹H_wᵀ (6 × 3A), then
+W_tᵀẼ_w and W_tᵀΛ^½e_t for all samples by two matrix products over the centred ages; N_t − I =
+diag(c_t)[Σ_k d_kt² P_kᵀP_k − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t)]diag(c_t) by one matrix product of a J² × A(A+1)/2
+coefficient matrix per θ with the θ-free age pairs d_kt d_lt (when all columns are age-loaded and A
+is small; else the elementwise Gram over the six φ components); the R × R Choleskys and the seven
+right-hand sides right-looking, one elementwise op per column over all samples; no (·, T)
+allocation without autograd.  Exact: the same log p̂ to round-off (the dense-Gaussian tests of
+``tests/model/test_angular_jerk.py``).  Per draw: the R × 6 product V_t δ − v_t.
 
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
