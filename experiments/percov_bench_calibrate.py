@@ -7,7 +7,8 @@ Both are the command line's defaults (chains run until converged: R̂ < 1.01, bu
 default, …) so that the shared machine's load falls on both alike; wall time per call of
 :func:`accel_bayes.pipelines.calibrate.calibrate` (what ``accel-bayes calibrate`` runs; file writing
 not included).  The report is the experiment's own ``mismatch`` report (``experiments/mimu_mismatch.py``;
-its ``sampling_clock`` and ``unresolved_motion`` findings enter the per-sample likelihood).
+its ``sampling_clock`` and ``unresolved_motion`` findings enter the per-sample likelihood, with the board's
+angular jerk beside the jerk: ``calibrate``'s default under a model).
 
     PYTHONPATH=. python3 experiments/percov_bench_calibrate.py --reports DIR [--exp 1] [--rounds 2]
 
@@ -16,6 +17,7 @@ Writes ``experiments/percov_bench_calibrate.md`` and ends with ``RESULT`` lines 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import platform
 import sys
@@ -74,12 +76,14 @@ def main(argv=None) -> int:
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     L = [f"# `calibrate --model` against the default `calibrate`, exp_{args.exp} (issue #30 Deliver 3)", "",
          f"Regenerate: `PYTHONPATH=. python3 experiments/percov_bench_calibrate.py --reports {args.reports} "
-         f"--exp {args.exp} --rounds {args.rounds}` ({stamp}, {platform.machine()} {platform.system()}, shared "
-         f"2-core CPU, load average {load0:.1f} at the start and {load1:.1f} at the end, one torch thread; the two "
+         f"--exp {args.exp} --rounds {args.rounds}` ({stamp}, {platform.machine()} {platform.system()}, "
+         f"{os.cpu_count()} cores, load average {load0:.1f} at the start and {load1:.1f} at the end, one torch thread; the two "
          "alternate in one process, so the ratio is what the load leaves comparable, the absolute times are "
          "inflated by it).", "",
          "Both with the defaults (run until converged, 4 chains, seed 0) on the whole recording "
-         f"(`{path.parent.name}/data.bin.gz`, {rec.T} samples); the model: the experiment's own `mismatch` report.",
+         f"(`{path.parent.name}/data.bin.gz`, {rec.T} samples); the model: the experiment's own `mismatch` report "
+         f"(sha256 {hashlib.sha256(report.read_bytes()).hexdigest()[:16]}…), with the board's angular jerk (on by "
+         "default under `--model`).",
          "", "| run | wall s per call | draws per chain | converged |", "|---|---|---|---|"]
     for k, v in rows.items():
         L.append(f"| {k} | {', '.join(f'{w:.1f}' for w, _, _ in v)} (median {med[k]:.1f}) | "

@@ -103,8 +103,9 @@ from .unresolved_cov import centred_ages, instant_error_loadings, loadings, rota
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
 
 # The general path takes N_t from the products of the centred ages d_kt d_lt (k ≤ l: A(A+1)/2 rows, one
-# matrix product) up to this many pairs; beyond it the elementwise Gram over the six φ components,
-# whose cost grows only linearly with A, is cheaper (A = 8: 36 pairs, 0.2 ms against 0.7 ms on exp_1).
+# matrix product) up to this many pairs (A ≤ 12); the product's cost grows as A², the elementwise Gram over
+# the six φ components' only as A, so past some A the Gram is cheaper (measured at A = 8 only: 36 pairs,
+# ≈ 0.3 ms against 0.7 ms on exp_1; the cap is an estimate from the two costs' growth).
 _MAX_AGE_PAIRS = 78
 
 __all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale", "triad_rates"]
@@ -351,8 +352,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t) and the rows of V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (returned as a
         (B, R, 7, T) view).  The first J columns (the jerk's, then the angular jerk's) are the centred
         age times a fixed 3 × 3 block per triad (I₃, [r_k − r̄]×) times a per-sample scale, so their
-        products with L⁻¹H_wᵀ and Ẽ_w are one (12·B·J × A)(A × T) product; any further columns (the
-        instant errors': column k on triad k's three rows) are block-sparse: batched 6 × 3 products."""
+        products with Ẽ_w (and L⁻¹H_wᵀ where N_t needs them) are one (6·B·J or 12·B·J × A)(A × T)
+        product; any further columns (the instant errors': column k on triad k's three rows) are
+        block-sparse: batched 6 × 3 products, and N_t is then the Gram below."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         d_t, d_rows, cs, P, wk, wtw, pairs = self._theta_free
@@ -404,7 +406,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         d_kt P_k diag(c_t), c_t the columns' scales): N_t − I = diag(c_t) Σ_k,l d_kt d_lt C_kl diag(c_t)
         with C_kl = δ_kl P_kᵀP_k − (L⁻¹H_w,kᵀP_k)ᵀ(L⁻¹H_w,lᵀP_l) (J × J per θ), so all samples' entries
         are one (J²·B × A(A+1)/2)(A(A+1)/2 × T) product with the θ-free pair products d_kt d_lt (the
-        elementwise Gram over the φ components costs three times more at A = 8).  ``Kh`` L⁻¹H_wᵀ
+        elementwise Gram over the φ components costs about 2.5 times more at A = 8).  ``Kh`` L⁻¹H_wᵀ
         (B, 6, 3A), ``P`` (A, 3, J), ``pairs`` (k, l, d_k d_l with weight ½ on k = l, 2δ_kl P_kᵀP_k,
         c_i c_j) from :attr:`_theta_free`."""
         kk, ll, F, ptp2, sc = pairs
