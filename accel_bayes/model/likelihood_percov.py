@@ -349,8 +349,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
     def _percov_terms_general(self, r: torch.Tensor) -> dict:
         """:meth:`_percov_terms` with the angular jerk and/or the triads' instant errors beside the
         jerk (module docstring, "Angular jerk", "Instant error"): R loading columns W_t, N_t = I + W_tᵀW_t
-        − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t) and the rows of V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (returned as a
-        (B, R, 7, T) view).  The first J columns (the jerk's, then the angular jerk's) are the centred
+        − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t) = L_N L_Nᵀ, ``V`` the rows of [W_tᵀẼ_w, W_tᵀe_w,t] NOT yet solved with
+        L_N (a (B, R, 7, T) view) and ``LN`` L_N's columns below the diagonal and inverse pivots
+        (:func:`_cholesky_over_samples`; :func:`_forward_solve` solves the per-draw vectors).  The first J columns (the jerk's, then the angular jerk's) are the centred
         age times a fixed 3 × 3 block per triad (I₃, [r_k − r̄]×) times a per-sample scale, so their
         products with Ẽ_w (and L⁻¹H_wᵀ where N_t needs them) are one (6·B·J or 12·B·J × A)(A × T)
         product; any further columns (the instant errors': column k on triad k's three rows) are
@@ -358,7 +359,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         d_t, d_rows, cs, P, wk, wtw, pairs = self._theta_free
-        J, R = P.shape[-1], wtw.shape[0]
+        J, R = P.shape[-1], self.W.shape[-1]
         # Without autograd every (·, T) temporary lives in a reused buffer (fresh MB-sized
         # allocations cost page faults comparable to the arithmetic) and the Cholesky runs in place.
         reuse = not (torch.is_grad_enabled() and (r.requires_grad or self.W.requires_grad))
@@ -393,11 +394,13 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             N = torch.addcmul(wtw[:, :, None], Z[0, :, None], Z[0, None], value=-1, out=ws("pc_N", (R, R, B, T)))
             for f in range(1, 6):
                 N = N.addcmul_(Z[f, :, None], Z[f, None], value=-1)
-        piv, X = _cholesky_solve_over_samples(N, Z[m - 7:], inplace=reuse)
+        piv, cols, inv = _cholesky_over_samples(N, inplace=reuse)
         logdetN = 2 * piv.log().sum(0)  # not finite where a pivot is not positive and finite
         if not bool(torch.isfinite(logdetN).all()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
-        proj.update(V=X.permute(2, 1, 0, 3), logdetN=logdetN)
+        # [W_tᵀẼ_w, W_tᵀe_w,t] unsolved, with L_t's columns: the draws' R-vectors are solved instead
+        # (per draw R(R+1)/2 multiply-adds against 7 right-hand sides per θ: fewer at the N ≤ 6 calibrate uses)
+        proj.update(V=Z[m - 7:].permute(2, 1, 0, 3), logdetN=logdetN, LN=(cols, inv))
         return proj
 
     @staticmethod
@@ -426,7 +429,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         vector over the triads.  General path: the centred ages dᵀ (A, T) and per row (T, 3A); the per-sample scale of
         each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their per-triad blocks
         Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
-        I + W_tᵀW_t (R, R, T); without instant errors and up to ``_MAX_AGE_PAIRS`` pairs of triads,
+        I + W_tᵀW_t (R, R, T) for the Gram (else None); without instant errors and up to ``_MAX_AGE_PAIRS`` pairs of triads,
         the age pairs of :meth:`_n_from_age_pairs` (else None)."""
         if getattr(self, "_tf_cache", None) is None and self.W is not None:
             R = self.W.shape[-1]
@@ -441,16 +444,18 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             if self.loading_rot is not None:
                 P = torch.cat((P, self._cross * sl[..., None]), -1)
                 cs = torch.cat((cs, self.angjerk_std.expand(3, self.T)), 0)
-            wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
             d_t = centred_ages(self.age).T.contiguous()
-            pairs = None
+            pairs, wtw = None, None
             if wk is None and self.A * (self.A + 1) // 2 <= _MAX_AGE_PAIRS:
                 kk, ll = torch.triu_indices(self.A, self.A, device=self.device)
                 F = d_t[kk] * d_t[ll] * torch.where(kk == ll, 0.5, 1.0).to(self.dtype)[:, None]
                 ptp2 = 2 * (P.transpose(-1, -2) @ P)[kk] * (kk == ll).to(self.dtype)[:, None, None]
                 pairs = (kk, ll, F.contiguous(), ptp2, cs[:, None] * cs[None])
+            else:  # the Gram's θ-free part
+                wtw = (self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device))
+                wtw = wtw.permute(1, 2, 0).contiguous()
             d_rows = d_t.T.repeat_interleave(3, 1)  # (T, 3A)
-            self._tf_cache = (d_t, d_rows, cs, P, wk, wtw.permute(1, 2, 0).contiguous(), pairs)
+            self._tf_cache = (d_t, d_rows, cs, P, wk, wtw, pairs)
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)
@@ -486,8 +491,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         omega = torch.as_tensor(omega, dtype=self.dtype, device=self.device)
         delta = (u_of_omega(omega) - u_of_omega(self.omega.mean)).expand(*batch, self.T, 6).reshape(B, self.T, 6)
         p = self._percov_terms(r.reshape(B, self.A, 3))
-        V = p["V"]  # (B, 3, 7, T)
-        corr = (torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]).square().sum(1)
+        V = p["V"]  # (B, R, 7, T)
+        u = torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]
+        corr = u.square().sum(1) if "LN" not in p else _forward_solve_sq(u, *p["LN"], lambda x: x, inplace=False)
         q = p["c"] - 2 * (p["b"] * delta).sum(-1) + ((delta @ p["C"]) * delta).sum(-1) - corr
         out = self._kernel(q) - 0.5 * p["logdetM"][:, None] - 0.5 * p["logdetN"]
         return out.reshape(*batch, self.T)
@@ -516,15 +522,18 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         ws = (lambda name, shape: None) if grad else self._workspace
 
         def logw(s, d, t0, t1):
-            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖², the R×6 product as six fused
-            # multiply-adds over (B, R, τ, N) (a batched matmul of R×6 blocks is slower)
+            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖² (the general path: ‖L_t⁻¹(V_t δ − v_t)‖²), the
+            # R×6 product as six fused multiply-adds over (B, R, τ, N) (a batched matmul of R×6 blocks is slower)
             Vc = V[..., t0:t1, None]  # (B, R, 7, τ, 1)
             dd = d if d.dim() == 3 else d[:, None]  # (6, τ, N) or (B, 1, 6, τ, N)
             acc = torch.mul(Vc[:, :, 0], dd[..., 0, :, :], out=ws("pc_acc", (B, R, t1 - t0, N)))
             for j in range(1, 6):
                 acc = acc.addcmul_(Vc[:, :, j], dd[..., j, :, :])
             acc = acc.sub_(Vc[:, :, 6])
-            corr = torch.mul(acc, acc, out=None if grad else acc).sum(1)  # (B, τ, N)
+            if "LN" in p:
+                corr = _forward_solve_sq(acc, *p["LN"], lambda x: x[..., t0:t1, None], inplace=not grad)
+            else:
+                corr = torch.mul(acc, acc, out=None if grad else acc).sum(1)  # (B, τ, N)
             return self._kernel(corr.neg_().add_(s).add_(floor[:, t0:t1, None]))
 
         inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
@@ -549,24 +558,41 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         return Rc, w, c - (w * w).sum(-2)
 
 
-def _cholesky_solve_over_samples(N, X, inplace: bool = False):
-    """(diagonal of L (R, …), L⁻¹X (m, R, …)) for the symmetric R × R matrices ``N`` (R, R, …) (lower
-    part read), N = L Lᵀ, and ``X`` (m, R, …): one R × R system per trailing index (the samples).
-    Right-looking: column j of L, then the rank-1 update of the trailing block, each step one
-    elementwise op over all the samples and remaining entries (a batched LAPACK call per R × R,
-    or the recursion written out entry by entry, costs more than the arithmetic).  ``inplace``:
-    N and X are scratch, overwritten (L's lower part, L⁻¹X); not with autograd."""
+def _cholesky_over_samples(N, inplace: bool = False):
+    """(diagonal of L (R, …), columns L[j+1:, j] (R − j − 1, …) for j < R, 1/L[j, j] (…) for each j)
+    for the symmetric R × R matrices ``N`` (R, R, …) (lower part read), N = L Lᵀ, one per trailing
+    index (the samples).  Right-looking: column j of L, then the rank-1 update of the trailing block,
+    each step one elementwise op over all the samples and remaining entries (a batched LAPACK call per
+    R × R, or the recursion written out entry by entry, costs more than the arithmetic).  ``inplace``:
+    N is scratch, overwritten by L's lower part (the columns returned are views of it); not with autograd."""
     R = N.shape[0]
     out = (lambda v: v) if inplace else (lambda v: None)  # noqa: E731
-    piv, rows, X0 = [], [], X
+    piv, cols, inv = [], [], []
     for j in range(R):
         p = torch.sqrt(N[0, 0], out=out(N[0, 0]))
-        inv = p.reciprocal()
-        x = torch.mul(X[:, 0], inv, out=out(X[:, 0]))
         piv.append(p)
-        rows.append(x)
+        inv.append(p.reciprocal())
         if j + 1 < R:
-            col = torch.mul(N[1:, 0], inv, out=out(N[1:, 0]))  # L[j+1:, j]
+            col = torch.mul(N[1:, 0], inv[-1], out=out(N[1:, 0]))  # L[j+1:, j]
+            cols.append(col)
             N = torch.addcmul(N[1:, 1:], col[:, None], col[None], value=-1, out=out(N[1:, 1:]))
-            X = torch.addcmul(X[:, 1:], x[:, None], col[None], value=-1, out=out(X[:, 1:]))
-    return torch.stack(piv), (X0 if inplace else torch.stack(rows, 1))
+    return torch.stack(piv), cols, inv
+
+
+def _forward_solve_sq(u, cols, inv, sl, inplace: bool):
+    """‖L⁻¹u‖² over dim 1 of ``u`` (B, R, …) for L from :func:`_cholesky_over_samples` (``cols``,
+    ``inv`` of trailing shape (B, T)); ``sl`` maps such a (…, B, T) tensor to u's trailing shape (a
+    chunk of the samples, a draw axis).  ``inplace``: u is scratch, overwritten (no autograd)."""
+    R = u.shape[1]
+    if inplace:
+        for j in range(R):
+            x = u[:, j].mul_(sl(inv[j]))
+            if j + 1 < R:
+                u[:, j + 1:].addcmul_(sl(cols[j]).movedim(0, 1), x[:, None], value=-1)
+        return u.mul_(u).sum(1)
+    xs, rest = [], u
+    for j in range(R):
+        xs.append(rest[:, 0] * sl(inv[j]))
+        if j + 1 < R:
+            rest = torch.addcmul(rest[:, 1:], sl(cols[j]).movedim(0, 1), xs[-1][:, None], value=-1)
+    return torch.stack(xs, 1).square().sum(1)
