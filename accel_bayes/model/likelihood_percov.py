@@ -76,10 +76,11 @@ Cost of the general path (R columns, J = 3 or 6 of them age-loaded).  Per θ: L�
 W_tᵀẼ_w and W_tᵀΛ^½e_t for all samples by two matrix products over the centred ages; N_t − I =
 diag(c_t)[Σ_k d_kt² P_kᵀP_k − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t)]diag(c_t) by one matrix product of a J² × A(A+1)/2
 coefficient matrix per θ with the θ-free age pairs d_kt d_lt (when all columns are age-loaded and A
-is small; else the elementwise Gram over the six φ components); the R × R Choleskys and the seven
-right-hand sides right-looking, one elementwise op per column over all samples; no (·, T)
-allocation without autograd.  Exact: the same log p̂ to round-off (the dense-Gaussian tests of
-``tests/model/test_angular_jerk.py``).  Per draw: the R × 6 product V_t δ − v_t.
+is small; else the elementwise Gram over the six φ components); the R × R Choleskys right-looking,
+one elementwise op per column over all samples; no (·, T) allocation without autograd.  Per draw:
+u = W_tᵀẼ_w δ − W_tᵀe_w,t (R × 6) and ‖L_N⁻¹u‖² by forward substitution (R(R+1)/2 multiply-adds,
+fewer than solving the seven right-hand sides per θ at the N ≤ 6 draws calibrate uses).  Exact: the
+same log p̂ to round-off (the dense-Gaussian tests of ``tests/model/test_angular_jerk.py``).
 
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
@@ -347,15 +348,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         return proj
 
     def _percov_terms_general(self, r: torch.Tensor) -> dict:
-        """:meth:`_percov_terms` with the angular jerk and/or the triads' instant errors beside the
-        jerk (module docstring, "Angular jerk", "Instant error"): R loading columns W_t, N_t = I + W_tᵀW_t
-        − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t) = L_N L_Nᵀ, ``V`` the rows of [W_tᵀẼ_w, W_tᵀe_w,t] NOT yet solved with
-        L_N (a (B, R, 7, T) view) and ``LN`` L_N's columns below the diagonal and inverse pivots
-        (:func:`_cholesky_over_samples`; :func:`_forward_solve` solves the per-draw vectors).  The first J columns (the jerk's, then the angular jerk's) are the centred
-        age times a fixed 3 × 3 block per triad (I₃, [r_k − r̄]×) times a per-sample scale, so their
-        products with Ẽ_w (and L⁻¹H_wᵀ where N_t needs them) are one (6·B·J or 12·B·J × A)(A × T)
-        product; any further columns (the instant errors': column k on triad k's three rows) are
-        block-sparse: batched 6 × 3 products, and N_t is then the Gram below."""
+        """:meth:`_percov_terms` with the angular jerk and/or the instant errors (module docstring, "Cost of
+        the general path"): ``V`` the rows of [W_tᵀẼ_w, W_tᵀe_w,t] NOT solved with L_N (a (B, R, 7, T) view),
+        ``LN`` L_N's columns and inverse pivots (:func:`_cholesky_over_samples`), N_t = L_N L_Nᵀ; the
+        instant errors' columns (column k on triad k's rows) by batched 6 × 3 products and the Gram."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         d_t, d_rows, cs, P, wk, wtw, pairs = self._theta_free
