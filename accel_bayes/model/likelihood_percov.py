@@ -234,10 +234,11 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             raise UserError("angjerk_std, lever: give both (the board's angular jerk) or neither")
         if angjerk_std is not None:
             self._set_angular_jerk(angjerk_std, lever)
-        if rate is not None or angjerk_std is not None:
+        self.general = rate is not None or angjerk_std is not None
+        if self.general:
             self._set_general(rate, instant_std)
         self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
-        if self.W is not None:  # the general path loads every sample
+        if self.general:  # the general path loads every sample
             self.active = torch.arange(self.T, device=self.device)
         self._tf_cache = None
 
@@ -266,7 +267,8 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
     def _set_general(self, rate, instant_std):
         """The whitened loading W_t = Λ^½[s_t D_t, angular jerk block, instant-error block]
-        (T, 3A, R) of the general path (module docstring, "Angular jerk", "Instant error")."""
+        (T, 3A, R) of the general path (module docstring, "Angular jerk", "Instant error"), formed only
+        where its Gram path needs it (instant errors, more than ``_MAX_AGE_PAIRS`` pairs of triads)."""
         cols = [loadings(self.loading)]
         if self.loading_rot is not None:
             cols.append(rotational_loadings(self.loading_rot, self.lever))
@@ -282,14 +284,15 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 raise UserError(f"instant_std: expected a finite std >= 0 (s), scalar or ({self.A},)")
             self.rate, self.instant_std = rate, e
             cols.append(instant_error_loadings(rate, e))
-        self.W = torch.cat(cols, -1) * self._sqrt_lam[None, :, None]  # (T, 3A, R)
+        if rate is not None or self.A * (self.A + 1) // 2 > _MAX_AGE_PAIRS:
+            self.W = torch.cat(cols, -1) * self._sqrt_lam[None, :, None]  # (T, 3A, R)
 
     # ------------------------------------------------------------------ per-θ terms
     def _percov_terms(self, r: torch.Tensor) -> dict:
         """The flat projection at r (B, A, 3) plus ``V`` (B, 3, 7, T): rows i of [V_t, v_t] =
         L_t⁻¹[Ũ_tᵀSG, Ũ_tᵀSr̄_t] stored component-first for the per-draw sums, and ``logdetN``
         (B, T) (module docstring; zero where the sample has no loading)."""
-        if self.W is not None:
+        if self.general:
             return self._percov_terms_general(r)
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
@@ -355,10 +358,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         d_t, d_rows, cs, P, wk, wtw, pairs = self._theta_free
-        J, R = P.shape[-1], self.W.shape[-1]
+        J = P.shape[-1]
+        R = J + (0 if wk is None else A)
         # Without autograd every (·, T) temporary lives in a reused buffer (fresh MB-sized
         # allocations cost page faults comparable to the arithmetic) and the Cholesky runs in place.
-        reuse = not (torch.is_grad_enabled() and (r.requires_grad or self.W.requires_grad))
+        reuse = not (torch.is_grad_enabled() and (r.requires_grad or cs.requires_grad
+                                                  or (wk is not None and wk.requires_grad)))
         ws = self._workspace if reuse else (lambda name, shape: None)
         # L⁻¹H_wᵀ first (6 × 3A per θ), so no triangular solve runs over the samples
         Kh = torch.linalg.solve_triangular(proj["L"], proj["Hw"].transpose(-1, -2), upper=False)
@@ -427,11 +432,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
         I + W_tᵀW_t (R, R, T) for the Gram (else None); without instant errors and up to ``_MAX_AGE_PAIRS`` pairs of triads,
         the age pairs of :meth:`_n_from_age_pairs` (else None)."""
-        if getattr(self, "_tf_cache", None) is None and self.W is not None:
-            R = self.W.shape[-1]
+        if getattr(self, "_tf_cache", None) is None and self.general:
             J = 3 if self.loading_rot is None else 6
             wk = None
-            if R > J:
+            if self.rate is not None:
                 wk = self.W[:, :, J:].reshape(self.T, self.A, 3, self.A).diagonal(dim1=1, dim2=3)  # (T, 3, A)
                 wk = wk.permute(2, 1, 0).contiguous()
             sl = self._sqrt_lam.view(self.A, 3)
@@ -442,13 +446,13 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 cs = torch.cat((cs, self.angjerk_std.expand(3, self.T)), 0)
             d_t = centred_ages(self.age).T.contiguous()
             pairs, wtw = None, None
-            if wk is None and self.A * (self.A + 1) // 2 <= _MAX_AGE_PAIRS:
+            if self.W is None:
                 kk, ll = torch.triu_indices(self.A, self.A, device=self.device)
                 F = d_t[kk] * d_t[ll] * torch.where(kk == ll, 0.5, 1.0).to(self.dtype)[:, None]
                 ptp2 = 2 * (P.transpose(-1, -2) @ P)[kk] * (kk == ll).to(self.dtype)[:, None, None]
                 pairs = (kk, ll, F.contiguous(), ptp2, cs[:, None] * cs[None])
             else:  # the Gram's θ-free part
-                wtw = (self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device))
+                wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(self.W.shape[-1], dtype=self.dtype, device=self.device)
                 wtw = wtw.permute(1, 2, 0).contiguous()
             d_rows = d_t.T.repeat_interleave(3, 1)  # (T, 3A)
             self._tf_cache = (d_t, d_rows, cs, P, wk, wtw, pairs)
