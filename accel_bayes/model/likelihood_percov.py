@@ -352,9 +352,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
     def _percov_terms_general(self, r: torch.Tensor) -> dict:
         """:meth:`_percov_terms` with the angular jerk and/or the instant errors (module docstring, "Cost of
-        the general path"): ``V`` the rows of [W_tᵀẼ_w, W_tᵀe_w,t] NOT solved with L_N (a (B, R, 7, T) view),
-        ``LN`` L_N's columns and inverse pivots (:func:`_cholesky_over_samples`), N_t = L_N L_Nᵀ; the
-        instant errors' columns (column k on triad k's rows) by batched 6 × 3 products and the Gram."""
+        the general path"): ``LN`` L_N's columns and inverse pivots (:func:`_cholesky_over_samples`),
+        N_t = L_N L_Nᵀ, and ``logdetN``; no ``V``: the draws' W_tᵀS(r̄_t − Gδ) come from
+        :meth:`_w_residual`.  The instant errors' columns (column k on triad k's rows) enter N_t by the Gram."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
         d_t, d_rows, cs, P, wk, wtw, pairs = self._theta_free
@@ -367,42 +367,49 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         ws = self._workspace if reuse else (lambda name, shape: None)
         # L⁻¹H_wᵀ first (6 × 3A per θ), so no triangular solve runs over the samples
         Kh = torch.linalg.solve_triangular(proj["L"], proj["Hw"].transpose(-1, -2), upper=False)
-        # Z (m, R, B, T): rows [L⁻¹H_wᵀW_t (6, for the Gram below only),] W_tᵀẼ_w (6), W_tᵀe_w,t (1); the
-        # sample index last, so every per-sample step below is an elementwise op over the samples
-        left = proj["Gt"].transpose(-1, -2) if pairs is not None else torch.cat((Kh, proj["Gt"].transpose(-1, -2)), 1)
-        m = left.shape[1] + 1
-        Z = ws("pc_Z", (m, R, B, T))
-        into = (lambda *idx: None) if Z is None else (lambda *idx: Z[idx])  # noqa: E731
-        lhs = torch.einsum("bfki,kir->frbk", left.view(B, m - 1, A, 3), P).reshape((m - 1) * J * B, A)
-        ye = torch.mm(lhs, d_t, out=into(slice(0, m - 1)).view(-1, T) if Z is not None and R == J else None)
-        ye = torch.mul(ye.view(m - 1, J, B, T), cs[:, None], out=into(slice(0, m - 1), slice(0, J)))
-        # W_tᵀe_w,t: the centred ages per row (θ-free, each repeated over the triad's three axes, so
-        # the product is contiguous) on Λ^½e_t, summed through the blocks P_k as one (J × 3A)(3A × B·T) product
-        ewd = torch.mul(proj["e_w"], d_rows, out=ws("pc_ewd", (B, T, 3 * A))).view(B * T, 3 * A)
-        ea = torch.mul((P.reshape(3 * A, J).T @ ewd.T).view(J, B, T), cs[:, None], out=into(m - 1, slice(0, J)))
-        if wk is not None:
-            ye_k = torch.matmul(left.view(B, m - 1, A, 3).permute(0, 2, 1, 3), wk).permute(2, 1, 0, 3)  # (m-1, A, B, T)
-            ea_k = (proj["e_w"].view(B, T, A, 3) * wk.permute(2, 0, 1)).sum(-1).permute(2, 0, 1)  # (A, B, T)
-        if Z is None:
-            cols = (ye,) if wk is None else (ye, ye_k)
-            Z = torch.cat((torch.cat(cols, 1), (ea if wk is None else torch.cat((ea, ea_k), 0))[None]), 0)
-        elif wk is not None:
-            Z[:m - 1, J:], Z[m - 1, J:] = ye_k, ea_k
         if pairs is not None:
             N = self._n_from_age_pairs(Kh, P, pairs, ws("pc_N", (J * J * B, T)))
         else:
+            # L⁻¹H_wᵀW_t (6, R, B, T): the age-loaded columns by one (6·J·B × A)(A × T) product, the
+            # sample index last so every per-sample step is an elementwise op over the samples
+            lhs = torch.einsum("bfki,kir->frbk", Kh.view(B, 6, A, 3), P).reshape(6 * J * B, A)
+            Yh = (lhs @ d_t).view(6, J, B, T) * cs[:, None]
+            if wk is not None:
+                Yk = torch.matmul(Kh.view(B, 6, A, 3).permute(0, 2, 1, 3), wk).permute(2, 1, 0, 3)  # (6, A, B, T)
+                Yh = torch.cat((Yh, Yk), 1)
             # N_t = I + W_tᵀW_t − Σ_f (L⁻¹H_wᵀW_t)_f (L⁻¹H_wᵀW_t)_fᵀ: one rank-1 update per φ component
-            N = torch.addcmul(wtw[:, :, None], Z[0, :, None], Z[0, None], value=-1, out=ws("pc_N", (R, R, B, T)))
+            N = torch.addcmul(wtw[:, :, None], Yh[0, :, None], Yh[0, None], value=-1, out=ws("pc_N", (R, R, B, T)))
             for f in range(1, 6):
-                N = N.addcmul_(Z[f, :, None], Z[f, None], value=-1)
+                N = N.addcmul_(Yh[f, :, None], Yh[f, None], value=-1)
         piv, cols, inv = _cholesky_over_samples(N, inplace=reuse)
         logdetN = 2 * piv.log().sum(0)  # not finite where a pivot is not positive and finite
         if not bool(torch.isfinite(logdetN).all()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
-        # [W_tᵀẼ_w, W_tᵀe_w,t] unsolved, with L_t's columns: the draws' R-vectors are solved instead
-        # (per draw R(R+1)/2 multiply-adds against 7 right-hand sides per θ: fewer at the N ≤ 6 calibrate uses)
-        proj.update(V=Z[m - 7:].permute(2, 1, 0, 3), logdetN=logdetN, LN=(cols, inv))
+        proj.update(logdetN=logdetN, LN=(cols, inv))
         return proj
+
+    def _w_residual(self, p: dict, d: torch.Tensor, t0: int, t1: int, ws=None) -> torch.Tensor:
+        """u = W_tᵀ(Ẽ_w δ − Λ^½e_t) (B, R, τ, N) for the samples t0:t1 of the general path, δ = ``d``
+        (6, τ, N) or (B, 6, τ, N) the draws' u(ω) − u(ω̄_t), ``p`` :meth:`_percov_terms_general`'s
+        projection (Ẽ_w = ``Gt``, Λ^½e = ``e_w``): per draw one (3A × 6) and one (J × 3A) product over
+        the samples instead of the R × 7 maps per θ (fewer operations at the N ≤ 6 draws calibrate uses).
+        ``ws`` a workspace (no autograd)."""
+        inplace = ws is not None
+        buf = ws if inplace else (lambda name, shape: None)
+        _, d_rows, cs, P, wk, _, _ = self._theta_free
+        Gt, ew = p["Gt"], p["e_w"]
+        B, n = Gt.shape[0], Gt.shape[1]
+        tau, N = d.shape[-2], d.shape[-1]
+        J = P.shape[-1]
+        g = torch.matmul(Gt, d.reshape(*d.shape[:-3], 6, tau * N), out=buf("pc_g", (B, n, tau * N))).view(B, n, tau, N)
+        e = ew[:, t0:t1, :, None].transpose(1, 2)
+        g = g.sub_(e) if inplace else g - e  # Ẽ_w δ − Λ^½e_t (B, 3A, τ, N)
+        gd = torch.mul(g, d_rows[t0:t1].T[None, :, :, None], out=buf("pc_gd", (B, n, tau, N)))
+        u = torch.matmul(P.reshape(n, J).T, gd.view(B, n, tau * N)).view(B, J, tau, N) * cs[:, t0:t1, None]
+        if wk is not None:
+            uk = (g.view(B, self.A, 3, tau, N) * wk[:, :, t0:t1, None]).sum(2)  # (B, A, τ, N)
+            u = torch.cat((u, uk), 1)
+        return u
 
     @staticmethod
     def _n_from_age_pairs(Kh, P, pairs, out=None):
@@ -491,9 +498,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         omega = torch.as_tensor(omega, dtype=self.dtype, device=self.device)
         delta = (u_of_omega(omega) - u_of_omega(self.omega.mean)).expand(*batch, self.T, 6).reshape(B, self.T, 6)
         p = self._percov_terms(r.reshape(B, self.A, 3))
-        V = p["V"]  # (B, R, 7, T)
-        u = torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]
-        corr = u.square().sum(1) if "LN" not in p else _forward_solve_sq(u, *p["LN"], lambda x: x, inplace=False)
+        if "LN" in p:  # the general path: u = W_tᵀS(r̄_t − Gδ_t), then L_N⁻¹u
+            u = self._w_residual(p, delta.transpose(1, 2)[..., None], 0, self.T)
+            corr = _forward_solve_sq(u, *p["LN"], lambda x: x[..., None], inplace=False)[..., 0]
+        else:
+            V = p["V"]  # (B, 3, 7, T)
+            corr = (torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]).square().sum(1)
         q = p["c"] - 2 * (p["b"] * delta).sum(-1) + ((delta @ p["C"]) * delta).sum(-1) - corr
         out = self._kernel(q) - 0.5 * p["logdetM"][:, None] - 0.5 * p["logdetN"]
         return out.reshape(*batch, self.T)
@@ -515,25 +525,24 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         if len(zt.shape[:-3]):
             zt = zt.expand(*batch, *zt.shape[-3:]).reshape(B, self.T, 3, N)
         Rc, w, floor = self._factor_any(p["c"], p["b"], p["C"])
-        V = p["V"]  # (B, R, 7, T)
-        R = V.shape[1]
-        # without autograd the per-draw temporary lives in a reused buffer, updated in place
-        grad = torch.is_grad_enabled() and (V.requires_grad or zt.requires_grad)
+        V = p.get("V")  # (B, 3, 7, T) on the jerk's closed-form path
+        # without autograd the per-draw temporaries live in reused buffers, updated in place
+        grad = torch.is_grad_enabled() and (p["logdetN"].requires_grad or zt.requires_grad)
         ws = (lambda name, shape: None) if grad else self._workspace
 
         def logw(s, d, t0, t1):
-            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖² (the general path: ‖L_t⁻¹(V_t δ − v_t)‖²), the
-            # R×6 product as six fused multiply-adds over (B, R, τ, N) (a batched matmul of R×6 blocks is slower)
-            Vc = V[..., t0:t1, None]  # (B, R, 7, τ, 1)
+            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖², the 3×6 product as six fused multiply-adds
+            # over (B, 3, τ, N) (a batched matmul of 3×6 blocks is slower); the general path: ‖L_N⁻¹u‖²
+            if "LN" in p:
+                u = self._w_residual(p, d, t0, t1, None if grad else self._workspace)
+                corr = _forward_solve_sq(u, *p["LN"], lambda x: x[..., t0:t1, None], inplace=not grad)
+                return self._kernel(corr.neg_().add_(s).add_(floor[:, t0:t1, None]))
+            Vc = V[..., t0:t1, None]  # (B, 3, 7, τ, 1)
             dd = d if d.dim() == 3 else d[:, None]  # (6, τ, N) or (B, 1, 6, τ, N)
-            acc = torch.mul(Vc[:, :, 0], dd[..., 0, :, :], out=ws("pc_acc", (B, R, t1 - t0, N)))
+            acc = torch.mul(Vc[:, :, 0], dd[..., 0, :, :], out=ws("pc_acc", (B, 3, t1 - t0, N)))
             for j in range(1, 6):
                 acc = acc.addcmul_(Vc[:, :, j], dd[..., j, :, :])
-            acc = acc.sub_(Vc[:, :, 6])
-            if "LN" in p:
-                corr = _forward_solve_sq(acc, *p["LN"], lambda x: x[..., t0:t1, None], inplace=not grad)
-            else:
-                corr = torch.mul(acc, acc, out=None if grad else acc).sum(1)  # (B, τ, N)
+            corr = torch.mul(acc.sub_(Vc[:, :, 6]), acc, out=None if grad else acc).sum(1)  # (B, τ, N)
             return self._kernel(corr.neg_().add_(s).add_(floor[:, t0:t1, None]))
 
         inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
