@@ -11,7 +11,8 @@ sampling clocks that ``experiments/clock_mimu.py`` found on exp_1 (its
 kept samples' times.  The jerk scale is one number fitted here by maximising the exact
 log p(y | ω̄, θ_nominal) (ω at the gyro mean) over a log grid — not a per-band fit; the cost does
 not depend on it.  The per-sample model with the board's angular jerk (lever arms the nominal
-positions, its own scale per band: on by default under ``calibrate --model``) and with the triads' own instant error (its output rates
+positions, its own scale per band: on by default under ``calibrate --model``) and with the triads' own
+instant error (its output rates
 :func:`~accel_bayes.model.likelihood_percov.triad_rates`, e by type-II ML) is timed beside them.
 All versions are evaluated in the same process, alternating blocks of calls,
 on the same standard normals; medians of all calls (wall clock), and beside them the 10th percentile

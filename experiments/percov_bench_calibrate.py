@@ -79,7 +79,8 @@ def main(argv=None) -> int:
     L = [f"# `calibrate --model` against the default `calibrate`, exp_{args.exp} (issue #30 Deliver 3)", "",
          f"Regenerate: `PYTHONPATH=. python3 experiments/percov_bench_calibrate.py --reports {args.reports} "
          f"--exp {args.exp} --rounds {args.rounds}` ({stamp}, {platform.machine()} {platform.system()}, "
-         f"{os.cpu_count()} cores, load average {load0:.1f} at the start and {load1:.1f} at the end, one torch thread; the two "
+         f"{os.cpu_count()} cores, load average {load0:.1f} at the start and {load1:.1f} at the end, one torch "
+         "thread; the two "
          "alternate in one process, so the ratio is what the load leaves comparable, the absolute times are "
          "inflated by it; the process CPU time beside it is what the other jobs disturb least).", "",
          "Both with the defaults (run until converged, 4 chains, seed 0) on the whole recording "

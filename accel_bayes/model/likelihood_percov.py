@@ -72,15 +72,14 @@ on the six real experiments it brings every sandwich ratio down a little
 ``angular_jerk``, ``--no-angular-jerk``) since one log p̂ with it meets the 4× bar on exp_1
 (``experiments/bench_likelihood_percov.md``).
 
-Cost of the general path (R columns, J = 3 or 6 of them age-loaded).  Per θ: L⁻¹H_wᵀ (6 × 3A), then
-W_tᵀẼ_w and W_tᵀΛ^½e_t for all samples by two matrix products over the centred ages; N_t − I =
+Cost of the general path (R columns, J = 3 or 6 of them age-loaded, scales c_t).  Per θ: N_t − I =
 diag(c_t)[Σ_k d_kt² P_kᵀP_k − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t)]diag(c_t) by one matrix product of a J² × A(A+1)/2
-coefficient matrix per θ with the θ-free age pairs d_kt d_lt (when all columns are age-loaded and A
-is small; else the elementwise Gram over the six φ components); the R × R Choleskys right-looking,
-one elementwise op per column over all samples; no (·, T) allocation without autograd.  Per draw:
-u = W_tᵀẼ_w δ − W_tᵀe_w,t (R × 6) and ‖L_N⁻¹u‖² by forward substitution (R(R+1)/2 multiply-adds,
-fewer than solving the seven right-hand sides per θ at the N ≤ 6 draws calibrate uses).  Exact: the
-same log p̂ to round-off (the dense-Gaussian tests of ``tests/model/test_angular_jerk.py``).
+coefficient matrix with the θ-free age pairs d_kt d_lt (all columns age-loaded, A ≤ 12; else the
+elementwise Gram over the six φ components) and the R × R Choleskys right-looking, one elementwise op
+per column over all samples.  Per draw: u = W_tᵀ(Ẽ_w δ − Λ^½e_t) by a (3A × 6) and a (J × 3A) product
+over the samples and ‖L_N⁻¹u‖² by forward substitution (at calibrate's N ≤ 6 draws fewer operations
+than the R × 7 maps per θ).  No (·, T) allocation without autograd.  Exact: the same log p̂ to
+round-off (the dense-Gaussian tests of ``tests/model/test_angular_jerk.py``).
 
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
@@ -103,10 +102,8 @@ from .unresolved_cov import centred_ages, instant_error_loadings, loadings, rota
 # the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
 
-# The general path takes N_t from the products of the centred ages d_kt d_lt (k ≤ l: A(A+1)/2 rows, one
-# matrix product) up to this many pairs (A ≤ 12); the product's cost grows as A², the elementwise Gram over
-# the six φ components' only as A, so past some A the Gram is cheaper (measured at A = 8 only: 36 pairs,
-# ≈ 0.3 ms against 0.7 ms on exp_1; the cap is an estimate from the two costs' growth).
+# N_t from the age pairs d_kt d_lt (k ≤ l) up to this many pairs (A ≤ 12): that product grows as A², the Gram
+# only as A (measured at A = 8 only: 0.3 against 0.7 ms on exp_1; the cap is an estimate from the growths).
 _MAX_AGE_PAIRS = 78
 
 __all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale", "triad_rates"]
@@ -389,11 +386,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         return proj
 
     def _w_residual(self, p: dict, d: torch.Tensor, t0: int, t1: int, ws=None) -> torch.Tensor:
-        """u = W_tᵀ(Ẽ_w δ − Λ^½e_t) (B, R, τ, N) for the samples t0:t1 of the general path, δ = ``d``
-        (6, τ, N) or (B, 6, τ, N) the draws' u(ω) − u(ω̄_t), ``p`` :meth:`_percov_terms_general`'s
-        projection (Ẽ_w = ``Gt``, Λ^½e = ``e_w``): per draw one (3A × 6) and one (J × 3A) product over
-        the samples instead of the R × 7 maps per θ (fewer operations at the N ≤ 6 draws calibrate uses).
-        ``ws`` a workspace (no autograd)."""
+        """u = W_tᵀ(Ẽ_w δ − Λ^½e_t) (B, R, τ, N) at the samples t0:t1 of the general path (module docstring),
+        δ = ``d`` (6, τ, N) or (B, 6, τ, N), ``p`` its projection (Ẽ_w = ``Gt``, Λ^½e = ``e_w``); ``ws`` a
+        workspace (no autograd: temporaries reused, updated in place)."""
         inplace = ws is not None
         buf = ws if inplace else (lambda name, shape: None)
         _, d_rows, cs, P, wk, _, _ = self._theta_free
@@ -405,7 +400,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         e = ew[:, t0:t1, :, None].transpose(1, 2)
         g = g.sub_(e) if inplace else g - e  # Ẽ_w δ − Λ^½e_t (B, 3A, τ, N)
         gd = torch.mul(g, d_rows[t0:t1].T[None, :, :, None], out=buf("pc_gd", (B, n, tau, N)))
-        u = torch.matmul(P.reshape(n, J).T, gd.view(B, n, tau * N)).view(B, J, tau, N) * cs[:, t0:t1, None]
+        u = torch.matmul(P.reshape(n, J).T, gd.view(B, n, tau * N), out=buf("pc_u", (B, J, tau * N)))
+        u = u.view(B, J, tau, N)
+        u = u.mul_(cs[:, t0:t1, None]) if inplace else u * cs[:, t0:t1, None]
         if wk is not None:
             uk = (g.view(B, self.A, 3, tau, N) * wk[:, :, t0:t1, None]).sum(2)  # (B, A, τ, N)
             u = torch.cat((u, uk), 1)
@@ -413,13 +410,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
     @staticmethod
     def _n_from_age_pairs(Kh, P, pairs, out=None):
-        """N_t (J, J, B, T) when every loading column is age-loaded (W_t's rows of triad k are
-        d_kt P_k diag(c_t), c_t the columns' scales): N_t − I = diag(c_t) Σ_k,l d_kt d_lt C_kl diag(c_t)
-        with C_kl = δ_kl P_kᵀP_k − (L⁻¹H_w,kᵀP_k)ᵀ(L⁻¹H_w,lᵀP_l) (J × J per θ), so all samples' entries
-        are one (J²·B × A(A+1)/2)(A(A+1)/2 × T) product with the θ-free pair products d_kt d_lt (the
-        elementwise Gram over the φ components costs about 2.5 times more at A = 8).  ``Kh`` L⁻¹H_wᵀ
-        (B, 6, 3A), ``P`` (A, 3, J), ``pairs`` (k, l, d_k d_l with weight ½ on k = l, 2δ_kl P_kᵀP_k,
-        c_i c_j) from :attr:`_theta_free`."""
+        """N_t (J, J, B, T) when W_t's rows of triad k are d_kt P_k diag(c_t): N_t − I = diag(c_t) Σ_k,l
+        d_kt d_lt C_kl diag(c_t), C_kl = δ_kl P_kᵀP_k − (L⁻¹H_w,kᵀP_k)ᵀ(L⁻¹H_w,lᵀP_l) (J × J per θ): one
+        (J²B × A(A+1)/2)(A(A+1)/2 × T) product (the Gram costs ≈ 2.5× more at A = 8).  ``Kh`` L⁻¹H_wᵀ
+        (B, 6, 3A), ``P`` (A, 3, J), ``pairs`` (k, l, d_kd_l (½ on k = l), 2δ_kl P_kᵀP_k, c_ic_j)."""
         kk, ll, F, ptp2, sc = pairs
         B, A, J = Kh.shape[0], P.shape[0], P.shape[-1]
         Zk = torch.einsum("bfki,kir->bkfr", Kh.view(B, 6, A, 3), P)  # (B, A, 6, J): L⁻¹H_w,kᵀP_k
@@ -434,11 +428,11 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
     def _theta_free(self):
         """Cached θ-free tensors.  Closed-form path (jerk only), of the loaded samples: uᵀ (A, Ta);
         diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major
-        vector over the triads.  General path: the centred ages dᵀ (A, T) and per row (T, 3A); the per-sample scale of
-        each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their per-triad blocks
-        Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
-        I + W_tᵀW_t (R, R, T) for the Gram (else None); without instant errors and up to ``_MAX_AGE_PAIRS`` pairs of triads,
-        the age pairs of :meth:`_n_from_age_pairs` (else None)."""
+        vector over the triads.  General path: the centred ages dᵀ (A, T) and per row (T, 3A); the
+        per-sample scale of each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their
+        per-triad blocks Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
+        I + W_tᵀW_t (R, R, T) for the Gram, else None; the age pairs of :meth:`_n_from_age_pairs` where
+        ``W`` is not formed, else None."""
         if getattr(self, "_tf_cache", None) is None and self.general:
             J = 3 if self.loading_rot is None else 6
             wk = None
@@ -459,7 +453,8 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 ptp2 = 2 * (P.transpose(-1, -2) @ P)[kk] * (kk == ll).to(self.dtype)[:, None, None]
                 pairs = (kk, ll, F.contiguous(), ptp2, cs[:, None] * cs[None])
             else:  # the Gram's θ-free part
-                wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(self.W.shape[-1], dtype=self.dtype, device=self.device)
+                eye = torch.eye(self.W.shape[-1], dtype=self.dtype, device=self.device)
+                wtw = self.W.transpose(-1, -2) @ self.W + eye
                 wtw = wtw.permute(1, 2, 0).contiguous()
             d_rows = d_t.T.repeat_interleave(3, 1)  # (T, 3A)
             self._tf_cache = (d_t, d_rows, cs, P, wk, wtw, pairs)
@@ -568,12 +563,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
 
 def _cholesky_over_samples(N, inplace: bool = False):
-    """(diagonal of L (R, …), columns L[j+1:, j] (R − j − 1, …) for j < R, 1/L[j, j] (…) for each j)
-    for the symmetric R × R matrices ``N`` (R, R, …) (lower part read), N = L Lᵀ, one per trailing
-    index (the samples).  Right-looking: column j of L, then the rank-1 update of the trailing block,
-    each step one elementwise op over all the samples and remaining entries (a batched LAPACK call per
-    R × R, or the recursion written out entry by entry, costs more than the arithmetic).  ``inplace``:
-    N is scratch, overwritten by L's lower part (the columns returned are views of it); not with autograd."""
+    """(diagonal of L (R, …), columns L[j+1:, j] for j < R, 1/L[j, j]) of N = L Lᵀ, ``N`` (R, R, …) symmetric
+    (lower part read), one per trailing index (the samples).  Right-looking, each step one elementwise op
+    over all samples (a batched LAPACK call per R × R costs more than the arithmetic).  ``inplace``: N is
+    scratch, overwritten by L (the columns returned are views of it); not with autograd."""
     R = N.shape[0]
     out = (lambda v: v) if inplace else (lambda v: None)  # noqa: E731
     piv, cols, inv = [], [], []
