@@ -427,12 +427,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
     @property
     def _theta_free(self):
         """Cached θ-free tensors.  Closed-form path (jerk only), of the loaded samples: uᵀ (A, Ta);
-        diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major
-        vector over the triads.  General path: the centred ages dᵀ (A, T) and per row (T, 3A); the
-        per-sample scale of each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their
-        per-triad blocks Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
-        I + W_tᵀW_t (R, R, T) for the Gram, else None; the age pairs of :meth:`_n_from_age_pairs` where
-        ``W`` is not formed, else None."""
+        diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) triad-sum matrix.  General path: the
+        centred ages dᵀ (A, T) and per row (T, 3A); the J = 3 or 6 age-loaded columns' scales (J, T) (s_t,
+        a_t) and blocks Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T); I + W_tᵀW_t
+        (R, R, T) for the Gram; the age pairs of :meth:`_n_from_age_pairs` (each None where unused)."""
         if getattr(self, "_tf_cache", None) is None and self.general:
             J = 3 if self.loading_rot is None else 6
             wk = None
@@ -582,9 +580,8 @@ def _cholesky_over_samples(N, inplace: bool = False):
 
 
 def _forward_solve_sq(u, cols, inv, sl, inplace: bool):
-    """‖L⁻¹u‖² over dim 1 of ``u`` (B, R, …) for L from :func:`_cholesky_over_samples` (``cols``,
-    ``inv`` of trailing shape (B, T)); ``sl`` maps such a (…, B, T) tensor to u's trailing shape (a
-    chunk of the samples, a draw axis).  ``inplace``: u is scratch, overwritten (no autograd)."""
+    """‖L⁻¹u‖² over dim 1 of ``u`` (B, R, …), L's ``cols``, ``inv`` from :func:`_cholesky_over_samples`;
+    ``sl`` maps their (…, B, T) to u's trailing shape.  ``inplace``: u is scratch (no autograd)."""
     R = u.shape[1]
     if inplace:
         for j in range(R):

@@ -58,6 +58,21 @@ def test_the_age_pair_products_give_the_gram_path_values_and_a_batch_gives_each_
 
 
 @pytest.mark.parametrize("which", ["pairs", "instant"])
+def test_log_phat_with_draws_per_position_and_with_autograd_gives_each_position_alone(which):
+    """One z per position (the per-draw u of each position from its own draws) and positions that
+    require grad (out-of-place per-draw path) give each position's own log p̂."""
+    a, e = _models()
+    lik = a if which == "pairs" else e
+    pos = torch.stack((POS5, POS5 * 1.2, POS5 + 0.004))
+    z = lik.sample_z((3,), 3, torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        one = torch.stack([lik.log_phat(p, z=zz) for p, zz in zip(pos, z)])
+        torch.testing.assert_close(lik.log_phat(pos, z=z), one, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(lik.log_phat(pos.clone().requires_grad_(True), z=z).detach(), one, rtol=1e-12,
+                               atol=1e-9)
+
+
+@pytest.mark.parametrize("which", ["pairs", "instant"])
 def test_the_autograd_path_gives_the_in_place_values_and_their_gradient(which):
     """With positions that require grad the general path runs out of place (no reused buffers): the
     same values as the in-place path, and the gradient of log p(y | ω, θ) matches central finite
