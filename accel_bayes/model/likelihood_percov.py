@@ -68,8 +68,18 @@ of rank 6 (plus the instant error's A columns if given) by the general path belo
 boards read at different instants this is the larger part of the misfit (ω̈ ~ 10⁴–10⁵ rad/s³ ×
 2–5 cm × 0.5 ms ≈ 1–3 m/s²; ``experiments/angjerk_probe.md``, ``experiments/percov_conceal.md``);
 on the six real experiments it brings every sandwich ratio down a little
-(``experiments/mimu_model_calibrate.md``).  Opt-in in ``calibrate`` for its cost: one log p̂ on
-exp_1 is 4.6× the flat model's, above the 4× bar (``experiments/bench_likelihood_percov.md``).
+(``experiments/mimu_model_calibrate.md``).  On by default in ``calibrate --model`` (option
+``angular_jerk``, ``--no-angular-jerk``) since one log p̂ with it meets the 4× bar on exp_1
+(``experiments/bench_likelihood_percov.md``).
+
+Cost of the general path (R columns, J = 3 or 6 of them age-loaded, scales c_t).  Per θ: N_t − I =
+diag(c_t)[Σ_k d_kt² P_kᵀP_k − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t)]diag(c_t) by one matrix product of a J² × A(A+1)/2
+coefficient matrix with the θ-free age pairs d_kt d_lt (all columns age-loaded, A ≤ 12; else the
+elementwise Gram over the six φ components) and the R × R Choleskys right-looking, one elementwise op
+per column over all samples.  Per draw: u = W_tᵀ(Ẽ_w δ − Λ^½e_t) by a (3A × 6) and a (J × 3A) product
+over the samples and ‖L_N⁻¹u‖² by forward substitution (at calibrate's N ≤ 6 draws fewer operations
+than the R × 7 maps per θ).  No (·, T) allocation without autograd.  Exact: the same log p̂ to
+round-off (the dense-Gaussian tests of ``tests/model/test_angular_jerk.py``).
 
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
@@ -91,6 +101,10 @@ from .unresolved_cov import centred_ages, instant_error_loadings, loadings, rota
 
 # the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
+
+# N_t from the age pairs d_kt d_lt (k ≤ l) up to this many pairs (A ≤ 12): that product grows as A², the Gram
+# only as A (measured at A = 8 only: 0.3 against 0.7 ms on exp_1; the cap is an estimate from the growths).
+_MAX_AGE_PAIRS = 78
 
 __all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale", "triad_rates"]
 
@@ -217,10 +231,11 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             raise UserError("angjerk_std, lever: give both (the board's angular jerk) or neither")
         if angjerk_std is not None:
             self._set_angular_jerk(angjerk_std, lever)
-        if rate is not None or angjerk_std is not None:
+        self.general = rate is not None or angjerk_std is not None
+        if self.general:
             self._set_general(rate, instant_std)
         self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
-        if self.W is not None:  # the general path loads every sample
+        if self.general:  # the general path loads every sample
             self.active = torch.arange(self.T, device=self.device)
         self._tf_cache = None
 
@@ -249,7 +264,8 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
     def _set_general(self, rate, instant_std):
         """The whitened loading W_t = Λ^½[s_t D_t, angular jerk block, instant-error block]
-        (T, 3A, R) of the general path (module docstring, "Angular jerk", "Instant error")."""
+        (T, 3A, R) of the general path (module docstring, "Angular jerk", "Instant error"), formed only
+        where its Gram path needs it (instant errors, more than ``_MAX_AGE_PAIRS`` pairs of triads)."""
         cols = [loadings(self.loading)]
         if self.loading_rot is not None:
             cols.append(rotational_loadings(self.loading_rot, self.lever))
@@ -265,14 +281,15 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 raise UserError(f"instant_std: expected a finite std >= 0 (s), scalar or ({self.A},)")
             self.rate, self.instant_std = rate, e
             cols.append(instant_error_loadings(rate, e))
-        self.W = torch.cat(cols, -1) * self._sqrt_lam[None, :, None]  # (T, 3A, R)
+        if rate is not None or self.A * (self.A + 1) // 2 > _MAX_AGE_PAIRS:
+            self.W = torch.cat(cols, -1) * self._sqrt_lam[None, :, None]  # (T, 3A, R)
 
     # ------------------------------------------------------------------ per-θ terms
     def _percov_terms(self, r: torch.Tensor) -> dict:
         """The flat projection at r (B, A, 3) plus ``V`` (B, 3, 7, T): rows i of [V_t, v_t] =
         L_t⁻¹[Ũ_tᵀSG, Ũ_tᵀSr̄_t] stored component-first for the per-draw sums, and ``logdetN``
         (B, T) (module docstring; zero where the sample has no loading)."""
-        if self.W is not None:
+        if self.general:
             return self._percov_terms_general(r)
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
@@ -331,59 +348,93 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         return proj
 
     def _percov_terms_general(self, r: torch.Tensor) -> dict:
-        """:meth:`_percov_terms` with the angular jerk and/or the triads' instant errors beside the
-        jerk (module docstring, "Angular jerk", "Instant error"): R loading columns, N_t = I + W_tᵀW_t
-        − (L⁻¹H_wᵀW_t)ᵀ(L⁻¹H_wᵀW_t) by batched R × R Choleskys, and the rows of
-        V_t = L_N⁻¹[W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T).  The jerk's and the angular jerk's columns are
-        the centred age times a fixed 3 × 3 block per triad (I₃, [r_k − r̄]×) times a per-sample
-        scale, so their products with H_w, Ẽ_w and e_w are one (6J × A)(A × T) product each; the
-        instant-error columns are block-sparse (column k lives on triad k's three rows): A batched 6 × 3 products."""
+        """:meth:`_percov_terms` with the angular jerk and/or the instant errors (module docstring, "Cost of
+        the general path"): ``LN`` L_N's columns and inverse pivots (:func:`_cholesky_over_samples`),
+        N_t = L_N L_Nᵀ, and ``logdetN``; no ``V``: the draws' W_tᵀS(r̄_t − Gδ) come from
+        :meth:`_w_residual`.  The instant errors' columns (column k on triad k's rows) enter N_t by the Gram."""
         proj = self._projection_hot(r, extras=True)
         B, A, T = r.shape[0], self.A, self.T
-        d_t, cs, P, wk, wtw = self._theta_free
-        R = wtw.shape[0]
-        Hw4 = proj["Hw"].view(B, A, 3, 6)
-        Gt4 = proj["Gt"].view(B, A, 3, 6)
-        ew = proj["e_w"].view(B, T, A, 3)
-        # H_wᵀW_t (B, 6, R, T) and [W_tᵀẼ_w, W_tᵀe_w,t] (B, R, 7, T), group by group of columns; the
-        # jerk's and the angular jerk's J columns are d_kt P_k (P_k = Λ_k^½[I₃, [r_k − r̄]×]) times a
-        # per-sample scale per column (cs: s_t, a_t): one (6J × A)(A × T) product each
+        d_t, d_rows, cs, P, wk, wtw, pairs = self._theta_free
         J = P.shape[-1]
-        Y = [(torch.einsum("bkif,kir->bfrk", Hw4, P).reshape(B, 6 * J, A) @ d_t).view(B, 6, J, T) * cs]
-        E = [(torch.einsum("bkif,kir->brfk", Gt4, P).reshape(B, J * 6, A) @ d_t).view(B, J, 6, T) * cs[:, None]]
-        a = [((ew * d_t.T[None, :, :, None]).reshape(B, T, 3 * A) @ P.reshape(3 * A, J)).transpose(1, 2) * cs]
-        if wk is not None:
-            Y.append(torch.matmul(Hw4.transpose(-1, -2), wk).transpose(1, 2))  # (B, 6, A, T)
-            E.append(torch.matmul(Gt4.transpose(-1, -2), wk))  # (B, A, 6, T)
-            a.append((ew * wk.permute(2, 0, 1)).sum(-1).transpose(1, 2))  # (B, A, T)
-        one = lambda parts, dim: parts[0] if len(parts) == 1 else torch.cat(parts, dim)  # noqa: E731 — no copy of one
-        Y = one(Y, 2)
-        Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
-        Ea = torch.cat((one(E, 1), one(a, 1)[:, :, None]), 2)
-        # N_t's entries, then its Cholesky and the forward substitution unrolled entry by entry,
-        # each step an elementwise op over the samples (B, T) or (B, 7, T): at exp_1's size (T = 5885,
-        # R = 6) ~4 ms against ~8 ms for a batched LAPACK Cholesky and solve or for column blocks
-        N = [[wtw[i, j] - (Yh[:, :, i] * Yh[:, :, j]).sum(1) for j in range(i + 1)] for i in range(R)]
-        d, X = _unrolled_cholesky_solve(N, list(Ea.unbind(1)))
-        diag = torch.stack(d, -1)  # (B, T, R)
-        if not bool(torch.isfinite(diag).all()):
+        R = J + (0 if wk is None else A)
+        # Without autograd every (·, T) temporary lives in a reused buffer (fresh MB-sized
+        # allocations cost page faults comparable to the arithmetic) and the Cholesky runs in place.
+        reuse = not (torch.is_grad_enabled() and (r.requires_grad or cs.requires_grad
+                                                  or (wk is not None and wk.requires_grad)))
+        ws = self._workspace if reuse else (lambda name, shape: None)
+        # L⁻¹H_wᵀ first (6 × 3A per θ), so no triangular solve runs over the samples
+        Kh = torch.linalg.solve_triangular(proj["L"], proj["Hw"].transpose(-1, -2), upper=False)
+        if pairs is not None:
+            N = self._n_from_age_pairs(Kh, P, pairs, ws("pc_N", (J * J * B, T)))
+        else:
+            # L⁻¹H_wᵀW_t (6, R, B, T): the age-loaded columns by one (6·J·B × A)(A × T) product, the
+            # sample index last so every per-sample step is an elementwise op over the samples
+            lhs = torch.einsum("bfki,kir->frbk", Kh.view(B, 6, A, 3), P).reshape(6 * J * B, A)
+            Yh = (lhs @ d_t).view(6, J, B, T) * cs[:, None]
+            if wk is not None:
+                Yk = torch.matmul(Kh.view(B, 6, A, 3).permute(0, 2, 1, 3), wk).permute(2, 1, 0, 3)  # (6, A, B, T)
+                Yh = torch.cat((Yh, Yk), 1)
+            # N_t = I + W_tᵀW_t − Σ_f (L⁻¹H_wᵀW_t)_f (L⁻¹H_wᵀW_t)_fᵀ: one rank-1 update per φ component
+            N = torch.addcmul(wtw[:, :, None], Yh[0, :, None], Yh[0, None], value=-1, out=ws("pc_N", (R, R, B, T)))
+            for f in range(1, 6):
+                N = N.addcmul_(Yh[f, :, None], Yh[f, None], value=-1)
+        piv, cols, inv = _cholesky_over_samples(N, inplace=reuse)
+        logdetN = 2 * piv.log().sum(0)  # not finite where a pivot is not positive and finite
+        if not bool(torch.isfinite(logdetN).all()):
             raise UserError("rate: the per-sample covariance is not positive definite (non-finite loading?)")
-        proj.update(V=torch.stack(X, 1), logdetN=2 * diag.log().sum(-1))
+        proj.update(logdetN=logdetN, LN=(cols, inv))
         return proj
+
+    def _w_residual(self, p: dict, d: torch.Tensor, t0: int, t1: int, ws=None) -> torch.Tensor:
+        """u = W_tᵀ(Ẽ_w δ − Λ^½e_t) (B, R, τ, N) at the samples t0:t1 of the general path (module docstring),
+        δ = ``d`` (6, τ, N) or (B, 6, τ, N), ``p`` its projection (Ẽ_w = ``Gt``, Λ^½e = ``e_w``); ``ws`` a
+        workspace (no autograd: temporaries reused, updated in place)."""
+        inplace = ws is not None
+        buf = ws if inplace else (lambda name, shape: None)
+        _, d_rows, cs, P, wk, _, _ = self._theta_free
+        Gt, ew = p["Gt"], p["e_w"]
+        B, n = Gt.shape[0], Gt.shape[1]
+        tau, N = d.shape[-2], d.shape[-1]
+        J = P.shape[-1]
+        g = torch.matmul(Gt, d.reshape(*d.shape[:-3], 6, tau * N), out=buf("pc_g", (B, n, tau * N))).view(B, n, tau, N)
+        e = ew[:, t0:t1, :, None].transpose(1, 2)
+        g = g.sub_(e) if inplace else g - e  # Ẽ_w δ − Λ^½e_t (B, 3A, τ, N)
+        gd = torch.mul(g, d_rows[t0:t1].T[None, :, :, None], out=buf("pc_gd", (B, n, tau, N)))
+        u = torch.matmul(P.reshape(n, J).T, gd.view(B, n, tau * N), out=buf("pc_u", (B, J, tau * N)))
+        u = u.view(B, J, tau, N)
+        u = u.mul_(cs[:, t0:t1, None]) if inplace else u * cs[:, t0:t1, None]
+        if wk is not None:
+            uk = (g.view(B, self.A, 3, tau, N) * wk[:, :, t0:t1, None]).sum(2)  # (B, A, τ, N)
+            u = torch.cat((u, uk), 1)
+        return u
+
+    @staticmethod
+    def _n_from_age_pairs(Kh, P, pairs, out=None):
+        """N_t (J, J, B, T) when W_t's rows of triad k are d_kt P_k diag(c_t): N_t − I = diag(c_t) Σ_k,l
+        d_kt d_lt C_kl diag(c_t), C_kl = δ_kl P_kᵀP_k − (L⁻¹H_w,kᵀP_k)ᵀ(L⁻¹H_w,lᵀP_l) (J × J per θ): one
+        (J²B × A(A+1)/2)(A(A+1)/2 × T) product (the Gram costs ≈ 2.5× more at A = 8).  ``Kh`` L⁻¹H_wᵀ
+        (B, 6, 3A), ``P`` (A, 3, J), ``pairs`` (k, l, d_kd_l (½ on k = l), 2δ_kl P_kᵀP_k, c_ic_j)."""
+        kk, ll, F, ptp2, sc = pairs
+        B, A, J = Kh.shape[0], P.shape[0], P.shape[-1]
+        Zk = torch.einsum("bfki,kir->bkfr", Kh.view(B, 6, A, 3), P)  # (B, A, 6, J): L⁻¹H_w,kᵀP_k
+        X = torch.einsum("bkfi,blfj->bklij", Zk, Zk)  # (B, A, A, J, J)
+        coef = ptp2 - X[:, kk, ll] - X[:, ll, kk]  # (B, pairs, J, J): C_kl + C_lk (k < l), 2C_kk
+        G = torch.mm(coef.permute(2, 3, 0, 1).reshape(J * J * B, -1), F, out=out).view(J, J, B, -1)
+        N = torch.mul(G, sc[:, :, None], out=G if out is not None else None)
+        N.diagonal(0, 0, 1).add_(1.0)
+        return N
 
     @property
     def _theta_free(self):
         """Cached θ-free tensors.  Closed-form path (jerk only), of the loaded samples: uᵀ (A, Ta);
-        diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major
-        vector over the triads.  General path: the centred ages dᵀ (A, T); the per-sample scale of
-        each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their per-triad blocks
-        Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
-        I + W_tᵀW_t (R, R, T)."""
-        if getattr(self, "_tf_cache", None) is None and self.W is not None:
-            R = self.W.shape[-1]
+        diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) triad-sum matrix.  General path: the
+        centred ages dᵀ (A, T) and per row (T, 3A); the J = 3 or 6 age-loaded columns' scales (J, T) (s_t,
+        a_t) and blocks Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T); I + W_tᵀW_t
+        (R, R, T) for the Gram; the age pairs of :meth:`_n_from_age_pairs` (each None where unused)."""
+        if getattr(self, "_tf_cache", None) is None and self.general:
             J = 3 if self.loading_rot is None else 6
             wk = None
-            if R > J:
+            if self.rate is not None:
                 wk = self.W[:, :, J:].reshape(self.T, self.A, 3, self.A).diagonal(dim1=1, dim2=3)  # (T, 3, A)
                 wk = wk.permute(2, 1, 0).contiguous()
             sl = self._sqrt_lam.view(self.A, 3)
@@ -392,8 +443,19 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             if self.loading_rot is not None:
                 P = torch.cat((P, self._cross * sl[..., None]), -1)
                 cs = torch.cat((cs, self.angjerk_std.expand(3, self.T)), 0)
-            wtw = self.W.transpose(-1, -2) @ self.W + torch.eye(R, dtype=self.dtype, device=self.device)
-            self._tf_cache = (centred_ages(self.age).T.contiguous(), cs, P, wk, wtw.permute(1, 2, 0).contiguous())
+            d_t = centred_ages(self.age).T.contiguous()
+            pairs, wtw = None, None
+            if self.W is None:
+                kk, ll = torch.triu_indices(self.A, self.A, device=self.device)
+                F = d_t[kk] * d_t[ll] * torch.where(kk == ll, 0.5, 1.0).to(self.dtype)[:, None]
+                ptp2 = 2 * (P.transpose(-1, -2) @ P)[kk] * (kk == ll).to(self.dtype)[:, None, None]
+                pairs = (kk, ll, F.contiguous(), ptp2, cs[:, None] * cs[None])
+            else:  # the Gram's θ-free part
+                eye = torch.eye(self.W.shape[-1], dtype=self.dtype, device=self.device)
+                wtw = self.W.transpose(-1, -2) @ self.W + eye
+                wtw = wtw.permute(1, 2, 0).contiguous()
+            d_rows = d_t.T.repeat_interleave(3, 1)  # (T, 3A)
+            self._tf_cache = (d_t, d_rows, cs, P, wk, wtw, pairs)
         if getattr(self, "_tf_cache", None) is None:
             u = self.loading[self.active]  # (Ta, A)
             lam = self.lam.view(self.A, 3)
@@ -429,8 +491,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         omega = torch.as_tensor(omega, dtype=self.dtype, device=self.device)
         delta = (u_of_omega(omega) - u_of_omega(self.omega.mean)).expand(*batch, self.T, 6).reshape(B, self.T, 6)
         p = self._percov_terms(r.reshape(B, self.A, 3))
-        V = p["V"]  # (B, 3, 7, T)
-        corr = (torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]).square().sum(1)
+        if "LN" in p:  # the general path: u = W_tᵀS(r̄_t − Gδ_t), then L_N⁻¹u
+            u = self._w_residual(p, delta.transpose(1, 2)[..., None], 0, self.T)
+            corr = _forward_solve_sq(u, *p["LN"], lambda x: x[..., None], inplace=False)[..., 0]
+        else:
+            V = p["V"]  # (B, 3, 7, T)
+            corr = (torch.einsum("bijt,btj->bit", V[:, :, :6], delta) - V[:, :, 6]).square().sum(1)
         q = p["c"] - 2 * (p["b"] * delta).sum(-1) + ((delta @ p["C"]) * delta).sum(-1) - corr
         out = self._kernel(q) - 0.5 * p["logdetM"][:, None] - 0.5 * p["logdetN"]
         return out.reshape(*batch, self.T)
@@ -452,17 +518,24 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         if len(zt.shape[:-3]):
             zt = zt.expand(*batch, *zt.shape[-3:]).reshape(B, self.T, 3, N)
         Rc, w, floor = self._factor_any(p["c"], p["b"], p["C"])
-        V = p["V"]  # (B, 3, 7, T)
+        V = p.get("V")  # (B, 3, 7, T) on the jerk's closed-form path
+        # without autograd the per-draw temporaries live in reused buffers, updated in place
+        grad = torch.is_grad_enabled() and (p["logdetN"].requires_grad or zt.requires_grad)
+        ws = (lambda name, shape: None) if grad else self._workspace
 
         def logw(s, d, t0, t1):
-            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖², the 3×6 product as six fused
-            # multiply-adds over (B, 3, τ, N) (a batched matmul of 3×6 blocks is slower)
+            # d (…, 6, τ, N): q̃ = s + floor − ‖V_t δ − v_t‖², the 3×6 product as six fused multiply-adds
+            # over (B, 3, τ, N) (a batched matmul of 3×6 blocks is slower); the general path: ‖L_N⁻¹u‖²
+            if "LN" in p:
+                u = self._w_residual(p, d, t0, t1, None if grad else self._workspace)
+                corr = _forward_solve_sq(u, *p["LN"], lambda x: x[..., t0:t1, None], inplace=not grad)
+                return self._kernel(corr.neg_().add_(s).add_(floor[:, t0:t1, None]))
             Vc = V[..., t0:t1, None]  # (B, 3, 7, τ, 1)
-            acc = -Vc[:, :, 6]
             dd = d if d.dim() == 3 else d[:, None]  # (6, τ, N) or (B, 1, 6, τ, N)
-            for j in range(6):
-                acc = torch.addcmul(acc, Vc[:, :, j], dd[..., j, :, :])
-            corr = acc.square().sum(1)  # (B, τ, N)
+            acc = torch.mul(Vc[:, :, 0], dd[..., 0, :, :], out=ws("pc_acc", (B, 3, t1 - t0, N)))
+            for j in range(1, 6):
+                acc = acc.addcmul_(Vc[:, :, j], dd[..., j, :, :])
+            corr = torch.mul(acc.sub_(Vc[:, :, 6]), acc, out=None if grad else acc).sum(1)  # (B, τ, N)
             return self._kernel(corr.neg_().add_(s).add_(floor[:, t0:t1, None]))
 
         inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
@@ -487,29 +560,38 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         return Rc, w, c - (w * w).sum(-2)
 
 
-def _unrolled_cholesky_solve(N, rhs):
-    """(diagonal of L (R tensors (B, T)), X = L⁻¹[rhs] (R tensors (B, 7, T))) for the per-sample
-    R × R matrices given by their lower entries ``N[i][j]`` (j ≤ i, each (B, T)), N = L Lᵀ, and
-    the R right-hand-side rows ``rhs`` (each (B, 7, T)).  The Cholesky–Banachiewicz recursion
-    written out over the entries, every step elementwise over the samples."""
-    R = len(rhs)
-    L = [[None] * (i + 1) for i in range(R)]
-    inv = []
+def _cholesky_over_samples(N, inplace: bool = False):
+    """(diagonal of L (R, …), columns L[j+1:, j] for j < R, 1/L[j, j]) of N = L Lᵀ, ``N`` (R, R, …) symmetric
+    (lower part read), one per trailing index (the samples).  Right-looking, each step one elementwise op
+    over all samples (a batched LAPACK call per R × R costs more than the arithmetic).  ``inplace``: N is
+    scratch, overwritten by L (the columns returned are views of it); not with autograd."""
+    R = N.shape[0]
+    out = (lambda v: v) if inplace else (lambda v: None)  # noqa: E731
+    piv, cols, inv = [], [], []
     for j in range(R):
-        s = N[j][j]
-        for k in range(j):
-            s = torch.addcmul(s, L[j][k], L[j][k], value=-1)
-        L[j][j] = s.sqrt()
-        inv.append(L[j][j].reciprocal())
-        for i in range(j + 1, R):
-            s = N[i][j]
-            for k in range(j):
-                s = torch.addcmul(s, L[i][k], L[j][k], value=-1)
-            L[i][j] = s * inv[j]
-    X = []
-    for i in range(R):
-        s = rhs[i]
-        for k in range(i):
-            s = torch.addcmul(s, L[i][k][:, None], X[k], value=-1)
-        X.append(s * inv[i][:, None])
-    return [L[j][j] for j in range(R)], X
+        p = torch.sqrt(N[0, 0], out=out(N[0, 0]))
+        piv.append(p)
+        inv.append(p.reciprocal())
+        if j + 1 < R:
+            col = torch.mul(N[1:, 0], inv[-1], out=out(N[1:, 0]))  # L[j+1:, j]
+            cols.append(col)
+            N = torch.addcmul(N[1:, 1:], col[:, None], col[None], value=-1, out=out(N[1:, 1:]))
+    return torch.stack(piv), cols, inv
+
+
+def _forward_solve_sq(u, cols, inv, sl, inplace: bool):
+    """‖L⁻¹u‖² over dim 1 of ``u`` (B, R, …), L's ``cols``, ``inv`` from :func:`_cholesky_over_samples`;
+    ``sl`` maps their (…, B, T) to u's trailing shape.  ``inplace``: u is scratch (no autograd)."""
+    R = u.shape[1]
+    if inplace:
+        for j in range(R):
+            x = u[:, j].mul_(sl(inv[j]))
+            if j + 1 < R:
+                u[:, j + 1:].addcmul_(sl(cols[j]).movedim(0, 1), x[:, None], value=-1)
+        return u.mul_(u).sum(1)
+    xs, rest = [], u
+    for j in range(R):
+        xs.append(rest[:, 0] * sl(inv[j]))
+        if j + 1 < R:
+            rest = torch.addcmul(rest[:, 1:], sl(cols[j]).movedim(0, 1), xs[-1][:, None], value=-1)
+    return torch.stack(xs, 1).square().sum(1)

@@ -50,4 +50,7 @@ DEFAULTS = {
     "noise_inflation": None,  # None: True without a model, False with one
     "phi_prior": "empirical",
     "threads": DEFAULT_THREADS,
+    # with a model: the board's angular jerk in the per-sample likelihood, on since one log p̂ with it
+    # meets issue #30's cost bar (≤ 4× the flat model's on exp_1; experiments/bench_likelihood_percov.md)
+    "angular_jerk": True,
 }

@@ -88,7 +88,7 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     ``instant_error`` (the ``instant_error`` option): also each triad's own instant error times its
     output rate, e by type-II ML; off, the record says why it was left out.
 
-    ``angular_jerk`` (the ``angular_jerk`` option, off by default): also the board's unresolved
+    ``angular_jerk`` (the ``angular_jerk`` option, on by default): also the board's unresolved
     angular jerk ω̈_t, loaded on triad k by its centred age times its lever arm about the triads'
     centroid (the nominal positions ``nominal_acc``, a fixed covariate), its own scale per band by
     type-II ML with the jerk's: rigid-body kinematics moves triad k's specific force at
@@ -127,7 +127,7 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
               "angular_acc_rms_report_rad_s2": [float(v) for v in p["angular_acc_rms"]],
               "type2_gain_nats": float(fit.gain),
               "angular_jerk": "used" if lever is not None else
-              "skipped: not asked (option angular_jerk; over 4x the flat likelihood's cost)",
+              "skipped: switched off (option angular_jerk, --no-angular-jerk)",
               "angular_jerk_rms_fitted_rad_s3": None if lever is None else
               [float((fit.angjerk_rms[b] * s_t[band == b]).median()) if bool((band == b).any()) else None
                for b in range(len(fit.jerk_rms))],

@@ -128,20 +128,24 @@ def test_the_angular_jerk_scale_is_recovered_by_type2_ml_and_the_inputs_are_chec
         with_unresolved_motion(base, age, 1.0, angjerk_std=-1.0, lever=pos)
 
 
-def test_the_option_is_opt_in_needs_a_model_enters_the_fingerprint_and_the_cli_sets_it():
-    """``angular_jerk`` (default False) needs a model; asked, it is part of the checkpoint
-    fingerprint (a checkpoint made without it is not resumed with it) and a model run without it
-    keeps its request; ``--angular-jerk`` sets it."""
+def test_the_option_is_on_by_default_enters_the_fingerprint_and_the_cli_switches_it():
+    """``angular_jerk`` is on by default (it acts only with a model); on, it is part of the checkpoint
+    fingerprint (a checkpoint made without it is not resumed with it) and a model run switched off
+    keeps the request of the runs before it; ``--no-angular-jerk`` switches it off, ``--angular-jerk``
+    is accepted, and asked for explicitly without a model it is refused naming the option."""
     from accel_bayes.cli import build_parser
     from accel_bayes.pipelines.calibrate_options import CalibrateOptions
 
-    with pytest.raises(UserError, match="^angular_jerk: .*needs a model"):
-        CalibrateOptions(angular_jerk=True)
-    on = CalibrateOptions(model="r.json", angular_jerk=True).fingerprint("rec", model_sha256="m")["options"]
-    off = CalibrateOptions(model="r.json").fingerprint("rec", model_sha256="m")["options"]
+    assert CalibrateOptions().angular_jerk is True and CalibrateOptions(model="r.json").angular_jerk is True
+    on = CalibrateOptions(model="r.json").fingerprint("rec", model_sha256="m")["options"]
+    off = CalibrateOptions(model="r.json", angular_jerk=False).fingerprint("rec", model_sha256="m")["options"]
     assert on["angular_jerk"] is True and "angular_jerk" not in off
     assert {k: v for k, v in on.items() if k != "angular_jerk"} == off
-    args = build_parser().parse_args(["calibrate", "rec.nc", "--out", "o", "--model", "r.json", "--angular-jerk"])
-    assert CalibrateOptions.from_args(args).angular_jerk is True
-    args = build_parser().parse_args(["calibrate", "rec.nc", "--out", "o", "--model", "r.json"])
-    assert CalibrateOptions.from_args(args).angular_jerk is False
+    assert "angular_jerk" not in CalibrateOptions().fingerprint("rec")["options"]  # no model: no term
+    parse = lambda *extra: build_parser().parse_args(["calibrate", "rec.nc", "--out", "o", *extra])  # noqa: E731
+    assert CalibrateOptions.from_args(parse("--model", "r.json")).angular_jerk is True
+    assert CalibrateOptions.from_args(parse("--model", "r.json", "--angular-jerk")).angular_jerk is True
+    assert CalibrateOptions.from_args(parse("--model", "r.json", "--no-angular-jerk")).angular_jerk is False
+    assert CalibrateOptions.from_args(parse("--no-angular-jerk")).angular_jerk is False
+    with pytest.raises(UserError, match="^angular_jerk: .*needs a model"):
+        CalibrateOptions.from_args(parse("--angular-jerk"))

@@ -123,11 +123,13 @@ def test_unidentified_filter_delay_is_no_difference(case):
     assert terms.parameters["omega_edges"] == [3.0, 6.0]
 
 
-@pytest.mark.parametrize("instant", [False, True], ids=["default", "instant_error"])
-def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch, instant):
+@pytest.mark.parametrize("instant, angjerk", [(False, None), (True, None), (False, False)],
+                         ids=["default", "instant_error", "no_angular_jerk"])
+def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch, instant, angjerk):
     """The chains' likelihood is the per-sample one (the scales fitted per report band, untempered),
     provenance records the sha256, what was used and both sandwiches; tempering is refused.  The
-    triads' instant-error term only when asked (``instant_error``), named as skipped otherwise."""
+    triads' instant-error term only when asked (``instant_error``), named as skipped otherwise; the
+    board's angular jerk by default, named as skipped when switched off (``angular_jerk=False``)."""
     import accel_bayes.pipelines.calibrate as cal
 
     rec, rep, _ = case
@@ -137,7 +139,8 @@ def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch, instant):
                                                                                real(lik, pri, draws, *a, **k))[1])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = calibrate(rec, model=rep, instant_error=instant, angular_jerk=instant, **SHORT)
+        r = calibrate(rec, model=rep, instant_error=instant, **({} if angjerk is None else {"angular_jerk": angjerk}),
+                      **SHORT)
     lik, draws = seen[0]
     assert isinstance(lik, PerSampleCovLikelihood) and getattr(lik, "kappa", 1.0) == 1.0
     m = r.settings["model"]
@@ -154,14 +157,14 @@ def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch, instant):
     else:
         assert lik.rate is None and u["instant_error_rms_fitted_s"] is None
         assert u["instant_error"].startswith("skipped: not asked")
-    # the board's angular jerk rides with the instant error here (asked): loaded by the nominal lever arms,
-    # its scale per band fitted; by default it is left out and named as skipped
-    if instant:
+    # the board's angular jerk (default on): loaded by the nominal lever arms, its scale per band fitted;
+    # switched off it is left out and named as skipped
+    if angjerk is None:
         assert lik.loading_rot is not None and u["angular_jerk"] == "used"
         np.testing.assert_allclose(lik.lever.numpy(), np.asarray(rec.nominal_position)[list(lik.imu_labels)])
         assert len(u["angular_jerk_rms_fitted_rad_s3"]) == 3 and np.isfinite(u["angular_jerk_gain_nats"])
     else:
-        assert lik.loading_rot is None and u["angular_jerk"].startswith("skipped: not asked")
+        assert lik.loading_rot is None and u["angular_jerk"].startswith("skipped: switched off")
     assert m["gyro_posterior"]["clock_mean_correction_rms"]["acc_m_s2"] > 0
     for key in ("sandwich", "sandwich_flat"):
         assert len(m[key]["std_ratio"]) == 3 * (rec.K - 1) and np.isfinite(m[key]["std_ratio"]).all()
