@@ -71,6 +71,13 @@ on the six real experiments it brings every sandwich ratio down a little
 (``experiments/mimu_model_calibrate.md``).  Opt-in in ``calibrate`` for its cost: one log p̂ on
 exp_1 is 4.6× the flat model's, above the 4× bar (``experiments/bench_likelihood_percov.md``).
 
+Unknown ages.  A triad whose data age the report does not give (no ``sampling_clock`` finding)
+still samples on its own clock: its age is d̄_k + δ_kt, δ uniform over the register hold, so
+``age_var`` v_k = (1/f)²/12 adds v_k (s_t² I₃ + a_t² [r_k − r̄]×[r_k − r̄]×ᵀ) on its rows — three
+columns on that triad alone (:func:`~.unresolved_cov.age_prior_blocks`), carried with the
+instant-error columns as per-triad blocks of the general path (the expected age d̄_k is in
+``age``; :func:`.report_terms.unresolved_terms` gives both).
+
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
 unresolved angular acceleration in the posterior of ω (:func:`.gyro_posterior.gyro_posterior_timing`);
@@ -87,7 +94,7 @@ import torch
 from ..errors import UserError
 from ..physics.models import u_of_omega
 from .likelihood import RaoBlackwellLikelihood
-from .unresolved_cov import centred_ages, instant_error_loadings, loadings, rotational_loadings
+from .unresolved_cov import age_prior_blocks, centred_ages, instant_error_loadings, loadings, rotational_loadings
 
 # the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
@@ -156,19 +163,20 @@ def triad_rates(acc, time, sample_scale=None) -> torch.Tensor:
 
 
 def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None, *, rate=None,
-                           instant_std=None, angjerk_std=None, lever=None) -> "PerSampleCovLikelihood":
+                           instant_std=None, angjerk_std=None, lever=None, age_var=None) -> "PerSampleCovLikelihood":
     """The per-sample-covariance likelihood on ``lik``'s data (shared, not copied): ``age`` (T, A)
     s the rows' data ages, ``jerk_std`` scalar or (T,) m/s³, ``nu`` None or the degrees of
     freedom of the scale mixture; ``rate`` (T, A, 3) m/s³ and ``instant_std`` (s, scalar or (A,))
     the triads' own instant error (module docstring, "Instant error"); ``angjerk_std`` scalar or (T,)
     rad/s³ and ``lever`` (A, 3) m the board's angular jerk and the triads' positions that load it
-    (module docstring, "Angular jerk")."""
+    (module docstring, "Angular jerk"); ``age_var`` (A,) s² the variance of the data age of triads
+    whose age is not known (0 where it is; module docstring, "Unknown ages")."""
     if type(lik) is not RaoBlackwellLikelihood and not isinstance(lik, PerSampleCovLikelihood):
         # a subclass (the tempered likelihood) would silently lose its own log_phat here
         raise UserError(f"lik: expected an untempered RaoBlackwellLikelihood, got {type(lik).__name__}")
     new = copy.copy(lik)
     new.__class__ = PerSampleCovLikelihood
-    new._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever)
+    new._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever, age_var)
     return new
 
 
@@ -185,12 +193,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
     def __init__(self, acc, omega, acc_noise_std, num_draws, age, jerk_std, nu=None, reference: int = 0,
                  dtype=torch.float64, device=None, phi_prior=None, rate=None, instant_std=None, angjerk_std=None,
-                 lever=None):
+                 lever=None, age_var=None):
         super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device,
                          phi_prior=phi_prior)
-        self._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever)
+        self._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever, age_var)
 
-    def _set_terms(self, age, jerk_std, nu, rate=None, instant_std=None, angjerk_std=None, lever=None):
+    def _set_terms(self, age, jerk_std, nu, rate=None, instant_std=None, angjerk_std=None, lever=None, age_var=None):
         age = torch.as_tensor(np.asarray(age, dtype=np.float64) if not torch.is_tensor(age) else age,
                               dtype=self.dtype, device=self.device)
         if age.shape != (self.T, self.A):
@@ -217,7 +225,14 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             raise UserError("angjerk_std, lever: give both (the board's angular jerk) or neither")
         if angjerk_std is not None:
             self._set_angular_jerk(angjerk_std, lever)
-        if rate is not None or angjerk_std is not None:
+        self.age_var = None
+        if age_var is not None:
+            v = torch.as_tensor(age_var, dtype=self.dtype, device=self.device)
+            if v.shape != (self.A,) or not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
+                raise UserError(f"age_var: expected finite variances >= 0 of shape (A,) = ({self.A},) s², got "
+                                f"{tuple(v.shape)}")
+            self.age_var = v if bool((v > 0).any()) else None  # all clocked: nothing to add
+        if rate is not None or angjerk_std is not None or self.age_var is not None:
             self._set_general(rate, instant_std)
         self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
         if self.W is not None:  # the general path loads every sample
@@ -248,9 +263,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                                           lev).view(self.A, 3, 3)
 
     def _set_general(self, rate, instant_std):
-        """The whitened loading W_t = Λ^½[s_t D_t, angular jerk block, instant-error block]
-        (T, 3A, R) of the general path (module docstring, "Angular jerk", "Instant error")."""
+        """The whitened loading W_t = Λ^½[s_t D_t, angular jerk block, per-triad blocks]
+        (T, 3A, R) of the general path (module docstring, "Angular jerk", "Instant error", "Unknown
+        ages"); the per-triad blocks (columns that each live on one triad's rows) are also kept as
+        ``_blocks`` = (triad of each column (C,), λ^½-whitened values (C, 3, T))."""
         cols = [loadings(self.loading)]
+        tri, vals = [], []
         if self.loading_rot is not None:
             cols.append(rotational_loadings(self.loading_rot, self.lever))
         if rate is not None:
@@ -265,7 +283,21 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 raise UserError(f"instant_std: expected a finite std >= 0 (s), scalar or ({self.A},)")
             self.rate, self.instant_std = rate, e
             cols.append(instant_error_loadings(rate, e))
+            tri.append(torch.arange(self.A, device=self.device))
+            vals.append(rate * e.expand(self.A)[:, None])
+        if self.age_var is not None:
+            k, v = age_prior_blocks(self.age_var, self.jerk_std, self.angjerk_std, self.lever)
+            dense = torch.zeros(self.T, self.A, 3, len(k), dtype=self.dtype, device=self.device)
+            dense.permute(1, 3, 0, 2)[k, torch.arange(len(k))] = v.transpose(0, 1)  # column j on triad k[j]
+            cols.append(dense.reshape(self.T, 3 * self.A, len(k)))
+            tri.append(k.to(self.device))
+            vals.append(v)
         self.W = torch.cat(cols, -1) * self._sqrt_lam[None, :, None]  # (T, 3A, R)
+        self._blocks = None
+        if tri:
+            k = torch.cat(tri)
+            sl = self._sqrt_lam.view(self.A, 3)
+            self._blocks = (k, (torch.cat(vals, 1) * sl[k]).permute(1, 2, 0).contiguous())
 
     # ------------------------------------------------------------------ per-θ terms
     def _percov_terms(self, r: torch.Tensor) -> dict:
@@ -352,10 +384,13 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         Y = [(torch.einsum("bkif,kir->bfrk", Hw4, P).reshape(B, 6 * J, A) @ d_t).view(B, 6, J, T) * cs]
         E = [(torch.einsum("bkif,kir->brfk", Gt4, P).reshape(B, J * 6, A) @ d_t).view(B, J, 6, T) * cs[:, None]]
         a = [((ew * d_t.T[None, :, :, None]).reshape(B, T, 3 * A) @ P.reshape(3 * A, J)).transpose(1, 2) * cs]
-        if wk is not None:
-            Y.append(torch.matmul(Hw4.transpose(-1, -2), wk).transpose(1, 2))  # (B, 6, A, T)
-            E.append(torch.matmul(Gt4.transpose(-1, -2), wk))  # (B, A, 6, T)
-            a.append((ew * wk.permute(2, 0, 1)).sum(-1).transpose(1, 2))  # (B, A, T)
+        if wk is not None:  # C columns, column j on triad k[j]'s rows
+            k = self._blocks[0]
+            ident = len(k) == A and bool((k == torch.arange(A, device=k.device)).all())
+            Hk, Gk, ek = (Hw4, Gt4, ew) if ident else (Hw4[:, k], Gt4[:, k], ew[:, :, k])
+            Y.append(torch.matmul(Hk.transpose(-1, -2), wk).transpose(1, 2))  # (B, 6, C, T)
+            E.append(torch.matmul(Gk.transpose(-1, -2), wk))  # (B, C, 6, T)
+            a.append((ek * wk.permute(2, 0, 1)).sum(-1).transpose(1, 2))  # (B, C, T)
         one = lambda parts, dim: parts[0] if len(parts) == 1 else torch.cat(parts, dim)  # noqa: E731 — no copy of one
         Y = one(Y, 2)
         Yh = torch.linalg.solve_triangular(proj["L"], Y.reshape(B, 6, R * T), upper=False).view(B, 6, R, T)
@@ -377,15 +412,13 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) matrix that sums a triad-major
         vector over the triads.  General path: the centred ages dᵀ (A, T); the per-sample scale of
         each of the J = 3 or 6 age-loaded columns (J, T) (s_t, then a_t); their per-triad blocks
-        Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T) or None;
+        Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the per-triad block columns' λ^½-whitened values
+        (C, 3, T) (the instant errors' e ρ, the unknown ages' blocks) or None;
         I + W_tᵀW_t (R, R, T)."""
         if getattr(self, "_tf_cache", None) is None and self.W is not None:
             R = self.W.shape[-1]
             J = 3 if self.loading_rot is None else 6
-            wk = None
-            if R > J:
-                wk = self.W[:, :, J:].reshape(self.T, self.A, 3, self.A).diagonal(dim1=1, dim2=3)  # (T, 3, A)
-                wk = wk.permute(2, 1, 0).contiguous()
+            wk = None if self._blocks is None else self._blocks[1]
             sl = self._sqrt_lam.view(self.A, 3)
             P = torch.diag_embed(sl)  # (A, 3, 3): Λ_k^½ I₃
             cs = self.jerk_std.expand(3, self.T)
