@@ -74,7 +74,9 @@ exp_1 is 4.6× the flat model's, above the 4× bar (``experiments/bench_likeliho
 Unknown ages.  A triad whose data age the report does not give (no ``sampling_clock`` finding)
 still samples on its own clock: its age is d̄_k + δ_kt, δ uniform over the register hold, so
 ``age_var`` v_k = (1/f)²/12 adds v_k (s_t² I₃ + a_t² [r_k − r̄]×[r_k − r̄]×ᵀ) on its rows — three
-columns on that triad alone (:func:`~.unresolved_cov.age_prior_blocks`), carried with the
+columns on that triad alone — and, with ``age_rate`` ρ_kt (the rate of its output, which the
+clocks' mean correction takes off only at the expected age), v_k ρ_kt ρ_ktᵀ, a fourth
+(:func:`~.unresolved_cov.age_prior_blocks`), carried with the
 instant-error columns as per-triad blocks of the general path (the expected age d̄_k is in
 ``age``; :func:`.report_terms.unresolved_terms` gives both).
 
@@ -163,20 +165,22 @@ def triad_rates(acc, time, sample_scale=None) -> torch.Tensor:
 
 
 def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None, *, rate=None,
-                           instant_std=None, angjerk_std=None, lever=None, age_var=None) -> "PerSampleCovLikelihood":
+                           instant_std=None, angjerk_std=None, lever=None, age_var=None,
+                           age_rate=None) -> "PerSampleCovLikelihood":
     """The per-sample-covariance likelihood on ``lik``'s data (shared, not copied): ``age`` (T, A)
     s the rows' data ages, ``jerk_std`` scalar or (T,) m/s³, ``nu`` None or the degrees of
     freedom of the scale mixture; ``rate`` (T, A, 3) m/s³ and ``instant_std`` (s, scalar or (A,))
     the triads' own instant error (module docstring, "Instant error"); ``angjerk_std`` scalar or (T,)
     rad/s³ and ``lever`` (A, 3) m the board's angular jerk and the triads' positions that load it
     (module docstring, "Angular jerk"); ``age_var`` (A,) s² the variance of the data age of triads
-    whose age is not known (0 where it is; module docstring, "Unknown ages")."""
+    whose age is not known (0 where it is) and ``age_rate`` None or (T, A, 3) m/s³ their outputs'
+    rates (module docstring, "Unknown ages")."""
     if type(lik) is not RaoBlackwellLikelihood and not isinstance(lik, PerSampleCovLikelihood):
         # a subclass (the tempered likelihood) would silently lose its own log_phat here
         raise UserError(f"lik: expected an untempered RaoBlackwellLikelihood, got {type(lik).__name__}")
     new = copy.copy(lik)
     new.__class__ = PerSampleCovLikelihood
-    new._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever, age_var)
+    new._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever, age_var, age_rate)
     return new
 
 
@@ -193,12 +197,13 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
     def __init__(self, acc, omega, acc_noise_std, num_draws, age, jerk_std, nu=None, reference: int = 0,
                  dtype=torch.float64, device=None, phi_prior=None, rate=None, instant_std=None, angjerk_std=None,
-                 lever=None, age_var=None):
+                 lever=None, age_var=None, age_rate=None):
         super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device,
                          phi_prior=phi_prior)
-        self._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever, age_var)
+        self._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever, age_var, age_rate)
 
-    def _set_terms(self, age, jerk_std, nu, rate=None, instant_std=None, angjerk_std=None, lever=None, age_var=None):
+    def _set_terms(self, age, jerk_std, nu, rate=None, instant_std=None, angjerk_std=None, lever=None, age_var=None,
+                   age_rate=None):
         age = torch.as_tensor(np.asarray(age, dtype=np.float64) if not torch.is_tensor(age) else age,
                               dtype=self.dtype, device=self.device)
         if age.shape != (self.T, self.A):
@@ -232,6 +237,12 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 raise UserError(f"age_var: expected finite variances >= 0 of shape (A,) = ({self.A},) s², got "
                                 f"{tuple(v.shape)}")
             self.age_var = v if bool((v > 0).any()) else None  # all clocked: nothing to add
+        if age_rate is not None:
+            age_rate = torch.as_tensor(age_rate, dtype=self.dtype, device=self.device)
+            if age_rate.shape != (self.T, self.A, 3) or not bool(torch.isfinite(age_rate).all()):
+                raise UserError(f"age_rate: expected finite output rates of shape (T, A, 3) = ({self.T}, {self.A}, 3) "
+                                f"m/s³, got {tuple(age_rate.shape)}")
+        self.age_rate = age_rate
         if rate is not None or angjerk_std is not None or self.age_var is not None:
             self._set_general(rate, instant_std)
         self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
@@ -286,7 +297,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             tri.append(torch.arange(self.A, device=self.device))
             vals.append(rate * e.expand(self.A)[:, None])
         if self.age_var is not None:
-            k, v = age_prior_blocks(self.age_var, self.jerk_std, self.angjerk_std, self.lever)
+            k, v = age_prior_blocks(self.age_var, self.jerk_std, self.angjerk_std, self.lever, self.age_rate)
             dense = torch.zeros(self.T, self.A, 3, len(k), dtype=self.dtype, device=self.device)
             dense.permute(1, 3, 0, 2)[k, torch.arange(len(k))] = v.transpose(0, 1)  # column j on triad k[j]
             cols.append(dense.reshape(self.T, 3 * self.A, len(k)))

@@ -50,9 +50,10 @@ With an ``unresolved_motion`` finding (issue #30 Deliver 2; :mod:`accel_bayes.pi
   (f the clocked IMUs' mean internal rate, else the vocabulary's 1 kHz), plus the same acc − gyro
   filter delay.  It is given the expected age (the clocked IMUs' mean age, and their mean filter
   delay on the accelerometer) and the age's variance (1/f)²/12, which loads the unresolved motion as
-  a random age (``age_var_acc`` / ``age_var_gyro``; the per-triad columns of
-  :func:`~accel_bayes.model.unresolved_cov.age_prior_blocks`, a per-gyro variance in the posterior of
-  ω); ``unclocked`` lists those IMUs and why (``experiments/unclocked_probe.md``);
+  a random age (``age_var_acc`` / ``age_var_gyro``), together with the part of the motion the outputs
+  resolve (the mean correction takes off only the expected age times the rate): the per-triad
+  columns of :func:`~accel_bayes.model.unresolved_cov.age_prior_blocks`, a per-gyro covariance in the
+  posterior of ω; ``unclocked`` lists those IMUs and why (``experiments/unclocked_probe.md``);
 * the clocks' mean effect is taken off the outputs, y ← y + age·ẏ (:func:`clock_corrected`);
 * the unresolved angular acceleration, loaded on each gyro by its centred age, enters the fused
   posterior of ω (:func:`fused_gyro_posterior` with ``age``);
@@ -275,7 +276,8 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects, age=None, a
     b = Σ_k d_k P_k, c = Σ_k d_k² P_k (with C_t,k = σ_k² I it is
     :func:`~accel_bayes.model.gyro_posterior.gyro_posterior_timing`).
     age_var (G,) s² (with ``age``): the variance of the age of gyros without a clock, whose random part
-    adds age_var_k s_t² I₃ to C_t,k (module docstring; ``age`` then holds their expected age).
+    reads the unresolved angular acceleration and the resolved rate ω̇_t late, adding
+    age_var_k (s_t² I₃ + ω̇_t ω̇_tᵀ) to C_t,k (module docstring; ``age`` then holds their expected age).
     Returns (:class:`~accel_bayes.model.gyro_posterior.GyroPosterior` with method "model", ω̇ (T, 3) rad/s²).
     """
     from ..physics.effects import output_rates
@@ -299,7 +301,7 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects, age=None, a
     if age_var is not None and angular_acc_std is not None:
         s2a = torch.as_tensor(angular_acc_std, dtype=torch.float64).expand(T).square()
         v = torch.as_tensor(np.asarray(age_var, dtype=np.float64))
-        C = C + (v[None, :] * s2a[:, None])[:, :, None, None] * eye
+        C = C + v[None, :, None, None] * (s2a[:, None, None, None] * eye + outer[:, None])
     Pk = torch.linalg.inv(C)  # (T, G, 3, 3) per-gyro precisions
     prec = Pk.sum(1)
     Py = Pk @ y.unsqueeze(-1)  # (T, G, 3, 1)

@@ -66,7 +66,7 @@ class UnresolvedFit:
 
 def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, omega=None, *, fit_nu: bool = False,
                           noise_factors=(1.0,), max_iter: int = 100, rate=None, fit_instant: bool = False,
-                          instant_start: float = 1e-4, lever=None, age_var=None) -> UnresolvedFit:
+                          instant_start: float = 1e-4, lever=None, age_prior=None) -> UnresolvedFit:
     """Fit the jerk scale per band (and ν with ``fit_nu``) on ``lik``'s data (module docstring).
 
     age (T, A) s the rows' data ages; band (T,) integer |ω| band of each sample (0 … B − 1, e.g.
@@ -79,9 +79,10 @@ def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, ome
     ``instant_start`` s (:class:`~.likelihood_percov.PerSampleCovLikelihood`'s general path).
     ``lever`` (A, 3) m, the triads' nominal positions: the board's angular jerk loaded by them is
     fitted too, its own scale per band, from the jerk-only fit (then the instant error, if asked,
-    from that fit).  ``age_var`` (A,) s²: the variance of the data age of triads without a clock
-    (``PerSampleCovLikelihood``'s "Unknown ages"), loaded with the scales being fitted."""
-    kw = {"age_var": age_var}
+    from that fit).  ``age_prior`` None or {"age_var": (A,) s², "age_rate": (T, A, 3) m/s³ or None}:
+    the random data age of triads without a clock (``PerSampleCovLikelihood``'s "Unknown ages"),
+    loaded with the scales being fitted."""
+    kw = {"age_prior": age_prior}
     if fit_instant or lever is not None:
         if fit_instant and rate is None:
             raise UserError("rate: fit_instant needs the triads' output rates (T, A, 3) m/s³")
@@ -118,7 +119,7 @@ def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, ome
 
 
 def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, instant_start=None,
-             start=None, lever=None, start_rot=None, age_var=None) -> UnresolvedFit:
+             start=None, lever=None, start_rot=None, age_prior=None) -> UnresolvedFit:
     band = torch.as_tensor(band, device=lik.device)
     if band.shape != (lik.T,) or band.dtype in (torch.float32, torch.float64) or bool((band < 0).any()):
         raise UserError(f"band: expected ({lik.T},) non-negative integers (|omega| band per sample)")
@@ -162,10 +163,10 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, inst
         rot = {} if xr is None else {"angjerk_std": torch.where(counts[band] > 0, torch.exp(xr)[band],
                                                                 torch.zeros((), dtype=lik.dtype)), "lever": lev}
         if xe is None:
-            return with_unresolved_motion(lik, age, s, nu=nu, age_var=age_var, **rot)
+            return with_unresolved_motion(lik, age, s, nu=nu, **(age_prior or {}), **rot)
         # e below ~1 ns loads nothing measurable: the bound keeps the line search finite as e → 0
         return with_unresolved_motion(lik, age, s, nu=nu, rate=rate, instant_std=torch.exp(xe.clamp(*_LOG_E_BOUNDS)),
-                                      age_var=age_var, **rot)
+                                      **(age_prior or {}), **rot)
 
     def closure():
         opt.zero_grad()

@@ -20,6 +20,7 @@ from accel_bayes.model.report_terms import fused_gyro_posterior, unresolved_term
 from accel_bayes.physics.effects import make_effect
 from accel_bayes.physics.models import specific_force
 from tests.model.test_calibrate_percov import UNRESOLVED, _clock, _report
+from tests.model.test_instant_error import _rate
 from tests.model.test_likelihood_percov import POS5, SIG, _case, _dense_marginal, _kinematic_H
 
 DT = torch.float64
@@ -32,20 +33,22 @@ def _angjerk(T, seed=8):
     return 2e4 * (0.5 + torch.rand(T, generator=g, dtype=DT))
 
 
-def _model_lik(acc, omega, age, s, a, with_var=True):
+def _model_lik(acc, omega, age, s, a, rate, with_var=True):
     """The likelihood as calibrate builds it for one unclocked triad: its expected age in ``age``,
-    the hold's variance in ``age_var``."""
+    the hold's variance in ``age_var``, the triads' output rates in ``age_rate``."""
     age = age.clone()
     age[:, UNC] = 0.5 / F_HOLD
     var = torch.zeros(5, dtype=DT)
     var[UNC] = 1.0 / (12 * F_HOLD ** 2)
     return PerSampleCovLikelihood(acc, omega, SIG, 3, age, s, angjerk_std=a, lever=POS5,
-                                  age_var=var if with_var else None)
+                                  age_var=var if with_var else None, age_rate=rate if with_var else None)
 
 
-def _mc_cov(age_t, s_t, a_t, n=400_000, seed=1):
+def _mc_cov(age_t, s_t, a_t, rho_t, n=400_000, seed=1):
     """Cov of the loading v_k = d_k (m + ω̈ × c_k) (15,) at one sample, the unclocked triad's age
-    drawn uniform on [0, 1/f) and centred with the others' (the physics, no Gaussian algebra)."""
+    drawn uniform on [0, 1/f) and centred with the others' (the physics, no Gaussian algebra), plus
+    on that triad its output rate ρ read late by the age's departure from the expected age (what
+    the clocks' mean correction, made at the expected age, leaves)."""
     rng = np.random.default_rng(seed)
     ages = np.tile(age_t, (n, 1))
     ages[:, UNC] = rng.uniform(0.0, 1.0 / F_HOLD, n)
@@ -54,17 +57,18 @@ def _mc_cov(age_t, s_t, a_t, n=400_000, seed=1):
     w = a_t * rng.standard_normal((n, 3))
     c = POS5.numpy() - POS5.numpy().mean(0)
     v = d[:, :, None] * (m[:, None, :] + np.cross(w[:, None, :], c[None, :, :]))  # (n, 5, 3)
+    v[:, UNC] += (ages[:, UNC] - 0.5 / F_HOLD)[:, None] * rho_t[UNC]
     v = v.reshape(n, 15)
     return v.T @ v / n
 
 
-def _dense_mc(pos, acc, omega, age, s, a):
+def _dense_mc(pos, acc, omega, age, s, a, rate):
     H = _kinematic_H(pos)
     out = []
     for t in range(acc.shape[0]):
         mean = specific_force(pos, omega[t:t + 1], torch.zeros(1, 3, dtype=DT), torch.zeros(1, 3, dtype=DT))
         r = (acc[t] - mean[0]).reshape(-1).numpy()
-        Sig = SIG ** 2 * np.eye(15) + _mc_cov(age[t].numpy(), float(s[t]), float(a[t]), seed=t)
+        Sig = SIG ** 2 * np.eye(15) + _mc_cov(age[t].numpy(), float(s[t]), float(a[t]), rate[t].numpy(), seed=t)
         out.append(_dense_marginal(r, Sig, H))
     return np.array(out)
 
@@ -76,13 +80,14 @@ def test_the_random_age_is_the_monte_carlo_dense_gaussian():
     T = 4
     acc, omega, age, s = _case(T=T, seed=6)
     a = _angjerk(T)
+    rate = _rate(T, 5, seed=7)
     w = omega.mean
-    want = _dense_mc(POS5, acc, w, age, s, a)
+    want = _dense_mc(POS5, acc, w, age, s, a, rate)
     const = -(15 - 6) / 2 * math.log(2 * math.pi) - 15 * math.log(SIG)
-    got = _model_lik(acc, omega, age, s, a).log_lik_per_sample(POS5, w).detach().numpy() + const
+    got = _model_lik(acc, omega, age, s, a, rate).log_lik_per_sample(POS5, w).detach().numpy() + const
     err = np.abs(got - want)
     assert err.max() < 0.02, err
-    mean_only = _model_lik(acc, omega, age, s, a, with_var=False).log_lik_per_sample(POS5, w).detach().numpy() + const
+    mean_only = _model_lik(acc, omega, age, s, a, rate, with_var=False).log_lik_per_sample(POS5, w).detach().numpy() + const
     age0 = age.clone()
     age0[:, UNC] = 0.0
     zero = PerSampleCovLikelihood(acc, omega, SIG, 3, age0, s, angjerk_std=a, lever=POS5)
@@ -98,7 +103,8 @@ def test_the_age_prior_columns_are_exact_and_log_phat_takes_them():
     T = 5
     acc, omega, age, s = _case(T=T, seed=2)
     a = _angjerk(T, seed=3)
-    lik = _model_lik(acc, omega, age, s, a)
+    rate = _rate(T, 5, seed=9)
+    lik = _model_lik(acc, omega, age, s, a, rate)
     v = 1.0 / (12 * F_HOLD ** 2)
     c = POS5.numpy()[UNC] - POS5.numpy().mean(0)
     cx = np.array([[0, -c[2], c[1]], [c[2], 0, -c[0]], [-c[1], c[0], 0]])
@@ -118,7 +124,8 @@ def test_the_age_prior_columns_are_exact_and_log_phat_takes_them():
                 U[3 * k:3 * k + 3] = d[k] * np.hstack((float(s[t]) * np.eye(3), float(a[t]) * lx))
             Sig = SIG ** 2 * np.eye(15) + U @ U.T
             Sig[3 * UNC:3 * UNC + 3, 3 * UNC:3 * UNC + 3] += v * (float(s[t]) ** 2 * np.eye(3)
-                                                                  + float(a[t]) ** 2 * cx @ cx.T)
+                                                                  + float(a[t]) ** 2 * cx @ cx.T
+                                                                  + np.outer(rate[t, UNC], rate[t, UNC]))
             out.append(_dense_marginal(r, Sig, H))
         return np.array(out)
 
@@ -190,8 +197,8 @@ def test_an_imu_with_a_clock_is_unchanged():
 
 
 def test_the_gyro_of_an_unclocked_imu_takes_the_random_age_in_the_dense_gls():
-    """fused_gyro_posterior with age_var: C_t,k += v_k s_t² I₃ on that gyro, against numpy's GLS on
-    the stacked covariance."""
+    """fused_gyro_posterior with age_var: C_t,k += v_k (s_t² I₃ + ω̇_t ω̇_tᵀ) on that gyro, against
+    numpy's GLS on the stacked covariance."""
     rng = np.random.default_rng(5)
     T, G = 5, 4
     tt = np.arange(T) * 0.01
@@ -200,12 +207,13 @@ def test_the_gyro_of_an_unclocked_imu_takes_the_random_age_in_the_dense_gls():
     age = rng.uniform(0, 1e-3, (T, G))
     s = rng.uniform(50, 200, T)
     var = np.array([0.0, 1e-6 / 12, 0.0, 0.0])
-    post, _ = fused_gyro_posterior(torch.as_tensor(y), std, [0, 2, 5, 6], tt, [], age=age, angular_acc_std=s,
+    post, wdot = fused_gyro_posterior(torch.as_tensor(y), std, [0, 2, 5, 6], tt, [], age=age, angular_acc_std=s,
                                    age_var=var)
     X = np.tile(np.eye(3), (G, 1))
     for i in range(T):
         d = age[i] - age[i].mean()
         C_ = np.kron(np.diag(std ** 2 + var * s[i] ** 2), np.eye(3)) + s[i] ** 2 * np.kron(np.outer(d, d), np.eye(3))
+        C_ += np.kron(np.diag(var), np.outer(wdot[i].numpy(), wdot[i].numpy()))
         Ci = np.linalg.inv(C_)
         P = np.linalg.inv(X.T @ Ci @ X)
         np.testing.assert_allclose(post.cov[i].numpy(), P, rtol=1e-9)
