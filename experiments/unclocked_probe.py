@@ -24,6 +24,10 @@ unclocked IMUs' coordinates) and, where the truth is known (the concealed clock 
 
     PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/unclocked_probe.py
 
+Cost (:func:`bench`): one log p̂ (N = 1) at exp 5's size (T = 5724 samples, 8 triads, IMU 2 without a
+clock; synthetic values — the cost does not depend on them), flat / jerk / jerk + the age prior /
+angular jerk / angular jerk + the age prior, in one process, blocks of calls alternating, medians.
+
 Writes ``experiments/unclocked_probe.md`` and caches each run in ``--out``.
 """
 from __future__ import annotations
@@ -119,7 +123,39 @@ def cases(args):
     return out
 
 
-def markdown(rows: list, cmd: str, stamp: str) -> str:
+def bench(rounds: int = 7, block: int = 10, T: int = 5724, A: int = 8, unclocked: int = 2) -> dict:
+    """Median ms per log p̂ call of each model (module docstring, "Cost"); one torch thread."""
+    from experiments.bench_likelihood_percov import timed_blocks
+
+    from accel_bayes.model.gyro_posterior import gyro_posterior
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood_percov import with_unresolved_motion
+
+    torch.set_num_threads(1)
+    g = torch.Generator().manual_seed(0)
+    pos = 0.02 * torch.randn(A, 3, generator=g, dtype=torch.float64)
+    acc = 3.0 * torch.randn(T, A, 3, generator=g, dtype=torch.float64)
+    omega = gyro_posterior(4.0 * torch.randn(T, 4, 3, generator=g, dtype=torch.float64),
+                           torch.full((4,), 0.01, dtype=torch.float64), "calibrated")
+    flat = RaoBlackwellLikelihood(acc, omega, 1.5, 1)
+    age = 1e-3 * torch.rand(T, A, generator=g, dtype=torch.float64)
+    s = 3e3 * (0.5 + torch.rand(T, generator=g, dtype=torch.float64))
+    a = 1e5 * (0.5 + torch.rand(T, generator=g, dtype=torch.float64))
+    var = torch.zeros(A, dtype=torch.float64)
+    var[unclocked] = 1.0 / 12e6
+    prior = {"age_var": var, "age_rate": 3e3 * torch.randn(T, A, 3, generator=g, dtype=torch.float64)}
+    rot = {"angjerk_std": a, "lever": pos}
+    models = {"flat": flat, "jerk": with_unresolved_motion(flat, age, s),
+              "jerk+prior": with_unresolved_motion(flat, age, s, **prior),
+              "angjerk": with_unresolved_motion(flat, age, s, **rot),
+              "angjerk+prior": with_unresolved_motion(flat, age, s, **rot, **prior)}
+    z = flat.sample_z((), 1, torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        ms = timed_blocks({k: (lambda m=m: m.log_phat(pos, z=z)) for k, m in models.items()}, rounds, block)
+    return {"T": T, "A": A, "unclocked": unclocked, "ms": ms, "rounds": rounds, "block": block}
+
+
+def markdown(rows: list, cmd: str, stamp: str, cost: dict | None = None) -> str:
     L = ["# Unclocked IMUs: zero age, expected age, or an age prior (issue #30)", "",
          f"Regenerate: `{cmd}` ({stamp}). Module docstring of `experiments/unclocked_probe.py`: what each "
          "treatment is. Every run is `calibrate --model` of the case's own report (real exp: 4 chains × 500 "
@@ -147,6 +183,15 @@ def markdown(rows: list, cmd: str, stamp: str) -> str:
         L.append(f"| {r['case']} | {'yes' if r['angular_jerk'] else 'no'} | {sorted(unc)} | {r['mode']} | "
                  f"{r['loglik_type2']:.1f} | {'—' if d is None else f'{d:+.1f}'} | {sw['std_ratio_max']:.2f} | "
                  f"{rat} | {zs} | {zm} | {zu} |")
+    if cost:
+        ms = cost["ms"]
+        L += ["", f"## Cost: one log p̂ at exp 5's size (T = {cost['T']}, {cost['A']} triads, one unclocked; N = 1)", "",
+              "| model | ms per call | × flat | × the same model without the age prior |", "|---|---|---|---|"]
+        for k, v in ms.items():
+            base = ms.get(k.replace("+prior", "")) if k.endswith("+prior") else None
+            L.append(f"| {k} | {v:.2f} | {v / ms['flat']:.2f} | {'—' if base is None else f'{v / base:.2f}'} |")
+        L += ["", "RESULT lines: " + "; ".join(f"RESULT unclocked_{k}: {v:.2f} ms, flat {ms['flat']:.2f} ms"
+                                              for k, v in ms.items() if k != "flat")]
     L += ["", "## Reading", "", "READING_PLACEHOLDER", ""]
     return "\n".join(L)
 
@@ -163,6 +208,7 @@ def main(argv=None) -> int:
     ap.add_argument("--angular-jerk", default="1", help="'1', '0' or '0,1': the variants run")
     ap.add_argument("--out", type=Path, default=HERE / "out" / "unclocked_probe")
     ap.add_argument("--doc", type=Path, default=HERE / "unclocked_probe.md")
+    ap.add_argument("--no-bench", action="store_true", help="leave the cost bench out (its cache is used if present)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -183,9 +229,19 @@ def main(argv=None) -> int:
                 print(f"{name} aj={aj} {mode}: loglik {r['loglik_type2']:.1f} ratio max {sw['std_ratio_max']:.2f} "
                       f"z {'' if r.get('z') is None else np.sqrt(np.mean(np.square(r['z']))):} "
                       f"{r['seconds']:.0f} s", flush=True)
+    cost = None
+    fb = args.out / "bench.json"
+    if fb.exists():
+        cost = json.loads(fb.read_text())
+    elif not args.no_bench:
+        cost = bench()
+        write_json(fb, cost)
+    if cost:
+        print("\n".join(f"RESULT unclocked_{k}: {v:.2f} ms, flat {cost['ms']['flat']:.2f} ms"
+                        for k, v in cost["ms"].items() if k != "flat"), flush=True)
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/unclocked_probe.py " + " ".join(
         sys.argv[1:] if argv is None else argv)
-    text = markdown(rows, cmd.strip(), run_stamp())
+    text = markdown(rows, cmd.strip(), run_stamp(), cost)
     if args.doc.exists():  # the reading is written by hand: kept across regeneration
         old = args.doc.read_text()
         if "## Reading" in old:
