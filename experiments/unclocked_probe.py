@@ -155,6 +155,29 @@ def bench(rounds: int = 7, block: int = 10, T: int = 5724, A: int = 8, unclocked
     return {"T": T, "A": A, "unclocked": unclocked, "ms": ms, "rounds": rounds, "block": block}
 
 
+def loo_with(row: dict, exp: int, cache: Path) -> dict | None:
+    """Leave-one-out z (``mimu_repeatability.analyse``, the one implementation) of the six experiments
+    with experiment ``exp`` replaced by this probe run: the other five from ``cache`` (the
+    ``mimu_model_calibrate.py`` runs with the same calibrate settings).  RMS all / exp 1–3 / exp 4–6,
+    max, and the replaced experiment's own RMS; None when the cache is incomplete."""
+    from experiments.mimu_repeatability import analyse
+
+    runs = []
+    for e in range(1, 7):
+        f = cache / f"exp_{e}.json"
+        if not f.exists():
+            return None
+        r = json.loads(f.read_text())
+        if e == exp:
+            r = {**r, "mean": [i["mean"] for i in row["positions"]["imus"]],
+                 "std": [i["std"] for i in row["positions"]["imus"]]}
+        runs.append(r)
+    z = np.asarray(analyse(runs)["z_loo"], dtype=float).reshape(6, -1)
+    rms = lambda a: float(np.sqrt(np.mean(a ** 2)))  # noqa: E731
+    return {"all": rms(z), "exp1_3": rms(z[:3]), "exp4_6": rms(z[3:]), "max": float(np.abs(z).max()),
+            "own": rms(z[exp - 1])}
+
+
 def markdown(rows: list, cmd: str, stamp: str, cost: dict | None = None) -> str:
     L = ["# Unclocked IMUs: zero age, expected age, or an age prior (issue #30)", "",
          f"Regenerate: `{cmd}` ({stamp}). Module docstring of `experiments/unclocked_probe.py`: what each "
@@ -192,6 +215,17 @@ def markdown(rows: list, cmd: str, stamp: str, cost: dict | None = None) -> str:
             L.append(f"| {k} | {v:.2f} | {v / ms['flat']:.2f} | {'—' if base is None else f'{v / base:.2f}'} |")
         L += ["", "RESULT lines: " + "; ".join(f"RESULT unclocked_{k}: {v:.2f} ms, flat {ms['flat']:.2f} ms"
                                               for k, v in ms.items() if k != "flat")]
+    loo = [r for r in rows if r.get("loo")]
+    if loo:
+        L += ["", "## Repeatability: leave-one-out z of the six experiments with this run as the real experiment's",
+              "", "The other five from `experiments/out/mimu_model_calibrate_unclocked/with_angjerk/` (same calibrate "
+              "settings; their reports clock every IMU, so no treatment changes them).", "",
+              "| case | treatment | LOO z RMS all / exp 1–3 / exp 4–6 | max \\|z\\| | this experiment's own LOO z RMS |",
+              "|---|---|---|---|---|"]
+        for r in loo:
+            q = r["loo"]
+            L.append(f"| {r['case']} | {r['mode']} | {q['all']:.2f} / {q['exp1_3']:.2f} / {q['exp4_6']:.2f} | "
+                     f"{q['max']:.2f} | {q['own']:.2f} |")
     L += ["", "## Reading", "", "READING_PLACEHOLDER", ""]
     return "\n".join(L)
 
@@ -208,6 +242,8 @@ def main(argv=None) -> int:
     ap.add_argument("--angular-jerk", default="1", help="'1', '0' or '0,1': the variants run")
     ap.add_argument("--out", type=Path, default=HERE / "out" / "unclocked_probe")
     ap.add_argument("--doc", type=Path, default=HERE / "unclocked_probe.md")
+    ap.add_argument("--mimu-cache", type=Path, default=HERE / "out" / "mimu_model_calibrate_unclocked" / "with_angjerk",
+                    help="the six experiments' with_angjerk runs the real probe rows are compared with (LOO z)")
     ap.add_argument("--no-bench", action="store_true", help="leave the cost bench out (its cache is used if present)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -224,6 +260,8 @@ def main(argv=None) -> int:
                         r["z"], r["z_names"] = sc["z"], sc["coordinates"]
                     write_json(f, r)
                 r = json.loads(f.read_text())
+                if name.startswith("exp_") and aj:
+                    r["loo"] = loo_with(r, int(name[4:]), args.mimu_cache)
                 rows.append(r)
                 sw = r["sandwich"]
                 print(f"{name} aj={aj} {mode}: loglik {r['loglik_type2']:.1f} ratio max {sw['std_ratio_max']:.2f} "
