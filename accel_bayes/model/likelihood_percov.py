@@ -128,7 +128,8 @@ def ages_from_clocks(time, clocks: dict, labels, sensor: str = "acc") -> torch.T
     """The data ages (T, len(labels)) s of the rows ``labels`` (IMU labels) at the read times
     ``time`` (T,) s (the recording's own time axis), from ``clocks`` {IMU label:
     :class:`~accel_bayes.physics.effects.clock.SamplingClock`}.  ``sensor="acc"`` adds each
-    clock's acc − gyro filter delay.  IMUs without a clock get age 0 (read in step with the host)."""
+    clock's acc − gyro filter delay.  IMUs without a clock get age 0 here; a report's calibration
+    gives them an age prior instead (:func:`.report_terms.unresolved_terms`)."""
     if sensor not in ("acc", "gyro"):
         raise UserError(f"sensor: expected 'acc' or 'gyro', got {sensor!r}")
     t = torch.as_tensor(np.asarray(time, dtype=np.float64))
