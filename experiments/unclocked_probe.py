@@ -208,7 +208,8 @@ def markdown(rows: list, cmd: str, stamp: str, cost: dict | None = None) -> str:
                  f"{rat} | {zs} | {zm} | {zu} |")
     if cost:
         ms = cost["ms"]
-        L += ["", f"## Cost: one log p̂ at exp 5's size (T = {cost['T']}, {cost['A']} triads, one unclocked; N = 1)", "",
+        L += ["", f"## Cost: one log p̂ at exp 5's size (T = {cost['T']}, {cost['A']} triads, one unclocked; "
+              "N = 1)", "",
               "| model | ms per call | × flat | × the same model without the age prior |", "|---|---|---|---|"]
         for k, v in ms.items():
             base = ms.get(k.replace("+prior", "")) if k.endswith("+prior") else None
@@ -220,7 +221,8 @@ def markdown(rows: list, cmd: str, stamp: str, cost: dict | None = None) -> str:
         L += ["", "## Repeatability: leave-one-out z of the six experiments with this run as the real experiment's",
               "", "The other five from `experiments/out/mimu_model_calibrate_unclocked/with_angjerk/` (same calibrate "
               "settings; their reports clock every IMU, so no treatment changes them).", "",
-              "| case | treatment | LOO z RMS all / exp 1–3 / exp 4–6 | max \\|z\\| | this experiment's own LOO z RMS |",
+              "| case | treatment | LOO z RMS all / exp 1–3 / exp 4–6 | max \\|z\\| | "
+              "this experiment's own LOO z RMS |",
               "|---|---|---|---|---|"]
         for r in loo:
             q = r["loo"]

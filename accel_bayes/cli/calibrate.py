@@ -258,8 +258,9 @@ def format_table(res) -> str:
                         if sw.get("kappa") is not None else ""))
         unc = (mod.get("unresolved_motion") or {}).get("unclocked") or []
         if unc:
-            lines.append(f"model: IMU(s) {', '.join(str(u['imu']) for u in unc)} without a sampling clock in the report: "
-                         f"expected data age {unc[0]['age_acc_s'] * 1e3:.3g} ms (acc) with a random age of std "
+            imus = ", ".join(str(u["imu"]) for u in unc)
+            lines.append(f"model: IMU(s) {imus} without a sampling clock in the report: expected data age "
+                         f"{unc[0]['age_acc_s'] * 1e3:.3g} ms (acc) with a random age of std "
                          f"{unc[0]['age_std_s'] * 1e3:.3g} ms loading the unresolved motion")
     conv = res.settings.get("convergence") or {}
     how = ""

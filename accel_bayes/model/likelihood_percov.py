@@ -429,7 +429,6 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         I + W_tᵀW_t (R, R, T)."""
         if getattr(self, "_tf_cache", None) is None and self.W is not None:
             R = self.W.shape[-1]
-            J = 3 if self.loading_rot is None else 6
             wk = None if self._blocks is None else self._blocks[1]
             sl = self._sqrt_lam.view(self.A, 3)
             P = torch.diag_embed(sl)  # (A, 3, 3): Λ_k^½ I₃

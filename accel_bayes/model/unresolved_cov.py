@@ -148,7 +148,8 @@ def centred_ages(age: torch.Tensor) -> torch.Tensor:
     return age - age.mean(-1, keepdim=True)
 
 
-def age_prior_blocks(age_var, jerk_std, angjerk_std=None, lever=None, rate=None) -> tuple[torch.Tensor, torch.Tensor]:
+def age_prior_blocks(age_var, jerk_std, angjerk_std=None, lever=None,
+                     rate=None) -> tuple[torch.Tensor, torch.Tensor]:
     """(triads (C,) int64, columns (T, C, 3)): the loading of a random data age on the triads
     whose age the report does not give (issue #30, IMUs without a ``sampling_clock`` finding).
 

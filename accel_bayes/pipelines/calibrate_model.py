@@ -113,7 +113,7 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     unclocked = terms.age_var_acc is not None and bool((terms.age_var_acc > 0).any())
     age_prior = None if not unclocked else {
         "age_var": terms.age_var_acc,
-        "age_rate": rate if rate is not None else None if terms.time is None else triad_rates(base.acc, terms.time, s_t)}
+        "age_rate": rate if rate is not None or terms.time is None else triad_rates(base.acc, terms.time, s_t)}
     e0 = (p.get("age_error_rms_s") or {}).get("acc") if isinstance(p.get("age_error_rms_s"), dict) else None
     e0 = float(e0) if e0 is not None and float(e0) > 0 else 1e-4
     lever = nominal_acc if angular_jerk else None
