@@ -219,3 +219,14 @@ def test_the_gyro_of_an_unclocked_imu_takes_the_random_age_in_the_dense_gls():
         P = np.linalg.inv(X.T @ Ci @ X)
         np.testing.assert_allclose(post.cov[i].numpy(), P, rtol=1e-9)
         np.testing.assert_allclose(post.mean[i].numpy(), P @ X.T @ Ci @ y[i].reshape(-1), rtol=1e-9, atol=1e-12)
+
+
+def test_bad_age_prior_inputs_are_one_line_errors_naming_the_field():
+    from accel_bayes.errors import UserError
+
+    acc, omega, age, s = _case(T=4, seed=1)
+    with pytest.raises(UserError, match=r"^age_var: expected finite variances >= 0 of shape \(A,\)"):
+        PerSampleCovLikelihood(acc, omega, SIG, 1, age, s, age_var=torch.tensor([1e-7, -1.0, 0, 0, 0], dtype=DT))
+    with pytest.raises(UserError, match=r"^age_rate: expected finite output rates of shape \(T, A, 3\)"):
+        PerSampleCovLikelihood(acc, omega, SIG, 1, age, s, age_var=torch.full((5,), 1e-7, dtype=DT),
+                               age_rate=torch.zeros(4, 5, dtype=DT))
