@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 import warnings
@@ -48,6 +47,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _data import data_dir  # noqa: E402
+from _stamp import machine_note  # noqa: E402
 from mimu_repeatability import analyse, coordinate_diagnostics  # noqa: E402
 
 from accel_bayes.data.outputs import write_json, write_text  # noqa: E402
@@ -355,9 +355,8 @@ def markdown(results: dict, summ: dict, args) -> str:
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     L = ["# `calibrate --model` of the six MIMU4444 experiments, untempered (issues #11 item 5, #30)", "",
          f"Regenerate: `PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports {args.reports} --no-hetero "
-         f"--draws {args.draws} --warmup {args.warmup} --variants {','.join(results)}` "
-         f"({stamp}, {platform.machine()} {platform.system()}, shared 2-core CPU under heavy load from other jobs, "
-         f"one torch thread; results cached in `{_rel(args.out)}`). Reports: each experiment's own `mismatch` report "
+         f"--draws {args.draws} --warmup {args.warmup} --variants {','.join(results)} --out {_rel(args.out)}` "
+         f"({stamp}; {machine_note()} at the end, one torch thread; results cached in `{_rel(args.out)}`). Reports: each experiment's own `mismatch` report "
          "(`experiments/mimu_mismatch.py`, whole-recording `detect` with its defaults, the run `mimu_mismatch.md` reports), sha256 in the table below. Each "
          f"experiment is calibrated twice, {args.chains} chains × {args.draws} draws after {args.warmup} warm-up, "
          f"seed {args.seed}: **without** — the default pipeline (noise level per triad at its type-II ML, likelihood "

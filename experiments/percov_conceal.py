@@ -298,7 +298,8 @@ def _met(v: dict) -> bool:
     return Z_RMS_BAND[0] <= v["all"]["rms"] <= Z_RMS_BAND[1] and v["all"]["beyond4"] == 0
 
 
-def markdown(cases: list[dict], summ: dict, cmd: str, n_asked: int, seconds: float) -> str:
+def markdown(cases: list[dict], summ: dict, cmd: str, n_asked: int, seconds: float,
+             out: str = "experiments/out/percov_conceal") -> str:
     vs = [v for v in VARIANTS if v in summ]
     w = summ["with"]
     ok = _met(w)
@@ -309,7 +310,7 @@ def markdown(cases: list[dict], summ: dict, cmd: str, n_asked: int, seconds: flo
     L = ["# percov_conceal — concealed clock recordings calibrated blind with the detector's own report (issue #30 item 4)",
          "",
          f"Regenerate: `{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
-         f"{platform.system()}, shared 2-core CPU, nice 5; per-case stages cached in `experiments/out/percov_conceal/`; "
+         f"{platform.system()}, shared 2-core CPU, nice 5; per-case stages cached in `{out}/`; "
          f"this invocation {seconds:.0f} s).", "",
          "What runs (the script's docstring): clockgen `clock` cases (effects the model does not have), the "
          "nominal positions the truth moved by a seeded mounting error; `detect` (defaults) writes the report; "
@@ -466,7 +467,11 @@ def main(argv=None) -> int:
         a for a in argv_s if a != "--summary")
     from experiments._reading import READING_MARKER, kept_reading
 
-    write_text(DOC, markdown(cases, summ, cmd.strip(), args.n, secs) + "\n" + "\n".join(probe_markdown(probes))
+    try:
+        out_rel = str(args.out.resolve().relative_to(ROOT.parent))
+    except ValueError:
+        out_rel = str(args.out)
+    write_text(DOC, markdown(cases, summ, cmd.strip(), args.n, secs, out_rel) + "\n" + "\n".join(probe_markdown(probes))
                + "\n" + READING_MARKER
                + (kept_reading(DOC) or "\n"))
     print(DOC.read_text())

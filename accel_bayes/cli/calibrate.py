@@ -257,6 +257,12 @@ def format_table(res) -> str:
                      + (f"; sandwich/Laplace std ratio at the MAP max {sw['std_ratio_max']:.2f}, median "
                         f"{sw['std_ratio_median']:.2f} (kappa {sw['kappa']:.2f}, tempering {sw['tempering_applied']:.2f})"
                         if sw.get("kappa") is not None else ""))
+        unc = (mod.get("unresolved_motion") or {}).get("unclocked") or []
+        if unc:
+            imus = ", ".join(str(u["imu"]) for u in unc)
+            lines.append(f"model: IMU(s) {imus} without a sampling clock in the report: expected data age "
+                         f"{unc[0]['age_acc_s'] * 1e3:.3g} ms (acc) with a random age of std "
+                         f"{unc[0]['age_std_s'] * 1e3:.3g} ms loading the unresolved motion")
     conv = res.settings.get("convergence") or {}
     how = ""
     if conv.get("mode") == "until converged":

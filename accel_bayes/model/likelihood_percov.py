@@ -81,6 +81,15 @@ over the samples and ‖L_N⁻¹u‖² by forward substitution (at calibrate's N
 than the R × 7 maps per θ).  No (·, T) allocation without autograd.  Exact: the same log p̂ to
 round-off (the dense-Gaussian tests of ``tests/model/test_angular_jerk.py``).
 
+Unknown ages.  A triad whose data age the report does not give (no ``sampling_clock`` finding)
+still samples on its own clock: its age is d̄_k + δ_kt, δ uniform over the register hold, so
+``age_var`` v_k = (1/f)²/12 adds v_k (s_t² I₃ + a_t² [r_k − r̄]×[r_k − r̄]×ᵀ) on its rows — three
+columns on that triad alone — and, with ``age_rate`` ρ_kt (the rate of its output, which the
+clocks' mean correction takes off only at the expected age), v_k ρ_kt ρ_ktᵀ, a fourth
+(:func:`~.unresolved_cov.age_prior_blocks`), carried with the
+instant-error columns as per-triad blocks of the general path (the expected age d̄_k is in
+``age``; :func:`.report_terms.unresolved_terms` gives both).
+
 Related: the scales s_b and ν fitted by type-II ML (:mod:`.unresolved_fit`); a report's clocks
 and scales read at the samples (:func:`.report_terms.unresolved_terms`); the gyro twin, the
 unresolved angular acceleration in the posterior of ω (:func:`.gyro_posterior.gyro_posterior_timing`);
@@ -97,7 +106,8 @@ import torch
 from ..errors import UserError
 from ..physics.models import u_of_omega
 from .likelihood import RaoBlackwellLikelihood
-from .unresolved_cov import centred_ages, instant_error_loadings, loadings, rotational_loadings
+from .percov_covariates import ages_from_clocks, band_scale, triad_rates  # noqa: F401 — re-exported
+from .unresolved_cov import age_prior_blocks, centred_ages, instant_error_loadings, loadings, rotational_loadings
 
 # the distinct entries (j, k) of the symmetric 3×3 N_t, in the order the Cholesky below reads them
 _PAIRS = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
@@ -109,80 +119,23 @@ _MAX_AGE_PAIRS = 78
 __all__ = ["PerSampleCovLikelihood", "with_unresolved_motion", "ages_from_clocks", "band_scale", "triad_rates"]
 
 
-def band_scale(omega_norm, edges, rms, field: str = "jerk_rms") -> torch.Tensor:
-    """s_t (T,) per sample from a per-|ω|-band scale: ``edges`` the B − 1 inner band edges
-    (rad/s, ascending, as the ``unresolved_motion`` finding's ``omega_edges``), ``rms`` (B,) the
-    band's scale (``jerk_rms`` m/s³ or ``angular_acc_rms`` rad/s², named by ``field`` in errors),
-    ``omega_norm`` (T,) rad/s.  Band b holds edges[b−1] ≤ |ω| < edges[b]."""
-    w = torch.as_tensor(np.asarray(omega_norm, dtype=np.float64))
-    try:
-        e = torch.as_tensor(np.asarray(edges, dtype=np.float64)).reshape(-1)
-        v = torch.as_tensor(np.asarray(rms, dtype=np.float64)).reshape(-1)
-    except (TypeError, ValueError):
-        raise UserError(f"{field}: expected numbers per |omega| band and numeric omega_edges") from None
-    if len(v) != len(e) + 1:
-        raise UserError(f"{field}: expected {len(e) + 1} values for {len(e)} band edges, got {len(v)}")
-    if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
-        raise UserError(f"{field}: expected finite values >= 0")
-    if not bool(torch.isfinite(e).all()) or bool((e[1:] < e[:-1]).any()):
-        raise UserError("omega_edges: expected finite band edges in ascending order (rad/s)")
-    return v[torch.bucketize(w, e, right=True)]
-
-
-def ages_from_clocks(time, clocks: dict, labels, sensor: str = "acc") -> torch.Tensor:
-    """The data ages (T, len(labels)) s of the rows ``labels`` (IMU labels) at the read times
-    ``time`` (T,) s (the recording's own time axis), from ``clocks`` {IMU label:
-    :class:`~accel_bayes.physics.effects.clock.SamplingClock`}.  ``sensor="acc"`` adds each
-    clock's acc − gyro filter delay.  IMUs without a clock get age 0 (read in step with the host)."""
-    if sensor not in ("acc", "gyro"):
-        raise UserError(f"sensor: expected 'acc' or 'gyro', got {sensor!r}")
-    t = torch.as_tensor(np.asarray(time, dtype=np.float64))
-    out = torch.zeros(len(t), len(labels), dtype=torch.float64)
-    for j, k in enumerate(labels):
-        clock = clocks.get(int(k))
-        if clock is None:
-            continue
-        out[:, j] = clock.physical_age(t)  # the hold's sawtooth: what the report's scales were fitted on
-        if sensor == "acc":
-            out[:, j] += float(clock.params["filter_delay_acc_minus_gyro_s"])
-    return out
-
-
-def triad_rates(acc, time, sample_scale=None) -> torch.Tensor:
-    """ρ (T, A, 3) m/s³: the rate of each triad's output ``acc`` (T, A, 3) m/s² (any one frame) at
-    the read times ``time`` (T,) s, by the second-order differences of
-    :func:`~accel_bayes.physics.effects.output_rates` within each run of contiguous samples (the
-    rates the clocks' mean correction uses).  ``sample_scale`` (T,): the data were divided by it
-    (a noise model's per-sample scale); the rate is taken in physical units and divided again.
-
-    Why the outputs' own rate is the instant error's loading: a triad read at t + ε errs by ε times
-    the rate of its specific force — the board's jerk, ω̈ × r_k and the rotation terms, which grow
-    with |ω| and |ω̇| and differ by triad — and the outputs at 62.5 Hz resolve that rate to their
-    noise (σ√2/(2Δt) ≈ 70 m/s³ against rates of 10³–10⁴ m/s³); an interior central difference does
-    not use the sample itself, so the loading is independent of that sample's white noise."""
-    from ..physics.effects import output_rates
-
-    acc = torch.as_tensor(acc, dtype=torch.float64)
-    sc = torch.ones(acc.shape[0], dtype=acc.dtype) if sample_scale is None else \
-        torch.as_tensor(np.asarray(sample_scale, dtype=np.float64))
-    phys = acc * sc[:, None, None]
-    return output_rates(torch.as_tensor(np.asarray(time, dtype=np.float64)), phys, phys[:, :1])[0] / sc[:, None, None]
-
-
 def with_unresolved_motion(lik: RaoBlackwellLikelihood, age, jerk_std, nu=None, *, rate=None,
-                           instant_std=None, angjerk_std=None, lever=None) -> "PerSampleCovLikelihood":
+                           instant_std=None, angjerk_std=None, lever=None, age_var=None,
+                           age_rate=None) -> "PerSampleCovLikelihood":
     """The per-sample-covariance likelihood on ``lik``'s data (shared, not copied): ``age`` (T, A)
     s the rows' data ages, ``jerk_std`` scalar or (T,) m/s³, ``nu`` None or the degrees of
     freedom of the scale mixture; ``rate`` (T, A, 3) m/s³ and ``instant_std`` (s, scalar or (A,))
     the triads' own instant error (module docstring, "Instant error"); ``angjerk_std`` scalar or (T,)
     rad/s³ and ``lever`` (A, 3) m the board's angular jerk and the triads' positions that load it
-    (module docstring, "Angular jerk")."""
+    (module docstring, "Angular jerk"); ``age_var`` (A,) s² the variance of the data age of triads
+    whose age is not known (0 where it is) and ``age_rate`` None or (T, A, 3) m/s³ their outputs'
+    rates (module docstring, "Unknown ages")."""
     if type(lik) is not RaoBlackwellLikelihood and not isinstance(lik, PerSampleCovLikelihood):
         # a subclass (the tempered likelihood) would silently lose its own log_phat here
         raise UserError(f"lik: expected an untempered RaoBlackwellLikelihood, got {type(lik).__name__}")
     new = copy.copy(lik)
     new.__class__ = PerSampleCovLikelihood
-    new._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever)
+    new._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever, age_var, age_rate)
     return new
 
 
@@ -199,12 +152,13 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
 
     def __init__(self, acc, omega, acc_noise_std, num_draws, age, jerk_std, nu=None, reference: int = 0,
                  dtype=torch.float64, device=None, phi_prior=None, rate=None, instant_std=None, angjerk_std=None,
-                 lever=None):
+                 lever=None, age_var=None, age_rate=None):
         super().__init__(acc, omega, acc_noise_std, num_draws, reference=reference, dtype=dtype, device=device,
                          phi_prior=phi_prior)
-        self._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever)
+        self._set_terms(age, jerk_std, nu, rate, instant_std, angjerk_std, lever, age_var, age_rate)
 
-    def _set_terms(self, age, jerk_std, nu, rate=None, instant_std=None, angjerk_std=None, lever=None):
+    def _set_terms(self, age, jerk_std, nu, rate=None, instant_std=None, angjerk_std=None, lever=None, age_var=None,
+                   age_rate=None):
         age = torch.as_tensor(np.asarray(age, dtype=np.float64) if not torch.is_tensor(age) else age,
                               dtype=self.dtype, device=self.device)
         if age.shape != (self.T, self.A):
@@ -231,7 +185,20 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             raise UserError("angjerk_std, lever: give both (the board's angular jerk) or neither")
         if angjerk_std is not None:
             self._set_angular_jerk(angjerk_std, lever)
-        self.general = rate is not None or angjerk_std is not None
+        self.age_var = None
+        if age_var is not None:
+            v = torch.as_tensor(age_var, dtype=self.dtype, device=self.device)
+            if v.shape != (self.A,) or not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
+                raise UserError(f"age_var: expected finite variances >= 0 of shape (A,) = ({self.A},) s², got "
+                                f"{tuple(v.shape)}")
+            self.age_var = v if bool((v > 0).any()) else None  # all clocked: nothing to add
+        if age_rate is not None:
+            age_rate = torch.as_tensor(age_rate, dtype=self.dtype, device=self.device)
+            if age_rate.shape != (self.T, self.A, 3) or not bool(torch.isfinite(age_rate).all()):
+                raise UserError(f"age_rate: expected finite output rates of shape (T, A, 3) = ({self.T}, {self.A}, 3) "
+                                f"m/s³, got {tuple(age_rate.shape)}")
+        self.age_rate = age_rate
+        self.general = rate is not None or angjerk_std is not None or self.age_var is not None
         if self.general:
             self._set_general(rate, instant_std)
         self.active = torch.nonzero((self.loading != 0).any(-1)).reshape(-1)
@@ -263,10 +230,14 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                                           lev).view(self.A, 3, 3)
 
     def _set_general(self, rate, instant_std):
-        """The whitened loading W_t = Λ^½[s_t D_t, angular jerk block, instant-error block]
-        (T, 3A, R) of the general path (module docstring, "Angular jerk", "Instant error"), formed only
-        where its Gram path needs it (instant errors, more than ``_MAX_AGE_PAIRS`` pairs of triads)."""
+        """The whitened loading W_t = Λ^½[s_t D_t, angular jerk block, per-triad blocks]
+        (T, 3A, R) of the general path (module docstring, "Angular jerk", "Instant error", "Unknown
+        ages"), formed only where its Gram path needs it (per-triad blocks, more than
+        ``_MAX_AGE_PAIRS`` pairs of triads); the per-triad blocks (columns that each live on one
+        triad's rows) are kept as ``_blocks`` = (triad of each column (C,), λ^½-whitened values (C, 3, T))."""
+        self._blocks = None
         cols = [loadings(self.loading)]
+        tri, vals = [], []
         if self.loading_rot is not None:
             cols.append(rotational_loadings(self.loading_rot, self.lever))
         if rate is not None:
@@ -281,8 +252,22 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                 raise UserError(f"instant_std: expected a finite std >= 0 (s), scalar or ({self.A},)")
             self.rate, self.instant_std = rate, e
             cols.append(instant_error_loadings(rate, e))
-        if rate is not None or self.A * (self.A + 1) // 2 > _MAX_AGE_PAIRS:
+            tri.append(torch.arange(self.A, device=self.device))
+            vals.append(rate * e.expand(self.A)[:, None])
+        if self.age_var is not None:
+            k, v = age_prior_blocks(self.age_var, self.jerk_std, self.angjerk_std, self.lever, self.age_rate)
+            dense = torch.zeros(self.T, self.A, 3, len(k), dtype=self.dtype, device=self.device)
+            dense.permute(1, 3, 0, 2)[k, torch.arange(len(k))] = v.transpose(0, 1)  # column j on triad k[j]
+            cols.append(dense.reshape(self.T, 3 * self.A, len(k)))
+            tri.append(k.to(self.device))
+            vals.append(v)
+        if tri or self.A * (self.A + 1) // 2 > _MAX_AGE_PAIRS:
             self.W = torch.cat(cols, -1) * self._sqrt_lam[None, :, None]  # (T, 3A, R)
+        if tri:
+            k = torch.cat(tri)
+            sl = self._sqrt_lam.view(self.A, 3)
+            self._blocks = (k, (torch.cat(vals, 1) * sl[k]).permute(1, 2, 0).contiguous())
+            self._blocks_identity = len(k) == self.A and bool((k == torch.arange(self.A, device=k.device)).all())
 
     # ------------------------------------------------------------------ per-θ terms
     def _percov_terms(self, r: torch.Tensor) -> dict:
@@ -356,7 +341,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         B, A, T = r.shape[0], self.A, self.T
         d_t, d_rows, cs, P, wk, wtw, pairs = self._theta_free
         J = P.shape[-1]
-        R = J + (0 if wk is None else A)
+        R = J + (0 if wk is None else wk.shape[0])
         # Without autograd every (·, T) temporary lives in a reused buffer (fresh MB-sized
         # allocations cost page faults comparable to the arithmetic) and the Cholesky runs in place.
         reuse = not (torch.is_grad_enabled() and (r.requires_grad or cs.requires_grad
@@ -372,7 +357,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             lhs = torch.einsum("bfki,kir->frbk", Kh.view(B, 6, A, 3), P).reshape(6 * J * B, A)
             Yh = (lhs @ d_t).view(6, J, B, T) * cs[:, None]
             if wk is not None:
-                Yk = torch.matmul(Kh.view(B, 6, A, 3).permute(0, 2, 1, 3), wk).permute(2, 1, 0, 3)  # (6, A, B, T)
+                Kk = Kh.view(B, 6, A, 3).permute(0, 2, 1, 3)  # (B, A, 6, 3)
+                if not self._blocks_identity:  # column j on triad k[j]'s rows
+                    Kk = Kk[:, self._blocks[0]]
+                Yk = torch.matmul(Kk, wk).permute(2, 1, 0, 3)  # (6, C, B, T)
                 Yh = torch.cat((Yh, Yk), 1)
             # N_t = I + W_tᵀW_t − Σ_f (L⁻¹H_wᵀW_t)_f (L⁻¹H_wᵀW_t)_fᵀ: one rank-1 update per φ component
             N = torch.addcmul(wtw[:, :, None], Yh[0, :, None], Yh[0, None], value=-1, out=ws("pc_N", (R, R, B, T)))
@@ -404,7 +392,9 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         u = u.view(B, J, tau, N)
         u = u.mul_(cs[:, t0:t1, None]) if inplace else u * cs[:, t0:t1, None]
         if wk is not None:
-            uk = (g.view(B, self.A, 3, tau, N) * wk[:, :, t0:t1, None]).sum(2)  # (B, A, τ, N)
+            gk = g.view(B, self.A, 3, tau, N)
+            gk = gk if self._blocks_identity else gk[:, self._blocks[0]]  # column j on triad k[j]'s rows
+            uk = (gk * wk[:, :, t0:t1, None]).sum(2)  # (B, C, τ, N)
             u = torch.cat((u, uk), 1)
         return u
 
@@ -429,14 +419,10 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         """Cached θ-free tensors.  Closed-form path (jerk only), of the loaded samples: uᵀ (A, Ta);
         diag(ŨᵀΛŨ) + 1 (3, Ta); u_kt λ_k^½ (Ta, 3A); the (3A, 3) triad-sum matrix.  General path: the
         centred ages dᵀ (A, T) and per row (T, 3A); the J = 3 or 6 age-loaded columns' scales (J, T) (s_t,
-        a_t) and blocks Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the instant errors' λ^½ e ρ (A, 3, T); I + W_tᵀW_t
-        (R, R, T) for the Gram; the age pairs of :meth:`_n_from_age_pairs` (each None where unused)."""
+        a_t) and blocks Λ_k^½[I₃, [r_k − r̄]×] (A, 3, J); the per-triad block columns' λ^½-whitened values
+        (C, 3, T) (instant errors, unknown ages); I + W_tᵀW_t (R, R, T) for the Gram; the age pairs of :meth:`_n_from_age_pairs` (each None where unused)."""
         if getattr(self, "_tf_cache", None) is None and self.general:
-            J = 3 if self.loading_rot is None else 6
-            wk = None
-            if self.rate is not None:
-                wk = self.W[:, :, J:].reshape(self.T, self.A, 3, self.A).diagonal(dim1=1, dim2=3)  # (T, 3, A)
-                wk = wk.permute(2, 1, 0).contiguous()
+            wk = None if self._blocks is None else self._blocks[1]
             sl = self._sqrt_lam.view(self.A, 3)
             P = torch.diag_embed(sl)  # (A, 3, 3): Λ_k^½ I₃
             cs = self.jerk_std.expand(3, self.T)

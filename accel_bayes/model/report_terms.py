@@ -45,6 +45,15 @@ With an ``unresolved_motion`` finding (issue #30 Deliver 2; :mod:`accel_bayes.pi
 * :func:`unresolved_terms` reads each ``sampling_clock`` finding's data age at the samples (a
   sawtooth; the accelerometer's plus the acc − gyro filter delay, an unidentified delay, written
   null, taken as 0) and the ``unresolved_motion`` finding's band edges and scales;
+* an IMU without a ``sampling_clock`` finding (the detector found no beat, or rejected it) samples on
+  its own clock all the same: its age is not 0 but unknown, uniform over the register hold [0, 1/f)
+  (f the clocked IMUs' mean internal rate, else the vocabulary's 1 kHz), plus the same acc − gyro
+  filter delay.  It is given the expected age (the clocked IMUs' mean age, and their mean filter
+  delay on the accelerometer) and the age's variance (1/f)²/12, which loads the unresolved motion as
+  a random age (``age_var_acc`` / ``age_var_gyro``), together with the part of the motion the outputs
+  resolve (the mean correction takes off only the expected age times the rate): the per-triad
+  columns of :func:`~accel_bayes.model.unresolved_cov.age_prior_blocks`, a per-gyro covariance in the
+  posterior of ω; ``unclocked`` lists those IMUs and why (``experiments/unclocked_probe.md``);
 * the clocks' mean effect is taken off the outputs, y ← y + age·ẏ (:func:`clock_corrected`);
 * the unresolved angular acceleration, loaded on each gyro by its centred age, enters the fused
   posterior of ω (:func:`fused_gyro_posterior` with ``age``);
@@ -253,7 +262,7 @@ def corrected_gyro_array(gyro, orientations, gyro_labels, blocks):
     return y
 
 
-def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects, age=None, angular_acc_std=None):
+def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects, age=None, angular_acc_std=None, age_var=None):
     """The gyro posterior of ω_t with the report's random gyro effects (module docstring).
 
     gyro : (T, G, 3) rad/s, array frame, the selected samples.  gyro_std : (G,) rad/s stated noise.
@@ -266,6 +275,9 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects, age=None, a
     posterior through Woodbury with P_k = C_t,k⁻¹: precision Σ_k P_k − s² b (I + s² c)⁻¹ b,
     b = Σ_k d_k P_k, c = Σ_k d_k² P_k (with C_t,k = σ_k² I it is
     :func:`~accel_bayes.model.gyro_posterior.gyro_posterior_timing`).
+    age_var (G,) s² (with ``age``): the variance of the age of gyros without a clock, whose random part
+    reads the unresolved angular acceleration and the resolved rate ω̇_t late, adding
+    age_var_k (s_t² I₃ + ω̇_t ω̇_tᵀ) to C_t,k (module docstring; ``age`` then holds their expected age).
     Returns (:class:`~accel_bayes.model.gyro_posterior.GyroPosterior` with method "model", ω̇ (T, 3) rad/s²).
     """
     from ..physics.effects import output_rates
@@ -286,6 +298,10 @@ def fused_gyro_posterior(gyro, gyro_std, gyro_labels, time, effects, age=None, a
         C[:, g] += (width * width / 12.0) * outer
         if "excess_noise_var" in e.params:
             C[:, g] += float(e.params["excess_noise_var"]) * eye
+    if age_var is not None and angular_acc_std is not None:
+        s2a = torch.as_tensor(angular_acc_std, dtype=torch.float64).expand(T).square()
+        v = torch.as_tensor(np.asarray(age_var, dtype=np.float64))
+        C = C + v[None, :, None, None] * (s2a[:, None, None, None] * eye + outer[:, None])
     Pk = torch.linalg.inv(C)  # (T, G, 3, 3) per-gyro precisions
     prec = Pk.sum(1)
     Py = Pk @ y.unsqueeze(-1)  # (T, G, 3, 1)
@@ -333,7 +349,10 @@ class UnresolvedTerms:
     jerk_std (T,) m/s³, angular_acc_std (T,) rad/s² : the per-axis scales at each sample's |ω| band;
     used : [{"finding", "effect", "imu", "how"}] the findings read; parameters : the
     ``unresolved_motion`` finding's parameters (``omega_edges`` rad/s, ``jerk_rms`` m/s³, …);
-    time (T,) s the samples' read times (the output rates of the triads' instant error are taken on it)."""
+    time (T,) s the samples' read times (the output rates of the triads' instant error are taken on it);
+    age_var_acc (A,), age_var_gyro (G,) s²: the variance of the data age of the rows without a clock
+    (0 for the clocked), their expected age being in ``age_acc`` / ``age_gyro``; unclocked: one record
+    per IMU without a clock (its label, the expected ages, the age's std, why)."""
 
     age_acc: torch.Tensor
     age_gyro: torch.Tensor
@@ -342,6 +361,26 @@ class UnresolvedTerms:
     used: list
     parameters: dict = field(default_factory=dict)
     time: torch.Tensor | None = None
+    age_var_acc: torch.Tensor | None = None
+    age_var_gyro: torch.Tensor | None = None
+    unclocked: list = field(default_factory=list)
+
+
+def _unclocked_age_prior(time, clocks) -> dict:
+    """The age prior of an IMU without a clock (module docstring): expected age (s) of the gyro and
+    of the accelerometer (with the clocked IMUs' mean acc − gyro filter delay), the variance (s²)
+    of the uniform hold (1/f)²/12 and f (Hz)."""
+    from ..physics.effects.clock import SamplingClock
+
+    f_null = next(p.null for p in SamplingClock.parameters if p.name == "internal_rate_hz")
+    if not clocks:  # nothing to borrow: the hold's own mean, no filter delay known
+        f = float(f_null)
+        return {"gyro": 0.5 / f, "acc": 0.5 / f, "var": 1.0 / (12 * f * f), "rate_hz": f}
+    t = torch.as_tensor(np.asarray(time, dtype=np.float64))
+    f = float(np.mean([float(c.params["internal_rate_hz"]) for c in clocks.values()]))
+    gyro = float(torch.stack([c.physical_age(t) for c in clocks.values()]).mean())
+    delay = float(np.mean([float(c.params["filter_delay_acc_minus_gyro_s"]) for c in clocks.values()]))
+    return {"gyro": gyro, "acc": gyro + delay, "var": 1.0 / (12 * f * f), "rate_hz": f}
 
 
 def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "UnresolvedTerms | None":
@@ -349,7 +388,8 @@ def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "Unres
     ``time`` (T,) s of the calibration's samples on the recording's time axis, ``acc_labels`` /
     ``gyro_labels`` the IMU labels of the accelerometer rows and gyros, ``omega_norm`` (T,) rad/s
     (|ω̄_t|, for the bands).  None when the report has no ``unresolved_motion`` finding (without
-    its scales there is no term); IMUs without a ``sampling_clock`` finding get age 0.  Bad
+    its scales there is no term); IMUs without a ``sampling_clock`` finding get the age prior of
+    the module docstring (expected age and its variance).  Bad
     findings → one-line :class:`UserError` naming ``findings[i]`` and the field."""
     from ..physics.effects import make_effect
     from .likelihood_percov import ages_from_clocks, band_scale
@@ -387,6 +427,25 @@ def unresolved_terms(model, time, acc_labels, gyro_labels, omega_norm) -> "Unres
     used.append({"finding": i, "effect": "unresolved_motion", "imu": None,
                  "how": "per-sample covariance: jerk on the accelerometers, angular acceleration on the gyros, "
                         "loaded by the centred data ages, scales per |omega| band"})
-    return UnresolvedTerms(ages_from_clocks(time, clocks, acc_labels, "acc"),
-                           ages_from_clocks(time, clocks, gyro_labels, "gyro"), jerk, alpha, used, dict(p),
-                           torch.as_tensor(np.asarray(time, dtype=np.float64)))
+    ages = {"acc": ages_from_clocks(time, clocks, acc_labels, "acc"),
+            "gyro": ages_from_clocks(time, clocks, gyro_labels, "gyro")}
+    var = {"acc": torch.zeros(len(acc_labels), dtype=torch.float64),
+           "gyro": torch.zeros(len(gyro_labels), dtype=torch.float64)}
+    missing = sorted({int(k) for k in list(acc_labels) + list(gyro_labels)} - set(clocks))
+    unclocked = []
+    if missing:
+        prior = _unclocked_age_prior(time, clocks)
+        for sensor, labels in (("acc", acc_labels), ("gyro", gyro_labels)):
+            for j, k in enumerate(labels):
+                if int(k) in missing:
+                    ages[sensor][:, j] = prior[sensor]
+                    var[sensor][j] = prior["var"]
+        why = ("no sampling_clock finding in the report: the IMU samples on its own clock all the same, its data "
+               "age unknown, uniform over the register hold [0, 1/f)")
+        unclocked = [{"imu": k, "why": why, "age_acc_s": prior["acc"], "age_gyro_s": prior["gyro"],
+                      "age_std_s": math.sqrt(prior["var"]), "internal_rate_hz": prior["rate_hz"]} for k in missing]
+        used.append({"finding": None, "effect": "sampling_clock", "imu": missing,
+                     "how": "no clock in the report: expected age (the clocked IMUs' mean, + their mean filter delay "
+                            "on acc) and a random age of variance (1/f)^2/12 loading the unresolved motion"})
+    return UnresolvedTerms(ages["acc"], ages["gyro"], jerk, alpha, used, dict(p),
+                           torch.as_tensor(np.asarray(time, dtype=np.float64)), var["acc"], var["gyro"], unclocked)

@@ -22,7 +22,7 @@ import math
 import torch
 
 __all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "rotational_loadings", "instant_error_loadings",
-           "marginal_loglik", "centred_ages"]
+           "marginal_loglik", "centred_ages", "age_prior_blocks"]
 
 
 def lowrank_terms(y: torch.Tensor, U: torch.Tensor, s2: torch.Tensor, *, v: torch.Tensor | None = None,
@@ -146,3 +146,56 @@ def centred_ages(age: torch.Tensor) -> torch.Tensor:
     centred age loads the unresolved motion (:mod:`accel_bayes.mismatch.unresolved`)."""
     age = torch.as_tensor(age)
     return age - age.mean(-1, keepdim=True)
+
+
+def age_prior_blocks(age_var, jerk_std, angjerk_std=None, lever=None,
+                     rate=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(triads (C,) int64, columns (T, C, 3)): the loading of a random data age on the triads
+    whose age the report does not give (issue #30, IMUs without a ``sampling_clock`` finding).
+
+    Such a triad samples on its own clock too: its data age is uniform over the register hold
+    [0, 1/f), not 0, so its centred age is d̄_k + δ_kt with d̄_k the expected age (loaded with the
+    other triads' ages by :func:`loadings`) and δ_kt zero-mean with variance v_k = (1/f)²/12 (s²),
+    independent of the motion.  Its product with the board's jerk m_t ~ N(0, s_t² I₃) (m/s³) and
+    angular jerk ω̈_t ~ N(0, a_t² I₃) (rad/s³) adds, exactly in the second moment, the covariance
+    v_k (s_t² I₃ + a_t² [c_k]×[c_k]×ᵀ) on triad k's rows alone (c_k = r_k − r̄ about the centroid of
+    ``lever``): δ is independent of d̄, so the cross terms with the other triads vanish, and the
+    common part δ_kt/K that centring spreads over every triad is absorbed by φ_t like any common age.
+    The part of the motion the outputs do resolve is read late by δ_kt too: the clocks' mean
+    correction takes off d̄_k ρ_kt only, so δ_kt ρ_kt remains, ρ_kt the rate of triad k's output
+    (m/s³, ``rate`` (T, K, 3), :func:`~accel_bayes.model.likelihood_percov.triad_rates`): the
+    covariance v_k ρ_kt ρ_ktᵀ, one more column v_k^½ ρ_kt on the triad (an instant error of std
+    v_k^½, :func:`instant_error_loadings`' form).
+
+    age_var (K,) s² (0 for a triad with a clock: no columns); jerk_std scalar or (T,) m/s³;
+    angjerk_std scalar or (T,) rad/s³ with lever (K, 3) m, or neither.  Each loaded triad gets the
+    3 columns of the symmetric square root of that 3×3 block (closed form: eigenvalues s² along c_k
+    and s² + a²|c_k|² across it), plus the rate's column when ``rate`` is given, column j living on
+    the rows of triad ``triads[j]``."""
+    v = torch.as_tensor(age_var)
+    s = torch.as_tensor(jerk_std, dtype=v.dtype).reshape(-1)
+    idx = torch.nonzero(v > 0).reshape(-1)
+    T = len(s) if angjerk_std is None else max(len(s), torch.as_tensor(angjerk_std).reshape(-1).shape[0])
+    s = s.expand(T)
+    eye = torch.eye(3, dtype=v.dtype, device=v.device)
+    cols, tri = [], []
+    for k in idx.tolist():
+        sd = v[k].sqrt()
+        block = (sd * s)[:, None, None] * eye  # (T, 3, 3); symmetric, so its columns are its rows
+        if angjerk_std is not None:
+            a = torch.as_tensor(angjerk_std, dtype=v.dtype).reshape(-1).expand(T)
+            lev = torch.as_tensor(lever, dtype=v.dtype)
+            c = lev[k] - lev.mean(0)
+            n = c.norm()
+            if float(n) > 0.0:  # a triad at the centroid: the angular jerk does not load it
+                pc = torch.outer(c / n, c / n)
+                across = torch.sqrt(s.square() + (a * n).square())
+                block = sd * (across[:, None, None] * (eye - pc) + s[:, None, None] * pc)
+        cols.append(block)
+        tri += [k] * 3
+        if rate is not None:
+            cols.append(sd * torch.as_tensor(rate, dtype=v.dtype)[:, k:k + 1, :])  # (T, 1, 3)
+            tri.append(k)
+    if not cols:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(T, 0, 3, dtype=v.dtype)
+    return torch.as_tensor(tri, dtype=torch.long, device=v.device), torch.cat(cols, 1)

@@ -66,7 +66,7 @@ class UnresolvedFit:
 
 def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, omega=None, *, fit_nu: bool = False,
                           noise_factors=(1.0,), max_iter: int = 100, rate=None, fit_instant: bool = False,
-                          instant_start: float = 1e-4, lever=None) -> UnresolvedFit:
+                          instant_start: float = 1e-4, lever=None, age_prior=None) -> UnresolvedFit:
     """Fit the jerk scale per band (and ν with ``fit_nu``) on ``lik``'s data (module docstring).
 
     age (T, A) s the rows' data ages; band (T,) integer |ω| band of each sample (0 … B − 1, e.g.
@@ -79,20 +79,23 @@ def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, ome
     ``instant_start`` s (:class:`~.likelihood_percov.PerSampleCovLikelihood`'s general path).
     ``lever`` (A, 3) m, the triads' nominal positions: the board's angular jerk loaded by them is
     fitted too, its own scale per band, from the jerk-only fit (then the instant error, if asked,
-    from that fit)."""
+    from that fit).  ``age_prior`` None or {"age_var": (A,) s², "age_rate": (T, A, 3) m/s³ or None}:
+    the random data age of triads without a clock (``PerSampleCovLikelihood``'s "Unknown ages"),
+    loaded with the scales being fitted."""
+    kw = {"age_prior": age_prior}
     if fit_instant or lever is not None:
         if fit_instant and rate is None:
             raise UserError("rate: fit_instant needs the triads' output rates (T, A, 3) m/s³")
         if len(noise_factors) != 1 or float(noise_factors[0]) != 1.0 or fit_nu:
             raise UserError("fit_instant, lever: expected the given noise levels and no scale mixture")
-        jerk = _fit_one(lik, age, band, positions, omega, False, max_iter)
+        jerk = _fit_one(lik, age, band, positions, omega, False, max_iter, **kw)
         last = jerk
         if lever is not None:
-            last = _fit_one(lik, age, band, positions, omega, False, max_iter, lever=lever, start=jerk.jerk_rms)
+            last = _fit_one(lik, age, band, positions, omega, False, max_iter, lever=lever, start=jerk.jerk_rms, **kw)
             last.loglik_no_angjerk = jerk.loglik
         if fit_instant:
             both = _fit_one(lik, age, band, positions, omega, False, max_iter, rate=rate, instant_start=instant_start,
-                            start=last.jerk_rms, lever=lever, start_rot=last.angjerk_rms)
+                            start=last.jerk_rms, lever=lever, start_rot=last.angjerk_rms, **kw)
             both.loglik_no_instant, both.loglik_no_angjerk = last.loglik, last.loglik_no_angjerk
             last = both
         return last
@@ -103,7 +106,7 @@ def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, ome
             raise UserError(f"noise_factors: expected factors > 0, got {f!r}")
         scaled = lik if f == 1.0 else RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std * f, 1,
                                                              reference=lik.reference, phi_prior=lik.phi_prior)
-        fit = _fit_one(scaled, age, band, positions, omega, fit_nu, max_iter)
+        fit = _fit_one(scaled, age, band, positions, omega, fit_nu, max_iter, **kw)
         fit.noise_factor = f
         if best is None or fit.loglik > best.loglik:
             best = fit
@@ -116,7 +119,7 @@ def fit_unresolved_scales(lik: RaoBlackwellLikelihood, age, band, positions, ome
 
 
 def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, instant_start=None,
-             start=None, lever=None, start_rot=None) -> UnresolvedFit:
+             start=None, lever=None, start_rot=None, age_prior=None) -> UnresolvedFit:
     band = torch.as_tensor(band, device=lik.device)
     if band.shape != (lik.T,) or band.dtype in (torch.float32, torch.float64) or bool((band < 0).any()):
         raise UserError(f"band: expected ({lik.T},) non-negative integers (|omega| band per sample)")
@@ -160,10 +163,10 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, inst
         rot = {} if xr is None else {"angjerk_std": torch.where(counts[band] > 0, torch.exp(xr)[band],
                                                                 torch.zeros((), dtype=lik.dtype)), "lever": lev}
         if xe is None:
-            return with_unresolved_motion(lik, age, s, nu=nu, **rot)
+            return with_unresolved_motion(lik, age, s, nu=nu, **(age_prior or {}), **rot)
         # e below ~1 ns loads nothing measurable: the bound keeps the line search finite as e → 0
         return with_unresolved_motion(lik, age, s, nu=nu, rate=rate, instant_std=torch.exp(xe.clamp(*_LOG_E_BOUNDS)),
-                                      **rot)
+                                      **(age_prior or {}), **rot)
 
     def closure():
         opt.zero_grad()

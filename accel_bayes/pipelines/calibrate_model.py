@@ -48,7 +48,8 @@ def _model_gyro_step(lik, rec, cmodel):
         gyro = gyro_c
     omega, wdot = fused_gyro_posterior(gyro, gstd, glabels, time_s, effects,
                                        age=None if terms is None else terms.age_gyro,
-                                       angular_acc_std=None if terms is None else terms.angular_acc_std)
+                                       angular_acc_std=None if terms is None else terms.angular_acc_std,
+                                       age_var=None if terms is None else terms.age_var_gyro)
     new = RaoBlackwellLikelihood(acc, omega, lik.acc_noise_std, lik.num_draws, reference=lik.reference,
                                  dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior, prepared=lik.prepared)
     sd = lambda P: float(torch.diagonal(P, dim1=-2, dim2=-1).sqrt().median())  # noqa: E731
@@ -108,14 +109,19 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     pos0 = nominal_acc if map_res is None else torch.as_tensor(map_res.positions, dtype=torch.float64)
     s_t = torch.as_tensor(np.asarray(sample_scale, dtype=np.float64))
     rate = triad_rates(base.acc, terms.time, s_t) if instant_error and terms.time is not None else None
+    # triads without a clock: their random age also reads the resolved rate late (model.unresolved_cov.age_prior_blocks)
+    unclocked = terms.age_var_acc is not None and bool((terms.age_var_acc > 0).any())
+    age_prior = None if not unclocked else {
+        "age_var": terms.age_var_acc,
+        "age_rate": rate if rate is not None or terms.time is None else triad_rates(base.acc, terms.time, s_t)}
     e0 = (p.get("age_error_rms_s") or {}).get("acc") if isinstance(p.get("age_error_rms_s"), dict) else None
     e0 = float(e0) if e0 is not None and float(e0) > 0 else 1e-4
     lever = nominal_acc if angular_jerk else None
     fit = fit_unresolved_scales(base, terms.age_acc, band, pos0, rate=rate, fit_instant=rate is not None,
-                                instant_start=e0, lever=lever)
+                                instant_start=e0, lever=lever, age_prior=age_prior)
     rot = {} if lever is None else {"angjerk_std": fit.angjerk_rms[band], "lever": lever}
     new = with_unresolved_motion(base, terms.age_acc, fit.jerk_rms[band], rate=rate,
-                                 instant_std=None if rate is None else fit.instant_std, **rot)
+                                 instant_std=None if rate is None else fit.instant_std, **(age_prior or {}), **rot)
     P, cov = fixed_omega_mode(new, pos0, prior_mean=nominal_acc, prior_std=prior_std)
     phys = [float((fit.jerk_rms[b] * s_t[band == b]).median()) if bool((band == b).any()) else None
             for b in range(len(fit.jerk_rms))]
@@ -140,6 +146,7 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
                                 else "skipped: the recording has no sample times"),
               "triad_rate_rms_m_s3": None if rate is None else float((rate * s_t[:, None, None]).square().sum(-1)
                                                                      .mean().sqrt()),
+              "unclocked": list(terms.unclocked),
               "age_rms_s": float(terms.age_acc.sub(terms.age_acc.mean(-1, keepdim=True)).square().mean().sqrt()),
               "how": "jerk m_t ~ N(0, s_b^2 I3) per |omega| band of the report, loaded on triad k by its centred "
                      "data age" + (", the angular jerk w'' ~ N(0, a_b^2 I3) per band loaded on triad k by its "

@@ -166,6 +166,13 @@ def test_calibrate_uses_the_per_sample_likelihood(case, monkeypatch, instant, an
     else:
         assert lik.loading_rot is None and u["angular_jerk"].startswith("skipped: switched off")
     assert m["gyro_posterior"]["clock_mean_correction_rms"]["acc_m_s2"] > 0
+    # IMUs 0, 2, 4, 5, 7 have no clock in the report: their random age is in the chains' likelihood,
+    # listed in the record and said in one line of the table
+    from accel_bayes.cli.calibrate import format_table
+
+    assert [x["imu"] for x in u["unclocked"]] == [0, 2, 4, 5, 7]
+    assert (lik.age_var > 0).tolist() == [k in (0, 2, 4, 5, 7) for k in lik.imu_labels]
+    assert sum("IMU(s) 0, 2, 4, 5, 7 without a sampling clock" in line for line in format_table(r).splitlines()) == 1
     for key in ("sandwich", "sandwich_flat"):
         assert len(m[key]["std_ratio"]) == 3 * (rec.K - 1) and np.isfinite(m[key]["std_ratio"]).all()
     prov = r.positions["provenance"]["settings"]["model"]
