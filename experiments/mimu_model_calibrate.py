@@ -14,9 +14,10 @@ warm-up, seed 0; the issue #30 run used D = W = 500):
 * **with_instant** (optional, ``--variants with_instant``) — the same with ``instant_error=True``:
   each triad's own sampling-instant error times the rate of its output projected out too (off by
   default: ~20× the likelihood's cost);
-* **with_angjerk** (optional, ``--variants with_angjerk``) — the same with ``angular_jerk=True``: the
-  board's unresolved angular jerk loaded by the data ages times the lever arms projected out too
-  (off by default: over 4× the flat likelihood's cost, ``bench_likelihood_percov.md``);
+* **with_jerk_only** (optional, ``--variants with_jerk_only``) — the same with ``angular_jerk=False``
+  (CLI ``--no-angular-jerk``): the linear jerk alone, what ``with`` was before the board's angular
+  jerk became the default (``bench_likelihood_percov.md``: 2.3× the flat likelihood's cost, bar 4×);
+  ``with_angjerk`` (``angular_jerk=True``) is ``with`` itself since then;
 * **with_bins** (optional, ``--variants with_bins``) — the same with ``noise_bins=8`` and the flat φ
   prior: the noise level × a factor per |ω̄| octile.
 
@@ -27,7 +28,7 @@ the inverse-variance mean of the other five, its RMS (all, exp 1–3, exp 4–6)
 means; the x–y spacing of the top IMUs (x of IMUs 4, 6 and −y of IMUs 2, 6; 18.9 mm by design).
 
     PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports experiments/out/mimu_mismatch
-        --no-hetero --draws 500 --warmup 500 [--variants with,without,with_instant,with_angjerk,with_bins]
+        --no-hetero --draws 500 --warmup 500 [--variants with,without,with_instant,with_jerk_only,with_bins]
 
 Results are cached per (variant, experiment) in ``--out``; a rerun only computes what is missing, and
 two processes with different ``--variants`` can fill the cache at once.
@@ -56,7 +57,7 @@ VARIANTS = ("without", "with")
 # beyond the two the document needs: the model with the noise level × a factor per |ω̄| octile bin
 # (the variance growing with the motion, empirical; flat φ prior, which the per-sample rescaling needs)
 EXTRA = {"with_bins": dict(noise_bins=8, phi_prior="flat"), "with_instant": dict(instant_error=True),
-         "with_angjerk": dict(angular_jerk=True)}
+         "with_angjerk": dict(angular_jerk=True), "with_jerk_only": dict(angular_jerk=False)}
 AIM_RATIO = 1.15
 Z_RMS_BAND = (0.8, 1.25)
 
@@ -273,7 +274,7 @@ def decomposition_markdown(results) -> list:
     rs = [r for r in sorted(results["with"], key=lambda r: r["exp"]) if r.get("decomposition")]
     if not rs:
         return []
-    rsb = [r for v in ("with_instant", "with_angjerk", "with_bins")
+    rsb = [r for v in ("with_instant", "with_angjerk", "with_jerk_only", "with_bins")
            for r in sorted(results.get(v, []), key=lambda r: r["exp"]) if r.get("decomposition")]
     L = ["## Where the excess sits after the model (negative result's decomposition)", "",
          "At the per-sample model's mode, its scores (`sandwich_inflation`'s convention), variance factors real / "
@@ -287,7 +288,7 @@ def decomposition_markdown(results) -> list:
         return "; ".join(f"{x['imu_block']:.2f} / {x['sample'] / x['imu_block']:.2f}" for x in rows)
 
     label = {"with_bins": " (× 8 \\|ω̄\\| bins)", "with_instant": " (+ instant error)",
-             "with_angjerk": " (+ angular jerk)"}
+             "with_angjerk": " (+ angular jerk)", "with_jerk_only": " (jerk only)"}
     for r in rs + rsb:
         d = r["decomposition"]
         L.append(f"| {r['exp']}{label.get(r['variant'], '')} | {d['in_all']:.2f} | {d['time']:.2f} | {d['within_imu']:.2f} | {d['cross_imu']:.2f} | "
@@ -298,7 +299,7 @@ def decomposition_markdown(results) -> list:
           "centred age rms (ms) | instant error e, report / fitted (ms) | its gain over the "
           "jerk alone (nats) | triad output rate rms (m/s³) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     ms = lambda v: "—" if v is None else f"{1e3 * v:.3f}"  # noqa: E731
-    for r in rs + [r for r in rsb if r["variant"] == "with_angjerk"]:
+    for r in rs + [r for r in rsb if r["variant"] in ("with_angjerk", "with_jerk_only")]:
         u = r["unresolved_motion"]
         gi = u.get("instant_error_gain_nats")
         rr = u.get("triad_rate_rms_m_s3")
@@ -362,9 +363,11 @@ def markdown(results: dict, summ: dict, args) -> str:
          f"seed {args.seed}: **without** — the default pipeline (noise level per triad at its type-II ML, likelihood "
          "tempered by the sandwich factor κ); **with** — `calibrate(rec, model=report.json)`: the gyro linear blocks "
          "inverted, the `timing_wander` findings as per-sample gyro covariances, the `sampling_clock` ages and the "
-         "`unresolved_motion` angular acceleration in the fused ω posterior, the unresolved jerk loaded by the "
-         "centred data ages in the per-sample likelihood (`model/likelihood_percov.py`, one scale per report |ω| "
-         "band by type-II ML at the MAP, noise levels kept), chains centred on that likelihood's own mode, **no "
+         "`unresolved_motion` angular acceleration in the fused ω posterior, the unresolved jerk and (the "
+         "default since its cost met the 4× bar) the board's angular jerk loaded by the centred data ages (times "
+         "the lever arms) in the per-sample likelihood (`model/likelihood_percov.py`, one scale each per report |ω| "
+         "band by type-II ML at the MAP, noise levels kept; an IMU the report leaves without a clock on the "
+         "clocked IMUs' mean age with its register hold's random age as covariance), chains centred on that likelihood's own mode, **no "
          "tempering**" + ("; **with_instant** — the same with `instant_error=True`: beside the jerk each triad's own "
                           "sampling-instant error times the rate of its output (per-triad covariance e² ρ_kt ρ_ktᵀ, "
                           "one e by type-II ML from the report's `age_error_rms_s`), off by default (~20× the "
@@ -416,10 +419,12 @@ def markdown(results: dict, summ: dict, args) -> str:
              "with_instant": "The model with each triad's instant error (`instant_error=True`, CLI `--instant-error`; "
                              "fixed before any experiment was seen)",
              "with_angjerk": "The model with the board's angular jerk (`angular_jerk=True`, CLI `--angular-jerk`; "
-                             "fixed before any experiment was seen, on `angjerk_probe.md`'s likelihood gain)"}
+                             "fixed before any experiment was seen, on `angjerk_probe.md`'s likelihood gain)",
+             "with_jerk_only": "The model with the linear jerk alone (`angular_jerk=False`, CLI `--no-angular-jerk`: what "
+                               "`calibrate --model` did before the angular jerk became its default)"}
     for v, what in extra.items():
         if v in summ:
-            L += [_variant_paragraph(what, summ[v], len(exps), timed=v in ("with_instant", "with_angjerk")), ""]
+            L += [_variant_paragraph(what, summ[v], len(exps), timed=v in ("with_instant", "with_angjerk", "with_jerk_only")), ""]
     met = all(x <= 1.3 for x in m["ratio_max"])
     L += [f"**Bar (every coordinate's sandwich/Laplace ratio ≤ 1.3) met with the model: "
           f"{'YES' if met else 'NO'}** (max over experiments {max(m['ratio_max']):.2f}).", ""]
