@@ -54,8 +54,7 @@ from .calibrate_defaults import DEFAULTS
 from .calibrate_options import CalibrateOptions
 # The steps and the records they return (split out to keep each file under 600 lines);
 # _recording_hash and _model_gyro_step are imported from here by tests/ and experiments/.
-from .calibrate_model import (_model_gyro_step, _model_percov_step, _percov_sandwich_record, _sandwich_record,
-                              warn_if_misfit)
+from .calibrate_model import _model_gyro_step, _model_percov_step, _percov_sandwich_record, _sandwich_record
 from .calibrate_steps import (  # noqa: F401
     _central_step, _chains_fingerprint, _chains_step, _check_resume, _convergence_settings, _coordinate_names,
     _load_step, _map_step, _model_option, _noise_step, _prepare_step, _recording_hash, _start_step)
@@ -219,8 +218,6 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
                 # independence proposal there would leave the target's tails to the random walk alone
                 map_res = dataclasses.replace(map_res, positions=pc.positions, theta=pc.positions[
                     [i for i in range(lik.A) if i != lik.reference]], laplace_cov=pc.laplace_cov)
-        if cmodel is not None:
-            warn_if_misfit(settings["model"]["sandwich"])
         draws = _central_step(lik, pri, map_res, opts)
         lik.num_draws = int(draws.num_draws)
         settings.update(draws.settings())

@@ -205,28 +205,6 @@ def _percov_sandwich_record(step: PercovStep, free_labels) -> dict:
     return _ratio_record(sw, lap, tempering=1.0, free_labels=free_labels)
 
 
-#: the sandwich/Laplace std ratio above which ``calibrate --model`` warns (issue #30's bar for an honest std)
-HONEST_STD_RATIO = 1.3
-
-
-def warn_if_misfit(record: dict) -> str | None:
-    """One warning line (also issued as a ``RuntimeWarning``) when the model's own sandwich at its mode
-    (``record``: :func:`_ratio_record`) exceeds its Laplace std by more than :data:`HONEST_STD_RATIO`
-    on some coordinate: the report leaves misfit the model does not carry, and the posterior std, which
-    is not tempered with a model, may be too narrow there by up to that factor.  None otherwise."""
-    ratio = record.get("std_ratio") or []
-    if not ratio or max(ratio) <= HONEST_STD_RATIO:
-        return None
-    i = int(np.argmax(ratio))
-    n = sum(r > HONEST_STD_RATIO for r in ratio)
-    msg = (f"model: the sandwich std exceeds the posterior's Laplace std by up to {ratio[i]:.2f}x "
-           f"({record['coordinates'][i]}; {n} of {len(ratio)} coordinates above {HONEST_STD_RATIO}): the report "
-           "leaves misfit the model does not carry, and the untempered std may be too narrow there "
-           "(settings.model.sandwich)")
-    warnings.warn(msg, RuntimeWarning)
-    return msg
-
-
 def _ratio_record(sw, lap, *, tempering, free_labels) -> dict:
     ratio = np.asarray(sw["std_ratio"], dtype=np.float64)
     names = [f"r[{k}, {a}]" for k in free_labels for a in dg_az.AXES]
