@@ -326,7 +326,8 @@ def write_document(out_root: Path, cmd: str, seconds: float) -> str:
          "`calibrate()` (stated noise, empirical φ prior, chains from prior draws): **none** without a model, "
          "**forced** with a report whose `sampling_clock` (every IMU) and `unresolved_motion` (band scales) are "
          "FITTED on the replicate by the detector's own stages with acceptance forced "
-         "(`experiments/forced_terms.py`): the per-sample covariance and the gyro timing term on, untempered."
+         "(`experiments/forced_terms.py`): the per-sample covariance (with the board's angular jerk, "
+         "`calibrate --model`'s default since 2026-11-27 23:00) and the gyro timing term on, untempered."
          + (f" T = {r0['T']} samples, {r0['chains']} chains × ({r0['warmup']} + {r0['draws']})." if r0 else ""), ""]
     L += ["| | none | forced | must |", "|---|---|---|---|"]
     vs = {mt: verdict([reps[mt][i] for i in both]) for mt in MODEL_TERMS} if both else {}
