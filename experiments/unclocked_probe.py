@@ -151,8 +151,8 @@ def bench(rounds: int = 7, block: int = 10, T: int = 5724, A: int = 8, unclocked
               "angjerk+prior": with_unresolved_motion(flat, age, s, **rot, **prior)}
     z = flat.sample_z((), 1, torch.Generator().manual_seed(1))
     with torch.no_grad():
-        ms = timed_blocks({k: (lambda m=m: m.log_phat(pos, z=z)) for k, m in models.items()}, rounds, block)
-    return {"T": T, "A": A, "unclocked": unclocked, "ms": ms, "rounds": rounds, "block": block}
+        ms, cpu = timed_blocks({k: (lambda m=m: m.log_phat(pos, z=z)) for k, m in models.items()}, rounds, block)
+    return {"T": T, "A": A, "unclocked": unclocked, "ms": ms, "cpu_ms_p10": cpu, "rounds": rounds, "block": block}
 
 
 def loo_with(row: dict, exp: int, cache: Path) -> dict | None:
