@@ -120,11 +120,11 @@ def register(sub) -> None:
                         "recording)")
     p.add_argument("--instant-error", action="store_true",
                    help="with --model: also project out each triad's own sampling-instant error times its output "
-                        "rate (e by type-II ML; ~20x the cost of one likelihood evaluation); default off")
+                        "rate (e by type-II ML; ~5x the cost of one flat likelihood evaluation); default off")
     p.add_argument("--angular-jerk", action=argparse.BooleanOptionalAction, default=None,
                    help="with --model: also project out the board's unresolved angular jerk (loaded by the data ages "
-                        "times the lever arms, scale per band by type-II ML; ~3x the cost of one flat likelihood "
-                        "evaluation); default on with --model, --no-angular-jerk: the jerk alone")
+                        "times the lever arms, scale per band by type-II ML; ~2.3x the cost of one flat likelihood "
+                        "evaluation, ~4.7x where the report leaves an IMU without a clock); default on with --model, --no-angular-jerk: the jerk alone")
     p.add_argument("--phi-prior", choices=("empirical", "flat"), default=DEFAULTS["phi_prior"],
                    help="prior on φ = [ω̇; s] that the likelihood integrates out: 'empirical' (default: a Gaussian "
                         "whose covariance is estimated from the recording; removes the flat prior's inward pull on "

@@ -181,7 +181,7 @@ class CalibrateOptions:
     instant_error : with ``model``, also project out each triad's own sampling-instant error times
         the rate of its output (per-triad covariance e²ρρᵀ, e by type-II ML from the report's
         ``age_error_rms_s``; :mod:`accel_bayes.model.likelihood_percov`, "Instant error").  Default
-        False: it makes one log p̂ ~20× the flat model's (issue #30's bar is 4×) and moves the real
+        False: it makes one log p̂ ~5× the flat model's (issue #30's bar is 4×) and moves the real
         board's sandwich ratio only part of the way (``experiments/mimu_model_calibrate.md``).
     angular_jerk : with ``model``, also project out the board's unresolved angular jerk ω̈_t,
         loaded on each triad by its centred data age times its lever arm (the nominal positions),
