@@ -73,7 +73,8 @@ def test_summary_flags_the_band():
     assert 0.8 <= summ["with"]["all"]["rms"] <= 1.25 and summ["with"]["all"]["beyond4"] == 0
     bad = [case(0, [[0, 0, 0], [1.0, -5.0, 0.5], [0.0, 0.0, 0.0]])]
     text = pc.markdown(bad, pc.summarise(bad), "cmd", 2, 1.0)
-    assert "**Met with the model: NO**" in text and "**partial**" in text
+    assert "**Met with the model, jerk only: NO**" in text and "**partial**" in text
+    assert "with the angular jerk (the default): **NO**" in text
 
 
 @pytest.mark.slow
