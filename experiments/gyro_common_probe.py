@@ -63,6 +63,13 @@ def g_matrix(g: torch.Tensor, kind: str) -> torch.Tensor:
     return g.reshape(3, 3)
 
 
+def params_of(G: torch.Tensor, kind: str) -> list:
+    """The parameters of :func:`g_matrix` that give the 3×3 G of that ``kind`` (its inverse)."""
+    d, f = G.diagonal(), G.reshape(-1)
+    out = {"scalar": d[:1], "diag": d, "diag0": d[:2], "full": f, "full0": f[:8]}[kind]
+    return [float(v) for v in out]
+
+
 def corrected_omega(omega_mean: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """(T, 3) rad/s: ω = (I + G) ω̄ for ω̄ (T, 3) rad/s (a linear map: exact on calibrate's samples
     scaled by 1/√s_t too)."""
@@ -191,7 +198,7 @@ def probe(rec, report, kinds=("diag0", "full0", "scalar", "diag", "full"), round
                 cur = orig(_with_omega(lik, w), terms, omega_norm, sample_scale, mr, nominal_acc, prior_std, **kw)
                 hist.append({"delta_g": f["g"], "delta_g_std": f["g_std"], "joint_gain_nats": f["gain_nats"],
                              "loglik_after_refit": _ll(cur)})
-            gs = {"scalar": [G[0, 0]], "diag": list(G.diagonal()), "full": list(G.reshape(-1))}[kind]
+            gs = params_of(G, kind)
             out["fits"][kind] = {
                 "G": G.tolist(), "g": [float(v) for v in gs], "g_std": hist[-1]["delta_g_std"],
                 "gain_nats": _ll(cur) - out["loglik_before"], "rounds": hist,

@@ -1,6 +1,8 @@
 """The common-gyro-error probe (``experiments/gyro_common_probe.py``) on small synthetic arrays: an
 anisotropic error put into ω̄ is recovered within its Laplace std, none is found where none was put,
 and a common SCALE is measurable only with the geometry known (free positions absorb it exactly)."""
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -48,6 +50,15 @@ def test_no_error_is_found_where_none_was_put():
     assert f["gain_nats"] < 20  # ~ chi²_8 / 2
 
 
+def test_params_invert_the_matrix():
+    g = torch.arange(1.0, 10.0, dtype=torch.float64) * 1e-3
+    for kind, n in gp.KINDS.items():
+        G = gp.g_matrix(g[:n], kind)
+        np.testing.assert_allclose(gp.params_of(G, kind), g[:n].numpy())
+        if kind.endswith("0"):
+            assert abs(float(torch.trace(G))) < 1e-15
+
+
 def test_a_common_scale_is_an_array_scale_unless_the_geometry_is_known():
     lik, r = _case(0.003 * np.eye(3), seed=2)
     fixed = gp.fit_common_gyro(lik, r, "scalar", free_positions=False)
@@ -58,11 +69,13 @@ def test_a_common_scale_is_an_array_scale_unless_the_geometry_is_known():
 
 
 def test_the_error_is_injected_into_every_gyro_in_the_array_frame():
-    from accel_bayes.data.recording import Recording  # noqa: F401  (the type inject_gyro_error returns)
     import experiments.clockgen as cg
 
     rec, _ = cg.draw_case("clock", 3, duration=2.0, noise=False)
-    E = np.diag([0.003, 0.0, -0.001])
+    # general mounting rotations: the board's own (half turns) are their own inverses and would hide a transpose
+    q = np.random.default_rng(0).normal(size=(rec.K, 4))
+    rec = dataclasses.replace(rec, nominal_orientation=q / np.linalg.norm(q, axis=1, keepdims=True))
+    E = np.array([[0.003, 0.001, 0.0], [0.0, 0.0, -0.002], [0.0005, 0.0, -0.001]])
     new = gp.inject_gyro_error(rec, E)
     a0, a1 = rec.gyro_tensor("array"), new.gyro_tensor("array")
     np.testing.assert_allclose(a1.numpy(), (a0 @ torch.as_tensor(np.eye(3) + E).T).numpy(), atol=1e-12)
