@@ -73,9 +73,13 @@ def test_the_error_is_injected_into_every_gyro_in_the_array_frame():
 
     rec, _ = cg.draw_case("clock", 3, duration=2.0, noise=False)
     # general mounting rotations: the board's own (half turns) are their own inverses and would hide a transpose
-    q = np.random.default_rng(0).normal(size=(rec.K, 4))
-    rec = dataclasses.replace(rec, nominal_orientation=q / np.linalg.norm(q, axis=1, keepdims=True))
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(rec.K, 4))
+    # the generator's first seconds are a rest (zero rates): any rates exercise the map
+    rec = dataclasses.replace(rec, nominal_orientation=q / np.linalg.norm(q, axis=1, keepdims=True),
+                              gyro=rng.normal(size=rec.gyro.shape))
     E = np.array([[0.003, 0.001, 0.0], [0.0, 0.0, -0.002], [0.0005, 0.0, -0.001]])
     new = gp.inject_gyro_error(rec, E)
     a0, a1 = rec.gyro_tensor("array"), new.gyro_tensor("array")
+    assert float(a0.abs().max()) > 1.0
     np.testing.assert_allclose(a1.numpy(), (a0 @ torch.as_tensor(np.eye(3) + E).T).numpy(), atol=1e-12)
