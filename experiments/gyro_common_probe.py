@@ -70,6 +70,14 @@ def params_of(G: torch.Tensor, kind: str) -> list:
     return [float(v) for v in out]
 
 
+def project(G: np.ndarray, kind: str) -> np.ndarray:
+    """The part of a 3×3 G that a ``kind`` can represent (the least-squares projection onto it)."""
+    G = np.asarray(G, dtype=np.float64)
+    tr = np.trace(G) / 3 * np.eye(3)
+    return {"scalar": tr, "diag": np.diag(np.diag(G)), "diag0": np.diag(np.diag(G)) - tr, "full": G,
+            "full0": G - tr}[kind]
+
+
 def corrected_omega(omega_mean: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """(T, 3) rad/s: ω = (I + G) ω̄ for ω̄ (T, 3) rad/s (a linear map: exact on calibrate's samples
     scaled by 1/√s_t too)."""
@@ -290,6 +298,27 @@ def main(argv=None) -> int:
     return 0
 
 
+def consistency(rows) -> list:
+    """Lines: per kind, the real experiments' G pooled by inverse variance per parameter and the χ² of
+    their spread about it (the same board and gyros: one G should fit them all)."""
+    real = [r for r in rows if r["inject"] is None]
+    if len(real) < 2:
+        return []
+    L = ["", f"Across the real experiments ({', '.join(r['case'] for r in real)}): per parameter the "
+         "inverse-variance pooled G ± std (×1e-3) and the χ² of the experiments about it (dof = experiments − 1 "
+         "per parameter; summed over the parameters in the last column).", "",
+         "| G kind | pooled G ± std (×1e-3) | χ² per parameter | χ² total / dof |", "|---|---|---|---|"]
+    for kind in real[0]["fits"]:
+        g = np.array([r["fits"][kind]["g"] for r in real])
+        s = np.array([r["fits"][kind]["g_std"] for r in real])
+        w = s ** -2
+        m = (g * w).sum(0) / w.sum(0)
+        chi = (((g - m) / s) ** 2).sum(0)
+        L.append(f"| {kind} | {', '.join(f'{a * 1e3:.2f}±{b * 1e3:.2f}' for a, b in zip(m, w.sum(0) ** -0.5))} | "
+                 f"{', '.join(f'{c:.1f}' for c in chi)} | {chi.sum():.1f} / {chi.size * (len(real) - 1)} |")
+    return L
+
+
 def _f(v, f="{:.3g}"):
     return "—" if v is None else f.format(v)
 
@@ -310,19 +339,22 @@ def document(rows, seconds, argv=None) -> str:
          "Laplace std of the last round's G (joint Hessian with the positions, position prior included). Spacing: "
          "x of IMUs 4, 6 and −y of IMUs 2, 6 at the mode (`mimu_model_calibrate.py`'s reading); design 18.9 mm.", "",
          "| case | inject | G kind | gain (nats) | per sample | fitted G (diag; full: row-major) ± std (×1e-3) "
-         "| expected G (×1e-3) | x / y spacing before → after (mm) | angular-jerk rms per band before → after "
-         "(rad/s³) |", "|---|---|---|---|---|---|---|---|---|"]
+         "| expected G (×1e-3) | max abs z vs expected | x / y spacing before → after (mm) | angular-jerk rms per band before → after "
+         "(rad/s³) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         for kind, f in r["fits"].items():
             gs = ", ".join(f"{g * 1e3:.3f}±{s * 1e3:.3f}" for g, s in zip(f["g"], f["g_std"]))
-            exp = "—" if r.get("G_expected") is None else ", ".join(
-                f"{v * 1e3:.2f}" for v in np.diag(np.asarray(r["G_expected"])))
+            want = None if r.get("G_expected") is None else np.asarray(
+                params_of(torch.as_tensor(project(r["G_expected"], kind)), kind))
+            exp = "—" if want is None else ", ".join(f"{v * 1e3:.2f}" for v in want)
+            zmax = "—" if want is None else f"{np.abs((np.asarray(f['g']) - want) / np.asarray(f['g_std'])).max():.1f}"
             sb, sa = r["spacing_before"], f["spacing_after"]
             L.append(f"| {r['case']} | {r['inject'] or '—'} | {kind} | {f['gain_nats']:.1f} | "
-                     f"{f['gain_nats_per_sample']:.4f} | {gs} | {exp} | "
+                     f"{f['gain_nats_per_sample']:.4f} | {gs} | {exp} | {zmax} | "
                      f"{_f(sb['x_m'] * 1e3, '{:.3f}')} / {_f(sb['y_m'] * 1e3, '{:.3f}')} → "
                      f"{_f(sa['x_m'] * 1e3, '{:.3f}')} / {_f(sa['y_m'] * 1e3, '{:.3f}')} | "
                      f"{', '.join(_f(v) for v in r['angjerk_before'])} → {', '.join(_f(v) for v in f['angjerk_after'])} |")
+    L += consistency(rows)
     L += ["", "Per round (ΔG fitted jointly with the positions at fixed scales, its joint gain, then the likelihood "
           "after the scales' refit): `experiments/out/gyro_common_probe/*.json`, key `rounds`.", ""]
     return "\n".join(L) + "\n"
