@@ -19,7 +19,10 @@ Why a scalar G cannot be measured by the accelerometers: ω̇_t and s_t are free
 ((1+c)ω)×((1+c)ω×r) = ω×(ω×(1+c)²r) and ω̇×r = (ω̇/(1+c)²)×((1+c)²r): a common scale is exactly an
 array scale; only the priors (positions, φ) and the −½ log|M(θ)| term tell them apart.
 
-    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/gyro_common_probe.py --exps 1,2,5 --cases 15,20
+    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/gyro_common_probe.py --exps 1,2,5 --cases 15
+    ... --exps '' --cases 15 --inject xscale30 --kinds diag0,full0,diag
+    ... --exps '' --cases 20 --inject none --kinds diag0,full0,diag
+    ... --from-cache          (the document from all of them)
 
 Writes ``experiments/gyro_common_probe.md`` and ``experiments/out/gyro_common_probe/*.json``.
 """
@@ -263,6 +266,8 @@ def main(argv=None) -> int:
     ap.add_argument("--conceal", type=Path, default=ROOT / "out" / "percov_conceal")
     ap.add_argument("--reports", type=Path, default=ROOT / "out" / "mimu_mismatch")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "gyro_common_probe")
+    ap.add_argument("--from-cache", action="store_true",
+                    help="compute nothing: the document from every case cached in --out (real ones first)")
     args = ap.parse_args(argv)
     from accel_bayes.data.outputs import write_json, write_text
     from experiments._reading import READING_MARKER, kept_reading
@@ -295,6 +300,9 @@ def main(argv=None) -> int:
                 expect = (np.linalg.inv(np.eye(3) + E) - np.eye(3)).tolist()
                 write_json(f, {"case": f"clock-{seed:03d}", "inject": inj, "G_expected": expect, **r})
             rows.append(json.loads(f.read_text()))
+    if args.from_cache:
+        rows = [json.loads(f.read_text()) for f in sorted(args.out.glob("exp_*.json"))]
+        rows += [json.loads(f.read_text()) for f in sorted(args.out.glob("clock-*.json"))]
     write_json(args.out / "summary.json", rows)
     write_text(DOC, document(rows, time.perf_counter() - t_start, argv) + "\n" + READING_MARKER + kept_reading(DOC))
     print(f"wrote {DOC}")
@@ -322,6 +330,10 @@ def consistency(rows) -> list:
     return L
 
 
+def _mm(v):
+    return _f(None if v is None else v * 1e3, "{:.3f}")
+
+
 def _f(v, f="{:.3g}"):
     return "—" if v is None else f.format(v)
 
@@ -336,7 +348,11 @@ def document(rows, seconds, argv=None) -> str:
          f"({now}, {platform.machine()} {platform.system()}, shared 2-core CPU, nice 5; cached per case in "
          f"`experiments/out/gyro_common_probe/`; this invocation {seconds:.0f} s). Reports: main's "
          "`experiments/out/mimu_mismatch/exp_*/report.json`, sha256 as in `mimu_model_calibrate.md` (checked); "
-         "concealed cases and their reports: `percov_conceal`'s cache.", "",
+         "concealed cases and their reports: `percov_conceal`'s cache. The cached rows were made by (same script, "
+         "environment): `--exps 1,2,5 --cases 15 --inject none,scale,xscale` (all five kinds), "
+         "`--exps '' --cases 15 --inject xscale30 --kinds diag0,full0,diag` and `--exps '' --cases 20 --inject none "
+         "--kinds diag0,full0,diag`, in that order (≈ 14 min in all); the table is the cache's union "
+         "(`--from-cache`, `summary.json`).", "",
          "What runs: the script's docstring. G: ω_true = (I + G) ω̄. Gain: the per-sample-covariance likelihood "
          "at its mode (scales refitted by type-II ML on the corrected ω) less the same at G = 0, nats. ± is the "
          "Laplace std of the last round's G (joint Hessian with the positions, position prior included). Spacing: "
@@ -354,8 +370,7 @@ def document(rows, seconds, argv=None) -> str:
             sb, sa = r["spacing_before"], f["spacing_after"]
             L.append(f"| {r['case']} | {r['inject'] or '—'} | {kind} | {f['gain_nats']:.1f} | "
                      f"{f['gain_nats_per_sample']:.4f} | {gs} | {exp} | {zmax} | "
-                     f"{_f(sb['x_m'] * 1e3, '{:.3f}')} / {_f(sb['y_m'] * 1e3, '{:.3f}')} → "
-                     f"{_f(sa['x_m'] * 1e3, '{:.3f}')} / {_f(sa['y_m'] * 1e3, '{:.3f}')} | "
+                     f"{_mm(sb['x_m'])} / {_mm(sb['y_m'])} → {_mm(sa['x_m'])} / {_mm(sa['y_m'])} | "
                      f"{', '.join(_f(v) for v in r['angjerk_before'])} → {', '.join(_f(v) for v in f['angjerk_after'])} |")
     L += consistency(rows)
     L += ["", "Per round (ΔG fitted jointly with the positions at fixed scales, its joint gain, then the likelihood "
