@@ -22,6 +22,7 @@ array scale; only the priors (positions, φ) and the −½ log|M(θ)| term tell 
     PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/gyro_common_probe.py --exps 1,2,5 --cases 15
     ... --exps '' --cases 15 --inject xscale30 --kinds diag0,full0,diag
     ... --exps '' --cases 20 --inject none --kinds diag0,full0,diag
+    ... --exps 3,4,6
     ... --from-cache          (the document from all of them)
 
 Writes ``experiments/gyro_common_probe.md`` and ``experiments/out/gyro_common_probe/*.json``.
@@ -351,7 +352,7 @@ def document(rows, seconds, argv=None) -> str:
          "concealed cases and their reports: `percov_conceal`'s cache. The cached rows were made by (same script, "
          "environment): `--exps 1,2,5 --cases 15 --inject none,scale,xscale` (all five kinds), "
          "`--exps '' --cases 15 --inject xscale30 --kinds diag0,full0,diag` and `--exps '' --cases 20 --inject none "
-         "--kinds diag0,full0,diag`, in that order (≈ 14 min in all); the table is the cache's union "
+         "--kinds diag0,full0,diag`, then `--exps 3,4,6` (all five kinds), in that order (≈ 28 min in all); the table is the cache's union "
          "(`--from-cache`, `summary.json`).", "",
          "What runs: the script's docstring. G: ω_true = (I + G) ω̄. Gain: the per-sample-covariance likelihood "
          "at its mode (scales refitted by type-II ML on the corrected ω) less the same at G = 0, nats. ± is the "
