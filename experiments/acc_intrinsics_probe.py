@@ -34,7 +34,9 @@ K on that triad must come out ≈ 1/1.005 − 1 = −4.98·10⁻³ and ≈ 0 els
     PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/acc_intrinsics_probe.py --exps 1
     ... --exps 2,5
     ... --exps '' --cases 15 --inject none,scale5
-    ... --from-cache            (the document from all of them)
+    ... --exps 3,4,6
+    ... --exps '' --cases 20 --inject none,scale5
+    ... --from-cache            (the document from all of them, nothing computed)
 
 Writes ``experiments/acc_intrinsics_probe.md`` and ``experiments/out/acc_intrinsics_probe/*.json``.
 """
@@ -306,6 +308,8 @@ def main(argv=None) -> int:
     ap.add_argument("--from-cache", action="store_true",
                     help="compute nothing: the document from every case cached in --out (real ones first)")
     args = ap.parse_args(argv)
+    if args.from_cache:
+        args.exps, args.cases = "", ""
     from accel_bayes.data.outputs import write_json, write_text
     from accel_bayes.errors import UserError
     from experiments._reading import READING_MARKER, kept_reading

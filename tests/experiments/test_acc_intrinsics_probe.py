@@ -81,7 +81,8 @@ def test_params_invert_the_matrices():
         assert torch.allclose(K, K.transpose(-1, -2))
 
 
-def test_rescaled_noise_equals_a_per_sample_likelihood_built_from_scratch():
+@pytest.mark.parametrize("blocks", [True, False])
+def test_rescaled_noise_equals_a_per_sample_likelihood_built_from_scratch(blocks):
     from accel_bayes.model.likelihood_percov import with_unresolved_motion
 
     y, post = _data([0.0, 0.0, 0.0, 0.0], seed=3, T=50)
@@ -90,6 +91,8 @@ def test_rescaled_noise_equals_a_per_sample_likelihood_built_from_scratch():
     rate = 100.0 * torch.randn(50, 4, 3, generator=g, dtype=torch.float64)
     # every path that whitens a loading by λ^½ at construction: angular jerk, instant errors, an unknown age
     kw = dict(rate=rate, instant_std=2e-4, angjerk_std=3e4, lever=R, age_var=torch.tensor([0.0, 0.0, 1e-7, 0.0]))
+    if not blocks:  # the angular jerk alone: N_t from the age pairs, no whitened loading stored
+        kw = dict(angjerk_std=3e4, lever=R)
     a = torch.tensor([1.3, 0.7, 1.0, 0.6], dtype=torch.float64)
     got = ap.with_noise_scale(with_unresolved_motion(_lik(y, post), age, 20.0, **kw), a)
     ref = with_unresolved_motion(_lik(y, post, sigma=SIGMA * a[:, None].expand(4, 3)), age, 20.0, **kw)
