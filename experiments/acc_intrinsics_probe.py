@@ -6,8 +6,8 @@ The hypothesis (``gyro_common_probe.md``'s reading): a triad's gain error K_k mu
 that triad reads, including the centripetal term ω×(ω×r_k) ∝ |ω|² r_k, so it is triad-specific and
 grows with |ω|² — what a common gyro error G cannot carry.  Corrected data y_k ← (I + K_k) y_k (array
 frame, dimensionless K), K_k a scale c_k I ("scale"), a diagonal ("diag") or a symmetric 3×3 ("sym",
-six numbers; the antisymmetric part is a small rotation of the triad, i.e. a mounting angle, which
-the positions' prior and the report's gyro blocks already speak for).
+six numbers; the antisymmetric part would be a small rotation of the triad, a mounting angle: another
+effect, not fitted here).
 
 Same step as ``gyro_common_probe.py`` (its interception is reused): ``calibrate(rec, model=report)``
 is run up to its per-sample-covariance step, which gives the baseline; then per kind (a) K jointly
