@@ -48,14 +48,15 @@ import dataclasses
 import json
 import platform
 import time
-import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from experiments.gyro_common_probe import _ll, _mm, _f, _Stop, spacing
+from experiments._percov_step import at_percov_step
+
+from experiments.gyro_common_probe import _ll, _mm, _f, spacing
 
 ROOT = Path(__file__).resolve().parent
 DOC = ROOT / "acc_intrinsics_probe.md"
@@ -221,12 +222,10 @@ def fit_acc_gain(lik, pos0, kind: str, *, prior_mean=None, prior_std=None) -> di
 
 def probe(rec, report, kinds=("scale", "diag", "sym")) -> dict:
     """The baseline step and the K fits of the module docstring on one recording."""
-    import accel_bayes.pipelines.calibrate as cal
 
     out = {}
-    orig = cal._model_percov_step
 
-    def step(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, **kw):
+    def step(orig, lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, **kw):
         labels = list(lik.imu_labels)
         t0 = time.perf_counter()
         base = orig(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, **kw)
@@ -265,17 +264,8 @@ def probe(rec, report, kinds=("scale", "diag", "sym")) -> dict:
             print(f"  {kind}: gain {gain:.1f} nats (joint {f['gain_nats']:.1f}), "
                   f"{time.perf_counter() - t1:.0f} s", flush=True)
         out["seconds"] = time.perf_counter() - t0
-        raise _Stop
 
-    cal._model_percov_step = step
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            cal.calibrate(rec, chains=1, draws=10, warmup=10, seed=0, progress=False, model=report)
-    except _Stop:
-        pass
-    finally:
-        cal._model_percov_step = orig
+    at_percov_step(rec, report, step)
     return out
 
 

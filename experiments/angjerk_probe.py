@@ -23,7 +23,6 @@ import argparse
 import json
 import platform
 import time
-import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -34,19 +33,14 @@ ROOT = Path(__file__).resolve().parent
 DOC = ROOT / "angjerk_probe.md"
 
 
-class _Stop(Exception):
-    """Raised by the intercepted step once the probe has what it needs (the chains are not run)."""
-
-
 def probe(rec, report, truth_omega_ddot=None) -> dict:
     """The two type-II fits at calibrate's per-sample-covariance step (module docstring)."""
-    import accel_bayes.pipelines.calibrate as cal
     from accel_bayes.model.likelihood import RaoBlackwellLikelihood
     from accel_bayes.model.unresolved_fit import fit_unresolved_scales
 
     out = {}
 
-    def step(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, **_):
+    def step(_build, lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, **_):
         base = RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std, 1, reference=lik.reference,
                                       phi_prior=lik.phi_prior, prepared=lik.prepared)
         p = terms.parameters
@@ -72,18 +66,10 @@ def probe(rec, report, truth_omega_ddot=None) -> dict:
             wdd = truth_omega_ddot(terms.time.numpy())  # (T, 3)
             out["truth_angjerk_rms_per_axis"] = [float(np.sqrt((wdd[(band == b).numpy()] ** 2).mean()))
                                                  if bool((band == b).any()) else None for b in range(nb)]
-        raise _Stop
 
-    orig = cal._model_percov_step
-    cal._model_percov_step = step
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            cal.calibrate(rec, chains=1, draws=10, warmup=10, seed=0, progress=False, model=report)
-    except _Stop:
-        pass
-    finally:
-        cal._model_percov_step = orig
+    from experiments._percov_step import at_percov_step
+
+    at_percov_step(rec, report, step)
     return out
 
 

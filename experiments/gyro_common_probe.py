@@ -34,7 +34,6 @@ import dataclasses
 import json
 import platform
 import time
-import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -47,10 +46,6 @@ DOC = ROOT / "gyro_common_probe.md"
 KINDS = {"scalar": 1, "diag": 3, "full": 9, "diag0": 2, "full0": 8}
 #: the x–y spacing of the top IMUs as ``mimu_model_calibrate.py`` reads it: x of IMUs 4 and 6, −y of 2 and 6
 SPACING_X_IMUS, SPACING_Y_IMUS = (4, 6), (2, 6)
-
-
-class _Stop(Exception):
-    """Raised by the intercepted step once the probe has what it needs (the chains are not run)."""
 
 
 def g_matrix(g: torch.Tensor, kind: str) -> torch.Tensor:
@@ -182,12 +177,10 @@ def _ll(step):
 
 def probe(rec, report, kinds=("diag0", "full0", "scalar", "diag", "full"), rounds: int = 2) -> dict:
     """The baseline step and the G fits of the module docstring on one recording."""
-    import accel_bayes.pipelines.calibrate as cal
 
     out = {}
-    orig = cal._model_percov_step
 
-    def step(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, **kw):
+    def step(orig, lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, **kw):
         labels = list(lik.imu_labels)
         t0 = time.perf_counter()
         base = orig(lik, terms, omega_norm, sample_scale, map_res, nominal_acc, prior_std, **kw)
@@ -222,17 +215,10 @@ def probe(rec, report, kinds=("diag0", "full0", "scalar", "diag", "full"), round
             print(f"  {kind}: G diag {[round(float(v), 5) for v in G.diagonal()]} gain "
                   f"{out['fits'][kind]['gain_nats']:.1f} nats", flush=True)
         out["seconds"] = time.perf_counter() - t0
-        raise _Stop
 
-    cal._model_percov_step = step
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            cal.calibrate(rec, chains=1, draws=10, warmup=10, seed=0, progress=False, model=report)
-    except _Stop:
-        pass
-    finally:
-        cal._model_percov_step = orig
+    from experiments._percov_step import at_percov_step
+
+    at_percov_step(rec, report, step)
     return out
 
 
