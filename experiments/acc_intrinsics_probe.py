@@ -46,9 +46,7 @@ import argparse
 import copy
 import dataclasses
 import json
-import platform
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -376,11 +374,12 @@ def _params(k, s, n, row) -> str:
 def document(rows, seconds, argv=None) -> str:
     import sys
 
-    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    from experiments._stamp import run_stamp
+
     cmd = " ".join(argv if argv is not None else sys.argv[1:])
     L = ["# acc_intrinsics_probe — per-triad accelerometer gain errors K_k (issue #30, accprobe)", "",
          f"Regenerate: `PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/acc_intrinsics_probe.py {cmd}` "
-         f"({now}, {platform.machine()} {platform.system()}, shared 2-core CPU, nice 5; cached per case in "
+         f"({run_stamp()}, nice 5; cached per case in "
          f"`experiments/out/acc_intrinsics_probe/`; this invocation {seconds:.0f} s; the document is the cache's "
          "union). Reports: main's `experiments/out/mimu_mismatch/exp_*/report.json`, sha256 as in "
          "`mimu_model_calibrate.md` (checked); concealed cases and their reports: `percov_conceal`'s cache. The "

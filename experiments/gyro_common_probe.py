@@ -32,9 +32,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import platform
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -328,11 +326,12 @@ def _f(v, f="{:.3g}"):
 def document(rows, seconds, argv=None) -> str:
     import sys
 
-    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    from experiments._stamp import run_stamp
+
     cmd = " ".join(argv if argv is not None else sys.argv[1:])
     L = ["# gyro_common_probe — a common gyro error G in the fused ω (issue #30, gyroprobe)", "",
          f"Regenerate: `PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/gyro_common_probe.py {cmd}` "
-         f"({now}, {platform.machine()} {platform.system()}, shared 2-core CPU, nice 5; cached per case in "
+         f"({run_stamp()}, nice 5; cached per case in "
          f"`experiments/out/gyro_common_probe/`; this invocation {seconds:.0f} s). Reports: main's "
          "`experiments/out/mimu_mismatch/exp_*/report.json`, sha256 as in `mimu_model_calibrate.md` (checked); "
          "concealed cases and their reports: `percov_conceal`'s cache. The cached rows were made by (same script, "
