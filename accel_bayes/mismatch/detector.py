@@ -185,6 +185,16 @@ def _stage_findings(prep, reg, stage, clock, fd) -> list[Finding]:
     return out
 
 
+def without_withdrawn(findings: list[Finding], withdrawn: list[dict]) -> list[Finding]:
+    """``findings`` less those whose fitted effect a later step withdrew (``withdrawn``: dicts whose
+    ``"effect"`` is the withdrawn effect's label, ``timing_wander[imu=2,sensor=acc]``).  A
+    :class:`Finding`'s ``effect`` is its vocabulary *name*; the fitted effect, whose label locates
+    it, is its ``model`` (until 2026-11-28 the filter read ``effect``, matched nothing, and the
+    report kept superseded findings whose terms its refined model no longer had)."""
+    gone = {g["effect"] for g in withdrawn}
+    return [f for f in findings if not (hasattr(f.model, "label") and f.model.label() in gone)]
+
+
 def _unexplained(prep, loc_final, characterisation, threshold, alpha) -> Finding | None:
     """Step 7: the strongest located excess at the final model, if significant (module docstring)."""
     from scipy.stats import chi2
@@ -423,9 +433,7 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
         unres, current, gone = supersede_random_timing(prep, current, clock.clocks, unres, **kw)
         if gone:  # their findings leave the report; the refit without them is the final model
             withdrawn += gone
-            gone_labels = {g["effect"] for g in gone}
-            findings = [f for f in findings if getattr(f.effect, "kind", None) != "random"
-                        or f.effect.label() not in gone_labels]
+            findings = without_withdrawn(findings, gone)
             say("superseded by the unresolved motion's age error: " + ", ".join(g["effect"] for g in gone))
         say(f"unresolved motion: kept on {unres.info.get('kept', [])} (evidence {unres.evidence:.4g})")
         if unres.effect is not None:
