@@ -24,13 +24,18 @@ beat_hz, drift_hz_per_s) on the recording's stamps, internal_rate_hz = the clock
 age_rms_s = 1/(f_k√12) (the hold; ``calibrate`` reads the physical age, width 1/internal_rate_hz),
 rate_scale and the filter delay the report's (its clocked IMUs share them).
 
+``--probe``: the case with one generator piece changed (:data:`PROBE`: the gyros' errors inverted, the
+vibration, the DLPF, the impacts switched off or dropped — ``draw_case``'s ``drop`` keeps every other draw),
+the detector rerun on it, ``a_report`` and ``c_oracle_all`` calibrated.  ``--impact-windows``: the case as
+drawn and its report, calibrated without the samples of the impacts (:func:`impact_windows`).
+
 Each variant is calibrated as percov_conceal's ``with_angjerk`` (``run_variant``: angular jerk,
 untempered, ``--chains`` × (``--warmup`` + ``--draws``)) for each sampler seed in ``--seeds`` (the
 spread between seeds is the Monte Carlo error of z).  z per free coordinate, the fitted unresolved-motion
 scales and the triads' noise levels are written to ``experiments/clock020_oracle.md``; the report and
 each calibration are cached in ``--out``.
 
-    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/clock020_oracle.py
+    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/clock020_oracle.py --probe --impact-windows
 """
 from __future__ import annotations
 
@@ -109,6 +114,51 @@ def probe_recording(name: str):
     if name.startswith("gyro"):
         rec = known_gyro_intrinsics(rec, truth)
     return rec, truth, pos
+
+
+def impact_windows(rec, truth, margin_s: float = 0.02) -> np.ndarray:
+    """(T,) bool: True outside every impact of the case's motion, [onset − margin, onset + 40τ + margin]
+    (the generator's bursts are zero beyond 40τ; the margin covers the DLPFs' few ms)."""
+    from experiments.clockgen.cases import motion_of
+
+    t = np.asarray(rec.time, dtype=np.float64)
+    keep = np.ones(t.size, bool)
+    b = motion_of(truth).rot_imp
+    for t0, tau in zip(b.onset, b.tau):
+        keep &= ~((t >= t0 - margin_s) & (t <= t0 + 40 * tau + margin_s))
+    return keep
+
+
+def run_impact_windows(args) -> list[dict]:
+    """``a_report`` and ``c_oracle_all`` on the case as drawn, calibrated without the impact windows'
+    samples (``select``, :func:`impact_windows`): do the impacts' samples carry r[5, y]'s bias?"""
+    from accel_bayes.data.outputs import write_json
+    from experiments.percov_conceal import case_recording, run_variant, score
+
+    rec, truth, pos = case_recording(SEED, 20.0, 5e-4, "known")
+    keep = impact_windows(rec, truth)
+    rows, s = [], args.seeds[0]
+    for v in ("a_report", "c_oracle_all"):
+        f = args.out / f"{v}.no_impacts.seed{s}.json"
+        if not f.exists():
+            r = run_variant(rec, "with_angjerk", args.out / f"{v}.report.json", args.chains, args.draws, args.warmup, s,
+                            select=keep)
+            r["score"] = score(r["positions"], pos)
+            write_json(f, r)
+        r = json.loads(f.read_text())
+        z = np.asarray(r["score"]["z"])
+        print(f"impact windows dropped {v}: z RMS {np.sqrt(np.mean(z ** 2)):.2f}, max |z| {np.abs(z).max():.2f}", flush=True)
+        rows.append({"probe": f"as drawn, the calibration without the impact windows ({int((~keep).sum())} of {keep.size} "
+                              f"samples, {len(motion_of_onsets(truth))} impacts)",
+                     "variant": v, "seed": s, "findings": ["the case's report"], **r})
+    return rows
+
+
+def motion_of_onsets(truth) -> np.ndarray:
+    """The impacts' onsets (s) of the case's motion."""
+    from experiments.clockgen.cases import motion_of
+
+    return np.asarray(motion_of(truth).rot_imp.onset)
 
 
 def variant_report(report: dict, truth: dict, time_s, variant: str) -> dict:
@@ -294,6 +344,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "clock020_oracle")
     ap.add_argument("--probe", action="store_true", help="also the PROBE recordings (detector rerun on each)")
+    ap.add_argument("--impact-windows", action="store_true",
+                    help="also the case as drawn calibrated without the impacts' samples (run_impact_windows)")
     args = ap.parse_args(argv)
     from accel_bayes.data.outputs import write_text
     from experiments._reading import READING_MARKER, kept_reading
@@ -301,6 +353,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     rows, report, truth, t = run(args)
     prows = run_probe(args) if args.probe else []
+    prows += run_impact_windows(args) if args.impact_windows else []
     argv_s = argv if argv is not None else sys.argv[1:]
     cmd = ("PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/clock020_oracle.py " + " ".join(argv_s)).strip()
     write_text(DOC, markdown(rows, report, truth, t, cmd, time.perf_counter() - t0, prows) + "\n" + READING_MARKER

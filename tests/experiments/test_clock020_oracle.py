@@ -54,3 +54,14 @@ def test_oracle_reports_change_only_the_clocks_they_name():
         assert abs(f["parameters"]["filter_delay_acc_minus_gyro_s"] - co.true_acc_delay(truth, f["imu"])) < 1e-15
     for doc in (b, d):
         read_report(doc, "model")  # a valid report
+
+
+def test_impact_windows_drop_every_impact_sample_and_little_else():
+    from experiments.clockgen.cases import motion_of
+
+    rec, truth = draw_case("clock", 20, duration=20.0, noise=False)
+    keep = co.impact_windows(rec, truth)
+    t = np.asarray(rec.time, dtype=np.float64)
+    burst = np.abs(motion_of(truth).rot_imp(t)).sum(1)
+    assert (burst[keep] == 0).all() and (burst[~keep] > 0).sum() > 0.5 * (~keep).sum()
+    assert (~keep).sum() < 0.1 * keep.size
