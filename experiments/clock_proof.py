@@ -57,10 +57,10 @@ def truth_beat_mid(truth, k, t_mid):
     return float(f_k - fh * np.round(f_k / fh))
 
 
-def clock_findings(rec, alpha=0.01):
-    """The detector's clock stage on ``rec`` as :func:`accel_bayes.mismatch.detect` runs it with its
-    defaults (module docstring): returns the :class:`~accel_bayes.mismatch.clock.ClockStage`."""
-    from accel_bayes.mismatch.clock import clock_stage
+def clock_inputs(rec, alpha=0.01):
+    """What :func:`accel_bayes.mismatch.detect` hands its clock stage on ``rec`` with its defaults
+    (module docstring): (prep, fit, m, threshold) after preparation, the baseline fit and the gyro
+    linear stage (3a)."""
     from accel_bayes.mismatch.fit import baseline_fit
     from accel_bayes.mismatch.gyro_linear import gyro_linear_stage
     from accel_bayes.mismatch.prepared import prepare
@@ -76,6 +76,15 @@ def clock_findings(rec, alpha=0.01):
     if n_gyro >= 2:
         st = gyro_linear_stage(prep, base, m=m, alpha=alpha)
         prep, fit = st.prep, st.fit
+    return prep, fit, m, threshold
+
+
+def clock_findings(rec, alpha=0.01):
+    """The detector's clock stage on ``rec`` as :func:`accel_bayes.mismatch.detect` runs it with its
+    defaults (module docstring): returns the :class:`~accel_bayes.mismatch.clock.ClockStage`."""
+    from accel_bayes.mismatch.clock import clock_stage
+
+    prep, fit, m, threshold = clock_inputs(rec, alpha)
     return clock_stage(prep, fit, m=m, alpha=alpha, threshold=threshold)
 
 

@@ -111,8 +111,10 @@ def score(doc: dict, pos: np.ndarray) -> dict:
     return {"z": z, "error_m": err, "std_m": std, "coordinates": names, "reference_imu": ref}
 
 
-def run_variant(rec, variant: str, report_path: Path, chains: int, draws: int, warmup: int, seed: int) -> dict:
-    """One calibration of the case (module docstring) and what the document needs of it."""
+def run_variant(rec, variant: str, report_path: Path, chains: int, draws: int, warmup: int, seed: int,
+                **options) -> dict:
+    """One calibration of the case (module docstring) and what the document needs of it.  ``options``:
+    further :class:`~accel_bayes.pipelines.calibrate_options.CalibrateOptions` fields (e.g. ``select``)."""
     from accel_bayes.pipelines.calibrate import calibrate
 
     with warnings.catch_warnings():
@@ -120,7 +122,7 @@ def run_variant(rec, variant: str, report_path: Path, chains: int, draws: int, w
         res = calibrate(rec, chains=chains, draws=draws, warmup=warmup, seed=seed, progress=False,
                         model=report_path if variant.startswith("with") else None,
                         angular_jerk=variant == "with_angjerk",
-                        noise_inflation=False if variant == "untempered" else None)
+                        noise_inflation=False if variant == "untempered" else None, **options)
     st = res.settings
     nm = st.get("noise_model") or {}
     sw = nm.get("sandwich") or {}

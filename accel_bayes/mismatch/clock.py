@@ -169,18 +169,12 @@ def physical_beats(beat, f_read: float, *, f_nominal: float = NOMINAL_INTERNAL_R
     return np.abs(n * f_read + beat - f_nominal) <= tolerance * f_nominal
 
 
-def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S, candidates: bool = False,
-                   rate_tolerance: float | None = INTERNAL_RATE_TOLERANCE):
-    """The beat search of the module docstring on one IMU's (a, b) (:func:`clock_ab`) at times t (s): returns
-    {"beat_hz", "phase", "drift_hz_per_s", "width_s" (W, s), "const_s", "gain" (Σbm − ½Σam², nats
-    at the stated noise), "mean" (T,) the fitted δ_t = const − age_t (s), "cells" (independent
-    (β, d) cells searched)}.  ``candidates``: the list of such dicts instead, one per distinct refined
-    peak with W > 0, best gain first (the stage ranks them by what the random timing cannot explain)."""
-    from scipy.optimize import minimize
-
-    t = np.asarray(t, float)
-    a = np.asarray(a, float)
-    b = np.asarray(b, float)
+def _spectra(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S,
+             rate_tolerance: float | None = INTERNAL_RATE_TOLERANCE) -> dict:
+    """The search's two rankings of (β, d) (module docstring, "Search") on one IMU's (a, b) at times t (s):
+    {"freqs" (L,) Hz, "drifts" (nd,) Hz/s, "P" (nd, L) Σ_m |F_m(mβ)|²/m, "Pn" (nd, L) the same with each
+    harmonic over the local continuum — both 0 where β is not searched (under :data:`MIN_CYCLES`, not
+    physical) —, "L", "step" (the drift grid's step), "cells" (independent (β, d) cells searched), "f_read"}."""
     t0 = t[0]
     n = np.rint((t - t0) * f_read).astype(np.int64)
     N = int(n[-1]) + 1
@@ -202,14 +196,14 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
     z = np.zeros(L)
     z[n] = b_search
     floor = _continuum(np.abs(np.fft.fft(z)) ** 2, max(int(round(_FLOOR_HZ * L / f_read)), 8))
-    peaks = ([], [])  # (raw ranking, ranking against the local continuum)
-    for d in drifts:
+    Ps, Pns = np.zeros((len(drifts), L)), np.zeros((len(drifts), L))
+    for i, d in enumerate(drifts):
         # harmonic m of the sawtooth sits at m·β with chirp m·d, amplitude 1/m: ranking by
         # Σ_m |F_m(mβ)|²/m, a slow motion-frequency residual (one line, no harmonics) ranks lower.
         # Where that residual is strong, its red continuum (what a wander explains) still outranks
         # a beat that stands out where it is: the peaks of Σ_m |F_m(mβ)|²/(m·continuum(mβ)) are
         # nominated too (alone they favour a beat's harmonics, whose continuum is lower)
-        P, Pn = np.zeros(L), np.zeros(L)
+        P, Pn = Ps[i], Pns[i]
         for mh in range(1, _HARMONICS + 1):
             z = np.zeros(L, complex)
             z[n] = b_search * np.exp(-1j * math.pi * mh * d * tt ** 2)
@@ -217,10 +211,22 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
             pw = np.abs(np.fft.fft(z))[j] ** 2 / mh
             P += pw
             Pn += pw / floor[j]
-        for Q, out in ((P, peaks[0]), (Pn, peaks[1])):
+        for Q in (P, Pn):
             # under MIN_CYCLES over the span a sawtooth is a slow wander, not a clock
             Q[np.abs(freqs) < MIN_CYCLES / D] = 0.0
             Q[~allowed] = 0.0
+    return {"freqs": freqs, "drifts": drifts, "P": Ps, "Pn": Pns, "L": L, "step": step, "cells": n_cells,
+            "f_read": float(f_read)}
+
+
+def _nominate(sp: dict) -> list:
+    """The peaks of :func:`_spectra`'s rankings tried in the exact model, [(height, β Hz, d Hz/s)]: the
+    best :data:`_N_PEAKS` distinct peaks of the raw ranking, then distinct peaks of the ranking over the
+    local continuum up to :data:`_N_PEAKS` + :data:`_N_CONTINUUM` in all."""
+    freqs, L, step, f_read = sp["freqs"], sp["L"], sp["step"], sp["f_read"]
+    peaks = ([], [])  # (raw ranking, ranking against the local continuum)
+    for d, P, Pn in zip(sp["drifts"], sp["P"], sp["Pn"]):
+        for Q, out in ((P, peaks[0]), (Pn, peaks[1])):
             top = np.argpartition(Q, -_N_PEAKS)[-_N_PEAKS:]
             out += [(float(Q[i]), float(freqs[i]), float(d)) for i in top]
     # a peak and its neighbours are one peak: keep distinct |β| (beyond 2 bins) or drifts only
@@ -234,6 +240,24 @@ def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PE
             if all(abs(abs(p[1]) - abs(q[1])) > 2 * f_read / L or abs(p[2] * np.sign(p[1]) - q[2] * np.sign(q[1])) > 2 * step
                    for q in chosen):
                 chosen.append(p)
+    return chosen
+
+
+def estimate_clock(t, a, b, f_read: float, *, max_drift: float = MAX_DRIFT_HZ_PER_S, candidates: bool = False,
+                   rate_tolerance: float | None = INTERNAL_RATE_TOLERANCE):
+    """The beat search of the module docstring on one IMU's (a, b) (:func:`clock_ab`) at times t (s): returns
+    {"beat_hz", "phase", "drift_hz_per_s", "width_s" (W, s), "const_s", "gain" (Σbm − ½Σam², nats
+    at the stated noise), "mean" (T,) the fitted δ_t = const − age_t (s), "cells" (independent
+    (β, d) cells searched)}.  ``candidates``: the list of such dicts instead, one per distinct refined
+    peak with W > 0, best gain first (the stage ranks them by what the random timing cannot explain)."""
+    from scipy.optimize import minimize
+
+    t = np.asarray(t, float)
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    sp = _spectra(t, a, b, f_read, max_drift=max_drift, rate_tolerance=rate_tolerance)
+    chosen = _nominate(sp)
+    t0, L, step, n_cells = t[0], sp["L"], sp["step"], sp["cells"]
 
     def neg(x):
         phase, beat, drift = x
