@@ -94,3 +94,30 @@ def test_probe_table_lists_every_piece():
                                          "chains_warmup_draws": list(pc.PROBE_CHAINS)}]))
     assert all(k in text for k in pc.PROBE) and "0.030–0.050" in text
     assert pc.probe_markdown([]) == []
+
+
+@pytest.mark.parametrize("variant, model, angular_jerk, inflation", [
+    ("with", True, False, None), ("with_angjerk", True, True, None),
+    ("untempered", False, False, False), ("without", False, False, None)])
+def test_each_variant_calls_calibrate_with_its_own_settings(monkeypatch, tmp_path, variant, model, angular_jerk,
+                                                            inflation):
+    """"without" is the default pipeline with no report: until 2026-11-28 a prefix test ("with…") gave it
+    the report, so a rerun from an empty cache scored the model twice and never the default."""
+    import accel_bayes.pipelines.calibrate as cal
+
+    seen = {}
+
+    class _Stop(Exception):
+        pass
+
+    def fake(rec, **kw):
+        seen.update(kw)
+        raise _Stop
+
+    monkeypatch.setattr(cal, "calibrate", fake)
+    report = tmp_path / "report.json"
+    with pytest.raises(_Stop):
+        pc.run_variant(object(), variant, report, chains=1, draws=1, warmup=1, seed=0)
+    assert (seen["model"] == report) is model and (seen["model"] is None) is (not model)
+    assert seen["angular_jerk"] is angular_jerk
+    assert seen["noise_inflation"] is inflation
