@@ -306,11 +306,19 @@ def main(argv=None):
     ap.add_argument("--redo", action="store_true", help="recompute cached cases")
     ap.add_argument("--diagnose", nargs="*", type=int, default=[], metavar="SEED",
                     help="also rerun these cases for the per-IMU acc residuals of baseline and refined fit")
+    ap.add_argument("--out", default=None, metavar="DIR",
+                    help="cache the cases in DIR instead of results/clock_budget/ (a scratch rerun: "
+                         "clock_budget.md is then not rewritten; the summary goes to DIR/clock_budget.md)")
     ap.add_argument("--diagnose-gyro", nargs="*", type=int, default=[], metavar="SEED",
                     help="also run the gyro linear stage alone on these cases (why no gyro_scale block)")
     a = ap.parse_args(argv)
     from accel_bayes.data.outputs import write_text
 
+    global OUT
+    doc = ROOT / "clock_budget.md"
+    if a.out is not None:
+        OUT = Path(a.out).resolve()
+        doc = OUT / "clock_budget.md"
     OUT.mkdir(parents=True, exist_ok=True)
     seeds = pick(clock_cases(a.n_clock), a.first, a.cases)
     t0 = time.perf_counter()
@@ -329,8 +337,8 @@ def main(argv=None):
     wall = None if a.summary else time.perf_counter() - t0
     cmd = "OMP_NUM_THREADS=1 PYTHONPATH=. nice -n 5 python3 experiments/clock_budget.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
-    write_text(ROOT / "clock_budget.md", summary(results, cmd.strip(), a.n_clock, wall))
-    print((ROOT / "clock_budget.md").read_text())
+    write_text(doc, summary(results, cmd.strip(), a.n_clock, wall))
+    print(doc.read_text())
     print(f"total time {time.perf_counter() - t0:.0f} s")
 
 

@@ -24,7 +24,19 @@ consecutive samples (:func:`_ratio_se`).
   data and a > 0 is the variance the model misses.
 * ``b`` = (mean r̃²_baseline − mean r̃²_refined) + mean predicted extra variance, i.e. what the
   refined model's mean effects remove from the residuals plus what its variance effects predict
-  on top of the stated noise:
+  on top of the stated noise.  Both r̃² are taken on **restricted** residuals
+  (:func:`restricted_sq`): each fit's raw residual projected off the per-sample motion states in
+  the stated-noise whitening, P_σ r, squared and leverage-corrected.  P_σ r = P_σ (y − mean
+  effects) whatever motion the fit chose, so the removal term holds what the mean effects change
+  and nothing of how the refined fit's weights (noise factors, random effects' predicted variance,
+  their GLS offsets: :mod:`accel_bayes.mismatch.fit`) steered the motion — the same restricted
+  residuals the random effects are profiled on (:mod:`accel_bayes.mismatch.jitter`).  For the
+  baseline (stated noise, no weights) P_σ r = r and r̃² is :func:`leverage_corrected_sq`.  Until
+  2026-11-28 the refined fit's own r̃² was used: a GLS refit that follows the IMUs without a
+  random term (plate4: two accelerometer wanders, two reference IMUs with leverage 0.83) moves
+  the references' excess into the termed IMUs' residuals, and that move counted as a negative
+  removal (concealed clockgen clock-010: b = −0.032 (m/s²)² for a = 0.187;
+  ``experiments/acc_budget_probe.md``).  The parts of b:
 
   - ``noise_level``: (c² − 1) σ², c the fitted noise factor of the output's IMU/sensor;
   - any other effect in the refined model that defines ``predicted_variance(params, ctx)``
@@ -46,7 +58,7 @@ import torch
 from .model import ModelFit
 from .prepared import Prepared
 
-__all__ = ["BANDS", "band_edges", "budget_regimes", "leverage_corrected_sq", "predicted_extra_variance", "residual_budget", "group_power"]
+__all__ = ["BANDS", "band_edges", "budget_regimes", "leverage_corrected_sq", "restricted_sq", "predicted_extra_variance", "residual_budget", "group_power"]
 
 BANDS = ((0, 25), (25, 50), (50, 75), (75, 90), (90, 100))  # quantile bands, %
 
@@ -80,6 +92,29 @@ def leverage_corrected_sq(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, 
     return (fit.res_acc ** 2 / one_minus[:, 0] * prep.m_acc, fit.res_gyro ** 2 / one_minus[:, 1] * prep.m_gyro)
 
 
+def restricted_sq(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
+    """(acc, gyro) (T, K, 3) units²: (P_σ r)²/(1 − h_σ)·σ², r the raw residual of ``fit``, P_σ the
+    per-sample residual-maker of the motion states and h_σ their leverage, both in the **stated**
+    noise whitening (σ, no noise factors, no random-effect weights); 0 where unobserved (module
+    docstring).  The fit's linear system is whitened by its own weights (σ·factor·√(variance
+    ratio)): its rows are scaled back to σ before projecting.  Equals :func:`leverage_corrected_sq`
+    for a fit without weights."""
+    from .model import project_off_states
+
+    lin = fit.linear()
+    T, K = prep.T, prep.K
+    vr = getattr(getattr(fit.lm, "model", None), "var_ratio", None)
+    back = torch.ones(T, 2, K, 3, dtype=torch.float64) if vr is None else torch.sqrt(vr)
+    back = (back * torch.stack((fit.acc_factor, fit.gyro_factor))[None, :, :, None]).reshape(T, 6 * K)
+    Jx = lin.Jx * back.unsqueeze(-1)
+    Vinv = torch.linalg.inv(Jx.transpose(-1, -2) @ Jx)
+    h = ((Jx @ Vinv) * Jx).sum(-1)
+    rp = project_off_states(Jx, Vinv, lin.r * back)
+    z2 = (rp * rp / (1 - h).clamp_min(1e-3)).reshape(T, 2, K, 3)  # as in locate.standardized
+    return (z2[:, 0] * prep.sigma_acc[None, :, None] ** 2 * prep.m_acc,
+            z2[:, 1] * prep.sigma_gyro[None, :, None] ** 2 * prep.m_gyro)
+
+
 def predicted_extra_variance(prep: Prepared, fit: ModelFit, extra=()) -> tuple[torch.Tensor, torch.Tensor]:
     """(acc, gyro) (T, K, 3) the variance ``fit``'s model adds to the stated noise, units²: the
     noise factors' (c² − 1) σ² plus every effect's ``predicted_variance(params, ctx)`` where it
@@ -102,9 +137,9 @@ def residual_budget(prep: Prepared, baseline: ModelFit, refined: ModelFit | None
     to use instead of :func:`predicted_extra_variance` (e.g. with random-effect scales taken from
     another recording).  Sensors without any observed output are left out."""
     regs = budget_regimes(baseline)
-    base_sq = leverage_corrected_sq(prep, baseline)
+    base_sq = restricted_sq(prep, baseline)
     if refined is not None:
-        ref_sq = leverage_corrected_sq(prep, refined)
+        ref_sq = restricted_sq(prep, refined)
         pred = predicted_extra_variance(prep, refined, extra) if predicted is None else \
             (predicted[0] * prep.m_acc, predicted[1] * prep.m_gyro)
     rows = []

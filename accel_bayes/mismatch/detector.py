@@ -68,8 +68,10 @@ Procedure
 8. **Budget** (:func:`accel_bayes.mismatch.budget.residual_budget`, vocabulary 1.1): per sensor and
    per |ω| and |ω̇| quantile band of the baseline motion, the excess variance the baseline leaves
    (a, leverage-corrected squared residual minus the stated variance) and the part the final
-   model accounts for (b, the squared residual its mean effects remove plus the variance its
-   variance effects predict); b = 0 when nothing was found.  Reported also with ``refine=False``.
+   model accounts for (b, the squared residual its mean effects remove — both fits' residuals
+   projected off the motion states in the stated noise's whitening, so the refit's weights do not
+   count as a removal — plus the variance its variance effects predict); b = 0 when nothing was
+   found.  Reported also with ``refine=False``.
 
 Threshold rule (reported as ``threshold``): Bonferroni over the m tests made (the round
 candidates, plus the gyro linear stage's group test and one test per gyro),

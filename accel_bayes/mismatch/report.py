@@ -360,7 +360,8 @@ def _budget_markdown(rows: list) -> list:
     L = ["## Residual budget", "",
          "Excess variance per channel-sample (sensor units²): a = mean leverage-corrected squared baseline "
          "residual − stated variance; b = the part the model with the findings accounts for (removed by its "
-         "mean effects + predicted by its variance effects). A model that explains the misfit has b ≈ a in "
+         "mean effects, on residuals with the motion states projected off in the stated noise's whitening, + "
+         "predicted by its variance effects). A model that explains the misfit has b ≈ a in "
          "every regime. Bands are quantiles of the baseline's fitted |ω| and |ω̇|.", ""]
     for sensor, unit in (("acc", "(m/s²)²"), ("gyro", "(rad/s)²")):
         rs = [r for r in rows if r["sensor"] == sensor]

@@ -73,8 +73,9 @@ def test_clean_twin_gets_no_gyro_nonlinearity_and_a_null_refined(clean):
 
 
 def _numpy_budget(prep, base, ref):
-    """Independent recomputation of the budget rows from the fits' raw residuals and leverages
-    (numpy only; regimes by explicit percentile comparisons)."""
+    """Independent recomputation of the budget rows from the fits' raw residuals and their motion-state
+    Jacobians (numpy only; regimes by explicit percentile comparisons): r̃² = (P r)²/(1 − h)·σ², P and h
+    the per-sample projection off the motion states in the stated-noise whitening (budget.restricted_sq)."""
     Tn, K = prep.T, prep.K
     x = base.x.numpy()
     speeds = {"|omega|": np.sqrt((x[:, 0:3] ** 2).sum(1)), "|omega_dot|": np.sqrt((x[:, 3:6] ** 2).sum(1))}
@@ -86,9 +87,19 @@ def _numpy_budget(prep, base, ref):
             sel[f"{name} {lo}-{hi}%"] = (v >= a) & (v < b)
 
     def sq(fit):
-        h = fit.linear().h.numpy().reshape(Tn, 2, K, 3)
-        return (fit.res_acc.numpy() ** 2 / np.maximum(1 - h[:, 0], 1e-3),
-                fit.res_gyro.numpy() ** 2 / np.maximum(1 - h[:, 1], 1e-3))
+        sig = np.stack((prep.sigma_acc.numpy(), prep.sigma_gyro.numpy()))[None, :, :, None]  # (1, 2, K, 1)
+        r = np.stack((fit.res_acc.numpy(), fit.res_gyro.numpy()), 1) / sig  # (T, 2, K, 3), stated whitening
+        vr = getattr(fit.lm.model, "var_ratio", None)
+        back = np.ones((Tn, 2, K, 3)) if vr is None else np.sqrt(vr.numpy())
+        back = back * np.stack((fit.acc_factor.numpy(), fit.gyro_factor.numpy()))[None, :, :, None]
+        J = fit.linear().Jx.numpy() * back.reshape(Tn, 6 * K)[:, :, None]  # the fit's whitening → stated
+        G = np.linalg.inv(np.einsum("tmi,tmj->tij", J, J))
+        rv = r.reshape(Tn, 6 * K)
+        pr = rv - np.einsum("tmi,tij,tnj,tn->tm", J, G, J, rv)
+        h = np.einsum("tmi,tij,tmj->tm", J, G, J)
+        z2 = (pr ** 2 / np.maximum(1 - h, 1e-3)).reshape(Tn, 2, K, 3) * sig ** 2
+        m = np.stack((prep.m_acc.numpy(), prep.m_gyro.numpy()), 1)
+        return z2[:, 0] * m[:, 0], z2[:, 1] * m[:, 1]
 
     sb, sr = sq(base), sq(ref)
     out = {}
