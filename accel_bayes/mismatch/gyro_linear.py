@@ -129,6 +129,17 @@ def _design(g_k: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     return torch.cat((g_k[rows], torch.ones(int(rows.sum()), 1, dtype=torch.float64)), 1)
 
 
+def _lstsq(X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
+    """The least-squares solution β of X β ≈ Y (minimum norm if X is rank-deficient), by LAPACK's
+    SVD driver ``gelsd``.  Not torch's CPU default ``gelsy``: with the MKL that torch ships, gelsy's
+    result depends on the operands' memory alignment (2-7 different last bits over 16 offsets of the
+    same (n, 4) design, n = 97-20000), so that the same recording and seed gave detect reports that
+    differed run to run (tests/mismatch/test_detect_determinism.py); gelsd, gelss and gels gave one
+    result over every offset, and gelsd keeps gelsy's treatment of a rank-deficient design (an IMU
+    turned about one axis only) — the minimum-norm solution below the relative cut-off eps·max(n, 4)."""
+    return torch.linalg.lstsq(X, Y, driver="gelsd").solution
+
+
 def _block_stat_t(g_k: torch.Tensor, A_k: torch.Tensor, b_k: torch.Tensor, sigma: float, rows) -> torch.Tensor:
     """(T,) per-sample statistic |(A_k − I) g_kt + b_k|²/σ² of one block (0 off ``rows``)."""
     d = g_k @ (A_k - torch.eye(3, dtype=torch.float64)).T + b_k
@@ -160,7 +171,7 @@ def relative_blocks(prep: Prepared, g_hat: torch.Tensor, imus) -> dict:
             continue
         X = _design(g_hat[:, k], rows)
         Y = prep.y_gyro[rows, k]
-        beta = torch.linalg.lstsq(X, Y).solution  # (4, 3): Y ≈ X β
+        beta = _lstsq(X, Y)  # (4, 3): Y ≈ X β
         A[k], b[k] = beta[:3].T, beta[3]
         sigma = float(prep.sigma_gyro[k])
         stat_t[:, k] = _block_stat_t(g_hat[:, k], A[k], b[k], sigma, rows)
@@ -341,7 +352,7 @@ def refresh_blocks(prep0: Prepared, stage: GyroLinearStage, fit: ModelFit) -> Mo
         X = _design(pred[:, k], rows)
         for i in range(3):
             sw = ratio[rows, k, i].rsqrt()[:, None]
-            beta = torch.linalg.lstsq(X * sw, prep0.y_gyro[rows, k, i:i + 1] * sw).solution[:, 0]
+            beta = _lstsq(X * sw, prep0.y_gyro[rows, k, i:i + 1] * sw)[:, 0]
             A[k, i], b[k, i] = beta[:3], beta[3]
     prep_c = corrected_gyro(prep0, A, b)
     fit = fit_model(prep_c, [e.copy() for e in fit.effects], init=fit, laplace=False)
