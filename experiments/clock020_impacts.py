@@ -231,12 +231,10 @@ def main(argv=None) -> int:
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/clock020_impacts.py" + (
         "" if args.report == ap.get_default("report") else f" --report {args.report}")
     text = markdown(rows, cmd, time.time() - t0, args)
-    old = args.doc.read_text() if args.doc.exists() else ""
-    marker = "<!-- reading: hand-written below this line, kept when the document is regenerated -->"
-    tail = old[old.index(marker):] if marker in old else marker + "\n"
-    tmp = args.doc.with_suffix(".md.tmp")
-    tmp.write_text(text + "\n" + tail)
-    tmp.replace(args.doc)
+    from accel_bayes.data.outputs import write_text
+    from experiments._reading import READING_MARKER, kept_reading
+
+    write_text(args.doc, text + "\n" + READING_MARKER + (kept_reading(args.doc) or "\n"))
     print(f"wrote {args.doc}")
     return 0
 

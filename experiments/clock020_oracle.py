@@ -90,12 +90,9 @@ def true_acc_delay(truth: dict, k: int) -> float:
 def known_gyro_intrinsics(rec, truth):
     """The recording with each gyroscope's generator 3×3 error and bias inverted, y ← M⁻¹(y − b) (sensor
     frame, rad/s; as :func:`experiments.percov_conceal.known_acc_intrinsics` for the accelerometers)."""
-    out = rec.copy()
-    g = np.asarray(out.gyro, dtype=np.float64).copy()
-    for k, e in enumerate(truth["errors"]["gyro"]):
-        g[:, k] = np.linalg.solve(np.asarray(e["M"]), (g[:, k] - np.asarray(e["bias"])).T).T
-    out.gyro = g
-    return out
+    from experiments.percov_conceal import known_intrinsics
+
+    return known_intrinsics(rec, truth, "gyro")
 
 
 #: the probe's recordings (``--probe``): one piece of the case changed, the detector rerun on it
@@ -189,20 +186,26 @@ def variant_report(report: dict, truth: dict, time_s, variant: str) -> dict:
     return doc
 
 
-def run(args) -> list[dict]:
+def cached_report(rec, path: Path) -> dict:
+    """``detect(rec)``'s report (defaults, seed 0), computed once and cached at ``path``."""
     from accel_bayes.data.outputs import write_json
     from accel_bayes.mismatch import detect
+
+    if not path.exists():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            write_json(path, detect(rec, seed=0).to_dict())
+    return json.loads(path.read_text())
+
+
+def run(args) -> list[dict]:
+    from accel_bayes.data.outputs import write_json
     from experiments.percov_conceal import case_recording, run_variant, score
 
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     rec, truth, pos = case_recording(SEED, 20.0, 5e-4, "known")
-    rep = out / "report.json"
-    if not rep.exists():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            write_json(rep, detect(rec, seed=0).to_dict())
-    report = json.loads(rep.read_text())
+    report = cached_report(rec, out / "report.json")
     t = np.asarray(rec.time, dtype=np.float64)
     rows = []
     for v in VARIANTS:
@@ -226,7 +229,6 @@ def run_probe(args) -> list[dict]:
     """Per :data:`PROBE` row: ``detect`` on the changed recording, then ``a_report`` and ``c_oracle_all``
     calibrated (first sampler seed only); cached in ``args.out/probe-N/``."""
     from accel_bayes.data.outputs import write_json
-    from accel_bayes.mismatch import detect
     from experiments.percov_conceal import run_variant, score
 
     rows = []
@@ -234,12 +236,7 @@ def run_probe(args) -> list[dict]:
         d = args.out / f"probe-{i}"
         d.mkdir(parents=True, exist_ok=True)
         rec, truth, pos = probe_recording(name)
-        rep = d / "report.json"
-        if not rep.exists():
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                write_json(rep, detect(rec, seed=0).to_dict())
-        report = json.loads(rep.read_text())
+        report = cached_report(rec, d / "report.json")
         t = np.asarray(rec.time, dtype=np.float64)
         s = args.seeds[0]
         for v in ("a_report", "c_oracle_all"):

@@ -76,11 +76,17 @@ def known_acc_intrinsics(rec, truth):
     clockgen's motion rests in one orientation only, so the calibration would skip them and the
     uncorrected 0.1 m/s² biases and 0.2–1 % scale errors alone move the positions by millimetres
     (module docstring).  No position and nothing of the clocks is taken from the truth."""
+    return known_intrinsics(rec, truth, "acc")
+
+
+def known_intrinsics(rec, truth, sensor: str):
+    """The recording with each ``sensor`` ("acc" or "gyro") triad's generator 3×3 error and bias
+    inverted, y ← M⁻¹(y − b) (sensor frame, SI units)."""
     out = rec.copy()
-    acc = np.asarray(out.acc, dtype=np.float64).copy()
-    for k, e in enumerate(truth["errors"]["acc"]):
-        acc[:, k] = np.linalg.solve(np.asarray(e["M"]), (acc[:, k] - np.asarray(e["bias"])).T).T
-    out.acc = acc
+    y = np.asarray(getattr(out, sensor), dtype=np.float64).copy()
+    for k, e in enumerate(truth["errors"][sensor]):
+        y[:, k] = np.linalg.solve(np.asarray(e["M"]), (y[:, k] - np.asarray(e["bias"])).T).T
+    setattr(out, sensor, y)
     return out
 
 
