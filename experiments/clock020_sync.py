@@ -28,7 +28,15 @@ the case's own ``detect`` report unless said:
   the generator's truth), which projects the age loadings out there (the type-II scales elsewhere);
 * ``windows_projected_true_ages`` — as above with the report's clocks replaced by the generator's
   (:func:`experiments.clock020_oracle.variant_report`, ``d_oracle_acc_timing``: true beat, phase,
-  drift and each accelerometer's filter delay and read skew).
+  drift and each accelerometer's filter delay and read skew);
+* ``impact_cells_true_ages`` / ``omega_dot_cells_true_ages`` — ``clock020_impacts.md``'s type-II scales per
+  |ω| band × in/out of the impact windows (an oracle of where they are) / × |ω̇| quantile band, with the
+  generator's clocks as above: do accurate ages let the evidence pick the scale the windows need?
+
+``--scan``: no sampling; at ``calibrate --model``'s per-sample mode θ̂ (type-II scales), with the
+generator's clocks and with the case's report, the log-likelihood of the impact windows' samples at θ̂ and
+at the true positions when the fitted scales there are multiplied by c (:data:`SCAN_MULTIPLIERS`): which c
+the data's own evidence prefers, and how much the windows favour θ̂ over the truth at that c.
 
 ``--mixture``: a non-oracle attempt at the first ingredient the oracles point to (a per-sample scale of the
 unresolved motion large enough in the impacts) on all of percov_conceal's cases: after the default type-II fit,
@@ -62,10 +70,13 @@ sys.path.insert(0, str(ROOT.parent))
 DOC = ROOT / "clock020_sync.md"
 SEED = 20
 VARIANTS = ("as_drawn", "twin", "acc_synchronised", "acc_first_order_kept", "gyro_synchronised", "lever_truth",
-            "lever_map", "acc_clock_correction_off", "windows_projected", "windows_projected_true_ages")
+            "lever_map", "acc_clock_correction_off", "windows_projected", "windows_projected_true_ages",
+            "impact_cells_true_ages", "omega_dot_cells_true_ages")
 #: the impact windows' margins (s) and length in decay times; the scales set there (m/s³, rad/s³; in the noise
-#: model's scaled samples): 10²–10³ × the impacts' own jerk and angular jerk, which projects their loadings out
+#: model's scaled samples): about 20–100 × the impacts' own jerk and angular jerk, which projects their loadings out
 WINDOW_MARGIN, WINDOW_TAUS, WINDOW_JERK, WINDOW_ANGJERK = 0.005, 40.0, 1e5, 1e7
+#: the ``--scan``'s multipliers of the fitted scales in the impact windows
+SCAN_MULTIPLIERS = (1.0, 10.0, 100.0, 1e3, 1e4, 1e5)
 #: the ``--mixture`` study's sets of scale multipliers
 MIXTURE_SETS = ((1.0, 10.0, 100.0, 1e3, 1e4), (1.0, 10.0, 100.0), (1.0, 3.0, 10.0, 30.0))
 
@@ -185,9 +196,73 @@ def twin_case(out: Path):
     return rec, pos, rep
 
 
-def run_one(variant: str, seed: int, report: Path, args) -> dict:
+def true_ages_report(report: Path, rec, truth, out: Path) -> Path:
+    """The case's report with its clocks replaced by the generator's (``d_oracle_acc_timing``), written to ``out``."""
     from accel_bayes.data.outputs import write_json
     from experiments.clock020_oracle import variant_report
+
+    rep = out / "report_true_ages.json"
+    write_json(rep, variant_report(json.loads(report.read_text()), truth, np.asarray(rec.time, dtype=np.float64),
+                                   "d_oracle_acc_timing"))
+    return rep
+
+
+def evidence_scan(report: Path, out: Path, chains: int) -> dict:
+    """``--scan`` (module docstring) with ``report``: per multiplier c of the fitted jerk and angular-jerk scales
+    in the impact windows, the windows' log-likelihood (nats, ω at the gyro mean) at θ̂ and at the truth, and the
+    whole recording's at θ̂; θ̂ is the mode at c = 1 (no chains are run)."""
+    import torch
+
+    import accel_bayes.pipelines.calibrate as cal
+    import accel_bayes.pipelines.calibrate_model as cm
+    from accel_bayes.model.likelihood import RaoBlackwellLikelihood
+    from accel_bayes.model.likelihood_percov import with_unresolved_motion
+    from experiments.percov_conceal import run_variant
+
+    rec, truth, pos, tick, tbar, sa, sg, Q, windows = truth_timing()
+    inner, found = cm._model_percov_step, {}
+
+    class _Done(Exception):
+        pass
+
+    def step(lik, terms, omega_norm, sample_scale, *a, **kw):
+        pc = inner(lik, terms, omega_norm, sample_scale, *a, **kw)
+        L = pc.lik
+        t = torch.as_tensor(np.asarray(terms.time, dtype=np.float64))
+        m = torch.zeros(t.shape, dtype=torch.bool)
+        for a0, b0 in windows:
+            m |= (t >= a0) & (t <= b0)
+        base = RaoBlackwellLikelihood(L.acc, L.omega, L.acc_noise_std, 1, reference=L.reference, phi_prior=L.phi_prior)
+        extra = {} if L.age_var is None else {"age_var": L.age_var, "age_rate": L.age_rate}
+        true_p = torch.as_tensor(pos, dtype=torch.float64)[torch.as_tensor(list(lik.imu_labels))]
+        s_t = torch.as_tensor(np.asarray(sample_scale, dtype=np.float64)) * torch.ones(len(t), dtype=torch.float64)
+        rows = []
+        for c in SCAN_MULTIPLIERS:
+            f = torch.where(m, torch.tensor(float(c), dtype=torch.float64), torch.tensor(1.0, dtype=torch.float64))
+            lk = with_unresolved_motion(base, L.age, L.jerk_std * f, angjerk_std=L.angjerk_std * f, lever=L.lever,
+                                        **extra)
+            with torch.no_grad():
+                at_mode = lk.log_lik_per_sample(pc.positions, L.omega.mean)
+                at_truth = lk.log_lik_per_sample(true_p, L.omega.mean)
+            rows.append({"c": c, "window_mode": float(at_mode[m].sum()), "window_truth": float(at_truth[m].sum()),
+                         "total_mode": float(at_mode.sum())})
+        found.update(rows=rows, n_window=int(m.sum()), jerk_window=float((L.jerk_std * s_t)[m].median()),
+                     angjerk_window=float((L.angjerk_std * s_t)[m].median()),
+                     jerk_max_outside=float((L.jerk_std * s_t)[~m].max()),
+                     angjerk_max_outside=float((L.angjerk_std * s_t)[~m].max()))
+        raise _Done
+
+    cm._model_percov_step = cal._model_percov_step = step
+    try:
+        run_variant(rec, "with_angjerk", report, chains, 1, 1, 0)
+    except _Done:
+        pass
+    finally:
+        cm._model_percov_step = cal._model_percov_step = inner
+    return found
+
+
+def run_one(variant: str, seed: int, report: Path, args) -> dict:
     from experiments.percov_conceal import run_variant, score
 
     rec, truth, pos, tick, tbar, sa, sg, Q, windows = truth_timing()
@@ -200,11 +275,16 @@ def run_one(variant: str, seed: int, report: Path, args) -> dict:
     elif variant == "gyro_synchronised":
         rec = rec.copy()
         rec.gyro = np.asarray(rec.gyro, dtype=np.float64) - synchronised(sg, tick, tbar, Q)
-    elif variant == "windows_projected_true_ages":
-        rep = args.out / "report_true_ages.json"
-        write_json(rep, variant_report(json.loads(report.read_text()), truth, np.asarray(rec.time, dtype=np.float64),
-                                       "d_oracle_acc_timing"))
+    elif variant.endswith("_true_ages"):
+        rep = true_ages_report(report, rec, truth, args.out)
     with patched(variant, pos, windows) as state:
+        if variant in ("impact_cells_true_ages", "omega_dot_cells_true_ages"):
+            import accel_bayes.pipelines.calibrate as cal
+            from experiments.clock020_impacts import omega_dot_cells_step
+
+            # wraps patched()'s step; patched() restores the package's on exit
+            cal._model_percov_step = omega_dot_cells_step(
+                cal._model_percov_step, impacts=windows if variant.startswith("impact") else None)
         r = run_variant(rec, "with_angjerk", rep, args.chains, args.draws, args.warmup, seed)
     s = score(r["positions"], pos)
     return {"variant": variant, "seed": seed, "z": s["z"], "coordinates": s["coordinates"], "error_m": s["error_m"],
@@ -344,7 +424,28 @@ def mixture_markdown(mix: list[dict], args) -> list[str]:
     return L
 
 
-def markdown(rows, span, cmd: str, secs: float, args, mix=()) -> str:
+def scan_markdown(scans: dict) -> list[str]:
+    """The ``--scan`` tables, one per set of clocks."""
+    L = []
+    for name, title in (("report", "the case's report"), ("true_ages", "the generator's clocks")):
+        sc = scans.get(name)
+        if not sc:
+            continue
+        L += ["", f"`--scan` with {title}: {sc['n_window']} samples in the impact windows, fitted scales there (median, "
+                  f"physical) {sc['jerk_window']:.3g} m/s³ and {sc['angjerk_window']:.3g} rad/s³ (outside at most "
+                  f"{sc['jerk_max_outside']:.3g} and {sc['angjerk_max_outside']:.3g}); log-likelihood in nats, θ̂ the "
+                  "mode at ×1:", "",
+              "| scales in the windows | windows at θ̂ | windows at the truth | θ̂ − truth | whole recording at θ̂ |",
+              "|---|---|---|---|---|"]
+        best = max(sc["rows"], key=lambda r: r["window_mode"])["c"]
+        for r in sc["rows"]:
+            mark = " (best)" if r["c"] == best else ""
+            L.append(f"| ×{r['c']:g}{mark} | {r['window_mode']:.1f} | {r['window_truth']:.1f} | "
+                     f"{r['window_mode'] - r['window_truth']:+.1f} | {r['total_mode']:.1f} |")
+    return L
+
+
+def markdown(rows, span, cmd: str, secs: float, args, mix=(), scans=None) -> str:
     from experiments._stamp import run_stamp
 
     coords = rows[0]["coordinates"]
@@ -368,6 +469,7 @@ def markdown(rows, span, cmd: str, secs: float, args, mix=()) -> str:
           "|---|---|---|---|---|---|"]
     for s in span:
         L.append(f"| {s['term']} | {s['in']:.4f} | {s['out']:.4f} | {s['res_in']:.4f} | {s['res_out']:.4f} | {s['res_max']:.3f} |")
+    L += scan_markdown(scans or {})
     if mix:
         L += mixture_markdown(list(mix), args)
     return "\n".join(L) + "\n"
@@ -398,6 +500,7 @@ def main(argv=None) -> int:
                                                  "study (e.g. 0-20; default none)")
     ap.add_argument("--mixture-sets", default=",".join(str(i) for i in range(len(MIXTURE_SETS))),
                     help="indices into MIXTURE_SETS (default all)")
+    ap.add_argument("--scan", action="store_true", help="also the evidence scan of the impact windows' scale (no chains)")
     ap.add_argument("--baseline", type=Path, default=ROOT / "out" / "percov_conceal",
                     help="percov_conceal's --out (its reports and with_angjerk runs)")
     args = ap.parse_args(argv)
@@ -432,6 +535,17 @@ def main(argv=None) -> int:
                 print(f"mixture clock-{c:03d} set {i}: z RMS {np.sqrt(np.mean(z ** 2)):.2f}, max |z| {np.abs(z).max():.2f}",
                       flush=True)
             mix.append(json.loads(f.read_text()))
+    scans = {}
+    if args.scan or (args.out / "scan.report.json").exists():
+        for name in ("report", "true_ages"):
+            f = args.out / f"scan.{name}.json"
+            if not f.exists():
+                rep = args.report
+                if name == "true_ages":
+                    rec, truth = truth_timing()[:2]
+                    rep = true_ages_report(args.report, rec, truth, args.out)
+                f.write_text(json.dumps(evidence_scan(rep, args.out, args.chains)))
+            scans[name] = json.loads(f.read_text())
     if args.no_doc:
         return 0
     if not mix:  # the document keeps the study's cached runs
@@ -444,7 +558,9 @@ def main(argv=None) -> int:
     if mix:
         cmd += f" --mixture {args.mixture or '0-20'}" + ("" if args.baseline == ap.get_default("baseline")
                                                          else f" --baseline {args.baseline}")
-    text = markdown(rows, json.loads(sf.read_text()), cmd, time.time() - t0, args, mix)
+    if scans:
+        cmd += " --scan"
+    text = markdown(rows, json.loads(sf.read_text()), cmd, time.time() - t0, args, mix, scans)
     from accel_bayes.data.outputs import write_text
     from experiments._reading import READING_MARKER, kept_reading
 
