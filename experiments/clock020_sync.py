@@ -29,6 +29,14 @@ the case's own ``detect`` report unless said:
 * ``windows_projected_true_ages`` — as above with the report's clocks replaced by the generator's
   (:func:`experiments.clock020_oracle.variant_report`, ``d_oracle_acc_timing``: true beat, phase,
   drift and each accelerometer's filter delay and read skew);
+* ``true_acc_delays`` / ``windows_projected_true_acc_delays`` — the report's clocks (beat, phase, drift)
+  kept, each clocked IMU's accelerometer delay beyond its gyro (``filter_delay_acc_minus_gyro_s``, one
+  board value in the report) replaced by the generator's own per IMU (DLPF difference − read skew,
+  :func:`experiments.clock020_oracle.true_acc_delay`), without / with the windows' scales as above;
+* ``windows_projected_true_clocks_0_2`` — the windows' scales with the report's four clocks kept and the
+  generator's clocks given to the two IMUs the report leaves unclocked (0 and 2; the report's board
+  delay, ``clock020_oracle``'s ``b_oracle_0_2``);
+* ``mixture_true_ages`` — ``--mixture``'s plug-in with the widest set (×{1 … 10⁴}) on the generator's clocks;
 * ``impact_cells_true_ages`` / ``omega_dot_cells_true_ages`` — ``clock020_impacts.md``'s type-II scales per
   |ω| band × in/out of the impact windows (an oracle of where they are) / × |ω̇| quantile band, with the
   generator's clocks as above: do accurate ages let the evidence pick the scale the windows need?
@@ -71,7 +79,8 @@ DOC = ROOT / "clock020_sync.md"
 SEED = 20
 VARIANTS = ("as_drawn", "twin", "acc_synchronised", "acc_first_order_kept", "gyro_synchronised", "lever_truth",
             "lever_map", "acc_clock_correction_off", "windows_projected", "windows_projected_true_ages",
-            "impact_cells_true_ages", "omega_dot_cells_true_ages")
+            "impact_cells_true_ages", "omega_dot_cells_true_ages", "true_acc_delays", "windows_projected_true_acc_delays",
+            "windows_projected_true_clocks_0_2", "mixture_true_ages")
 #: the impact windows' margins (s) and length in decay times; the scales set there (m/s³, rad/s³; in the noise
 #: model's scaled samples): about 20–100 × the impacts' own jerk and angular jerk, which projects their loadings out
 WINDOW_MARGIN, WINDOW_TAUS, WINDOW_JERK, WINDOW_ANGJERK = 0.005, 40.0, 1e5, 1e7
@@ -158,7 +167,8 @@ def patched(variant: str, pos, windows):
             for a0, b0 in windows:
                 m |= (t >= a0) & (t <= b0)
             state["inflated"] = int(m.sum())
-            state["fitted_max"] = (float(torch.as_tensor(jerk_std).max()), float(torch.as_tensor(angjerk_std).max()))
+            state["fitted_max"] = (float(torch.as_tensor(jerk_std).detach().max()),
+                                   float(torch.as_tensor(angjerk_std).detach().max()))
             jerk_std = torch.where(m, torch.full_like(torch.as_tensor(jerk_std), WINDOW_JERK), torch.as_tensor(jerk_std))
             angjerk_std = torch.where(m, torch.full_like(torch.as_tensor(angjerk_std), WINDOW_ANGJERK),
                                       torch.as_tensor(angjerk_std))
@@ -204,6 +214,20 @@ def true_ages_report(report: Path, rec, truth, out: Path) -> Path:
     rep = out / "report_true_ages.json"
     write_json(rep, variant_report(json.loads(report.read_text()), truth, np.asarray(rec.time, dtype=np.float64),
                                    "d_oracle_acc_timing"))
+    return rep
+
+
+def true_delays_report(report: Path, truth, out: Path) -> Path:
+    """The case's report with each clock's ``filter_delay_acc_minus_gyro_s`` the generator's own (module docstring)."""
+    from accel_bayes.data.outputs import write_json
+    from experiments.clock020_oracle import true_acc_delay
+
+    doc = json.loads(report.read_text())
+    for f in doc["findings"]:
+        if f["effect"] == "sampling_clock":
+            f["parameters"]["filter_delay_acc_minus_gyro_s"] = true_acc_delay(truth, int(f["imu"]))
+    rep = out / "report_true_acc_delays.json"
+    write_json(rep, doc)
     return rep
 
 
@@ -277,7 +301,17 @@ def run_one(variant: str, seed: int, report: Path, args) -> dict:
         rec.gyro = np.asarray(rec.gyro, dtype=np.float64) - synchronised(sg, tick, tbar, Q)
     elif variant.endswith("_true_ages"):
         rep = true_ages_report(report, rec, truth, args.out)
-    with patched(variant, pos, windows) as state:
+    elif variant == "windows_projected_true_clocks_0_2":
+        from accel_bayes.data.outputs import write_json
+        from experiments.clock020_oracle import variant_report
+
+        rep = args.out / "report_true_clocks_0_2.json"
+        write_json(rep, variant_report(json.loads(report.read_text()), truth, np.asarray(rec.time, dtype=np.float64),
+                                       "b_oracle_0_2"))
+    elif variant.endswith("true_acc_delays"):
+        rep = true_delays_report(report, truth, args.out)
+    with patched(variant, pos, windows) as state, (
+            mixture_step(MIXTURE_SETS[0], state) if variant == "mixture_true_ages" else contextlib.nullcontext()):
         if variant in ("impact_cells_true_ages", "omega_dot_cells_true_ages"):
             import accel_bayes.pipelines.calibrate as cal
             from experiments.clock020_impacts import omega_dot_cells_step
@@ -289,7 +323,7 @@ def run_one(variant: str, seed: int, report: Path, args) -> dict:
     s = score(r["positions"], pos)
     return {"variant": variant, "seed": seed, "z": s["z"], "coordinates": s["coordinates"], "error_m": s["error_m"],
             "std_m": s["std_m"], "seconds": r["seconds"], "inflated_samples": state.get("inflated"),
-            "fitted_max": state.get("fitted_max"),
+            "fitted_max": state.get("fitted_max"), "mixture_counts": state.get("counts"),
             "findings": [f["effect"] for f in json.loads(Path(rep).read_text())["findings"]]}
 
 
