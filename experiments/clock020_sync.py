@@ -51,7 +51,9 @@ unresolved motion large enough in the impacts) on all of percov_conceal's cases:
 each sample's jerk and angular-jerk scales multiplied by one of a discrete set (:data:`MIXTURE_SETS`), the
 weights by EM on the per-sample log-likelihoods at the model's mode (ω = ω̄), each sample at its most probable
 multiplier (a plug-in, not marginalised in the chains), the mode refitted; compared with percov_conceal's
-``with_angjerk`` run of the same case (``--baseline``).
+``with_angjerk`` run of the same case (``--baseline``).  The drop variant (:data:`DROP_SET`) instead removes
+the samples the widest set's EM puts at ≥ ×100 (an outlier component that carries no information on θ)
+and calibrates the rest with the defaults.
 
 Also a span check with the truth, no calibration: the accelerometers' first-order age effect
 d_k·F_k'(t̄) and the all-order one F_k(tick_k) − F_k(t̄), per sample projected on the columns of the
@@ -88,6 +90,9 @@ WINDOW_MARGIN, WINDOW_TAUS, WINDOW_JERK, WINDOW_ANGJERK = 0.005, 40.0, 1e5, 1e7
 SCAN_MULTIPLIERS = (1.0, 10.0, 100.0, 1e3, 1e4, 1e5)
 #: the ``--mixture`` study's sets of scale multipliers
 MIXTURE_SETS = ((1.0, 10.0, 100.0, 1e3, 1e4), (1.0, 10.0, 100.0), (1.0, 3.0, 10.0, 30.0))
+#: the ``--mixture`` study's drop variant (its index after the sets): the first set's EM at the mode, then the
+#: samples it puts at ≥ DROP_FROM × dropped from a default ``calibrate --model`` (``select``)
+DROP_SET, DROP_FROM = len(MIXTURE_SETS), 100.0
 
 
 def truth_timing():
@@ -362,7 +367,7 @@ def mixture_step(multipliers, info: dict):
             resp = torch.softmax(logpi[:, None] + ll, 0)
             logpi = torch.log(resp.mean(1).clamp_min(1e-12))
         j = resp.argmax(0)
-        info.update(weights=logpi.exp().tolist(), counts=[int((j == i).sum()) for i in range(len(mult))],
+        info.update(weights=logpi.exp().tolist(), counts=[int((j == i).sum()) for i in range(len(mult))], choice=j.tolist(),
                     gain_nats=float(torch.logsumexp(logpi[:, None] + ll, 0).sum() - ll[0].sum()))
         new = build(mult[j])
         P, cov = fixed_omega_mode(new, pc.positions, prior_mean=nominal_acc, prior_std=prior_std)
@@ -376,15 +381,58 @@ def mixture_step(multipliers, info: dict):
 
 
 def run_mixture(case: int, which: int, args) -> dict:
-    """percov_conceal's case ``case`` with the plug-in mixture of :data:`MIXTURE_SETS` [which] (its cached report)."""
+    """percov_conceal's case ``case`` with the plug-in mixture of :data:`MIXTURE_SETS` [which] (its cached report),
+    or with ``which`` = :data:`DROP_SET` the drop variant (module docstring)."""
     from experiments.percov_conceal import case_recording, run_variant, score
 
     rec, truth, pos = case_recording(case, 20.0, 5e-4, "known")
+    if which == DROP_SET:
+        return run_mixture_drop(case, rec, pos, args)
     info = {}
     with mixture_step(MIXTURE_SETS[which], info):
         r = run_variant(rec, "with_angjerk", args.baseline / f"clock-{case:03d}" / "report.json", args.chains,
                         args.draws, args.warmup, 0)
+    info.pop("choice", None)  # per sample; the counts summarise it
     return {"case": case, "set": which, "z": score(r["positions"], pos)["z"], **info}
+
+
+def run_mixture_drop(case: int, rec, pos, args) -> dict:
+    """:data:`DROP_SET` on one case: the EM's choice at the mode (no chains), then ``calibrate --model`` without
+    the samples put at ≥ :data:`DROP_FROM` ×; a case without the angular jerk's scales drops nothing."""
+    import accel_bayes.pipelines.calibrate as cal
+    import accel_bayes.pipelines.calibrate_model as cm
+    from experiments.percov_conceal import run_variant, score
+
+    report = args.baseline / f"clock-{case:03d}" / "report.json"
+    info = {}
+
+    class _Chosen(Exception):
+        pass
+
+    with mixture_step(MIXTURE_SETS[0], info):
+        mixed = cm._model_percov_step
+
+        def step(lik, terms, *a, **k):
+            mixed(lik, terms, *a, **k)
+            info["time"] = np.asarray(terms.time, dtype=np.float64)
+            raise _Chosen
+
+        cm._model_percov_step = cal._model_percov_step = step
+        try:
+            run_variant(rec, "with_angjerk", report, args.chains, 1, 1, 0)
+        except _Chosen:
+            pass
+        finally:
+            cm._model_percov_step = cal._model_percov_step = mixed
+    t = np.asarray(rec.time, dtype=np.float64)
+    keep = np.ones(t.size, dtype=bool)
+    if "choice" in info:
+        flagged = info["time"][np.asarray(MIXTURE_SETS[0])[np.asarray(info["choice"])] >= DROP_FROM]
+        keep[np.searchsorted(t, flagged).clip(0, t.size - 1)] = False
+    r = run_variant(rec, "with_angjerk", report, args.chains, args.draws, args.warmup, 0, select=keep)
+    n = int(info["time"].size) if "time" in info else None
+    return {"case": case, "set": DROP_SET, "z": score(r["positions"], pos)["z"], "dropped": int((~keep).sum()),
+            "counts": [None if n is None else n - int((~keep).sum()), int((~keep).sum())]}
 
 
 def span_check() -> list[dict]:
@@ -427,10 +475,12 @@ def mixture_markdown(mix: list[dict], args) -> list[str]:
     cases = sorted({m["case"] for m in mix})
     sets = sorted({m["set"] for m in mix})
     by = {(m["case"], m["set"]): m for m in mix}
-    head = ["baseline (with_angjerk)"] + ["×{" + ", ".join(f"{c:g}" for c in MIXTURE_SETS[i]) + "}" for i in sets]
+    head = ["baseline (with_angjerk)"] + [
+        f"×{{1 … 10⁴}}, ≥ ×{DROP_FROM:g} dropped" if i == DROP_SET else
+        "×{" + ", ".join(f"{c:g}" for c in MIXTURE_SETS[i]) + "}" for i in sets]
     L = ["", f"## `--mixture`: the plug-in scale mixture on percov_conceal's {len(cases)} cases (sampler seed 0)", "",
-         "z RMS / max |z| per case; the last rows pool the coordinates of all the cases; the final row counts, per "
-         "set, the samples the EM moved off ×1 (summed over the cases).", "",
+         "z RMS / max \\|z\\| per case; the last rows pool the coordinates of all the cases; the final row counts, per "
+         "set, the samples the EM moved off ×1 (for the drop variant: the samples dropped), summed over the cases.", "",
          "| case | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
     pooled = {h: [] for h in head}
     for c in cases:
@@ -450,7 +500,7 @@ def mixture_markdown(mix: list[dict], args) -> list[str]:
         L.append(f"| clock-{c:03d} | " + " | ".join(cells) + " |")
     moved = {h: sum(sum(by[(c, i)].get("counts", [0])[1:]) for c in cases if (c, i) in by) for h, i in zip(head[1:], sets)}
     for name, fn in (("z RMS (bar 0.8–1.25)", lambda z: f"{np.sqrt(np.mean(z ** 2)):.2f}"),
-                     ("max |z| (bar ≤ 4)", lambda z: f"{np.abs(z).max():.2f}"),
+                     ("max \\|z\\| (bar ≤ 4)", lambda z: f"{np.abs(z).max():.2f}"),
                      ("beyond 4 std", lambda z: f"{int((np.abs(z) > 4).sum())}/{z.size}")):
         L.append(f"| **{name}** | " + " | ".join(fn(np.concatenate(pooled[h])) if pooled[h] else "—" for h in head)
                  + " |")
@@ -532,8 +582,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-doc", action="store_true", help="run and cache the variants only")
     ap.add_argument("--mixture", default="", help="comma-separated percov_conceal case seeds for the plug-in mixture "
                                                  "study (e.g. 0-20; default none)")
-    ap.add_argument("--mixture-sets", default=",".join(str(i) for i in range(len(MIXTURE_SETS))),
-                    help="indices into MIXTURE_SETS (default all)")
+    ap.add_argument("--mixture-sets", default=",".join(str(i) for i in range(len(MIXTURE_SETS) + 1)),
+                    help=f"indices into MIXTURE_SETS, {DROP_SET} the drop variant (default all)")
     ap.add_argument("--scan", action="store_true", help="also the evidence scan of the impact windows' scale (no chains)")
     ap.add_argument("--baseline", type=Path, default=ROOT / "out" / "percov_conceal",
                     help="percov_conceal's --out (its reports and with_angjerk runs)")
