@@ -64,16 +64,11 @@ def acc_half_lowers_misfit(prep, fit, clock) -> dict:
     "misfit_with"} (the IMU's restricted accelerometer sums of squares, stated-noise units)."""
     import torch
 
+    from accel_bayes.mismatch.budget import stated_noise_system
     from accel_bayes.mismatch.model import project_off_states
 
-    lin = fit.linear()
     T, K = prep.T, prep.K
-    vr = getattr(getattr(fit.lm, "model", None), "var_ratio", None)
-    back = torch.ones(T, 2, K, 3, dtype=torch.float64) if vr is None else torch.sqrt(vr)
-    back = (back * torch.stack((fit.acc_factor, fit.gyro_factor))[None, :, :, None]).reshape(T, 6 * K)
-    Jx = lin.Jx * back.unsqueeze(-1)                       # the stated-noise whitening
-    Vinv = torch.linalg.inv(Jx.transpose(-1, -2) @ Jx)
-    r = lin.r * back
+    Jx, Vinv, r = stated_noise_system(prep, fit)
     da, _ = clock.perturbation(None, fit.ctx)
     d = torch.zeros(T, 2, K, 3, dtype=torch.float64)
     d[:, 0] = da / prep.sigma_acc[None, :, None] * prep.m_acc
@@ -91,15 +86,11 @@ def acc_half_fit(prep, fit, clock, scale: float | None = None) -> dict:
     (restricted sums of squares, stated-noise units; "without": no accelerometer half)."""
     import torch
 
+    from accel_bayes.mismatch.budget import stated_noise_system
     from accel_bayes.mismatch.model import project_off_states
 
-    lin = fit.linear()
     T, K = prep.T, prep.K
-    vr = getattr(getattr(fit.lm, "model", None), "var_ratio", None)
-    back = torch.ones(T, 2, K, 3, dtype=torch.float64) if vr is None else torch.sqrt(vr)
-    back = (back * torch.stack((fit.acc_factor, fit.gyro_factor))[None, :, :, None]).reshape(T, 6 * K)
-    Jx = lin.Jx * back.unsqueeze(-1)
-    Vinv = torch.linalg.inv(Jx.transpose(-1, -2) @ Jx)
+    Jx, Vinv, r = stated_noise_system(prep, fit)
     k = int(clock.imu)
     age = clock.age(fit.ctx.time)[:, None]
     rate = fit.ctx.acc_rate[:, k] / prep.sigma_acc[k] * prep.m_acc[:, k]          # (T, 3), whitened
@@ -107,7 +98,7 @@ def acc_half_fit(prep, fit, clock, scale: float | None = None) -> dict:
     X[:, 0, k, :, 0] = -age * rate
     X[:, 0, k, :, 1] = -rate
     Xp = project_off_states(Jx, Vinv, X.reshape(T, 6 * K, 2)).reshape(T, 2, K, 3, 2)[:, 0, k]   # (T, 3, 2)
-    rp = project_off_states(Jx, Vinv, lin.r * back).reshape(T, 2, K, 3)[:, 0, k]                # (T, 3)
+    rp = project_off_states(Jx, Vinv, r).reshape(T, 2, K, 3)[:, 0, k]                # (T, 3)
     A, b = Xp.reshape(-1, 2), rp.reshape(-1)
     if scale is None:
         coef = torch.linalg.lstsq(A, b, driver="gelsd").solution

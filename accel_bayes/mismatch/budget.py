@@ -58,7 +58,7 @@ import torch
 from .model import ModelFit
 from .prepared import Prepared
 
-__all__ = ["BANDS", "band_edges", "budget_regimes", "leverage_corrected_sq", "restricted_sq", "predicted_extra_variance", "residual_budget", "group_power"]
+__all__ = ["BANDS", "band_edges", "budget_regimes", "leverage_corrected_sq", "stated_noise_system", "restricted_sq", "predicted_extra_variance", "residual_budget", "group_power"]
 
 BANDS = ((0, 25), (25, 50), (50, 75), (75, 90), (90, 100))  # quantile bands, %
 
@@ -92,24 +92,32 @@ def leverage_corrected_sq(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, 
     return (fit.res_acc ** 2 / one_minus[:, 0] * prep.m_acc, fit.res_gyro ** 2 / one_minus[:, 1] * prep.m_gyro)
 
 
-def restricted_sq(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
-    """(acc, gyro) (T, K, 3) units²: (P_σ r)²/(1 − h_σ)·σ², r the raw residual of ``fit``, P_σ the
-    per-sample residual-maker of the motion states and h_σ their leverage, both in the **stated**
-    noise whitening (σ, no noise factors, no random-effect weights); 0 where unobserved (module
-    docstring).  The fit's linear system is whitened by its own weights (σ·factor·√(variance
-    ratio)): its rows are scaled back to σ before projecting.  Equals :func:`leverage_corrected_sq`
-    for a fit without weights."""
-    from .model import project_off_states
-
+def stated_noise_system(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(Jx (T, 6K, 9), (JxᵀJx)⁻¹ (T, 9, 9), r (T, 6K)): ``fit``'s per-sample motion-state Jacobian and
+    raw residual whitened by the **stated** noise σ alone.  The fit's linear system is whitened by
+    its own weights (σ·factor·√(variance ratio)); its rows are scaled back to σ.  Rows are
+    (acc, gyro) × IMU × axis, as ``fit.linear()``'s."""
     lin = fit.linear()
     T, K = prep.T, prep.K
     vr = getattr(getattr(fit.lm, "model", None), "var_ratio", None)
     back = torch.ones(T, 2, K, 3, dtype=torch.float64) if vr is None else torch.sqrt(vr)
     back = (back * torch.stack((fit.acc_factor, fit.gyro_factor))[None, :, :, None]).reshape(T, 6 * K)
     Jx = lin.Jx * back.unsqueeze(-1)
-    Vinv = torch.linalg.inv(Jx.transpose(-1, -2) @ Jx)
+    return Jx, torch.linalg.inv(Jx.transpose(-1, -2) @ Jx), lin.r * back
+
+
+def restricted_sq(prep: Prepared, fit: ModelFit) -> tuple[torch.Tensor, torch.Tensor]:
+    """(acc, gyro) (T, K, 3) units²: (P_σ r)²/(1 − h_σ)·σ², r the raw residual of ``fit``, P_σ the
+    per-sample residual-maker of the motion states and h_σ their leverage, both in the **stated**
+    noise whitening (σ, no noise factors, no random-effect weights); 0 where unobserved (module
+    docstring), in :func:`stated_noise_system`'s whitening.  Equals :func:`leverage_corrected_sq`
+    for a fit without weights."""
+    from .model import project_off_states
+
+    T, K = prep.T, prep.K
+    Jx, Vinv, r = stated_noise_system(prep, fit)
     h = ((Jx @ Vinv) * Jx).sum(-1)
-    rp = project_off_states(Jx, Vinv, lin.r * back)
+    rp = project_off_states(Jx, Vinv, r)
     z2 = (rp * rp / (1 - h).clamp_min(1e-3)).reshape(T, 2, K, 3)  # as in locate.standardized
     return (z2[:, 0] * prep.sigma_acc[None, :, None] ** 2 * prep.m_acc,
             z2[:, 1] * prep.sigma_gyro[None, :, None] ** 2 * prep.m_gyro)
