@@ -39,6 +39,9 @@ def register(subparsers) -> None:
                    help="also run short PmMH calibrations before/after correcting for the findings (slow)")
     p.add_argument("--seed", type=opt.seed, default=0, help="random seed (PPC twins, Laplace draws; default 0)")
     p.add_argument("--twins", type=opt.count(1), default=100, help="posterior predictive twins (default 100)")
+    p.add_argument("--unresolved-angular-jerk", action="store_true",
+                   help="unresolved_motion also carries the board's angular jerk on the accelerometers, through "
+                        "each triad's lever arm (opt-in; default off)")
     p.add_argument("--no-figures", action="store_true", help="write report.json and report.md without figures")
     p.add_argument("--progress", action="store_true", help="print stage messages")
     p.set_defaults(func=run)

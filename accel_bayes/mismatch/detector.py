@@ -64,7 +64,9 @@ Procedure
    cell with the age error the clocks do not give; random timing effects it supersedes are
    withdrawn and the model refitted without them; a finding (imu null) when either sensor keeps
    it, its log-likelihood gain added to ``refined.loglik``, its predicted variance part of the
-   budget's b.  Not capped by ``max_findings``.
+   budget's b.  Not capped by ``max_findings``.  Opt-in (``unresolved_angular_jerk``, CLI
+   ``--unresolved-angular-jerk``): the accelerometer term also carries the board's unresolved angular
+   jerk through each triad's lever arm (``experiments/budget_gap_probe.md`` measures it).
 8. **Budget** (:func:`accel_bayes.mismatch.budget.residual_budget`, vocabulary 1.1): per sensor and
    per |ω| and |ω̇| quantile band of the baseline motion, the excess variance the baseline leaves
    (a, leverage-corrected squared residual minus the stated variance) and the part the final
@@ -430,7 +432,8 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
     t0 = _time.perf_counter()
     unres = None
     if clock is not None and clock.clocks:
-        kw = dict(threshold=threshold, alpha=alpha, m=m, n_permutations=o.unresolved_permutations, seed=seed + 2)
+        kw = dict(threshold=threshold, alpha=alpha, m=m, n_permutations=o.unresolved_permutations, seed=seed + 2,
+                  angular_jerk=o.unresolved_angular_jerk)
         unres = unresolved_stage(prep, current, clock.clocks, **kw)
         unres, current, gone = supersede_random_timing(prep, current, clock.clocks, unres, **kw)
         if gone:  # their findings leave the report; the refit without them is the final model

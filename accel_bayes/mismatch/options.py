@@ -88,6 +88,10 @@ class DetectOptions:
     unresolved_permutations : permutations of the data ages among the samples of each |ω| band in
         the ``unresolved_motion`` test (default 19; 0 skips the term).
     threads : torch CPU threads for the call (default 1, restored afterwards; None leaves torch's).
+    unresolved_angular_jerk : the ``unresolved_motion`` term on the accelerometers also carries the
+        board's unresolved angular jerk through each triad's lever arm (default False; opt-in while it
+        is measured: ``experiments/read_skew_probe.md``).  In ``settings`` only when True, so that
+        reports and fingerprints of the default are unchanged.
     """
 
     effects: Any = None
@@ -103,6 +107,7 @@ class DetectOptions:
     loo_draws: int = 200
     unresolved_permutations: int = 19
     threads: int | None = DEFAULT_THREADS
+    unresolved_angular_jerk: bool = False
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 — normalising a frozen record's own fields
@@ -132,7 +137,7 @@ class DetectOptions:
             set_("posterior", False)
         if self.threads is not None:
             set_("threads", _int_option("threads", self.threads, 1))
-        for name in ("refine", "progress", "use_map"):
+        for name in ("refine", "progress", "use_map", "unresolved_angular_jerk"):
             set_(name, bool(getattr(self, name)))
 
     @classmethod
@@ -140,7 +145,8 @@ class DetectOptions:
         """The record of ``accel-bayes mismatch``'s parsed arguments (argparse namespace); ``given``
         adds what the command decides itself (``posterior``: the calibration function)."""
         return cls(effects=args.effects, alpha=args.alpha, max_findings=args.max_findings,
-                   refine=not args.no_refine, seed=args.seed, progress=args.progress, n_twins=args.twins, **given)
+                   refine=not args.no_refine, seed=args.seed, progress=args.progress, n_twins=args.twins,
+                   unresolved_angular_jerk=getattr(args, "unresolved_angular_jerk", False), **given)
 
     def to_settings(self) -> dict:
         """The report's ``settings`` (the keys 0.1 wrote, in their order, then the ones added):
@@ -149,7 +155,8 @@ class DetectOptions:
                 "alpha": self.alpha, "max_findings": self.max_findings, "refine": self.refine,
                 "posterior": bool(self.posterior), "seed": self.seed, "n_twins": self.n_twins,
                 "n_refit": self.n_refit, "use_map": self.use_map, "loo_draws": self.loo_draws,
-                "unresolved_permutations": self.unresolved_permutations}
+                "unresolved_permutations": self.unresolved_permutations,
+                **({"unresolved_angular_jerk": True} if self.unresolved_angular_jerk else {})}
 
     def fingerprint(self, recording_sha256: str) -> dict:
         """What a detection's result depends on, known before any computation: the package version, the

@@ -33,7 +33,8 @@ import torch
 
 # The covariance algebra lives in the model layer (issue #30 item 5: one implementation, shared with
 # the calibration likelihood); re-exported here for the detector's callers.
-from ..model.unresolved_cov import gauss_logpdf, loadings, lowrank_terms, marginal_loglik, t_logpdf  # noqa: F401
+from ..model.unresolved_cov import (gauss_logpdf, loadings, lowrank_terms, marginal_loglik,  # noqa: F401
+                                    rotational_loadings, t_logpdf)
 
 __all__ = ["lowrank_terms", "gauss_logpdf", "t_logpdf", "loadings", "marginal_loglik", "fit_scales", "fit_grid",
            "GridFit", "predicted_variance", "finding", "UnresolvedMotion"]
@@ -105,7 +106,8 @@ class GridFit:
     unresolved motion's variance per axis per cell ((units/s)², 0 in an empty cell); ``e2`` the age
     error's variance (s²); ``loglik`` (nats); ``loglik_no_age_error`` (nats, refitted with e2 = 0);
     ``sd_log_s2`` (C,) standard errors of log s2 (NaN where not computed); ``v_no_age_error``,
-    ``s2_no_age_error`` the refit with e2 = 0."""
+    ``s2_no_age_error`` the refit with e2 = 0; ``a2`` / ``a2_no_age_error`` (C,) the angular jerk's
+    variance per axis per cell ((rad/s³)²) where it was fitted (``lever``), else None."""
 
     v: torch.Tensor
     s2: torch.Tensor
@@ -115,24 +117,34 @@ class GridFit:
     sd_log_s2: torch.Tensor
     v_no_age_error: torch.Tensor
     s2_no_age_error: torch.Tensor
+    a2: torch.Tensor | None = None
+    a2_no_age_error: torch.Tensor | None = None
 
 
-def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known, v_floor):
-    """L-BFGS on the per-sample objective of :func:`fit_grid` (e fixed at exp(le) unless ``free_e``)."""
+def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known, v_floor, rot=None, la=None):
+    """L-BFGS on the per-sample objective of :func:`fit_grid` (e fixed at exp(le) unless ``free_e``);
+    with ``rot`` (:func:`_RotTerm`) and ``la`` (C,) log angular-jerk variances, the lever-arm term too."""
     T = a.shape[0]
-    params = [lv, ls] + ([le] if free_e else [])
+    params = [lv, ls] + ([le] if free_e else []) + ([la] if rot is not None else [])
     opt = torch.optim.LBFGS(params, max_iter=300, line_search_fn="strong_wolfe", tolerance_grad=1e-9,
                             tolerance_change=1e-12)
     filled = (counts > 0)[cell]
 
-    def nll(lv_, ls_, le_):
+    def nll(lv_, ls_, le_, la_=None):
+        if rot is not None:
+            # a line-search step may try e^(log-variance) that overflows; the rank-6 factorisation needs finite
+            # variances (the jerk-only closed form does not), so the log-variances are capped at e^LOG_VAR_CAP
+            ls_, la_ = ls_.clamp(max=LOG_VAR_CAP), la_.clamp(max=LOG_VAR_CAP)
         s2 = torch.where(filled, torch.exp(ls_)[cell], torch.zeros((), dtype=a.dtype))
         v = v_floor[None, :] + torch.exp(lv_)[None, :] + torch.exp(le_) * s2[:, None] + v_known
-        return -marginal_loglik(a, d, w, v, s2).sum()
+        if rot is None:
+            return -marginal_loglik(a, d, w, v, s2).sum()
+        sa2 = torch.where(filled, torch.exp(la_)[cell], torch.zeros((), dtype=a.dtype))
+        return -rot.loglik(a, v, s2, sa2, torch.exp(le_)).sum()
 
     def closure():
         opt.zero_grad()
-        loss = nll(lv, ls, le) / T  # per sample: keeps L-BFGS's tolerances meaningful
+        loss = (nll(lv, ls, le) if rot is None else nll(lv, ls, le, la)) / T  # per sample: keeps L-BFGS's tolerances meaningful
         loss.backward()
         return loss
 
@@ -141,8 +153,46 @@ def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known, v_floor):
     return nll
 
 
+#: the largest log-variance the lever-arm fit evaluates (:func:`_grid_lbfgs`): e^60 ≈ (10¹³)², far above any jerk
+#: (m/s³) or angular jerk (rad/s³) a board carries, far below overflow
+LOG_VAR_CAP = 60.0
+
+
+class _RotTerm:
+    """The board's unresolved angular jerk ω̈_t on the accelerometers beside the jerk (:func:`fit_grid`'s
+    ``lever``): triad k's residual gains −(d_kt + ε_kt)(ω̈_t × c_k), c_k its lever arm (m) about the
+    clocked triads' centroid, ω̈_t ~ N(0, a²_c I₃) rad/s³ — the same loading the calibration's likelihood
+    carries (:func:`~accel_bayes.model.unresolved_cov.rotational_loadings`).  Per sample the 3K residuals
+    have covariance diag(v + e²s² + e²a² ρ_k) + s² (d ⊗ I₃)(…)ᵀ + a² R Rᵀ, ρ_ki = |c_k|² − c_ki² the
+    squared row norms of [c_k]×; evaluated exactly by :func:`lowrank_terms` (rank 6)."""
+
+    def __init__(self, d: torch.Tensor, w: torch.Tensor, lever: torch.Tensor, centred: bool = False):
+        T, K = d.shape
+        c = torch.as_tensor(lever, dtype=d.dtype)
+        c = c if centred else c - c.mean(0, keepdim=True)  # ``centred``: lever arms given about their point
+        self.rowsq = (c ** 2).sum(-1, keepdim=True) - c ** 2  # (K, 3)
+        self.U = torch.cat((loadings(d), rotational_loadings(d, c, about=torch.zeros(3, dtype=d.dtype))), -1)
+        self.ww = w[:, :, None].expand(T, K, 3).reshape(T, 3 * K)
+        self.T, self.K = T, K
+
+    def loglik(self, a, v, s2, sa2, e2) -> torch.Tensor:
+        """(T,) nats: a (T, K, 3) residuals, v (T, K) white variances (with e² s²), s2 / sa2 (T,) the jerk's
+        and the angular jerk's variances per axis, e2 the age error's variance (s²)."""
+        T, K = self.T, self.K
+        vv = v[:, :, None] + e2 * sa2[:, None, None] * self.rowsq[None]
+        S = torch.stack([s2] * 3 + [sa2] * 3, -1)
+        q, ld = lowrank_terms(a.reshape(T, 3 * K), self.U, S, v=vv.reshape(T, 3 * K), w=self.ww)
+        return gauss_logpdf(q, ld, self.ww.sum(-1))
+
+    def predicted(self, d: torch.Tensor, w: torch.Tensor, sa2: torch.Tensor, e2: float) -> torch.Tensor:
+        """(T, K) units²: the angular jerk's extra variance per channel, a² (d² + e²) |c_k|²·⅔ (the triad's
+        mean over its three axes: the budget's channel mean does not depend on the frame)."""
+        return sa2[:, None] * (d ** 2 + e2) * w * (self.rowsq.sum(-1) / 3.0)[None, :]
+
+
 def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tensor, C: int, *,
-             v_known: torch.Tensor | None = None, v_floor: torch.Tensor | None = None, std: bool = True) -> GridFit:
+             v_known: torch.Tensor | None = None, v_floor: torch.Tensor | None = None, std: bool = True,
+             lever: torch.Tensor | None = None) -> GridFit:
     """Maximum-likelihood fit of the unresolved motion seen through the clocks' ages *and* an age
     error the clocks do not give (issue #27 budget):
 
@@ -159,44 +209,62 @@ def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tens
     units²: variance per channel the model already predicts (its random effects), added to the
     white part so that the term is fitted on top of it, not in its place.  ``v_floor`` (K,) units²:
     the least white variance per IMU (its stated noise): without it an IMU's white variance can
-    collapse to 0 with its residual taken wholly by d_k m_t (a Heywood case of the factor model)."""
+    collapse to 0 with its residual taken wholly by d_k m_t (a Heywood case of the factor model).
+
+    ``lever`` (K, 3) m, accelerometers only: the triads' positions; the board's unresolved angular
+    jerk is then fitted beside the jerk, y_kt += −(d_kt + ε_kt)(ω̈_t × c_k), ω̈_t ~ N(0, a²_c I₃) rad/s³
+    per cell, c_k about the triads' centroid (:class:`_RotTerm`; ``GridFit.a2``).  A rigid board's
+    triads read at different instants see its rotation's jerk through their lever arms, which the
+    jerk m_t (the same on every triad) cannot carry."""
     T, K = w.shape
     v_known = torch.zeros_like(w) if v_known is None else v_known
     v_floor = torch.zeros(K, dtype=a.dtype) if v_floor is None else torch.as_tensor(v_floor, dtype=a.dtype)
     counts = torch.bincount(cell, minlength=C)
     p = (a ** 2).sum(-1) * w
     d2 = float((d ** 2 * w).sum() / w.sum().clamp_min(1))
-    # start: a tenth of each IMU's power white, half the mean power on the term, ε of 0.1 ms
+    rot = None if lever is None else _RotTerm(d, w, lever)
+    # start: a tenth of each IMU's power white, half the mean power on the term, ε of 0.1 ms; the angular
+    # jerk (when fitted) starts with the same share through the mean squared lever arm
     lv_0 = torch.log((0.1 * p.sum(0) / (3 * w.sum(0)).clamp_min(1)).clamp_min(1e-12))
-    ls_0 = torch.full((C,), math.log(max(0.5 * float(p.sum() / (3 * w.sum().clamp_min(1))) / max(d2, 1e-30), 1e-12)),
-                      dtype=a.dtype)
+    s2_start = max(0.5 * float(p.sum() / (3 * w.sum().clamp_min(1))) / max(d2, 1e-30), 1e-12)
+    ls_0 = torch.full((C,), math.log(s2_start), dtype=a.dtype)
+    la_0 = None
+    if rot is not None:
+        c2 = max(float(rot.rowsq.sum(-1).mean()) / 3.0, 1e-12)
+        la_0 = torch.full((C,), math.log(s2_start / c2), dtype=a.dtype)
     lv, ls = lv_0.clone().requires_grad_(True), ls_0.clone().requires_grad_(True)
+    la = None if rot is None else la_0.clone().requires_grad_(True)
     le = torch.tensor(math.log(1e-8), dtype=a.dtype, requires_grad=True)
-    nll = _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, True, v_known, v_floor)
+    nll = _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, True, v_known, v_floor, rot, la)
+    call = (lambda f, lv_, ls_, le_, la_: f(lv_, ls_, le_)) if rot is None else \
+        (lambda f, lv_, ls_, le_, la_: f(lv_, ls_, le_, la_))
     with torch.no_grad():
-        ll = float(-nll(lv, ls, le))
-    fit = (lv.detach().clone(), ls.detach().clone(), le.detach().clone())
+        ll = float(-call(nll, lv, ls, le, la))
+    fit = (lv.detach().clone(), ls.detach().clone(), le.detach().clone(), None if la is None else la.detach().clone())
     # the same without the age error, from the same start (its evidence is the difference)
     lv0, ls0 = lv_0.clone().requires_grad_(True), ls_0.clone().requires_grad_(True)
+    la0 = None if rot is None else la_0.clone().requires_grad_(True)
     le0 = torch.tensor(-200.0, dtype=a.dtype)
-    nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor)
+    nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor, rot, la0)
     with torch.no_grad():
-        ll0 = float(-nll0(lv0, ls0, le0))
+        ll0 = float(-call(nll0, lv0, ls0, le0, la0))
     if not math.isfinite(ll0):  # the line search left the domain from that start: from the fit instead
         lv0, ls0 = fit[0].clone().requires_grad_(True), fit[1].clone().requires_grad_(True)
-        nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor)
+        la0 = None if rot is None else fit[3].clone().requires_grad_(True)
+        nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor, rot, la0)
         with torch.no_grad():
-            ll0 = float(-nll0(lv0, ls0, le0))
-    lv, ls, le = fit
+            ll0 = float(-call(nll0, lv0, ls0, le0, la0))
+    lv, ls, le, la = fit
     sd = torch.full((C,), float("nan"), dtype=a.dtype)
     if std:
-        x = torch.cat((lv, ls, le[None]))
+        x = torch.cat((lv, ls, le[None]) + (() if la is None else (la,)))
 
         def f(x_):
-            return nll(x_[:K], x_[K:K + C], x_[K + C])
+            return call(nll, x_[:K], x_[K:K + C], x_[K + C], None if la is None else x_[K + C + 1:])
 
         H = torch.autograd.functional.hessian(f, x, vectorize=True)
-        keep = torch.cat((torch.ones(K, dtype=torch.bool), counts > 0, torch.ones(1, dtype=torch.bool)))
+        keep = torch.cat((torch.ones(K, dtype=torch.bool), counts > 0, torch.ones(1, dtype=torch.bool))
+                         + (() if la is None else (counts > 0,)))
         try:
             cov = torch.linalg.inv(H[keep][:, keep])
             sd[counts > 0] = torch.sqrt(torch.diagonal(cov)[K:K + int((counts > 0).sum())].clamp_min(0))
@@ -205,7 +273,14 @@ def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tens
     zero = torch.zeros((), dtype=a.dtype)
     s2 = torch.where(counts > 0, torch.exp(ls), zero)
     s20 = torch.where(counts > 0, torch.exp(ls0.detach()), zero)
-    return GridFit(v_floor + torch.exp(lv), s2, float(torch.exp(le)), ll, ll0, sd, v_floor + torch.exp(lv0.detach()), s20)
+    a2 = a20 = None
+    if rot is not None:  # the variances the fit evaluated (capped as in _grid_lbfgs)
+        s2 = torch.where(counts > 0, torch.exp(ls.clamp(max=LOG_VAR_CAP)), zero)
+        s20 = torch.where(counts > 0, torch.exp(ls0.detach().clamp(max=LOG_VAR_CAP)), zero)
+        a2 = torch.where(counts > 0, torch.exp(la.clamp(max=LOG_VAR_CAP)), zero)
+        a20 = torch.where(counts > 0, torch.exp(la0.detach().clamp(max=LOG_VAR_CAP)), zero)
+    return GridFit(v_floor + torch.exp(lv), s2, float(torch.exp(le)), ll, ll0, sd, v_floor + torch.exp(lv0.detach()), s20,
+                   a2, a20)
 
 
 def predicted_variance(d: torch.Tensor, w: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
@@ -243,7 +318,11 @@ class UnresolvedMotion:
     IMUs (those with a nonzero ``d``, or ``w`` (T, K) 0/1 when given).
     ``predicted_variance(params, ctx)`` is the budget's hook
     (:func:`accel_bayes.mismatch.budget.predicted_extra_variance`); :meth:`loglik` the term's
-    contribution to a refit's log-likelihood given white variances."""
+    contribution to a refit's log-likelihood given white variances.
+
+    ``angular_jerk_rms`` (same shape as ``jerk_rms``, rad/s³) with ``lever`` (K, 3) m, the triads'
+    lever arms about the clocked triads' centroid: the board's unresolved angular jerk on the
+    accelerometers (:func:`fit_grid`'s ``lever``); None: not in the term (the default detector)."""
 
     d: torch.Tensor
     lab: torch.Tensor
@@ -255,6 +334,8 @@ class UnresolvedMotion:
     omega_dot_edges: list | None = None
     age_error_rms: tuple = (0.0, 0.0)
     w: torch.Tensor | None = None
+    angular_jerk_rms: torch.Tensor | None = None
+    lever: torch.Tensor | None = None
 
     def _mask(self) -> torch.Tensor:
         return (self.d != 0).to(self.d.dtype) if self.w is None else self.w.to(self.d.dtype)
@@ -262,39 +343,52 @@ class UnresolvedMotion:
     def _s2(self, scales) -> torch.Tensor:
         return torch.as_tensor(scales, dtype=self.d.dtype)[self.lab] ** 2
 
+    def _rot(self, w) -> "_RotTerm | None":
+        return None if self.angular_jerk_rms is None else _RotTerm(self.d * w, w, self.lever, centred=True)
+
     def predicted_variance(self, params=None, ctx=None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(acc, gyro) (T, K, 3): s² (d² + e²) per channel (units²), the same on the three axes."""
+        """(acc, gyro) (T, K, 3): s² (d² + e²) per channel (units²), the same on the three axes; with
+        the angular jerk, its a² (d² + e²) |c_k|²·⅔ on the accelerometers too."""
         w = self._mask()
         out = []
         for s, e in zip((self.jerk_rms, self.angular_acc_rms), self.age_error_rms):
             s2 = self._s2(s)
-            out.append(((predicted_variance(self.d, w, s2) + s2[:, None] * float(e) ** 2 * w)[..., None])
-                       .expand(*self.d.shape, 3))
-        return out[0], out[1]
+            out.append(predicted_variance(self.d, w, s2) + s2[:, None] * float(e) ** 2 * w)
+        rot = self._rot(w)
+        if rot is not None:
+            out[0] = out[0] + rot.predicted(self.d, w, self._s2(self.angular_jerk_rms), float(self.age_error_rms[0]) ** 2)
+        return out[0][..., None].expand(*self.d.shape, 3), out[1][..., None].expand(*self.d.shape, 3)
 
     def loglik(self, y_acc, y_gyro, w, v_acc, v_gyro) -> torch.Tensor:
         """Per-sample log density (nats, (T,)) of both sensors' array-frame residuals (T, K, 3)
         with white variances v (T, K) and this term marginalised (:func:`marginal_loglik`)."""
         out = 0.0
-        for y, v, s, e in ((y_acc, v_acc, self.jerk_rms, self.age_error_rms[0]),
-                           (y_gyro, v_gyro, self.angular_acc_rms, self.age_error_rms[1])):
+        rot = self._rot(w)
+        for y, v, s, e, r in ((y_acc, v_acc, self.jerk_rms, self.age_error_rms[0], rot),
+                              (y_gyro, v_gyro, self.angular_acc_rms, self.age_error_rms[1], None)):
             s2 = self._s2(s)
-            out = out + marginal_loglik(y, self.d * w, w, v + float(e) ** 2 * s2[:, None] * w, s2)
+            if r is None:
+                out = out + marginal_loglik(y, self.d * w, w, v + float(e) ** 2 * s2[:, None] * w, s2)
+            else:
+                out = out + r.loglik(y, v + float(e) ** 2 * s2[:, None] * w, s2, self._s2(self.angular_jerk_rms),
+                                     float(e) ** 2)
         return out
 
-    def band_rms(self) -> tuple[list, list]:
+    def band_rms(self, scales=None) -> tuple[list, list]:
         """(jerk m/s³, angular acceleration rad/s²) rms per |ω| band: the scales themselves, or with
-        cells the root of their mean square over the band's samples."""
+        cells the root of their mean square over the band's samples.  ``scales``: other per-cell
+        scales (e.g. ``angular_jerk_rms``) instead, returned as a one-element tuple."""
+        pair = (self.jerk_rms, self.angular_acc_rms) if scales is None else (scales,)
         if self.omega_dot_edges is None:
-            return [float(x) for x in self.jerk_rms], [float(x) for x in self.angular_acc_rms]
+            return tuple([float(x) for x in s] for s in pair)
         C = len(self.omega_dot_edges) + 1
         band = self.lab // C
         out = []
-        for s in (self.jerk_rms, self.angular_acc_rms):
+        for s in pair:
             s2 = self._s2(s)
             out.append([float(torch.sqrt(s2[band == b].mean())) if bool((band == b).any()) else 0.0
                         for b in range(len(self.edges) + 1)])
-        return out[0], out[1]
+        return tuple(out)
 
     def finding(self, evidence: float) -> dict:
         """The report's finding (:func:`finding`)."""

@@ -94,6 +94,10 @@ class UnresolvedEffect:
                       "angular_acc_rms_grid": [float(x) for x in self.term.angular_acc_rms],
                       "age_error_rms_s": {"acc": float(self.term.age_error_rms[0]),
                                           "gyro": float(self.term.age_error_rms[1])}})
+        if self.term.angular_jerk_rms is not None:  # beyond vocabulary 1.2's two scales (opt-in, DetectOptions)
+            p["angular_jerk_rms"] = self.term.band_rms(self.term.angular_jerk_rms)[0]
+            if self.term.omega_dot_edges is not None:
+                p["angular_jerk_rms_grid"] = [float(x) for x in self.term.angular_jerk_rms]
         p.update({f"{k}_std": [float(x) for x in v] for k, v in self._std.items()})
         return p
 
@@ -170,14 +174,17 @@ def _cells(fit: ModelFit, lab: torch.Tensor, od_edges=None) -> tuple[list, torch
 
 
 def term_for(prep: Prepared, fit: ModelFit, clocks, jerk_rms, angular_acc_rms, *, sensors=SENSORS, std=None,
-             grid: bool = False, age_error_rms=(0.0, 0.0), omega_edges=None, omega_dot_edges=None) -> UnresolvedEffect:
+             grid: bool = False, age_error_rms=(0.0, 0.0), omega_edges=None, omega_dot_edges=None,
+             angular_jerk_rms=None) -> UnresolvedEffect:
     """The term with given scales (m/s³, rad/s² per axis) loaded by ``clocks``' physical data ages
     (:func:`physical_ages`) at ``prep``'s samples — e.g. scales fitted on another recording of the
     same board.  Scales per |ω| band b, or with ``grid`` per cell b·C + c (|ω̇| band c,
     :func:`_cells`) with ``age_error_rms`` (acc, gyro) s.  The bands are ``fit``'s own |ω| and |ω̇|
     quantile bands, or the absolute inner edges ``omega_edges`` (rad/s) and ``omega_dot_edges``
     (rad/s²) when given: with scales from another recording, give that recording's edges (its
-    report's), so that each borrowed scale is applied to the same motion it was fitted on."""
+    report's), so that each borrowed scale is applied to the same motion it was fitted on.
+    ``angular_jerk_rms`` (rad/s³, per band or cell like ``jerk_rms``): the board's unresolved angular
+    jerk on the accelerometers too, lever arms the design positions about the clocked triads' centroid."""
     age, has, edges, lab = _ages_and_bands(prep, fit, clocks, omega_edges)
     # one term: the accelerometers' and the gyroscopes' ages differ only by which triads enter
     w = has[None, :].to(age.dtype).expand_as(age)
@@ -188,8 +195,13 @@ def term_for(prep: Prepared, fit: ModelFit, clocks, jerk_rms, angular_acc_rms, *
     term = UnresolvedMotion(d=d, lab=lab, edges=list(edges), jerk_rms=torch.as_tensor(jerk_rms, dtype=torch.float64),
                             angular_acc_rms=torch.as_tensor(angular_acc_rms, dtype=torch.float64),
                             omega_dot_edges=od_edges, age_error_rms=tuple(float(e) for e in age_error_rms), w=w)
+    if angular_jerk_rms is not None:
+        nominal = torch.as_tensor(prep.nominal, dtype=torch.float64)
+        term.angular_jerk_rms = torch.as_tensor(angular_jerk_rms, dtype=torch.float64)
+        term.lever = nominal - nominal[has].mean(0, keepdim=True)
     n = (len(edges) + 1) * (len(od_edges) + 1 if grid else 1)
-    for name, v in (("jerk_rms", term.jerk_rms), ("angular_acc_rms", term.angular_acc_rms)):
+    for name, v in (("jerk_rms", term.jerk_rms), ("angular_acc_rms", term.angular_acc_rms)) + (
+            () if angular_jerk_rms is None else (("angular_jerk_rms", term.angular_jerk_rms),)):
         if v.shape != (n,):
             raise ValueError(f"{name}: expected {n} scales ({'cells' if grid else '|omega| bands'}), got {tuple(v.shape)}")
     return UnresolvedEffect(term, std or {}, list(sensors))
@@ -208,11 +220,13 @@ def _band_rms_std(s2: torch.Tensor, sd_log: torch.Tensor, cell: torch.Tensor, C:
 
 
 def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float, alpha: float, m: int,
-                     n_permutations: int = 19, seed: int = 0) -> UnresolvedStage:
+                     n_permutations: int = 19, seed: int = 0, angular_jerk: bool = False) -> UnresolvedStage:
     """Fit and test ``unresolved_motion`` at ``fit`` with the data ages of the accepted ``clocks``
     (:class:`~accel_bayes.physics.effects.SamplingClock`) — module docstring.  ``threshold``,
     ``alpha``, ``m``: the detector's threshold, family-wise rate and Bonferroni count;
-    ``n_permutations`` 0 skips the stage."""
+    ``n_permutations`` 0 skips the stage.  ``angular_jerk``: the kept accelerometer term also carries
+    the board's unresolved angular jerk through the triads' lever arms (design positions; :func:`fit_grid`'s
+    ``lever``), its predicted variance part of b; the test is the jerk's alone."""
     from scipy.stats import norm
 
     imus = sorted({int(c.imu) for c in clocks})
@@ -260,7 +274,8 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
         # the kept term's scales per |ω| × |ω̇| cell, the white noise one constant per IMU, and the
         # age error the clocks do not give (fit_grid); the age error is kept only past the threshold
         sig2 = ((prep.sigma_acc if s == "acc" else prep.sigma_gyro) ** 2)[has]
-        g = fit_grid(a, d, w, cell, B * C, v_known=known[s][:, has] * w, v_floor=sig2)
+        lever = torch.as_tensor(prep.nominal, dtype=a.dtype)[has] if (angular_jerk and s == "acc") else None
+        g = fit_grid(a, d, w, cell, B * C, v_known=known[s][:, has] * w, v_floor=sig2, lever=lever)
         lr_age = 2.0 * (g.loglik - g.loglik_no_age_error)
         # a fit that failed (non-finite scales or likelihood) is never reported: the other one is used,
         # and with neither the sensor is not kept (a report with null scales is refused by calibrate --model)
@@ -273,6 +288,7 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
         use_age = fine[0] and (not fine[1] or not lr_age <= threshold)
         s2, ll, sd_log = (g.s2, g.loglik, g.sd_log_s2) if use_age else (g.s2_no_age_error, g.loglik_no_age_error,
                                                                         torch.full_like(g.s2, float("nan")))
+        a2 = g.a2 if use_age else g.a2_no_age_error
         rms = torch.sqrt(s2)
         lr = 2.0 * (ll - ll0)
         per[s].update({"likelihood_ratio": lr, f"{_SCALE_NAME[s]}_cells": rms.tolist(),
@@ -280,6 +296,11 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
                        "age_error_rms_s": math.sqrt(g.e2) if use_age else 0.0, "age_error_lr": lr_age,
                        "age_error_kept": bool(use_age), "white_var": (g.v if use_age else g.v_no_age_error).tolist(),
                        "loglik_cells": ll, "loglik_bands": ll1, "loglik_null": ll0})
+        if a2 is not None:
+            ang_rms = torch.sqrt(a2)
+            per[s].update({"angular_jerk_rms_cells": ang_rms.tolist(),
+                           "angular_jerk_rms": [float(torch.sqrt(a2[cell][lab == b].mean())) for b in range(B)]})
+            scales["angular_jerk"] = ang_rms
         kept.append(s)
         scales[s], ages_rms[s] = rms, (math.sqrt(g.e2) if use_age else 0.0)
         stds[_SCALE_NAME[s]] = _band_rms_std(s2, sd_log, cell, C, B)
@@ -287,11 +308,11 @@ def unresolved_stage(prep: Prepared, fit: ModelFit, clocks, *, threshold: float,
         evidence += lr
     info = {"imus": imus, "omega_edges": [float(e) for e in edges], "omega_dot_edges": [float(e) for e in od_edges],
             "permutations": int(n_permutations), "seed": int(seed), "z": z, "sensors": per, "kept": kept,
-            "mean_refit": False}
+            "mean_refit": False, "angular_jerk": bool(angular_jerk)}
     if not kept:
         return UnresolvedStage(None, 0.0, 0.0, info)
     eff = term_for(prep, fit, clocks, scales["acc"], scales["gyro"], sensors=kept, std=stds, grid=True,
-                   age_error_rms=(ages_rms["acc"], ages_rms["gyro"]))
+                   age_error_rms=(ages_rms["acc"], ages_rms["gyro"]), angular_jerk_rms=scales.get("angular_jerk"))
     info["loglik_gain"] = gain
     return UnresolvedStage(eff, evidence, gain, info)
 

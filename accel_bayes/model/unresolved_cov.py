@@ -85,7 +85,7 @@ def loadings(d: torch.Tensor) -> torch.Tensor:
     return (d[:, :, None, None] * eye).reshape(T, 3 * K, 3)
 
 
-def rotational_loadings(d: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+def rotational_loadings(d: torch.Tensor, r: torch.Tensor, about: torch.Tensor | None = None) -> torch.Tensor:
     """U (T, 3K, 3): the centred data ages d (T, K) s as the loading of the board's unresolved
     angular jerk ω̈_t (rad/s³) on the K accelerometer triads at positions r (K, 3) m.
 
@@ -95,13 +95,15 @@ def rotational_loadings(d: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     triad k = d_kt [r_k − r̄]× (sign immaterial for a zero-mean prior).  Positions are taken about
     their centroid r̄: an origin shift o adds d_kt [o]×, which lies in the span of :func:`loadings`,
     so only the split of variance between the two terms depends on it.  A common age is absorbed
-    by the motion states' ω̇ column as for the jerk, hence d centred (:func:`centred_ages`)."""
+    by the motion states' ω̇ column as for the jerk, hence d centred (:func:`centred_ages`).
+    ``about`` (3,) m: the point the lever arms are taken about instead of the centroid of ``r``
+    (the detector's term keeps the centroid of the clocked triads when it loads all K)."""
     d = torch.as_tensor(d)
     r = torch.as_tensor(r, dtype=d.dtype, device=d.device)
     T, K = d.shape
     if r.shape != (K, 3):
         raise ValueError(f"rotational_loadings: r must be ({K}, 3) positions (m), got {tuple(r.shape)}")
-    rc = r - r.mean(0, keepdim=True)
+    rc = r - (r.mean(0, keepdim=True) if about is None else torch.as_tensor(about, dtype=d.dtype).reshape(1, 3))
     z = torch.zeros(K, dtype=d.dtype, device=d.device)
     cross = torch.stack([torch.stack([z, -rc[:, 2], rc[:, 1]], -1),
                          torch.stack([rc[:, 2], z, -rc[:, 0]], -1),
