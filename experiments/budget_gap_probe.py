@@ -285,6 +285,24 @@ def gap_markdown(rows: list[dict], src: Path) -> list[str]:
     return L
 
 
+def fail_directions(records: list[dict], sensor: str = "acc") -> tuple[int, int, int]:
+    """(under, over, small): the ``sensor`` bands (not "all") failing issue #27's rule with b/a < 0.7, with
+    b/a > 1.3, and with a ≤ 3 SE but |b − a| > 3 SE, summed over the cases' budgets."""
+    under = over = small = 0
+    for rec in records:
+        for x in rec["budget"]:
+            if x["sensor"] != sensor or x["regime"] == "all":
+                continue
+            a, b, se = x["excess_var_observed"], x["excess_var_explained"], x["excess_var_observed_se"]
+            if a <= 3 * se:
+                small += abs(b - a) > 3 * se
+            elif b / a > 1.3:
+                over += 1
+            elif b / a < 0.7:
+                under += 1
+    return under, over, small
+
+
 def offset_agreement(rows) -> str:
     """One line: the fitted offsets against the true ones over the clocked IMUs (both centred over them)."""
     est, tru = [], []
@@ -368,6 +386,9 @@ def main(argv=None) -> int:
          "a ≤ 3 SE); 10 bands per sensor."]
     for v, rows in by_variant.items():
         part = variant_markdown(v, rows)
+        fb, fn = fail_directions([b for b, _ in rows]), fail_directions([n for _, n in rows])
+        part[3:3] = [f"Failing accelerometer bands, baseline → variant: b/a < 0.7 {fb[0]} → {fn[0]}, b/a > 1.3 {fb[1]} → "
+                     f"{fn[1]}, a ≤ 3 SE with |b − a| > 3 SE {fb[2]} → {fn[2]}.", ""]
         if v == "skew_fitted":
             part[3:3] = [offset_agreement(rows), ""]
         L += part
