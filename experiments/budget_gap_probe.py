@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""What fills the accelerometer gap a − b of issue #27's concealed budget?  Four variants.  (issue #27)
+"""What fills the accelerometer gap a − b of issue #27's concealed budget?  Five variants.  (issue #27)
 
 ``experiments/clock_budget.md``: the whole detector's §7.2 budget passes on 6/30 clockgen clock cases,
 the accelerometers short in most (acc bands 204/300, median b/a of "all" 0.81).  On percov_conceal's
@@ -38,6 +38,16 @@ what each IMU's excess follows among the generator's draws.  ``--real``: the six
 cached whole-recording detections (``mimu_mismatch``) with step 7a and the budget recomputed without and with
 the angular jerk (the real budget passes every band today; the option must keep it).
 
+A fifth variant follows ``acc_known``'s result (the reading):
+
+* ``acc_blocks`` — no oracle: ``acc_known`` with the blocks estimated instead of taken from the truth.  A
+  pre-pass (:func:`estimated_acc_blocks`) prepares the recording as ``detect`` does, runs the gyro linear
+  stage, regresses every triad's accelerometer outputs on the fitted nominal specific force [f̂_k, 1] (the gyro
+  stage's regression, on the accelerometers), alternating twice with the motion, holds the median triad's
+  isotropic scale at 0 (the array-size gauge) and inverts the blocks on the recording; ``detect`` then runs on
+  it.  Every block is applied (no test): what an accelerometer linear stage could give at most, with its
+  estimation error.  Like ``acc_known`` it changes a as well as b.
+
 Interception (``skew_*``): the script wraps ``SamplingClock.age`` / ``physical_age`` and the detector's
 ``clock_corrected`` while it runs (its own patch; the package is not changed).
 
@@ -58,7 +68,7 @@ ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT.parent))
 DOC = ROOT / "budget_gap_probe.md"
 BASELINE = ROOT / "results" / "clock_budget"
-VARIANTS = ("skew_truth", "skew_fitted", "acc_known", "angular_jerk")
+VARIANTS = ("skew_truth", "skew_fitted", "acc_known", "angular_jerk", "acc_blocks")
 
 
 def fitted_offsets(clocks) -> dict:
@@ -69,6 +79,69 @@ def fitted_offsets(clocks) -> dict:
         return {}
     m = float(np.mean(list(c.values())))
     return {k: -(v - m) for k, v in c.items()}
+
+
+def estimated_acc_blocks(rec, truth: dict | None = None, passes: int = 2) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``acc_blocks``' pre-pass (module docstring): every triad's [A_k | b_k] by the gyro linear stage's regression
+    (:func:`accel_bayes.mismatch.gyro_linear.relative_blocks`' form) of its accelerometer outputs on the fitted
+    nominal specific force [f̂_k, 1], alternated ``passes`` times with the motion refitted on the corrected outputs,
+    the median triad's isotropic scale held at 0 (the array-size gauge).  Returns (A (K, 3, 3), b (K, 3) m/s²,
+    info); with ``truth`` the info compares the blocks' spread over the triads with the generator's."""
+    import dataclasses
+
+    import torch
+
+    from accel_bayes.mismatch import baseline_fit, prepare
+    from accel_bayes.mismatch.fit import fit_model
+    from accel_bayes.mismatch.gyro_linear import _design, _lstsq, gyro_linear_stage
+
+    prep = prepare(rec)
+    if prep.preparation["intrinsics"]["applied"]:
+        raise ValueError("acc_blocks: prep applied intrinsics; the blocks would be on transformed outputs")
+    base, _ = baseline_fit(prep)
+    st = gyro_linear_stage(prep, base, m=30, alpha=0.01)  # the detector's step 3a first (its Bonferroni m ~ 30)
+    p1, fit = st.prep, st.fit
+    K = prep.K
+    I3 = torch.eye(3, dtype=torch.float64)
+    A, b = I3.repeat(K, 1, 1), torch.zeros(K, 3, dtype=torch.float64)
+    imus = [int(k) for k in np.flatnonzero(np.asarray(prep.has_acc))]
+    for _ in range(int(passes)):
+        for k in imus:
+            rows = prep.m_acc[:, k].min(-1).values > 0
+            beta = _lstsq(_design(fit.ctx.acc[:, k], rows), prep.y_acc[rows, k])
+            A[k], b[k] = beta[:3].T, beta[3]
+        y = torch.einsum("kij,tkj->tki", torch.linalg.inv(A), p1.y_acc - b[None])
+        fit = fit_model(dataclasses.replace(p1, y_acc=y * p1.m_acc), [], init=fit, laplace=False)
+    iso = float(torch.stack([torch.diagonal(A[k]).sum() / 3 - 1 for k in imus]).median())
+    A, b = A / (1 + iso), b / (1 + iso)
+    info = {"imus": imus, "isotropic_gauge_removed": iso}
+    if truth is not None:
+        info.update(block_output_error(rec, truth, A.numpy(), b.numpy(), imus))
+    return A.numpy(), b.numpy(), info
+
+
+def block_output_error(rec, truth: dict, A: np.ndarray, b: np.ndarray, imus) -> dict:
+    """How much of the accelerometers' linear errors the blocks (A, b) take off the recording's outputs: the rms
+    over samples, triads and axes of the outputs' error against the generator's inverse (y − M⁻¹(y − b_true)),
+    before and after the blocks are inverted, each in the array frame less its mean over the triads per sample
+    (an error common to every triad is not identifiable), m/s²."""
+    import torch
+
+    from accel_bayes.physics.geometry import quat_to_matrix
+    from experiments.percov_conceal import known_acc_intrinsics
+
+    y = np.asarray(rec.acc, dtype=np.float64)[:, imus]
+    yk = np.asarray(known_acc_intrinsics(rec, truth).acc, dtype=np.float64)[:, imus]
+    ye = np.stack([np.linalg.solve(A[k], (np.asarray(rec.acc, dtype=np.float64)[:, k] - b[k]).T).T for k in imus], 1)
+    R = quat_to_matrix(torch.as_tensor(np.asarray(rec.nominal_orientation, dtype=np.float64)[imus])).numpy()
+
+    def spread(z):  # array frame, less the triads' mean per sample
+        z = np.einsum("kji,tkj->tki", R, z)
+        return z - z.mean(1, keepdims=True)
+
+    ok = np.isfinite(y).all((1, 2))
+    return {"output_error_before_rms": float(np.sqrt(np.mean(spread(y - yk)[ok] ** 2))),
+            "output_error_after_rms": float(np.sqrt(np.mean(spread(ye - yk)[ok] ** 2)))}
 
 
 def truth_offsets(truth: dict) -> dict:
@@ -85,7 +158,7 @@ def patched(variant: str, truth: dict):
     from accel_bayes.physics.effects.clock import SamplingClock
 
     offsets = truth_offsets(truth) if variant == "skew_truth" else {}
-    if variant in ("acc_known", "angular_jerk"):  # nothing patched: the recording or an option changes (run_case)
+    if variant in ("acc_known", "angular_jerk", "acc_blocks"):  # nothing patched: the recording or an option changes
         yield offsets
         return
     old_age, old_phys, old_cc = SamplingClock.age, SamplingClock.physical_age, mc.clock_corrected
@@ -126,6 +199,14 @@ def run_case(variant: str, seed: int, out: Path) -> dict:
         from experiments.percov_conceal import known_acc_intrinsics
 
         rec = known_acc_intrinsics(rec, truth)
+    blocks = None
+    if variant == "acc_blocks":
+        A, b, blocks = estimated_acc_blocks(rec, truth)
+        rec = rec.copy()
+        y = np.asarray(rec.acc, dtype=np.float64).copy()
+        for k in blocks["imus"]:
+            y[:, k] = np.linalg.solve(A[k], (y[:, k] - b[k]).T).T
+        rec.acc = y
     t0 = time.perf_counter()
     with patched(variant, truth) as offsets:
         doc = detect(rec, unresolved_angular_jerk=variant == "angular_jerk").to_dict()
@@ -134,7 +215,7 @@ def run_case(variant: str, seed: int, out: Path) -> dict:
            "findings": [{"effect": f["effect"], "imu": f.get("imu"), "sensor": f.get("sensor")} for f in doc["findings"]],
            "budget": doc["budget"], "verdict": case_verdict(doc["budget"]),
            "offsets_s": {str(k): v for k, v in sorted(offsets.items())},
-           "true_offsets_s": {str(k): v for k, v in truth_offsets(truth).items()}}
+           "true_offsets_s": {str(k): v for k, v in truth_offsets(truth).items()}, "acc_blocks": blocks}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, res)
     return res
@@ -391,6 +472,15 @@ def main(argv=None) -> int:
                      f"{fn[1]}, a ≤ 3 SE with |b − a| > 3 SE {fb[2]} → {fn[2]}.", ""]
         if v == "skew_fitted":
             part[3:3] = [offset_agreement(rows), ""]
+        if v == "acc_blocks":
+            bl = [n["acc_blocks"] for _, n in rows if n.get("acc_blocks")]
+            q = lambda key: np.median([x[key] for x in bl])  # noqa: E731
+            ratio = [x["output_error_after_rms"] / x["output_error_before_rms"] for x in bl]
+            part[3:3] = [f"The estimated blocks against the generator's (`block_output_error`: the outputs' linear-error "
+                         f"spread over the triads, array frame, rms, median over {len(bl)} cases): "
+                         f"{q('output_error_before_rms'):.4f} m/s² before, {q('output_error_after_rms'):.4f} m/s² after the "
+                         f"blocks; left / before median {np.median(ratio):.2f} (10–90 % {np.quantile(ratio, 0.1):.2f} – "
+                         f"{np.quantile(ratio, 0.9):.2f}).", ""]
         L += part
     if real:
         L += real_markdown(real, args.real_from)
