@@ -90,7 +90,7 @@ class DetectOptions:
     threads : torch CPU threads for the call (default 1, restored afterwards; None leaves torch's).
     unresolved_angular_jerk : the ``unresolved_motion`` term on the accelerometers also carries the
         board's unresolved angular jerk through each triad's lever arm (default False; opt-in while it
-        is measured: ``experiments/read_skew_probe.md``).  In ``settings`` only when True, so that
+        is measured: ``experiments/budget_gap_probe.md``).  In ``settings`` only when True, so that
         reports and fingerprints of the default are unchanged.
     """
 

@@ -130,7 +130,7 @@ def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known, v_floor, 
                             tolerance_change=1e-12)
     filled = (counts > 0)[cell]
 
-    def nll(lv_, ls_, le_, la_=None):
+    def nll(lv_, ls_, le_, la_=None):  # la_: the angular jerk's log-variances, used with ``rot`` only
         if rot is not None:
             # a line-search step may try e^(log-variance) that overflows; the rank-6 factorisation needs finite
             # variances (the jerk-only closed form does not), so the log-variances are capped at e^LOG_VAR_CAP
@@ -144,7 +144,7 @@ def _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, free_e, v_known, v_floor, 
 
     def closure():
         opt.zero_grad()
-        loss = (nll(lv, ls, le) if rot is None else nll(lv, ls, le, la)) / T  # per sample: keeps L-BFGS's tolerances meaningful
+        loss = nll(lv, ls, le, la) / T  # per sample: keeps L-BFGS's tolerances meaningful
         loss.backward()
         return loss
 
@@ -171,9 +171,16 @@ class _RotTerm:
         c = torch.as_tensor(lever, dtype=d.dtype)
         c = c if centred else c - c.mean(0, keepdim=True)  # ``centred``: lever arms given about their point
         self.rowsq = (c ** 2).sum(-1, keepdim=True) - c ** 2  # (K, 3)
-        self.U = torch.cat((loadings(d), rotational_loadings(d, c, about=torch.zeros(3, dtype=d.dtype))), -1)
-        self.ww = w[:, :, None].expand(T, K, 3).reshape(T, 3 * K)
+        self.d, self.w, self.c = d, w, c
+        self.ww = w[:, :, None].expand(T, K, 3).reshape(T, 3 * K)  # the channels' 0/1 weights
         self.T, self.K = T, K
+        self._U = None  # the (T, 3K, 6) loadings, built on the first loglik (the budget's predicted variance needs none)
+
+    @property
+    def U(self) -> torch.Tensor:
+        if self._U is None:
+            self._U = torch.cat((loadings(self.d), rotational_loadings(self.d, self.c, about=torch.zeros(3, dtype=self.d.dtype))), -1)
+        return self._U
 
     def loglik(self, a, v, s2, sa2, e2) -> torch.Tensor:
         """(T,) nats: a (T, K, 3) residuals, v (T, K) white variances (with e² s²), s2 / sa2 (T,) the jerk's
@@ -184,10 +191,10 @@ class _RotTerm:
         q, ld = lowrank_terms(a.reshape(T, 3 * K), self.U, S, v=vv.reshape(T, 3 * K), w=self.ww)
         return gauss_logpdf(q, ld, self.ww.sum(-1))
 
-    def predicted(self, d: torch.Tensor, w: torch.Tensor, sa2: torch.Tensor, e2: float) -> torch.Tensor:
+    def predicted(self, sa2: torch.Tensor, e2: float) -> torch.Tensor:
         """(T, K) units²: the angular jerk's extra variance per channel, a² (d² + e²) |c_k|²·⅔ (the triad's
         mean over its three axes: the budget's channel mean does not depend on the frame)."""
-        return sa2[:, None] * (d ** 2 + e2) * w * (self.rowsq.sum(-1) / 3.0)[None, :]
+        return sa2[:, None] * (self.d ** 2 + e2) * self.w * (self.rowsq.sum(-1) / 3.0)[None, :]
 
 
 def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tensor, C: int, *,
@@ -236,10 +243,8 @@ def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tens
     la = None if rot is None else la_0.clone().requires_grad_(True)
     le = torch.tensor(math.log(1e-8), dtype=a.dtype, requires_grad=True)
     nll = _grid_lbfgs(a, d, w, cell, C, counts, lv, ls, le, True, v_known, v_floor, rot, la)
-    call = (lambda f, lv_, ls_, le_, la_: f(lv_, ls_, le_)) if rot is None else \
-        (lambda f, lv_, ls_, le_, la_: f(lv_, ls_, le_, la_))
     with torch.no_grad():
-        ll = float(-call(nll, lv, ls, le, la))
+        ll = float(-nll(lv, ls, le, la))
     fit = (lv.detach().clone(), ls.detach().clone(), le.detach().clone(), None if la is None else la.detach().clone())
     # the same without the age error, from the same start (its evidence is the difference)
     lv0, ls0 = lv_0.clone().requires_grad_(True), ls_0.clone().requires_grad_(True)
@@ -247,20 +252,20 @@ def fit_grid(a: torch.Tensor, d: torch.Tensor, w: torch.Tensor, cell: torch.Tens
     le0 = torch.tensor(-200.0, dtype=a.dtype)
     nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor, rot, la0)
     with torch.no_grad():
-        ll0 = float(-call(nll0, lv0, ls0, le0, la0))
+        ll0 = float(-nll0(lv0, ls0, le0, la0))
     if not math.isfinite(ll0):  # the line search left the domain from that start: from the fit instead
         lv0, ls0 = fit[0].clone().requires_grad_(True), fit[1].clone().requires_grad_(True)
         la0 = None if rot is None else fit[3].clone().requires_grad_(True)
         nll0 = _grid_lbfgs(a, d, w, cell, C, counts, lv0, ls0, le0, False, v_known, v_floor, rot, la0)
         with torch.no_grad():
-            ll0 = float(-call(nll0, lv0, ls0, le0, la0))
+            ll0 = float(-nll0(lv0, ls0, le0, la0))
     lv, ls, le, la = fit
     sd = torch.full((C,), float("nan"), dtype=a.dtype)
     if std:
         x = torch.cat((lv, ls, le[None]) + (() if la is None else (la,)))
 
         def f(x_):
-            return call(nll, x_[:K], x_[K:K + C], x_[K + C], None if la is None else x_[K + C + 1:])
+            return nll(x_[:K], x_[K:K + C], x_[K + C], None if la is None else x_[K + C + 1:])
 
         H = torch.autograd.functional.hessian(f, x, vectorize=True)
         keep = torch.cat((torch.ones(K, dtype=torch.bool), counts > 0, torch.ones(1, dtype=torch.bool))
@@ -356,7 +361,7 @@ class UnresolvedMotion:
             out.append(predicted_variance(self.d, w, s2) + s2[:, None] * float(e) ** 2 * w)
         rot = self._rot(w)
         if rot is not None:
-            out[0] = out[0] + rot.predicted(self.d, w, self._s2(self.angular_jerk_rms), float(self.age_error_rms[0]) ** 2)
+            out[0] = out[0] + rot.predicted(self._s2(self.angular_jerk_rms), float(self.age_error_rms[0]) ** 2)
         return out[0][..., None].expand(*self.d.shape, 3), out[1][..., None].expand(*self.d.shape, 3)
 
     def loglik(self, y_acc, y_gyro, w, v_acc, v_gyro) -> torch.Tensor:
