@@ -9,6 +9,7 @@ import torch
 
 from accel_bayes.mismatch.options import DetectOptions
 from accel_bayes.mismatch.unresolved import UnresolvedMotion, _RotTerm, fit_grid
+from tests.mismatch._true_clocks import true_clock_case
 
 
 def _cross(c):
@@ -131,35 +132,13 @@ def test_option_is_opt_in_and_leaves_default_settings_alone():
     assert DetectOptions.from_args(ap.parse_args(["mismatch", "rec.nc", "--out", "o"])).unresolved_angular_jerk is False
 
 
-class _TrueClock:
-    """An IMU's clock as the stage reads it (``imu``, ``age(t)``), from the generator's truth."""
-
-    def __init__(self, imu, stamps, ages):
-        self.imu, self._stamps, self._ages = imu, np.asarray(stamps), np.asarray(ages)
-
-    def age(self, t):
-        return torch.as_tensor(self._ages[np.searchsorted(self._stamps, np.asarray(t))], dtype=torch.float64)
-
-
 def _stage_on_clockgen(drop=()):
-    """The stage with the angular jerk on clockgen's clock case 3 (mimu4444 at 62.5 Hz, 8 s, no linear errors,
-    true data ages, the clocks' mean effect taken off as the clock stage does); ``drop``: motion pieces removed."""
-    import dataclasses
-
-    from accel_bayes.mismatch import baseline_fit, fit_model, prepare
+    """The stage with and without the angular jerk on the shared true-clock case (:mod:`tests.mismatch._true_clocks`:
+    clockgen's clock case 3, mimu4444 at 62.5 Hz, 8 s, no linear errors); ``drop``: motion pieces removed."""
     from accel_bayes.mismatch.budget import residual_budget
     from accel_bayes.mismatch.unresolved_stage import unresolved_stage
-    from experiments.clockgen import draw_case
 
-    rec, truth = draw_case("clock", 3, duration=8.0, f_host=62.5, board_name="mimu4444", errors=False, drift=False,
-                           drop=drop)
-    prep = prepare(rec)
-    fit, _ = baseline_fit(prep)
-    clocks = [_TrueClock(k, truth["pose"]["time"], truth["data_age"][:, k]) for k in range(prep.K)]
-    age = torch.stack([c.age(prep.time) for c in clocks], 1)[..., None]
-    prep = dataclasses.replace(prep, y_acc=(prep.y_acc + age * fit.ctx.acc_rate) * prep.m_acc,
-                               y_gyro=(prep.y_gyro + age * fit.ctx.gyro_rate) * prep.m_gyro)
-    fit = fit_model(prep, [], init=fit, laplace=False)
+    prep, fit, _, clocks = true_clock_case(drop=drop)
     kw = dict(threshold=24.0, alpha=0.01, m=400, n_permutations=5, seed=0)
     plain = unresolved_stage(prep, fit, clocks, **kw)
     rot = unresolved_stage(prep, fit, clocks, angular_jerk=True, **kw)

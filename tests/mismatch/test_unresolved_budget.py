@@ -16,34 +16,13 @@ import numpy as np
 import pytest
 import torch
 
-from accel_bayes.mismatch import baseline_fit, fit_model, prepare
 from accel_bayes.mismatch.budget import residual_budget
 from accel_bayes.mismatch.unresolved_stage import unresolved_stage
-
-
-class _TrueClock:
-    """An IMU's clock as the stage reads it (``imu``, ``age(t)``), from the generator's truth."""
-
-    def __init__(self, imu, stamps, ages):
-        self.imu, self._stamps, self._ages = imu, np.asarray(stamps), np.asarray(ages)
-
-    def age(self, t):
-        return torch.as_tensor(self._ages[np.searchsorted(self._stamps, np.asarray(t))], dtype=torch.float64)
+from tests.mismatch._true_clocks import true_clock_case
 
 
 def _budget(vibration: bool):
-    from experiments.clockgen import draw_case
-
-    rec, truth = draw_case("clock", 3, duration=8.0, f_host=62.5, board_name="mimu4444", vibration=vibration,
-                           errors=False, drift=False)
-    prep = prepare(rec)
-    fit, _ = baseline_fit(prep)
-    clocks = [_TrueClock(k, truth["pose"]["time"], truth["data_age"][:, k]) for k in range(prep.K)]
-    # the clocks' mean effect off the outputs (the resolved motion seen late), as clock_corrected does
-    age = torch.stack([c.age(prep.time) for c in clocks], 1)[..., None]
-    prep = dataclasses.replace(prep, y_acc=(prep.y_acc + age * fit.ctx.acc_rate) * prep.m_acc,
-                               y_gyro=(prep.y_gyro + age * fit.ctx.gyro_rate) * prep.m_gyro)
-    fit = fit_model(prep, [], init=fit, laplace=False)
+    prep, fit, _, clocks = true_clock_case(vibration=vibration)
     st = unresolved_stage(prep, fit, clocks, threshold=24.0, alpha=0.01, m=400, n_permutations=5, seed=0)
     without = residual_budget(prep, fit, fit)
     with_term = residual_budget(prep, fit, fit, extra=[st.effect] if st.effect is not None else [])

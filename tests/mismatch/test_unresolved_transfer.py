@@ -13,25 +13,15 @@ Two defects made a scale fitted on one recording mean something else on another:
 """
 from __future__ import annotations
 
-import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
-from accel_bayes.mismatch import baseline_fit, fit_model, make_effect, prepare
+from accel_bayes.mismatch import make_effect
 from accel_bayes.mismatch.unresolved_stage import physical_ages, term_for, unresolved_stage
-
-
-class _TrueClock:
-    """An IMU's clock as the stage reads it (``imu``, ``age(t)``), from the generator's truth."""
-
-    def __init__(self, imu, stamps, ages):
-        self.imu, self._stamps, self._ages = imu, np.asarray(stamps), np.asarray(ages)
-
-    def age(self, t):
-        return torch.as_tensor(self._ages[np.searchsorted(self._stamps, np.asarray(t))], dtype=torch.float64)
+from tests.mismatch._true_clocks import true_clock_case
 
 
 def _clock_effects(truth, t, width_factor):
@@ -54,19 +44,7 @@ def _clock_effects(truth, t, width_factor):
 
 @pytest.fixture(scope="module")
 def vibrating_case():
-    from experiments.clockgen import draw_case
-
-    rec, truth = draw_case("clock", 3, duration=8.0, f_host=62.5, board_name="mimu4444", vibration=True,
-                           errors=False, drift=False)
-    prep = prepare(rec)
-    fit, _ = baseline_fit(prep)
-    true = [_TrueClock(k, truth["pose"]["time"], truth["data_age"][:, k]) for k in range(prep.K)]
-    # the clocks' mean effect off the outputs, as the detector's clock stage does
-    age = torch.stack([c.age(prep.time) for c in true], 1)[..., None]
-    prep = dataclasses.replace(prep, y_acc=(prep.y_acc + age * fit.ctx.acc_rate) * prep.m_acc,
-                               y_gyro=(prep.y_gyro + age * fit.ctx.gyro_rate) * prep.m_gyro)
-    fit = fit_model(prep, [], init=fit, laplace=False)
-    return prep, fit, truth, true
+    return true_clock_case(vibration=True)
 
 
 def _stage(prep, fit, clocks):
