@@ -259,6 +259,26 @@ def variant_markdown(variant: str, rows: list[tuple[dict, dict]]) -> list[str]:
     return L
 
 
+def rows_by_variant(names, seeds, run, out: Path, error) -> dict:
+    """{variant: [(clock_budget's record, the variant's record), …]} over the clock case ``seeds``, each case
+    run (or read from its cache) by ``run(variant, seed, out)``, one progress line per case; ``error`` (argparse's
+    ``ap.error``) reports a case without a clock_budget record.  Shared with ``budget_gap_probe``."""
+    by_variant = {}
+    for v in names:
+        rows = []
+        for s in seeds:
+            base = BASELINE / f"clock-{s:03d}.json"
+            if not base.exists():
+                error(f"--cases: no clock_budget record for clock-{s:03d} in {BASELINE}; run experiments/clock_budget.py")
+            new = run(v, s, out)
+            print(f"{v} clock-{s:03d} {new['board']} {new['f_host']:g} Hz: acc bands {_bands(new, 'acc')}, gyro bands "
+                  f"{_bands(new, 'gyro')}, {'pass' if new['verdict']['pass'] else 'FAIL'} ({new['seconds']:.0f} s)",
+                  flush=True)
+            rows.append((json.loads(base.read_text()), new))
+        by_variant[v] = rows
+    return by_variant
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of "
@@ -274,19 +294,7 @@ def main(argv=None) -> int:
     if any(v not in VARIANTS for v in names):
         ap.error(f"--variants: expected a subset of {', '.join(VARIANTS)}, got {args.variants!r}")
     t0 = time.time()
-    by_variant = {}
-    for v in names:
-        rows = []
-        for s in seeds:
-            base = BASELINE / f"clock-{s:03d}.json"
-            if not base.exists():
-                ap.error(f"--cases: no clock_budget record for clock-{s:03d} in {BASELINE}; run experiments/clock_budget.py")
-            new = run_case(v, s, args.out)
-            print(f"{v} clock-{s:03d} {new['board']} {new['f_host']:g} Hz: acc bands "
-                  f"{10 - len(new['verdict']['acc']['failing'])}, {'pass' if new['verdict']['pass'] else 'FAIL'} "
-                  f"({new['seconds']:.0f} s)", flush=True)
-            rows.append((json.loads(base.read_text()), new))
-        by_variant[v] = rows
+    by_variant = rows_by_variant(names, seeds, run_case, args.out, ap.error)
     if args.no_doc:
         return 0
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/acc_correction_probe.py" + (

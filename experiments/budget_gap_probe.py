@@ -67,7 +67,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT.parent))
 DOC = ROOT / "budget_gap_probe.md"
-BASELINE = ROOT / "results" / "clock_budget"
 VARIANTS = ("skew_truth", "skew_fitted", "acc_known", "angular_jerk", "acc_blocks")
 
 
@@ -418,7 +417,7 @@ def main(argv=None) -> int:
     ap.add_argument("--real-from", type=Path, default=ROOT / "out" / "mimu_mismatch_s10",
                     help="the cached detections (exp_i/state.pt, report.json) for --real")
     args = ap.parse_args(argv)
-    from experiments.acc_correction_probe import variant_markdown
+    from experiments.acc_correction_probe import rows_by_variant, variant_markdown
     from experiments.clock020_sync import _cases
 
     seeds = _cases(args.cases)
@@ -426,19 +425,7 @@ def main(argv=None) -> int:
     if any(v not in VARIANTS for v in names):
         ap.error(f"--variants: expected a subset of {', '.join(VARIANTS)}, got {args.variants!r}")
     t0 = time.time()
-    by_variant = {}
-    for v in names:
-        rows = []
-        for s in seeds:
-            base = BASELINE / f"clock-{s:03d}.json"
-            if not base.exists():
-                ap.error(f"--cases: no clock_budget record for clock-{s:03d} in {BASELINE}; run experiments/clock_budget.py")
-            new = run_case(v, s, args.out)
-            print(f"{v} clock-{s:03d} {new['board']} {new['f_host']:g} Hz: acc bands "
-                  f"{10 - len(new['verdict']['acc']['failing'])}, gyro bands {10 - len(new['verdict']['gyro']['failing'])}, "
-                  f"{'pass' if new['verdict']['pass'] else 'FAIL'} ({new['seconds']:.0f} s)", flush=True)
-            rows.append((json.loads(base.read_text()), new))
-        by_variant[v] = rows
+    by_variant = rows_by_variant(names, seeds, run_case, args.out, ap.error)
     real = []
     if args.real:
         for i in range(1, 7):
