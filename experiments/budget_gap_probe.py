@@ -282,7 +282,9 @@ def real_markdown(rows: list[tuple[dict, dict]], src: Path) -> list[str]:
          f"Step 7a and the budget recomputed on `mimu_mismatch`'s cached whole-recording detections (`{_rel(src)}`), the "
          "detector's own settings read from each report, without (`restaged`: today's default) and with the angular jerk. "
          "Budget b/a of “all” and bands passing issue #27's rule; the accelerometer white variance the term leaves above "
-         "the stated noise (mean over the clocked IMUs, (m/s²)²); the angular jerk's rms per |ω| band.", "",
+         "the stated noise (mean over the clocked IMUs, (m/s²)²); the angular jerk's rms per |ω| band; the accelerometer "
+         "term's log-likelihood gain on the same recording (in sample: not scored held out against DESIGN §7.2.1's "
+         "generic models).", "",
          "| exp | acc b/a (bands) restaged → angular jerk | gyro b/a (bands) | acc white excess | angular jerk rms per \\|ω\\| band (rad/s³) | Δ log L acc term (nats) | seconds |",
          "|---|---|---|---|---|---|---|"]
     for r0, r1 in rows:
