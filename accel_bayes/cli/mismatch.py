@@ -42,6 +42,9 @@ def register(subparsers) -> None:
     p.add_argument("--unresolved-angular-jerk", action="store_true",
                    help="unresolved_motion also carries the board's angular jerk on the accelerometers, through "
                         "each triad's lever arm (opt-in; default off)")
+    p.add_argument("--acc-linear", action="store_true",
+                   help="run the accelerometer linear stage: every triad's 3x3 scale/misalignment and offset, "
+                        "estimated as one block where the recording's rests cannot calibrate them (opt-in; default off)")
     p.add_argument("--no-figures", action="store_true", help="write report.json and report.md without figures")
     p.add_argument("--progress", action="store_true", help="print stage messages")
     p.set_defaults(func=run)

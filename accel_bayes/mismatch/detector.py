@@ -31,6 +31,12 @@ Procedure
    rest in the residual, where a random timing effect explains them better (1/21 concealed
    multi-effect cases named right before this stage, experiments/mismatch_multi.md).  Skipped
    when ``effects`` does not name ``gyro_linear`` (the default names every effect).
+3a'. **Accelerometer linear stage** (opt-in, ``DetectOptions(acc_linear=True)``;
+   :mod:`accel_bayes.mismatch.acc_linear`): the same for every accelerometer triad
+   (:class:`~accel_bayes.physics.effects.AccLinear`, vocabulary ``acc_scale`` axis null), regressed on
+   the fitted specific force, without a common part, its spread tested by inverting the strongest
+   triad's block alone; not run where ``prep`` calibrated the triads from the rests.  The rounds then
+   never try an acc bias/scale/misalignment term on a triad that has a block.
 3b. **Clock stage** (:mod:`accel_bayes.mismatch.clock`): on every IMU with a gyroscope, a
    ``sampling_clock`` (:class:`~accel_bayes.physics.effects.SamplingClock`: the data age a sawtooth
    beating against the read rate, shared by the IMU's acc and gyro) found by a beat-frequency search
@@ -113,7 +119,9 @@ from .clock import clock_corrected, clock_stage
 from .compare import compare_fits, posterior_comparison
 from .filter_delay import filter_delay
 from .fit import _effect_std, baseline_fit, fit_model
+from .acc_linear import ACC_LINEAR_TERMS, acc_linear_stage
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
+from .linear_blocks import block_arrays, corrected_outputs
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
 from .options import DetectOptions
 from .prepared import prepare
@@ -163,9 +171,10 @@ def detect(recording, options: DetectOptions | None = None, **keywords) -> Misma
         return _detect(recording, options)
 
 
-def _stage_findings(prep, reg, stage, clock, fd) -> list[Finding]:
+def _stage_findings(prep, reg, stages, clock, fd) -> list[Finding]:
     """The findings of the stages held fixed in the rounds: one per accepted clock (its filter delay
-    as :func:`~accel_bayes.mismatch.filter_delay.filter_delay` found it) and one per gyro block."""
+    as :func:`~accel_bayes.mismatch.filter_delay.filter_delay` found it) and one per block of the
+    linear ``stages`` (gyro, then accelerometer; None where a stage did not run)."""
     out = []
     for c in (clock.clocks if clock is not None else []):
         ev = float(c.stats["evidence"])
@@ -178,14 +187,16 @@ def _stage_findings(prep, reg, stage, clock, fd) -> list[Finding]:
                                   "evidence_vs_wander": float(c.stats["evidence_vs_wander"]),
                                   "filter_delay_acc_minus_gyro": fd,
                                   "units": {p.name: p.unit for p in c.parameters}}))
-    for e in (stage.blocks if stage is not None else []):
-        ev = float(e.stats["statistic_robust"])
-        out.append(Finding(effect=e, evidence=ev, df=e.df, log10_p=log10_chi2_sf(ev, e.df),
-                           where=regime_concentration(prep, reg, stage.gain_t), explanation=e.explain(),
-                           screen_statistic=None, orientations=prep.q,
-                           extra={"evidence_kind": "the block's conditional likelihood ratio at the final rates "
-                                                   "over max(1, P) (gyro linear stage)",
-                                  "evidence_raw": float(e.stats["statistic"])}))
+    for stage in stages:
+        for e in (stage.blocks if stage is not None else []):
+            ev = float(e.stats["statistic_robust"])
+            kind = ("the block's conditional likelihood ratio at the final rates over max(1, P) (gyro linear stage)"
+                    if stage.sensor == "gyro" else "the block's conditional likelihood ratio at the stage's specific "
+                                                   "force over max(1, P) (accelerometer linear stage)")
+            out.append(Finding(effect=e, evidence=ev, df=e.df, log10_p=log10_chi2_sf(ev, e.df),
+                               where=regime_concentration(prep, reg, stage.gain_t), explanation=e.explain(),
+                               screen_statistic=None, orientations=prep.q,
+                               extra={"evidence_kind": kind, "evidence_raw": float(e.stats["statistic"])}))
     return out
 
 
@@ -254,8 +265,12 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
     cands_all = candidate_effects(prep, names)
     n_gyro = int(np.asarray(prep.has_gyro).sum())
     gyro_stage = (names is None or "gyro_linear" in names) and n_gyro >= 2
-    # Bonferroni over every test: the round candidates, and the stage's group and per-block tests
-    m = len(cands_all) + (n_gyro + 1 if gyro_stage else 0)
+    n_acc = int(np.asarray(prep.has_acc).sum())
+    # the acc stage: opt-in, and not where prep calibrated the triads from the rests (acc_linear's docstring)
+    acc_stage_on = (o.acc_linear and (names is None or "acc_linear" in names) and n_acc >= 2
+                    and not prep.preparation["intrinsics"]["applied"])
+    # Bonferroni over every test: the round candidates, and the stages' group and per-block tests
+    m = len(cands_all) + (n_gyro + 1 if gyro_stage else 0) + (n_acc + 1 if acc_stage_on else 0)
     df_max = max([c.df for c in cands_all] + [1])
     threshold = threshold_rule(m, df_max, alpha)
     say(f"{m} candidates, threshold {threshold:.4g} (χ²_{df_max}, 1 − {alpha}/{m})")
@@ -273,6 +288,20 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
         prep0, prep, current = prep, stage.prep, stage.fit
         say(f"gyro linear stage: {stage.info['result']}")
     timings["gyro_linear_s"] = _time.perf_counter() - t0
+    acc_stage = None
+    if acc_stage_on:
+        # step 3a': every accelerometer's linear error, held fixed from here on like the gyro blocks
+        # (accel_bayes.mismatch.acc_linear)
+        t0 = _time.perf_counter()
+        acc_stage = acc_linear_stage(prep, current, m=m, alpha=alpha)
+        if acc_stage.blocks:
+            # prep0 (what the gyro blocks' refresh re-corrects) carries the acc correction too
+            prep0 = corrected_outputs(prep0, *block_arrays(acc_stage.blocks, prep.K), "acc")
+            if stage is not None:
+                stage.prep, stage.fit = acc_stage.prep, acc_stage.fit
+            prep, current = acc_stage.prep, acc_stage.fit
+        say(f"acc linear stage: {acc_stage.info['result']}")
+        timings["acc_linear_s"] = _time.perf_counter() - t0
     t0 = _time.perf_counter()
     clock = None
     fd = {"value_s": None, "std_s": None, "identified": False, "reason": "no clock stage"}
@@ -292,6 +321,7 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
             f"{fd['value_s'] if fd['identified'] else 'not identified'}")
     timings["clock_s"] = _time.perf_counter() - t0
     blocked = {e.imu for e in stage.blocks} if stage is not None else set()
+    acc_blocked = {e.imu for e in acc_stage.blocks} if acc_stage is not None else set()
     last_screens: list[Screen] = []
     for rnd in range(int(o.max_findings)):
         in_model = {e.label() for e in current.effects}
@@ -302,6 +332,7 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
         pool = [c.copy() for c in cands_all if c.label() not in in_model
                 and not (c.kind == "random" and any((c.imu, ch) in taken for ch in random_channels(c)))
                 and not (c.name in GYRO_LINEAR_TERMS and c.imu in blocked)
+                and not (c.name in ACC_LINEAR_TERMS and c.imu in acc_blocked)
                 and not acc_timing_unidentified(c, current.effects, prep.K)]
         ts = _time.perf_counter()
         screens = screen(prep, current, pool)
@@ -423,8 +454,9 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                                        **({"instants_s": {"mean": eff.stats["instant_mean_s"],
                                                           "rms": eff.stats["instant_rms_s"]}}
                                           if "instant_mean_s" in eff.stats else {})}))
-    findings += _stage_findings(prep, reg, stage, clock, fd)
+    findings += _stage_findings(prep, reg, (stage, acc_stage), clock, fd)
     fixed = list(stage.blocks) if stage is not None else []
+    fixed += list(acc_stage.blocks) if acc_stage is not None else []
     fixed += list(clock.clocks) if clock is not None else []
     timings["evidence_s"] = _time.perf_counter() - t0
 
@@ -476,7 +508,8 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
         comparison = compare_fits(base, refined, draws=o.loo_draws, seed=seed)
         say(f"refined: χ²/dof {base.chi2_per_dof:.4g} → {refined.chi2_per_dof:.4g}")
         if o.posterior:
-            fixed_src = None if stage is None else block_corrected_recording(prep.source, stage.blocks)
+            lin = [e for st in (stage, acc_stage) if st is not None for e in st.blocks]
+            fixed_src = None if stage is None and acc_stage is None else block_corrected_recording(prep.source, lin)
             post = posterior_comparison(prep.source, refined, o.posterior, seed=seed, progress=o.progress,
                                         corrected_base=fixed_src, index=prep.selection.index)
     timings["refine_s"] = _time.perf_counter() - t0
@@ -498,6 +531,7 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                         "sample_rate_hz": rec.sample_rate},
         prep=prep, characterisation=characterisation,
         gyro_linear=None if stage is None else stage.info,
+        acc_linear=None if acc_stage is None else acc_stage.info,
         fixed_effects=fixed,
         clock=None if clock is None else {**clock.info, "filter_delay_acc_minus_gyro": fd},
         unresolved=None if unres is None else unres.info,

@@ -27,7 +27,7 @@ __all__ = ["DetectOptions", "EFFECT_NAMES"]
 
 # Written out so that checking the record imports no torch; tests/mismatch/test_detect_options.py keeps
 # it equal to the effects library's registry (accel_bayes.physics.effects.EFFECTS).
-EFFECT_NAMES = ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "axis_displacement",
+EFFECT_NAMES = ("acc_bias", "acc_scale", "acc_misalignment", "acc_nonlinearity", "acc_linear", "axis_displacement",
                 "triad_orientation", "gyro_bias", "gyro_scale", "gyro_misalignment", "gyro_g_sensitivity",
                 "gyro_nonlinearity", "gyro_linear", "time_offset", "gyro_delay", "saturation", "noise_level",
                 "unexplained", "sampling_jitter", "timing_wander", "sampling_clock")
@@ -92,6 +92,10 @@ class DetectOptions:
         board's unresolved angular jerk through each triad's lever arm (default False; opt-in while it
         is measured: ``experiments/budget_gap_probe.md``).  In ``settings`` only when True, so that
         reports and fingerprints of the default are unchanged.
+    acc_linear : run the accelerometer linear stage (every triad's 3 × 3 scale/misalignment + offset
+        block, :mod:`accel_bayes.mismatch.acc_linear`) after the gyro linear stage (default False;
+        opt-in while it is measured: ``experiments/acc_linear_budget.md``; it never runs where ``prep``
+        calibrated the triads from rests).  In ``settings`` only when True.
     """
 
     effects: Any = None
@@ -108,6 +112,7 @@ class DetectOptions:
     unresolved_permutations: int = 19
     threads: int | None = DEFAULT_THREADS
     unresolved_angular_jerk: bool = False
+    acc_linear: bool = False
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 — normalising a frozen record's own fields
@@ -137,7 +142,7 @@ class DetectOptions:
             set_("posterior", False)
         if self.threads is not None:
             set_("threads", _int_option("threads", self.threads, 1))
-        for name in ("refine", "progress", "use_map", "unresolved_angular_jerk"):
+        for name in ("refine", "progress", "use_map", "unresolved_angular_jerk", "acc_linear"):
             set_(name, bool(getattr(self, name)))
 
     @classmethod
@@ -146,7 +151,8 @@ class DetectOptions:
         adds what the command decides itself (``posterior``: the calibration function)."""
         return cls(effects=args.effects, alpha=args.alpha, max_findings=args.max_findings,
                    refine=not args.no_refine, seed=args.seed, progress=args.progress, n_twins=args.twins,
-                   unresolved_angular_jerk=getattr(args, "unresolved_angular_jerk", False), **given)
+                   unresolved_angular_jerk=getattr(args, "unresolved_angular_jerk", False),
+                   acc_linear=getattr(args, "acc_linear", False), **given)
 
     def to_settings(self) -> dict:
         """The report's ``settings`` (the keys 0.1 wrote, in their order, then the ones added):
@@ -156,7 +162,8 @@ class DetectOptions:
                 "posterior": bool(self.posterior), "seed": self.seed, "n_twins": self.n_twins,
                 "n_refit": self.n_refit, "use_map": self.use_map, "loo_draws": self.loo_draws,
                 "unresolved_permutations": self.unresolved_permutations,
-                **({"unresolved_angular_jerk": True} if self.unresolved_angular_jerk else {})}
+                **({"unresolved_angular_jerk": True} if self.unresolved_angular_jerk else {}),
+                **({"acc_linear": True} if self.acc_linear else {})}
 
     def fingerprint(self, recording_sha256: str) -> dict:
         """What a detection's result depends on, known before any computation: the package version, the

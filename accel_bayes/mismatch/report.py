@@ -132,6 +132,7 @@ class MismatchReport:
     characterisation: dict | None = None  # what the final model leaves: accel_bayes.mismatch.characterise
     budget: list = field(default_factory=list)
     gyro_linear: dict | None = None  # the detector's gyro linear stage (step 3a): tests, blocks kept
+    acc_linear: dict | None = None  # its accelerometer linear stage (step 3a', opt-in): tests, blocks kept
     fixed_effects: list = field(default_factory=list)  # its blocks: in the refined model, not in refined_fit.effects
     clock: dict | None = None  # the detector's clock stage (step 3b): every IMU's beat search, the clocks kept
     unresolved: dict | None = None  # the detector's unresolved-motion stage (step 7a): tests, scales, the sensors kept
@@ -203,6 +204,8 @@ class MismatchReport:
             "comparison": self.comparison,
             "posterior": self.posterior,
             "gyro_linear_stage": self.gyro_linear,
+            # only when the opt-in stage ran, so that the default report keeps its keys
+            **({"acc_linear_stage": self.acc_linear} if self.acc_linear is not None else {}),
             "clock_stage": self.clock,
             "unresolved_stage": self.unresolved,
             "rounds": self.rounds,

@@ -38,6 +38,13 @@ inverted on IMU k's gyro outputs before anything else, y_k ← (I + M_k)⁻¹(y_
 detector did to the recording before it named the other effects.  The rates ω̇ of the timing
 effects are then read from the corrected gyros.
 
+The accelerometer blocks (``acc_scale`` with a 3 × 3 ``scale`` and a ``bias``: the detector's opt-in
+accelerometer linear stage, :class:`~accel_bayes.physics.effects.AccLinear`) are inverted the same
+way on the accelerometer outputs, y_k ← (I + M_k)⁻¹(y_k − b_k), before the clocks' mean correction —
+where the calibration's own preparation did not calibrate the triads from the rests (the detector
+runs the stage only then; on outputs ``prep`` transformed the blocks would not apply, and
+``calibrate`` lists them as skipped with that reason).
+
 Sampling clocks and unresolved motion → mean effect corrected, random effect as covariance
 -------------------------------------------------------------------------------------------
 With an ``unresolved_motion`` finding (issue #30 Deliver 2; :mod:`accel_bayes.pipelines.calibrate_model`):
@@ -93,7 +100,7 @@ from ..data.mismatch_report import read_report
 from ..errors import UserError
 from .gyro_posterior import GyroPosterior
 
-__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_gyro_array", "clock_corrected",
+__all__ = ["CalibrationModel", "load_model", "fused_gyro_posterior", "corrected_array", "clock_corrected",
            "UnresolvedTerms",
            "unresolved_terms"]
 
@@ -112,6 +119,7 @@ class CalibrationModel:
     recording : the report's ``details.recording`` block ({} if absent): T, K, T_given, ….
     gyro_effects : [(finding index, IMU label, effect)] — the random gyro effects used.
     gyro_linear : [(finding index, IMU label, GyroLinear)] — the gyro linear blocks used.
+    acc_linear : [(finding index, IMU label, AccLinear)] — the accelerometer linear blocks used.
     used, skipped : [{"finding", "effect", "imu", "sensor", "how"/"why"}] per finding.
     report : the report's document as read (what :func:`unresolved_terms` reads again at the samples).
     unresolved : the report has an ``unresolved_motion`` finding: the per-sample covariance is used.
@@ -124,6 +132,7 @@ class CalibrationModel:
     recording: dict
     gyro_effects: list = field(default_factory=list)
     gyro_linear: list = field(default_factory=list)
+    acc_linear: list = field(default_factory=list)
     used: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
     report: dict = field(default_factory=dict, repr=False)
@@ -135,7 +144,7 @@ class CalibrationModel:
         ``rec`` (the recording as loaded, before any selection): its IMU count K and its number
         of samples (``details.recording.T_given``, what ``detect`` was given: a report made on a
         cut recording is refused for the whole one) must match, and every IMU a used finding
-        names must have a gyroscope.  A report without ``details.recording`` is not checked."""
+        names must have a gyroscope (an accelerometer, for an accelerometer block).  A report without ``details.recording`` is not checked."""
         r = self.recording
         if "K" in r and int(r["K"]) != int(rec.K):
             raise UserError(f"model: details.recording.K: the report is for {r['K']} IMUs, the recording has {rec.K}")
@@ -146,6 +155,19 @@ class CalibrationModel:
         for i, k, _ in self.gyro_effects + self.gyro_linear:
             if not (0 <= k < len(has_gyro)) or not has_gyro[k]:
                 raise UserError(f"model: findings[{i}].imu: IMU {k} has no gyroscope in the recording")
+        has_acc = np.asarray(rec.has_acc, dtype=bool)
+        for i, k, _ in self.acc_linear:
+            if not (0 <= k < len(has_acc)) or not has_acc[k]:
+                raise UserError(f"model: findings[{i}].imu: IMU {k} has no accelerometer in the recording")
+
+    def drop_acc_linear(self, why: str) -> None:
+        """Move the accelerometer blocks from ``used`` to ``skipped`` with the reason ``why`` (the
+        calibration's preparation transformed the outputs the blocks were estimated on)."""
+        idx = {i for i, _, _ in self.acc_linear}
+        for row in [r for r in self.used if r["finding"] in idx]:
+            self.used.remove(row)
+            self.skipped.append({k: v for k, v in row.items() if k not in ("how", "parameters")} | {"why": why})
+        self.acc_linear = []
 
     def describe(self) -> dict:
         """The provenance record (``settings["model"]``, positions.json)."""
@@ -195,6 +217,12 @@ def load_model(model) -> CalibrationModel:
             e = make_effect(name, imu=imu, axis=f.get("axis"), parameters=params)
         except UserError as exc:
             raise UserError(f"model: findings[{i}]: {exc}") from None
+        if e.name == "acc_linear":
+            out.acc_linear.append((i, int(e.imu), e))
+            out.used.append({**row, "sensor": "acc", "how": "accelerometer outputs corrected: y <- (I + scale)^-1 "
+                                                           "(y - bias), sensor frame",
+                             "parameters": {"scale": e.params["matrix"].tolist(), "bias": e.params["bias"].tolist()}})
+            continue
         if e.name == "gyro_linear" and e.imu is not None:
             out.gyro_linear.append((i, int(e.imu), e))
             out.used.append({**row, "sensor": "gyro", "how": "gyro outputs corrected: y <- (I + scale)^-1 (y - bias), "
@@ -245,12 +273,14 @@ def load_model(model) -> CalibrationModel:
     return out
 
 
-def corrected_gyro_array(gyro, orientations, gyro_labels, blocks):
-    """Invert the gyro linear blocks on array-frame gyro outputs (module docstring).
+def corrected_array(gyro, orientations, gyro_labels, blocks):
+    """Invert linear blocks on array-frame outputs (module docstring): the gyro blocks on the gyros,
+    and the same for the accelerometer blocks on the accelerometers.
 
-    gyro : (T, G, 3) rad/s array frame; orientations : (G, 4) the gyros' nominal quaternions (array →
-    sensor); gyro_labels : the G IMU labels; blocks : [(IMU label, GyroLinear)].  Returns a new tensor:
-    y_a ← R_kᵀ (I + M_k)⁻¹ (R_k y_a − b_k) for each block's gyro, unchanged elsewhere."""
+    gyro : (T, G, 3) array-frame outputs (rad/s, or m/s² for accelerometer blocks); orientations : (G, 4)
+    the sensors' nominal quaternions (array → sensor); gyro_labels : the G IMU labels; blocks :
+    [(IMU label, GyroLinear or AccLinear)].  Returns a new tensor: y_a ← R_kᵀ (I + M_k)⁻¹ (R_k y_a − b_k)
+    for each block's sensor, unchanged elsewhere."""
     from ..physics.geometry import quat_to_matrix
 
     y = torch.as_tensor(gyro, dtype=torch.float64).clone()

@@ -28,23 +28,29 @@ def _model_gyro_step(lik, rec, cmodel):
     the bands of the "calibrated" |ω̄| (before the model changes ω̄); the clocks' mean effect is then
     taken off the accelerometer and gyro outputs (:func:`~accel_bayes.model.report_terms.clock_corrected`)
     and the angular acceleration enters the fused posterior."""
-    from ..model.report_terms import clock_corrected, corrected_gyro_array, fused_gyro_posterior, unresolved_terms
+    from ..model.report_terms import clock_corrected, corrected_array, fused_gyro_posterior, unresolved_terms
 
     idx = np.asarray(lik.sample_index)
     glabels = list(lik.gyro_labels)
     gyro = rec.gyro_tensor("array", dtype=torch.float64)[torch.as_tensor(idx)][:, torch.as_tensor(glabels)]
     if cmodel.gyro_linear:  # the report's gyro linear blocks, inverted first
         q = np.asarray(rec.nominal_orientation, dtype=np.float64)[glabels]
-        gyro = corrected_gyro_array(gyro, q, glabels, [(k, e) for _, k, e in cmodel.gyro_linear])
+        gyro = corrected_array(gyro, q, glabels, [(k, e) for _, k, e in cmodel.gyro_linear])
     gstd = np.asarray(rec.gyro_noise_std, dtype=np.float64)[glabels]
     time_s = np.asarray(rec.time, dtype=np.float64)[idx]
     effects = [(k, e) for _, k, e in cmodel.gyro_effects]
-    terms, acc, shift = None, lik.acc, {}
+    rms = lambda d: float(d.square().sum(-1).mean().sqrt())  # noqa: E731
+    acc0, shift = lik.acc, {}
+    if cmodel.acc_linear:  # the report's accelerometer blocks, inverted first like the gyro blocks
+        labels = list(lik.imu_labels)
+        qa = np.asarray(rec.nominal_orientation, dtype=np.float64)[labels]
+        acc0 = corrected_array(lik.acc, qa, labels, [(k, e) for _, k, e in cmodel.acc_linear if k in labels])
+        shift["acc_linear_correction_rms_m_s2"] = rms(acc0 - lik.acc)
+    terms, acc = None, acc0
     if cmodel.unresolved:
         terms = unresolved_terms(cmodel.report, time_s, list(lik.imu_labels), glabels, lik.omega.mean.norm(dim=-1))
-        acc, gyro_c = clock_corrected(lik.acc, gyro, time_s, terms.age_acc, terms.age_gyro)
-        rms = lambda d: float(d.square().sum(-1).mean().sqrt())  # noqa: E731
-        shift = {"clock_mean_correction_rms": {"acc_m_s2": rms(acc - lik.acc), "gyro_rad_s": rms(gyro_c - gyro)}}
+        acc, gyro_c = clock_corrected(acc0, gyro, time_s, terms.age_acc, terms.age_gyro)
+        shift["clock_mean_correction_rms"] = {"acc_m_s2": rms(acc - acc0), "gyro_rad_s": rms(gyro_c - gyro)}
         gyro = gyro_c
     omega, wdot = fused_gyro_posterior(gyro, gstd, glabels, time_s, effects,
                                        age=None if terms is None else terms.age_gyro,

@@ -142,7 +142,7 @@ def test_stage_stops_at_its_group_test_without_gyro_errors():
 def test_calibrate_model_inverts_a_reports_gyro_blocks():
     # calibrate --model: a gyro_linear block (gyro_scale with a 3 × 3 scale) corrects that gyro's
     # outputs, checked against numpy on the array-frame data
-    from accel_bayes.model.report_terms import corrected_gyro_array, load_model
+    from accel_bayes.model.report_terms import corrected_array, load_model
 
     rng = np.random.default_rng(5)
     T, G = 40, 3
@@ -152,7 +152,7 @@ def test_calibrate_model_inverts_a_reports_gyro_blocks():
     M, b = rng.normal(0, 0.02, (3, 3)), rng.normal(0, 0.01, 3)
     ya = np.repeat(w[:, None], G, 1)
     ya[:, 1] = ((np.eye(3) + M) @ (R[1] @ w.T)).T @ R[1] + b @ R[1]  # gyro 1 (label 5) carries the block
-    out = corrected_gyro_array(torch.as_tensor(ya), q, [2, 5, 7], [(5, GyroLinear(imu=5, params={"matrix": M,
+    out = corrected_array(torch.as_tensor(ya), q, [2, 5, 7], [(5, GyroLinear(imu=5, params={"matrix": M,
                                                                                                   "bias": b}))])
     np.testing.assert_allclose(out.numpy(), np.repeat(w[:, None], G, 1), atol=1e-12)
     doc = {"schema": "accel_bayes.mismatch/1", "mismatch_detected": True, "threshold": 30.0,

@@ -10,6 +10,8 @@ acc_bias               constant accelerometer offset                         yes
 acc_scale              accelerometer scale-factor error                      yes         yes
 acc_misalignment       cross-axis coupling / non-orthogonal axes             yes         yes
 acc_nonlinearity       second-order accelerometer response                   yes         yes
+  (acc_linear)         a triad's whole 3 × 3 acc_scale + acc_bias, one       yes         no
+                       12-parameter block (the detector's acc linear stage)
 axis_displacement      sensing axes not collocated in the package            yes         yes
 triad_orientation      IMU mounted rotated from its nominal orientation      yes         no
 gyro_bias              gyroscope offset                                      yes         yes
@@ -105,7 +107,7 @@ from __future__ import annotations
 
 from .base import (AXES, EFFECTS, CandidateLayout, Effect, Param, SignalContext, apply_effects, check_effects,
                    get_effect, make_effect, model_outputs, noise_factors, output_rates, register_effect)
-from .accelerometer import AccBias, AccScale, AccMisalignment, AccNonlinearity, AxisDisplacement
+from .accelerometer import AccBias, AccScale, AccMisalignment, AccNonlinearity, AccLinear, AxisDisplacement
 from .accelerometer import (acc_gain_effects, acc_gain_of_effects, gain_to_intrinsics, gain_to_s16, intrinsics_gain,
                             s16_gain, triangular_gauge)
 from .mounting import TriadOrientation
@@ -129,6 +131,7 @@ __all__ = [
     "AccScale",
     "AccMisalignment",
     "AccNonlinearity",
+    "AccLinear",
     "AxisDisplacement",
     "acc_gain_effects",
     "acc_gain_of_effects",

@@ -94,6 +94,81 @@ class AccNonlinearity(Effect):
 
 
 @register_effect
+class AccLinear(Effect):
+    """The whole linear error of one accelerometer triad: output += M·f + b, sensor frame, with M
+    (3 × 3, relative: its diagonal the three scale-factor errors, its off-diagonal entries the
+    cross-axis couplings) and b (m/s²) the offsets — ``acc_scale`` on every axis,
+    ``acc_misalignment`` on every pair and ``acc_bias`` on every axis of the triad at once.
+
+    Why one 12-parameter block: the gyroscopes' reason (:class:`~accel_bayes.physics.effects.GyroLinear`).
+    Raw MEMS accelerometers carry all twelve terms, and where the recording rests in one
+    orientation only, the preparation cannot calibrate them from the rests (S16); a detector that
+    adds one 1-df term per round leaves the rest in the residual, as excess the §7.2 budget cannot
+    credit (experiments/budget_gap_probe.md: on the concealed clock recordings the accelerometer
+    budget's systematic shortfall is these errors).  The detector estimates the blocks in a stage
+    of its own (:mod:`accel_bayes.mismatch.acc_linear`); they are not round candidates
+    (``screened = False``).
+
+    Reported under the vocabulary name ``acc_scale`` (DESIGN §7.2: "accelerometer scale-factor
+    error") with axis null and parameters {"scale": M as 3 rows (output axis) of 3 (from axis),
+    "bias": b}; a report finding of that form is read back as this class.  A block is always one
+    triad's (``imu`` set): an error common to every accelerometer is not fitted (its offset and most
+    of its matrix are absorbed by the per-sample linear motion).
+    """
+
+    name = "acc_linear"
+    vocabulary_name = "acc_scale"
+    description = "accelerometer scale-factor, misalignment and offset errors of one triad"
+    screened = False
+    sensor = "acc"
+    parameters = (Param("matrix", (3, 3), "1", 0.05, "relative linear error: output += matrix · f"),
+                  Param("bias", (3,), "m s-2", 1.0, "offset added to the three accelerometer outputs"))
+
+    @classmethod
+    def reads_report(cls, axis, parameters, options):
+        s = parameters.get("scale")
+        return axis is None and isinstance(s, (list, tuple)) and len(s) == 3
+
+    @classmethod
+    def from_report(cls, parameters, options):
+        if "scale" in parameters:
+            parameters["matrix"] = parameters.pop("scale")
+        return parameters, options
+
+    def vocabulary_parameters(self, params=None):
+        """The report's parameters under the vocabulary name acc_scale: {"scale": 3 × 3 rows,
+        "bias": 3-vector (m/s²)}."""
+        p = self._p(params)
+        return {"scale": p["matrix"].detach().cpu().double().tolist(),
+                "bias": p["bias"].detach().cpu().double().tolist()}
+
+    def invert(self, y):
+        """The specific force a triad with this block felt: (I + matrix)⁻¹ (y − bias), y (..., 3)
+        sensor-frame outputs, m/s² (numpy array or tensor, returned as given; a sample with a NaN
+        channel comes back NaN on all three)."""
+        p = self.params
+        t = torch.as_tensor(y, dtype=torch.float64)
+        out = torch.linalg.solve(torch.eye(3, dtype=torch.float64) + p["matrix"], (t - p["bias"]).unsqueeze(-1)).squeeze(-1)
+        return out if torch.is_tensor(y) else out.numpy()
+
+    def perturbation(self, params, ctx):
+        p = self._p(params)
+        k = self._imu_checked(ctx)
+        m = _onehot(ctx.K, k, None, ctx.acc)
+        return m * (ctx.acc @ p["matrix"].transpose(0, 1) + p["bias"]), torch.zeros_like(ctx.gyro)
+
+    def explain(self, params=None):
+        p = self._p(params)
+        M = p["matrix"].detach().cpu().double()
+        b = p["bias"].detach().cpu().double()
+        diag = ", ".join(f"{100 * float(M[i, i]):+.3g} %" for i in range(3))
+        off = float((M - torch.diag(torch.diagonal(M))).abs().max())
+        return (f"IMU {self.imu}'s accelerometer has a linear error: scale-factor errors {diag} on x, y, z, "
+                f"cross-axis couplings up to {100 * off:.3g} %, offsets up to {_fmt(float(b.abs().max()), 'm/s²')} "
+                f"(an accelerometer scale / misalignment / bias error, all twelve terms fitted together).")
+
+
+@register_effect
 class AxisDisplacement(Effect):
     """The sensing element of one accelerometer axis sits ``displacement`` (m, sensor frame) away
     from the triad's position (the "size effect"): that axis reads the specific force of the
