@@ -48,16 +48,9 @@ A fifth variant follows ``acc_known``'s result (the reading):
   it.  Every block is applied (no test): what an accelerometer linear stage could give at most, with its
   estimation error.  Like ``acc_known`` it changes a as well as b.
 
-And the package's answer to it:
-
-* ``acc_stage`` — no oracle: ``DetectOptions(acc_linear=True)``, the detector's opt-in accelerometer linear
-  stage (:mod:`accel_bayes.mismatch.acc_linear`): the same regression inside ``detect``, after the gyro stage,
-  with its group, spread and per-block tests, the blocks held fixed and reported (``acc_scale``, axis null),
-  and no one-axis acc term on a blocked triad.  Unlike ``acc_blocks`` it leaves a as it is (the baseline's
-  residual on the recording as given) and is credited in b through the corrected outputs.  The record keeps the
-  blocks (``A``, ``b``) and their output error against the generator's (:func:`block_output_error`), also
-  projected off the per-sample linear motion states (``identifiable_error_*``: on the coplanar plate4 the
-  out-of-plane offsets affine in the in-plane position are a constant angular acceleration, which no data see).
+The package's answer to it, the detector's accelerometer linear stage (``DetectOptions(acc_linear=True)``), ran
+here as a sixth variant until its own script took it: ``experiments/acc_stage_budget.py`` (``acc_stage_budget.md``,
+records committed in ``experiments/results/acc_stage/``).
 
 Interception (``skew_*``): the script wraps ``SamplingClock.age`` / ``physical_age`` and the detector's
 ``clock_corrected`` while it runs (its own patch; the package is not changed).
@@ -78,7 +71,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT.parent))
 DOC = ROOT / "budget_gap_probe.md"
-VARIANTS = ("skew_truth", "skew_fitted", "acc_known", "angular_jerk", "acc_blocks", "acc_stage")
+VARIANTS = ("skew_truth", "skew_fitted", "acc_known", "angular_jerk", "acc_blocks")
 
 
 def fitted_offsets(clocks) -> dict:
@@ -183,7 +176,7 @@ def patched(variant: str, truth: dict):
     from accel_bayes.physics.effects.clock import SamplingClock
 
     offsets = truth_offsets(truth) if variant == "skew_truth" else {}
-    if variant in ("acc_known", "angular_jerk", "acc_blocks", "acc_stage"):  # nothing patched: the recording or an option changes
+    if variant in ("acc_known", "angular_jerk", "acc_blocks"):  # nothing patched: the recording or an option changes
         yield offsets
         return
     old_age, old_phys, old_cc = SamplingClock.age, SamplingClock.physical_age, mc.clock_corrected
@@ -234,18 +227,7 @@ def run_case(variant: str, seed: int, out: Path) -> dict:
         rec.acc = y
     t0 = time.perf_counter()
     with patched(variant, truth) as offsets:
-        doc = detect(rec, unresolved_angular_jerk=variant == "angular_jerk", acc_linear=variant == "acc_stage").to_dict()
-    if variant == "acc_stage":  # the stage's blocks (report findings acc_scale with a 3 × 3 scale) against the truth
-        A, b, imus = np.eye(3)[None].repeat(rec.K, 0), np.zeros((rec.K, 3)), []
-        for f in doc["findings"]:
-            if f["effect"] == "acc_scale" and f.get("axis") is None:
-                k = int(f["imu"])
-                A[k], b[k] = np.eye(3) + np.asarray(f["parameters"]["scale"]), np.asarray(f["parameters"]["bias"])
-                imus.append(k)
-        blocks = {"imus": sorted(imus), "stage": doc["details"].get("acc_linear_stage", {}).get("result"),
-                  "A": A.tolist(), "b": b.tolist(),
-                  # over every triad (identity where no block was kept), comparable with acc_blocks'
-                  **block_output_error(rec, truth, A, b, [int(k) for k in np.flatnonzero(np.asarray(rec.has_acc))])}
+        doc = detect(rec, unresolved_angular_jerk=variant == "angular_jerk").to_dict()
     res = {"variant": variant, "seed": seed, "board": truth["board"], "f_host": truth["f_host"],
            "seconds": time.perf_counter() - t0,
            "findings": [{"effect": f["effect"], "imu": f.get("imu"), "sensor": f.get("sensor")} for f in doc["findings"]],
@@ -498,16 +480,6 @@ def main(argv=None) -> int:
                      f"{fn[1]}, a ≤ 3 SE with |b − a| > 3 SE {fb[2]} → {fn[2]}.", ""]
         if v == "skew_fitted":
             part[3:3] = [offset_agreement(rows), ""]
-        if v == "acc_stage":
-            bl = [n["acc_blocks"] for _, n in rows if n.get("acc_blocks")]
-            q = lambda key: np.median([x[key] for x in bl])  # noqa: E731
-            kept = [len(x["imus"]) for x in bl]
-            part[3:3] = [f"The stage kept blocks on {sum(kept)} triads of {len(bl)} cases (every triad in "
-                         f"{sum(1 for x in bl if 'kept blocks on IMUs' in (x['stage'] or '') and len(x['imus']) == len(x['A']))}"
-                         f" cases). Their output error against the generator's, median over the cases (m/s², rms): "
-                         f"less the triads' mean {q('output_error_before_rms'):.4f} → {q('output_error_after_rms'):.4f}; "
-                         f"projected off the per-sample s and ω̇ (what no motion can absorb) "
-                         f"{q('identifiable_error_before_rms'):.4f} → {q('identifiable_error_after_rms'):.4f}.", ""]
         if v == "acc_blocks":
             bl = [n["acc_blocks"] for _, n in rows if n.get("acc_blocks")]
             q = lambda key: np.median([x[key] for x in bl])  # noqa: E731

@@ -119,9 +119,9 @@ from .clock import clock_corrected, clock_stage
 from .compare import compare_fits, posterior_comparison
 from .filter_delay import filter_delay
 from .fit import _effect_std, baseline_fit, fit_model
-from .acc_linear import ACC_LINEAR_TERMS, acc_linear_stage
+from .acc_linear import ACC_LINEAR_TERMS, acc_linear_stage, restage
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
-from .linear_blocks import block_arrays, corrected_outputs
+from .linear_blocks import LinearStage, block_arrays, corrected_outputs
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
 from .options import DetectOptions
 from .prepared import prepare
@@ -284,21 +284,33 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
     if gyro_stage:
         # step 3a: every gyro's linear error, held fixed from here on (the rounds run on the recording
         # corrected for it: accel_bayes.mismatch.gyro_linear)
-        stage = gyro_linear_stage(prep, base, m=m, alpha=alpha)
+        # (its common part, seen through the accelerometers' lever arms, waits for their stage when it runs)
+        stage = gyro_linear_stage(prep, base, m=m, alpha=alpha, common=not acc_stage_on)
         prep0, prep, current = prep, stage.prep, stage.fit
         say(f"gyro linear stage: {stage.info['result']}")
     timings["gyro_linear_s"] = _time.perf_counter() - t0
     acc_stage = None
+    if o.acc_linear and not acc_stage_on:  # asked for, not run: the report says why
+        why = ("prep calibrated the triads from the recording's rests" if prep.preparation["intrinsics"]["applied"]
+               else "effects does not name acc_linear" if names is not None and "acc_linear" not in names
+               else f"{n_acc} accelerometer triad(s): a block is relative to the others")
+        acc_stage = LinearStage(prep, current, [], None, {"result": f"not run: {why}"}, "acc")
+        say(f"acc linear stage: not run ({why})")
     if acc_stage_on:
         # step 3a': every accelerometer's linear error, held fixed from here on like the gyro blocks
         # (accel_bayes.mismatch.acc_linear)
         t0 = _time.perf_counter()
         acc_stage = acc_linear_stage(prep, current, m=m, alpha=alpha)
+        if stage is not None and (acc_stage.blocks or stage.blocks):
+            # the gyro stage's common part is seen through the accelerometers' lever arms: now that they are
+            # corrected (or found without error), both stages again, the gyros' first with it (acc_linear.restage)
+            stage, acc_stage = restage(prep0, acc_stage, m=m, alpha=alpha)
         if acc_stage.blocks:
             # prep0 (what the gyro blocks' refresh re-corrects) carries the acc correction too
             prep0 = corrected_outputs(prep0, *block_arrays(acc_stage.blocks, prep.K), "acc")
             if stage is not None:
                 stage.prep, stage.fit = acc_stage.prep, acc_stage.fit
+        if acc_stage.blocks or "restaged" in acc_stage.info:
             prep, current = acc_stage.prep, acc_stage.fit
         say(f"acc linear stage: {acc_stage.info['result']}")
         timings["acc_linear_s"] = _time.perf_counter() - t0

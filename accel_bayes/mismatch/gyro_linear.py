@@ -104,11 +104,14 @@ def _common_part(prep_c: Prepared, fit: ModelFit, A: torch.Tensor, b: torch.Tens
     return fit, A, b
 
 
-def gyro_linear_stage(prep: Prepared, base: ModelFit, *, m: int, alpha: float, passes: int = 2) -> LinearStage:
+def gyro_linear_stage(prep: Prepared, base: ModelFit, *, m: int, alpha: float, passes: int = 2,
+                      common: bool = True) -> LinearStage:
     """Run step 3a (module docstring) from the baseline fit ``base`` of ``prep``; ``m`` and
-    ``alpha`` are the detector's Bonferroni count and family-wise error rate."""
+    ``alpha`` are the detector's Bonferroni count and family-wise error rate.  ``common=False`` skips
+    step 2 (the blocks stay relative): the detector's first pass when the accelerometer linear stage
+    follows, since the common part is seen through the accelerometers (:mod:`accel_bayes.mismatch.acc_linear`)."""
     return linear_stage(prep, base, sensor="gyro", block=lambda k, p: GyroLinear(imu=k, params=p), m=m, alpha=alpha,
-                        passes=passes, common=_common_part)
+                        passes=passes, common=_common_part if common else None)
 
 
 def block_corrected_recording(rec, blocks):

@@ -1,0 +1,47 @@
+"""``experiments/percov_blind_acc.py``: its document's pooled figures against numpy on made-up cases."""
+import numpy as np
+
+from experiments import percov_blind_acc as pb
+
+
+def _row(seed, z, err_um, std_um, variant, truth_mm=None):
+    return {"variant": variant, "seed": seed, "board": "cube6", "f_host": 125.0, "K": 6, "acc_blocks": [0, 1, 2],
+            "detect_seconds": 50.0, "calibrate_seconds": 20.0,
+            "score": {"z": list(z), "error_m": [e * 1e-6 for e in err_um], "std_m": [s * 1e-6 for s in std_um],
+                      "coordinates": [f"r[{i}, x]" for i in range(len(z))],
+                      "truth_m": [t * 1e-3 for t in (truth_mm or [10.0 * (i + 1) for i in range(len(z))])]}}
+
+
+def test_pooled_figures_and_the_bar():
+    zb = [[0.5, -1.0, 1.5], [0.2, 4.5, -0.3]]
+    zo = [[1.0, 1.0, 1.0], [1.0, -1.0, 1.0]]
+    rows = [(_row(s, zb[s], [10, 20, 30], [100, 100, 200], "blind"), _row(s, zo[s], [1, 2, 3], [50, 50, 50], "oracle"))
+            for s in range(2)]
+    rows.append((_row(2, [9.0], [1], [1], "blind"), None))  # no oracle: left out of the pooled figures
+    L = "\n".join(pb.markdown(rows, "cmd", 1.0))
+    allb = np.concatenate(zb)
+    assert f"| error/std RMS (must: 0.8–1.25) | {np.sqrt(np.mean(allb ** 2)):.2f} | 1.00 |" in L
+    assert "| coordinates beyond 4 std (must: 0) | 1/6 | 0/6 |" in L
+    assert "| bar met | NO | YES |" in L
+    assert f"| RMS error (µm) | {np.sqrt(np.mean(np.square([10, 20, 30] * 2))):.1f} |" in L
+    assert "Cases: 2 with both (3 run)." in L and "| clock-002 | cube6 | 125 | 3/6 | 9.00 / — |" in L
+
+
+def test_whole_array_rescale_is_taken_out():
+    # estimates exactly 2 % too large: size +2.00 %, nothing left after the rescale
+    t = np.array([10.0, -20.0, 30.0])  # mm
+    err_um = list(0.02 * t * 1e3)
+    std_um = [50.0, 50.0, 50.0]
+    b = _row(0, list(np.array(err_um) / 50.0), err_um, std_um, "blind", truth_mm=list(t))
+    size, z = pb.rescaled(b["score"])
+    assert abs(size - 0.02) < 1e-12 and np.abs(z).max() < 1e-9
+    # plus an error orthogonal to the truth: it stays, in std units
+    extra = np.array([30.0, 15.0, 0.0])  # µm, orthogonal to t
+    assert abs(extra @ t) < 1e-12
+    b["score"]["error_m"] = list((np.array(err_um) + extra) * 1e-6)
+    size, z = pb.rescaled(b["score"])
+    assert abs(size - 0.02) < 1e-12
+    np.testing.assert_allclose(z, extra / 50.0, atol=1e-9)
+    L = "\n".join(pb.markdown([(b, _row(0, [1.0, 1.0, 1.0], [1, 2, 3], [50, 50, 50], "oracle"))], "cmd", 1.0))
+    assert f"| z RMS after each case's whole-array rescale | {np.sqrt(np.mean((extra / 50) ** 2)):.2f} |" in L
+    assert "| +2.00 / " in L
