@@ -76,6 +76,7 @@ def run_case(seed: int, variant: str, out: Path, reports: Path = REPORTS, durati
            "detect_seconds": det_s, "calibrate_seconds": r["seconds"],
            "acc_blocks": sorted(int(x["imu"]) for x in doc["findings"] if x["effect"] == "acc_scale" and x.get("axis") is None),
            "acc_stage": (doc["details"].get("acc_linear_stage") or {}).get("result"),
+           "gyro_common": gyro_common(doc),
            "findings": [{"effect": x["effect"], "imu": x.get("imu")} for x in doc["findings"]],
            "used": [u["effect"] for u in (r.get("model") or {}).get("used", [])],
            "score": {**score(r["positions"], pos), "truth_m": true_coordinates(pos, score(r["positions"], pos))},
@@ -96,9 +97,21 @@ def true_coordinates(pos: np.ndarray, sc: dict) -> list[float]:
     return out
 
 
-def with_truth(rec_path: Path, seed: int) -> dict:
-    """The record at ``rec_path`` with ``score.truth_m`` filled in (records written before it was kept: the
-    true positions come from the generator again, seeded as the case, and the record is rewritten)."""
+def gyro_common(doc: dict) -> dict:
+    """What a report's gyro linear stage did with the common part (one array-frame 3×3 error of every gyro, seen
+    through the accelerometers' lever arms): kept or not, and where kept its largest |entry| and isotropic part."""
+    st = (doc["details"].get("gyro_linear_stage") or {})
+    c = st.get("common")
+    if not c:
+        return {"kept": False}
+    M = np.asarray(c["matrix"], dtype=np.float64)
+    return {"kept": True, "max_abs": float(np.abs(M).max()), "isotropic": float(np.trace(M) / 3)}
+
+
+def with_truth(rec_path: Path, seed: int, reports: Path = REPORTS) -> dict:
+    """The record at ``rec_path`` with ``score.truth_m`` and ``gyro_common`` filled in (records written before
+    they were kept: the true positions come from the generator again, seeded as the case, the gyro stage's common
+    part from the cached report where there is one; the record is rewritten)."""
     from accel_bayes.data.outputs import write_json
     from experiments.percov_conceal import case_recording
 
@@ -106,6 +119,10 @@ def with_truth(rec_path: Path, seed: int) -> dict:
     if "truth_m" not in r["score"]:
         _, _, pos = case_recording(seed, 20.0, 5e-4, acc_intrinsics="none")
         r["score"]["truth_m"] = true_coordinates(pos, r["score"])
+        write_json(rec_path, r)
+    rep = reports / rec_path.parent.name / f"{r['variant']}_report.json"
+    if "gyro_common" not in r and rep.exists():
+        r["gyro_common"] = gyro_common(json.loads(rep.read_text()))
         write_json(rec_path, r)
     return r
 
@@ -117,6 +134,13 @@ def rescaled(sc: dict) -> tuple[float, np.ndarray]:
     t, e, sd = (np.asarray(sc[k]) for k in ("truth_m", "error_m", "std_m"))
     g = float((t + e) @ t / (t @ t))
     return g - 1.0, ((t + e) - g * t) / sd
+
+
+def _common(r: dict) -> str:
+    c = r.get("gyro_common")
+    if c is None:
+        return "?"
+    return f"{c['max_abs']:.3f} ({100 * c['isotropic']:+.1f} %)" if c["kept"] else "—"
 
 
 def _rms(z) -> float:
@@ -161,8 +185,11 @@ def markdown(rows: list[tuple[dict, dict | None]], cmd: str, seconds: float) -> 
          f"| bar met | {'YES' if ok(sb) else 'NO'} | {'YES' if ok(so) else 'NO'} |", "",
          "Per case: *size* = the geometry scale − 1 (Σ mean·truth / Σ truth² over the case's coordinates, in %); *z RMS "
          "rescaled* = what is left once the truth is rescaled by it (a whole-array size error taken out).", "",
-         "| case | board | read Hz | acc blocks (triads) | z RMS blind / oracle | max \\|z\\| blind / oracle | size % blind / oracle | z RMS rescaled blind / oracle | detect s blind / oracle | calibrate s blind / oracle |",
-         "|---|---|---|---|---|---|---|---|---|---|"]
+         "*gyro common* = the largest \\|entry\\| of the common 3×3 error the report's gyro linear stage kept (its "
+         "isotropic part in brackets; — where none was kept). The generator draws each gyro's 3×3 entries N(0, σ), σ "
+         "0.5–3 % per gyro, on the even seeds; what all gyros share is their mean, about σ/√K.", "",
+         "| case | board | read Hz | acc blocks (triads) | z RMS blind / oracle | max \\|z\\| blind / oracle | size % blind / oracle | z RMS rescaled blind / oracle | gyro common blind / oracle | detect s blind / oracle | calibrate s blind / oracle |",
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
     for b, o in rows:
         zb = np.asarray(b["score"]["z"])
         zo = None if o is None else np.asarray(o["score"]["z"])
@@ -172,6 +199,7 @@ def markdown(rows: list[tuple[dict, dict | None]], cmd: str, seconds: float) -> 
                  + pair(np.abs(zb).max(), None if zo is None else np.abs(zo).max(), ".2f") + " | "
                  + pair(100 * rescaled(b["score"])[0], None if o is None else 100 * rescaled(o["score"])[0], "+.2f") + " | "
                  + pair(_rms(rescaled(b["score"])[1]), None if o is None else _rms(rescaled(o["score"])[1]), ".2f") + " | "
+                 + _common(b) + " / " + ("—" if o is None else _common(o)) + " | "
                  + pair(b["detect_seconds"], None if o is None else o["detect_seconds"], ".0f") + " | "
                  + pair(b["calibrate_seconds"], None if o is None else o["calibrate_seconds"], ".0f") + " |")
     worst = sorted(((abs(z), c, b["seed"]) for b, _ in both for z, c in zip(b["score"]["z"], b["score"]["coordinates"])),
@@ -206,7 +234,7 @@ def main(argv=None) -> int:
     for s in range(args.n):
         f, g = (args.out / f"clock-{s:03d}" / f"{v}.json" for v in VARIANTS)
         if f.exists():
-            rows.append((with_truth(f, s), with_truth(g, s) if g.exists() else None))
+            rows.append((with_truth(f, s, args.reports), with_truth(g, s, args.reports) if g.exists() else None))
     from accel_bayes.data.outputs import write_text
     from experiments._reading import READING_MARKER, kept_reading
 

@@ -45,3 +45,15 @@ def test_whole_array_rescale_is_taken_out():
     L = "\n".join(pb.markdown([(b, _row(0, [1.0, 1.0, 1.0], [1, 2, 3], [50, 50, 50], "oracle"))], "cmd", 1.0))
     assert f"| z RMS after each case's whole-array rescale | {np.sqrt(np.mean((extra / 50) ** 2)):.2f} |" in L
     assert "| +2.00 / " in L
+
+
+def test_gyro_common_reads_the_stage_record():
+    M = [[0.01, 0.2, 0.0], [0.0, -0.04, 0.0], [0.0, 0.0, 0.0]]
+    kept = pb.gyro_common({"details": {"gyro_linear_stage": {"common": {"matrix": M, "bias": [0, 0, 0], "kept": True}}}})
+    assert kept == {"kept": True, "max_abs": 0.2, "isotropic": -0.01}
+    assert pb.gyro_common({"details": {"gyro_linear_stage": {"result": "no blocks"}}}) == {"kept": False}
+    assert pb.gyro_common({"details": {}}) == {"kept": False}
+    b = _row(0, [1.0], [1], [1], "blind")
+    b["gyro_common"] = kept
+    L = "\n".join(pb.markdown([(b, _row(0, [1.0], [1], [1], "oracle"))], "cmd", 1.0))
+    assert "| 0.200 (-1.0 %) / ? |" in L
