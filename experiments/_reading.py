@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["READING_MARKER", "kept_reading"]
+__all__ = ["READING_MARKER", "kept_reading", "write_with_reading"]
 
 READING_MARKER = "<!-- reading: hand-written below this line, kept when the document is regenerated -->"
 
@@ -17,3 +17,11 @@ def kept_reading(path) -> str:
         return ""
     text = p.read_text(encoding="utf-8")
     return text.split(READING_MARKER, 1)[1] if READING_MARKER in text else ""
+
+
+def write_with_reading(path, lines) -> None:
+    """Write the generated document ``lines`` (a list of Markdown lines) to ``path`` atomically, then the
+    marker and the reading the document at ``path`` already has below it (none yet: an empty line)."""
+    from accel_bayes.data.outputs import write_text
+
+    write_text(path, "\n".join(lines) + "\n\n" + READING_MARKER + (kept_reading(path) or "\n"))

@@ -136,12 +136,11 @@ def main(argv=None) -> int:
     rows = rows_by_variant([VARIANT], _cases(args.cases), run_case, args.out, ap.error)[VARIANT]
     if args.no_doc:
         return 0
-    from accel_bayes.data.outputs import write_text
-    from experiments._reading import READING_MARKER, kept_reading
+    from experiments._reading import write_with_reading
 
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/acc_stage_budget.py" + (
         "" if args.cases == "0-29" else f" --cases {args.cases}")
-    write_text(DOC, "\n".join(markdown(rows, cmd, time.time() - t0)) + "\n\n" + READING_MARKER + (kept_reading(DOC) or "\n"))
+    write_with_reading(DOC, markdown(rows, cmd, time.time() - t0))
     print(f"wrote {DOC}")
     return 0
 

@@ -459,8 +459,7 @@ def main(argv=None) -> int:
             real.append(pair)
     if args.no_doc:
         return 0
-    from accel_bayes.data.outputs import write_text
-    from experiments._reading import READING_MARKER, kept_reading
+    from experiments._reading import write_with_reading
     from experiments._stamp import run_stamp
 
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/budget_gap_probe.py" + (
@@ -494,7 +493,7 @@ def main(argv=None) -> int:
         L += real_markdown(real, args.real_from)
     if args.gap:
         L += gap_markdown(gap_rows(args.gap_from), args.gap_from)
-    write_text(DOC, "\n".join(L) + "\n\n" + READING_MARKER + (kept_reading(DOC) or "\n"))
+    write_with_reading(DOC, L)
     print(f"wrote {DOC}")
     return 0
 

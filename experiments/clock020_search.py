@@ -85,7 +85,6 @@ def main(argv=None) -> int:
     doc = ROOT / "clock020_search_gyro_known.md" if args.gyro_known else DOC
     from scipy.stats import chi2
 
-    from accel_bayes.data.outputs import write_text
     from accel_bayes.mismatch.clock import (_N_CONTINUUM, _N_PEAKS, _N_STAGE, WIDTH_RANGE_S, _nominate, _spectra,
                                             _versus_wander, _white_loglik, clock_ab, clock_stage, estimate_clock,
                                             physical_beats, physical_width, rate_scale)
@@ -189,8 +188,8 @@ def main(argv=None) -> int:
           f"{float(chi2.isf(0.01 / (n_imu * sp['cells']), 4)):.2f}); regressor scale λ = {lam:.4f}; the no-clock wander "
           f"σ {w0['sigma'] * 1e6:.1f} µs, ρ {w0['rho']:.3f}, evidence {w0['evidence']:.1f}.",
           "", f"This invocation {time.perf_counter() - t_start:.0f} s."]
-    from experiments._reading import READING_MARKER, kept_reading
-    write_text(doc, "\n".join(L) + "\n\n" + READING_MARKER + (kept_reading(doc) or "\n"))
+    from experiments._reading import write_with_reading
+    write_with_reading(doc, L)
     print(doc.read_text())
     return 0
 

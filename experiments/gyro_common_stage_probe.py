@@ -107,8 +107,7 @@ def main(argv=None) -> int:
                     "with a kept common part)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
-    from accel_bayes.data.outputs import write_text
-    from experiments._reading import READING_MARKER, kept_reading
+    from experiments._reading import write_with_reading
 
     t0 = time.time()
     try:
@@ -123,7 +122,7 @@ def main(argv=None) -> int:
         results.append(r)
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/gyro_common_stage_probe.py" + (
         "" if args.cases == "4,6,16" else f" --cases {args.cases}")
-    write_text(DOC, "\n".join(markdown(results, cmd, time.time() - t0)) + "\n\n" + READING_MARKER + (kept_reading(DOC) or "\n"))
+    write_with_reading(DOC, markdown(results, cmd, time.time() - t0))
     print(f"wrote {DOC}")
     return 0
 

@@ -53,6 +53,7 @@ def run_case(seed: int, variant: str, out: Path, reports: Path = REPORTS, durati
     ``out/clock-SSS/{variant}.json``, the report in ``reports/clock-SSS/{variant}_report.json``."""
     from accel_bayes.data.outputs import write_json
     from accel_bayes.mismatch import DetectOptions, detect
+    from experiments.acc_stage_budget import stage_blocks
     from experiments.percov_conceal import case_recording, run_variant, score
 
     d = out / f"clock-{seed:03d}"
@@ -74,7 +75,7 @@ def run_case(seed: int, variant: str, out: Path, reports: Path = REPORTS, durati
     r = run_variant(rec, "with_angjerk", rep, CALIB["chains"], CALIB["draws"], CALIB["warmup"], CALIB["seed"])
     res = {"variant": variant, "seed": seed, "board": truth["board"], "f_host": truth["f_host"], "K": int(rec.K),
            "detect_seconds": det_s, "calibrate_seconds": r["seconds"],
-           "acc_blocks": sorted(int(x["imu"]) for x in doc["findings"] if x["effect"] == "acc_scale" and x.get("axis") is None),
+           "acc_blocks": stage_blocks(doc, int(rec.K))[2],
            "acc_stage": (doc["details"].get("acc_linear_stage") or {}).get("result"),
            "gyro_common": gyro_common(doc),
            "findings": [{"effect": x["effect"], "imu": x.get("imu")} for x in doc["findings"]],
@@ -149,7 +150,7 @@ def _rms(z) -> float:
 
 def _stats(z) -> dict:
     z = np.asarray(z, dtype=np.float64)
-    return {"n": int(z.size), "rms": float(np.sqrt(np.mean(z ** 2))), "max": float(np.abs(z).max()),
+    return {"n": int(z.size), "rms": _rms(z), "max": float(np.abs(z).max()),
             "beyond4": int((np.abs(z) > 4).sum()), "mean": float(z.mean())}
 
 
@@ -160,7 +161,7 @@ def markdown(rows: list[tuple[dict, dict | None]], cmd: str, seconds: float) -> 
     both = [(b, o["score"]) for b, o in rows if o is not None]
     sb = _stats(np.concatenate([b["score"]["z"] for b, _ in both]))
     so = _stats(np.concatenate([o["z"] for _, o in both]))
-    err = lambda s: 1e6 * float(np.sqrt(np.mean(np.square(np.concatenate([x["error_m"] for x in s])))))  # noqa: E731
+    err = lambda s: 1e6 * _rms(np.concatenate([x["error_m"] for x in s]))  # noqa: E731
     std = lambda s: 1e6 * float(np.median(np.concatenate([x["std_m"] for x in s])))  # noqa: E731
     ok = lambda s: 0.8 <= s["rms"] <= 1.25 and s["beyond4"] == 0  # noqa: E731
     L = ["# percov_blind_acc — concealed clock recordings calibrated blind to the accelerometers' errors too (issue #30 item 4)",
@@ -190,15 +191,17 @@ def markdown(rows: list[tuple[dict, dict | None]], cmd: str, seconds: float) -> 
          "0.5–3 % per gyro, on the even seeds; what all gyros share is their mean, about σ/√K.", "",
          "| case | board | read Hz | acc blocks (triads) | z RMS blind / oracle | max \\|z\\| blind / oracle | size % blind / oracle | z RMS rescaled blind / oracle | gyro common blind / oracle | detect s blind / oracle | calibrate s blind / oracle |",
          "|---|---|---|---|---|---|---|---|---|---|---|"]
+    pair = lambda x, y, fmt: f"{x:{fmt}} / " + ("—" if y is None else f"{y:{fmt}}")  # noqa: E731
     for b, o in rows:
         zb = np.asarray(b["score"]["z"])
         zo = None if o is None else np.asarray(o["score"]["z"])
-        pair = lambda x, y, fmt: f"{x:{fmt}} / " + ("—" if y is None else f"{y:{fmt}}")  # noqa: E731
+        gb, rb = rescaled(b["score"])
+        go, ro = (None, None) if o is None else rescaled(o["score"])
         L.append(f"| clock-{b['seed']:03d} | {b['board']} | {b['f_host']:g} | {len(b['acc_blocks'])}/{b['K']} | "
-                 + pair(np.sqrt(np.mean(zb ** 2)), None if zo is None else np.sqrt(np.mean(zo ** 2)), ".2f") + " | "
+                 + pair(_rms(zb), None if zo is None else _rms(zo), ".2f") + " | "
                  + pair(np.abs(zb).max(), None if zo is None else np.abs(zo).max(), ".2f") + " | "
-                 + pair(100 * rescaled(b["score"])[0], None if o is None else 100 * rescaled(o["score"])[0], "+.2f") + " | "
-                 + pair(_rms(rescaled(b["score"])[1]), None if o is None else _rms(rescaled(o["score"])[1]), ".2f") + " | "
+                 + pair(100 * gb, None if o is None else 100 * go, "+.2f") + " | "
+                 + pair(_rms(rb), None if o is None else _rms(ro), ".2f") + " | "
                  + _common(b) + " / " + ("—" if o is None else _common(o)) + " | "
                  + pair(b["detect_seconds"], None if o is None else o["detect_seconds"], ".0f") + " | "
                  + pair(b["calibrate_seconds"], None if o is None else o["calibrate_seconds"], ".0f") + " |")
@@ -227,7 +230,7 @@ def main(argv=None) -> int:
             r = run_case(s, v, args.out, args.reports)
             z = np.asarray(r["score"]["z"])
             print(f"clock-{s:03d} {r['board']} {r['f_host']:g} Hz {v}: acc blocks {len(r['acc_blocks'])}/{r['K']}, z RMS "
-                  f"{np.sqrt(np.mean(z ** 2)):.2f}, max |z| {np.abs(z).max():.2f}", flush=True)
+                  f"{_rms(z):.2f}, max |z| {np.abs(z).max():.2f}", flush=True)
     if args.no_doc:
         return 0
     rows = []
@@ -235,12 +238,11 @@ def main(argv=None) -> int:
         f, g = (args.out / f"clock-{s:03d}" / f"{v}.json" for v in VARIANTS)
         if f.exists():
             rows.append((with_truth(f, s, args.reports), with_truth(g, s, args.reports) if g.exists() else None))
-    from accel_bayes.data.outputs import write_text
-    from experiments._reading import READING_MARKER, kept_reading
+    from experiments._reading import write_with_reading
 
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/percov_blind_acc.py" + (
         "" if args.n == 21 else f" --n {args.n}")
-    write_text(DOC, "\n".join(markdown(rows, cmd, time.time() - t0)) + "\n\n" + READING_MARKER + (kept_reading(DOC) or "\n"))
+    write_with_reading(DOC, markdown(rows, cmd, time.time() - t0))
     print(f"wrote {DOC}")
     return 0
 

@@ -140,8 +140,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
-    from accel_bayes.data.outputs import write_text
-    from experiments._reading import READING_MARKER, kept_reading
+    from experiments._reading import write_with_reading
 
     t0 = time.time()
     results = []
@@ -151,7 +150,7 @@ def main(argv=None) -> int:
                                        for c in r["clips"]) or "no saturation finding"), flush=True)
         results.append(r)
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/saturation_guard_probe.py"
-    write_text(DOC, "\n".join(markdown(results, cmd, time.time() - t0)) + "\n\n" + READING_MARKER + (kept_reading(DOC) or "\n"))
+    write_with_reading(DOC, markdown(results, cmd, time.time() - t0))
     print(f"wrote {DOC}")
     return 0
 
