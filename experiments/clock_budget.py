@@ -312,7 +312,7 @@ def main(argv=None):
     ap.add_argument("--diagnose-gyro", nargs="*", type=int, default=[], metavar="SEED",
                     help="also run the gyro linear stage alone on these cases (why no gyro_scale block)")
     a = ap.parse_args(argv)
-    from accel_bayes.data.outputs import write_text
+    from experiments._reading import write_with_reading
 
     global OUT
     doc = ROOT / "clock_budget.md"
@@ -337,7 +337,8 @@ def main(argv=None):
     wall = None if a.summary else time.perf_counter() - t0
     cmd = "OMP_NUM_THREADS=1 PYTHONPATH=. nice -n 5 python3 experiments/clock_budget.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
-    write_text(doc, summary(results, cmd.strip(), a.n_clock, wall))
+    # the hand-written reading below the marker is kept (it was lost on every rerun before 2026-11-29)
+    write_with_reading(doc, summary(results, cmd.strip(), a.n_clock, wall).rstrip("\n").split("\n"))
     print(doc.read_text())
     print(f"total time {time.perf_counter() - t0:.0f} s")
 

@@ -12,8 +12,14 @@ not the cause): the gyro stage alone, as ``detect`` runs it (step 3a, on ``prepa
 baseline fit, Bonferroni count 200, α = 0.01), on the recording as drawn and on the same draw with one piece of
 the generator switched off: the board's vibration and impacts (``vibration=False``), the DLPF
 (``filtered=False``), or the free-running clocks (``kind="twin"``: every IMU's tick locked to the host's read,
-no read skew).  The common part's noise-robust statistic against its threshold, and where kept its largest
-|entry| against the generator's shared gyro error (the mean over the gyros of R_k M_k R_kᵀ − I, array frame).
+no read skew).  The common part's statistic against its threshold, and where kept its largest |entry| against the
+generator's shared gyro error (the mean over the gyros of R_k M_k R_kᵀ − I, array frame).
+
+History: this probe found the gross common parts with the stage's former test (its likelihood ratio over the
+gyros' residual power against χ²_12: 62 and 278 against 41 on clock-006 and -016 as drawn, entries 0.22 and
+0.12).  The stage now tests the common part by its heteroscedasticity-robust Wald statistic
+(:func:`accel_bayes.mismatch.gyro_linear.robust_wald`, χ²_11 without the isotropic part); the table shows it
+beside the model-based Wald statistic of the same estimate.
 
     PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/gyro_common_stage_probe.py
 """
@@ -72,7 +78,8 @@ def run_case(seed: int, out: Path) -> dict:
             st = gyro_linear_stage(prep, baseline_fit(prep)[0], m=M_BONFERRONI, alpha=ALPHA)
         c = st.info.get("common")
         rows.append({"variant": label, "statistic": float(st.info.get("common_statistic_robust", float("nan"))),
-                     "threshold": float(st.info.get("block_threshold", float("nan"))), "kept": bool(c),
+                     "statistic_model": float(st.info.get("common_wald_model", float("nan"))),
+                     "threshold": float(st.info.get("common_threshold", float("nan"))), "kept": bool(c),
                      "max_abs": float(np.abs(np.asarray(c["matrix"])).max()) if c else None,
                      "blocks": len(st.blocks), "seconds": time.perf_counter() - t0})
     res = {"seed": seed, "board": truth["board"], "f_host": truth["f_host"], "gyro_linear": bool(truth["gyro_linear"]),
@@ -88,13 +95,15 @@ def markdown(results: list[dict], cmd: str, secs: float) -> list[str]:
     L = ["# gyro_common_stage_probe — what the gyro linear stage's common part absorbs on concealed clock recordings", "",
          f"Regenerate: `{cmd}` ({run_stamp()}; this invocation {secs:.0f} s; per-case records committed in "
          "`experiments/results/gyro_common_stage_probe/`).", "",
-         "What runs: the script's docstring. Per variant: the common part's noise-robust statistic / its threshold "
-         "(χ²_12 at 1 − α/m), and where kept its largest |entry| (— where not kept). *shared* = the generator's gyro "
-         "error shared by every gyro, largest |entry| (0 on odd seeds, which draw no gyro errors).", "",
+         "What runs: the script's docstring. Per variant: the common part's heteroscedasticity-robust Wald statistic "
+         "(the stage's test) / the model-based Wald statistic of the same estimate / the threshold (χ²_11 at 1 − α/m), "
+         "and where kept its largest |entry| (— where not kept). *shared* = the generator's gyro error shared by every "
+         "gyro, largest |entry| (0 on odd seeds, which draw no gyro errors).", "",
          "| case | board | read Hz | shared | " + " | ".join(v[0] for v in VARIANTS) + " |",
          "|---|---|---|---|" + "---|" * len(VARIANTS)]
     for r in results:
-        cells = [f"{v['statistic']:.0f} / {v['threshold']:.0f}: " + (f"**{v['max_abs']:.3f}**" if v["kept"] else "—")
+        cells = [f"{v['statistic']:.0f} / {v.get('statistic_model', float('nan')):.0f} / {v['threshold']:.0f}: "
+                 + (f"**{v['max_abs']:.3f}**" if v["kept"] else "—")
                  for v in r["variants"]]
         L.append(f"| clock-{r['seed']:03d} | {r['board']} | {r['f_host']:g} | {r['shared_gyro_error']:.3f} | "
                  + " | ".join(cells) + " |")

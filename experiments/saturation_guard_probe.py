@@ -15,9 +15,12 @@ and run with the proof's detector defaults; clockgen's clock-007, -013 and -025 
 with the detector's defaults and with ``acc_linear=True``; and percov_conceal's clock-007, -013 and -019 (the
 generator's accelerometer errors inverted, the mounting error applied, 20 s).
 
-The rule this tests (not in the package): refuse a clip whose channel's outputs do not pile up at the fitted limit:
-fewer than 3 of them within 5σ of L (where none reach it, max |y| < L − 5σ, that count is 0).  A clip flattens every
-peak beyond the range, so a real one holds several outputs at L; one output at L is a single peak cut.
+The rule this tested is now the detector's (``accel_bayes.mismatch.choose.SATURATION_AT_LIMIT``, counted by
+``Saturation.outputs_at_limit``): a ``saturation`` refit whose channel holds fewer than 3 recorded outputs within
+5σ of its fitted limit is refused (where none reach it, max |y| < L − 5σ, that count is 0).  A clip flattens every
+peak beyond the range, so a real one holds several outputs at L; one output at L is a single peak cut.  Per case
+the record keeps the findings (this script's own count, independent of the package's) and the refits the
+detector refused by the rule, with the count it gave.
 
     PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/saturation_guard_probe.py
 """
@@ -37,10 +40,9 @@ ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT.parent))
 DOC = ROOT / "saturation_guard_probe.md"
 OUT = ROOT / "results" / "saturation_guard_probe"
-#: an output "at the limit" is within this many stated-noise standard deviations of it
-AT_LIMIT_SIGMAS = 5.0
-#: the rule keeps a clip with at least this many outputs at its limit
-MIN_AT_LIMIT = 3
+#: an output "at the limit" is within this many stated-noise standard deviations of it (the detector's constant)
+#: the rule keeps a clip with at least this many outputs at its limit (the detector's constant)
+AT_LIMIT_SIGMAS, MIN_AT_LIMIT = 5.0, 3
 
 
 def clip_findings(rep) -> list[dict]:
@@ -100,10 +102,20 @@ def run_case(name: str, truth: str, options: dict, make, out: Path) -> dict:
         warnings.simplefilter("ignore", RuntimeWarning)
         rep = detect(make(), seed=0, **options)
     res = {"case": name, "truth": truth, "options": options, "seconds": time.perf_counter() - t0,
-           "clips": clip_findings(rep)}
+           "clips": clip_findings(rep), "refused": guard_refusals(rep)}
     out.mkdir(parents=True, exist_ok=True)
     write_json(path, res)
     return res
+
+
+def guard_refusals(rep) -> list[dict]:
+    """The ``saturation`` refits the detector refused by its at-limit rule: candidate, outputs at its limit, why."""
+    out = []
+    for rnd in rep.rounds:
+        counts = {r["candidate"]: r.get("outputs_at_limit") for r in rnd.get("refits", [])}
+        out += [{"candidate": r["candidate"], "at_limit": counts.get(r["candidate"]), "why": r["why"]}
+                for r in rnd.get("refused", []) if r["candidate"].startswith("saturation") and "of its limit" in r["why"]]
+    return out
 
 
 def refused(c: dict) -> bool:
@@ -118,17 +130,21 @@ def markdown(results: list[dict], cmd: str, secs: float) -> list[str]:
          f"Regenerate: `{cmd}` ({run_stamp()}; this invocation {secs:.0f} s; per-case records committed in "
          "`experiments/results/saturation_guard_probe/`).", "",
          "What runs: the script's docstring. Per finding: the fitted limit L, the channel's largest |output|, "
-         f"(max − L)/σ, and the outputs within {AT_LIMIT_SIGMAS:g}σ of L; *rule* = what refusing a clip with fewer than "
-         f"{MIN_AT_LIMIT} outputs at L would do.", ""]
+         f"(max − L)/σ, and the outputs within {AT_LIMIT_SIGMAS:g}σ of L; *rule* = the detector's rule (refuse a clip with "
+         f"fewer than {MIN_AT_LIMIT} outputs at L) applied to the finding by this script's own count; *refused* = the "
+         "refits the detector turned down by it (with its count).", ""]
     for truth in ("clips", "no clipping"):
         rows = [r for r in results if r["truth"] == truth]
         clips = [c for r in rows for c in r["clips"]]
         n_ref = sum(refused(c) for c in clips)
-        L += [f"**{truth}**: {len(rows)} detections, {len(clips)} saturation findings, the rule refuses {n_ref}.", ""]
+        n_guard = sum(len(r.get("refused", [])) for r in rows)
+        L += [f"**{truth}**: {len(rows)} detections, {len(clips)} saturation findings, the rule refuses {n_ref}; "
+              f"refits the detector refused by it: {n_guard}.", ""]
     L += ["| case | recording | finding | L | max \\|y\\| | (max − L)/σ | outputs at L | rule |", "|---|---|---|---|---|---|---|---|"]
     for r in results:
         if not r["clips"]:
-            L.append(f"| {r['case']} | {r['truth']} | none | | | | | |")
+            gone = "; ".join(f"{g['candidate']} ({g['at_limit']} at L)" for g in r.get("refused", []))
+            L.append(f"| {r['case']} | {r['truth']} | none{' (refused: ' + gone + ')' if gone else ''} | | | | | |")
         for c in r["clips"]:
             L.append(f"| {r['case']} | {r['truth']} | {c['sensor']}[imu {c['imu']}, {c['axis']}] | {c['limit']:.3f} | "
                      f"{c['max_abs']:.3f} | {c['reach_sigmas']:+.1f} | {c['at_limit']}/{c['n']} | "

@@ -56,7 +56,7 @@ from .screens import Screen, noise_evidence
 
 __all__ = ["choose", "pick", "alternatives", "evidence", "heteroscedastic", "random_channels", "acc_timing_unidentified",
            "ACC_TIMING_ANCHORS",
-           "ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD", "HETEROSCEDASTIC_RATIO", "RANDOM_DOMINANCE", "REFRESH_PASSES",
+           "ALTERNATIVE_MIN_RELATIVE_LIKELIHOOD", "HETEROSCEDASTIC_RATIO", "RANDOM_DOMINANCE", "REFRESH_PASSES", "SATURATION_AT_LIMIT",
            "GYRO_LINEAR_TERMS"]
 
 
@@ -119,6 +119,14 @@ RANDOM_DOMINANCE = 10.0
 
 #: the vocabulary terms a gyro_linear block contains (never round candidates on an IMU that has one)
 GYRO_LINEAR_TERMS = ("gyro_bias", "gyro_scale", "gyro_misalignment")
+
+#: a ``saturation`` refit is refused unless at least [1] of its channel's recorded outputs lie within [0] stated
+#: noise σ of its limit (:meth:`~accel_bayes.physics.effects.Saturation.outputs_at_limit`).  A clip flattens every
+#: peak beyond the range: mismatch_proof's ten concealed clips hold 5–102 outputs at L.  On clockgen recordings
+#: that never clip (|a| ≤ 53 m/s² against ±157) the detector accepted limits 16–35 σ above every output, or one
+#: that cut a single peak: they clamp the model's overshooting peaks, not the data.  The count 3 was chosen after
+#: seeing that single-peak case (``experiments/saturation_guard_probe.md``: 19/19 true kept, 7/7 false refused)
+SATURATION_AT_LIMIT = (5.0, 3)
 
 #: alternations of (gyro linear blocks | the rounds' findings) after each accepted finding: a block and
 #: a finding on the same gyro share part of their signature (an offset and a second-order response), so

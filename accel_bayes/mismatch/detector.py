@@ -22,7 +22,8 @@ Procedure
 3a. **Gyro linear stage** (:mod:`accel_bayes.mismatch.gyro_linear`): every gyroscope's whole
    linear error (3 × 3 scale/misalignment + offset, :class:`~accel_bayes.physics.effects.GyroLinear`,
    12 parameters per IMU) is tested as a group and per IMU, fitted in closed form alternating
-   with the motion (its part common to all gyros through the accelerometer lever arms), and the
+   with the motion (its part common to all gyros through the accelerometer lever arms, judged by a
+   heteroscedasticity-robust Wald statistic: :func:`~accel_bayes.mismatch.gyro_linear.robust_wald`), and the
    recording is corrected for the blocks that pass; the rounds below run on the corrected
    recording with the blocks held fixed, and never try a gyro scale/misalignment/bias term on
    an IMU that has a block.  Each block is a finding (vocabulary ``gyro_scale``, axis null,
@@ -55,7 +56,11 @@ Procedure
    marginal of the random effects, the clamp gain of ``saturation``).
 5. **Refit** the best screened candidates by LM and take their **evidence**; 6. **Accept** one per
    round, at most ``max_findings`` rounds, then recompute every finding's evidence with the
-   others in the model (drop-one): the rules are in :mod:`accel_bayes.mismatch.choose`.
+   others in the model (drop-one): the rules are in :mod:`accel_bayes.mismatch.choose`.  A refit is
+   refused when its constant parameter is not constant across time segments, and a ``saturation``
+   refit when fewer than 3 recorded outputs lie within 5σ of its limit
+   (:data:`~accel_bayes.mismatch.choose.SATURATION_AT_LIMIT`: a clamp no output reaches cuts the
+   model's overshooting peaks, not the data).
 7. **Unexplained**: at the final model, the located-excess tests of
    :func:`accel_bayes.mismatch.locate.excess_cells` (free mean and variance per regime bin, χ²_2B),
    Bonferroni-corrected over the cells × schemes tested; a significant one that also exceeds the
@@ -113,7 +118,7 @@ from ..physics.effects import Unexplained
 from ..threads import torch_threads
 from .budget import group_power, residual_budget
 from .characterise import characterise, describe
-from .choose import GYRO_LINEAR_TERMS, REFRESH_PASSES, acc_timing_unidentified, alternatives, choose, evidence, pick, \
+from .choose import GYRO_LINEAR_TERMS, REFRESH_PASSES, SATURATION_AT_LIMIT, acc_timing_unidentified, alternatives, choose, evidence, pick, \
     random_channels
 from .clock import clock_corrected, clock_stage
 from .compare import compare_fits, posterior_comparison
@@ -385,6 +390,17 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                 if q_r > q_thr:
                     unsteady = (f"its parameter is not constant through the recording: stationarity score "
                                 f"{q_r:.4g} > {q_thr:.4g} (χ²_{q_df}, {STATIONARITY_SEGMENTS} time segments)")
+            if cand.kind == "clip" and ev_r > threshold and unsteady is None:
+                # a clip holds outputs at its limit; a fitted limit that none reaches cuts the model's own
+                # overshooting peaks (choose.SATURATION_AT_LIMIT says how this was measured)
+                y, sig, msk = ((prep.y_acc, prep.sigma_acc, prep.m_acc) if cand.which == "acc"
+                               else (prep.y_gyro, prep.sigma_gyro, prep.m_gyro))
+                n_at = f.effects[-1].outputs_at_limit(y, sig, SATURATION_AT_LIMIT[0], msk)
+                row["outputs_at_limit"] = n_at
+                if n_at < SATURATION_AT_LIMIT[1]:
+                    unsteady = (f"{n_at} recorded output(s) within {SATURATION_AT_LIMIT[0]:g} σ of its limit "
+                                f"±{float(f.effects[-1].params['limit']):.4g} (a clip holds at least "
+                                f"{SATURATION_AT_LIMIT[1]}): it cuts the model's peaks, not the outputs")
             info["refits"].append(row)
             f.drop_linear()
             results.append({"effect": f.effects[-1], "fit": f, "evidence": ev, "evidence_robust": ev_r,

@@ -21,8 +21,21 @@ How (block-coordinate maximum likelihood on the detector's own model):
 2. **The common part, through the lever arms.**  An error shared by all gyros moves the fitted
    rate with it and is only seen by the accelerometers' centripetal terms; it is fitted as
    one array-frame ``GyroLinear(imu=None)`` (12 parameters) by the LM solver on the corrected
-   recording, kept when its likelihood ratio passes χ²_12 at 1 − α/m, and folded into every
-   IMU's block: I + M_k ← (I + M_k)(I + R_k C R_kᵀ), b_k ← (I + M_k) R_k c + b_k.
+   recording, kept when its heteroscedasticity-robust Wald statistic (:func:`robust_wald`, the
+   trace-free matrix and the offset, 11 df; the isotropic part is the array's size, below) passes
+   χ²_11 at 1 − α/m, and folded into every IMU's block: I + M_k ← (I + M_k)(I + R_k C R_kᵀ),
+   b_k ← (I + M_k) R_k c + b_k.  Why robust: at this point of the detector the accelerometers still
+   carry what the clock and unresolved-motion stages model later — the board's vibration read at
+   each IMU's own data age — an excess that grows with the motion, i.e. where the centripetal terms
+   that see the common part are large.  Judged by its likelihood ratio over the residual power (the
+   rounds' F-type guard, which assumes the excess is spread evenly) the common part took it: on
+   clockgen's clock-006 and clock-016 it kept entries of 0.22 and 0.12 where the gyros share ≤ 0.017
+   (``experiments/gyro_common_stage_probe.md``); the robust statistic is 16–23 there (threshold 39;
+   the model-based Wald statistic of the same estimate 1536–1925) and within 10 % of the model-based
+   one where the accelerometers' misfit is white (the synchronised twins, no vibration: 31–125).
+   What no test can tell apart is a systematic error: on accelerometers ``prep`` could not calibrate,
+   the common part takes their errors (kept by either test); the accelerometer stage (opt-in)
+   restages it on corrected triads (:mod:`accel_bayes.mismatch.acc_linear`).
 3. **Tests.**  The errors must be spread over several gyros (:data:`MIN_SPREAD_SHARE`, and the
    spread statistic of :func:`_spread_share` above χ²_{12(n−2)} at 1 − α/m).  Before any
    refit, the group's conditional statistic Σ_k Σ_t |M_k ĝ_kt + b_k|²/σ_k²
@@ -65,7 +78,7 @@ from .model import ModelFit
 from .prepared import Prepared
 
 __all__ = ["GyroLinearStage", "gyro_linear_stage", "relative_blocks", "corrected_gyro", "block_corrected_recording",
-           "MIN_SPREAD_SHARE"]
+           "robust_wald", "MIN_SPREAD_SHARE", "COMMON_DF"]
 
 #: what :func:`gyro_linear_stage` returns (the stage record both linear stages share)
 GyroLinearStage = LinearStage
@@ -77,19 +90,62 @@ def corrected_gyro(prep: Prepared, A: torch.Tensor, b: torch.Tensor) -> Prepared
     return corrected_outputs(prep, A, b, "gyro")
 
 
+#: the common part's parameters tested (:func:`robust_wald`): the 3 × 3 matrix less its isotropic part
+#: (the array's size, held at the gauge) and the offset
+COMMON_DF = 11
+
+
+def robust_wald(fit: ModelFit, n_eff: int, drop_isotropic: bool = True) -> tuple[float, float]:
+    """(robust, model-based) Wald statistics of the last ``n_eff`` mean-effect parameters of ``fit`` (a
+    ``GyroLinear``'s flattened matrix, 9, then offset, 3) against zero, the matrix's isotropic part left out
+    (``drop_isotropic``: it trades with the array's size).
+
+    Model-based: η̂ᵀ [S⁻¹]_ηη⁻¹ η̂ with S the reduced information (motion states eliminated sample by
+    sample, :class:`~accel_bayes.mismatch.model.LinearSystem`).  Robust (HC0 sandwich, White 1980): the
+    covariance S⁻¹ B S⁻¹ with B = Σ_t u_t u_tᵀ, u_t the sample's efficient score (Jg_t − Jx_t Z_t)ᵀ r_t in
+    the stated noise's whitening — honest when the misfit's variance varies with the motion, not when it
+    is correlated from sample to sample (blocks of samples would leave too few for the 12 + 3F globals on
+    a 20 s recording)."""
+    lin = fit.linear()
+    r = lin.r[None]
+    u = lin.jg_tmul(r, per_sample=True)[0] - torch.einsum("tdn,td->tn", lin.Z, lin.jx_tmul(r)[0])
+    cov_rob = lin.Sinv @ (u.T @ u) @ lin.Sinv
+    eta = torch.cat([e.flatten() for e in fit.effects if e.kind in ("mean", "clip")])[-n_eff:]
+    Q = torch.eye(n_eff, dtype=torch.float64)
+    if drop_isotropic:
+        t = torch.zeros(n_eff, dtype=torch.float64)
+        t[[0, 4, 8]] = 3 ** -0.5
+        ev, U = torch.linalg.eigh(Q - torch.outer(t, t))
+        Q = U[:, ev > 0.5]
+    e = Q.T @ eta
+
+    def stat(cov):
+        return float(e @ torch.linalg.solve(Q.T @ cov[-n_eff:, -n_eff:] @ Q, e))
+
+    return stat(cov_rob), stat(lin.Sinv)
+
+
 def _common_part(prep_c: Prepared, fit: ModelFit, A: torch.Tensor, b: torch.Tensor, info: dict, thr_block: float):
     """Step 2 (module docstring): one array-frame ``GyroLinear(imu=None)`` fitted through the lever
-    arms on the corrected recording, kept when its noise-robust likelihood ratio passes χ²_12 at
-    1 − α/m (``thr_block``), and folded into every gyro's block.  Returns (fit, A, b)."""
+    arms on the corrected recording, kept when its heteroscedasticity-robust Wald statistic
+    (:func:`robust_wald`) passes χ²_11 at 1 − α/m (the level of ``thr_block``, χ²_12 at 1 − α/m), and
+    folded into every gyro's block.  Returns (fit, A, b)."""
+    from scipy.stats import chi2
+
     common = GyroLinear(imu=None)
+    thr = float(chi2.isf(chi2.sf(thr_block, 12), COMMON_DF))
     try:
         fc = fit_model(prep_c, [common], init=fit, laplace=False)
-        lr = 2.0 * (fc.loglik - fit.loglik) / max(power(prep_c, fc, None), 1.0)
+        lr = 2.0 * (fc.loglik - fit.loglik) / max(power(prep_c, fc, None, "acc"), 1.0)
+        wald, wald_model = robust_wald(fc, 12)
     except Exception as exc:  # the common part is a refinement; without it the blocks are relative
-        fc, lr = None, float("nan")
+        fc, lr, wald, wald_model = None, float("nan"), float("nan"), float("nan")
         info["common_error"] = f"{type(exc).__name__}: {exc}"
-    info["common_statistic_robust"] = lr
-    if fc is not None and lr > thr_block:
+    info.update({"common_statistic_robust": wald, "common_threshold": thr, "common_df": COMMON_DF,
+                 "common_statistic_kind": "heteroscedasticity-robust (HC0) Wald statistic of the trace-free matrix "
+                                          "and the offset (gyro_linear.robust_wald)",
+                 "common_wald_model": wald_model, "common_lr_over_acc_power": lr})
+    if fc is not None and wald > thr:
         e = fc.effects[0]
         R = quat_to_matrix(prep_c.q)  # array → sensor
         C = R @ e.params["matrix"] @ R.transpose(1, 2)

@@ -51,3 +51,23 @@ def test_case_verdict_names_the_failing_bands_and_ignores_all():
     assert v["gyro"]["failing"] == ["|omega_dot| 90-100%"]
     assert v["acc"]["failing"] == ["|omega| 0-25%"]
     assert abs(v["acc"]["all_ratio"] - 0.2) < 1e-12
+
+
+def test_regenerating_the_document_keeps_its_reading(tmp_path):
+    # the summary of the cached cases is rewritten, the hand-written reading below the marker is kept
+    # (until 2026-11-29 every rerun dropped it)
+    import shutil
+    from pathlib import Path
+
+    from experiments import clock_budget as cb
+    from experiments._reading import READING_MARKER
+
+    src = Path(cb.__file__).parent / "results" / "clock_budget"
+    for name in ("clock-000.json", "clock-001.json"):
+        shutil.copy(src / name, tmp_path / name)
+    doc = tmp_path / "clock_budget.md"
+    doc.write_text("old summary\n\n" + READING_MARKER + "\n## Reading\nkept words\n")
+    cb.main(["--summary", "--out", str(tmp_path), "--n-clock", "2"])
+    text = doc.read_text()
+    assert "old summary" not in text and "# clock_budget" in text
+    assert text.endswith(READING_MARKER + "\n## Reading\nkept words\n")

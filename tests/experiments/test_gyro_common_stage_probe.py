@@ -21,9 +21,11 @@ def test_shared_error_is_the_array_frame_mean():
 
 
 def test_markdown_cells():
-    v = [{"variant": name, "statistic": st, "threshold": 41.0, "kept": k, "max_abs": mx, "blocks": 0, "seconds": 1.0}
+    v = [{"variant": name, "statistic": st, "statistic_model": 10 * st, "threshold": 39.0, "kept": k, "max_abs": mx,
+          "blocks": 0, "seconds": 1.0}
          for (name, _, _), st, k, mx in zip(gp.VARIANTS, (62.0, 26.0, 54.0, 32.0), (True, False, True, False),
                                             (0.219, None, 0.293, None))]
     L = "\n".join(gp.markdown([{"seed": 6, "board": "mimu4444", "f_host": 200.0, "gyro_linear": True,
                                 "shared_gyro_error": 0.0104, "variants": v}], "cmd", 1.0))
-    assert "| clock-006 | mimu4444 | 200 | 0.010 | 62 / 41: **0.219** | 26 / 41: — | 54 / 41: **0.293** | 32 / 41: — |" in L
+    assert ("| clock-006 | mimu4444 | 200 | 0.010 | 62 / 620 / 39: **0.219** | 26 / 260 / 39: — | 54 / 540 / 39: **0.293** "
+            "| 32 / 320 / 39: — |") in L

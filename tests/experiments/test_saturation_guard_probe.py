@@ -36,9 +36,27 @@ def test_a_true_clip_reaches_its_limit_and_a_cut_peak_does_not():
     assert not sg.refused(true_clip) and sg.refused(cut_peak)
     # one peak cut exactly at its own value: reached, but by one output only
     assert sg.refused({**true_clip, "reach_sigmas": 0.0, "at_limit": 1})
+    gone = {"candidate": "saturation[imu=1,axis=z,sensor=acc]", "at_limit": 0, "why": "0 ... of its limit"}
     L = "\n".join(sg.markdown([{"case": "c", "truth": "clips", "clips": [true_clip]},
                                {"case": "d", "truth": "no clipping", "clips": [cut_peak]},
-                               {"case": "e", "truth": "no clipping", "clips": []}], "cmd", 1.0))
-    assert "**clips**: 1 detections, 1 saturation findings, the rule refuses 0." in L
-    assert "**no clipping**: 2 detections, 1 saturation findings, the rule refuses 1." in L
-    assert "| -25.0 | 0/400 | refuse |" in L and "| e | no clipping | none |" in L
+                               {"case": "e", "truth": "no clipping", "clips": [], "refused": [gone]}], "cmd", 1.0))
+    assert "**clips**: 1 detections, 1 saturation findings, the rule refuses 0; refits the detector refused by it: 0." in L
+    assert "**no clipping**: 2 detections, 1 saturation findings, the rule refuses 1; refits the detector refused by it: 1." in L
+    assert "| -25.0 | 0/400 | refuse |" in L
+    assert "| e | no clipping | none (refused: saturation[imu=1,axis=z,sensor=acc] (0 at L)) |" in L
+
+
+def test_the_probe_counts_with_the_detectors_constants():
+    from accel_bayes.mismatch.choose import SATURATION_AT_LIMIT
+
+    assert (sg.AT_LIMIT_SIGMAS, sg.MIN_AT_LIMIT) == SATURATION_AT_LIMIT
+
+
+def test_guard_refusals_reads_the_rounds():
+    rounds = [{"refits": [{"candidate": "saturation[imu=1,axis=z,sensor=acc]", "outputs_at_limit": 1},
+                          {"candidate": "acc_bias[imu=1,axis=z]"}],
+               "refused": [{"candidate": "saturation[imu=1,axis=z,sensor=acc]", "why": "1 recorded output(s) within 5 σ of its limit ±3"},
+                           {"candidate": "acc_bias[imu=1,axis=z]", "why": "its parameter is not constant"}]}]
+    out = sg.guard_refusals(SimpleNamespace(rounds=rounds))
+    assert out == [{"candidate": "saturation[imu=1,axis=z,sensor=acc]", "at_limit": 1,
+                    "why": "1 recorded output(s) within 5 σ of its limit ±3"}]

@@ -214,4 +214,4 @@ def test_the_gyro_common_part_waits_for_the_accelerometers():
     rep = detect(rec, DetectOptions(acc_linear=True, max_findings=0, n_twins=5))
     assert "restaged" in rep.acc_linear and len(rep.acc_linear["kept"]) == rec.K
     assert "common" not in rep.gyro_linear
-    assert rep.gyro_linear["common_statistic_robust"] < rep.gyro_linear["block_threshold"]
+    assert rep.gyro_linear["common_statistic_robust"] < rep.gyro_linear["common_threshold"]

@@ -84,6 +84,19 @@ class Saturation(Effect):
             L = float(self.params["limit"])
             self.stats["clipped_fraction"] = float((y.abs() > L)[:, m].double().mean()) if bool(m.any()) else 0.0
 
+    def outputs_at_limit(self, y: torch.Tensor, sigma: torch.Tensor, n_sigma: float, mask=None) -> int:
+        """How many recorded outputs of the effect's channel(s) lie within ``n_sigma`` stated-noise standard
+        deviations of ±limit: y (T, K, 3) the sensor's outputs (m/s² or rad/s; NaN or ``mask`` 0 = missing),
+        sigma (K,) its stated noise.  A clip flattens every peak beyond the range, so real clipping holds
+        several outputs at L; a limit that no output reaches cuts only the model's own peaks
+        (``experiments/saturation_guard_probe.md``)."""
+        with torch.no_grad():
+            L = float(self.params["limit"])
+            m = self.channel_mask(y.shape[1], y)[None].expand_as(y)
+            ok = torch.isfinite(y) & m & (True if mask is None else (torch.as_tensor(mask) > 0))
+            near = (y.abs() - L).abs() <= n_sigma * torch.as_tensor(sigma, dtype=y.dtype)[None, :, None]
+            return int((near & ok).sum())
+
     def report_parameters(self, params=None):
         L = float(self._p(params)["limit"])
         return {"limit": L, "clipped_fraction": float(self.stats.get("clipped_fraction", float("nan"))),
