@@ -40,9 +40,11 @@ ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT.parent))
 DOC = ROOT / "saturation_guard_probe.md"
 OUT = ROOT / "results" / "saturation_guard_probe"
-#: an output "at the limit" is within this many stated-noise standard deviations of it (the detector's constant)
-#: the rule keeps a clip with at least this many outputs at its limit (the detector's constant)
-AT_LIMIT_SIGMAS, MIN_AT_LIMIT = 5.0, 3
+from accel_bayes.mismatch.choose import SATURATION_AT_LIMIT  # noqa: E402
+
+#: an output "at the limit" is within AT_LIMIT_SIGMAS stated-noise standard deviations of it; the rule keeps a clip
+#: with at least MIN_AT_LIMIT outputs there (the detector's constants; the count below is this script's own)
+AT_LIMIT_SIGMAS, MIN_AT_LIMIT = SATURATION_AT_LIMIT
 
 
 def clip_findings(rep) -> list[dict]:

@@ -379,7 +379,7 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
             row = {"candidate": cand.label(), "evidence": ev, "evidence_robust": ev_r,
                    "group_power_after": power, "df": cand.df, "log10_p": lp,
                    "screen_statistic": sc.statistic, "seconds": f.seconds}
-            unsteady = None
+            refused_why = None
             if cand.kind == "mean" and ev_r > threshold:
                 # a constant parameter must be constant: the score test across time segments
                 # (noise-robust like the evidence), at the same family-wise level
@@ -388,9 +388,9 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                 q_thr = threshold_rule(m, q_df, alpha)
                 row.update({"stationarity": q_r, "stationarity_df": q_df, "stationarity_threshold": q_thr})
                 if q_r > q_thr:
-                    unsteady = (f"its parameter is not constant through the recording: stationarity score "
+                    refused_why = (f"its parameter is not constant through the recording: stationarity score "
                                 f"{q_r:.4g} > {q_thr:.4g} (χ²_{q_df}, {STATIONARITY_SEGMENTS} time segments)")
-            if cand.kind == "clip" and ev_r > threshold and unsteady is None:
+            if cand.kind == "clip" and ev_r > threshold and refused_why is None:
                 # a clip holds outputs at its limit; a fitted limit that none reaches cuts the model's own
                 # overshooting peaks (choose.SATURATION_AT_LIMIT says how this was measured)
                 y, sig, msk = ((prep.y_acc, prep.sigma_acc, prep.m_acc) if cand.which == "acc"
@@ -398,13 +398,13 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                 n_at = f.effects[-1].outputs_at_limit(y, sig, SATURATION_AT_LIMIT[0], msk)
                 row["outputs_at_limit"] = n_at
                 if n_at < SATURATION_AT_LIMIT[1]:
-                    unsteady = (f"{n_at} recorded output(s) within {SATURATION_AT_LIMIT[0]:g} σ of its limit "
+                    refused_why = (f"{n_at} recorded output(s) within {SATURATION_AT_LIMIT[0]:g} σ of its limit "
                                 f"±{float(f.effects[-1].params['limit']):.4g} (a clip holds at least "
                                 f"{SATURATION_AT_LIMIT[1]}): it cuts the model's peaks, not the outputs")
             info["refits"].append(row)
             f.drop_linear()
             results.append({"effect": f.effects[-1], "fit": f, "evidence": ev, "evidence_robust": ev_r,
-                            "log10_p": lp, "screen": sc, "without": current, "unsteady": unsteady})
+                            "log10_p": lp, "screen": sc, "without": current, "refused_why": refused_why})
 
         for sc in chosen:
             if sc.effect.kind != "noise":
@@ -413,9 +413,9 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
         # (choose.pick), so its refits are only done then: each one is up to ``noise_rounds`` + 1
         # LM solves, and on a badly fitting recording (real MIMU data, χ²/dof ~ 3000) they were
         # 3/4 of the detector's time while their result could not change the verdict.
-        for r in [r for r in results if r.get("unsteady")]:
-            info.setdefault("refused", []).append({"candidate": r["effect"].label(), "why": r["unsteady"]})
-        results = [r for r in results if not r.get("unsteady")]
+        for r in [r for r in results if r.get("refused_why")]:
+            info.setdefault("refused", []).append({"candidate": r["effect"].label(), "why": r["refused_why"]})
+        results = [r for r in results if not r.get("refused_why")]
         mean_ok = any(r["effect"].kind not in ("noise", "random") and r["evidence_robust"] > threshold for r in results)
         for sc in chosen:
             if sc.effect.kind == "noise":

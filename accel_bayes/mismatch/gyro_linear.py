@@ -125,15 +125,15 @@ def robust_wald(fit: ModelFit, n_eff: int, drop_isotropic: bool = True) -> tuple
     return stat(cov_rob), stat(lin.Sinv)
 
 
-def _common_part(prep_c: Prepared, fit: ModelFit, A: torch.Tensor, b: torch.Tensor, info: dict, thr_block: float):
+def _common_part(prep_c: Prepared, fit: ModelFit, A: torch.Tensor, b: torch.Tensor, info: dict, level: float):
     """Step 2 (module docstring): one array-frame ``GyroLinear(imu=None)`` fitted through the lever
     arms on the corrected recording, kept when its heteroscedasticity-robust Wald statistic
-    (:func:`robust_wald`) passes χ²_11 at 1 − α/m (the level of ``thr_block``, χ²_12 at 1 − α/m), and
-    folded into every gyro's block.  Returns (fit, A, b)."""
+    (:func:`robust_wald`) passes χ²_11 at 1 − ``level`` (α/m), and folded into every gyro's block.
+    Returns (fit, A, b)."""
     from scipy.stats import chi2
 
     common = GyroLinear(imu=None)
-    thr = float(chi2.isf(chi2.sf(thr_block, 12), COMMON_DF))
+    thr = float(chi2.isf(level, COMMON_DF))
     try:
         fc = fit_model(prep_c, [common], init=fit, laplace=False)
         lr = 2.0 * (fc.loglik - fit.loglik) / max(power(prep_c, fc, None, "acc"), 1.0)

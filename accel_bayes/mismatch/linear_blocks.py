@@ -232,7 +232,7 @@ def linear_stage(prep: Prepared, base: ModelFit, *, sensor: str, block: Callable
     """The linear stage of ``sensor`` (:mod:`accel_bayes.mismatch.gyro_linear`'s docstring, steps 1–3)
     from the fit ``base`` of ``prep``; ``m`` and ``alpha`` are the detector's Bonferroni count and
     family-wise error rate; ``block(imu, params)`` makes one block effect (:class:`GyroLinear`,
-    :class:`AccLinear`).  ``common(prep_c, fit, A, b, info, threshold)`` → (fit, A, b): the gyro
+    :class:`AccLinear`).  ``common(prep_c, fit, A, b, info, level)`` → (fit, A, b), ``level`` = α/m: the gyro
     stage's step 2, between the relative blocks and the gauge (None: no common part).  ``spread_test``:
     ``"share"`` (:func:`spread_share` and its statistic, the gyros') or ``"others"``
     (:func:`others_after_top`, the accelerometers')."""
@@ -299,7 +299,7 @@ def _fit_blocks(prep, base, sensor, block, m, alpha, passes, common, imus, info,
         fit = fit_model(prep_c, (), init=fit, laplace=False)
     A, b = rel["A"].clone(), rel["b"].clone()
     if common is not None:  # 2: the common part
-        fit, A, b = common(prep_c, fit, A, b, info, thr_block)
+        fit, A, b = common(prep_c, fit, A, b, info, alpha / m)
     # the array-size gauge: the same scale error on every triad is a rescaling of the whole array, so
     # it is not seen by any data; hold the median triad's isotropic scale at zero
     iso = torch.stack([torch.diagonal(A[k]).sum() / 3 - 1 for k in imus])
