@@ -14,7 +14,11 @@ Per case (``clock`` seeds 0…N−1, the same recordings, mounting error and cal
 percov_conceal; the calibration as ``accel-bayes calibrate REC --model report.json`` runs it, with the
 angular jerk, untempered):
 
-* ``blind`` — the raw recording, ``detect(acc_linear=True)``, ``calibrate(model=report)``;
+* ``blind`` — the raw recording, ``detect(acc_linear=True)``, ``calibrate(model=report)`` with its
+  default ``acc_blocks="fit"``: every triad's linear error integrated out of the likelihood, the
+  tolerance by type-II ML, the report's blocks its centre (:mod:`accel_bayes.model.acc_block_marginal`);
+* ``blind_fixed`` — the same report, ``acc_blocks="fixed"``: the blocks inverted as exact (what
+  ``calibrate --model`` did before the option; the records of the first two runs);
 * ``oracle`` — percov_conceal's ``with_angjerk`` on today's code: the generator's accelerometer errors
   inverted first, ``detect`` with its defaults, the same calibration.
 
@@ -39,7 +43,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT.parent))
 DOC = ROOT / "percov_blind_acc.md"
-VARIANTS = ("blind", "oracle")
+VARIANTS = ("blind", "blind_fixed", "oracle")
 OUT = ROOT / "results" / "percov_blind_acc"
 REPORTS = ROOT / "out" / "percov_blind_acc"
 #: percov_conceal's issue #30 run settings (its document's Regenerate line)
@@ -60,9 +64,9 @@ def run_case(seed: int, variant: str, out: Path, reports: Path = REPORTS, durati
     f = d / f"{variant}.json"
     if f.exists():
         return json.loads(f.read_text())
-    blind = variant == "blind"
+    blind = variant.startswith("blind")
     rec, truth, pos = case_recording(seed, duration, mount_std, acc_intrinsics="none" if blind else "known")
-    rep = reports / f"clock-{seed:03d}" / f"{variant}_report.json"
+    rep = reports / f"clock-{seed:03d}" / f"{'blind' if blind else variant}_report.json"
     t0 = time.perf_counter()
     if not rep.exists():
         with warnings.catch_warnings():
@@ -72,7 +76,8 @@ def run_case(seed: int, variant: str, out: Path, reports: Path = REPORTS, durati
         write_json(rep, report.to_dict())
     det_s = time.perf_counter() - t0
     doc = json.loads(rep.read_text())
-    r = run_variant(rec, "with_angjerk", rep, CALIB["chains"], CALIB["draws"], CALIB["warmup"], CALIB["seed"])
+    r = run_variant(rec, "with_angjerk", rep, CALIB["chains"], CALIB["draws"], CALIB["warmup"], CALIB["seed"],
+                    **({"acc_blocks": "fixed"} if variant == "blind_fixed" else {}))
     res = {"variant": variant, "seed": seed, "board": truth["board"], "f_host": truth["f_host"], "K": int(rec.K),
            "detect_seconds": det_s, "calibrate_seconds": r["seconds"],
            "acc_blocks": stage_blocks(doc, int(rec.K))[2],
@@ -80,6 +85,7 @@ def run_case(seed: int, variant: str, out: Path, reports: Path = REPORTS, durati
            "gyro_common": gyro_common(doc),
            "findings": [{"effect": x["effect"], "imu": x.get("imu")} for x in doc["findings"]],
            "used": [u["effect"] for u in (r.get("model") or {}).get("used", [])],
+           "acc_blocks_record": ((r["positions"]["provenance"]["settings"].get("model") or {}).get("acc_blocks")),
            "score": {**score(r["positions"], pos), "truth_m": true_coordinates(pos, score(r["positions"], pos))},
            "settings": CALIB}
     d.mkdir(parents=True, exist_ok=True)
@@ -121,7 +127,7 @@ def with_truth(rec_path: Path, seed: int, reports: Path = REPORTS) -> dict:
         _, _, pos = case_recording(seed, 20.0, 5e-4, acc_intrinsics="none")
         r["score"]["truth_m"] = true_coordinates(pos, r["score"])
         write_json(rec_path, r)
-    rep = reports / rec_path.parent.name / f"{r['variant']}_report.json"
+    rep = reports / rec_path.parent.name / f"{'blind' if r['variant'].startswith('blind') else r['variant']}_report.json"
     if "gyro_common" not in r and rep.exists():
         r["gyro_common"] = gyro_common(json.loads(rep.read_text()))
         write_json(rec_path, r)
@@ -154,11 +160,27 @@ def _stats(z) -> dict:
             "beyond4": int((np.abs(z) > 4).sum()), "mean": float(z.mean())}
 
 
-def markdown(rows: list[tuple[dict, dict | None]], cmd: str, seconds: float) -> list[str]:
-    """The document: pooled figures of both variants over the cases that have both, then case by case."""
+def _fixed_cells(f: dict | None, b: dict) -> str:
+    """The blocks-fixed record's z RMS / max |z| and the blind run's fitted tolerance (table cells)."""
+    zf = np.asarray(f["score"]["z"]) if f else None
+    rec = b.get("acc_blocks_record") or {}
+    tol = (f"{100 * rec['tau_matrix']:.2f} / {rec['tau_bias_m_s2']:.3f}" if "tau_matrix" in rec else "—")
+    return ("—" if zf is None else f"{_rms(zf):.2f} / {np.abs(zf).max():.2f}") + " | " + tol
+
+
+def markdown(rows: list[tuple], cmd: str, seconds: float) -> list[str]:
+    """The document: pooled figures over the cases that have blind and oracle, then case by case.  ``rows``:
+    (blind, oracle or None) or (blind, oracle or None, blind_fixed or None) records per case; the blocks-fixed
+    column appears where every pooled case has one."""
     from experiments._stamp import run_stamp
 
+    fixed = {r[0]["seed"]: r[2] for r in rows if len(r) > 2 and r[2] is not None}
+    rows = [(r[0], r[1]) for r in rows]
     both = [(b, o["score"]) for b, o in rows if o is not None]
+    showf = bool(both) and all(b["seed"] in fixed for b, _ in both)
+    sf = _stats(np.concatenate([fixed[b["seed"]]["score"]["z"] for b, _ in both])) if showf else None
+    fx = (lambda v: f" {v} |") if showf else (lambda v: "")  # noqa: E731
+    fsc = [fixed[b["seed"]]["score"] for b, _ in both] if showf else []
     sb = _stats(np.concatenate([b["score"]["z"] for b, _ in both]))
     so = _stats(np.concatenate([o["z"] for _, o in both]))
     err = lambda s: 1e6 * _rms(np.concatenate([x["error_m"] for x in s]))  # noqa: E731
@@ -168,29 +190,38 @@ def markdown(rows: list[tuple[dict, dict | None]], cmd: str, seconds: float) -> 
          "", f"Regenerate: `{cmd}` ({run_stamp()}; this invocation {seconds:.0f} s; per-case records committed in "
          "`experiments/results/percov_blind_acc/`, the reports cached in `experiments/out/percov_blind_acc/`).", "",
          "What runs: the script's docstring. **blind**: the recording as generated, `detect(acc_linear=True)`, "
-         "`calibrate(model=report)` (the report's accelerometer blocks inverted by the calibration itself, angular jerk, "
-         "untempered). **oracle**: percov_conceal's `with_angjerk` on the same code (the generator's accelerometer errors "
+         "`calibrate(model=report)` (angular jerk, untempered; every triad's linear error integrated out of the likelihood, "
+         "the report's blocks its centre, the tolerance by type-II ML: option `acc_blocks='fit'`, the default). "
+         + ("**blind, blocks fixed**: the same with `acc_blocks='fixed'` (the report's blocks inverted as exact). " if showf
+            else "") + "**oracle**: percov_conceal's `with_angjerk` on the same code (the generator's accelerometer errors "
          f"inverted first, `detect` defaults, the same calibration). Calibration {CALIB['chains']} chains × "
          f"({CALIB['warmup']} + {CALIB['draws']}), seed {CALIB['seed']}; z = (posterior mean − truth) / posterior std per "
          "free coordinate.", "",
          f"Cases: {len(both)} with both ({len(rows)} run).", "",
-         "| | blind (acc stage) | oracle (generator's acc errors inverted) |", "|---|---|---|",
-         f"| error/std RMS (must: 0.8–1.25) | {sb['rms']:.2f} | {so['rms']:.2f} |",
-         f"| max \\|z\\| (must: ≤ 4) | {sb['max']:.2f} | {so['max']:.2f} |",
-         f"| coordinates beyond 4 std (must: 0) | {sb['beyond4']}/{sb['n']} | {so['beyond4']}/{so['n']} |",
-         f"| mean z | {sb['mean']:.2f} | {so['mean']:.2f} |",
+         "| | blind (acc stage) | oracle (generator's acc errors inverted) |" + fx("blind, blocks fixed"),
+         "|---|---|---|" + fx("---"),
+         f"| error/std RMS (must: 0.8–1.25) | {sb['rms']:.2f} | {so['rms']:.2f} |" + fx(showf and f"{sf['rms']:.2f}"),
+         f"| max \\|z\\| (must: ≤ 4) | {sb['max']:.2f} | {so['max']:.2f} |" + fx(showf and f"{sf['max']:.2f}"),
+         f"| coordinates beyond 4 std (must: 0) | {sb['beyond4']}/{sb['n']} | {so['beyond4']}/{so['n']} |"
+         + fx(showf and f"{sf['beyond4']}/{sf['n']}"),
+         f"| mean z | {sb['mean']:.2f} | {so['mean']:.2f} |" + fx(showf and f"{sf['mean']:.2f}"),
          f"| z RMS after each case's whole-array rescale | {_rms(np.concatenate([rescaled(b['score'])[1] for b, _ in both])):.2f} | "
-         f"{_rms(np.concatenate([rescaled(o)[1] for _, o in both])):.2f} |",
-         f"| RMS error (µm) | {err([b['score'] for b, _ in both]):.1f} | {err([o for _, o in both]):.1f} |",
-         f"| median posterior std (µm) | {std([b['score'] for b, _ in both]):.1f} | {std([o for _, o in both]):.1f} |",
-         f"| bar met | {'YES' if ok(sb) else 'NO'} | {'YES' if ok(so) else 'NO'} |", "",
+         f"{_rms(np.concatenate([rescaled(o)[1] for _, o in both])):.2f} |"
+         + fx(showf and f"{_rms(np.concatenate([rescaled(x)[1] for x in fsc])):.2f}"),
+         f"| RMS error (µm) | {err([b['score'] for b, _ in both]):.1f} | {err([o for _, o in both]):.1f} |"
+         + fx(showf and f"{err(fsc):.1f}"),
+         f"| median posterior std (µm) | {std([b['score'] for b, _ in both]):.1f} | {std([o for _, o in both]):.1f} |"
+         + fx(showf and f"{std(fsc):.1f}"),
+         f"| bar met | {'YES' if ok(sb) else 'NO'} | {'YES' if ok(so) else 'NO'} |" + fx(showf and ('YES' if ok(sf) else 'NO')),
+         "",
          "Per case: *size* = the geometry scale − 1 (Σ mean·truth / Σ truth² over the case's coordinates, in %); *z RMS "
          "rescaled* = what is left once the truth is rescaled by it (a whole-array size error taken out).", "",
          "*gyro common* = the largest \\|entry\\| of the common 3×3 error the report's gyro linear stage kept (its "
          "isotropic part in brackets; — where none was kept). The generator draws each gyro's 3×3 entries N(0, σ), σ "
          "0.5–3 % per gyro, on the even seeds; what all gyros share is their mean, about σ/√K.", "",
-         "| case | board | read Hz | acc blocks (triads) | z RMS blind / oracle | max \\|z\\| blind / oracle | size % blind / oracle | z RMS rescaled blind / oracle | gyro common blind / oracle | detect s blind / oracle | calibrate s blind / oracle |",
-         "|---|---|---|---|---|---|---|---|---|---|---|"]
+         "| case | board | read Hz | acc blocks (triads) | z RMS blind / oracle | max \\|z\\| blind / oracle | size % blind / oracle | z RMS rescaled blind / oracle | gyro common blind / oracle | detect s blind / oracle | calibrate s blind / oracle |"
+         + fx("z RMS / max \\|z\\| blocks fixed | tolerance τ_M % / τ_b m/s²"),
+         "|---|---|---|---|---|---|---|---|---|---|---|" + fx("---|---")]
     pair = lambda x, y, fmt: f"{x:{fmt}} / " + ("—" if y is None else f"{y:{fmt}}")  # noqa: E731
     for b, o in rows:
         zb = np.asarray(b["score"]["z"])
@@ -204,7 +235,8 @@ def markdown(rows: list[tuple[dict, dict | None]], cmd: str, seconds: float) -> 
                  + pair(_rms(rb), None if o is None else _rms(ro), ".2f") + " | "
                  + _common(b) + " / " + ("—" if o is None else _common(o)) + " | "
                  + pair(b["detect_seconds"], None if o is None else o["detect_seconds"], ".0f") + " | "
-                 + pair(b["calibrate_seconds"], None if o is None else o["calibrate_seconds"], ".0f") + " |")
+                 + pair(b["calibrate_seconds"], None if o is None else o["calibrate_seconds"], ".0f") + " |"
+                 + (fx(_fixed_cells(fixed.get(b["seed"]), b)) if showf else ""))
     worst = sorted(((abs(z), c, b["seed"]) for b, _ in both for z, c in zip(b["score"]["z"], b["score"]["coordinates"])),
                    reverse=True)[:5]
     L += ["", "Largest |z| blind: " + ", ".join(f"clock-{s:03d} {c} {z:.2f}" for z, c, s in worst) + "."]
@@ -235,9 +267,10 @@ def main(argv=None) -> int:
         return 0
     rows = []
     for s in range(args.n):
-        f, g = (args.out / f"clock-{s:03d}" / f"{v}.json" for v in VARIANTS)
+        f, h, g = (args.out / f"clock-{s:03d}" / f"{v}.json" for v in VARIANTS)
         if f.exists():
-            rows.append((with_truth(f, s, args.reports), with_truth(g, s, args.reports) if g.exists() else None))
+            rows.append((with_truth(f, s, args.reports), with_truth(g, s, args.reports) if g.exists() else None,
+                         with_truth(h, s, args.reports) if h.exists() else None))
     from experiments._reading import write_with_reading
 
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/percov_blind_acc.py" + (

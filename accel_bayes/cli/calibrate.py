@@ -125,6 +125,10 @@ def register(sub) -> None:
                    help="with --model: also project out the board's unresolved angular jerk (loaded by the data ages "
                         "times the lever arms, scale per band by type-II ML; ~2.3x the cost of one flat likelihood "
                         "evaluation, ~4.7x where the report leaves an IMU without a clock); default on with --model, --no-angular-jerk: the jerk alone")
+    p.add_argument("--acc-blocks", default=DEFAULTS["acc_blocks"], metavar="{fit,fixed,TAU_M,TAU_B}",
+                   help="with --model whose report has accelerometer blocks: 'fit' (default) integrates every "
+                        "triad's linear error out of the likelihood, its tolerance by type-II ML; TAU_M,TAU_B that "
+                        "tolerance (matrix entries, offsets m/s^2); 'fixed' inverts the blocks as exact")
     p.add_argument("--phi-prior", choices=("empirical", "flat"), default=DEFAULTS["phi_prior"],
                    help="prior on φ = [ω̇; s] that the likelihood integrates out: 'empirical' (default: a Gaussian "
                         "whose covariance is estimated from the recording; removes the flat prior's inward pull on "

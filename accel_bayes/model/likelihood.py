@@ -146,6 +146,10 @@ class RaoBlackwellLikelihood(DrawSums):
     docstring for the constants that are dropped.
     """
 
+    # Δ(θ) of accel_bayes.model.acc_block_marginal (the accelerometers' linear errors integrated out), added
+    # to log_phat and log_lik_given_omega when set (model.acc_block_marginal.with_block_marginal); None: nothing
+    block_marginal = None
+
     def __init__(
         self,
         acc: torch.Tensor,
@@ -423,7 +427,13 @@ class RaoBlackwellLikelihood(DrawSums):
         Differentiable in both (used by the MAP/Laplace code).
         """
         quad, logdet = self._quad_given_omega(positions, omega)
-        return -0.5 * quad - 0.5 * self.T * logdet
+        return -0.5 * quad - 0.5 * self.T * logdet + self._block_term(positions)
+
+    def _block_term(self, positions) -> torch.Tensor | float:
+        """Δ(θ) (...) of :attr:`block_marginal` for positions (..., A, 3) m, or 0 without one."""
+        if self.block_marginal is None:
+            return 0.0
+        return self.block_marginal(self._positions(positions))
 
     def log_lik_paper_eq25(self, positions: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
         """[C21] eq. 25 **as printed** (|M|⁻¹ instead of |M|^(−1/2)):
@@ -532,5 +542,5 @@ class RaoBlackwellLikelihood(DrawSums):
             else:
                 lse = self._lse_per_batch(zt, F, inplace)
         out = (lse - 0.5 * floor).sum(-1) - self.T * math.log(N) - 0.5 * self.T * proj["logdetM"]
-        return out.reshape(batch)
+        return out.reshape(batch) + self._block_term(positions)
 

@@ -236,10 +236,6 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         ``_MAX_AGE_PAIRS`` pairs of triads); the per-triad blocks (columns that each live on one
         triad's rows) are kept as ``_blocks`` = (triad of each column (C,), λ^½-whitened values (C, 3, T))."""
         self._blocks = None
-        cols = [loadings(self.loading)]
-        tri, vals = [], []
-        if self.loading_rot is not None:
-            cols.append(rotational_loadings(self.loading_rot, self.lever))
         if rate is not None:
             rate = torch.as_tensor(rate, dtype=self.dtype, device=self.device)
             if rate.shape != (self.T, self.A, 3) or not bool(torch.isfinite(rate).all()):
@@ -251,16 +247,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
                     or bool((e < 0).any()):
                 raise UserError(f"instant_std: expected a finite std >= 0 (s), scalar or ({self.A},)")
             self.rate, self.instant_std = rate, e
-            cols.append(instant_error_loadings(rate, e))
-            tri.append(torch.arange(self.A, device=self.device))
-            vals.append(rate * e.expand(self.A)[:, None])
-        if self.age_var is not None:
-            k, v = age_prior_blocks(self.age_var, self.jerk_std, self.angjerk_std, self.lever, self.age_rate)
-            dense = torch.zeros(self.T, self.A, 3, len(k), dtype=self.dtype, device=self.device)
-            dense.permute(1, 3, 0, 2)[k, torch.arange(len(k))] = v.transpose(0, 1)  # column j on triad k[j]
-            cols.append(dense.reshape(self.T, 3 * self.A, len(k)))
-            tri.append(k.to(self.device))
-            vals.append(v)
+        cols, tri, vals = self._loading_columns()
         if tri or self.A * (self.A + 1) // 2 > _MAX_AGE_PAIRS:
             self.W = torch.cat(cols, -1) * self._sqrt_lam[None, :, None]  # (T, 3A, R)
         if tri:
@@ -268,6 +255,34 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
             sl = self._sqrt_lam.view(self.A, 3)
             self._blocks = (k, (torch.cat(vals, 1) * sl[k]).permute(1, 2, 0).contiguous())
             self._blocks_identity = len(k) == self.A and bool((k == torch.arange(self.A, device=k.device)).all())
+
+    def _loading_columns(self):
+        """The per-sample covariance's loading Ũ_t as column blocks (unwhitened, in the order the
+        general path stacks them): ([(T, 3A, ·) blocks], [triad of each per-triad column], [their
+        values (T, ·, 3)]) — the jerk, the angular jerk, the instant errors, the unknown ages."""
+        cols = [loadings(self.loading)]
+        tri, vals = [], []
+        if self.loading_rot is not None:
+            cols.append(rotational_loadings(self.loading_rot, self.lever))
+        if self.rate is not None:
+            cols.append(instant_error_loadings(self.rate, self.instant_std))
+            tri.append(torch.arange(self.A, device=self.device))
+            vals.append(self.rate * self.instant_std.expand(self.A)[:, None])
+        if self.age_var is not None:
+            k, v = age_prior_blocks(self.age_var, self.jerk_std, self.angjerk_std, self.lever, self.age_rate)
+            dense = torch.zeros(self.T, self.A, 3, len(k), dtype=self.dtype, device=self.device)
+            dense.permute(1, 3, 0, 2)[k, torch.arange(len(k))] = v.transpose(0, 1)  # column j on triad k[j]
+            cols.append(dense.reshape(self.T, 3 * self.A, len(k)))
+            tri.append(k.to(self.device))
+            vals.append(v)
+        return cols, tri, vals
+
+    def loading_matrix(self) -> torch.Tensor:
+        """Ũ (T, 3A, R): every column of the per-sample covariance Ũ_tŨ_tᵀ (units of the outputs per
+        unit-variance state), unwhitened; the jerk alone on the closed-form path.  With it the
+        sample's covariance is Q + Ũ_tŨ_tᵀ (+ HFHᵀ under a proper φ prior), which
+        :mod:`.acc_block_marginal` inverts densely."""
+        return torch.cat(self._loading_columns()[0], -1)
 
     # ------------------------------------------------------------------ per-θ terms
     def _percov_terms(self, r: torch.Tensor) -> dict:
@@ -465,7 +480,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         """log p(y^a | ω_{1:T}, θ) with φ_t, m_t (and λ_t) integrated out (module docstring), up to
         the base class's dropped constants.  positions (..., A, 3) m; omega (T, 3) or (..., T, 3)
         rad/s broadcasting against the positions' batch.  Returns (...); differentiable."""
-        return self.log_lik_per_sample(positions, omega).sum(-1)
+        return self.log_lik_per_sample(positions, omega).sum(-1) + self._block_term(positions)
 
     def log_lik_per_sample(self, positions: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
         """The terms log p(y_t^a | ω_t, θ) (..., T) nats of :meth:`log_lik_given_omega`, each with
@@ -527,7 +542,7 @@ class PerSampleCovLikelihood(RaoBlackwellLikelihood):
         inplace = not (torch.is_grad_enabled() and (Rc.requires_grad or zt.requires_grad))
         lse = self._lse_direct(zt, Rc, w, inplace, logw=logw)  # (B, T)
         out = lse.sum(-1) - self.T * math.log(N) - 0.5 * self.T * p["logdetM"] - 0.5 * p["logdetN"].sum(-1)
-        return out.reshape(batch)
+        return out.reshape(batch) + self._block_term(positions)
 
     def _factor_any(self, c, b, C):
         """(R_C, w, floor) with q = ‖R_C δ + w_t‖² + floor_t: :meth:`_factor` where it applies,

@@ -54,7 +54,8 @@ from .calibrate_defaults import DEFAULTS
 from .calibrate_options import CalibrateOptions
 # The steps and the records they return (split out to keep each file under 600 lines);
 # _recording_hash and _model_gyro_step are imported from here by tests/ and experiments/.
-from .calibrate_model import _model_gyro_step, _model_percov_step, _percov_sandwich_record, _sandwich_record
+from .calibrate_model import (_model_block_step, _model_gyro_step, _model_percov_step, _percov_sandwich_record,
+                              _sandwich_record)
 from .calibrate_steps import (  # noqa: F401
     _central_step, _chains_fingerprint, _chains_step, _check_resume, _convergence_settings, _coordinate_names,
     _load_step, _map_step, _model_option, _noise_step, _prepare_step, _recording_hash, _start_step)
@@ -221,6 +222,21 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
                 # independence proposal there would leave the target's tails to the random walk alone
                 map_res = dataclasses.replace(map_res, positions=pc.positions, theta=pc.positions[
                     [i for i in range(lik.A) if i != lik.reference]], laplace_cov=pc.laplace_cov)
+        if cmodel is not None and cmodel.acc_linear:
+            if opts.acc_blocks == "fixed":
+                settings["model"]["acc_blocks"] = {"how": "fixed: the report's blocks inverted as exact (option "
+                                                          "acc_blocks)"}
+            else:
+                scale_b = (np.ones(lik.T) if noise.noise is None
+                           else noise.noise.sample_scale(model_norm.cpu().numpy()))
+                pos0 = nominal_acc if map_res is None else map_res.positions
+                blk = _model_block_step(lik, rec, cmodel, pos0, nominal_acc, ps, scale_b, opts.acc_blocks,
+                                        prev_cov=None if map_res is None else map_res.laplace_cov)
+                lik = blk.lik
+                settings["model"]["acc_blocks"] = blk.record
+                if map_res is not None:  # the chains centre on this target's mode, as for the per-sample covariance
+                    map_res = dataclasses.replace(map_res, positions=blk.positions, theta=blk.positions[
+                        [i for i in range(lik.A) if i != lik.reference]], laplace_cov=blk.laplace_cov)
         draws = _central_step(lik, pri, map_res, opts)
         lik.num_draws = int(draws.num_draws)
         settings.update(draws.settings())

@@ -166,6 +166,51 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
     return PercovStep(new, P, cov, record)
 
 
+@dataclass
+class BlockStep:
+    """The chains' likelihood with the accelerometers' linear errors integrated out (``lik``), its
+    mode at ω̄ with the Laplace covariance (``positions`` (A, 3) m, ``laplace_cov`` m²) and the
+    provenance ``record``."""
+
+    lik: object
+    positions: torch.Tensor
+    laplace_cov: torch.Tensor
+    record: dict
+
+
+def _model_block_step(lik, rec, cmodel, pos0, nominal_acc, prior_std, sample_scale, acc_blocks,
+                      prev_cov=None) -> BlockStep:
+    """Every triad's linear accelerometer error integrated out of ``lik`` (option ``acc_blocks``:
+    "fit" or (τ_M, τ_b); :mod:`accel_bayes.model.acc_block_marginal`), the prior centred by the
+    report's blocks (which ``lik``'s outputs already have inverted), the per-sample precision held at
+    ``pos0`` (A, 3) m (the mode so far); ``sample_scale`` (T,) the noise model's per-sample scale the
+    outputs were divided by.  Then the new mode and its Laplace covariance, where the chains start;
+    ``prev_cov`` the Laplace covariance without the term (m², computed here when None) for the record."""
+    from ..model.acc_block_marginal import block_prior_mean, build_block_marginal, with_block_marginal
+    from ..model.unresolved_fit import fixed_omega_mode
+
+    labels = list(lik.imu_labels)
+    q = np.asarray(rec.nominal_orientation, dtype=np.float64)[labels]
+    mu = block_prior_mean([(k, e) for _, k, e in cmodel.acc_linear], q, labels)
+    pos0 = torch.as_tensor(pos0, dtype=torch.float64)
+    term = build_block_marginal(lik, pos0, mu, tau=acc_blocks, sample_scale=sample_scale)
+    new = with_block_marginal(lik, term)
+    P, cov = fixed_omega_mode(new, pos0, prior_mean=nominal_acc, prior_std=prior_std)
+    record = {**term.record, "report_blocks": sorted(int(k) for _, k, _ in cmodel.acc_linear),
+              "mode_shift_m": float((P - pos0).sub(P[lik.reference] - pos0[lik.reference]).norm(dim=-1).max()),
+              "laplace_std_ratio_median": float((cov.diagonal().sqrt() / (
+                  _laplace_std(lik, pos0, nominal_acc, prior_std) if prev_cov is None
+                  else torch.as_tensor(prev_cov, dtype=torch.float64).diagonal().sqrt())).median())}
+    return BlockStep(new, P, cov, record)
+
+
+def _laplace_std(lik, pos, nominal_acc, prior_std) -> torch.Tensor:
+    """The Laplace std (m) of the free coordinates of ``lik`` alone at ω̄, at its own mode near ``pos``."""
+    from ..model.unresolved_fit import fixed_omega_mode
+
+    return fixed_omega_mode(lik, pos, prior_mean=nominal_acc, prior_std=prior_std)[1].diagonal().sqrt()
+
+
 def _sandwich_record(lik, map_res, nominal_acc, prior_std, free_labels) -> dict:
     """The sandwich covariance at the MAP of the chains' likelihood against its Laplace covariance
     (:func:`accel_bayes.inference.noise_fit.sandwich_inflation`): per free coordinate the Laplace std, the

@@ -74,6 +74,25 @@ def _intrinsics_key(intrinsics) -> str:
     return h.hexdigest()
 
 
+def _acc_blocks_option(v):
+    """``acc_blocks`` normalised: "fit", "fixed" or a pair of finite tolerances > 0 (τ_M, τ_b)."""
+    if isinstance(v, str) and v in ("fit", "fixed"):
+        return v
+    want = "expected 'fit', 'fixed' or two tolerances > 0 (matrix entries, 1; offsets, m/s²)"
+    if isinstance(v, str):
+        parts = v.split(",")
+        if len(parts) != 2:
+            raise UserError(f"acc_blocks: {want}, got {v!r}")
+        v = parts
+    try:
+        tm, tb = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise UserError(f"acc_blocks: {want}, got {v!r}") from None
+    if not (math.isfinite(tm) and math.isfinite(tb) and tm > 0 and tb > 0):
+        raise UserError(f"acc_blocks: {want}, got {v!r}")
+    return (tm, tb)
+
+
 def _angular_jerk_arg(args) -> bool:
     """``--angular-jerk`` / ``--no-angular-jerk`` (absent: the default, on with a model).  Asked for
     explicitly without ``--model`` it is refused: the term exists only in a model's likelihood."""
@@ -192,6 +211,14 @@ class CalibrateOptions:
         helps on the concealed clock recordings (``experiments/percov_conceal.md``) and a little on
         the six real experiments (``experiments/mimu_model_calibrate.md``).  False (CLI
         ``--no-angular-jerk``): the jerk alone, as before.
+    acc_blocks : with ``model``, when its report has accelerometer blocks (``acc_scale`` findings of a
+        recording the preparation could not calibrate): "fit" (default) — every triad's linear
+        error (3×3 and offset) integrated out of the likelihood with a Gaussian tolerance centred by
+        the report's blocks, the tolerance by type-II ML (:mod:`accel_bayes.model.acc_block_marginal`);
+        a pair (τ_M, τ_b) — that tolerance (matrix entries, 1; offsets, m/s²; e.g. a datasheet's);
+        "fixed" — the blocks inverted as exact (before this option: the posterior then ignores
+        their estimation error, ``experiments/percov_blind_acc.md``).  Recorded in
+        ``settings["model"]["acc_blocks"]``.  CLI ``--acc-blocks {fit,fixed,TAU_M,TAU_B}``.
     phi_prior : the prior on φ_t = [ω̇_t; s_t] (angular acceleration, specific force) that the
         likelihood integrates out (:mod:`accel_bayes.model.phi_prior`).  "empirical" (default) — a
         zero-mean Gaussian whose 6×6 covariance is the type-II ML estimate from the recording
@@ -259,6 +286,7 @@ class CalibrateOptions:
     model: Any = None
     instant_error: bool = False
     angular_jerk: bool = DEFAULTS["angular_jerk"]
+    acc_blocks: Any = DEFAULTS["acc_blocks"]
     device: Any = None
 
     def __post_init__(self):
@@ -324,6 +352,7 @@ class CalibrateOptions:
                             f"'calibrated' with model, got {self.gyro_method!r}")
         if self.instant_error and self.model is None:
             raise UserError("instant_error: the triads' instant-error term needs a model (--model REPORT.json)")
+        set_("acc_blocks", _acc_blocks_option(self.acc_blocks))
         for name in ("use_map", "drop_clipped", "drop_static", "resume", "instant_error", "angular_jerk"):
             set_(name, bool(getattr(self, name)))
 
@@ -343,6 +372,7 @@ class CalibrateOptions:
             noise=args.noise, noise_bins=args.noise_bins, noise_inflation=False if args.no_noise_inflation else None,
             phi_prior=args.phi_prior, threads=args.threads, correlation=args.correlation, model=args.model,
             instant_error=args.instant_error, angular_jerk=_angular_jerk_arg(args),
+            acc_blocks=getattr(args, "acc_blocks", DEFAULTS["acc_blocks"]),
             device=args.device, **given)
 
     # ------------------------------------------------------------------ derived values

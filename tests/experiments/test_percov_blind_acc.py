@@ -57,3 +57,18 @@ def test_gyro_common_reads_the_stage_record():
     b["gyro_common"] = kept
     L = "\n".join(pb.markdown([(b, _row(0, [1.0], [1], [1], "oracle"))], "cmd", 1.0))
     assert "| 0.200 (-1.0 %) / ? |" in L
+
+
+def test_blocks_fixed_column_appears_with_every_case():
+    zb, zo, zf = [0.5, -1.0, 1.5], [1.0, 1.0, 1.0], [3.0, -4.5, 1.0]
+    b = _row(0, zb, [10, 20, 30], [100, 100, 200], "blind")
+    b["acc_blocks_record"] = {"tau_matrix": 0.006, "tau_bias_m_s2": 0.08}
+    rows = [(b, _row(0, zo, [1, 2, 3], [50, 50, 50], "oracle"), _row(0, zf, [1, 2, 3], [1, 1, 1], "blind_fixed"))]
+    L = "\n".join(pb.markdown(rows, "cmd", 1.0))
+    assert f"| error/std RMS (must: 0.8–1.25) | {np.sqrt(np.mean(np.square(zb))):.2f} | 1.00 | " \
+           f"{np.sqrt(np.mean(np.square(zf))):.2f} |" in L
+    assert "| coordinates beyond 4 std (must: 0) | 0/3 | 0/3 | 1/3 |" in L
+    assert f" {np.sqrt(np.mean(np.square(zf))):.2f} / 4.50 | 0.60 / 0.080 |" in L
+    # without a blocks-fixed record for every pooled case the column is left out
+    L2 = "\n".join(pb.markdown([rows[0][:2]], "cmd", 1.0))
+    assert "blocks fixed" not in L2

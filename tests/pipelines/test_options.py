@@ -145,7 +145,9 @@ def test_same_compares_keys_order_and_values():  # the comparison below must be 
     ("correlation", 1.0, "correlation"), ("independence_prob", 1.0, "independence_prob"),
     ("checkpoint_every", 10, "checkpoint:"), ("resume", True, "checkpoint:"), ("noise", "guess", "noise:"),
     ("noise_bins", 3, "phi_prior"), ("select", "bogus", "select"), ("phi_prior", "uniform", "phi_prior"),
-    ("phi_prior", (1.0, -2.0), "phi_prior"), ("threads", 0, "threads"),
+    ("phi_prior", (1.0, -2.0), "phi_prior"), ("threads", 0, "threads"), ("acc_blocks", "guess", "acc_blocks"),
+    ("acc_blocks", "0.01,-0.1", "acc_blocks"), ("acc_blocks", (0.01, float("nan")), "acc_blocks"),
+    ("acc_blocks", "0.01", "acc_blocks"),
 ])
 def test_calibrate_options_refuse_a_bad_field_in_one_line(field, value, says):
     from accel_bayes.errors import UserError
@@ -289,3 +291,12 @@ if __name__ == "__main__":
     if sys.argv[1:2] != ["--write"] or len(sys.argv) != 3:
         raise SystemExit("usage: python3 tests/pipelines/test_options.py --write FOLDER")
     write_reference(sys.argv[2])
+
+
+def test_acc_blocks_values_are_normalised():
+    from accel_bayes.pipelines.calibrate_options import CalibrateOptions
+
+    assert CalibrateOptions().acc_blocks == "fit"
+    assert CalibrateOptions(acc_blocks="fixed").acc_blocks == "fixed"
+    assert CalibrateOptions(acc_blocks="0.01,0.2").acc_blocks == (0.01, 0.2)  # the command line's form
+    assert CalibrateOptions(acc_blocks=[0.02, 0.5]).acc_blocks == (0.02, 0.5)

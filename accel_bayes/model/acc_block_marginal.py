@@ -1,0 +1,273 @@
+"""The accelerometers' linear errors integrated out of the likelihood (issue #30 item 4: blind
+calibration with the detector's own report).
+
+Why.  Where a recording rests in one orientation only, the preparation cannot calibrate the
+triads, and ``calibrate --model`` inverts the accelerometer blocks the detector estimated
+(:class:`~accel_bayes.physics.effects.AccLinear`: y = (I + E_k) f + b_k per triad) as if they were
+exact.  What the estimate misses moves the positions without widening the posterior: on the
+concealed clock recordings calibrated blind, the error is 1.4× the oracle's at the same posterior
+std (``experiments/percov_blind_acc.md``).  Every triad's linear error is uncertain, so every triad
+gets one here, the blocks the report gives as the prior's centre.
+
+Model.  Per sample t, the likelihood's outputs y_t (3A, array frame, already corrected by the
+report's blocks Ê_k, b̂_k and divided by the noise model's per-sample scale s_t) err to first order
+by X_t β, β_k = [vec(E_k − Ê_k) (row-major, 9); b_k − b̂_k (3)] in the array frame::
+
+    y_t = (the likelihood's model at ω_t) + X_t β + (its noise and per-sample terms),
+    X_t rows of triad k = [I₃ ⊗ f̂_ktᵀ,  I₃ / s_t]  (3 × 12, zero on the other triads' columns),
+    E_k ~ N(0, τ_M² I₉),  b_k ~ N(0, τ_b² I₃),  i.e.  β ~ N(μ, P),  μ_k = −[vec(Ê_k); b̂_k].
+
+The prior is on the errors themselves (a tolerance of the sensor type, the same for every triad:
+iid entries, so the array frame's rotation of E_k keeps it), centred at zero; the report's blocks
+only shift where β is centred.  Second-order terms (E − Ê)·(Ê, f − y) are dropped: ≤ 1e-4 of the
+outputs at the percent-level errors of MEMS triads.
+
+Regressor.  A linear error multiplies the specific force f, not the output; f̂_t = G u(ω̄_t) + Hφ̂_t,
+the model's fit at θ₀ with φ̂_t by generalised least squares under the sample's covariance.  The
+outputs themselves (f ≈ y) would be errors-in-variables: once φ is projected out, what is left of y
+in the direction every triad shares is mostly noise, and type-II ML then fitted a common shrink of the
+data that cancels it (τ_M 34–47 % on the concealed clock recordings).  f̂'s own noise lies in the span
+of H under the GLS weights, orthogonal to the projected residual, so it does not correlate with it.
+
+Weights.  The flat φ prior's projection even where the likelihood has a proper (empirical) one: that
+prior was fitted to these outputs with β = 0, and under it a common shrink of every output lowers its
+penalty on φ by about Σ_t φ_tᵀF⁻¹φ_t ≈ 3T nats per unit of scale — a pull that says nothing about the
+sensors.
+
+Integrating β out at ω = ω̄ (the gyro posterior mean) and with the per-sample precision W_t fixed
+at a reference θ₀ (the mode), the log-likelihood gains, exactly for a Gaussian linear model,
+
+    Δ(θ) = ½ h(θ)ᵀ(K + P⁻¹)⁻¹h(θ) − ½ μᵀP⁻¹μ − ½ log|I + PK|,
+    K = Σ_t X_tᵀW_tX_t,   h(θ) = Σ_t X_tᵀW_t(y_t − G(θ)u(ω̄_t)) + P⁻¹μ = h₀ − J·vec(r),
+
+W_t = Σ_t⁻¹ − Σ_t⁻¹H(HᵀΣ_t⁻¹H)⁻¹HᵀΣ_t⁻¹, Σ_t = Q + Ũ_tŨ_tᵀ: the likelihood's own noise and per-sample
+covariance (:meth:`~.likelihood_percov.PerSampleCovLikelihood.loading_matrix`), φ projected out.  G(θ)u is linear in the
+positions, so h is linear in r and Δ a quadratic in r: O(A²) per θ, deterministic, so p̂·e^Δ is
+still an unbiased estimator of its target and pseudo-marginal MH stays exact for it.  What is
+approximate: W_t, f̂_t and K at θ₀ (positions move the φ projection by micrometres against centimetres of lever
+arm) and the β integral at ω̄ rather than inside the per-sample average over ω draws (the draws
+spread ω by the gyro noise, far less than the motion that makes K).
+
+What is common.  The part of E every triad shares is carried like the rest (iid entries: its prior
+std is τ_M/√A per entry).  Its isotropic part is the array's size (y → (1 + δ)y is r → (1 + δ)r), which
+the data cannot see; the rest the data see only through the lever-arm terms, poorly: on the concealed
+clock recordings it is what this term does not fix (``experiments/percov_blind_acc.md``).
+
+τ_M and τ_b by type-II ML (``fit``, the default): the same Δ at θ₀ is the log evidence of the
+tolerance, maximised over (log τ_M, log τ_b) — an exchangeable prior whose spread the triads'
+identifiable parts measure and which the array's size then inherits.  Or given (sensor datasheet).
+
+Related: the blocks' estimation (:mod:`accel_bayes.mismatch.acc_linear`); their inversion
+(:func:`.report_terms.corrected_array`); the likelihoods that carry the term (``block_marginal``
+of :class:`~.likelihood.RaoBlackwellLikelihood`, added to ``log_phat`` and
+``log_lik_given_omega``); ``tests/model/test_acc_block_marginal.py`` checks Δ against the dense
+Gaussian with β in its covariance.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+from ..physics.models import B_of_position, G_matrix, H_matrix, u_of_omega
+
+__all__ = ["BlockMarginal", "block_prior_mean", "build_block_marginal", "with_block_marginal"]
+
+# samples per chunk of the (T, 3A, 12A) products: bounds the memory at ~20 MB for A = 8
+_CHUNK = 1024
+
+
+@dataclass
+class BlockMarginal:
+    """Δ(θ) of the module docstring as a quadratic in the relative positions r (A, 3) m: ``J`` (12A, 3A),
+    ``h0`` (12A,), ``cov`` (K + P⁻¹)⁻¹ (12A, 12A), ``const`` −½μᵀP⁻¹μ − ½log|I + PK|;
+    ``tau`` (τ_M, τ_b) and ``record`` what was used (provenance)."""
+
+    J: torch.Tensor
+    h0: torch.Tensor
+    cov: torch.Tensor
+    const: float
+    tau: tuple
+    record: dict
+
+    def __call__(self, r: torch.Tensor) -> torch.Tensor:
+        """Δ (...) nats for relative positions r (..., A, 3) m (the reference row zero)."""
+        h = self.h0 - r.reshape(*r.shape[:-2], -1).to(self.J.dtype) @ self.J.T
+        return 0.5 * ((h @ self.cov) * h).sum(-1) + self.const
+
+
+
+def block_prior_mean(blocks, orientations, imu_labels) -> torch.Tensor:
+    """μ (12A,) of the module docstring: −[vec(R_kᵀÊ_kR_k); R_kᵀb̂_k] per triad with a report block
+    (``blocks`` [(IMU label, AccLinear)], ``orientations`` (A, 4) nominal quaternions array → sensor of
+    the likelihood's triads ``imu_labels``), zero for the others."""
+    from ..physics.geometry import quat_to_matrix
+
+    labels = [int(k) for k in imu_labels]
+    R = quat_to_matrix(torch.as_tensor(np.asarray(orientations, dtype=np.float64)))
+    mu = torch.zeros(len(labels), 12, dtype=torch.float64)
+    for k, e in blocks:
+        if int(k) not in labels:
+            continue
+        i = labels.index(int(k))
+        M = torch.as_tensor(e.params["matrix"], dtype=torch.float64).detach()
+        b = torch.as_tensor(e.params["bias"], dtype=torch.float64).detach()
+        mu[i, :9] = -(R[i].T @ M @ R[i]).reshape(9)
+        mu[i, 9:] = -(R[i].T @ b)
+    return mu.reshape(-1)
+
+
+def _precisions(lik, r0: torch.Tensor, t0: int, t1: int):
+    """(W_t (τ, 3A, 3A), f̂_t (τ, 3A)) of the module docstring at relative positions r0 (A, 3) for the
+    samples t0:t1: dense, from the likelihood's noise and per-sample loading (written from the model,
+    not from the likelihood's fast paths), with φ_t projected out by generalised least squares (the
+    flat prior's limit); f̂_t = G u(ω̄_t) + Hφ̂_t the specific force the model fits, the regressor of
+    the blocks (module docstring, "Regressor")."""
+    lam = lik.lam
+    T = t1 - t0
+    U = lik.loading_matrix()[t0:t1] if hasattr(lik, "loading_matrix") else None
+    Sinv = torch.diag(lam).expand(T, *lam.shape, *lam.shape).clone()
+    if U is not None and U.shape[-1] > 0:  # (Q + ŨŨᵀ)⁻¹ by Woodbury
+        LU = lam[:, None] * U
+        N = torch.eye(U.shape[-1], dtype=lam.dtype) + U.transpose(-1, -2) @ LU
+        Sinv = Sinv - LU @ torch.linalg.solve(N, LU.transpose(-1, -2))
+    H = H_matrix(r0)
+    SH = Sinv @ H  # (τ, 3A, 6)
+    M = H.T @ SH  # (τ, 6, 6)
+    W = Sinv - SH @ torch.linalg.solve(M, SH.transpose(-1, -2))
+    Gu = u_of_omega(lik.omega.mean[t0:t1]) @ G_matrix(r0).T  # (τ, 3A)
+    phi = torch.linalg.solve(M, (SH.transpose(-1, -2) @ (lik.y[t0:t1] - Gu)[..., None]))[..., 0]
+    return 0.5 * (W + W.transpose(-1, -2)), Gu + phi @ H.T
+
+
+def _design(acc: torch.Tensor, inv_scale: torch.Tensor) -> torch.Tensor:
+    """X_t (τ, 3A, 12A) of the module docstring from the outputs ``acc`` (τ, A, 3) and 1/s_t (τ,)."""
+    tau, A, _ = acc.shape
+    eye = torch.eye(3, dtype=acc.dtype)
+    blk = torch.cat((torch.einsum("ij,tkl->tkijl", eye, acc).reshape(tau, A, 3, 9),
+                     eye.expand(tau, A, 3, 3) * inv_scale[:, None, None, None]), -1)  # (τ, A, 3, 12)
+    X = torch.zeros(tau, A, 3, A, 12, dtype=acc.dtype)
+    idx = torch.arange(A)
+    X[:, idx, :, idx] = blk.permute(1, 0, 2, 3)
+    return X.reshape(tau, 3 * A, 12 * A)
+
+
+def sufficient(lik, positions, sample_scale=None):
+    """(K (12A, 12A), g_y (12A,), J (12A, 3A)) at θ₀ = ``positions`` (A, 3) m and ω̄: the
+    θ-free-at-W₀ sums of the module docstring, g(θ) = g_y − J·vec(r).  ``sample_scale`` (T,) s_t
+    (None: 1)."""
+    A, T = lik.A, lik.T
+    r0 = lik._positions(torch.as_tensor(positions, dtype=lik.dtype))
+    s = torch.ones(T, dtype=lik.dtype) if sample_scale is None else torch.as_tensor(
+        np.asarray(sample_scale, dtype=np.float64), dtype=lik.dtype)
+    if s.shape != (T,) or not bool(torch.isfinite(s).all()) or bool((s <= 0).any()):
+        raise UserError(f"sample_scale: expected ({T},) finite positive per-sample scales")
+    Bu = B_of_position(torch.eye(3, dtype=lik.dtype))  # (3 unit positions, 3, 6): G's linear map
+    u = u_of_omega(lik.omega.mean)  # (T, 6)
+    n = 12 * A
+    K = torch.zeros(n, n, dtype=lik.dtype)
+    g = torch.zeros(n, dtype=lik.dtype)
+    J = torch.zeros(n, 3 * A, dtype=lik.dtype)
+    for t0 in range(0, T, _CHUNK):
+        t1 = min(T, t0 + _CHUNK)
+        W, fhat = _precisions(lik, r0, t0, t1)
+        X = _design(fhat.view(t1 - t0, A, 3), 1.0 / s[t0:t1])
+        WX = W @ X  # (τ, 3A, n)
+        K += torch.einsum("tin,tim->nm", X, WX)
+        g += torch.einsum("tin,ti->n", WX, lik.y[t0:t1])
+        Ut = torch.einsum("jim,tm->tij", Bu, u[t0:t1])  # (τ, 3, 3): (G(r)u_t)_k = U_t r_k
+        J += torch.einsum("tkin,tij->nkj", WX.view(t1 - t0, A, 3, n), Ut).reshape(n, 3 * A)
+    return 0.5 * (K + K.T), g, J
+
+
+def _prior_var(tau, A):
+    """diag(P) (12A,): τ_M² on each triad's nine matrix entries, τ_b² on its three offsets (tensors
+    keep their graph: the type-II ML differentiates through them)."""
+    tm, tb = (torch.as_tensor(v, dtype=torch.float64) for v in tau)
+    return torch.cat((tm.pow(2).expand(9), tb.pow(2).expand(3))).repeat(A)
+
+
+def evidence(K, g, mu, pvar, r=None, J=None):
+    """Δ of the module docstring at one r (or g as given): ½hᵀ(K + P⁻¹)⁻¹h − ½μᵀP⁻¹μ − ½log|I + PK|
+    with P = diag(``pvar``); differentiable in pvar (the type-II ML of τ)."""
+    gg = g if r is None else g - J @ r.reshape(-1)
+    h = gg + mu / pvar
+    sp = pvar.sqrt()
+    B = torch.eye(len(g), dtype=K.dtype) + sp[:, None] * K * sp[None, :]  # I + P^½KP^½ (SPD)
+    L = torch.linalg.cholesky(B)
+    w = torch.cholesky_solve((sp * h)[:, None], L)[:, 0]  # (K + P⁻¹)⁻¹h = P^½ B⁻¹ P^½ h
+    return 0.5 * (sp * h * w).sum() - 0.5 * (mu * mu / pvar).sum() - torch.log(torch.diagonal(L)).sum()
+
+
+def fit_tau(K, g, mu, A, start=(0.01, 0.1)):
+    """(τ_M, τ_b, log evidence gain over τ → 0) by type-II ML of Δ at θ₀ over (log τ_M, log τ_b)."""
+    x = torch.tensor([math.log(start[0]), math.log(start[1])], dtype=K.dtype, requires_grad=True)
+    opt = torch.optim.LBFGS([x], max_iter=200, line_search_fn="strong_wolfe", tolerance_grad=1e-9,
+                            tolerance_change=1e-12)
+
+    def closure():
+        opt.zero_grad()
+        v = -evidence(K, g, mu, _prior_var((x[0].exp(), x[1].exp()), A))
+        v.backward()
+        return v
+
+    for _ in range(3):
+        opt.step(closure)
+    x = x.detach().clamp(math.log(1e-6), math.log(1.0))
+    tau = (float(x[0].exp()), float(x[1].exp()))
+    with torch.no_grad():
+        gain = float(evidence(K, g, mu, _prior_var(tau, A)) - evidence(K, g, mu, _prior_var((1e-6, 1e-6), A)))
+    return tau[0], tau[1], gain
+
+
+def build_block_marginal(lik, positions, mu, *, tau="fit", sample_scale=None) -> BlockMarginal:
+    """The :class:`BlockMarginal` of ``lik`` at θ₀ = ``positions`` (A, 3) m: ``mu`` (12A,) the prior's
+    centre (:func:`block_prior_mean`), ``tau`` "fit" (type-II ML) or (τ_M, τ_b) (1, m/s²),
+    ``sample_scale`` (T,) the noise model's per-sample scale the outputs were divided by."""
+    if getattr(lik, "nu", None) is not None:
+        raise UserError("acc_blocks: the block marginal is Gaussian; expected a likelihood without a scale mixture")
+    A = lik.A
+    mu = torch.as_tensor(mu, dtype=lik.dtype).reshape(-1)
+    if mu.shape != (12 * A,):
+        raise UserError(f"mu: expected the prior centre of 12 per triad, ({12 * A},), got {tuple(mu.shape)}")
+    K, g, J = sufficient(lik, positions, sample_scale)
+    gain = None
+    if isinstance(tau, str):
+        if tau != "fit":
+            raise UserError(f"acc_blocks: expected 'fit' or (tau_matrix, tau_bias), got {tau!r}")
+        r0 = lik._positions(torch.as_tensor(positions, dtype=lik.dtype)).reshape(-1)
+        tm, tb, gain = fit_tau(K, g - J @ r0, mu, A)  # the evidence at θ₀
+    else:
+        tm, tb = (float(v) for v in tau)
+        if not (tm > 0 and tb > 0 and math.isfinite(tm) and math.isfinite(tb)):
+            raise UserError(f"acc_blocks: expected tolerances > 0 (1, m/s²), got {tau!r}")
+    pvar = _prior_var((tm, tb), A)
+    Pinv = torch.diag(1.0 / pvar)
+    cov = torch.linalg.inv(K + Pinv)
+    cov = 0.5 * (cov + cov.T)
+    h0 = g + mu / pvar
+    sp = pvar.sqrt()
+    logdet = torch.linalg.slogdet(torch.eye(len(pvar), dtype=K.dtype) + sp[:, None] * K * sp[None, :])[1]
+    const = float(-0.5 * (mu * mu / pvar).sum() - 0.5 * logdet)
+    term = BlockMarginal(J=J, h0=h0, cov=cov, const=const, tau=(tm, tb), record={})
+    sd = cov.diagonal().clamp_min(0).sqrt().reshape(A, 12)
+    term.record = {
+        "how": "every triad's linear error E_k, b_k ~ N(0, tau^2) (array frame, iid entries), centred by the "
+               "report's blocks, integrated out at omega-bar with the per-sample precision fixed at the mode",
+        "tau_matrix": tm, "tau_bias_m_s2": tb, "tau_from": "type-II ML" if gain is not None else "given",
+        "evidence_gain_nats": gain,
+        "posterior_std_matrix_median": float(sd[:, :9].median()),
+        "triads": A,
+    }
+    return term
+
+
+def with_block_marginal(lik, term: BlockMarginal):
+    """A shallow copy of ``lik`` whose ``log_phat`` and ``log_lik_given_omega`` add ``term`` (Δ(θ))."""
+    new = copy.copy(lik)
+    new.block_marginal = term
+    return new
