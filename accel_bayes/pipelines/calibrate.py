@@ -54,8 +54,8 @@ from .calibrate_defaults import DEFAULTS
 from .calibrate_options import CalibrateOptions
 # The steps and the records they return (split out to keep each file under 600 lines);
 # _recording_hash and _model_gyro_step are imported from here by tests/ and experiments/.
-from .calibrate_model import (_model_block_step, _model_gyro_step, _model_percov_step, _percov_sandwich_record,
-                              _sandwich_record)
+from .calibrate_model import (_common_cut_step, _model_block_step, _model_gyro_step, _model_percov_step,
+                              _percov_sandwich_record, _sandwich_record)
 from .calibrate_steps import (  # noqa: F401
     _central_step, _chains_fingerprint, _chains_step, _check_resume, _convergence_settings, _coordinate_names,
     _load_step, _map_step, _model_option, _noise_step, _prepare_step, _recording_hash, _start_step)
@@ -161,7 +161,7 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
             gm = "calibrated"  # the model's fused posterior generalises it (model.report_terms)
         lik = RaoBlackwellLikelihood.from_recording(prepare_recording(rec, selection=pre.selection), num_draws=1,
                                                     gyro_method=gm)
-        gyro_info = terms = None
+        gyro_info = terms = blk = None
         if cmodel is not None:
             omega_norm = lik.omega.mean.norm(dim=-1)  # the "calibrated" |ω̄|: the report's bands are of it
             lik, gyro_info, terms = _model_gyro_step(lik, rec, cmodel)
@@ -248,6 +248,8 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         names = _coordinate_names(labels, lik.reference)
         run = _chains_step(lik, pri, draws, start, opts, device=device, fingerprint=fingerprint, names=names,
                            progress=progress, callback=callback)
+        if blk is not None:  # the accelerometers' common error, cut: drawn from its prior onto the draws
+            run = _common_cut_step(run, blk, lik, opts.seed, settings["model"]["acc_blocks"])
 
         # step 7, summary: ArviZ diagnostics and the positions document
         N = draws.num_draws

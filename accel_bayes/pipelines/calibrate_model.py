@@ -176,6 +176,25 @@ class BlockStep:
     positions: torch.Tensor
     laplace_cov: torch.Tensor
     record: dict
+    term: object = None
+
+
+def _common_cut_step(run, blk: BlockStep, lik, seed: int, record: dict):
+    """The chains' draws of θ moved by the accelerometers' common error drawn from its prior
+    (:func:`accel_bayes.model.acc_block_marginal.common_shifts`, the cut of the module docstring), one
+    draw per kept draw, seeded by ``seed``; ``record`` (the settings' ``acc_blocks``) gains what was added."""
+    import dataclasses
+
+    from ..model.acc_block_marginal import common_shifts
+
+    theta = run.theta  # (C, D, A − 1, 3)
+    C, D = theta.shape[:2]
+    free = [c for c in range(3 * lik.A) if c // 3 != lik.reference]
+    gen = torch.Generator().manual_seed(int(seed) + 104729)  # its own stream: the chains' draws are unchanged
+    shift = common_shifts(blk.term, blk.laplace_cov, free, C * D, gen).to(theta.dtype)
+    record["common_shift_mean_m"] = [float(v) for v in shift.mean(0)]
+    record["common_shift_std_median_m"] = float(shift.std(0).median())
+    return dataclasses.replace(run, theta=theta + shift.view(C, D, *theta.shape[2:]))
 
 
 def _model_block_step(lik, rec, cmodel, pos0, nominal_acc, prior_std, sample_scale, acc_blocks,
@@ -201,7 +220,7 @@ def _model_block_step(lik, rec, cmodel, pos0, nominal_acc, prior_std, sample_sca
               "laplace_std_ratio_median": float((cov.diagonal().sqrt() / (
                   _laplace_std(lik, pos0, nominal_acc, prior_std) if prev_cov is None
                   else torch.as_tensor(prev_cov, dtype=torch.float64).diagonal().sqrt())).median())}
-    return BlockStep(new, P, cov, record)
+    return BlockStep(new, P, cov, record, term)
 
 
 def _laplace_std(lik, pos, nominal_acc, prior_std) -> torch.Tensor:
