@@ -182,7 +182,9 @@ class BlockStep:
 def _common_cut_step(run, blk: BlockStep, lik, seed: int, record: dict):
     """The chains' draws of θ moved by the accelerometers' common error drawn from its prior
     (:func:`accel_bayes.model.acc_block_marginal.common_shifts`, the cut of the module docstring), one
-    draw per kept draw, seeded by ``seed``; ``record`` (the settings' ``acc_blocks``) gains what was added."""
+    draw per kept draw, seeded by ``seed``; ``record`` (the settings' ``acc_blocks``) gains what was added.
+    The chains' stored log p̂ and log prior stay those of the unshifted draws (the cut is not part of the
+    target the chains sample)."""
     import dataclasses
 
     from ..model.acc_block_marginal import common_shifts

@@ -205,3 +205,34 @@ def test_sandwich_clusters_and_their_white_reference():
         assert np.max(c["std_ratio_relative"]) < 1.4, unit
     with pytest.raises(UserError, match="cluster"):
         sandwich_inflation(*args, res, reference=lik.reference, prior_mean=nominal, cluster="imu")
+
+
+def test_acc_blocks_of_the_report_are_integrated_out_or_fixed(wander_case):
+    """A report with accelerometer blocks (``acc_scale``) on three triads: by default the calibration
+    integrates every triad's deviation out (tolerance by type-II ML) and cuts the part they share
+    (the draws moved by it, recorded); ``acc_blocks="fixed"`` inverts the blocks as exact; given
+    tolerances are used as given.  The record says which (settings.model.acc_blocks)."""
+    rec, _, _ = wander_case
+    g = np.random.default_rng(5)
+    blocks = [("acc_scale", k, {"scale": (0.004 * g.standard_normal((3, 3))).tolist(),
+                                "bias": (0.02 * g.standard_normal(3)).tolist()}) for k in (1, 4, 6)]
+    rep = _report(rec, blocks)
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for ab in ("fit", "fixed", (0.01, 0.1)):
+            out[str(ab)] = calibrate(rec, model=rep, intrinsics="none", acc_blocks=ab, **SHORT)
+    fit = out["fit"].settings["model"]["acc_blocks"]
+    assert fit["tau_from"] == "type-II ML" and 0 < fit["tau_matrix"] < 1 and fit["triads"] == rec.K
+    assert fit["report_blocks"] == [1, 4, 6]
+    assert len(fit["common_shift_mean_m"]) == 3 * (rec.K - 1) and fit["common_shift_std_median_m"] >= 0
+    assert out["fixed"].settings["model"]["acc_blocks"]["how"].startswith("fixed")
+    given = out["(0.01, 0.1)"].settings["model"]["acc_blocks"]
+    assert given["tau_from"] == "given" and given["tau_matrix"] == 0.01 and given["tau_bias_m_s2"] == 0.1
+    mean = lambda r: np.array([e["mean"] for e in r.positions["imus"]])  # noqa: E731
+    assert np.abs(mean(out["fit"]) - mean(out["fixed"])).max() > 0  # the term changes the posterior
+    # the same seed gives the same draws (the cut's draws are seeded too)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        again = calibrate(rec, model=rep, intrinsics="none", **SHORT)
+    np.testing.assert_array_equal(mean(again), mean(out["fit"]))
