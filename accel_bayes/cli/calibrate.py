@@ -126,8 +126,9 @@ def register(sub) -> None:
                         "times the lever arms, scale per band by type-II ML; ~2.3x the cost of one flat likelihood "
                         "evaluation, ~4.7x where the report leaves an IMU without a clock); default on with --model, --no-angular-jerk: the jerk alone")
     p.add_argument("--acc-blocks", default=DEFAULTS["acc_blocks"], metavar="{fit,fixed,TAU_M,TAU_B}",
-                   help="with --model whose report has accelerometer blocks: 'fit' (default) integrates every "
-                        "triad's linear error out of the likelihood, its tolerance by type-II ML; TAU_M,TAU_B that "
+                   help="with --model whose report has accelerometer blocks: 'fit' (default) integrates the "
+                        "triads' linear errors out of the likelihood (the part they share drawn from its prior), "
+                        "the tolerance by type-II ML; TAU_M,TAU_B that "
                         "tolerance (matrix entries, offsets m/s^2); 'fixed' inverts the blocks as exact")
     p.add_argument("--phi-prior", choices=("empirical", "flat"), default=DEFAULTS["phi_prior"],
                    help="prior on φ = [ω̇; s] that the likelihood integrates out: 'empirical' (default: a Gaussian "

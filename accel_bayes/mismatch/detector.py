@@ -389,7 +389,7 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                 row.update({"stationarity": q_r, "stationarity_df": q_df, "stationarity_threshold": q_thr})
                 if q_r > q_thr:
                     refused_why = (f"its parameter is not constant through the recording: stationarity score "
-                                f"{q_r:.4g} > {q_thr:.4g} (χ²_{q_df}, {STATIONARITY_SEGMENTS} time segments)")
+                                   f"{q_r:.4g} > {q_thr:.4g} (χ²_{q_df}, {STATIONARITY_SEGMENTS} time segments)")
             if cand.kind == "clip" and ev_r > threshold and refused_why is None:
                 # a clip holds outputs at its limit; a fitted limit that none reaches cuts the model's own
                 # overshooting peaks (choose.SATURATION_AT_LIMIT says how this was measured)
@@ -399,8 +399,8 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                 row["outputs_at_limit"] = n_at
                 if n_at < SATURATION_AT_LIMIT[1]:
                     refused_why = (f"{n_at} recorded output(s) within {SATURATION_AT_LIMIT[0]:g} σ of its limit "
-                                f"±{float(f.effects[-1].params['limit']):.4g} (a clip holds at least "
-                                f"{SATURATION_AT_LIMIT[1]}): it cuts the model's peaks, not the outputs")
+                                   f"±{float(f.effects[-1].params['limit']):.4g} (a clip holds at least "
+                                   f"{SATURATION_AT_LIMIT[1]}): it cuts the model's peaks, not the outputs")
             info["refits"].append(row)
             f.drop_linear()
             results.append({"effect": f.effects[-1], "fit": f, "evidence": ev, "evidence_robust": ev_r,

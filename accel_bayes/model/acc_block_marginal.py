@@ -90,9 +90,11 @@ _CHUNK = 1024
 
 @dataclass
 class BlockMarginal:
-    """Δ(θ) of the module docstring as a quadratic in the relative positions r (A, 3) m: ``J`` (12A, 3A),
-    ``h0`` (12A,), ``cov`` (K + P⁻¹)⁻¹ (12A, 12A), ``const`` −½μᵀP⁻¹μ − ½log|I + PK|;
-    ``tau`` (τ_M, τ_b) and ``record`` what was used (provenance)."""
+    """Δ(θ) of the module docstring as a quadratic in the relative positions r (A, 3) m, in the
+    deviations' coordinates γ (n = 12(A − 1)): ``J`` (n, 3A), ``h0`` (n,), ``cov`` (K + P⁻¹)⁻¹ (n, n),
+    ``const`` −½μᵀP⁻¹μ − ½log|I + PK|; ``tau`` (τ_M, τ_b) and ``record`` what was used (provenance);
+    the cut common part: ``common_J`` (12, 3A) its map on the positions, ``common_center`` ĉ (12,) the
+    report's value, ``common_std`` (12,) its prior std (:func:`common_shifts`)."""
 
     J: torch.Tensor
     h0: torch.Tensor
@@ -108,7 +110,6 @@ class BlockMarginal:
         """Δ (...) nats for relative positions r (..., A, 3) m (the reference row zero)."""
         h = self.h0 - r.reshape(*r.shape[:-2], -1).to(self.J.dtype) @ self.J.T
         return 0.5 * ((h @ self.cov) * h).sum(-1) + self.const
-
 
 
 def block_prior_mean(blocks, orientations, imu_labels) -> torch.Tensor:
@@ -131,15 +132,15 @@ def block_prior_mean(blocks, orientations, imu_labels) -> torch.Tensor:
     return mu.reshape(-1)
 
 
-def _precisions(lik, r0: torch.Tensor, t0: int, t1: int):
+def _precisions(lik, r0: torch.Tensor, t0: int, t1: int, U: torch.Tensor | None):
     """(W_t (τ, 3A, 3A), f̂_t (τ, 3A)) of the module docstring at relative positions r0 (A, 3) for the
-    samples t0:t1: dense, from the likelihood's noise, φ prior and per-sample loading (written from the
+    samples t0:t1: dense, from the likelihood's noise, φ prior and per-sample loading ``U`` (those samples'
+    rows of :meth:`~.likelihood_percov.PerSampleCovLikelihood.loading_matrix`, or None) (written from the
     model, not from the likelihood's fast paths), φ_t integrated out (generalised least squares under
     the flat prior); f̂_t = G u(ω̄_t) + Hφ̂_t the specific force the model fits, the regressor of the
     blocks (module docstring, "Regressor")."""
     lam = lik.lam
     T = t1 - t0
-    U = lik.loading_matrix()[t0:t1] if hasattr(lik, "loading_matrix") else None
     Sinv = torch.diag(lam).expand(T, *lam.shape, *lam.shape).clone()
     if U is not None and U.shape[-1] > 0:  # (Q + ŨŨᵀ)⁻¹ by Woodbury
         LU = lam[:, None] * U
@@ -184,9 +185,10 @@ def sufficient(lik, positions, sample_scale=None):
     K = torch.zeros(n, n, dtype=lik.dtype)
     g = torch.zeros(n, dtype=lik.dtype)
     J = torch.zeros(n, 3 * A, dtype=lik.dtype)
+    U = lik.loading_matrix() if hasattr(lik, "loading_matrix") else None  # once, not per chunk
     for t0 in range(0, T, _CHUNK):
         t1 = min(T, t0 + _CHUNK)
-        W, fhat = _precisions(lik, r0, t0, t1)
+        W, fhat = _precisions(lik, r0, t0, t1, None if U is None else U[t0:t1])
         X = _design(fhat.view(t1 - t0, A, 3), 1.0 / s[t0:t1])
         WX = W @ X  # (τ, 3A, n)
         K += torch.einsum("tin,tim->nm", X, WX)
@@ -213,11 +215,10 @@ def _prior_var(tau, A):
     return torch.cat((tm.pow(2).expand(9), tb.pow(2).expand(3))).repeat(A)
 
 
-def evidence(K, g, mu, pvar, r=None, J=None):
-    """Δ of the module docstring at one r (or g as given): ½hᵀ(K + P⁻¹)⁻¹h − ½μᵀP⁻¹μ − ½log|I + PK|
-    with P = diag(``pvar``); differentiable in pvar (the type-II ML of τ)."""
-    gg = g if r is None else g - J @ r.reshape(-1)
-    h = gg + mu / pvar
+def evidence(K, g, mu, pvar):
+    """Δ of the module docstring for g = g(θ) as given: ½hᵀ(K + P⁻¹)⁻¹h − ½μᵀP⁻¹μ − ½log|I + PK|,
+    h = g + P⁻¹μ, with P = diag(``pvar``); differentiable in pvar (the type-II ML of τ)."""
+    h = g + mu / pvar
     sp = pvar.sqrt()
     B = torch.eye(len(g), dtype=K.dtype) + sp[:, None] * K * sp[None, :]  # I + P^½KP^½ (SPD)
     L = torch.linalg.cholesky(B)

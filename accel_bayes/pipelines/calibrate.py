@@ -220,8 +220,7 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
             if map_res is not None:
                 # the flat MAP sits ~2 of its std off this target's mode (percov_honesty_probe.md): an
                 # independence proposal there would leave the target's tails to the random walk alone
-                map_res = dataclasses.replace(map_res, positions=pc.positions, theta=pc.positions[
-                    [i for i in range(lik.A) if i != lik.reference]], laplace_cov=pc.laplace_cov)
+                map_res = _recentred(map_res, pc.positions, pc.laplace_cov, lik.reference)
         if cmodel is not None and cmodel.acc_linear:
             if opts.acc_blocks == "fixed":
                 settings["model"]["acc_blocks"] = {"how": "fixed: the report's blocks inverted as exact (option "
@@ -235,8 +234,7 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
                 lik = blk.lik
                 settings["model"]["acc_blocks"] = blk.record
                 if map_res is not None:  # the chains centre on this target's mode, as for the per-sample covariance
-                    map_res = dataclasses.replace(map_res, positions=blk.positions, theta=blk.positions[
-                        [i for i in range(lik.A) if i != lik.reference]], laplace_cov=blk.laplace_cov)
+                    map_res = _recentred(map_res, blk.positions, blk.laplace_cov, lik.reference)
         draws = _central_step(lik, pri, map_res, opts)
         lik.num_draws = int(draws.num_draws)
         settings.update(draws.settings())
@@ -268,6 +266,13 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
                                        input_sha256=sha, seed=opts.seed)
         return CalibrationResult(idata=idata, summary=summary, positions=positions, settings=settings, seconds=seconds,
                                  run=run, map_result=map_res, array=array, input_sha256=sha, extra=extra)
+
+
+def _recentred(map_res, positions, laplace_cov, reference: int):
+    """``map_res`` centred on another target's mode instead: its positions (A, 3) m (reference row zero),
+    θ (the free rows) and Laplace covariance (m²) — where the chains' central θ, proposals and starts go."""
+    free = [i for i in range(positions.shape[0]) if i != reference]
+    return dataclasses.replace(map_res, positions=positions, theta=positions[free], laplace_cov=laplace_cov)
 
 
 def positions_document(idata, *, K: int, reference_imu: int, seconds: float, settings: dict,

@@ -53,7 +53,8 @@ DEFAULTS = {
     # with a model: the board's angular jerk in the per-sample likelihood, on since one log p̂ with it
     # meets issue #30's cost bar (≤ 4× the flat model's on exp_1; experiments/bench_likelihood_percov.md)
     "angular_jerk": True,
-    # with a model whose report has accelerometer blocks: every triad's linear error integrated out, its
-    # tolerance by type-II ML (model.acc_block_marginal; experiments/percov_blind_acc.md)
+    # with a model whose report has accelerometer blocks: the triads' linear errors integrated out (their
+    # deviations) and cut (the part they share), the tolerance by type-II ML (model.acc_block_marginal;
+    # experiments/percov_blind_acc.md)
     "acc_blocks": "fit",
 }

@@ -201,7 +201,8 @@ def _common_cut_step(run, blk: BlockStep, lik, seed: int, record: dict):
 
 def _model_block_step(lik, rec, cmodel, pos0, nominal_acc, prior_std, sample_scale, acc_blocks,
                       prev_cov=None) -> BlockStep:
-    """Every triad's linear accelerometer error integrated out of ``lik`` (option ``acc_blocks``:
+    """The triads' linear accelerometer errors integrated out of ``lik``, the part they share left to
+    :func:`_common_cut_step` (option ``acc_blocks``:
     "fit" or (τ_M, τ_b); :mod:`accel_bayes.model.acc_block_marginal`), the prior centred by the
     report's blocks (which ``lik``'s outputs already have inverted), the per-sample precision held at
     ``pos0`` (A, 3) m (the mode so far); ``sample_scale`` (T,) the noise model's per-sample scale the

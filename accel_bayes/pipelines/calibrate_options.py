@@ -212,9 +212,10 @@ class CalibrateOptions:
         the six real experiments (``experiments/mimu_model_calibrate.md``).  False (CLI
         ``--no-angular-jerk``): the jerk alone, as before.
     acc_blocks : with ``model``, when its report has accelerometer blocks (``acc_scale`` findings of a
-        recording the preparation could not calibrate): "fit" (default) — every triad's linear
-        error (3×3 and offset) integrated out of the likelihood with a Gaussian tolerance centred by
-        the report's blocks, the tolerance by type-II ML (:mod:`accel_bayes.model.acc_block_marginal`);
+        recording the preparation could not calibrate): "fit" (default) — the triads' linear errors
+        (3×3 and offset) with a Gaussian tolerance centred by the report's blocks: their deviations from
+        their mean integrated out of the likelihood, the part they share cut (drawn from the prior onto
+        the chains' draws), the tolerance by type-II ML (:mod:`accel_bayes.model.acc_block_marginal`);
         a pair (τ_M, τ_b) — that tolerance (matrix entries, 1; offsets, m/s²; e.g. a datasheet's);
         "fixed" — the blocks inverted as exact (before this option: the posterior then ignores
         their estimation error, ``experiments/percov_blind_acc.md``).  Recorded in
