@@ -15,8 +15,9 @@ percov_conceal; the calibration as ``accel-bayes calibrate REC --model report.js
 angular jerk, untempered):
 
 * ``blind`` — the raw recording, ``detect(acc_linear=True)``, ``calibrate(model=report)`` with its
-  default ``acc_blocks="fit"``: every triad's linear error integrated out of the likelihood, the
-  tolerance by type-II ML, the report's blocks its centre (:mod:`accel_bayes.model.acc_block_marginal`);
+  default ``acc_blocks="fit"``: the triads' deviations from their mean linear error integrated out of the
+  likelihood and the error they share cut, the tolerance by type-II ML, the report's blocks its centre
+  (:mod:`accel_bayes.model.acc_block_marginal`);
 * ``blind_fixed`` — the same report, ``acc_blocks="fixed"``: the blocks inverted as exact (what
   ``calibrate --model`` did before the option; the records of the first two runs);
 * ``oracle`` — percov_conceal's ``with_angjerk`` on today's code: the generator's accelerometer errors
@@ -190,8 +191,10 @@ def markdown(rows: list[tuple], cmd: str, seconds: float) -> list[str]:
          "", f"Regenerate: `{cmd}` ({run_stamp()}; this invocation {seconds:.0f} s; per-case records committed in "
          "`experiments/results/percov_blind_acc/`, the reports cached in `experiments/out/percov_blind_acc/`).", "",
          "What runs: the script's docstring. **blind**: the recording as generated, `detect(acc_linear=True)`, "
-         "`calibrate(model=report)` (angular jerk, untempered; every triad's linear error integrated out of the likelihood, "
-         "the report's blocks its centre, the tolerance by type-II ML: option `acc_blocks='fit'`, the default). "
+         "`calibrate(model=report)` (angular jerk, untempered; the triads' linear errors with a Gaussian tolerance centred "
+         "by the report's blocks, the tolerance by type-II ML: their deviations from their mean integrated out of the "
+         "likelihood, the positions moving the integral's weights too, the part they share cut: option "
+         "`acc_blocks='fit'`, the default). "
          + ("**blind, blocks fixed**: the same with `acc_blocks='fixed'` (the report's blocks inverted as exact). " if showf
             else "") + "**oracle**: percov_conceal's `with_angjerk` on the same code (the generator's accelerometer errors "
          f"inverted first, `detect` defaults, the same calibration). Calibration {CALIB['chains']} chains × "

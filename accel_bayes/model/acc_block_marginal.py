@@ -29,20 +29,30 @@ in the direction every triad shares is mostly noise, and type-II ML then fitted 
 data that cancels it (τ_M 34–47 % on the concealed clock recordings).  f̂'s own noise lies in the span
 of H under the GLS weights, orthogonal to the projected residual, so it does not correlate with it.
 
-Integrating β out at ω = ω̄ (the gyro posterior mean) and with the per-sample precision W_t fixed
-at a reference θ₀ (the mode), the log-likelihood gains, exactly for a Gaussian linear model,
+Integrating β out at ω = ω̄ (the gyro posterior mean), with the regressor X_t held at a reference θ₀
+(the mode so far), the log-likelihood gains, exactly for a Gaussian linear model,
 
-    Δ(θ) = ½ h(θ)ᵀ(K + P⁻¹)⁻¹h(θ) − ½ μᵀP⁻¹μ − ½ log|I + PK|,
-    K = Σ_t X_tᵀW_tX_t,   h(θ) = Σ_t X_tᵀW_t(y_t − G(θ)u(ω̄_t)) + P⁻¹μ = h₀ − J·vec(r),
+    Δ(θ) = ½ h(θ)ᵀ(K(θ) + P⁻¹)⁻¹h(θ) − ½ μᵀP⁻¹μ − ½ log|I + PK(θ)|,
+    K(θ) = Σ_t X_tᵀW_t(θ)X_t,   h(θ) = Σ_t X_tᵀW_t(θ)(y_t − G(θ)u(ω̄_t)) + P⁻¹μ,
 
 W_t = Σ_t⁻¹ − Σ_t⁻¹H(HᵀΣ_t⁻¹H + F⁻¹)⁻¹HᵀΣ_t⁻¹, Σ_t = Q + Ũ_tŨ_tᵀ: the likelihood's own noise, φ prior
 N(0, F) (F⁻¹ = 0: the flat prior) and per-sample covariance
-(:meth:`~.likelihood_percov.PerSampleCovLikelihood.loading_matrix`), φ integrated out.  G(θ)u is linear in the
-positions, so h is linear in r and Δ a quadratic in r: O(A²) per θ, deterministic, so p̂·e^Δ is
-still an unbiased estimator of its target and pseudo-marginal MH stays exact for it.  What is
-approximate: W_t, f̂_t and K at θ₀ (positions move the φ projection by micrometres against centimetres of lever
-arm) and the β integral at ω̄ rather than inside the per-sample average over ω draws (the draws
-spread ω by the gyro noise, far less than the motion that makes K).
+(:meth:`~.likelihood_percov.PerSampleCovLikelihood.loading_matrix`), φ integrated out.
+
+Positions.  θ enters twice: through the centripetal model G(θ)u, and through W_t, since φ holds the
+angular acceleration ω̇_t and H(θ) its lever arms.  The second is not small: W_tH = 0 makes
+∂W_t·(y_t − Gu_t) = −W_t(∂H)φ_t, as large as the recording's angular acceleration, and a common error
+E reads E(ω̇ × r_k) on triad k.  (Until 2026-11-29 W_t was held at θ₀: on the concealed clock recordings
+the mode's response to the accelerometers' common error was a fifth of the refitted one, and the
+positions' posterior barely widened.)  Evaluating Δ(θ) exactly costs a pass over the samples, so the
+chains get its second-order expansion at θ₀: the exact value, the gradient (autograd) and the Hessian
+(central differences of the gradient) — deterministic, O(A²) per θ, so p̂·e^Δ is still an unbiased
+estimator of its target and pseudo-marginal MH stays exact for it.  What is approximate: the
+expansion's third order over the posterior's width (10⁻⁴ m against centimetres of lever arm), X_t at θ₀,
+and the β integral at ω̄ rather than inside the per-sample average over ω draws (the draws spread ω by
+the gyro noise, far less than the motion that makes K).  A linear expansion of h alone (K fixed) is not
+enough: where τ is large against what the data say of β, its Jᵀ(K + P⁻¹)⁻¹J outgrows the likelihood's
+own curvature and the target has no mode.
 
 What is common.  The integral runs over the triads' deviations from their mean, β = Zγ
 (:func:`deviation_basis`; prior N(Zᵀμ, τ²I) on γ).  The part every triad shares, c (12 numbers: a 3×3
@@ -56,8 +66,8 @@ nothing about the sensors (fitted, it drove τ_M to 34–47 %).  Fitted with the
 part and 0.5–0.8 % from the generator's on a concealed clock recording, while taking the generator's
 common part off the outputs alone brought that case's error/std RMS from 1.55 to 0.96
 (``experiments/percov_blind_acc.md``).  The chains run with c at the report's value; :func:`common_shifts`
-then moves each draw by the mode's linear response to c − ĉ, c drawn from its prior — the positions'
-marginal under the cut, to first order in c.
+then moves each draw by the mode's linear response to c − ĉ (through both ways the positions enter,
+``Positions``), c drawn from its prior — the positions' marginal under the cut, to first order in c.
 
 τ_M and τ_b by type-II ML (``fit``, the default): the same Δ at θ₀ is the log evidence of the
 tolerance, maximised over (log τ_M, log τ_b) — an exchangeable prior whose spread the triads'
@@ -79,27 +89,29 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ..physics.models import B_of_position, G_matrix, H_matrix, u_of_omega
+from ..physics.models import G_matrix, H_matrix, u_of_omega
 
 __all__ = ["BlockMarginal", "block_prior_mean", "build_block_marginal", "common_shifts", "deviation_basis",
            "with_block_marginal"]
 
-# samples per chunk of the (T, 3A, 12A) products: bounds the memory at ~20 MB for A = 8
+# samples per chunk of the per-sample products: (τ, 12A, 3A) and (τ, 3A, 3A) blocks, ~20 MB at A = 8
 _CHUNK = 1024
 
 
 @dataclass
 class BlockMarginal:
-    """Δ(θ) of the module docstring as a quadratic in the relative positions r (A, 3) m, in the
-    deviations' coordinates γ (n = 12(A − 1)): ``J`` (n, 3A), ``h0`` (n,), ``cov`` (K + P⁻¹)⁻¹ (n, n),
-    ``const`` −½μᵀP⁻¹μ − ½log|I + PK|; ``tau`` (τ_M, τ_b) and ``record`` what was used (provenance);
-    the cut common part: ``common_J`` (12, 3A) its map on the positions, ``common_center`` ĉ (12,) the
-    report's value, ``common_std`` (12,) its prior std (:func:`common_shifts`)."""
+    """Δ(θ) of the module docstring as a quadratic in the relative positions r (A, 3) m about θ₀:
+    ``value`` Δ(θ₀) nats, ``grad`` (3A,) nats/m and ``hess`` (3A, 3A) nats/m² of the exact Δ there,
+    ``r0`` (3A,) θ₀ flattened (the reference row zero); ``cov`` (K + P⁻¹)⁻¹ (n, n) at θ₀ in the
+    deviations' coordinates γ (n = 12(A − 1)); ``tau`` (τ_M, τ_b) and ``record`` what was used
+    (provenance); the cut common part: ``common_J`` (12, 3A) its map on the positions, ``common_center``
+    ĉ (12,) the report's value, ``common_std`` (12,) its prior std (:func:`common_shifts`)."""
 
-    J: torch.Tensor
-    h0: torch.Tensor
+    value: float
+    grad: torch.Tensor
+    hess: torch.Tensor
+    r0: torch.Tensor
     cov: torch.Tensor
-    const: float
     tau: tuple
     record: dict
     common_J: torch.Tensor = None
@@ -108,8 +120,8 @@ class BlockMarginal:
 
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
         """Δ (...) nats for relative positions r (..., A, 3) m (the reference row zero)."""
-        h = self.h0 - r.reshape(*r.shape[:-2], -1).to(self.J.dtype) @ self.J.T
-        return 0.5 * ((h @ self.cov) * h).sum(-1) + self.const
+        d = r.reshape(*r.shape[:-2], -1).to(self.grad.dtype) - self.r0
+        return self.value + d @ self.grad + 0.5 * ((d @ self.hess) * d).sum(-1)
 
 
 def block_prior_mean(blocks, orientations, imu_labels) -> torch.Tensor:
@@ -132,31 +144,6 @@ def block_prior_mean(blocks, orientations, imu_labels) -> torch.Tensor:
     return mu.reshape(-1)
 
 
-def _precisions(lik, r0: torch.Tensor, t0: int, t1: int, U: torch.Tensor | None):
-    """(W_t (τ, 3A, 3A), f̂_t (τ, 3A)) of the module docstring at relative positions r0 (A, 3) for the
-    samples t0:t1: dense, from the likelihood's noise, φ prior and per-sample loading ``U`` (those samples'
-    rows of :meth:`~.likelihood_percov.PerSampleCovLikelihood.loading_matrix`, or None) (written from the
-    model, not from the likelihood's fast paths), φ_t integrated out (generalised least squares under
-    the flat prior); f̂_t = G u(ω̄_t) + Hφ̂_t the specific force the model fits, the regressor of the
-    blocks (module docstring, "Regressor")."""
-    lam = lik.lam
-    T = t1 - t0
-    Sinv = torch.diag(lam).expand(T, *lam.shape, *lam.shape).clone()
-    if U is not None and U.shape[-1] > 0:  # (Q + ŨŨᵀ)⁻¹ by Woodbury
-        LU = lam[:, None] * U
-        N = torch.eye(U.shape[-1], dtype=lam.dtype) + U.transpose(-1, -2) @ LU
-        Sinv = Sinv - LU @ torch.linalg.solve(N, LU.transpose(-1, -2))
-    H = H_matrix(r0)
-    SH = Sinv @ H  # (τ, 3A, 6)
-    M = H.T @ SH  # (τ, 6, 6)
-    if lik.phi_prior_prec is not None:  # a proper prior N(0, F) on φ: W = (Σ + HFHᵀ)⁻¹, φ̂ its MAP
-        M = M + lik.phi_prior_prec
-    W = Sinv - SH @ torch.linalg.solve(M, SH.transpose(-1, -2))
-    Gu = u_of_omega(lik.omega.mean[t0:t1]) @ G_matrix(r0).T  # (τ, 3A)
-    phi = torch.linalg.solve(M, (SH.transpose(-1, -2) @ (lik.y[t0:t1] - Gu)[..., None]))[..., 0]
-    return 0.5 * (W + W.transpose(-1, -2)), Gu + phi @ H.T
-
-
 def _design(acc: torch.Tensor, inv_scale: torch.Tensor) -> torch.Tensor:
     """X_t (τ, 3A, 12A) of the module docstring from the outputs ``acc`` (τ, A, 3) and 1/s_t (τ,)."""
     tau, A, _ = acc.shape
@@ -169,33 +156,105 @@ def _design(acc: torch.Tensor, inv_scale: torch.Tensor) -> torch.Tensor:
     return X.reshape(tau, 3 * A, 12 * A)
 
 
-def sufficient(lik, positions, sample_scale=None):
-    """(K (12A, 12A), g_y (12A,), J (12A, 3A)) at θ₀ = ``positions`` (A, 3) m and ω̄: the
-    θ-free-at-W₀ sums of the module docstring, g(θ) = g_y − J·vec(r).  ``sample_scale`` (T,) s_t
-    (None: 1)."""
-    A, T = lik.A, lik.T
-    r0 = lik._positions(torch.as_tensor(positions, dtype=lik.dtype))
+def _scales(lik, sample_scale) -> torch.Tensor:
+    T = lik.T
     s = torch.ones(T, dtype=lik.dtype) if sample_scale is None else torch.as_tensor(
         np.asarray(sample_scale, dtype=np.float64), dtype=lik.dtype)
     if s.shape != (T,) or not bool(torch.isfinite(s).all()) or bool((s <= 0).any()):
         raise UserError(f"sample_scale: expected ({T},) finite positive per-sample scales")
-    Bu = B_of_position(torch.eye(3, dtype=lik.dtype))  # (3 unit positions, 3, 6): G's linear map
-    u = u_of_omega(lik.omega.mean)  # (T, 6)
-    n = 12 * A
-    K = torch.zeros(n, n, dtype=lik.dtype)
-    g = torch.zeros(n, dtype=lik.dtype)
-    J = torch.zeros(n, 3 * A, dtype=lik.dtype)
-    U = lik.loading_matrix() if hasattr(lik, "loading_matrix") else None  # once, not per chunk
-    for t0 in range(0, T, _CHUNK):
-        t1 = min(T, t0 + _CHUNK)
-        W, fhat = _precisions(lik, r0, t0, t1, None if U is None else U[t0:t1])
-        X = _design(fhat.view(t1 - t0, A, 3), 1.0 / s[t0:t1])
-        WX = W @ X  # (τ, 3A, n)
-        K += torch.einsum("tin,tim->nm", X, WX)
-        g += torch.einsum("tin,ti->n", WX, lik.y[t0:t1])
-        Ut = torch.einsum("jim,tm->tij", Bu, u[t0:t1])  # (τ, 3, 3): (G(r)u_t)_k = U_t r_k
-        J += torch.einsum("tkin,tij->nkj", WX.view(t1 - t0, A, 3, n), Ut).reshape(n, 3 * A)
-    return 0.5 * (K + K.T), g, J
+    return s
+
+
+def _chunks(T):
+    return [(t0, min(T, t0 + _CHUNK)) for t0 in range(0, T, _CHUNK)]
+
+
+def _regressor(lik, r0, U) -> torch.Tensor:
+    """f̂_t = G u(ω̄_t) + Hφ̂_t (T, 3A) at relative positions r0 (A, 3) m: the specific force the model
+    fits, φ̂_t its generalised-least-squares (under a proper φ prior: MAP) estimate under the sample's
+    noise and per-sample loading ``U`` (T, 3A, R) or None — the blocks' regressor, held at θ₀ (module
+    docstring, "Regressor")."""
+    H, G = H_matrix(r0), G_matrix(r0)
+    out = []
+    for t0, t1 in _chunks(lik.T):
+        SH = _noise_precision(lik, t0, t1, None if U is None else U[t0:t1]) @ H  # (τ, 3A, 6)
+        M = H.T @ SH
+        if lik.phi_prior_prec is not None:
+            M = M + lik.phi_prior_prec
+        Gu = u_of_omega(lik.omega.mean[t0:t1]) @ G.T  # (τ, 3A)
+        phi = torch.linalg.solve(M, SH.transpose(-1, -2) @ (lik.y[t0:t1] - Gu)[..., None])[..., 0]
+        out.append(Gu + phi @ H.T)
+    return torch.cat(out)
+
+
+def _noise_precision(lik, t0: int, t1: int, U: torch.Tensor | None) -> torch.Tensor:
+    """S_t = (Q + Ũ_tŨ_tᵀ)⁻¹ (τ, 3A, 3A) for the samples t0:t1 (Woodbury; ``U`` those samples' loading
+    or None): the part of W_t the positions do not move."""
+    lam = lik.lam
+    S = torch.diag(lam).expand(t1 - t0, *lam.shape, *lam.shape).clone()
+    if U is not None and U.shape[-1] > 0:
+        LU = lam[:, None] * U
+        N = torch.eye(U.shape[-1], dtype=lam.dtype) + U.transpose(-1, -2) @ LU
+        S = S - LU @ torch.linalg.solve(N, LU.transpose(-1, -2))
+    return S
+
+
+class _ExactDelta:
+    """Δ(r) of the module docstring with K(r) and g(r) exact in the positions (W_t at r; X_t held) in
+    the deviations' coordinates, and its gradient by autograd.  W_t = S_t − S_tH M_t⁻¹HᵀS_t with
+    M_t = HᵀS_tH (+ F⁻¹), S_t the noise's precision, so with XS_t = X_tᵀS_t (n × 3A, stored once)
+
+        K(r) = Σ_t X_tᵀS_tX_t − Σ_t V_tV_tᵀ,   g(r) = Σ_t XS_t e_t − Σ_t V_t L_t⁻¹HᵀS_te_t,
+
+    V_t = XS_tH L_t⁻ᵀ (M_t = L_tL_tᵀ), e_t = y_t − G(r)u_t: the n × n products with W_t (4× the work)
+    are left out of every evaluation."""
+
+    def __init__(self, lik, fhat, inv_scale, U, Z):
+        self.lik = lik
+        A = lik.A
+        self.u = u_of_omega(lik.omega.mean)
+        self.parts = []
+        K0 = torch.zeros(Z.shape[1], Z.shape[1], dtype=lik.dtype)
+        for t0, t1 in _chunks(lik.T):
+            S = _noise_precision(lik, t0, t1, None if U is None else U[t0:t1])
+            X = _design(fhat[t0:t1].view(t1 - t0, A, 3), inv_scale[t0:t1]) @ Z  # (τ, 3A, n)
+            XS = X.transpose(-1, -2) @ S  # (τ, n, 3A)
+            K0 += torch.einsum("tni,tim->nm", XS, X)
+            self.parts.append((t0, t1, S, XS))
+        self.K0 = 0.5 * (K0 + K0.T)
+
+    def sums(self, rv: torch.Tensor):
+        """(K(r) (n, n), g(r) (n,)) at the flattened relative positions rv (3A,) m (differentiable)."""
+        lik = self.lik
+        Rm = rv.view(lik.A, 3)
+        H, G = H_matrix(Rm), G_matrix(Rm)
+        K, g = self.K0, 0.0
+        for t0, t1, S, XS in self.parts:
+            SH = S @ H  # (τ, 3A, 6)
+            M = H.T @ SH
+            if lik.phi_prior_prec is not None:
+                M = M + lik.phi_prior_prec
+            L = torch.linalg.cholesky(M)
+            e = lik.y[t0:t1] - self.u[t0:t1] @ G.T  # (τ, 3A)
+            V = torch.linalg.solve_triangular(L, (XS @ H).transpose(-1, -2), upper=False)  # (τ, 6, n)
+            c = torch.linalg.solve_triangular(L, SH.transpose(-1, -2) @ e[..., None], upper=False)  # (τ, 6, 1)
+            Vf = V.reshape(-1, V.shape[-1])
+            K = K - Vf.T @ Vf
+            g = g + (XS @ e[..., None])[..., 0].sum(0) - (V.transpose(-1, -2) @ c)[..., 0].sum(0)
+        return 0.5 * (K + K.T), g
+
+    def delta(self, r: torch.Tensor, mu, pvar, with_grad: bool):
+        """(Δ nats, its gradient (3A,) nats/m or None) at relative positions r (A, 3) m, prior N(μ, diag(pvar))."""
+        rv = r.detach().reshape(-1).clone().requires_grad_(with_grad)
+        with torch.set_grad_enabled(with_grad):
+            val = evidence(*self.sums(rv), mu, pvar)
+            grad = torch.autograd.grad(val, rv)[0] if with_grad else None
+        return float(val.detach()), grad
+
+
+#: m: the step of the central differences of Δ's gradient that give its Hessian (the positions'
+#: posterior std is 10⁻⁴ m and more; Δ's third-order terms over 10⁻⁵ m are below 10⁻⁶ of the second)
+_HESS_STEP = 1e-5
 
 
 def deviation_basis(A: int, dtype=torch.float64) -> torch.Tensor:
@@ -257,38 +316,57 @@ def build_block_marginal(lik, positions, mu, *, tau="fit", sample_scale=None) ->
     mu = torch.as_tensor(mu, dtype=lik.dtype).reshape(-1)
     if mu.shape != (12 * A,):
         raise UserError(f"mu: expected the prior centre of 12 per triad, ({12 * A},), got {tuple(mu.shape)}")
-    K, g, J = sufficient(lik, positions, sample_scale)
-    # what every triad shares is cut (module docstring, "What is common"): its map on the positions and
-    # the report's value kept for :func:`common_shifts`; the integral runs over the deviations β = Zγ
-    Jc = J.view(A, 12, 3 * A).sum(0)
-    c_hat = -mu.view(A, 12).mean(0)
+    r0 = lik._positions(torch.as_tensor(positions, dtype=lik.dtype))
+    s = _scales(lik, sample_scale)
+    U = lik.loading_matrix() if hasattr(lik, "loading_matrix") else None  # once, not per chunk
+    fhat = _regressor(lik, r0, U)
+    # the integral runs over the deviations β = Zγ; what every triad shares is cut (module docstring,
+    # "What is common"): its map on the positions (through both ways they enter, "Positions") and the
+    # report's value are kept for :func:`common_shifts`
     Z = deviation_basis(A, dtype=lik.dtype)
-    K, g, J, mu = Z.T @ K @ Z, Z.T @ g, Z.T @ J, Z.T @ mu
+    exact = _ExactDelta(lik, fhat, 1.0 / s, U, Z)
+    common = _ExactDelta(lik, fhat, 1.0 / s, U, torch.eye(12, dtype=lik.dtype).repeat(A, 1))
+    Jc = -torch.autograd.functional.jacobian(lambda rv: common.sums(rv)[1], r0.reshape(-1), vectorize=True,
+                                             strategy="forward-mode")
+    c_hat = -mu.view(A, 12).mean(0)
+    mu = Z.T @ mu
+    with torch.no_grad():
+        K, g = exact.sums(r0.reshape(-1))
     gain = None
     if isinstance(tau, str):
         if tau != "fit":
             raise UserError(f"acc_blocks: expected 'fit' or (tau_matrix, tau_bias), got {tau!r}")
-        r0 = lik._positions(torch.as_tensor(positions, dtype=lik.dtype)).reshape(-1)
-        tm, tb, gain = fit_tau(K, g - J @ r0, mu, A - 1)  # the evidence at θ₀
+        tm, tb, gain = fit_tau(K, g, mu, A - 1)  # the evidence at θ₀
     else:
         tm, tb = (float(v) for v in tau)
         if not (tm > 0 and tb > 0 and math.isfinite(tm) and math.isfinite(tb)):
             raise UserError(f"acc_blocks: expected tolerances > 0 (1, m/s²), got {tau!r}")
     pvar = _prior_var((tm, tb), A - 1)
-    Pinv = torch.diag(1.0 / pvar)
-    cov = torch.linalg.inv(K + Pinv)
+    cov = torch.linalg.inv(K + torch.diag(1.0 / pvar))
     cov = 0.5 * (cov + cov.T)
-    h0 = g + mu / pvar
-    sp = pvar.sqrt()
-    logdet = torch.linalg.slogdet(torch.eye(len(pvar), dtype=K.dtype) + sp[:, None] * K * sp[None, :])[1]
-    const = float(-0.5 * (mu * mu / pvar).sum() - 0.5 * logdet)
-    term = BlockMarginal(J=J, h0=h0, cov=cov, const=const, tau=(tm, tb), record={}, common_J=Jc,
-                         common_center=c_hat, common_std=_prior_var((tm, tb), 1).sqrt() / math.sqrt(A))
+    # Δ's value, gradient and Hessian at θ₀ with the weights moving with the positions (module
+    # docstring, "Positions"): the gradient by autograd, the Hessian by central differences of it
+    value, grad = exact.delta(r0, mu, pvar, with_grad=True)
+    free = [c for c in range(3 * A) if c // 3 != lik.reference]
+    hess = torch.zeros(3 * A, 3 * A, dtype=lik.dtype)
+    for c in free:
+        e = torch.zeros(3 * A, dtype=lik.dtype)
+        e[c] = _HESS_STEP
+        gp = exact.delta(r0 + e.view(A, 3), mu, pvar, with_grad=True)[1]
+        gm = exact.delta(r0 - e.view(A, 3), mu, pvar, with_grad=True)[1]
+        hess[:, c] = (gp - gm) / (2 * _HESS_STEP)
+    hess[:, [c for c in range(3 * A) if c not in free]] = 0.0
+    hess = 0.5 * (hess + hess.T)
+    grad[[c for c in range(3 * A) if c not in free]] = 0.0
+    term = BlockMarginal(value=value, grad=grad, hess=hess, r0=r0.reshape(-1).clone(), cov=cov, tau=(tm, tb),
+                         record={}, common_J=Jc, common_center=c_hat,
+                         common_std=_prior_var((tm, tb), 1).sqrt() / math.sqrt(A))
     sd = (Z @ cov @ Z.T).diagonal().clamp_min(0).sqrt().reshape(A, 12)
     term.record = {
         "how": "every triad's linear error E_k, b_k ~ N(0, tau^2) (array frame, iid entries), the report's blocks "
-               "its centre; the triads' deviations from their mean integrated out at omega-bar with the per-sample "
-               "precision fixed at the mode, the part they share cut (see 'common')",
+               "its centre; the triads' deviations from their mean integrated out at omega-bar (the regressor held at "
+               "the mode, the weights moving with the positions: the exact integral's value, gradient and Hessian "
+               "there), the part they share cut (see 'common')",
         "tau_matrix": tm, "tau_bias_m_s2": tb, "tau_from": "type-II ML" if gain is not None else "given",
         "evidence_gain_nats": gain,
         "posterior_std_matrix_median": float(sd[:, :9].median()),

@@ -189,13 +189,17 @@ def _fit_one(lik, age, band, positions, omega, fit_nu, max_iter, rate=None, inst
     return out
 
 
-def fixed_omega_mode(lik, pos0, *, z=None, prior_mean=None, prior_std=None):
+def fixed_omega_mode(lik, pos0, *, z=None, prior_mean=None, prior_std=None, newton: bool = False):
     """(θ̂ (A, 3) m, Laplace covariance (3(A−1), 3(A−1)) m² of the free coordinates, IMU-major) of
     log p(y | ω̄, θ) (ω fixed at ``lik``'s gyro posterior mean), or with ``z`` (standard normals
     (T, N, 3)) of log p̂(y | θ) on those draws (ω integrated with common random numbers: a smooth
     function of θ).  ``prior_mean`` (A, 3) m and ``prior_std`` m add the Gaussian prior on the
     positions (the calibration's).  L-BFGS from ``pos0`` (A, 3) m, Hessian by autograd; any
-    likelihood of :mod:`.likelihood` or :mod:`.likelihood_percov`."""
+    likelihood of :mod:`.likelihood` or :mod:`.likelihood_percov`.  ``newton``: damped Newton steps
+    with the autograd Hessian instead (halved until the objective falls), for a start near the mode
+    where the gradient is steep: L-BFGS's first step is the raw gradient, metres when the gradient is
+    ~10⁴ nats/m, which can land on collinear positions (the accelerometers' block term of
+    :mod:`.acc_block_marginal` added at the previous mode)."""
     A, ref = lik.A, lik.reference
     free = [k for k in range(A) if k != ref]
     dtype = lik.dtype
@@ -215,6 +219,26 @@ def fixed_omega_mode(lik, pos0, *, z=None, prior_mean=None, prior_std=None):
         return out
 
     th = (pos0 - pos0[ref])[free].reshape(-1).clone().requires_grad_(True)
+    if newton:
+        x = th.detach().clone()
+        f = float(nll(x))
+        for _ in range(50):
+            g = torch.autograd.functional.jacobian(nll, x)
+            H = torch.autograd.functional.hessian(nll, x)
+            L, info = torch.linalg.cholesky_ex(0.5 * (H + H.T))
+            d = -torch.cholesky_solve(g[:, None], L)[:, 0] if int(info) == 0 else -g / float(H.diagonal().abs().max())
+            if float(-(g @ d)) < 1e-10:  # the Newton decrement: at the mode to round-off
+                break
+            for _ in range(40):
+                f_new = float(nll(x + d))
+                if math.isfinite(f_new) and f_new <= f:
+                    break
+                d = 0.5 * d
+            else:
+                break
+            x, f = x + d, f_new
+        H = torch.autograd.functional.hessian(nll, x)
+        return full(x), torch.linalg.inv(H)
     opt = torch.optim.LBFGS([th], max_iter=100, line_search_fn="strong_wolfe", tolerance_grad=1e-10,
                             tolerance_change=1e-14)
 

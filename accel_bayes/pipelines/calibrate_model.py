@@ -204,7 +204,7 @@ def _model_block_step(lik, rec, cmodel, pos0, nominal_acc, prior_std, sample_sca
     """The triads' linear accelerometer errors integrated out of ``lik``, the part they share left to
     :func:`_common_cut_step` (option ``acc_blocks``:
     "fit" or (τ_M, τ_b); :mod:`accel_bayes.model.acc_block_marginal`), the prior centred by the
-    report's blocks (which ``lik``'s outputs already have inverted), the per-sample precision held at
+    report's blocks (which ``lik``'s outputs already have inverted), expanded to second order about
     ``pos0`` (A, 3) m (the mode so far); ``sample_scale`` (T,) the noise model's per-sample scale the
     outputs were divided by.  Then the new mode and its Laplace covariance, where the chains start;
     ``prev_cov`` the Laplace covariance without the term (m², computed here when None) for the record."""
@@ -217,7 +217,8 @@ def _model_block_step(lik, rec, cmodel, pos0, nominal_acc, prior_std, sample_sca
     pos0 = torch.as_tensor(pos0, dtype=torch.float64)
     term = build_block_marginal(lik, pos0, mu, tau=acc_blocks, sample_scale=sample_scale)
     new = with_block_marginal(lik, term)
-    P, cov = fixed_omega_mode(new, pos0, prior_mean=nominal_acc, prior_std=prior_std)
+    # Newton from the previous mode: the term's gradient there is ~10⁴ nats/m (acc_block_marginal, "Positions")
+    P, cov = fixed_omega_mode(new, pos0, prior_mean=nominal_acc, prior_std=prior_std, newton=True)
     record = {**term.record, "report_blocks": sorted(int(k) for _, k, _ in cmodel.acc_linear),
               "mode_shift_m": float((P - pos0).sub(P[lik.reference] - pos0[lik.reference]).norm(dim=-1).max()),
               "laplace_std_ratio_median": float((cov.diagonal().sqrt() / (
