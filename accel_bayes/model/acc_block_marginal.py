@@ -210,18 +210,24 @@ class _ExactDelta:
     are left out of every evaluation."""
 
     def __init__(self, lik, fhat, inv_scale, U, Z):
-        self.lik = lik
-        A = lik.A
+        self.lik, self.fhat, self.inv_scale, self.U, self.Z = lik, fhat, inv_scale, U, Z
         self.u = u_of_omega(lik.omega.mean)
+        n, m = Z.shape[1], 3 * lik.A
+        # S_t and XS_t kept between evaluations unless they would take more than _STORE_BYTES (A ≳ 16)
+        self.store = lik.T * (n * m + m * m) * 8 <= _STORE_BYTES
         self.parts = []
-        K0 = torch.zeros(Z.shape[1], Z.shape[1], dtype=lik.dtype)
+        K0 = torch.zeros(n, n, dtype=lik.dtype)
         for t0, t1 in _chunks(lik.T):
-            S = _noise_precision(lik, t0, t1, None if U is None else U[t0:t1])
-            X = _design(fhat[t0:t1].view(t1 - t0, A, 3), inv_scale[t0:t1]) @ Z  # (τ, 3A, n)
-            XS = X.transpose(-1, -2) @ S  # (τ, n, 3A)
+            S, XS, X = self._part(t0, t1)
             K0 += torch.einsum("tni,tim->nm", XS, X)
-            self.parts.append((t0, t1, S, XS))
+            self.parts.append((t0, t1, S, XS) if self.store else (t0, t1, None, None))
         self.K0 = 0.5 * (K0 + K0.T)
+
+    def _part(self, t0: int, t1: int):
+        """(S_t (τ, 3A, 3A), XS_t (τ, n, 3A), X_t (τ, 3A, n)) of the samples t0:t1."""
+        S = _noise_precision(self.lik, t0, t1, None if self.U is None else self.U[t0:t1])
+        X = _design(self.fhat[t0:t1].view(t1 - t0, self.lik.A, 3), self.inv_scale[t0:t1]) @ self.Z
+        return S, X.transpose(-1, -2) @ S, X
 
     def sums(self, rv: torch.Tensor):
         """(K(r) (n, n), g(r) (n,)) at the flattened relative positions rv (3A,) m (differentiable)."""
@@ -230,6 +236,8 @@ class _ExactDelta:
         H, G = H_matrix(Rm), G_matrix(Rm)
         K, g = self.K0, 0.0
         for t0, t1, S, XS in self.parts:
+            if S is None:
+                S, XS, _ = self._part(t0, t1)
             SH = S @ H  # (τ, 3A, 6)
             M = H.T @ SH
             if lik.phi_prior_prec is not None:
@@ -251,6 +259,9 @@ class _ExactDelta:
             grad = torch.autograd.grad(val, rv)[0] if with_grad else None
         return float(val.detach()), grad
 
+
+#: bytes: the most :class:`_ExactDelta` keeps of S_t and XS_t between evaluations (else recomputed)
+_STORE_BYTES = 256 * 2 ** 20
 
 #: m: the step of the central differences of Δ's gradient that give its Hessian (the positions'
 #: posterior std is 10⁻⁴ m and more; Δ's third-order terms over 10⁻⁵ m are below 10⁻⁶ of the second)
@@ -293,7 +304,10 @@ def fit_tau(K, g, mu, A, start=(0.01, 0.1)):
 
     def closure():
         opt.zero_grad()
-        v = -evidence(K, g, mu, _prior_var((x[0].exp(), x[1].exp()), A))
+        # the line search may try any step: outside [1e-6, 1] the evidence is flat (and, for τ ≫ 1,
+        # I + PK loses its positive definiteness to round-off)
+        xc = x.clamp(math.log(1e-6), math.log(1.0))
+        v = -evidence(K, g, mu, _prior_var((xc[0].exp(), xc[1].exp()), A))
         v.backward()
         return v
 

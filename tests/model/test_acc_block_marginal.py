@@ -336,3 +336,24 @@ def test_newton_mode_agrees_with_lbfgs_and_survives_a_steep_start():
     assert float((C @ grad).abs().max()) < 1e-9  # m (the posterior std is ~1e-4 m): the Newton step left
     assert bool((torch.linalg.eigvalsh(C) > 0).all())
     assert float((P - P_n).abs().max()) > 1e-6  # the term moved the mode
+
+
+def test_tolerance_fit_survives_its_line_search_and_large_recordings_recompute():
+    """A prior centre of 0.6 % blocks on data without any (fast rotation): the type-II ML's line search
+    tries tolerances ≫ 1, where I + PK loses its definiteness to round-off; the fit stays inside
+    [1e-6, 1] and returns (it raised before the clamp).  And the term built without keeping the per-sample
+    products between evaluations (what recordings too large for memory get) is the same to the bit."""
+    import accel_bayes.model.acc_block_marginal as abm
+
+    acc, omega = _fast_rotation(300, 5, 150.0)
+    lik = RaoBlackwellLikelihood(acc, omega, SIG, 1)
+    mu = 0.006 * torch.randn(60, generator=torch.Generator().manual_seed(8), dtype=DT)
+    a = build_block_marginal(lik, POS5, mu)
+    assert 1e-6 <= a.tau[0] <= 1 and 1e-6 <= a.tau[1] <= 1
+    keep = abm._STORE_BYTES
+    try:
+        abm._STORE_BYTES = 0
+        b = build_block_marginal(lik, POS5, mu)
+    finally:
+        abm._STORE_BYTES = keep
+    assert a.value == b.value and torch.equal(a.grad, b.grad) and torch.equal(a.hess, b.hess)
