@@ -15,7 +15,10 @@ orientation, and the ~100 s of hand rotation), where the preparation cannot cali
 * ``blind_fixed`` — the same report, ``acc_blocks="fixed"`` (the blocks inverted as exact);
 * ``rest_blocks`` — the crop with the whole recording's rest intrinsics applied to its outputs, then
   ``detect(acc_linear=True)`` on it (what linear error the rests leave, seen by the motion) and
-  ``calibrate(model=report, intrinsics="none")``: the reference's intrinsics and the blind path's blocks.
+  ``calibrate(model=report, intrinsics="none")``: the reference's intrinsics and the blind path's blocks;
+* ``whole_blocks`` — the whole recording, ``detect(acc_linear=True)`` (since 2026-11-29 its accelerometer
+  stage runs on the rest-calibrated outputs too) and ``calibrate(model=report)`` with every default: what a
+  user gets from ``mismatch --acc-linear`` then ``calibrate --model`` on a recording with rests.
 
 Scored per free coordinate: d = blind mean − reference mean and z = d / √(std_blind² + std_reference²).  The
 two calibrations share the rotation's data, so z is a check of what the blind path adds (the accelerometers'
@@ -43,7 +46,7 @@ from experiments._data import data_dir  # noqa: E402
 DOC = HERE / "mimu_blind_acc.md"
 OUT = HERE / "results" / "mimu_blind_acc"
 REPORTS = HERE / "out" / "mimu_blind_acc"
-VARIANTS = ("reference", "blind", "blind_fixed", "rest_blocks")
+VARIANTS = ("reference", "blind", "blind_fixed", "rest_blocks", "whole_blocks")
 CALIB = {"chains": 2, "warmup": 300, "draws": 400, "seed": 0}
 
 
@@ -72,9 +75,10 @@ def run_one(exp: int, variant: str, seconds: float, out: Path = OUT, reports: Pa
 
             rec = estimate_intrinsics(rec).apply(crop(rec, seconds))
             kw = {"intrinsics": "none"}
-        else:
+        elif variant != "whole_blocks":
             rec = crop(rec, seconds)
-        rep = reports / f"exp_{exp}" / ("rest_report.json" if variant == "rest_blocks" else "report.json")
+        rep = reports / f"exp_{exp}" / {"rest_blocks": "rest_report.json", "whole_blocks": "whole_report.json"}.get(
+            variant, "report.json")
         if not rep.exists():
             t0 = time.perf_counter()
             with warnings.catch_warnings():
@@ -90,7 +94,7 @@ def run_one(exp: int, variant: str, seconds: float, out: Path = OUT, reports: Pa
         res = calibrate(rec, progress=False, **CALIB, **kw)
     st = res.settings
     blocks = ((st.get("model") or {}).get("acc_blocks")) or {}
-    doc = {"exp": exp, "variant": variant, "seconds_kept": None if variant == "reference" else seconds,
+    doc = {"exp": exp, "variant": variant, "seconds_kept": None if variant in ("reference", "whole_blocks") else seconds,
            "T_used": st["T"], "intrinsics_applied": bool(st["preprocess"]["intrinsics"]["applied"]),
            "mean": [e["mean"] for e in res.positions["imus"]], "std": [e["std"] for e in res.positions["imus"]],
            "reference_imu": st["reference_imu"], "detect_seconds": det_s,
@@ -155,18 +159,20 @@ def markdown(rows: dict, cmd: str, seconds: float, kept: float) -> list[str]:
          "`detect(acc_linear=True)`, `calibrate(model=report)` defaults (`acc_blocks='fit'`, untempered). "
          "**blind, fixed**: the same with `acc_blocks='fixed'`. **rest + blocks**: the same crop with the whole "
          "recording's rest intrinsics applied, `detect(acc_linear=True)` on that (the linear errors the rests leave) and "
-         "`calibrate(model=report, intrinsics='none')`. "
+         "`calibrate(model=report, intrinsics='none')`. **whole + blocks**: the whole recording, `detect(acc_linear=True)` "
+         "(its accelerometer stage on the rest-calibrated outputs) and `calibrate(model=report)` defaults. "
          f"Calibration {CALIB['chains']} chains × ({CALIB['warmup']} + {CALIB['draws']}), seed {CALIB['seed']}. "
          "z = (blind − reference) / √(std_blind² + std_reference²) per free coordinate; the two share the rotation's "
          "data, so |z| of order 1 or less is what an honest blind std gives.", ""]
-    zb, zf, zrr, zbr = [], [], [], []
+    zb, zf, zrr, zbr, zwr, zbw = [], [], [], [], [], []
     L += ["| exp | intrinsics (ref / blind) | acc blocks | τ_M % / τ_b m/s² | z RMS blind / fixed | max \\|z\\| blind / fixed "
           "| RMS d µm blind / fixed | lower − upper layer d (x, y) µm blind / fixed | median std µm blind / fixed / reference "
           "| cut's spread median µm | seconds detect / calibrate "
-          "| rest + blocks − reference: z RMS, layer d µm | blind − rest + blocks: z RMS, layer d µm |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+          "| rest + blocks − reference: z RMS, layer d µm | blind − rest + blocks: z RMS, layer d µm "
+          "| whole + blocks − reference: z RMS, layer d µm | blind − whole + blocks: z RMS, layer d µm |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for exp in sorted(rows):
-        r, b, f, rb = rows[exp]
+        r, b, f, rb, wb = rows[exp]
         cb = compare(b, r)
         cf = compare(f, r) if f is not None else None
         zb.append(cb["z"])
@@ -186,7 +192,12 @@ def markdown(rows: dict, cmd: str, seconds: float, kept: float) -> list[str]:
                  + ("—" if ab.get("common_shift_std_median_m") is None else f"{1e6 * ab['common_shift_std_median_m']:.0f}")
                  + f" | {b['detect_seconds']:.0f} / {b['calibrate_seconds']:.0f} | "
                  + ("—" if rb is None else f"{_rms(compare(rb, r)['z']):.2f}, {_shift(layer_shift(rb, r))}") + " | "
-                 + ("—" if rb is None else f"{_rms(compare(b, rb)['z']):.2f}, {_shift(layer_shift(b, rb))}") + " |")
+                 + ("—" if rb is None else f"{_rms(compare(b, rb)['z']):.2f}, {_shift(layer_shift(b, rb))}") + " | "
+                 + ("—" if wb is None else f"{_rms(compare(wb, r)['z']):.2f}, {_shift(layer_shift(wb, r))}") + " | "
+                 + ("—" if wb is None else f"{_rms(compare(b, wb)['z']):.2f}, {_shift(layer_shift(b, wb))}") + " |")
+        if wb is not None:
+            zwr.append(compare(wb, r)["z"])
+            zbw.append(compare(b, wb)["z"])
         if rb is not None:
             zrr.append(compare(rb, r)["z"])
             zbr.append(compare(b, rb)["z"])
@@ -200,6 +211,10 @@ def markdown(rows: dict, cmd: str, seconds: float, kept: float) -> list[str]:
             L += ["", f"Rest + blocks against the reference: z RMS {_rms(np.concatenate(zrr)):.2f}; the blind against rest + "
                   f"blocks: z RMS {_rms(np.concatenate(zbr)):.2f}, max |z| {np.abs(np.concatenate(zbr)).max():.2f} "
                   f"({len(zrr)} experiments)."]
+        if zwr:
+            L += ["", f"Whole recording + blocks against the reference: z RMS {_rms(np.concatenate(zwr)):.2f}; the blind "
+                  f"against it: z RMS {_rms(np.concatenate(zbw)):.2f}, max |z| {np.abs(np.concatenate(zbw)).max():.2f} "
+                  f"({len(zwr)} experiments)."]
         worst = sorted(((abs(v), n, e) for e in sorted(rows) for v, n in zip(compare(rows[e][1], rows[e][0])["z"],
                                                                              compare(rows[e][1], rows[e][0])["names"])),
                        reverse=True)[:5]

@@ -44,7 +44,8 @@ def register(subparsers) -> None:
                         "each triad's lever arm (opt-in; default off)")
     p.add_argument("--acc-linear", action="store_true",
                    help="run the accelerometer linear stage: every triad's 3x3 scale/misalignment and offset, "
-                        "estimated as one block where the recording's rests cannot calibrate them (opt-in; default off)")
+                        "estimated as one block (on the rest-calibrated outputs where the rests calibrate the triads: "
+                        "what they leave, e.g. each chip's rotation on the board) (opt-in; default off)")
     p.add_argument("--no-figures", action="store_true", help="write report.json and report.md without figures")
     p.add_argument("--progress", action="store_true", help="print stage messages")
     p.set_defaults(func=run)

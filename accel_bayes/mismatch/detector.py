@@ -36,7 +36,8 @@ Procedure
    :mod:`accel_bayes.mismatch.acc_linear`): the same for every accelerometer triad
    (:class:`~accel_bayes.physics.effects.AccLinear`, vocabulary ``acc_scale`` axis null), regressed on
    the fitted specific force, without a common part, its spread tested by inverting the strongest
-   triad's block alone; not run where ``prep`` calibrated the triads from the rests.  The rounds then
+   triad's block alone; where ``prep`` calibrated the triads from the rests, on those outputs (what the
+   rests leave: a chip's rotation on the board, offsets in motion).  The rounds then
    never try an acc bias/scale/misalignment term on a triad that has a block.
 3b. **Clock stage** (:mod:`accel_bayes.mismatch.clock`): on every IMU with a gyroscope, a
    ``sampling_clock`` (:class:`~accel_bayes.physics.effects.SamplingClock`: the data age a sawtooth
@@ -124,7 +125,7 @@ from .clock import clock_corrected, clock_stage
 from .compare import compare_fits, posterior_comparison
 from .filter_delay import filter_delay
 from .fit import _effect_std, baseline_fit, fit_model
-from .acc_linear import ACC_LINEAR_TERMS, acc_linear_stage, restage
+from .acc_linear import ACC_LINEAR_TERMS, ACC_OUTPUTS, acc_linear_stage, restage
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
 from .linear_blocks import LinearStage, block_arrays, corrected_outputs
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window
@@ -271,9 +272,9 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
     n_gyro = int(np.asarray(prep.has_gyro).sum())
     gyro_stage = (names is None or "gyro_linear" in names) and n_gyro >= 2
     n_acc = int(np.asarray(prep.has_acc).sum())
-    # the acc stage: opt-in, and not where prep calibrated the triads from the rests (acc_linear's docstring)
-    acc_stage_on = (o.acc_linear and (names is None or "acc_linear" in names) and n_acc >= 2
-                    and not prep.preparation["intrinsics"]["applied"])
+    # the acc stage: opt-in; where prep calibrated the triads from the rests it estimates what they leave,
+    # on the rest-calibrated outputs (acc_linear's docstring)
+    acc_stage_on = o.acc_linear and (names is None or "acc_linear" in names) and n_acc >= 2
     # Bonferroni over every test: the round candidates, and the stages' group and per-block tests
     m = len(cands_all) + (n_gyro + 1 if gyro_stage else 0) + (n_acc + 1 if acc_stage_on else 0)
     df_max = max([c.df for c in cands_all] + [1])
@@ -296,8 +297,7 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
     timings["gyro_linear_s"] = _time.perf_counter() - t0
     acc_stage = None
     if o.acc_linear and not acc_stage_on:  # asked for, not run: the report says why
-        why = ("prep calibrated the triads from the recording's rests" if prep.preparation["intrinsics"]["applied"]
-               else "effects does not name acc_linear" if names is not None and "acc_linear" not in names
+        why = ("effects does not name acc_linear" if names is not None and "acc_linear" not in names
                else f"{n_acc} accelerometer triad(s): a block is relative to the others")
         acc_stage = LinearStage(prep, current, [], None, {"result": f"not run: {why}"}, "acc")
         say(f"acc linear stage: not run ({why})")
@@ -317,6 +317,8 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
                 stage.prep, stage.fit = acc_stage.prep, acc_stage.fit
         if acc_stage.blocks or "restaged" in acc_stage.info:
             prep, current = acc_stage.prep, acc_stage.fit
+        # which outputs the blocks act on: calibrate inverts them only on the same (model.report_terms)
+        acc_stage.info["outputs"] = ACC_OUTPUTS[bool(prep.preparation["intrinsics"]["applied"])]
         say(f"acc linear stage: {acc_stage.info['result']}")
         timings["acc_linear_s"] = _time.perf_counter() - t0
     t0 = _time.perf_counter()

@@ -94,8 +94,9 @@ class DetectOptions:
         reports and fingerprints of the default are unchanged.
     acc_linear : run the accelerometer linear stage (every triad's 3 × 3 scale/misalignment + offset
         block, :mod:`accel_bayes.mismatch.acc_linear`) after the gyro linear stage (default False;
-        opt-in while it is measured: ``experiments/acc_linear_budget.md``; it never runs where ``prep``
-        calibrated the triads from rests).  In ``settings`` only when True.
+        opt-in while it is measured: ``experiments/acc_linear_budget.md``; where ``prep`` calibrated the
+        triads from rests it runs on those outputs and estimates what the rests leave,
+        ``experiments/mimu_blind_acc.md``).  In ``settings`` only when True.
     """
 
     effects: Any = None

@@ -120,6 +120,8 @@ class CalibrationModel:
     gyro_effects : [(finding index, IMU label, effect)] — the random gyro effects used.
     gyro_linear : [(finding index, IMU label, GyroLinear)] — the gyro linear blocks used.
     acc_linear : [(finding index, IMU label, AccLinear)] — the accelerometer linear blocks used.
+    acc_outputs : the outputs those blocks were estimated on (``details.acc_linear_stage.outputs``, one of
+        :data:`accel_bayes.mismatch.acc_linear.ACC_OUTPUTS`; "as recorded" where the report does not say).
     used, skipped : [{"finding", "effect", "imu", "sensor", "how"/"why"}] per finding.
     report : the report's document as read (what :func:`unresolved_terms` reads again at the samples).
     unresolved : the report has an ``unresolved_motion`` finding: the per-sample covariance is used.
@@ -133,6 +135,7 @@ class CalibrationModel:
     gyro_effects: list = field(default_factory=list)
     gyro_linear: list = field(default_factory=list)
     acc_linear: list = field(default_factory=list)
+    acc_outputs: str = "as recorded"
     used: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
     report: dict = field(default_factory=dict, repr=False)
@@ -159,6 +162,16 @@ class CalibrationModel:
         for i, k, _ in self.acc_linear:
             if not (0 <= k < len(has_acc)) or not has_acc[k]:
                 raise UserError(f"model: findings[{i}].imu: IMU {k} has no accelerometer in the recording")
+
+    def match_acc_outputs(self, rest_calibrated: bool) -> None:
+        """Keep the accelerometer blocks only where the calibration's preparation gives the outputs they
+        were estimated on (``acc_outputs``): rest-calibrated blocks after the rests' intrinsics, blocks on
+        the outputs as recorded without them; else :meth:`drop_acc_linear` with the reason."""
+        if not self.acc_linear or rest_calibrated == (self.acc_outputs == "rest-calibrated"):
+            return
+        self.drop_acc_linear("accelerometer linear block: estimated on the outputs " + self.acc_outputs
+                             + ", while this calibration's preparation " + ("calibrated the triads from the rests"
+                             if rest_calibrated else "did not calibrate the triads (no rests that determine them)"))
 
     def drop_acc_linear(self, why: str) -> None:
         """Move the accelerometer blocks from ``used`` to ``skipped`` with the reason ``why`` (the
@@ -197,6 +210,12 @@ def load_model(model) -> CalibrationModel:
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
             raise UserError(f"model: details.recording.{key}: expected a positive integer, got {v!r}")
     out = CalibrationModel(source=source, sha256=sha, recording=dict(rec_info), report=doc)
+    stage = details.get("acc_linear_stage") or {}
+    outputs = stage.get("outputs", "as recorded") if isinstance(stage, dict) else "as recorded"
+    if outputs not in ("as recorded", "rest-calibrated"):
+        raise UserError(f"model: details.acc_linear_stage.outputs: expected 'as recorded' or 'rest-calibrated', "
+                        f"got {outputs!r}")
+    out.acc_outputs = outputs
     unresolved = []
     for i, f in enumerate(doc["findings"]):
         name, imu = f["effect"], f.get("imu")

@@ -151,9 +151,8 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         # step 2, prepare: intrinsics and sample selection; then the likelihood, the prior and the settings
         pre = _prepare_step(raw, opts)
         rec = pre.recording
-        if cmodel is not None and cmodel.acc_linear and pre.summary["intrinsics"]["applied"]:
-            cmodel.drop_acc_linear("accelerometer linear block: this calibration's preparation calibrated the triads "
-                                   "from the rests, and the block was estimated on the raw outputs")
+        if cmodel is not None:
+            cmodel.match_acc_outputs(bool(pre.summary["intrinsics"]["applied"]))
         noise_mode = opts.noise_mode(pre.has_rests, cmodel is not None and cmodel.unexplained)
         gm = ("calibrated" if noise_mode == "estimate" else "sample_cov") if opts.gyro_method == "auto" \
             else opts.gyro_method

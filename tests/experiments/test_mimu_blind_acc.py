@@ -40,7 +40,7 @@ def test_markdown_pools_the_experiments():
     b.update(intrinsics_applied=False, detect_seconds=100.0, calibrate_seconds=20.0,
              acc_blocks={"tau_matrix": 0.006, "tau_bias_m_s2": 0.08, "report_blocks": [0, 1],
                          "common_shift_std_median_m": 1e-4})
-    text = "\n".join(mba.markdown({1: (r, b, None, None)}, "cmd", 1.0, 130.0))
+    text = "\n".join(mba.markdown({1: (r, b, None, None, None)}, "cmd", 1.0, 130.0))
     assert "| 1 | yes / no | 2/8 | 0.60 / 0.080 |" in text and "| — / — |" in text  # one layer: no shift
     assert "blind z RMS 0.58, max |z| 1.00, beyond 3: 0" in text
     with pytest.raises(SystemExit):

@@ -440,3 +440,17 @@ def test_corrected_recording_of_the_whole_prepared_recording(disp_report):
     assert not np.array_equal(a.acc, prep.rec.acc)  # something was corrected
     drop = ~prep.selection.keep
     np.testing.assert_array_equal(b.acc[drop], prep.source.acc[drop])
+
+
+def test_acc_stage_runs_after_the_rests_intrinsics_and_says_on_which_outputs():
+    """``acc_linear=True`` on a recording whose rests calibrate the triads: the stage runs on the
+    rest-calibrated outputs (what the rests leave; before 2026-11-29 it was skipped there) and the report
+    says so (``details.acc_linear_stage.outputs``), which ``calibrate --model`` matches against its own
+    preparation (tests/model/test_calibrate_model.py)."""
+    from accel_bayes.mismatch import DetectOptions, detect
+
+    rep = detect(_recording_with_rests(n_orient=10, n=40, dyn=20), DetectOptions(seed=0, acc_linear=True,
+                                                                                 effects=("acc_linear",))).to_dict()
+    st = rep["details"]["acc_linear_stage"]
+    assert st["outputs"] == "rest-calibrated"
+    assert not str(st["result"]).startswith("not run")

@@ -236,3 +236,31 @@ def test_acc_blocks_of_the_report_are_integrated_out_or_fixed(wander_case):
         warnings.simplefilter("ignore", RuntimeWarning)
         again = calibrate(rec, model=rep, intrinsics="none", **SHORT)
     np.testing.assert_array_equal(mean(again), mean(out["fit"]))
+
+
+def test_accelerometer_blocks_are_used_only_on_the_outputs_they_were_estimated_on(wander_case):
+    """``details.acc_linear_stage.outputs`` says which outputs a report's accelerometer blocks act on: blocks of
+    the rest-calibrated outputs are kept after the rests' intrinsics and dropped without them, blocks of the
+    outputs as recorded the other way round (a report without the key: as recorded, as every report before
+    the key); the reason is recorded; any other value is refused naming the field."""
+    from accel_bayes.errors import UserError
+    from accel_bayes.model.report_terms import load_model
+
+    rec, _, _ = wander_case
+    blocks = [("acc_scale", 1, {"scale": (0.004 * np.eye(3)).tolist(), "bias": [0.02, 0.0, -0.01]})]
+    for outputs, rest, kept in (("rest-calibrated", True, True), ("rest-calibrated", False, False),
+                                ("as recorded", True, False), ("as recorded", False, True), (None, True, False)):
+        rep = _report(rec, blocks)
+        if outputs is not None:
+            rep["details"]["acc_linear_stage"] = {"result": "test", "outputs": outputs}
+        m = load_model(rep)
+        assert m.acc_outputs == (outputs or "as recorded")
+        m.match_acc_outputs(rest)
+        assert bool(m.acc_linear) is kept, (outputs, rest)
+        if not kept:
+            why = [s["why"] for s in m.skipped if s["effect"] == "acc_scale"]
+            assert why and (outputs or "as recorded") in why[0]
+    rep = _report(rec, blocks)
+    rep["details"]["acc_linear_stage"] = {"outputs": "corrected"}
+    with pytest.raises(UserError, match="details.acc_linear_stage.outputs"):
+        load_model(rep)
