@@ -7,7 +7,9 @@ triads, and ``calibrate --model`` inverts the accelerometer blocks the detector 
 exact.  What the estimate misses moves the positions without widening the posterior: on the
 concealed clock recordings calibrated blind, the error is 1.4× the oracle's at the same posterior
 std (``experiments/percov_blind_acc.md``).  Every triad's linear error is uncertain, so every triad
-gets one here, the blocks the report gives as the prior's centre.
+gets one here, the blocks the report gives as the prior's centre.  Where the rests do calibrate the
+triads, ``mismatch --acc-linear`` estimates what they leave on the rest-calibrated outputs (a chip's
+rotation on the board: ``experiments/mimu_blind_acc.md``) and the same term carries those blocks.
 
 Model.  Per sample t, the likelihood's outputs y_t (3A, array frame, already corrected by the
 report's blocks Ê_k, b̂_k and divided by the noise model's per-sample scale s_t) err to first order
