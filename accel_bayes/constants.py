@@ -26,6 +26,11 @@ ACC_PARAMS = ("b_x", "b_y", "b_z", "t_xx", "t_yy", "t_zz", "t_yx", "t_zx", "t_zy
 ACC_T_INDEX = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))
 """(row, column) in the 3×3 T of each of the six entries ``ACC_PARAMS[3:]``."""
 
+ACC_OUTPUTS = ("as recorded", "rest-calibrated")
+"""A mismatch report's ``details.acc_linear_stage.outputs``: the accelerometer outputs its blocks were
+estimated on, indexed by whether the preparation applied rest intrinsics (the detector writes it,
+``calibrate --model`` matches it; a report without the key was made on the outputs as recorded)."""
+
 DEFAULT_PRIOR_STD = 3e-3
 """m — the [C21] §IV-A Gaussian prior std of the positions, deliberately wider than the
 4 mm × 4 mm × 1 mm package (MAP, PmMH, mismatch refits)."""

@@ -164,22 +164,34 @@ def markdown(rows: dict, cmd: str, seconds: float, kept: float) -> list[str]:
          f"Calibration {CALIB['chains']} chains × ({CALIB['warmup']} + {CALIB['draws']}), seed {CALIB['seed']}. "
          "z = (blind − reference) / √(std_blind² + std_reference²) per free coordinate; the two share the rotation's "
          "data, so |z| of order 1 or less is what an honest blind std gives.", ""]
-    zb, zf, zrr, zbr, zwr, zbw = [], [], [], [], [], []
+    zb, zf, worst = [], [], []
+    # the two runs with blocks on top of the rests' intrinsics: each against the reference, and the blind against it
+    extra = {"rest": ([], []), "whole": ([], [])}
     L += ["| exp | intrinsics (ref / blind) | acc blocks | τ_M % / τ_b m/s² | z RMS blind / fixed | max \\|z\\| blind / fixed "
           "| RMS d µm blind / fixed | lower − upper layer d (x, y) µm blind / fixed | median std µm blind / fixed / reference "
           "| cut's spread median µm | seconds detect / calibrate "
           "| rest + blocks − reference: z RMS, layer d µm | blind − rest + blocks: z RMS, layer d µm "
           "| whole + blocks − reference: z RMS, layer d µm | blind − whole + blocks: z RMS, layer d µm |",
           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    pair = lambda x, y, fmt: f"{x:{fmt}} / " + ("—" if y is None else f"{y:{fmt}}")  # noqa: E731
     for exp in sorted(rows):
         r, b, f, rb, wb = rows[exp]
         cb = compare(b, r)
         cf = compare(f, r) if f is not None else None
         zb.append(cb["z"])
+        worst += [(abs(v), n, exp) for v, n in zip(cb["z"], cb["names"])]
         if cf is not None:
             zf.append(cf["z"])
         ab = b["acc_blocks"]
-        pair = lambda x, y, fmt: f"{x:{fmt}} / " + ("—" if y is None else f"{y:{fmt}}")  # noqa: E731
+        cells = []
+        for key, x in (("rest", rb), ("whole", wb)):
+            for zs, (u, v) in zip(extra[key], ((x, r), (b, x))):
+                if x is None:
+                    cells.append("—")
+                    continue
+                c = compare(u, v)
+                zs.append(c["z"])
+                cells.append(f"{_rms(c['z']):.2f}, {_shift(layer_shift(u, v))}")
         L.append(f"| {exp} | {'yes' if r['intrinsics_applied'] else 'no'} / {'yes' if b['intrinsics_applied'] else 'no'} | "
                  f"{len(ab.get('report_blocks') or [])}/8 | "
                  + (f"{100 * ab['tau_matrix']:.2f} / {ab['tau_bias_m_s2']:.3f}" if ab.get("tau_matrix") else "—") + " | "
@@ -187,37 +199,23 @@ def markdown(rows: dict, cmd: str, seconds: float, kept: float) -> list[str]:
                  + pair(np.abs(cb["z"]).max(), None if cf is None else np.abs(cf["z"]).max(), ".2f") + " | "
                  + pair(_rms(cb["d_um"]), None if cf is None else _rms(cf["d_um"]), ".0f") + " | "
                  + _shift(layer_shift(b, r)) + " / " + ("—" if f is None else _shift(layer_shift(f, r))) + " | "
-                 + f"{np.median(cb['std_b_um']):.0f} / " + ("—" if f is None else f"{np.median(compare(f, r)['std_b_um']):.0f}")
+                 + pair(np.median(cb["std_b_um"]), None if cf is None else np.median(cf["std_b_um"]), ".0f")
                  + f" / {np.median(cb['std_r_um']):.0f} | "
                  + ("—" if ab.get("common_shift_std_median_m") is None else f"{1e6 * ab['common_shift_std_median_m']:.0f}")
-                 + f" | {b['detect_seconds']:.0f} / {b['calibrate_seconds']:.0f} | "
-                 + ("—" if rb is None else f"{_rms(compare(rb, r)['z']):.2f}, {_shift(layer_shift(rb, r))}") + " | "
-                 + ("—" if rb is None else f"{_rms(compare(b, rb)['z']):.2f}, {_shift(layer_shift(b, rb))}") + " | "
-                 + ("—" if wb is None else f"{_rms(compare(wb, r)['z']):.2f}, {_shift(layer_shift(wb, r))}") + " | "
-                 + ("—" if wb is None else f"{_rms(compare(b, wb)['z']):.2f}, {_shift(layer_shift(b, wb))}") + " |")
-        if wb is not None:
-            zwr.append(compare(wb, r)["z"])
-            zbw.append(compare(b, wb)["z"])
-        if rb is not None:
-            zrr.append(compare(rb, r)["z"])
-            zbr.append(compare(b, rb)["z"])
+                 + f" | {b['detect_seconds']:.0f} / {b['calibrate_seconds']:.0f} | " + " | ".join(cells) + " |")
     if zb:
         z = np.concatenate(zb)
         L += ["", f"Pooled over {len(zb)} experiments ({len(z)} coordinates): blind z RMS {_rms(z):.2f}, max |z| "
               f"{np.abs(z).max():.2f}, beyond 3: {int((np.abs(z) > 3).sum())}"
               + ("" if not zf else f"; fixed z RMS {_rms(np.concatenate(zf)):.2f}, max |z| "
                  f"{np.abs(np.concatenate(zf)).max():.2f}, beyond 3: {int((np.abs(np.concatenate(zf)) > 3).sum())}") + "."]
-        if zrr:
-            L += ["", f"Rest + blocks against the reference: z RMS {_rms(np.concatenate(zrr)):.2f}; the blind against rest + "
-                  f"blocks: z RMS {_rms(np.concatenate(zbr)):.2f}, max |z| {np.abs(np.concatenate(zbr)).max():.2f} "
-                  f"({len(zrr)} experiments)."]
-        if zwr:
-            L += ["", f"Whole recording + blocks against the reference: z RMS {_rms(np.concatenate(zwr)):.2f}; the blind "
-                  f"against it: z RMS {_rms(np.concatenate(zbw)):.2f}, max |z| {np.abs(np.concatenate(zbw)).max():.2f} "
-                  f"({len(zwr)} experiments)."]
-        worst = sorted(((abs(v), n, e) for e in sorted(rows) for v, n in zip(compare(rows[e][1], rows[e][0])["z"],
-                                                                             compare(rows[e][1], rows[e][0])["names"])),
-                       reverse=True)[:5]
+        for key, name, it in (("rest", "Rest + blocks", "rest + blocks"), ("whole", "Whole recording + blocks", "it")):
+            against, blind = extra[key]
+            if against:
+                L += ["", f"{name} against the reference: z RMS {_rms(np.concatenate(against)):.2f}; the blind against "
+                      f"{it}: z RMS {_rms(np.concatenate(blind)):.2f}, max |z| {np.abs(np.concatenate(blind)).max():.2f} "
+                      f"({len(against)} experiments)."]
+        worst = sorted(worst, reverse=True)[:5]
         L += ["", "Largest |z| blind: " + ", ".join(f"exp {e} {n} {v:.2f}" for v, n, e in worst) + "."]
     return L
 

@@ -43,8 +43,9 @@ same alternation with the motion.  What differs:
   (where either stage kept blocks) the whole gyro stage runs again on the recording with this stage's
   blocks inverted, and this stage again on its gyros.
 * **Where ``prep`` applied intrinsics** the blocks are what the rests leave, estimated on the
-  rest-calibrated outputs (``details.acc_linear_stage.outputs``: :data:`ACC_OUTPUTS`), and
-  ``calibrate --model`` inverts them only after the same preparation.  The rests' intrinsics (bias,
+  rest-calibrated outputs (``details.acc_linear_stage.outputs``,
+  :data:`accel_bayes.constants.ACC_OUTPUTS`), and ``calibrate --model`` inverts them only after the
+  same preparation.  The rests' intrinsics (bias,
   scale, non-orthogonality) fix a triad's axes by convention and cannot hold its rotation on the board;
   the motion sees it (the real MIMU board: ±3 mrad about the board's normal, alternating with the side
   the chip sits on, and the underside IMUs ~0.15 mm off without it: ``experiments/mimu_blind_acc.md``).
@@ -68,11 +69,7 @@ from .linear_blocks import LinearStage, block_arrays, corrected_outputs, linear_
 from .model import ModelFit
 from .prepared import Prepared
 
-__all__ = ["acc_linear_stage", "restage", "ACC_LINEAR_TERMS", "ACC_OUTPUTS", "PASSES"]
-
-#: ``details.acc_linear_stage.outputs``: the outputs the blocks were estimated on (index: whether the
-#: preparation applied rest intrinsics); reports without the key were made on the outputs as recorded
-ACC_OUTPUTS = ("as recorded", "rest-calibrated")
+__all__ = ["acc_linear_stage", "restage", "ACC_LINEAR_TERMS", "PASSES"]
 
 #: the vocabulary terms an acc_linear block contains (never round candidates on a triad that has one)
 ACC_LINEAR_TERMS = ("acc_bias", "acc_scale", "acc_misalignment")

@@ -114,6 +114,7 @@ import time as _time
 import numpy as np
 
 from ..data.io import load_recording
+from ..constants import ACC_OUTPUTS
 from ..errors import UserError
 from ..physics.effects import Unexplained
 from ..threads import torch_threads
@@ -125,7 +126,7 @@ from .clock import clock_corrected, clock_stage
 from .compare import compare_fits, posterior_comparison
 from .filter_delay import filter_delay
 from .fit import _effect_std, baseline_fit, fit_model
-from .acc_linear import ACC_LINEAR_TERMS, ACC_OUTPUTS, acc_linear_stage, restage
+from .acc_linear import ACC_LINEAR_TERMS, acc_linear_stage, restage
 from .gyro_linear import block_corrected_recording, gyro_linear_stage, refresh_blocks
 from .linear_blocks import LinearStage, block_arrays, corrected_outputs
 from .locate import locate, log10_chi2_sf, regime_concentration, regimes, time_window

@@ -64,8 +64,9 @@ isotropic part is the array's size (y → (1 + δ)y is r → (1 + δ)r), which n
 the data see only through the lever-arm terms, where every other unmodelled effect of the recording
 lands too — and under a proper φ prior (fitted to these outputs with c = 0) a common shrink of every
 output lowers its penalty on φ by about Σ_t φ_tᵀF⁻¹φ_t ≈ 3T nats per unit of scale, a pull that says
-nothing about the sensors (fitted, it drove τ_M to 34–47 %).  Fitted with the deviations, its posterior sat within 0.3 % (1 std) of the report's common
-part and 0.5–0.8 % from the generator's on a concealed clock recording, while taking the generator's
+nothing about the sensors (fitted, it drove τ_M to 34–47 %).  Fitted with the deviations, its posterior
+sat within 0.3 % (1 std) of the report's common part and 0.5–0.8 % from the generator's on a concealed
+clock recording, while taking the generator's
 common part off the outputs alone brought that case's error/std RMS from 1.55 to 0.96
 (``experiments/percov_blind_acc.md``).  The chains run with c at the report's value; :func:`common_shifts`
 then moves each draw by the mode's linear response to c − ĉ (through both ways the positions enter,
@@ -180,13 +181,18 @@ def _regressor(lik, r0, U) -> torch.Tensor:
     out = []
     for t0, t1 in _chunks(lik.T):
         SH = _noise_precision(lik, t0, t1, None if U is None else U[t0:t1]) @ H  # (τ, 3A, 6)
-        M = H.T @ SH
-        if lik.phi_prior_prec is not None:
-            M = M + lik.phi_prior_prec
+        M = _phi_normal(lik, H, SH)
         Gu = u_of_omega(lik.omega.mean[t0:t1]) @ G.T  # (τ, 3A)
         phi = torch.linalg.solve(M, SH.transpose(-1, -2) @ (lik.y[t0:t1] - Gu)[..., None])[..., 0]
         out.append(Gu + phi @ H.T)
     return torch.cat(out)
+
+
+def _phi_normal(lik, H: torch.Tensor, SH: torch.Tensor) -> torch.Tensor:
+    """M_t = HᵀS_tH (+ F⁻¹ under a proper φ prior) (τ, 6, 6) from SH = S_tH (τ, 3A, 6): φ_t's posterior
+    precision, the matrix W_t and φ̂_t both solve with."""
+    M = H.T @ SH
+    return M if lik.phi_prior_prec is None else M + lik.phi_prior_prec
 
 
 def _noise_precision(lik, t0: int, t1: int, U: torch.Tensor | None) -> torch.Tensor:
@@ -241,10 +247,7 @@ class _ExactDelta:
             if S is None:
                 S, XS, _ = self._part(t0, t1)
             SH = S @ H  # (τ, 3A, 6)
-            M = H.T @ SH
-            if lik.phi_prior_prec is not None:
-                M = M + lik.phi_prior_prec
-            L = torch.linalg.cholesky(M)
+            L = torch.linalg.cholesky(_phi_normal(lik, H, SH))
             e = lik.y[t0:t1] - self.u[t0:t1] @ G.T  # (τ, 3A)
             V = torch.linalg.solve_triangular(L, (XS @ H).transpose(-1, -2), upper=False)  # (τ, 6, n)
             c = torch.linalg.solve_triangular(L, SH.transpose(-1, -2) @ e[..., None], upper=False)  # (τ, 6, 1)

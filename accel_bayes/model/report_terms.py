@@ -97,6 +97,7 @@ import numpy as np
 import torch
 
 from ..data.mismatch_report import read_report
+from ..constants import ACC_OUTPUTS
 from ..errors import UserError
 from .gyro_posterior import GyroPosterior
 
@@ -121,7 +122,7 @@ class CalibrationModel:
     gyro_linear : [(finding index, IMU label, GyroLinear)] — the gyro linear blocks used.
     acc_linear : [(finding index, IMU label, AccLinear)] — the accelerometer linear blocks used.
     acc_outputs : the outputs those blocks were estimated on (``details.acc_linear_stage.outputs``, one of
-        :data:`accel_bayes.mismatch.acc_linear.ACC_OUTPUTS`; "as recorded" where the report does not say).
+        :data:`accel_bayes.constants.ACC_OUTPUTS`; the first, "as recorded", where the report does not say).
     used, skipped : [{"finding", "effect", "imu", "sensor", "how"/"why"}] per finding.
     report : the report's document as read (what :func:`unresolved_terms` reads again at the samples).
     unresolved : the report has an ``unresolved_motion`` finding: the per-sample covariance is used.
@@ -135,7 +136,7 @@ class CalibrationModel:
     gyro_effects: list = field(default_factory=list)
     gyro_linear: list = field(default_factory=list)
     acc_linear: list = field(default_factory=list)
-    acc_outputs: str = "as recorded"
+    acc_outputs: str = ACC_OUTPUTS[0]
     used: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
     report: dict = field(default_factory=dict, repr=False)
@@ -167,7 +168,7 @@ class CalibrationModel:
         """Keep the accelerometer blocks only where the calibration's preparation gives the outputs they
         were estimated on (``acc_outputs``): rest-calibrated blocks after the rests' intrinsics, blocks on
         the outputs as recorded without them; else :meth:`drop_acc_linear` with the reason."""
-        if not self.acc_linear or rest_calibrated == (self.acc_outputs == "rest-calibrated"):
+        if not self.acc_linear or self.acc_outputs == ACC_OUTPUTS[bool(rest_calibrated)]:
             return
         self.drop_acc_linear("accelerometer linear block: estimated on the outputs " + self.acc_outputs
                              + ", while this calibration's preparation " + ("calibrated the triads from the rests"
@@ -211,10 +212,10 @@ def load_model(model) -> CalibrationModel:
             raise UserError(f"model: details.recording.{key}: expected a positive integer, got {v!r}")
     out = CalibrationModel(source=source, sha256=sha, recording=dict(rec_info), report=doc)
     stage = details.get("acc_linear_stage") or {}
-    outputs = stage.get("outputs", "as recorded") if isinstance(stage, dict) else "as recorded"
-    if outputs not in ("as recorded", "rest-calibrated"):
-        raise UserError(f"model: details.acc_linear_stage.outputs: expected 'as recorded' or 'rest-calibrated', "
-                        f"got {outputs!r}")
+    outputs = stage.get("outputs", ACC_OUTPUTS[0]) if isinstance(stage, dict) else ACC_OUTPUTS[0]
+    if outputs not in ACC_OUTPUTS:
+        raise UserError("model: details.acc_linear_stage.outputs: expected one of "
+                        f"{', '.join(map(repr, ACC_OUTPUTS))}, got {outputs!r}")
     out.acc_outputs = outputs
     unresolved = []
     for i, f in enumerate(doc["findings"]):

@@ -202,10 +202,11 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
         if cmodel is not None:
             settings["model"] = {**cmodel.describe(), "gyro_posterior": gyro_info,
                                  "sandwich": _sandwich_record(lik, map_res, nominal_acc, ps, free_labels)}
-        if terms is not None:
-            # the per-sample covariance: the chains' likelihood from here on; the flat model's sandwich kept beside
+            # the noise model's per-sample scale the likelihood's outputs were divided by (the model's steps' input)
             scale = (np.ones(lik.T) if noise.noise is None
                      else noise.noise.sample_scale(model_norm.cpu().numpy()))
+        if terms is not None:
+            # the per-sample covariance: the chains' likelihood from here on; the flat model's sandwich kept beside
             pc = _model_percov_step(lik, terms, omega_norm, scale, map_res, nominal_acc, ps,
                                     instant_error=opts.instant_error, angular_jerk=opts.angular_jerk)
             lik = pc.lik
@@ -225,10 +226,8 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
                 settings["model"]["acc_blocks"] = {"how": "fixed: the report's blocks inverted as exact (option "
                                                           "acc_blocks)"}
             else:
-                scale_b = (np.ones(lik.T) if noise.noise is None
-                           else noise.noise.sample_scale(model_norm.cpu().numpy()))
                 pos0 = nominal_acc if map_res is None else map_res.positions
-                blk = _model_block_step(lik, rec, cmodel, pos0, nominal_acc, ps, scale_b, opts.acc_blocks,
+                blk = _model_block_step(lik, rec, cmodel, pos0, nominal_acc, ps, scale, opts.acc_blocks,
                                         prev_cov=None if map_res is None else map_res.laplace_cov)
                 lik = blk.lik
                 settings["model"]["acc_blocks"] = blk.record
