@@ -239,6 +239,23 @@ class RaoBlackwellLikelihood(DrawSums):
         new.phi_prior_prec = None if new.phi_prior is None else new.phi_prior.precision
         return new
 
+    def with_outputs(self, acc) -> "RaoBlackwellLikelihood":
+        """A shallow copy on other accelerometer outputs ``acc`` (T, A, 3) m/s² of the same shape (the
+        samples, noise levels, gyro posterior, φ prior and any per-sample terms kept).  Only the outputs'
+        own cache is dropped: the per-sample terms' covariates (ages, rates) stay what they were built
+        from, as regressors do (:mod:`.acc_block_marginal`'s scores on corrected outputs)."""
+        import copy
+
+        acc = as_acc_tensor(acc, dtype=self.dtype, device=self.device)
+        if acc.shape != self.acc.shape:
+            raise UserError(f"acc: expected outputs of shape {tuple(self.acc.shape)} (T, A, 3) m/s², "
+                            f"got {tuple(acc.shape)}")
+        new = copy.copy(self)
+        new.acc = acc
+        new.y = acc.reshape(self.T, 3 * self.A)
+        new._yu_cache = None
+        return new
+
     def to(self, device) -> "RaoBlackwellLikelihood":
         """A copy whose tensors live on ``device`` (e.g. "cuda"); the chains then run there.
 

@@ -54,8 +54,8 @@ from .calibrate_defaults import DEFAULTS
 from .calibrate_options import CalibrateOptions
 # The steps and the records they return (split out to keep each file under 600 lines);
 # _recording_hash and _model_gyro_step are imported from here by tests/ and experiments/.
-from .calibrate_model import (_common_cut_step, _model_block_step, _model_gyro_step, _model_percov_step,
-                              _percov_sandwich_record, _sandwich_record)
+from .calibrate_model import (_block_sandwich_record, _common_cut_step, _model_block_step, _model_gyro_step,
+                              _model_percov_step, _percov_sandwich_record, _sandwich_record)
 from .calibrate_steps import (  # noqa: F401
     _central_step, _chains_fingerprint, _chains_step, _check_resume, _convergence_settings, _coordinate_names,
     _load_step, _map_step, _model_option, _noise_step, _prepare_step, _recording_hash, _start_step)
@@ -231,6 +231,9 @@ def calibrate(recording, options: CalibrateOptions | None = None, *, progress: b
                                         prev_cov=None if map_res is None else map_res.laplace_cov)
                 lik = blk.lik
                 settings["model"]["acc_blocks"] = blk.record
+                # the chains' target is ℓ + Δ now: its own sandwich (Fisher's identity), the one before it kept
+                settings["model"]["sandwich_before_blocks"] = settings["model"]["sandwich"]
+                settings["model"]["sandwich"] = _block_sandwich_record(blk, free_labels)
                 if map_res is not None:  # the chains centre on this target's mode, as for the per-sample covariance
                     map_res = _recentred(map_res, blk.positions, blk.laplace_cov, lik.reference)
         draws = _central_step(lik, pri, map_res, opts)

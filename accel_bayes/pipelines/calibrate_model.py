@@ -2,8 +2,9 @@
 posterior with the report's random gyro effects and, when the report has an ``unresolved_motion``
 finding, its angular acceleration loaded by the clocks' data ages (:func:`_model_gyro_step`); the
 per-sample unresolved-jerk covariance in the accelerometer likelihood (:func:`_model_percov_step`,
-issue #30); and the sandwich of the chains' likelihood at its mode (:func:`_sandwich_record`,
-:func:`_percov_sandwich_record`).  Split from ``calibrate_steps.py`` to keep both under 600 lines.
+issue #30); the accelerometers' linear errors integrated out (:func:`_model_block_step`); and the
+sandwich of the chains' target at its mode (:func:`_sandwich_record`, :func:`_percov_sandwich_record`,
+:func:`_block_sandwich_record`).  Split from ``calibrate_steps.py`` to keep both under 600 lines.
 """
 from __future__ import annotations
 
@@ -257,25 +258,56 @@ def _percov_sandwich_record(step: PercovStep, free_labels) -> dict:
     to 1e-12 on the flat model: ``experiments/percov_honesty_probe.md``), Newey–West meat, against
     the Laplace covariance at that mode; the same record as :func:`_sandwich_record`."""
     lik = step.lik
+    P = step.positions
+    th, full = _free_theta(lik, P)
+    S = per_sample_scores(lambda t: lik.log_lik_per_sample(full(t), lik.omega.mean), th)
+    return _scores_record(lik, S - _logdet_share(lik, th, full), step.laplace_cov, free_labels)
+
+
+def _block_sandwich_record(step: BlockStep, free_labels) -> dict:
+    """The sandwich of the chains' target with the accelerometers' linear errors integrated out
+    (``step``: :func:`_model_block_step`) at its mode: per-sample efficient scores by Fisher's identity
+    (:func:`accel_bayes.model.acc_block_marginal.marginal_scores`: the likelihood's own terms on the
+    outputs corrected by the errors' posterior mean, plus the posterior covariance's trace term, less
+    their projection on the errors' own per-sample scores), less
+    the common determinant's share as in :func:`_percov_sandwich_record`, Newey–West meat, against the
+    Laplace covariance of ℓ + Δ there; the same record as :func:`_sandwich_record`."""
+    from ..model.acc_block_marginal import marginal_scores
+
+    lik = step.lik
+    th, full = _free_theta(lik, step.positions)
+    free = [c for c in range(3 * lik.A) if c // 3 != lik.reference]
+    S = marginal_scores(lik, step.term, full(th), free)
+    rec = _scores_record(lik, S - _logdet_share(lik, th, full), step.laplace_cov, free_labels)
+    # the cut's spread (:func:`_common_cut_step`) is added to the draws after the chains, outside this target:
+    # its std per coordinate, for comparing the sandwich with the draws' std
+    M = -torch.as_tensor(step.laplace_cov, dtype=torch.float64) @ step.term.common_J[:, free].T  # (F, 12)
+    rec["cut_std_m"] = [float(v) for v in (M.square() @ step.term.common_std.square()).sqrt()]
+    return rec
+
+
+def _free_theta(lik, positions):
+    """(θ (F,) the free coordinates of ``positions`` (A, 3) m relative to the reference, θ ↦ (A, 3))."""
     A, ref = lik.A, lik.reference
     free = [k for k in range(A) if k != ref]
+    P = torch.as_tensor(positions, dtype=torch.float64)
 
     def full(th):
-        P = torch.zeros(A, 3, dtype=th.dtype)
-        P[free] = th.reshape(A - 1, 3)
-        return P
+        out = torch.zeros(A, 3, dtype=th.dtype)
+        out[free] = th.reshape(A - 1, 3)
+        return out
 
-    def ell(th):
-        return lik.log_lik_per_sample(full(th), lik.omega.mean)
+    return (P - P[ref])[free].reshape(-1), full
 
-    def half_logdet_m(th):  # −½ log|M(θ)|: the same in every sample
-        return -0.5 * lik._projection_hot(lik._positions(full(th))[None])["logdetM"]
 
-    P = step.positions
-    th = (P - P[ref])[free].reshape(-1)
-    S = per_sample_scores(ell, th) - per_sample_scores(half_logdet_m, th)[0]
-    sw = score_sandwich(S, step.laplace_cov)
-    lap = step.laplace_cov.diagonal().clamp_min(0).sqrt().numpy()
+def _logdet_share(lik, th, full):
+    """(1, F): ∂(−½ log|M(θ)|)/∂θ, the common determinant's share in every sample's term."""
+    return per_sample_scores(lambda t: -0.5 * lik._projection_hot(lik._positions(full(t))[None])["logdetM"], th)[0]
+
+
+def _scores_record(lik, S, laplace_cov, free_labels) -> dict:
+    sw = score_sandwich(S, laplace_cov)
+    lap = torch.as_tensor(laplace_cov).diagonal().clamp_min(0).sqrt().numpy()
     return _ratio_record(sw, lap, tempering=1.0, free_labels=free_labels)
 
 

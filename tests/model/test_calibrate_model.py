@@ -227,6 +227,16 @@ def test_acc_blocks_of_the_report_are_integrated_out_or_fixed(wander_case):
     assert fit["report_blocks"] == [1, 4, 6]
     assert len(fit["common_shift_mean_m"]) == 3 * (rec.K - 1) and fit["common_shift_std_median_m"] >= 0
     assert out["fixed"].settings["model"]["acc_blocks"]["how"].startswith("fixed")
+    # the sandwich is the integrated target's (its Laplace std is the block step's), the one before kept
+    m = out["fit"].settings["model"]
+    lap = np.sqrt(np.diagonal(np.asarray(out["fit"].map_result.laplace_cov)))
+    np.testing.assert_allclose(m["sandwich"]["laplace_std_m"], lap, rtol=1e-12)
+    assert m["sandwich_before_blocks"]["laplace_std_m"] != m["sandwich"]["laplace_std_m"]
+    r = np.asarray(m["sandwich"]["std_ratio"])
+    assert np.isfinite(r).all() and (r > 0).all()
+    # integrating the errors widens the Laplace std (this wander case: ratios 6.8 → 3.8 median, unmodelled wander)
+    assert np.median(m["sandwich"]["laplace_std_m"]) > np.median(m["sandwich_before_blocks"]["laplace_std_m"])
+    assert "sandwich_before_blocks" not in out["fixed"].settings["model"]
     given = out["(0.01, 0.1)"].settings["model"]["acc_blocks"]
     assert given["tau_from"] == "given" and given["tau_matrix"] == 0.01 and given["tau_bias_m_s2"] == 0.1
     mean = lambda r: np.array([e["mean"] for e in r.positions["imus"]])  # noqa: E731
