@@ -25,6 +25,10 @@ two calibrations share the rotation's data, so z is a check of what the blind pa
 errors, estimated or integrated, against calibrated from the rests), not of the rotation's own noise: a
 blind std that honestly carries the errors it cannot see gives |z| of order 1 or less.
 
+The document also reads each chip's block from the ``whole_blocks`` reports, experiment by experiment
+(:func:`chip_blocks`): its rotation about the board's normal in the array frame and whether it repeats
+across the six experiments (the same chips every time) beyond the spread between them.
+
     PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/mimu_blind_acc.py
 """
 from __future__ import annotations
@@ -220,6 +224,84 @@ def markdown(rows: dict, cmd: str, seconds: float, kept: float) -> list[str]:
     return L
 
 
+def chip_blocks(reports: dict, orientation=None) -> dict:
+    """Each triad's accelerometer block from the whole recordings' reports (``reports``: experiment → report
+    dict of ``detect(acc_linear=True)`` on the rest-calibrated outputs; the blocks are in each sensor's own
+    frame): per IMU and experiment its rotation about the board's normal, ½(E_yx − E_xy) of the block in the
+    array frame E = RᵀE_sR (``orientation`` (K, 3, 3) R the nominal array → sensor rotations; None: the sensor
+    frame), mrad, with the std the report states, and its sensor-frame offsets x, y (m/s²); then the rotation
+    less the experiment's mean over its triads (what the positions see: a rotation every triad shares moves no
+    lever arm) and a one-way analysis of variance of those deviations across the experiments — the triads are
+    the same chips in every experiment, so a chip's mounting shows as a between-IMU variance far above the
+    within-IMU (experiment-to-experiment) one."""
+    from scipy.stats import f as f_dist
+
+    exps = sorted(reports)
+    imus = sorted({int(f["imu"]) for e in exps for f in reports[e]["findings"] if f["effect"] == "acc_scale"})
+    rot = np.full((len(exps), len(imus)), np.nan)
+    rot_sd = np.full_like(rot, np.nan)
+    off = np.full((len(exps), len(imus), 2), np.nan)
+    for i, e in enumerate(exps):
+        for f in reports[e]["findings"]:
+            if f["effect"] != "acc_scale":
+                continue
+            j = imus.index(int(f["imu"]))
+            M = np.asarray(f["parameters"]["scale"], dtype=float)
+            if orientation is not None:
+                R = np.asarray(orientation, dtype=float)[int(f["imu"])]
+                M = R.T @ M @ R
+            rot[i, j] = 1e3 * 0.5 * (M[1, 0] - M[0, 1])
+            sd = np.asarray((f.get("std") or {}).get("matrix", np.full((3, 3), np.nan)), dtype=float)
+            rot_sd[i, j] = 1e3 * 0.5 * np.hypot(sd[1, 0], sd[0, 1])
+            off[i, j] = np.asarray(f["parameters"]["bias"], dtype=float)[:2]
+
+    def anova(x):  # x (E, K) deviations, complete rows only
+        x = x[~np.isnan(x).any(1)]
+        E, K = x.shape
+        if E < 2 or K < 2:
+            return None
+        msb = E * ((x.mean(0) - x.mean()) ** 2).sum() / (K - 1)
+        msw = ((x - x.mean(0)) ** 2).sum() / (K * (E - 1))
+        F = msb / msw
+        return {"F": float(F), "df": [K - 1, K * (E - 1)], "log10_p": float(f_dist.logsf(F, K - 1, K * (E - 1)) / np.log(10)),
+                "within_sd": float(np.sqrt(msw)), "experiments": int(E)}
+
+    dev = rot - np.nanmean(rot, 1, keepdims=True)
+    doff = off - np.nanmean(off, 1, keepdims=True)
+    return {"exps": exps, "imus": imus, "rot_mrad": rot.tolist(), "rot_sd_mrad": rot_sd.tolist(),
+            "offset_m_s2": off.tolist(), "rot_dev_mrad": dev.tolist(), "anova_rot": anova(dev),
+            "anova_offset": [anova(doff[..., a]) for a in range(2)]}
+
+
+def chip_markdown(cb: dict, lower: set) -> list[str]:
+    """The :func:`chip_blocks` table: per IMU its rotation per experiment, their mean ± sd, the stated std."""
+    rot, sd, dev = (np.asarray(cb[k], dtype=float) for k in ("rot_mrad", "rot_sd_mrad", "rot_dev_mrad"))
+    off = np.asarray(cb["offset_m_s2"], dtype=float)
+    L = ["", "### Each chip's block, experiment by experiment (the whole recordings' reports)", "",
+         "Rotation about the board's normal ½(E_yx − E_xy) of each triad's block (`mismatch --acc-linear` on the "
+         "rest-calibrated outputs; in the array frame, E = RᵀE_sR with R the nominal orientation: an underside chip, "
+         "flipped, reads its own rotation with the opposite sign), per experiment; then its mean ± sd over the "
+         "experiments, the same less each experiment's mean over its triads (the part the positions see), the std "
+         "the reports state, and the mean offsets x, y in the sensor's frame.", "",
+         "| IMU | layer | " + " | ".join(f"exp {e} (mrad)" for e in cb["exps"])
+         + " | mean ± sd (mrad) | less the triads' mean: mean ± sd (mrad) | stated std (mrad) | offset x, y (m/s²) |",
+         "|---|---|" + "---|" * len(cb["exps"]) + "---|---|---|---|"]
+    for j, k in enumerate(cb["imus"]):
+        L.append(f"| {k} | {'under' if k in lower else 'upper'} | " + " | ".join(f"{v:+.1f}" for v in rot[:, j])
+                 + f" | {np.nanmean(rot[:, j]):+.1f} ± {np.nanstd(rot[:, j], ddof=1):.1f} | "
+                 f"{np.nanmean(dev[:, j]):+.1f} ± {np.nanstd(dev[:, j], ddof=1):.1f} | {np.nanmedian(sd[:, j]):.2f} | "
+                 f"{np.nanmean(off[:, j, 0]):+.3f}, {np.nanmean(off[:, j, 1]):+.3f} |")
+    a = cb.get("anova_rot")
+    if a:
+        L += ["", f"One-way analysis of variance of the rotations less the triads' mean, IMU against experiment "
+                  f"({a['experiments']} experiments): F = {a['F']:.1f} (df {a['df'][0]}, {a['df'][1]}), "
+                  f"log10 p = {a['log10_p']:.1f}; within-IMU sd {a['within_sd']:.2f} mrad against a stated std of "
+                  f"{np.nanmedian(sd):.2f} mrad (median)."
+              + "".join(f" Offsets {ax}: F = {o['F']:.1f}, log10 p = {o['log10_p']:.1f}, within-IMU sd "
+                        f"{o['within_sd']:.3f} m/s²." for ax, o in zip("xy", cb["anova_offset"]) if o)]
+    return L
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--exps", default="1,2,3,4,5,6", help="comma-separated experiments (default all six)")
@@ -250,7 +332,21 @@ def main(argv=None) -> int:
 
     cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/mimu_blind_acc.py" + (
         "" if args.seconds == 130.0 else f" --seconds {args.seconds:g}")
-    write_with_reading(DOC, markdown(rows, cmd, time.time() - t0, args.seconds))
+    md = markdown(rows, cmd, time.time() - t0, args.seconds)
+    reps = {e: json.loads((REPORTS / f"exp_{e}" / "whole_report.json").read_text()) for e in range(1, 7)
+            if (REPORTS / f"exp_{e}" / "whole_report.json").exists()}
+    if len(reps) >= 2:
+        ref = next(r[0] for r in rows.values())
+        m = np.asarray(ref["mean"], dtype=float)
+        m = m - m[int(ref["reference_imu"])]
+        from accel_bayes.data.mimu import import_mimu
+        from accel_bayes.physics.geometry import quat_to_matrix
+        import torch
+
+        q = np.asarray(import_mimu(data_dir() / "exp_1" / "data.bin.gz").nominal_orientation, dtype=np.float64)
+        R = quat_to_matrix(torch.as_tensor(q)).numpy()  # the same board in every experiment
+        md += chip_markdown(chip_blocks(reps, R), {k for k in range(len(m)) if m[k, 2] < -1e-3})
+    write_with_reading(DOC, md)
     print(f"wrote {DOC}")
     return 0
 

@@ -57,19 +57,27 @@ VARIANTS = ("without", "with")
 # beyond the two the document needs: the model with the noise level × a factor per |ω̄| octile bin
 # (the variance growing with the motion, empirical; flat φ prior, which the per-sample rescaling needs)
 EXTRA = {"with_bins": dict(noise_bins=8, phi_prior="flat"), "with_instant": dict(instant_error=True),
-         "with_angjerk": dict(angular_jerk=True), "with_jerk_only": dict(angular_jerk=False)}
+         "with_angjerk": dict(angular_jerk=True), "with_jerk_only": dict(angular_jerk=False), "with_acc": {}}
+# variants calibrated with another report than the experiment's own default one: with_acc takes the report of
+# ``mismatch --acc-linear`` on the whole recording (its accelerometer stage on the rest-calibrated outputs),
+# the one experiments/mimu_blind_acc.py caches as whole_report.json
+ACC_REPORT = "whole_report.json"
 AIM_RATIO = 1.15
 Z_RMS_BAND = (0.8, 1.25)
 
 
 def run_one(exp: int, variant: str, data: Path, reports: Path, chains: int, draws: int, warmup: int,
-            seed: int) -> dict:
-    """Calibrate experiment ``exp`` without or with its mismatch report; the numbers the tables need."""
+            seed: int, acc_reports: Path | None = None) -> dict:
+    """Calibrate experiment ``exp`` without or with its mismatch report (``with_acc``: the report with the
+    accelerometer stage, from ``acc_reports``); the numbers the tables need."""
     from accel_bayes.data.mimu import import_mimu
     from accel_bayes.pipelines.calibrate import calibrate
 
     rec = import_mimu(Path(data) / f"exp_{exp}" / "data.bin.gz")
-    model = None if variant == "without" else reports / f"exp_{exp}" / "report.json"
+    model = (None if variant == "without" else acc_reports / f"exp_{exp}" / ACC_REPORT if variant == "with_acc"
+             else reports / f"exp_{exp}" / "report.json")
+    if model is not None and not model.exists():
+        raise SystemExit(f"{model}: no such report (with_acc: run experiments/mimu_blind_acc.py first)")
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -97,6 +105,9 @@ def run_one(exp: int, variant: str, data: Path, reports: Path, chains: int, draw
         # with an unresolved_motion finding: the per-sample covariance's record and the flat model's sandwich
         out["unresolved_motion"] = m.get("unresolved_motion")
         out["sandwich_flat"] = m.get("sandwich_flat")
+        # with accelerometer blocks: the block term's record and the sandwich before it
+        out["acc_blocks"] = m.get("acc_blocks")
+        out["sandwich_before_blocks"] = m.get("sandwich_before_blocks")
         out["cov"] = [e.get("cov") for e in doc["imus"]]
         if "percov" in res.extra:
             out["decomposition"] = decomposition(res.extra["percov"], rec, exp)
@@ -269,6 +280,45 @@ def _variant_paragraph(what: str, b: dict, n_exps: int, *, timed: bool) -> str:
             f"everywhere) with it: {'YES' if all(x <= 1.3 for x in b['ratio_max']) else 'NO'}.")
 
 
+def layer_shift_um(a: dict, b: dict) -> list:
+    """(x, y) µm: how far record ``a``'s lower-layer IMUs (nominal z more than 1 mm below the reference: the
+    board's underside) moved against its upper-layer ones, relative to record ``b`` (reference excluded)."""
+    d = (np.asarray(a["mean"], dtype=float) - np.asarray(b["mean"], dtype=float)) * 1e6
+    z = np.asarray(a["nominal"], dtype=float)[:, 2]
+    ref = int(np.argmin(np.abs(np.asarray(a["nominal"], dtype=float)).sum(1)))
+    low = np.array([k != ref and z[k] < -1e-3 for k in range(len(z))])
+    up = np.array([k != ref and z[k] >= -1e-3 for k in range(len(z))])
+    return (d[low, :2].mean(0) - d[up, :2].mean(0)).tolist()
+
+
+def acc_markdown(results, summ) -> str:
+    """with_acc against with, per experiment: the blocks' tolerance, the underside layer's shift, the sandwich
+    ratio before / after the blocks, the median std, and the z of their difference."""
+    rw = {r["exp"]: r for r in results["with"]}
+    L = ["| exp | τ_M % / τ_b m/s² | underside − upper layer, with_acc − with (x, y) µm | z RMS / max of with_acc − "
+         "with (combined std) | sandwich/Laplace max: before the blocks → with them | median std with / with_acc "
+         "(µm) |", "|---|---|---|---|---|---|"]
+    for r in sorted(results["with_acc"], key=lambda r: r["exp"]):
+        w = rw[r["exp"]]
+        ab = r.get("acc_blocks") or {}
+        sh = layer_shift_um(r, w)
+        d = (_free_stack([r], "mean") - _free_stack([w], "mean"))[0]
+        sd = np.sqrt(_free_stack([r], "std")[0] ** 2 + _free_stack([w], "std")[0] ** 2)
+        z = d / sd
+        before = (r.get("sandwich_before_blocks") or {}).get("std_ratio_max")
+        L.append(f"| {r['exp']} | {100 * ab.get('tau_matrix', float('nan')):.2f} / {ab.get('tau_bias_m_s2', float('nan')):.3f} | "
+                 f"({sh[0]:+.0f}, {sh[1]:+.0f}) | {np.sqrt(np.mean(z ** 2)):.2f} / {np.abs(z).max():.2f} | "
+                 f"{_f(before)} → {r['untempered_ratio_max']:.2f} | "
+                 f"{np.median(_free_stack([w], 'std')) * 1e6:.0f} / {np.median(_free_stack([r], 'std')) * 1e6:.0f} |")
+    a = summ.get("with_acc") or {}
+    if "z_loo_rms_without_cut" in a:
+        L += ["", f"The cut common part (the chips' shared 3×3 and offset, drawn from its prior) adds a std of "
+                  f"{', '.join(f'{x:.0f}' for x in a['cut_std_um_median'])} µm (median per experiment) that no repeat "
+                  f"can check (the same chips in every experiment); without it the LOO z RMS is "
+                  f"{a['z_loo_rms_without_cut']:.2f}, max |z| {a['z_loo_max_without_cut']:.2f}."]
+    return "\n".join(L)
+
+
 def decomposition_markdown(results) -> list:
     """The per-sample model's sandwich excess split (:func:`decomposition`), one row per experiment."""
     rs = [r for r in sorted(results["with"], key=lambda r: r["exp"]) if r.get("decomposition")]
@@ -339,8 +389,72 @@ def summarise(results: dict) -> dict:
             rs2 = [dict(r, std=[[0.0, 0.0, 0.0]] + np.asarray(r["sandwich"]["sandwich_std_m"]).reshape(-1, 3).tolist())
                    for r in rs]
             s["z_loo_rms_sandwich"] = analyse(rs2)["z_loo_rms"]
+            cut = [(r.get("sandwich") or {}).get("cut_std_m") for r in rs]
+            if all(c is not None for c in cut):
+                # the cut common part is the same chips' error in every experiment: repeats cannot show it, so
+                # LOO z also with each std less the cut's spread (what the repeats can check)
+                rs3 = [dict(r, std=[[0.0, 0.0, 0.0]] + np.sqrt(np.clip(_free_stack([r], "std")[0] ** 2
+                                                                        - np.asarray(c) ** 2, 0, None))
+                            .reshape(-1, 3).tolist()) for r, c in zip(rs, cut)]
+                s["z_loo_rms_without_cut"] = analyse(rs3)["z_loo_rms"]
+                s["z_loo_max_without_cut"] = float(np.nanmax(np.abs(analyse(rs3)["z_loo"])))
+                s["cut_std_um_median"] = [float(np.median(c) * 1e6) for c in cut]
         out[v] = s
     return out
+
+
+MUST_SHOW_COLUMNS = (("without", "without model (default, tempered)"), ("with", "with model (untempered)"),
+                     ("with_acc", "with model + accelerometer stage (`mismatch --acc-linear`; untempered)"))
+
+
+def must_show_table(summ: dict, z: dict) -> list:
+    """Issue #30's must-show table, one column per variant present (``z``: variant → (E, 21) LOO z)."""
+    cols = [(v, t) for v, t in MUST_SHOW_COLUMNS if v in summ and v in z]
+    j = lambda xs, fmt=".2f": ", ".join(_f(x, fmt) for x in xs)  # noqa: E731
+
+    def zr(v, sl):
+        return float(np.sqrt(np.mean(z[v][sl] ** 2)))
+
+    def loo(v):
+        s = summ[v]
+        out = f"{zr(v, slice(None)):.2f} / {zr(v, slice(0, 3)):.2f} / {zr(v, slice(3, 6)):.2f}"
+        if "z_loo_rms_sandwich" in s:
+            out += f" (with the sandwich std instead: {s['z_loo_rms_sandwich']:.2f})"
+        if "z_loo_rms_without_cut" in s:
+            out += f" (without the cut's spread: {s['z_loo_rms_without_cut']:.2f})"
+        return out
+
+    def spread(v):
+        sp = np.ravel(summ[v]["spread_um"])
+        return f"{sp.min():.0f}–{np.median(sp):.0f}–{sp.max():.0f}"
+
+    rows = [
+        ("sandwich/Laplace std ratio, max over coordinates (per experiment)",
+         lambda v, s: j(s["ratio_max"]) + (" (before tempering)" if v == "without" else ""), "≤ 1.3 (aim 1.15)"),
+        ("same, median", lambda v, s: j(s["ratio_median"]), ""),
+        ("sandwich std / PmMH posterior std, max (median) per experiment",
+         lambda v, s: "—" if "sandwich_over_posterior_max" not in s else ", ".join(
+             f"{a:.2f} ({b:.2f})" for a, b in zip(s["sandwich_over_posterior_max"],
+                                                  s["sandwich_over_posterior_median"])), "≤ 1.3"),
+        ("LOO z RMS, all / exp 1–3 / exp 4–6", lambda v, s: loo(v), "0.8–1.25"),
+        ("max \\|LOO z\\|, all / exp 4–6", lambda v, s: f"{np.abs(z[v]).max():.2f} / {np.abs(z[v][3:]).max():.2f}",
+         "< 4"),
+        ("posterior std, median over coordinates (µm)", lambda v, s: j(s["std_um_median"], ".0f"),
+         "≤ the default's"),
+        ("x–y spacing, pooled (inverse-variance) x / y (mm ± posterior std)",
+         lambda v, s: f"{s['spacing_unc']['x']} / {s['spacing_unc']['y']}", "18.9"),
+        ("x–y spacing per experiment, x / y (mm)",
+         lambda v, s: "; ".join(f"{a:.3f} / {b:.3f}" for a, b in zip(s["spacing"]["x_mm"], s["spacing"]["y_mm"])), ""),
+        ("spread of the six means per coordinate (µm), min–median–max", lambda v, s: spread(v), ""),
+        ("κ (mean variance ratio) measured / applied", lambda v, s: f"{j(s['kappa'])} / {j(s['kappa_applied'])}", ""),
+        ("R̂ max / bulk ESS min over experiments",
+         lambda v, s: f"{max(s['analysis']['rhat_max']):.3f} / {min(s['analysis']['ess_min']):.0f}", ""),
+        ("wall time per calibration (s, this run's load)", lambda v, s: j(s["seconds"], ".0f"), ""),
+    ]
+    L = ["| | " + " | ".join(t for _, t in cols) + " | bar |", "|---|" + "---|" * len(cols) + "---|"]
+    for name, f, bar in rows:
+        L.append(f"| {name} | " + " | ".join(f(v, summ[v]) for v, _ in cols) + f" | {bar} |")
+    return L
 
 
 def _f(x, fmt=".2f"):
@@ -350,16 +464,16 @@ def _f(x, fmt=".2f"):
 def markdown(results: dict, summ: dict, args) -> str:
     w, m = summ["without"], summ["with"]
     exps = sorted(r["exp"] for r in results["with"])
-    z = {v: np.asarray(summ[v]["analysis"]["z_loo"], dtype=float).reshape(len(exps), -1) for v in VARIANTS}
-    zr = lambda v, sl: float(np.sqrt(np.mean(z[v][sl] ** 2)))  # noqa: E731
-    sp = summ["with"]["spacing_unc"], summ["without"]["spacing_unc"]
+    z = {v: np.asarray(summ[v]["analysis"]["z_loo"], dtype=float).reshape(len(exps), -1)
+         for v in (*VARIANTS, "with_acc") if v in summ}
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     L = ["# `calibrate --model` of the six MIMU4444 experiments, untempered (issues #11 item 5, #30)", "",
-         f"Regenerate: `PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports {args.reports} --no-hetero "
+         f"Regenerate: `PYTHONPATH=. python3 experiments/mimu_model_calibrate.py --reports {_rel(args.reports)} "
+         + (f"--acc-reports {_rel(args.acc_reports)} " if "with_acc" in results else "") + "--no-hetero "
          f"--draws {args.draws} --warmup {args.warmup} --variants {','.join(results)} --out {_rel(args.out)}` "
          f"({stamp}; {machine_note()} at the end, one torch thread; results cached in `{_rel(args.out)}`). Reports: each experiment's own `mismatch` report "
-         "(`experiments/mimu_mismatch.py`, whole-recording `detect` with its defaults, the run `mimu_mismatch.md` reports), sha256 in the table below. Each "
-         f"experiment is calibrated twice, {args.chains} chains × {args.draws} draws after {args.warmup} warm-up, "
+         "(`experiments/mimu_mismatch.py --stage detect`: whole-recording `detect` with its defaults), sha256 in the table below. Each "
+         f"experiment is calibrated once per variant, {args.chains} chains × {args.draws} draws after {args.warmup} warm-up, "
          f"seed {args.seed}: **without** — the default pipeline (noise level per triad at its type-II ML, likelihood "
          "tempered by the sandwich factor κ); **with** — `calibrate(rec, model=report.json)`: the gyro linear blocks "
          "inverted, the `timing_wander` findings as per-sample gyro covariances, the `sampling_clock` ages and the "
@@ -383,37 +497,7 @@ def markdown(results: dict, summ: dict, args) -> str:
          "IMUs 2 and 6 (top IMUs), averaged per axis; 18.9 mm by design; its std from the posterior std of the four "
          "coordinates (cross-IMU covariances not in positions.json, left out).", "",
          "## Must show (issue #30)", "",
-         "| | without model (default, tempered) | with model (untempered) | bar |",
-         "|---|---|---|---|",
-         f"| sandwich/Laplace std ratio, max over coordinates (per experiment) | "
-         f"{', '.join(_f(x) for x in w['ratio_max'])} (before tempering) | {', '.join(_f(x) for x in m['ratio_max'])} "
-         "| ≤ 1.3 (aim 1.15) |",
-         f"| same, median | {', '.join(_f(x) for x in w['ratio_median'])} | "
-         f"{', '.join(_f(x) for x in m['ratio_median'])} | |",
-         f"| sandwich std / PmMH posterior std, max (median) per experiment | — | "
-         f"{', '.join(f'{a:.2f} ({b:.2f})' for a, b in zip(m['sandwich_over_posterior_max'], m['sandwich_over_posterior_median']))} | ≤ 1.3 |",
-         f"| LOO z RMS, all / exp 1–3 / exp 4–6 | {zr('without', slice(None)):.2f} / {zr('without', slice(0, 3)):.2f} / "
-         f"{zr('without', slice(3, 6)):.2f} | {zr('with', slice(None)):.2f} / {zr('with', slice(0, 3)):.2f} / "
-         f"{zr('with', slice(3, 6)):.2f} (with the sandwich std instead: {m['z_loo_rms_sandwich']:.2f}) | 0.8–1.25 |",
-         f"| max \\|LOO z\\|, all / exp 4–6 | {np.abs(z['without']).max():.2f} / {np.abs(z['without'][3:]).max():.2f} | "
-         f"{np.abs(z['with']).max():.2f} / {np.abs(z['with'][3:]).max():.2f} | < 4 |",
-         f"| posterior std, median over coordinates (µm) | {', '.join(_f(x, '.0f') for x in w['std_um_median'])} | "
-         f"{', '.join(_f(x, '.0f') for x in m['std_um_median'])} | with ≤ without |",
-         f"| x–y spacing, pooled (inverse-variance) x / y (mm ± posterior std) | {sp[1]['x']} / {sp[1]['y']} | "
-         f"{sp[0]['x']} / {sp[0]['y']} | 18.9 |",
-         f"| x–y spacing per experiment, x / y (mm) | {'; '.join(f'{a:.3f} / {b:.3f}' for a, b in zip(w['spacing']['x_mm'], w['spacing']['y_mm']))} | "
-         f"{'; '.join(f'{a:.3f} / {b:.3f}' for a, b in zip(m['spacing']['x_mm'], m['spacing']['y_mm']))} | |",
-         f"| spread of the six means per coordinate (µm), min–median–max | "
-         f"{min(np.ravel(w['spread_um'])):.0f}–{np.median(w['spread_um']):.0f}–{max(np.ravel(w['spread_um'])):.0f} | "
-         f"{min(np.ravel(m['spread_um'])):.0f}–{np.median(m['spread_um']):.0f}–{max(np.ravel(m['spread_um'])):.0f} | |",
-         f"| κ (mean variance ratio) measured / applied | {', '.join(_f(x) for x in w['kappa'])} / "
-         f"{', '.join(_f(x) for x in w['kappa_applied'])} | {', '.join(_f(x) for x in m['kappa'])} / "
-         f"{', '.join(_f(x) for x in m['kappa_applied'])} | |",
-         f"| R̂ max / bulk ESS min over experiments | {max(w['analysis']['rhat_max']):.3f} / "
-         f"{min(w['analysis']['ess_min']):.0f} | {max(m['analysis']['rhat_max']):.3f} / "
-         f"{min(m['analysis']['ess_min']):.0f} | |",
-         f"| wall time per calibration (s, this run's load) | {', '.join(f'{x:.0f}' for x in w['seconds'])} | "
-         f"{', '.join(f'{x:.0f}' for x in m['seconds'])} | |", ""]
+         ] + must_show_table(summ, z) + [""]
     extra = {"with_bins": "The model with the noise level × a factor per |ω̄| octile bin (`noise_bins=8`, flat φ prior: "
                           "the per-sample rescaling needs it; fixed before any experiment was seen)",
              "with_instant": "The model with each triad's instant error (`instant_error=True`, CLI `--instant-error`; "
@@ -421,13 +505,25 @@ def markdown(results: dict, summ: dict, args) -> str:
              "with_angjerk": "The model with the board's angular jerk (`angular_jerk=True`, CLI `--angular-jerk`; "
                              "fixed before any experiment was seen, on `angjerk_probe.md`'s likelihood gain)",
              "with_jerk_only": "The model with the linear jerk alone (`angular_jerk=False`, CLI `--no-angular-jerk`: what "
-                               "`calibrate --model` did before the angular jerk became its default)"}
+                               "`calibrate --model` did before the angular jerk became its default)",
+             "with_acc": "**with_acc** — the model of `mismatch --acc-linear` on the whole recording (its accelerometer "
+                         "stage on the rest-calibrated outputs: each triad's linear error the rests leave, "
+                         f"`{_rel(args.acc_reports)}/exp_N/{ACC_REPORT}`, written by `experiments/mimu_blind_acc.py`), "
+                         "calibrated with every default (the blocks integrated out, τ by type-II ML, their common part "
+                         "cut); the sandwich is the integrated target's (Fisher's identity: "
+                         "`acc_block_marginal.marginal_scores`)"}
     for v, what in extra.items():
         if v in summ:
-            L += [_variant_paragraph(what, summ[v], len(exps), timed=v in ("with_instant", "with_angjerk", "with_jerk_only")), ""]
+            L += [_variant_paragraph(what, summ[v], len(exps),
+                                     timed=v in ("with_instant", "with_angjerk", "with_jerk_only", "with_acc")), ""]
+    if "with_acc" in summ:
+        L += acc_markdown(results, summ), ""
     met = all(x <= 1.3 for x in m["ratio_max"])
     L += [f"**Bar (every coordinate's sandwich/Laplace ratio ≤ 1.3) met with the model: "
-          f"{'YES' if met else 'NO'}** (max over experiments {max(m['ratio_max']):.2f}).", ""]
+          f"{'YES' if met else 'NO'}** (max over experiments {max(m['ratio_max']):.2f})."
+          + ("" if "with_acc" not in summ else
+             f" With the accelerometer stage as well: **{'YES' if all(x <= 1.3 for x in summ['with_acc']['ratio_max']) else 'NO'}** "
+             f"(max {max(summ['with_acc']['ratio_max']):.2f})."), ""]
     L += decomposition_markdown(results)
     L += ["## Per experiment: the model's gyro posterior and the noise levels", "",
           "| exp | T | findings used | skipped | ω shift RMS (rad/s) | median ω std calibrated → model (mrad/s) | "
@@ -502,25 +598,55 @@ def markdown(results: dict, summ: dict, args) -> str:
 
 
 def figure(results: dict, summ: dict, path: Path) -> Path:
+    """The per-coordinate sandwich/Laplace ratios with the model (and with the accelerometer stage, when run),
+    and what the stage moves: each IMU's x, y with_acc − with per experiment."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     rs = sorted(results["with"], key=lambda r: r["exp"])
+    ra = sorted(results.get("with_acc", []), key=lambda r: r["exp"])
     names = rs[0]["sandwich"]["coordinates"]
-    fig, ax = plt.subplots(figsize=(10, 4))
-    for r in rs:
-        ax.plot(range(len(names)), r["sandwich"]["std_ratio"], "o-", ms=3, lw=0.8, label=f"exp {r['exp']}")
+    fig, axes = plt.subplots(2 if ra else 1, 1, figsize=(10, 7.5 if ra else 4), squeeze=False)
+    ax = axes[0, 0]
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, r in enumerate(rs):
+        ax.plot(range(len(names)), r["sandwich"]["std_ratio"], "o-", ms=3, lw=0.8, color=colors[i % 10],
+                label=f"exp {r['exp']}")
+    for i, r in enumerate(ra):
+        ax.plot(range(len(names)), r["sandwich"]["std_ratio"], "x--", ms=3, lw=0.6, color=colors[i % 10],
+                label="+ acc stage" if i == 0 else None)
     for r in sorted(results["without"], key=lambda r: r["exp"]):
         ax.axhline(r["untempered_ratio_median"], color="0.6", lw=0.6, ls=":")
     ax.axhline(AIM_RATIO, color="k", ls="--", lw=1, label=f"aim {AIM_RATIO}")
     ax.axhline(1.0, color="k", lw=0.5)
+    top = max([1.3] + [r["untempered_ratio_median"] for r in results["without"]])
+    ax.set_ylim(0.4, top + 0.1)  # the grey lines of the run without the model inside the frame
     ax.set_xticks(range(len(names)))
     ax.set_xticklabels(names, rotation=90, fontsize=7)
-    ax.set_ylabel("sandwich std / Laplace std at the MAP")
-    ax.set_title("With the mismatch model, untempered (dotted grey: median ratio without the model)")
+    ax.set_ylabel("sandwich std / Laplace std at the mode")
+    ax.set_title("With the mismatch model, untempered (x, dashed: with the accelerometer stage; "
+                 "dotted grey: median ratio without the model)", fontsize=9)
     ax.legend(fontsize=7, ncol=4)
+    if ra:
+        ax = axes[1, 0]
+        K = len(ra[0]["mean"])
+        for i, (a, w) in enumerate(zip(ra, rs)):
+            d = (np.asarray(a["mean"], dtype=float) - np.asarray(w["mean"], dtype=float)) * 1e6
+            sd = np.sqrt(np.asarray(a["std"], dtype=float) ** 2 + np.asarray(w["std"], dtype=float) ** 2) * 1e6
+            for c, (mk, off) in enumerate((("o", -0.15), ("s", 0.15))):
+                x = np.arange(K) + off + 0.04 * (i - 2.5)
+                ax.errorbar(x[1:], d[1:, c], yerr=sd[1:, c], fmt=mk, ms=3, lw=0.6, color=colors[i % 10],
+                            label=(f"exp {a['exp']}" if c == 0 else None))
+        low = [k for k in range(K) if np.asarray(ra[0]["nominal"], dtype=float)[k, 2] < -1e-3]
+        ax.set_xticks(range(K))
+        ax.set_xticklabels([f"IMU {k}" + (" (under)" if k in low else "") for k in range(K)], fontsize=8)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylabel("with acc stage − with (µm)")
+        ax.set_title("Positions the accelerometer stage moves: x (circles, left) and y (squares, right) per IMU, "
+                     "± combined std (IMU 0 the reference)", fontsize=9)
+        ax.legend(fontsize=7, ncol=6)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
@@ -535,6 +661,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--reports", type=Path, default=HERE / "out" / "mimu_mismatch")
+    ap.add_argument("--acc-reports", type=Path, default=HERE / "out" / "mimu_blind_acc",
+                    help=f"variant with_acc: the reports of mismatch --acc-linear on the whole recordings "
+                         f"(exp_N/{ACC_REPORT}, written by experiments/mimu_blind_acc.py)")
     ap.add_argument("--out", type=Path, default=HERE / "out" / "mimu_model_calibrate")
     ap.add_argument("--doc", type=Path, default=HERE / "mimu_model_calibrate.md")
     ap.add_argument("--experiments", default="1,2,3,4,5,6")
@@ -560,7 +689,8 @@ def main(argv=None) -> int:
             elif v not in todo:
                 continue
             else:
-                r = run_one(e, v, data, args.reports, args.chains, args.draws, args.warmup, args.seed)
+                r = run_one(e, v, data, args.reports, args.chains, args.draws, args.warmup, args.seed,
+                            acc_reports=args.acc_reports)
                 f.parent.mkdir(parents=True, exist_ok=True)
                 write_json(f, r)
             print(f"exp {e} {v}: ratio max {r['untempered_ratio_max']:.2f}, {r['wall_seconds']:.0f} s", flush=True)

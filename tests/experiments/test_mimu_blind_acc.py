@@ -53,3 +53,33 @@ def test_layer_shift_is_lower_minus_upper_layer():
     r = _rec([[0.0, 0, 0], [0, 0, -0.002], [0.02, 0, 0], [0.02, 0, -0.002]], [[1e-4] * 3] * 4)
     b = _rec([[0.0, 0, 0], [-0.0001, 0.0002, -0.002], [0.02, 0, 0], [0.0199, 0.0002, -0.002]], [[1e-4] * 3] * 4)
     np.testing.assert_allclose(mba.layer_shift(b, r), [-100, 200], atol=1e-6)
+
+
+def _report(blocks):
+    """A report with one acc_scale finding per (IMU, rotation about the sensor's z rad, offset x)."""
+    out = []
+    for k, a, bx in blocks:
+        M = np.zeros((3, 3))
+        M[1, 0], M[0, 1] = a, -a
+        out.append({"effect": "acc_scale", "imu": k, "parameters": {"scale": M.tolist(), "bias": [bx, 0.0, 0.0]},
+                    "std": {"matrix": np.full((3, 3), 1e-3).tolist(), "bias": [0.01] * 3}})
+    return {"findings": out + [{"effect": "gyro_scale", "imu": 0, "parameters": {}}]}
+
+
+def test_chip_blocks_reads_each_chips_rotation_in_the_array_frame_and_tests_its_repeatability():
+    """A chip flipped about x (R = diag(1, −1, −1)) reads its own rotation with the opposite sign about the
+    board's normal; per-chip constants plus small experiment noise give a large F, pure noise an F near 1."""
+    R = np.stack([np.eye(3), np.diag([1.0, -1.0, -1.0]), np.eye(3)])
+    g = np.random.default_rng(0)
+    chips = [-2e-3, -3e-3, 4e-3]
+    reps = {e: _report([(k, chips[k] + 2e-4 * g.standard_normal(), 0.1 * k) for k in range(3)]) for e in range(1, 7)}
+    cb = mba.chip_blocks(reps, R)
+    rot = np.asarray(cb["rot_mrad"])
+    np.testing.assert_allclose(rot.mean(0), [-2.0, 3.0, 4.0], atol=0.2)  # IMU 1 flipped: −3 → +3
+    np.testing.assert_allclose(np.asarray(cb["rot_sd_mrad"]), 0.5 * np.hypot(1.0, 1.0), rtol=1e-12)
+    assert cb["anova_rot"]["F"] > 100 and cb["anova_rot"]["df"] == [2, 15]
+    np.testing.assert_allclose(np.asarray(cb["offset_m_s2"])[0, :, 0], [0.0, 0.1, 0.2])
+    noise = {e: _report([(k, 2e-4 * g.standard_normal(), 0.0) for k in range(3)]) for e in range(1, 7)}
+    assert mba.chip_blocks(noise, R)["anova_rot"]["F"] < 6  # F(2, 15) beyond 6.4 has p < 1 %
+    md = "\n".join(mba.chip_markdown(cb, {1}))
+    assert "| 1 | under |" in md and "F = " in md
