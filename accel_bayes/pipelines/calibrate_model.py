@@ -261,7 +261,7 @@ def _percov_sandwich_record(step: PercovStep, free_labels) -> dict:
     P = step.positions
     th, full = _free_theta(lik, P)
     S = per_sample_scores(lambda t: lik.log_lik_per_sample(full(t), lik.omega.mean), th)
-    return _scores_record(lik, S - _logdet_share(lik, th, full), step.laplace_cov, free_labels)
+    return _scores_record(S - _logdet_share(lik, th, full), step.laplace_cov, free_labels)
 
 
 def _block_sandwich_record(step: BlockStep, free_labels) -> dict:
@@ -278,7 +278,7 @@ def _block_sandwich_record(step: BlockStep, free_labels) -> dict:
     th, full = _free_theta(lik, step.positions)
     free = [c for c in range(3 * lik.A) if c // 3 != lik.reference]
     S = marginal_scores(lik, step.term, full(th), free)
-    rec = _scores_record(lik, S - _logdet_share(lik, th, full), step.laplace_cov, free_labels)
+    rec = _scores_record(S - _logdet_share(lik, th, full), step.laplace_cov, free_labels)
     # the cut's spread (:func:`_common_cut_step`) is added to the draws after the chains, outside this target:
     # its std per coordinate, for comparing the sandwich with the draws' std
     M = -torch.as_tensor(step.laplace_cov, dtype=torch.float64) @ step.term.common_J[:, free].T  # (F, 12)
@@ -301,11 +301,12 @@ def _free_theta(lik, positions):
 
 
 def _logdet_share(lik, th, full):
-    """(1, F): ∂(−½ log|M(θ)|)/∂θ, the common determinant's share in every sample's term."""
+    """(F,) nats/m: ∂(−½ log|M(θ)|)/∂θ, the common determinant's share in every sample's term."""
     return per_sample_scores(lambda t: -0.5 * lik._projection_hot(lik._positions(full(t))[None])["logdetM"], th)[0]
 
 
-def _scores_record(lik, S, laplace_cov, free_labels) -> dict:
+def _scores_record(S, laplace_cov, free_labels) -> dict:
+    """The record of :func:`_ratio_record` for per-sample scores ``S`` (T, F) against ``laplace_cov`` (m²), untempered."""
     sw = score_sandwich(S, laplace_cov)
     lap = torch.as_tensor(laplace_cov).diagonal().clamp_min(0).sqrt().numpy()
     return _ratio_record(sw, lap, tempering=1.0, free_labels=free_labels)
