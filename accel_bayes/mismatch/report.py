@@ -266,6 +266,11 @@ class MismatchReport:
         prep_line = _preparation_line(ri.get("preparation"))
         if prep_line:
             L.append(prep_line)
+        if ((ri.get("preparation") or {}).get("intrinsics") or {}).get("applied") and self.acc_linear is None:
+            # the rests fix each triad's axes by convention, not its rotation on the board (mimu_blind_acc.md)
+            L.append("Accelerometer linear stage not run (`--acc-linear`, opt-in): the rests' intrinsics cannot hold "
+                     "each triad's rotation on the board, which the motion sees through the lever arms; with it, "
+                     "`calibrate --model` integrates what the rests leave.")
         L.append("")
         verdict = "**Mismatch detected.**" if d["mismatch_detected"] else "**No mismatch detected**: the nominal model explains the recording within its stated noise."
         L += [verdict, "",

@@ -454,3 +454,17 @@ def test_acc_stage_runs_after_the_rests_intrinsics_and_says_on_which_outputs():
     st = rep["details"]["acc_linear_stage"]
     assert st["outputs"] == "rest-calibrated"
     assert not str(st["result"]).startswith("not run")
+
+
+def test_report_says_when_the_rests_leave_the_triads_rotation_unestimated():
+    """report.md names the opt-in accelerometer stage when the rests calibrated the triads and it did not run;
+    not when it ran, nor when there were no rests (tests/mismatch/test_detect.py's clean report)."""
+    from accel_bayes.mismatch import DetectOptions, detect
+
+    rec = _recording_with_rests(n_orient=10, n=40, dyn=20)
+    hint = "Accelerometer linear stage not run"
+    off = detect(rec, DetectOptions(seed=0, effects=("acc_linear",)))
+    on = detect(rec, DetectOptions(seed=0, acc_linear=True, effects=("acc_linear",)))
+    assert off.to_dict()["details"]["recording"]["preparation"]["intrinsics"]["applied"] is True
+    assert sum(line.startswith(hint) for line in off.markdown().splitlines()) == 1
+    assert hint not in on.markdown()
