@@ -15,6 +15,7 @@ from ..errors import UserError
 from ..model.likelihood import positions_from_theta
 from ..model.noise import NoiseModel, rate_bins, residual_statistics, scale_samples, std_per_triad, update_noise
 from ..model.phi_prior import PhiPrior
+from ..model.unresolved_fit import per_sample_scores  # noqa: F401 (public here too; lives in the model layer)
 from ..physics.models import H_matrix, acc_noise_std_per_axis
 from .lm import ExtraCost, LevenbergMarquardt
 from .lm.linear import NotPositiveDefinite
@@ -84,7 +85,6 @@ def fit_map_with_noise(acc, omega_mean, omega_cov, acc_noise_std, *, reference: 
                        dof=None if st is None else st["dof"].sum(0), bin_counts=counts, history=hist,
                        converged=converged)
     return res, model
-
 
 
 def newey_west_lags(T: int) -> int:
@@ -157,7 +157,6 @@ def sandwich_inflation(acc, omega_mean, omega_cov, acc_noise_std, map_result, *,
     return out
 
 
-
 def newey_west_meat(scores: torch.Tensor, *, units: int = 1, lags: int | None = None) -> tuple[torch.Tensor, int]:
     """(B (n, n), L): Σ_t g_t g_tᵀ + Σ_{l=1..L} (1 − l/(L+1)) (Γ_l + Γ_lᵀ), Bartlett weights, of the
     scores ``scores`` (T·units, n) in time order, ``units`` consecutive rows per sample; Γ_l pairs
@@ -184,19 +183,9 @@ def score_sandwich(scores, laplace_cov, *, units: int = 1, lags: int | None = No
     return {"kappa": float(ratio.mean()), "std_ratio": ratio.clamp_min(0).sqrt().numpy(), "lags": L, "cov": C}
 
 
-def per_sample_scores(log_density, theta: torch.Tensor) -> torch.Tensor:
-    """(T, n): the Jacobian ∂ℓ_t/∂θ of ``log_density`` (θ (n,) ↦ (T,) per-sample log-densities,
-    nats), by forward-mode products (n ≪ T: one pass per coordinate of θ)."""
-    th = torch.as_tensor(theta, dtype=torch.float64).detach()
-    cols = [torch.autograd.functional.jvp(log_density, th, torch.eye(len(th), dtype=th.dtype)[i])[1]
-            for i in range(len(th))]
-    return torch.stack(cols, -1)
-
-
 def _sqrt_lam_rows(acc_noise_std, A: int) -> torch.Tensor:
     """(3A,) Λ^{1/2}: 1/σ per row, triad-major (the whitening of the likelihood's rows)."""
     return acc_noise_std_per_axis(acc_noise_std, A, dtype=torch.float64).reshape(3 * A).reciprocal()
-
 
 
 def fit_map_tempered(acc, omega_mean, omega_cov, acc_noise_std, kappa: float, *, reference: int = 0,

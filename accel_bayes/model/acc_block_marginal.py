@@ -464,7 +464,7 @@ def marginal_scores(lik, term: BlockMarginal, positions, free_columns) -> torch.
     whose Newey–West meat is, for a correctly specified model, the curvature of ℓ + Δ: on data simulated
     from the model the sandwich/Laplace variance ratio is 0.98–1.04, against 2.6–2.8 with ψ_t
     (``tests/model/test_acc_block_marginal.py``).  Σ_t ψ̃_t = Σ_t ψ_t = ∇(ℓ + Δ)(θ) exactly (tested)."""
-    from ..inference.noise_fit import per_sample_scores
+    from .unresolved_fit import per_sample_scores
 
     if term.fhat is None:
         raise UserError("term: expected a BlockMarginal from build_block_marginal (it keeps its regressor)")

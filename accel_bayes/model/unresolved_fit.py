@@ -22,7 +22,7 @@ from .likelihood import RaoBlackwellLikelihood
 from .likelihood_percov import with_unresolved_motion
 from .unresolved_cov import centred_ages
 
-__all__ = ["UnresolvedFit", "fit_unresolved_scales", "fixed_omega_mode"]
+__all__ = ["UnresolvedFit", "fit_unresolved_scales", "fixed_omega_mode", "per_sample_scores"]
 
 _LOG_NU_BOUNDS = (math.log(0.05), math.log(1e4))
 _LOG_E_BOUNDS = (math.log(1e-9), math.log(1e-2))  # s: the instant error's std
@@ -252,3 +252,12 @@ def fixed_omega_mode(lik, pos0, *, z=None, prior_mean=None, prior_std=None, newt
         opt.step(closure)
     H = torch.autograd.functional.hessian(nll, th.detach())
     return full(th.detach()), torch.linalg.inv(H)
+
+
+def per_sample_scores(log_density, theta: torch.Tensor) -> torch.Tensor:
+    """(T, n): the Jacobian ∂ℓ_t/∂θ of ``log_density`` (θ (n,) ↦ (T,) per-sample log-densities,
+    nats), by forward-mode products (n ≪ T: one pass per coordinate of θ)."""
+    th = torch.as_tensor(theta, dtype=torch.float64).detach()
+    cols = [torch.autograd.functional.jvp(log_density, th, torch.eye(len(th), dtype=th.dtype)[i])[1]
+            for i in range(len(th))]
+    return torch.stack(cols, -1)

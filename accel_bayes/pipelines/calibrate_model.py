@@ -16,8 +16,9 @@ import torch
 
 from ..diagnostics import arviz_calls as dg_az
 from ..errors import UserError
-from ..inference.noise_fit import per_sample_scores, sandwich_inflation, score_sandwich
+from ..inference.noise_fit import sandwich_inflation, score_sandwich
 from ..model.likelihood import RaoBlackwellLikelihood
+from ..model.unresolved_fit import per_sample_scores
 
 
 def _model_gyro_step(lik, rec, cmodel):
