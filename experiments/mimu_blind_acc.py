@@ -240,16 +240,20 @@ def chip_blocks(reports: dict, orientation=None) -> dict:
     imus = sorted({int(f["imu"]) for e in exps for f in reports[e]["findings"] if f["effect"] == "acc_scale"})
     rot = np.full((len(exps), len(imus)), np.nan)
     rot_sd = np.full_like(rot, np.nan)
+    gyro = np.full_like(rot, np.nan)  # the same chip's gyro block (gyro_scale), the same rotation
     off = np.full((len(exps), len(imus), 2), np.nan)
     for i, e in enumerate(exps):
         for f in reports[e]["findings"]:
-            if f["effect"] != "acc_scale":
+            if f["effect"] not in ("acc_scale", "gyro_scale") or int(f["imu"]) not in imus:
                 continue
             j = imus.index(int(f["imu"]))
             M = np.asarray(f["parameters"]["scale"], dtype=float)
             if orientation is not None:
                 R = np.asarray(orientation, dtype=float)[int(f["imu"])]
                 M = R.T @ M @ R
+            if f["effect"] == "gyro_scale":
+                gyro[i, j] = 1e3 * 0.5 * (M[1, 0] - M[0, 1])
+                continue
             rot[i, j] = 1e3 * 0.5 * (M[1, 0] - M[0, 1])
             sd = np.asarray((f.get("std") or {}).get("matrix", np.full((3, 3), np.nan)), dtype=float)
             rot_sd[i, j] = 1e3 * 0.5 * np.hypot(sd[1, 0], sd[0, 1])
@@ -268,9 +272,14 @@ def chip_blocks(reports: dict, orientation=None) -> dict:
 
     dev = rot - np.nanmean(rot, 1, keepdims=True)
     doff = off - np.nanmean(off, 1, keepdims=True)
+    gdev = gyro - np.nanmean(gyro, 1, keepdims=True)
+    ok = ~(np.isnan(dev) | np.isnan(gdev))
+    corr = [float(np.corrcoef(dev[i, ok[i]], gdev[i, ok[i]])[0, 1]) if ok[i].sum() > 2 else None
+            for i in range(len(exps))]
     return {"exps": exps, "imus": imus, "rot_mrad": rot.tolist(), "rot_sd_mrad": rot_sd.tolist(),
             "offset_m_s2": off.tolist(), "rot_dev_mrad": dev.tolist(), "anova_rot": anova(dev),
-            "anova_offset": [anova(doff[..., a]) for a in range(2)]}
+            "anova_offset": [anova(doff[..., a]) for a in range(2)], "gyro_rot_mrad": gyro.tolist(),
+            "acc_gyro_corr": corr}
 
 
 def chip_markdown(cb: dict, lower: set) -> list[str]:
@@ -282,15 +291,19 @@ def chip_markdown(cb: dict, lower: set) -> list[str]:
          "rest-calibrated outputs; in the array frame, E = RᵀE_sR with R the nominal orientation: an underside chip, "
          "flipped, reads its own rotation with the opposite sign), per experiment; then its mean ± sd over the "
          "experiments, the same less each experiment's mean over its triads (the part the positions see), the std "
-         "the reports state, and the mean offsets x, y in the sensor's frame.", "",
+         "the reports state, the same chip's gyro block's rotation (`gyro_scale`, the gyro stage's relative blocks), "
+         "and the mean offsets x, y in the sensor's frame.", "",
          "| IMU | layer | " + " | ".join(f"exp {e} (mrad)" for e in cb["exps"])
-         + " | mean ± sd (mrad) | less the triads' mean: mean ± sd (mrad) | stated std (mrad) | offset x, y (m/s²) |",
-         "|---|---|" + "---|" * len(cb["exps"]) + "---|---|---|---|"]
+         + " | mean ± sd (mrad) | less the triads' mean: mean ± sd (mrad) | stated std (mrad) | gyro: mean ± sd (mrad) "
+           "| offset x, y (m/s²) |",
+         "|---|---|" + "---|" * len(cb["exps"]) + "---|---|---|---|---|"]
+    gy = np.asarray(cb.get("gyro_rot_mrad", np.full_like(rot, np.nan)), dtype=float)
     for j, k in enumerate(cb["imus"]):
         L.append(f"| {k} | {'under' if k in lower else 'upper'} | " + " | ".join(f"{v:+.1f}" for v in rot[:, j])
                  + f" | {np.nanmean(rot[:, j]):+.1f} ± {np.nanstd(rot[:, j], ddof=1):.1f} | "
                  f"{np.nanmean(dev[:, j]):+.1f} ± {np.nanstd(dev[:, j], ddof=1):.1f} | {np.nanmedian(sd[:, j]):.2f} | "
-                 f"{np.nanmean(off[:, j, 0]):+.3f}, {np.nanmean(off[:, j, 1]):+.3f} |")
+                 + ("—" if np.isnan(gy[:, j]).all() else f"{np.nanmean(gy[:, j]):+.2f} ± {np.nanstd(gy[:, j], ddof=1):.2f}")
+                 + f" | {np.nanmean(off[:, j, 0]):+.3f}, {np.nanmean(off[:, j, 1]):+.3f} |")
     a = cb.get("anova_rot")
     if a:
         L += ["", f"One-way analysis of variance of the rotations less the triads' mean, IMU against experiment "
@@ -299,6 +312,10 @@ def chip_markdown(cb: dict, lower: set) -> list[str]:
                   f"{np.nanmedian(sd):.2f} mrad (median)."
               + "".join(f" Offsets {ax}: F = {o['F']:.1f}, log10 p = {o['log10_p']:.1f}, within-IMU sd "
                         f"{o['within_sd']:.3f} m/s²." for ax, o in zip("xy", cb["anova_offset"]) if o)]
+    c = [v for v in cb.get("acc_gyro_corr") or [] if v is not None]
+    if c:
+        L += ["", f"Correlation over the chips of the accelerometer's and the gyro's rotation (each less its "
+                  f"experiment's mean), per experiment: {', '.join(f'{v:.2f}' for v in c)}."]
     return L
 
 

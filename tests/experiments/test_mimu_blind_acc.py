@@ -63,7 +63,13 @@ def _report(blocks):
         M[1, 0], M[0, 1] = a, -a
         out.append({"effect": "acc_scale", "imu": k, "parameters": {"scale": M.tolist(), "bias": [bx, 0.0, 0.0]},
                     "std": {"matrix": np.full((3, 3), 1e-3).tolist(), "bias": [0.01] * 3}})
-    return {"findings": out + [{"effect": "gyro_scale", "imu": 0, "parameters": {}}]}
+    # each chip's gyro turned by half its accelerometer's rotation: correlation 1 over the chips
+    gy = []
+    for k, a, _ in blocks:
+        G = np.zeros((3, 3))
+        G[1, 0], G[0, 1] = 0.5 * a, -0.5 * a
+        gy.append({"effect": "gyro_scale", "imu": k, "parameters": {"scale": G.tolist(), "bias": [0.0] * 3}})
+    return {"findings": out + gy + [{"effect": "sampling_clock", "imu": 0, "parameters": {}}]}
 
 
 def test_chip_blocks_reads_each_chips_rotation_in_the_array_frame_and_tests_its_repeatability():
@@ -81,5 +87,7 @@ def test_chip_blocks_reads_each_chips_rotation_in_the_array_frame_and_tests_its_
     np.testing.assert_allclose(np.asarray(cb["offset_m_s2"])[0, :, 0], [0.0, 0.1, 0.2])
     noise = {e: _report([(k, 2e-4 * g.standard_normal(), 0.0) for k in range(3)]) for e in range(1, 7)}
     assert mba.chip_blocks(noise, R)["anova_rot"]["F"] < 6  # F(2, 15) beyond 6.4 has p < 1 %
+    np.testing.assert_allclose(np.asarray(cb["gyro_rot_mrad"]), 0.5 * rot, rtol=1e-12)
+    np.testing.assert_allclose(cb["acc_gyro_corr"], 1.0, atol=1e-12)
     md = "\n".join(mba.chip_markdown(cb, {1}))
     assert "| 1 | under |" in md and "F = " in md
