@@ -457,6 +457,39 @@ def must_show_table(summ: dict, z: dict) -> list:
     return L
 
 
+def pooled_means(rs) -> tuple:
+    """(mean (K, 3) m, its std (K, 3) m, median per-experiment std (K, 3) m): the inverse-variance pooled
+    position of every IMU over the experiments ``rs`` (records with ``mean``/``std`` (K, 3); the reference's zero
+    std gives NaN there)."""
+    m = np.array([r["mean"] for r in rs], dtype=float)
+    s = np.array([r["std"] for r in rs], dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = 1.0 / s ** 2
+        mean = (w * m).sum(0) / w.sum(0)
+        return mean, w.sum(0) ** -0.5, np.median(s, 0)
+
+
+def means_table(results) -> list:
+    """Issue #30's "comparison with today's tempered default (means and std) in one table": per IMU and axis the
+    six experiments' inverse-variance pooled position ± its std (mm ± µm) and the median per-experiment std (µm),
+    for every variant of :data:`MUST_SHOW_COLUMNS` present, beside the design position."""
+    cols = [(v, t) for v, t in MUST_SHOW_COLUMNS if len(results.get(v, [])) == len(results["with"])]
+    pooled = {v: pooled_means(sorted(results[v], key=lambda r: r["exp"])) for v, _ in cols}
+    nominal = np.asarray(results["with"][0]["nominal"], dtype=float)
+    L = ["", "## Per IMU: pooled means and std against the tempered default", "",
+         "Each coordinate's inverse-variance mean over the six experiments ± its std (mm ± µm), and in brackets the "
+         "median of the six runs' posterior std (µm); the design position last.", "",
+         "| coordinate | " + " | ".join(t for _, t in cols) + " | design (mm) |", "|---|" + "---|" * len(cols) + "---|"]
+    for k in range(nominal.shape[0]):
+        if all(np.isnan(pooled[v][0][k]).all() for v, _ in cols):
+            continue  # the reference IMU (zero std: nothing to pool)
+        for a, ax in enumerate("xyz"):
+            cells = [f"{1e3 * pooled[v][0][k, a]:.3f} ± {1e6 * pooled[v][1][k, a]:.0f} ({1e6 * pooled[v][2][k, a]:.0f})"
+                     for v, _ in cols]
+            L.append(f"| r[{k}, {ax}] | " + " | ".join(cells) + f" | {1e3 * nominal[k, a]:.3f} |")
+    return L
+
+
 def _f(x, fmt=".2f"):
     return "n/a" if x is None else format(x, fmt)
 
@@ -559,6 +592,7 @@ def markdown(results: dict, summ: dict, args) -> str:
         zm = np.abs(np.asarray(m["analysis"]["z_loo"])[:, i]).max()
         L.append(f"| {k} | {trip(w['analysis']['spread'])} | {trip(w['analysis']['rms_std'])} | "
                  f"{trip(m['analysis']['spread'])} | {trip(m['analysis']['rms_std'])} | {zw:.2f} | {zm:.2f} |")
+    L += means_table(results)
     L += ["", "## Spacing per experiment (mm): x (IMUs 4, 6) / y (IMUs 2, 6)", "",
           "| exp | without | with |", "|---|---|---|"]
     for i, e in enumerate(exps):

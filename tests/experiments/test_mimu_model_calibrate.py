@@ -41,3 +41,18 @@ def test_acc_table_has_one_row_per_experiment_with_the_blocks_record():
     # z of the difference: 200 µm over √2·100 µm on two coordinates of nine
     z = 200 / np.sqrt(2 * 1e-8 * 1e12)
     assert f"{np.sqrt(2 * z ** 2 / 9):.2f} / {z:.2f}" in rows[0]
+
+
+def test_pooled_means_are_inverse_variance_and_the_table_skips_the_reference():
+    """Two experiments at 1 and 3 mm with std 100 and 300 µm pool to 1.2 mm ± 94.9 µm (1/√(1/0.1² + 1/0.3²)
+    mm); the reference IMU (zero std) gets no row; one column per variant present."""
+    a = _rec([[0.0, 0, 0], [1e-3, 0, 0], [0, 0, 0], [0, 0, 0]], std=1e-4, exp=1)
+    b = _rec([[0.0, 0, 0], [3e-3, 0, 0], [0, 0, 0], [0, 0, 0]], std=3e-4, exp=2)
+    mean, sd, med = mmc.pooled_means([a, b])
+    np.testing.assert_allclose(mean[1, 0], 1.2e-3, rtol=1e-12)
+    np.testing.assert_allclose(sd[1, 0], (1 / 1e-8 + 1 / 9e-8) ** -0.5, rtol=1e-12)
+    np.testing.assert_allclose(med[1, 0], 2e-4, rtol=1e-12)
+    L = mmc.means_table({"without": [a, b], "with": [a, b]})
+    rows = [ln for ln in L if ln.startswith("| r[")]
+    assert len(rows) == 9 and not any(ln.startswith("| r[0,") for ln in rows)
+    assert rows[0] == "| r[1, x] | 1.200 ± 95 (200) | 1.200 ± 95 (200) | 10.000 |"
