@@ -259,9 +259,19 @@ def format_table(res) -> str:
         sw = mod.get("sandwich") or {}
         lines.append(f"model: {mod.get('source') or 'in memory'} (sha256 {mod['sha256'][:12]}): {len(mod['used'])} finding(s) "
                      f"in the likelihood, {len(mod['skipped'])} skipped"
-                     + (f"; sandwich/Laplace std ratio at the MAP max {sw['std_ratio_max']:.2f}, median "
+                     + (f"; sandwich/Laplace std ratio at the mode max {sw['std_ratio_max']:.2f}, median "
                         f"{sw['std_ratio_median']:.2f} (kappa {sw['kappa']:.2f}, tempering {sw['tempering_applied']:.2f})"
                         if sw.get("kappa") is not None else ""))
+        ab = mod.get("acc_blocks") or {}
+        if ab.get("tau_matrix") is not None:
+            cut = ab.get("common_shift_std_median_m")
+            lines.append(f"model: accelerometer blocks of IMU(s) {', '.join(str(k) for k in ab.get('report_blocks') or [])}"
+                         f" integrated out (tolerance {100 * ab['tau_matrix']:.2f} % / {ab['tau_bias_m_s2']:.3g} m/s2, "
+                         f"{ab.get('tau_from')}); the part every triad shares cut"
+                         + (f" (adds {cut * 1e6:.0f} µm std, median)" if cut is not None else "")
+                         + "; the sandwich above is that target's")
+        elif ab.get("how"):
+            lines.append(f"model: accelerometer blocks {ab['how']}")
         unc = (mod.get("unresolved_motion") or {}).get("unclocked") or []
         if unc:
             imus = ", ".join(str(u["imu"]) for u in unc)

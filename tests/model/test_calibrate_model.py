@@ -237,6 +237,11 @@ def test_acc_blocks_of_the_report_are_integrated_out_or_fixed(wander_case):
     # integrating the errors widens the Laplace std (this wander case: ratios 6.8 → 3.8 median, unmodelled wander)
     assert np.median(m["sandwich"]["laplace_std_m"]) > np.median(m["sandwich_before_blocks"]["laplace_std_m"])
     assert "sandwich_before_blocks" not in out["fixed"].settings["model"]
+    from accel_bayes.cli.calibrate import format_table  # the CLI says what was integrated, and which sandwich
+
+    fit_lines = [ln for ln in format_table(out["fit"]).splitlines() if ln.startswith("model: accelerometer blocks")]
+    assert len(fit_lines) == 1 and "IMU(s) 1, 4, 6 integrated out" in fit_lines[0] and "type-II ML" in fit_lines[0]
+    assert any(ln.startswith("model: accelerometer blocks fixed") for ln in format_table(out["fixed"]).splitlines())
     given = out["(0.01, 0.1)"].settings["model"]["acc_blocks"]
     assert given["tau_from"] == "given" and given["tau_matrix"] == 0.01 and given["tau_bias_m_s2"] == 0.1
     mean = lambda r: np.array([e["mean"] for e in r.positions["imus"]])  # noqa: E731
