@@ -87,6 +87,11 @@ def run_case(seed: int, variant: str, out: Path, reports: Path = REPORTS, durati
            "findings": [{"effect": x["effect"], "imu": x.get("imu")} for x in doc["findings"]],
            "used": [u["effect"] for u in (r.get("model") or {}).get("used", [])],
            "acc_blocks_record": ((r["positions"]["provenance"]["settings"].get("model") or {}).get("acc_blocks")),
+           # the chains' target's sandwich (with blocks: the integrated target's, acc_block_marginal.marginal_scores)
+           "sandwich": {k: v for k, v in ((r["positions"]["provenance"]["settings"].get("model") or {})
+                                          .get("sandwich") or {}).items()
+                        if k in ("std_ratio", "std_ratio_max", "std_ratio_median", "laplace_std_m", "sandwich_std_m",
+                                 "cut_std_m", "coordinates")},
            "score": {**score(r["positions"], pos), "truth_m": true_coordinates(pos, score(r["positions"], pos))},
            "settings": CALIB}
     d.mkdir(parents=True, exist_ok=True)

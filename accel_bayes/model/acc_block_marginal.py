@@ -484,9 +484,16 @@ def marginal_scores(lik, term: BlockMarginal, positions, free_columns) -> torch.
         # X_tβ per triad k: E_k f̂_kt + b_k / s_t (module docstring, "Model")
         dy = torch.einsum("kij,tkj->tki", E, term.fhat.view(T, A, 3)) + term.inv_scale[:, None, None] * b
     if not hasattr(lik, "log_lik_per_sample"):  # the flat likelihood: the per-sample form with nothing loaded
+        from .likelihood import RaoBlackwellLikelihood
         from .likelihood_percov import with_unresolved_motion
 
-        lik = with_unresolved_motion(lik, torch.zeros(T, A, dtype=lik.dtype), 0.0)
+        if float(getattr(lik, "kappa", 1.0)) != 1.0:
+            raise UserError(f"lik: expected an untempered likelihood, got one tempered by kappa = {lik.kappa:g}")
+        # the calibration's untempered flat likelihood may be a TemperedLikelihood with κ = 1: the same density
+        plain = RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std, 1, reference=lik.reference,
+                                       dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior,
+                                       prepared=lik.prepared)
+        lik = with_unresolved_motion(plain, torch.zeros(T, A, dtype=lik.dtype), 0.0)
     corrected = lik.with_outputs(lik.acc - dy)
     R = torch.linalg.cholesky(C)
     r0 = r.reshape(-1)

@@ -276,6 +276,8 @@ def _block_sandwich_record(step: BlockStep, free_labels) -> dict:
     from ..model.acc_block_marginal import marginal_scores
 
     lik = step.lik
+    if float(getattr(lik, "kappa", 1.0)) != 1.0:  # pragma: no cover - a model run does not temper
+        return {"kappa": None, "why": f"tempered target (kappa {lik.kappa:g}): no per-sample scores of its own"}
     th, full = _free_theta(lik, step.positions)
     free = [c for c in range(3 * lik.A) if c // 3 != lik.reference]
     S = marginal_scores(lik, step.term, full(th), free)

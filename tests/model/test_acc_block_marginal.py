@@ -359,7 +359,7 @@ def test_tolerance_fit_survives_its_line_search_and_large_recordings_recompute()
     assert a.value == b.value and torch.equal(a.grad, b.grad) and torch.equal(a.hess, b.hess)
 
 
-@pytest.mark.parametrize("phi_prior,flat", [(None, False), ("proper", False), ("proper", True)])
+@pytest.mark.parametrize("phi_prior,flat", [(None, False), ("proper", False), ("proper", True), ("proper", "kappa1")])
 def test_marginal_scores_sum_to_the_targets_gradient(phi_prior, flat):
     """Fisher's identity (marginal_scores' docstring): the per-sample scores of the target with the
     deviations integrated out sum to ∇(ℓ + Δ) — ℓ's gradient by autograd of log_lik_given_omega, Δ's
@@ -370,8 +370,12 @@ def test_marginal_scores_sum_to_the_targets_gradient(phi_prior, flat):
     from accel_bayes.inference.noise_fit import per_sample_scores
 
     lik, acc, omega, age, s, ang = _lik(T=40, F=None if phi_prior is None else F6)
-    if flat:  # the plain likelihood (no per-sample terms, no log_lik_per_sample of its own)
+    if flat is True:  # the plain likelihood (no per-sample terms, no log_lik_per_sample of its own)
         lik = RaoBlackwellLikelihood(acc, omega, SIG, 3, phi_prior=torch.as_tensor(F6))
+    elif flat == "kappa1":  # what calibrate --model hands over without per-sample terms: tempered by κ = 1
+        from accel_bayes.model.tempering import TemperedLikelihood
+
+        lik = TemperedLikelihood(acc, omega, SIG, 3, 1.0, phi_prior=torch.as_tensor(F6))
     A = lik.A
     scale = np.linspace(0.8, 1.6, lik.T)
     mu = 0.01 * torch.randn(12 * A, generator=torch.Generator().manual_seed(2), dtype=DT)
@@ -399,6 +403,12 @@ def test_marginal_scores_sum_to_the_targets_gradient(phi_prior, flat):
         abm._ExactDelta.posterior_vv = saved
     assert float((partial - want).norm()) > 1e-4 * float(want.norm())
 
+    if flat == "kappa1":  # a target tempered by κ ≠ 1 has no per-sample scores of its own: refused
+        from accel_bayes.model.tempering import TemperedLikelihood
+
+        hot = TemperedLikelihood(acc, omega, SIG, 3, 2.0, phi_prior=torch.as_tensor(F6))
+        with pytest.raises(UserError, match="kappa"):
+            abm.marginal_scores(hot, term, POS5, free)
     tiny = build_block_marginal(lik, POS5, torch.zeros(12 * A, dtype=DT), tau=(1e-9, 1e-9), sample_scale=scale)
     per = lik if hasattr(lik, "log_lik_per_sample") else PerSampleCovLikelihood(
         acc, omega, SIG, 3, torch.zeros(lik.T, A, dtype=DT), 0.0, phi_prior=torch.as_tensor(F6))

@@ -242,6 +242,13 @@ def test_acc_blocks_of_the_report_are_integrated_out_or_fixed(wander_case):
     fit_lines = [ln for ln in format_table(out["fit"]).splitlines() if ln.startswith("model: accelerometer blocks")]
     assert len(fit_lines) == 1 and "IMU(s) 1, 4, 6 integrated out" in fit_lines[0] and "type-II ML" in fit_lines[0]
     assert any(ln.startswith("model: accelerometer blocks fixed") for ln in format_table(out["fixed"]).splitlines())
+    # with the noise estimated (the real-data path) the flat likelihood is handed over as tempered by κ = 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        est = calibrate(rec, model=rep, intrinsics="none", noise="estimate", **SHORT)
+    m = est.settings["model"]
+    assert m["sandwich"]["tempering_applied"] == 1.0 and np.isfinite(m["sandwich"]["std_ratio_max"])
+    assert "sandwich_before_blocks" in m
     given = out["(0.01, 0.1)"].settings["model"]["acc_blocks"]
     assert given["tau_from"] == "given" and given["tau_matrix"] == 0.01 and given["tau_bias_m_s2"] == 0.1
     mean = lambda r: np.array([e["mean"] for e in r.positions["imus"]])  # noqa: E731
