@@ -72,3 +72,15 @@ def test_blocks_fixed_column_appears_with_every_case():
     # without a blocks-fixed record for every pooled case the column is left out
     L2 = "\n".join(pb.markdown([rows[0][:2]], "cmd", 1.0))
     assert "blocks fixed" not in L2
+
+
+def test_the_targets_sandwich_line_uses_the_sandwich_and_the_cuts_spread():
+    """Error 30, 40 µm against a sandwich std of 100 µm (sandwich order reversed, matched by name) and a cut of
+    0 / 100 µm: error over √(sandwich² + cut²) = 0.3, 0.283 (RMS 0.29, under 0.8: the 'overstates' reading)."""
+    b = _row(0, [0.3, 0.4], [30, 40], [100, 100], "blind")
+    b["sandwich"] = {"coordinates": ["r[1, x]", "r[0, x]"], "sandwich_std_m": [1e-4, 1e-4], "cut_std_m": [1e-4, 0.0],
+                     "std_ratio_max": 5.0, "std_ratio_median": 3.0}
+    L = "\n".join(pb.markdown([(b, _row(0, [1.0, 1.0], [1, 2], [1, 1], "oracle"))], "cmd", 1.0))
+    want = np.sqrt(np.mean([0.3 ** 2, (0.4 / np.sqrt(2)) ** 2]))
+    assert f"has RMS {want:.2f} (max 0.30, 0 beyond 4), where over the posterior std it is 0.35: on these recordings" in L
+    assert "std ratio max 5.00–5.00" in L
