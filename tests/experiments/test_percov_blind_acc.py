@@ -80,7 +80,13 @@ def test_the_targets_sandwich_line_uses_the_sandwich_and_the_cuts_spread():
     b = _row(0, [0.3, 0.4], [30, 40], [100, 100], "blind")
     b["sandwich"] = {"coordinates": ["r[1, x]", "r[0, x]"], "sandwich_std_m": [1e-4, 1e-4], "cut_std_m": [1e-4, 0.0],
                      "std_ratio_max": 5.0, "std_ratio_median": 3.0}
-    L = "\n".join(pb.markdown([(b, _row(0, [1.0, 1.0], [1, 2], [1, 1], "oracle"))], "cmd", 1.0))
+    o = _row(0, [1.0, 1.0], [1, 2], [1, 1], "oracle")
+    L = "\n".join(pb.markdown([(b, o)], "cmd", 1.0))
     want = np.sqrt(np.mean([0.3 ** 2, (0.4 / np.sqrt(2)) ** 2]))
-    assert f"has RMS {want:.2f} (max 0.30, 0 beyond 4), where over the posterior std it is 0.35: on these recordings" in L
+    assert f"has RMS {want:.2f} (max 0.30, 0 beyond 4), where over the posterior std it is 0.35." in L
     assert "std ratio max 5.00–5.00" in L
+    # the oracle's own sandwich (no cut): errors 1, 2 µm over 0.5 µm → 2, 4 (RMS 3.16, none beyond 4)
+    o["sandwich"] = {"coordinates": ["r[0, x]", "r[1, x]"], "sandwich_std_m": [5e-7, 5e-7],
+                     "std_ratio_max": 1.0, "std_ratio_median": 1.0}
+    L = "\n".join(pb.markdown([(b, o)], "cmd", 1.0))
+    assert "the oracle's (the per-sample likelihood's own sandwich) 3.16 (max 4.00, 0 beyond 4) against 1.00." in L
