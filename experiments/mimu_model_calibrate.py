@@ -280,15 +280,16 @@ def _variant_paragraph(what: str, b: dict, n_exps: int, *, timed: bool) -> str:
             f"everywhere) with it: {'YES' if all(x <= 1.3 for x in b['ratio_max']) else 'NO'}.")
 
 
-def layer_shift_um(a: dict, b: dict) -> list:
-    """(x, y) µm: how far record ``a``'s lower-layer IMUs (nominal z more than 1 mm below the reference: the
-    board's underside) moved against its upper-layer ones, relative to record ``b`` (reference excluded)."""
-    d = (np.asarray(a["mean"], dtype=float) - np.asarray(b["mean"], dtype=float)) * 1e6
-    z = np.asarray(a["nominal"], dtype=float)[:, 2]
+def layer_shift_um(a: dict, b: dict) -> list | None:
+    """(x, y) µm: how far record ``a``'s lower-layer IMUs (more than 1 mm below the reference: the board's
+    underside) moved against its upper-layer ones, relative to record ``b`` (reference excluded;
+    :func:`mimu_blind_acc.layer_shift` on these records, whose reference is the IMU at the nominal origin);
+    None on a one-layer board."""
+    from mimu_blind_acc import layer_shift
+
     ref = int(np.argmin(np.abs(np.asarray(a["nominal"], dtype=float)).sum(1)))
-    low = np.array([k != ref and z[k] < -1e-3 for k in range(len(z))])
-    up = np.array([k != ref and z[k] >= -1e-3 for k in range(len(z))])
-    return (d[low, :2].mean(0) - d[up, :2].mean(0)).tolist()
+    sh = layer_shift(dict(a, reference_imu=ref), dict(b, reference_imu=ref))
+    return None if sh is None else [float(v) for v in sh]
 
 
 def acc_markdown(results, summ) -> str:
@@ -307,7 +308,8 @@ def acc_markdown(results, summ) -> str:
         z = d / sd
         before = (r.get("sandwich_before_blocks") or {}).get("std_ratio_max")
         L.append(f"| {r['exp']} | {100 * ab.get('tau_matrix', float('nan')):.2f} / {ab.get('tau_bias_m_s2', float('nan')):.3f} | "
-                 f"({sh[0]:+.0f}, {sh[1]:+.0f}) | {np.sqrt(np.mean(z ** 2)):.2f} / {np.abs(z).max():.2f} | "
+                 + ("—" if sh is None else f"({sh[0]:+.0f}, {sh[1]:+.0f})")
+                 + f" | {np.sqrt(np.mean(z ** 2)):.2f} / {np.abs(z).max():.2f} | "
                  f"{_f(before)} → {r['untempered_ratio_max']:.2f} | "
                  f"{np.median(_free_stack([w], 'std')) * 1e6:.0f} / {np.median(_free_stack([r], 'std')) * 1e6:.0f} |")
     a = summ.get("with_acc") or {}

@@ -243,56 +243,50 @@ class _ExactDelta:
         X = _design(self.fhat[t0:t1].view(t1 - t0, self.lik.A, 3), self.inv_scale[t0:t1]) @ self.Z
         return S, X.transpose(-1, -2) @ S, X
 
-    def sums(self, rv: torch.Tensor):
-        """(K(r) (n, n), g(r) (n,)) at the flattened relative positions rv (3A,) m (differentiable)."""
+    def _projected(self, rv: torch.Tensor):
+        """Per chunk of samples at the flattened relative positions rv (3A,) m: (t0, t1, G, S_tH, XS_t, L_t, V_t),
+        M_t = L_tL_tᵀ and V_t = L_t⁻¹(XS_tH)ᵀ (τ, 6, n) — what K, g and their per-sample terms are made of."""
         lik = self.lik
         Rm = rv.view(lik.A, 3)
         H, G = H_matrix(Rm), G_matrix(Rm)
-        K, g = self.K0, 0.0
         for t0, t1, S, XS in self.parts:
             if S is None:
                 S, XS, _ = self._part(t0, t1)
             SH = S @ H  # (τ, 3A, 6)
             L = torch.linalg.cholesky(_phi_normal(lik, H, SH))
-            e = lik.y[t0:t1] - self.u[t0:t1] @ G.T  # (τ, 3A)
             V = torch.linalg.solve_triangular(L, (XS @ H).transpose(-1, -2), upper=False)  # (τ, 6, n)
-            c = torch.linalg.solve_triangular(L, SH.transpose(-1, -2) @ e[..., None], upper=False)  # (τ, 6, 1)
+            yield t0, t1, G, SH, XS, L, V
+
+    def _g_terms(self, t0, t1, G, SH, XS, L, V, dy=None):
+        """(X_tᵀS_te_t, V_tᵀL_t⁻¹HᵀS_te_t) (τ, n) each, e_t = y_t − G(r)u_t (− dy_t): X_tᵀW_te_t is their difference."""
+        e = self.lik.y[t0:t1] - self.u[t0:t1] @ G.T  # (τ, 3A)
+        if dy is not None:
+            e = e - dy[t0:t1]
+        c = torch.linalg.solve_triangular(L, SH.transpose(-1, -2) @ e[..., None], upper=False)  # (τ, 6, 1)
+        return (XS @ e[..., None])[..., 0], (V.transpose(-1, -2) @ c)[..., 0]
+
+    def sums(self, rv: torch.Tensor):
+        """(K(r) (n, n), g(r) (n,)) at the flattened relative positions rv (3A,) m (differentiable)."""
+        K, g = self.K0, 0.0
+        for t0, t1, G, SH, XS, L, V in self._projected(rv):
             Vf = V.reshape(-1, V.shape[-1])
             K = K - Vf.T @ Vf
-            g = g + (XS @ e[..., None])[..., 0].sum(0) - (V.transpose(-1, -2) @ c)[..., 0].sum(0)
+            a, b = self._g_terms(t0, t1, G, SH, XS, L, V)
+            g = g + a.sum(0) - b.sum(0)
         return 0.5 * (K + K.T), g
 
     def posterior_vv(self, rv: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
         """(T,) ‖V_tR‖²_F at the flattened relative positions rv (3A,) m (differentiable): with C = RRᵀ,
         the θ-dependent part of −tr(C X_tᵀW_tX_t) per sample (:func:`marginal_scores`)."""
-        lik = self.lik
-        Rm = rv.view(lik.A, 3)
-        H = H_matrix(Rm)
-        out = []
-        for t0, t1, S, XS in self.parts:
-            if S is None:
-                S, XS, _ = self._part(t0, t1)
-            L = torch.linalg.cholesky(_phi_normal(lik, H, S @ H))
-            V = torch.linalg.solve_triangular(L, (XS @ H).transpose(-1, -2), upper=False)  # (τ, 6, n)
-            out.append((V @ R).square().sum((-1, -2)))
-        return torch.cat(out)
+        return torch.cat([(V @ R).square().sum((-1, -2)) for *_, V in self._projected(rv)])
 
     def g_per_sample(self, rv: torch.Tensor, dy: torch.Tensor) -> torch.Tensor:
         """(T, n): the terms X_tᵀW_t(e_t − dy_t) of g at the flattened relative positions rv (3A,) m, dy (T, 3A)
         subtracted from each residual e_t — with dy = X_tZm, γ's per-sample scores at m (:func:`marginal_scores`)."""
-        lik = self.lik
-        Rm = rv.view(lik.A, 3)
-        H, G = H_matrix(Rm), G_matrix(Rm)
         out = []
-        for t0, t1, S, XS in self.parts:
-            if S is None:
-                S, XS, _ = self._part(t0, t1)
-            SH = S @ H
-            L = torch.linalg.cholesky(_phi_normal(lik, H, SH))
-            e = lik.y[t0:t1] - self.u[t0:t1] @ G.T - dy[t0:t1]
-            V = torch.linalg.solve_triangular(L, (XS @ H).transpose(-1, -2), upper=False)
-            c = torch.linalg.solve_triangular(L, SH.transpose(-1, -2) @ e[..., None], upper=False)
-            out.append((XS @ e[..., None])[..., 0] - (V.transpose(-1, -2) @ c)[..., 0])
+        for part in self._projected(rv):
+            a, b = self._g_terms(*part, dy=dy)
+            out.append(a - b)
         return torch.cat(out)
 
     def delta(self, r: torch.Tensor, mu, pvar, with_grad: bool):
@@ -484,16 +478,9 @@ def marginal_scores(lik, term: BlockMarginal, positions, free_columns) -> torch.
         # X_tβ per triad k: E_k f̂_kt + b_k / s_t (module docstring, "Model")
         dy = torch.einsum("kij,tkj->tki", E, term.fhat.view(T, A, 3)) + term.inv_scale[:, None, None] * b
     if not hasattr(lik, "log_lik_per_sample"):  # the flat likelihood: the per-sample form with nothing loaded
-        from .likelihood import RaoBlackwellLikelihood
         from .likelihood_percov import with_unresolved_motion
 
-        if float(getattr(lik, "kappa", 1.0)) != 1.0:
-            raise UserError(f"lik: expected an untempered likelihood, got one tempered by kappa = {lik.kappa:g}")
-        # the calibration's untempered flat likelihood may be a TemperedLikelihood with κ = 1: the same density
-        plain = RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std, 1, reference=lik.reference,
-                                       dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior,
-                                       prepared=lik.prepared)
-        lik = with_unresolved_motion(plain, torch.zeros(T, A, dtype=lik.dtype), 0.0)
+        lik = with_unresolved_motion(lik.untempered_copy(), torch.zeros(T, A, dtype=lik.dtype), 0.0)
     corrected = lik.with_outputs(lik.acc - dy)
     R = torch.linalg.cholesky(C)
     r0 = r.reshape(-1)

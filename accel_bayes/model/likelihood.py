@@ -239,6 +239,17 @@ class RaoBlackwellLikelihood(DrawSums):
         new.phi_prior_prec = None if new.phi_prior is None else new.phi_prior.precision
         return new
 
+    def untempered_copy(self) -> "RaoBlackwellLikelihood":
+        """A plain :class:`RaoBlackwellLikelihood` (one ω draw) on the same data, gyro posterior, noise levels and
+        φ prior: what a subclass's per-sample machinery builds on.  A likelihood tempered by κ ≠ 1 is refused
+        (its density is not this one's); the calibration hands its untempered flat likelihood over as a
+        :class:`~.tempering.TemperedLikelihood` with κ = 1, the same density."""
+        if float(getattr(self, "kappa", 1.0)) != 1.0:
+            raise UserError(f"lik: expected an untempered likelihood, got one tempered by kappa = {self.kappa:g}")
+        return RaoBlackwellLikelihood(self.acc, self.omega, self.acc_noise_std, 1, reference=self.reference,
+                                      dtype=self.dtype, device=self.device, phi_prior=self.phi_prior,
+                                      prepared=self.prepared)
+
     def with_outputs(self, acc) -> "RaoBlackwellLikelihood":
         """A shallow copy on other accelerometer outputs ``acc`` (T, A, 3) m/s² of the same shape (the
         samples, noise levels, gyro posterior, φ prior and any per-sample terms kept).  Only the outputs'

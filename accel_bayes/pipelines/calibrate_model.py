@@ -109,8 +109,7 @@ def _model_percov_step(lik, terms, omega_norm, sample_scale, map_res, nominal_ac
 
     if float(getattr(lik, "kappa", 1.0)) != 1.0:  # pragma: no cover - refused with the options
         raise UserError("noise_inflation: the per-sample covariance replaces the tempering; expected none")
-    base = RaoBlackwellLikelihood(lik.acc, lik.omega, lik.acc_noise_std, 1, reference=lik.reference,
-                                  dtype=lik.dtype, device=lik.device, phi_prior=lik.phi_prior, prepared=lik.prepared)
+    base = lik.untempered_copy()
     p = terms.parameters
     band = torch.bucketize(torch.as_tensor(omega_norm, dtype=torch.float64),
                            torch.as_tensor(p["omega_edges"], dtype=torch.float64), right=True)
