@@ -71,6 +71,19 @@ independent (β, d) cells searched — the search looks at every frequency, and 
 noise peaks is not χ²-distributed.  Among accepted candidates related as β and 2β (a slow motion
 line at β/2 carries the beat as its 2nd harmonic) the larger evidence over the wander decides
 (:func:`_choose`).
+
+Leaks.  Each IMU is searched on the residual of the fit with every other IMU's timing error still in
+the outputs, and the fitted rate follows the gyros: about 1/n of IMU j's data-age error appears, with
+the opposite sign, in every other IMU's residual — a sawtooth at −β_j.  Where an IMU's own clock is
+weak that copy can win its search and pass (clockgen clock-020: IMU 2, true beat −1.785 Hz, picked
++2.446 Hz, IMU 3's −2.447 Hz mirrored, evidence over the wander 111; clock-028: IMUs 2 and 3 both at
+IMU 1's mirror).  So an IMU whose pick sits within the search's resolution (1/span Hz) of ±β_j, j an
+IMU with an accepted clock and a larger evidence over the wander, is searched again on the recording
+corrected for the other IMUs' accepted clocks (those not themselves so flagged) and refitted; its
+second pick replaces the first (clock-020's IMU 2 then finds −1.787 Hz, evidence over the wander 567).
+Two true beats that close are searched again too, and keep their clock (what the second look removes
+is the other IMU's copy, not the IMU's own signal).  The report's ``details.clock_stage.second_look``
+lists the IMUs; each one's fit carries its first pick and the IMU it was taken for a copy of.
 """
 from __future__ import annotations
 
@@ -445,6 +458,32 @@ def _choose(cands: list, tol_hz: float) -> dict:
     return max([best] + rel, key=lambda c: c["evidence_vs_wander"])
 
 
+def _clock_effect(est: dict) -> SamplingClock:
+    """The :class:`SamplingClock` of one IMU's accepted estimate (:func:`clock_stage`'s fits)."""
+    f_read = est["f_read_hz"]
+    f_int = f_read * round(NOMINAL_INTERNAL_RATE_HZ / f_read) + est["beat_hz"]
+    c = SamplingClock(imu=est["imu"], params={"internal_rate_hz": f_int, "beat_hz": est["beat_hz"], "phase": est["phase"],
+                                              "drift_hz_per_s": est["drift_hz_per_s"],
+                                              "age_rms_s": est["width_s"] / math.sqrt(12.0),
+                                              "filter_delay_acc_minus_gyro_s": 0.0, "rate_scale": est["rate_scale"]})
+    c.stats = {kk: v for kk, v in est.items() if kk not in ("wander_before", "wander_after")}
+    return c
+
+
+def _leaks(fits: list, tol_hz: float) -> dict:
+    """{IMU k: IMU j} for every IMU whose pick (accepted or not) sits within ``tol_hz`` (Hz, at the
+    recording's middle) of +β_j or −β_j, j another IMU with an accepted clock and a larger evidence over
+    the wander: what :func:`clock_stage` looks at again (module docstring, "Leaks")."""
+    out = {}
+    for f in fits:
+        src = [g for g in fits if g["accepted"] and g["imu"] != f["imu"]
+               and g["evidence_vs_wander"] > f["evidence_vs_wander"]
+               and min(abs(f["beat_mid_hz"] - g["beat_mid_hz"]), abs(f["beat_mid_hz"] + g["beat_mid_hz"])) <= tol_hz]
+        if src:
+            out[f["imu"]] = max(src, key=lambda g: g["evidence_vs_wander"])["imu"]
+    return out
+
+
 def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshold: float) -> ClockStage:
     """Estimate a clock on every IMU with a gyroscope at ``fit`` (module docstring), accept those
     whose two evidences pass the stage threshold, correct ``prep`` for them and refit the model
@@ -458,19 +497,21 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
     dt = float(np.median(np.diff(t)))
     f_read = 1.0 / dt
     steps = sample_steps(t)
-    fits, thr = [], None
-    for k in [int(j) for j in np.flatnonzero(prep.has_gyro)]:
-        if prep.gyro_rate is None or not bool(prep.m_gyro[:, k].any()):
-            continue
-        a_t, b_t, rr, n_obs = clock_ab(prep, fit, k)
+    tol = 1.0 / max(float(t[-1] - t[0]), dt)
+    n_imu = int(np.asarray(prep.has_gyro).sum())
+    thr = None
+
+    def one_imu(prep_k, fit_k, k):
+        # IMU k's candidates at fit_k, refined, judged, and its pick (_choose)
+        nonlocal thr
+        a_t, b_t, rr, n_obs = clock_ab(prep_k, fit_k, k)
         a, b = a_t.numpy(), b_t.numpy()
         w0 = fit_wander(a, b, steps, sigma_max=dt, rr=rr, n=n_obs)
         g_none = _white_loglik(rr, n_obs)
         cands = estimate_clock(t, a, b, f_read, candidates=True)[:_N_STAGE]
         if thr is None:
-            n_imu = int(np.asarray(prep.has_gyro).sum())
             thr = max(threshold, float(chi2.isf(alpha / max(n_imu * cands[0]["cells"], 1), 4)))
-        lam = rate_scale(prep, fit, k)
+        lam = rate_scale(prep_k, fit_k, k)
         done = []
         for cand in cands:
             cand = _versus_wander(cand, a, b, t, steps, dt, rr, n_obs, w0, g_none)
@@ -482,21 +523,30 @@ def clock_stage(prep: Prepared, fit: ModelFit, *, m: int, alpha: float, threshol
                                     and WIDTH_RANGE_S[0] <= cand["width_s"] <= WIDTH_RANGE_S[1]
                                     and physical_beats(cand["beat_hz"], f_read))
             done.append(cand)
-        fits.append(_choose(done, 1.0 / max(float(t[-1] - t[0]), dt)))
-    clocks = []
-    for est in fits:
-        if est["accepted"]:
-            k, lam = est["imu"], est["rate_scale"]
-            f_int = f_read * round(NOMINAL_INTERNAL_RATE_HZ / f_read) + est["beat_hz"]
-            c = SamplingClock(imu=k, params={"internal_rate_hz": f_int, "beat_hz": est["beat_hz"], "phase": est["phase"],
-                                             "drift_hz_per_s": est["drift_hz_per_s"],
-                                             "age_rms_s": est["width_s"] / math.sqrt(12.0),
-                                             "filter_delay_acc_minus_gyro_s": 0.0, "rate_scale": lam})
-            c.stats = {kk: v for kk, v in est.items() if kk not in ("wander_before", "wander_after")}
-            clocks.append(c)
+        return _choose(done, tol)
+
+    fits = [one_imu(prep, fit, int(k)) for k in np.flatnonzero(prep.has_gyro)
+            if prep.gyro_rate is not None and bool(prep.m_gyro[:, int(k)].any())]
+    # second look (module docstring, "Leaks"): an IMU whose pick is ±β of a stronger accepted clock on
+    # another IMU is searched again with the other IMUs' clocks taken out
+    leaks = _leaks(fits, tol)
+    if leaks:
+        # the flagged IMUs' own picks are left out, so one corrected recording serves them all
+        sources = [_clock_effect(f) for f in fits if f["accepted"] and f["imu"] not in leaks]
+        prep_s = clock_corrected(prep, fit, sources)
+        fit_s = fit_model(prep_s, [e.copy() for e in fit.effects], init=fit, laplace=False)
+        for i, f in enumerate(fits):
+            k = f["imu"]
+            if k not in leaks:
+                continue
+            again = one_imu(prep_s, fit_s, k)
+            again.update({"second_look": True, "first_look_beat_mid_hz": f["beat_mid_hz"],
+                          "first_look_accepted": f["accepted"], "leak_of_imu": leaks[k]})
+            fits[i] = again
+    clocks = [_clock_effect(est) for est in fits if est["accepted"]]
     thr = threshold if thr is None else thr
     info = {"threshold": thr, "imus": [{kk: v for kk, v in f.items()} for f in fits],
-            "accepted": [c.imu for c in clocks]}
+            "accepted": [c.imu for c in clocks], "second_look": sorted(leaks)}
     if not clocks:
         return ClockStage([], fits, prep, fit, thr, info)
     prep_c = clock_corrected(prep, fit, clocks)

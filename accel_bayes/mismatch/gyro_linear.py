@@ -36,8 +36,12 @@ How (block-coordinate maximum likelihood on the detector's own model):
    What no test can tell apart is a systematic error: on accelerometers ``prep`` could not calibrate,
    the common part takes their errors (kept by either test); the accelerometer stage (opt-in)
    restages it on corrected triads (:mod:`accel_bayes.mismatch.acc_linear`).
-3. **Tests.**  The errors must be spread over several gyros (:data:`MIN_SPREAD_SHARE`, and the
-   spread statistic of :func:`_spread_share` above χ²_{12(n−2)} at 1 − α/m).  Before any
+3. **Tests.**  The errors must be spread over several gyros: the spread share
+   (:func:`~accel_bayes.mismatch.linear_blocks.spread_share`) at least :data:`MIN_SPREAD_SHARE` and
+   its statistic above χ²_{12(n−2)} at 1 − α/m; below the share, the others' relative blocks with
+   the strongest gyro's block inverted (:func:`~accel_bayes.mismatch.linear_blocks.others_after_top`)
+   above χ²_{12(n−1)} at 1 − α/m — on boards of few gyros the share of independent errors is itself
+   near (n − 2)/(n − 1) (experiments/gyro_spread_check.md).  Before any
    refit, the group's conditional statistic Σ_k Σ_t |M_k ĝ_kt + b_k|²/σ_k²
    at the baseline (noise-robust: over max(1, P), P the mean z² left in the gyros after the
    regression) is held to χ²_{12n} at 1 − α/m; below it the stage stops (cost: n regressions).
