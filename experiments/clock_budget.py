@@ -268,7 +268,7 @@ def summary(results: list, cmd: str, n_asked: int, wall: float | None) -> str:
                     + f" | {', '.join(d['effects'])} |")
     gst = [json.loads(p.read_text()) for p in sorted(OUT.glob("gyro-stage-*.json"))]
     if gst:
-        L += ["", "Gyro linear stage alone at the baseline (`--diagnose-gyro SEED`, m = 1000): why no `gyro_scale` block.", "",
+        L += ["", "Gyro linear stage alone at the baseline (`--diagnose-gyro SEED`, m = 1000): its spread tests and result (the direct test decides below the share since 2026-11-29).", "",
               "| case | board | read Hz | true ‖M_k − I‖ per IMU | spread share (min) | spread statistic (threshold) | result |",
               "|---|---|---|---|---|---|---|"]
         for g in gst:
