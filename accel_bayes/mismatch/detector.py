@@ -178,6 +178,18 @@ def detect(recording, options: DetectOptions | None = None, **keywords) -> Misma
         return _detect(recording, options)
 
 
+def clock_explanation(c) -> str:
+    """A clock finding's explanation: the effect's own, and where the clock stage searched the IMU a second
+    time (:mod:`accel_bayes.mismatch.clock`, "Leaks") what its first pick was and whose copy."""
+    text = c.explain()
+    st = c.stats or {}
+    if st.get("second_look"):
+        text += (f" Searched a second time with the other clocks taken out: the first pick "
+                 f"({st['first_look_beat_mid_hz']:+.3f} Hz at the recording's middle) sat on ± IMU "
+                 f"{st['leak_of_imu']}'s beat, which leaks into every other IMU's residual through the fitted rate.")
+    return text
+
+
 def _stage_findings(prep, reg, stages, clock, fd) -> list[Finding]:
     """The findings of the stages held fixed in the rounds: one per accepted clock (its filter delay
     as :func:`~accel_bayes.mismatch.filter_delay.filter_delay` found it) and one per block of the
@@ -186,7 +198,7 @@ def _stage_findings(prep, reg, stages, clock, fd) -> list[Finding]:
     for c in (clock.clocks if clock is not None else []):
         ev = float(c.stats["evidence"])
         out.append(Finding(effect=c, evidence=ev, df=c.df, log10_p=log10_chi2_sf(ev, 4),
-                           where={"regime": "all regimes", "time_s": None}, explanation=c.explain(),
+                           where={"regime": "all regimes", "time_s": None}, explanation=clock_explanation(c),
                            screen_statistic=None, orientations=prep.q,
                            parameters_reported={"filter_delay_acc_minus_gyro_s": fd["value_s"]},
                            extra={"evidence_kind": "2·Δlog L of the gyro's restricted timing statistics, "
@@ -337,8 +349,10 @@ def _detect(recording, o: DetectOptions) -> MismatchReport:
             # step 3c: the accelerometers' filter delay beyond the gyros', reported where identified
             # (not applied: accel_bayes.mismatch.filter_delay says why)
             fd = filter_delay(prep, current, [c.imu for c in clock.clocks])
-        say(f"clock stage: sampling_clock on IMUs {clock.info['accepted']}; filter delay "
-            f"{fd['value_s'] if fd['identified'] else 'not identified'}")
+        again = clock.info.get("second_look") or []
+        say(f"clock stage: sampling_clock on IMUs {clock.info['accepted']}"
+            + (f" (searched a second time, a pick on another IMU's copied beat: {again})" if again else "")
+            + f"; filter delay {fd['value_s'] if fd['identified'] else 'not identified'}")
     timings["clock_s"] = _time.perf_counter() - t0
     blocked = {e.imu for e in stage.blocks} if stage is not None else set()
     acc_blocked = {e.imu for e in acc_stage.blocks} if acc_stage is not None else set()

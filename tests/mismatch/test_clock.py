@@ -179,3 +179,16 @@ def test_second_look_finds_the_clocks_a_mirrored_leak_hid():
         assert abs(f["beat_mid_hz"] - truth_beat_mid(truth, f["imu"], t_mid)) < 0.05
     again = {f["imu"]: f for f in st.fits if f.get("second_look")}
     assert all(abs(abs(f["first_look_beat_mid_hz"]) - 8.326) < 0.01 and f["leak_of_imu"] == 1 for f in again.values())
+
+
+def test_a_second_look_is_said_in_the_finding():
+    from accel_bayes.mismatch.clock import _clock_effect
+    from accel_bayes.mismatch.detector import clock_explanation
+
+    est = {"imu": 2, "f_read_hz": 125.0, "beat_hz": -1.787, "phase": 0.3, "drift_hz_per_s": 0.0, "width_s": 1e-3,
+           "rate_scale": 0.9, "beat_mid_hz": -1.787, "evidence": 7302.0, "evidence_vs_wander": 567.0, "accepted": True}
+    plain = clock_explanation(_clock_effect(est))
+    assert "second time" not in plain
+    again = clock_explanation(_clock_effect({**est, "second_look": True, "first_look_beat_mid_hz": 2.446,
+                                             "first_look_accepted": True, "leak_of_imu": 3}))
+    assert again.startswith(plain) and "+2.446 Hz" in again and "IMU 3's beat" in again
