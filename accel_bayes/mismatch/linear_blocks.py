@@ -262,6 +262,7 @@ def linear_stage(prep: Prepared, base: ModelFit, *, sensor: str, block: Callable
                  f"{sensor}_power_left": p_left})
     if g_stat <= thr_group:
         return done(f"group below its threshold: no {word} linear errors")
+
     def direct(why):
         # the others' relative blocks with the strongest triad's block inverted (others_after_top)
         top, o_stat = others_after_top(prep, base, rel, imus, sensor)
