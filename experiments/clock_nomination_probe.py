@@ -89,6 +89,9 @@ def probe(seed: int, k: int, seps=(4, 8)) -> dict:
     loc = np.flatnonzero((best > np.roll(best, 1)) & (best >= np.roll(best, -1)) & (best > 0))
     locs = loc[np.argsort(-best[loc])]
     rank = next((j for j, i in enumerate(locs) if near[i]), None)
+    f_top = abs(float(fr[np.argmax(best)]))
+    between = (np.abs(fr) > min(f_top, abs(beat)) + 2 * f_read / sp["L"]) & (np.abs(fr) < max(f_top, abs(beat)) - 2 * f_read / sp["L"])
+    floor = float(best[between].min() / best.max()) if between.any() else float("nan")
     mid = lambda c: c["beat_hz"] + c["drift_hz_per_s"] * t_mid  # noqa: E731
     return {"seed": seed, "imu": k, "board": truth["board"], "f_read": f_read, "kept": len(t), "span_s": float(t[-1] - t[0]),
             "true_beat": beat, "threshold": thr_stage,
@@ -96,7 +99,7 @@ def probe(seed: int, k: int, seps=(4, 8)) -> dict:
                      "width_ms": 1e3 * true["width_s"] / lam},
             "pick": {"beat": mid(pick), "evidence": pick["evidence"], "evw": pick["evidence_vs_wander"],
                      "width_ms": 1e3 * pick["width_s"] / lam},
-            "height_ratio": float(best[near].max() / best.max()), "rank": rank,
+            "height_ratio": float(best[near].max() / best.max()), "rank": rank, "floor_between": floor, "f_top": f_top,
             "top": [float(fr[i]) for i in locs[:8]],
             "nominated": [p[1] for p in C._nominate(sp)],
             "apart": {s: [p[1] for p in nominate_apart(sp, s)] for s in seps}, "bins_per_resolution": sp["L"] / (f_read * float(t[-1] - t[0]))}
@@ -117,7 +120,8 @@ def markdown(r: dict, cmd: str) -> list[str]:
          f"| the stage's best candidate | {r['pick']['beat']:+.3f} | {r['pick']['evidence']:.1f} | {r['pick']['evw']:.1f} | "
          f"{r['pick']['width_ms']:.2f} |", "",
          f"Raw ranking (Σ_m |F_m|²/m, maximum over the drift rows): the true beat's height is {r['height_ratio']:.2f} of the "
-         f"top; among the local maxima it ranks {r['rank']}; the top eight: {fmt(r['top'])} Hz.", "",
+         f"top; among the local maxima it ranks {r['rank']}; the top eight: {fmt(r['top'])} Hz. Between the top (±{r['f_top']:.2f} Hz) "
+         f"and the true beat the ranking never falls below {r['floor_between']:.2f} of the top.", "",
          f"Nominated by `_nominate` (one search bin is 1/{r['bins_per_resolution']:.1f} of the resolution 1/span): "
          f"{fmt(r['nominated'])} — true beat {'in' if has(r['nominated']) else '**not in**'}."]
     for s, beats in r["apart"].items():
