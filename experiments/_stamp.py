@@ -7,7 +7,7 @@ import datetime
 import os
 import platform
 
-__all__ = ["machine_note", "run_stamp"]
+__all__ = ["invocation", "machine_note", "run_stamp"]
 
 
 def machine_note() -> str:
@@ -19,3 +19,12 @@ def machine_note() -> str:
 def run_stamp() -> str:
     """"2026-11-27 21:12 UTC, x86_64 Linux, 2 cores, load average 0.4" (UTC now and :func:`machine_note`)."""
     return f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {machine_note()}"
+
+
+def invocation(script: str, argv=None) -> str:
+    """The command a document names to regenerate it: "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3
+    experiments/SCRIPT ARGS" (``script`` the file name, ``argv`` the script's arguments; None: ``sys.argv[1:]``)."""
+    import sys
+
+    args = sys.argv[1:] if argv is None else argv
+    return f"PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/{script} {' '.join(args)}".strip()

@@ -135,11 +135,10 @@ def main(argv=None) -> int:
     ap.add_argument("--imu", type=int, default=1, help="IMU (default 1)")
     a = ap.parse_args(argv)
     from experiments._reading import write_with_reading
+    from experiments._stamp import invocation
 
     r = probe(a.seed, a.imu)
-    cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/clock_nomination_probe.py " + " ".join(
-        argv if argv is not None else sys.argv[1:])
-    write_with_reading(DOC, markdown(r, cmd.strip()))
+    write_with_reading(DOC, markdown(r, invocation("clock_nomination_probe.py", argv)))
     print(DOC.read_text())
     return 0
 

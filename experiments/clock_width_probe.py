@@ -78,9 +78,10 @@ def summarise(out: Path) -> dict:
         r = next(x for x in rows if x["sensor"] == s and x["regime"] == "all")
         return r["excess_var_explained"] / r["excess_var_observed"]
 
-    def bands(rows, s):
-        return [x["excess_var_explained"] / x["excess_var_observed"] for x in rows
-                if x["sensor"] == s and x["regime"] != "all" and x["excess_var_observed"] > 0]
+    def band_range(rows, s):  # [min, max] of b/a over the |ω| and |ω̇| bands
+        v = [x["excess_var_explained"] / x["excess_var_observed"] for x in rows
+             if x["sensor"] == s and x["regime"] != "all" and x["excess_var_observed"] > 0]
+        return [min(v), max(v)]
 
     return {"clocks": sorted(f["imu"] for f in clocks),
             "imu2": {k: fits[2][k] for k in ("beat_mid_hz", "width_s", "evidence", "evidence_vs_wander", "accepted")},
@@ -89,9 +90,9 @@ def summarise(out: Path) -> dict:
             "findings": [f"{f['effect']}[{f.get('imu')}]" for f in rep["findings"]
                          if f["effect"] not in ("sampling_clock", "gyro_scale")],
             "own": {s: ratio(rep["budget"], s) for s in ("acc", "gyro")},
-            "own_bands": {s: [min(bands(rep["budget"], s)), max(bands(rep["budget"], s))] for s in ("acc", "gyro")},
+            "own_bands": {s: band_range(rep["budget"], s) for s in ("acc", "gyro")},
             "borrowed": {s: ratio(tr["budget"], s) for s in ("acc", "gyro")},
-            "borrowed_bands": {s: [min(bands(tr["budget"], s)), max(bands(tr["budget"], s))] for s in ("acc", "gyro")},
+            "borrowed_bands": {s: band_range(tr["budget"], s) for s in ("acc", "gyro")},
             "source": tr["source"], "detect_seconds": json.loads((out / f"exp_{EXP}" / "info.json").read_text()).get("detect_seconds")}
 
 
@@ -149,7 +150,7 @@ def markdown(rows: dict, cmd: str, low_ms: float) -> list[str]:
     L = [f"# clock_width_probe — the clock stage's lower width bound on MIMU exp {EXP}", "",
          f"Regenerate: `{cmd}` ({run_stamp()}; detections cached in `experiments/out/clock_width_probe/`).", "",
          "What runs: the script's docstring. Both columns in the same run, same code, only the lower end of "
-         f"`clock.WIDTH_RANGE_S` differs; the budget ratios are b/a of \"all\" (range over the |ω| and |ω̇| bands).", "",
+         "`clock.WIDTH_RANGE_S` differs; the budget ratios are b/a of \"all\" (range over the |ω| and |ω̇| bands).", "",
          f"| exp {EXP} | default (0.4 ms) | lower bound {low_ms:g} ms |", "|---|---|---|",
          f"| clocks accepted (IMUs) | {d['clocks']} | {w['clocks']} |",
          f"| IMU 2's clock: beat (mid), width, evidence / over the wander (threshold) | "
@@ -192,10 +193,9 @@ def main(argv=None) -> int:
     rows = {"default": run_variant(OUT / "default", None, a.data),
             "low": run_variant(OUT / f"low_{a.low_ms:g}ms", a.low_ms * 1e-3, a.data)}
     from experiments._reading import write_with_reading
+    from experiments._stamp import invocation
 
-    cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/clock_width_probe.py " + " ".join(
-        argv if argv is not None else sys.argv[1:])
-    lines = markdown(rows, cmd.strip(), a.low_ms)
+    lines = markdown(rows, invocation("clock_width_probe.py", argv), a.low_ms)
     if a.concealed:
         lines += concealed(a.low_ms * 1e-3, a.jobs)
     write_with_reading(DOC, lines)

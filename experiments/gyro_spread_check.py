@@ -202,10 +202,9 @@ def main(argv=None) -> int:
     else:
         sets = {s: run_set(s, a.jobs) for s in which}
     from experiments._reading import write_with_reading
+    from experiments._stamp import invocation
 
-    cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/gyro_spread_check.py " + " ".join(
-        argv if argv is not None else sys.argv[1:])
-    write_with_reading(DOC, markdown(sets, cmd.strip()))
+    write_with_reading(DOC, markdown(sets, invocation("gyro_spread_check.py", argv)))
     print(DOC.read_text())
     return 0
 

@@ -128,15 +128,21 @@ def compare(b: dict, r: dict) -> dict:
             "std_b_um": (1e6 * sb[keep]).reshape(-1), "std_r_um": (1e6 * sr[keep]).reshape(-1)}
 
 
+def lower_layer(positions, ref: int) -> list[int]:
+    """The IMUs more than 1 mm below the reference IMU ``ref`` (MIMU4444's underside), from ``positions``
+    (K, 3) m: the one rule for the board's two layers here and in ``mimu_model_calibrate``."""
+    p = np.asarray(positions, dtype=float)
+    return [k for k in range(len(p)) if k != ref and p[k, 2] - p[ref, 2] < -1e-3]
+
+
 def layer_shift(b: dict, r: dict) -> np.ndarray | None:
     """(x, y) µm: the mean d of the IMUs in the reference's lower layer (z more than 1 mm below the reference
     IMU: MIMU4444's IMUs on the board's underside) less that of the upper layer's (the reference IMU itself
     excluded); None on a one-layer board."""
     c = compare(b, r)
     ref = int(r["reference_imu"])
-    mr = np.asarray(r["mean"]) - np.asarray(r["mean"])[ref]
-    keep = [k for k in range(len(mr)) if k != ref]
-    low = np.array([mr[k, 2] < -1e-3 for k in keep])
+    lower = set(lower_layer(r["mean"], ref))
+    low = np.array([k in lower for k in range(len(r["mean"])) if k != ref])
     if low.all() or not low.any():
         return None
     d = c["d_um"].reshape(-1, 3)
@@ -354,15 +360,13 @@ def main(argv=None) -> int:
             if (REPORTS / f"exp_{e}" / "whole_report.json").exists()}
     if len(reps) >= 2:
         ref = next(r[0] for r in rows.values())
-        m = np.asarray(ref["mean"], dtype=float)
-        m = m - m[int(ref["reference_imu"])]
         from accel_bayes.data.mimu import import_mimu
         from accel_bayes.physics.geometry import quat_to_matrix
         import torch
 
         q = np.asarray(import_mimu(data_dir() / "exp_1" / "data.bin.gz").nominal_orientation, dtype=np.float64)
         R = quat_to_matrix(torch.as_tensor(q)).numpy()  # the same board in every experiment
-        md += chip_markdown(chip_blocks(reps, R), {k for k in range(len(m)) if m[k, 2] < -1e-3})
+        md += chip_markdown(chip_blocks(reps, R), set(lower_layer(ref["mean"], int(ref["reference_imu"]))))
     write_with_reading(DOC, md)
     print(f"wrote {DOC}")
     return 0

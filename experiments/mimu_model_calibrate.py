@@ -398,8 +398,9 @@ def summarise(results: dict) -> dict:
                 rs3 = [dict(r, std=[[0.0, 0.0, 0.0]] + np.sqrt(np.clip(_free_stack([r], "std")[0] ** 2
                                                                         - np.asarray(c) ** 2, 0, None))
                             .reshape(-1, 3).tolist()) for r, c in zip(rs, cut)]
-                s["z_loo_rms_without_cut"] = analyse(rs3)["z_loo_rms"]
-                s["z_loo_max_without_cut"] = float(np.nanmax(np.abs(analyse(rs3)["z_loo"])))
+                a3 = analyse(rs3)
+                s["z_loo_rms_without_cut"] = a3["z_loo_rms"]
+                s["z_loo_max_without_cut"] = float(np.nanmax(np.abs(a3["z_loo"])))
                 s["cut_std_um_median"] = [float(np.median(c) * 1e6) for c in cut]
         out[v] = s
     return out
@@ -640,6 +641,7 @@ def figure(results: dict, summ: dict, path: Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from mimu_blind_acc import lower_layer
 
     rs = sorted(results["with"], key=lambda r: r["exp"])
     ra = sorted(results.get("with_acc", []), key=lambda r: r["exp"])
@@ -675,7 +677,8 @@ def figure(results: dict, summ: dict, path: Path) -> Path:
                 x = np.arange(K) + off + 0.04 * (i - 2.5)
                 ax.errorbar(x[1:], d[1:, c], yerr=sd[1:, c], fmt=mk, ms=3, lw=0.6, color=colors[i % 10],
                             label=(f"exp {a['exp']}" if c == 0 else None))
-        low = [k for k in range(K) if np.asarray(ra[0]["nominal"], dtype=float)[k, 2] < -1e-3]
+        nominal = np.asarray(ra[0]["nominal"], dtype=float)
+        low = lower_layer(nominal, int(np.argmin(np.abs(nominal).sum(1))))  # the reference: the IMU at the origin
         ax.set_xticks(range(K))
         ax.set_xticklabels([f"IMU {k}" + (" (under)" if k in low else "") for k in range(K)], fontsize=8)
         ax.axhline(0, color="k", lw=0.5)

@@ -233,7 +233,7 @@ def markdown(rows: list, cmd: str, stamp: str, cost: dict | None = None) -> str:
 
 
 def main(argv=None) -> int:
-    from experiments._stamp import run_stamp
+    from experiments._stamp import invocation, run_stamp
     from experiments.percov_conceal import score
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -279,9 +279,7 @@ def main(argv=None) -> int:
     if cost:
         print("\n".join(f"RESULT unclocked_{k}: {v:.2f} ms, flat {cost['ms']['flat']:.2f} ms"
                         for k, v in cost["ms"].items() if k != "flat"), flush=True)
-    cmd = "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/unclocked_probe.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)
-    text = markdown(rows, cmd.strip(), run_stamp(), cost)
+    text = markdown(rows, invocation("unclocked_probe.py", argv), run_stamp(), cost)
     if args.doc.exists():  # the reading is written by hand: kept across regeneration
         old = args.doc.read_text()
         if "## Reading" in old:

@@ -499,7 +499,7 @@ def marginal_scores(lik, term: BlockMarginal, positions, free_columns) -> torch.
     # efficient scores: less their projection on γ's own per-sample scores (see the docstring)
     dyf = dy.reshape(T, 3 * A)
     with torch.no_grad():
-        sg = exact.g_per_sample(r0, dyf) - (term.mu_dev - m).div(term.pvar).neg().div(T)  # Σ_t = 0 at m
+        sg = exact.g_per_sample(r0, dyf) + (term.mu_dev - m).div(term.pvar).div(T)  # −P⁻¹(m − μ)/T: Σ_t = 0 at m
     # J = ∂_θ(g − Km) = ∂_θ Σ_t X_tᵀW_t(e_t − X_tZm): the same sum with dy = X_tZm (no n × n per direction)
     Jg = torch.autograd.functional.jacobian(lambda v: exact.g_per_sample(v, dyf).sum(0), r0, vectorize=True,
                                             strategy="forward-mode")[:, free]  # (n, F)

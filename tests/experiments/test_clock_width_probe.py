@@ -24,3 +24,11 @@ def test_markdown_reads_both_variants():
     assert "-0.104 ms | +1.299 ms |" in text
     assert "0.36 ms, 6337 / 175 (51.4), rejected" in text and "0.34 ms" in text
     assert "| budget, scales from exp 6: acc (must ≥ 0.8) | 0.652 (0.48–0.93) |" in text
+
+
+def test_invocation_names_the_script_and_its_arguments():
+    from experiments._stamp import invocation
+
+    assert invocation("clock_width_probe.py", ["--concealed", "--jobs", "2"]) == (
+        "PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 5 python3 experiments/clock_width_probe.py --concealed --jobs 2")
+    assert invocation("clock_width_probe.py", []).endswith("experiments/clock_width_probe.py")
