@@ -10,7 +10,8 @@ On one clockgen case and IMU (default clock-029, IMU 1: a beat error left in ``c
   physical width: would the stage accept it?
 * the search's raw ranking (:func:`accel_bayes.mismatch.clock._spectra`, maximum over the drift rows): the true
   beat's height against the top, and its rank among the local maxima;
-* the peaks :func:`accel_bayes.mismatch.clock._nominate` hands the exact model, and those of the same ranking with
+* the peaks :func:`accel_bayes.mismatch.clock._nominate` hands the exact model, those the exact model's phase-grid
+  screen adds (:func:`accel_bayes.mismatch.clock_screen.screen`, since 2026-11-29), and those of the same ranking with
   local maxima kept only ``--sep`` bins apart (a wider "distinct peak"), to see whether that alone would nominate
   the true beat.
 
@@ -58,6 +59,7 @@ def probe(seed: int, k: int, seps=(4, 8)) -> dict:
     from scipy.stats import chi2
 
     from accel_bayes.mismatch import clock as C
+    from accel_bayes.mismatch.clock_screen import N_SCREEN, screen
     from experiments.clock020_oracle import truth_clock
     from experiments.clock020_search import _truth_candidate
     from experiments.clock_proof import clock_inputs, truth_beat_mid
@@ -102,6 +104,7 @@ def probe(seed: int, k: int, seps=(4, 8)) -> dict:
             "height_ratio": float(best[near].max() / best.max()), "rank": rank, "floor_between": floor, "f_top": f_top,
             "top": [float(fr[i]) for i in locs[:8]],
             "nominated": [p[1] for p in C._nominate(sp)],
+            "screened": [p[1] for p in screen(sp, t, a, b, C._nominate(sp))], "n_screen": N_SCREEN,
             "apart": {s: [p[1] for p in nominate_apart(sp, s)] for s in seps}, "bins_per_resolution": sp["L"] / (f_read * float(t[-1] - t[0]))}
 
 
@@ -124,6 +127,8 @@ def markdown(r: dict, cmd: str) -> list[str]:
          f"and the true beat the ranking never falls below {r['floor_between']:.2f} of the top.", "",
          f"Nominated by `_nominate` (one search bin is 1/{r['bins_per_resolution']:.1f} of the resolution 1/span): "
          f"{fmt(r['nominated'])} — true beat {'in' if has(r['nominated']) else '**not in**'}."]
+    L.append(f"Screened in (`clock_screen.screen`: the exact model on its phase grid at the next {r['n_screen']} distinct local maxima, "
+             f"best first): {fmt(r['screened'])} — true beat {'in' if has(r['screened']) else '**not in**'}.")
     for s, beats in r["apart"].items():
         L.append(f"Local maxima kept {s} bins apart: {fmt(beats)} — true beat {'in' if has(beats) else '**not in**'}.")
     return L

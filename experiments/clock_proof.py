@@ -125,16 +125,17 @@ def summary(results, cmd, n_cases=None):
     twins = [r for r in results if r["kind"] == "twin"]
     clean = [r for r in results if r["kind"] == "clean"]
     rows = [(r, i) for r in clock for i in r["imus"]]
-    D = np.median([r["t_mid"] * 2 for r in clock]) if clock else 0
     found = [(r, i) for r, i in rows if i["found"]]
     err = [abs(i["estimate"]["beat_mid"] - i["beat_true_mid"]) for r, i in found]
     ok = [e <= 0.05 for e in err]
-    slow = [(r, i) for r, i in rows if abs(i["beat_true_mid"]) * r["duration"] < 5]
+    from accel_bayes.mismatch.clock import MIN_CYCLES
+
+    slow = [(r, i) for r, i in rows if abs(i["beat_true_mid"]) * r["duration"] < MIN_CYCLES]
     fa_tw = sum(i["found"] for r in twins for i in r["imus"])
     n_tw = sum(len(r["imus"]) for r in twins)
     fa_cl = sum(i["found"] for r in clean for i in r["imus"])
     n_cl = sum(len(r["imus"]) for r in clean)
-    L = [f"# clock_proof — the detector's sampling_clock on concealed clockgen cases", "",
+    L = ["# clock_proof — the detector's sampling_clock on concealed clockgen cases", "",
          f"Regenerate: `{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()} "
          f"{platform.system()}, shared 2-core CPU; per-case results cached in `experiments/results/clock_proof/`).",
          "The detector's steps the clock findings depend on (defaults; `clock_findings`, see the script's docstring).", "",
@@ -147,7 +148,7 @@ def summary(results, cmd, n_cases=None):
             "`PYTHONPATH=. python3 experiments/clock_proof.py --jobs 2` computes the rest, reusing the cached ones)."), "",
          "| measure | value | must |", "|---|---|---|",
          f"| sampling_clock found on the IMUs that have one | {len(found)}/{len(rows)} = {len(found) / max(len(rows), 1):.1%} | ≥ 90 % |",
-         f"| … excluding beats under 5 cycles per recording (a wander, not searched) | "
+         f"| … excluding beats under {MIN_CYCLES:g} cycles per recording (a wander, not searched) | "
          f"{sum(i['found'] for r, i in rows if (r, i) not in slow)}/{len(rows) - len(slow)} | — |",
          f"| beat within 0.05 Hz of the truth at the recording's middle, of those found | {sum(ok)}/{len(found)} = "
          f"{sum(ok) / max(len(found), 1):.1%}; median error {np.median(err) if err else float('nan'):.4f} Hz | all |",

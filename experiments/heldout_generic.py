@@ -62,6 +62,7 @@ from mimu_mismatch import load_recording  # noqa: E402
 
 from accel_bayes.data import outputs  # noqa: E402
 from accel_bayes.mismatch import baseline_fit, prepare  # noqa: E402
+from accel_bayes.mismatch.clock import MIN_CYCLES  # noqa: E402
 from accel_bayes.mismatch.age_predictive import (beat_walk_rate, fit_forecast_noise, forecast_errors,  # noqa: E402
                                                  phase_predictive)
 from accel_bayes.mismatch.heldout import (GENERIC, PHYSICS, acquired_age, block_bootstrap_se,  # noqa: E402
@@ -99,7 +100,6 @@ def load(i, args):
     stats = window_statistics(prep, window)
     c_all = clocks_of(res)
     blocks = tracked_clocks(res, stats, after=after, block_s=args.block_s)
-    c_acq = blocks[0][1]  # the tracker's first block has only the window before it: the plain acquisition
     first = res.time.numpy() < after
     info.update(T_kept=int(len(res.time)), f_read=res.f_read, span_s=float(res.time[-1] - res.time[0]),
                 window_start_s=float(t_src[window][0]), window_end_s=after, n_window=int(window.sum()),
@@ -277,9 +277,9 @@ def summary_markdown(R) -> str:
           "before that block), each the local beat β₀ + d·t at the window's start (comparable across "
           "acquisitions); `*`: under the evidence rule's threshold or outside the width range (the IMU gets "
           "no clock under the rule). Acquired by `accel_bayes.mismatch.clock.estimate_clock` on each IMU's gyro "
-          "timing statistics (`clock.clock_ab`); the sign says which way the sawtooth ramps. A 30 s window "
-          "holds fewer than 5 cycles of a beat under 0.17 Hz, which the search does not consider "
-          "(`clock.MIN_CYCLES`).", "",
+          "timing statistics (`clock.clock_ab`); the sign says which way the sawtooth ramps. A "
+          f"{R['acquire_s']:g} s window holds fewer than {MIN_CYCLES:g} cycles of a beat under "
+          f"{MIN_CYCLES / R['acquire_s']:.2f} Hz, which the search does not consider (`clock.MIN_CYCLES`).", "",
           "| exp | " + " | ".join(f"IMU {k}" for k in range(K)) + " |", "|---|" + "---|" * K]
     for i in exps:
         inf = R["info"][str(i)]

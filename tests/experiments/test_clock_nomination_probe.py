@@ -27,9 +27,10 @@ def test_markdown_says_whether_the_true_beat_is_nominated():
     r = {"seed": 29, "imu": 1, "board": "cube6", "f_read": 62.5, "kept": 433, "span_s": 10.2, "true_beat": -16.449,
          "threshold": 33.6, "true": {"beat": -16.452, "evidence": 2738.6, "evw": 634.7, "width_ms": 2.66},
          "pick": {"beat": 13.022, "evidence": 822.0, "evw": 135.5, "width_ms": 0.4}, "height_ratio": 0.85, "rank": 80, "floor_between": 0.64, "f_top": 13.08,
-         "top": [13.08, -13.08], "nominated": [13.08, -7.16], "apart": {4: [16.45, 13.08]}, "bins_per_resolution": 6.4}
+         "top": [13.08, -13.08], "nominated": [13.08, -7.16], "screened": [-16.45, 11.48], "n_screen": 100, "apart": {4: [16.45, 13.08]}, "bins_per_resolution": 6.4}
     text = "\n".join(cn.markdown(r, "cmd"))
     assert "| the true clock as a candidate (refined) | -16.452 | 2738.6 | 634.7 | 2.66 |" in text
     assert "+13.08, -7.16 — true beat **not in**" in text
     assert "Between the top (±13.08 Hz) and the true beat the ranking never falls below 0.64 of the top." in text
+    assert "next 100 distinct local maxima, best first): -16.45, +11.48 — true beat in." in text
     assert "Local maxima kept 4 bins apart: +16.45, +13.08 — true beat in." in text
