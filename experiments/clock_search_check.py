@@ -59,16 +59,11 @@ def clock_record(rec) -> dict:
 
 
 def _job(spec) -> dict:
-    which, name, a = spec
+    from experiments.gyro_spread_check import recording
+
+    which, name, _ = spec
     t0 = time.perf_counter()
-    if which == "proof":
-        from _conceal import make_case
-        rec = make_case(a["board"], a["effect"], a["seed"]).recording
-        meta = {"board": a["board"], "effect": a["effect"]}
-    else:
-        from _conceal import make_multi_case
-        rec = make_multi_case(a["seed"], a["effect"], gyro_linear=a["linear"]).recording
-        meta = {"board": "mimu8", "effect": a["effect"], "gyro_linear": bool(a["linear"])}
+    rec, meta = recording(spec)  # the same recordings as gyro_spread_check's sets, named alike
     r = clock_record(rec)
     r.update({"set": which, "name": name, **meta, "seconds": time.perf_counter() - t0})
     return r

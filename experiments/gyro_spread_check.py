@@ -115,9 +115,10 @@ def _specs(which: str) -> list[tuple]:
     return specs
 
 
-def _job(spec) -> dict:
-    which, name, a = spec
-    t0 = time.perf_counter()
+def recording(spec) -> tuple:
+    """(recording, meta) of one spec of :func:`_specs` (set, name, arguments): the proofs' own generators
+    (clockgen for ``clock``, ``_conceal`` for ``proof`` and ``multi``) and the meta the records carry."""
+    which, _, a = spec
     if which == "clock":
         from clockgen import draw_case
         rec, truth = draw_case(a["kind"], a["seed"], duration=20.0)
@@ -130,6 +131,13 @@ def _job(spec) -> dict:
         from _conceal import make_multi_case
         rec = make_multi_case(a["seed"], a["effect"], gyro_linear=a["linear"]).recording
         meta = {"board": "mimu8", "effect": a["effect"], "gyro_linear": bool(a["linear"])}
+    return rec, meta
+
+
+def _job(spec) -> dict:
+    which, name, _ = spec
+    t0 = time.perf_counter()
+    rec, meta = recording(spec)
     r = spread_record(rec)
     r.update({"set": which, "name": name, **meta, "seconds": time.perf_counter() - t0})
     return r
