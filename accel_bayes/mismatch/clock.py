@@ -126,7 +126,8 @@ _N_CONTINUUM = 6   # further peaks nominated by their height over the local cont
 #: fewest sawtooth cycles over the recording's span for a clock (fewer: indistinguishable from a wander).
 #: Tried at 2 (2026-11-29, ``clock_proof.md``'s reading of 20:15): clockgen's slow beats of 2.3–3.7 cycles
 #: (clock-003, -006, -013) were then found to 0.005 Hz, but calibrating clock-003 with that report got worse
-#: (max |z| 2.19 → 4.50, ``percov_conceal``; why was not looked into), so the bound stays
+#: (max |z| 2.19 → 4.50, ``percov_conceal``) — and so did it with IMU 0's true clock (``clock_use_probe.md``:
+#: a clocked triad has no term for its timing beyond the sawtooth unless ``--instant-error``), so the bound stays
 MIN_CYCLES = 5.0
 #: the sawtooth width W (s) a clock may have: 1/f_k ≈ 1 ms, larger where the fitted output rates
 #: under-state the true ones (fast content near the read rate's Nyquist frequency), never ≪ 1 ms
