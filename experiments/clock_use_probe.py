@@ -115,12 +115,15 @@ def run_case(seed: int, variants, out: Path) -> dict:
 
 
 def stats(z) -> dict:
+    """{rms, max |z|, beyond4 (count of |z| > 4), n} of a list of z scores."""
     z = np.asarray(z, dtype=np.float64)
     return {"rms": float(np.sqrt(np.mean(z ** 2))), "max": float(np.abs(z).max()), "beyond4": int((np.abs(z) > 4).sum()),
             "n": int(z.size)}
 
 
 def markdown(cases: dict, oracle: dict, cmd: str, secs: float) -> list[str]:
+    """The document's generated lines: ``cases`` {seed: {variant: record}} of :data:`VARIANTS`, ``oracle`` the
+    :data:`ORACLE_VARIANTS` records of :data:`ORACLE_CASE` ({} when it was not run)."""
     from experiments._stamp import run_stamp
 
     L = ["# clock_use_probe — does a right clock help `calibrate --model`? (issues #27, #30)", "",
