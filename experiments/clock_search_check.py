@@ -26,7 +26,6 @@ Cached per recording in ``experiments/results/clock_search_check/{set}/`` (a rer
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -139,15 +138,9 @@ def markdown(sets: dict, cmd: str) -> list[str]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sets", default=",".join(SETS), help=f"comma-separated subset of {','.join(SETS)}")
-    ap.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
-    ap.add_argument("--summary", action="store_true", help="the document from the cached sets only")
-    a = ap.parse_args(argv)
-    which = [s for s in a.sets.split(",") if s]
-    bad = [s for s in which if s not in SETS]
-    if bad:
-        ap.error(f"--sets: unknown {bad}; expected some of {list(SETS)}")
+    from experiments.gyro_spread_check import set_arguments
+
+    which, a = set_arguments(__doc__.splitlines()[0], SETS, argv)
     sets = {s: run_set(s, a.jobs, cached_only=a.summary) for s in which}
     from experiments._reading import write_with_reading
     from experiments._stamp import invocation

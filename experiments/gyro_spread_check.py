@@ -195,16 +195,24 @@ def markdown(sets: dict, cmd: str) -> list[str]:
     return L
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sets", default=",".join(SETS), help=f"comma-separated subset of {','.join(SETS)}")
+def set_arguments(description: str, sets, argv=None):
+    """The command line of a check over the proofs' sets (this script's and ``clock_search_check.py``'s):
+    ``--sets`` (a comma-separated subset of ``sets``), ``--jobs``, ``--summary``.  Returns (the sets asked
+    for, the parsed arguments); an unknown set is a usage error (exit 2)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--sets", default=",".join(sets), help=f"comma-separated subset of {','.join(sets)}")
     ap.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     ap.add_argument("--summary", action="store_true", help="the document from the cached sets only")
     a = ap.parse_args(argv)
     which = [s for s in a.sets.split(",") if s]
-    bad = [s for s in which if s not in SETS]
+    bad = [s for s in which if s not in sets]
     if bad:
-        ap.error(f"--sets: unknown {bad}; expected some of {list(SETS)}")
+        ap.error(f"--sets: unknown {bad}; expected some of {list(sets)}")
+    return which, a
+
+
+def main(argv=None) -> int:
+    which, a = set_arguments(__doc__.splitlines()[0], SETS, argv)
     if a.summary:
         sets = {s: run_set(s, 1) for s in which if (OUT / f"{s}.jsonl").exists()}
     else:
